@@ -1,0 +1,5 @@
+import sys
+
+from uvatar.cli.main import main
+
+sys.exit(main())

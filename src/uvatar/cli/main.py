@@ -1,0 +1,104 @@
+"""``uvatar`` entry point: discovers command modules in :mod:`uvatar.cli` and dispatches.
+
+A command module defines ``register(cli: Cli) -> None`` and calls ``cli.command("name", help=...)``
+(or ``cli.command("group name", ...)`` for nested commands such as ``train avh``), then sets
+``parser.set_defaults(func=handler)``; ``handler(args) -> int | None`` returns the exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+
+from uvatar import __version__
+from uvatar.errors import UvatarError
+
+# Groups with a default sub-command: ``uvatar eval AVATAR CAPTURE`` means ``uvatar eval avh ...``.
+DEFAULT_SUBCOMMAND = {"eval": "avh"}
+
+
+class Cli:
+    """Builds the argparse tree; nested groups are made on demand."""
+
+    def __init__(self) -> None:
+        self.parser = argparse.ArgumentParser(
+            prog="uvatar",
+            description="Animatable (AVH) and drivable (DVA) avatars learned in body UV space.",
+        )
+        self.parser.add_argument("--version", action="version", version=f"uvatar {__version__}")
+        self.parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+        self._subparsers = {(): self.parser.add_subparsers(dest="command", metavar="COMMAND")}
+        self._groups: dict[tuple[str, ...], argparse.ArgumentParser] = {(): self.parser}
+
+    def _group(self, path: tuple[str, ...], help: str | None = None):
+        if path in self._subparsers:
+            return self._subparsers[path]
+        parent = self._group(path[:-1])
+        group_parser = parent.add_parser(path[-1], help=help or f"{path[-1]} commands")
+        group_parser.set_defaults(func=lambda args, p=group_parser: (p.print_help(), 2)[1])
+        self._groups[path] = group_parser
+        sub = group_parser.add_subparsers(dest="_".join(path) + "_command", metavar="COMMAND")
+        self._subparsers[path] = sub
+        return sub
+
+    def command(self, name: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
+        """Add a (possibly nested, space-separated) command and return its parser."""
+        path = tuple(name.split())
+        sub = self._group(path[:-1])
+        return sub.add_parser(
+            path[-1], help=help, description=description or help,
+            formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        )
+
+
+def build_cli() -> Cli:
+    cli = Cli()
+    import uvatar.cli as pkg
+
+    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
+        if info.name in ("main",) or info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"uvatar.cli.{info.name}")
+        if hasattr(module, "register"):
+            module.register(cli)
+    return cli
+
+
+def _apply_default_subcommands(argv: list[str]) -> list[str]:
+    for i, tok in enumerate(argv):
+        if tok.startswith("-"):
+            continue
+        default = DEFAULT_SUBCOMMAND.get(tok)
+        if default and i + 1 < len(argv):
+            nxt = argv[i + 1]
+            if nxt not in ("avh", "dva", "-h", "--help"):
+                return argv[: i + 1] + [default] + argv[i + 1:]
+        return argv
+    return argv
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    cli = build_cli()
+    args = cli.parser.parse_args(_apply_default_subcommands(argv))
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        cli.parser.print_help()
+        return 2
+    try:
+        code = args.func(args)
+    except UvatarError as exc:
+        print(f"uvatar: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("uvatar: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

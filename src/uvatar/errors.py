@@ -1,0 +1,47 @@
+"""Error types shared by the whole toolkit.
+
+Every error a user can cause carries one line that names the file and the problem, so the CLI
+can print it as is and exit non-zero.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class UvatarError(Exception):
+    """Base class for errors that the CLI reports as a single line (no traceback)."""
+
+
+class InputError(UvatarError):
+    """Bad user input: a missing, unreadable or malformed file.
+
+    >>> str(InputError("fits/000001.json", "Rh has shape (2,), expected (3,)"))
+    'fits/000001.json: Rh has shape (2,), expected (3,)'
+    """
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class MissingDependencyError(UvatarError):
+    """An optional dependency is not installed; the message names the extra to install."""
+
+    def __init__(self, package: str, extra: str, purpose: str = ""):
+        what = f" (needed for {purpose})" if purpose else ""
+        super().__init__(
+            f"the optional package '{package}' is not installed{what}; "
+            f"install it with: pip install 'uvatar[{extra}]'"
+        )
+
+
+def require(module: str, extra: str, purpose: str = ""):
+    """Import an optional module lazily, or raise :class:`MissingDependencyError` naming the extra."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise MissingDependencyError(module.split(".")[0], extra, purpose) from exc
