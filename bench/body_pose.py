@@ -1,0 +1,71 @@
+"""Benchmark body-model posing: load time, posing a fixed shape (cached bind state) at several batch
+sizes, posing with a new shape each call, backward, and UV part masks.
+
+    python bench/body_pose.py [--quick] [--device cuda] [--model anny]
+
+Prints one JSON object to stdout (progress on stderr)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+
+
+def _timed(fn, repeats: int, sync) -> float:
+    fn()
+    sync()
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--model", default="anny")
+    args = ap.parse_args()
+
+    import torch
+
+    from uvatar.body import load_body_model, part_masks
+
+    sync = torch.cuda.synchronize if args.device.startswith("cuda") else (lambda: None)
+    repeats = 5 if args.quick else 20
+    t = time.perf_counter()
+    body = load_body_model(args.model, device=args.device)
+    result = {"model": args.model, "device": args.device, "torch_threads": torch.get_num_threads(),
+              "load_s": round(time.perf_counter() - t, 3)}
+    J = body.num_joints
+    g = torch.Generator().manual_seed(0)
+    for batch in ([1, 8] if args.quick else [1, 8, 64]):
+        rv = (0.3 * torch.randn(batch, J, 3, generator=g)).to(args.device)
+        print(f"pose batch {batch}", file=sys.stderr)
+        with torch.no_grad():
+            result[f"pose_b{batch}_ms"] = round(1e3 * _timed(lambda rv=rv: body.pose(rv), repeats, sync), 2)
+    rv = (0.3 * torch.randn(8, J, 3, generator=g)).to(args.device)
+    if body.shape_names:
+        def new_shape():
+            with torch.no_grad():
+                body.pose(rv, shape=torch.rand(len(body.shape_names), device=args.device))
+        result["pose_b8_new_shape_ms"] = round(1e3 * _timed(new_shape, repeats, sync), 2)
+
+    def backward():
+        x = rv.clone().requires_grad_()
+        body.pose(x).vertices.square().sum().backward()
+    result["pose_backward_b8_ms"] = round(1e3 * _timed(backward, max(3, repeats // 4), sync), 2)
+    for res in ([256] if args.quick else [256, 1024]):
+        print(f"masks {res}", file=sys.stderr)
+        result[f"part_masks_{res}_s"] = round(_timed(lambda res=res: part_masks(body, res), 2, sync), 3)
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,116 @@
+"""Configuration of AVH stage 1 (baking scans into body UV space).
+
+Every constant of the paper (§3.2, §3.4 of animatable-virtual-humans.md) is a field here; the CLI
+flags of ``uvatar bake`` map one to one onto these fields (no second source of defaults).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Progressive non-rigid registration of the shadow mesh to the scan (Morgenstern et al. 2019).
+
+    Each stage s solves ``min_X sum_i w_i |x_i - c_i|^2 + stiffness_s |L X - L X_shadow|^2`` as a
+    sparse linear least-squares problem (L: uniform graph Laplacian, so the stiffness is
+    dimensionless), ``iterations_s`` times with fresh closest-point matches c_i. Stiff stages move
+    whole limbs (they fix tangential fit error), flexible ones follow the clothing.
+
+    stiffness: Laplacian weight per stage, coarse (stiff) to fine (flexible).
+    iterations: solves per stage (same length as ``stiffness``).
+    max_distance: per stage, matches farther than this fraction of the fit's bounding-box diagonal
+        are rejected.
+    max_normal_angle_deg: a match whose scan normal deviates more than this from the vertex normal
+        is rejected (normal compatibility).
+    modes: per stage, "closest" (targets: hits of rays along +/- the normal and the foot point of the
+        closest scan sample, which also corrects tangential offsets), "rays" (ray hits only) or
+        "normal" (vertices move only along their normals by a smooth scalar offset).
+    anchor_weight: tiny pull toward the previous iterate; keeps the system definite for vertices
+        without any match.
+    """
+
+    stiffness: tuple[float, ...] = (300.0, 30.0, 3.0)
+    iterations: tuple[int, ...] = (2, 1, 2)
+    max_distance: tuple[float, ...] = (1 / 25, 1 / 40, 1 / 50)
+    modes: tuple[str, ...] = ("closest", "closest", "normal")
+    max_normal_angle_deg: float = 60.0
+    anchor_weight: float = 1e-4
+
+    def __post_init__(self) -> None:
+        n = len(self.stiffness)
+        if not (len(self.iterations) == len(self.max_distance) == len(self.modes) == n):
+            raise ValueError("registration stiffness, iterations, max_distance and modes "
+                             "must have one entry per stage")
+
+
+@dataclass(frozen=True)
+class BakeConfig:
+    """Options of the per-frame bake and of the frame rejection (paper defaults).
+
+    texels: UV map resolution R (the paper uses 1024).
+    register: run the pairwise registration (False = ablation: rays start on the shadow mesh).
+    polarity_rule: apply the normal-polarity rule when both rays hit (False = ablation: nearest).
+    polarity_ratio: a positive match is preferred unless it is more than this times farther than
+        the negative one (paper: 2).
+    max_match_distance: texel ray hits farther than this (metres) are no match (None: no limit, as in
+        the paper; they would get zero confidence from the distance term anyway).
+    ray_epsilon: rays start this far (metres) behind their origin so a surface through it is found.
+    visibility_rays: hemisphere rays per face centroid for the visibility terms v and w (paper: 64).
+    distance_clip: the distance term delta clips at this fraction of the fit's bounding-box diagonal
+        (paper: 1/50).
+    inpaint_radius: Telea inpainting radius in texels (paper: 3).
+    inpaint_band: texels farther than this (in texels) from any matched texel are first filled with
+        their nearest matched value, so Telea only marches a band around the islands (speed; None =
+        Telea everywhere).
+    reject_kappa: frames whose mean kappa over valid texels is below this are rejected
+        (paper: 130/255).
+    texture_float16: store the texture as float16 (half the disk space).
+    registration: :class:`RegistrationConfig`.
+    """
+
+    texels: int = 1024
+    register: bool = True
+    polarity_rule: bool = True
+    polarity_ratio: float = 2.0
+    max_match_distance: float | None = 0.1
+    ray_epsilon: float = 1e-4
+    visibility_rays: int = 64
+    distance_clip: float = 1 / 50
+    inpaint_radius: int = 3
+    inpaint_band: int | None = 8
+    reject_kappa: float = 130 / 255
+    texture_float16: bool = True
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+
+    def with_updates(self, **changes) -> BakeConfig:
+        """A copy with top-level fields (or ``registration_<field>``) replaced; None values ignored."""
+        top = {f.name for f in fields(self)}
+        reg = {}
+        own = {}
+        for key, value in changes.items():
+            if value is None:
+                continue
+            if key.startswith("registration_"):
+                reg[key[len("registration_"):]] = value
+            elif key in top:
+                own[key] = value
+            else:
+                raise ValueError(f"unknown BakeConfig field {key!r}")
+        if reg:
+            own["registration"] = replace(self.registration, **reg)
+        return replace(self, **own)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> BakeConfig:
+        """Inverse of :meth:`to_dict` (JSON lists become tuples; unknown keys are ignored)."""
+        known = {f.name for f in fields(cls)}
+        top = {k: v for k, v in data.items() if k in known and k != "registration"}
+        reg_known = {f.name for f in fields(RegistrationConfig)}
+        reg = {k: tuple(v) if isinstance(v, list) else v
+               for k, v in (data.get("registration") or {}).items() if k in reg_known}
+        return cls(**top, registration=RegistrationConfig(**reg))

@@ -1,0 +1,109 @@
+"""The baked dataset folder written by ``uvatar bake`` (contract "avh baked dataset" in ARCHITECTURE.md).
+
+    BAKED/
+      dataset.json         texels, body_model {name, shapes}, frames_baked (accepted), rejected
+                           {frame: reason}, conditioning_joints, joint_names, heldout_frames,
+                           frame_stats {frame: {kappa_mean, ...}}, config, selection {train, val}
+      frames/000000.npz    accepted frames: texture (R,R,3) f16, displacement (R,R,3) f32 metres (world
+                           axes of the posed frame), kappa (R,R) f16, w (R,R) f16, valid (R,R) bool,
+                           matched (R,R) bool, pose (J*3,) f32, Rh (3,), Th (3,), shapes (S,), scale,
+                           kappa_mean, matched_fraction (scalars)
+      rejected/000000.npz  frames whose mean kappa is below the threshold (same fields)
+      preview/000000.png   texture | |d| | kappa
+
+Every file is written atomically (temp file + rename), so a crash never leaves a partial frame and
+a re-run can trust every file it finds.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.errors import InputError
+from uvatar.io_utils import write_image, write_json, write_npz
+
+__all__ = [
+    "DATASET_JSON", "frame_path", "rejected_path", "preview_path", "write_baked_frame", "load_baked_frame",
+    "read_frame_scalar", "read_dataset_info", "write_dataset_info", "is_baked_dataset",
+]
+
+DATASET_JSON = "dataset.json"
+
+
+def frame_path(root, frame: str) -> Path:
+    return Path(root) / "frames" / f"{frame}.npz"
+
+
+def rejected_path(root, frame: str) -> Path:
+    return Path(root) / "rejected" / f"{frame}.npz"
+
+
+def preview_path(root, frame: str) -> Path:
+    return Path(root) / "preview" / f"{frame}.png"
+
+
+def is_baked_dataset(root) -> bool:
+    return (Path(root) / DATASET_JSON).is_file() or (Path(root) / "frames").is_dir()
+
+
+def write_baked_frame(root, frame: str, baked, fit, rejected: bool = False, float16: bool = True,
+                      preview: bool = True) -> Path:
+    """Write one :class:`~uvatar.avh.bake.frame.BakedFrame` (+ its fit) atomically; returns the npz path."""
+    from uvatar.avh.bake.frame import preview_image
+
+    half = np.float16 if float16 else np.float32
+    path = rejected_path(root, frame) if rejected else frame_path(root, frame)
+    write_npz(
+        path,
+        texture=baked.texture.astype(half), displacement=baked.displacement.astype(np.float32),
+        kappa=baked.kappa.astype(half), w=baked.w.astype(half), valid=baked.valid, matched=baked.matched,
+        pose=np.asarray(fit.poses, np.float32), Rh=np.asarray(fit.Rh, np.float32),
+        Th=np.asarray(fit.Th, np.float32), shapes=np.asarray(fit.shapes, np.float32),
+        scale=np.float32(fit.scale), kappa_mean=np.float64(baked.stats["kappa_mean"]),
+        matched_fraction=np.float64(baked.stats["matched_fraction"]),
+    )
+    if preview:
+        write_image(preview_path(root, frame),
+                    preview_image(baked.texture, baked.displacement, baked.kappa, baked.valid))
+    return path
+
+
+def load_baked_frame(path) -> dict[str, np.ndarray]:
+    """All fields of a baked frame npz; float maps as float32. Raises InputError if unreadable."""
+    path = Path(path)
+    try:
+        with np.load(path) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is one input error
+        raise InputError(path, f"cannot read baked frame ({exc})") from None
+    for key in ("texture", "kappa", "w"):
+        if key in data:
+            data[key] = data[key].astype(np.float32)
+    return data
+
+
+def read_frame_scalar(path, key: str) -> float:
+    """One scalar field of a baked frame npz (loads only that member)."""
+    with np.load(path) as z:
+        return float(z[key])
+
+
+def read_dataset_info(root) -> dict:
+    """``BAKED/dataset.json`` as a dict ({} when absent). Raises InputError for bad JSON."""
+    path = Path(root) / DATASET_JSON
+    if not path.is_file():
+        return {}
+    try:
+        info = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"invalid JSON ({exc})") from None
+    if not isinstance(info, dict):
+        raise InputError(path, "expected a JSON object")
+    return info
+
+
+def write_dataset_info(root, info: dict) -> None:
+    write_json(Path(root) / DATASET_JSON, info)

@@ -1,0 +1,248 @@
+"""Bake one frame: shadow mesh -> registration -> texel rays -> texture, displacement, confidence.
+
+Functional core: :func:`bake_frame` takes the posed shadow vertices, the body's UV layout and the
+scan (arrays) and returns a :class:`BakedFrame` (arrays). :func:`shadow_vertices` poses the body
+model by a fit. Conventions: metres, world axes of the posed frame; UV maps (R, R, C) with row 0 at
+v = 1.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from uvatar.avh.bake.confidence import confidence, distance_score, normal_match_score, vertex_visibility
+from uvatar.avh.bake.config import BakeConfig
+from uvatar.avh.bake.correspond import match_texels
+from uvatar.avh.bake.inpaint import inpaint_telea
+from uvatar.avh.bake.register import ScanSurface, register_to_scan
+from uvatar.errors import InputError
+from uvatar.geometry import RayCaster, UVRaster, rasterize_uv, sample_texture, vertex_normals
+
+__all__ = ["BodyLayout", "BakedFrame", "bake_frame", "shadow_vertices", "preview_image", "check_scan"]
+
+
+@dataclass
+class BodyLayout:
+    """The body's mesh and UV layout rasterized at R (shared by every frame).
+
+    faces (F, 3) int64; uvs (U, 2); uv_faces (F, 3); raster: UVRaster at R; texel_flat (M,) flat
+    indices of the valid texels; texel_face (M,), texel_bary (M, 3) their triangle and barycentrics.
+    """
+
+    faces: np.ndarray
+    uvs: np.ndarray
+    uv_faces: np.ndarray
+    raster: UVRaster
+    texel_flat: np.ndarray
+    texel_face: np.ndarray
+    texel_bary: np.ndarray
+
+    @classmethod
+    def build(cls, faces, uvs, uv_faces, resolution: int) -> BodyLayout:
+        raster = rasterize_uv(uvs, uv_faces, int(resolution))
+        flat = raster.valid_indices()
+        return cls(np.asarray(faces, np.int64), np.asarray(uvs, np.float32), np.asarray(uv_faces, np.int64),
+                   raster, flat, raster.face_index.ravel()[flat], raster.bary.reshape(-1, 3)[flat].astype(np.float64))
+
+    @classmethod
+    def from_template(cls, template, resolution: int) -> BodyLayout:
+        return cls.build(template.faces, template.uvs, template.uv_faces, resolution)
+
+    @property
+    def resolution(self) -> int:
+        return self.raster.resolution
+
+    def at_texels(self, vertex_values) -> np.ndarray:
+        """Interpolate per-vertex values (V, C) or (V,) at the valid texels -> (M, C) or (M,)."""
+        vals = np.asarray(vertex_values, dtype=np.float64)
+        corners = vals[self.faces[self.texel_face]]                  # (M, 3[, C])
+        b = self.texel_bary if vals.ndim == 1 else self.texel_bary[..., None]
+        return (corners * b).sum(axis=1)
+
+    def to_map(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
+        """(M[, C]) values at the valid texels -> (R, R[, C]) map, ``fill`` elsewhere."""
+        v = np.asarray(texel_values)
+        r = self.resolution
+        out = np.full((r * r, *v.shape[1:]), fill, dtype=dtype)
+        out[self.texel_flat] = v
+        return out.reshape(r, r, *v.shape[1:])
+
+
+@dataclass
+class BakedFrame:
+    """One baked frame; all maps (R, R[, C]), row 0 at v = 1.
+
+    texture (R, R, 3) float32 [0, 1]; displacement (R, R, 3) float32 metres d = x - s (world axes
+    of the posed frame); kappa (R, R) float32 in [0, 1] (0 where no match); w (R, R) float32
+    visibility of M^R_t; valid (R, R) bool texels covered by the UV layout; matched (R, R) bool
+    texels with a scan match (the rest is inpainted); points (R, R, 3) float64 match x (zeros where
+    unmatched; kept in memory for evaluation, not stored); stats: kappa_mean, matched_fraction,
+    registration info and ``seconds`` per stage.
+    """
+
+    texture: np.ndarray
+    displacement: np.ndarray
+    kappa: np.ndarray
+    w: np.ndarray
+    valid: np.ndarray
+    matched: np.ndarray
+    points: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def kappa_mean(self) -> float:
+        return float(self.stats["kappa_mean"])
+
+
+@contextmanager
+def _timed(seconds: dict, name: str):
+    t0 = time.perf_counter()
+    yield
+    seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+
+
+def shadow_vertices(body, fit, shape=None) -> np.ndarray:
+    """M^S_t: (V, 3) float64 vertices of ``body`` posed by ``fit`` (EasyMocap Rh/Th/scale).
+
+    shape: (S,) shape parameters (default: the fit's ``shapes`` if any, else the body's default).
+    Raises InputError for a pose of the wrong size or with NaN.
+    """
+    import torch
+
+    rotvecs = body.joint_rotvecs_from_fit(fit)
+    if shape is None and np.asarray(fit.shapes).size:
+        shape = np.asarray(fit.shapes, dtype=np.float32)
+    for name, value in (("Rh", fit.Rh), ("Th", fit.Th), ("scale", fit.scale)):
+        if not np.all(np.isfinite(value)):
+            raise InputError(f"fit {fit.id}", f"{name} contains NaN or inf")
+    with torch.no_grad():
+        posed = body.pose(torch.as_tensor(rotvecs)[None], Rh=np.asarray(fit.Rh)[None],
+                          Th=np.asarray(fit.Th)[None], scale=np.asarray([fit.scale], np.float32),
+                          shape=None if shape is None else torch.as_tensor(shape, dtype=torch.float32))
+    verts = posed.vertices[0].detach().cpu().numpy().astype(np.float64)
+    if not np.isfinite(verts).all():
+        raise InputError(f"fit {fit.id}", "posed body has NaN vertices")
+    return verts
+
+
+def check_scan(scan, path="scan") -> None:
+    """Raise InputError unless ``scan`` is a non-empty, finite, textured mesh with UVs."""
+    if scan.num_faces == 0 or scan.num_vertices == 0:
+        raise InputError(path, "scan has no triangles")
+    if not np.isfinite(scan.vertices).all():
+        raise InputError(path, "scan vertices contain NaN or inf")
+    if not scan.has_uvs:
+        raise InputError(path, "scan has no texture coordinates")
+    if scan.texture is None or scan.texture.size == 0:
+        raise InputError(path, "scan has no texture image")
+
+
+def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig | None = None,
+               scan_path: str = "scan") -> BakedFrame:
+    """Bake one frame into the body UV space (AVH §3.2).
+
+    shadow: (V, 3) posed shadow-mesh vertices M^S_t (metres); layout: the body's UV layout at R;
+    scan: :class:`uvatar.capture.TexturedMesh` S_t; config: :class:`BakeConfig`.
+    """
+    config = config or BakeConfig()
+    check_scan(scan, scan_path)
+    if layout.resolution != config.texels:
+        raise ValueError(f"layout resolution {layout.resolution} != config.texels {config.texels}")
+    sec: dict[str, float] = {}
+    shadow = np.asarray(shadow, dtype=np.float64)
+    diag = float(np.linalg.norm(shadow.max(0) - shadow.min(0)))
+    eps = config.ray_epsilon
+
+    with _timed(sec, "prepare_scan"):
+        surface = ScanSurface.build(scan.vertices, scan.faces)
+    reg_stats: dict = {}
+    with _timed(sec, "register"):
+        if config.register:
+            registered, reg_stats = register_to_scan(shadow, layout.faces, surface, config.registration,
+                                                     bbox_diagonal=diag, epsilon=eps)
+        else:
+            registered = shadow
+    with _timed(sec, "correspond"):
+        r = layout.at_texels(registered)
+        n = layout.at_texels(vertex_normals(registered, layout.faces))
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        matches = match_texels(r, n, surface, config.polarity_rule, config.polarity_ratio,
+                               config.max_match_distance, eps)
+        hit = matches.hit
+    with _timed(sec, "texture"):
+        uv_corners = scan.uvs[scan.uv_faces[matches.face[hit]]]                  # (K, 3, 2)
+        uv = (uv_corners * matches.bary[hit][..., None]).sum(1)
+        colors = np.zeros((len(r), 3), np.float32)
+        colors[hit] = sample_texture(scan.texture, uv)
+        s = layout.at_texels(shadow)
+        disp = np.where(hit[:, None], matches.points - s, 0.0)
+    with _timed(sec, "visibility_scan"):
+        v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster,
+                                     config.visibility_rays, eps)
+        v = np.zeros(len(r))
+        v[hit] = (v_vertex[surface.faces[matches.face[hit]]] * matches.bary[hit]).sum(1)
+    with _timed(sec, "visibility_registered"):
+        w_vertex = vertex_visibility(registered, layout.faces, RayCaster(registered, layout.faces),
+                                     config.visibility_rays, eps)
+        w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
+    with _timed(sec, "confidence"):
+        delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
+        nms = normal_match_score(n, matches.scan_normal)
+        kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)
+    with _timed(sec, "inpaint"):
+        matched_map = layout.to_map(hit, fill=False, dtype=bool)
+        unknown = ~matched_map
+        texture = inpaint_telea(layout.to_map(colors), unknown, config.inpaint_radius, config.inpaint_band)
+        displacement = inpaint_telea(layout.to_map(disp), unknown, config.inpaint_radius, config.inpaint_band)
+    valid = layout.raster.mask.copy()
+    kappa_map = layout.to_map(kappa)
+    stats = {
+        "kappa_mean": float(kappa.mean()) if len(kappa) else 0.0,
+        "matched_fraction": float(hit.mean()) if len(hit) else 0.0,
+        "positive_fraction": float(matches.positive[hit].mean()) if hit.any() else 0.0,
+        "median_match_distance_mm": float(np.median(matches.distance[hit]) * 1000) if hit.any() else None,
+        "bbox_diagonal": diag,
+        "registration": reg_stats,
+        "seconds": sec,
+    }
+    return BakedFrame(
+        texture=np.clip(texture, 0.0, 1.0).astype(np.float32),
+        displacement=displacement.astype(np.float32),
+        kappa=kappa_map,
+        w=layout.to_map(w),
+        valid=valid,
+        matched=matched_map,
+        points=layout.to_map(matches.points, dtype=np.float64),
+        stats=stats,
+    )
+
+
+def _colormap(x: np.ndarray) -> np.ndarray:
+    """(H, W) in [0, 1] -> (H, W, 3) a simple blue-green-yellow-red ramp."""
+    x = np.clip(x, 0.0, 1.0)[..., None]
+    stops = np.array([[0.1, 0.1, 0.5], [0.0, 0.6, 0.6], [0.9, 0.9, 0.1], [0.8, 0.1, 0.1]])
+    pos = x * (len(stops) - 1)
+    i = np.clip(np.floor(pos).astype(int), 0, len(stops) - 2)
+    f = pos - i
+    return (stops[i[..., 0]] * (1 - f) + stops[i[..., 0] + 1] * f).astype(np.float32)
+
+
+def preview_image(texture, displacement, kappa, valid, max_size: int = 512,
+                  displacement_scale: float = 0.05) -> np.ndarray:
+    """(h, 3h, 3) float32 preview: texture | |d| (0 .. ``displacement_scale`` metres) | kappa.
+
+    Texels outside the UV islands are shown dark grey; maps larger than ``max_size`` are subsampled.
+    """
+    step = max(1, int(np.ceil(texture.shape[0] / max_size)))
+    tex = np.asarray(texture, np.float32)[::step, ::step]
+    mag = np.linalg.norm(np.asarray(displacement, np.float32)[::step, ::step], axis=-1)
+    kap = np.asarray(kappa, np.float32)[::step, ::step]
+    ok = np.asarray(valid, bool)[::step, ::step, None]
+    grey = np.float32(0.15)
+    panels = [np.where(ok, tex, grey), np.where(ok, _colormap(mag / displacement_scale), grey),
+              np.where(ok, np.repeat(kap[..., None], 3, axis=-1), grey)]
+    return np.concatenate(panels, axis=1)

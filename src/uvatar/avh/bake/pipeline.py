@@ -1,0 +1,284 @@
+"""Bake a whole capture: frames in parallel, atomic per-frame outputs, resume, rejection, replacement.
+
+``bake_capture`` bakes the listed frames (default: all) of a capture into ``BAKED/`` (layout in
+:mod:`uvatar.avh.bake.dataset`). A frame already on disk is not baked again; a broken input frame
+(unreadable scan, bad fit, any failure) is reported and skipped, never killing the run. A frame whose
+mean kappa over the valid texels is below ``config.reject_kappa`` (paper: 130/255) is moved to
+``rejected/`` and listed with its reason. ``bake_selection`` bakes a selection made before baking
+(``uvatar select CAPTURE --from-capture``) and replaces every rejected frame by the next nearest frame
+to its cluster centre.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.avh.bake.config import BakeConfig
+from uvatar.avh.bake.dataset import (
+    frame_path, read_dataset_info, read_frame_scalar, rejected_path, write_baked_frame, write_dataset_info,
+)
+from uvatar.errors import InputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FrameResult", "bake_capture", "bake_selection", "heldout_frames", "load_body_and_layout"]
+
+
+@dataclass
+class FrameResult:
+    """Outcome of one frame: status "baked" | "rejected" | "broken"; reason for the last two."""
+
+    frame: str
+    status: str
+    reason: str | None = None
+    kappa_mean: float | None = None
+    seconds: float = 0.0
+    stats: dict = field(default_factory=dict)
+
+
+# -- per-process state ----------------------------------------------------------------------------
+_STATE: dict = {}
+
+
+def load_body_and_layout(body_name: str, texels: int):
+    """(BodyModel, BodyLayout) for a body model at a texel resolution; memoized per process."""
+    key = (body_name, int(texels))
+    if key not in _STATE:
+        from uvatar.avh.bake.frame import BodyLayout
+        from uvatar.body import load_body_model
+
+        body = load_body_model(body_name)
+        _STATE[key] = (body, BodyLayout.from_template(body.template, texels))
+    return _STATE[key]
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def heldout_frames(capture_root) -> list[str]:
+    """Frames listed in a synthetic capture's ``gt/info.json`` ``heldout_frames`` ([] otherwise)."""
+    path = Path(capture_root) / "gt" / "info.json"
+    if not path.is_file():
+        return []
+    try:
+        info = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return []
+    return [_frame_name(f) for f in info.get("heldout_frames", [])]
+
+
+def _frame_name(f) -> str:
+    return f"{f:06d}" if isinstance(f, int) else str(f)
+
+
+def _capture_shape(capture):
+    shapes = capture.body_shapes
+    return shapes if shapes.size else None
+
+
+def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig) -> FrameResult:
+    """Bake one frame in a worker. Every failure becomes a "broken" result with a one-line reason."""
+    from uvatar.avh.bake.frame import bake_frame, shadow_vertices
+    from uvatar.capture import Capture
+
+    t0 = time.perf_counter()
+    try:
+        capture = Capture(capture_root)
+        body, layout = load_body_and_layout(capture.body_model, config.texels)
+        fit = capture.load_fit(frame)
+        shadow = shadow_vertices(body, fit, None if fit.shapes.size else _capture_shape(capture))
+        scan_path = capture.scan_path(frame)
+        scan = capture.load_scan(frame)
+        baked = bake_frame(shadow, layout, scan, config, scan_path=str(scan_path))
+    except Exception as exc:  # noqa: BLE001 - a broken frame is reported, never fatal
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        return FrameResult(frame, "broken", f"broken input: {reason}", seconds=time.perf_counter() - t0)
+    rejected = baked.kappa_mean < config.reject_kappa
+    write_baked_frame(out_root, frame, baked, fit, rejected=rejected, float16=config.texture_float16)
+    stale = frame_path(out_root, frame) if rejected else rejected_path(out_root, frame)
+    stale.unlink(missing_ok=True)
+    stats = {k: v for k, v in baked.stats.items() if k != "registration"}
+    return FrameResult(frame, "rejected" if rejected else "baked",
+                       _reject_reason(baked.kappa_mean, config) if rejected else None,
+                       baked.kappa_mean, time.perf_counter() - t0, stats)
+
+
+def _reject_reason(kappa_mean: float, config: BakeConfig) -> str:
+    return (f"mean confidence {kappa_mean:.3f} ({kappa_mean * 255:.0f}/255) below "
+            f"{config.reject_kappa:.3f} ({config.reject_kappa * 255:.0f}/255)")
+
+
+def _existing_result(out_root: Path, frame: str, config: BakeConfig) -> FrameResult | None:
+    """A frame already baked on disk, re-classified against the current threshold (files moved)."""
+    for path in (frame_path(out_root, frame), rejected_path(out_root, frame)):
+        if not path.is_file():
+            continue
+        try:
+            kappa_mean = read_frame_scalar(path, "kappa_mean")
+        except Exception:  # noqa: BLE001 - unreadable leftovers are baked again
+            return None
+        rejected = kappa_mean < config.reject_kappa
+        want = rejected_path(out_root, frame) if rejected else frame_path(out_root, frame)
+        if want != path:
+            want.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, want)
+        return FrameResult(frame, "rejected" if rejected else "baked",
+                           _reject_reason(kappa_mean, config) if rejected else None, kappa_mean)
+    return None
+
+
+def _write_info(out_root: Path, capture, body_name: str, config: BakeConfig, results: dict[str, FrameResult],
+                extra: dict | None = None) -> dict:
+    info = read_dataset_info(out_root)
+    body, _ = load_body_and_layout(body_name, config.texels)
+    baked = sorted(f for f, r in results.items() if r.status == "baked")
+    rejected = {f: r.reason for f, r in sorted(results.items()) if r.status in ("rejected", "broken")}
+    stats = dict(info.get("frame_stats", {}))
+    for f, r in results.items():
+        if r.kappa_mean is not None:
+            stats[f] = {"kappa_mean": r.kappa_mean, **({"seconds": r.stats.get("seconds")} if r.stats else {})}
+    shapes = capture.body_shapes
+    info.update({
+        "texels": config.texels,
+        "body_model": {"name": body_name, "shapes": shapes.tolist() if shapes.size else None},
+        "capture": str(Path(capture.root).resolve()),
+        "frames_baked": baked,
+        "rejected": rejected,
+        "heldout_frames": heldout_frames(capture.root),
+        "conditioning_joints": [int(j) for j in body.conditioning_joints],
+        "joint_names": list(body.joint_names),
+        "frame_stats": stats,
+        "config": config.to_dict(),
+    })
+    if extra:
+        info.update(extra)
+    write_dataset_info(out_root, info)
+    return info
+
+
+def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frames=None, workers: int = 1,
+                 progress: bool = True, overwrite: bool = False) -> dict[str, FrameResult]:
+    """Bake ``frames`` (default: every frame) of a capture into ``out_root``; returns {frame: result}.
+
+    workers: processes (1 = in this process). overwrite: bake frames again even when on disk.
+    ``dataset.json`` is rewritten after every frame, so an interrupted run can be resumed.
+    """
+    from tqdm import tqdm
+
+    from uvatar.capture import Capture
+
+    config = config or BakeConfig()
+    capture = Capture(capture_root)
+    out = Path(out_root)
+    out.mkdir(parents=True, exist_ok=True)
+    previous = read_dataset_info(out)
+    if previous.get("texels") not in (None, config.texels) and not overwrite:
+        raise InputError(out / "dataset.json", f"holds a bake at {previous['texels']} texels, not "
+                         f"{config.texels}; use another output folder or --overwrite")
+    frames = [_frame_name(f) for f in (capture.frames if frames is None else frames)]
+    unknown = sorted(set(frames) - set(capture.frames))
+    if unknown:
+        raise InputError(capture.root / "capture.json", f"has no frame(s) {', '.join(unknown[:5])}")
+    body_name = capture.body_model
+    load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
+    results: dict[str, FrameResult] = previous_results(previous)
+    for f in capture.frames:  # everything already on disk (also from earlier calls with other frames)
+        done = _existing_result(out, f, config)
+        if done is not None:
+            results[f] = done
+    todo = [f for f in frames if overwrite or f not in results or results[f].status == "broken"]
+    bar = tqdm(total=len(todo), desc="bake", unit="frame", disable=not progress)
+
+    def finish(result: FrameResult) -> None:
+        results[result.frame] = result
+        if result.status != "baked":
+            log.warning("frame %s %s: %s", result.frame, result.status, result.reason)
+        _write_info(out, capture, body_name, config, results)
+        bar.update(1)
+
+    if workers <= 1 or len(todo) <= 1:
+        for f in todo:
+            finish(_bake_one(str(capture.root), str(out), f, config))
+    else:
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                                 initializer=_init_worker) as pool:
+            futures = {pool.submit(_bake_one, str(capture.root), str(out), f, config): f for f in todo}
+            for fut in as_completed(futures):
+                try:
+                    finish(fut.result())
+                except Exception as exc:  # noqa: BLE001 - a crashed worker marks its frame broken
+                    finish(FrameResult(futures[fut], "broken", f"worker failed: {exc}"))
+    bar.close()
+    _write_info(out, capture, body_name, config, results)
+    return {f: results[f] for f in frames}
+
+
+def previous_results(info: dict) -> dict[str, FrameResult]:
+    """Broken frames recorded by an earlier run (baked/rejected ones are re-read from their files)."""
+    return {f: FrameResult(f, "broken", reason) for f, reason in info.get("rejected", {}).items()
+            if str(reason).startswith(("broken input", "worker failed"))}
+
+
+def bake_selection(capture_root, out_root, selection: dict, config: BakeConfig | None = None,
+                   workers: int = 1, progress: bool = True, overwrite: bool = False) -> dict:
+    """Bake the frames of a pre-bake selection; replace each rejected/broken one by the next candidate.
+
+    selection: {"clusters": [{"split": "train"|"val", "candidates": [frames, nearest first]}], ...}
+    as written by :func:`uvatar.avh.bake.select.select_from_capture`. Writes ``dataset.json["selection"]``
+    = {"train": [...], "val": [...]} and returns it (with ``replaced`` {old: new} and ``unfilled``).
+    """
+    clusters = selection.get("clusters")
+    if not clusters:
+        raise InputError("selection", "has no 'clusters' (make it with `uvatar select CAPTURE --from-capture`)")
+    config = config or BakeConfig()
+    heldout = set(heldout_frames(capture_root))
+    cursor = [0] * len(clusters)
+    chosen: list[str | None] = [None] * len(clusters)
+    used: set[str] = set()
+    replaced: dict[str, str] = {}
+    status: dict[str, str] = {}
+    pending = list(range(len(clusters)))
+    while pending:
+        wanted = {}
+        for c in pending:
+            cands = clusters[c]["candidates"]
+            while cursor[c] < len(cands) and (cands[cursor[c]] in used or cands[cursor[c]] in heldout):
+                cursor[c] += 1
+            if cursor[c] < len(cands):
+                wanted[c] = cands[cursor[c]]
+                used.add(cands[cursor[c]])
+        if not wanted:
+            break
+        results = bake_capture(capture_root, out_root, config, sorted(set(wanted.values())), workers,
+                               progress, overwrite)
+        pending = []
+        for c, f in wanted.items():
+            status[f] = results[f].status
+            if results[f].status == "baked":
+                first = clusters[c]["candidates"][0]
+                if f != first:
+                    replaced[first] = f
+                chosen[c] = f
+            else:
+                pending.append(c)
+    sel = {"train": sorted(f for f, c in zip(chosen, clusters, strict=True) if f and c.get("split") != "val"),
+           "val": sorted(f for f, c in zip(chosen, clusters, strict=True) if f and c.get("split") == "val")}
+    info = read_dataset_info(out_root)
+    info["selection"] = sel
+    info["selection_info"] = {"source": "capture", "replaced": replaced,
+                              "unfilled": sum(1 for f in chosen if f is None)}
+    write_dataset_info(out_root, info)
+    return {**sel, "replaced": replaced, "unfilled": sum(1 for f in chosen if f is None)}

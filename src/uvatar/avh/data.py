@@ -1,0 +1,179 @@
+"""Reading the baked AVH dataset (``uvatar bake`` output) for training, retrieval and evaluation.
+
+Layout (docs/ARCHITECTURE.md)::
+
+    BAKED/dataset.json        texels, body model, selection {"train": [...], "val": [...]}
+    BAKED/frames/000000.npz   texture (R,R,3), displacement (R,R,3) metres in world axes of the posed
+                              frame, kappa (R,R), w (R,R), valid (R,R) bool, pose (J*3,), Rh (3,), Th (3,)
+
+Displacements are returned in the *body frame*: world axes with the global rotation Rh removed
+(``d_body = R(Rh)^T d_world``), so the generator, which sees only local joint angles, need not
+learn the global orientation. ``d_world = R(Rh) d_body`` puts them back (see :func:`body_to_world`).
+Maps keep the UV image convention: row 0 is v = 1.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.errors import InputError
+
+log = logging.getLogger(__name__)
+
+MAP_KEYS = ("texture", "displacement", "kappa", "w", "valid")
+
+
+@dataclass
+class BakedFrames:
+    """Stacked baked frames at one resolution R (numpy, float32 unless stated)."""
+
+    names: list[str]
+    texture: np.ndarray        # (N, R, R, 3) in [0, 1]
+    displacement: np.ndarray   # (N, R, R, 3) metres, body frame (Rh removed)
+    kappa: np.ndarray          # (N, R, R) texture confidence
+    w: np.ndarray              # (N, R, R) registered-mesh visibility (displacement weight)
+    valid: np.ndarray          # (N, R, R) bool
+    poses: np.ndarray          # (N, J*3) local axis-angle, root zero
+    Rh: np.ndarray             # (N, 3)
+    Th: np.ndarray             # (N, 3)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def resolution(self) -> int:
+        return int(self.texture.shape[1])
+
+
+def read_dataset_meta(baked_dir: str | Path) -> dict:
+    """Read ``BAKED/dataset.json`` (raises InputError when missing/malformed or without a selection)."""
+    path = Path(baked_dir) / "dataset.json"
+    if not path.is_file():
+        raise InputError(path, "not found; is this a `uvatar bake` output folder?")
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"cannot read JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise InputError(path, "expected a JSON object")
+    return meta
+
+
+def selection(meta: dict, baked_dir: str | Path) -> tuple[list[str], list[str]]:
+    """(train, val) frame names from ``dataset.json["selection"]``; without one, every baked frame trains."""
+    sel = meta.get("selection")
+    if isinstance(sel, dict) and sel.get("train"):
+        return [str(f) for f in sel["train"]], [str(f) for f in sel.get("val", [])]
+    frames = sorted(p.stem for p in (Path(baked_dir) / "frames").glob("*.npz"))
+    if not frames:
+        raise InputError(Path(baked_dir) / "frames", "no baked frames (*.npz)")
+    log.warning("%s has no selection; training on all %d baked frames", baked_dir, len(frames))
+    return frames, []
+
+
+def body_model_info(meta: dict) -> tuple[str, np.ndarray | None]:
+    """(body model name, shape parameters or None) from dataset.json (``body_model`` str or dict)."""
+    bm = meta.get("body_model", meta.get("body model", "anny"))
+    if isinstance(bm, dict):
+        shapes = bm.get("shapes", bm.get("shape"))
+        return str(bm.get("name", "anny")), None if shapes is None else np.asarray(shapes, np.float32)
+    return str(bm), None
+
+
+def rotvec_to_rotmat(rotvec: np.ndarray) -> np.ndarray:
+    """(…, 3) axis-angle -> (…, 3, 3) rotation matrices (Rodrigues, numpy)."""
+    rotvec = np.asarray(rotvec, np.float64)
+    theta = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    axis = rotvec / np.maximum(theta, 1e-12)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    zero = np.zeros_like(x)
+    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*rotvec.shape[:-1], 3, 3)
+    s, c = np.sin(theta)[..., None], np.cos(theta)[..., None]
+    eye = np.broadcast_to(np.eye(3), k.shape)
+    return eye + s * k + (1 - c) * (k @ k)
+
+
+def world_to_body(d_world: np.ndarray, Rh: np.ndarray) -> np.ndarray:
+    """(…, 3) world-axis vectors -> body frame: R(Rh)^T d. ``Rh`` (3,)."""
+    R = rotvec_to_rotmat(Rh).astype(np.float32)
+    return d_world @ R  # row-vector form of R^T d
+
+
+def body_to_world(d_body: np.ndarray, Rh: np.ndarray) -> np.ndarray:
+    """(…, 3) body-frame vectors -> world axes: R(Rh) d. ``Rh`` (3,)."""
+    R = rotvec_to_rotmat(Rh).astype(np.float32)
+    return d_body @ R.T
+
+
+def resample_map(image: np.ndarray, resolution: int, nearest: bool = False) -> np.ndarray:
+    """(H, W[, C]) -> (resolution, resolution[, C]); area averaging down, bilinear up, or nearest."""
+    import cv2
+
+    if image.shape[0] == resolution and image.shape[1] == resolution:
+        return image
+    if nearest:
+        interp = cv2.INTER_NEAREST
+    elif image.shape[0] > resolution:
+        interp = cv2.INTER_AREA
+    else:
+        interp = cv2.INTER_LINEAR
+    out = cv2.resize(np.ascontiguousarray(image), (resolution, resolution), interpolation=interp)
+    return out.reshape(resolution, resolution, *image.shape[2:])
+
+
+def load_frame(path: str | Path, resolution: int | None = None) -> dict[str, np.ndarray]:
+    """Read one baked frame; maps resampled to ``resolution``; displacement moved to the body frame."""
+    path = Path(path)
+    try:
+        with np.load(path) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise InputError(path, f"cannot read baked frame ({exc})") from exc
+    missing = [k for k in (*MAP_KEYS, "pose") if k not in data]
+    if missing:
+        raise InputError(path, f"missing arrays {missing}")
+    R = data["texture"].shape[0]
+    for k in MAP_KEYS:
+        if data[k].shape[:2] != (R, R):
+            raise InputError(path, f"{k} has shape {data[k].shape}, expected ({R}, {R}, ...)")
+    res = resolution or R
+    out = {
+        "texture": resample_map(data["texture"].astype(np.float32), res),
+        "kappa": resample_map(data["kappa"].astype(np.float32), res),
+        "w": resample_map(data["w"].astype(np.float32), res),
+        "valid": resample_map(data["valid"].astype(np.uint8), res, nearest=True).astype(bool),
+        "pose": data["pose"].astype(np.float32).reshape(-1),
+        "Rh": data.get("Rh", np.zeros(3, np.float32)).astype(np.float32).reshape(3),
+        "Th": data.get("Th", np.zeros(3, np.float32)).astype(np.float32).reshape(3),
+    }
+    disp = world_to_body(data["displacement"].astype(np.float32), out["Rh"])
+    out["displacement"] = resample_map(disp, res)
+    if not np.isfinite(out["texture"]).all() or not np.isfinite(out["displacement"]).all():
+        raise InputError(path, "non-finite values in texture or displacement")
+    return out
+
+
+def load_baked_frames(baked_dir: str | Path, frames: list[str], resolution: int | None = None,
+                      progress: bool = False) -> BakedFrames:
+    """Load ``frames`` from ``BAKED/frames``; broken or missing frames are skipped with a warning."""
+    from tqdm import tqdm
+
+    loaded: dict[str, dict] = {}
+    for name in tqdm(frames, desc="load baked", disable=not progress, leave=False):
+        try:
+            loaded[name] = load_frame(Path(baked_dir) / "frames" / f"{name}.npz", resolution)
+        except InputError as exc:
+            log.warning("skipping frame %s: %s", name, exc)
+    if not loaded:
+        raise InputError(Path(baked_dir) / "frames", f"none of the {len(frames)} frames could be read")
+    names = list(loaded)
+    stack = {k: np.stack([loaded[n][k] for n in names]) for k in (*MAP_KEYS, "pose", "Rh", "Th")}
+    return BakedFrames(names=names, texture=stack["texture"], displacement=stack["displacement"],
+                       kappa=stack["kappa"], w=stack["w"], valid=stack["valid"], poses=stack["pose"],
+                       Rh=stack["Rh"], Th=stack["Th"])

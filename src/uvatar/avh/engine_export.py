@@ -1,0 +1,375 @@
+"""Engine-ready avatar bundle: a skinned GLB of the body plus a manifest for the ONNX generator.
+
+``uvatar export RUN OUT`` writes ``OUT/model.onnx`` (the generator) and ``OUT/avatar.json`` and then
+calls :func:`write_engine_bundle`, which adds:
+
+``avatar.glb``
+    the body template in its rest pose (the avatar's shape) subdivided with midpoints
+    (``config.subdivisions`` times) so the displacement map has vertices to move; one glTF vertex per
+    (vertex, UV) pair (seams split); ``TEXCOORD_0`` the texture UV, ``TEXCOORD_1`` one *canonical* UV
+    per geometric vertex, shared by all its seam copies, at which the displacement is sampled (so the
+    surface never cracks along a seam); joints (node hierarchy with the rest orientation of each joint
+    frame), inverse bind matrices, skin weights (at most 4 influences, renormalized); a material whose
+    base colour is the mean texture (the generator at the rest pose).
+``manifest.json``
+    what a runtime needs to drive the generator: joint order, pose encoding, ONNX input/output names,
+    texel resolution, displacement scale and space, the finger/toe mask PNG.
+``finger_toe_mask.png``
+    (R, R) 0/255, row 0 is v = 1; 255 where displacement is suppressed (fingers and toes).
+
+glTF has no displacement map; ``docs/viewer.md`` says how the viewer applies it (after skinning, in the
+skinned mesh's model space, sampled at ``TEXCOORD_1``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.errors import InputError
+from uvatar.io_utils import write_image, write_json
+from uvatar.viewer.glb import SkinnedMesh, write_glb
+
+MANIFEST_FORMAT = "uvatar-engine/1"
+DEFAULT_SPACE = "body frame: world axes of the posed body with the global rotation Rh removed"
+
+
+@dataclass(frozen=True)
+class EngineExportConfig:
+    """subdivisions: midpoint subdivision levels of the template (each ×4 triangles; 1 keeps the GLB
+    ~4 MB for anny); max_influences: skin influences kept per vertex (glTF JOINTS_0 holds 4)."""
+
+    subdivisions: int = 1
+    max_influences: int = 4
+    glb_name: str = "avatar.glb"
+    manifest_name: str = "manifest.json"
+    mask_name: str = "finger_toe_mask.png"
+
+
+@dataclass
+class RestBody:
+    """The avatar's body in its rest pose (numpy): what the GLB is built from.
+
+    vertices (V, 3) m; faces (F, 3); uvs (U, 2) v up; uv_faces (F, 3); skin_weights (V, J);
+    joint_names (J,); joint_parents (J,); joint_world_rest (J, 4, 4) rest world transform of each joint
+    frame (rotation = rest orientation, translation = joint position)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uvs: np.ndarray
+    uv_faces: np.ndarray
+    skin_weights: np.ndarray
+    joint_names: tuple[str, ...]
+    joint_parents: np.ndarray
+    joint_world_rest: np.ndarray
+
+
+# ----------------------------------------------------------------------------------------------- mesh
+def subdivide_with_weights(body: RestBody, levels: int) -> RestBody:
+    """Midpoint-subdivide ``levels`` times (``uvatar.geometry.subdivide``); skin weights follow the
+    vertices linearly (a new vertex gets the mean weights of its edge's ends), renormalized."""
+    from uvatar.geometry import subdivide
+
+    v, f, uv, uvf, origin = subdivide(body.vertices, body.faces, body.uvs, body.uv_faces, levels, "midpoint")
+    weights = np.asarray(origin.vertex_matrix @ body.skin_weights.astype(np.float64))
+    weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
+    return RestBody(np.asarray(v, np.float32), np.asarray(f, np.int64), np.asarray(uv, np.float32),
+                    np.asarray(uvf, np.int64), weights.astype(np.float32), body.joint_names,
+                    body.joint_parents, body.joint_world_rest)
+
+
+def top_influences(weights: np.ndarray, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """(V, J) weights -> (V, k) joint indices and (V, k) weights, the k largest, renormalized to sum 1."""
+    k_eff = min(k, weights.shape[1])
+    idx = np.argpartition(-weights, k_eff - 1, axis=1)[:, :k_eff]
+    w = np.take_along_axis(weights, idx, axis=1).clip(min=0)
+    order = np.argsort(-w, axis=1)
+    idx, w = np.take_along_axis(idx, order, 1), np.take_along_axis(w, order, 1)
+    total = w.sum(axis=1, keepdims=True)
+    w = np.where(total > 0, w / np.where(total > 0, total, 1), np.eye(1, k_eff)[0])
+    if k_eff < k:
+        idx = np.pad(idx, ((0, 0), (0, k - k_eff)))
+        w = np.pad(w, ((0, 0), (0, k - k_eff)))
+    w = np.where(w > 0, w, 0)
+    return idx.astype(np.int64), w.astype(np.float32)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) area-weighted unit vertex normals."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n = np.zeros_like(vertices, dtype=np.float64)
+    for c in range(3):
+        np.add.at(n, faces[:, c], fn)
+    return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+
+
+def engine_mesh(body: RestBody, config: EngineExportConfig = EngineExportConfig(),
+                texture_png: bytes | None = None) -> SkinnedMesh:
+    """Subdivide, split seams into one vertex per (vertex, UV) pair, and pack glTF arrays."""
+    if config.subdivisions > 0:
+        body = subdivide_with_weights(body, config.subdivisions)
+    pairs = np.stack([body.faces.reshape(-1), body.uv_faces.reshape(-1)], axis=1)
+    unique, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    vid, uid = unique[:, 0], unique[:, 1]
+    first_uv = np.full(len(body.vertices), -1, np.int64)
+    first_uv[vid[::-1]] = uid[::-1]  # the smallest UV index of each vertex
+    joints, weights = top_influences(body.skin_weights[vid], config.max_influences)
+    flip = lambda uv: np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1).astype(np.float32)  # v up -> glTF top-left
+    return SkinnedMesh(
+        positions=body.vertices[vid].astype(np.float32),
+        normals=vertex_normals(body.vertices.astype(np.float64), body.faces)[vid],
+        uv0=flip(body.uvs[uid]), uv1=flip(body.uvs[first_uv[vid]]),
+        joints=joints, weights=weights, indices=inverse.reshape(-1, 3).astype(np.uint32),
+        joint_names=tuple(body.joint_names), joint_parents=np.asarray(body.joint_parents, np.int64),
+        joint_world_rest=np.asarray(body.joint_world_rest, np.float64), texture_png=texture_png,
+    )
+
+
+def posed_joint_transforms(joint_world_rest: np.ndarray, joint_parents: np.ndarray,
+                           local_rotmats: np.ndarray) -> np.ndarray:
+    """World transforms (J, 4, 4) of the joint frames for local rotations (J, 3, 3), glTF semantics:
+    ``world_j = world_parent @ rest_local_j @ [R_j | 0]`` -- the viewer sets each bone's quaternion to
+    ``rest_quaternion * quat(rotvec)``. Matches ``BodyModel.pose(...).joint_transforms`` (tested)."""
+    from uvatar.viewer.glb import local_joint_transforms
+
+    rest_local = local_joint_transforms(joint_world_rest, joint_parents)
+    J = len(joint_parents)
+    world = np.zeros((J, 4, 4))
+    for j in np.argsort(_depths(joint_parents), kind="stable"):  # parents before children
+        pose = np.eye(4)
+        pose[:3, :3] = local_rotmats[j]
+        local = rest_local[j] @ pose
+        p = joint_parents[j]
+        world[j] = local if p < 0 else world[p] @ local
+    return world
+
+
+def skin_reference(mesh: SkinnedMesh, local_rotmats: np.ndarray) -> np.ndarray:
+    """glTF linear blend skinning of ``mesh`` in numpy (the reference for the viewer's skinning).
+
+    local_rotmats (J, 3, 3): rotation of each joint relative to its rest frame. Returns (V, 3) metres.
+    """
+    world = posed_joint_transforms(mesh.joint_world_rest, mesh.joint_parents, local_rotmats)
+    skin = world @ np.linalg.inv(mesh.joint_world_rest)  # (J, 4, 4)
+    mats = np.einsum("vk,vkab->vab", mesh.weights.astype(np.float64), skin[mesh.joints])
+    return np.einsum("vab,vb->va", mats[:, :3, :3], mesh.positions) + mats[:, :3, 3]
+
+
+def _depths(parents: np.ndarray) -> np.ndarray:
+    depth = np.zeros(len(parents), np.int64)
+    for j in range(len(parents)):
+        p, d = parents[j], 0
+        while p >= 0:
+            p, d = parents[p], d + 1
+        depth[j] = d
+    return depth
+
+
+# ------------------------------------------------------------------------------------------- bundle
+def _png_bytes(image: np.ndarray) -> bytes:
+    import imageio.v3 as iio
+
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8:
+        arr = (np.clip(arr, 0, 1) * 255 + 0.5).astype(np.uint8)
+    buf = io.BytesIO()
+    iio.imwrite(buf, arr, extension=".png")
+    return buf.getvalue()
+
+
+def read_avatar_json(avatar_dir: Path) -> dict:
+    path = avatar_dir / "avatar.json"
+    try:
+        meta = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "missing; run `uvatar export RUN OUT` first") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(meta, dict):
+        raise InputError(path, "expected a JSON object")
+    return meta
+
+
+def _meta(meta: dict, path: Path, *keys, default=None, required=True):
+    for key in keys:
+        node, ok = meta, True
+        for part in key.split("."):
+            if isinstance(node, dict) and part in node:
+                node = node[part]
+            else:
+                ok = False
+                break
+        if ok:
+            return node
+    if required and default is None:
+        raise InputError(path, f"missing {keys[0]!r}")
+    return default
+
+
+def onnx_io_names(model_path: Path) -> dict:
+    """{"input": name, "input_size": N, "texture": name, "displacement": name} read from the ONNX graph."""
+    import onnx
+
+    try:
+        graph = onnx.load(str(model_path), load_external_data=False).graph
+    except FileNotFoundError:
+        raise InputError(model_path, "missing ONNX generator") from None
+    except Exception as exc:  # noqa: BLE001 - onnx raises several types for bad files
+        raise InputError(model_path, f"not a readable ONNX model ({exc})") from None
+    init = {i.name for i in graph.initializer}
+    inputs = [i for i in graph.input if i.name not in init]
+    outs = [o.name for o in graph.output]
+    if len(inputs) != 1 or len(outs) < 2:
+        raise InputError(model_path, f"expected 1 input and 2 outputs, got {len(inputs)} and {len(outs)}")
+    tex = next((o for o in outs if "tex" in o.lower()), outs[0])
+    disp = next((o for o in outs if "disp" in o.lower() and o != tex), outs[1] if outs[1] != tex else outs[0])
+    dims = inputs[0].type.tensor_type.shape.dim
+    size = dims[-1].dim_value if dims and dims[-1].dim_value > 0 else None
+    return {"input": inputs[0].name, "input_size": size, "texture": tex, "displacement": disp}
+
+
+def run_generator(model_path: Path, io_names: dict, model_input: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(B, N) model input -> texture (B, 3, R, R), displacement (B, 3, R, R) with onnxruntime (CPU)."""
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(model_path), providers=["CPUExecutionProvider"])
+    tex, disp = session.run([io_names["texture"], io_names["displacement"]],
+                            {io_names["input"]: np.asarray(model_input, np.float32)})
+    return tex, disp
+
+
+def pose_to_model_input(pose: np.ndarray, encoding: dict) -> np.ndarray:
+    """(..., J*3) local axis-angle pose -> (..., N) generator input, as the manifest's encoding says.
+
+    ``encoding["joints"]``: conditioning joint indices; ``encoding["type"]``: ``"angles"`` (the model
+    encodes sin/cos itself; input = the 3·J_c angles) or ``"sincos"`` (input = [sin a0, cos a0, ...]).
+    The viewer's JavaScript twin is ``poseToModelInput`` in web/src/pose.js.
+    """
+    pose = np.asarray(pose, np.float32)
+    angles = pose.reshape(*pose.shape[:-1], -1, 3)[..., list(encoding["joints"]), :]
+    angles = angles.reshape(*pose.shape[:-1], -1)
+    if encoding["type"] == "sincos":
+        return np.stack([np.sin(angles), np.cos(angles)], -1).reshape(*angles.shape[:-1], -1)
+    return angles
+
+
+def rest_body_from_model(body_model, shape=None) -> RestBody:
+    """The avatar's rest pose from a :class:`uvatar.body.BodyModel` (zero pose, its shape)."""
+    import torch
+
+    t = body_model.template
+    J = len(t.joint_names)
+    with torch.no_grad():
+        shape_t = None if shape is None else torch.as_tensor(np.asarray(shape, np.float32))
+        posed = body_model.pose(torch.zeros(1, J, 3), shape=shape_t)
+    vertices = posed.vertices[0].detach().cpu().numpy().astype(np.float32)
+    transforms = posed.joint_transforms[0].detach().cpu().numpy().astype(np.float64)
+    world = np.tile(np.eye(4), (J, 1, 1))
+    rest_rot = getattr(body_model, "rest_joint_rotations", None)
+    if rest_rot is not None:
+        rest_rot = rest_rot.detach().cpu().numpy() if hasattr(rest_rot, "detach") else np.asarray(rest_rot)
+        world[:, :3, :3] = rest_rot
+    if np.abs(transforms[:, :3, 3]).max() > 1e-6:  # world joint frames at rest (orientation and position)
+        world = transforms
+    else:  # skinning transforms (identity at rest): joints from the template
+        world[:, :3, 3] = t.rest_joints
+    return RestBody(vertices, np.asarray(t.faces, np.int64), np.asarray(t.uvs, np.float32),
+                    np.asarray(t.uv_faces, np.int64), np.asarray(t.skin_weights, np.float32),
+                    tuple(t.joint_names), np.asarray(t.joint_parents, np.int64), world)
+
+
+def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = EngineExportConfig(), *,
+                        body: RestBody | None = None, body_model=None, fingers_toes_mask: np.ndarray | None = None,
+                        semantic_joints: dict | None = None) -> dict:
+    """Write ``avatar.glb``, ``manifest.json`` and the finger/toe mask into ``avatar_dir``; return the manifest.
+
+    ``avatar_dir`` must hold ``avatar.json`` and the ONNX generator. The body comes from ``body``, else
+    from ``body_model`` (a BodyModel), else from ``uvatar.body.load_body_model(avatar.json's body model)``.
+    """
+    avatar_dir = Path(avatar_dir)
+    meta_path = avatar_dir / "avatar.json"
+    meta = read_avatar_json(avatar_dir)
+    onnx_name = _meta(meta, meta_path, "onnx", "model", "files.onnx", default="model.onnx")
+    io_names = onnx_io_names(avatar_dir / onnx_name)
+    cond = [int(j) for j in _meta(meta, meta_path, "conditioning_joints", "pose_encoding.joints")]
+    n_in = io_names["input_size"]
+    kind = "sincos" if n_in == 6 * len(cond) else "angles"
+    if n_in is not None and n_in not in (3 * len(cond), 6 * len(cond)):
+        raise InputError(avatar_dir / onnx_name, f"input size {n_in} fits neither 3 nor 6 x {len(cond)} joints")
+    encoding = {"type": kind, "joints": cond, "angles": "local axis-angle components (x, y, z) in radians",
+                "input": io_names["input"], "size": n_in or 3 * len(cond)}
+    body_meta = meta.get("body_model", {})
+    body_name = body_meta.get("name", body_meta) if isinstance(body_meta, dict) else body_meta
+    shape = meta.get("shape", body_meta.get("shapes") if isinstance(body_meta, dict) else None)
+
+    if body is None:
+        if body_model is None and str(body_name).lower() in ("none", "", "null"):
+            raise InputError(meta_path, "no body model: the engine bundle (GLB) needs one")
+        if body_model is None:
+            from uvatar.body import load_body_model
+
+            body_model = load_body_model(str(body_name))
+        body = rest_body_from_model(body_model, shape)
+        semantic_joints = semantic_joints or dict(getattr(body_model, "semantic_joints", {}) or {})
+    joint_names = list(meta.get("joint_names") or body.joint_names)
+    if max(cond, default=0) >= len(joint_names) or min(cond, default=0) < 0:
+        raise InputError(meta_path, f"conditioning_joints index out of range for {len(joint_names)} joints")
+    if list(body.joint_names) != joint_names:
+        raise InputError(meta_path, f"joint order ({len(joint_names)} joints) differs from the body model's "
+                                    f"({len(body.joint_names)})")
+
+    model_input = pose_to_model_input(np.zeros((1, 3 * len(joint_names)), np.float32), encoding)
+    texture, displacement = run_generator(avatar_dir / onnx_name, io_names, model_input)
+    R = int(texture.shape[-1])
+    mean_texture = texture[0].transpose(1, 2, 0)  # (R, R, 3), row 0 is v = 1
+    mesh = engine_mesh(body, config, texture_png=_png_bytes(mean_texture))
+    write_glb(avatar_dir / config.glb_name, mesh)
+
+    if fingers_toes_mask is None and (avatar_dir / "body.npz").is_file():
+        with np.load(avatar_dir / "body.npz") as npz:
+            if "fingers_toes" in npz.files:
+                fingers_toes_mask = npz["fingers_toes"]
+    if fingers_toes_mask is None and body_model is not None:
+        from uvatar.body import part_masks
+
+        fingers_toes_mask = part_masks(body_model, R)["fingers_toes"]
+    if fingers_toes_mask is None:
+        fingers_toes_mask = np.zeros((R, R), bool)
+    if np.shape(fingers_toes_mask) != (R, R):
+        raise InputError(avatar_dir / "body.npz", f"fingers_toes mask is {np.shape(fingers_toes_mask)}, "
+                                                  f"expected ({R}, {R})")
+    write_image(avatar_dir / config.mask_name, np.asarray(fingers_toes_mask, bool).astype(np.uint8) * 255)
+
+    disp_meta = meta.get("displacement", {}) if isinstance(meta.get("displacement"), dict) else {}
+    space = meta.get("displacement_space", disp_meta.get("space", DEFAULT_SPACE))
+    manifest = {
+        "format": MANIFEST_FORMAT,
+        "glb": config.glb_name,
+        "generator": {"file": onnx_name, "input": io_names["input"], "input_size": encoding["size"],
+                      "texture_output": io_names["texture"], "displacement_output": io_names["displacement"],
+                      "layout": "NCHW float32, image row 0 is v = 1; texture in [0, 1] (sRGB)"},
+        "body_model": str(body_name), "shape": shape,
+        "joint_names": joint_names, "joint_parents": [int(p) for p in body.joint_parents],
+        "semantic_joints": {k: int(v) for k, v in (semantic_joints or {}).items()},
+        "pose_encoding": encoding,
+        "texels": R,
+        "displacement": {
+            "scale": 1.0,
+            "units": "m (generator output x scale)",
+            "max_abs_m": meta.get("displacement_scale", disp_meta.get("scale")),
+            "space": space,
+            "applied": "after skinning: p = skinned(p_rest) + scale * mask * D(TEXCOORD_1)",
+            "uv_attribute": "TEXCOORD_1",
+        },
+        "finger_toe_mask": config.mask_name,
+        "mesh": {"vertices": int(len(mesh.positions)), "triangles": int(len(mesh.indices)),
+                 "subdivisions": config.subdivisions, "max_influences": config.max_influences},
+        "mean_displacement_abs_m": float(np.abs(displacement).mean()),
+    }
+    write_json(avatar_dir / config.manifest_name, manifest)
+    return manifest

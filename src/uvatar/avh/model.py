@@ -1,0 +1,235 @@
+"""AVH generator: body pose -> (texture, displacement) maps in the body's UV layout (AVH paper §3.3).
+
+Architecture (per sample)::
+
+    pose angles (3·J_c,) radians  --(sin, cos)-->  (6·J_c,)
+      --Linear(6·J_c, 256)-ReLU-Linear(256, latent)-->  latent pose z (latent,)
+    cuboid = learned feature maps (latent, f_c, f_c) * z[:, None, None]      # z selects/modulates maps
+    two decoders (texture, displacement), same cuboid, separate weights; each is
+      n = log2(R / f_c) levels of
+         2×2 stride-2 transposed conv halving the channels  (C -> C/2, resolution ×2)
+         double 3×3 conv + BatchNorm + ReLU                   (C/2 -> C/2 -> C/2)
+      then a 1×1 conv -> 3 channels.
+    texture      = (tanh(x) + 1) / 2            in [0, 1]
+    displacement = tanh(x) · displacement_scale  metres (default ±5 cm)
+
+Placing the transposed conv at the start of each level (the paper's sequence "double conv, then
+up-conv" with the up-conv leading) gives, per decoder, 2·C² + 18·(C/2)² = 6.5·C² weights at the first
+level and ≈ 6.5·4/3 = 8.67·latent² over all levels, which reproduces every Table 1 parameter count to
+within ~1 % (e.g. (32, 1024): 32²·1024 + 2·8.67·1024² + MLP ≈ 19.5 M).
+
+Maps are BCHW float32; image row 0 is v = 1 (UV v up), the layout of the baked maps. Only
+ONNX-portable ops are used (Linear, Mul, ConvTranspose, Conv, BatchNorm, Relu, Tanh, Sin, Cos).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+
+import torch
+from torch import nn
+
+#: Paper Table 1 parameter counts, keyed by preset name.
+PAPER_PARAMETER_COUNTS: dict[str, int] = {
+    "fc16-l512": 4_800_000,
+    "fc16-l2048": 73_800_000,
+    "fc32-l1024": 19_500_000,
+    "fc64-l128": 877_000,
+    "fc64-l512": 6_800_000,
+    "fc128-l256": 5_400_000,
+}
+
+
+@dataclass(frozen=True)
+class AvhConfig:
+    """Size of the AVH generator.
+
+    feature_size: f_c, side of the learned feature cuboid (texels); resolution / f_c must be 2^n.
+    latent: latent pose size = channels of the cuboid.
+    resolution: output texel resolution R (maps are R×R).
+    num_pose_joints: J_c, number of conditioning joints (input is 3·J_c angles; 23 for SMPL).
+    hidden: hidden units of the pose MLP (paper: 256).
+    displacement_scale: metres; displacement = tanh(·) × scale.
+    min_channels: floor on decoder channels at deep levels.
+    """
+
+    feature_size: int = 32
+    latent: int = 1024
+    resolution: int = 1024
+    num_pose_joints: int = 23
+    hidden: int = 256
+    displacement_scale: float = 0.05
+    min_channels: int = 8
+
+    def __post_init__(self):
+        ratio = self.resolution / self.feature_size
+        if self.feature_size < 1 or self.resolution < self.feature_size or ratio != 2 ** round(math.log2(ratio)):
+            raise ValueError(f"resolution {self.resolution} must be feature_size {self.feature_size} "
+                             f"times a power of two")
+        if self.latent < 1 or self.num_pose_joints < 1 or self.hidden < 1:
+            raise ValueError("latent, num_pose_joints and hidden must be positive")
+
+    @property
+    def num_levels(self) -> int:
+        return round(math.log2(self.resolution / self.feature_size))
+
+    @property
+    def pose_input_size(self) -> int:
+        """Size of the encoded pose: (sin, cos) of each of the 3·J_c angles."""
+        return 6 * self.num_pose_joints
+
+    def level_channels(self) -> list[int]:
+        """Channels after each level's transposed conv (C_k = max(latent / 2^k, min_channels))."""
+        return [max(self.latent >> k, self.min_channels) for k in range(1, self.num_levels + 1)]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+#: Named sizes. Table 1 rows at the paper's 1024² output with SMPL's 23 joints, plus small CPU sizes.
+PRESETS: dict[str, AvhConfig] = {
+    "fc16-l512": AvhConfig(16, 512),
+    "fc16-l2048": AvhConfig(16, 2048),
+    "fc32-l1024": AvhConfig(32, 1024),
+    "fc64-l128": AvhConfig(64, 128),
+    "fc64-l512": AvhConfig(64, 512),
+    "fc128-l256": AvhConfig(128, 256),
+    "cpu-tiny": AvhConfig(8, 64, resolution=64),
+    "cpu-small": AvhConfig(16, 128, resolution=128),
+    "cpu-medium": AvhConfig(16, 256, resolution=256),
+}
+
+
+def preset(name: str, **overrides) -> AvhConfig:
+    """Return the preset ``name`` with fields replaced by ``overrides`` (e.g. resolution, num_pose_joints)."""
+    if name not in PRESETS:
+        raise KeyError(f"unknown AVH preset {name!r}; choose from {', '.join(PRESETS)}")
+    return replace(PRESETS[name], **overrides)
+
+
+def encode_pose(angles: torch.Tensor) -> torch.Tensor:
+    """(…, N) angles in radians -> (…, 2N) as [sin(a_0), cos(a_0), sin(a_1), cos(a_1), …]."""
+    return torch.stack([torch.sin(angles), torch.cos(angles)], dim=-1).flatten(-2)
+
+
+def select_conditioning_angles(poses: torch.Tensor, conditioning_joints) -> torch.Tensor:
+    """(…, J·3) local axis-angle poses -> (…, 3·J_c) angles of the conditioning joints, in their order."""
+    idx = torch.as_tensor(list(conditioning_joints), dtype=torch.long, device=poses.device)
+    return poses.reshape(*poses.shape[:-1], -1, 3).index_select(-2, idx).flatten(-2)
+
+
+def double_conv(channels: int) -> nn.Sequential:
+    """(conv3×3 -> BatchNorm -> ReLU) × 2, channels preserved."""
+    layers = []
+    for _ in range(2):
+        layers += [nn.Conv2d(channels, channels, 3, padding=1, bias=False), nn.BatchNorm2d(channels),
+                   nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers)
+
+
+class MapDecoder(nn.Module):
+    """Feature cuboid (B, latent, f_c, f_c) -> raw 3-channel map (B, 3, R, R) (before the output activation)."""
+
+    def __init__(self, config: AvhConfig):
+        super().__init__()
+        layers: list[nn.Module] = []
+        c_in = config.latent
+        for c_out in config.level_channels():
+            layers.append(nn.ConvTranspose2d(c_in, c_out, kernel_size=2, stride=2))
+            layers.append(double_conv(c_out))
+            c_in = c_out
+        if not layers:  # resolution == feature_size
+            layers.append(double_conv(c_in))
+        layers.append(nn.Conv2d(c_in, 3, kernel_size=1))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, cuboid: torch.Tensor) -> torch.Tensor:
+        return self.net(cuboid)
+
+
+class AvhGenerator(nn.Module):
+    """Encoded pose (B, 6·J_c) -> texture (B, 3, R, R) in [0, 1], displacement (B, 3, R, R) metres."""
+
+    def __init__(self, config: AvhConfig):
+        super().__init__()
+        self.config = config
+        self.pose_mlp = nn.Sequential(
+            nn.Linear(config.pose_input_size, config.hidden), nn.ReLU(inplace=True),
+            nn.Linear(config.hidden, config.latent),
+        )
+        f = config.feature_size
+        self.feature_maps = nn.Parameter(torch.randn(config.latent, f, f) * 0.5)
+        self.texture_decoder = MapDecoder(config)
+        self.displacement_decoder = MapDecoder(config)
+
+    def cuboid(self, pose_encoded: torch.Tensor) -> torch.Tensor:
+        """(B, 6·J_c) -> feature cuboid (B, latent, f_c, f_c)."""
+        z = self.pose_mlp(pose_encoded)
+        return self.feature_maps.unsqueeze(0) * z[:, :, None, None]
+
+    def forward(self, pose_encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        tracing = torch.jit.is_tracing() or torch.compiler.is_compiling()
+        if not tracing and (pose_encoded.ndim != 2 or pose_encoded.shape[1] != self.config.pose_input_size):
+            raise ValueError(f"pose_encoded must be (B, {self.config.pose_input_size}), "
+                             f"got {tuple(pose_encoded.shape)}")
+        cub = self.cuboid(pose_encoded)
+        texture = (torch.tanh(self.texture_decoder(cub)) + 1.0) * 0.5
+        displacement = torch.tanh(self.displacement_decoder(cub)) * self.config.displacement_scale
+        return texture, displacement
+
+
+class AvhFromAngles(nn.Module):
+    """Wrapper taking raw conditioning-joint angles (B, 3·J_c) radians; encodes (sin, cos) inside.
+
+    This is the graph exported to ONNX (input ``pose_angles``), so runtimes need no pre-processing.
+    """
+
+    def __init__(self, generator: AvhGenerator):
+        super().__init__()
+        self.generator = generator
+
+    def forward(self, pose_angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.generator(encode_pose(pose_angles))
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+def expected_parameter_count(config: AvhConfig) -> int:
+    """Closed-form parameter count of :class:`AvhGenerator` (no module is built; used for big presets)."""
+    n = config.pose_input_size * config.hidden + config.hidden
+    n += config.hidden * config.latent + config.latent
+    n += config.latent * config.feature_size ** 2
+    dec = 0
+    c_in = config.latent
+    for c in config.level_channels():
+        dec += c_in * c * 4 + c  # transposed conv weight + bias
+        dec += 2 * (9 * c * c + 2 * c)  # two bias-free 3x3 convs + BatchNorm affine
+        c_in = c
+    if not config.level_channels():
+        dec += 2 * (9 * c_in * c_in + 2 * c_in)
+    dec += 3 * c_in + 3
+    return n + 2 * dec
+
+
+def format_count(n: int) -> str:
+    """4_800_000 -> '4.8 M', 877_000 -> '877 K'."""
+    if n >= 1_000_000:
+        return f"{n / 1e6:.1f} M"
+    if n >= 1_000:
+        return f"{n / 1e3:.0f} K"
+    return str(n)
+
+
+def preset_table(num_pose_joints: int = 23) -> list[dict]:
+    """One row per preset: name, f_c, latent, resolution, parameters, and the paper's count where it has one."""
+    rows = []
+    for name, cfg in PRESETS.items():
+        cfg = replace(cfg, num_pose_joints=num_pose_joints)
+        rows.append({"name": name, "feature_size": cfg.feature_size, "latent": cfg.latent,
+                     "resolution": cfg.resolution, "parameters": expected_parameter_count(cfg),
+                     "paper_parameters": PAPER_PARAMETER_COUNTS.get(name)})
+    return rows

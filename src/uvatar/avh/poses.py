@@ -1,0 +1,131 @@
+"""Pose sequences that drive an avatar: capture fits, held-out poses, or any ``uvatar.motion`` file.
+
+``load_pose_sequence(spec, body)`` understands
+
+- ``heldout:CAPTURE``  the held-out frames of a synthetic capture (``gt/info.json`` ``heldout_frames``)
+- ``fits:CAPTURE`` or a capture folder  every fit of the capture, in frame order
+- anything else  ``uvatar.motion.load_motion(spec, body)`` (BVH retargeted by joint names, AMASS,
+  EasyMocap sequences, synthetic takes)
+
+Poses are the body model's local axis-angles (T, J·3), root zero; the global motion is Rh/Th
+(EasyMocap convention).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.errors import InputError
+
+
+@dataclass
+class PoseSequence:
+    """poses (T, J·3) local axis-angle; Rh (T, 3); Th (T, 3) metres; scale (T,); fps; frame labels."""
+
+    poses: np.ndarray
+    Rh: np.ndarray
+    Th: np.ndarray
+    scale: np.ndarray
+    fps: float = 25.0
+    names: list[str] = field(default_factory=list)
+    shapes: np.ndarray | None = None   # (S,) body shape of the source, when it has one
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    def subsample(self, max_frames: int | None, stride: int = 1) -> PoseSequence:
+        """Every ``stride``-th frame, at most ``max_frames`` of them (fps scaled by the stride)."""
+        idx = np.arange(0, len(self), max(int(stride), 1))
+        if max_frames:
+            idx = idx[:max_frames]
+        return PoseSequence(self.poses[idx], self.Rh[idx], self.Th[idx], self.scale[idx],
+                            self.fps / max(int(stride), 1), [self.names[i] for i in idx] if self.names else [],
+                            self.shapes)
+
+
+def heldout_frames(capture_root: str | Path) -> list[str]:
+    """``gt/info.json["heldout_frames"]`` of a synthetic capture."""
+    path = Path(capture_root) / "gt" / "info.json"
+    if not path.is_file():
+        raise InputError(path, "not found: held-out frames need a synthetic capture's gt/info.json")
+    try:
+        frames = json.loads(path.read_text()).get("heldout_frames")
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"invalid JSON ({exc})") from exc
+    if not frames:
+        raise InputError(path, "lists no heldout_frames")
+    return [str(f) for f in frames]
+
+
+def sequence_from_capture(capture_root: str | Path, frames: list[str] | None = None, body=None) -> PoseSequence:
+    """Fits of ``frames`` (default: all) of a capture as a PoseSequence."""
+    from uvatar.capture import Capture
+
+    cap = Capture(capture_root)
+    frames = frames if frames is not None else cap.frames
+    fits = [cap.load_fit(f) for f in frames]
+    if not fits:
+        raise InputError(capture_root, "no fits")
+    poses = np.stack([np.asarray(f.poses, np.float32).reshape(-1) for f in fits])
+    if body is not None and poses.shape[1] != 3 * body.num_joints:
+        raise InputError(cap.fits_dir, f"fits have {poses.shape[1]} pose values, body model has "
+                                       f"{body.num_joints} joints")
+    shapes = np.asarray(fits[0].shapes, np.float32) if np.size(fits[0].shapes) else None
+    return PoseSequence(poses, np.stack([np.asarray(f.Rh, np.float32).reshape(3) for f in fits]),
+                        np.stack([np.asarray(f.Th, np.float32).reshape(3) for f in fits]),
+                        np.array([float(f.scale) for f in fits], np.float32), cap.fps, list(frames), shapes)
+
+
+def _field(obj, *names):
+    for n in names:
+        if isinstance(obj, dict) and n in obj:
+            return obj[n]
+        if hasattr(obj, n):
+            return getattr(obj, n)
+    return None
+
+
+def as_pose_sequence(motion, num_joints: int, source: str = "motion") -> PoseSequence:
+    """Convert what ``uvatar.motion.load_motion`` returns (attributes or dict keys poses/Rh/Th/fps)."""
+    poses = _field(motion, "poses", "joint_rotvecs", "rotvecs")
+    if poses is None:
+        raise InputError(source, "motion has no poses")
+    poses = np.asarray(poses.detach().cpu() if hasattr(poses, "detach") else poses, np.float32)
+    T = poses.shape[0]
+    poses = poses.reshape(T, -1)
+    if poses.shape[1] != 3 * num_joints:
+        raise InputError(source, f"motion has {poses.shape[1] // 3} joints, the body has {num_joints}")
+
+    def arr(names, shape, default):
+        v = _field(motion, *names)
+        if v is None:
+            return np.full((T, *shape), default, np.float32)
+        v = np.asarray(v.detach().cpu() if hasattr(v, "detach") else v, np.float32)
+        return v.reshape(T, *shape)
+
+    fps = _field(motion, "fps", "frame_rate")
+    return PoseSequence(poses, arr(("Rh", "global_orient"), (3,), 0.0), arr(("Th", "transl", "trans"), (3,), 0.0),
+                        arr(("scale",), (), 1.0), float(fps) if fps else 25.0)
+
+
+def load_pose_sequence(spec: str | Path, body) -> PoseSequence:
+    """See the module docstring for ``spec``. ``body``: the avatar's BodyModel (joint order)."""
+    spec = str(spec)
+    if spec.startswith("heldout:"):
+        root = spec[len("heldout:"):]
+        return sequence_from_capture(root, heldout_frames(root), body)
+    if spec.startswith("fits:"):
+        return sequence_from_capture(spec[len("fits:"):], None, body)
+    if Path(spec).is_dir() and (Path(spec) / "capture.json").is_file():
+        return sequence_from_capture(spec, None, body)
+    if not Path(spec).exists():
+        raise InputError(spec, "motion file not found")
+    try:
+        from uvatar.motion import load_motion
+    except ImportError as exc:
+        raise InputError(spec, f"cannot read this motion: uvatar.motion.load_motion unavailable ({exc})") from exc
+    return as_pose_sequence(load_motion(spec, body), body.num_joints, spec)

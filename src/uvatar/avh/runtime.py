@@ -1,0 +1,131 @@
+"""An exported avatar at run time: generator (onnxruntime) + posed, subdivided, displaced body (§3.5).
+
+For a pose: run the generator -> texture (R, R, 3) and body-frame displacement (R, R, 3); pose the
+body (LBS), subdivide its triangles ``levels`` times (UVs carried along, one UV per geometric vertex
+for the displacement lookup so seams do not crack), rotate the displacement sampled at each vertex
+into world axes (``R(Rh) d``) and add it, except on fingers and toes (mask sampled at the vertex UV).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uvatar.avh.data import rotvec_to_rotmat
+from uvatar.avh.export import onnx_session, read_avatar
+from uvatar.errors import InputError
+
+
+@dataclass
+class AvatarMesh:
+    """vertices (V', 3) world metres; faces (F', 3); uvs (U', 2); uv_faces (F', 3); texture (R, R, 3)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uvs: np.ndarray
+    uv_faces: np.ndarray
+    texture: np.ndarray
+
+
+class AvatarRuntime:
+    """Loads ``AVATAR/`` (see :mod:`uvatar.avh.export`) and turns poses into textured meshes.
+
+    body: the BodyModel (default: ``load_body_model`` of avatar.json's body model);
+    levels / scheme: subdivision of the body ("midpoint" keeps the surface, "loop" smooths it).
+    """
+
+    def __init__(self, avatar_dir: str | Path, body=None, device: str = "cpu", levels: int = 2,
+                 scheme: str = "midpoint"):
+        from uvatar.geometry import subdivide
+
+        self.avatar_dir = Path(avatar_dir)
+        self.meta = read_avatar(self.avatar_dir)
+        self.session = onnx_session(self.avatar_dir / self.meta["model"], device)
+        name = (self.meta.get("body_model") or {}).get("name", "none")
+        if body is None:
+            if name == "none":
+                raise InputError(self.avatar_dir / "avatar.json", "avatar has no body model")
+            from uvatar.body import load_body_model
+
+            body = load_body_model(name)
+        self.body = body
+        self.conditioning = [int(j) for j in self.meta["conditioning_joints"]]
+        self.resolution = int(self.meta["resolution"])
+        shapes = (self.meta.get("body_model") or {}).get("shapes")
+        self.shape = None if shapes is None else np.asarray(shapes, np.float32)
+        t = body.template
+        v, f, uv, uvf, origin = subdivide(t.vertices, t.faces, t.uvs, t.uv_faces, levels, scheme)
+        self.faces, self.uvs, self.uv_faces = f, uv.astype(np.float32), uvf
+        self.vertex_matrix = origin.vertex_matrix.astype(np.float32)
+        self.vertex_uv = origin.vertex_uv.astype(np.float32)
+        self.displacement_weight = 1.0 - self._sample(self.fingers_toes_mask()[..., None].astype(np.float32))[:, 0]
+
+    def fingers_toes_mask(self) -> np.ndarray:
+        """(R, R) bool texels where displacement is not applied (body.npz, else part_masks)."""
+        npz = self.avatar_dir / "body.npz"
+        if npz.is_file():
+            with np.load(npz) as z:
+                if "fingers_toes" in z.files and z["fingers_toes"].shape == (self.resolution,) * 2:
+                    return z["fingers_toes"].astype(bool)
+        from uvatar.body import part_masks
+
+        return np.asarray(part_masks(self.body, self.resolution)["fingers_toes"], bool)
+
+    def _sample(self, image: np.ndarray) -> np.ndarray:
+        from uvatar.geometry import sample_texture
+
+        return np.asarray(sample_texture(image, self.vertex_uv), np.float32)
+
+    def generate(self, poses: np.ndarray, batch_size: int = 8) -> tuple[np.ndarray, np.ndarray]:
+        """(T, J·3) local axis-angles -> texture (T, R, R, 3) in [0, 1], displacement (T, R, R, 3) body frame."""
+        poses = np.asarray(poses, np.float32).reshape(len(poses), -1, 3)
+        angles = poses[:, self.conditioning].reshape(len(poses), -1)
+        tex, disp = [], []
+        for s in range(0, len(angles), batch_size):
+            t, d = self.session.run(["texture", "displacement"], {"pose_angles": angles[s:s + batch_size]})
+            tex.append(t.transpose(0, 2, 3, 1))
+            disp.append(d.transpose(0, 2, 3, 1))
+        return np.concatenate(tex), np.concatenate(disp)
+
+    def posed_vertices(self, poses, Rh=None, Th=None, scale=None, shape=None) -> np.ndarray:
+        """(T, J·3) poses (+ global Rh, Th (T, 3), scale (T,)) -> base-mesh vertices (T, V, 3)."""
+        T = len(poses)
+        shape = self.shape if shape is None else shape
+        with torch.no_grad():
+            posed = self.body.pose(torch.as_tensor(np.asarray(poses, np.float32)).reshape(T, -1, 3),
+                                   Rh=None if Rh is None else torch.as_tensor(np.asarray(Rh, np.float32)),
+                                   Th=None if Th is None else torch.as_tensor(np.asarray(Th, np.float32)),
+                                   scale=None if scale is None else torch.as_tensor(np.asarray(scale, np.float32)),
+                                   shape=None if shape is None else torch.as_tensor(shape))
+        return posed.vertices.cpu().numpy()
+
+    def displaced_vertices(self, base_vertices: np.ndarray, displacement: np.ndarray | None,
+                           Rh: np.ndarray | None = None) -> np.ndarray:
+        """Subdivide posed base vertices (V, 3) and add the displacement map (R, R, 3) body frame (or None)."""
+        v = np.asarray(self.vertex_matrix @ np.asarray(base_vertices, np.float32), np.float32)
+        if displacement is None:
+            return v
+        d = self._sample(np.asarray(displacement, np.float32)) * self.displacement_weight[:, None]
+        if Rh is not None:
+            d = d @ rotvec_to_rotmat(np.asarray(Rh, np.float64)).T.astype(np.float32)
+        return v + d
+
+    def mesh(self, base_vertices, texture, displacement, Rh=None) -> AvatarMesh:
+        """One textured, displaced mesh from posed base vertices (V, 3) and the maps."""
+        return AvatarMesh(self.displaced_vertices(base_vertices, displacement, Rh), self.faces, self.uvs,
+                          self.uv_faces, np.asarray(texture, np.float32))
+
+    def meshes(self, poses, Rh=None, Th=None, scale=None, shape=None):
+        """Yield an :class:`AvatarMesh` per pose (generator and body posed in batches)."""
+        T = len(poses)
+        Rh = np.zeros((T, 3), np.float32) if Rh is None else np.asarray(Rh, np.float32)
+        for s in range(0, T, 8):
+            sl = slice(s, min(s + 8, T))
+            tex, disp = self.generate(np.asarray(poses)[sl])
+            base = self.posed_vertices(np.asarray(poses)[sl], Rh[sl], None if Th is None else np.asarray(Th)[sl],
+                                       None if scale is None else np.asarray(scale)[sl], shape)
+            for k in range(len(base)):
+                yield self.mesh(base[k], tex[k], disp[k], Rh[sl][k])

@@ -1,0 +1,279 @@
+"""Train the AVH generator on a baked dataset (paper §3.3, §4.2): ``uvatar train avh BAKED RUN``.
+
+Adam (lr 1.31e-3), batch 8, ExponentialLR γ = 0.99 per epoch, loss of :mod:`uvatar.avh.loss`.
+On CUDA: bf16 autocast and channels_last. Train maps are resampled to the model's output resolution.
+
+Run folder layout::
+
+    RUN/run.json        model config, train config, baked path, body model + shape, conditioning joints,
+                        train/val frames, parameter count
+    RUN/checkpoint.pt   latest epoch (model, optimizer, scheduler, history); written atomically each epoch
+    RUN/model.pt        weights of the latest epoch + config (what `uvatar export` reads)
+    RUN/history.json    per-epoch losses
+    RUN/done.json       summary written when all epochs are done
+    RUN/tb/             TensorBoard scalars (loss, lr) and preview images
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, read_dataset_meta, selection
+from uvatar.avh.loss import avh_loss
+from uvatar.avh.model import AvhConfig, AvhGenerator, count_parameters, encode_pose, select_conditioning_angles
+from uvatar.errors import InputError, UvatarError
+from uvatar.io_utils import atomic_path, write_json
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimization settings (paper defaults). ``displacement_weight`` scales the displacement term."""
+
+    epochs: int = 500
+    batch_size: int = 8
+    lr: float = 1.31e-3
+    lr_gamma: float = 0.99
+    outlier_threshold: float = 0.05
+    displacement_weight: float = 1.0
+    device: str = "cpu"
+    seed: int = 0
+    preview_every: int = 10
+    tensorboard: bool = True
+    progress: bool = True
+
+
+@dataclass
+class TrainingData:
+    """Training tensors on the device: encoded poses (N, 6·J_c) and maps (N, C, R, R)."""
+
+    names: list[str]
+    pose_encoded: torch.Tensor
+    maps: dict[str, torch.Tensor]
+
+    def batch(self, idx: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        return self.pose_encoded[idx], {k: v[idx] for k, v in self.maps.items()}
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def to_training_data(frames: BakedFrames, conditioning_joints, device: str | torch.device) -> TrainingData:
+    """BakedFrames (numpy, HWC) -> TrainingData (torch, BCHW, on ``device``)."""
+    def chw(a):
+        t = torch.from_numpy(np.ascontiguousarray(a))
+        return (t.permute(0, 3, 1, 2) if t.ndim == 4 else t[:, None]).contiguous().to(device)
+
+    poses = torch.from_numpy(frames.poses)
+    angles = select_conditioning_angles(poses, conditioning_joints)
+    maps = {"texture": chw(frames.texture), "displacement": chw(frames.displacement),
+            "kappa": chw(frames.kappa), "w": chw(frames.w), "valid": chw(frames.valid.astype(np.float32))}
+    return TrainingData(frames.names, encode_pose(angles).float().to(device), maps)
+
+
+def resolve_body(meta: dict, resolution: int, body=None, baked_dir: Path | None = None):
+    """(conditioning joint indices, fingers/toes mask (R, R) bool or None, joint names or None).
+
+    Uses ``body`` when given, otherwise loads the dataset's body model; ``dataset.json`` may also list
+    ``conditioning_joints`` (used as is, e.g. by test fixtures whose body model is "none").
+    """
+    name, _ = body_model_info(meta)
+    if body is None and name != "none":
+        from uvatar.body import load_body_model
+
+        body = load_body_model(name)
+    if body is None:
+        if "conditioning_joints" not in meta:
+            raise InputError(Path(baked_dir or ".") / "dataset.json",
+                             "body model 'none' needs a conditioning_joints list")
+        log.warning("no body model: fingers/toes are not left out of the displacement loss")
+        return [int(j) for j in meta["conditioning_joints"]], None, meta.get("joint_names")
+    from uvatar.body import part_masks
+
+    cond = [int(j) for j in meta.get("conditioning_joints", body.conditioning_joints)]
+    excluded = np.asarray(part_masks(body, resolution)["fingers_toes"], bool)
+    return cond, excluded, list(body.joint_names)
+
+
+def _load_checkpoint(path: Path) -> dict:
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is a user-facing input error
+        raise InputError(path, f"cannot read checkpoint ({exc})") from exc
+
+
+def _save(path: Path, obj) -> None:
+    with atomic_path(path, suffix=".pt") as tmp:
+        torch.save(obj, tmp)
+
+
+def _preview(model: AvhGenerator, data: TrainingData) -> np.ndarray:
+    """(3, R, 4R) image: predicted texture | target texture | predicted |d| | target |d| of the first frame."""
+    pose, batch = data.batch(torch.tensor([0], device=data.pose_encoded.device))
+    with torch.no_grad():
+        tex, disp = model(pose)
+    scale = model.config.displacement_scale
+
+    def mag(d):
+        return (d.float().norm(dim=1, keepdim=True) / scale).clamp(0, 1).expand(-1, 3, -1, -1)
+
+    row = torch.cat([tex.float(), batch["texture"], mag(disp), mag(batch["displacement"])], dim=3)
+    return row[0].clamp(0, 1).cpu().numpy()
+
+
+def evaluate_loss(model: AvhGenerator, data: TrainingData, excluded, cfg: TrainConfig) -> tuple[float, float, float]:
+    """Mean (total, texture, displacement) loss over ``data`` in eval mode (no gradients)."""
+    model.eval()
+    sums = np.zeros(3)
+    with torch.no_grad():
+        for start in range(0, len(data), cfg.batch_size):
+            idx = torch.arange(start, min(start + cfg.batch_size, len(data)), device=data.pose_encoded.device)
+            pose, batch = data.batch(idx)
+            tex, disp = model(pose)
+            losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight)
+            sums += np.array([float(x) for x in losses]) * len(idx)
+    return tuple(float(x) for x in sums / max(len(data), 1))
+
+
+def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfig,
+              train_config: TrainConfig = TrainConfig(), resume: bool = False, body=None,
+              preset_name: str | None = None) -> dict:
+    """Train (or resume) and return a summary dict (epochs, losses, parameters, seconds, samples/s).
+
+    ``model_config.num_pose_joints`` is replaced by the number of conditioning joints of the body.
+    Raises UvatarError if ``run_dir`` holds a checkpoint and ``resume`` is False.
+    """
+    from tqdm import tqdm
+
+    baked_dir, run_dir = Path(baked_dir), Path(run_dir)
+    cfg = train_config
+    ckpt_path = run_dir / "checkpoint.pt"
+    state = None
+    if ckpt_path.exists():
+        if not resume:
+            raise UvatarError(f"{run_dir}: holds a checkpoint; pass --resume to continue or pick a new folder")
+        state = _load_checkpoint(ckpt_path)
+        model_config = AvhConfig(**state["model_config"])
+    meta = read_dataset_meta(baked_dir)
+    train_names, val_names = selection(meta, baked_dir)
+    R = model_config.resolution
+    cond, excluded_np, joint_names = resolve_body(meta, R, body, baked_dir)
+    model_config = replace(model_config, num_pose_joints=len(cond))
+
+    device = torch.device(cfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UvatarError("--device cuda requested but CUDA is not available")
+    torch.manual_seed(cfg.seed)
+    train = to_training_data(load_baked_frames(baked_dir, train_names, R, cfg.progress), cond, device)
+    val = (to_training_data(load_baked_frames(baked_dir, val_names, R), cond, device) if val_names else None)
+    excluded = None if excluded_np is None else torch.from_numpy(excluded_np).to(device)
+
+    model = AvhGenerator(model_config).to(device)
+    use_cuda = device.type == "cuda"
+    if use_cuda:
+        model = model.to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=cfg.lr_gamma)
+    history: list[dict] = []
+    start_epoch = 0
+    if state is not None:
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        history, start_epoch = state["history"], state["epoch"] + 1
+        torch.set_rng_state(state["rng"])
+    n_params = count_parameters(model)
+    _, shapes = body_model_info(meta)
+    run_info = {"preset": preset_name, "model": model_config.to_dict(), "train": asdict(cfg), "baked": str(baked_dir.resolve()),
+                "body_model": {"name": body_model_info(meta)[0],
+                               "shapes": None if shapes is None else shapes.tolist()},
+                "conditioning_joints": cond, "joint_names": joint_names,
+                "train_frames": train.names, "val_frames": [] if val is None else val.names,
+                "parameters": n_params, "displacement_space": "body frame: world axes with Rh removed"}
+    write_json(run_dir / "run.json", run_info)
+    print(f"AVH generator: {n_params:,} parameters (f_c={model_config.feature_size}, "
+          f"latent={model_config.latent}, {R}x{R}); {len(train)} train / "
+          f"{0 if val is None else len(val)} val frames; device {device}")
+
+    writer = None
+    if cfg.tensorboard:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(run_dir / "tb"), purge_step=start_epoch)
+    steps_per_epoch = math.ceil(len(train) / cfg.batch_size)
+    bar = tqdm(total=(cfg.epochs - start_epoch) * steps_per_epoch, desc="train avh", disable=not cfg.progress,
+               unit="step")
+    t0, samples = time.perf_counter(), 0
+    for epoch in range(start_epoch, cfg.epochs):
+        model.train()
+        perm = torch.randperm(len(train)).to(device)
+        sums = np.zeros(3)
+        for s in range(steps_per_epoch):
+            idx = perm[s * cfg.batch_size:(s + 1) * cfg.batch_size]
+            pose, batch = train.batch(idx)
+            if use_cuda:
+                batch = {k: v.contiguous(memory_format=torch.channels_last) for k, v in batch.items()}
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_cuda):
+                tex, disp = model(pose)
+            losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight)
+            opt.zero_grad(set_to_none=True)
+            losses[0].backward()
+            opt.step()
+            sums += np.array([float(x.detach()) for x in losses]) * len(idx)
+            samples += len(idx)
+            bar.update(1)
+            bar.set_postfix(epoch=epoch, loss=f"{float(losses[0].detach()):.2e}")
+        sched.step()
+        entry = {"epoch": epoch, "lr": opt.param_groups[0]["lr"],
+                 **dict(zip(("loss", "texture", "displacement"), (sums / len(train)).tolist(), strict=True))}
+        if val is not None:
+            entry.update(dict(zip(("val_loss", "val_texture", "val_displacement"),
+                                  evaluate_loss(model, val, excluded, cfg), strict=True)))
+        history.append(entry)
+        if writer is not None:
+            for k, v in entry.items():
+                if k != "epoch":
+                    writer.add_scalar(k.replace("val_", "val/") if k.startswith("val_") else f"train/{k}", v, epoch)
+            if epoch % max(cfg.preview_every, 1) == 0 or epoch == cfg.epochs - 1:
+                model.eval()
+                writer.add_image("preview/pred_tex|gt_tex|pred_d|gt_d", _preview(model, val or train), epoch)
+            writer.flush()
+        model_state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+        _save(ckpt_path, {"model": model_state, "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+                          "epoch": epoch, "history": history, "rng": torch.get_rng_state(),
+                          "model_config": model_config.to_dict(), "train_config": asdict(cfg)})
+        _save(run_dir / "model.pt", {"model": model_state, "model_config": model_config.to_dict(), "epoch": epoch})
+        write_json(run_dir / "history.json", history)
+    bar.close()
+    if writer is not None:
+        writer.close()
+    seconds = time.perf_counter() - t0
+    if not history:
+        raise UvatarError(f"{run_dir}: nothing trained (epochs={cfg.epochs})")
+    summary = {"run": str(run_dir), "epochs": len(history), "parameters": n_params, "seconds": seconds,
+               "samples_per_second": samples / seconds if seconds > 0 else None, "final": history[-1]}
+    write_json(run_dir / "done.json", summary)
+    return summary
+
+
+def load_trained_generator(run_dir: str | Path) -> tuple[AvhGenerator, dict]:
+    """(generator in eval mode on CPU, run.json dict) from a training run folder."""
+    run_dir = Path(run_dir)
+    info_path, weights = run_dir / "run.json", run_dir / "model.pt"
+    if not info_path.is_file() or not weights.is_file():
+        raise InputError(run_dir, "not a training run (needs run.json and model.pt from `uvatar train avh`)")
+    import json
+
+    info = json.loads(info_path.read_text())
+    state = _load_checkpoint(weights)
+    model = AvhGenerator(AvhConfig(**state["model_config"]))
+    model.load_state_dict(state["model"])
+    return model.eval(), info

@@ -1,0 +1,183 @@
+"""The capture folder (see docs/ARCHITECTURE.md and DESIGN.md):
+
+    capture.json            {"fps", "units", "body_model": {"name", "shapes"}, "frames", "provenance"}
+    scans/000000.obj|.ply|.glb (+ texture, .mtl)    one textured scan per frame
+    fits/000000.json        EasyMocap fits (or fits.npz with the whole sequence)
+    cameras/intri.yml, cameras/extri.yml           optional, multi-view
+    images/<cam>/000000.png, masks/<cam>/000000.png
+    gt/                     ground truth (synthetic captures only)
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.capture.cameras import read_cameras
+from uvatar.capture.fits import read_fit, read_fits_npz
+from uvatar.capture.meshio import IMAGE_SUFFIXES, find_scan, load_texture, read_mesh
+from uvatar.capture.types import BodyFit, Camera, TexturedMesh
+from uvatar.errors import InputError
+from uvatar.io_utils import write_json
+
+CAPTURE_JSON = "capture.json"
+
+
+def write_capture_info(root: str | Path, frames: list[str], fps: float = 25.0, body_model: str = "anny",
+                       shapes=None, provenance: dict | None = None, **extra) -> dict:
+    """Write ``root/capture.json`` atomically and return the dict written."""
+    info = {"fps": float(fps), "units": "m",
+            "body_model": {"name": body_model, "shapes": [] if shapes is None else np.asarray(shapes).tolist()},
+            "frames": [str(f) for f in frames], "provenance": provenance or {}, **extra}
+    write_json(Path(root) / CAPTURE_JSON, info)
+    return info
+
+
+def read_capture_info(root: str | Path) -> dict:
+    """Read and minimally check ``capture.json`` (errors name the file)."""
+    path = Path(root) / CAPTURE_JSON
+    if not path.is_file():
+        raise InputError(path, "capture.json is missing (is this a capture folder?)")
+    try:
+        info = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"invalid JSON ({exc})") from None
+    if not isinstance(info, dict):
+        raise InputError(path, "expected a JSON object")
+    if "frames" in info and (not isinstance(info["frames"], list)
+                             or not all(isinstance(f, str | int) for f in info["frames"])):
+        raise InputError(path, "'frames' must be a list of frame names")
+    fps = info.get("fps", 25)
+    if not isinstance(fps, int | float) or fps <= 0:
+        raise InputError(path, f"'fps' must be a positive number, got {fps!r}")
+    body = info.get("body_model", {"name": "anny"})
+    if isinstance(body, str):
+        body = {"name": body}
+    if not isinstance(body, dict) or "name" not in body:
+        raise InputError(path, "'body_model' must be {\"name\": ..., \"shapes\": [...]}")
+    info["body_model"] = body
+    return info
+
+
+def _first_existing(folder: Path, stem: str, suffixes=IMAGE_SUFFIXES) -> Path:
+    for suffix in suffixes:
+        candidate = folder / f"{stem}{suffix}"
+        if candidate.is_file():
+            return candidate
+    return folder / f"{stem}.png"
+
+
+class Capture:
+    """A capture folder, read lazily. ``frames`` come from capture.json (or the scans/fits files).
+
+    >>> cap = Capture("captures/alice")                     # doctest: +SKIP
+    >>> mesh, fit = cap.load_scan(cap.frames[0]), cap.load_fit(cap.frames[0])  # doctest: +SKIP
+    """
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise InputError(self.root, "capture folder does not exist")
+        self.info = read_capture_info(self.root)
+
+    # folders
+    @property
+    def scans_dir(self) -> Path:
+        return self.root / "scans"
+
+    @property
+    def fits_dir(self) -> Path:
+        return self.root / "fits"
+
+    @property
+    def cameras_dir(self) -> Path:
+        return self.root / "cameras"
+
+    @property
+    def gt_dir(self) -> Path:
+        return self.root / "gt"
+
+    @property
+    def fps(self) -> float:
+        return float(self.info.get("fps", 25.0))
+
+    @property
+    def body_model(self) -> str:
+        return str(self.info["body_model"]["name"])
+
+    @property
+    def body_shapes(self) -> np.ndarray:
+        return np.asarray(self.info["body_model"].get("shapes", []), dtype=np.float32)
+
+    @cached_property
+    def frames(self) -> list[str]:
+        """Frame names ("000000", ...) from capture.json, else from scans/ or fits/ file stems."""
+        if self.info.get("frames"):
+            return [str(f) for f in self.info["frames"]]
+        for folder in (self.scans_dir, self.fits_dir):
+            stems = sorted({p.stem for p in folder.glob("*") if p.suffix.lower() in (".obj", ".ply", ".glb", ".json")})
+            if stems:
+                return stems
+        return []
+
+    # scans
+    def scan_path(self, frame: str) -> Path:
+        """Path of the frame's scan (.obj/.ply/.glb; the .obj name if none exists)."""
+        return find_scan(self.scans_dir, frame) or self.scans_dir / f"{frame}.obj"
+
+    def has_scan(self, frame: str) -> bool:
+        return find_scan(self.scans_dir, frame) is not None
+
+    def load_scan(self, frame: str) -> TexturedMesh:
+        return read_mesh(self.scan_path(frame))
+
+    # fits
+    def fit_path(self, frame: str) -> Path:
+        return self.fits_dir / f"{frame}.json"
+
+    @cached_property
+    def _fits_npz(self) -> dict[str, BodyFit] | None:
+        npz = self.root / "fits.npz"
+        return read_fits_npz(npz) if npz.is_file() else None
+
+    def has_fit(self, frame: str) -> bool:
+        return self.fit_path(frame).is_file() or (self._fits_npz is not None and frame in self._fits_npz)
+
+    def load_fit(self, frame: str, person_id: int | None = None) -> BodyFit:
+        """The frame's fit from ``fits/<frame>.json``, else from ``fits.npz``."""
+        path = self.fit_path(frame)
+        if not path.is_file() and self._fits_npz is not None and frame in self._fits_npz:
+            return self._fits_npz[frame]
+        return read_fit(path, person_id)
+
+    # cameras and images
+    def has_cameras(self) -> bool:
+        return (self.cameras_dir / "intri.yml").is_file()
+
+    @cached_property
+    def _cameras(self) -> dict[str, Camera]:
+        return read_cameras(self.cameras_dir) if self.has_cameras() else {}
+
+    def cameras(self) -> dict[str, Camera]:
+        """{name: Camera} from cameras/intri.yml + extri.yml ({} when the capture has none)."""
+        return dict(self._cameras)
+
+    def image_path(self, cam: str, frame: str) -> Path:
+        return _first_existing(self.root / "images" / cam, frame)
+
+    def mask_path(self, cam: str, frame: str) -> Path:
+        return _first_existing(self.root / "masks" / cam, frame)
+
+    def load_image(self, cam: str, frame: str) -> np.ndarray:
+        """(H, W, 3) float32 RGB in [0, 1]."""
+        return load_texture(self.image_path(cam, frame), what="image")
+
+    def load_mask(self, cam: str, frame: str) -> np.ndarray:
+        """(H, W) bool foreground mask (any channel > 0.5)."""
+        return load_texture(self.mask_path(cam, frame), what="mask image").max(axis=-1) > 0.5
+
+    def __repr__(self) -> str:
+        return f"Capture({str(self.root)!r}, frames={len(self.frames)})"

@@ -1,0 +1,157 @@
+"""AVH stage 2 commands: ``train avh``, ``export``, ``animate``, ``eval avh``, ``presets``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    pass
+
+
+def _preset_lines() -> str:
+    from uvatar.avh.model import format_count, preset_table
+
+    lines = ["presets (parameter counts for SMPL's 23 conditioning joints, output 1024² for Table 1 rows):",
+             f"  {'name':<12} {'f_c':>4} {'latent':>6} {'texels':>6} {'params':>9}  paper (Table 1)"]
+    for r in preset_table():
+        paper = ""
+        if r["paper_parameters"]:
+            paper = f"{format_count(r['paper_parameters']):>8}  ({100 * (r['parameters'] / r['paper_parameters'] - 1):+.1f} %)"
+        lines.append(f"  {r['name']:<12} {r['feature_size']:>4} {r['latent']:>6} {r['resolution']:>6} "
+                     f"{format_count(r['parameters']):>9}  {paper}")
+    return "\n".join(lines)
+
+
+def register(cli) -> None:
+    from uvatar.avh.model import PRESETS
+
+    p = cli.command("train avh", help="train the AVH pose -> texture/displacement generator on baked maps")
+    p.formatter_class = _Formatter
+    p.epilog = _preset_lines()
+    p.add_argument("baked", help="baked dataset folder (uvatar bake output)")
+    p.add_argument("out", help="run folder (checkpoints, TensorBoard logs, model.pt)")
+    p.add_argument("--preset", default="cpu-small", choices=sorted(PRESETS), help="model size")
+    p.add_argument("--texels", type=int, default=None, help="output resolution (default: the preset's)")
+    p.add_argument("--epochs", type=int, default=500, help="epochs (the paper uses 500)")
+    p.add_argument("--batch-size", type=int, default=8)
+    p.add_argument("--lr", type=float, default=1.31e-3)
+    p.add_argument("--gamma", type=float, default=0.99, help="ExponentialLR decay per epoch")
+    p.add_argument("--displacement-weight", type=float, default=1.0, help="weight of the displacement loss")
+    p.add_argument("--device", default="cpu", help="cpu or cuda (bf16 autocast + channels_last)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt when it exists")
+    p.add_argument("--no-tensorboard", action="store_true")
+    p.set_defaults(func=_train)
+
+    p = cli.command("presets", help="list the AVH generator presets and their parameter counts")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.set_defaults(func=_presets)
+
+    p = cli.command("export", help="export a trained AVH run: ONNX + body template + avatar.json")
+    p.formatter_class = _Formatter
+    p.epilog = ("OUT/model.onnx: input pose_angles (B, 3*J_c) radians -> texture, displacement (B, 3, R, R);\n"
+                "OUT/avatar.json: metadata; OUT/body.npz: body template. See uvatar.avh.export.")
+    p.add_argument("run", help="training run folder (uvatar train avh)")
+    p.add_argument("out", help="avatar folder to write")
+    p.add_argument("--opset", type=int, default=17)
+    p.add_argument("--tolerance", type=float, default=1e-4, help="max ONNX vs PyTorch abs difference")
+    p.set_defaults(func=_export)
+
+    p = cli.command("animate", help="render an exported avatar driven by a motion to MP4")
+    p.formatter_class = _Formatter
+    p.epilog = ("motion: a BVH/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE (its fits),\n"
+                "heldout:CAPTURE (its held-out poses)")
+    p.add_argument("avatar", help="avatar folder (uvatar export)")
+    p.add_argument("--motion", required=True, help="motion file or spec (see below)")
+    p.add_argument("-o", "--output", required=True, help="video path (.mp4)")
+    p.add_argument("--camera", default="orbit", help="orbit, front, back, left, right, or a cameras folder")
+    p.add_argument("--camera-name", default=None, help="camera of the cameras folder (default: first)")
+    p.add_argument("--size", type=int, default=512, help="image side (pixels)")
+    p.add_argument("--frames", type=int, default=None, help="render at most this many frames")
+    p.add_argument("--stride", type=int, default=1, help="use every n-th motion frame")
+    p.add_argument("--fps", type=float, default=None, help="video fps (default: the motion's)")
+    p.add_argument("--obj-dir", default=None, help="also write one mesh per frame here")
+    p.add_argument("--mesh-format", default="obj", choices=["obj", "glb"])
+    p.add_argument("--shading", action="store_true", help="add headlight shading")
+    p.add_argument("--levels", type=int, default=2, help="subdivision levels")
+    p.add_argument("--device", default="cpu", help="onnxruntime device (cpu or cuda)")
+    p.set_defaults(func=_animate)
+
+    p = cli.command("eval avh", help="evaluate an avatar on a capture's held-out poses vs two baselines")
+    p.add_argument("avatar", help="avatar folder (uvatar export)")
+    p.add_argument("capture", help="capture folder with gt/ (synthetic)")
+    p.add_argument("--json", default=None, help="write the metrics here")
+    p.add_argument("--images", default=None, help="write comparison images here")
+    p.add_argument("--baked", default=None, help="baked training data (default: the one avatar.json names)")
+    p.add_argument("--frames", type=int, default=None, help="evaluate at most this many frames")
+    p.add_argument("--cameras", type=int, default=None, help="use at most this many cameras")
+    p.add_argument("--image-size", type=int, default=None, help="render width (default: the cameras')")
+    p.set_defaults(func=_eval)
+
+
+def _train(args) -> int:
+    from uvatar.avh.model import preset
+    from uvatar.avh.train import TrainConfig, train_avh
+
+    overrides = {"resolution": args.texels} if args.texels else {}
+    try:
+        cfg = preset(args.preset, **overrides)
+    except ValueError as exc:
+        from uvatar.errors import UvatarError
+
+        raise UvatarError(f"--texels {args.texels}: {exc}") from exc
+    tcfg = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, lr_gamma=args.gamma,
+                       displacement_weight=args.displacement_weight, device=args.device, seed=args.seed,
+                       tensorboard=not args.no_tensorboard)
+    summary = train_avh(args.baked, args.out, cfg, tcfg, resume=args.resume, preset_name=args.preset)
+    final = summary["final"]
+    print(f"trained {summary['epochs']} epochs: loss {final['loss']:.3e}"
+          + (f", val {final['val_loss']:.3e}" if "val_loss" in final else "") + f" -> {args.out}")
+    return 0
+
+
+def _presets(args) -> int:
+    if args.json:
+        from uvatar.avh.model import preset_table
+
+        print(json.dumps(preset_table(), indent=2))
+    else:
+        print(_preset_lines())
+    return 0
+
+
+def _export(args) -> int:
+    from uvatar.avh.export import export_avatar
+
+    meta = export_avatar(args.run, args.out, opset=args.opset, tolerance=args.tolerance)
+    print(f"exported {meta['parameters']:,} parameters to {args.out} "
+          f"(ONNX max abs diff vs PyTorch {meta['onnx_max_abs_diff']:.2e})")
+    return 0
+
+
+def _animate(args) -> int:
+    from uvatar.avh.animate import AnimateConfig, animate
+
+    cfg = AnimateConfig(size=args.size, camera=args.camera, camera_name=args.camera_name, max_frames=args.frames,
+                        stride=args.stride, fps=args.fps, mesh_format=args.mesh_format, shading=args.shading,
+                        levels=args.levels)
+    path = animate(args.avatar, args.motion, args.output, cfg, mesh_dir=args.obj_dir, device=args.device)
+    print(f"wrote {path}")
+    return 0
+
+
+def _eval(args) -> int:
+    from uvatar.avh.eval import EvalConfig, evaluate_avatar
+    from uvatar.io_utils import write_json
+
+    cfg = EvalConfig(max_frames=args.frames, max_cameras=args.cameras, image_size=args.image_size)
+    metrics = evaluate_avatar(args.avatar, args.capture, cfg, baked_dir=args.baked, image_dir=args.images)
+    if args.json:
+        write_json(args.json, metrics)
+    rows = [("avh", metrics["avh"])] + list(metrics["baselines"].items())
+    for name, m in rows:
+        geo = f", geometry {m['geometry_mm']:.1f} mm" if m.get("geometry_mm") is not None else ""
+        print(f"{name:<13} PSNR {m['psnr_db']:.2f} dB, SSIM {m['ssim']:.3f}{geo}")
+    return 0

@@ -1,0 +1,19 @@
+"""``uvatar view AVATAR``: serve the real-time browser viewer for an exported avatar."""
+
+from __future__ import annotations
+
+
+def register(cli) -> None:
+    p = cli.command("view", help="open an exported avatar in the real-time browser viewer (localhost)")
+    p.add_argument("avatar", help="avatar folder written by `uvatar export` (manifest.json, avatar.glb, model.onnx)")
+    p.add_argument("--port", type=int, default=8000, help="port to listen on (0: any free port)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on")
+    p.add_argument("--no-browser", action="store_true", help="do not open a browser window")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    from uvatar.viewer.server import ViewerConfig, serve
+
+    serve(args.avatar, ViewerConfig(host=args.host, port=args.port, open_browser=not args.no_browser))
+    return 0

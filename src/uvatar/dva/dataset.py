@@ -1,0 +1,92 @@
+"""In-memory training/driving data for DVA: posed bodies, photos, masks and per-view UV unwraps.
+
+``FrameBank(source, body, model_raster, frames, cameras)`` loads every (frame, camera) once: the posed
+LBS vertices, joint rotations, uint8 images and masks, and the image unwrapped into UV at the model's
+image-feature resolution (with visibility). Frames whose fit, image or mask cannot be read are skipped
+with a warning (``bank.skipped`` says why).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+
+from uvatar.dva.features import average_views, unwrap_views
+from uvatar.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+def body_inputs(body, fits, device="cpu"):
+    """fits list[BodyFit] -> joint_rotvecs (B, J, 3), posed vertices (B, V, 3) (torch, no grad)."""
+    rot = np.stack([np.asarray(body.joint_rotvecs_from_fit(f), np.float32) for f in fits])
+    Rh = np.stack([np.asarray(f.Rh, np.float32).reshape(3) for f in fits])
+    Th = np.stack([np.asarray(f.Th, np.float32).reshape(3) for f in fits])
+    scale = np.array([float(getattr(f, "scale", 1.0)) for f in fits], np.float32)
+    kwargs = {}
+    shapes = [np.asarray(f.shapes, np.float32).reshape(-1) for f in fits]
+    if all(s.size for s in shapes) and len({s.size for s in shapes}) == 1:
+        kwargs["shape"] = torch.as_tensor(np.stack(shapes), device=device)
+    with torch.no_grad():
+        rot_t = torch.as_tensor(rot, device=device)
+        posed = body.pose(rot_t, Rh=torch.as_tensor(Rh, device=device), Th=torch.as_tensor(Th, device=device),
+                          scale=torch.as_tensor(scale, device=device), **kwargs)
+    return rot_t, posed.vertices.float()
+
+
+def estimate_background(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(3,) median colour of the pixels outside the mask (0 when the mask covers everything)."""
+    out = image[mask < 0.5]
+    return np.median(out, 0).astype(np.float32) if out.size else np.zeros(3, np.float32)
+
+
+class FrameBank:
+    """All training (or driving) data in memory; see the module docstring."""
+
+    def __init__(self, source, body, image_raster, template, frames, cameras, progress=True):
+        from tqdm import tqdm
+
+        self.cameras = list(cameras)
+        self.cams = [source.cameras[c] for c in self.cameras]
+        self.frames, self.skipped = [], {}
+        rot, verts, images, masks, texs, vis = [], [], [], [], [], []
+        for frame in tqdm(list(frames), desc="loading frames", disable=not progress, unit="frame"):
+            try:
+                fit = source.fit(frame)
+                r, v = body_inputs(body, [fit])
+                imgs = [source.image(c, frame) for c in self.cameras]
+                msks = [np.asarray(source.mask(c, frame), np.float32) for c in self.cameras]
+                for c, im, m in zip(self.cams, imgs, msks):
+                    if im.shape[:2] != m.shape[:2]:
+                        raise InputError(f"{c.name}/{frame}", f"image {im.shape[:2]} and mask {m.shape[:2]} differ")
+            except InputError as exc:
+                log.warning("skipping frame %s: %s", frame, exc)
+                self.skipped[frame] = str(exc)
+                continue
+            t, s = unwrap_views(image_raster, template, v[0].cpu().numpy(), self.cams, imgs, msks)
+            self.frames.append(frame)
+            rot.append(r[0])
+            verts.append(v[0])
+            images.append([(np.clip(i, 0, 1) * 255 + 0.5).astype(np.uint8) for i in imgs])
+            masks.append([(m > 0.5) for m in msks])
+            texs.append(torch.as_tensor(t, dtype=torch.float16))
+            vis.append(torch.as_tensor(s))
+        if not self.frames:
+            raise InputError(getattr(source, "root", "source"), "no usable frame (all fits/images broken)")
+        self.rotvecs = torch.stack(rot)
+        self.vertices = torch.stack(verts)
+        self.images, self.masks = images, masks
+        self.textures = torch.stack(texs)  # (F, C, R, R, 3)
+        self.visibility = torch.stack(vis)  # (F, C, R, R)
+        self.backgrounds = np.stack([estimate_background(images[0][c].astype(np.float32) / 255.0,
+                                                         masks[0][c]) for c in range(len(self.cameras))])
+
+    def __len__(self):
+        return len(self.frames)
+
+    def image_texture(self, fi: int, views) -> torch.Tensor:
+        """(4, R, R) mean unwrapped colour + coverage from the given camera indices of frame ``fi``."""
+        v = list(views)
+        return average_views(self.textures[fi, v].float()[None], self.visibility[fi, v][None])[0]

@@ -1,0 +1,144 @@
+"""DVA training losses (paper eq. 8 plus the MVP/NV priors), weights in :class:`LossConfig`.
+
+* ``rgb``: mean squared error of the composited image (foreground + background) vs. the photo.
+* ``perceptual``: with VGG-19 weights supplied by the user (``--vgg-weights PATH``: a torchvision-style
+  ``vgg19`` state dict, keys ``features.N.weight/bias``), the L1 distance of relu1_2..relu5_4 features.
+  Without weights (none can be downloaded here) this term is **off** and replaced by a structural term
+  ``1 - SSIM`` (11x11 Gaussian window, sigma 1.5, the usual constants) on the same image patches; the
+  trainer logs which one is used.
+* ``mask``: mean absolute error between the accumulated opacity and the foreground mask.
+* ``volume``: MVP volume prior, the mean primitive volume relative to its rest volume (keeps boxes small).
+* ``beta``: Neural Volumes opacity prior ``log(0.1 + a) + log(1.1 - a)`` (pushes opacity to 0 or 1).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from uvatar.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LossConfig:
+    rgb: float = 1.0
+    perceptual: float = 0.05
+    ssim: float = 0.1
+    mask: float = 0.1
+    volume: float = 0.01
+    beta: float = 0.01
+
+
+def ssim_torch(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM of images (B, C, H, W) in [0, 1] (valid-region Gaussian windows); differentiable."""
+    x = torch.arange(window, dtype=a.dtype, device=a.device) - (window - 1) / 2
+    g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
+    g = g / g.sum()
+    C = a.shape[1]
+    win = (g[:, None] * g[None, :]).expand(C, 1, window, window)
+    if min(a.shape[-2:]) < window:
+        win = win[..., : a.shape[-2], : a.shape[-1]]
+        win = win / win.sum((-2, -1), keepdim=True)
+
+    def blur(t):
+        return F.conv2d(t, win, groups=C)
+
+    mu_a, mu_b = blur(a), blur(b)
+    saa = blur(a * a) - mu_a ** 2
+    sbb = blur(b * b) - mu_b ** 2
+    sab = blur(a * b) - mu_a * mu_b
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (saa + sbb + c2))
+    return s.mean()
+
+
+_VGG19 = [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512, 512, 512, "M", 512, 512, 512, 512]
+_VGG_TAPS = (3, 8, 17, 26, 35)  # relu1_2, relu2_2, relu3_4, relu4_4, relu5_4 in torchvision's indexing
+
+
+class Vgg19Features(nn.Module):
+    """VGG-19 convolutional trunk laid out like torchvision's ``vgg19().features`` (same state-dict keys),
+    built here because torchvision is not installed. forward(x (B,3,H,W) in [0,1]) -> list of features."""
+
+    def __init__(self):
+        super().__init__()
+        layers, c = [], 3
+        for v in _VGG19:
+            if v == "M":
+                layers.append(nn.MaxPool2d(2, 2))
+            else:
+                layers += [nn.Conv2d(c, v, 3, padding=1), nn.ReLU(inplace=False)]
+                c = v
+        self.features = nn.Sequential(*layers)
+        self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
+        self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
+
+    @classmethod
+    def from_file(cls, path) -> Vgg19Features:
+        """Load a torchvision vgg19 state dict (``features.*`` keys; classifier keys are ignored)."""
+        model = cls()
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - report any unreadable file the same way
+            raise InputError(path, f"cannot read VGG-19 weights ({exc.__class__.__name__}: {exc})") from exc
+        state = {k: v for k, v in state.items() if k.startswith("features.")}
+        missing = model.load_state_dict(state, strict=False).missing_keys
+        missing = [k for k in missing if k.startswith("features.")]
+        if missing:
+            raise InputError(path, f"not a VGG-19 state dict: missing {missing[0]} (and {len(missing) - 1} more)")
+        for p in model.parameters():
+            p.requires_grad_(False)
+        return model.eval()
+
+    def forward(self, x):
+        x = (x - self.mean) / self.std
+        out = []
+        for i, layer in enumerate(self.features):
+            x = layer(x)
+            if i in _VGG_TAPS:
+                out.append(x)
+            if i >= _VGG_TAPS[-1]:
+                break
+        return out
+
+
+def beta_prior(alpha: torch.Tensor) -> torch.Tensor:
+    """Neural Volumes opacity prior, 0 at alpha in {0, 1}, positive in between."""
+    return (torch.log(0.1 + alpha) + torch.log(1.1 - alpha) - 2 * torch.log(torch.tensor(0.1))).mean() \
+        if alpha.numel() else alpha.sum()
+
+
+class DvaLoss(nn.Module):
+    """Weighted sum; forward(pred (B,3,H,W) composited, target (B,3,H,W), alpha (B,H,W), mask (B,H,W),
+    scales (B,K,3), rest_scales (K,3)) -> (total, dict of float terms)."""
+
+    def __init__(self, cfg: LossConfig | None = None, vgg: Vgg19Features | None = None):
+        super().__init__()
+        self.cfg = cfg or LossConfig()
+        self.vgg = vgg
+        log.info("DVA perceptual loss: %s", "VGG-19 features" if vgg is not None
+                 else "off (no --vgg-weights); using 1 - SSIM instead")
+
+    def forward(self, pred, target, alpha, mask, scales, rest_scales):
+        c = self.cfg
+        terms = {"rgb": F.mse_loss(pred, target)}
+        if self.vgg is not None and c.perceptual > 0:
+            terms["perceptual"] = sum(F.l1_loss(a, b) for a, b in zip(self.vgg(pred), self.vgg(target)))
+        elif c.ssim > 0:
+            terms["ssim"] = 1.0 - ssim_torch(pred, target)
+        if c.mask > 0:
+            terms["mask"] = (alpha - mask).abs().mean()
+        if c.volume > 0:
+            terms["volume"] = (scales.prod(-1) / rest_scales.prod(-1)[None]).mean()
+        if c.beta > 0:
+            terms["beta"] = beta_prior(alpha)
+        weights = {"rgb": c.rgb, "perceptual": c.perceptual, "ssim": c.ssim, "mask": c.mask,
+                   "volume": c.volume, "beta": c.beta}
+        total = sum(weights[k] * v for k, v in terms.items())
+        return total, {k: float(v.detach()) for k, v in terms.items()}

@@ -1,0 +1,169 @@
+"""The DVA model: LBS-articulated primitives + texel-aligned features -> decoders -> ray marching.
+
+``DvaModel(cfg, template, conditioning_joints)`` holds everything learned; the body model that poses the
+template lives outside (the trainer / renderer calls ``body.pose`` and passes posed vertices in).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from uvatar.dva.decoders import DecoderConfig, DvaDecoder
+from uvatar.dva.features import (
+    FeatureConfig,
+    ImageEncoder,
+    PoseEncoder,
+    pose_feature_maps,
+    texel_skin_weights,
+    view_feature_map,
+)
+from uvatar.dva.losses import LossConfig
+from uvatar.dva.primitives import PrimitiveConfig, apply_correctives, articulated_frames, build_uv_grid
+from uvatar.dva.raymarch import raymarch
+from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig
+
+
+@dataclass
+class TrainConfig:
+    """lr: Adam learning rate. batch: (frame, camera) samples per step. patch: side of the square pixel
+    crop rendered per sample. warmup_iters: correctives stay off before this step. all_views_iters:
+    curriculum stage 1 (image features from every training view) length; afterwards ``driving_views``
+    random views. checkpoint_every: steps between checkpoints."""
+
+    lr: float = 2e-3
+    batch: int = 2
+    patch: int = 48
+    warmup_iters: int = 300
+    all_views_iters: int = 1000
+    driving_views: int = 3
+    checkpoint_every: int = 200
+    iters: int = 100_000
+    minutes: float = 18.0
+
+
+@dataclass
+class DvaConfig:
+    primitives: PrimitiveConfig = field(default_factory=PrimitiveConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    raymarch: RaymarchConfig = field(default_factory=RaymarchConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DvaConfig:
+        kinds = {"primitives": PrimitiveConfig, "features": FeatureConfig, "decoder": DecoderConfig,
+                 "raymarch": RaymarchConfig, "loss": LossConfig, "train": TrainConfig}
+        return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
+
+
+def _preset(grid, voxels, hidden, step, pose_ch=16, img_ch=16, **train) -> DvaConfig:
+    cfg = DvaConfig()
+    cfg.primitives.grid = grid
+    cfg.decoder.voxels = voxels
+    cfg.decoder.hidden = hidden
+    cfg.raymarch.step = step
+    cfg.features.pose_channels = pose_ch
+    cfg.features.image_channels = img_ch
+    cfg.train = dataclasses.replace(cfg.train, **train)
+    return cfg
+
+
+PRESETS = {
+    # the paper: K = 4096 primitives of 16^3 voxels (GPU territory)
+    "paper": _preset(64, 16, 256, 0.005, 64, 64, batch=4, patch=128, lr=5e-4, warmup_iters=2000,
+                     all_views_iters=1000, minutes=24 * 60.0),
+    # a 2-core CPU in ~20 minutes: K = 256 primitives of 8^3 voxels
+    "cpu": _preset(16, 8, 32, 0.012),
+    # unit tests and smoke runs
+    "tiny": _preset(8, 4, 8, 0.03, 4, 4, batch=1, patch=16, warmup_iters=2, all_views_iters=3,
+                    checkpoint_every=2, minutes=1.0),
+}
+
+
+def preset(name: str) -> DvaConfig:
+    from uvatar.errors import InputError
+
+    if name not in PRESETS:
+        raise InputError("--preset", f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    return copy.deepcopy(PRESETS[name])
+
+
+@dataclass
+class DvaOutput:
+    """Decoded primitives for a batch: positions (B,K,3), rotations (B,K,3,3), scales (B,K,3),
+    payload (B,K,4,S,S,S) (RGB + density), motion (B,9,W,W) raw correctives."""
+
+    positions: torch.Tensor
+    rotations: torch.Tensor
+    scales: torch.Tensor
+    payload: torch.Tensor
+    motion: torch.Tensor
+
+    def primitives(self, b: int) -> Primitives:
+        return Primitives(self.positions[b], self.rotations[b], self.scales[b], self.payload[b])
+
+
+class DvaModel(nn.Module):
+    """forward(posed_vertices (B,V,3), joint_rotvecs (B,J,3), image_texture (B,4,R,R),
+    camera_centers (B,3)) -> DvaOutput. ``R = W * cfg.features.image_scale`` (see :attr:`image_raster`)."""
+
+    def __init__(self, cfg: DvaConfig, template, conditioning_joints):
+        super().__init__()
+        from uvatar.geometry import rasterize_uv
+
+        self.cfg = cfg
+        self.template = template
+        self.joints = tuple(int(j) for j in conditioning_joints)
+        self.grid = build_uv_grid(template, cfg.primitives)
+        W = self.grid.size
+        self.image_raster = rasterize_uv(template.uvs, template.uv_faces, W * cfg.features.image_scale)
+        self.register_buffer("texel_weights", torch.as_tensor(
+            texel_skin_weights(self.grid.raster, template, self.joints)))
+        self.register_buffer("rest_scales", torch.as_tensor(self.grid.rest_scales))
+        self.register_buffer("correctives_on", torch.zeros((), dtype=torch.bool))
+        f = cfg.features
+        self.pose_encoder = PoseEncoder(len(self.joints), f.pose_channels)
+        self.image_encoder = ImageEncoder(f.image_scale, f.image_channels)
+        self.decoder = DvaDecoder(cfg.decoder, W, f.pose_channels, f.image_channels, 1)
+
+    def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers) -> DvaOutput:
+        f_pose = self.pose_encoder(pose_feature_maps(joint_rotvecs, self.texel_weights, self.joints))
+        f_img = self.image_encoder(image_texture)
+        f_view = view_feature_map(self.grid.raster, self.template, posed_vertices, camera_centers)
+        motion, rgb, density = self.decoder(f_pose, f_img, f_view)
+        pos, rot = articulated_frames(self.grid, self.template, posed_vertices)
+        pos, rot, scl = apply_correctives(pos, rot, self.rest_scales, motion, self.cfg.primitives,
+                                          bool(self.correctives_on))
+        return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion)
+
+    def render_rays(self, out: DvaOutput, b: int, origins, directions, background=None):
+        """Render rays (N, 3) through sample ``b``: rgb (N, 3) (composited over ``background`` (3,) if
+        given), alpha (N,)."""
+        rgb, alpha = raymarch(origins, directions, out.primitives(b), self.cfg.raymarch)
+        if background is not None:
+            rgb = rgb + (1.0 - alpha)[:, None] * background
+        return rgb, alpha
+
+
+def pixel_rays(camera, pixels: np.ndarray, device="cpu", dtype=torch.float32):
+    """World rays through pixel centres. pixels (N, 2) integer (x, y) -> origins, directions (N, 3).
+
+    Pinhole model (distortion ignored: images are expected undistorted)."""
+    xy = np.asarray(pixels, np.float64) + 0.0
+    homo = np.concatenate([xy, np.ones((xy.shape[0], 1))], 1)
+    d_cam = homo @ np.linalg.inv(camera.K).T
+    d = d_cam @ camera.R  # R^T d_cam, as row vectors
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(camera.center, d.shape)
+    return (torch.as_tensor(np.ascontiguousarray(o), dtype=dtype, device=device),
+            torch.as_tensor(d, dtype=dtype, device=device))

@@ -1,0 +1,85 @@
+"""Face and vertex normals (numpy or torch, batched, differentiable in torch).
+
+Normals follow the right-hand rule of the triangle's vertex order (counter-clockwise seen from
+the side the normal points to). Vertex normals are area weighted: the sum of the (unnormalized)
+cross products of the incident faces, then normalized.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["face_normals", "vertex_normals", "normalize", "is_torch"]
+
+_EPS = 1e-12
+
+
+def is_torch(x) -> bool:
+    """True when ``x`` is a torch tensor (without importing torch when it is not loaded)."""
+    return type(x).__module__.startswith("torch")
+
+
+def normalize(x, eps: float = _EPS):
+    """Unit vectors along the last axis (numpy or torch); zero vectors stay zero."""
+    if is_torch(x):
+        import torch
+
+        return x / torch.linalg.norm(x, dim=-1, keepdim=True).clamp_min(eps)
+    x = np.asarray(x)
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), eps)
+
+
+def _face_corners(vertices, faces):
+    """(..., F, 3, 3) corner positions; faces (F, 3) int (numpy or torch)."""
+    if is_torch(vertices):
+        import torch
+
+        f = torch.as_tensor(np.asarray(faces) if not is_torch(faces) else faces,
+                            dtype=torch.long, device=vertices.device)
+        return vertices[..., f, :]
+    return np.asarray(vertices)[..., np.asarray(faces, dtype=np.int64), :]
+
+
+def _face_cross(vertices, faces):
+    """(..., F, 3) cross(v1 - v0, v2 - v0): direction = normal, length = 2 x area."""
+    tri = _face_corners(vertices, faces)
+    e1 = tri[..., 1, :] - tri[..., 0, :]
+    e2 = tri[..., 2, :] - tri[..., 0, :]
+    if is_torch(tri):
+        import torch
+
+        return torch.linalg.cross(e1, e2, dim=-1)
+    return np.cross(e1, e2)
+
+
+def face_normals(vertices, faces):
+    """Unit face normals. vertices (..., V, 3), faces (F, 3) -> (..., F, 3); same backend as input."""
+    return normalize(_face_cross(vertices, faces))
+
+
+def vertex_normals(vertices, faces):
+    """Area-weighted unit vertex normals. vertices (..., V, 3), faces (F, 3) -> (..., V, 3).
+
+    Vertices that belong to no face get a zero normal.
+    """
+    cross = _face_cross(vertices, faces)  # (..., F, 3)
+    if is_torch(vertices):
+        import torch
+
+        f = torch.as_tensor(np.asarray(faces) if not is_torch(faces) else faces,
+                            dtype=torch.long, device=vertices.device)
+        out = torch.zeros_like(vertices)
+        for k in range(3):  # three corners, not a per-vertex loop
+            out = out.index_add(-2, f[:, k], cross)
+        return normalize(out)
+    faces = np.asarray(faces, dtype=np.int64)
+    vertices = np.asarray(vertices)
+    lead = vertices.shape[:-2]
+    nv = vertices.shape[-2]
+    cross2 = cross.reshape(-1, cross.shape[-2], 3)
+    out = np.zeros((cross2.shape[0], nv, 3), dtype=np.float64)
+    for b in range(cross2.shape[0]):  # batch loop (small); accumulation itself is bincount
+        for c in range(3):
+            out[b, :, c] = sum(np.bincount(faces[:, k], weights=cross2[b, :, c], minlength=nv)
+                               for k in range(3))
+    return normalize(out.reshape(*lead, nv, 3)).astype(np.result_type(vertices.dtype, np.float32))

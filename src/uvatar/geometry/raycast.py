@@ -1,0 +1,244 @@
+"""Batched ray casting against a triangle mesh with Embree (through ``embreex``).
+
+Directions need not be unit length: they are normalized, and every distance is Euclidean along
+the ray (metres when the mesh is in metres). Barycentrics are (w0, w1, w2) with
+``point = w0 v0 + w1 v1 + w2 v2`` for the face's vertices (Embree's (u, v) -> (1 - u - v, u, v)).
+
+``first_hit_reference`` / ``count_hits_reference`` are the plain numpy Moller-Trumbore twins over all
+triangles (small meshes only: memory is N x F).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from uvatar.errors import InputError, require
+
+__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "first_hit_reference", "count_hits_reference"]
+
+
+@dataclass(frozen=True)
+class RayCasterConfig:
+    """Options of :class:`RayCaster`.
+
+    batch_size: rays per Embree call (bounds temporary memory, ~100 B per ray).
+    refine: recompute distance and barycentrics of hits in float64 on the hit triangle
+        (Moller-Trumbore; ~1e-12 instead of Embree's float32 ~1e-7 relative; costs ~30% speed).
+    max_layers: most surfaces counted along one ray by :meth:`RayCaster.count_hits`.
+    step: distance stepped past a hit before re-launching in ``count_hits``, relative to the mesh
+        extent (bounding-box diagonal + distance of the box from the origin).
+    """
+
+    batch_size: int = 1 << 20
+    refine: bool = False
+    max_layers: int = 64
+    step: float = 1e-6
+
+
+@dataclass
+class RayHits:
+    """Result of :meth:`RayCaster.first_hit` for N rays.
+
+    hit: (N,) bool; distance: (N,) float64, inf for misses; face: (N,) int64, -1 for misses;
+    bary: (N, 3) float64 barycentrics in that face (zeros for misses); points: (N, 3) float64
+    hit points (zeros for misses).
+    """
+
+    hit: np.ndarray
+    distance: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    points: np.ndarray
+
+
+def _prepare_rays(origins, directions, max_distance):
+    origins = np.asarray(origins, dtype=np.float64)
+    directions = np.asarray(directions, dtype=np.float64)
+    if origins.ndim != 2 or origins.shape[1] != 3:
+        raise InputError("origins", f"expected shape (N, 3), got {origins.shape}")
+    if directions.shape != origins.shape:
+        raise InputError("directions", f"shape {directions.shape} does not match origins {origins.shape}")
+    norm = np.linalg.norm(directions, axis=1)
+    if np.any(~(norm > 0)) or not np.all(np.isfinite(origins)):
+        raise InputError("directions", "contains zero-length, NaN or inf rays (or origins are not finite)")
+    directions = directions / norm[:, None]
+    max_distance = np.broadcast_to(np.asarray(max_distance, dtype=np.float64), (len(origins),)).copy()
+    if np.any(np.isnan(max_distance)) or np.any(max_distance < 0):
+        raise InputError("max_distance", "must be >= 0 (inf allowed)")
+    return origins, directions, max_distance
+
+
+def _moller_trumbore(origins, directions, v0, v1, v2):
+    """Ray/triangle intersection, float64, broadcasting. Returns t, u, v (u weights v1, v weights v2)."""
+    e1 = v1 - v0
+    e2 = v2 - v0
+    p = np.cross(directions, e2)
+    det = (e1 * p).sum(-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        s = origins - v0
+        u = (s * p).sum(-1) * inv
+        q = np.cross(s, e1)
+        v = (directions * q).sum(-1) * inv
+        t = (e2 * q).sum(-1) * inv
+    return t, u, v
+
+
+class RayCaster:
+    """Embree scene over one triangle mesh. vertices (V, 3), faces (F, 3) int.
+
+    >>> rc = RayCaster(vertices, faces)                      # doctest: +SKIP
+    >>> hits = rc.first_hit(origins, directions, max_distance=2.0)
+    """
+
+    def __init__(self, vertices, faces, config: RayCasterConfig | None = None):
+        self.config = config or RayCasterConfig()
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self.faces = np.asarray(faces, dtype=np.int64)
+        if self.vertices.ndim != 2 or self.vertices.shape[1] != 3:
+            raise InputError("vertices", f"expected shape (V, 3), got {self.vertices.shape}")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
+            raise InputError("faces", f"expected shape (F, 3), got {self.faces.shape}")
+        if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= len(self.vertices)):
+            raise InputError("faces", f"indices out of range [0, {len(self.vertices)})")
+        if len(self.faces) == 0:
+            raise InputError("faces", "mesh has no triangles")
+        rtcore_scene = require("embreex.rtcore_scene", "embree", "ray casting")
+        mesh_construction = require("embreex.mesh_construction", "embree", "ray casting")
+        self._scene = rtcore_scene.EmbreeScene()
+        self._mesh = mesh_construction.TriangleMesh(
+            self._scene,
+            np.ascontiguousarray(self.vertices, dtype=np.float32),
+            np.ascontiguousarray(self.faces, dtype=np.int32),
+        )
+        self._triangles = self.vertices[self.faces]  # (F, 3, 3) float64, for refinement
+        lo, hi = self.vertices.min(0), self.vertices.max(0)
+        self.extent = float(np.linalg.norm(hi - lo) + np.abs(np.stack([lo, hi])).max())
+
+    # -- raw Embree call -------------------------------------------------------------------------
+    def _run(self, origins, directions, tfar, query="INTERSECT"):
+        """Embree in batches of float32 rays. Returns (primID (N,) int32, u, v, tfar float32), or for
+        OCCLUDED the primID-like array only (-1 = not occluded)."""
+        n = len(origins)
+        bs = self.config.batch_size
+        o32 = np.ascontiguousarray(origins, dtype=np.float32)
+        d32 = np.ascontiguousarray(directions, dtype=np.float32)
+        far = None if tfar is None else np.ascontiguousarray(np.minimum(tfar, 3e38), dtype=np.float32)
+        if query == "OCCLUDED":
+            out = np.empty(n, dtype=np.int32)
+            for s in range(0, n, bs):
+                fs = None if far is None else far[s : s + bs]
+                out[s : s + bs] = self._scene.run(o32[s : s + bs], d32[s : s + bs], dists=fs, query="OCCLUDED")
+            return out
+        if n <= bs:
+            res = self._scene.run(o32, d32, dists=far, query="INTERSECT", output=1)
+            return res["primID"], res["u"], res["v"], res["tfar"]
+        parts = []
+        for s in range(0, n, bs):
+            fs = None if far is None else far[s : s + bs]
+            res = self._scene.run(o32[s : s + bs], d32[s : s + bs], dists=fs, query="INTERSECT", output=1)
+            parts.append((res["primID"], res["u"], res["v"], res["tfar"]))
+        return tuple(np.concatenate(x) for x in zip(*parts))
+
+    # -- public queries ---------------------------------------------------------------------------
+    def first_hit(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> RayHits:
+        """Nearest surface along each ray within (min_distance, max_distance].
+
+        origins, directions: (N, 3); max_distance: scalar or (N,) in metres. ``min_distance`` skips
+        surfaces closer than it (e.g. the surface a ray starts on).
+        """
+        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance)
+        n = len(origins)
+        start = origins + directions * min_distance if min_distance else origins
+        tfar = None if (not min_distance and np.isinf(max_distance).all()) else max_distance - min_distance
+        prim, u, v, t = self._run(start, directions, tfar)
+        hit = prim >= 0
+        face = prim.astype(np.int64)
+        distance = np.where(hit, t.astype(np.float64) + min_distance, np.inf)
+        bary = np.empty((n, 3))
+        bary[:, 1], bary[:, 2] = u, v
+        if self.config.refine and hit.any():
+            idx = np.flatnonzero(hit)
+            tri = self._triangles[face[idx]]
+            rt, ru, rv = _moller_trumbore(origins[idx], directions[idx], tri[:, 0], tri[:, 1], tri[:, 2])
+            good = np.isfinite(rt) & np.isfinite(ru) & np.isfinite(rv)
+            distance[idx] = np.where(good, rt, distance[idx])
+            bary[idx, 1] = np.where(good, ru, bary[idx, 1])
+            bary[idx, 2] = np.where(good, rv, bary[idx, 2])
+        bary[:, 0] = 1.0 - bary[:, 1] - bary[:, 2]
+        if bary.min() < 0 or bary.max() > 1:  # round-off at edges
+            np.clip(bary, 0.0, 1.0, out=bary)
+            bary /= np.maximum(bary.sum(1, keepdims=True), 1e-30)
+        bary *= hit[:, None]
+        points = origins + directions * np.where(hit, distance, 0.0)[:, None]
+        points *= hit[:, None]
+        return RayHits(hit=hit, distance=distance, face=face, bary=bary, points=points)
+
+    def any_hit(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
+        """(N,) bool: does the ray meet any surface within (min_distance, max_distance]? (occlusion)"""
+        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance)
+        start = origins + directions * min_distance if min_distance else origins
+        return self._run(start, directions, max_distance - min_distance, query="OCCLUDED") != -1
+
+    def count_hits(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
+        """(N,) int64: number of surface crossings within (min_distance, max_distance].
+
+        Re-launches every still-hitting ray from just past its last hit; loops over hit layers
+        (at most ``config.max_layers``), never over rays. A closed mesh gives an odd count from
+        inside and an even count from outside.
+        """
+        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance)
+        step = self.config.step * self.extent
+        count = np.zeros(len(origins), dtype=np.int64)
+        pos = origins + directions * min_distance
+        remaining = max_distance - min_distance
+        last_face = np.full(len(origins), -1, dtype=np.int64)
+        alive = np.flatnonzero(remaining > 0)
+        for _ in range(self.config.max_layers):
+            if not len(alive):
+                break
+            prim, _, _, t = self._run(pos[alive], directions[alive], remaining[alive])
+            hit = prim >= 0
+            alive, prim, t = alive[hit], prim[hit], t[hit].astype(np.float64)
+            fresh = prim != last_face[alive]  # same face again: float32 re-hit, do not count it
+            count[alive[fresh]] += 1
+            last_face[alive] = prim
+            advance = t + step * np.where(fresh, 1.0, 4.0)
+            pos[alive] += directions[alive] * advance[:, None]
+            remaining[alive] -= advance
+            alive = alive[remaining[alive] > 0]
+        return count
+
+
+def first_hit_reference(vertices, faces, origins, directions, max_distance=np.inf) -> RayHits:
+    """Plain twin of :meth:`RayCaster.first_hit`: Moller-Trumbore against every triangle, float64.
+
+    Ties in distance go to the lowest face index. Memory N x F: small meshes only.
+    """
+    origins, directions, max_distance = _prepare_rays(origins, directions, max_distance)
+    vertices = np.asarray(vertices, dtype=np.float64)
+    tri = vertices[np.asarray(faces, dtype=np.int64)]
+    t, u, v = _moller_trumbore(origins[:, None], directions[:, None], tri[None, :, 0], tri[None, :, 1],
+                               tri[None, :, 2])
+    valid = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t <= max_distance[:, None]) & np.isfinite(t)
+    t = np.where(valid, t, np.inf)
+    face = np.argmin(t, axis=1)
+    rows = np.arange(len(origins))
+    hit = np.isfinite(t[rows, face])
+    distance = np.where(hit, t[rows, face], np.inf)
+    bu, bv = u[rows, face], v[rows, face]
+    bary = np.where(hit[:, None], np.stack([1 - bu - bv, bu, bv], 1), 0.0)
+    points = np.where(hit[:, None], origins + directions * np.where(hit, distance, 0)[:, None], 0.0)
+    return RayHits(hit=hit, distance=distance, face=np.where(hit, face, -1), bary=bary, points=points)
+
+
+def count_hits_reference(vertices, faces, origins, directions, max_distance=np.inf) -> np.ndarray:
+    """Plain twin of :meth:`RayCaster.count_hits`: number of triangles crossed (N x F test)."""
+    origins, directions, max_distance = _prepare_rays(origins, directions, max_distance)
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    t, u, v = _moller_trumbore(origins[:, None], directions[:, None], tri[None, :, 0], tri[None, :, 1],
+                               tri[None, :, 2])
+    valid = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t <= max_distance[:, None]) & np.isfinite(t)
+    return valid.sum(axis=1).astype(np.int64)

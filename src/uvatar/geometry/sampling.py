@@ -1,0 +1,249 @@
+"""Sample mesh attributes at texels of a :class:`UVRaster`, and textures at UVs.
+
+Every function takes numpy arrays or torch tensors (then it is differentiable and runs on the
+tensor's device) and allows leading batch dimensions on per-vertex inputs: ``(..., V, C)``.
+Texel outputs are ``(..., H, W, C)`` with row 0 at v = 1; uncovered texels are zero (normals: zero,
+tangent frames: identity).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uvatar.errors import InputError
+from uvatar.geometry.frames import _face_cross, is_torch, normalize, vertex_normals
+from uvatar.geometry.uv_raster import UVRaster
+
+__all__ = [
+    "texel_corners",
+    "sample_vertex_attribute",
+    "texel_positions",
+    "texel_normals",
+    "texel_tangent_frames",
+    "face_tangents",
+    "sample_texture",
+]
+
+
+def texel_corners(raster: UVRaster, faces):
+    """Per covered texel: flat index (M,), face (M,), its 3 vertex indices (M, 3), barycentrics (M, 3).
+
+    ``faces`` (F, 3) indexes the attribute being sampled (position faces for per-vertex attributes,
+    uv_faces for per-UV attributes). Precompute once when sampling many frames.
+    """
+    flat = raster.valid_indices()
+    face = raster.face_index.ravel()[flat]
+    corners = np.asarray(faces, dtype=np.int64)[face]
+    bary = raster.bary.reshape(-1, 3)[flat]
+    return flat, face, corners, bary
+
+
+def _scatter_texels(values, flat, resolution, fill=0.0):
+    """values (..., M, C) at texels ``flat`` -> (..., R, R, C) image filled with ``fill`` elsewhere."""
+    r = resolution
+    if is_torch(values):
+        import torch
+
+        out = torch.full((*values.shape[:-2], r * r, values.shape[-1]), fill, dtype=values.dtype,
+                         device=values.device)
+        idx = torch.as_tensor(flat, device=values.device)
+        out = out.index_copy(out.ndim - 2, idx, values)
+        return out.reshape(*values.shape[:-2], r, r, values.shape[-1])
+    out = np.full((*values.shape[:-2], r * r, values.shape[-1]), fill, dtype=values.dtype)
+    out[..., flat, :] = values
+    return out.reshape(*values.shape[:-2], r, r, values.shape[-1])
+
+
+def _interpolate(attr, corners, bary):
+    """attr (..., V, C) at barycentric combos -> (..., M, C)."""
+    if is_torch(attr):
+        import torch
+
+        c = torch.as_tensor(corners, device=attr.device)
+        b = torch.as_tensor(bary, dtype=attr.dtype, device=attr.device)
+        return (attr[..., c, :] * b[..., None]).sum(-2)
+    attr = np.asarray(attr)
+    b = bary.astype(np.result_type(attr.dtype, np.float32), copy=False)
+    return np.einsum("...mkc,mk->...mc", attr[..., corners, :], b)
+
+
+def sample_vertex_attribute(raster: UVRaster, faces, attr):
+    """Interpolate a per-vertex attribute at every covered texel.
+
+    raster: UV raster; faces: (F, 3) int indices into the attribute's rows, in the same triangle
+    order as the ``uv_faces`` the raster was built from (position ``faces`` for per-vertex
+    attributes, ``uv_faces`` for per-UV attributes); attr: (..., V, C) numpy or torch.
+    Returns (..., R, R, C), zero at uncovered texels. Differentiable with respect to ``attr``.
+    """
+    if attr.ndim < 2:
+        raise InputError("attr", f"expected shape (..., V, C), got {tuple(attr.shape)}")
+    flat, _, corners, bary = texel_corners(raster, faces)
+    if corners.size and corners.max() >= attr.shape[-2]:
+        raise InputError("attr", f"has {attr.shape[-2]} rows but faces index up to {corners.max()}")
+    return _scatter_texels(_interpolate(attr, corners, bary), flat, raster.resolution)
+
+
+def _split_args(args, name):
+    """Accept (vertices,) or (uv_faces, uvs, vertices)."""
+    if len(args) == 1:
+        return None, None, args[0]
+    if len(args) == 3:
+        return args
+    raise TypeError(f"{name}(raster, faces, vertices) or {name}(raster, faces, uv_faces, uvs, vertices)")
+
+
+def texel_positions(raster: UVRaster, faces, *args):
+    """3D point of every covered texel: ``texel_positions(raster, faces, [uv_faces, uvs,] vertices)``.
+
+    vertices (..., V, 3) -> (..., R, R, 3); zero where uncovered.
+    """
+    _, _, vertices = _split_args(args, "texel_positions")
+    return sample_vertex_attribute(raster, faces, vertices)
+
+
+def texel_normals(raster: UVRaster, faces, *args, normals=None):
+    """Unit normal per texel: interpolated (area-weighted) vertex normals, renormalized.
+
+    ``texel_normals(raster, faces, [uv_faces, uvs,] vertices, normals=None)``; vertices (..., V, 3);
+    ``normals`` (..., V, 3) overrides the computed vertex normals. Returns (..., R, R, 3), zero where
+    uncovered.
+    """
+    _, _, vertices = _split_args(args, "texel_normals")
+    n = vertex_normals(vertices, faces) if normals is None else normals
+    return normalize(sample_vertex_attribute(raster, faces, n))
+
+
+def face_tangents(vertices, faces, uvs, uv_faces):
+    """Per-face UV gradients: tangent dP/du and bitangent dP/dv, each (..., F, 3) (not normalized).
+
+    Faces whose UV triangle is degenerate get tangent = first edge and bitangent = zero.
+    """
+    torch_mode = is_torch(vertices)
+    if torch_mode:
+        import torch
+
+        f = torch.as_tensor(np.asarray(faces), dtype=torch.long, device=vertices.device)
+        tri = vertices[..., f, :]
+        uv = torch.as_tensor(np.asarray(uvs)[np.asarray(uv_faces)], dtype=vertices.dtype,
+                             device=vertices.device)
+    else:
+        tri = np.asarray(vertices)[..., np.asarray(faces, dtype=np.int64), :]
+        uv = np.asarray(uvs, dtype=np.float64)[np.asarray(uv_faces, dtype=np.int64)]
+    e1 = tri[..., 1, :] - tri[..., 0, :]
+    e2 = tri[..., 2, :] - tri[..., 0, :]
+    du1, dv1 = uv[:, 1, 0] - uv[:, 0, 0], uv[:, 1, 1] - uv[:, 0, 1]
+    du2, dv2 = uv[:, 2, 0] - uv[:, 0, 0], uv[:, 2, 1] - uv[:, 0, 1]
+    det = du1 * dv2 - du2 * dv1
+    ok = abs(det) > 1e-12
+    inv = 1.0 / (det + (~ok) * 1.0) * ok  # zero where degenerate
+    tangent = (e1 * dv2[:, None] - e2 * dv1[:, None]) * inv[:, None]
+    bitangent = (e2 * du1[:, None] - e1 * du2[:, None]) * inv[:, None]
+    okc = ok[:, None]
+    if torch_mode:
+        tangent = torch.where(okc, tangent, e1)
+    else:
+        tangent = np.where(okc, tangent, e1)
+    return tangent, bitangent
+
+
+def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, normals=None):
+    """Orthonormal tangent frame per texel: (..., R, R, 3, 3), columns = tangent, bitangent, normal.
+
+    normal: interpolated vertex normal (renormalized); tangent: the face's dP/du Gram-Schmidt
+    orthogonalized against the normal; bitangent = normal x tangent, flipped where the UV map is
+    mirrored so that it follows dP/dv (frames are right-handed except on mirrored islands).
+    Uncovered texels get the identity. numpy or torch (differentiable) like ``vertices``.
+    """
+    flat, face, _, _ = texel_corners(raster, uv_faces)
+    n_img = texel_normals(raster, faces, vertices, normals=normals)
+    tangent, bitangent = face_tangents(vertices, faces, uvs, uv_faces)
+    r = raster.resolution
+    if is_torch(vertices):
+        import torch
+
+        fidx = torch.as_tensor(face, device=vertices.device)
+        n = n_img.reshape(*n_img.shape[:-3], r * r, 3)[..., torch.as_tensor(flat, device=vertices.device), :]
+        t = tangent[..., fidx, :]
+        b = bitangent[..., fidx, :]
+        t = t - (t * n).sum(-1, keepdim=True) * n
+        fallback = torch.linalg.cross(n, _any_perpendicular(n), dim=-1)
+        small = torch.linalg.norm(t, dim=-1, keepdim=True) < 1e-12
+        t = normalize(torch.where(small, fallback, t))
+        bt = torch.linalg.cross(n, t, dim=-1)
+        sign = torch.where((bt * b).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(bt.dtype)
+        frames = torch.stack([t, bt * sign, n], dim=-1)  # (..., M, 3, 3) columns
+        eye = torch.eye(3, dtype=frames.dtype, device=frames.device)
+        out = eye.expand(*frames.shape[:-3], r * r, 3, 3).clone()
+        out = out.reshape(-1, r * r, 9).index_copy(1, torch.as_tensor(flat, device=frames.device),
+                                                    frames.reshape(-1, frames.shape[-3], 9))
+        return out.reshape(*frames.shape[:-3], r, r, 3, 3)
+    n = n_img.reshape(*n_img.shape[:-3], r * r, 3)[..., flat, :]
+    t = tangent[..., face, :]
+    b = bitangent[..., face, :]
+    t = t - (t * n).sum(-1, keepdims=True) * n
+    small = np.linalg.norm(t, axis=-1, keepdims=True) < 1e-12
+    t = normalize(np.where(small, np.cross(n, _any_perpendicular(n)), t))
+    bt = np.cross(n, t)
+    sign = np.where((bt * b).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+    frames = np.stack([t, bt * sign, n], axis=-1)
+    out = np.broadcast_to(np.eye(3, dtype=frames.dtype), (*frames.shape[:-3], r * r, 3, 3)).copy()
+    out[..., flat, :, :] = frames
+    return out.reshape(*frames.shape[:-3], r, r, 3, 3)
+
+
+def _any_perpendicular(n):
+    """A vector not parallel to n (..., 3): x axis unless n is mostly along x, then y."""
+    if is_torch(n):
+        import torch
+
+        ex = torch.zeros_like(n)
+        ex[..., 0] = 1.0
+        ey = torch.zeros_like(n)
+        ey[..., 1] = 1.0
+        return torch.where(n[..., :1].abs() > 0.9, ey, ex)
+    ex = np.zeros_like(n)
+    ex[..., 0] = 1.0
+    ey = np.zeros_like(n)
+    ey[..., 1] = 1.0
+    return np.where(np.abs(n[..., :1]) > 0.9, ey, ex)
+
+
+def sample_texture(image, uv):
+    """Bilinear texture lookup with clamp-to-edge. image (H, W, C); uv (..., 2) in [0, 1], v up
+    (row 0 of the image is v = 1; texel centres at ((j + 0.5) / W, 1 - (i + 0.5) / H)).
+
+    Returns (..., C). numpy or torch (differentiable in image and uv).
+    """
+    if image.ndim != 3:
+        raise InputError("image", f"expected shape (H, W, C), got {tuple(image.shape)}")
+    h, w = image.shape[:2]
+    torch_mode = is_torch(image) or is_torch(uv)
+    if torch_mode:
+        import torch
+
+        xp_floor, xp_clip = torch.floor, torch.clamp
+        if not is_torch(image):
+            image = torch.as_tensor(image, device=uv.device)
+        if not is_torch(uv):
+            uv = torch.as_tensor(uv, dtype=image.dtype, device=image.device)
+    else:
+        xp_floor, xp_clip = np.floor, np.clip
+        image = np.asarray(image)
+        uv = np.asarray(uv, dtype=np.float64)
+    x = uv[..., 0] * w - 0.5
+    y = (1.0 - uv[..., 1]) * h - 0.5
+    x0f, y0f = xp_floor(x), xp_floor(y)
+    fx = (x - x0f)[..., None]
+    fy = (y - y0f)[..., None]
+    if torch_mode:
+        x0, y0 = x0f.long(), y0f.long()
+    else:
+        x0, y0 = x0f.astype(np.int64), y0f.astype(np.int64)
+    x1, y1 = xp_clip(x0 + 1, 0, w - 1), xp_clip(y0 + 1, 0, h - 1)
+    x0, y0 = xp_clip(x0, 0, w - 1), xp_clip(y0, 0, h - 1)
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    out = top * (1 - fy) + bottom * fy
+    if not torch_mode:
+        out = out.astype(np.result_type(image.dtype, np.float32), copy=False)
+    return out

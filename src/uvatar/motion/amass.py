@@ -1,0 +1,155 @@
+"""AMASS motions (SMPL-H ``poses`` (T, 156) or SMPL-X (T, 165) npz) → named SMPL joint rotvecs.
+
+AMASS stores per-joint local axis-angles (radians) in SMPL's joint order, the root orientation
+first, a root translation ``trans`` (T, 3) in metres in a +Z-up world, and the frame rate as
+``mocap_framerate`` (SMPL-H) or ``mocap_frame_rate`` (SMPL-X). SMPL's joint frames are aligned with
+the model axes in the rest (T) pose, so world rotations are plain products along the chain.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.errors import InputError
+from uvatar.motion.bvh import forward_kinematics
+from uvatar.motion.skeleton import SkeletonMotion
+
+SMPL_BODY_JOINTS = (
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
+    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist")
+SMPL_BODY_PARENTS = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19)
+_FINGERS = ("index", "middle", "pinky", "ring", "thumb")
+SMPLH_HAND_JOINTS = tuple(f"{side}_{finger}{k}" for side in ("left", "right") for finger in _FINGERS
+                          for k in (1, 2, 3))
+SMPLX_FACE_JOINTS = ("jaw", "left_eye_smplhf", "right_eye_smplhf")
+
+# Rest-pose joint positions of the SMPL neutral mean shape (metres, model axes, +Y up); used to
+# place the skeleton when no SMPL model files are available. Directions and lengths matter here,
+# not millimetres.
+SMPL_MEAN_REST_JOINTS = np.array([
+    [-0.0018, -0.2233, 0.0282], [0.0695, -0.3141, 0.0239], [-0.0677, -0.3147, 0.0214],
+    [-0.0025, -0.1089, 0.0013], [0.1040, -0.6754, 0.0167], [-0.1060, -0.6783, 0.0154],
+    [0.0055, 0.0194, 0.0277], [0.0888, -1.0846, -0.0266], [-0.0915, -1.0900, -0.0314],
+    [0.0015, 0.0743, 0.0275], [0.1198, -1.1396, 0.0951], [-0.1186, -1.1421, 0.0967],
+    [-0.0001, 0.2886, -0.0153], [0.0767, 0.1973, -0.0009], [-0.0775, 0.1960, -0.0054],
+    [0.0048, 0.3777, 0.0373], [0.1993, 0.2364, -0.0177], [-0.1917, 0.2367, -0.0184],
+    [0.4545, 0.2214, -0.0441], [-0.4541, 0.2213, -0.0448], [0.7161, 0.2339, -0.0462],
+    [-0.7185, 0.2304, -0.0465]])
+
+# +Z-up world (AMASS) → +Y-up world: (x, y, z) → (x, z, -y)
+Z_UP_TO_Y_UP = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+
+
+def _hand_parents(offset: int) -> list[int]:
+    out = []
+    for side, wrist in ((0, 20), (1, 21)):
+        for f in range(5):
+            base = offset + side * 15 + f * 3
+            out += [wrist, base, base + 1]
+    return out
+
+
+@dataclass
+class AmassMotion:
+    """names (J,), parents (J,), rotvecs (T, J, 3) local axis-angles (radians), trans (T, 3)
+    metres (+Z up), fps, betas (S,), gender, model ("smplh" | "smplx")."""
+
+    names: tuple[str, ...]
+    parents: np.ndarray
+    rotvecs: np.ndarray
+    trans: np.ndarray
+    fps: float
+    betas: np.ndarray
+    gender: str
+    model: str
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rotvecs.shape[0])
+
+
+def is_amass_npz(keys) -> bool:
+    keys = set(keys)
+    return ("poses" in keys or "pose_body" in keys) and bool(
+        keys & {"mocap_framerate", "mocap_frame_rate", "trans", "betas"}) and "joint_rotvecs" not in keys
+
+
+def read_amass(path: str | Path) -> AmassMotion:
+    """Read an AMASS npz → :class:`AmassMotion` (errors name the file and the field)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "AMASS file is missing")
+    try:
+        data = dict(np.load(path, allow_pickle=False))
+    except Exception as exc:
+        raise InputError(path, f"unreadable NPZ ({type(exc).__name__})") from None
+    if "poses" in data:
+        poses = np.asarray(data["poses"], np.float64)
+    elif "pose_body" in data and "root_orient" in data:
+        T = len(data["pose_body"])
+        parts = [data["root_orient"], data["pose_body"], data.get("pose_jaw", np.zeros((T, 3))),
+                 data.get("pose_eye", np.zeros((T, 6))), data.get("pose_hand", np.zeros((T, 90)))]
+        poses = np.concatenate([np.asarray(p, np.float64).reshape(T, -1) for p in parts], 1)
+    else:
+        raise InputError(path, "no 'poses' array (is this an AMASS motion, not a shape file?)")
+    if poses.ndim != 2 or poses.shape[1] not in (156, 165, 72, 66):
+        raise InputError(path, f"poses has shape {poses.shape}, expected (T, 156) SMPL-H or (T, 165) SMPL-X")
+    if not np.all(np.isfinite(poses)):
+        raise InputError(path, "poses contains NaN or infinite values")
+    T = poses.shape[0]
+    fps = data.get("mocap_framerate", data.get("mocap_frame_rate"))
+    if fps is None:
+        raise InputError(path, "missing mocap_framerate / mocap_frame_rate")
+    fps = float(np.asarray(fps).reshape(-1)[0])
+    trans = np.asarray(data.get("trans", np.zeros((T, 3))), np.float64)
+    if trans.shape != (T, 3) or not np.all(np.isfinite(trans)):
+        raise InputError(path, f"trans has shape {trans.shape} or non-finite values, expected ({T}, 3)")
+    width = poses.shape[1]
+    body = list(SMPL_BODY_JOINTS)
+    parents = list(SMPL_BODY_PARENTS)
+    if width == 165:
+        names = body + list(SMPLX_FACE_JOINTS) + list(SMPLH_HAND_JOINTS)
+        parents += [15, 15, 15] + _hand_parents(25)
+        model = "smplx"
+    elif width == 156:
+        names, model = body + list(SMPLH_HAND_JOINTS), "smplh"
+        parents += _hand_parents(22)
+    else:  # plain SMPL (24 joints: hands as single joints) or body only
+        names, model = body + (["left_hand", "right_hand"] if width == 72 else []), "smpl"
+        parents += [20, 21] if width == 72 else []
+    gender = str(np.asarray(data.get("gender", "neutral")).reshape(-1)[0]) if "gender" in data else "neutral"
+    return AmassMotion(names=tuple(names), parents=np.array(parents, np.int64),
+                       rotvecs=poses.reshape(T, -1, 3), trans=trans, fps=fps,
+                       betas=np.asarray(data.get("betas", np.zeros(0)), np.float64).reshape(-1),
+                       gender=gender, model=model)
+
+
+def skeleton_motion_from_amass(motion: AmassMotion, rest_joints: np.ndarray | None = None,
+                               z_up: bool = True, source: str = "") -> SkeletonMotion:
+    """The 22 SMPL body joints as a :class:`SkeletonMotion` in a +Y-up world (metres).
+
+    rest_joints (22, 3) rest joint positions of the subject (default: SMPL mean shape). SMPL poses
+    rotate about the pelvis and add ``trans``: pelvis(t) = J_pelvis + trans(t).
+    """
+    from scipy.spatial.transform import Rotation
+
+    J = len(SMPL_BODY_JOINTS)
+    rest = SMPL_MEAN_REST_JOINTS if rest_joints is None else np.asarray(rest_joints, np.float64)[:J]
+    parents = np.array(SMPL_BODY_PARENTS, np.int64)
+    T = motion.num_frames
+    local = Rotation.from_rotvec(motion.rotvecs[:, :J].reshape(-1, 3)).as_matrix().reshape(T, J, 3, 3)
+    offsets = rest - rest[np.maximum(parents, 0)]
+    offsets[0] = rest[0]
+    translations = np.broadcast_to(offsets, (T, J, 3)).copy()
+    translations[:, 0] += motion.trans
+    world_r, world_p = forward_kinematics(parents, local, translations)
+    if z_up:
+        world_r = Z_UP_TO_Y_UP @ world_r
+        world_p = world_p @ Z_UP_TO_Y_UP.T
+    return SkeletonMotion(names=SMPL_BODY_JOINTS, parents=parents, rest_positions=rest.copy(),
+                          world_rotations=world_r, positions=world_p, fps=motion.fps, units_to_metres=1.0,
+                          source=source)

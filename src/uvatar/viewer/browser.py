@@ -1,0 +1,100 @@
+"""Drive the viewer in headless Chromium (Playwright's Python API with the system ``chromium``).
+
+Playwright's own browser downloads are never used: ``executable_path`` points at Debian's
+``/usr/bin/chromium`` (or ``$UVATAR_CHROMIUM``). WebGL runs on SwiftShader (CPU), so it works
+without a GPU.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.errors import UvatarError, require
+
+CHROMIUM_ARGS = [
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--no-first-run",
+    # WebGL without a GPU: ANGLE on SwiftShader (Chromium no longer falls back to it silently)
+    "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+]
+
+
+def find_chromium() -> str | None:
+    """Path of a Chromium executable ($UVATAR_CHROMIUM, /usr/bin/chromium, or on PATH), or None."""
+    for candidate in (os.environ.get("UVATAR_CHROMIUM"), "/usr/bin/chromium", shutil.which("chromium"),
+                      shutil.which("chromium-browser")):
+        if candidate and Path(candidate).is_file() and os.access(candidate, os.X_OK):
+            return candidate
+    return None
+
+
+def missing_browser_reason() -> str | None:
+    """Why the browser cannot run here (a sentence), or None when playwright and chromium are present."""
+    import importlib.util
+
+    if importlib.util.find_spec("playwright") is None:
+        return "the Python package 'playwright' is not installed (pip install 'uvatar[browser]')"
+    if find_chromium() is None:
+        return "no Chromium executable (apt-get install chromium, or set UVATAR_CHROMIUM)"
+    return None
+
+
+@contextlib.contextmanager
+def viewer_page(url: str, width: int = 960, height: int = 720, timeout_s: float = 120.0) -> Iterator:
+    """Open ``url`` in headless Chromium, wait until ``window.uvatar.ready``; yield the Playwright page."""
+    reason = missing_browser_reason()
+    if reason:
+        raise UvatarError(f"cannot start the headless browser: {reason}")
+    sync_api = require("playwright.sync_api", "browser", "headless viewer screenshots and tests")
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": width, "height": height})
+            logs: list[str] = []
+            page.on("console", lambda msg: logs.append(f"{msg.type}: {msg.text}"))
+            page.on("pageerror", lambda err: logs.append(f"pageerror: {err}"))
+            page.goto(url)
+            try:
+                page.wait_for_function("window.uvatar && (window.uvatar.ready || window.uvatar.error)",
+                                       timeout=timeout_s * 1000)
+            except Exception as exc:
+                raise UvatarError(f"viewer did not load within {timeout_s:.0f} s; console: {logs[-10:]}") from exc
+            error = page.evaluate("window.uvatar.error")
+            if error:
+                raise UvatarError(f"viewer failed: {error.splitlines()[0]}; console: {logs[-10:]}")
+            page.uvatar_logs = logs
+            yield page
+        finally:
+            browser.close()
+
+
+def set_pose(page, pose) -> None:
+    """Set the full pose (J*3 local axis-angles) and wait until the new maps are drawn."""
+    page.evaluate("p => window.uvatar.setPose(p)", [float(x) for x in np.asarray(pose).ravel()])
+    page.evaluate("() => window.uvatar.whenIdle()")
+
+
+def run_generator_in_browser(page, pose) -> tuple[np.ndarray, np.ndarray, float]:
+    """The in-browser generator for ``pose`` (J*3): texture (1, 3, R, R), displacement (1, 3, R, R), ms."""
+    out = page.evaluate("p => window.uvatar.runGenerator(p)", [float(x) for x in np.asarray(pose).ravel()])
+    dims = tuple(out["dims"])
+    tex = np.frombuffer(base64.b64decode(out["texture"]), np.float32).reshape(dims)
+    disp = np.frombuffer(base64.b64decode(out["displacement"]), np.float32).reshape(dims)
+    return tex, disp, float(out["ms"])
+
+
+def canvas_pixels(page) -> np.ndarray:
+    """Screenshot of the WebGL canvas as (H, W, 3) uint8."""
+    import io
+
+    import imageio.v3 as iio
+
+    png = page.locator("#view").screenshot()
+    return iio.imread(io.BytesIO(png))[..., :3]

@@ -1,0 +1,200 @@
+"""Local HTTP server for the browser viewer (stdlib ``http.server``).
+
+Routes (all GET unless noted):
+
+``/``, ``/viewer.js``, ``/ort/...``   the built page (``uvatar/viewer/static``)
+``/avatar/<file>``                    files of the avatar folder (manifest.json, avatar.glb, model.onnx, ...)
+``/api/motions``                      JSON list ``[{"name", "url"}]`` of ``AVATAR/motions/*.json``
+``POST /api/retarget``                body: a BVH file; answer: ``{"name", "fps", "poses": [[J*3], ...]}``
+                                      retargeted onto the avatar's body (``uvatar.motion``)
+
+Responses carry ``Cross-Origin-Opener-Policy``/``Embedder-Policy`` so the page is cross-origin
+isolated and onnxruntime-web may use wasm threads.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from dataclasses import dataclass
+from functools import partial
+from http import HTTPStatus
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+from uvatar.errors import InputError
+
+log = logging.getLogger(__name__)
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+MIME = {".js": "text/javascript", ".mjs": "text/javascript", ".wasm": "application/wasm",
+        ".glb": "model/gltf-binary", ".onnx": "application/octet-stream", ".json": "application/json",
+        ".css": "text/css", ".html": "text/html; charset=utf-8", ".png": "image/png", ".bvh": "text/plain"}
+MAX_UPLOAD_BYTES = 64 << 20
+
+
+@dataclass(frozen=True)
+class ViewerConfig:
+    """host/port: where to listen (port 0 picks a free one); open_browser: open the page when serving."""
+
+    host: str = "127.0.0.1"
+    port: int = 8000
+    open_browser: bool = True
+
+
+def check_avatar_dir(avatar_dir: str | Path) -> Path:
+    """Raise InputError unless ``avatar_dir`` holds a viewer bundle (manifest.json + its files)."""
+    avatar_dir = Path(avatar_dir)
+    manifest_path = avatar_dir / "manifest.json"
+    if not avatar_dir.is_dir():
+        raise InputError(avatar_dir, "not a folder; expected a `uvatar export` output")
+    if not manifest_path.is_file():
+        raise InputError(manifest_path, "missing; re-run `uvatar export` (it writes the engine bundle)")
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(manifest_path, f"not valid JSON ({exc.msg})") from None
+    for key in ("glb", "generator", "pose_encoding", "joint_names", "texels"):
+        if key not in manifest:
+            raise InputError(manifest_path, f"missing key {key!r}")
+    for name in (manifest["glb"], manifest["generator"]["file"]):
+        if not (avatar_dir / name).is_file():
+            raise InputError(avatar_dir / name, "missing (named in manifest.json)")
+    if not (STATIC_DIR / "viewer.js").is_file():
+        raise InputError(STATIC_DIR, "viewer assets not built; run `cd web && npm ci && npm run build`")
+    return avatar_dir
+
+
+def _inside(root: Path, rel: str) -> Path | None:
+    path = (root / rel).resolve()
+    return path if path.is_file() and path.is_relative_to(root.resolve()) else None
+
+
+class ViewerHandler(SimpleHTTPRequestHandler):
+    """Serves the static page, the avatar folder and the two small APIs."""
+
+    def __init__(self, *args, avatar_dir: Path, **kwargs):
+        self.avatar_dir = avatar_dir
+        super().__init__(*args, directory=str(STATIC_DIR), **kwargs)
+
+    def end_headers(self) -> None:
+        self.send_header("Cross-Origin-Opener-Policy", "same-origin")
+        self.send_header("Cross-Origin-Embedder-Policy", "require-corp")
+        self.send_header("Cache-Control", "no-cache")
+        super().end_headers()
+
+    def guess_type(self, path) -> str:
+        return MIME.get(Path(str(path)).suffix.lower(), super().guess_type(path))
+
+    def log_message(self, format, *args) -> None:  # noqa: A002 - signature of the base class
+        log.debug("%s %s", self.address_string(), format % args)
+
+    def _send_json(self, obj, status: int = 200) -> None:
+        data = json.dumps(obj).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def _send_file(self, path: Path) -> None:
+        data = path.read_bytes()
+        self.send_response(200)
+        self.send_header("Content-Type", self.guess_type(path))
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def do_GET(self) -> None:  # noqa: N802 - http.server naming
+        route = unquote(urlsplit(self.path).path)
+        if route == "/api/motions":
+            files = sorted((self.avatar_dir / "motions").glob("*.json"))
+            return self._send_json([{"name": f.stem, "url": f"avatar/motions/{f.name}"} for f in files])
+        if route.startswith("/avatar/"):
+            path = _inside(self.avatar_dir, route[len("/avatar/"):])
+            if path is None:
+                return self.send_error(HTTPStatus.NOT_FOUND, "not in the avatar folder")
+            return self._send_file(path)
+        return super().do_GET()
+
+    def do_POST(self) -> None:  # noqa: N802
+        if urlsplit(self.path).path != "/api/retarget":
+            return self.send_error(HTTPStatus.NOT_FOUND)
+        length = int(self.headers.get("Content-Length") or 0)
+        if not 0 < length <= MAX_UPLOAD_BYTES:
+            return self._send_json({"error": f"body must be 1 byte to {MAX_UPLOAD_BYTES} bytes"}, 400)
+        name = self.headers.get("X-Filename", "upload.bvh")
+        text = self.rfile.read(length).decode("utf-8", errors="replace")
+        try:
+            return self._send_json(retarget_bvh_text(self.avatar_dir, text, name))
+        except Exception as exc:  # noqa: BLE001 - any failure becomes a message on the page
+            log.warning("retarget of %s failed: %s", name, exc)
+            return self._send_json({"error": f"{name}: {exc}"}, 422)
+
+
+def retarget_bvh_text(avatar_dir: Path, text: str, name: str = "upload.bvh") -> dict:
+    """BVH text -> ``{"name", "fps", "poses"}`` on the avatar's body (via ``uvatar.motion``)."""
+    import tempfile
+
+    import numpy as np
+
+    from uvatar.motion import load_motion  # the motion module's loader (BVH retargeted by joint names)
+
+    manifest = json.loads((avatar_dir / "manifest.json").read_text())
+    from uvatar.body import load_body_model
+
+    body = load_body_model(manifest["body_model"])
+    with tempfile.NamedTemporaryFile("w", suffix=".bvh", delete=False) as f:
+        f.write(text)
+    try:
+        motion = load_motion(f.name, body)
+    finally:
+        Path(f.name).unlink(missing_ok=True)
+    poses = np.asarray(getattr(motion, "poses", motion), np.float32).reshape(-1, 3 * len(manifest["joint_names"]))
+    fps = float(getattr(motion, "fps", 30.0))
+    return {"name": Path(name).stem, "fps": fps, "poses": np.round(poses, 5).tolist()}
+
+
+class ViewerServer:
+    """A viewer server on a background thread: ``with ViewerServer(avatar) as s: print(s.url)``."""
+
+    def __init__(self, avatar_dir: str | Path, config: ViewerConfig = ViewerConfig()):
+        self.avatar_dir = check_avatar_dir(avatar_dir)
+        handler = partial(ViewerHandler, avatar_dir=self.avatar_dir)
+        self.httpd = ThreadingHTTPServer((config.host, config.port), handler)
+        self.httpd.daemon_threads = True
+        host, port = self.httpd.server_address[:2]
+        self.url = f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0') else host}:{port}/"
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> ViewerServer:
+        self._thread = threading.Thread(target=self.httpd.serve_forever, name="uvatar-viewer", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+    def __enter__(self) -> ViewerServer:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def serve(avatar_dir: str | Path, config: ViewerConfig = ViewerConfig()) -> None:
+    """Serve the viewer until Ctrl-C (opens the browser unless ``config.open_browser`` is False)."""
+    server = ViewerServer(avatar_dir, config)
+    print(f"uvatar viewer: {server.url}  (Ctrl-C to stop)", flush=True)
+    if config.open_browser:
+        import webbrowser
+
+        threading.Timer(0.5, webbrowser.open, args=(server.url,)).start()
+    try:
+        server.httpd.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.httpd.server_close()

@@ -1,0 +1,117 @@
+"""A tiny synthetic avatar for tests and for trying the viewer without training.
+
+A capsule-like tube (a "body") with a 4-joint chain, UVs with a seam, and a small random ONNX
+generator with the AVH export's interface (input ``pose_angles`` (B, 3·J_c) radians; outputs
+``texture`` (B, 3, R, R) in [0, 1] and ``displacement`` (B, 3, R, R) metres). Not a person: it exists
+so the engine export and the browser viewer can be exercised in seconds.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.avh.engine_export import RestBody
+
+TOY_JOINTS = ("root", "spine", "chest", "head")
+
+
+def toy_rest_body(around: int = 12, along: int = 16, radius: float = 0.15, height: float = 1.6) -> RestBody:
+    """A vertical tube (y from 0 to ``height`` m) with a 4-joint chain along +Y, UV seam at u = 0/1."""
+    a = np.arange(around)
+    h = np.linspace(0.0, height, along)
+    ang = 2 * np.pi * a / around
+    r = radius * (1.0 + 0.2 * np.cos(3 * np.pi * h / height))[:, None] * np.ones((1, around))
+    verts = np.stack([r * np.sin(ang)[None], np.broadcast_to(h[:, None], r.shape), r * np.cos(ang)[None]], -1)
+    verts = verts.reshape(-1, 3).astype(np.float32)
+    uvs = np.stack(np.meshgrid(np.arange(around + 1) / around, np.linspace(0.02, 0.98, along)), -1).reshape(-1, 2)
+    faces, uv_faces = [], []
+    for i in range(along - 1):
+        for j in range(around):
+            v00, v01 = i * around + j, i * around + (j + 1) % around
+            v10, v11 = v00 + around, v01 + around
+            t00, t01 = i * (around + 1) + j, i * (around + 1) + j + 1
+            t10, t11 = t00 + around + 1, t01 + around + 1
+            faces += [[v00, v01, v11], [v00, v11, v10]]
+            uv_faces += [[t00, t01, t11], [t00, t11, t10]]
+    joint_y = np.array([0.0, 0.5, 0.9, 1.3]) * height / 1.6
+    # smooth weights along the height
+    d = np.abs(verts[:, 1:2] - (joint_y[None] + 0.2))
+    w = np.exp(-(d / 0.18) ** 2)
+    w = (w / w.sum(1, keepdims=True)).astype(np.float32)
+    world = np.tile(np.eye(4), (4, 1, 1))
+    world[:, 1, 3] = joint_y
+    return RestBody(verts, np.asarray(faces, np.int64), uvs.astype(np.float32), np.asarray(uv_faces, np.int64),
+                    w, TOY_JOINTS, np.array([-1, 0, 1, 2]), world)
+
+
+def write_toy_generator(path: str | Path, num_conditioning_joints: int = 4, resolution: int = 32,
+                        seed: int = 0) -> Path:
+    """Export a small random pose -> (texture, displacement) network to ONNX (dynamic batch)."""
+    import torch
+    from torch import nn
+
+    torch.manual_seed(seed)
+
+    class ToyGenerator(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.mlp = nn.Sequential(nn.Linear(6 * num_conditioning_joints, 32), nn.ReLU(), nn.Linear(32, 16 * 8 * 8))
+            ups, c = [], 16
+            size = 8
+            while size < resolution:
+                ups += [nn.ConvTranspose2d(c, max(c // 2, 8), 2, stride=2), nn.ReLU()]
+                c, size = max(c // 2, 8), size * 2
+            self.up = nn.Sequential(*ups)
+            self.tex = nn.Conv2d(c, 3, 3, padding=1)
+            self.disp = nn.Conv2d(c, 3, 3, padding=1)
+            uv = torch.linspace(0, 1, resolution)
+            self.register_buffer("stripes", torch.stack(torch.meshgrid(uv, uv, indexing="ij"))[None])
+
+        def forward(self, pose_angles):
+            x = torch.stack([torch.sin(pose_angles), torch.cos(pose_angles)], -1).flatten(-2)
+            f = self.up(self.mlp(x).reshape(-1, 16, 8, 8))
+            base = torch.cat([self.stripes, 0.5 + 0.5 * torch.sin(12 * self.stripes[:, :1])], 1)
+            texture = (0.6 * base + 0.4 * (torch.tanh(self.tex(f)) + 1) / 2).clamp(0, 1)
+            displacement = torch.tanh(self.disp(f)) * 0.02
+            return texture, displacement
+
+    model = ToyGenerator().eval()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    dummy = torch.zeros(2, 3 * num_conditioning_joints)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(model, (dummy,), str(path), input_names=["pose_angles"],
+                          output_names=["texture", "displacement"], opset_version=17, dynamo=False,
+                          dynamic_axes={"pose_angles": {0: "batch"}, "texture": {0: "batch"},
+                                        "displacement": {0: "batch"}})
+    return path
+
+
+def write_toy_avatar(out_dir: str | Path, resolution: int = 32, subdivisions: int = 1) -> dict:
+    """Write a complete toy avatar folder (model.onnx, avatar.json, avatar.glb, manifest.json, mask, a motion)."""
+    from uvatar.avh.engine_export import EngineExportConfig, write_engine_bundle
+    from uvatar.io_utils import write_json
+
+    out = Path(out_dir)
+    body = toy_rest_body()
+    write_toy_generator(out / "model.onnx", num_conditioning_joints=4, resolution=resolution)
+    write_json(out / "avatar.json", {
+        "body_model": {"name": "toy", "shapes": []}, "joint_names": list(TOY_JOINTS), "conditioning_joints": [0, 1, 2, 3],
+        "resolution": resolution, "model": "model.onnx", "displacement_scale": 0.02,
+        "displacement_space": "body frame (toy)",
+    })
+    t = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    poses = np.zeros((len(t), 4, 3), np.float32)
+    poses[:, 1, 2] = 0.4 * np.sin(t)
+    poses[:, 2, 0] = 0.3 * np.sin(2 * t)
+    poses[:, 3, 1] = 0.6 * np.sin(t)
+    write_json(out / "motions" / "sway.json", {"fps": 24, "poses": poses.reshape(len(t), -1)})
+    mask = np.zeros((resolution, resolution), bool)
+    mask[: resolution // 8] = True  # top rows (v near 1, the tube's top) stand in for fingers/toes
+    return write_engine_bundle(out, EngineExportConfig(subdivisions=subdivisions), body=body,
+                               fingers_toes_mask=mask,
+                               semantic_joints={"pelvis": 0, "spine1": 1, "spine3": 2, "head": 3})

@@ -1,0 +1,118 @@
+"""AVH runtime + animation on a toy tube body: displacement placement, video, meshes, motions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uvatar.avh.animate import AnimateConfig, animate, framing_distance
+from uvatar.avh.data import rotvec_to_rotmat
+from uvatar.avh.export import export_avatar
+from uvatar.avh.model import AvhConfig
+from uvatar.avh.poses import PoseSequence, as_pose_sequence, load_pose_sequence
+from uvatar.avh.runtime import AvatarRuntime
+from uvatar.avh.toy_body import ToyTubeBody
+from uvatar.avh.toy_capture import make_toy_capture
+from uvatar.avh.train import TrainConfig, train_avh
+from uvatar.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("anim")
+    body = ToyTubeBody()
+    cap, baked = make_toy_capture(root, body, num_frames=5, heldout=2, resolution=32)
+    train_avh(baked, root / "run", AvhConfig(4, 32, resolution=32),
+              TrainConfig(epochs=1, progress=False, tensorboard=False), body=body)
+    export_avatar(root / "run", root / "avatar", body=body)
+    return root, body, cap
+
+
+def _sequence(T=4):
+    poses = np.zeros((T, 18), np.float32)
+    poses[:, 3] = np.linspace(0, 0.8, T)
+    return PoseSequence(poses, np.zeros((T, 3), np.float32), np.zeros((T, 3), np.float32), np.ones(T, np.float32), 10.0)
+
+
+def test_zero_displacement_keeps_the_subdivided_surface(setup):
+    root, body, _ = setup
+    rt = AvatarRuntime(root / "avatar", body=body)
+    base = rt.posed_vertices(np.zeros((1, 18), np.float32))[0]
+    v = rt.displaced_vertices(base, None)
+    assert len(v) > 4 * len(base) and len(rt.faces) == 16 * len(body.template.faces)
+    # midpoint subdivision: every new vertex lies on the tube (radius 0.15 about the Y axis) or inside it
+    r = np.linalg.norm(v[:, [0, 2]], axis=1)
+    assert r.max() <= 0.15 + 1e-5 and np.allclose(v[: len(base)], base)
+
+
+def test_constant_displacement_is_rotated_by_Rh_and_masked_on_fingers(setup):
+    root, body, _ = setup
+    rt = AvatarRuntime(root / "avatar", body=body)
+    base = rt.posed_vertices(np.zeros((1, 18), np.float32))[0]
+    c = np.array([0.01, 0.02, -0.03], np.float32)
+    disp = np.broadcast_to(c, (32, 32, 3))
+    Rh = np.array([0.0, 0.7, 0.0], np.float32)
+    d = rt.displaced_vertices(base, disp, Rh) - rt.displaced_vertices(base, None)
+    expected = rotvec_to_rotmat(Rh).astype(np.float32) @ c
+    full = rt.displacement_weight > 0.999
+    none = rt.displacement_weight < 1e-3
+    assert full.any() and none.any()  # tube top = "finger" texels
+    assert np.allclose(d[full], expected, atol=1e-6)
+    assert np.allclose(d[none], 0, atol=1e-6)
+
+
+def test_animate_writes_video_and_meshes(setup, tmp_path):
+    import imageio.v3 as iio
+
+    root, body, _ = setup
+    seq = _sequence(4)
+    seq.poses[2, 0] = np.nan  # a broken frame is skipped
+    out = animate(root / "avatar", seq, tmp_path / "a.mp4", AnimateConfig(size=48, progress=False),
+                  mesh_dir=tmp_path / "meshes", body=body)
+    video = iio.imread(out)
+    assert video.shape == (3, 48, 48, 3)
+    assert len(list((tmp_path / "meshes").glob("*.obj"))) == 3
+    assert video.min() < 200  # the body is visible on the white background
+
+
+@pytest.mark.parametrize("camera", ["front", "left"])
+def test_animate_fixed_views_and_motion_from_capture(setup, tmp_path, camera):
+    root, body, cap = setup
+    out = animate(root / "avatar", f"heldout:{cap}", tmp_path / "b.mp4",
+                  AnimateConfig(size=32, camera=camera, progress=False), body=body)
+    assert out.exists()
+
+
+def test_animate_with_capture_cameras(setup, tmp_path):
+    root, body, cap = setup
+    out = animate(root / "avatar", f"fits:{cap}", tmp_path / "c.mp4",
+                  AnimateConfig(camera=str(cap / "cameras"), max_frames=2, progress=False), body=body)
+    assert out.exists()
+
+
+def test_bad_camera_and_motion(setup, tmp_path):
+    root, body, _ = setup
+    with pytest.raises(InputError, match="unknown camera"):
+        animate(root / "avatar", _sequence(2), tmp_path / "x.mp4", AnimateConfig(size=16, camera="top",
+                                                                                 progress=False), body=body)
+    with pytest.raises(InputError, match="not found"):
+        load_pose_sequence(tmp_path / "missing.bvh", body)
+    with pytest.raises(InputError, match="gt/info.json"):
+        load_pose_sequence(f"heldout:{tmp_path}", body)
+
+
+def test_pose_sequences(setup):
+    _, body, cap = setup
+    seq = load_pose_sequence(f"heldout:{cap}", body)
+    assert seq.names == ["000003", "000004"] and seq.poses.shape == (2, 18)
+    seq = load_pose_sequence(cap, body)
+    assert len(seq) == 5 and seq.subsample(2, 2).names == ["000000", "000002"]
+    conv = as_pose_sequence({"poses": np.zeros((3, 6, 3)), "fps": 30}, 6)
+    assert conv.poses.shape == (3, 18) and conv.fps == 30 and conv.scale.tolist() == [1, 1, 1]
+    with pytest.raises(InputError, match="joints"):
+        as_pose_sequence({"poses": np.zeros((3, 5, 3))}, 6)
+
+
+def test_framing_distance():
+    v = np.array([[0, 0, 0], [0, 2, 0]], np.float32)  # radius 1
+    assert framing_distance(v, 60.0, margin=1.0) == pytest.approx(2.0)

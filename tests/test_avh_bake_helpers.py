@@ -1,0 +1,95 @@
+"""Hand-made inputs for the bake tests (no tests here): a tiny capture whose scans are the posed
+anny body pushed out along its normals by a known offset, textured with a known image in the body's
+own UV layout, so baked displacement and texture have analytic answers; plus gt/ like `uvatar synth`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+OFFSET = 0.01  # metres, scan = body + OFFSET * vertex normal
+
+
+def pattern_texture(size: int = 128) -> np.ndarray:
+    """(size, size, 3) smooth colour pattern in [0, 1] (row 0 = v 1)."""
+    y, x = np.mgrid[0:size, 0:size] / size
+    return np.stack([0.2 + 0.6 * x, 0.2 + 0.6 * y, 0.5 + 0.3 * np.sin(6 * x) * np.cos(4 * y)], -1).astype(np.float32)
+
+
+def body():
+    from uvatar.body import load_body_model
+
+    return load_body_model("anny")
+
+
+def frame_pose(model, seed: int, amount: float = 0.25) -> np.ndarray:
+    """(J*3,) small random local rotations on the conditioning joints."""
+    rng = np.random.default_rng(seed)
+    pose = np.zeros((model.num_joints, 3), np.float32)
+    joints = list(model.conditioning_joints)
+    pose[joints] = rng.normal(0.0, amount / 3, (len(joints), 3))
+    return pose.reshape(-1)
+
+
+def offset_scan(model, fit, offset: float = OFFSET, cut_above: float | None = None, texture=None):
+    """TexturedMesh: the posed body + offset * normal, body UVs; optionally faces above a height cut."""
+    from uvatar.avh.bake.frame import shadow_vertices
+    from uvatar.capture import TexturedMesh
+    from uvatar.geometry import vertex_normals
+
+    tpl = model.template
+    v = shadow_vertices(model, fit)
+    scan_v = v + offset * vertex_normals(v, tpl.faces)
+    faces, uv_faces = tpl.faces, tpl.uv_faces
+    if cut_above is not None:
+        keep = scan_v[faces].mean(1)[:, 1] < cut_above
+        faces, uv_faces = faces[keep], uv_faces[keep]
+    return TexturedMesh(scan_v, faces, tpl.uvs, uv_faces, pattern_texture() if texture is None else texture)
+
+
+def make_capture(root, n_frames: int = 3, broken=(1,), unreadable=(), heldout=(), gt_texels: int = 64,
+                 offset: float = OFFSET, fit_noise_deg: float = 0.0) -> Path:
+    """A capture folder with scans/, fits/, capture.json and gt/ (info.json + frames/*.npz).
+
+    Scans and gt come from the true pose; the written fits add ``fit_noise_deg`` of per-joint noise.
+    """
+    from uvatar.avh.bake.frame import BodyLayout, shadow_vertices
+    from uvatar.capture import BodyFit, write_capture_info, write_fit, write_mesh
+    from uvatar.geometry import sample_texture, texel_uv
+    from uvatar.io_utils import write_json, write_npz
+
+    root = Path(root)
+    model = body()
+    frames = [f"{i:06d}" for i in range(n_frames)]
+    layout = BodyLayout.from_template(model.template, gt_texels)
+    tex = pattern_texture()
+    for i, name in enumerate(frames):
+        fit = BodyFit(poses=frame_pose(model, i), Rh=[0.0, 0.3 * i, 0.0], Th=[0.1 * i, 0.0, 0.0])
+        noise = np.zeros((model.num_joints, 3), np.float32)
+        if fit_noise_deg:
+            joints = list(model.conditioning_joints)
+            noise[joints] = np.random.default_rng(100 + i).normal(0, np.radians(fit_noise_deg), (len(joints), 3))
+        write_fit(root / "fits" / f"{name}.json",
+                  BodyFit(poses=fit.poses + noise.reshape(-1), Rh=fit.Rh, Th=fit.Th))
+        if i in unreadable:
+            (root / "scans").mkdir(parents=True, exist_ok=True)
+            (root / "scans" / f"{name}.obj").write_text("this is not an obj file\nf 1 2 x\n")
+            continue
+        shadow = shadow_vertices(model, fit)
+        cut = float(np.percentile(shadow[:, 1], 45)) if i in broken else None
+        scan = offset_scan(model, fit, offset, cut)
+        write_mesh(root / "scans" / f"{name}.obj", scan)
+        from uvatar.geometry import vertex_normals
+
+        surface = layout.to_map(layout.at_texels(shadow + offset * vertex_normals(shadow, model.template.faces)),
+                                dtype=np.float32)
+        gt_tex = sample_texture(tex, texel_uv(gt_texels).reshape(-1, 2)).reshape(gt_texels, gt_texels, 3)
+        write_npz(root / "gt" / "frames" / f"{name}.npz", pose=fit.poses, surface=surface,
+                  texture=np.where(layout.raster.mask[..., None], gt_tex, 0).astype(np.float32),
+                  offset=np.zeros_like(surface), mask=layout.raster.mask)
+    write_capture_info(root, frames, body_model="anny")
+    write_json(root / "gt" / "info.json", {"broken_frames": [frames[i] for i in broken],
+                                           "heldout_frames": [frames[i] for i in heldout],
+                                           "texels": gt_texels})
+    return root

@@ -1,0 +1,135 @@
+"""AVH training: loss masks, data loading (body frame, resampling, broken frames), train/resume."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from uvatar.avh.data import body_to_world, load_baked_frames, load_frame, resample_map, world_to_body
+from uvatar.avh.fake_baked import fake_maps, make_fake_baked_dataset
+from uvatar.avh.loss import avh_loss, displacement_mask, masked_mse
+from uvatar.avh.model import AvhConfig
+from uvatar.avh.train import TrainConfig, load_trained_generator, train_avh
+from uvatar.errors import InputError, UvatarError
+
+SMALL = AvhConfig(feature_size=4, latent=32, resolution=16)
+FAST = TrainConfig(epochs=2, batch_size=4, progress=False, tensorboard=False)
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    return make_fake_baked_dataset(tmp_path_factory.mktemp("baked"), num_frames=10, resolution=32, num_val=2)
+
+
+def test_masked_mse_analytic():
+    pred = torch.zeros(1, 3, 2, 2)
+    target = torch.ones(1, 3, 2, 2)
+    target[..., 0, 0] = 3.0
+    weight = torch.zeros(1, 1, 2, 2)
+    weight[..., 0, 0] = 2.0
+    weight[..., 1, 1] = 1.0
+    # (2 * 9 * 3 + 1 * 1 * 3) / (3 * 3) = 57 / 9
+    assert masked_mse(pred, target, weight).item() == pytest.approx(57 / 9, rel=1e-6)
+
+
+def test_displacement_mask_drops_outliers_invisible_and_excluded():
+    d = torch.zeros(1, 3, 2, 2)
+    d[0, 1, 0, 0] = -0.06          # outlier on one axis only
+    d[0, 0, 0, 1] = 0.049          # inlier
+    w = torch.tensor([[[[1.0, 1.0], [0.0, 0.5]]]])
+    valid = torch.ones(1, 1, 2, 2)
+    excluded = torch.tensor([[False, False], [False, True]])
+    m = displacement_mask(d, w, valid, excluded, 0.05)
+    assert m[0, 0].tolist() == [[0.0, 1.0], [0.0, 0.0]]
+
+
+def test_avh_loss_zero_for_perfect_prediction_and_ignores_outliers():
+    batch = {"texture": torch.rand(2, 3, 4, 4), "displacement": torch.rand(2, 3, 4, 4) * 0.01,
+             "kappa": torch.rand(2, 1, 4, 4), "w": torch.ones(2, 1, 4, 4), "valid": torch.ones(2, 1, 4, 4)}
+    batch["displacement"][0, :, 0, 0] = 0.5
+    pred_d = batch["displacement"].clone()
+    pred_d[0, :, 0, 0] = 0.0  # wrong only where the target is an outlier
+    total, tex, disp = avh_loss(batch["texture"], pred_d, batch)
+    assert total.item() == tex.item() == disp.item() == 0.0
+
+
+def test_world_body_round_trip_and_rotation():
+    Rh = np.array([0.0, np.pi / 2, 0.0], np.float32)  # +90 deg about +Y maps +X to -Z
+    d_body = np.array([[1.0, 0.0, 0.0]], np.float32)
+    assert np.allclose(body_to_world(d_body, Rh), [[0, 0, -1]], atol=1e-6)
+    assert np.allclose(world_to_body(body_to_world(d_body, Rh), Rh), d_body, atol=1e-6)
+
+
+def test_load_frame_returns_body_frame_displacement(baked):
+    frame = load_frame(baked / "frames" / "000000.npz")
+    meta = json.loads((baked / "dataset.json").read_text())
+    tex, disp = fake_maps(frame["pose"], 32, meta["conditioning_joints"])
+    inlier = np.abs(frame["displacement"]).max(-1) < 0.1
+    assert np.allclose(frame["displacement"][inlier], disp[inlier], atol=1e-5)
+    assert np.allclose(frame["texture"], tex, atol=2e-3)  # stored as float16
+
+
+def test_resample_map_area_average():
+    img = np.zeros((4, 4, 1), np.float32)
+    img[:2, :2] = 1.0
+    assert resample_map(img, 2)[..., 0].tolist() == [[1.0, 0.0], [0.0, 0.0]]
+    assert resample_map(np.eye(4, dtype=np.uint8), 2, nearest=True).shape == (2, 2)
+
+
+def test_broken_frame_is_skipped(tmp_path):
+    root = make_fake_baked_dataset(tmp_path / "b", num_frames=4, resolution=8, num_val=1)
+    (root / "frames" / "000001.npz").write_bytes(b"not a zip")
+    frames = load_baked_frames(root, ["000000", "000001", "000002"], resolution=8)
+    assert frames.names == ["000000", "000002"]
+    with pytest.raises(InputError, match="none of the"):
+        load_baked_frames(root, ["000001"])
+
+
+def test_missing_dataset_json_raises(tmp_path):
+    with pytest.raises(InputError, match="dataset.json"):
+        train_avh(tmp_path, tmp_path / "run", SMALL, FAST)
+
+
+def test_train_learns_and_resumes(baked, tmp_path):
+    run = tmp_path / "run"
+    summary = train_avh(baked, run, SMALL, TrainConfig(epochs=6, batch_size=4, progress=False, lr=3e-3,
+                                                       tensorboard=True, preview_every=3))
+    hist = json.loads((run / "history.json").read_text())
+    assert len(hist) == 6 and hist[-1]["loss"] < hist[0]["loss"]
+    assert hist[1]["lr"] == pytest.approx(3e-3 * 0.99 ** 2)
+    assert "val_loss" in hist[-1] and summary["parameters"] > 0
+    assert any((run / "tb").iterdir()) and (run / "done.json").is_file()
+    info = json.loads((run / "run.json").read_text())
+    assert info["conditioning_joints"] == [1, 2, 3, 4] and info["model"]["num_pose_joints"] == 4
+    with pytest.raises(UvatarError, match="--resume"):
+        train_avh(baked, run, SMALL, FAST)
+    summary = train_avh(baked, run, SMALL, TrainConfig(epochs=8, batch_size=4, progress=False, lr=3e-3,
+                                                       tensorboard=False), resume=True)
+    hist2 = json.loads((run / "history.json").read_text())
+    assert len(hist2) == 8 and hist2[:6] == hist
+    model, info = load_trained_generator(run)
+    assert model.config.resolution == 16 and not model.training
+
+
+def test_load_trained_generator_bad_folder(tmp_path):
+    with pytest.raises(InputError, match="not a training run"):
+        load_trained_generator(tmp_path)
+
+
+def test_cli_train_presets_and_bad_texels(baked, tmp_path, capsys):
+    from uvatar.cli.main import main
+
+    assert main(["presets", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert {r["name"] for r in rows} >= {"fc32-l1024", "cpu-tiny"}
+    assert main(["train", "avh", str(baked), str(tmp_path / "run"), "--preset", "cpu-tiny", "--texels", "16",
+                 "--epochs", "1", "--no-tensorboard"]) == 0
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert info["preset"] == "cpu-tiny" and info["model"]["resolution"] == 16
+    assert main(["train", "avh", str(baked), str(tmp_path / "run2"), "--texels", "24", "--epochs", "1"]) == 1
+    assert main(["export", str(tmp_path / "run"), str(tmp_path / "avatar")]) == 0
+    meta = json.loads((tmp_path / "avatar" / "avatar.json").read_text())
+    assert meta["onnx_max_abs_diff"] <= 1e-4 and meta["preset"] == "cpu-tiny"

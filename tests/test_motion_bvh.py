@@ -1,0 +1,131 @@
+"""BVH: parsing the CMU clip, FK known answers on a hand-made skeleton, write → read round trip."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uvatar.errors import InputError
+from uvatar.motion.bvh import format_bvh, forward_kinematics, parse_bvh, read_bvh, write_bvh
+from uvatar.motion.skeleton import CMU_UNIT_METRES, guess_bvh_units, skeleton_motion_from_bvh
+
+TWO_JOINTS = """HIERARCHY
+ROOT Hips
+{
+  OFFSET 0 0 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation
+  JOINT Arm
+  {
+    OFFSET 1 0 0
+    CHANNELS 3 Zrotation Yrotation Xrotation
+    End Site
+    {
+      OFFSET 2 0 0
+    }
+  }
+}
+MOTION
+Frames: 3
+Frame Time: 0.04
+0 0 0 0 0 0 0 0 0
+1 2 3 90 0 0 0 0 0
+0 0 0 0 90 0 90 0 0
+"""
+
+
+def test_two_joint_forward_kinematics_known_answer():
+    m = parse_bvh(TWO_JOINTS)
+    assert m.num_frames == 3 and m.fps == pytest.approx(25) and m.skeleton.names == ("Hips", "Arm")
+    np.testing.assert_array_equal(m.skeleton.parents, [-1, 0])
+    np.testing.assert_allclose(m.skeleton.end_sites[1], [2, 0, 0])
+    R, P = m.world_transforms()
+    # frame 0: rest; frame 1: root moved to (1,2,3) and turned 90 deg about Z, so the arm joint
+    # at offset (1,0,0) lands at (1,2,3) + (0,1,0)
+    np.testing.assert_allclose(P[0], [[0, 0, 0], [1, 0, 0]], atol=1e-12)
+    np.testing.assert_allclose(P[1], [[1, 2, 3], [1, 3, 3]], atol=1e-12)
+    # frame 2: root turned 90 deg about Y (offset (1,0,0) → (0,0,-1)), the arm turned 90 deg about
+    # Z locally: its bone (2,0,0) goes to Ry(90) @ Rz(90) @ (2,0,0) = Ry(90) @ (0,2,0) = (0,2,0)
+    np.testing.assert_allclose(P[2], [[0, 0, 0], [0, 0, -1]], atol=1e-12)
+    tip = P[2, 1] + R[2, 1] @ np.array([2.0, 0, 0])
+    np.testing.assert_allclose(tip, [0, 2, -1], atol=1e-12)
+
+
+def test_channel_order_is_respected():
+    text = TWO_JOINTS.replace("CHANNELS 3 Zrotation Yrotation Xrotation", "CHANNELS 3 Xrotation Yrotation Zrotation")
+    text = text.replace("0 0 0 0 90 0 90 0 0", "0 0 0 0 0 0 90 90 0")
+    R = parse_bvh(text).local_rotations()[2, 1]
+    Rx = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0.0]])
+    Ry = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0.0]])
+    np.testing.assert_allclose(R, Rx @ Ry, atol=1e-12)  # intrinsic X then Y: Rx @ Ry
+
+
+def test_forward_kinematics_batched_matches_loop():
+    rng = np.random.default_rng(0)
+    from scipy.spatial.transform import Rotation
+
+    parents = np.array([-1, 0, 1, 1, 3])
+    rot = Rotation.random(4 * 5, random_state=1).as_matrix().reshape(4, 5, 3, 3)
+    trans = rng.normal(size=(4, 5, 3))
+    R, P = forward_kinematics(parents, rot, trans)
+    for t in range(4):
+        for j in range(5):
+            chain, k = [], j
+            while k >= 0:
+                chain.append(k)
+                k = parents[k]
+            Rw, pw = np.eye(3), np.zeros(3)
+            for k in reversed(chain):
+                pw = pw + Rw @ trans[t, k]
+                Rw = Rw @ rot[t, k]
+            np.testing.assert_allclose(R[t, j], Rw, atol=1e-12)
+            np.testing.assert_allclose(P[t, j], pw, atol=1e-12)
+
+
+def test_write_read_round_trip(tmp_path):
+    m = parse_bvh(TWO_JOINTS)
+    write_bvh(tmp_path / "a.bvh", m)
+    back = read_bvh(tmp_path / "a.bvh")
+    np.testing.assert_allclose(back.channel_values, m.channel_values, atol=1e-6)
+    np.testing.assert_allclose(back.skeleton.offsets, m.skeleton.offsets)
+    assert back.skeleton.channels == m.skeleton.channels and back.frame_time == pytest.approx(m.frame_time)
+    # rotations → Euler channels → rotations
+    again = m.with_rotations(m.local_rotations())
+    np.testing.assert_allclose(again.local_rotations(), m.local_rotations(), atol=1e-9)
+
+
+def test_cmu_clip_counts_and_round_trip(shared_data, tmp_path):
+    m = read_bvh(shared_data / "motions" / "cmu_01_01.bvh")
+    assert m.num_frames == 2752 and m.skeleton.num_joints == 31 and round(m.fps) == 120
+    assert m.channel_values.shape == (2752, 6 + 30 * 3)
+    assert all(c[-3:] == ("Zrotation", "Yrotation", "Xrotation") for c in m.skeleton.channels)
+    assert guess_bvh_units(m) == pytest.approx(CMU_UNIT_METRES)
+    sk = skeleton_motion_from_bvh(m)
+    assert sk.fps == 120.0 and sk.positions.shape == (2752, 31, 3)
+    # body left is +X, toes point +Z, the floor is near y = 0
+    assert sk.rest_positions[sk.index("LeftUpLeg"), 0] > 0 and sk.rest_positions[sk.index("LeftToeBase"), 2] > 0
+    assert -1.0 < sk.positions[:, sk.index("LeftToeBase"), 1].min() < 1.5
+    small = m.with_rotations(m.local_rotations()[:50])
+    small.channel_values[:, :3] = m.channel_values[:50, :3]
+    write_bvh(tmp_path / "c.bvh", small)
+    _, P0 = m.world_transforms()
+    _, P1 = read_bvh(tmp_path / "c.bvh").world_transforms()
+    np.testing.assert_allclose(P1, P0[:50], atol=1e-4)
+
+
+@pytest.mark.parametrize("text,message", [
+    ("hello", "not a BVH file"),
+    (TWO_JOINTS.replace("Frames: 3", "Frames: 4"), "expected 4 frames x 9 channels"),
+    (TWO_JOINTS.replace("Xposition", "Wposition"), "unknown channel"),
+    (TWO_JOINTS.replace("OFFSET 1 0 0", "OFFSET 1 zero 0"), "malformed HIERARCHY"),
+    (TWO_JOINTS.replace("Frame Time: 0.04", "Frame Time: 0"), "Frame Time must be positive"),
+])
+def test_bad_bvh(tmp_path, text, message):
+    path = tmp_path / "bad.bvh"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message) as info:
+        read_bvh(path)
+    assert str(info.value).startswith(str(path))
+
+
+def test_format_has_end_sites():
+    assert "End Site" in format_bvh(parse_bvh(TWO_JOINTS))

@@ -1,0 +1,66 @@
+"""PSNR and SSIM: known answers, masks, bad inputs."""
+
+import numpy as np
+import pytest
+import torch
+
+from uvatar.errors import InputError
+from uvatar.render import psnr, ssim
+from uvatar.render.metrics import ssim_map
+
+
+def test_psnr_known_values():
+    a = np.zeros((8, 8, 3))
+    assert np.isclose(psnr(a, a + 0.1), 20.0)
+    assert np.isclose(psnr(a, a + 0.01), 40.0)
+    assert psnr(a, a) == float("inf")
+    assert np.isclose(psnr(a * 255, a * 255 + 25.5, data_range=255.0), 20.0)
+    assert np.isclose(psnr(torch.zeros(8, 8, 3), torch.full((8, 8, 3), 0.1)), 20.0, atol=1e-5)
+
+
+def test_psnr_mask_ignores_outside():
+    a = np.zeros((8, 8, 3))
+    b = a.copy()
+    b[:4] = 0.1
+    b[4:] = 0.9
+    mask = np.zeros((8, 8), bool)
+    mask[:4] = True
+    assert np.isclose(psnr(a, b, mask), 20.0)
+
+
+def test_ssim_known_answers():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(size=(32, 32, 3))
+    assert np.isclose(ssim(x, x), 1.0)
+    # constant images: sigma terms vanish, SSIM = (2 mu_a mu_b + C1) / (mu_a^2 + mu_b^2 + C1)
+    c1 = 0.01**2
+    a, b = np.full((16, 16), 0.3), np.full((16, 16), 0.6)
+    assert np.isclose(ssim(a, b), (2 * 0.18 + c1) / (0.09 + 0.36 + c1))
+    noisy = np.clip(x + rng.normal(0, 0.1, x.shape), 0, 1)
+    s1 = ssim(x, noisy)
+    s2 = ssim(x, np.clip(x + rng.normal(0, 0.3, x.shape), 0, 1))
+    assert 0 < s2 < s1 < 1
+    assert np.isclose(ssim(noisy, x), s1)  # symmetric
+    assert ssim_map(x, noisy).shape == (32, 32)
+
+
+def test_ssim_mask():
+    rng = np.random.default_rng(1)
+    x = rng.uniform(size=(40, 40))
+    y = x.copy()
+    y[:, 20:] = rng.uniform(size=(40, 20))
+    mask = np.zeros((40, 40), bool)
+    mask[:, :12] = True  # window radius 5 never sees the changed half
+    assert np.isclose(ssim(x, y, mask), 1.0)
+    assert ssim(x, y) < 0.8
+
+
+def test_bad_inputs():
+    with pytest.raises(InputError):
+        psnr(np.zeros((4, 4)), np.zeros((4, 5)))
+    with pytest.raises(InputError):
+        psnr(np.zeros((4, 4)), np.zeros((4, 4)), mask=np.zeros((4, 4), bool))
+    with pytest.raises(InputError):
+        ssim(np.zeros((4, 4)), np.zeros((4, 4)), mask=np.ones((3, 3), bool))
+    with pytest.raises(InputError):
+        ssim(np.zeros(4), np.zeros(4))

@@ -1,0 +1,129 @@
+"""The viewer in real headless Chromium (Debian ``chromium`` driven by Playwright's Python API).
+
+Skipped, with the reason, where playwright or chromium is missing. One page is shared by the tests.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from uvatar.viewer.browser import missing_browser_reason
+
+pytestmark = [pytest.mark.browser, pytest.mark.timeout(300)]
+
+REASON = missing_browser_reason()
+if REASON:
+    pytest.skip(f"browser tests skipped: {REASON}", allow_module_level=True)
+
+from uvatar.avh.engine_export import pose_to_model_input, posed_joint_transforms, run_generator  # noqa: E402
+from uvatar.viewer.browser import canvas_pixels, run_generator_in_browser, set_pose, viewer_page  # noqa: E402
+from uvatar.viewer.server import ViewerConfig, ViewerServer  # noqa: E402
+from uvatar.viewer.toy import toy_rest_body, write_toy_avatar  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def avatar(tmp_path_factory):
+    out = tmp_path_factory.mktemp("toy_avatar")
+    manifest = write_toy_avatar(out, resolution=32)
+    return out, manifest
+
+
+@pytest.fixture(scope="module")
+def page(avatar):
+    with ViewerServer(avatar[0], ViewerConfig(port=0, open_browser=False)) as server, \
+            viewer_page(server.url, 480, 400) as page:
+        yield page
+
+
+def _changed_fraction(a, b, threshold=8):
+    return float((np.abs(a.astype(int) - b.astype(int)).max(-1) > threshold).mean())
+
+
+def test_page_loads_the_avatar(page, avatar):
+    assert page.evaluate("window.uvatar.ready") is True
+    assert page.evaluate("window.uvatar.error") is None
+    assert page.evaluate("window.uvatar.manifest.texels") == avatar[1]["texels"]
+    stats = page.evaluate("window.uvatar.stats")
+    assert stats["backend"] in ("wasm", "webgpu") and stats["inferences"] >= 1 and stats["inferenceMs"] > 0
+    assert "inference" in page.locator("#stats").inner_text()
+
+
+def test_canvas_is_not_blank(page):
+    img = canvas_pixels(page)
+    background = np.array([0xDF, 0xE3, 0xE8])
+    foreground = np.abs(img.astype(int) - background).max(-1) > 12
+    assert 0.02 < foreground.mean() < 0.9, foreground.mean()
+    assert img[foreground].std() > 5  # textured, not a flat silhouette
+
+
+def test_pose_slider_changes_the_avatar_pixels(page):
+    set_pose(page, np.zeros(12))
+    before = canvas_pixels(page)
+    page.select_option("#joint-select", "1")
+    page.locator("#slider-z").fill("0.8")
+    page.evaluate("() => window.uvatar.whenIdle()")
+    after = canvas_pixels(page)
+    assert page.evaluate("window.uvatar.getPose()")[3 * 1 + 2] == pytest.approx(0.8, abs=0.01)  # range step 0.01 from -pi
+    assert _changed_fraction(before, after) > 0.01
+
+
+def test_displacement_moves_the_surface(page):
+    set_pose(page, np.zeros(12))
+    page.evaluate("window.uvatar.setDisplacementScale(0)")
+    page.evaluate("() => window.uvatar.whenIdle()")
+    bare = canvas_pixels(page)
+    page.evaluate("window.uvatar.setDisplacementScale(4)")
+    page.evaluate("() => window.uvatar.whenIdle()")
+    displaced = canvas_pixels(page)
+    page.evaluate("window.uvatar.setDisplacementScale(1)")
+    assert _changed_fraction(bare, displaced) > 0.002
+
+
+def test_browser_generator_matches_python_onnxruntime(page, avatar):
+    out, manifest = avatar
+    rng = np.random.default_rng(7)
+    io_names = {"input": manifest["generator"]["input"], "texture": manifest["generator"]["texture_output"],
+                "displacement": manifest["generator"]["displacement_output"]}
+    for _ in range(3):
+        pose = rng.uniform(-1.5, 1.5, 12).astype(np.float32)
+        tex_js, disp_js, ms = run_generator_in_browser(page, pose)
+        tex_py, disp_py = run_generator(out / "model.onnx", io_names,
+                                        pose_to_model_input(pose[None], manifest["pose_encoding"]))
+        assert tex_js.shape == tex_py.shape == (1, 3, 32, 32)
+        assert np.abs(tex_js - tex_py).max() <= 1e-3
+        assert np.abs(disp_js - disp_py).max() <= 1e-3
+        assert ms > 0
+
+
+def test_viewer_skeleton_matches_gltf_reference(page):
+    import roma
+    import torch
+
+    pose = np.array([0, 0, 0.2, 0.3, 0, 0.1, 0, -0.4, 0.2, 0.5, 0.1, 0], np.float32)
+    set_pose(page, pose)
+    js = np.array(page.evaluate("window.uvatar.jointWorldPositions()"))
+    body = toy_rest_body()
+    rots = roma.rotvec_to_rotmat(torch.as_tensor(pose.reshape(4, 3), dtype=torch.float64)).numpy()
+    ref = posed_joint_transforms(body.joint_world_rest, body.joint_parents, rots)[:, :3, 3]
+    np.testing.assert_allclose(js, ref, atol=1e-5)
+
+
+def test_screenshot_module_writes_png_and_reports_inference(avatar, tmp_path):
+    import subprocess
+    import sys
+
+    import imageio.v3 as iio
+
+    png = tmp_path / "shot.png"
+    # a separate process: Playwright's sync API cannot nest inside the page fixture's session
+    proc = subprocess.run([sys.executable, "-m", "uvatar.viewer.screenshot", str(avatar[0]), str(png),
+                           "--joint", "head=0.4,0,0", "--bench", "3", "--width", "320", "--height", "240"],
+                          capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert result["inference_ms"] > 0 and result["benchmark"]["n"] == 3
+    assert result["pose_nonzero_joints"] == ["head"]
+    assert iio.imread(png).shape[:2] == (240, 320)

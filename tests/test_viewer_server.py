@@ -1,0 +1,98 @@
+"""Viewer HTTP server (no browser): routes, MIME types, isolation headers, path safety, CLI, bad input."""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.request
+
+import numpy as np
+import pytest
+
+from uvatar.errors import InputError
+from uvatar.viewer.server import STATIC_DIR, ViewerConfig, ViewerServer, check_avatar_dir
+from uvatar.viewer.toy import write_toy_avatar
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    out = tmp_path_factory.mktemp("toy_avatar")
+    write_toy_avatar(out, resolution=32)
+    with ViewerServer(out, ViewerConfig(port=0, open_browser=False)) as s:
+        yield s
+
+
+def _get(url):
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return r.status, r.headers, r.read()
+
+
+def test_built_assets_are_shipped():
+    for name in ("index.html", "viewer.js", "viewer.css", "ort/ort.min.mjs", "ort/ort-wasm-simd-threaded.jsep.wasm",
+                 "ort/ort-wasm-simd-threaded.jsep.mjs"):
+        assert (STATIC_DIR / name).is_file(), name
+
+
+def test_serves_page_assets_and_avatar(server):
+    status, headers, body = _get(server.url)
+    assert status == 200 and b'<canvas id="view">' in body
+    assert headers["Cross-Origin-Opener-Policy"] == "same-origin"
+    assert headers["Cross-Origin-Embedder-Policy"] == "require-corp"
+    _, headers, _ = _get(server.url + "ort/ort-wasm-simd-threaded.jsep.wasm")
+    assert headers["Content-Type"] == "application/wasm"
+    _, headers, _ = _get(server.url + "viewer.js")
+    assert headers["Content-Type"] == "text/javascript"
+    _, headers, glb = _get(server.url + "avatar/avatar.glb")
+    assert glb[:4] == b"glTF" and headers["Content-Type"] == "model/gltf-binary"
+    _, _, manifest = _get(server.url + "avatar/manifest.json")
+    assert json.loads(manifest)["generator"]["file"] == "model.onnx"
+
+
+def test_lists_motions(server):
+    _, _, body = _get(server.url + "api/motions")
+    motions = json.loads(body)
+    assert motions == [{"name": "sway", "url": "avatar/motions/sway.json"}]
+    _, _, data = _get(server.url + motions[0]["url"])
+    poses = np.asarray(json.loads(data)["poses"])
+    assert poses.shape == (48, 12)
+
+
+@pytest.mark.parametrize("path", ["avatar/../../etc/passwd", "avatar/%2e%2e/%2e%2e/etc/passwd", "avatar/nope.json"])
+def test_outside_or_missing_files_are_404(server, path):
+    with pytest.raises(urllib.error.HTTPError) as err:
+        _get(server.url + path)
+    assert err.value.code == 404
+
+
+def test_retarget_rejects_empty_and_bad_uploads(server):
+    req = urllib.request.Request(server.url + "api/retarget", data=b"", method="POST")
+    with pytest.raises(urllib.error.HTTPError) as err:
+        urllib.request.urlopen(req, timeout=10)
+    assert err.value.code == 400
+    req = urllib.request.Request(server.url + "api/retarget", data=b"not a bvh", method="POST",
+                                 headers={"X-Filename": "junk.bvh"})
+    with pytest.raises(urllib.error.HTTPError) as err:
+        urllib.request.urlopen(req, timeout=30)
+    assert err.value.code == 422 and "junk.bvh" in json.loads(err.value.read())["error"]
+
+
+def test_check_avatar_dir_errors(tmp_path, server):
+    with pytest.raises(InputError, match="not a folder"):
+        check_avatar_dir(tmp_path / "missing")
+    with pytest.raises(InputError, match="manifest.json: missing"):
+        check_avatar_dir(tmp_path)
+    (tmp_path / "manifest.json").write_text("{")
+    with pytest.raises(InputError, match="not valid JSON"):
+        check_avatar_dir(tmp_path)
+    manifest = json.loads((server.avatar_dir / "manifest.json").read_text())
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="avatar.glb: missing"):
+        check_avatar_dir(tmp_path)
+
+
+def test_cli_view_reports_bad_folder_in_one_line(tmp_path, capsys):
+    from uvatar.cli.main import main
+
+    assert main(["view", str(tmp_path / "nope"), "--no-browser"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a folder" in err[0]

@@ -1,0 +1,231 @@
+// uvatar viewer: three.js renders the skinned GLB; onnxruntime-web synthesizes texture and
+// displacement for the current pose; a motion plays, sliders pose joints, the camera orbits.
+import * as THREE from 'three';
+import { GLTFLoader } from 'three/examples/jsm/loaders/GLTFLoader.js';
+import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
+import { Generator, loadOrt } from './generator.js';
+import { makeAvatarMaterial, makeColorTexture, makeDisplacementTexture, uploadMaps } from './material.js';
+import { lerpPose, rotvecToQuaternion, swayMotion } from './pose.js';
+import { buildUi } from './ui.js';
+
+const params = new URLSearchParams(location.search);
+const AVATAR = params.get('avatar') || 'avatar/';
+const api = (window.uvatar = { ready: false, error: null, stats: { inferenceMs: null, fps: 0, backend: null, inferences: 0 } });
+
+function fail(err) {
+  console.error(err);
+  api.error = String(err && err.stack ? err.stack : err);
+  const box = document.getElementById('error');
+  box.textContent = `uvatar viewer: ${err}`;
+  box.hidden = false;
+}
+
+async function loadMask(url, R) {
+  const keep = new Float32Array(R * R).fill(1);
+  try {
+    const img = new Image();
+    img.src = url;
+    await img.decode();
+    const c = document.createElement('canvas');
+    c.width = R; c.height = R;
+    const ctx = c.getContext('2d');
+    ctx.imageSmoothingEnabled = false;
+    ctx.drawImage(img, 0, 0, R, R);
+    const px = ctx.getImageData(0, 0, R, R).data;
+    for (let i = 0; i < R * R; i++) keep[i] = 1 - px[4 * i] / 255;
+  } catch (e) {
+    console.warn('no finger/toe mask', e);
+  }
+  return keep;
+}
+
+function toBase64(floats) {
+  const bytes = new Uint8Array(floats.buffer, floats.byteOffset, floats.byteLength);
+  let s = '';
+  for (let i = 0; i < bytes.length; i += 0x8000) s += String.fromCharCode.apply(null, bytes.subarray(i, i + 0x8000));
+  return btoa(s);
+}
+
+async function main() {
+  const manifest = await (await fetch(AVATAR + 'manifest.json')).json();
+  const J = manifest.joint_names.length;
+  const R = manifest.texels;
+
+  const canvas = document.getElementById('view');
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+  renderer.setSize(window.innerWidth, window.innerHeight);
+  renderer.outputColorSpace = THREE.SRGBColorSpace;
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0xdfe3e8);
+  scene.add(new THREE.HemisphereLight(0xffffff, 0x8a8070, 2.2));
+  const sun = new THREE.DirectionalLight(0xffffff, 1.6);
+  sun.position.set(1.5, 3, 4);
+  scene.add(sun);
+  const camera = new THREE.PerspectiveCamera(35, window.innerWidth / window.innerHeight, 0.01, 100);
+  const controls = new OrbitControls(camera, canvas);
+
+  const [ort, gltf] = await Promise.all([loadOrt(), new GLTFLoader().loadAsync(AVATAR + manifest.glb)]);
+  const generator = await Generator.create(ort, AVATAR + manifest.generator.file, manifest, params.get('ep') || 'auto');
+  api.stats.backend = generator.backend;
+
+  let mesh = null;
+  gltf.scene.traverse((o) => { if (o.isSkinnedMesh && !mesh) mesh = o; });
+  if (!mesh) throw new Error(`${manifest.glb}: no skinned mesh`);
+  const geom = mesh.geometry;
+  geom.setAttribute('dispUv', geom.getAttribute('uv1') || geom.getAttribute('uv'));
+  const floatLinear = renderer.extensions.has('OES_texture_float_linear');
+  const colorTex = makeColorTexture(R);
+  const dispTex = makeDisplacementTexture(R, floatLinear);
+  mesh.material = makeAvatarMaterial(colorTex, dispTex, manifest.displacement.scale ?? 1.0);
+  mesh.frustumCulled = false;
+  const avatar = new THREE.Group();
+  avatar.add(gltf.scene);
+  scene.add(avatar);
+
+  const bones = mesh.skeleton.bones;
+  const restQuats = bones.map((b) => b.quaternion.clone());
+  const keep = await loadMask(AVATAR + manifest.finger_toe_mask, R);
+
+  // frame the camera on the rest-pose bounding box (the avatar faces +Z)
+  const box = new THREE.Box3().setFromBufferAttribute(geom.getAttribute('position'));
+  const center = box.getCenter(new THREE.Vector3());
+  const size = box.getSize(new THREE.Vector3());
+  const dist = (1.25 * Math.max(size.y, size.x)) / (2 * Math.tan((camera.fov * Math.PI) / 360));
+  camera.position.set(center.x + 0.25 * dist, center.y + 0.1 * size.y, center.z + dist);
+  controls.target.copy(center);
+  controls.update();
+
+  const pose = new Float32Array(J * 3);
+  const q = new THREE.Quaternion();
+  function applyPoseToBones() {
+    for (let j = 0; j < J; j++) {
+      rotvecToQuaternion(pose[3 * j], pose[3 * j + 1], pose[3 * j + 2], q);
+      bones[j].quaternion.copy(restQuats[j]).multiply(q);
+    }
+  }
+
+  // inference: at most one in flight; the latest pose wins
+  let pending = false;
+  let busy = false;
+  let idleWaiters = [];
+  async function pump() {
+    busy = true;
+    try {
+      while (pending) {
+        pending = false;
+        const r = await generator.run(pose.slice());
+        uploadMaps(colorTex, dispTex, r.texture, r.displacement, keep);
+        api.stats.inferenceMs = r.ms;
+        api.stats.inferences += 1;
+      }
+    } catch (e) {
+      fail(e);
+    }
+    busy = false;
+  }
+  function poseChanged() {
+    applyPoseToBones();
+    pending = true;
+    if (!busy) pump();
+  }
+
+  // motion playback
+  const motions = [swayMotion(manifest)];
+  let playing = null;
+  let playStart = 0;
+  const scratch = new Float32Array(J * 3);
+  function playMotion(m) {
+    playing = m;
+    playStart = performance.now();
+  }
+
+  const ui = buildUi({ manifest, pose, motions, onPose: poseChanged, onPlay: playMotion,
+    onStop: () => { playing = null; }, onMotionLoaded: (m) => { motions.push(m); playMotion(m); } });
+  try {
+    const list = await (await fetch('api/motions')).json();
+    for (const entry of list) ui.addMotionEntry(entry);
+  } catch (e) {
+    console.warn('no motion list', e);
+  }
+
+  let frames = 0;
+  let fpsStart = performance.now();
+  function frame(now) {
+    if (playing) {
+      const t = ((now - playStart) / 1000) * playing.fps;
+      const n = playing.poses.length;
+      const i = Math.floor(t) % n;
+      lerpPose(playing.poses[i], playing.poses[(i + 1) % n], t - Math.floor(t), scratch);
+      pose.set(scratch.subarray(0, pose.length));
+      ui.refreshSliders();
+      poseChanged();
+    }
+    controls.update();
+    renderer.render(scene, camera);
+    frames += 1;
+    if (now - fpsStart > 1000) {
+      api.stats.fps = (1000 * frames) / (now - fpsStart);
+      frames = 0;
+      fpsStart = now;
+    }
+    ui.showStats(api.stats);
+    const waiters = idleWaiters;
+    if (!busy && !pending && waiters.length) {
+      idleWaiters = [];
+      requestAnimationFrame(() => waiters.forEach((w) => w()));
+    }
+    requestAnimationFrame(frame);
+  }
+
+  window.addEventListener('resize', () => {
+    camera.aspect = window.innerWidth / window.innerHeight;
+    camera.updateProjectionMatrix();
+    renderer.setSize(window.innerWidth, window.innerHeight);
+  });
+
+  Object.assign(api, {
+    manifest,
+    getPose: () => Array.from(pose),
+    /** World positions (J x [x, y, z]) of the skeleton's joints as currently posed (metres). */
+    jointWorldPositions() {
+      avatar.updateMatrixWorld(true);
+      const v = new THREE.Vector3();
+      return bones.map((b) => b.getWorldPosition(v).toArray());
+    },
+    setPose(values) { pose.set(values); ui.refreshSliders(); poseChanged(); },
+    setJointAngle(joint, axis, value) { pose[3 * joint + axis] = value; ui.refreshSliders(); poseChanged(); },
+    playMotion: (index) => playMotion(motions[index ?? 0]),
+    /** Multiply the displacement (1 = as exported, 0 = bare skinned body); for inspection and tests. */
+    setDisplacementScale(s) { mesh.material.userData.uniforms.uDisplacementScale.value = s; },
+    stop: () => { playing = null; },
+    /** Resolves once no inference is pending and the latest maps have been drawn. */
+    whenIdle: () => new Promise((resolve) => idleWaiters.push(resolve)),
+    /** Run the generator for `values` (J*3) without touching the view; float32 outputs as base64. */
+    async runGenerator(values) {
+      const r = await generator.run(Float32Array.from(values));
+      return { texture: toBase64(r.texture), displacement: toBase64(r.displacement), dims: r.dims, ms: r.ms };
+    },
+    /** Mean/median inference ms over n random poses (after one warm-up). */
+    async benchmark(n = 10) {
+      const p = new Float32Array(J * 3);
+      await generator.run(p);
+      const times = [];
+      for (let i = 0; i < n; i++) {
+        for (let k = 0; k < p.length; k++) p[k] = (Math.random() - 0.5) * 0.6;
+        times.push((await generator.run(p)).ms);
+      }
+      times.sort((a, b) => a - b);
+      return { mean_ms: times.reduce((a, b) => a + b, 0) / n, median_ms: times[n >> 1], min_ms: times[0], n, backend: generator.backend };
+    },
+  });
+
+  poseChanged();
+  requestAnimationFrame(frame);
+  await api.whenIdle();
+  if (params.get('play') !== null) playMotion(motions[Number(params.get('play')) || 0]);
+  api.ready = true;
+  document.body.dataset.ready = '1';
+}
+
+main().catch(fail);
