@@ -45,6 +45,16 @@ def test_zero_displacement_keeps_the_subdivided_surface(setup):
     assert r.max() <= 0.15 + 1e-5 and np.allclose(v[: len(base)], base)
 
 
+def test_pad_fills_gutters_from_the_nearest_chart_texel(setup):
+    root, body, _ = setup
+    rt = AvatarRuntime(root / "avatar", body=body)
+    img = np.where(rt.valid_mask[..., None], 0.5, 99.0).astype(np.float32)
+    assert (~rt.valid_mask).any()
+    assert np.all(rt.pad(img) == 0.5)
+    col = np.arange(32, dtype=np.float32)[None, :, None].repeat(32, 0)  # u varies along columns only
+    assert np.array_equal(rt.pad(col)[rt.valid_mask], col[rt.valid_mask])
+
+
 def test_constant_displacement_is_rotated_by_Rh_and_masked_on_fingers(setup):
     root, body, _ = setup
     rt = AvatarRuntime(root / "avatar", body=body)

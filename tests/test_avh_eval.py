@@ -46,7 +46,9 @@ def test_nearest_pose_returns_the_training_frame_itself(setup):
     frame = load_frame(baked / "frames" / "000001.npz")
     i, tex, disp = base.nearest(frame["pose"])
     assert base.frames.names[i] == "000001"
-    assert np.array_equal(tex, frame["texture"]) and np.array_equal(disp, frame["displacement"])
+    valid = frame["valid"]
+    assert np.array_equal(tex, frame["texture"]) and np.array_equal(disp[valid], frame["displacement"][valid])
+    assert np.all(disp[~valid] == 0)
     assert base.mean_texture.shape == (32, 32, 3)
 
 

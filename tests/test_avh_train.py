@@ -133,3 +133,12 @@ def test_cli_train_presets_and_bad_texels(baked, tmp_path, capsys):
     assert main(["export", str(tmp_path / "run"), str(tmp_path / "avatar")]) == 0
     meta = json.loads((tmp_path / "avatar" / "avatar.json").read_text())
     assert meta["onnx_max_abs_diff"] <= 1e-4 and meta["preset"] == "cpu-tiny"
+
+
+@pytest.mark.gpu
+def test_train_on_cuda_bf16_channels_last(baked, tmp_path):
+    summary = train_avh(baked, tmp_path / "run", SMALL, TrainConfig(epochs=2, batch_size=4, progress=False,
+                                                                   tensorboard=False, device="cuda"))
+    assert np.isfinite(summary["final"]["loss"])
+    model, _ = load_trained_generator(tmp_path / "run")
+    assert next(model.parameters()).device.type == "cpu"

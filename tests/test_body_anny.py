@@ -196,3 +196,24 @@ def test_pose_on_cuda_matches_cpu(body):
     out = gpu.pose(rv.cuda())
     assert out.vertices.is_cuda
     torch.testing.assert_close(out.vertices.cpu(), body.pose(rv).vertices, atol=1e-4, rtol=0)
+
+
+def test_rest_to_posed_transforms(body):
+    rv = 0.3 * torch.randn(2, 104, 3, generator=torch.Generator().manual_seed(5))
+    posed = body.pose(rv, Rh=torch.tensor([[0.0, 1.0, 0.0]] * 2), Th=torch.tensor([[0.5, 0.0, 0.0]] * 2))
+    M = body.rest_to_posed_transforms(posed)
+    rest_j = torch.as_tensor(body.template.rest_joints)
+    moved = (M[..., :3, :3] @ rest_j[:, :, None])[..., 0] + M[..., :3, 3]
+    torch.testing.assert_close(moved, posed.joints, atol=1e-5, rtol=0)
+    W = torch.as_tensor(body.template.skin_weights)
+    blend = torch.einsum("vj,bjik->bvik", W, M[..., :3, :])
+    v0 = torch.as_tensor(body.template.vertices)
+    approx = (blend[..., :3] @ v0[:, :, None])[..., 0] + blend[..., 3]
+    err = (approx - posed.vertices).norm(dim=-1)
+    assert err.mean() < 1e-3 and err.max() < 1e-2
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the no-CUDA message")
+def test_cuda_request_without_cuda_is_clear():
+    with pytest.raises(UvatarError, match="no CUDA device"):
+        load_body_model("anny", device="cuda")

@@ -149,3 +149,47 @@ def test_read_obj_uvs_triangulates_quads(tmp_path):
     p.write_text("v 0 0 0\nf 1 1 1\n")
     with pytest.raises(InputError, match="texture"):
         read_obj_uvs(p)
+
+
+SMPLX_PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15,
+                 20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38,
+                 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53]
+
+
+def test_smplx_pose_matches_smplx_lbs(tmp_path):
+    """SMPL-X (55 joints) on a small fake model, against smplx's own ``lbs`` with its buffers."""
+    import smplx
+
+    rng = np.random.default_rng(1)
+    Vx, Jx = 300, 55
+    regressor = np.zeros((Jx, Vx))
+    for j in range(Jx):
+        regressor[j, rng.choice(Vx, 5, replace=False)] = 0.2
+    weights = rng.random((Vx, Jx)) ** 8
+    data = {
+        "v_template": rng.normal(scale=0.3, size=(Vx, 3)), "f": rng.choice(Vx, size=(100, 3)).astype(np.int64),
+        "shapedirs": rng.normal(scale=0.01, size=(Vx, 3, 20)),
+        "posedirs": rng.normal(scale=0.01, size=(Vx, 3, 9 * (Jx - 1))),
+        "J_regressor": regressor, "weights": weights / weights.sum(1, keepdims=True),
+        "kintree_table": np.stack([np.array(SMPLX_PARENTS) % 2**32, np.arange(Jx)]).astype(np.int64),
+        "hands_componentsl": np.eye(45), "hands_componentsr": np.eye(45),
+        "hands_meanl": rng.normal(size=45), "hands_meanr": rng.normal(size=45),
+        "lmk_faces_idx": np.zeros(5, np.int64), "lmk_bary_coords": np.full((5, 3), 1 / 3),
+    }
+    np.savez(tmp_path / "SMPLX_NEUTRAL.npz", **data)
+    _write_uv_obj(tmp_path / "smplx_uv.obj", data, rng)
+    body = SmplxBody(SmplxConfig("smplx", model_dir=str(tmp_path)))
+    assert body.num_joints == 55 and body.conditioning_joints == tuple(range(1, 22))
+    sj = body.semantic_joints
+    assert (sj["l_wrist"], sj["r_wrist"], sj["head"], sj["jaw"]) == (20, 21, 15, 22)
+    assert body.joint_names[25] == "left_index1" and body.joint_names[54] == "right_thumb3"
+    g = torch.Generator().manual_seed(2)
+    rv = 0.4 * torch.randn(2, Jx, 3, generator=g)
+    betas = torch.randn(2, 10, generator=g)
+    m = smplx.SMPLX(model_path=str(tmp_path / "SMPLX_NEUTRAL.npz"), num_betas=10, use_pca=False,
+                    flat_hand_mean=True)
+    ref_v, ref_j = smplx.lbs.lbs(betas, rv.reshape(2, -1), m.v_template, m.shapedirs, m.posedirs,
+                                 m.J_regressor, m.parents, m.lbs_weights)
+    posed = body.pose(rv, shape=betas)
+    torch.testing.assert_close(posed.vertices, ref_v, atol=1e-5, rtol=0)
+    torch.testing.assert_close(posed.joints, ref_j, atol=1e-5, rtol=0)

@@ -47,7 +47,7 @@ def test_rodrigues_only_extri_and_no_size(tmp_path):
         skip = False
         keep.append(line)
     (tmp_path / "extri.yml").write_text("\n".join(keep) + "\n")
-    intri = "\n".join(l for l in (tmp_path / "intri.yml").read_text().splitlines() if not l[:2] in ("H_", "W_"))
+    intri = "\n".join(l for l in (tmp_path / "intri.yml").read_text().splitlines() if l[:2] not in ("H_", "W_"))
     (tmp_path / "intri.yml").write_text(intri + "\n")
     back = read_cameras(tmp_path)
     np.testing.assert_allclose(back["02"].R, rotation([0, np.pi / 2, 0]), atol=1e-9)

@@ -134,3 +134,48 @@ def test_load_texture_16bit_and_gray(tmp_path):
     cv2.imwrite(str(tmp_path / "g.png"), np.full((2, 3), 65535, np.uint16))
     tex = load_texture(tmp_path / "g.png")
     assert tex.shape == (2, 3, 3) and tex.dtype == np.float32 and np.allclose(tex, 1.0)
+
+
+def test_fast_obj_parser_matches_reference_twin(tmp_path):
+    """Mixed triangles/quads/pentagons, separate UV indices, negative indices, comments."""
+    from uvatar.capture.mesh_obj import read_obj_reference
+
+    rng = np.random.default_rng(3)
+    nv, nt = 40, 55
+    lines = ["# test", "o thing"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in rng.normal(size=(nv, 3))]
+    lines += [f"vt {u:.6f} {v:.6f}" for u, v in rng.uniform(size=(nt, 2))]
+    lines += ["vn 0 0 1", "s off"]
+    for _ in range(60):
+        n = int(rng.integers(3, 6))
+        vs, ts = rng.choice(nv, n, replace=False) + 1, rng.choice(nt, n, replace=False) + 1
+        if rng.random() < 0.2:
+            vs, ts = vs - nv - 1, ts - nt - 1  # negative (relative) indices
+        lines.append("f " + " ".join(f"{a}/{b}/1" for a, b in zip(vs, ts, strict=True)))
+    (tmp_path / "m.obj").write_text("\n".join(lines) + "\n")
+    fast = read_mesh(tmp_path / "m.obj")
+    v, f, uv, uf = read_obj_reference(tmp_path / "m.obj")
+    np.testing.assert_allclose(fast.vertices, v, atol=1e-6)
+    np.testing.assert_array_equal(fast.faces, f)
+    np.testing.assert_allclose(fast.uvs, uv, atol=1e-6)
+    np.testing.assert_array_equal(fast.uv_faces, uf)
+
+
+def test_ply_ascii_per_face_texcoords_and_big_endian(tmp_path):
+    head = ("ply\nformat {fmt} 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+            "element face 2\nproperty list uchar int vertex_indices\nproperty list uchar float texcoord\nend_header\n")
+    verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    tc = np.array([[0, 0, 0.5, 0, 0.5, 0.5], [0.6, 0, 1, 1, 0.6, 1]], np.float32)  # a seam along 0-2
+    body = "".join(f"{x} {y} {z}\n" for x, y, z in verts)
+    body += "".join(f"3 {a} {b} {c} 6 " + " ".join(map(str, t)) + "\n" for (a, b, c), t in zip(faces, tc, strict=True))
+    (tmp_path / "a.ply").write_text(head.format(fmt="ascii") + body)
+    rec = np.empty(2, dtype=[("n", "u1"), ("vi", ">i4", (3,)), ("m", "u1"), ("tc", ">f4", (6,))])
+    rec["n"], rec["vi"], rec["m"], rec["tc"] = 3, faces, 6, tc
+    (tmp_path / "b.ply").write_bytes(head.format(fmt="binary_big_endian").encode()
+                                     + verts.astype(">f4").tobytes() + rec.tobytes())
+    for name in ("a.ply", "b.ply"):
+        mesh = read_mesh(tmp_path / name)
+        np.testing.assert_array_equal(mesh.faces, faces)
+        np.testing.assert_allclose(mesh.uvs[mesh.uv_faces].reshape(2, 6), tc, atol=1e-6)
+        assert len(mesh.uvs) == 6  # corner 0 and 2 are not shared across the seam: 6 distinct UVs

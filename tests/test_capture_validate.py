@@ -8,8 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from uvatar.capture import (BodyFit, Camera, Capture, ValidateConfig, validate_capture, write_cameras,
-                            write_capture_info, write_fit, write_mesh)
+from uvatar.capture import (
+    BodyFit,
+    Camera,
+    Capture,
+    ValidateConfig,
+    validate_capture,
+    write_cameras,
+    write_capture_info,
+    write_fit,
+    write_mesh,
+)
 from uvatar.capture.types import TexturedMesh
 from uvatar.cli.main import main
 from uvatar.io_utils import write_image
@@ -26,7 +35,7 @@ def quad_mesh(extra_vertex: bool = False) -> TexturedMesh:
 
 def build_capture(root: Path) -> Path:
     """3 frames: OBJ, PLY, GLB scans (the last with another topology), anny-sized fits, 2 cameras."""
-    for frame, suffix in zip(FRAMES, [".obj", ".ply", ".glb"]):
+    for frame, suffix in zip(FRAMES, [".obj", ".ply", ".glb"], strict=True):
         write_mesh(root / "scans" / f"{frame}{suffix}", quad_mesh(extra_vertex=frame == "000002"))
         write_fit(root / "fits" / f"{frame}.json", BodyFit(poses=np.zeros(312), shapes=np.zeros(4)))
     K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])

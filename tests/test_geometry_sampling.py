@@ -116,17 +116,19 @@ def test_vertex_normals_gradcheck():
     assert torch.autograd.gradcheck(lambda x: vertex_normals(x, f), (vt,))
 
 
-@pytest.mark.parametrize("mirror", [False, True])
-def test_tangent_frames_plane(mirror):
+@pytest.mark.parametrize("mirror, follow", [(False, False), (True, False), (True, True)])
+def test_tangent_frames_plane(mirror, follow):
     v, f, uv = plane(mirror=mirror)
     r = rasterize_uv(uv, f, 16)
-    fr = texel_tangent_frames(r, f, f, uv, v)
+    fr = texel_tangent_frames(r, f, f, uv, v, follow_mirroring=follow)
     assert fr.shape == (16, 16, 3, 3)
     t, b, n = fr[..., 0], fr[..., 1], fr[..., 2]
-    sx = -1.0 if mirror else 1.0
+    sx = -1.0 if mirror else 1.0  # tangent follows dP/du
+    sy = -1.0 if mirror and not follow else 1.0  # bitangent: n x t, or dP/dv when following mirrors
     np.testing.assert_allclose(t[r.mask], np.tile([sx, 0, 0], (r.num_valid, 1)), atol=1e-12)
-    np.testing.assert_allclose(b[r.mask], np.tile([0, 1.0, 0], (r.num_valid, 1)), atol=1e-12)
+    np.testing.assert_allclose(b[r.mask], np.tile([0, sy, 0], (r.num_valid, 1)), atol=1e-12)
     np.testing.assert_allclose(n[r.mask], np.tile([0, 0, 1.0], (r.num_valid, 1)), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(fr[r.mask]), sx * sy)
 
 
 def test_tangent_frames_sphere_orthonormal_torch_parity():
@@ -135,6 +137,7 @@ def test_tangent_frames_sphere_orthonormal_torch_parity():
     fr = texel_tangent_frames(r, f, uvf, uvs, v)
     m = fr[r.mask]
     np.testing.assert_allclose(np.einsum("nji,njk->nik", m, m), np.broadcast_to(np.eye(3), m.shape), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(m), 1.0, atol=1e-9)  # proper rotations
     np.testing.assert_allclose(fr[~r.mask], np.broadcast_to(np.eye(3), fr[~r.mask].shape))
     vt = torch.tensor(np.stack([v, v]), requires_grad=True)
     frt = texel_tangent_frames(r, f, uvf, uvs, vt)
@@ -194,3 +197,11 @@ def test_cuda_matches_cpu():
     uv = torch.rand(100, 2)
     np.testing.assert_allclose(sample_texture(img.cuda(), uv.cuda()).cpu().numpy(),
                                sample_texture(img, uv).numpy(), atol=1e-6)
+
+
+def test_tangent_frames_gradcheck():
+    v, f, uv = plane(2)
+    v[:, 2] = 0.1 * np.sin(3 * v[:, 0]) + 0.05 * v[:, 1] ** 2  # curved, so normals vary
+    r = rasterize_uv(uv, f, 4)
+    vt = torch.tensor(v, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: texel_tangent_frames(r, f, f, uv, x), (vt,))

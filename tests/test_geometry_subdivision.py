@@ -5,7 +5,13 @@ import pytest
 import trimesh
 
 from uvatar.errors import InputError
-from uvatar.geometry import cotangent_laplacian, subdivide, subdivide_loop, subdivide_midpoint, uniform_laplacian
+from uvatar.geometry import (
+    cotangent_laplacian,
+    subdivide,
+    subdivide_loop,
+    subdivide_midpoint,
+    uniform_laplacian,
+)
 from uvatar.geometry.laplacian import mesh_edges
 
 

@@ -67,3 +67,15 @@ def test_contact_sheet_layout_and_labels():
         contact_sheet(imgs, labels=["a"])
     with pytest.raises(InputError):
         contact_sheet([])
+
+
+def test_mp4_failure_falls_back_to_gif(tmp_path, monkeypatch):
+    import imageio.v2 as imageio
+
+    def broken(*a, **k):
+        raise RuntimeError("no ffmpeg here")
+
+    monkeypatch.setattr(imageio, "get_writer", broken)
+    with pytest.warns(UserWarning, match="GIF"):
+        p = write_video(tmp_path / "v.mp4", frames(2, 8, 8))
+    assert p == tmp_path / "v.gif" and p.exists() and not (tmp_path / "v.mp4").exists()

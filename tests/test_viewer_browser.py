@@ -12,7 +12,7 @@ import pytest
 
 from uvatar.viewer.browser import missing_browser_reason
 
-pytestmark = [pytest.mark.browser, pytest.mark.timeout(300)]
+pytestmark = pytest.mark.browser
 
 REASON = missing_browser_reason()
 if REASON:
@@ -98,6 +98,27 @@ def test_browser_generator_matches_python_onnxruntime(page, avatar):
         assert ms > 0
 
 
+def test_motion_plays_and_drives_the_generator(page):
+    options = page.locator("#motion-select option").all_inner_texts()
+    assert options[0].startswith("sway (built-in)") and "sway" in options[1:]  # + AVATAR/motions/sway.json
+    before = page.evaluate("window.uvatar.stats.inferences")
+    page.select_option("#motion-select", index=1)
+    page.click("#play")
+    page.wait_for_timeout(1500)
+    poses = [page.evaluate("window.uvatar.getPose()") for _ in range(2)]
+    page.click("#stop")
+    assert page.evaluate("window.uvatar.stats.inferences") > before
+    assert np.abs(poses[0]).max() > 0.01
+
+
+@pytest.mark.parametrize("kind", ["angles", "sincos"])
+def test_js_pose_encoding_matches_python_twin(page, kind):
+    pose = np.random.default_rng(3).uniform(-3, 3, 12).astype(np.float32)
+    encoding = {"type": kind, "joints": [3, 1]}
+    js = np.array(page.evaluate("([p, e]) => window.uvatar.encodePose(p, e)", [pose.tolist(), encoding]))
+    np.testing.assert_allclose(js, pose_to_model_input(pose, encoding), atol=1e-6)
+
+
 def test_viewer_skeleton_matches_gltf_reference(page):
     import roma
     import torch
@@ -111,6 +132,44 @@ def test_viewer_skeleton_matches_gltf_reference(page):
     np.testing.assert_allclose(js, ref, atol=1e-5)
 
 
+def _bilinear_clamped(image, uv_gltf):
+    """(R, R, C) image with row 0 at glTF t = 0; (N, 2) glTF UVs -> (N, C), texel centres, clamp to edge."""
+    R = image.shape[0]
+    x = np.clip(uv_gltf[:, 0] * R - 0.5, 0, R - 1)
+    y = np.clip(uv_gltf[:, 1] * R - 0.5, 0, R - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    x1, y1 = np.minimum(x0 + 1, R - 1), np.minimum(y0 + 1, R - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def test_displaced_vertices_match_python_reference(page, avatar):
+    """Skinning + displacement sampled at TEXCOORD_1 after skinning, times (1 - finger/toe mask)."""
+    import imageio.v3 as iio
+    import roma
+    import torch
+
+    from uvatar.avh.engine_export import EngineExportConfig, engine_mesh, skin_reference
+
+    out, manifest = avatar
+    pose = np.array([0, 0, 0.1, 0.2, 0, 0.3, 0, -0.4, 0.2, 0.5, 0.1, 0], np.float32)
+    set_pose(page, pose)
+    mesh = engine_mesh(toy_rest_body(), EngineExportConfig(subdivisions=1))  # the GLB's arrays
+    idx = np.random.default_rng(0).choice(len(mesh.positions), 200, replace=False)
+    js = np.array(page.evaluate("i => window.uvatar.displacedVertices(i)", idx.tolist()))
+    io_names = {"input": "pose_angles", "texture": "texture", "displacement": "displacement"}
+    _, disp = run_generator(out / "model.onnx", io_names, pose_to_model_input(pose[None], manifest["pose_encoding"]))
+    keep = 1.0 - iio.imread(out / manifest["finger_toe_mask"]).astype(np.float32)[..., None] / 255.0
+    dmap = disp[0].transpose(1, 2, 0) * keep  # row 0 is v = 1, i.e. glTF t = 0
+    rots = roma.rotvec_to_rotmat(torch.as_tensor(pose.reshape(4, 3), dtype=torch.float64)).numpy()
+    ref = skin_reference(mesh, rots)[idx] + _bilinear_clamped(dmap, mesh.uv1[idx])
+    assert np.abs(dmap).max() > 1e-3  # the toy really displaces
+    np.testing.assert_allclose(js, ref, atol=2e-5)
+
+
+@pytest.mark.slow
 def test_screenshot_module_writes_png_and_reports_inference(avatar, tmp_path):
     import subprocess
     import sys

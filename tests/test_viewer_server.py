@@ -90,6 +90,14 @@ def test_check_avatar_dir_errors(tmp_path, server):
         check_avatar_dir(tmp_path)
 
 
+def test_busy_port_is_a_one_line_error(server):
+    from uvatar.errors import UvatarError
+
+    port = server.httpd.server_address[1]
+    with pytest.raises(UvatarError, match=f"cannot listen on 127.0.0.1:{port}"):
+        ViewerServer(server.avatar_dir, ViewerConfig(port=port))
+
+
 def test_cli_view_reports_bad_folder_in_one_line(tmp_path, capsys):
     from uvatar.cli.main import main
 

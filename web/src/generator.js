@@ -5,6 +5,8 @@ export async function loadOrt() {
   const ort = await import(/* external */ './ort/ort.min.mjs');
   ort.env.wasm.wasmPaths = new URL('./ort/', import.meta.url).href;
   ort.env.wasm.numThreads = self.crossOriginIsolated ? Math.min(4, navigator.hardwareConcurrency || 1) : 1;
+  // run wasm inference in a worker so the render loop keeps drawing while the generator works
+  ort.env.wasm.proxy = new URLSearchParams(location.search).get('proxy') !== '0';
   return ort;
 }
 
@@ -38,8 +40,15 @@ export class Generator {
     throw lastError;
   }
 
-  /** pose (J*3 numbers) -> {texture: Float32Array(3*R*R), displacement: Float32Array(3*R*R), ms}. */
-  async run(pose) {
+  /** pose (J*3 numbers) -> {texture: Float32Array(3*R*R), displacement: Float32Array(3*R*R), ms}.
+   * Calls are serialized (an onnxruntime session runs one inference at a time). */
+  run(pose) {
+    const next = (this._queue || Promise.resolve()).then(() => this._run(pose));
+    this._queue = next.catch(() => {});
+    return next;
+  }
+
+  async _run(pose) {
     const g = this.manifest.generator;
     const input = poseToModelInput(pose, this.manifest.pose_encoding);
     const t0 = performance.now();

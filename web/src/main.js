@@ -5,7 +5,7 @@ import { GLTFLoader } from 'three/examples/jsm/loaders/GLTFLoader.js';
 import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
 import { Generator, loadOrt } from './generator.js';
 import { makeAvatarMaterial, makeColorTexture, makeDisplacementTexture, uploadMaps } from './material.js';
-import { lerpPose, rotvecToQuaternion, swayMotion } from './pose.js';
+import { lerpPose, poseToModelInput, rotvecToQuaternion, swayMotion } from './pose.js';
 import { buildUi } from './ui.js';
 
 const params = new URLSearchParams(location.search);
@@ -39,6 +39,22 @@ async function loadMask(url, R) {
   return keep;
 }
 
+/** Bilinear lookup with clamp-to-edge in an RGBA float image (R x R, row 0 at t = 0), like the GPU. */
+function sampleBilinear(data, R, u, t) {
+  const x = Math.min(Math.max(u * R - 0.5, 0), R - 1);
+  const y = Math.min(Math.max(t * R - 0.5, 0), R - 1);
+  const x0 = Math.floor(x), y0 = Math.floor(y);
+  const x1 = Math.min(x0 + 1, R - 1), y1 = Math.min(y0 + 1, R - 1);
+  const fx = x - x0, fy = y - y0;
+  const out = [0, 0, 0];
+  for (let c = 0; c < 3; c++) {
+    const a = data[4 * (y0 * R + x0) + c] * (1 - fx) + data[4 * (y0 * R + x1) + c] * fx;
+    const b = data[4 * (y1 * R + x0) + c] * (1 - fx) + data[4 * (y1 * R + x1) + c] * fx;
+    out[c] = a * (1 - fy) + b * fy;
+  }
+  return out;
+}
+
 function toBase64(floats) {
   const bytes = new Uint8Array(floats.buffer, floats.byteOffset, floats.byteLength);
   let s = '';
@@ -52,7 +68,7 @@ async function main() {
   const R = manifest.texels;
 
   const canvas = document.getElementById('view');
-  const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: params.get('aa') !== '0', preserveDrawingBuffer: true });
   renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
   renderer.setSize(window.innerWidth, window.innerHeight);
   renderer.outputColorSpace = THREE.SRGBColorSpace;
@@ -137,11 +153,12 @@ async function main() {
   const scratch = new Float32Array(J * 3);
   function playMotion(m) {
     playing = m;
+    avatar.quaternion.identity();
     playStart = performance.now();
   }
 
   const ui = buildUi({ manifest, pose, motions, onPose: poseChanged, onPlay: playMotion,
-    onStop: () => { playing = null; }, onMotionLoaded: (m) => { motions.push(m); playMotion(m); } });
+    onStop: () => { playing = null; avatar.quaternion.identity(); }, onMotionLoaded: (m) => { motions.push(m); playMotion(m); } });
   try {
     const list = await (await fetch('api/motions')).json();
     for (const entry of list) ui.addMotionEntry(entry);
@@ -158,6 +175,10 @@ async function main() {
       const i = Math.floor(t) % n;
       lerpPose(playing.poses[i], playing.poses[(i + 1) % n], t - Math.floor(t), scratch);
       pose.set(scratch.subarray(0, pose.length));
+      if (playing.Rh) { // global rotation about the model origin; the maps live in the body frame
+        const r = playing.Rh[i];
+        rotvecToQuaternion(r[0], r[1], r[2], avatar.quaternion);
+      }
       ui.refreshSliders();
       poseChanged();
     }
@@ -201,6 +222,23 @@ async function main() {
     stop: () => { playing = null; },
     /** Resolves once no inference is pending and the latest maps have been drawn. */
     whenIdle: () => new Promise((resolve) => idleWaiters.push(resolve)),
+    /**
+     * CPU twin of the vertex shader for the given vertex indices: three.js skinning
+     * (SkinnedMesh.getVertexPosition) + scale * bilinear(displacement map, dispUv), model space, metres.
+     */
+    displacedVertices(indices) {
+      avatar.updateMatrixWorld(true);
+      const uvs = geom.getAttribute('dispUv');
+      const scale = mesh.material.userData.uniforms.uDisplacementScale.value;
+      const v = new THREE.Vector3();
+      return indices.map((i) => {
+        mesh.getVertexPosition(i, v);
+        const d = sampleBilinear(dispTex.image.data, R, uvs.getX(i), uvs.getY(i));
+        return [v.x + scale * d[0], v.y + scale * d[1], v.z + scale * d[2]];
+      });
+    },
+    /** The generator input for a full pose under `encoding` (default: the manifest's); for parity tests. */
+    encodePose: (values, encoding) => Array.from(poseToModelInput(values, encoding || manifest.pose_encoding)),
     /** Run the generator for `values` (J*3) without touching the view; float32 outputs as base64. */
     async runGenerator(values) {
       const r = await generator.run(Float32Array.from(values));

@@ -43,7 +43,15 @@ export function buildUi({ manifest, pose, motions, onPose, onPlay, onStop, onMot
   play.onclick = async () => {
     const opt = motionSelect.selectedOptions[0];
     if (opt && opt.dataset.url && !opt.dataset.loaded) {
-      const m = await loadMotionJson(opt.dataset.url, opt.textContent);
+      drop.textContent = `loading ${opt.textContent}…`;
+      let m;
+      try {
+        m = await loadMotionJson(opt.dataset.url, opt.textContent);
+      } catch (err) {
+        drop.textContent = `could not load ${opt.textContent}: ${err.message}`;
+        return;
+      }
+      drop.textContent = `playing ${m.name} (${m.poses.length} frames)`;
       motions.push(m);
       opt.value = String(motions.length - 1);
       opt.dataset.loaded = '1';
@@ -96,7 +104,10 @@ export function buildUi({ manifest, pose, motions, onPose, onPlay, onStop, onMot
 
 export function motionFromJson(body, name) {
   const J3 = body.poses[0].length;
-  return { name: body.name || name, fps: body.fps || 30, poses: body.poses.map((p) => Float32Array.from(p.slice(0, J3))) };
+  return {
+    name: body.name || name, fps: body.fps || 30, poses: body.poses.map((p) => Float32Array.from(p.slice(0, J3))),
+    Rh: body.Rh ? body.Rh.map((r) => Float32Array.from(r)) : null,
+  };
 }
 
 async function loadMotionJson(url, name) {

@@ -108,6 +108,11 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
 
 
+def _to_gltf_uv(uv: np.ndarray) -> np.ndarray:
+    """(N, 2) v-up UVs -> glTF texture coordinates (origin at the image's top-left): (u, 1 - v)."""
+    return np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1).astype(np.float32)
+
+
 def engine_mesh(body: RestBody, config: EngineExportConfig = EngineExportConfig(),
                 texture_png: bytes | None = None) -> SkinnedMesh:
     """Subdivide, split seams into one vertex per (vertex, UV) pair, and pack glTF arrays."""
@@ -117,13 +122,13 @@ def engine_mesh(body: RestBody, config: EngineExportConfig = EngineExportConfig(
     unique, inverse = np.unique(pairs, axis=0, return_inverse=True)
     vid, uid = unique[:, 0], unique[:, 1]
     first_uv = np.full(len(body.vertices), -1, np.int64)
-    first_uv[vid[::-1]] = uid[::-1]  # the smallest UV index of each vertex
+    present, first = np.unique(vid, return_index=True)  # pairs are sorted: first = smallest UV index
+    first_uv[present] = uid[first]
     joints, weights = top_influences(body.skin_weights[vid], config.max_influences)
-    flip = lambda uv: np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1).astype(np.float32)  # v up -> glTF top-left
     return SkinnedMesh(
         positions=body.vertices[vid].astype(np.float32),
         normals=vertex_normals(body.vertices.astype(np.float64), body.faces)[vid],
-        uv0=flip(body.uvs[uid]), uv1=flip(body.uvs[first_uv[vid]]),
+        uv0=_to_gltf_uv(body.uvs[uid]), uv1=_to_gltf_uv(body.uvs[first_uv[vid]]),
         joints=joints, weights=weights, indices=inverse.reshape(-1, 3).astype(np.uint32),
         joint_names=tuple(body.joint_names), joint_parents=np.asarray(body.joint_parents, np.int64),
         joint_world_rest=np.asarray(body.joint_world_rest, np.float64), texture_png=texture_png,

@@ -9,7 +9,9 @@ over ``mask``. The same numbers for two baselines:
 
 - ``mean_texture``: the body with the κ-weighted mean training texture and no displacement;
 - ``nearest_pose``: the baked maps of the training frame whose encoded pose (sin, cos of the
-  conditioning angles) is nearest.
+  conditioning angles) is nearest (displacement outliers > 5 cm zeroed, as in training).
+
+All three go through the same runtime (subdivision, gutter fill of texels outside the UV charts).
 """
 
 from __future__ import annotations
@@ -57,7 +59,9 @@ def encoded_conditioning(poses: np.ndarray, conditioning) -> np.ndarray:
 class Baselines:
     """Mean-texture and nearest-training-pose maps from the baked training frames."""
 
-    def __init__(self, baked_dir: str | Path, train_frames: list[str], resolution: int, conditioning):
+    def __init__(self, baked_dir: str | Path, train_frames: list[str], resolution: int, conditioning,
+                 outlier_threshold: float = 0.05):
+        self.outlier_threshold = outlier_threshold
         frames = load_baked_frames(baked_dir, train_frames, resolution)
         k = frames.kappa[..., None] * frames.valid[..., None]
         ksum = k.sum(0)
@@ -68,10 +72,16 @@ class Baselines:
         self.conditioning = list(conditioning)
 
     def nearest(self, pose: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
-        """(index, texture (R, R, 3), body-frame displacement (R, R, 3)) of the nearest training pose."""
+        """(index, texture (R, R, 3), body-frame displacement (R, R, 3)) of the nearest training pose.
+
+        The displacement is cleaned as training sees it: zero outside the UV charts and where any
+        axis exceeds ``outlier_threshold`` (correspondence mismatches).
+        """
         code = encoded_conditioning(pose[None], self.conditioning)
         i = int(np.argmin(((self.codes - code) ** 2).sum(1)))
-        return i, self.frames.texture[i], self.frames.displacement[i]
+        d = self.frames.displacement[i]
+        bad = ~self.frames.valid[i] | (np.abs(d).max(-1) > self.outlier_threshold)
+        return i, self.frames.texture[i], np.where(bad[..., None], 0.0, d).astype(np.float32)
 
 
 def scaled_camera(camera, width: int | None):

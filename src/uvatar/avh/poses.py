@@ -108,8 +108,12 @@ def as_pose_sequence(motion, num_joints: int, source: str = "motion") -> PoseSeq
         return v.reshape(T, *shape)
 
     fps = _field(motion, "fps", "frame_rate")
+    shape = _field(motion, "shape", "shapes")
+    info = _field(motion, "info") or {}
+    names = [str(f) for f in info.get("frames", [])] if isinstance(info, dict) else []
     return PoseSequence(poses, arr(("Rh", "global_orient"), (3,), 0.0), arr(("Th", "transl", "trans"), (3,), 0.0),
-                        arr(("scale",), (), 1.0), float(fps) if fps else 25.0)
+                        arr(("scale",), (), 1.0), float(fps) if fps else 25.0, names if len(names) == T else [],
+                        None if shape is None or np.size(shape) == 0 else np.asarray(shape, np.float32))
 
 
 def load_pose_sequence(spec: str | Path, body) -> PoseSequence:

@@ -4,6 +4,7 @@ For a pose: run the generator -> texture (R, R, 3) and body-frame displacement (
 body (LBS), subdivide its triangles ``levels`` times (UVs carried along, one UV per geometric vertex
 for the displacement lookup so seams do not crack), rotate the displacement sampled at each vertex
 into world axes (``R(Rh) d``) and add it, except on fingers and toes (mask sampled at the vertex UV).
+Texels outside the UV charts are first filled from the nearest chart texel (:meth:`AvatarRuntime.pad`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,19 @@ import torch
 from uvatar.avh.data import rotvec_to_rotmat
 from uvatar.avh.export import onnx_session, read_avatar
 from uvatar.errors import InputError
+
+
+def gutter_fill_index(uvs, uv_faces, resolution: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """(valid (R, R) bool, (rows, cols) (R, R) int index of the nearest valid texel for every texel)."""
+    from scipy.ndimage import distance_transform_edt
+
+    from uvatar.geometry import rasterize_uv
+
+    valid = rasterize_uv(uvs, uv_faces, resolution).mask
+    if not valid.any():
+        raise InputError("uvs", f"no texel of the {resolution}x{resolution} UV layout is covered")
+    _, idx = distance_transform_edt(~valid, return_indices=True)
+    return valid, (idx[0], idx[1])
 
 
 @dataclass
@@ -62,6 +76,17 @@ class AvatarRuntime:
         self.vertex_matrix = origin.vertex_matrix.astype(np.float32)
         self.vertex_uv = origin.vertex_uv.astype(np.float32)
         self.displacement_weight = 1.0 - self._sample(self.fingers_toes_mask()[..., None].astype(np.float32))[:, 0]
+        self.valid_mask, self._fill_index = gutter_fill_index(t.uvs, t.uv_faces, self.resolution)
+
+    def pad(self, image: np.ndarray) -> np.ndarray:
+        """(R, R, C) map with texels outside the UV charts replaced by the nearest chart texel.
+
+        Bilinear lookups at chart borders then never mix in values the generator was not trained on.
+        """
+        image = np.asarray(image)
+        if image.shape[:2] != self.valid_mask.shape:
+            return image
+        return image[self._fill_index[0], self._fill_index[1]]
 
     def fingers_toes_mask(self) -> np.ndarray:
         """(R, R) bool texels where displacement is not applied (body.npz, else part_masks)."""
@@ -108,7 +133,7 @@ class AvatarRuntime:
         v = np.asarray(self.vertex_matrix @ np.asarray(base_vertices, np.float32), np.float32)
         if displacement is None:
             return v
-        d = self._sample(np.asarray(displacement, np.float32)) * self.displacement_weight[:, None]
+        d = self._sample(self.pad(np.asarray(displacement, np.float32))) * self.displacement_weight[:, None]
         if Rh is not None:
             d = d @ rotvec_to_rotmat(np.asarray(Rh, np.float64)).T.astype(np.float32)
         return v + d
@@ -116,7 +141,7 @@ class AvatarRuntime:
     def mesh(self, base_vertices, texture, displacement, Rh=None) -> AvatarMesh:
         """One textured, displaced mesh from posed base vertices (V, 3) and the maps."""
         return AvatarMesh(self.displaced_vertices(base_vertices, displacement, Rh), self.faces, self.uvs,
-                          self.uv_faces, np.asarray(texture, np.float32))
+                          self.uv_faces, self.pad(np.asarray(texture, np.float32)))
 
     def meshes(self, poses, Rh=None, Th=None, scale=None, shape=None):
         """Yield an :class:`AvatarMesh` per pose (generator and body posed in batches)."""

@@ -8,6 +8,8 @@ Posing reproduces anny's own forward pass (pose parameterization "local-ref") in
 - Zero rotations give anny's reference pose (its zero pose, root at the origin); that is the rest
   template ``template.vertices``. Skinning is anny's exact LBS from its bind mesh, so
   ``pose(0) == template.vertices`` and ``pose(θ) == anny.forward(θ)`` (to float32 round-off).
+  Re-skinning ``template.vertices`` with ``rest_to_posed_transforms`` and ``template.skin_weights``
+  instead is off by ~0.1 mm on average (< 4 mm at worst for 0.3 rad random poses).
 - ``shape`` is anny's phenotype vector (``shape_names``: gender, age, muscle, weight, height,
   proportions, each in [0, 1], default 0.5). The shape-dependent bind state is cached (LRU), so
   posing a fixed shape many times costs only kinematics and skinning.
@@ -27,7 +29,13 @@ import torch
 
 from uvatar.body.anny_data import ANNY_TO_WORLD, anny_data, anny_rest_state, load_anny
 from uvatar.body.base import BodyModel, BodyTemplate
-from uvatar.body.kinematics import forward_kinematics, kinematic_levels, skin, skinning_transforms
+from uvatar.body.kinematics import (
+    forward_kinematics,
+    kinematic_levels,
+    skin,
+    skinning_transforms,
+    sparse_weights,
+)
 
 __all__ = ["AnnyConfig", "AnnyBody", "ANNY_SEMANTIC_BONES", "anny_conditioning_bones"]
 
@@ -74,6 +82,7 @@ class AnnyBody(BodyModel):
         self._cache: OrderedDict = OrderedDict()
         dt = self.config.dtype
         self.register_buffer("_weights", torch.as_tensor(data.weights, dtype=dt), persistent=False)
+        self.register_buffer("_weights_csr", sparse_weights(self._weights), persistent=False)
         self.register_buffer("_to_world", torch.as_tensor(ANNY_TO_WORLD, dtype=dt), persistent=False)
         self.register_buffer("_reference_rotations", torch.as_tensor(data.reference_rotations),
                              persistent=False)
@@ -142,7 +151,7 @@ class AnnyBody(BodyModel):
         D = roma.rotvec_to_rotmat(rotvecs.to(dt))  # anny local-ref deltas, anny axes
         F, p = forward_kinematics(self._levels_on(D.device), D, state["offsets"])
         T = skinning_transforms(F, p, state["bind_rotations"], state["bind_heads"])
-        vertices = skin(state["bind_vertices"], self._weights, T)
+        vertices = skin(state["bind_vertices"], self._weights_csr, T)
         C = self._to_world
         B, J = F.shape[:2]
         top = torch.cat([C @ F, (C @ p[..., None])], -1)

@@ -18,6 +18,7 @@ elbow 60 degrees about world +X") into the backend's local axis-angle: ``local =
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,8 @@ import torch
 
 from uvatar.errors import InputError
 
-__all__ = ["BodyTemplate", "PosedBody", "BodyModel", "vertex_normals_torch", "apply_global_transform"]
+__all__ = ["BodyTemplate", "PosedBody", "BodyModel", "vertex_normals_torch", "vertex_face_adjacency",
+           "apply_global_transform"]
 
 
 @dataclass(frozen=True)
@@ -80,14 +82,36 @@ class PosedBody:
         return self.joint_transforms[..., :3, 3]
 
 
-def vertex_normals_torch(vertices: torch.Tensor, faces: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """Area-weighted unit vertex normals. vertices (..., V, 3), faces (F, 3) int64 -> (..., V, 3)."""
-    tri = vertices[..., faces, :]  # (..., F, 3 corners, 3)
-    face_normals = torch.linalg.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
-    normals = torch.zeros_like(vertices)  # face normal length = 2 * area: area weighting
-    for k in range(3):
-        normals.index_add_(-2, faces[:, k], face_normals)
-    return torch.nn.functional.normalize(normals, dim=-1, eps=eps)
+def vertex_face_adjacency(faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
+    """(V, F) sparse CSR matrix with a 1 where vertex v is a corner of face f (for normals)."""
+    F = faces.shape[0]
+    cols = torch.arange(F, device=faces.device).repeat_interleave(3)
+    values = torch.ones(3 * F, device=faces.device)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # sparse CSR is "beta"; invariant checks off
+        return torch.sparse_coo_tensor(torch.stack([faces.reshape(-1), cols]), values,
+                                       (num_vertices, F)).coalesce().to_sparse_csr()
+
+
+def vertex_normals_torch(vertices: torch.Tensor, faces: torch.Tensor, adjacency: torch.Tensor | None = None,
+                         eps: float = 1e-12) -> torch.Tensor:
+    """Area-weighted unit vertex normals. vertices (..., V, 3), faces (F, 3) int64 -> (..., V, 3).
+
+    ``adjacency``: :func:`vertex_face_adjacency` of these faces (faster: one sparse product);
+    without it the face normals are scattered with ``index_add_`` (the plain twin)."""
+    lead, V = vertices.shape[:-2], vertices.shape[-2]
+    rows = vertices.reshape(-1, V, 3).transpose(0, 1).reshape(V, -1)  # (V, N*3): gathers whole rows
+    tri = rows[faces].reshape(faces.shape[0], 3, -1, 3)
+    face_normals = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)  # |n| = 2 area
+    face_normals = face_normals.reshape(faces.shape[0], -1)
+    if adjacency is not None:
+        normals = adjacency.to(face_normals.dtype) @ face_normals
+    else:
+        normals = torch.zeros_like(rows)
+        for k in range(3):
+            normals.index_add_(0, faces[:, k], face_normals)
+    normals = torch.nn.functional.normalize(normals.reshape(V, -1, 3), dim=-1, eps=eps)
+    return normals.transpose(0, 1).reshape(*lead, V, 3)
 
 
 def apply_global_transform(vertices, joint_transforms, Rh=None, Th=None, scale=None):
@@ -209,12 +233,30 @@ class BodyModel(torch.nn.Module):
         vertices, transforms = self._pose_local(rotvecs, shape)
         vertices, transforms = apply_global_transform(vertices, transforms, batch(Rh, (3,)), batch(Th, (3,)),
                                                       batch(scale, ()))
+        vertices = vertices.contiguous()
         return PosedBody(vertices=vertices, joint_transforms=transforms,
-                         normals=vertex_normals_torch(vertices, self._faces_t))
+                         normals=vertex_normals_torch(vertices, self._faces_t, self._adjacency(vertices.shape[-2])))
+
+    def _adjacency(self, num_vertices: int) -> torch.Tensor:
+        """(V, F) vertex-face CSR on the model's device (built once per device)."""
+        cache = self.__dict__.setdefault("_adjacency_by_device", {})
+        key = str(self._faces_t.device)
+        if key not in cache:
+            cache[key] = vertex_face_adjacency(self._faces_t, num_vertices)
+        return cache[key]
 
     def _pose_local(self, rotvecs: torch.Tensor, shape) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, J, 3) -> vertices (B, V, 3), joint transforms (B, J, 4, 4) in model space."""
         raise NotImplementedError
+
+    def rest_to_posed_transforms(self, posed: PosedBody, shape=None) -> torch.Tensor:
+        """(B, J, 4, 4) per-joint transforms taking rest-pose points (``template.vertices`` space, for
+        ``shape``) to the posed world: ``joint_transforms @ inverse(rest joint_transforms)``.
+
+        Blending them with ``template.skin_weights`` re-skins any rest-space point; for anny this
+        approximates ``pose`` (its exact LBS starts from anny's bind mesh) to a few millimetres."""
+        rest = self.pose(torch.zeros(1, self.num_joints, 3, device=self.device), shape=shape).joint_transforms
+        return posed.joint_transforms @ torch.linalg.inv(rest.to(posed.joint_transforms))
 
     def rest_pose(self, batch_size: int = 1) -> PosedBody:
         """The body with all joint rotations zero and the default shape."""

@@ -8,6 +8,7 @@ import threading
 import torch
 
 from uvatar.body.base import BodyModel
+from uvatar.errors import UvatarError
 
 __all__ = ["BODY_MODELS", "load_body_model", "clear_body_model_cache"]
 
@@ -28,6 +29,8 @@ def load_body_model(name: str = "anny", model_dir: str | os.PathLike | None = No
     if name not in BODY_MODELS:
         raise ValueError(f"unknown body model {name!r}; choose one of {', '.join(BODY_MODELS)}")
     device = str(torch.device(device))
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise UvatarError(f"body model on {device} requested, but torch sees no CUDA device")
     if name != "anny" and model_dir is None:
         model_dir = os.environ.get("UVATAR_SMPL_DIR")
     key = (name, device, None if name == "anny" else (str(model_dir), str(uv_obj), gender))

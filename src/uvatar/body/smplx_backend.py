@@ -25,7 +25,13 @@ import numpy as np
 import torch
 
 from uvatar.body.base import BodyModel, BodyTemplate
-from uvatar.body.kinematics import forward_kinematics, kinematic_levels, skin, skinning_transforms
+from uvatar.body.kinematics import (
+    forward_kinematics,
+    kinematic_levels,
+    skin,
+    skinning_transforms,
+    sparse_weights,
+)
 from uvatar.errors import InputError, require
 
 __all__ = ["SmplxConfig", "SmplxBody", "find_model_file", "read_obj_uvs", "SMPL_JOINT_NAMES"]
@@ -190,6 +196,7 @@ class SmplxBody(BodyModel):
         self.register_buffer("_posedirs", m.posedirs.detach().to(dt), persistent=False)
         self.register_buffer("_J_regressor", m.J_regressor.detach().to(dt), persistent=False)
         self.register_buffer("_weights", m.lbs_weights.detach().to(dt), persistent=False)
+        self.register_buffer("_weights_csr", sparse_weights(self._weights), persistent=False)
         self._levels = kinematic_levels(parents)
         self._levels_by_device: dict[str, object] = {}
         self._parents = torch.as_tensor(parents).clamp_min(0)
@@ -233,6 +240,6 @@ class SmplxBody(BodyModel):
             self._levels_by_device[key] = self._levels.to(R.device)
         F, p = forward_kinematics(self._levels_by_device[key], R, offsets)
         T = skinning_transforms(F, p, None, joints.expand(B, -1, -1))
-        vertices = skin(v_posed, self._weights, T)
+        vertices = skin(v_posed, self._weights_csr, T)
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dt, device=R.device).expand(B, J, 1, 4)
         return vertices, torch.cat([torch.cat([F, p[..., None]], -1), bottom], -2)

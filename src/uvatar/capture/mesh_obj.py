@@ -91,14 +91,24 @@ def _parse_mtl(mtl_path: Path) -> dict[str, Path]:
     return textures
 
 
+def _statement_args(data: bytes, keyword: bytes) -> list[str]:
+    """Arguments of every line that starts with ``keyword`` (found with bytes.find, C speed)."""
+    out, start = [], 0
+    while (at := data.find(keyword, start)) >= 0:
+        end = data.find(b"\n", at)
+        end = len(data) if end < 0 else end
+        line_start = data.rfind(b"\n", 0, at) + 1
+        if not data[line_start:at].strip() and data[at + len(keyword): at + len(keyword) + 1] in (b" ", b"\t"):
+            out.append(data[at + len(keyword): end].decode(errors="replace").strip())
+        start = end
+    return out
+
+
 def obj_texture_path(path: Path, data: bytes | None = None) -> Path | None:
     """The texture image named by the OBJ's materials (``mtllib`` → ``map_Kd``), or None."""
-    import re
-
     if data is None:
         data = path.read_bytes()
-    libs = [m.decode(errors="replace").strip() for m in re.findall(rb"^[ \t]*mtllib[ \t]+(.+?)\s*$", data, re.M)]
-    used = [m.decode(errors="replace").strip() for m in re.findall(rb"^[ \t]*usemtl[ \t]+(.+?)\s*$", data, re.M)]
+    libs, used = _statement_args(data, b"mtllib"), _statement_args(data, b"usemtl")
     textures: dict[str, Path] = {}
     for lib in libs:
         mtl = path.parent / lib
@@ -115,10 +125,11 @@ def obj_texture_path(path: Path, data: bytes | None = None) -> Path | None:
 def obj_header(path: Path) -> dict:
     """Counts and texture of an OBJ without parsing numbers (fast on big scans)."""
     data = path.read_bytes()
-    body = b"\n" + data
-    nv = body.count(b"\nv ") + body.count(b"\nv\t")
-    nf = body.count(b"\nf ") + body.count(b"\nf\t")
-    nvt = body.count(b"\nvt ")
+
+    def count(keyword: bytes) -> int:  # lines starting with keyword + space/tab, at C speed
+        return sum(data.count(b"\n" + keyword + sep) + data.startswith(keyword + sep) for sep in (b" ", b"\t"))
+
+    nv, nf, nvt = count(b"v"), count(b"f"), count(b"vt")
     if nv == 0 or nf == 0:
         raise InputError(path, "not a mesh: no vertices or faces")
     return {"num_vertices": nv, "num_faces": nf, "has_uvs": nvt > 0, "texture": obj_texture_path(path, data)}
@@ -175,3 +186,32 @@ def write_obj(path: Path, mesh: TexturedMesh, write_texture) -> None:
         lines.append(_fmt_rows("f", mesh.faces + 1, "%d"))
     with atomic_path(path) as tmp:
         tmp.write_text("".join(lines))
+
+
+def read_obj_reference(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Plain per-line twin of :func:`read_obj` (geometry only, for parity tests):
+    → (vertices (V, 3), faces (F, 3), uvs (U, 2), uv_faces (F, 3) or (0, 3))."""
+    vertices, uvs, faces, uv_faces = [], [], [], []
+    for raw in Path(path).read_text().splitlines():
+        parts = raw.split()
+        if not parts:
+            continue
+        if parts[0] == "v":
+            vertices.append([float(x) for x in parts[1:4]])
+        elif parts[0] == "vt":
+            uvs.append([float(x) for x in parts[1:3]])
+        elif parts[0] == "f":
+            corners = [c.split("/") for c in parts[1:]]
+
+            def index(text: str, n: int) -> int:
+                i = int(text)
+                return i + n if i < 0 else i - 1
+
+            v = [index(c[0], len(vertices)) for c in corners]
+            t = [index(c[1], len(uvs)) for c in corners if len(c) > 1 and c[1]]
+            for k in range(1, len(v) - 1):
+                faces.append([v[0], v[k], v[k + 1]])
+                if len(t) == len(v):
+                    uv_faces.append([t[0], t[k], t[k + 1]])
+    return (np.array(vertices).reshape(-1, 3), np.array(faces, np.int64).reshape(-1, 3),
+            np.array(uvs).reshape(-1, 2), np.array(uv_faces, np.int64).reshape(-1, 3))

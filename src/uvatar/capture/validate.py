@@ -59,7 +59,7 @@ def _segments(frames: list[str], keys: list[tuple[int, int]]) -> list[dict]:
     """Distinct (V, F) with their frame count and runs of consecutive frames."""
     out: dict[tuple[int, int], dict] = {}
     previous = None
-    for frame, key in zip(frames, keys):
+    for frame, key in zip(frames, keys, strict=True):
         entry = out.setdefault(key, {"vertices": key[0], "faces": key[1], "frames": 0, "segments": []})
         entry["frames"] += 1
         if key != previous:
@@ -69,8 +69,8 @@ def _segments(frames: list[str], keys: list[tuple[int, int]]) -> list[dict]:
     return list(out.values())
 
 
-def _count_images(folder: Path) -> int:
-    return sum(1 for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES) if folder.is_dir() else 0
+def _image_stems(folder: Path) -> set[str]:
+    return {p.stem for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES} if folder.is_dir() else set()
 
 
 def validate_capture(root: str | Path, config: ValidateConfig | None = None,
@@ -80,7 +80,7 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
     Summary keys: ``root``, ``frames`` (count), ``frame_names`` (first, last), ``fps``,
     ``body_model``, ``scans`` (count), ``topologies`` (list of {vertices, faces, frames,
     segments}), ``fits`` (count), ``pose_values``, ``cameras`` (names), ``images`` and ``masks``
-    ({camera: count}), ``gt`` (bool). ``progress(iterable, total, desc)`` wraps the frame loop
+    ({camera: count}), ``frames_without_image`` ({camera: count}), ``gt`` (bool). ``progress(iterable, total, desc)`` wraps the frame loop
     (e.g. tqdm).
     """
     config = config or ValidateConfig()
@@ -121,16 +121,18 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
             raise InputError(fit_path, f"poses has {fit.poses.size} values, other frames have {pose_values}")
         elif fit.shapes.size != shape_values:
             raise InputError(fit_path, f"shapes has {fit.shapes.size} values, other frames have {shape_values}")
-    images, masks, cameras = {}, {}, []
+    images, masks, missing, cameras = {}, {}, {}, []
     if cap.cameras_dir.is_dir() and any(cap.cameras_dir.iterdir()):
         cams = cap.cameras()
         cameras = list(cams)
         for name in cameras:
             folder = cap.root / "images" / name
-            images[name] = _count_images(folder)
-            if images[name] == 0:
+            stems = _image_stems(folder)
+            images[name] = len(stems)
+            if not stems:
                 raise InputError(folder, f"camera {name} has no images")
-            masks[name] = _count_images(cap.root / "masks" / name)
+            masks[name] = len(_image_stems(cap.root / "masks" / name))
+            missing[name] = len(set(frames) - stems)
             if config.deep:
                 for frame in frames:
                     path = cap.image_path(name, frame)
@@ -142,7 +144,7 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
             "fps": cap.fps, "body_model": cap.body_model, "scans": len(keys),
             "topologies": _segments(frames, keys) if keys else [], "fits": len(frames),
             "pose_values": pose_values, "shape_values": shape_values, "cameras": cameras,
-            "images": images, "masks": masks, "gt": cap.gt_dir.is_dir()}
+            "images": images, "masks": masks, "frames_without_image": missing, "gt": cap.gt_dir.is_dir()}
 
 
 def format_summary(summary: dict) -> str:
@@ -167,7 +169,9 @@ def format_summary(summary: dict) -> str:
     if summary["cameras"]:
         lines.append(f"  cameras     {len(summary['cameras'])}")
         for name in summary["cameras"]:
-            lines.append(f"    {name}: {summary['images'][name]} images, {summary['masks'][name]} masks")
+            gap = summary["frames_without_image"].get(name, 0)
+            lines.append(f"    {name}: {summary['images'][name]} images, {summary['masks'][name]} masks"
+                         + (f" ({gap} frames without an image)" if gap else ""))
     else:
         lines.append("  cameras     none")
     lines.append(f"  ground truth {'yes' if summary['gt'] else 'no'}")

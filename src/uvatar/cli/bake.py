@@ -23,9 +23,9 @@ def _strs(text: str) -> tuple[str, ...]:
 
 
 def register(cli) -> None:
-    from uvatar.avh.bake.config import BakeConfig, RegistrationConfig
+    from uvatar.avh.bake.config import BakeConfig, PoseRefineConfig, RegistrationConfig
 
-    d, rd = BakeConfig(), RegistrationConfig()
+    d, rd, pd = BakeConfig(), RegistrationConfig(), PoseRefineConfig()
     p = cli.command("bake", help="bake a capture's scans into body UV space (AVH stage 1)")
     p.add_argument("capture", help="capture folder (capture.json, scans/, fits/)")
     p.add_argument("out", help="output folder (dataset.json, frames/, rejected/, preview/)")
@@ -35,6 +35,10 @@ def register(cli) -> None:
     p.add_argument("--frames-from", default=None, metavar="SELECTION_JSON",
                    help="bake the frames of `uvatar select CAPTURE --from-capture`, replacing rejected ones")
     p.add_argument("--overwrite", action="store_true", help="bake frames again even when already on disk")
+    p.add_argument("--no-refine-pose", dest="refine_pose", action="store_false",
+                   help="keep the fit as is (no articulated refinement against the scan)")
+    p.add_argument("--refine-iterations", type=int, default=pd.iterations,
+                   help="Gauss-Newton steps of the articulated fit refinement")
     p.add_argument("--no-register", dest="register", action="store_false",
                    help="skip the pairwise registration (ablation)")
     p.add_argument("--no-polarity", dest="polarity_rule", action="store_false",
@@ -86,7 +90,8 @@ def _bake(args) -> int:
     from uvatar.io_utils import write_json
 
     cfg = BakeConfig().with_updates(
-        texels=args.texels, register=args.register, polarity_rule=args.polarity_rule,
+        texels=args.texels, refine_pose=args.refine_pose, pose_refine_iterations=args.refine_iterations,
+        register=args.register, polarity_rule=args.polarity_rule,
         polarity_ratio=args.polarity_ratio, visibility_rays=args.visibility_rays,
         distance_clip=args.distance_clip, inpaint_radius=args.inpaint_radius, reject_kappa=args.reject_kappa,
         registration_stiffness=tuple(args.registration_stiffness),

@@ -9,11 +9,14 @@ def register(cli) -> None:
     p.add_argument("--port", type=int, default=8000, help="port to listen on (0: any free port)")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on")
     p.add_argument("--no-browser", action="store_true", help="do not open a browser window")
+    p.add_argument("--motion", action="append", default=[], metavar="FILE",
+                   help="a motion to offer on the page (BVH retargeted, NPZ, fits folder); repeatable")
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
     from uvatar.viewer.server import ViewerConfig, serve
 
-    serve(args.avatar, ViewerConfig(host=args.host, port=args.port, open_browser=not args.no_browser))
+    serve(args.avatar, ViewerConfig(host=args.host, port=args.port, open_browser=not args.no_browser,
+                                    motions=tuple(args.motion)))
     return 0

@@ -266,7 +266,8 @@ def box_mask(camera: Camera, vertices: np.ndarray, height: int, width: int, pad:
     pix = np.round(camera.project(corners)).astype(np.int32)
     faces = [[0, 1, 3, 2], [4, 5, 7, 6], [0, 1, 5, 4], [2, 3, 7, 6], [0, 2, 6, 4], [1, 3, 7, 5]]
     mask = np.zeros((height, width), np.uint8)
-    cv2.fillPoly(mask, [pix[f] for f in faces], 1)
+    for f in faces:  # one call per face: a single multi-polygon call would cut overlaps out (even-odd)
+        cv2.fillPoly(mask, [pix[f]], 1)
     return mask.astype(bool)
 
 

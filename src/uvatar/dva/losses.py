@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -87,8 +88,13 @@ class Vgg19Features(nn.Module):
             state = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - report any unreadable file the same way
             raise InputError(path, f"cannot read VGG-19 weights ({exc.__class__.__name__}: {exc})") from exc
+        if not isinstance(state, dict):
+            raise InputError(path, f"expected a state dict, got {type(state).__name__}")
         state = {k: v for k, v in state.items() if k.startswith("features.")}
-        missing = model.load_state_dict(state, strict=False).missing_keys
+        try:
+            missing = model.load_state_dict(state, strict=False).missing_keys
+        except RuntimeError as exc:  # wrong tensor shapes
+            raise InputError(path, f"not a VGG-19 state dict ({str(exc).splitlines()[-1].strip()})") from None
         missing = [k for k in missing if k.startswith("features.")]
         if missing:
             raise InputError(path, f"not a VGG-19 state dict: missing {missing[0]} (and {len(missing) - 1} more)")
@@ -109,9 +115,10 @@ class Vgg19Features(nn.Module):
 
 
 def beta_prior(alpha: torch.Tensor) -> torch.Tensor:
-    """Neural Volumes opacity prior, 0 at alpha in {0, 1}, positive in between."""
-    return (torch.log(0.1 + alpha) + torch.log(1.1 - alpha) - 2 * torch.log(torch.tensor(0.1))).mean() \
-        if alpha.numel() else alpha.sum()
+    """Neural Volumes opacity prior, 0 at alpha in {0, 1}, positive in between (its gradient pushes
+    opacity toward 0 or 1)."""
+    floor = float(np.log(0.1) + np.log(1.1))  # the value at alpha = 0 and alpha = 1
+    return (torch.log(0.1 + alpha) + torch.log(1.1 - alpha) - floor).mean() if alpha.numel() else alpha.sum()
 
 
 class DvaLoss(nn.Module):

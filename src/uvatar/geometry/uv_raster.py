@@ -58,11 +58,11 @@ class UVRasterConfig:
     conservative: also cover texels whose centre lies outside every triangle but within half a
         texel (Euclidean, in texel units) of one; they get the barycentrics of the nearest point on
         the nearest triangle (so they still lie in the triangle). Off by default.
-    chunk_candidates: bound on candidate texels processed at once (memory ~ 100 B each).
+    chunk_candidates: bound on candidate texels processed at once (~100 B each, so ~100 MB).
     """
 
     conservative: bool = False
-    chunk_candidates: int = 4_000_000
+    chunk_candidates: int = 1 << 20
 
 
 def texel_uv(resolution: int) -> np.ndarray:
@@ -98,20 +98,26 @@ def _pixel_triangles(uvs: np.ndarray, uv_faces: np.ndarray, r: int) -> np.ndarra
     return np.stack([tri[..., 0] * r, (1.0 - tri[..., 1]) * r], axis=-1)
 
 
-def _barycentric_2d(px, py, tri):
-    """Barycentrics of points (px, py) (N,) in triangles ``tri`` (N, 3, 2); float64, (N, 3).
-
-    Shared by the fast path and the reference twin so both round identically.
-    """
+def _affine_barycentrics(tri: np.ndarray) -> np.ndarray:
+    """(F, 2, 3) coefficients with ``b_k(x, y) = c[k, 0] x + c[k, 1] y + c[k, 2]`` (k = 0, 1;
+    b_2 = 1 - b_0 - b_1) for triangles ``tri`` (F, 3, 2) in pixel coordinates. Zero-area: zeros."""
     ax, ay = tri[:, 0, 0], tri[:, 0, 1]
     bx, by = tri[:, 1, 0], tri[:, 1, 1]
     cx, cy = tri[:, 2, 0], tri[:, 2, 1]
     area = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
-    w0 = (bx - px) * (cy - py) - (cx - px) * (by - py)
-    w1 = (cx - px) * (ay - py) - (ax - px) * (cy - py)
-    inv = 1.0 / area
-    b0 = w0 * inv
-    b1 = w1 * inv
+    inv = np.where(area != 0, 1.0 / np.where(area != 0, area, 1.0), 0.0)
+    k0 = np.stack([by - cy, cx - bx, bx * cy - cx * by], axis=-1)
+    k1 = np.stack([cy - ay, ax - cx, cx * ay - ax * cy], axis=-1)
+    return np.stack([k0, k1], axis=1) * inv[:, None, None]
+
+
+def _barycentric_2d(px, py, coef):
+    """Barycentrics (N, 3) float64 of points (px, py) (N,) given per-point coefficients (N, 2, 3).
+
+    Shared by the fast path and the reference twin so both round identically.
+    """
+    b0 = coef[:, 0, 0] * px + coef[:, 0, 1] * py + coef[:, 0, 2]
+    b1 = coef[:, 1, 0] * px + coef[:, 1, 1] * py + coef[:, 1, 2]
     return np.stack([b0, b1, 1.0 - b0 - b1], axis=-1)
 
 
@@ -160,6 +166,7 @@ def rasterize_uv(uvs, uv_faces, resolution: int, config: UVRasterConfig | None =
     j0, j1, i0, i1 = _bboxes(tri, r)
     counts = np.maximum(j1 - j0 + 1, 0) * np.maximum(i1 - i0 + 1, 0)
     keep = np.flatnonzero((counts > 0) & _area_ok(tri))
+    coef = _affine_barycentrics(tri)
 
     texels, scores, faces = [], [], []
     bounds = np.cumsum(counts[keep])
@@ -170,8 +177,11 @@ def rasterize_uv(uvs, uv_faces, resolution: int, config: UVRasterConfig | None =
         stop = max(stop, start + 1)
         sel = keep[start:stop]
         face, row, col = _candidates(sel, j0[sel], j1[sel], i0[sel], i1[sel], r)
-        bary = _barycentric_2d(col + 0.5, row + 0.5, tri[face])
-        score = bary.min(axis=1)
+        c = coef[face]
+        px, py = col + 0.5, row + 0.5
+        b0 = c[:, 0, 0] * px + c[:, 0, 1] * py + c[:, 0, 2]  # = _barycentric_2d, without the stack
+        b1 = c[:, 1, 0] * px + c[:, 1, 1] * py + c[:, 1, 2]
+        score = np.minimum(np.minimum(b0, b1), 1.0 - b0 - b1)
         inside = score >= -_INSIDE_EPS
         texels.append(row[inside] * r + col[inside])
         scores.append(score[inside])
@@ -192,19 +202,19 @@ def rasterize_uv(uvs, uv_faces, resolution: int, config: UVRasterConfig | None =
         first[1:] = texel[1:] != texel[:-1]
         face_index[texel[first]] = face[first]
     face_index = face_index.reshape(r, r)
-    raster = _finish(face_index, tri, r)
+    raster = _finish(face_index, coef, r)
     if config.conservative:
         raster = _add_conservative(raster, tri)
     return raster
 
 
-def _finish(face_index: np.ndarray, tri: np.ndarray, r: int) -> UVRaster:
+def _finish(face_index: np.ndarray, coef: np.ndarray, r: int) -> UVRaster:
     """Compute barycentrics of covered texel centres and pack a :class:`UVRaster`."""
     mask = face_index >= 0
     rows, cols = np.nonzero(mask)
     bary = np.zeros((r, r, 3), dtype=np.float32)
     if len(rows):
-        b = _barycentric_2d(cols + 0.5, rows + 0.5, tri[face_index[rows, cols]])
+        b = _barycentric_2d(cols + 0.5, rows + 0.5, coef[face_index[rows, cols]])
         b = np.clip(b, 0.0, 1.0)
         bary[rows, cols] = (b / b.sum(axis=1, keepdims=True)).astype(np.float32)
     return UVRaster(resolution=r, face_index=face_index, bary=bary, mask=mask)
@@ -212,7 +222,7 @@ def _finish(face_index: np.ndarray, tri: np.ndarray, r: int) -> UVRaster:
 
 def _closest_point_barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """Barycentrics (N, 3) of the point of triangle ``tri`` (N, 3, 2) nearest to ``p`` (N, 2)."""
-    b = _barycentric_2d(p[:, 0], p[:, 1], tri)
+    b = _barycentric_2d(p[:, 0], p[:, 1], _affine_barycentrics(tri))
     best = np.where((b >= 0).all(axis=1, keepdims=True), b, np.nan)
     best_d = np.where(np.isnan(best[:, 0]), np.inf, 0.0)
     for k in range(3):  # project onto each edge (a loop over 3 edges, not over points)
@@ -265,6 +275,7 @@ def rasterize_uv_reference(uvs, uv_faces, resolution: int) -> UVRaster:
     tri = _pixel_triangles(uvs, uv_faces, r)
     j0, j1, i0, i1 = _bboxes(tri, r)
     ok = _area_ok(tri)
+    coef = _affine_barycentrics(tri)
     face_index = np.full((r, r), -1, dtype=np.int64)
     best = np.full((r, r), -np.inf)
     for f in range(len(tri)):
@@ -272,9 +283,9 @@ def rasterize_uv_reference(uvs, uv_faces, resolution: int) -> UVRaster:
             continue
         for i in range(i0[f], i1[f] + 1):
             for j in range(j0[f], j1[f] + 1):
-                b = _barycentric_2d(np.array([j + 0.5]), np.array([i + 0.5]), tri[f : f + 1])[0]
+                b = _barycentric_2d(np.array([j + 0.5]), np.array([i + 0.5]), coef[f : f + 1])[0]
                 s = b.min()
                 if s >= -_INSIDE_EPS and s > best[i, j]:  # ascending f: ties keep the lower face
                     best[i, j] = s
                     face_index[i, j] = f
-    return _finish(face_index, tri, r)
+    return _finish(face_index, coef, r)

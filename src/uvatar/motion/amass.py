@@ -153,3 +153,38 @@ def skeleton_motion_from_amass(motion: AmassMotion, rest_joints: np.ndarray | No
     return SkeletonMotion(names=SMPL_BODY_JOINTS, parents=parents, rest_positions=rest.copy(),
                           world_rotations=world_r, positions=world_p, fps=motion.fps, units_to_metres=1.0,
                           source=source)
+
+
+def can_copy_amass(body) -> bool:
+    """True when ``body`` has SMPL joint names with rest frames along the world axes (SMPL, SMPL-X),
+    so AMASS rotations can be copied by name instead of retargeted."""
+    names = set(body.joint_names)
+    rest = np.asarray(body.rest_joint_rotations)
+    return set(SMPL_BODY_JOINTS) <= names and np.allclose(rest, np.eye(3), atol=1e-6)
+
+
+def motion_from_amass(motion: AmassMotion, body, z_up: bool = True, source: str = ""):
+    """Copy AMASS rotations onto an SMPL-family ``body`` by joint name → Motion (+Y up, metres).
+
+    AMASS poses rotate about the pelvis J0 and add ``trans``: ``V = R (X - J0) + J0 + trans``. In
+    EasyMocap form ``V = R(Rh) X + Th`` with ``Rh = C R`` and ``Th = C (J0 + trans) - C R J0``, C the
+    Z-up → Y-up change. J0 is the body's rest pelvis (its default shape)."""
+    from scipy.spatial.transform import Rotation
+
+    from uvatar.motion.sequences import Motion
+
+    index = {n: i for i, n in enumerate(motion.names)}
+    T = motion.num_frames
+    rot = np.zeros((T, body.num_joints, 3), np.float32)
+    copied = []
+    for j, name in enumerate(body.joint_names):
+        if name in index and name != "pelvis":
+            rot[:, j] = motion.rotvecs[:, index[name]]
+            copied.append(name)
+    C = Z_UP_TO_Y_UP if z_up else np.eye(3)
+    R = C @ Rotation.from_rotvec(motion.rotvecs[:, 0]).as_matrix()
+    J0 = np.asarray(body.template.rest_joints, np.float64)[list(body.joint_names).index("pelvis")]
+    Th = (J0 + motion.trans) @ C.T - R @ J0
+    return Motion(joint_rotvecs=rot, Rh=Rotation.from_matrix(R).as_rotvec(), Th=Th, fps=motion.fps, body=body.name,
+                  source=source, joint_names=tuple(body.joint_names),
+                  info={"copied_joints": len(copied), "amass_model": motion.model})

@@ -73,8 +73,8 @@ class BvhMotion:
 
         T, J = self.num_frames, self.skeleton.num_joints
         out = np.broadcast_to(np.eye(3), (T, J, 3, 3)).copy()
-        for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns())):
-            rot = [(c, _AXES[n]) for n, c in zip(names, cols) if n in _AXES]
+        for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns(), strict=True)):
+            rot = [(c, _AXES[n]) for n, c in zip(names, cols, strict=True) if n in _AXES]
             if not rot:
                 continue
             order = "".join(a for _, a in rot)  # uppercase = intrinsic: R = R_a0 @ R_a1 @ R_a2
@@ -86,8 +86,8 @@ class BvhMotion:
         """(T, J, 3) offset plus any position channels, in file units."""
         T = self.num_frames
         out = np.broadcast_to(self.skeleton.offsets, (T, self.skeleton.num_joints, 3)).copy()
-        for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns())):
-            for n, c in zip(names, cols):
+        for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns(), strict=True)):
+            for n, c in zip(names, cols, strict=True):
                 if n in _POSITIONS:
                     out[:, j, _POSITIONS[n]] += self.channel_values[:, c]
         return out
@@ -103,15 +103,15 @@ class BvhMotion:
 
         T = local_rotations.shape[0]
         values = np.zeros((T, self.channel_values.shape[1]))
-        for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns())):
-            rot = [(c, _AXES[n]) for n, c in zip(names, cols) if n in _AXES]
+        for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns(), strict=True)):
+            rot = [(c, _AXES[n]) for n, c in zip(names, cols, strict=True) if n in _AXES]
             if rot:
                 order = "".join(a for _, a in rot)
                 with warnings.catch_warnings():  # gimbal lock: angles differ, the rotation is exact
                     warnings.simplefilter("ignore", UserWarning)
                     euler = Rotation.from_matrix(local_rotations[:, j]).as_euler(order, degrees=True)
                 values[:, [c for c, _ in rot]] = euler
-            for n, c in zip(names, cols):
+            for n, c in zip(names, cols, strict=True):
                 if n in _POSITIONS:
                     if root_positions is not None and j == 0:
                         values[:, c] = root_positions[:, _POSITIONS[n]] - self.skeleton.offsets[0, _POSITIONS[n]]

@@ -4,7 +4,7 @@
 
 - ``.bvh``: parsed, then retargeted onto ``body`` (:mod:`uvatar.motion.retarget`);
 - ``.npz``: a uvatar motion (``joint_rotvecs``), an AMASS motion (``poses`` + ``mocap_framerate``;
-  retargeted), or an EasyMocap fits sequence (``frames``, ``poses``, ``Rh``, ``Th``);
+  copied by joint name onto SMPL/SMPL-X bodies, retargeted onto others), or an EasyMocap fits sequence (``frames``, ``poses``, ``Rh``, ``Th``);
 - a folder: a capture (``capture.json``: its fits and fps) or an EasyMocap fits folder (``*.json``).
 """
 
@@ -142,7 +142,7 @@ def load_motion(path: str | Path, body=None, fps: float | None = None, default_f
     want = _body_name(body)
     if want is not None and motion.body != want:
         raise InputError(path, f"motion is for body model '{motion.body}', not '{want}'")
-    if isinstance(body, object) and hasattr(body, "num_joints") and motion.num_joints != body.num_joints:
+    if hasattr(body, "num_joints") and motion.num_joints != body.num_joints:
         raise InputError(path, f"motion has {motion.num_joints} joints, body model '{body.name}' has {body.num_joints}")
     return resample_motion(motion, fps) if fps else motion
 
@@ -176,10 +176,19 @@ def _load(path: Path, body, default_fps: float) -> Motion:
             raise InputError(path, f"unreadable NPZ ({type(exc).__name__})") from None
         if "joint_rotvecs" in keys:
             return _read_uvatar_npz(path, data)
-        from uvatar.motion.amass import is_amass_npz, read_amass, skeleton_motion_from_amass
+        from uvatar.motion.amass import (
+            can_copy_amass,
+            is_amass_npz,
+            motion_from_amass,
+            read_amass,
+            skeleton_motion_from_amass,
+        )
 
         if is_amass_npz(keys):
-            return retarget(skeleton_motion_from_amass(read_amass(path), source=path.name), _body_model(body))
+            amass, model = read_amass(path), _body_model(body)
+            if can_copy_amass(model):  # SMPL family: copy by joint name, no retargeting
+                return motion_from_amass(amass, model, source=path.name)
+            return retarget(skeleton_motion_from_amass(amass, source=path.name), model)
         if {"frames", "poses", "Rh", "Th"} <= keys:
             from uvatar.capture.fits import read_fits_npz
 
@@ -191,17 +200,30 @@ def _load(path: Path, body, default_fps: float) -> Motion:
 def slerp_rotvecs(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Geodesic interpolation between rotations (..., 3) with per-item weights broadcast to (...).
 
-    ``R(w) = R0 @ Exp(w * Log(R0^T R1))``: shortest arc, w = 0 → r0, w = 1 → r1 (roma)."""
+    ``q(w) = q0 * Exp(w * Log(q0^-1 q1))`` in unit quaternions (roma): shortest arc, w = 0 → r0,
+    w = 1 → r1. :func:`slerp_rotvecs_reference` is the plain rotation-matrix twin."""
     import roma
     import torch
 
-    a = torch.as_tensor(r0, dtype=torch.float64)
-    b = torch.as_tensor(r1, dtype=torch.float64)
-    w = torch.as_tensor(weight, dtype=torch.float64)
-    Ra, Rb = roma.rotvec_to_rotmat(a), roma.rotvec_to_rotmat(b)
-    rel = roma.rotmat_to_rotvec(Ra.transpose(-1, -2) @ Rb)
-    out = Ra @ roma.rotvec_to_rotmat(rel * w[..., None])
-    return roma.rotmat_to_rotvec(out).numpy()
+    q0 = roma.rotvec_to_unitquat(torch.as_tensor(np.asarray(r0), dtype=torch.float64))
+    q1 = roma.rotvec_to_unitquat(torch.as_tensor(np.asarray(r1), dtype=torch.float64))
+    w = torch.as_tensor(np.asarray(weight), dtype=torch.float64)
+    rel = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(q0), q1))  # |rel| <= pi
+    out = roma.quat_product(q0, roma.rotvec_to_unitquat(rel * w[..., None]))
+    return roma.unitquat_to_rotvec(out).numpy()
+
+
+def slerp_rotvecs_reference(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Reference twin of :func:`slerp_rotvecs` with rotation matrices: ``R0 @ Exp(w Log(R0^T R1))``."""
+    from scipy.spatial.transform import Rotation
+
+    r0, r1 = np.asarray(r0, np.float64), np.asarray(r1, np.float64)
+    shape = np.broadcast_shapes(r0.shape, r1.shape)
+    w = np.broadcast_to(np.asarray(weight, np.float64), shape[:-1]).reshape(-1).copy()
+    R0 = Rotation.from_rotvec(np.broadcast_to(r0, shape).reshape(-1, 3).copy())
+    R1 = Rotation.from_rotvec(np.broadcast_to(r1, shape).reshape(-1, 3).copy())
+    rel = (R0.inv() * R1).as_rotvec()
+    return (R0 * Rotation.from_rotvec(rel * w[:, None])).as_rotvec().reshape(shape)
 
 
 def resample_motion(motion: Motion, fps: float) -> Motion:

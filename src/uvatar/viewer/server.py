@@ -4,8 +4,10 @@ Routes (all GET unless noted):
 
 ``/``, ``/viewer.js``, ``/ort/...``   the built page (``uvatar/viewer/static``)
 ``/avatar/<file>``                    files of the avatar folder (manifest.json, avatar.glb, model.onnx, ...)
-``/api/motions``                      JSON list ``[{"name", "url"}]`` of ``AVATAR/motions/*.json``
-``POST /api/retarget``                body: a BVH file; answer: ``{"name", "fps", "poses": [[J*3], ...]}``
+``/api/motions``                      JSON list ``[{"name", "url"}]`` of ``AVATAR/motions/*.{json,npz,bvh}``
+``/api/motion/<file>``                a ``.npz``/``.bvh`` motion loaded with ``uvatar.motion.load_motion``
+``/api/extra-motion/<i>``             the i-th motion given on the command line (``uvatar view --motion``)
+``POST /api/retarget``                body: a BVH file; answer: ``{"name", "fps", "poses": [[J*3], ...], "Rh"}``
                                       retargeted onto the avatar's body (``uvatar.motion``)
 
 Responses carry ``Cross-Origin-Opener-Policy``/``Embedder-Policy`` so the page is cross-origin
@@ -24,7 +26,7 @@ from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
-from uvatar.errors import InputError
+from uvatar.errors import InputError, UvatarError
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -32,15 +34,19 @@ MIME = {".js": "text/javascript", ".mjs": "text/javascript", ".wasm": "applicati
         ".glb": "model/gltf-binary", ".onnx": "application/octet-stream", ".json": "application/json",
         ".css": "text/css", ".html": "text/html; charset=utf-8", ".png": "image/png", ".bvh": "text/plain"}
 MAX_UPLOAD_BYTES = 64 << 20
+MOTION_SUFFIXES = (".json", ".npz", ".bvh")
+PLAYBACK_FPS = 30.0
 
 
 @dataclass(frozen=True)
 class ViewerConfig:
-    """host/port: where to listen (port 0 picks a free one); open_browser: open the page when serving."""
+    """host/port: where to listen (port 0 picks a free one); open_browser: open the page when serving;
+    motions: extra motion files or folders (BVH, NPZ, fits) offered on the page besides AVATAR/motions."""
 
     host: str = "127.0.0.1"
     port: int = 8000
     open_browser: bool = True
+    motions: tuple[str, ...] = ()
 
 
 def check_avatar_dir(avatar_dir: str | Path) -> Path:
@@ -74,8 +80,9 @@ def _inside(root: Path, rel: str) -> Path | None:
 class ViewerHandler(SimpleHTTPRequestHandler):
     """Serves the static page, the avatar folder and the two small APIs."""
 
-    def __init__(self, *args, avatar_dir: Path, **kwargs):
+    def __init__(self, *args, avatar_dir: Path, extra_motions: tuple[Path, ...] = (), **kwargs):
         self.avatar_dir = avatar_dir
+        self.extra_motions = extra_motions
         super().__init__(*args, directory=str(STATIC_DIR), **kwargs)
 
     def end_headers(self) -> None:
@@ -109,8 +116,28 @@ class ViewerHandler(SimpleHTTPRequestHandler):
     def do_GET(self) -> None:  # noqa: N802 - http.server naming
         route = unquote(urlsplit(self.path).path)
         if route == "/api/motions":
-            files = sorted((self.avatar_dir / "motions").glob("*.json"))
-            return self._send_json([{"name": f.stem, "url": f"avatar/motions/{f.name}"} for f in files])
+            files = sorted(f for f in (self.avatar_dir / "motions").glob("*") if f.suffix.lower() in MOTION_SUFFIXES)
+            listing = [{"name": f.stem, "url": f"avatar/motions/{f.name}" if f.suffix == ".json"
+                        else f"api/motion/{f.name}"} for f in files]
+            listing += [{"name": p.stem, "url": f"api/extra-motion/{i}"} for i, p in enumerate(self.extra_motions)]
+            return self._send_json(listing)
+        if route.startswith("/api/extra-motion/"):
+            index = route.rsplit("/", 1)[-1]
+            if not index.isdigit() or int(index) >= len(self.extra_motions):
+                return self.send_error(HTTPStatus.NOT_FOUND, "no such motion")
+            path = self.extra_motions[int(index)]
+            try:
+                return self._send_json(load_motion_file(self.avatar_dir, path))
+            except Exception as exc:  # noqa: BLE001 - reported on the page
+                return self._send_json({"error": f"{path.name}: {exc}"}, 422)
+        if route.startswith("/api/motion/"):
+            path = _inside(self.avatar_dir / "motions", route[len("/api/motion/"):])
+            if path is None:
+                return self.send_error(HTTPStatus.NOT_FOUND, "no such motion")
+            try:
+                return self._send_json(load_motion_file(self.avatar_dir, path))
+            except Exception as exc:  # noqa: BLE001 - reported on the page
+                return self._send_json({"error": f"{path.name}: {exc}"}, 422)
         if route.startswith("/avatar/"):
             path = _inside(self.avatar_dir, route[len("/avatar/"):])
             if path is None:
@@ -133,27 +160,48 @@ class ViewerHandler(SimpleHTTPRequestHandler):
             return self._send_json({"error": f"{name}: {exc}"}, 422)
 
 
-def retarget_bvh_text(avatar_dir: Path, text: str, name: str = "upload.bvh") -> dict:
-    """BVH text -> ``{"name", "fps", "poses"}`` on the avatar's body (via ``uvatar.motion``)."""
-    import tempfile
+_BODY_CACHE: dict[str, object] = {}
+_BODY_LOCK = threading.Lock()
 
+
+def _body_model(name: str):
+    with _BODY_LOCK:
+        if name not in _BODY_CACHE:
+            from uvatar.body import load_body_model
+
+            _BODY_CACHE[name] = load_body_model(name)
+        return _BODY_CACHE[name]
+
+
+def motion_to_json(motion, name: str) -> dict:
+    """A :class:`uvatar.motion.Motion` -> ``{"name", "fps", "poses": [[J*3]], "Rh": [[3]]}`` for the page."""
     import numpy as np
 
-    from uvatar.motion import load_motion  # the motion module's loader (BVH retargeted by joint names)
+    T = motion.num_frames
+    return {"name": name, "fps": float(motion.fps),
+            "poses": np.round(motion.joint_rotvecs.reshape(T, -1), 5).tolist(),
+            "Rh": np.round(np.asarray(motion.Rh).reshape(T, 3), 5).tolist()}
+
+
+def load_motion_file(avatar_dir: Path, path: Path) -> dict:
+    """Any motion ``uvatar.motion.load_motion`` reads (BVH retargeted, NPZ, fits) -> page JSON."""
+    from uvatar.motion import load_motion, resample_motion
 
     manifest = json.loads((avatar_dir / "manifest.json").read_text())
-    from uvatar.body import load_body_model
+    motion = load_motion(path, _body_model(manifest["body_model"]))
+    if motion.fps > PLAYBACK_FPS:  # the page interpolates; fewer frames keep the JSON small
+        motion = resample_motion(motion, PLAYBACK_FPS)
+    return motion_to_json(motion, path.stem)
 
-    body = load_body_model(manifest["body_model"])
-    with tempfile.NamedTemporaryFile("w", suffix=".bvh", delete=False) as f:
-        f.write(text)
-    try:
-        motion = load_motion(f.name, body)
-    finally:
-        Path(f.name).unlink(missing_ok=True)
-    poses = np.asarray(getattr(motion, "poses", motion), np.float32).reshape(-1, 3 * len(manifest["joint_names"]))
-    fps = float(getattr(motion, "fps", 30.0))
-    return {"name": Path(name).stem, "fps": fps, "poses": np.round(poses, 5).tolist()}
+
+def retarget_bvh_text(avatar_dir: Path, text: str, name: str = "upload.bvh") -> dict:
+    """BVH text (an upload) -> page JSON, retargeted onto the avatar's body by ``uvatar.motion``."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / (Path(name).stem + ".bvh")
+        path.write_text(text)
+        return load_motion_file(avatar_dir, path)
 
 
 class ViewerServer:
@@ -161,8 +209,16 @@ class ViewerServer:
 
     def __init__(self, avatar_dir: str | Path, config: ViewerConfig = ViewerConfig()):
         self.avatar_dir = check_avatar_dir(avatar_dir)
-        handler = partial(ViewerHandler, avatar_dir=self.avatar_dir)
-        self.httpd = ThreadingHTTPServer((config.host, config.port), handler)
+        extra = tuple(Path(m) for m in config.motions)
+        for path in extra:
+            if not path.exists():
+                raise InputError(path, "motion file or folder is missing")
+        handler = partial(ViewerHandler, avatar_dir=self.avatar_dir, extra_motions=extra)
+        try:
+            self.httpd = ThreadingHTTPServer((config.host, config.port), handler)
+        except OSError as exc:
+            raise UvatarError(f"cannot listen on {config.host}:{config.port} ({exc.strerror}); "
+                              f"try another --port (0 picks a free one)") from None
         self.httpd.daemon_threads = True
         host, port = self.httpd.server_address[:2]
         self.url = f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0') else host}:{port}/"

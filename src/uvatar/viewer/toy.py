@@ -115,3 +115,19 @@ def write_toy_avatar(out_dir: str | Path, resolution: int = 32, subdivisions: in
     return write_engine_bundle(out, EngineExportConfig(subdivisions=subdivisions), body=body,
                                fingers_toes_mask=mask,
                                semantic_joints={"pelvis": 0, "spine1": 1, "spine3": 2, "head": 3})
+
+
+def write_random_body_avatar(out_dir: str | Path, body_model, resolution: int = 64, subdivisions: int = 1) -> dict:
+    """An untrained toy generator on a real body model (e.g. anny): exercises the full engine export,
+    the viewer's skinning and motion retargeting on the real skeleton, without training."""
+    from uvatar.avh.engine_export import EngineExportConfig, write_engine_bundle
+    from uvatar.io_utils import write_json
+
+    out = Path(out_dir)
+    cond = [int(j) for j in body_model.conditioning_joints]
+    write_toy_generator(out / "model.onnx", num_conditioning_joints=len(cond), resolution=resolution)
+    write_json(out / "avatar.json", {
+        "body_model": {"name": body_model.name, "shapes": None}, "joint_names": list(body_model.joint_names),
+        "conditioning_joints": cond, "resolution": resolution, "model": "model.onnx", "displacement_scale": 0.02,
+    })
+    return write_engine_bundle(out, EngineExportConfig(subdivisions=subdivisions), body_model=body_model)

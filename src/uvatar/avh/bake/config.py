@@ -46,10 +46,30 @@ class RegistrationConfig:
 
 
 @dataclass(frozen=True)
+class PoseRefineConfig:
+    """iterations: Gauss-Newton steps; max_distance: match limit as a fraction of the bounding-box
+    diagonal; max_normal_angle_deg: normal compatibility of matches; huber: robust (IRLS) scale in
+    metres; damping: Levenberg-Marquardt factor on the diagonal; prior: pull of each joint's update
+    toward zero, in metres^2 per radian^2 per matched vertex; max_step_deg: cap on one update;
+    max_vertices: evenly spread subset of shadow vertices used for matching (None = all)."""
+
+    iterations: int = 8
+    max_distance: float = 1 / 20
+    max_normal_angle_deg: float = 60.0
+    huber: float = 0.005
+    damping: float = 1e-3
+    prior: float = 1e-3
+    max_step_deg: float = 10.0
+    max_vertices: int | None = 4000
+
+
+@dataclass(frozen=True)
 class BakeConfig:
     """Options of the per-frame bake and of the frame rejection (paper defaults).
 
     texels: UV map resolution R (the paper uses 1024).
+    refine_pose: first refine the fit's joint rotations and Rh/Th against the scan (articulated
+        ICP, the coarsest registration stage; the refined pose is what is stored).
     register: run the pairwise registration (False = ablation: rays start on the shadow mesh).
     polarity_rule: apply the normal-polarity rule when both rays hit (False = ablation: nearest).
     polarity_ratio: a positive match is preferred unless it is more than this times farther than
@@ -67,10 +87,11 @@ class BakeConfig:
     reject_kappa: frames whose mean kappa over valid texels is below this are rejected
         (paper: 130/255).
     texture_float16: store the texture as float16 (half the disk space).
-    registration: :class:`RegistrationConfig`.
+    registration: :class:`RegistrationConfig`; pose_refine: :class:`PoseRefineConfig`.
     """
 
     texels: int = 1024
+    refine_pose: bool = True
     register: bool = True
     polarity_rule: bool = True
     polarity_ratio: float = 2.0
@@ -83,23 +104,27 @@ class BakeConfig:
     reject_kappa: float = 130 / 255
     texture_float16: bool = True
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
 
     def with_updates(self, **changes) -> BakeConfig:
-        """A copy with top-level fields (or ``registration_<field>``) replaced; None values ignored."""
+        """A copy with top-level fields (or ``registration_<field>``, ``pose_refine_<field>``) replaced;
+        None values are ignored."""
         top = {f.name for f in fields(self)}
-        reg = {}
+        nested: dict[str, dict] = {"registration": {}, "pose_refine": {}}
         own = {}
         for key, value in changes.items():
             if value is None:
                 continue
-            if key.startswith("registration_"):
-                reg[key[len("registration_"):]] = value
+            prefix = next((p for p in nested if key.startswith(p + "_")), None)
+            if prefix:
+                nested[prefix][key[len(prefix) + 1:]] = value
             elif key in top:
                 own[key] = value
             else:
                 raise ValueError(f"unknown BakeConfig field {key!r}")
-        if reg:
-            own["registration"] = replace(self.registration, **reg)
+        for name, sub in nested.items():
+            if sub:
+                own[name] = replace(getattr(self, name), **sub)
         return replace(self, **own)
 
     def to_dict(self) -> dict:
@@ -108,9 +133,11 @@ class BakeConfig:
     @classmethod
     def from_dict(cls, data: dict) -> BakeConfig:
         """Inverse of :meth:`to_dict` (JSON lists become tuples; unknown keys are ignored)."""
+        nested = {"registration": RegistrationConfig, "pose_refine": PoseRefineConfig}
         known = {f.name for f in fields(cls)}
-        top = {k: v for k, v in data.items() if k in known and k != "registration"}
-        reg_known = {f.name for f in fields(RegistrationConfig)}
-        reg = {k: tuple(v) if isinstance(v, list) else v
-               for k, v in (data.get("registration") or {}).items() if k in reg_known}
-        return cls(**top, registration=RegistrationConfig(**reg))
+        top = {k: v for k, v in data.items() if k in known and k not in nested}
+        for name, sub_cls in nested.items():
+            sub_known = {f.name for f in fields(sub_cls)}
+            top[name] = sub_cls(**{k: tuple(v) if isinstance(v, list) else v
+                                   for k, v in (data.get(name) or {}).items() if k in sub_known})
+        return cls(**top)

@@ -164,12 +164,14 @@ def _ablation(capture, body, layout, bake_cfg, confident, config: EvalConfig, pr
     """Re-bake a few frames without registration / without the polarity rule; median errors."""
     from tqdm import tqdm
 
-    from uvatar.avh.bake.frame import bake_frame, shadow_vertices
+    from uvatar.avh.bake.frame import bake_fit
 
     names = sorted(confident)
     if config.ablation_frames is not None and len(names) > config.ablation_frames:
         names = [names[i] for i in np.linspace(0, len(names) - 1, config.ablation_frames).round().astype(int)]
-    variants = {"full": bake_cfg, "no_registration": replace(bake_cfg, register=False),
+    variants = {"full": bake_cfg, "no_registration": replace(bake_cfg, register=False, refine_pose=False),
+                "no_pose_refinement": replace(bake_cfg, refine_pose=False),
+                "no_vertex_registration": replace(bake_cfg, register=False),
                 "no_polarity_rule": replace(bake_cfg, polarity_rule=False)}
     common = {k: [] for k in variants}
     own = {k: [] for k in variants}
@@ -177,11 +179,10 @@ def _ablation(capture, body, layout, bake_cfg, confident, config: EvalConfig, pr
     for f in tqdm(names, desc="ablation", unit="frame", disable=not progress):
         gt = _gt(capture.root, f, r)
         fit = capture.load_fit(f)
-        shadow = shadow_vertices(body, fit, None if fit.shapes.size else
-                                 (capture.body_shapes if capture.body_shapes.size else None))
+        shape = None if fit.shapes.size else (capture.body_shapes if capture.body_shapes.size else None)
         scan = capture.load_scan(f)
         for name, cfg in variants.items():
-            baked = bake_frame(shadow, layout, scan, cfg)
+            baked, _ = bake_fit(body, fit, layout, scan, cfg, shape)
             score_common = confident[f] & baked.matched
             common[name].append(texel_errors(baked.points, baked.texture, score_common, *gt)[0])
             score_own = baked.valid & (baked.kappa > config.kappa_threshold)

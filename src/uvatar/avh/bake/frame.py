@@ -22,7 +22,7 @@ from uvatar.avh.bake.register import ScanSurface, register_to_scan
 from uvatar.errors import InputError
 from uvatar.geometry import RayCaster, UVRaster, rasterize_uv, sample_texture, vertex_normals
 
-__all__ = ["BodyLayout", "BakedFrame", "bake_frame", "shadow_vertices", "preview_image", "check_scan"]
+__all__ = ["BodyLayout", "BakedFrame", "bake_frame", "bake_fit", "shadow_vertices", "preview_image", "check_scan"]
 
 
 @dataclass
@@ -141,12 +141,36 @@ def check_scan(scan, path="scan") -> None:
         raise InputError(path, "scan has no texture image")
 
 
+def bake_fit(body, fit, layout: BodyLayout, scan, config: BakeConfig | None = None, shape=None,
+             scan_path: str = "scan"):
+    """Pose the shadow mesh from ``fit`` (refined against the scan first if ``config.refine_pose``)
+    and bake. Returns (BakedFrame, the fit actually used: store it with the maps)."""
+    from uvatar.avh.bake.refine import refine_fit
+
+    config = config or BakeConfig()
+    check_scan(scan, scan_path)
+    t0 = time.perf_counter()
+    surface = ScanSurface.build(scan.vertices, scan.faces)
+    t1 = time.perf_counter()
+    refine_stats = None
+    if config.refine_pose:
+        fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape)
+    shadow = shadow_vertices(body, fit, shape)
+    t2 = time.perf_counter()
+    baked = bake_frame(shadow, layout, scan, config, scan_path, surface=surface)
+    baked.stats["seconds"] = {"prepare_scan": t1 - t0, "refine_pose": t2 - t1, **baked.stats["seconds"]}
+    if refine_stats is not None:
+        baked.stats["pose_refine"] = refine_stats
+    return baked, fit
+
+
 def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig | None = None,
-               scan_path: str = "scan") -> BakedFrame:
+               scan_path: str = "scan", surface: ScanSurface | None = None) -> BakedFrame:
     """Bake one frame into the body UV space (AVH §3.2).
 
     shadow: (V, 3) posed shadow-mesh vertices M^S_t (metres); layout: the body's UV layout at R;
-    scan: :class:`uvatar.capture.TexturedMesh` S_t; config: :class:`BakeConfig`.
+    scan: :class:`uvatar.capture.TexturedMesh` S_t; config: :class:`BakeConfig`; surface: the scan
+    prepared for queries (built here when None).
     """
     config = config or BakeConfig()
     check_scan(scan, scan_path)
@@ -157,8 +181,9 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     diag = float(np.linalg.norm(shadow.max(0) - shadow.min(0)))
     eps = config.ray_epsilon
 
-    with _timed(sec, "prepare_scan"):
-        surface = ScanSurface.build(scan.vertices, scan.faces)
+    if surface is None:
+        with _timed(sec, "prepare_scan"):
+            surface = ScanSurface.build(scan.vertices, scan.faces)
     reg_stats: dict = {}
     with _timed(sec, "register"):
         if config.register:

@@ -89,7 +89,7 @@ def _capture_shape(capture):
 
 def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig) -> FrameResult:
     """Bake one frame in a worker. Every failure becomes a "broken" result with a one-line reason."""
-    from uvatar.avh.bake.frame import bake_frame, shadow_vertices
+    from uvatar.avh.bake.frame import bake_fit
     from uvatar.capture import Capture
 
     t0 = time.perf_counter()
@@ -97,10 +97,10 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig) 
         capture = Capture(capture_root)
         body, layout = load_body_and_layout(capture.body_model, config.texels)
         fit = capture.load_fit(frame)
-        shadow = shadow_vertices(body, fit, None if fit.shapes.size else _capture_shape(capture))
         scan_path = capture.scan_path(frame)
         scan = capture.load_scan(frame)
-        baked = bake_frame(shadow, layout, scan, config, scan_path=str(scan_path))
+        baked, fit = bake_fit(body, fit, layout, scan, config, None if fit.shapes.size else _capture_shape(capture),
+                              scan_path=str(scan_path))
     except Exception as exc:  # noqa: BLE001 - a broken frame is reported, never fatal
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         return FrameResult(frame, "broken", f"broken input: {reason}", seconds=time.perf_counter() - t0)

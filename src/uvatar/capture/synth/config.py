@@ -1,0 +1,80 @@
+"""``SynthConfig``: every knob of the synthetic studio, with presets ``quick`` and ``default``.
+
+CLI flags of ``uvatar synth`` map one-to-one onto these fields (no second source of defaults).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+from uvatar.capture.synth.appearance import AppearanceConfig
+from uvatar.capture.synth.cameras import StudioConfig
+from uvatar.capture.synth.clothing import ClothingConfig
+from uvatar.capture.synth.motion import MotionConfig
+
+__all__ = ["SynthConfig", "PRESETS", "preset"]
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """frames: total frames (takes + held-out); cameras: multi-view cameras (0: no images);
+    image_size: square image side (px); scan_texture: scan atlas side (texels); gt_texels: side of
+    the ground-truth maps in body UV space; fit_noise_deg: per-joint fit noise (degrees);
+    heldout: held-out frames at the end (None: 10 % of frames when there are at least 10);
+    seed: everything is a deterministic function of it; workers: processes (1: in-process);
+    segment_frames: mean frames per scan topology (each drawn in +-20 %); face_count: range of scan
+    face counts; subdivision_levels: template subdivisions before decimation; broken_every: about one
+    broken frame per this many (at least one when frames >= 20); broken_fraction: range of the
+    surface fraction cut away; scan_noise: scan vertex noise along the normal (m); chart_area:
+    max xatlas chart area (m^2); background: image background grey level; preview: write
+    OUT/preview.png."""
+
+    frames: int = 100
+    cameras: int = 8
+    image_size: int = 512
+    scan_texture: int = 1024
+    gt_texels: int = 256
+    fit_noise_deg: float = 2.0
+    heldout: int | None = None
+    seed: int = 0
+    workers: int = 2
+    segment_frames: int = 25
+    face_count: tuple[int, int] = (50_000, 150_000)
+    subdivision_levels: int = 2
+    broken_every: int = 20
+    broken_fraction: tuple[float, float] = (0.5, 0.65)
+    scan_noise: float = 0.0006
+    chart_area: float = 0.004
+    background: float = 1.0
+    body_model: str = "anny"
+    preview: bool = True
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    clothing: ClothingConfig = field(default_factory=ClothingConfig)
+    studio: StudioConfig = field(default_factory=StudioConfig)
+
+    def heldout_count(self) -> int:
+        if self.heldout is not None:
+            return max(0, min(int(self.heldout), int(self.frames) - 1))
+        return int(self.frames) // 10 if self.frames >= 10 else 0
+
+    def replace(self, **changes) -> SynthConfig:
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+PRESETS = {
+    "default": SynthConfig(),
+    # tests and demo smoke runs: seconds, not minutes
+    "quick": SynthConfig(frames=8, cameras=2, image_size=64, scan_texture=128, gt_texels=64, workers=1,
+                         segment_frames=4, face_count=(6_000, 12_000), subdivision_levels=1, chart_area=0.02),
+}
+
+
+def preset(name: str, **overrides) -> SynthConfig:
+    """A named preset with fields overridden (``None`` values are ignored)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown synth preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return PRESETS[name].replace(**{k: v for k, v in overrides.items() if v is not None})

@@ -1,0 +1,172 @@
+"""One worker's studio: the body, its static surface maps, and the making of one frame.
+
+:class:`Studio` holds what every frame reuses (the body model, the ground-truth texel maps, the
+subdivided template, per-segment scan statics, an LRU of two segments) and
+:meth:`Studio.make_frame` writes one frame: scan (+ atlas texture), fit, images and masks, then the
+ground truth last (its presence marks the frame done for resuming).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from uvatar.capture.synth import appearance as app
+from uvatar.capture.synth import clothing as clo
+from uvatar.capture.synth import surface as srf
+from uvatar.capture.synth.bends import bend_amounts
+from uvatar.capture.synth.config import SynthConfig
+from uvatar.capture.synth.gt import scatter_texels, write_gt_frame
+from uvatar.capture.synth.scans import ScanTopology, cut_scan, fill_atlas_index, fine_mesh, pose_scan
+
+__all__ = ["Statics", "Studio", "frame_rng"]
+
+
+def frame_rng(seed: int, frame: int, stream: int) -> np.random.Generator:
+    """The random stream ``stream`` of frame ``frame``: a function of (seed, frame) only."""
+    return np.random.default_rng([int(seed), int(frame), int(stream), 0x5EED])
+
+
+@dataclass
+class Statics:
+    """Pose-independent maps of N surface points ``W`` (N, V): albedo (N, 3), creases (N, K),
+    base offset (N,), folds (N, K) (None when not asked for)."""
+
+    W: sp.csr_matrix
+    albedo: np.ndarray | None = None
+    creases: np.ndarray | None = None
+    base: np.ndarray | None = None
+    folds: np.ndarray | None = None
+
+
+class Studio:
+    """Per-process state; build with the capture's config and the motion/plan arrays."""
+
+    def __init__(self, cfg: SynthConfig, root: str | Path, plan: dict, device: str = "cpu"):
+        from uvatar.body import load_body_model
+        from uvatar.geometry.uv_raster import rasterize_uv
+
+        self.cfg, self.root, self.plan = cfg, Path(root), plan
+        self.body = load_body_model(cfg.body_model, device=device)
+        t = self.body.template
+        self.template = t
+        self.groups = srf.vertex_groups(self.body)
+        self.landmarks = srf.landmarks(self.body)
+        self.shape = np.asarray(plan["shape"], dtype=np.float32)
+        raster = rasterize_uv(t.uvs, t.uv_faces, cfg.gt_texels)
+        W, self.gt_flat = srf.raster_matrix(raster, t.faces, t.num_vertices)
+        self.gt_mask = raster.mask
+        self.gt = self.statics(W)
+        self._fine = None
+        self._segments: OrderedDict[int, tuple] = OrderedDict()
+
+    # -- statics ---------------------------------------------------------------------------------
+    def statics(self, W, looks: bool = True, geometry: bool = True) -> Statics:
+        f = srf.features(W, self.template.vertices, self.groups)
+        reg = app.regions(f, self.landmarks, self.cfg.appearance)
+        out = Statics(W=W)
+        if looks:
+            out.albedo = app.albedo(f, self.landmarks, self.cfg.appearance, reg)
+            out.creases = app.crease_maps(f, self.landmarks)
+        if geometry:
+            out.base = clo.base_offset(f, self.landmarks, reg, self.cfg.clothing)
+            out.folds = clo.fold_maps(f, self.landmarks, reg, self.cfg.clothing)
+        return out
+
+    def fine(self):
+        """(FineMesh, rest offsets (Vf,), rest normals (Vf, 3)) for building topologies."""
+        if self._fine is None:
+            from uvatar.geometry.frames import vertex_normals
+
+            fine = fine_mesh(self.template, self.cfg.subdivision_levels)
+            W = srf.bary_matrix(self.template.faces, fine.origin_face, fine.origin_bary, self.template.num_vertices)
+            st = self.statics(W, looks=False)
+            normals = srf.posed_points(W, self.template.vertices,
+                                       vertex_normals(self.template.vertices.astype(np.float64), self.template.faces))[1]
+            self._fine = (fine, st.base.astype(np.float64), normals)
+        return self._fine
+
+    def segment(self, index: int) -> tuple[ScanTopology, Statics, Statics, np.ndarray, np.ndarray]:
+        """(topology, vertex statics, atlas-texel statics, atlas flat indices, fill index) of a segment."""
+        if index in self._segments:
+            self._segments.move_to_end(index)
+            return self._segments[index]
+        from uvatar.geometry.uv_raster import rasterize_uv
+
+        with np.load(self.root / "gt" / "topologies" / f"{index:03d}.npz") as data:
+            topo = ScanTopology.from_npz(data)
+        Wv = topo.vertex_matrix(self.template.faces, self.template.num_vertices)
+        vert = self.statics(Wv, looks=False)
+        R = self.cfg.scan_texture
+        raster = rasterize_uv(topo.uvs, topo.uv_faces, R)
+        flat = np.flatnonzero(raster.mask.ravel())
+        Bt = srf.bary_matrix(topo.faces, raster.face_index.ravel()[flat], raster.bary.reshape(-1, 3)[flat], len(Wv.indptr) - 1)
+        texel = self.statics((Bt @ Wv).tocsr(), geometry=False)
+        entry = (topo, vert, texel, flat, fill_atlas_index(raster.mask))
+        self._segments[index] = entry
+        while len(self._segments) > 2:
+            self._segments.popitem(last=False)
+        return entry
+
+    # -- one frame -------------------------------------------------------------------------------
+    def pose(self, i: int):
+        """(vertices (V, 3), normals (V, 3), joints (J, 3)) float64 of the true pose of frame i."""
+        import torch
+
+        p = self.plan
+        with torch.no_grad():
+            posed = self.body.pose(torch.as_tensor(p["poses"][i][None]), Rh=torch.as_tensor(p["Rh"][i][None]),
+                                   Th=torch.as_tensor(p["Th"][i][None]), shape=torch.as_tensor(self.shape))
+        return (posed.vertices[0].double().cpu().numpy(), posed.normals[0].double().cpu().numpy(),
+                posed.joints[0].double().cpu().numpy())
+
+    def make_frame(self, i: int) -> dict:
+        """Write frame ``i`` (scan, fit, images, masks, gt) and return a small summary."""
+        from uvatar.capture.fits import write_fit
+        from uvatar.capture.meshio import write_mesh
+        from uvatar.capture.synth.fits import noisy_fit
+        from uvatar.capture.synth.images import render_views
+        from uvatar.capture.types import TexturedMesh
+        from uvatar.io_utils import write_image
+
+        cfg, p, name = self.cfg, self.plan, self.plan["frames"][i]
+        V, N, joints = self.pose(i)
+        bends = bend_amounts(joints, self.body.semantic_joints, self.template.rest_joints)
+
+        topo, vert, texel, flat, fill = self.segment(int(p["segment_of_frame"][i]))
+        pts, nrm = srf.posed_points(vert.W, V, N)
+        offset = clo.offset_amount(vert.base, vert.folds, bends, cfg.clothing)
+        vertices = pose_scan(pts, nrm, offset, cfg.scan_noise, frame_rng(cfg.seed, i, 1))
+        R = cfg.scan_texture
+        atlas = scatter_texels(app.shade(texel.albedo, texel.creases, bends, cfg.appearance), flat, R)
+        atlas = atlas.reshape(-1, 3)[fill].reshape(R, R, 3)
+        faces, uv_faces = topo.faces, topo.uv_faces
+        broken = p["broken"].get(name)
+        if broken:
+            keep = cut_scan(vertices, faces, np.asarray(broken["direction"]), broken["fraction"])
+            faces, uv_faces = faces[keep], uv_faces[keep]
+        write_mesh(self.root / "scans" / f"{name}.obj", TexturedMesh(vertices, faces, topo.uvs, uv_faces, atlas))
+
+        fit = noisy_fit(p["poses"][i], p["Rh"][i], p["Th"][i], self.shape, cfg.fit_noise_deg, frame_rng(cfg.seed, i, 2))
+        write_fit(self.root / "fits" / f"{name}.json", fit)
+
+        if p["cameras"]:
+            views = render_views(vertices, topo.faces, topo.uvs, topo.uv_faces, atlas, p["cameras"], cfg.background)
+            for cam, (rgb, mask) in zip(p["cameras"], views):
+                write_image(self.root / "images" / cam.name / f"{name}.png", rgb)
+                write_image(self.root / "masks" / cam.name / f"{name}.png", mask.astype(np.uint8) * 255)
+
+        g = self.gt
+        gp, gn = srf.posed_points(g.W, V, N)
+        goff = clo.offset_amount(g.base, g.folds, bends, cfg.clothing)
+        Rg = cfg.gt_texels
+        write_gt_frame(self.root, name, pose=p["poses"][i].reshape(-1), Rh=p["Rh"][i], Th=p["Th"][i],
+                       texture=scatter_texels(app.shade(g.albedo, g.creases, bends, cfg.appearance), self.gt_flat, Rg),
+                       offset=scatter_texels((goff[:, None] * gn).astype(np.float32), self.gt_flat, Rg),
+                       surface=scatter_texels((gp + goff[:, None] * gn).astype(np.float32), self.gt_flat, Rg),
+                       mask=self.gt_mask, bends=bends.astype(np.float32), broken=np.bool_(bool(broken)))
+        return {"frame": name, "faces": int(len(faces)), "broken": bool(broken)}

@@ -1,0 +1,201 @@
+"""DVA primitives, texel-aligned features, decoders, losses and the assembled model (toy tube body)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from uvatar.dva.decoders import DecoderConfig, DvaDecoder, payload_to_slab, slab_to_payload
+from uvatar.dva.features import average_views, pose_feature_maps, unwrap_views, view_feature_map
+from uvatar.dva.losses import DvaLoss, Vgg19Features, beta_prior, ssim_torch
+from uvatar.dva.model import DvaModel, pixel_rays, preset
+from uvatar.dva.primitives import (
+    PrimitiveConfig,
+    apply_correctives,
+    articulated_frames,
+    build_uv_grid,
+    volume_prior,
+)
+from uvatar.dva.toy import ToyBody, ring_cameras
+from uvatar.errors import InputError
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def body():
+    return ToyBody()
+
+
+def test_grid_snaps_and_scales(body):
+    W = 32
+    grid = build_uv_grid(body.template, PrimitiveConfig(grid=W, scale_factor=1.0))
+    assert grid.raster.mask.all() and not grid.covered.all()  # UVs span [0.02, 0.98]: border snapped
+    assert grid.covered[1:-1, 1:-1].all() and not grid.covered[0].any()
+    # 16-gon tube: |dP/du| = perimeter / 0.96, |dP/dv| = height / 0.96 -> half the spacing W apart
+    su = 16 * 2 * 0.15 * np.sin(np.pi / 16) / 0.96 / W / 2
+    sv = 1.0 / 0.96 / W / 2
+    np.testing.assert_allclose(grid.rest_scales[:, 1], sv, rtol=1e-4)
+    np.testing.assert_allclose(grid.rest_scales[:, 0], su, rtol=1e-3)
+    np.testing.assert_allclose(grid.rest_scales[:, 2], (su + sv) / 2, rtol=1e-3)
+
+
+def test_articulated_frames_follow_the_surface(body):
+    grid = build_uv_grid(body.template, PrimitiveConfig(grid=8))
+    verts = body.pose(torch.zeros(2, 2, 3)).vertices
+    pos, rot = articulated_frames(grid, body.template, verts)
+    r = torch.linalg.norm(pos[0, :, [0, 2]], dim=-1)
+    assert torch.all(r > 0.14) and torch.all(r <= 0.1501)  # on the tube (chords inside the circle)
+    eye = torch.eye(3).expand_as(rot[0])
+    assert torch.allclose(rot[0].transpose(1, 2) @ rot[0], eye, atol=1e-5)
+    radial = pos[0].clone()
+    radial[:, 1] = 0
+    assert torch.all((rot[0, :, :, 2] * radial).sum(-1) > 0)  # normals point outward
+
+
+def test_correctives(body):
+    cfg = PrimitiveConfig(grid=4, max_translation=0.1, max_rotation=1.0)
+    K = 16
+    pos = torch.zeros(1, K, 3)
+    rot = torch.eye(3).expand(1, K, 3, 3).clone()
+    rest = torch.full((K, 3), 0.05)
+    motion = torch.zeros(1, 9, 4, 4)
+    p, r, s = apply_correctives(pos, rot, rest, motion, cfg, enabled=True)
+    assert torch.equal(p, pos) and torch.allclose(r, rot) and torch.allclose(s[0], rest)
+    motion[:, 0] = 100.0  # saturates tanh: +max_translation along local x
+    motion[:, 6:9] = np.log(2.0)
+    p, r, s = apply_correctives(pos, rot, rest, motion, cfg, enabled=True)
+    assert torch.allclose(p[..., 0], torch.full((1, K), 0.1)) and torch.allclose(s, torch.full((1, K, 3), 0.1))
+    p, _, s = apply_correctives(pos, rot, rest, motion, cfg, enabled=False)
+    assert torch.equal(p, pos) and torch.allclose(s[0], rest)
+    assert float(volume_prior(torch.full((1, K, 3), 0.5))) == pytest.approx(1.0)
+
+
+def test_pose_features_are_masked_by_skinning(body):
+    grid = build_uv_grid(body.template, PrimitiveConfig(grid=8))
+    from uvatar.dva.features import texel_skin_weights
+
+    w = torch.as_tensor(texel_skin_weights(grid.raster, body.template, (1,)))
+    rv = torch.zeros(1, 2, 3)
+    rv[0, 1] = torch.tensor([0.1, 0.2, 0.3])
+    maps = pose_feature_maps(rv, w, (1,))
+    assert maps.shape == (1, 3, 8, 8)
+    # bottom rows (v small = image bottom) carry no weight of the bending joint; top rows carry all
+    assert torch.all(maps[0, :, -1] == 0)
+    assert torch.allclose(maps[0, :, 0], torch.tensor([0.1, 0.2, 0.3])[:, None].expand(3, 8))
+
+
+def test_view_features_analytic(body):
+    grid = build_uv_grid(body.template, PrimitiveConfig(grid=8))
+    verts = body.pose(torch.zeros(1, 2, 3)).vertices
+    far = torch.tensor([[0.0, 0.5, 1e4]])  # camera far along +Z: dot = normal_z
+    f = view_feature_map(grid.raster, body.template, verts, far)[0, 0]
+    assert f.shape == (8, 8)
+    # texel column j has u = (j + 0.5) / 8 on facet floor((u - 0.02) / 0.96 * 16) of the 16-gon, whose
+    # normal points at angle (facet + 0.5) * 2 pi / 16 from +Z: its z component is the cosine
+    u = (np.arange(8) + 0.5) / 8
+    facet = np.floor((u - 0.02) / 0.96 * 16)
+    want = np.cos((facet + 0.5) * 2 * np.pi / 16)
+    np.testing.assert_allclose(f.numpy(), np.broadcast_to(want, (8, 8)), atol=1e-3)
+
+
+def test_unwrap_visibility_and_average(body):
+    from uvatar.geometry import rasterize_uv
+
+    raster = rasterize_uv(body.template.uvs, body.template.uv_faces, 32)
+    cams = list(ring_cameras(2, 32).values())  # front (+Z) and back (-Z)
+    imgs = [np.full((32, 32, 3), 0.25, np.float32), np.full((32, 32, 3), 0.75, np.float32)]
+    verts = body.pose(torch.zeros(1, 2, 3)).vertices[0].numpy()
+    tex, vis = unwrap_views(raster, body.template, verts, cams, imgs)
+    assert vis.shape == (2, 32, 32) and not (vis[0] & vis[1]).any()  # a tube side is seen by one camera
+    assert 0.3 < vis[0][raster.mask].mean() < 0.6
+    np.testing.assert_allclose(tex[0][vis[0]], 0.25, atol=1e-6)
+    avg = average_views(torch.as_tensor(tex)[None], torch.as_tensor(vis)[None])[0]
+    seen = torch.as_tensor(vis[1])
+    assert torch.allclose(avg[:3, seen], torch.tensor(0.75)) and torch.allclose(avg[3, seen], torch.tensor(0.5))
+
+
+def test_occluded_texels_are_not_visible(body):
+    from uvatar.dva.features import unwrap_view
+    from uvatar.geometry import RayCaster
+
+    cam = ring_cameras(1, 32)["cam00"]  # on +Z looking at the tube
+    pts = np.array([[0.0, 0.5, 0.15], [0.0, 0.5, -0.15]])
+    nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])  # second faces the camera but sits behind the tube
+    verts = body.pose(torch.zeros(1, 2, 3)).vertices[0].numpy()
+    caster = RayCaster(verts, body.template.faces)
+    _, vis = unwrap_view(pts, nrm, cam, np.zeros((32, 32, 3), np.float32), None, caster)
+    assert vis.tolist() == [True, False]
+
+
+def test_slab_payload_round_trip():
+    x = torch.randn(2, 4 * 3, 3 * 4, 3 * 4)  # C=3, S=4, W=3
+    p = slab_to_payload(x, 3, 4)
+    assert p.shape == (2, 9, 3, 4, 4, 4)
+    assert torch.equal(payload_to_slab(p, 3), x)
+    # primitive k = wy * W + wx owns rows wy*S.., columns wx*S..; voxel (z, y, x) of channel c
+    assert p[1, 1 * 3 + 2, 2, 3, 1, 0] == x[1, 2 * 4 + 3, 1 * 4 + 1, 2 * 4 + 0]
+
+
+def test_decoder_shapes_and_ranges():
+    dec = DvaDecoder(DecoderConfig(voxels=4, hidden=8, min_channels=4), grid=4, pose_channels=3,
+                     image_channels=5)
+    motion, rgb, density = dec(torch.randn(2, 3, 4, 4), torch.randn(2, 5, 4, 4), torch.randn(2, 1, 4, 4))
+    assert motion.shape == (2, 9, 4, 4) and torch.all(motion == 0)  # zero-initialised correctives
+    assert rgb.shape == (2, 16, 3, 4, 4, 4) and density.shape == (2, 16, 1, 4, 4, 4)
+    assert rgb.min() >= 0 and rgb.max() <= 1 and density.min() >= 0
+    assert dec.opacity.head.bias.shape == (1, 8, 4, 4)  # untied: one bias per channel and texel
+    with pytest.raises(ValueError):
+        DvaDecoder(DecoderConfig(voxels=6), 4, 3, 5)
+
+
+def test_losses():
+    a = torch.rand(1, 3, 16, 16)
+    assert float(ssim_torch(a, a)) == pytest.approx(1.0, abs=1e-5)
+    assert float(ssim_torch(a, 1 - a)) < 0.5
+    assert float(beta_prior(torch.tensor([0.0, 1.0]))) == pytest.approx(0.0, abs=1e-6)
+    assert float(beta_prior(torch.tensor([0.5]))) > 1.0
+    loss = DvaLoss()
+    total, terms = loss(a, a, torch.ones(1, 16, 16), torch.ones(1, 16, 16), torch.full((1, 4, 3), 0.1),
+                        torch.full((4, 3), 0.1))
+    assert terms["rgb"] == 0 and terms["ssim"] == pytest.approx(0, abs=1e-5) and terms["mask"] == 0
+    assert terms["volume"] == pytest.approx(1.0) and "perceptual" not in terms
+
+
+def test_vgg_weights_load_and_reject(tmp_path):
+    vgg = Vgg19Features()
+    torch.save({k: v for k, v in vgg.state_dict().items() if k.startswith("features.")}, tmp_path / "v.pth")
+    loaded = Vgg19Features.from_file(tmp_path / "v.pth")
+    feats = loaded(torch.rand(1, 3, 32, 32))
+    assert [f.shape[1] for f in feats] == [64, 128, 256, 512, 512]
+    torch.save({"features.0.weight": torch.zeros(1)}, tmp_path / "bad.pth")
+    with pytest.raises(InputError):
+        Vgg19Features.from_file(tmp_path / "bad.pth")
+    (tmp_path / "junk.pth").write_text("not a checkpoint")
+    with pytest.raises(InputError, match="junk.pth"):
+        Vgg19Features.from_file(tmp_path / "junk.pth")
+
+
+def test_model_forward_render_and_backward(body):
+    cfg = preset("tiny")
+    model = DvaModel(cfg, body.template, body.conditioning_joints)
+    verts = body.pose(torch.zeros(1, 2, 3)).vertices
+    R = model.image_raster.resolution
+    out = model(verts, torch.zeros(1, 2, 3), torch.rand(1, 4, R, R), torch.tensor([[0.0, 0.5, 2.5]]))
+    K, S = 64, cfg.decoder.voxels
+    assert out.payload.shape == (1, K, 4, S, S, S) and out.positions.shape == (1, K, 3)
+    cam = ring_cameras(1, 16)["cam00"]
+    yy, xx = np.mgrid[:16, :16]
+    pix = np.stack([xx.ravel(), yy.ravel()], 1)
+    o, d = pixel_rays(cam, pix)
+    rgb, alpha = model.render_rays(out, 0, o, d, torch.ones(3))
+    assert alpha.reshape(16, 16)[8, 8] > 0.5 and alpha.reshape(16, 16)[0, 0] == 0  # tube centre vs corner
+    rgb.mean().backward()
+    assert model.decoder.appearance.tail.bias.grad.abs().sum() > 0
