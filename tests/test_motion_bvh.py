@@ -129,3 +129,14 @@ def test_bad_bvh(tmp_path, text, message):
 
 def test_format_has_end_sites():
     assert "End Site" in format_bvh(parse_bvh(TWO_JOINTS))
+
+
+@pytest.mark.parametrize("order", ["ZYX", "XYZ", "YXZ", "ZXY", "X", "YZ"])
+def test_euler_matches_scipy_reference(order):
+    from scipy.spatial.transform import Rotation
+
+    from uvatar.motion.bvh import euler_to_matrix
+
+    angles = np.random.default_rng(0).uniform(-3, 3, size=(5, 2, len(order)))
+    ref = Rotation.from_euler(order, angles.reshape(-1, len(order))).as_matrix().reshape(5, 2, 3, 3)
+    np.testing.assert_allclose(euler_to_matrix(angles, order), ref, atol=1e-12)

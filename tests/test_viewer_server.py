@@ -104,3 +104,24 @@ def test_cli_view_reports_bad_folder_in_one_line(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope"), "--no-browser"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a folder" in err[0]
+
+
+def test_uvatar_view_serves_until_stopped(server):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "uvatar", "view", str(server.avatar_dir), "--port", "0",
+                             "--no-browser"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("uvatar viewer: http://localhost:"), line
+        url = line.split()[2]
+        status, _, body = _get(url + "avatar/manifest.json")
+        assert status == 200 and json.loads(body)["texels"] == 32
+    finally:
+        os.kill(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=20) == 0
+        proc.stdout.close()
+        proc.stderr.close()

@@ -26,8 +26,10 @@ import numpy as np
 import torch
 
 from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, read_dataset_meta, selection
-from uvatar.avh.loss import avh_loss
-from uvatar.avh.model import AvhConfig, AvhGenerator, count_parameters, encode_pose, select_conditioning_angles
+from uvatar.avh.loss import avh_loss, displacement_mask
+from uvatar.avh.model import (
+    AvhConfig, AvhGenerator, count_parameters, encode_pose, init_output_bias, select_conditioning_angles,
+)
 from uvatar.errors import InputError, UvatarError
 from uvatar.io_utils import atomic_path, write_json
 
@@ -77,6 +79,17 @@ def to_training_data(frames: BakedFrames, conditioning_joints, device: str | tor
     maps = {"texture": chw(frames.texture), "displacement": chw(frames.displacement),
             "kappa": chw(frames.kappa), "w": chw(frames.w), "valid": chw(frames.valid.astype(np.float32))}
     return TrainingData(frames.names, encode_pose(angles).float().to(device), maps)
+
+
+def mean_maps(data: TrainingData, excluded, outlier_threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Loss-weighted mean texture and displacement (3, R, R) over ``data`` (plain mean where unweighted)."""
+    m = data.maps
+    wt = m["kappa"] * m["valid"]
+    tex = (wt * m["texture"]).sum(0) / wt.sum(0).clamp_min(1e-6)
+    tex = torch.where(wt.sum(0) > 1e-6, tex, m["texture"].mean(0))
+    wd = displacement_mask(m["displacement"], m["w"], m["valid"], excluded, outlier_threshold)
+    disp = (wd * m["displacement"]).sum(0) / wd.sum(0).clamp_min(1e-6)
+    return tex, torch.where(wd.sum(0) > 1e-6, disp, torch.zeros_like(disp))
 
 
 def resolve_body(meta: dict, resolution: int, body=None, baked_dir: Path | None = None):
@@ -184,7 +197,9 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=cfg.lr_gamma)
     history: list[dict] = []
     start_epoch = 0
-    if state is not None:
+    if state is None:
+        init_output_bias(model, *mean_maps(train, excluded, cfg.outlier_threshold))
+    else:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         sched.load_state_dict(state["scheduler"])

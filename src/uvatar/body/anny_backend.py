@@ -151,7 +151,7 @@ class AnnyBody(BodyModel):
         D = roma.rotvec_to_rotmat(rotvecs.to(dt))  # anny local-ref deltas, anny axes
         F, p = forward_kinematics(self._levels_on(D.device), D, state["offsets"])
         T = skinning_transforms(F, p, state["bind_rotations"], state["bind_heads"])
-        vertices = skin(state["bind_vertices"], self._weights_csr, T)
+        vertices = skin(state["bind_vertices"], self._skin_weights_for(D.device), T)
         C = self._to_world
         B, J = F.shape[:2]
         top = torch.cat([C @ F, (C @ p[..., None])], -1)

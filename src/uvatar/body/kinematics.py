@@ -10,8 +10,8 @@ head in the parent's *unposed* frame), and per-joint local rotations. The chain 
 SMPL fits this directly (offset = J_c - J_parent); anny too, with its reference-pose head offsets.
 
 :func:`forward_kinematics` evaluates the chain one depth level at a time (one batched product per
-level); :func:`forward_kinematics_reference` is its plain per-joint twin. :func:`skin` is dense LBS
-as one matrix product; :func:`skin_reference` loops over joints.
+level); :func:`forward_kinematics_reference` is its plain per-joint twin. :func:`skin` is LBS as one
+(sparse CSR or dense) matrix product; :func:`skin_reference` loops over joints.
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def sparse_weights(weights: torch.Tensor) -> torch.Tensor:
 
 def skin(bind_vertices: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
     """LBS as one (sparse) matrix product. bind_vertices (B or 1, V, 3); weights (V, J) dense or
-    ``torch.sparse_csr`` (much faster: ~4 influences per vertex); transforms (B, J, 3, 4)
+    ``torch.sparse_csr`` (several times faster on CPU: a vertex has a few influences); transforms (B, J, 3, 4)
     -> (B, V, 3) (a transposed view; call ``.contiguous()`` if needed)."""
     B, J = transforms.shape[:2]
     V = weights.shape[0]

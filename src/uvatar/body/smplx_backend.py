@@ -240,6 +240,6 @@ class SmplxBody(BodyModel):
             self._levels_by_device[key] = self._levels.to(R.device)
         F, p = forward_kinematics(self._levels_by_device[key], R, offsets)
         T = skinning_transforms(F, p, None, joints.expand(B, -1, -1))
-        vertices = skin(v_posed, self._weights_csr, T)
+        vertices = skin(v_posed, self._skin_weights_for(R.device), T)
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dt, device=R.device).expand(B, J, 1, 4)
         return vertices, torch.cat([torch.cat([F, p[..., None]], -1), bottom], -2)

@@ -27,8 +27,12 @@ def _open(path: Path):
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:  # cv2 wraps parse errors in SystemError
-        reason = str(exc.__cause__ or exc).strip().splitlines()
-        raise InputError(path, f"unreadable OpenCV YAML ({reason[-1] if reason else 'parse error'})") from None
+        import re
+
+        text = " ".join(str(exc.__cause__ or exc).split())
+        found = re.search(r"\((\d+)\): (.+?)'?\s*$", text)
+        reason = f"line {found.group(1)}: {found.group(2)}" if found else "parse error"
+        raise InputError(path, f"unreadable OpenCV YAML ({reason})") from None
     if not fs.isOpened():
         raise InputError(path, "unreadable OpenCV YAML")
     return fs

@@ -84,6 +84,9 @@ def check_texture(path: str | Path, what: str = "texture image") -> tuple[int, i
     path = Path(path)
     if not path.is_file():
         raise InputError(path, f"{what} is missing")
+    if path.suffix.lower() == ".exr":  # PIL cannot read EXR: decode it with OpenCV instead
+        image = load_texture(path, what)
+        return image.shape[1], image.shape[0]
     try:
         with PIL.Image.open(path) as im:
             size = im.size

@@ -15,6 +15,7 @@ def register(cli) -> None:
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--vgg-weights", default=None,
                    help="torchvision VGG-19 state dict for the perceptual loss (without it: 1 - SSIM)")
+    _threads(p)
     p.add_argument("--grid", type=int, default=None, help="primitives per UV side W (K = W*W)")
     p.add_argument("--voxels", type=int, default=None, help="voxels per primitive side S")
     p.set_defaults(func=_train)
@@ -28,6 +29,7 @@ def register(cli) -> None:
     p.add_argument("--size", type=int, default=256, help="orbit camera size in pixels")
     p.add_argument("--fps", type=float, default=25.0)
     p.add_argument("--device", default="cpu")
+    _threads(p)
     p.add_argument("-o", "--output", required=True, help="video path (.mp4 or .gif)")
     p.set_defaults(func=_render)
 
@@ -38,10 +40,25 @@ def register(cli) -> None:
     p.add_argument("--driving-views", type=int, default=3)
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--device", default="cpu")
+    _threads(p)
     p.set_defaults(func=_eval)
 
 
+def _threads(p) -> None:
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads; 1 avoids OpenMP oversubscription on small shared machines "
+                        "(0: torch's default)")
+
+
+def _set_threads(args) -> None:
+    if args.threads > 0:
+        import torch
+
+        torch.set_num_threads(args.threads)
+
+
 def _train(args) -> int:
+    _set_threads(args)
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
@@ -58,6 +75,7 @@ def _train(args) -> int:
 
 
 def _render(args) -> int:
+    _set_threads(args)
     import numpy as np
 
     from uvatar.dva.data import open_source
@@ -98,6 +116,7 @@ def _render(args) -> int:
 
 
 def _eval(args) -> int:
+    _set_threads(args)
     from uvatar.dva.data import open_source
     from uvatar.dva.eval import evaluate_dva
 

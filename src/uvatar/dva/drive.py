@@ -25,9 +25,10 @@ def render_camera(model, posed_vertices, joint_rotvecs, image_texture, camera, b
     out = model(posed_vertices[None], joint_rotvecs[None], image_texture[None].to(dev), center)
     H, W = camera.height, camera.width
     yy, xx = np.mgrid[:H, :W]
-    o, d = pixel_rays(camera, np.stack([xx.ravel(), yy.ravel()], 1), dev)
+    pix = np.stack([xx.ravel(), yy.ravel()], 1)
+    o, d = pixel_rays(camera, pix, dev)
     bg = torch.as_tensor(np.asarray(background, np.float32), device=dev)
-    rgb, alpha = model.render_rays(out, 0, o, d, bg)
+    rgb, alpha = model.render_rays(out, 0, o, d, bg, camera=camera, pixels=pix)
     return rgb.reshape(H, W, 3).clamp(0, 1).cpu().numpy(), alpha.reshape(H, W).cpu().numpy()
 
 

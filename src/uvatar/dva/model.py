@@ -146,10 +146,13 @@ class DvaModel(nn.Module):
                                           bool(self.correctives_on))
         return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion)
 
-    def render_rays(self, out: DvaOutput, b: int, origins, directions, background=None):
+    def render_rays(self, out: DvaOutput, b: int, origins, directions, background=None, camera=None,
+                    pixels=None):
         """Render rays (N, 3) through sample ``b``: rgb (N, 3) (composited over ``background`` (3,) if
-        given), alpha (N,)."""
-        rgb, alpha = raymarch(origins, directions, out.primitives(b), self.cfg.raymarch)
+        given), alpha (N,). With ``camera`` and integer ``pixels`` (N, 2) (the rays' pixels in that
+        camera) culling uses projected rectangles (faster, same result)."""
+        rgb, alpha = raymarch(origins, directions, out.primitives(b), self.cfg.raymarch, camera=camera,
+                              pixels=pixels)
         if background is not None:
             rgb = rgb + (1.0 - alpha)[:, None] * background
         return rgb, alpha

@@ -149,7 +149,7 @@ class Trainer:
             pix = patch_pixels(mask, t.patch, self.rng)
             o, d = pixel_rays(self.bank.cams[c], pix, self.device)
             bg = torch.as_tensor(self.bank.backgrounds[c], device=self.device)
-            rgb, alpha = self.model.render_rays(out, b, o, d, bg)
+            rgb, alpha = self.model.render_rays(out, b, o, d, bg, camera=self.bank.cams[c], pixels=pix)
             P = int(round(np.sqrt(pix.shape[0])))
             img = self.bank.images[f][c][pix[:, 1], pix[:, 0]].astype(np.float32) / 255.0
             preds.append(rgb.T.reshape(3, P, P))

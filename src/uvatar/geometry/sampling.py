@@ -193,9 +193,10 @@ def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, norma
         t = tangent[..., fidx, :]
         b = bitangent[..., fidx, :]
         t = t - (t * n).sum(-1, keepdim=True) * n
-        fallback = torch.linalg.cross(n, _any_perpendicular(n), dim=-1)
         small = torch.linalg.norm(t, dim=-1, keepdim=True) < 1e-12
-        t = normalize(torch.where(small, fallback, t))
+        if bool(small.any()):  # tangent parallel to the normal: any perpendicular direction
+            t = torch.where(small, torch.linalg.cross(n, _any_perpendicular(n), dim=-1), t)
+        t = normalize(t)
         bt = torch.linalg.cross(n, t, dim=-1)
         if follow_mirroring:
             bt = bt * torch.where((bt * b).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(bt.dtype)
@@ -209,7 +210,9 @@ def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, norma
     b = bitangent[..., face, :]
     t = t - (t * n).sum(-1, keepdims=True) * n
     small = np.linalg.norm(t, axis=-1, keepdims=True) < 1e-12
-    t = normalize(np.where(small, np.cross(n, _any_perpendicular(n)), t))
+    if small.any():
+        t = np.where(small, np.cross(n, _any_perpendicular(n)), t)
+    t = normalize(t)
     bt = np.cross(n, t)
     if follow_mirroring:
         bt = bt * np.where((bt * b).sum(-1, keepdims=True) < 0, -1.0, 1.0)

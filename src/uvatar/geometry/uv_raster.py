@@ -57,7 +57,9 @@ class UVRasterConfig:
 
     conservative: also cover texels whose centre lies outside every triangle but within half a
         texel (Euclidean, in texel units) of one; they get the barycentrics of the nearest point on
-        the nearest triangle (so they still lie in the triangle). Off by default.
+        the nearest triangle (so they still lie in the triangle). Candidates are the triangles of
+        the 8 neighbouring covered texels (slivers that cover no centre are not considered). Off by
+        default; costs ~30% more time.
     chunk_candidates: bound on candidate texels processed at once (~100 B each, so ~100 MB).
     """
 
@@ -220,8 +222,9 @@ def _finish(face_index: np.ndarray, coef: np.ndarray, r: int) -> UVRaster:
     return UVRaster(resolution=r, face_index=face_index, bary=bary, mask=mask)
 
 
-def _closest_point_barycentric(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Barycentrics (N, 3) of the point of triangle ``tri`` (N, 3, 2) nearest to ``p`` (N, 2)."""
+def _closest_point_barycentric(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Barycentrics (N, 3) of the point of triangle ``tri`` (N, 3, 2) nearest to ``p`` (N, 2), and
+    the distance (N,) to it (0 inside), both in pixel units."""
     b = _barycentric_2d(p[:, 0], p[:, 1], _affine_barycentrics(tri))
     best = np.where((b >= 0).all(axis=1, keepdims=True), b, np.nan)
     best_d = np.where(np.isnan(best[:, 0]), np.inf, 0.0)

@@ -69,17 +69,17 @@ class BvhMotion:
 
     def local_rotations(self) -> np.ndarray:
         """(T, J, 3, 3) each joint's rotation relative to its parent (file channel order)."""
-        from scipy.spatial.transform import Rotation
-
         T, J = self.num_frames, self.skeleton.num_joints
         out = np.broadcast_to(np.eye(3), (T, J, 3, 3)).copy()
+        groups: dict[str, list[tuple[int, list[int]]]] = {}  # channel order → joints (one batch each)
         for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns(), strict=True)):
             rot = [(c, _AXES[n]) for n, c in zip(names, cols, strict=True) if n in _AXES]
-            if not rot:
-                continue
-            order = "".join(a for _, a in rot)  # uppercase = intrinsic: R = R_a0 @ R_a1 @ R_a2
-            angles = self.channel_values[:, [c for c, _ in rot]]
-            out[:, j] = Rotation.from_euler(order, angles, degrees=True).as_matrix()
+            if rot:
+                groups.setdefault("".join(a for _, a in rot), []).append((j, [c for c, _ in rot]))
+        for order, members in groups.items():
+            joints = [j for j, _ in members]
+            angles = self.channel_values[:, [c for _, cols in members for c in cols]].reshape(T, len(joints), -1)
+            out[:, joints] = euler_to_matrix(np.deg2rad(angles), order)
         return out
 
     def local_translations(self) -> np.ndarray:
@@ -118,6 +118,26 @@ class BvhMotion:
                     elif T == self.num_frames:
                         values[:, c] = self.channel_values[:, c]
         return replace(self, channel_values=values)
+
+
+def axis_rotation(angles: np.ndarray, axis: str) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) about "X", "Y" or "Z" by ``angles`` (...) radians."""
+    c, s = np.cos(angles), np.sin(angles)
+    out = np.zeros((*np.shape(angles), 3, 3))
+    i, j = {"X": (1, 2), "Y": (2, 0), "Z": (0, 1)}[axis]
+    k = 3 - i - j
+    out[..., k, k] = 1.0
+    out[..., i, i], out[..., i, j], out[..., j, i], out[..., j, j] = c, -s, s, c
+    return out
+
+
+def euler_to_matrix(angles: np.ndarray, order: str) -> np.ndarray:
+    """Intrinsic Euler angles (..., len(order)) radians in ``order`` (e.g. "ZYX") → (..., 3, 3)
+    ``R = R_order[0] @ R_order[1] @ ...`` (the BVH convention)."""
+    out = axis_rotation(angles[..., 0], order[0])
+    for k in range(1, len(order)):
+        out = out @ axis_rotation(angles[..., k], order[k])
+    return out
 
 
 def forward_kinematics(parents: np.ndarray, local_rotations: np.ndarray, local_translations: np.ndarray):

@@ -151,15 +151,15 @@ def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None)
     src_index = {sem: source.index(n) for n, sem in name_map.items() if n in source.names}
     tgt_index = dict(body.semantic_joints)
     shared = [s for s in src_index if s in tgt_index]
-    for needed in ("pelvis",):
-        if needed not in shared:
-            raise UvatarError(f"retargeting needs a '{needed}' joint in both skeletons (source {source.source})")
+    if "pelvis" not in shared:
+        raise UvatarError(f"retargeting needs a 'pelvis' joint in both skeletons (source {source.source})")
     template = body.template
     t_rest = np.asarray(template.rest_joints, np.float64)
     t_parents = np.asarray(template.joint_parents)
     s_rest = np.asarray(source.rest_positions, np.float64)
     T, J = source.num_frames, body.num_joints
-    # rest alignment per shared joint
+    # world-axis rotation of every target joint: mapped ones from the source (rest-aligned), the
+    # others follow their parent
     G = np.empty((T, J, 3, 3))
     mapped = {tgt_index[s]: s for s in shared}
     for j in range(J):
@@ -167,8 +167,7 @@ def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None)
             sem = mapped[j]
             C = np.eye(3)
             if sem not in NO_ALIGNMENT:
-                d_src = _bone_direction(sem, src_index[sem], {k: v for k, v in src_index.items()}, s_rest,
-                                        source.parents)
+                d_src = _bone_direction(sem, src_index[sem], src_index, s_rest, source.parents)
                 d_tgt = _bone_direction(sem, j, tgt_index, t_rest, t_parents)
                 if d_src is not None and d_tgt is not None:
                     C = _rotation_between(d_tgt, d_src)

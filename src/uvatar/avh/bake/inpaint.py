@@ -1,7 +1,9 @@
 """Fill texels without a match (and outside the UV islands) by Telea fast-marching inpainting (AVH §3.2.3).
 
-OpenCV's ``cv2.inpaint(..., INPAINT_TELEA)`` with radius 3, one float32 channel at a time (so
-displacements keep full precision). Optionally, texels farther than ``band`` texels from every
+OpenCV's ``cv2.inpaint(..., INPAINT_TELEA)`` with radius 3, one channel at a time. OpenCV 5.0's
+float32 Telea path is broken (a constant image comes back oscillating between -0.7 and 1.3), so each
+channel is mapped linearly onto uint16 over its known range (a 10 cm displacement range keeps ~2 um
+steps), inpainted, and mapped back; known texels are returned bit-exact. Optionally, texels farther than ``band`` texels from every
 known texel are first given the value of their nearest known texel, so the fast-marching only runs
 through a band around the known texels (the far background only exists to avoid interpolation
 artifacts at island borders; this keeps 1024^2 maps fast).
@@ -56,9 +58,14 @@ def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None) ->
             work[far] = nearest[far]
             march = fill & ~far
         mask8 = march.astype(np.uint8)
-        out = np.empty_like(img)
-        for c in range(img.shape[2]):
-            channel = np.ascontiguousarray(work[..., c])
-            out[..., c] = cv2.inpaint(channel, mask8, int(radius), cv2.INPAINT_TELEA) if march.any() else channel
-        out[~fill] = img[~fill]
+        out = work.copy()
+        known = ~fill
+        for c in range(img.shape[2]) if march.any() else ():
+            channel = work[..., c].astype(np.float64)
+            lo, hi = channel[known].min(), channel[known].max()
+            span = hi - lo if hi > lo else 1.0
+            q = np.clip(np.rint((channel - lo) / span * 65535.0), 0, 65535).astype(np.uint16)
+            filled = cv2.inpaint(q, mask8, int(radius), cv2.INPAINT_TELEA)
+            out[..., c] = np.where(march, filled.astype(np.float64) / 65535.0 * span + lo, channel)
+        out[known] = img[known]
     return out[..., 0] if squeeze else out

@@ -32,8 +32,8 @@ class ClothingConfig:
     shoes: float = 0.006
     hair: float = 0.012
     hair_top: float = 0.012       # extra hair volume on the crown
-    wrinkle: float = 0.002        # static cloth wrinkles
-    fold_amplitude: tuple = (0.008, 0.008, 0.009, 0.009, 0.007, 0.007, 0.006, 0.006, 0.008)  # per BENDS
+    wrinkle: float = 0.003        # static cloth wrinkles
+    fold_amplitude: tuple = (0.010, 0.010, 0.011, 0.011, 0.008, 0.008, 0.007, 0.007, 0.009)  # per BENDS
     fold_wavelength: float = 0.028
     max_offset: float = 0.045
 

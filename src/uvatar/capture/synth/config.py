@@ -44,7 +44,7 @@ class SynthConfig:
     broken_every: int = 20
     broken_fraction: tuple[float, float] = (0.5, 0.65)
     scan_noise: float = 0.0006
-    chart_area: float = 0.004
+    chart_area: float = 0.02
     background: float = 1.0
     body_model: str = "anny"
     preview: bool = True
@@ -69,7 +69,7 @@ PRESETS = {
     "default": SynthConfig(),
     # tests and demo smoke runs: seconds, not minutes
     "quick": SynthConfig(frames=8, cameras=2, image_size=64, scan_texture=128, gt_texels=64, workers=1,
-                         segment_frames=4, face_count=(6_000, 12_000), subdivision_levels=1, chart_area=0.02),
+                         segment_frames=4, face_count=(6_000, 12_000), subdivision_levels=1),
 }
 
 

@@ -9,15 +9,16 @@ import numpy as np
 
 __all__ = ["write_preview"]
 
-def _facing_camera(Rh: np.ndarray, Th: np.ndarray, size: int, name: str):
-    """A camera 2.6 m in front of the person (turned with the body), aimed at the body centre."""
+def _facing_camera(Rh: np.ndarray, Th: np.ndarray, size: int, name: str, height: float = 0.85,
+                   fov: float = 42.0):
+    """A camera 2.6 m in front of the person (turned with the body), aimed at ``height``."""
     from scipy.spatial.transform import Rotation
 
     from uvatar.render.cameras import look_at_camera
 
     fwd = Rotation.from_rotvec(Rh).apply([0.35, 0.0, 1.0])
-    target = np.array([Th[0], 0.85, Th[2]])
-    return look_at_camera(target + 2.6 * fwd / np.linalg.norm(fwd) + [0, 0.15, 0], target, (0, 1, 0), 42.0,
+    target = np.array([Th[0], height, Th[2]])
+    return look_at_camera(target + 2.6 * fwd / np.linalg.norm(fwd) + [0, 0.15, 0], target, (0, 1, 0), fov,
                           size, size, name)
 
 def write_preview(root: str | Path, plan: dict, cfg, count: int = 6, size: int = 256) -> Path:
@@ -29,7 +30,10 @@ def write_preview(root: str | Path, plan: dict, cfg, count: int = 6, size: int =
 
     root = Path(root)
     names = plan["frames"]
-    picks = np.unique(np.linspace(0, len(names) - 1, min(count, len(names))).round().astype(int))
+    picks = np.linspace(0, len(names) - 1, min(count, len(names))).round().astype(int)
+    if plan["broken"] and len(picks) >= 3:  # show one broken frame
+        picks[1] = names.index(sorted(plan["broken"])[0])
+    picks = np.unique(picks)
     tiles, labels = [], []
     for i in picks:
         name = names[i]
@@ -43,8 +47,9 @@ def write_preview(root: str | Path, plan: dict, cfg, count: int = 6, size: int =
         tiles.append(render_mesh(mesh.vertices, mesh.faces, cam, uvs=mesh.uvs, uv_faces=mesh.uv_faces,
                                  texture=mesh.texture).rgb)
         labels.append(f"{name} {take}{tag}")
-        tiles.append(render_mesh(mesh.vertices, mesh.faces, cam, shading=True).rgb)
-        labels.append(f"{mesh.num_faces} faces")
+        close = _facing_camera(plan["Rh"][i], plan["Th"][i], size, "closeup", height=1.15, fov=20.0)
+        tiles.append(render_mesh(mesh.vertices, mesh.faces, close, shading=True).rgb)
+        labels.append(f"{mesh.num_faces} faces, shaded")
         if plan["cameras"]:
             cam0 = plan["cameras"][i % len(plan["cameras"])]
             img = root / "images" / cam0.name / f"{name}.png"

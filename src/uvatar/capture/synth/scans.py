@@ -81,12 +81,13 @@ def _atlas(positions: np.ndarray, faces: np.ndarray, resolution: int, chart_area
     atlas = xatlas.Atlas()
     atlas.add_mesh(np.ascontiguousarray(positions, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.uint32))
     chart = xatlas.ChartOptions()
-    chart.max_chart_area = float(chart_area)      # small charts: fast, like a scanner's atlas
-    chart.max_boundary_length = 0.8
+    chart.max_chart_area = float(chart_area)  # bounded charts, like a scanner's atlas
+    chart.max_iterations = 0                  # no chart refinement: ~5x faster, similar charts
     pack = xatlas.PackOptions()
     pack.resolution = int(resolution)
     pack.padding = 2
-    pack.bilinear = True
+    pack.bilinear = False                     # borders are bled by fill_atlas_index instead
+    pack.rotate_charts = False
     atlas.generate(chart, pack)
     vmapping, indices, uvs = atlas[0]
     return (np.asarray(uvs, dtype=np.float32), np.asarray(indices, dtype=np.int64),
@@ -94,7 +95,7 @@ def _atlas(positions: np.ndarray, faces: np.ndarray, resolution: int, chart_area
 
 
 def build_topology(fine: FineMesh, rest_offset: np.ndarray, rest_normals: np.ndarray, face_count: int,
-                   rng: np.random.Generator, texture_size: int, chart_area: float = 0.004) -> ScanTopology:
+                   rng: np.random.Generator, texture_size: int, chart_area: float = 0.02) -> ScanTopology:
     """Decimate the clothed rest surface of ``fine`` to about ``face_count`` faces and atlas it.
 
     rest_offset (Vf,) metres and rest_normals (Vf, 3) clothe the fine mesh; a sub-millimetre jitter

@@ -1,0 +1,82 @@
+"""`uvatar bake` on a tiny hand-made capture: rejection of a cut scan, a broken input frame that is
+reported and skipped, resume, dataset.json / npz contract, --eval against gt/."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_avh_bake_helpers import make_capture
+
+from uvatar.cli.main import main
+
+pytestmark = pytest.mark.slow
+
+ARGS = ["--texels", "64", "--visibility-rays", "16", "--refine-iterations", "2", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bake")
+    cap = make_capture(root / "cap", n_frames=4, broken=(1,), unreadable=(2,), gt_texels=128)
+    out = root / "out"
+    code = main(["bake", str(cap), str(out), *ARGS, "--eval", "--ablation-frames", "1",
+                 "--json", str(root / "m.json")])
+    assert code == 0
+    return cap, out, json.loads((root / "m.json").read_text())
+
+
+def test_dataset_contract(baked):
+    _, out, _ = baked
+    info = json.loads((out / "dataset.json").read_text())
+    assert info["texels"] == 64 and info["body_model"]["name"] == "anny"
+    assert info["frames_baked"] == ["000000", "000003"]
+    assert set(info["rejected"]) == {"000001", "000002"}
+    assert "below" in info["rejected"]["000001"] and "broken input" in info["rejected"]["000002"]
+    assert "000002.obj" in info["rejected"]["000002"]                     # the reason names the file
+    assert len(info["conditioning_joints"]) > 0 and info["joint_names"]
+    with np.load(out / "frames" / "000000.npz") as z:
+        assert z["texture"].shape == (64, 64, 3) and z["displacement"].dtype == np.float32
+        assert z["kappa"].shape == (64, 64) and z["w"].shape == (64, 64) and z["valid"].dtype == bool
+        assert z["pose"].ndim == 1 and z["Rh"].shape == (3,) and z["Th"].shape == (3,)
+        assert float(z["kappa_mean"]) > 130 / 255
+    assert (out / "rejected" / "000001.npz").is_file() and not (out / "frames" / "000001.npz").exists()
+    assert not (out / "frames" / "000002.npz").exists()
+    assert (out / "preview" / "000000.png").is_file()
+    assert not list(out.rglob(".*.npz"))                                   # no temp files left behind
+
+
+def test_eval_metrics(baked):
+    _, _, m = baked
+    assert m["frames_rejected"] == ["000001", "000002"] and m["broken_frames"] == ["000001"]
+    err = m["correspondence_error_mm"]
+    assert err["median"] < 2.0 and err["texels"] > 1000                   # exact fits, 1 cm offset
+    assert m["texture_psnr_db"] > 30
+    abl = m["ablation"]
+    assert {"full", "no_registration", "no_polarity_rule", "no_pose_refinement"} <= set(abl)
+    assert abs(abl["full"]["median_mm"] - err["median"]) < 1.0
+
+
+def test_rerun_skips_done_frames_and_reclassifies(baked, tmp_path):
+    cap, out, _ = baked
+    before = (out / "frames" / "000000.npz").stat().st_mtime_ns
+    assert main(["bake", str(cap), str(out), *ARGS]) == 0
+    assert (out / "frames" / "000000.npz").stat().st_mtime_ns == before
+    # a stricter threshold moves accepted frames to rejected/ without baking again
+    assert main(["bake", str(cap), str(out), *ARGS, "--reject-kappa", "0.99"]) == 0
+    info = json.loads((out / "dataset.json").read_text())
+    assert info["frames_baked"] == [] and (out / "rejected" / "000000.npz").is_file()
+    assert main(["bake", str(cap), str(out), *ARGS]) == 0
+    info = json.loads((out / "dataset.json").read_text())
+    assert info["frames_baked"] == ["000000", "000003"]
+
+
+def test_bad_arguments(baked, tmp_path, capsys):
+    cap, out, _ = baked
+    assert main(["bake", str(tmp_path / "nope"), str(tmp_path / "o"), *ARGS]) == 1
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["bake", str(cap), str(out), "--texels", "32", "--no-progress"]) == 1
+    assert "64 texels" in capsys.readouterr().err
+    assert main(["bake", str(cap), str(tmp_path / "o2"), *ARGS, "--frames", "999999"]) == 1
+    assert "999999" in capsys.readouterr().err
