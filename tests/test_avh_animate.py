@@ -115,6 +115,9 @@ def test_pose_sequences(setup):
     _, body, cap = setup
     seq = load_pose_sequence(f"heldout:{cap}", body)
     assert seq.names == ["000003", "000004"] and seq.poses.shape == (2, 18)
+    assert load_pose_sequence(f"take:all:{cap}", body).names == ["000000", "000001", "000002"]
+    with pytest.raises(InputError, match="no take"):
+        load_pose_sequence(f"take:walk:{cap}", body)
     seq = load_pose_sequence(cap, body)
     assert len(seq) == 5 and seq.subsample(2, 2).names == ["000000", "000002"]
     conv = as_pose_sequence({"poses": np.zeros((3, 6, 3)), "fps": 30}, 6)
@@ -126,3 +129,16 @@ def test_pose_sequences(setup):
 def test_framing_distance():
     v = np.array([[0, 0, 0], [0, 2, 0]], np.float32)  # radius 1
     assert framing_distance(v, 60.0, margin=1.0) == pytest.approx(2.0)
+
+
+def test_cli_animate(setup, tmp_path, monkeypatch):
+    import uvatar.body
+    from uvatar.cli.main import main
+
+    root, body, cap = setup
+    monkeypatch.setattr(uvatar.body, "load_body_model", lambda name, **kw: body)
+    out = tmp_path / "v.mp4"
+    assert main(["animate", str(root / "avatar"), "--motion", f"heldout:{cap}", "-o", str(out), "--size", "32",
+                 "--obj-dir", str(tmp_path / "m"), "--mesh-format", "glb"]) == 0
+    assert out.is_file() and len(list((tmp_path / "m").glob("*.glb"))) == 2
+    assert main(["animate", str(root / "avatar"), "--motion", str(tmp_path / "missing.bvh"), "-o", str(out)]) == 1

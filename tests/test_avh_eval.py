@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from uvatar.avh.data import load_frame
-from uvatar.avh.eval import Baselines, EvalConfig, encoded_conditioning, evaluate_avatar, image_metrics, surface_error_mm
+from uvatar.avh.eval import (
+    Baselines,
+    EvalConfig,
+    encoded_conditioning,
+    evaluate_avatar,
+    image_metrics,
+    surface_error_mm,
+)
 from uvatar.avh.export import export_avatar
 from uvatar.avh.model import AvhConfig
 from uvatar.avh.runtime import AvatarRuntime
@@ -99,3 +106,18 @@ def test_evaluate_needs_baked_data(setup, tmp_path):
     root, body, cap, _ = setup
     with pytest.raises(InputError, match="--baked"):
         evaluate_avatar(root / "avatar", cap, EvalConfig(progress=False), baked_dir=tmp_path, body=body)
+
+
+def test_cli_eval(setup, tmp_path, monkeypatch, capsys):
+    import uvatar.body
+    from uvatar.cli.main import main
+
+    root, body, cap, _ = setup
+    monkeypatch.setattr(uvatar.body, "load_body_model", lambda name, **kw: body)
+    out = tmp_path / "m.json"
+    assert main(["eval", str(root / "avatar"), str(cap), "--json", str(out), "--image-size", "32",
+                 "--frames", "1", "--cameras", "1"]) == 0
+    m = json.loads(out.read_text())
+    assert m["frames"] == ["000004"] and m["cameras"] == 1
+    assert "nearest_pose" in capsys.readouterr().out
+    assert main(["eval", str(root / "avatar"), str(tmp_path / "nope")]) == 1

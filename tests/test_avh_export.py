@@ -42,7 +42,7 @@ def test_onnx_dynamic_batch_matches_pytorch(avatar, batch):
     out = onnx_session(avatar / "avatar" / "model.onnx").run(None, {"pose_angles": angles.numpy()})
     with torch.no_grad():
         ref = AvhFromAngles(model)(angles)
-    for a, b in zip(out, ref):
+    for a, b in zip(out, ref, strict=True):
         assert a.shape == (batch, 3, 16, 16)
         assert np.abs(a - b.numpy()).max() <= 1e-4
 

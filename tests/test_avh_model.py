@@ -8,8 +8,17 @@ import pytest
 import torch
 
 from uvatar.avh.model import (
-    PAPER_PARAMETER_COUNTS, PRESETS, AvhConfig, AvhFromAngles, AvhGenerator, count_parameters, encode_pose,
-    expected_parameter_count, preset, preset_table, select_conditioning_angles,
+    PAPER_PARAMETER_COUNTS,
+    PRESETS,
+    AvhConfig,
+    AvhFromAngles,
+    AvhGenerator,
+    count_parameters,
+    encode_pose,
+    expected_parameter_count,
+    preset,
+    preset_table,
+    select_conditioning_angles,
 )
 
 
@@ -75,7 +84,7 @@ def test_from_angles_matches_generator():
     with torch.no_grad():
         a = AvhFromAngles(gen)(angles)
         b = gen(encode_pose(angles))
-    assert all(torch.equal(x, y) for x, y in zip(a, b))
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
 
 
 @pytest.mark.parametrize("bad", [dict(feature_size=8, resolution=24), dict(feature_size=16, resolution=8),

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from uvatar.dva.data import (
     CaptureSource,
@@ -16,6 +17,15 @@ from uvatar.dva.data import (
 )
 from uvatar.errors import InputError
 from uvatar.io_utils import write_image
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """One torch thread: small ops on a shared 2-core machine are far faster without OpenMP."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 
 def make_zju(root, n_cams=21, n_frames=5, size=16, start=0):

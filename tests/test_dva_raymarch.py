@@ -12,6 +12,15 @@ from uvatar.dva.raymarch import raymarch, render_rays
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, accumulate, raymarch_reference
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """One torch thread: small ops on a shared 2-core machine are far faster without OpenMP."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def random_scene(K=6, S=4, seed=0, dtype=torch.float64, density=15.0):
     g = torch.Generator().manual_seed(seed)
     positions = (torch.rand(K, 3, generator=g, dtype=dtype) - 0.5) * 0.6
@@ -56,7 +65,7 @@ def pinhole_scene(n=10, dtype=torch.float64):
     return cam, pix, o, d
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("S", [2, 4])
 @pytest.mark.parametrize("cfg", [CFG, GATHER], ids=["atlas", "gather"])
 def test_forward_parity_float32(seed, S, cfg):

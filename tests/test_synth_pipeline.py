@@ -30,6 +30,13 @@ def test_capture_is_valid(capture):
     assert s["frames"] == 4 and s["scans"] == 4 and s["fits"] == 4
     assert sorted(s["cameras"]) == ["00", "01"] and s["images"] == {"00": 4, "01": 4}
     assert s["gt"] and s["pose_values"] == 312
+    import imageio.v3 as iio
+
+    for cam in ("00", "01"):
+        for frame in ("000000", "000003"):
+            m = iio.imread(root / "masks" / cam / f"{frame}.png") > 127
+            assert 0.02 < m.mean() < 0.5, "the person is in view"
+            assert not (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any()), "and not cut by the frame"
 
 
 def test_ground_truth_maps(capture):

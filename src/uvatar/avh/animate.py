@@ -72,9 +72,10 @@ def frame_camera(config: AnimateConfig, t: int, count: int, vertices: np.ndarray
     return look_at_camera(eye, target, (0, 1, 0), config.fov_deg, config.size, config.size, f"{config.camera}_{t}")
 
 
-def framing_distance(vertices: np.ndarray, fov_deg: float, margin: float = 1.25) -> float:
-    """Distance (m) at which the bounding sphere of ``vertices`` (V, 3) fills the vertical field of view."""
-    radius = 0.5 * float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+def framing_distance(vertices: np.ndarray, fov_deg: float, margin: float = 1.1) -> float:
+    """Distance (m) at which a sphere of the largest bounding-box side of ``vertices`` (V, 3) fills the
+    field of view (times ``margin``); any view direction then keeps the body in a square image."""
+    radius = 0.5 * float((vertices.max(0) - vertices.min(0)).max())
     return margin * radius / np.sin(np.radians(fov_deg) / 2)
 
 

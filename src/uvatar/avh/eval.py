@@ -30,6 +30,7 @@ from uvatar.errors import InputError
 log = logging.getLogger(__name__)
 
 METHODS = ("avh", "mean_texture", "nearest_pose")
+SHORT_NAMES = {"avh": "AVH", "mean_texture": "mean tex", "nearest_pose": "nearest"}
 PROTOCOL = ("held-out frames (gt/info.json heldout_frames), not trained on; avatar and ground-truth scan "
             "rendered with the same ray-cast renderer from each capture camera (white background, no shading); "
             "PSNR (dB) and SSIM (Gaussian window sigma 1.5) over the union of the two foreground masks, "
@@ -189,14 +190,16 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         entry = {"frame": frame, "nearest_training_frame": baselines.frames.names[nn_index]}
         for ci, cam in enumerate(cameras):
             gt = render_mesh(scan.vertices, scan.faces, cam, scan.uvs, scan.uv_faces, scan.texture, raycaster=gt_caster)
-            row = [gt.rgb]
+            row, masks, labels = [gt.rgb], [gt.mask], ["ground truth"]
             for m, mesh in meshes.items():
                 r = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture,
                                 raycaster=casters[m])
                 results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask))
                 row.append(r.rgb)
+                masks.append(r.mask)
+                labels.append(f"{SHORT_NAMES[m]} {results[m][-1]['psnr_db']:.1f} dB")
             if ci == 0:
-                sheets.append((frame, row))
+                sheets.append((frame, crop_to_masks(row, masks), labels))
         gt_npz = capture.gt_dir / "frames" / f"{frame}.npz"
         if gt_npz.is_file():
             with np.load(gt_npz) as z:
@@ -222,14 +225,30 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     return out
 
 
+def crop_to_masks(images: list[np.ndarray], masks: list[np.ndarray], height: int = 320, margin: int = 4):
+    """Crop (H, W, 3) images to the union bounding box of ``masks`` (+ margin) and scale to ``height`` px."""
+    import cv2
+
+    union = np.logical_or.reduce(masks)
+    if not union.any():
+        return images
+    rows, cols = np.flatnonzero(union.any(1)), np.flatnonzero(union.any(0))
+    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, union.shape[0])
+    c0, c1 = max(cols[0] - margin, 0), min(cols[-1] + margin + 1, union.shape[1])
+    s = height / (r1 - r0)
+    size = (max(int(round((c1 - c0) * s)), 1), height)
+    interp = cv2.INTER_NEAREST if s > 1 else cv2.INTER_AREA
+    return [cv2.resize(np.ascontiguousarray(im[r0:r1, c0:c1]), size, interpolation=interp) for im in images]
+
+
 def write_comparison_images(image_dir: str | Path, sheets) -> list[str]:
-    """One PNG per frame: ground truth | AVH | mean texture | nearest pose (first camera)."""
+    """One PNG per frame: ground truth | AVH | mean texture | nearest pose (first camera, PSNR in labels)."""
     from uvatar.io_utils import write_image
     from uvatar.render import contact_sheet
 
     paths = []
-    for frame, row in sheets:
-        sheet = contact_sheet(row, cols=len(row), labels=["ground truth", "AVH", "mean texture", "nearest pose"])
+    for frame, row, labels in sheets:
+        sheet = contact_sheet(row, cols=len(row), labels=labels)
         path = Path(image_dir) / f"{frame}.png"
         write_image(path, sheet)
         paths.append(str(path))

@@ -3,6 +3,7 @@
 ``load_pose_sequence(spec, body)`` understands
 
 - ``heldout:CAPTURE``  the held-out frames of a synthetic capture (``gt/info.json`` ``heldout_frames``)
+- ``take:NAME:CAPTURE``  the frames of one take of a synthetic capture (``gt/info.json`` ``takes``)
 - ``fits:CAPTURE`` or a capture folder  every fit of the capture, in frame order
 - anything else  ``uvatar.motion.load_motion(spec, body)`` (BVH retargeted by joint names, AMASS,
   EasyMocap sequences, synthetic takes)
@@ -59,6 +60,20 @@ def heldout_frames(capture_root: str | Path) -> list[str]:
     if not frames:
         raise InputError(path, "lists no heldout_frames")
     return [str(f) for f in frames]
+
+
+def take_frames(capture_root: str | Path, take: str) -> list[str]:
+    """Frames of take ``take`` (``gt/info.json["takes"][take] = [first, end)`` frame indices)."""
+    from uvatar.capture import Capture
+
+    path = Path(capture_root) / "gt" / "info.json"
+    if not path.is_file():
+        raise InputError(path, "not found: takes need a synthetic capture's gt/info.json")
+    takes = json.loads(path.read_text()).get("takes") or {}
+    if take not in takes:
+        raise InputError(path, f"no take {take!r} (has {sorted(takes)})")
+    first, end = (int(x) for x in takes[take][:2])
+    return Capture(capture_root).frames[first:end]
 
 
 def sequence_from_capture(capture_root: str | Path, frames: list[str] | None = None, body=None) -> PoseSequence:
@@ -122,6 +137,9 @@ def load_pose_sequence(spec: str | Path, body) -> PoseSequence:
     if spec.startswith("heldout:"):
         root = spec[len("heldout:"):]
         return sequence_from_capture(root, heldout_frames(root), body)
+    if spec.startswith("take:"):
+        name, _, root = spec[len("take:"):].partition(":")
+        return sequence_from_capture(root, take_frames(root, name), body)
     if spec.startswith("fits:"):
         return sequence_from_capture(spec[len("fits:"):], None, body)
     if Path(spec).is_dir() and (Path(spec) / "capture.json").is_file():

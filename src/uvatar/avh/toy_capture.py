@@ -64,7 +64,7 @@ def make_toy_capture(root: str | Path, body, num_frames: int = 8, heldout: int =
     write_cameras(cap / "cameras", orbit_cameras((0, 0.8, 0), 3.5, 2, 5.0, fov_deg=35, width=image_size,
                                                  height=image_size))
     write_json(cap / "gt" / "info.json", {"heldout_frames": names[num_frames - heldout:], "broken_frames": [],
-                                          "texels": resolution})
+                                          "texels": resolution, "takes": {"all": [0, num_frames - heldout]}})
     write_json(baked / "dataset.json", {"texels": resolution, "body_model": {"name": body.name, "shapes": None},
                                         "selection": {"train": train[:-1], "val": train[-1:]}})
     return cap, baked

@@ -28,7 +28,12 @@ import torch
 from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, read_dataset_meta, selection
 from uvatar.avh.loss import avh_loss, displacement_mask
 from uvatar.avh.model import (
-    AvhConfig, AvhGenerator, count_parameters, encode_pose, init_output_bias, select_conditioning_angles,
+    AvhConfig,
+    AvhGenerator,
+    count_parameters,
+    encode_pose,
+    init_output_bias,
+    select_conditioning_angles,
 )
 from uvatar.errors import InputError, UvatarError
 from uvatar.io_utils import atomic_path, write_json
@@ -174,7 +179,12 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
         if not resume:
             raise UvatarError(f"{run_dir}: holds a checkpoint; pass --resume to continue or pick a new folder")
         state = _load_checkpoint(ckpt_path)
-        model_config = AvhConfig(**state["model_config"])
+        saved = AvhConfig(**state["model_config"])
+        if (saved.feature_size, saved.latent, saved.resolution) != (model_config.feature_size, model_config.latent,
+                                                                    model_config.resolution):
+            log.warning("resuming %s with its checkpoint's model (f_c=%d, latent=%d, %d texels), not the one asked for",
+                        run_dir, saved.feature_size, saved.latent, saved.resolution)
+        model_config = saved
     meta = read_dataset_meta(baked_dir)
     train_names, val_names = selection(meta, baked_dir)
     R = model_config.resolution

@@ -62,7 +62,7 @@ def register(cli) -> None:
     p = cli.command("animate", help="render an exported avatar driven by a motion to MP4")
     p.formatter_class = _Formatter
     p.epilog = ("motion: a BVH/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE (its fits),\n"
-                "heldout:CAPTURE (its held-out poses)")
+                "heldout:CAPTURE (its held-out poses), take:NAME:CAPTURE (one take of a synthetic capture)")
     p.add_argument("avatar", help="avatar folder (uvatar export)")
     p.add_argument("--motion", required=True, help="motion file or spec (see below)")
     p.add_argument("-o", "--output", required=True, help="video path (.mp4)")

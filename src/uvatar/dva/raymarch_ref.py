@@ -20,7 +20,8 @@ each sample the opacity increment is ``a_i = step * sum_k alpha_k(x_i) f_k(x_i)`
 increment ``c_i = step * sum_k alpha_k f_k rgb_k``. Opacity accumulates additively and saturates:
 ``A_i = min(sum_{j<=i} a_j, 1)``; the colour is weighted by the opacity actually added,
 ``rgb = sum_i (A_i - A_{i-1}) / a_i * c_i``, so the last contribution is scaled to the remainder and
-nothing after saturation counts. Outputs: ``rgb`` (N, 3) (premultiplied, background not included) and
+nothing after saturation counts (increments below 1e-6 count whole while opacity remains, which keeps
+the gradient finite). Outputs: ``rgb`` (N, 3) (premultiplied, background not included) and
 ``alpha = A_last`` (N,). Composite a background as ``rgb + (1 - alpha) * bg``.
 """
 
@@ -128,9 +129,12 @@ def accumulate(a: torch.Tensor, c: torch.Tensor):
     Returns rgb (N, 3), alpha (N,).
     """
     total = torch.cumsum(a, dim=1)
-    before = total - a
-    safe = torch.where(a > 0, a, torch.ones_like(a))
-    ratio = torch.where(a > 0, ((1.0 - before) / safe).clamp(0.0, 1.0), torch.zeros_like(a))
+    remaining = (1.0 - (total - a)).clamp(min=0.0)  # opacity still available before sample i
+    # ratio = (A_i - A_{i-1}) / a_i; increments below eps (1e-6) count whole while opacity remains,
+    # which keeps the division (and its gradient -remaining / a^2) finite
+    big = a > 1e-6
+    safe = torch.where(big, a, torch.ones_like(a))
+    ratio = torch.where(big, (remaining / safe).clamp(max=1.0), (remaining > 0).to(a.dtype))
     rgb = (ratio[..., None] * c).sum(1)
     alpha = total[:, -1].clamp(max=1.0) if a.shape[1] else a.new_zeros(a.shape[0])
     return rgb, alpha

@@ -160,9 +160,15 @@ class Trainer:
         total, terms = self.loss(torch.stack(preds), torch.stack(targets), torch.stack(alphas),
                                  torch.stack(masks), out.scales, self.model.rest_scales)
         self.opt.zero_grad(set_to_none=True)
-        total.backward()
-        torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
-        self.opt.step()
+        if torch.isfinite(total):
+            total.backward()
+            norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+            if torch.isfinite(norm):
+                self.opt.step()
+            else:
+                log.warning("step %d: non-finite gradient, update skipped", self.step)
+        else:
+            log.warning("step %d: non-finite loss, update skipped", self.step)
         self.step += 1
         terms["total"] = float(total.detach())
         mse = float(((torch.stack(preds) - torch.stack(targets)) ** 2).mean().detach())

@@ -18,9 +18,9 @@ from uvatar.avh.bake.confidence import confidence, distance_score, normal_match_
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.correspond import match_texels
 from uvatar.avh.bake.inpaint import inpaint_telea
-from uvatar.avh.bake.register import ScanSurface, register_to_scan
+from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
 from uvatar.errors import InputError
-from uvatar.geometry import RayCaster, UVRaster, rasterize_uv, sample_texture, vertex_normals
+from uvatar.geometry import UVRaster, rasterize_uv, sample_texture, vertex_normals
 
 __all__ = ["BodyLayout", "BakedFrame", "bake_frame", "bake_fit", "shadow_vertices", "preview_image", "check_scan"]
 
@@ -211,7 +211,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         v = np.zeros(len(r))
         v[hit] = (v_vertex[surface.faces[matches.face[hit]]] * matches.bary[hit]).sum(1)
     with _timed(sec, "visibility_registered"):
-        w_vertex = vertex_visibility(registered, layout.faces, RayCaster(registered, layout.faces),
+        w_vertex = vertex_visibility(registered, layout.faces, fast_caster(registered, layout.faces),
                                      config.visibility_rays, eps)
         w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
     with _timed(sec, "confidence"):

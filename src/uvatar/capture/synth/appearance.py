@@ -231,7 +231,7 @@ def crease_maps(f: SurfaceFeatures, L: BodyLandmarks) -> np.ndarray:
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
         return smoothstep(lo, hi, d @ (direction / np.linalg.norm(direction)))
 
-    for k, s in enumerate(("l", "r")):
+    for _k, s in enumerate(("l", "r")):
         sign = 1.0 if s == "l" else -1.0
         sh, el, wr = L[f"{s}_shoulder"], L[f"{s}_elbow"], L[f"{s}_wrist"]
         u, fo = (el - sh) / np.linalg.norm(el - sh), (wr - el) / np.linalg.norm(wr - el)

@@ -27,7 +27,7 @@ class StudioConfig:
     ring_height: float = 1.1
     elevated_height: float = 2.6
     elevated_radius: float = 2.8
-    fov_deg: float = 44.0
+    fov_deg: float = 42.0
 
 
 def studio_cameras(count: int, image_size: int, config: StudioConfig | None = None) -> list[Camera]:

@@ -69,18 +69,21 @@ def fold_maps(f: SurfaceFeatures, L: BodyLandmarks, reg: Regions, cfg: ClothingC
         sh, el, wr = L[f"{s}_shoulder"], L[f"{s}_elbow"], L[f"{s}_wrist"]
         along, angle, _ = limb_coordinates(p, sh, wr)
         el_along = limb_coordinates(el[None], sh, wr)[0][0]
-        inner = (p - el) @ ((-(el - sh) / np.linalg.norm(el - sh) + (wr - el) / np.linalg.norm(wr - el)))
+        inner = (p - el) @ (-(el - sh) / np.linalg.norm(el - sh) + (wr - el) / np.linalg.norm(wr - el))
         weight = np.exp(-((along - el_along) ** 2) / (2 * 0.06**2)) * (0.4 + 0.6 * smoothstep(-0.02, 0.03, inner))
+        weight = weight * f.g(f"upperarm_{s}", f"forearm_{s}")
         out[:, BENDS.index(f"{s}_elbow")] = reg.shirt * weight * ripple(along - el_along + 0.01 * np.sin(2 * angle))
         hip, kn, an = L[f"{s}_hip"], L[f"{s}_knee"], L[f"{s}_ankle"]
         along, angle, _ = limb_coordinates(p, hip, an)
         kn_along = limb_coordinates(kn[None], hip, an)[0][0]
         back = smoothstep(-0.3, 0.8, np.sin(angle))  # limb angle pi/2 is the back of the leg
         weight = np.exp(-((along - kn_along) ** 2) / (2 * 0.07**2)) * (0.35 + 0.65 * back)
+        weight = weight * f.g(f"thigh_{s}", f"shin_{s}")
         out[:, BENDS.index(f"{s}_knee")] = reg.jeans * weight * ripple(along - kn_along + 0.012 * np.cos(angle))
         groin = hip + np.array([0.0, -0.04, 0.05])
         diag = p[:, 1] + 0.6 * sign * (p[:, 0] - hip[0])
-        out[:, BENDS.index(f"{s}_hip")] = (reg.jeans * blob(groin, 0.07) * smoothstep(-0.01, 0.03, p[:, 2] - hip[2])
+        mine = smoothstep(-0.02, 0.01, sign * p[:, 0])  # this side of the body
+        out[:, BENDS.index(f"{s}_hip")] = (reg.jeans * mine * blob(groin, 0.07) * smoothstep(-0.01, 0.03, p[:, 2] - hip[2])
                                            * ripple(diag))
         pit = sh + np.array([-0.02 * sign, -0.09, 0.0])
         radial = np.arctan2(p[:, 2] - pit[2], sign * (p[:, 0] - pit[0]))

@@ -89,7 +89,7 @@ def build_dofs(body) -> list[Dof]:
     def add(name, joint, axis, lo, hi, group):
         dofs.append(Dof(name, int(joint), _unit(axis), float(lo), float(hi), group))
 
-    for s, (lo_f, hi_f) in zip(("spine1", "spine2", "spine3"), ((-8, 22), (-8, 18), (-6, 14))):
+    for s, (lo_f, hi_f) in zip(("spine1", "spine2", "spine3"), ((-8, 22), (-8, 18), (-6, 14)), strict=True):
         add(f"{s}_fwd", sj[s], X, lo_f, hi_f, "spine")
         add(f"{s}_side", sj[s], Z, -10, 10, "spine")
         add(f"{s}_twist", sj[s], Y, -15, 15, "spine")

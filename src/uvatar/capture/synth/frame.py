@@ -156,7 +156,7 @@ class Studio:
 
         if p["cameras"]:
             views = render_views(vertices, topo.faces, topo.uvs, topo.uv_faces, atlas, p["cameras"], cfg.background)
-            for cam, (rgb, mask) in zip(p["cameras"], views):
+            for cam, (rgb, mask) in zip(p["cameras"], views, strict=True):
                 write_image(self.root / "images" / cam.name / f"{name}.png", rgb)
                 write_image(self.root / "masks" / cam.name / f"{name}.png", mask.astype(np.uint8) * 255)
 

