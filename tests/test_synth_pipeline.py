@@ -110,3 +110,35 @@ def test_cli_rejects_bad_input(tmp_path, capsys):
 
     assert main(["synth", str(tmp_path / "x"), "--preset", "quick", "--frames", "0"]) == 1
     assert "--frames" in capsys.readouterr().err
+
+
+def test_cli_makes_a_capture(tmp_path, capsys):
+    from uvatar.cli.main import main
+
+    out = tmp_path / "cli"
+    code = main(["synth", str(out), "--preset", "quick", "--frames", "2", "--cameras", "1", "--image-size", "32",
+                 "--gt-texels", "32", "--no-preview", "--no-progress"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frames"] == 2 and summary["made"] == 2
+    assert (out / "images" / "00" / "000001.png").is_file() and not (out / "preview.png").exists()
+
+
+def test_a_failing_frame_is_reported_and_skipped(tmp_path, monkeypatch):
+    from uvatar.capture.synth.frame import Studio
+
+    original = Studio.make_frame
+
+    def flaky(self, i):
+        if i == 1:
+            raise RuntimeError("simulated crash")
+        return original(self, i)
+
+    monkeypatch.setattr(Studio, "make_frame", flaky)
+    cfg = preset("quick", **{**TINY, "frames": 3, "cameras": 1})
+    summary = synthesize(tmp_path / "flaky", cfg, progress=False)
+    assert summary["made"] == 2 and list(summary["failed"]) == ["000001"]
+    assert "simulated crash" in summary["failed"]["000001"]
+    monkeypatch.setattr(Studio, "make_frame", original)
+    again = synthesize(tmp_path / "flaky", cfg, progress=False)  # resume fills the gap
+    assert again["made"] == 1 and again["skipped"] == 2 and not again["failed"]

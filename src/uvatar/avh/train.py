@@ -203,6 +203,7 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
     use_cuda = device.type == "cuda"
     if use_cuda:
         model = model.to(memory_format=torch.channels_last)
+        torch.backends.cudnn.benchmark = True
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=cfg.lr_gamma)
     history: list[dict] = []

@@ -160,7 +160,9 @@ class Trainer:
         total, terms = self.loss(torch.stack(preds), torch.stack(targets), torch.stack(alphas),
                                  torch.stack(masks), out.scales, self.model.rest_scales)
         self.opt.zero_grad(set_to_none=True)
-        if torch.isfinite(total):
+        if not total.requires_grad:  # no ray met a primitive (and correctives are off): nothing to learn
+            pass
+        elif torch.isfinite(total):
             total.backward()
             norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
             if torch.isfinite(norm):

@@ -111,7 +111,7 @@ def build_dofs(body) -> list[Dof]:
             -8, 18, "arm")
         add(f"{side}_shoulder_raise", sj[f"{side}_shoulder"], np.cross(upper, Y), -32, 95, "arm")
         add(f"{side}_shoulder_fwd", sj[f"{side}_shoulder"], np.cross(upper, Z), -40, 100, "arm")
-        add(f"{side}_shoulder_twist", sj[f"{side}_shoulder"], sign * upper, -45, 45, "arm")
+        add(f"{side}_shoulder_twist", sj[f"{side}_shoulder"], sign * upper, -70, 50, "arm")
         add(f"{side}_elbow_flex", sj[f"{side}_elbow"], np.cross(upper, fore), -38, 95, "arm")
         add(f"{side}_elbow_twist", sj[f"{side}_elbow"], sign * fore, -50, 50, "arm")
         add(f"{side}_wrist_flex", sj[f"{side}_wrist"], np.cross(hand, palm), -45, 50, "hand")

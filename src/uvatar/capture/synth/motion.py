@@ -239,12 +239,13 @@ def _take_gestures(k: _Keys, n, rng, fps, base):
             k.add(rel(0.35), pose)
             k.add(rel(0.75), {**pose, I[f"{s}_shoulder_raise"]: pose[I[f"{s}_shoulder_raise"]] + 10})
         else:
-            up = {I[f"{s}_shoulder_raise"]: rng.uniform(75, 92), I[f"{s}_shoulder_fwd"]: rng.uniform(10, 30),
-                  I[f"{s}_elbow_flex"]: rng.uniform(50, 75), **{i: 0.0 for i in fingers + thumb}}
+            up = {I[f"{s}_shoulder_raise"]: rng.uniform(60, 80), I[f"{s}_shoulder_fwd"]: rng.uniform(5, 20),
+                  I[f"{s}_shoulder_twist"]: -55.0, I[f"{s}_elbow_flex"]: rng.uniform(15, 40),
+                  **{i: 0.0 for i in fingers + thumb}}
             k.add(rel(0.25), up)
-            for j, f in enumerate((0.4, 0.55, 0.7, 0.85)):
+            for j, f in enumerate((0.4, 0.55, 0.7, 0.85)):  # the forearm swings side to side
                 sign = 1 if j % 2 == 0 else -1
-                k.add(rel(f), {**up, I[f"{s}_elbow_twist"]: 30.0 * sign, I[f"{s}_wrist_dev"]: 15.0 * sign})
+                k.add(rel(f), {**up, I[f"{s}_shoulder_twist"]: -55.0 + 13.0 * sign, I[f"{s}_wrist_dev"]: 15.0 * sign})
     k.add(float(max(n - 1, 1)), {})
 
 

@@ -10,6 +10,7 @@ fails is reported and skipped.
 from __future__ import annotations
 
 import logging
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import numpy as np
@@ -97,7 +98,8 @@ def _write_meta(root: Path, cfg: SynthConfig, plan: dict) -> None:
         "heldout_frames": plan["heldout_frames"], "takes": plan["takes"],
         "texel_resolution": cfg.gt_texels, "scan_texture": cfg.scan_texture,
         "segments": plan["segments"], "seed": cfg.seed, "fit_noise_deg": cfg.fit_noise_deg,
-        "body_model": cfg.body_model, "config": cfg.to_dict()})
+        "body_model": cfg.body_model,
+        "config": {k: v for k, v in cfg.to_dict().items() if k not in ("workers", "preview")}})
     motion_path = root / "gt" / "motion.npz"
     if not motion_path.is_file():
         write_npz(motion_path, poses=plan["poses"], Rh=plan["Rh"], Th=plan["Th"],
@@ -140,7 +142,8 @@ def _frame_task(i: int) -> dict:
         return {"frame": _STUDIO.plan["frames"][i], "error": f"{type(exc).__name__}: {exc}"}
 
 
-def _run(tasks, fn, workers, init_args, desc, progress, pool=None):
+def _run(tasks, fn, pool, desc, progress):
+    """Run ``fn`` over ``tasks`` in ``pool`` (or in process when None) with a tqdm bar."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(tasks), desc=desc, unit="frame" if fn is _frame_task else "topology",
@@ -159,6 +162,16 @@ def _run(tasks, fn, workers, init_args, desc, progress, pool=None):
             bar.update(1)
     bar.close()
     return results
+
+
+def _run_pool(cfg, root, plan, topo_todo, frame_todo, workers, progress) -> list[dict]:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                             initargs=(cfg, root, plan)) as pool:
+        _run(topo_todo, _topology_task, pool, "scan topologies", progress)
+        return _run(frame_todo, _frame_task, pool, "frames", progress)
 
 
 def synthesize(out: str | Path, config: SynthConfig | None = None, progress: bool = True) -> dict:
@@ -185,19 +198,18 @@ def synthesize(out: str | Path, config: SynthConfig | None = None, progress: boo
         topo_todo = [s for s in topo_todo if s in needed]
         workers = max(1, min(int(cfg.workers), len(frame_todo) or 1))
         results = []
-        if frame_todo:
-            if workers == 1:
-                _init_worker(cfg, root, plan)
-                _run(topo_todo, _topology_task, 1, None, "scan topologies", progress)
-                results = _run(frame_todo, _frame_task, 1, None, "frames", progress)
-            else:
-                import multiprocessing as mp
-                from concurrent.futures import ProcessPoolExecutor
-
-                with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                                         initargs=(cfg, root, plan)) as pool:
-                    _run(topo_todo, _topology_task, workers, None, "scan topologies", progress, pool)
-                    results = _run(frame_todo, _frame_task, workers, None, "frames", progress, pool)
+        if frame_todo and workers > 1:
+            try:
+                results = _run_pool(cfg, root, plan, topo_todo, frame_todo, workers, progress)
+            except BrokenProcessPool as exc:  # e.g. no importable __main__ for spawn, or a worker died
+                log.warning("worker pool failed (%s); making the remaining frames in this process", exc)
+                topo_todo = [s for s in topo_todo if not (root / "gt" / "topologies" / f"{s:03d}.npz").is_file()]
+                frame_todo = [i for i in frame_todo if not gt_frame_path(root, plan["frames"][i]).is_file()]
+                workers = 1
+        if frame_todo and workers == 1:
+            _init_worker(cfg, root, plan)
+            _run(topo_todo, _topology_task, None, "scan topologies", progress)
+            results += _run(frame_todo, _frame_task, None, "frames", progress)
         failed = {r["frame"]: r["error"] for r in results if "error" in r}
         if cfg.preview:
             from uvatar.capture.synth.preview import write_preview

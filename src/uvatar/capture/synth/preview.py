@@ -47,7 +47,7 @@ def write_preview(root: str | Path, plan: dict, cfg, count: int = 6, size: int =
         tiles.append(render_mesh(mesh.vertices, mesh.faces, cam, uvs=mesh.uvs, uv_faces=mesh.uv_faces,
                                  texture=mesh.texture).rgb)
         labels.append(f"{name} {take}{tag}")
-        close = _facing_camera(plan["Rh"][i], plan["Th"][i], size, "closeup", height=1.15, fov=20.0)
+        close = _facing_camera(plan["Rh"][i], plan["Th"][i], size, "closeup", height=1.1, fov=24.0)
         tiles.append(render_mesh(mesh.vertices, mesh.faces, close, shading=True).rgb)
         labels.append(f"{mesh.num_faces} faces, shaded")
         if plan["cameras"]:
