@@ -126,6 +126,16 @@ def test_topology_origins_reproduce_the_clothed_rest_surface(body):
     other = build_topology(fine, offset, n, 5500, np.random.default_rng(1), 128)
     assert len(other.faces) != len(topo.faces)
 
+    # atlas texels -> body points: sparse fast path vs the per-texel reference twin
+    from uvatar.capture.synth.scans import atlas_texel_matrix, atlas_texel_points_reference
+    from uvatar.geometry.uv_raster import rasterize_uv
+
+    raster = rasterize_uv(topo.uvs, topo.uv_faces, 24)
+    Wt, flat = atlas_texel_matrix(topo, raster, t.faces, t.num_vertices)
+    assert len(flat) == raster.mask.sum() > 50
+    ref = atlas_texel_points_reference(topo, raster, t.faces, t.vertices.astype(np.float64))
+    assert np.allclose(Wt @ t.vertices.astype(np.float64), ref, atol=1e-9)
+
 
 def test_studio_cameras_look_at_the_person():
     from uvatar.capture.synth.cameras import StudioConfig, studio_cameras

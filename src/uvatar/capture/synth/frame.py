@@ -21,7 +21,8 @@ from uvatar.capture.synth import surface as srf
 from uvatar.capture.synth.bends import bend_amounts
 from uvatar.capture.synth.config import SynthConfig
 from uvatar.capture.synth.gt import scatter_texels, write_gt_frame
-from uvatar.capture.synth.scans import ScanTopology, cut_scan, fill_atlas_index, fine_mesh, pose_scan
+from uvatar.capture.synth.scans import (ScanTopology, atlas_texel_matrix, cut_scan, fill_atlas_index, fine_mesh,
+                                        pose_scan)
 
 __all__ = ["Statics", "Studio", "frame_rng"]
 
@@ -101,11 +102,9 @@ class Studio:
             topo = ScanTopology.from_npz(data)
         Wv = topo.vertex_matrix(self.template.faces, self.template.num_vertices)
         vert = self.statics(Wv, looks=False)
-        R = self.cfg.scan_texture
-        raster = rasterize_uv(topo.uvs, topo.uv_faces, R)
-        flat = np.flatnonzero(raster.mask.ravel())
-        Bt = srf.bary_matrix(topo.faces, raster.face_index.ravel()[flat], raster.bary.reshape(-1, 3)[flat], len(Wv.indptr) - 1)
-        texel = self.statics((Bt @ Wv).tocsr(), geometry=False)
+        raster = rasterize_uv(topo.uvs, topo.uv_faces, self.cfg.scan_texture)
+        Wt, flat = atlas_texel_matrix(topo, raster, self.template.faces, self.template.num_vertices)
+        texel = self.statics(Wt, geometry=False)
         entry = (topo, vert, texel, flat, fill_atlas_index(raster.mask))
         self._segments[index] = entry
         while len(self._segments) > 2:

@@ -22,7 +22,7 @@ from uvatar.capture.synth.surface import bary_matrix
 from uvatar.errors import require
 
 __all__ = ["FineMesh", "ScanTopology", "fine_mesh", "build_topology", "pose_scan", "cut_scan",
-           "fill_atlas_index"]
+           "fill_atlas_index", "atlas_texel_matrix", "atlas_texel_points_reference"]
 
 
 @dataclass
@@ -156,3 +156,29 @@ def fill_atlas_index(mask: np.ndarray) -> np.ndarray:
         return np.arange(mask.size)
     _, (ri, ci) = distance_transform_edt(~mask, return_indices=True)
     return (ri * mask.shape[1] + ci).ravel()
+
+
+def atlas_texel_matrix(topo: ScanTopology, raster, template_faces: np.ndarray,
+                       num_template_vertices: int) -> tuple[sp.csr_matrix, np.ndarray]:
+    """(W (N, V), flat (N,)): body origins of the covered texels of a scan-atlas raster as sparse
+    weights over template vertices (texel bary in the scan face x scan vertices' body bary)."""
+    flat = np.flatnonzero(raster.mask.ravel())
+    Wv = topo.vertex_matrix(template_faces, num_template_vertices)
+    Bt = bary_matrix(topo.faces, raster.face_index.ravel()[flat], raster.bary.reshape(-1, 3)[flat], Wv.shape[0])
+    return (Bt @ Wv).tocsr(), flat
+
+
+def atlas_texel_points_reference(topo: ScanTopology, raster, template_faces: np.ndarray,
+                                 vertices: np.ndarray) -> np.ndarray:
+    """Plain twin of ``atlas_texel_matrix(...)[0] @ vertices``: a loop over texels (tiny rasters only)."""
+    out = []
+    for t in np.flatnonzero(raster.mask.ravel()):
+        f = raster.face_index.ravel()[t]
+        b = raster.bary.reshape(-1, 3)[t]
+        point = np.zeros(3)
+        for corner in range(3):
+            s = topo.faces[f, corner]
+            body_face = template_faces[topo.origin_face[s]]
+            point += b[corner] * (topo.origin_bary[s] @ vertices[body_face])
+        out.append(point)
+    return np.asarray(out).reshape(-1, 3)

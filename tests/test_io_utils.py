@@ -1,0 +1,52 @@
+"""Atomic writes: outputs appear whole or not at all."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from uvatar.errors import InputError, MissingDependencyError, require
+from uvatar.io_utils import atomic_path, write_image, write_json, write_npz
+
+
+def test_atomic_path_renames_on_success(tmp_path):
+    target = tmp_path / "sub" / "out.txt"
+    with atomic_path(target) as tmp:
+        assert tmp.parent == target.parent and tmp.suffix == ".txt"
+        tmp.write_text("hello")
+        assert not target.exists()
+    assert target.read_text() == "hello"
+    assert oct(os.stat(target).st_mode & 0o777) != oct(0o600)  # not mkstemp's private mode
+    assert list(target.parent.iterdir()) == [target]
+
+
+def test_atomic_path_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.json"
+    target.write_text("old")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("crash")
+    assert target.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.json"]
+
+
+def test_write_json_npz_image_round_trip(tmp_path):
+    write_json(tmp_path / "a.json", {"x": np.float32(1.5), "arr": np.arange(3)})
+    assert json.loads((tmp_path / "a.json").read_text()) == {"x": 1.5, "arr": [0, 1, 2]}
+    write_npz(tmp_path / "b.npz", d=np.eye(2))
+    np.testing.assert_array_equal(np.load(tmp_path / "b.npz")["d"], np.eye(2))
+    img = np.zeros((4, 5, 3), np.float32)
+    img[1, 2] = 1.0
+    write_image(tmp_path / "c.png", img)
+    import imageio.v3 as iio
+
+    back = iio.imread(tmp_path / "c.png")
+    assert back.shape == (4, 5, 3) and back[1, 2].tolist() == [255, 255, 255] and back.sum() == 765
+
+
+def test_error_messages_are_one_line():
+    err = InputError("fits/000001.json", "Rh has shape (2,), expected (3,)")
+    assert str(err) == "fits/000001.json: Rh has shape (2,), expected (3,)"
+    with pytest.raises(MissingDependencyError, match=r"pip install 'uvatar\[nope\]'"):
+        require("definitely_not_a_module_xyz", "nope", "testing")
