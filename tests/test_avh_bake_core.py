@@ -7,14 +7,19 @@ import numpy as np
 import pytest
 
 from uvatar.avh.bake.confidence import (
-    distance_score, face_visibility, face_visibility_reference, frames_from_normals, hemisphere_directions,
-    normal_match_score, vertex_visibility,
+    distance_score,
+    face_visibility,
+    face_visibility_reference,
+    frames_from_normals,
+    hemisphere_directions,
+    normal_match_score,
+    vertex_visibility,
 )
 from uvatar.avh.bake.config import BakeConfig, PoseRefineConfig, RegistrationConfig
 from uvatar.avh.bake.correspond import choose_candidates, choose_candidates_reference, match_texels
 from uvatar.avh.bake.inpaint import inpaint_telea
-from uvatar.avh.bake.register import ScanSurface, register_to_scan, uniform_laplacian_matrix
 from uvatar.avh.bake.refine import region_weights, subtree_weights
+from uvatar.avh.bake.register import ScanSurface, register_to_scan, uniform_laplacian_matrix
 
 
 def icosphere(subdivisions: int = 3, radius: float = 1.0):

@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 class DemoConfig:
     """Sizes of the demo run. ``DEFAULT`` fits in ~15 min on a 2-core CPU, ``QUICK`` in ~3 min."""
 
-    frames: int = 100           # synthetic capture frames (takes), plus held-out poses
+    frames: int = 100           # synthetic capture frames in all (takes + held-out poses)
     heldout: int = 8            # held-out frames with poses not in the takes
     cameras: int = 4
     image_size: int = 256
@@ -40,12 +40,13 @@ class DemoConfig:
     animate_size: int = 256
     seed: int = 0
     workers: int = 2
+    synth_preset: str = "default"  # "quick": small scans (6k-12k faces), short topology segments
 
 
 DEFAULT = DemoConfig()
 QUICK = DemoConfig(frames=12, heldout=3, cameras=2, image_size=96, scan_texture=256, gt_texels=64,
                    texels=64, train_frames=8, val_frames=2, preset="cpu-tiny", epochs=2,
-                   animate_frames=6, animate_size=96)
+                   animate_frames=6, animate_size=96, synth_preset="quick")
 
 
 @dataclass
@@ -86,7 +87,7 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, str, list[str], P
     """The pipeline as (stage name, command, argv, output that marks it done)."""
     cap, baked, run, avatar = out / "capture", out / "baked", out / "run", out / "avatar"
     return [
-        ("synth", "synth", ["synth", str(cap), "--frames", str(cfg.frames), "--heldout", str(cfg.heldout),
+        ("synth", "synth", ["synth", str(cap), "--preset", cfg.synth_preset, "--frames", str(cfg.frames), "--heldout", str(cfg.heldout),
                             "--cameras", str(cfg.cameras), "--image-size", str(cfg.image_size),
                             "--scan-texture", str(cfg.scan_texture), "--gt-texels", str(cfg.gt_texels),
                             "--seed", str(cfg.seed), "--workers", str(cfg.workers)], cap / "capture.json"),

@@ -13,10 +13,13 @@ from dataclasses import asdict, dataclass, field, fields, replace
 class RegistrationConfig:
     """Progressive non-rigid registration of the shadow mesh to the scan (Morgenstern et al. 2019).
 
-    Each stage s solves ``min_X sum_i w_i |x_i - c_i|^2 + stiffness_s |L X - L X_shadow|^2`` as a
-    sparse linear least-squares problem (L: uniform graph Laplacian, so the stiffness is
-    dimensionless), ``iterations_s`` times with fresh closest-point matches c_i. Stiff stages move
-    whole limbs (they fix tangential fit error), flexible ones follow the clothing.
+    Runs after the articulated fit refinement (:class:`PoseRefineConfig`, the stiffest stage). Each
+    stage s solves a sparse linear least-squares problem with a uniform graph Laplacian L (so the
+    stiffness is dimensionless), ``iterations_s`` times with fresh matches c_i: "closest"/"rays"
+    stages ``min_X sum_i w_i |x_i - c_i|^2 + k_s |L X - L X_shadow|^2``; "normal" stages move each
+    vertex along its normal by h_i, ``min_h sum_i w_i (h_i - t_i)^2 + k_s |L h|^2``. The default is
+    normal stages only, stiff to flexible: on `uvatar synth` captures, vector stages after the pose
+    refinement slid vertices tangentially (median error 2.6 mm vs 1.9 mm with normal stages).
 
     stiffness: Laplacian weight per stage, coarse (stiff) to fine (flexible).
     iterations: solves per stage (same length as ``stiffness``).
@@ -31,10 +34,10 @@ class RegistrationConfig:
         without any match.
     """
 
-    stiffness: tuple[float, ...] = (300.0, 30.0, 3.0)
-    iterations: tuple[int, ...] = (2, 1, 2)
-    max_distance: tuple[float, ...] = (1 / 25, 1 / 40, 1 / 50)
-    modes: tuple[str, ...] = ("closest", "closest", "normal")
+    stiffness: tuple[float, ...] = (30.0, 3.0)
+    iterations: tuple[int, ...] = (1, 2)
+    max_distance: tuple[float, ...] = (1 / 25, 1 / 50)
+    modes: tuple[str, ...] = ("normal", "normal")
     max_normal_angle_deg: float = 60.0
     anchor_weight: float = 1e-4
 
@@ -53,12 +56,12 @@ class PoseRefineConfig:
     toward zero, in metres^2 per radian^2 per matched vertex; max_step_deg: cap on one update;
     max_vertices: evenly spread subset of shadow vertices used for matching (None = all)."""
 
-    iterations: int = 8
+    iterations: int = 15
     max_distance: float = 1 / 20
     max_normal_angle_deg: float = 60.0
     huber: float = 0.005
     damping: float = 1e-3
-    prior: float = 1e-3
+    prior: float = 1e-4
     max_step_deg: float = 10.0
     max_vertices: int | None = 4000
 

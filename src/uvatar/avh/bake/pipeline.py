@@ -19,11 +19,14 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.dataset import (
-    frame_path, read_dataset_info, read_frame_scalar, rejected_path, write_baked_frame, write_dataset_info,
+    frame_path,
+    read_dataset_info,
+    read_frame_scalar,
+    rejected_path,
+    write_baked_frame,
+    write_dataset_info,
 )
 from uvatar.errors import InputError
 

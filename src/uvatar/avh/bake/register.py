@@ -154,7 +154,6 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
     lap = uniform_laplacian_matrix(f, len(x0))
     ltl = (lap.T @ lap).tocsr()
     ltl_x0 = ltl @ x0
-    eye = sp.identity(len(x0), format="csr")
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
     x = x0.copy()
     matched_fraction = []

@@ -21,8 +21,14 @@ from uvatar.capture.synth import surface as srf
 from uvatar.capture.synth.bends import bend_amounts
 from uvatar.capture.synth.config import SynthConfig
 from uvatar.capture.synth.gt import scatter_texels, write_gt_frame
-from uvatar.capture.synth.scans import (ScanTopology, atlas_texel_matrix, cut_scan, fill_atlas_index, fine_mesh,
-                                        pose_scan)
+from uvatar.capture.synth.scans import (
+    ScanTopology,
+    atlas_texel_matrix,
+    cut_scan,
+    fill_atlas_index,
+    fine_mesh,
+    pose_scan,
+)
 
 __all__ = ["Statics", "Studio", "frame_rng"]
 
