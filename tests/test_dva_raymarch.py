@@ -93,7 +93,7 @@ def test_gradient_parity(seed):
         return torch.autograd.grad(loss, leaves)
 
     for name, gf, gr in zip(("positions", "rotations", "scales", "payload"), grads(raymarch),
-                            grads(raymarch_reference)):
+                            grads(raymarch_reference), strict=False):
         assert gr.norm() > 0, name
         rel = (gf - gr).norm() / gr.norm()
         assert rel <= 1e-3, (name, float(rel))
@@ -120,7 +120,7 @@ def test_pinhole_culling_parity(seed):
     rgb_r, a_r, g_r = run(raymarch_reference)
     assert (a_r > 0.05).sum() > 10
     assert torch.allclose(rgb_p, rgb_r, atol=1e-6) and torch.allclose(a_p, a_r, atol=1e-6)
-    for gp, gr in zip(g_p, g_r):
+    for gp, gr in zip(g_p, g_r, strict=False):
         assert (gp - gr).norm() <= 1e-3 * gr.norm()
 
 
@@ -132,8 +132,8 @@ def test_pinhole_candidates_cover_exact_hits():
     prims = make_prims(*random_scene(K=9, S=2, seed=7))
     ray, prim, _, _ = candidate_pairs(o, d, prims)
     r2, p2 = pinhole_candidates(cam, torch.as_tensor(pix), prims)
-    exact = set(zip(ray.tolist(), prim.tolist()))
-    assert exact and exact <= set(zip(r2.tolist(), p2.tolist()))
+    exact = set(zip(ray.tolist(), prim.tolist(), strict=False))
+    assert exact and exact <= set(zip(r2.tolist(), p2.tolist(), strict=False))
     assert torch.all(r2[1:] >= r2[:-1])  # sorted by ray
 
 

@@ -103,3 +103,15 @@ def test_cli_train_render_eval(capture, tmp_path):
     assert "psnr_db" in json.loads((tmp_path / "m.json").read_text())
     assert main(["render", "dva", str(run), "--motion", str(capture), "--views", "nope",
                  "-o", str(out)]) == 1
+
+
+def test_broken_frames_are_skipped(tmp_path):
+    root = write_toy_capture(tmp_path / "cap", frames=4, cameras=4, size=8)  # frame 3 is held out
+    (root / "images" / "cam01" / "000001.png").unlink()
+    (root / "fits" / "000000.json").write_text("{not json")
+    s = train_dva(open_source(root), tmp_path / "run", preset("tiny"), iters=1, progress=False)
+    assert set(s["skipped_frames"]) == {"000000", "000001"} and s["frames"] == 1 and s["steps"] == 1
+    assert "cam01" in s["skipped_frames"]["000001"] and "invalid JSON" in s["skipped_frames"]["000000"]
+    (root / "fits" / "000002.json").unlink()
+    with pytest.raises(InputError, match="no usable frame"):
+        train_dva(open_source(root), tmp_path / "run2", preset("tiny"), iters=1, progress=False)

@@ -8,16 +8,17 @@ def register(cli) -> None:
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
     p.add_argument("out", help="run folder (checkpoint.pt, run.json, tb/)")
-    p.add_argument("--preset", default="cpu", help="config preset: cpu (K=256, S=8), paper (K=4096, S=16), tiny")
-    p.add_argument("--minutes", type=float, default=None, help="wall-clock budget (default: the preset's)")
-    p.add_argument("--iters", type=int, default=None, help="stop after this many steps (default: the preset's)")
+    p.add_argument("--preset", default="cpu", choices=("cpu", "paper", "tiny"),
+                   help="config preset: cpu (K=256, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
+    p.add_argument("--minutes", type=float, default=None, help="wall-clock budget in minutes; unset = the preset's")
+    p.add_argument("--iters", type=int, default=None, help="stop after this many steps; unset = the preset's")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--vgg-weights", default=None,
                    help="torchvision VGG-19 state dict for the perceptual loss (without it: 1 - SSIM)")
     _threads(p)
-    p.add_argument("--grid", type=int, default=None, help="primitives per UV side W (K = W*W)")
-    p.add_argument("--voxels", type=int, default=None, help="voxels per primitive side S")
+    p.add_argument("--grid", type=int, default=None, help="primitives per UV side W (K = W*W); unset = preset")
+    p.add_argument("--voxels", type=int, default=None, help="voxels per primitive side S; unset = preset")
     p.set_defaults(func=_train)
 
     p = cli.command("render dva", help="drive a DVA avatar with a pose sequence + 2-3 driving views")
@@ -88,6 +89,8 @@ def _render(args) -> int:
     model, body, meta, _ = load_run(args.run, args.device)
     source = open_source(args.motion)
     views = [v for v in args.views.split(",") if v]
+    if not views:
+        raise InputError("--views", "name at least one driving camera (the method expects 2-3)")
     for v in views:
         if v not in source.cameras:
             raise InputError(args.motion, f"driving camera {v!r} not found (have {sorted(source.cameras)})")

@@ -58,7 +58,7 @@ class FrameBank:
                 r, v = body_inputs(body, [fit])
                 imgs = [source.image(c, frame) for c in self.cameras]
                 msks = [np.asarray(source.mask(c, frame), np.float32) for c in self.cameras]
-                for c, im, m in zip(self.cams, imgs, msks):
+                for c, im, m in zip(self.cams, imgs, msks, strict=False):
                     if im.shape[:2] != m.shape[:2]:
                         raise InputError(f"{c.name}/{frame}", f"image {im.shape[:2]} and mask {m.shape[:2]} differ")
             except InputError as exc:

@@ -54,7 +54,7 @@ def drive_sequence(model, body, source, frames, driving_cameras, target_camera, 
     cams = [source.cameras[c] for c in driving_cameras]
     frames = list(frames)
     targets = target_camera if isinstance(target_camera, list | tuple) else [target_camera] * len(frames)
-    for frame, target in tqdm(list(zip(frames, targets)), desc="render dva", disable=not progress, unit="frame"):
+    for frame, target in tqdm(list(zip(frames, targets, strict=False)), desc="render dva", disable=not progress, unit="frame"):
         try:
             rot, verts = body_inputs(body, [source.fit(frame)])
             imgs = [source.image(c, frame) for c in driving_cameras]

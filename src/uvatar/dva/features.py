@@ -124,7 +124,7 @@ def unwrap_views(raster, template, posed_vertices: np.ndarray, cameras, images, 
     caster = RayCaster(np.asarray(posed_vertices, np.float32), template.faces)
     texs = np.zeros((len(images), R * R, 3), np.float32)
     vis = np.zeros((len(images), R * R), bool)
-    for i, (cam, img) in enumerate(zip(cameras, images)):
+    for i, (cam, img) in enumerate(zip(cameras, images, strict=False)):
         m = None if masks is None else masks[i]
         c, v = unwrap_view(pts[covered], nrm[covered], cam, img, m, caster, eps)
         texs[i, covered] = c

@@ -136,7 +136,7 @@ class DvaLoss(nn.Module):
         c = self.cfg
         terms = {"rgb": F.mse_loss(pred, target)}
         if self.vgg is not None and c.perceptual > 0:
-            terms["perceptual"] = sum(F.l1_loss(a, b) for a, b in zip(self.vgg(pred), self.vgg(target)))
+            terms["perceptual"] = sum(F.l1_loss(a, b) for a, b in zip(self.vgg(pred), self.vgg(target), strict=False))
         elif c.ssim > 0:
             terms["ssim"] = 1.0 - ssim_torch(pred, target)
         if c.mask > 0:

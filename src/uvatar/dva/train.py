@@ -96,8 +96,7 @@ class Trainer:
         state = None
         if resume and ckpt.is_file():
             state = torch.load(ckpt, map_location=self.device, weights_only=False)
-            cfg = DvaConfig.from_dict(state["config"])
-            train_keep = cfg.train
+            cfg = DvaConfig.from_dict(state["config"])  # the run's own config wins on resume
             log.info("resuming from %s at step %d", ckpt, state["step"])
         self.cfg = cfg
         body_name = getattr(body, "name", None) or source.body_model
@@ -120,7 +119,6 @@ class Trainer:
             if state.get("optimizer"):
                 self.opt.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
-            self.cfg.train = train_keep
 
     def sample(self):
         """One batch: (frame indices, camera indices, image textures (B,4,R,R))."""
@@ -132,7 +130,7 @@ class Trainer:
             views = [list(range(n_cam))] * t.batch
         else:
             views = [self.rng.sample(range(n_cam), min(t.driving_views, n_cam)) for _ in range(t.batch)]
-        tex = torch.stack([self.bank.image_texture(f, v) for f, v in zip(frames, views)])
+        tex = torch.stack([self.bank.image_texture(f, v) for f, v in zip(frames, views, strict=False)])
         return frames, cams, tex.to(self.device)
 
     def train_step(self) -> dict:
@@ -144,7 +142,7 @@ class Trainer:
         out = self.model(self.bank.vertices[fi].to(self.device), self.bank.rotvecs[fi].to(self.device), tex,
                          centers.to(self.device))
         preds, targets, alphas, masks = [], [], [], []
-        for b, (f, c) in enumerate(zip(frames, cams)):
+        for b, (f, c) in enumerate(zip(frames, cams, strict=False)):
             mask = self.bank.masks[f][c]
             pix = patch_pixels(mask, t.patch, self.rng)
             o, d = pixel_rays(self.bank.cams[c], pix, self.device)
@@ -193,8 +191,9 @@ class Trainer:
         try:
             while self.step < iters and (time.time() - start) < minutes * 60:
                 last = self.train_step()
-                for k, v in last.items():
-                    writer.add_scalar(f"loss/{k}", v, self.step)
+                if self.step % 10 == 0 or self.step == 1:
+                    for k, v in last.items():
+                        writer.add_scalar(f"loss/{k}", v, self.step)
                 bar.update(1)
                 bar.set_postfix(loss=f"{last['total']:.4f}", psnr=f"{last['psnr']:.1f}")
                 if self.step % t.checkpoint_every == 0:

@@ -63,7 +63,8 @@ def face_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: in
     out = np.empty(len(f))
     for s in range(0, len(f), faces_per_batch):
         frames = frames_from_normals(normals[s:s + faces_per_batch])        # (B, 3, 3)
-        d = np.einsum("bij,kj->bki", frames, dirs).reshape(-1, 3)           # (B*K, 3)
+        b = len(frames)
+        d = (frames.reshape(b * 3, 3) @ dirs.T).reshape(b, 3, n_rays).transpose(0, 2, 1).reshape(-1, 3)
         o = np.repeat(centroids[s:s + faces_per_batch], n_rays, axis=0)
         blocked = caster.any_hit(o, d).reshape(-1, n_rays)
         out[s:s + faces_per_batch] = 1.0 - blocked.mean(axis=1)

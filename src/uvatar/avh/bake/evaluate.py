@@ -3,9 +3,11 @@
 Over texels with kappa > ``kappa_threshold`` (0.5): ``correspondence_error_mm`` {median, mean, p90}
 = |x - true clothed point of the texel| (x = s + d, s the shadow twin), ``texture_psnr_db`` of the
 baked texture against the true texture; ``frames_rejected`` against gt ``broken_frames``; and an
-``ablation``: the same median error without registration and without the polarity rule (frames
-re-baked in memory), measured on the full pipeline's confident texels, plus the error over every
-matched texel (what the confidence map removes).
+``ablation``: the same median error (and PSNR) without registration (neither the articulated
+pose refinement nor the vertex stages), without each of the two, and without the polarity rule
+(frames re-baked in memory), measured on the full pipeline's confident texels; per variant also the
+median over its own confident texels and the fraction of valid texels that are confident; plus the
+error over every matched texel (what the confidence map removes).
 
 gt layout (capture contract): ``gt/info.json`` (broken_frames, heldout_frames), ``gt/frames/F.npz``
 with ``surface`` (G, G, 3) world metres, ``texture`` (G, G, 3), ``mask`` (G, G) in the body UV
@@ -174,7 +176,9 @@ def _ablation(capture, body, layout, bake_cfg, confident, config: EvalConfig, pr
                 "no_vertex_registration": replace(bake_cfg, register=False),
                 "no_polarity_rule": replace(bake_cfg, polarity_rule=False)}
     common = {k: [] for k in variants}
+    common_sq = {k: [] for k in variants}
     own = {k: [] for k in variants}
+    coverage = {k: [] for k in variants}
     r = bake_cfg.texels
     for f in tqdm(names, desc="ablation", unit="frame", disable=not progress):
         gt = _gt(capture.root, f, r)
@@ -184,12 +188,17 @@ def _ablation(capture, body, layout, bake_cfg, confident, config: EvalConfig, pr
         for name, cfg in variants.items():
             baked, _ = bake_fit(body, fit, layout, scan, cfg, shape)
             score_common = confident[f] & baked.matched
-            common[name].append(texel_errors(baked.points, baked.texture, score_common, *gt)[0])
+            e, q = texel_errors(baked.points, baked.texture, score_common, *gt)
+            common[name].append(e)
+            common_sq[name].append(q)
             score_own = baked.valid & (baked.kappa > config.kappa_threshold)
             own[name].append(texel_errors(baked.points, baked.texture, score_own, *gt)[0])
+            coverage[name].append(score_own.sum() / max(baked.valid.sum(), 1))
     out = {"frames": names}
     for name in variants:
         out[name] = {"median_mm": _summary(common[name])["median"],
+                     "p90_mm": _summary(common[name])["p90"],
+                     "texture_psnr_db": _psnr(common_sq[name]),
                      "median_mm_own_confident_texels": _summary(own[name])["median"],
-                     "p90_mm": _summary(common[name])["p90"]}
+                     "confident_fraction": float(np.mean(coverage[name]))}
     return out

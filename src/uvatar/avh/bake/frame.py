@@ -145,6 +145,31 @@ def bake_fit(body, fit, layout: BodyLayout, scan, config: BakeConfig | None = No
              scan_path: str = "scan"):
     """Pose the shadow mesh from ``fit`` (refined against the scan first if ``config.refine_pose``)
     and bake. Returns (BakedFrame, the fit actually used: store it with the maps)."""
+    with _single_threaded_blas():
+        return _bake_fit(body, fit, layout, scan, config, shape, scan_path)
+
+
+@contextmanager
+def _single_threaded_blas():
+    """BLAS and torch threads only spin against each other here (small dense solves and one-body
+    LBS, many processes): one thread makes the fit refinement ~4-8x faster on a busy 2-core machine."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
+            yield
+            return
+        with threadpool_limits(limits=1, user_api="blas"):
+            yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _bake_fit(body, fit, layout, scan, config, shape, scan_path):
     from uvatar.avh.bake.refine import refine_fit
 
     config = config or BakeConfig()
