@@ -46,6 +46,10 @@ def test_curriculum_switches_to_three_views(capture):
     _, _, tex = trainer.sample()
     full = trainer.bank.image_texture(0, [0, 1, 2])
     assert tex.shape == (1,) + tuple(full.shape)
+    lr = cfg.train.lr
+    assert trainer.set_lr(0.0) == lr and trainer.set_lr(cfg.train.lr_decay_start) == lr
+    assert trainer.set_lr(1.0) == pytest.approx(lr * cfg.train.lr_final)
+    assert trainer.opt.param_groups[0]["lr"] == pytest.approx(lr * cfg.train.lr_final)
     trainer.cfg.train.driving_views = 2
     trainer.step = cfg.train.all_views_iters
     for _ in range(5):

@@ -34,9 +34,13 @@ class TrainConfig:
     """lr: Adam learning rate. batch: (frame, camera) samples per step. patch: side of the square pixel
     crop rendered per sample. warmup_iters: correctives stay off before this step. all_views_iters:
     curriculum stage 1 (image features from every training view) length; afterwards ``driving_views``
-    random views. checkpoint_every: steps between checkpoints."""
+    random views. checkpoint_every: steps between checkpoints. The learning rate decays exponentially to
+    ``lr * lr_final`` over the last ``1 - lr_decay_start`` of the run (by steps or by minutes, whichever
+    is further along)."""
 
     lr: float = 2e-3
+    lr_decay_start: float = 0.6
+    lr_final: float = 0.1
     batch: int = 2
     patch: int = 48
     warmup_iters: int = 300

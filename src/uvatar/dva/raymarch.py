@@ -2,17 +2,20 @@
 
 Per chunk of rays:
 
-1. cull: bounding-sphere test for every (ray, primitive) pair (two small matrix products), then an exact
-   slab test in each surviving primitive's local frame giving its entry/exit distances;
+1. cull: either the primitives' projected rectangles when the rays are a pinhole camera's pixels
+   (:func:`pinhole_candidates`, cost ~ the rectangles' area) or a bounding-sphere test of every
+   (ray, primitive) pair (:func:`sphere_candidates`, two (N, K) matrix products); then an exact slab test
+   in each candidate's local frame gives its entry/exit distances;
 2. expand each (ray, primitive) hit into the fixed-grid steps that fall inside its interval, so only
    candidate primitives are ever sampled;
-3. trilinear gather of the payload at those samples (8 corner rows of a flattened payload), border fade;
-4. scatter-add the opacity and colour increments into per-(ray, step) bins and run the same saturating
-   accumulation as the reference.
+3. trilinear lookup of the payload at those samples: one 3D ``grid_sample`` over an atlas of all
+   primitives (``sampler="atlas"``) or 8 explicit corner gathers (``"gather"``); border fade;
+4. scatter-add the opacity and colour increments into (ray, step) bins, kept only for rays that have
+   samples and only up to their last step, and run the same saturating accumulation as the reference.
 
 Culling is discrete (no gradient); everything after it is plain differentiable torch, so gradients w.r.t.
 payload, positions, rotations and scales come from autograd and match the reference (parity tests).
-Works on any torch device (CPU is the tested path).
+Works on any torch device (CPU is the tested path). On small shared CPUs use one torch thread.
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ from uvatar.dva.raymarch_ref import (
     ray_range,
 )
 
-__all__ = ["Primitives", "RaymarchConfig", "raymarch", "render_rays", "candidate_pairs"]
+__all__ = ["Primitives", "RaymarchConfig", "raymarch", "render_rays", "candidate_pairs", "sphere_candidates",
+           "pinhole_candidates", "slab_intervals", "payload_atlas"]
 
 
 @torch.no_grad()

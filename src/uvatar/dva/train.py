@@ -175,6 +175,15 @@ class Trainer:
         terms["psnr"] = float(-10 * np.log10(max(mse, 1e-10)))
         return terms
 
+    def set_lr(self, progress: float) -> float:
+        """Learning rate for run progress in [0, 1] (exponential decay in the last part of the run)."""
+        t = self.cfg.train
+        frac = min(1.0, max(0.0, (progress - t.lr_decay_start) / max(1e-9, 1.0 - t.lr_decay_start)))
+        lr = t.lr * t.lr_final ** frac
+        for group in self.opt.param_groups:
+            group["lr"] = lr
+        return lr
+
     def save(self):
         save_checkpoint(self.out / CHECKPOINT, self.model, self.opt, self.step, self.meta)
 
@@ -190,6 +199,8 @@ class Trainer:
         bar = tqdm(total=iters, initial=min(self.step, iters), desc="train dva", disable=not self.progress)
         try:
             while self.step < iters and (time.time() - start) < minutes * 60:
+                progress = max(self.step / max(iters, 1), (time.time() - start) / max(minutes * 60, 1e-9))
+                self.set_lr(progress)
                 last = self.train_step()
                 if self.step % 10 == 0 or self.step == 1:
                     for k, v in last.items():
