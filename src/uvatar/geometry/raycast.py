@@ -29,12 +29,21 @@ class RayCasterConfig:
     max_layers: most surfaces counted along one ray by :meth:`RayCaster.count_hits`.
     step: distance stepped past a hit before re-launching in ``count_hits``, relative to the mesh
         extent (bounding-box diagonal + distance of the box from the origin).
+    precision: "float64" (rays validated and normalized in float64, RayHits in float64) or
+        "float32" (the fast path: rays go to Embree in its own float32 without float64 copies;
+        RayHits fields are float32; ~1e-7 relative, the precision Embree works in anyway).
+        ``refine`` works with either (it recomputes in float64).
     """
 
     batch_size: int = 1 << 20
     refine: bool = False
     max_layers: int = 64
     step: float = 1e-6
+    precision: str = "float64"
+
+    def __post_init__(self):
+        if self.precision not in ("float32", "float64"):
+            raise ValueError(f"precision must be 'float32' or 'float64', got {self.precision!r}")
 
 
 @dataclass
@@ -53,9 +62,10 @@ class RayHits:
     points: np.ndarray
 
 
-def _prepare_rays(origins, directions, max_distance):
-    origins = np.asarray(origins, dtype=np.float64)
-    directions = np.asarray(directions, dtype=np.float64)
+def _prepare_rays(origins, directions, max_distance, dtype=np.float64):
+    """Validate rays; return (origins, unit directions, max_distance (N,)) as ``dtype`` arrays."""
+    origins = np.ascontiguousarray(origins, dtype=dtype)
+    directions = np.ascontiguousarray(directions, dtype=dtype)
     if origins.ndim != 2 or origins.shape[1] != 3:
         raise InputError("origins", f"expected shape (N, 3), got {origins.shape}")
     if directions.shape != origins.shape:
@@ -63,7 +73,15 @@ def _prepare_rays(origins, directions, max_distance):
     sq = np.einsum("ij,ij->i", directions, directions)
     if not ((sq > 0).all() and np.isfinite(sq).all() and np.isfinite(origins).all()):
         raise InputError("directions", "contains zero-length, NaN or inf rays (or origins are not finite)")
-    directions = directions / np.sqrt(sq)[:, None]
+    if dtype == np.float32 and np.abs(sq - 1).max(initial=0.0) < 1e-6:
+        pass  # already unit: no copy on the fast path
+    else:
+        directions = directions / np.sqrt(sq)[:, None]
+    if np.ndim(max_distance) == 0:
+        m = float(max_distance)
+        if np.isnan(m) or m < 0:
+            raise InputError("max_distance", "must be >= 0 (inf allowed)")
+        return origins, directions, np.full(len(origins), m, dtype=np.float64)
     max_distance = np.broadcast_to(np.asarray(max_distance, dtype=np.float64), (len(origins),)).copy()
     if np.any(np.isnan(max_distance)) or np.any(max_distance < 0):
         raise InputError("max_distance", "must be >= 0 (inf allowed)")
@@ -143,53 +161,63 @@ class RayCaster:
         return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
 
     # -- public queries ---------------------------------------------------------------------------
+    @property
+    def _dtype(self):
+        return np.float32 if self.config.precision == "float32" else np.float64
+
     def first_hit(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> RayHits:
         """Nearest surface along each ray within (min_distance, max_distance].
 
         origins, directions: (N, 3); max_distance: scalar or (N,) in metres. ``min_distance`` skips
-        surfaces closer than it (e.g. the surface a ray starts on).
+        surfaces closer than it (e.g. the surface a ray starts on). Float fields of the result are
+        float64, or float32 with ``config.precision == "float32"``.
         """
-        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance)
+        dtype = self._dtype
+        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance, dtype)
         n = len(origins)
-        start = origins + directions * min_distance if min_distance else origins
+        start = origins + directions * dtype(min_distance) if min_distance else origins
         tfar = None if (not min_distance and np.isinf(max_distance).all()) else max_distance - min_distance
         prim, u, v, t = self._run(start, directions, tfar)
         hit = prim >= 0
         face = prim.astype(np.int64)
-        distance = np.where(hit, t.astype(np.float64) + min_distance, np.inf)
-        bary = np.empty((n, 3))
+        distance = np.where(hit, t.astype(dtype) + dtype(min_distance), dtype(np.inf))
+        bary = np.empty((n, 3), dtype=dtype)
         bary[:, 1], bary[:, 2] = u, v
         if self.config.refine and hit.any():
             idx = np.flatnonzero(hit)
             tri = self._triangles[face[idx]]
-            rt, ru, rv = _moller_trumbore(origins[idx], directions[idx], tri[:, 0], tri[:, 1], tri[:, 2])
+            o64, d64 = origins[idx].astype(np.float64), directions[idx].astype(np.float64)
+            rt, ru, rv = _moller_trumbore(o64, d64, tri[:, 0], tri[:, 1], tri[:, 2])
             good = np.isfinite(rt) & np.isfinite(ru) & np.isfinite(rv)
             distance[idx] = np.where(good, rt, distance[idx])
             bary[idx, 1] = np.where(good, ru, bary[idx, 1])
             bary[idx, 2] = np.where(good, rv, bary[idx, 2])
-        bary[:, 0] = 1.0 - bary[:, 1] - bary[:, 2]
+        bary[:, 0] = 1 - bary[:, 1] - bary[:, 2]
         if bary.min() < 0 or bary.max() > 1:  # round-off at edges
             np.clip(bary, 0.0, 1.0, out=bary)
-            bary /= np.maximum(bary.sum(1, keepdims=True), 1e-30)
+            bary /= np.maximum(bary.sum(1, keepdims=True), dtype(1e-30))
         bary *= hit[:, None]
-        points = origins + directions * np.where(hit, distance, 0.0)[:, None]
+        points = origins + directions * np.where(hit, distance, dtype(0))[:, None]
         points *= hit[:, None]
         return RayHits(hit=hit, distance=distance, face=face, bary=bary, points=points)
 
     def any_hit(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
         """(N,) bool: does the ray meet any surface within (min_distance, max_distance]? (occlusion)"""
-        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance)
-        start = origins + directions * min_distance if min_distance else origins
-        return self._run(start, directions, max_distance - min_distance, query="OCCLUDED") != -1
+        dtype = self._dtype
+        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance, dtype)
+        start = origins + directions * dtype(min_distance) if min_distance else origins
+        tfar = None if (not min_distance and np.isinf(max_distance).all()) else max_distance - min_distance
+        return self._run(start, directions, tfar, query="OCCLUDED") != -1
 
     def count_hits(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
         """(N,) int64: number of surface crossings within (min_distance, max_distance].
 
         Re-launches every still-hitting ray from just past its last hit; loops over hit layers
         (at most ``config.max_layers``), never over rays. A closed mesh gives an odd count from
-        inside and an even count from outside.
+        inside and an even count from outside. (Ray positions advance in float64 on both paths.)
         """
-        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance)
+        origins, directions, max_distance = _prepare_rays(origins, directions, max_distance, self._dtype)
+        origins, directions = origins.astype(np.float64), directions.astype(np.float64)
         step = self.config.step * self.extent
         count = np.zeros(len(origins), dtype=np.int64)
         pos = origins + directions * min_distance

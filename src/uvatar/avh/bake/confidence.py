@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from uvatar.geometry import RayCaster, face_normals
+from uvatar.geometry import RayCaster, RayCasterConfig, face_normals
 
 __all__ = [
     "hemisphere_directions", "frames_from_normals", "face_visibility", "face_visibility_reference",
@@ -48,25 +48,29 @@ def frames_from_normals(normals) -> np.ndarray:
 
 
 def face_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: int = 64,
-                    offset: float = 1e-4, faces_per_batch: int = 16384) -> np.ndarray:
-    """(F,) fraction of ``n_rays`` hemisphere rays from each face centroid that escape the mesh.
+                    offset: float = 1e-4, faces_per_batch: int = 16384, which=None) -> np.ndarray:
+    """Fraction of ``n_rays`` hemisphere rays from each face centroid that escape the mesh.
 
     vertices (V, 3) metres; faces (F, 3). Rays start ``offset`` metres above the centroid along the
     face normal. 1 = fully visible, 0 = every ray hits the mesh again (inside a fold).
+    which: (K,) face indices to compute (default: all). Returns (F,), or (K,) for ``which``.
+    Rays are built in float32 (Embree's precision) and launched as one occlusion batch per
+    ``faces_per_batch`` faces.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    caster = caster or RayCaster(v, f)
-    normals = np.asarray(face_normals(v, f), dtype=np.float64)
-    centroids = v[f].mean(axis=1) + offset * normals
-    dirs = hemisphere_directions(n_rays)
-    out = np.empty(len(f))
-    for s in range(0, len(f), faces_per_batch):
-        frames = frames_from_normals(normals[s:s + faces_per_batch])        # (B, 3, 3)
+    caster = caster or RayCaster(v, f, RayCasterConfig(precision="float32"))
+    sel = f if which is None else f[np.asarray(which, dtype=np.int64)]
+    normals = np.asarray(face_normals(v, sel), dtype=np.float64) if len(sel) else np.zeros((0, 3))
+    centroids = (v[sel].mean(axis=1) + offset * normals).astype(np.float32)
+    dirs = hemisphere_directions(n_rays).astype(np.float32)
+    out = np.empty(len(sel))
+    for s in range(0, len(sel), faces_per_batch):
+        frames = frames_from_normals(normals[s:s + faces_per_batch]).astype(np.float32)   # (B, 3, 3)
         b = len(frames)
-        d = (frames.reshape(b * 3, 3) @ dirs.T).reshape(b, 3, n_rays).transpose(0, 2, 1).reshape(-1, 3)
+        d = np.matmul(dirs, frames.transpose(0, 2, 1)).reshape(b * n_rays, 3)            # (B*n, 3)
         o = np.repeat(centroids[s:s + faces_per_batch], n_rays, axis=0)
-        blocked = caster.any_hit(o, d).reshape(-1, n_rays)
+        blocked = caster.any_hit(o, d).reshape(b, n_rays)
         out[s:s + faces_per_batch] = 1.0 - blocked.mean(axis=1)
     return out
 
@@ -90,14 +94,30 @@ def face_visibility_reference(vertices, faces, caster: RayCaster | None = None, 
 
 
 def vertex_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: int = 64,
-                      offset: float = 1e-4) -> np.ndarray:
-    """(V,) face visibility averaged onto the vertices (plain mean over incident faces; 1 if none)."""
+                      offset: float = 1e-4, needed=None) -> np.ndarray:
+    """(V,) face visibility averaged onto the vertices (plain mean over incident faces; 1 if none).
+
+    needed: optional (V,) bool or vertex indices; only faces touching a needed vertex are ray cast
+    (exactly the same values there) and the other vertices get NaN.
+    """
     f = np.asarray(faces, dtype=np.int64)
-    fv = face_visibility(vertices, f, caster, n_rays, offset)
     nv = len(vertices)
-    total = np.bincount(f.ravel(), weights=np.repeat(fv, 3), minlength=nv)
-    count = np.bincount(f.ravel(), minlength=nv)
-    return np.divide(total, count, out=np.ones(nv), where=count > 0)
+    if needed is None:
+        which = None
+        fv = face_visibility(vertices, f, caster, n_rays, offset)
+        fw = f
+    else:
+        mask = np.zeros(nv, bool)
+        mask[needed] = True
+        which = np.flatnonzero(mask[f].any(axis=1))
+        fv = face_visibility(vertices, f, caster, n_rays, offset, which=which)
+        fw = f[which]
+    total = np.bincount(fw.ravel(), weights=np.repeat(fv, 3), minlength=nv)
+    count = np.bincount(fw.ravel(), minlength=nv)
+    out = np.divide(total, count, out=np.ones(nv), where=count > 0)
+    if needed is not None:
+        out[~mask] = np.nan
+    return out
 
 
 def distance_score(distance, clip: float) -> np.ndarray:

@@ -59,9 +59,20 @@ class BodyLayout:
     def at_texels(self, vertex_values) -> np.ndarray:
         """Interpolate per-vertex values (V, C) or (V,) at the valid texels -> (M, C) or (M,)."""
         vals = np.asarray(vertex_values, dtype=np.float64)
-        corners = vals[self.faces[self.texel_face]]                  # (M, 3[, C])
-        b = self.texel_bary if vals.ndim == 1 else self.texel_bary[..., None]
-        return (corners * b).sum(axis=1)
+        corners = vals[self.texel_vertices]                          # (M, 3[, C])
+        if vals.ndim == 1:
+            return np.einsum("mk,mk->m", corners, self.texel_bary)
+        return np.einsum("mkc,mk->mc", corners.reshape(len(corners), 3, -1),
+                         self.texel_bary).reshape(len(corners), *vals.shape[1:])
+
+    @property
+    def texel_vertices(self) -> np.ndarray:
+        """(M, 3) int64 body vertices of each valid texel's triangle (cached)."""
+        cached = self.__dict__.get("_texel_vertices")
+        if cached is None:
+            cached = self.faces[self.texel_face]
+            self.__dict__["_texel_vertices"] = cached
+        return cached
 
     def to_map(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
         """(M[, C]) values at the valid texels -> (R, R[, C]) map, ``fill`` elsewhere."""
@@ -231,13 +242,15 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         s = layout.at_texels(shadow)
         disp = np.where(hit[:, None], matches.points - s, 0.0)
     with _timed(sec, "visibility_scan"):
+        # only the scan faces around matched texels are ray cast (same values there)
+        hit_vertices = surface.faces[matches.face[hit]]                           # (K, 3)
         v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster,
-                                     config.visibility_rays, eps)
+                                     config.visibility_rays, eps, needed=hit_vertices.ravel())
         v = np.zeros(len(r))
-        v[hit] = (v_vertex[surface.faces[matches.face[hit]]] * matches.bary[hit]).sum(1)
+        v[hit] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[hit])
     with _timed(sec, "visibility_registered"):
         w_vertex = vertex_visibility(registered, layout.faces, fast_caster(registered, layout.faces),
-                                     config.visibility_rays, eps)
+                                     config.visibility_rays, eps, needed=layout.texel_vertices.ravel())
         w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
     with _timed(sec, "confidence"):
         delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
@@ -246,8 +259,10 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     with _timed(sec, "inpaint"):
         matched_map = layout.to_map(hit, fill=False, dtype=bool)
         unknown = ~matched_map
-        texture = inpaint_telea(layout.to_map(colors), unknown, config.inpaint_radius, config.inpaint_band)
-        displacement = inpaint_telea(layout.to_map(disp), unknown, config.inpaint_radius, config.inpaint_band)
+        # one call for both maps: the fast-marching order and nearest-texel fill are shared
+        both = inpaint_telea(np.concatenate([layout.to_map(colors), layout.to_map(disp)], axis=-1),
+                             unknown, config.inpaint_radius, config.inpaint_band)
+        texture, displacement = both[..., :3], both[..., 3:]
     valid = layout.raster.mask.copy()
     kappa_map = layout.to_map(kappa)
     stats = {

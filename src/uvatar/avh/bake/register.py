@@ -29,6 +29,9 @@ from uvatar.avh.bake.config import RegistrationConfig
 from uvatar.geometry import RayCaster, RayCasterConfig, face_normals, vertex_normals
 
 STAGE_MODES = ("closest", "rays", "normal")
+# the systems are symmetric positive definite: a symmetric fill-reducing ordering factors them
+# several times faster than SuperLU's default COLAMD
+_ORDERING = "MMD_AT_PLUS_A"
 
 __all__ = ["STAGE_MODES", "ScanSurface", "register_to_scan", "uniform_laplacian_matrix", "match_vertices"]
 
@@ -69,7 +72,7 @@ class ScanSurface:
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0."""
         out = np.zeros((len(face), 3))
         ok = face >= 0
-        n = (self.vertex_normals[self.faces[face[ok]]] * bary[ok][..., None]).sum(1)
+        n = np.einsum("kjc,kj->kc", self.vertex_normals[self.faces[face[ok]]], bary[ok])
         bad = np.linalg.norm(n, axis=1) < 1e-12  # opposite normals cancelled: use the face normal
         n[bad] = self.face_normals[face[ok][bad]]
         out[ok] = n / np.linalg.norm(n, axis=1, keepdims=True)
@@ -77,8 +80,9 @@ class ScanSurface:
 
 
 def fast_caster(vertices, faces) -> RayCaster:
-    """Embree scene without the float64 re-intersection of hits (float32 hits are ~0.1 um at 1 m)."""
-    return RayCaster(vertices, faces, RayCasterConfig(refine=False))
+    """Embree scene on the float32 fast path: no float64 ray preparation or re-intersection of hits
+    (float32 hits are ~0.1 um at 1 m); RayHits come back in float32."""
+    return RayCaster(vertices, faces, RayCasterConfig(refine=False, precision="float32"))
 
 
 def uniform_laplacian_matrix(faces, num_vertices: int) -> sp.csr_matrix:
@@ -172,12 +176,12 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
                 # scalar offsets h along the current normals, smooth in the Laplacian sense:
                 # (W + a I + k L^T L) h = W t, t = signed distance of the match along n
                 t = ((target - x) * n).sum(1)
-                h = spla.splu((sp.diags(w + a) + k * ltl).tocsc()).solve(w * t)
+                h = spla.splu((sp.diags(w + a) + k * ltl).tocsc(), permc_spec=_ORDERING).solve(w * t)
                 x = x + h[:, None] * n
             else:
                 system = (sp.diags(w + a) + k * ltl).tocsc()
                 rhs = w[:, None] * target + a * x + k * ltl_x0
-                x = spla.splu(system).solve(rhs)
+                x = spla.splu(system, permc_spec=_ORDERING).solve(rhs)
             if ok.any():
                 last_distance = float(np.linalg.norm(target[ok] - x[ok], axis=1).mean() * 1000)
     return x, {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}
