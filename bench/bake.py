@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -83,6 +84,7 @@ def main(argv=None) -> int:
         "layout_raster_seconds_once": round(layout_seconds, 3),
         "kappa_mean": round(float(np.mean(kappa)), 3),
         "visibility_rays": config.visibility_rays,
+        "load_average_1min": round(os.getloadavg()[0], 2),   # the machine is shared: read timings with it
     }))
     return 0
 

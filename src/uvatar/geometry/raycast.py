@@ -52,7 +52,8 @@ class RayHits:
 
     hit: (N,) bool; distance: (N,) float64, inf for misses; face: (N,) int64, -1 for misses;
     bary: (N, 3) float64 barycentrics in that face (zeros for misses); points: (N, 3) float64
-    hit points (zeros for misses).
+    hit points (zeros for misses). The float fields are float32 on the float32 fast path
+    (``RayCasterConfig(precision="float32")``).
     """
 
     hit: np.ndarray
@@ -71,21 +72,29 @@ def _prepare_rays(origins, directions, max_distance, dtype=np.float64):
     if directions.shape != origins.shape:
         raise InputError("directions", f"shape {directions.shape} does not match origins {origins.shape}")
     sq = np.einsum("ij,ij->i", directions, directions)
-    if not ((sq > 0).all() and np.isfinite(sq).all() and np.isfinite(origins).all()):
+    lo, hi = (float(sq.min()), float(sq.max())) if len(sq) else (1.0, 1.0)
+    # one float64 sum finds NaN/inf in the origins without a (N, 3) bool temporary
+    if not (lo > 0 and np.isfinite(hi) and (np.isfinite(origins.sum(dtype=np.float64))
+                                            or np.isfinite(origins).all())):
         raise InputError("directions", "contains zero-length, NaN or inf rays (or origins are not finite)")
-    if dtype == np.float32 and np.abs(sq - 1).max(initial=0.0) < 1e-6:
-        pass  # already unit: no copy on the fast path
-    else:
+    if not (dtype == np.float32 and 1 - 1e-6 <= lo and hi <= 1 + 1e-6):  # fast path: unit already
         directions = directions / np.sqrt(sq)[:, None]
     if np.ndim(max_distance) == 0:
         m = float(max_distance)
         if np.isnan(m) or m < 0:
             raise InputError("max_distance", "must be >= 0 (inf allowed)")
-        return origins, directions, np.full(len(origins), m, dtype=np.float64)
+        return origins, directions, np.broadcast_to(np.float64(m), (len(origins),))  # read-only view
     max_distance = np.broadcast_to(np.asarray(max_distance, dtype=np.float64), (len(origins),)).copy()
     if np.any(np.isnan(max_distance)) or np.any(max_distance < 0):
         raise InputError("max_distance", "must be >= 0 (inf allowed)")
     return origins, directions, max_distance
+
+
+def _all_inf(max_distance) -> bool:
+    """True when every ray is unlimited (checks one value of a broadcast scalar)."""
+    if len(max_distance) and max_distance.strides == (0,):
+        return bool(np.isinf(max_distance[0]))
+    return bool(np.isinf(max_distance).all())
 
 
 def _moller_trumbore(origins, directions, v0, v1, v2):
@@ -131,9 +140,16 @@ class RayCaster:
             np.ascontiguousarray(self.vertices, dtype=np.float32),
             np.ascontiguousarray(self.faces, dtype=np.int32),
         )
-        self._triangles = self.vertices[self.faces]  # (F, 3, 3) float64, for refinement
         lo, hi = self.vertices.min(0), self.vertices.max(0)
         self.extent = float(np.linalg.norm(hi - lo) + np.abs(np.stack([lo, hi])).max())
+
+    @property
+    def _triangles(self) -> np.ndarray:
+        """(F, 3, 3) float64 corners for the float64 refinement; built on first use."""
+        tri = self.__dict__.get("_triangle_cache")
+        if tri is None:
+            tri = self.__dict__["_triangle_cache"] = self.vertices[self.faces]
+        return tri
 
     # -- raw Embree call -------------------------------------------------------------------------
     def _run(self, origins, directions, tfar, query="INTERSECT"):
@@ -176,7 +192,7 @@ class RayCaster:
         origins, directions, max_distance = _prepare_rays(origins, directions, max_distance, dtype)
         n = len(origins)
         start = origins + directions * dtype(min_distance) if min_distance else origins
-        tfar = None if (not min_distance and np.isinf(max_distance).all()) else max_distance - min_distance
+        tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
         prim, u, v, t = self._run(start, directions, tfar)
         hit = prim >= 0
         face = prim.astype(np.int64)
@@ -206,7 +222,7 @@ class RayCaster:
         dtype = self._dtype
         origins, directions, max_distance = _prepare_rays(origins, directions, max_distance, dtype)
         start = origins + directions * dtype(min_distance) if min_distance else origins
-        tfar = None if (not min_distance and np.isinf(max_distance).all()) else max_distance - min_distance
+        tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
         return self._run(start, directions, tfar, query="OCCLUDED") != -1
 
     def count_hits(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:

@@ -259,7 +259,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     with _timed(sec, "inpaint"):
         matched_map = layout.to_map(hit, fill=False, dtype=bool)
         unknown = ~matched_map
-        # one call for both maps: the fast-marching order and nearest-texel fill are shared
+        # one call for both maps: the nearest-texel fill (distance transform) is computed once
         both = inpaint_telea(np.concatenate([layout.to_map(colors), layout.to_map(disp)], axis=-1),
                              unknown, config.inpaint_radius, config.inpaint_band)
         texture, displacement = both[..., :3], both[..., 3:]

