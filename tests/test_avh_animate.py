@@ -7,24 +7,15 @@ import pytest
 
 from uvatar.avh.animate import AnimateConfig, animate, framing_distance
 from uvatar.avh.data import rotvec_to_rotmat
-from uvatar.avh.export import export_avatar
-from uvatar.avh.model import AvhConfig
 from uvatar.avh.poses import PoseSequence, as_pose_sequence, load_pose_sequence
 from uvatar.avh.runtime import AvatarRuntime
-from uvatar.avh.toy_body import ToyTubeBody
-from uvatar.avh.toy_capture import make_toy_capture
-from uvatar.avh.train import TrainConfig, train_avh
 from uvatar.errors import InputError
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
+def setup(tmp_path_factory, trained_toy_avatar):
     root = tmp_path_factory.mktemp("anim")
-    body = ToyTubeBody()
-    cap, baked = make_toy_capture(root, body, num_frames=5, heldout=2, resolution=32)
-    train_avh(baked, root / "run", AvhConfig(4, 32, resolution=32),
-              TrainConfig(epochs=1, progress=False, tensorboard=False), body=body)
-    export_avatar(root / "run", root / "avatar", body=body)
+    body, cap, _ = trained_toy_avatar(root, num_frames=5)
     return root, body, cap
 
 

@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from uvatar.dva.data import (
     CaptureSource,
@@ -18,14 +17,7 @@ from uvatar.dva.data import (
 from uvatar.errors import InputError
 from uvatar.io_utils import write_image
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One torch thread: small ops on a shared 2-core machine are far faster without OpenMP."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def make_zju(root, n_cams=21, n_frames=5, size=16, start=0):
@@ -101,9 +93,9 @@ def test_box_mask_is_the_projected_box():
 
 def test_easymocap_layout(tmp_path):
     from uvatar.capture import BodyFit, write_cameras, write_fit
-    from uvatar.dva.toy import ring_cameras
+    from uvatar.dva.toy import toy_cameras
 
-    cams = ring_cameras(4, 8)
+    cams = toy_cameras(4, 8)
     write_cameras(tmp_path, cams)
     for f in ("000000", "000001"):
         write_fit(tmp_path / "output-smpl-3d/smpl" / f"{f}.json", BodyFit(poses=np.zeros(72, np.float32)))

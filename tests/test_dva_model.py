@@ -17,16 +17,10 @@ from uvatar.dva.primitives import (
     build_uv_grid,
     volume_prior,
 )
-from uvatar.dva.toy import ToyBody, ring_cameras
+from uvatar.dva.toy import ToyBody, toy_cameras
 from uvatar.errors import InputError
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +104,7 @@ def test_unwrap_visibility_and_average(body):
     from uvatar.geometry import rasterize_uv
 
     raster = rasterize_uv(body.template.uvs, body.template.uv_faces, 32)
-    cams = list(ring_cameras(2, 32).values())  # front (+Z) and back (-Z)
+    cams = list(toy_cameras(2, 32).values())  # front (+Z) and back (-Z)
     imgs = [np.full((32, 32, 3), 0.25, np.float32), np.full((32, 32, 3), 0.75, np.float32)]
     verts = body.pose(torch.zeros(1, 2, 3)).vertices[0].numpy()
     tex, vis = unwrap_views(raster, body.template, verts, cams, imgs)
@@ -126,7 +120,7 @@ def test_occluded_texels_are_not_visible(body):
     from uvatar.dva.features import unwrap_view
     from uvatar.geometry import RayCaster
 
-    cam = ring_cameras(1, 32)["cam00"]  # on +Z looking at the tube
+    cam = toy_cameras(1, 32)["cam00"]  # on +Z looking at the tube
     pts = np.array([[0.0, 0.5, 0.15], [0.0, 0.5, -0.15]])
     nrm = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])  # second faces the camera but sits behind the tube
     verts = body.pose(torch.zeros(1, 2, 3)).vertices[0].numpy()
@@ -191,7 +185,7 @@ def test_model_forward_render_and_backward(body):
     out = model(verts, torch.zeros(1, 2, 3), torch.rand(1, 4, R, R), torch.tensor([[0.0, 0.5, 2.5]]))
     K, S = 64, cfg.decoder.voxels
     assert out.payload.shape == (1, K, 4, S, S, S) and out.positions.shape == (1, K, 3)
-    cam = ring_cameras(1, 16)["cam00"]
+    cam = toy_cameras(1, 16)["cam00"]
     yy, xx = np.mgrid[:16, :16]
     pix = np.stack([xx.ravel(), yy.ravel()], 1)
     o, d = pixel_rays(cam, pix)

@@ -11,14 +11,7 @@ import torch
 from uvatar.dva.raymarch import raymarch, render_rays
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, accumulate, raymarch_reference
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One torch thread: small ops on a shared 2-core machine are far faster without OpenMP."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def random_scene(K=6, S=4, seed=0, dtype=torch.float64, density=15.0):

@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from uvatar.dva.data import open_source
 from uvatar.dva.model import preset
@@ -14,13 +13,7 @@ from uvatar.dva.toy import write_toy_capture
 from uvatar.dva.train import CHECKPOINT, Trainer, load_run, patch_pixels, train_dva
 from uvatar.errors import InputError
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

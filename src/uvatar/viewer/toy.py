@@ -14,37 +14,24 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.avh.engine_export import RestBody
+from uvatar.body.toy import ToyTubeBody, ToyTubeConfig
 
 TOY_JOINTS = ("root", "spine", "chest", "head")
+TOY_SEMANTIC_JOINTS = {"pelvis": 0, "spine1": 1, "spine3": 2, "head": 3}
 
 
 def toy_rest_body(around: int = 12, along: int = 16, radius: float = 0.15, height: float = 1.6) -> RestBody:
-    """A vertical tube (y from 0 to ``height`` m) with a 4-joint chain along +Y, UV seam at u = 0/1."""
-    a = np.arange(around)
-    h = np.linspace(0.0, height, along)
-    ang = 2 * np.pi * a / around
-    r = radius * (1.0 + 0.2 * np.cos(3 * np.pi * h / height))[:, None] * np.ones((1, around))
-    verts = np.stack([r * np.sin(ang)[None], np.broadcast_to(h[:, None], r.shape), r * np.cos(ang)[None]], -1)
-    verts = verts.reshape(-1, 3).astype(np.float32)
-    uvs = np.stack(np.meshgrid(np.arange(around + 1) / around, np.linspace(0.02, 0.98, along)), -1).reshape(-1, 2)
-    faces, uv_faces = [], []
-    for i in range(along - 1):
-        for j in range(around):
-            v00, v01 = i * around + j, i * around + (j + 1) % around
-            v10, v11 = v00 + around, v01 + around
-            t00, t01 = i * (around + 1) + j, i * (around + 1) + j + 1
-            t10, t11 = t00 + around + 1, t01 + around + 1
-            faces += [[v00, v01, v11], [v00, v11, v10]]
-            uv_faces += [[t00, t01, t11], [t00, t11, t10]]
-    joint_y = np.array([0.0, 0.5, 0.9, 1.3]) * height / 1.6
-    # smooth weights along the height
-    d = np.abs(verts[:, 1:2] - (joint_y[None] + 0.2))
-    w = np.exp(-(d / 0.18) ** 2)
-    w = (w / w.sum(1, keepdims=True)).astype(np.float32)
-    world = np.tile(np.eye(4), (4, 1, 1))
-    world[:, 1, 3] = joint_y
-    return RestBody(verts, np.asarray(faces, np.int64), uvs.astype(np.float32), np.asarray(uv_faces, np.int64),
-                    w, TOY_JOINTS, np.array([-1, 0, 1, 2]), world)
+    """A vertical tube (y from 0 to ``height`` m, radius bulging by 20 % three times along it) with a
+    4-joint chain along +Y (Gaussian skin weights), UV seam at u = 0/1."""
+    config = ToyTubeConfig(rings=along, segments=around, height=height, radius=radius, bulge=0.2,
+                           joint_names=TOY_JOINTS, joint_parents=(-1, 0, 1, 2),
+                           joint_heights=tuple(np.array([0.0, 0.5, 0.9, 1.3]) * height / 1.6),
+                           skinning="gaussian", skinned_joints=None, blend=0.18, blend_offset=0.2,
+                           conditioning_joints=(0, 1, 2, 3), semantic_joints=TOY_SEMANTIC_JOINTS, shape_names=())
+    t = ToyTubeBody(config=config).template
+    world = np.tile(np.eye(4), (len(TOY_JOINTS), 1, 1))
+    world[:, 1, 3] = config.joint_heights
+    return RestBody(t.vertices, t.faces, t.uvs, t.uv_faces, t.skin_weights, TOY_JOINTS, t.joint_parents, world)
 
 
 def write_toy_generator(path: str | Path, num_conditioning_joints: int = 4, resolution: int = 32,
@@ -114,7 +101,7 @@ def write_toy_avatar(out_dir: str | Path, resolution: int = 32, subdivisions: in
     mask[: resolution // 8] = True  # top rows (v near 1, the tube's top) stand in for fingers/toes
     return write_engine_bundle(out, EngineExportConfig(subdivisions=subdivisions), body=body,
                                fingers_toes_mask=mask,
-                               semantic_joints={"pelvis": 0, "spine1": 1, "spine3": 2, "head": 3})
+                               semantic_joints=TOY_SEMANTIC_JOINTS)
 
 
 def write_random_body_avatar(out_dir: str | Path, body_model, resolution: int = 64, subdivisions: int = 1) -> dict:

@@ -1,0 +1,73 @@
+"""DVA evaluation protocols: the source protocol plus the full-image and union-of-masks scores shared
+with ``uvatar eval avh``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from uvatar.dva.data import open_source
+from uvatar.dva.eval import METRIC_KEYS, image_scores
+from uvatar.dva.model import preset
+from uvatar.dva.toy import write_toy_capture
+from uvatar.dva.train import train_dva
+
+
+def _pair():
+    gt = np.ones((8, 8, 3), np.float32)
+    pred = gt.copy()
+    pred[:2] = 0.5  # the top 16 pixels are off by 0.5
+    alpha = np.zeros((8, 8), np.float32)
+    alpha[:2] = 0.9
+    return pred, gt, alpha
+
+
+def test_image_scores_analytic():
+    pred, gt, alpha = _pair()
+    s = image_scores(pred, gt, alpha, np.zeros((8, 8), bool))
+    assert s["psnr_db"] == s["psnr_db_full"] == pytest.approx(10 * np.log10(16), rel=1e-6)  # MSE 16*0.25/64
+    assert s["psnr_db_union_mask"] == pytest.approx(10 * np.log10(4), rel=1e-6)  # MSE 0.25 over the union
+    assert s["ssim"] == s["ssim_full"] and s["ssim_union_mask"] < s["ssim_full"] < 1
+
+
+def test_image_scores_union_uses_alpha_threshold_and_gt_mask():
+    pred, gt, alpha = _pair()
+    alpha[:2] = 0.4  # below 0.5: not predicted foreground
+    gt_mask = np.zeros((8, 8), bool)
+    gt_mask[:4] = True  # union = top 4 rows, 16 of 32 pixels off by 0.5 -> MSE 0.125
+    s = image_scores(pred, gt, alpha, gt_mask)
+    assert s["psnr_db_union_mask"] == pytest.approx(10 * np.log10(8), rel=1e-6)
+    empty = image_scores(pred, gt, alpha, np.zeros((8, 8), bool))
+    assert np.isnan(empty["psnr_db_union_mask"]) and np.isnan(empty["ssim_union_mask"])
+
+
+def test_image_scores_box_protocol_keeps_psnr_db_inside_the_box():
+    pred, gt, alpha = _pair()
+    box = np.zeros((8, 8), bool)
+    box[:4] = True
+    s = image_scores(pred, gt, alpha, np.zeros((8, 8), bool), box)
+    assert s["psnr_db"] == pytest.approx(10 * np.log10(8), rel=1e-6)
+    assert s["psnr_db_full"] == pytest.approx(10 * np.log10(16), rel=1e-6)
+
+
+def test_evaluate_dva_reports_both_protocols(tmp_path):
+    from uvatar.cli.main import main
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        cap = write_toy_capture(tmp_path / "cap", frames=3, cameras=4, size=24)
+        run = tmp_path / "run"
+        train_dva(open_source(cap), run, preset("tiny"), iters=2, progress=False)
+        assert main(["eval", "dva", str(run), str(cap), "--json", str(tmp_path / "m.json")]) == 0
+    finally:
+        torch.set_num_threads(n)
+    m = json.loads((tmp_path / "m.json").read_text())
+    for key in METRIC_KEYS:
+        assert np.isfinite(m[key]) and all(key in r for r in m["per_image"])
+        assert m[key] == pytest.approx(np.mean([r[key] for r in m["per_image"]]))
+    assert m["psnr_db"] == m["psnr_db_full"] and m["ssim"] == m["ssim_full"]
+    assert "union" in m["protocol"] and "alpha > 0.5" in m["protocol"] and "full-image" in m["protocol"]
