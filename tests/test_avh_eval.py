@@ -121,3 +121,73 @@ def test_cli_eval(setup, tmp_path, monkeypatch, capsys):
     assert m["frames"] == ["000004"] and m["cameras"] == 1
     assert "nearest_pose" in capsys.readouterr().out
     assert main(["eval", str(root / "avatar"), str(tmp_path / "nope")]) == 1
+
+
+def test_image_metrics_reports_both_protocols():
+    a = np.ones((8, 8, 3), np.float32)
+    b = a.copy()
+    b[:2] = 0.5
+    ma = np.zeros((8, 8), bool)
+    ma[:2] = True
+    m = image_metrics(a, ma, b, np.zeros((8, 8), bool))
+    # union: 16 texels all off by 0.5 -> MSE 0.25; full image: 16 of 64 -> MSE 0.0625
+    assert m["psnr_db_union_mask"] == m["psnr_db"] == pytest.approx(10 * np.log10(4), rel=1e-6)
+    assert m["psnr_db_full"] == pytest.approx(10 * np.log10(16), rel=1e-6)
+    assert m["ssim_union_mask"] == m["ssim"] and m["ssim"] < m["ssim_full"] < 1
+    same = image_metrics(a, ma, a, ma)
+    assert same["psnr_db_full"] == float("inf") and same["ssim_full"] == pytest.approx(1.0)
+
+
+def test_evaluate_named_frames_and_cameras(setup, tmp_path):
+    from uvatar.capture import Capture
+
+    root, body, cap, _ = setup
+    cam = list(Capture(cap).cameras())[1]
+    m = evaluate_avatar(root / "avatar", cap, EvalConfig(progress=False, image_size=32, frames=("000005",),
+                                                           cameras=(cam,), sheets_per_camera=True),
+                        image_dir=tmp_path, body=body)
+    assert m["frames"] == ["000005"] and m["camera_names"] == [cam] and m["cameras"] == 1
+    assert m["split"] == "frames given" and "full image" in m["protocol"]
+    for res in (m["avh"], *m["baselines"].values()):
+        assert res["psnr_db"] == res["psnr_db_union_mask"] and res["ssim"] == res["ssim_union_mask"]
+        # outside the union both images are the white background, so the full image scores higher
+        assert res["psnr_db_full"] >= res["psnr_db"] and res["ssim_full"] >= res["ssim"]
+    assert m["images"] == [str(tmp_path / f"000005_{cam}.png")] and (tmp_path / f"000005_{cam}.png").is_file()
+
+
+@pytest.mark.parametrize("field,value,match", [("frames", ("000005", "999999"), "999999"),
+                                               ("cameras", ("nope",), "nope")])
+def test_evaluate_unknown_names_raise(setup, field, value, match):
+    root, body, cap, _ = setup
+    with pytest.raises(InputError, match=match):
+        evaluate_avatar(root / "avatar", cap, EvalConfig(progress=False, **{field: value}), body=body)
+
+
+def test_count_or_names():
+    from uvatar.cli.avh import _count_or_names
+
+    assert _count_or_names(None, "--frames") == (None, None)
+    assert _count_or_names("3", "--frames") == (3, None)
+    assert _count_or_names("03,07", "--cameras") == (None, ("03", "07"))
+    assert _count_or_names("000054", "--frames") == (None, ("000054",))
+    assert _count_or_names("cam1", "--cameras") == (None, ("cam1",))
+    with pytest.raises(InputError, match="--frames"):
+        _count_or_names(",", "--frames")
+
+
+def test_cli_eval_named(setup, tmp_path, monkeypatch):
+    import uvatar.body
+    from uvatar.capture import Capture
+    from uvatar.cli.main import main
+
+    root, body, cap, _ = setup
+    monkeypatch.setattr(uvatar.body, "load_body_model", lambda name, **kw: body)
+    cams = list(Capture(cap).cameras())
+    out = tmp_path / "m.json"
+    assert main(["eval", "avh", str(root / "avatar"), str(cap), "--json", str(out), "--image-size", "32",
+                 "--frames", "000005,000004", "--cameras", ",".join(cams[::-1]), "--images", str(tmp_path / "im"),
+                 "--sheet-per-camera"]) == 0
+    m = json.loads(out.read_text())
+    assert m["frames"] == ["000005", "000004"] and m["camera_names"] == cams[::-1]
+    assert len(m["images"]) == 4 and np.isfinite(m["avh"]["psnr_db_full"])
+    assert main(["eval", "avh", str(root / "avatar"), str(cap), "--frames", "000099"]) == 1

@@ -71,3 +71,22 @@ def test_evaluate_dva_reports_both_protocols(tmp_path):
         assert m[key] == pytest.approx(np.mean([r[key] for r in m["per_image"]]))
     assert m["psnr_db"] == m["psnr_db_full"] and m["ssim"] == m["ssim_full"]
     assert "union" in m["protocol"] and "alpha > 0.5" in m["protocol"] and "full-image" in m["protocol"]
+
+
+def test_evaluate_dva_named_frames_and_cameras(tmp_path):
+    from uvatar.dva.eval import evaluate_dva
+    from uvatar.errors import InputError
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        cap = write_toy_capture(tmp_path / "cap", frames=3, cameras=4, size=16)
+        src = open_source(cap)
+        run = tmp_path / "run"
+        train_dva(src, run, preset("tiny"), iters=1, progress=False)
+        r = evaluate_dva(run, src, None, frames=["000001"], cameras=["cam03"], progress=False)
+        assert r["frames"] == ["000001"] and r["cameras"] == ["cam03"] and len(r["per_image"]) == 1
+        with pytest.raises(InputError, match="nope"):
+            evaluate_dva(run, src, None, cameras=["nope"], progress=False)
+    finally:
+        torch.set_num_threads(n)

@@ -1,9 +1,11 @@
 """Evaluate an exported avatar on held-out poses: ``uvatar eval AVATAR CAPTURE --json m.json``.
 
-For each held-out frame (``gt/info.json`` ``heldout_frames``; else every capture frame) the avatar
-and the ground-truth scan are rendered from the capture's cameras (an orbit of 4 cameras when it
-has none) with the same renderer; PSNR and SSIM are measured inside the union of the two
-foreground masks (white background elsewhere). Geometry error: distance in mm between the predicted
+For each held-out frame (``gt/info.json`` ``heldout_frames``; else every capture frame; or the
+frames named in ``EvalConfig.frames``) the avatar and the ground-truth scan are rendered from the
+capture's cameras (or those named in ``EvalConfig.cameras``; an orbit of 4 cameras when it has none)
+with the same renderer (white background, the synthetic studio's photos are made the same way).
+Two image protocols, both reported: ``psnr_db`` / ``ssim`` (= ``*_union_mask``) inside the union of
+the two foreground masks, and ``psnr_db_full`` / ``ssim_full`` over the full image. Geometry error: distance in mm between the predicted
 clothed surface per texel (posed body texel + displacement) and ``gt/frames/<f>.npz`` ``surface``,
 over ``mask``. The same numbers for two baselines:
 
@@ -33,22 +35,29 @@ METHODS = ("avh", "mean_texture", "nearest_pose")
 SHORT_NAMES = {"avh": "AVH", "mean_texture": "mean tex", "nearest_pose": "nearest"}
 PROTOCOL = ("held-out frames (gt/info.json heldout_frames), not trained on; avatar and ground-truth scan "
             "rendered with the same ray-cast renderer from each capture camera (white background, no shading); "
-            "PSNR (dB) and SSIM (Gaussian window sigma 1.5) over the union of the two foreground masks, "
-            "averaged over frames x cameras; geometry: mean / median / p90 distance (mm) between predicted "
+            "PSNR (dB) and SSIM (Gaussian window sigma 1.5) over the union of the two foreground masks "
+            "(psnr_db, ssim = psnr_db_union_mask, ssim_union_mask) and over the full image (psnr_db_full, "
+            "ssim_full), averaged over frames x cameras; geometry: mean / median / p90 distance (mm) between predicted "
             "and ground-truth clothed surface point per texel over gt mask (texels at the gt resolution)")
 
 
 @dataclass(frozen=True)
 class EvalConfig:
-    """max_frames / max_cameras: limits (None = all); image_size: render at this width (cameras'
-    intrinsics scaled; None = capture size); levels / scheme: avatar subdivision."""
+    """max_frames / max_cameras: limits (None = all); frames / cameras: evaluate exactly these frame /
+    camera names (None = held-out frames / all cameras; applied before the limits); image_size: render
+    at this width (cameras' intrinsics scaled; None = capture size); levels / scheme: avatar
+    subdivision; sheets_per_camera: one comparison image per frame x camera (``<frame>_<camera>.png``)
+    instead of one per frame (first camera, ``<frame>.png``)."""
 
     max_frames: int | None = None
     max_cameras: int | None = None
+    frames: tuple[str, ...] | None = None
+    cameras: tuple[str, ...] | None = None
     image_size: int | None = None
     levels: int = 2
     scheme: str = "midpoint"
     progress: bool = True
+    sheets_per_camera: bool = False
 
 
 def encoded_conditioning(poses: np.ndarray, conditioning) -> np.ndarray:
@@ -97,14 +106,21 @@ def scaled_camera(camera, width: int | None):
     return replace(camera, K=K, width=int(round(camera.width * s)), height=int(round(camera.height * s)))
 
 
+METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_union_mask", "ssim_union_mask", "psnr_db_full", "ssim_full")
+
+
 def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask) -> dict:
-    """PSNR/SSIM over the union of the masks."""
+    """PSNR (dB) / SSIM inside the union of the masks (``psnr_db``, ``ssim`` and the same values as
+    ``*_union_mask``; NaN when the union is empty) and over the full image (``*_full``)."""
     from uvatar.render import psnr, ssim
 
-    union = pred_mask | gt_mask
+    full = {"psnr_db_full": psnr(pred_rgb, gt_rgb), "ssim_full": ssim(pred_rgb, gt_rgb)}
+    union = np.asarray(pred_mask, bool) | np.asarray(gt_mask, bool)
     if not union.any():
-        return {"psnr_db": float("nan"), "ssim": float("nan")}
-    return {"psnr_db": psnr(pred_rgb, gt_rgb, union), "ssim": ssim(pred_rgb, gt_rgb, union)}
+        p = s = float("nan")
+    else:
+        p, s = psnr(pred_rgb, gt_rgb, union), ssim(pred_rgb, gt_rgb, union)
+    return {"psnr_db": p, "ssim": s, "psnr_db_union_mask": p, "ssim_union_mask": s, **full}
 
 
 def surface_error_mm(runtime: AvatarRuntime, base_vertices, displacement, Rh, gt_surface, gt_mask) -> np.ndarray:
@@ -125,7 +141,7 @@ def surface_error_mm(runtime: AvatarRuntime, base_vertices, displacement, Rh, gt
 
 def _summary(values: list[dict]) -> dict:
     out = {}
-    for key in ("psnr_db", "ssim"):
+    for key in METRIC_KEYS:
         v = np.array([x[key] for x in values if np.isfinite(x.get(key, np.nan))])
         out[key] = float(v.mean()) if len(v) else None
     return out
@@ -161,8 +177,15 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     except InputError:
         frames, split = list(capture.frames), "all capture frames (no gt/info.json heldout_frames)"
         log.warning("no held-out frames listed; evaluating on every capture frame")
+    if config.frames:
+        frames, split = select_names(config.frames, capture.frames, capture.root, "frame"), "frames given"
     frames = frames[: config.max_frames] if config.max_frames else frames
     cams = capture.cameras()
+    if config.cameras:
+        if not cams:
+            raise InputError(capture.root, "cameras were named but the capture has none")
+        cams = {c: cams[c] for c in select_names(config.cameras, list(cams), capture.root, "camera")}
+    camera_names = list(cams)[: config.max_cameras or None] if cams else None
     results = {m: [] for m in METHODS}
     geometry = {m: [] for m in METHODS}
     per_frame, sheets = [], []
@@ -198,7 +221,9 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
                 row.append(r.rgb)
                 masks.append(r.mask)
                 labels.append(f"{SHORT_NAMES[m]} {results[m][-1]['psnr_db']:.1f} dB")
-            if ci == 0:
+            if config.sheets_per_camera and camera_names:
+                sheets.append((f"{frame}_{camera_names[ci]}", crop_to_masks(row, masks), labels))
+            elif ci == 0:
                 sheets.append((frame, crop_to_masks(row, masks), labels))
         gt_npz = capture.gt_dir / "frames" / f"{frame}.npz"
         if gt_npz.is_file():
@@ -216,13 +241,22 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         raise InputError(capture.root, "no frame could be evaluated")
     summary = {m: {**_summary(results[m]), **_geometry_summary(geometry[m])} for m in METHODS}
     out = {"protocol": PROTOCOL, "split": split, "frames": [e["frame"] for e in per_frame],
-           "cameras": len(cameras), "avatar": str(avatar_dir), "capture": str(capture_root),
+           "cameras": len(cameras), "camera_names": camera_names, "avatar": str(avatar_dir), "capture": str(capture_root),
            "avh": summary["avh"], "baselines": {"mean_texture": summary["mean_texture"],
                                                  "nearest_pose": summary["nearest_pose"]},
            "per_frame": per_frame, "config": asdict(config)}
     if image_dir is not None:
         out["images"] = write_comparison_images(image_dir, sheets)
     return out
+
+
+def select_names(wanted, available, root, what: str) -> list[str]:
+    """``wanted`` names in the given order; InputError naming ``root`` when one is not ``available``."""
+    available = set(available)
+    missing = [w for w in wanted if w not in available]
+    if missing:
+        raise InputError(root, f"{what}(s) {', '.join(missing)} not found (have {', '.join(sorted(available))})")
+    return list(wanted)
 
 
 def crop_to_masks(images: list[np.ndarray], masks: list[np.ndarray], height: int = 320, margin: int = 4):
@@ -242,7 +276,7 @@ def crop_to_masks(images: list[np.ndarray], masks: list[np.ndarray], height: int
 
 
 def write_comparison_images(image_dir: str | Path, sheets) -> list[str]:
-    """One PNG per frame: ground truth | AVH | mean texture | nearest pose (first camera, PSNR in labels)."""
+    """One PNG per sheet (``<name>.png``): ground truth | AVH | mean texture | nearest pose (PSNR in labels)."""
     from uvatar.io_utils import write_image
     from uvatar.render import contact_sheet
 

@@ -85,8 +85,13 @@ def register(cli) -> None:
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument("--images", default=None, help="write comparison images here")
     p.add_argument("--baked", default=None, help="baked training data (default: the one avatar.json names)")
-    p.add_argument("--frames", type=int, default=None, help="evaluate at most this many frames")
-    p.add_argument("--cameras", type=int, default=None, help="use at most this many cameras")
+    p.add_argument("--frames", default=None,
+                   help="a count N (the first N held-out frames) or frame names, comma separated "
+                        "(e.g. 000054,000055, the frames uvatar eval dva reports)")
+    p.add_argument("--cameras", default=None,
+                   help="a count N (the first N cameras) or camera names, comma separated (e.g. 03,07)")
+    p.add_argument("--sheet-per-camera", action="store_true",
+                   help="one comparison image per frame x camera (default: per frame, first camera)")
     p.add_argument("--image-size", type=int, default=None, help="render width (default: the cameras')")
     p.set_defaults(func=_eval)
 
@@ -142,11 +147,29 @@ def _animate(args) -> int:
     return 0
 
 
+def _count_or_names(value: str | None, flag: str) -> tuple[int | None, tuple[str, ...] | None]:
+    """'3' -> (3, None); '03,07' or '000054' -> (None, names); a count must be a plain positive integer
+    without leading zeros (so that '03' reads as a name)."""
+    if value is None:
+        return None, None
+    names = tuple(v.strip() for v in value.split(",") if v.strip())
+    if not names:
+        from uvatar.errors import InputError
+
+        raise InputError(flag, "is empty; give a count or comma-separated names")
+    if len(names) == 1 and names[0].isdigit() and not names[0].startswith("0"):
+        return int(names[0]), None
+    return None, names
+
+
 def _eval(args) -> int:
     from uvatar.avh.eval import EvalConfig, evaluate_avatar
     from uvatar.io_utils import write_json
 
-    cfg = EvalConfig(max_frames=args.frames, max_cameras=args.cameras, image_size=args.image_size)
+    max_frames, frames = _count_or_names(args.frames, "--frames")
+    max_cameras, cameras = _count_or_names(args.cameras, "--cameras")
+    cfg = EvalConfig(max_frames=max_frames, max_cameras=max_cameras, frames=frames, cameras=cameras,
+                     image_size=args.image_size, sheets_per_camera=args.sheet_per_camera)
     metrics = evaluate_avatar(args.avatar, args.capture, cfg, baked_dir=args.baked, image_dir=args.images)
     if args.json:
         write_json(args.json, metrics)

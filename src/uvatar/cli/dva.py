@@ -40,6 +40,9 @@ def register(cli) -> None:
     p.add_argument("--json", required=True, help="metrics JSON path (comparison images go beside it)")
     p.add_argument("--driving-views", type=int, default=3)
     p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--frames", default=None, help="frame names, comma separated (default: the protocol's test frames)")
+    p.add_argument("--cameras", default=None,
+                   help="camera names, comma separated (default: the protocol's held-out cameras)")
     p.add_argument("--device", default="cpu")
     _threads(p)
     p.set_defaults(func=_eval)
@@ -118,12 +121,17 @@ def _render(args) -> int:
     return 0
 
 
+def _split(value):
+    return [v.strip() for v in value.split(",") if v.strip()] if value else None
+
+
 def _eval(args) -> int:
     _set_threads(args)
     from uvatar.dva.data import open_source
     from uvatar.dva.eval import evaluate_dva
 
     r = evaluate_dva(args.run, open_source(args.capture), args.json, driving_views=args.driving_views,
-                     max_frames=args.max_frames, device=args.device)
+                     max_frames=args.max_frames, device=args.device, frames=_split(args.frames),
+                     cameras=_split(args.cameras))
     print(f"psnr {r['psnr_db']:.2f} dB, ssim {r['ssim']:.4f} over {len(r['per_image'])} images -> {args.json}")
     return 0

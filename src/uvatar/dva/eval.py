@@ -3,9 +3,12 @@
 For each test frame x test camera of the source's protocol (see :mod:`uvatar.dva.data`), the avatar is
 driven by ``driving_views`` training cameras (evenly spread over the run's training cameras) at that
 frame, rendered in the held-out camera over that camera's background colour (median of the pixels
-outside the mask) and compared with the photo: PSNR (dB) and SSIM from :mod:`uvatar.render.metrics`,
-over the full image, or inside the projected body box for ZJU-MoCap (Neural Body). Side-by-side
-comparison images (photo | render | 4x |error|) are written beside the JSON.
+outside the mask) and compared with the photo: PSNR (dB) and SSIM from :mod:`uvatar.render.metrics`.
+``psnr_db`` / ``ssim`` keep the source's protocol: the full image, or inside the projected body box
+for ZJU-MoCap (Neural Body). Two protocols shared with ``uvatar eval avh`` are always reported too:
+``psnr_db_full`` / ``ssim_full`` over the full image, and ``psnr_db_union_mask`` / ``ssim_union_mask``
+inside the union of the predicted mask (alpha > 0.5) and the photo's mask. Side-by-side comparison
+images (photo | render | 4x |error|) are written beside the JSON.
 """
 
 from __future__ import annotations
@@ -30,19 +33,55 @@ def spread(items, n):
     return [items[(i * len(items)) // n] for i in range(n)]
 
 
+METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_full", "ssim_full", "psnr_db_union_mask", "ssim_union_mask")
+SHARED_PROTOCOLS = ("also reported for comparison with uvatar eval avh: full-image PSNR/SSIM (psnr_db_full, "
+                    "ssim_full) and PSNR/SSIM inside the union of the predicted mask (alpha > 0.5) and the "
+                    "photo's mask (psnr_db_union_mask, ssim_union_mask)")
+
+
+def image_scores(pred, gt, alpha, gt_mask, box=None) -> dict:
+    """Scores of one render (H, W, 3) in [0, 1] against the photo: the source protocol (``box``: a
+    (H, W) bool mask, or None for the full image), the full image, and the union of alpha > 0.5 and
+    ``gt_mask`` (NaN when that union is empty)."""
+    from uvatar.render.metrics import psnr, ssim
+
+    full_p, full_s = psnr(pred, gt), ssim(pred, gt)
+    union = (np.asarray(alpha) > 0.5) | np.asarray(gt_mask, bool)
+    if union.any():
+        union_p, union_s = psnr(pred, gt, union), ssim(pred, gt, union)
+    else:
+        union_p = union_s = float("nan")
+    main = (full_p, full_s) if box is None else (psnr(pred, gt, box), ssim(pred, gt, box))
+    return {"psnr_db": main[0], "ssim": main[1], "psnr_db_full": full_p, "ssim_full": full_s,
+            "psnr_db_union_mask": union_p, "ssim_union_mask": union_s}
+
+
+def _names(wanted, available, source, what: str) -> list[str]:
+    from uvatar.errors import InputError
+
+    missing = [w for w in wanted if w not in available]
+    if missing:
+        raise InputError(getattr(source, "root", "source"), f"{what}(s) {', '.join(missing)} not found")
+    return list(wanted)
+
+
 def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_frames: int | None = None,
-                 max_cameras: int | None = None, device="cpu", images=True, progress=True) -> dict:
-    """Render and score; returns the metrics dict (also written to ``json_path``)."""
+                 max_cameras: int | None = None, device="cpu", images=True, progress=True,
+                 frames=None, cameras=None) -> dict:
+    """Render and score; returns the metrics dict (also written to ``json_path``): the means of
+    :data:`METRIC_KEYS` over frames x cameras, ``protocol``, ``per_image`` and more. ``frames`` /
+    ``cameras``: names replacing the source's test frames / cameras (cameras must not drive)."""
     import torch
 
     from uvatar.dva.data import box_mask
     from uvatar.dva.train import load_run
     from uvatar.errors import InputError
-    from uvatar.render.metrics import psnr, ssim
 
     model, body, meta, step = load_run(run_dir, device)
-    frames = list(source.test_frames)[:max_frames] if max_frames else list(source.test_frames)
-    test_cams = list(source.test_cameras)[:max_cameras] if max_cameras else list(source.test_cameras)
+    frames = _names(frames, source.frames, source, "frame") if frames else list(source.test_frames)
+    test_cams = _names(cameras, source.cameras, source, "camera") if cameras else list(source.test_cameras)
+    frames = frames[:max_frames] if max_frames else frames
+    test_cams = test_cams[:max_cameras] if max_cameras else test_cams
     train_cams = [c for c in meta["train_cameras"] if c in source.cameras and c not in test_cams]
     if not frames or not test_cams or not train_cams:
         raise InputError(getattr(source, "root", "source"), "no held-out frames/cameras or driving views to evaluate")
@@ -61,17 +100,17 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
             if (cam.height, cam.width) != gt.shape[:2]:
                 cam.height, cam.width = gt.shape[:2]
             with torch.no_grad():
-                pred, _ = render_camera(model, verts, rot, tex, cam, bank.backgrounds[ci])
-            mask = box_mask(cam, verts.cpu().numpy(), *gt.shape[:2]) if source.eval_box_mask else None
-            p, s = psnr(pred, gt, mask), ssim(pred, gt, mask)
-            per_image.append({"frame": frame, "camera": cam_name, "psnr_db": p, "ssim": s})
+                pred, alpha = render_camera(model, verts, rot, tex, cam, bank.backgrounds[ci])
+            box = box_mask(cam, verts.cpu().numpy(), *gt.shape[:2]) if source.eval_box_mask else None
+            scores = image_scores(pred, gt, alpha, bank.masks[fi][ci], box)
+            per_image.append({"frame": frame, "camera": cam_name, **scores})
             if images and img_dir is not None:
                 err = np.clip(np.abs(pred - gt) * 4, 0, 1)
                 write_image(img_dir / f"{frame}_{cam_name}.png", np.concatenate([gt, pred, err], 1))
     result = {
-        "psnr_db": float(np.mean([r["psnr_db"] for r in per_image])),
-        "ssim": float(np.mean([r["ssim"] for r in per_image])),
-        "protocol": source.protocol.replace("{driving}", str(len(driving))) + f"; driving views {driving}",
+        **{k: float(np.nanmean([r[k] for r in per_image])) for k in METRIC_KEYS},
+        "protocol": (source.protocol.replace("{driving}", str(len(driving))) + f"; driving views {driving}; "
+                     + SHARED_PROTOCOLS),
         "frames": bank.frames, "cameras": test_cams, "driving_cameras": driving, "train_steps": step,
         "skipped_frames": bank.skipped, "per_image": per_image,
         "images": str(img_dir) if (images and img_dir is not None) else None,
