@@ -58,6 +58,22 @@ def test_eval_metrics(baked):
     assert abs(abl["full"]["median_mm"] - err["median"]) < 1.0
 
 
+def test_eval_protocol_and_step_effects(baked):
+    _, _, m = baked
+    # a hand-made capture has no studio config: the stored gt is resampled, and the JSON says so
+    assert m["protocol"]["reference"] == "resampled" and m["protocol"]["gt_texels"] == 128
+    assert m["texture_psnr_db_vs_resampled_gt"] == m["texture_psnr_db"]
+    assert m["polarity"]["frames"] >= 2 and m["polarity"]["rule_changed_texels"] <= m["polarity"]["mixed_polarity_texels"]
+    abl = m["ablation"]
+    for name in ("no_registration", "no_vertex_registration", "no_polarity_rule", "no_registration_no_polarity_rule"):
+        ch = abl[name]["changed"]
+        assert ch["texels"] >= 0 and 0.0 <= ch["fraction"] <= 1.0
+        assert ch["all_matched"]["texels"] >= ch["texels"]                  # confident texels are a subset
+    assert abl["no_registration_no_polarity_rule"]["changed"]["against"] == "no_registration"
+    assert abl["no_polarity_rule"]["changed"]["against"] == "full"
+    assert abl["texture_ceiling_psnr_db"] is None                          # needs the exact reference
+
+
 def test_rerun_skips_done_frames_and_reclassifies(baked, tmp_path):
     cap, out, _ = baked
     before = (out / "frames" / "000000.npz").stat().st_mtime_ns

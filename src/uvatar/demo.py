@@ -35,7 +35,7 @@ class DemoConfig:
     train_frames: int = 60
     val_frames: int = 6
     preset: str = "cpu-small"
-    epochs: int = 60
+    epochs: int = 40
     animate_frames: int = 48
     animate_size: int = 256
     seed: int = 0

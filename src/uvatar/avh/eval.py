@@ -58,6 +58,28 @@ class EvalConfig:
     scheme: str = "midpoint"
     progress: bool = True
     sheets_per_camera: bool = False
+    pose_source: str = "refined"   # "refined": the fit refined against the frame's scan, as bake does for
+                                   # training frames; "fit": the capture's fit as is (pose error included)
+
+
+POSE_PROTOCOL = {
+    "refined": "; poses: each held-out frame's fit refined against its scan with the bake's skeleton "
+               "refinement (the same procedure that produced the training poses), so the metrics measure the "
+               "avatar, not the fit noise",
+    "fit": "; poses: the capture's fits as they are (fit noise included)",
+}
+
+
+def _refined_fit(body, fit, scan):
+    """The fit refined against ``scan`` exactly as ``uvatar bake`` refines training frames."""
+    from uvatar.avh.bake.config import PoseRefineConfig
+    from uvatar.avh.bake.frame import _single_threaded_blas
+    from uvatar.avh.bake.refine import refine_fit
+    from uvatar.avh.bake.register import ScanSurface
+
+    with _single_threaded_blas():
+        refined, _ = refine_fit(body, fit, ScanSurface.build(scan.vertices, scan.faces), PoseRefineConfig())
+    return refined
 
 
 def encoded_conditioning(poses: np.ndarray, conditioning) -> np.ndarray:
@@ -195,6 +217,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         except InputError as exc:
             log.warning("skipping frame %s: %s", frame, exc)
             continue
+        if config.pose_source == "refined":
+            fit = _refined_fit(runtime.body, fit, scan)
         pose = np.asarray(fit.poses, np.float32).reshape(-1)
         Rh = np.asarray(fit.Rh, np.float32).reshape(3)
         shape = np.asarray(fit.shapes, np.float32) if np.size(fit.shapes) else None
@@ -240,7 +264,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     if not per_frame:
         raise InputError(capture.root, "no frame could be evaluated")
     summary = {m: {**_summary(results[m]), **_geometry_summary(geometry[m])} for m in METHODS}
-    out = {"protocol": PROTOCOL, "split": split, "frames": [e["frame"] for e in per_frame],
+    out = {"protocol": PROTOCOL + POSE_PROTOCOL[config.pose_source], "pose_source": config.pose_source,
+           "split": split, "frames": [e["frame"] for e in per_frame],
            "cameras": len(cameras), "camera_names": camera_names, "avatar": str(avatar_dir), "capture": str(capture_root),
            "avh": summary["avh"], "baselines": {"mean_texture": summary["mean_texture"],
                                                  "nearest_pose": summary["nearest_pose"]},

@@ -90,6 +90,9 @@ def register(cli) -> None:
                         "(e.g. 000054,000055, the frames uvatar eval dva reports)")
     p.add_argument("--cameras", default=None,
                    help="a count N (the first N cameras) or camera names, comma separated (e.g. 03,07)")
+    p.add_argument("--pose-source", choices=("refined", "fit"), default="refined",
+                   help="held-out poses: the capture's fit refined against the frame's scan as bake does for "
+                        "training frames (measures the avatar), or the fit as is (includes fit noise)")
     p.add_argument("--sheet-per-camera", action="store_true",
                    help="one comparison image per frame x camera (default: per frame, first camera)")
     p.add_argument("--image-size", type=int, default=None, help="render width (default: the cameras')")
@@ -169,7 +172,8 @@ def _eval(args) -> int:
     max_frames, frames = _count_or_names(args.frames, "--frames")
     max_cameras, cameras = _count_or_names(args.cameras, "--cameras")
     cfg = EvalConfig(max_frames=max_frames, max_cameras=max_cameras, frames=frames, cameras=cameras,
-                     image_size=args.image_size, sheets_per_camera=args.sheet_per_camera)
+                     image_size=args.image_size, sheets_per_camera=args.sheet_per_camera,
+                     pose_source=args.pose_source)
     metrics = evaluate_avatar(args.avatar, args.capture, cfg, baked_dir=args.baked, image_dir=args.images)
     if args.json:
         write_json(args.json, metrics)

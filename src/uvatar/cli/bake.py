@@ -132,8 +132,9 @@ def _bake(args) -> int:
 
         ecfg = EvalConfig(ablation=args.ablation_frames > 0, ablation_frames=max(args.ablation_frames, 1))
         summary["eval"] = metrics = evaluate_bake(args.capture, args.out, ecfg, progress)
-        summary.update({k: metrics[k] for k in ("correspondence_error_mm", "texture_psnr_db", "frames_rejected",
-                                                "broken_frames", "ablation")})
+        summary.update({k: metrics[k] for k in ("protocol", "correspondence_error_mm", "texture_psnr_db",
+                                                "texture_psnr_db_vs_resampled_gt", "frames_rejected",
+                                                "broken_frames", "polarity", "ablation")})
         err = metrics["correspondence_error_mm"]
         print(f"correspondence error (kappa > 0.5): median {err['median']} mm, p90 {err['p90']} mm; "
               f"texture PSNR {metrics['texture_psnr_db']} dB", file=sys.stderr)

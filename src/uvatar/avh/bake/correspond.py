@@ -31,7 +31,10 @@ class TexelMatches:
     hit: (N,) bool, a match was found; points: (N, 3) match x on the scan (zeros without a match);
     distance: (N,) metres from r to x (inf without a match); face: (N,) int64 scan face (-1);
     bary: (N, 3) barycentrics in that face; scan_normal: (N, 3) unit normal m of the scan at x;
-    side: (N,) int8, +1 the +n ray, -1 the -n ray, 0 no match; positive: (N,) bool, n . m > 0.
+    side: (N,) int8, +1 the +n ray, -1 the -n ray, 0 no match; positive: (N,) bool, n . m > 0;
+    mixed: (N,) bool, both rays hit and their polarities differ (where the polarity rule acts);
+    rule_changed: (N,) bool, the polarity rule chose the farther candidate (the choice differs from
+    plain nearest); both None when not computed.
     """
 
     hit: np.ndarray
@@ -42,6 +45,8 @@ class TexelMatches:
     scan_normal: np.ndarray
     side: np.ndarray
     positive: np.ndarray
+    mixed: np.ndarray | None = None
+    rule_changed: np.ndarray | None = None
 
 
 def choose_candidates(hit_plus, dist_plus, pos_plus, hit_minus, dist_minus, pos_minus,
@@ -115,6 +120,8 @@ def match_texels(points, normals, scan: ScanSurface, polarity_rule: bool = True,
         cand.append((hits, m, dist, (m * n).sum(1) > 0))
     (hp, mp, dp, pp), (hm, mm, dm, pm) = cand
     side = choose_candidates(hp.hit, dp, pp, hm.hit, dm, pm, polarity_rule, ratio)
+    nearest = choose_candidates(hp.hit, dp, pp, hm.hit, dm, pm, False, ratio)
+    mixed = hp.hit & hm.hit & (pp != pm)
     plus = side == 1
     pick = lambda a, b: np.where(plus.reshape(-1, *([1] * (a.ndim - 1))), a, b)  # noqa: E731
     hit = side != 0
@@ -130,4 +137,6 @@ def match_texels(points, normals, scan: ScanSurface, polarity_rule: bool = True,
         scan_normal=np.where(mask3, pick(mp, mm), 0.0),
         side=side,
         positive=hit & pick(pp, pm),
+        mixed=mixed,
+        rule_changed=side != nearest,
     )

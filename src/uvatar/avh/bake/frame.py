@@ -269,6 +269,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         "kappa_mean": float(kappa.mean()) if len(kappa) else 0.0,
         "matched_fraction": float(hit.mean()) if len(hit) else 0.0,
         "positive_fraction": float(matches.positive[hit].mean()) if hit.any() else 0.0,
+        "mixed_polarity_texels": int(matches.mixed.sum()) if matches.mixed is not None else 0,
+        "polarity_rule_changed_texels": int(matches.rule_changed.sum()) if matches.rule_changed is not None else 0,
         "median_match_distance_mm": float(np.median(matches.distance[hit]) * 1000) if hit.any() else None,
         "bbox_diagonal": diag,
         "registration": reg_stats,

@@ -157,7 +157,9 @@ def _write_info(out_root: Path, capture, body_name: str, config: BakeConfig, res
     stats = dict(info.get("frame_stats", {}))
     for f, r in results.items():
         if r.kappa_mean is not None:
-            stats[f] = {"kappa_mean": r.kappa_mean, **({"seconds": r.stats.get("seconds")} if r.stats else {})}
+            stats[f] = {"kappa_mean": r.kappa_mean,
+                        **({k: r.stats[k] for k in ("seconds", "mixed_polarity_texels", "polarity_rule_changed_texels")
+                            if k in r.stats} if r.stats else {})}
     shapes = capture.body_shapes
     info.update({
         "texels": config.texels,

@@ -1,0 +1,143 @@
+"""The ``--eval`` ablation: re-bake a few frames without each step of the paper and score them.
+
+Variants: ``full``; ``no_registration`` (neither the articulated pose refinement nor the vertex
+stages); ``no_pose_refinement``; ``no_vertex_registration``; ``no_polarity_rule`` (nearest candidate
+always); ``no_registration_no_polarity_rule`` (the rule's effect when the texel rays start on the
+unregistered shadow mesh, centimetres from the scan). Per variant, over the full pipeline's confident texels (kappa > threshold) that the variant
+also matched: median / p90 error and texture PSNR; over its own confident texels: median error and
+the confident fraction of valid texels.
+
+Because a step that changes few texels cannot move an overall median, each variant also reports
+``changed``: the texels (among its base's confident ones matched by both; the base is the full
+pipeline, or ``no_registration`` for ``no_registration_no_polarity_rule``) where its correspondence
+differs from the base's by more than ``change_tolerance_m``, with the median error of both there;
+``changed.all_matched`` the same over every texel both matched, confident or not. For the polarity rule this is exactly the set of texels with mixed-polarity
+candidates where the rule picks the farther (positive) candidate; ``mixed_polarity_texels`` counts
+all texels with mixed candidates.
+
+``texture_ceiling_psnr_db``: the exact gt texture sampled through the scan's own atlas at the true
+surface points (rays along the true normal, +-2 cm) against the exact gt, on the full pipeline's
+confident texels: what a perfect correspondence could score with this scan texture (its atlas
+resolution and bilinear blur). Needs the exact gt reference.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+__all__ = ["ablation_variants", "run_ablation"]
+
+CHANGE_TOLERANCE_M = 1e-4
+
+
+def ablation_variants(bake_cfg) -> dict:
+    return {"full": bake_cfg, "no_registration": replace(bake_cfg, register=False, refine_pose=False),
+            "no_pose_refinement": replace(bake_cfg, refine_pose=False),
+            "no_vertex_registration": replace(bake_cfg, register=False),
+            "no_polarity_rule": replace(bake_cfg, polarity_rule=False),
+            "no_registration_no_polarity_rule": replace(bake_cfg, register=False, refine_pose=False,
+                                                        polarity_rule=False)}
+
+
+# the variant each one's ``changed`` texels are measured against (default: the full pipeline)
+CHANGE_BASE = {"no_registration_no_polarity_rule": "no_registration"}
+
+
+def _ceiling_sq(scan, gt_surface, gt_normal, gt_texture, sel):
+    """Squared errors (K, 3) of the gt texture sampled through the scan atlas at the true points."""
+    from uvatar.avh.bake.correspond import match_texels
+    from uvatar.avh.bake.register import ScanSurface
+    from uvatar.geometry import sample_texture
+
+    surface = ScanSurface.build(scan.vertices, scan.faces)
+    m = match_texels(gt_surface[sel], gt_normal[sel], surface, True, 2.0, 0.02, 1e-4)
+    uv = (scan.uvs[scan.uv_faces[m.face[m.hit]]] * m.bary[m.hit][..., None]).sum(1)
+    return (np.asarray(sample_texture(scan.texture, uv), np.float64) - gt_texture[sel][m.hit]) ** 2
+
+
+def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, source, progress: bool,
+                 summary, psnr) -> dict:
+    """Re-bake the chosen frames per variant; ``confident`` {frame: (R, R) bool} of the full bake;
+    ``source`` a GtSource; ``summary``/``psnr`` the metric reducers of :mod:`.evaluate`."""
+    from tqdm import tqdm
+
+    from uvatar.avh.bake.evaluate import texel_errors
+    from uvatar.avh.bake.frame import bake_fit
+
+    names = sorted(confident)
+    if config.ablation_frames is not None and len(names) > config.ablation_frames:
+        names = [names[i] for i in np.linspace(0, len(names) - 1, config.ablation_frames).round().astype(int)]
+    variants = ablation_variants(bake_cfg)
+    keys = list(variants)
+    common = {k: [] for k in keys}
+    common_sq = {k: [] for k in keys}
+    own = {k: [] for k in keys}
+    coverage = {k: [] for k in keys}
+    changed = {k: {"count": 0, "of": 0, "full": [], "variant": [], "all_count": 0, "all_of": 0, "all_with": [],
+                   "all_without": []} for k in keys if k != "full"}
+    mixed, ceiling_sq = 0, []
+    own_conf = {}
+    for f in tqdm(names, desc="ablation", unit="frame", disable=not progress):
+        gt = source.get(f)
+        fit = capture.load_fit(f)
+        shape = None if fit.shapes.size else (capture.body_shapes if capture.body_shapes.size else None)
+        scan = capture.load_scan(f)
+        baked = {}
+        for name, cfg in variants.items():
+            b, _ = bake_fit(body, fit, layout, scan, cfg, shape)
+            baked[name] = b
+            score_common = confident[f] & b.matched
+            e, q = texel_errors(b.points, b.texture, score_common, *gt)
+            common[name].append(e)
+            common_sq[name].append(q)
+            score_own = b.valid & (b.kappa > config.kappa_threshold)
+            own[name].append(texel_errors(b.points, b.texture, score_own, *gt)[0])
+            coverage[name].append(score_own.sum() / max(b.valid.sum(), 1))
+            own_conf[name] = confident[f] if name == "full" else score_own
+        full = baked["full"]
+        mixed += int(full.stats.get("mixed_polarity_texels", 0))
+        for name, ch in changed.items():
+            base_name = CHANGE_BASE.get(name, "full")
+            base = baked[base_name]
+            both = own_conf[base_name] & base.matched & baked[name].matched & gt[2]
+            diff = both & (np.linalg.norm(base.points - baked[name].points, axis=-1) > CHANGE_TOLERANCE_M)
+            ch["count"] += int(diff.sum())
+            ch["of"] += int(both.sum())
+            ch["base"] = base_name
+            ch["full"].append(texel_errors(base.points, base.texture, diff, *gt)[0])
+            ch["variant"].append(texel_errors(baked[name].points, baked[name].texture, diff, *gt)[0])
+            # the same over every texel both matched, confident or not (where a rare step acts)
+            both_all = base.valid & base.matched & baked[name].matched & gt[2]
+            diff_all = both_all & (np.linalg.norm(base.points - baked[name].points, axis=-1) > CHANGE_TOLERANCE_M)
+            ch["all_count"] += int(diff_all.sum())
+            ch["all_of"] += int(both_all.sum())
+            ch["all_with"].append(texel_errors(base.points, base.texture, diff_all, *gt)[0])
+            ch["all_without"].append(texel_errors(baked[name].points, baked[name].texture, diff_all, *gt)[0])
+        if source.renderer is not None:
+            g = source.renderer.render(f)
+            ceiling_sq.append(_ceiling_sq(scan, g["surface"], g["normal"], g["texture"].astype(np.float64),
+                                          confident[f] & g["mask"]))
+    out = {"frames": names, "change_tolerance_mm": CHANGE_TOLERANCE_M * 1000,
+           "mixed_polarity_texels": mixed,
+           "texture_ceiling_psnr_db": psnr(ceiling_sq) if ceiling_sq else None}
+    for name in keys:
+        out[name] = {"median_mm": summary(common[name])["median"],
+                     "p90_mm": summary(common[name])["p90"],
+                     "texture_psnr_db": psnr(common_sq[name]),
+                     "median_mm_own_confident_texels": summary(own[name])["median"],
+                     "confident_fraction": float(np.mean(coverage[name]))}
+        if name in changed:
+            ch = changed[name]
+            out[name]["changed"] = {"against": ch.get("base", "full"), "texels": ch["count"],
+                                    "fraction": ch["count"] / max(ch["of"], 1),
+                                    "median_mm_with": summary(ch["full"])["median"],
+                                    "median_mm_without": summary(ch["variant"])["median"],
+                                    "p90_mm_with": summary(ch["full"])["p90"],
+                                    "p90_mm_without": summary(ch["variant"])["p90"],
+                                    "all_matched": {"texels": ch["all_count"],
+                                                    "fraction": ch["all_count"] / max(ch["all_of"], 1),
+                                                    "median_mm_with": summary(ch["all_with"])["median"],
+                                                    "median_mm_without": summary(ch["all_without"])["median"]}}
+    return out

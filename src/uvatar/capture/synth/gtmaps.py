@@ -1,0 +1,101 @@
+"""Exact ground-truth maps of a synthetic capture at any texel resolution.
+
+``gt/frames/F.npz`` stores the true texture and surface at ``gt_texels`` (256 by default). A bake
+at R != gt_texels must not be scored against a bilinear resample of those maps: the shirt's plaid
+lines (6 mm) are point-sampled at 256 texels, and resampling them blurs and aliases the reference
+itself (on /tmp/perfcap: 256 -> 512 bilinear is only ~28 dB against the exact 512 maps). Since the
+studio is a deterministic function of its config (saved in ``gt/info.json``), :class:`GtRenderer`
+re-evaluates the true appearance and surface at the texel centres of any resolution, from the
+frame's stored true pose (``gt/frames/F.npz``: pose, Rh, Th, bends).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.errors import InputError
+
+__all__ = ["config_from_dict", "GtRenderer"]
+
+
+def config_from_dict(data: dict):
+    """A :class:`SynthConfig` from its ``to_dict()`` (as saved in ``gt/info.json``; lists -> tuples,
+    unknown keys ignored)."""
+    from uvatar.capture.synth.config import SynthConfig
+
+    def build(cls, values):
+        kw = {}
+        for f in fields(cls):
+            if f.name not in values:
+                continue
+            v = values[f.name]
+            sub = f.default_factory if callable(getattr(f, "default_factory", None)) else None
+            if isinstance(v, dict) and sub is not None:
+                v = build(type(sub()), v)
+            elif isinstance(v, list):
+                v = tuple(v)
+            kw[f.name] = v
+        return cls(**kw)
+
+    return build(SynthConfig, data or {})
+
+
+class GtRenderer:
+    """True texture / clothed surface of a synthetic capture's frames at ``resolution`` texels.
+
+    ``render(frame)`` -> dict texture (R, R, 3) float32 [0, 1], surface (R, R, 3) float64 world
+    metres, normal (R, R, 3) unit outward normals of the (unclothed) body there, mask (R, R) bool
+    (all in the body UV layout, row 0 = v 1), or None when the frame has no gt file.
+    """
+
+    def __init__(self, capture_root, resolution: int):
+        from uvatar.capture.synth.frame import Studio
+
+        self.root = Path(capture_root)
+        info_path = self.root / "gt" / "info.json"
+        if not info_path.is_file():
+            raise InputError(info_path, "no ground truth (only `uvatar synth` captures have gt/)")
+        info = json.loads(info_path.read_text())
+        cfg = config_from_dict(info.get("config", {})).replace(gt_texels=int(resolution), workers=1)
+        capture = json.loads((self.root / "capture.json").read_text())
+        shape = np.asarray(capture.get("body_model", {}).get("shapes", []), dtype=np.float32)
+        plan = {"shape": shape, "frames": [], "poses": None, "Rh": None, "Th": None}
+        self.cfg = cfg
+        self.studio = Studio(cfg, self.root, plan)
+        self.resolution = int(resolution)
+
+    def render(self, frame: str) -> dict | None:
+        import torch
+
+        from uvatar.capture.synth import appearance as app
+        from uvatar.capture.synth import clothing as clo
+        from uvatar.capture.synth import surface as srf
+        from uvatar.capture.synth.gt import scatter_texels
+
+        path = self.root / "gt" / "frames" / f"{frame}.npz"
+        if not path.is_file():
+            return None
+        with np.load(path) as z:
+            pose, Rh, Th, bends = (np.asarray(z[k]) for k in ("pose", "Rh", "Th", "bends"))
+        st = self.studio
+        with torch.no_grad():
+            posed = st.body.pose(torch.as_tensor(pose.reshape(1, -1, 3), dtype=torch.float32),
+                                 Rh=torch.as_tensor(Rh[None], dtype=torch.float32),
+                                 Th=torch.as_tensor(Th[None], dtype=torch.float32),
+                                 shape=torch.as_tensor(st.shape))
+        V = posed.vertices[0].double().cpu().numpy()
+        N = posed.normals[0].double().cpu().numpy()
+        g, R = st.gt, self.resolution
+        gp, gn = srf.posed_points(g.W, V, N)
+        goff = clo.offset_amount(g.base, g.folds, bends.astype(np.float64), self.cfg.clothing)
+        texture = scatter_texels(app.shade(g.albedo, g.creases, bends, self.cfg.appearance), st.gt_flat, R)
+        surface = np.zeros((R * R, 3))
+        surface[st.gt_flat] = gp + goff[:, None] * gn
+        normal = np.zeros((R * R, 3))
+        normal[st.gt_flat] = gn / np.maximum(np.linalg.norm(gn, axis=1, keepdims=True), 1e-12)
+        return {"texture": texture, "surface": surface.reshape(R, R, 3), "normal": normal.reshape(R, R, 3),
+                "mask": st.gt_mask.copy()}
