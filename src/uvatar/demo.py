@@ -31,7 +31,7 @@ class DemoConfig:
     image_size: int = 256
     scan_texture: int = 512
     gt_texels: int = 256
-    texels: int = 256           # bake / model output resolution
+    texels: int = 128           # bake resolution = the generator preset's output resolution
     train_frames: int = 60
     val_frames: int = 6
     preset: str = "cpu-small"
