@@ -19,7 +19,16 @@ if REASON:
     pytest.skip(f"browser tests skipped: {REASON}", allow_module_level=True)
 
 from uvatar.avh.engine_export import pose_to_model_input, posed_joint_transforms, run_generator  # noqa: E402
-from uvatar.viewer.browser import canvas_pixels, run_generator_in_browser, set_pose, viewer_page  # noqa: E402
+from uvatar.errors import UvatarError  # noqa: E402
+from uvatar.viewer.browser import (  # noqa: E402
+    call_page,
+    canvas_pixels,
+    run_generator_in_browser,
+    set_pose,
+    viewer_page,
+    wait_for_page,
+    wait_idle,
+)
 from uvatar.viewer.server import ViewerConfig, ViewerServer  # noqa: E402
 from uvatar.viewer.toy import toy_rest_body, write_toy_avatar  # noqa: E402
 
@@ -64,7 +73,7 @@ def test_pose_slider_changes_the_avatar_pixels(page):
     before = canvas_pixels(page)
     page.select_option("#joint-select", "1")
     page.locator("#slider-z").fill("0.8")
-    page.evaluate("() => window.uvatar.whenIdle()")
+    wait_idle(page)
     after = canvas_pixels(page)
     assert page.evaluate("window.uvatar.getPose()")[3 * 1 + 2] == pytest.approx(0.8, abs=0.01)  # range step 0.01 from -pi
     assert _changed_fraction(before, after) > 0.01
@@ -72,13 +81,15 @@ def test_pose_slider_changes_the_avatar_pixels(page):
 
 def test_displacement_moves_the_surface(page):
     set_pose(page, np.zeros(12))
-    page.evaluate("window.uvatar.setDisplacementScale(0)")
-    page.evaluate("() => window.uvatar.whenIdle()")
-    bare = canvas_pixels(page)
-    page.evaluate("window.uvatar.setDisplacementScale(4)")
-    page.evaluate("() => window.uvatar.whenIdle()")
-    displaced = canvas_pixels(page)
-    page.evaluate("window.uvatar.setDisplacementScale(1)")
+    try:
+        page.evaluate("window.uvatar.setDisplacementScale(0)")
+        wait_idle(page)
+        bare = canvas_pixels(page)
+        page.evaluate("window.uvatar.setDisplacementScale(4)")
+        wait_idle(page)
+        displaced = canvas_pixels(page)
+    finally:
+        page.evaluate("window.uvatar.setDisplacementScale(1)")
     assert _changed_fraction(bare, displaced) > 0.002
 
 
@@ -102,13 +113,36 @@ def test_motion_plays_and_drives_the_generator(page):
     options = page.locator("#motion-select option").all_inner_texts()
     assert options[0].startswith("sway (built-in)") and "sway" in options[1:]  # + AVATAR/motions/sway.json
     before = page.evaluate("window.uvatar.stats.inferences")
-    page.select_option("#motion-select", index=1)
-    page.click("#play")
-    page.wait_for_timeout(1500)
-    poses = [page.evaluate("window.uvatar.getPose()") for _ in range(2)]
-    page.click("#stop")
-    assert page.evaluate("window.uvatar.stats.inferences") > before
-    assert np.abs(poses[0]).max() > 0.01
+    try:
+        page.select_option("#motion-select", index=1)
+        page.click("#play")
+        wait_for_page(page, "window.uvatar.isPlaying()", what="the motion playing")
+        # several inferences, each for a pose the playback set (not a fixed sleep: under load they are slow)
+        wait_for_page(page, f"window.uvatar.stats.inferences > {before} + 2", what="inferences during playback")
+        poses = [page.evaluate("window.uvatar.getPose()")]
+        wait_for_page(page, f"window.uvatar.getPose().some((v, i) => v !== {poses[0]}[i])", what="the pose moving")
+        poses.append(page.evaluate("window.uvatar.getPose()"))
+    finally:
+        page.click("#stop")
+    assert page.evaluate("window.uvatar.isPlaying()") is False
+    assert page.evaluate("window.uvatar.stats.inferences") > before + 2
+    assert max(np.abs(poses[0]).max(), np.abs(poses[1]).max()) > 0.01
+    assert np.abs(np.subtract(poses[0], poses[1])).max() > 0
+    wait_idle(page)  # the last playback inference lands; the next test starts from a quiet page
+
+
+def test_stalled_page_call_fails_with_a_clear_message(page):
+    with pytest.raises(UvatarError, match=r"viewer call 'never' failed: .*no answer within 300 ms.*console"):
+        call_page(page, "() => new Promise(() => {})", timeout_s=0.3, what="never")
+    with pytest.raises(UvatarError, match="never reached 'false' within"):
+        wait_for_page(page, "false", timeout_s=0.3, what="false")
+    # whenIdle itself rejects (with the viewer state) when an inference never finishes
+    message = page.evaluate("""async () => {
+        window.uvatar.setPose(window.uvatar.getPose());  // pending, then busy for one inference
+        try { await window.uvatar.whenIdle(0); return 'resolved'; } catch (e) { return e.message; }
+    }""")
+    assert message == "resolved" or "not idle after 0 ms (busy=" in message
+    wait_idle(page)
 
 
 @pytest.mark.parametrize("kind", ["angles", "sincos"])
@@ -167,6 +201,17 @@ def test_displaced_vertices_match_python_reference(page, avatar):
     ref = skin_reference(mesh, rots)[idx] + _bilinear_clamped(dmap, mesh.uv1[idx])
     assert np.abs(dmap).max() > 1e-3  # the toy really displaces
     np.testing.assert_allclose(js, ref, atol=2e-5)
+
+
+def test_idle_wait_does_not_need_animation_frames(page):
+    """whenIdle resolves from the inference itself even while requestAnimationFrame is stalled (runs last)."""
+    page.evaluate("() => { window.__raf = window.requestAnimationFrame; window.requestAnimationFrame = () => 0; }")
+    try:
+        n = page.evaluate("window.uvatar.stats.inferences")
+        set_pose(page, np.full(12, 0.05), timeout_s=30)
+        assert page.evaluate("window.uvatar.stats.inferences") > n
+    finally:
+        page.evaluate("() => { window.requestAnimationFrame = window.__raf; }")
 
 
 @pytest.mark.slow

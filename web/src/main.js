@@ -121,10 +121,27 @@ async function main() {
     }
   }
 
-  // inference: at most one in flight; the latest pose wins
+  // inference: at most one in flight; the latest pose wins. Driven by pose changes, never by
+  // requestAnimationFrame: headless or background pages may stall rAF, and waiters must not hang then.
   let pending = false;
   let busy = false;
   let idleWaiters = [];
+  function drawNow() {
+    try {
+      controls.update();
+      renderer.render(scene, camera);
+      ui.showStats(api.stats);
+    } catch (e) {
+      console.error('draw failed', e);
+    }
+  }
+  function settleIdleWaiters() {
+    if (busy || pending || !idleWaiters.length) return;
+    const waiters = idleWaiters;
+    idleWaiters = [];
+    drawNow(); // the latest maps are on the canvas (preserveDrawingBuffer) before anyone is told
+    waiters.forEach((w) => w());
+  }
   async function pump() {
     busy = true;
     try {
@@ -139,26 +156,63 @@ async function main() {
       fail(e);
     }
     busy = false;
+    settleIdleWaiters();
   }
   function poseChanged() {
     applyPoseToBones();
     pending = true;
     if (!busy) pump();
   }
+  /** A promise for the next idle moment that rejects after `timeoutMs` with the viewer's state. */
+  function whenIdle(timeoutMs = 60000) {
+    let timer = null;
+    const idle = new Promise((resolve) => { idleWaiters.push(resolve); });
+    const limit = new Promise((_, reject) => {
+      timer = setTimeout(() => reject(new Error(`uvatar.whenIdle: not idle after ${timeoutMs} ms `
+        + `(busy=${busy}, pending=${pending}, inferences=${api.stats.inferences}, error=${api.error})`)), timeoutMs);
+    });
+    queueMicrotask(settleIdleWaiters); // already idle: resolve without waiting for a frame
+    return Promise.race([idle, limit]).finally(() => clearTimeout(timer));
+  }
 
-  // motion playback
+  // motion playback: a timer advances the pose (and so the generator) even when rAF is throttled
   const motions = [swayMotion(manifest)];
   let playing = null;
   let playStart = 0;
+  let playTimer = null;
   const scratch = new Float32Array(J * 3);
-  function playMotion(m) {
-    playing = m;
+  function advanceMotion(now) {
+    if (!playing) return;
+    const t = ((now - playStart) / 1000) * playing.fps;
+    const n = playing.poses.length;
+    const i = Math.floor(t) % n;
+    lerpPose(playing.poses[i], playing.poses[(i + 1) % n], t - Math.floor(t), scratch);
+    pose.set(scratch.subarray(0, pose.length));
+    if (playing.Rh) { // global rotation about the model origin; the maps live in the body frame
+      const r = playing.Rh[i];
+      rotvecToQuaternion(r[0], r[1], r[2], avatar.quaternion);
+    }
+    ui.refreshSliders();
+    poseChanged();
+  }
+  function stopMotion() {
+    playing = null;
+    clearInterval(playTimer);
+    playTimer = null;
     avatar.quaternion.identity();
+  }
+  function playMotion(m) {
+    stopMotion();
+    if (!m || !m.poses || !m.poses.length) { console.warn('not a motion', m); return; }
+    playing = m;
     playStart = performance.now();
+    playTimer = setInterval(() => {
+      try { advanceMotion(performance.now()); } catch (e) { console.error('motion step failed', e); stopMotion(); }
+    }, 1000 / Math.min(60, m.fps || 30));
   }
 
   const ui = buildUi({ manifest, pose, motions, onPose: poseChanged, onPlay: playMotion,
-    onStop: () => { playing = null; avatar.quaternion.identity(); }, onMotionLoaded: (m) => { motions.push(m); playMotion(m); } });
+    onStop: stopMotion, onMotionLoaded: (m) => { motions.push(m); playMotion(m); } });
   try {
     const list = await (await fetch('api/motions')).json();
     for (const entry of list) ui.addMotionEntry(entry);
@@ -169,34 +223,21 @@ async function main() {
   let frames = 0;
   let fpsStart = performance.now();
   function frame(now) {
-    if (playing) {
-      const t = ((now - playStart) / 1000) * playing.fps;
-      const n = playing.poses.length;
-      const i = Math.floor(t) % n;
-      lerpPose(playing.poses[i], playing.poses[(i + 1) % n], t - Math.floor(t), scratch);
-      pose.set(scratch.subarray(0, pose.length));
-      if (playing.Rh) { // global rotation about the model origin; the maps live in the body frame
-        const r = playing.Rh[i];
-        rotvecToQuaternion(r[0], r[1], r[2], avatar.quaternion);
+    try {
+      controls.update();
+      renderer.render(scene, camera);
+      frames += 1;
+      if (now - fpsStart > 1000) {
+        api.stats.fps = (1000 * frames) / (now - fpsStart);
+        frames = 0;
+        fpsStart = now;
       }
-      ui.refreshSliders();
-      poseChanged();
+      ui.showStats(api.stats);
+    } catch (e) {
+      console.error('frame failed', e); // keep the loop alive: one bad frame must not freeze the page
+    } finally {
+      requestAnimationFrame(frame);
     }
-    controls.update();
-    renderer.render(scene, camera);
-    frames += 1;
-    if (now - fpsStart > 1000) {
-      api.stats.fps = (1000 * frames) / (now - fpsStart);
-      frames = 0;
-      fpsStart = now;
-    }
-    ui.showStats(api.stats);
-    const waiters = idleWaiters;
-    if (!busy && !pending && waiters.length) {
-      idleWaiters = [];
-      requestAnimationFrame(() => waiters.forEach((w) => w()));
-    }
-    requestAnimationFrame(frame);
   }
 
   window.addEventListener('resize', () => {
@@ -219,9 +260,14 @@ async function main() {
     playMotion: (index) => playMotion(motions[index ?? 0]),
     /** Multiply the displacement (1 = as exported, 0 = bare skinned body); for inspection and tests. */
     setDisplacementScale(s) { mesh.material.userData.uniforms.uDisplacementScale.value = s; },
-    stop: () => { playing = null; },
-    /** Resolves once no inference is pending and the latest maps have been drawn. */
-    whenIdle: () => new Promise((resolve) => idleWaiters.push(resolve)),
+    stop: stopMotion,
+    /** True while a motion plays. */
+    isPlaying: () => playing !== null,
+    /**
+     * Resolves once no inference is pending and the latest maps have been drawn; rejects with the
+     * viewer's state after `timeoutMs` (default 60 s). Does not depend on requestAnimationFrame.
+     */
+    whenIdle,
     /**
      * CPU twin of the vertex shader for the given vertex indices: three.js skinning
      * (SkinnedMesh.getVertexPosition) + scale * bilinear(displacement map, dispUv), model space, metres.
@@ -260,7 +306,7 @@ async function main() {
 
   poseChanged();
   requestAnimationFrame(frame);
-  await api.whenIdle();
+  await whenIdle(300000); // the first inference compiles the model: generous under load
   if (params.get('play') !== null) playMotion(motions[Number(params.get('play')) || 0]);
   api.ready = true;
   document.body.dataset.ready = '1';

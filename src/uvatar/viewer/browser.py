@@ -23,7 +23,15 @@ CHROMIUM_ARGS = [
     "--disable-component-update", "--disable-sync", "--no-first-run",
     # WebGL without a GPU: ANGLE on SwiftShader (Chromium no longer falls back to it silently)
     "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+    # keep timers and requestAnimationFrame running in a headless page on a loaded machine
+    "--disable-background-timer-throttling", "--disable-renderer-backgrounding",
+    "--disable-backgrounding-occluded-windows", "--disable-ipc-flooding-protection",
+    # SwiftShader frames can take seconds under load; the GPU watchdog would kill the GPU process
+    "--disable-gpu-watchdog",
 ]
+
+#: Default limit (seconds) for one call into the page (an inference, an idle wait).
+PAGE_CALL_TIMEOUT_S = 60.0
 
 
 def find_chromium() -> str | None:
@@ -75,15 +83,67 @@ def viewer_page(url: str, width: int = 960, height: int = 720, timeout_s: float 
             browser.close()
 
 
-def set_pose(page, pose) -> None:
+def console_tail(page, n: int = 12) -> list[str]:
+    """The last ``n`` console lines of a page opened by :func:`viewer_page` (empty for other pages)."""
+    return list(getattr(page, "uvatar_logs", []))[-n:]
+
+
+def call_page(page, function_js: str, arg=None, timeout_s: float = PAGE_CALL_TIMEOUT_S, what: str = ""):
+    """Evaluate the JS function ``function_js`` (``arg => ...``, may return a promise) within ``timeout_s``.
+
+    Playwright's ``evaluate`` has no time limit of its own, so a promise that never settles would hang
+    the caller forever; here it races a page timer and a stall raises UvatarError with the console tail.
+    """
+    ms = int(timeout_s * 1000)
+    wrapped = f"""async ([arg, ms]) => {{
+        const fn = ({function_js});
+        let timer = null;
+        const limit = new Promise((_, reject) => {{
+            timer = setTimeout(() => reject(new Error(`no answer within ${{ms}} ms`)), ms);
+        }});
+        try {{ return await Promise.race([Promise.resolve().then(() => fn(arg)), limit]); }}
+        finally {{ clearTimeout(timer); }}
+    }}"""
+    try:
+        return page.evaluate(wrapped, [arg, ms])
+    except Exception as exc:
+        label = what or function_js.strip().splitlines()[0][:80]
+        problem = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UvatarError(f"viewer call {label!r} failed: {problem}; console: {console_tail(page)}") from exc
+
+
+def wait_idle(page, timeout_s: float = PAGE_CALL_TIMEOUT_S) -> None:
+    """Wait until no inference is pending and the latest maps are drawn (UvatarError after ``timeout_s``)."""
+    call_page(page, "ms => window.uvatar.whenIdle(ms)", int(timeout_s * 1000), timeout_s + 5, "whenIdle")
+
+
+def set_pose(page, pose, timeout_s: float = PAGE_CALL_TIMEOUT_S) -> None:
     """Set the full pose (J*3 local axis-angles) and wait until the new maps are drawn."""
-    page.evaluate("p => window.uvatar.setPose(p)", [float(x) for x in np.asarray(pose).ravel()])
-    page.evaluate("() => window.uvatar.whenIdle()")
+    call_page(page, "p => window.uvatar.setPose(p)", [float(x) for x in np.asarray(pose).ravel()], timeout_s,
+              "setPose")
+    wait_idle(page, timeout_s)
 
 
-def run_generator_in_browser(page, pose) -> tuple[np.ndarray, np.ndarray, float]:
+def wait_for_page(page, condition_js: str, timeout_s: float = PAGE_CALL_TIMEOUT_S, what: str = "") -> None:
+    """Wait until the JS expression ``condition_js`` is truthy; UvatarError with the console tail after ``timeout_s``."""
+    try:
+        page.wait_for_function(condition_js, timeout=timeout_s * 1000)
+    except Exception as exc:
+        raise UvatarError(f"viewer never reached {what or condition_js!r} within {timeout_s:.0f} s; "
+                          f"stats: {_safe_stats(page)}; console: {console_tail(page)}") from exc
+
+
+def _safe_stats(page):
+    try:
+        return page.evaluate("window.uvatar && window.uvatar.stats")
+    except Exception as exc:  # the page itself is gone or stuck
+        return f"unavailable ({type(exc).__name__})"
+
+
+def run_generator_in_browser(page, pose, timeout_s: float = PAGE_CALL_TIMEOUT_S) -> tuple[np.ndarray, np.ndarray, float]:
     """The in-browser generator for ``pose`` (J*3): texture (1, 3, R, R), displacement (1, 3, R, R), ms."""
-    out = page.evaluate("p => window.uvatar.runGenerator(p)", [float(x) for x in np.asarray(pose).ravel()])
+    out = call_page(page, "p => window.uvatar.runGenerator(p)", [float(x) for x in np.asarray(pose).ravel()],
+                    timeout_s, "runGenerator")
     dims = tuple(out["dims"])
     tex = np.frombuffer(base64.b64decode(out["texture"]), np.float32).reshape(dims)
     disp = np.frombuffer(base64.b64decode(out["displacement"]), np.float32).reshape(dims)

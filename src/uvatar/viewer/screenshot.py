@@ -66,7 +66,7 @@ def screenshot(avatar_dir: str | Path, out_png: str | Path, pose: np.ndarray | N
                width: int = 960, height: int = 720, bench_runs: int = 10, hide_panel: bool = False) -> dict:
     """Shoot the viewer showing ``pose``; return {"inference_ms", "benchmark", "backend", "texels", ...}."""
     from uvatar.io_utils import atomic_path
-    from uvatar.viewer.browser import set_pose, viewer_page
+    from uvatar.viewer.browser import call_page, set_pose, viewer_page, wait_idle
     from uvatar.viewer.server import ViewerConfig, ViewerServer
 
     with ViewerServer(avatar_dir, ViewerConfig(port=0, open_browser=False)) as server, \
@@ -74,10 +74,11 @@ def screenshot(avatar_dir: str | Path, out_png: str | Path, pose: np.ndarray | N
         manifest = page.evaluate("window.uvatar.manifest")
         if pose is not None:
             set_pose(page, pose)
-        bench = page.evaluate(f"window.uvatar.benchmark({int(bench_runs)})") if bench_runs > 0 else None
+        bench = (call_page(page, "n => window.uvatar.benchmark(n)", int(bench_runs), 60 + 10 * bench_runs,
+                           "benchmark") if bench_runs > 0 else None)
         if pose is not None:  # redraw the requested pose after the benchmark and report its inference time
-            page.evaluate("() => window.uvatar.setPose(window.uvatar.getPose().map(v => v))")
-            page.evaluate("() => window.uvatar.whenIdle()")
+            call_page(page, "() => window.uvatar.setPose(window.uvatar.getPose().map(v => v))", what="setPose")
+            wait_idle(page)
         page.wait_for_timeout(1200)  # let the fps counter settle over one interval
         stats = page.evaluate("window.uvatar.stats")
         if hide_panel:
