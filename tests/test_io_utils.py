@@ -50,3 +50,24 @@ def test_error_messages_are_one_line():
     assert str(err) == "fits/000001.json: Rh has shape (2,), expected (3,)"
     with pytest.raises(MissingDependencyError, match=r"pip install 'uvatar\[nope\]'"):
         require("definitely_not_a_module_xyz", "nope", "testing")
+
+
+def test_read_json_and_npz_errors_name_the_file(tmp_path):
+    from uvatar.io_utils import read_json, read_npz
+
+    with pytest.raises(InputError, match=r"a\.json: gone"):
+        read_json(tmp_path / "a.json", "gone")
+    (tmp_path / "bad.json").write_text("{nope")
+    with pytest.raises(InputError, match=r"bad\.json: invalid JSON"):
+        read_json(tmp_path / "bad.json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(InputError, match="expected a JSON object"):
+        read_json(tmp_path / "list.json")
+    assert read_json(tmp_path / "list.json", expect_object=False) == [1, 2]
+    write_npz(tmp_path / "ok.npz", x=np.arange(4))
+    np.testing.assert_array_equal(read_npz(tmp_path / "ok.npz")["x"], np.arange(4))
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match=r"bad\.npz: unreadable NPZ"):
+        read_npz(tmp_path / "bad.npz")
+    with pytest.raises(InputError, match=r"no\.npz: file is missing"):
+        read_npz(tmp_path / "no.npz")

@@ -50,6 +50,37 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         raise
 
 
+def read_json(path: str | Path, missing: str = "file is missing", expect_object: bool = True) -> Any:
+    """Parse a JSON file; a missing file, bad JSON or (with ``expect_object``) a non-object raises
+    :class:`~uvatar.errors.InputError` naming the file (``missing`` is the message for absence)."""
+    from uvatar.errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, missing)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        raise InputError(path, f"invalid JSON ({exc})") from None
+    if expect_object and not isinstance(data, dict):
+        raise InputError(path, "expected a JSON object")
+    return data
+
+
+def read_npz(path: str | Path, missing: str = "file is missing") -> dict[str, np.ndarray]:
+    """Load every array of an ``.npz`` (no pickles) into a dict; errors name the file."""
+    from uvatar.errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, missing)
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {k: npz[k] for k in npz.files}
+    except Exception as exc:
+        raise InputError(path, f"unreadable NPZ ({type(exc).__name__})") from None
+
+
 def write_json(path: str | Path, obj: Any, indent: int = 2) -> None:
     """Write JSON atomically (numpy scalars and arrays are converted)."""
 

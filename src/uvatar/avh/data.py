@@ -14,7 +14,6 @@ Maps keep the UV image convention: row 0 is v = 1.
 
 from __future__ import annotations
 
-import json
 import logging
 import zipfile
 from dataclasses import dataclass
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.errors import InputError
+from uvatar.io_utils import read_json
 
 log = logging.getLogger(__name__)
 
@@ -54,15 +54,7 @@ class BakedFrames:
 def read_dataset_meta(baked_dir: str | Path) -> dict:
     """Read ``BAKED/dataset.json`` (raises InputError when missing/malformed or without a selection)."""
     path = Path(baked_dir) / "dataset.json"
-    if not path.is_file():
-        raise InputError(path, "not found; is this a `uvatar bake` output folder?")
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"cannot read JSON ({exc})") from exc
-    if not isinstance(meta, dict):
-        raise InputError(path, "expected a JSON object")
-    return meta
+    return read_json(path, "not found; is this a `uvatar bake` output folder?")
 
 
 def selection(meta: dict, baked_dir: str | Path) -> tuple[list[str], list[str]]:

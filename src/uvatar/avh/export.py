@@ -22,7 +22,6 @@ Displacement space: world axes of the posed body with its global rotation remove
 
 from __future__ import annotations
 
-import json
 import logging
 import warnings
 from pathlib import Path
@@ -33,7 +32,7 @@ import torch
 from uvatar.avh.model import AvhFromAngles, count_parameters
 from uvatar.avh.train import load_trained_generator
 from uvatar.errors import InputError, UvatarError
-from uvatar.io_utils import atomic_path, write_json, write_npz
+from uvatar.io_utils import atomic_path, read_json, write_json, write_npz
 
 log = logging.getLogger(__name__)
 
@@ -160,12 +159,7 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
 def read_avatar(avatar_dir: str | Path) -> dict:
     """Read and check ``AVATAR/avatar.json`` (written by :func:`export_avatar`)."""
     path = Path(avatar_dir) / "avatar.json"
-    if not path.is_file():
-        raise InputError(path, "not found; is this a `uvatar export` folder?")
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(path, f"invalid JSON ({exc})") from exc
+    meta = read_json(path, "not found; is this a `uvatar export` folder?")
     for key in ("model", "conditioning_joints", "resolution", "displacement_scale"):
         if key not in meta:
             raise InputError(path, f"missing key {key!r}")

@@ -10,7 +10,6 @@ The NPZ holds a whole sequence: ``frames`` (T,) str, ``poses`` (T, N), ``Rh`` (T
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import numpy as np
 
 from uvatar.capture.types import BodyFit
 from uvatar.errors import InputError
-from uvatar.io_utils import write_json, write_npz
+from uvatar.io_utils import read_json, read_npz, write_json, write_npz
 
 REQUIRED_KEYS = ("Rh", "Th", "poses")
 
@@ -66,12 +65,7 @@ def fit_from_dict(path: str | Path, person: dict, num_pose_values: int | None = 
 def read_fits(path: str | Path, num_pose_values: int | None = None) -> list[BodyFit]:
     """Every person in an EasyMocap per-frame JSON (bare list or ``{"annots": [...]}``)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "fit file is missing")
-    try:
-        data = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"invalid JSON ({exc})") from None
+    data = read_json(path, "fit file is missing", expect_object=False)
     if isinstance(data, dict):
         data = data.get("annots", [data] if "poses" in data else None)
     if not isinstance(data, list):
@@ -138,12 +132,7 @@ def write_fits_npz(path: str | Path, fits: Mapping[str, BodyFit]) -> None:
 def read_fits_npz(path: str | Path) -> dict[str, BodyFit]:
     """Read a sequence NPZ written by :func:`write_fits_npz` → {frame: BodyFit}."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "fits NPZ is missing")
-    try:
-        data = dict(np.load(path, allow_pickle=False))
-    except Exception as exc:
-        raise InputError(path, f"unreadable NPZ ({type(exc).__name__})") from None
+    data = read_npz(path, "fits NPZ is missing")
     for key in ("frames", "poses", "Rh", "Th"):
         if key not in data:
             raise InputError(path, f"missing array {key!r}")

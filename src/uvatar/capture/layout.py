@@ -10,7 +10,6 @@
 
 from __future__ import annotations
 
-import json
 from functools import cached_property
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from uvatar.capture.fits import read_fit, read_fits_npz
 from uvatar.capture.meshio import IMAGE_SUFFIXES, find_scan, load_texture, read_mesh
 from uvatar.capture.types import BodyFit, Camera, TexturedMesh
 from uvatar.errors import InputError
-from uvatar.io_utils import write_json
+from uvatar.io_utils import read_json, write_json
 
 CAPTURE_JSON = "capture.json"
 
@@ -39,14 +38,7 @@ def write_capture_info(root: str | Path, frames: list[str], fps: float = 25.0, b
 def read_capture_info(root: str | Path) -> dict:
     """Read and minimally check ``capture.json`` (errors name the file)."""
     path = Path(root) / CAPTURE_JSON
-    if not path.is_file():
-        raise InputError(path, "capture.json is missing (is this a capture folder?)")
-    try:
-        info = json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"invalid JSON ({exc})") from None
-    if not isinstance(info, dict):
-        raise InputError(path, "expected a JSON object")
+    info = read_json(path, "capture.json is missing (is this a capture folder?)")
     if "frames" in info and (not isinstance(info["frames"], list)
                              or not all(isinstance(f, str | int) for f in info["frames"])):
         raise InputError(path, "'frames' must be a list of frame names")

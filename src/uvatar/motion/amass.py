@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.errors import InputError
+from uvatar.io_utils import read_npz
 from uvatar.motion.bvh import forward_kinematics
 from uvatar.motion.skeleton import SkeletonMotion
 
@@ -81,12 +82,7 @@ def is_amass_npz(keys) -> bool:
 def read_amass(path: str | Path) -> AmassMotion:
     """Read an AMASS npz → :class:`AmassMotion` (errors name the file and the field)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "AMASS file is missing")
-    try:
-        data = dict(np.load(path, allow_pickle=False))
-    except Exception as exc:
-        raise InputError(path, f"unreadable NPZ ({type(exc).__name__})") from None
+    data = read_npz(path, "AMASS file is missing")
     if "poses" in data:
         poses = np.asarray(data["poses"], np.float64)
     elif "pose_body" in data and "root_orient" in data:

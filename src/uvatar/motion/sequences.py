@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.errors import InputError
-from uvatar.io_utils import write_npz
+from uvatar.io_utils import read_npz, write_npz
 
 MOTION_FORMAT = "uvatar-motion-1"
 
@@ -168,12 +168,8 @@ def _load(path: Path, body, default_fps: float) -> Motion:
 
         return retarget(skeleton_motion_from_bvh(read_bvh(path), source=path.name), _body_model(body))
     if suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                keys = set(npz.files)
-                data = {k: npz[k] for k in keys}
-        except Exception as exc:
-            raise InputError(path, f"unreadable NPZ ({type(exc).__name__})") from None
+        data = read_npz(path)
+        keys = set(data)
         if "joint_rotvecs" in keys:
             return _read_uvatar_npz(path, data)
         from uvatar.motion.amass import (

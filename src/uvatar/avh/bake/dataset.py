@@ -17,13 +17,12 @@ a re-run can trust every file it finds.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from uvatar.errors import InputError
-from uvatar.io_utils import write_image, write_json, write_npz
+from uvatar.io_utils import read_json, write_image, write_json, write_npz
 
 __all__ = [
     "DATASET_JSON", "frame_path", "rejected_path", "preview_path", "write_baked_frame", "load_baked_frame",
@@ -96,13 +95,7 @@ def read_dataset_info(root) -> dict:
     path = Path(root) / DATASET_JSON
     if not path.is_file():
         return {}
-    try:
-        info = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"invalid JSON ({exc})") from None
-    if not isinstance(info, dict):
-        raise InputError(path, "expected a JSON object")
-    return info
+    return read_json(path)
 
 
 def write_dataset_info(root, info: dict) -> None:
