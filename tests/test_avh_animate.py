@@ -53,13 +53,40 @@ def test_constant_displacement_is_rotated_by_Rh_and_masked_on_fingers(setup):
     c = np.array([0.01, 0.02, -0.03], np.float32)
     disp = np.broadcast_to(c, (32, 32, 3))
     Rh = np.array([0.0, 0.7, 0.0], np.float32)
-    d = rt.displaced_vertices(base, disp, Rh) - rt.displaced_vertices(base, None)
+    assert rt.displacement_frame == "rest"
+    rest = rt.skinning_rotations(np.zeros((1, 18), np.float32))[0]  # identity at the rest pose
+    d = rt.displaced_vertices(base, disp, Rh, rest) - rt.displaced_vertices(base, None)
     expected = rotvec_to_rotmat(Rh).astype(np.float32) @ c
     full = rt.displacement_weight > 0.999
     none = rt.displacement_weight < 1e-3
     assert full.any() and none.any()  # tube top = "finger" texels
     assert np.allclose(d[full], expected, atol=1e-6)
     assert np.allclose(d[none], 0, atol=1e-6)
+
+
+def test_rest_frame_displacement_turns_with_the_limb(setup):
+    """A rest-frame map is rotated by each vertex's blended skinning rotation: on vertices skinned to
+    the root only it stays as is, on vertices skinned to the bent joint it turns with the bone."""
+    import roma
+    import torch
+
+    root, body, _ = setup
+    rt = AvatarRuntime(root / "avatar", body=body)
+    pose = np.zeros((1, 18), np.float32)
+    pose[0, 3:6] = [0.9, 0.0, 0.0]   # joint 1 about x
+    base = rt.posed_vertices(pose)[0]
+    c = np.array([0.0, 0.0, 0.02], np.float32)
+    disp = np.broadcast_to(c, (32, 32, 3))
+    with pytest.raises(ValueError, match="skinning rotations"):
+        rt.displaced_vertices(base, disp)
+    d = rt.mesh(base, np.zeros((32, 32, 3), np.float32), disp, pose=pose[0]).vertices - rt.displaced_vertices(base, None)
+    W = np.asarray(rt.vertex_matrix @ body.template.skin_weights)     # subdivided vertices' weights
+    keep = rt.displacement_weight > 0.999
+    on_root, on_bent = keep & (W[:, 0] > 1 - 1e-6), keep & (W[:, 1] > 1 - 1e-6)
+    R1 = roma.rotvec_to_rotmat(torch.tensor(pose[0, 3:6], dtype=torch.float64)).numpy().astype(np.float32)
+    assert on_root.any() and on_bent.any()
+    np.testing.assert_allclose(d[on_root], np.broadcast_to(c, d[on_root].shape), atol=1e-6)
+    np.testing.assert_allclose(d[on_bent], np.broadcast_to(R1 @ c, d[on_bent].shape), atol=1e-6)
 
 
 def test_animate_writes_video_and_meshes(setup, tmp_path):

@@ -231,3 +231,4 @@ def test_screenshot_module_writes_png_and_reports_inference(avatar, tmp_path):
     assert result["inference_ms"] > 0 and result["benchmark"]["n"] == 3
     assert result["pose_nonzero_joints"] == ["head"]
     assert iio.imread(png).shape[:2] == (240, 320)
+

@@ -93,7 +93,8 @@ async function main() {
   const floatLinear = renderer.extensions.has('OES_texture_float_linear');
   const colorTex = makeColorTexture(R);
   const dispTex = makeDisplacementTexture(R, floatLinear);
-  mesh.material = makeAvatarMaterial(colorTex, dispTex, manifest.displacement.scale ?? 1.0);
+  const dispFrame = manifest.displacement.frame === 'rest' ? 'rest' : 'body';
+  mesh.material = makeAvatarMaterial(colorTex, dispTex, manifest.displacement.scale ?? 1.0, dispFrame);
   mesh.frustumCulled = false;
   const avatar = new THREE.Group();
   avatar.add(gltf.scene);
@@ -269,17 +270,24 @@ async function main() {
      */
     whenIdle,
     /**
-     * CPU twin of the vertex shader for the given vertex indices: three.js skinning
-     * (SkinnedMesh.getVertexPosition) + scale * bilinear(displacement map, dispUv), model space, metres.
+     * CPU twin of the vertex shader for the given vertex indices, model space, metres: rest frame
+     * skin(p_rest + scale * D) (SkinnedMesh.applyBoneTransform); body frame skin(p_rest) + scale * D,
+     * with D = bilinear(displacement map, dispUv).
      */
     displacedVertices(indices) {
       avatar.updateMatrixWorld(true);
       const uvs = geom.getAttribute('dispUv');
       const scale = mesh.material.userData.uniforms.uDisplacementScale.value;
       const v = new THREE.Vector3();
+      const pos = geom.getAttribute('position');
       return indices.map((i) => {
-        mesh.getVertexPosition(i, v);
         const d = sampleBilinear(dispTex.image.data, R, uvs.getX(i), uvs.getY(i));
+        if (dispFrame === 'rest') { // displace the rest vertex, then skin (as the vertex shader does)
+          v.fromBufferAttribute(pos, i).add(new THREE.Vector3(scale * d[0], scale * d[1], scale * d[2]));
+          mesh.applyBoneTransform(i, v);
+          return [v.x, v.y, v.z];
+        }
+        mesh.getVertexPosition(i, v);
         return [v.x + scale * d[0], v.y + scale * d[1], v.z + scale * d[2]];
       });
     },

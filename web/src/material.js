@@ -1,9 +1,11 @@
 // The avatar material: MeshStandardMaterial + a displacement applied in the vertex shader.
 //
 // Displacement D (metres, RGB = x, y, z) is sampled at the canonical UV `dispUv` (glTF TEXCOORD_1:
-// all seam copies of a vertex share it, so the surface does not crack) and added AFTER skinning, in
-// the skinned mesh's model space (= world axes of the posed body with the root at rest, the space the
-// generator was trained in):  p = skinned(p_rest) + scale * D(dispUv).
+// all seam copies of a vertex share it, so the surface does not crack). Where it is added depends on
+// the frame the generator was trained in (manifest displacement.frame):
+//   "rest": BEFORE skinning, so the bones rotate it:      p = skinned(p_rest + scale * D(dispUv))
+//   "body": AFTER skinning, in the skinned mesh's model space (world axes of the posed body with the
+//           root at rest):                                 p = skinned(p_rest) + scale * D(dispUv)
 // Normals come from the displaced surface: flatShading makes three.js take the normal from screen-space
 // derivatives of the displaced view position in the fragment shader.
 import * as THREE from 'three';
@@ -28,7 +30,7 @@ export function makeColorTexture(R) {
   return tex;
 }
 
-export function makeAvatarMaterial(colorTexture, displacementTexture, scale) {
+export function makeAvatarMaterial(colorTexture, displacementTexture, scale, frame = 'body') {
   const material = new THREE.MeshStandardMaterial({
     map: colorTexture, roughness: 0.85, metalness: 0.0, flatShading: true,
   });
@@ -36,6 +38,7 @@ export function makeAvatarMaterial(colorTexture, displacementTexture, scale) {
     uDisplacementMap: { value: displacementTexture },
     uDisplacementScale: { value: scale },
   };
+  const displace = 'transformed += uDisplacementScale * textureLod(uDisplacementMap, dispUv, 0.0).xyz;';
   material.onBeforeCompile = (shader) => {
     Object.assign(shader.uniforms, material.userData.uniforms);
     shader.vertexShader = shader.vertexShader
@@ -43,10 +46,13 @@ export function makeAvatarMaterial(colorTexture, displacementTexture, scale) {
 attribute vec2 dispUv;
 uniform sampler2D uDisplacementMap;
 uniform float uDisplacementScale;`)
-      .replace('#include <skinning_vertex>', `#include <skinning_vertex>
-transformed += uDisplacementScale * textureLod(uDisplacementMap, dispUv, 0.0).xyz;`);
+      .replace('#include <skinning_vertex>', frame === 'rest'
+        ? `${displace}
+#include <skinning_vertex>`
+        : `#include <skinning_vertex>
+${displace}`);
   };
-  material.customProgramCacheKey = () => 'uvatar-displaced';
+  material.customProgramCacheKey = () => `uvatar-displaced-${frame}`;
   return material;
 }
 

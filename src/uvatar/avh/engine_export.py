@@ -17,8 +17,9 @@ calls :func:`write_engine_bundle`, which adds:
 ``finger_toe_mask.png``
     (R, R) 0/255, row 0 is v = 1; 255 where displacement is suppressed (fingers and toes).
 
-glTF has no displacement map; ``docs/viewer.md`` says how the viewer applies it (after skinning, in the
-skinned mesh's model space, sampled at ``TEXCOORD_1``).
+glTF has no displacement map; ``docs/viewer.md`` says how the viewer applies it (sampled at
+``TEXCOORD_1``; rest-frame maps are added to the rest vertex before skinning, body-frame maps after
+skinning in the skinned mesh's model space; ``manifest.json`` ``displacement.frame``).
 """
 
 from __future__ import annotations
@@ -30,12 +31,16 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.avh.displacement_frame import frame_of_space
 from uvatar.errors import InputError
 from uvatar.io_utils import write_image, write_json
 from uvatar.viewer.glb import SkinnedMesh, write_glb
 
 MANIFEST_FORMAT = "uvatar-engine/1"
 DEFAULT_SPACE = "body frame: world axes of the posed body with the global rotation Rh removed"
+#: How a runtime applies the map D for each displacement frame (:mod:`uvatar.avh.displacement_frame`).
+APPLIED = {"rest": "before skinning: p = skinned(p_rest + scale * mask * D(TEXCOORD_1))",
+           "body": "after skinning: p = skinned(p_rest) + scale * mask * D(TEXCOORD_1)"}
 
 
 @dataclass(frozen=True)
@@ -352,6 +357,7 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
 
     disp_meta = meta.get("displacement", {}) if isinstance(meta.get("displacement"), dict) else {}
     space = meta.get("displacement_space", disp_meta.get("space", DEFAULT_SPACE))
+    frame = meta.get("displacement_frame") or frame_of_space(space)
     manifest = {
         "format": MANIFEST_FORMAT,
         "glb": config.glb_name,
@@ -368,7 +374,8 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
             "units": "m (generator output x scale)",
             "max_abs_m": meta.get("displacement_scale", disp_meta.get("scale")),
             "space": space,
-            "applied": "after skinning: p = skinned(p_rest) + scale * mask * D(TEXCOORD_1)",
+            "frame": frame,
+            "applied": APPLIED[frame],
             "uv_attribute": "TEXCOORD_1",
         },
         "finger_toe_mask": config.mask_name,

@@ -11,7 +11,8 @@ over ``mask``. The same numbers for two baselines:
 
 - ``mean_texture``: the body with the κ-weighted mean training texture and no displacement;
 - ``nearest_pose``: the baked maps of the training frame whose encoded pose (sin, cos of the
-  conditioning angles) is nearest (displacement outliers > 5 cm zeroed, as in training).
+  conditioning angles) is nearest (displacement outliers > 5 cm zeroed, as in training), its
+  displacement in the avatar's frame (rest or body), re-posed exactly like the avatar's.
 
 All three go through the same runtime (subdivision, gutter fill of texels outside the UV charts).
 """
@@ -92,28 +93,33 @@ class Baselines:
     """Mean-texture and nearest-training-pose maps from the baked training frames."""
 
     def __init__(self, baked_dir: str | Path, train_frames: list[str], resolution: int, conditioning,
-                 outlier_threshold: float = 0.05):
+                 outlier_threshold: float = 0.05, body=None, displacement_frame: str = "body", shape=None):
         self.outlier_threshold = outlier_threshold
         frames = load_baked_frames(baked_dir, train_frames, resolution)
         k = frames.kappa[..., None] * frames.valid[..., None]
         ksum = k.sum(0)
         plain = frames.texture.mean(0)
         self.mean_texture = np.where(ksum > 1e-6, (k * frames.texture).sum(0) / np.maximum(ksum, 1e-6), plain)
+        # cleaned as training sees it: zero outside the UV charts and where any axis exceeds the threshold
+        bad = ~frames.valid | (np.abs(frames.displacement).max(-1) > outlier_threshold)
+        if displacement_frame == "rest":
+            from uvatar.avh.train import displacements_to_frame
+
+            frames = displacements_to_frame(frames, "rest", body, shape)
+        self.displacement = np.where(bad[..., None], 0.0, frames.displacement).astype(np.float32)
         self.frames = frames
         self.codes = encoded_conditioning(frames.poses, conditioning)
         self.conditioning = list(conditioning)
 
     def nearest(self, pose: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
-        """(index, texture (R, R, 3), body-frame displacement (R, R, 3)) of the nearest training pose.
+        """(index, texture (R, R, 3), displacement (R, R, 3)) of the nearest training pose.
 
-        The displacement is cleaned as training sees it: zero outside the UV charts and where any
-        axis exceeds ``outlier_threshold`` (correspondence mismatches).
+        The displacement is in the avatar's frame (``displacement_frame``: rest or body), so the
+        runtime re-poses it exactly like the generator's; it is cleaned as training sees it.
         """
         code = encoded_conditioning(pose[None], self.conditioning)
         i = int(np.argmin(((self.codes - code) ** 2).sum(1)))
-        d = self.frames.displacement[i]
-        bad = ~self.frames.valid[i] | (np.abs(d).max(-1) > self.outlier_threshold)
-        return i, self.frames.texture[i], np.where(bad[..., None], 0.0, d).astype(np.float32)
+        return i, self.frames.texture[i], self.displacement[i]
 
 
 def scaled_camera(camera, width: int | None):
@@ -145,8 +151,11 @@ def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask) -> dict:
     return {"psnr_db": p, "ssim": s, "psnr_db_union_mask": p, "ssim_union_mask": s, **full}
 
 
-def surface_error_mm(runtime: AvatarRuntime, base_vertices, displacement, Rh, gt_surface, gt_mask) -> np.ndarray:
-    """Per-texel distances (mm) between predicted clothed surface and gt ``surface`` (G, G, 3) over ``gt_mask``."""
+def surface_error_mm(runtime: AvatarRuntime, base_vertices, displacement, Rh, gt_surface, gt_mask,
+                     rotations=None) -> np.ndarray:
+    """Per-texel distances (mm) between predicted clothed surface and gt ``surface`` (G, G, 3) over ``gt_mask``.
+
+    rotations: (V, 3, 3) blended skinning rotations of the pose (rest-frame avatars)."""
     from uvatar.geometry import rasterize_uv, texel_positions
 
     G = gt_surface.shape[0]
@@ -156,6 +165,10 @@ def surface_error_mm(runtime: AvatarRuntime, base_vertices, displacement, Rh, gt
     if displacement is not None:
         keep = resample_map(runtime.fingers_toes_mask().astype(np.float32), G) < 0.5
         d = resample_map(np.asarray(displacement, np.float32), G) * keep[..., None]
+        if runtime.displacement_frame == "rest":
+            from uvatar.avh.displacement_frame import rest_to_body, texel_skinning_rotations
+
+            d = rest_to_body(d, texel_skinning_rotations(raster, t.faces, np.asarray(rotations, np.float32)))
         pos = pos + d @ rotvec_to_rotmat(np.asarray(Rh, np.float64)).T.astype(np.float32)
     m = np.asarray(gt_mask, bool) & raster.mask
     return np.linalg.norm(pos[m] - gt_surface[m], axis=-1) * 1000.0
@@ -192,7 +205,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     baked_dir = Path(baked_dir or training.get("baked") or "")
     if not (baked_dir / "dataset.json").is_file():
         raise InputError(baked_dir, "baked training data not found (needed for the baselines); pass --baked")
-    baselines = Baselines(baked_dir, training.get("train_frames") or [], runtime.resolution, runtime.conditioning)
+    baselines = Baselines(baked_dir, training.get("train_frames") or [], runtime.resolution, runtime.conditioning,
+                          body=runtime.body, displacement_frame=runtime.displacement_frame, shape=runtime.shape)
     try:
         frames = heldout_frames(capture.root)
         split = "heldout"
@@ -228,7 +242,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         nn_index, nn_tex, nn_disp = baselines.nearest(pose)
         maps = {"avh": (tex[0], disp[0]), "mean_texture": (baselines.mean_texture, None),
                 "nearest_pose": (nn_tex, nn_disp)}
-        meshes = {m: runtime.mesh(base, t, d, Rh) for m, (t, d) in maps.items()}
+        rotations = runtime.skinning_rotations(pose[None])[0] if runtime.displacement_frame == "rest" else None
+        meshes = {m: runtime.mesh(base, t, d, Rh, rotations=rotations) for m, (t, d) in maps.items()}
         cameras = list(cams.values()) if cams else orbit_cameras(
             0.5 * (scan.vertices.min(0) + scan.vertices.max(0)), 3.0, 4, 10.0, width=256, height=256)
         cameras = [scaled_camera(c, config.image_size) for c in cameras[: config.max_cameras or None]]
@@ -254,7 +269,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
             with np.load(gt_npz) as z:
                 surface, mask = z["surface"].astype(np.float32), z["mask"].astype(bool)
             for m, (_, d) in maps.items():
-                err = surface_error_mm(runtime, base, d, Rh, surface, mask)
+                err = surface_error_mm(runtime, base, d, Rh, surface, mask, rotations)
                 geometry[m].append(err)
                 entry[f"{m}_geometry_mm"] = float(err.mean()) if len(err) else None
         for m in METHODS:

@@ -7,7 +7,8 @@ Output folder layout (names are stable; the viewer bundle builds on them)::
                              conditioning joints, in avatar.json "conditioning_joints" order, x y z per joint;
                              the graph encodes each angle as (sin, cos) itself.
                       output "texture"      (B, 3, R, R) in [0, 1];  row 0 is v = 1 (UV v up)
-                      output "displacement" (B, 3, R, R) metres, body frame (see avatar.json)
+                      output "displacement" (B, 3, R, R) metres, rest or body frame (avatar.json
+                             "displacement_frame" / "displacement_space")
     OUT/avatar.json   metadata: joint names and order, conditioning joints, encoding, texel resolution,
                       displacement scale and space, body model name and shape, training provenance,
                       ONNX-vs-PyTorch verification (max abs diff, must be <= 1e-4)
@@ -16,8 +17,10 @@ Output folder layout (names are stable; the viewer bundle builds on them)::
                       displacement is not applied; absent when the run has no body model
     OUT/...           whatever ``uvatar.avh.engine_export.write_engine_bundle`` adds (GLB + manifest)
 
-Displacement space: world axes of the posed body with its global rotation removed,
-``d_world = R(Rh) @ d`` where Rh is the EasyMocap global rotation of the fit.
+Displacement space (``avatar.json`` ``displacement_frame``, :mod:`uvatar.avh.displacement_frame`):
+"rest" (default): ``d_world = R(Rh) @ M @ d`` with M the blended LBS rotation at the texel, i.e. add d to
+the rest vertex and skin; "body": ``d_world = R(Rh) @ d`` (world axes of the posed body with its global
+rotation removed), Rh being the EasyMocap global rotation of the fit.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from uvatar.avh.displacement_frame import DISPLACEMENT_SPACES
 from uvatar.avh.model import AvhFromAngles, count_parameters
 from uvatar.avh.train import load_trained_generator
 from uvatar.errors import InputError, UvatarError
@@ -38,7 +42,6 @@ log = logging.getLogger(__name__)
 
 ONNX_OPSET = 17
 PARITY_TOLERANCE = 1e-4
-DISPLACEMENT_SPACE = "body frame: world axes of the posed body with the global rotation Rh removed; d_world = R(Rh) @ d"
 
 
 def export_onnx(model: torch.nn.Module, path: str | Path, num_angles: int, opset: int = ONNX_OPSET) -> None:
@@ -119,6 +122,8 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
         write_npz(out_dir / "body.npz", **arrays)
     joint_names = info.get("joint_names") or (list(body.joint_names) if body is not None else None)
     cond = [int(j) for j in info["conditioning_joints"]]
+    frame = info.get("displacement_frame", "body")
+    space = DISPLACEMENT_SPACES[frame]
     import onnxruntime
 
     meta = {
@@ -129,11 +134,11 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
         "outputs": {"texture": {"shape": ["batch", 3, cfg.resolution, cfg.resolution], "range": [0, 1],
                                 "layout": "BCHW RGB, image row 0 is v = 1"},
                     "displacement": {"shape": ["batch", 3, cfg.resolution, cfg.resolution], "units": "m",
-                                     "layout": "BCHW xyz, image row 0 is v = 1", "space": DISPLACEMENT_SPACE}},
+                                     "layout": "BCHW xyz, image row 0 is v = 1", "space": space}},
         "encoding": "each angle a -> (sin a, cos a), interleaved, computed inside the graph",
         "resolution": cfg.resolution, "displacement_scale": cfg.displacement_scale,
-        "displacement_space": DISPLACEMENT_SPACE, "displacement_excluded": "fingers_toes",
-        "displacement": {"scale": cfg.displacement_scale, "scale_to_metres": 1.0, "space": DISPLACEMENT_SPACE},
+        "displacement_frame": frame, "displacement_space": space, "displacement_excluded": "fingers_toes",
+        "displacement": {"scale": cfg.displacement_scale, "scale_to_metres": 1.0, "space": space, "frame": frame},
         "subdivision": {"method": "midpoint", "levels": 2},
         "body_model": body_info, "joint_names": joint_names, "conditioning_joints": cond,
         "conditioning_joint_names": [joint_names[j] for j in cond] if joint_names else None,

@@ -1,9 +1,11 @@
 """An exported avatar at run time: generator (onnxruntime) + posed, subdivided, displaced body (§3.5).
 
-For a pose: run the generator -> texture (R, R, 3) and body-frame displacement (R, R, 3); pose the
-body (LBS), subdivide its triangles ``levels`` times (UVs carried along, one UV per geometric vertex
-for the displacement lookup so seams do not crack), rotate the displacement sampled at each vertex
-into world axes (``R(Rh) d``) and add it, except on fingers and toes (mask sampled at the vertex UV).
+For a pose: run the generator -> texture (R, R, 3) and displacement (R, R, 3); pose the body (LBS),
+subdivide its triangles ``levels`` times (UVs carried along, one UV per geometric vertex for the
+displacement lookup so seams do not crack), rotate the displacement sampled at each vertex into
+world axes and add it, except on fingers and toes (mask sampled at the vertex UV). The rotation is
+``R(Rh) M_v`` for rest-frame avatars (M_v: the vertex's blended skinning rotation for the pose,
+:mod:`uvatar.avh.displacement_frame`) and ``R(Rh)`` for body-frame ones.
 Texels outside the UV charts are first filled from the nearest chart texel (:meth:`AvatarRuntime.pad`).
 """
 
@@ -16,6 +18,7 @@ import numpy as np
 import torch
 
 from uvatar.avh.data import rotvec_to_rotmat
+from uvatar.avh.displacement_frame import SkinningRotations, frame_of_space
 from uvatar.avh.export import onnx_session, read_avatar
 from uvatar.errors import InputError
 
@@ -77,6 +80,9 @@ class AvatarRuntime:
         self.vertex_uv = origin.vertex_uv.astype(np.float32)
         self.displacement_weight = 1.0 - self._sample(self.fingers_toes_mask()[..., None].astype(np.float32))[:, 0]
         self.valid_mask, self._fill_index = gutter_fill_index(t.uvs, t.uv_faces, self.resolution)
+        self.displacement_frame = self.meta.get("displacement_frame") or frame_of_space(
+            self.meta.get("displacement_space"))
+        self._skinning: SkinningRotations | None = None
 
     def pad(self, image: np.ndarray) -> np.ndarray:
         """(R, R, C) map with texels outside the UV charts replaced by the nearest chart texel.
@@ -127,21 +133,42 @@ class AvatarRuntime:
                                    shape=None if shape is None else torch.as_tensor(shape))
         return posed.vertices.cpu().numpy()
 
+    def skinning_rotations(self, poses) -> np.ndarray:
+        """(T, J·3) local axis-angles -> (T, V, 3, 3) blended LBS rotation per base vertex (no Rh)."""
+        if self._skinning is None:
+            self._skinning = SkinningRotations(self.body, self.shape)
+        return self._skinning.vertices(np.asarray(poses, np.float32).reshape(len(poses), -1))
+
     def displaced_vertices(self, base_vertices: np.ndarray, displacement: np.ndarray | None,
-                           Rh: np.ndarray | None = None) -> np.ndarray:
-        """Subdivide posed base vertices (V, 3) and add the displacement map (R, R, 3) body frame (or None)."""
+                           Rh: np.ndarray | None = None, rotations: np.ndarray | None = None) -> np.ndarray:
+        """Subdivide posed base vertices (V, 3) and add the displacement map (R, R, 3) (or None).
+
+        rotations: (V, 3, 3) blended skinning rotations of the pose (:meth:`skinning_rotations`),
+        required for rest-frame avatars, ignored for body-frame ones.
+        """
         v = np.asarray(self.vertex_matrix @ np.asarray(base_vertices, np.float32), np.float32)
         if displacement is None:
             return v
         d = self._sample(self.pad(np.asarray(displacement, np.float32))) * self.displacement_weight[:, None]
+        if self.displacement_frame == "rest":
+            if rotations is None:
+                raise ValueError("a rest-frame displacement needs the pose's skinning rotations")
+            V = len(base_vertices)
+            m = np.asarray(self.vertex_matrix @ np.asarray(rotations, np.float32).reshape(V, 9), np.float32)
+            d = np.einsum("vab,vb->va", m.reshape(-1, 3, 3), d)
         if Rh is not None:
             d = d @ rotvec_to_rotmat(np.asarray(Rh, np.float64)).T.astype(np.float32)
         return v + d
 
-    def mesh(self, base_vertices, texture, displacement, Rh=None) -> AvatarMesh:
-        """One textured, displaced mesh from posed base vertices (V, 3) and the maps."""
-        return AvatarMesh(self.displaced_vertices(base_vertices, displacement, Rh), self.faces, self.uvs,
-                          self.uv_faces, self.pad(np.asarray(texture, np.float32)))
+    def mesh(self, base_vertices, texture, displacement, Rh=None, pose=None, rotations=None) -> AvatarMesh:
+        """One textured, displaced mesh from posed base vertices (V, 3) and the maps; rest-frame
+        avatars also need the local pose (J·3,) or its skinning ``rotations`` (V, 3, 3)."""
+        if self.displacement_frame == "rest" and displacement is not None and rotations is None:
+            if pose is None:
+                raise ValueError("a rest-frame avatar needs the pose (or its skinning rotations) to displace")
+            rotations = self.skinning_rotations(np.asarray(pose)[None])[0]
+        return AvatarMesh(self.displaced_vertices(base_vertices, displacement, Rh, rotations), self.faces,
+                          self.uvs, self.uv_faces, self.pad(np.asarray(texture, np.float32)))
 
     def meshes(self, poses, Rh=None, Th=None, scale=None, shape=None):
         """Yield an :class:`AvatarMesh` per pose (generator and body posed in batches)."""
@@ -152,5 +179,6 @@ class AvatarRuntime:
             tex, disp = self.generate(np.asarray(poses)[sl])
             base = self.posed_vertices(np.asarray(poses)[sl], Rh[sl], None if Th is None else np.asarray(Th)[sl],
                                        None if scale is None else np.asarray(scale)[sl], shape)
+            rot = self.skinning_rotations(np.asarray(poses)[sl]) if self.displacement_frame == "rest" else None
             for k in range(len(base)):
-                yield self.mesh(base[k], tex[k], disp[k], Rh[sl][k])
+                yield self.mesh(base[k], tex[k], disp[k], Rh[sl][k], rotations=None if rot is None else rot[k])

@@ -2,6 +2,8 @@
 
 Adam (lr 1.31e-3), batch 8, ExponentialLR γ = 0.99 per epoch, loss of :mod:`uvatar.avh.loss`.
 On CUDA: bf16 autocast and channels_last. Train maps are resampled to the model's output resolution.
+Displacements are learned in ``TrainConfig.displacement_frame`` (default the rest frame, see
+:mod:`uvatar.avh.displacement_frame`); run.json records which.
 
 Run folder layout::
 
@@ -26,6 +28,7 @@ import numpy as np
 import torch
 
 from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, read_dataset_meta, selection
+from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES, DISPLACEMENT_SPACES
 from uvatar.avh.loss import avh_loss, displacement_mask
 from uvatar.avh.model import (
     AvhConfig,
@@ -43,7 +46,9 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimization settings (paper defaults). ``displacement_weight`` scales the displacement term."""
+    """Optimization settings (paper defaults). ``displacement_weight`` scales the displacement term.
+    ``displacement_frame``: "rest" (baked body-frame maps are unposed by each texel's blended skinning
+    rotation before training; needs a body model, else falls back to "body") or "body" (as baked)."""
 
     epochs: int = 500
     batch_size: int = 8
@@ -54,20 +59,27 @@ class TrainConfig:
     device: str = "cpu"
     seed: int = 0
     preview_every: int = 10
+    displacement_frame: str = "rest"
+    pose_noise: float = 0.0
     tensorboard: bool = True
     progress: bool = True
 
 
 @dataclass
 class TrainingData:
-    """Training tensors on the device: encoded poses (N, 6·J_c) and maps (N, C, R, R)."""
+    """Training tensors on the device: conditioning angles (N, 3·J_c) radians and maps (N, C, R, R)."""
 
     names: list[str]
-    pose_encoded: torch.Tensor
+    pose_angles: torch.Tensor
     maps: dict[str, torch.Tensor]
 
-    def batch(self, idx: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        return self.pose_encoded[idx], {k: v[idx] for k, v in self.maps.items()}
+    def batch(self, idx: torch.Tensor, pose_noise: float = 0.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """(encoded poses (B, 6·J_c), maps) of frames ``idx``; ``pose_noise``: std (radians) of Gaussian
+        noise added to the angles before encoding (augmentation; 0 = none)."""
+        angles = self.pose_angles[idx]
+        if pose_noise > 0:
+            angles = angles + pose_noise * torch.randn_like(angles)
+        return encode_pose(angles), {k: v[idx] for k, v in self.maps.items()}
 
     def __len__(self) -> int:
         return len(self.names)
@@ -83,7 +95,7 @@ def to_training_data(frames: BakedFrames, conditioning_joints, device: str | tor
     angles = select_conditioning_angles(poses, conditioning_joints)
     maps = {"texture": chw(frames.texture), "displacement": chw(frames.displacement),
             "kappa": chw(frames.kappa), "w": chw(frames.w), "valid": chw(frames.valid.astype(np.float32))}
-    return TrainingData(frames.names, encode_pose(angles).float().to(device), maps)
+    return TrainingData(frames.names, angles.float().to(device), maps)
 
 
 def mean_maps(data: TrainingData, excluded, outlier_threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -98,7 +110,7 @@ def mean_maps(data: TrainingData, excluded, outlier_threshold: float) -> tuple[t
 
 
 def resolve_body(meta: dict, resolution: int, body=None, baked_dir: Path | None = None):
-    """(conditioning joint indices, fingers/toes mask (R, R) bool or None, joint names or None).
+    """(conditioning joint indices, fingers/toes mask (R, R) bool or None, joint names or None, body or None).
 
     Uses ``body`` when given, otherwise loads the dataset's body model; ``dataset.json`` may also list
     ``conditioning_joints`` (used as is, e.g. by test fixtures whose body model is "none").
@@ -113,12 +125,25 @@ def resolve_body(meta: dict, resolution: int, body=None, baked_dir: Path | None 
             raise InputError(Path(baked_dir or ".") / "dataset.json",
                              "body model 'none' needs a conditioning_joints list")
         log.warning("no body model: fingers/toes are not left out of the displacement loss")
-        return [int(j) for j in meta["conditioning_joints"]], None, meta.get("joint_names")
+        return [int(j) for j in meta["conditioning_joints"]], None, meta.get("joint_names"), None
     from uvatar.body import part_masks
 
     cond = [int(j) for j in meta.get("conditioning_joints", body.conditioning_joints)]
     excluded = np.asarray(part_masks(body, resolution)["fingers_toes"], bool)
-    return cond, excluded, list(body.joint_names)
+    return cond, excluded, list(body.joint_names), body
+
+
+def displacements_to_frame(frames: BakedFrames, frame: str, body, shape) -> BakedFrames:
+    """``frames`` with body-frame displacements converted to ``frame`` ("body": unchanged)."""
+    if frame == "body" or len(frames) == 0:
+        return frames
+    from uvatar.avh.displacement_frame import maps_body_to_rest
+    from uvatar.geometry import rasterize_uv
+
+    t = body.template
+    raster = rasterize_uv(t.uvs, t.uv_faces, frames.resolution)
+    return replace(frames, displacement=maps_body_to_rest(body, raster, t.faces, frames.displacement,
+                                                          frames.poses, shape))
 
 
 def _load_checkpoint(path: Path) -> dict:
@@ -135,7 +160,7 @@ def _save(path: Path, obj) -> None:
 
 def _preview(model: AvhGenerator, data: TrainingData) -> np.ndarray:
     """(3, R, 4R) image: predicted texture | target texture | predicted |d| | target |d| of the first frame."""
-    pose, batch = data.batch(torch.tensor([0], device=data.pose_encoded.device))
+    pose, batch = data.batch(torch.tensor([0], device=data.pose_angles.device))
     with torch.no_grad():
         tex, disp = model(pose)
     scale = model.config.displacement_scale
@@ -153,7 +178,7 @@ def evaluate_loss(model: AvhGenerator, data: TrainingData, excluded, cfg: TrainC
     sums = np.zeros(3)
     with torch.no_grad():
         for start in range(0, len(data), cfg.batch_size):
-            idx = torch.arange(start, min(start + cfg.batch_size, len(data)), device=data.pose_encoded.device)
+            idx = torch.arange(start, min(start + cfg.batch_size, len(data)), device=data.pose_angles.device)
             pose, batch = data.batch(idx)
             tex, disp = model(pose)
             losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight)
@@ -188,15 +213,27 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
     meta = read_dataset_meta(baked_dir)
     train_names, val_names = selection(meta, baked_dir)
     R = model_config.resolution
-    cond, excluded_np, joint_names = resolve_body(meta, R, body, baked_dir)
+    cond, excluded_np, joint_names, body = resolve_body(meta, R, body, baked_dir)
     model_config = replace(model_config, num_pose_joints=len(cond))
+    if cfg.displacement_frame not in DISPLACEMENT_FRAMES:
+        raise UvatarError(f"displacement_frame must be one of {DISPLACEMENT_FRAMES}, got {cfg.displacement_frame!r}")
+    if state is not None:
+        cfg = replace(cfg, displacement_frame=state.get("train_config", {}).get("displacement_frame", "body"))
+    if cfg.displacement_frame == "rest" and body is None:
+        log.warning("no body model: displacements are learned in the body frame, not the rest frame")
+        cfg = replace(cfg, displacement_frame="body")
+    _, shapes = body_model_info(meta)
 
     device = torch.device(cfg.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UvatarError("--device cuda requested but CUDA is not available")
     torch.manual_seed(cfg.seed)
-    train = to_training_data(load_baked_frames(baked_dir, train_names, R, cfg.progress), cond, device)
-    val = (to_training_data(load_baked_frames(baked_dir, val_names, R), cond, device) if val_names else None)
+    def load(names, progress=False):
+        frames = load_baked_frames(baked_dir, names, R, progress)
+        return to_training_data(displacements_to_frame(frames, cfg.displacement_frame, body, shapes), cond, device)
+
+    train = load(train_names, cfg.progress)
+    val = load(val_names) if val_names else None
     excluded = None if excluded_np is None else torch.from_numpy(excluded_np).to(device)
 
     model = AvhGenerator(model_config).to(device)
@@ -217,13 +254,13 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
         history, start_epoch = state["history"], state["epoch"] + 1
         torch.set_rng_state(state["rng"])
     n_params = count_parameters(model)
-    _, shapes = body_model_info(meta)
     run_info = {"preset": preset_name, "model": model_config.to_dict(), "train": asdict(cfg), "baked": str(baked_dir.resolve()),
                 "body_model": {"name": body_model_info(meta)[0],
                                "shapes": None if shapes is None else shapes.tolist()},
                 "conditioning_joints": cond, "joint_names": joint_names,
                 "train_frames": train.names, "val_frames": [] if val is None else val.names,
-                "parameters": n_params, "displacement_space": "body frame: world axes with Rh removed"}
+                "parameters": n_params, "displacement_frame": cfg.displacement_frame,
+                "displacement_space": DISPLACEMENT_SPACES[cfg.displacement_frame]}
     write_json(run_dir / "run.json", run_info)
     print(f"AVH generator: {n_params:,} parameters (f_c={model_config.feature_size}, "
           f"latent={model_config.latent}, {R}x{R}); {len(train)} train / "
@@ -244,7 +281,7 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
         sums = np.zeros(3)
         for s in range(steps_per_epoch):
             idx = perm[s * cfg.batch_size:(s + 1) * cfg.batch_size]
-            pose, batch = train.batch(idx)
+            pose, batch = train.batch(idx, cfg.pose_noise)
             if use_cuda:
                 batch = {k: v.contiguous(memory_format=torch.channels_last) for k, v in batch.items()}
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_cuda):

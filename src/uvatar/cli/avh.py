@@ -39,6 +39,11 @@ def register(cli) -> None:
     p.add_argument("--lr", type=float, default=1.31e-3)
     p.add_argument("--gamma", type=float, default=0.99, help="ExponentialLR decay per epoch")
     p.add_argument("--displacement-weight", type=float, default=1.0, help="weight of the displacement loss")
+    p.add_argument("--displacement-frame", choices=("rest", "body"), default="rest",
+                   help="frame the displacement is learned in: rest (unposed by each texel's skinning rotation, "
+                        "generalizes to new poses) or body (as baked; the paper's maps)")
+    p.add_argument("--pose-noise", type=float, default=0.0,
+                   help="std (radians) of Gaussian noise added to training pose angles (augmentation)")
     p.add_argument("--device", default="cpu", help="cpu or cuda (bf16 autocast + channels_last)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt when it exists")
@@ -112,6 +117,7 @@ def _train(args) -> int:
         raise UvatarError(f"--texels {args.texels}: {exc}") from exc
     tcfg = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, lr_gamma=args.gamma,
                        displacement_weight=args.displacement_weight, device=args.device, seed=args.seed,
+                       displacement_frame=args.displacement_frame, pose_noise=args.pose_noise,
                        tensorboard=not args.no_tensorboard)
     summary = train_avh(args.baked, args.out, cfg, tcfg, resume=args.resume, preset_name=args.preset)
     final = summary["final"]

@@ -78,8 +78,10 @@ def write_toy_generator(path: str | Path, num_conditioning_joints: int = 4, reso
     return path
 
 
-def write_toy_avatar(out_dir: str | Path, resolution: int = 32, subdivisions: int = 1) -> dict:
-    """Write a complete toy avatar folder (model.onnx, avatar.json, avatar.glb, manifest.json, mask, a motion)."""
+def write_toy_avatar(out_dir: str | Path, resolution: int = 32, subdivisions: int = 1,
+                     displacement_frame: str = "body") -> dict:
+    """Write a complete toy avatar folder (model.onnx, avatar.json, avatar.glb, manifest.json, mask, a motion);
+    ``displacement_frame``: "body" (added after skinning) or "rest" (added before skinning)."""
     from uvatar.avh.engine_export import EngineExportConfig, write_engine_bundle
     from uvatar.io_utils import write_json
 
@@ -89,7 +91,7 @@ def write_toy_avatar(out_dir: str | Path, resolution: int = 32, subdivisions: in
     write_json(out / "avatar.json", {
         "body_model": {"name": "toy", "shapes": []}, "joint_names": list(TOY_JOINTS), "conditioning_joints": [0, 1, 2, 3],
         "resolution": resolution, "model": "model.onnx", "displacement_scale": 0.02,
-        "displacement_space": "body frame (toy)",
+        "displacement_space": f"{displacement_frame} frame (toy)", "displacement_frame": displacement_frame,
     })
     t = np.linspace(0, 2 * np.pi, 48, endpoint=False)
     poses = np.zeros((len(t), 4, 3), np.float32)
