@@ -96,6 +96,22 @@ def test_image_metrics_union_mask():
     assert np.isnan(image_metrics(a, mb, b, mb)["psnr_db"])
 
 
+def test_image_metrics_split_appearance_and_shape():
+    """inside-both PSNR sees only colour where both masks cover; IoU only the masks (known answers)."""
+    gt = np.full((8, 8, 3), 0.5, np.float32)
+    pred = gt.copy()
+    pred[2:4] += 0.1                     # colour error 0.1 on rows 2-3 -> MSE over rows 2-5 = 0.005
+    gm = np.zeros((8, 8), bool)
+    pm = np.zeros((8, 8), bool)
+    gm[2:6], pm[2:7] = True, True        # prediction covers one extra row: IoU 4/5
+    pred[6] = 1.0                        # that row is white background in gt: counts in the union only
+    m = image_metrics(pred, pm, gt, gm)
+    assert m["silhouette_iou"] == pytest.approx(0.8)
+    assert m["psnr_db_inside_both"] == pytest.approx(10 * np.log10(1 / 0.005), rel=1e-4)
+    assert m["psnr_db"] < m["psnr_db_inside_both"]
+    assert np.isnan(image_metrics(pred, np.zeros_like(pm), gt, np.zeros_like(gm))["silhouette_iou"])
+
+
 def test_evaluate_avatar_reports_all_methods(setup, tmp_path):
     root, body, cap, _ = setup
     m = evaluate_avatar(root / "avatar", cap, EvalConfig(progress=False, image_size=48), image_dir=tmp_path,

@@ -134,21 +134,39 @@ def scaled_camera(camera, width: int | None):
     return replace(camera, K=K, width=int(round(camera.width * s)), height=int(round(camera.height * s)))
 
 
-METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_union_mask", "ssim_union_mask", "psnr_db_full", "ssim_full")
+METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_union_mask", "ssim_union_mask", "psnr_db_full", "ssim_full",
+               "psnr_db_inside_both", "silhouette_iou")
 
 
 def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask) -> dict:
     """PSNR (dB) / SSIM inside the union of the masks (``psnr_db``, ``ssim`` and the same values as
-    ``*_union_mask``; NaN when the union is empty) and over the full image (``*_full``)."""
+    ``*_union_mask``; NaN when the union is empty) and over the full image (``*_full``).
+
+    Two diagnostics split the union error into its causes: ``psnr_db_inside_both`` (appearance: PSNR
+    where both masks cover the pixel) and ``silhouette_iou`` (shape: |A ∩ B| / |A ∪ B| of the masks).
+    """
     from uvatar.render import psnr, ssim
 
     full = {"psnr_db_full": psnr(pred_rgb, gt_rgb), "ssim_full": ssim(pred_rgb, gt_rgb)}
-    union = np.asarray(pred_mask, bool) | np.asarray(gt_mask, bool)
+    pm, gm = np.asarray(pred_mask, bool), np.asarray(gt_mask, bool)
+    union, both = pm | gm, pm & gm
     if not union.any():
         p = s = float("nan")
     else:
         p, s = psnr(pred_rgb, gt_rgb, union), ssim(pred_rgb, gt_rgb, union)
-    return {"psnr_db": p, "ssim": s, "psnr_db_union_mask": p, "ssim_union_mask": s, **full}
+    inside = psnr(pred_rgb, gt_rgb, both) if both.any() else float("nan")
+    iou = float(both.sum() / union.sum()) if union.any() else float("nan")
+    return {"psnr_db": p, "ssim": s, "psnr_db_union_mask": p, "ssim_union_mask": s, **full,
+            "psnr_db_inside_both": inside, "silhouette_iou": iou}
+
+
+def error_image(pred_rgb, gt_rgb, gain: float = 4.0) -> np.ndarray:
+    """(H, W, 3) float heat map of the per-pixel error ``gain · mean |pred − gt|`` (inferno; black = 0)."""
+    import cv2
+
+    err = np.clip(gain * np.abs(np.asarray(pred_rgb, np.float32) - np.asarray(gt_rgb, np.float32)).mean(-1), 0, 1)
+    heat = cv2.applyColorMap((err * 255).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    return heat[..., ::-1].astype(np.float32) / 255.0
 
 
 def surface_error_mm(runtime: AvatarRuntime, base_vertices, displacement, Rh, gt_surface, gt_mask,
@@ -253,6 +271,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         for ci, cam in enumerate(cameras):
             gt = render_mesh(scan.vertices, scan.faces, cam, scan.uvs, scan.uv_faces, scan.texture, raycaster=gt_caster)
             row, masks, labels = [gt.rgb], [gt.mask], ["ground truth"]
+            errors, error_labels = [np.ones_like(gt.rgb)], ["|error| x4 (black = 0)"]
             for m, mesh in meshes.items():
                 r = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture,
                                 raycaster=casters[m])
@@ -260,10 +279,11 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
                 row.append(r.rgb)
                 masks.append(r.mask)
                 labels.append(f"{SHORT_NAMES[m]} {results[m][-1]['psnr_db']:.1f} dB")
-            if config.sheets_per_camera and camera_names:
-                sheets.append((f"{frame}_{camera_names[ci]}", crop_to_masks(row, masks), labels))
-            elif ci == 0:
-                sheets.append((frame, crop_to_masks(row, masks), labels))
+                errors.append(error_image(r.rgb, gt.rgb))
+                error_labels.append(f"IoU {results[m][-1]['silhouette_iou']:.3f}")
+            if (config.sheets_per_camera and camera_names) or ci == 0:
+                name = f"{frame}_{camera_names[ci]}" if config.sheets_per_camera and camera_names else frame
+                sheets.append((name, crop_to_masks(row + errors, masks), labels + error_labels, len(row)))
         gt_npz = capture.gt_dir / "frames" / f"{frame}.npz"
         if gt_npz.is_file():
             with np.load(gt_npz) as z:
@@ -316,13 +336,16 @@ def crop_to_masks(images: list[np.ndarray], masks: list[np.ndarray], height: int
 
 
 def write_comparison_images(image_dir: str | Path, sheets) -> list[str]:
-    """One PNG per sheet (``<name>.png``): ground truth | AVH | mean texture | nearest pose (PSNR in labels)."""
+    """One PNG per sheet (``<name>.png``): ground truth | AVH | mean texture | nearest pose (PSNR in
+    labels), and below each method its error heat map (silhouette IoU in labels).
+
+    sheets: (name, images, labels, columns) tuples."""
     from uvatar.io_utils import write_image
     from uvatar.render import contact_sheet
 
     paths = []
-    for frame, row, labels in sheets:
-        sheet = contact_sheet(row, cols=len(row), labels=labels)
+    for frame, row, labels, cols in sheets:
+        sheet = contact_sheet(row, cols=cols, labels=labels)
         path = Path(image_dir) / f"{frame}.png"
         write_image(path, sheet)
         paths.append(str(path))

@@ -186,5 +186,7 @@ def _eval(args) -> int:
     rows = [("avh", metrics["avh"])] + list(metrics["baselines"].items())
     for name, m in rows:
         geo = f", geometry {m['geometry_mm']:.1f} mm" if m.get("geometry_mm") is not None else ""
-        print(f"{name:<13} PSNR {m['psnr_db']:.2f} dB, SSIM {m['ssim']:.3f}{geo}")
+        why = (f" | inside both silhouettes {m['psnr_db_inside_both']:.2f} dB, silhouette IoU {m['silhouette_iou']:.3f}"
+               if m.get("silhouette_iou") is not None else "")
+        print(f"{name:<13} PSNR {m['psnr_db']:.2f} dB, SSIM {m['ssim']:.3f}{geo}{why}")
     return 0
