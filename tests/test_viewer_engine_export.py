@@ -142,7 +142,7 @@ def test_bad_inputs_raise_input_error(tmp_path, toy_avatar):
     with pytest.raises(InputError, match="avatar.json: missing"):
         write_engine_bundle(tmp_path, body=body)
     (tmp_path / "avatar.json").write_text("{not json")
-    with pytest.raises(InputError, match="not valid JSON"):
+    with pytest.raises(InputError, match="invalid JSON"):
         write_engine_bundle(tmp_path, body=body)
     meta = json.loads((src / "avatar.json").read_text())
     (tmp_path / "avatar.json").write_text(json.dumps(meta))

@@ -82,7 +82,7 @@ def test_check_avatar_dir_errors(tmp_path, server):
     with pytest.raises(InputError, match="manifest.json: missing"):
         check_avatar_dir(tmp_path)
     (tmp_path / "manifest.json").write_text("{")
-    with pytest.raises(InputError, match="not valid JSON"):
+    with pytest.raises(InputError, match="invalid JSON"):
         check_avatar_dir(tmp_path)
     manifest = json.loads((server.avatar_dir / "manifest.json").read_text())
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))

@@ -25,7 +25,6 @@ skinning in the skinned mesh's model space; ``manifest.json`` ``displacement.fra
 from __future__ import annotations
 
 import io
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,7 +32,7 @@ import numpy as np
 
 from uvatar.avh.displacement_frame import frame_of_space
 from uvatar.errors import InputError
-from uvatar.io_utils import write_image, write_json
+from uvatar.io_utils import read_json, write_image, write_json
 from uvatar.viewer.glb import SkinnedMesh, write_glb
 
 MANIFEST_FORMAT = "uvatar-engine/1"
@@ -193,16 +192,7 @@ def _png_bytes(image: np.ndarray) -> bytes:
 
 
 def read_avatar_json(avatar_dir: Path) -> dict:
-    path = avatar_dir / "avatar.json"
-    try:
-        meta = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "missing; run `uvatar export RUN OUT` first") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(path, f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(meta, dict):
-        raise InputError(path, "expected a JSON object")
-    return meta
+    return read_json(Path(avatar_dir) / "avatar.json", "missing; run `uvatar export RUN OUT` first")
 
 
 def _meta(meta: dict, path: Path, *keys, default=None, required=True):

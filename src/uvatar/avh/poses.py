@@ -14,13 +14,13 @@ Poses are the body model's local axis-angles (T, J·3), root zero; the global mo
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from uvatar.errors import InputError
+from uvatar.io_utils import read_json
 
 
 @dataclass
@@ -53,10 +53,7 @@ def heldout_frames(capture_root: str | Path) -> list[str]:
     path = Path(capture_root) / "gt" / "info.json"
     if not path.is_file():
         raise InputError(path, "not found: held-out frames need a synthetic capture's gt/info.json")
-    try:
-        frames = json.loads(path.read_text()).get("heldout_frames")
-    except json.JSONDecodeError as exc:
-        raise InputError(path, f"invalid JSON ({exc})") from exc
+    frames = read_json(path).get("heldout_frames")
     if not frames:
         raise InputError(path, "lists no heldout_frames")
     return [str(f) for f in frames]
@@ -69,7 +66,7 @@ def take_frames(capture_root: str | Path, take: str) -> list[str]:
     path = Path(capture_root) / "gt" / "info.json"
     if not path.is_file():
         raise InputError(path, "not found: takes need a synthetic capture's gt/info.json")
-    takes = json.loads(path.read_text()).get("takes") or {}
+    takes = read_json(path).get("takes") or {}
     if take not in takes:
         raise InputError(path, f"no take {take!r} (has {sorted(takes)})")
     first, end = (int(x) for x in takes[take][:2])

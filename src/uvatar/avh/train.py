@@ -39,7 +39,7 @@ from uvatar.avh.model import (
     select_conditioning_angles,
 )
 from uvatar.errors import InputError, UvatarError
-from uvatar.io_utils import atomic_path, write_json
+from uvatar.io_utils import atomic_path, read_json, write_json
 
 log = logging.getLogger(__name__)
 
@@ -333,9 +333,7 @@ def load_trained_generator(run_dir: str | Path) -> tuple[AvhGenerator, dict]:
     info_path, weights = run_dir / "run.json", run_dir / "model.pt"
     if not info_path.is_file() or not weights.is_file():
         raise InputError(run_dir, "not a training run (needs run.json and model.pt from `uvatar train avh`)")
-    import json
-
-    info = json.loads(info_path.read_text())
+    info = read_json(info_path)
     state = _load_checkpoint(weights)
     model = AvhGenerator(AvhConfig(**state["model_config"]))
     model.load_state_dict(state["model"])

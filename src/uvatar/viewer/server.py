@@ -27,6 +27,7 @@ from pathlib import Path
 from urllib.parse import unquote, urlsplit
 
 from uvatar.errors import InputError, UvatarError
+from uvatar.io_utils import read_json
 
 log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -57,10 +58,7 @@ def check_avatar_dir(avatar_dir: str | Path) -> Path:
         raise InputError(avatar_dir, "not a folder; expected a `uvatar export` output")
     if not manifest_path.is_file():
         raise InputError(manifest_path, "missing; re-run `uvatar export` (it writes the engine bundle)")
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(manifest_path, f"not valid JSON ({exc.msg})") from None
+    manifest = read_json(manifest_path)
     for key in ("glb", "generator", "pose_encoding", "joint_names", "texels"):
         if key not in manifest:
             raise InputError(manifest_path, f"missing key {key!r}")
@@ -187,7 +185,7 @@ def load_motion_file(avatar_dir: Path, path: Path) -> dict:
     """Any motion ``uvatar.motion.load_motion`` reads (BVH retargeted, NPZ, fits) -> page JSON."""
     from uvatar.motion import load_motion, resample_motion
 
-    manifest = json.loads((avatar_dir / "manifest.json").read_text())
+    manifest = read_json(avatar_dir / "manifest.json")
     motion = load_motion(path, _body_model(manifest["body_model"]))
     if motion.fps > PLAYBACK_FPS:  # the page interpolates; fewer frames keep the JSON small
         motion = resample_motion(motion, PLAYBACK_FPS)
