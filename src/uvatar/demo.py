@@ -32,7 +32,7 @@ class DemoConfig:
     scan_texture: int = 512
     gt_texels: int = 256
     texels: int = 128           # bake resolution = the generator preset's output resolution
-    train_frames: int = 60
+    train_frames: int = 80
     val_frames: int = 6
     preset: str = "cpu-small"
     epochs: int = 40
