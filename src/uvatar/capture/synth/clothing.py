@@ -5,8 +5,11 @@
 rings around the limb at the elbows and knees (stronger on the inner side), diagonal folds at the
 groin, bunching at the armpits when the arm hangs, and horizontal belly folds when the chest bends;
 each follows its joint's bend (:func:`.bends.bend_amounts`). The clothed surface point is
-``posed body point + offset * posed unit normal``; the offset vector in world space is
-``offset * normal``. Offsets stay below ``ClothingConfig.max_offset``.
+``posed body point + offset * garment normal``, where the garment normal is the posed body normal
+averaged over the cloth's bending length, and cloth (shirt, trousers, belt) is thicker by the
+bridged depth of body creases (:mod:`.drape`); the offset vector in world space is
+``offset * garment normal``, plus the tangential drift of sleeves and trouser legs toward bending
+elbows and knees (:mod:`.drift`). Offsets stay below ``ClothingConfig.max_offset``.
 """
 
 from __future__ import annotations
@@ -19,12 +22,21 @@ from uvatar.capture.synth.appearance import Regions
 from uvatar.capture.synth.bends import BENDS, limb_coordinates, smoothstep, value_noise
 from uvatar.capture.synth.surface import BodyLandmarks, SurfaceFeatures
 
-__all__ = ["ClothingConfig", "base_offset", "fold_maps", "offset_amount"]
+__all__ = ["ClothingConfig", "base_offset", "cloth_weight", "fold_maps", "offset_amount"]
 
 
 @dataclass(frozen=True)
 class ClothingConfig:
-    """Thicknesses and fold amplitudes in metres; fold wavelength in metres."""
+    """Thicknesses and fold amplitudes in metres; fold wavelength in metres.
+
+    Drape (:mod:`.drape`): bending_length (m, sigma of the garment-normal averaging; 0 = the body
+    normal and no bridging, as in captures made before the drape); drape_normal_dot: neighbours
+    with less rest-normal agreement are not averaged; bridge: fraction of a crease's depth the cloth
+    spans; max_bridge (m): cap on the bridged extra thickness.
+
+    Drift (:mod:`.drift`): drift_elbow, drift_knee (m): peak slide of the sleeve / trouser fabric
+    toward a fully bent elbow / knee on its convex side; drift_length (m): distance from the joint
+    of the peak. 0 amplitudes: no drift (captures made before the drift)."""
 
     shirt: float = 0.010
     trousers: float = 0.015
@@ -36,6 +48,13 @@ class ClothingConfig:
     fold_amplitude: tuple = (0.010, 0.010, 0.011, 0.011, 0.008, 0.008, 0.007, 0.007, 0.009)  # per BENDS
     fold_wavelength: float = 0.028
     max_offset: float = 0.045
+    bending_length: float = 0.03
+    drape_normal_dot: float = 0.3
+    bridge: float = 0.8
+    max_bridge: float = 0.02
+    drift_elbow: float = 0.005
+    drift_knee: float = 0.006
+    drift_length: float = 0.04
 
 
 def base_offset(f: SurfaceFeatures, L: BodyLandmarks, reg: Regions, cfg: ClothingConfig | None = None) -> np.ndarray:
@@ -95,9 +114,17 @@ def fold_maps(f: SurfaceFeatures, L: BodyLandmarks, reg: Regions, cfg: ClothingC
 
 
 def offset_amount(base: np.ndarray, folds: np.ndarray, bends: np.ndarray,
-                  cfg: ClothingConfig | None = None) -> np.ndarray:
-    """(N,) float64 offset in metres of one pose: base (N,) + folds (N, K) @ (amplitude * bends) (K,),
-    clipped to [0, max_offset]."""
+                  cfg: ClothingConfig | None = None, bridged: np.ndarray | None = None) -> np.ndarray:
+    """(N,) float64 offset in metres of one pose: base (N,) + folds (N, K) @ (amplitude * bends) (K,)
+    + bridged (N,) (cloth weight x bridged crease depth, :mod:`.drape`), clipped to [0, max_offset]."""
     cfg = cfg or ClothingConfig()
     amp = np.asarray(cfg.fold_amplitude, dtype=np.float64) * np.asarray(bends, dtype=np.float64)
-    return np.clip(base.astype(np.float64) + folds.astype(np.float64) @ amp, 0.0, cfg.max_offset)
+    out = base.astype(np.float64) + folds.astype(np.float64) @ amp
+    if bridged is not None:
+        out = out + bridged
+    return np.clip(out, 0.0, cfg.max_offset)
+
+
+def cloth_weight(reg: Regions) -> np.ndarray:
+    """(N,) float32 in [0, 1]: how much a point is garment (shirt, trousers, belt), which bridges creases."""
+    return np.clip(reg.shirt + reg.jeans + reg.belt, 0.0, 1.0).astype(np.float32)

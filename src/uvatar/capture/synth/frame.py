@@ -1,9 +1,12 @@
 """One worker's studio: the body, its static surface maps, and the making of one frame.
 
 :class:`Studio` holds what every frame reuses (the body model, the ground-truth texel maps, the
-subdivided template, per-segment scan statics, an LRU of two segments) and
-:meth:`Studio.make_frame` writes one frame: scan (+ atlas texture), fit, images and masks, then the
-ground truth last (its presence marks the frame done for resuming).
+subdivided template, the garment-drape averaging matrix, per-segment scan statics, an LRU of two
+segments) and :meth:`Studio.make_frame` writes one frame: scan (+ atlas texture), fit, images and
+masks, then the ground truth last (its presence marks the frame done for resuming).
+:meth:`Studio.posed` poses and drapes the body once per frame; :meth:`Studio.clothed` turns it into
+clothed points for any set of body points (scan vertices, gt texels), so both come from one
+function and the ground truth is the exact end point of each material point.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from uvatar.capture.synth import clothing as clo
 from uvatar.capture.synth import surface as srf
 from uvatar.capture.synth.bends import bend_amounts
 from uvatar.capture.synth.config import SynthConfig
+from uvatar.capture.synth.drape import drape_matrix, garment_frame
+from uvatar.capture.synth.drift import apply_drift, drift_maps, drift_vectors
 from uvatar.capture.synth.gt import scatter_texels, write_gt_frame
 from uvatar.capture.synth.scans import (
     ScanTopology,
@@ -30,7 +35,7 @@ from uvatar.capture.synth.scans import (
     pose_scan,
 )
 
-__all__ = ["Statics", "Studio", "frame_rng"]
+__all__ = ["Posed", "Statics", "Studio", "frame_rng"]
 
 
 def frame_rng(seed: int, frame: int, stream: int) -> np.random.Generator:
@@ -41,13 +46,30 @@ def frame_rng(seed: int, frame: int, stream: int) -> np.random.Generator:
 @dataclass
 class Statics:
     """Pose-independent maps of N surface points ``W`` (N, V): albedo (N, 3), creases (N, K),
-    base offset (N,), folds (N, K) (None when not asked for)."""
+    base offset (N,), folds (N, K), cloth weight (N,), drift weights (N, D) (None when not asked for)."""
 
     W: sp.csr_matrix
     albedo: np.ndarray | None = None
     creases: np.ndarray | None = None
     base: np.ndarray | None = None
     folds: np.ndarray | None = None
+    cloth: np.ndarray | None = None
+    drift: np.ndarray | None = None
+
+
+@dataclass
+class Posed:
+    """One true pose of the body: vertices (V, 3), normals (V, 3), joints (J, 3) float64 world
+    metres; garment normals (V, 3) and bridged crease depth (V,) metres (:mod:`.drape`); bends (K,);
+    drift (D, 3) world drift per unit static weight (:mod:`.drift`)."""
+
+    vertices: np.ndarray
+    normals: np.ndarray
+    joints: np.ndarray
+    garment_normals: np.ndarray
+    bridge: np.ndarray
+    bends: np.ndarray
+    drift: np.ndarray
 
 
 class Studio:
@@ -67,6 +89,12 @@ class Studio:
         raster = rasterize_uv(t.uvs, t.uv_faces, cfg.gt_texels)
         W, self.gt_flat = srf.raster_matrix(raster, t.faces, t.num_vertices)
         self.gt_mask = raster.mask
+        from uvatar.geometry.frames import vertex_normals
+
+        c = cfg.clothing
+        rest_normals = vertex_normals(t.vertices.astype(np.float64), t.faces)
+        self.drape = drape_matrix(t.vertices, rest_normals, c.bending_length, c.drape_normal_dot)
+        self.rest_bends = bend_amounts(t.rest_joints, self.body.semantic_joints, t.rest_joints)
         self.gt = self.statics(W)
         self._fine = None
         self._segments: OrderedDict[int, tuple] = OrderedDict()
@@ -82,6 +110,8 @@ class Studio:
         if geometry:
             out.base = clo.base_offset(f, self.landmarks, reg, self.cfg.clothing)
             out.folds = clo.fold_maps(f, self.landmarks, reg, self.cfg.clothing)
+            out.cloth = clo.cloth_weight(reg)
+            out.drift = drift_maps(f, self.landmarks, reg, self.cfg.clothing)
         return out
 
     def fine(self):
@@ -118,16 +148,36 @@ class Studio:
         return entry
 
     # -- one frame -------------------------------------------------------------------------------
-    def pose(self, i: int):
-        """(vertices (V, 3), normals (V, 3), joints (J, 3)) float64 of the true pose of frame i."""
+    def pose(self, i: int) -> Posed:
+        """The true pose of frame i (see :class:`Posed`)."""
+        p = self.plan
+        return self.posed(p["poses"][i], p["Rh"][i], p["Th"][i])
+
+    def posed(self, pose, Rh, Th) -> Posed:
+        """Pose the body (pose (J, 3) or (J*3,) local axis-angles, Rh (3,), Th (3,)) and drape it."""
         import torch
 
-        p = self.plan
         with torch.no_grad():
-            posed = self.body.pose(torch.as_tensor(p["poses"][i][None]), Rh=torch.as_tensor(p["Rh"][i][None]),
-                                   Th=torch.as_tensor(p["Th"][i][None]), shape=torch.as_tensor(self.shape))
-        return (posed.vertices[0].double().cpu().numpy(), posed.normals[0].double().cpu().numpy(),
-                posed.joints[0].double().cpu().numpy())
+            out = self.body.pose(torch.as_tensor(np.asarray(pose, np.float32).reshape(1, -1, 3)),
+                                 Rh=torch.as_tensor(np.asarray(Rh, np.float32)[None]),
+                                 Th=torch.as_tensor(np.asarray(Th, np.float32)[None]),
+                                 shape=torch.as_tensor(self.shape))
+        V = out.vertices[0].double().cpu().numpy()
+        N = out.normals[0].double().cpu().numpy()
+        J = out.joints[0].double().cpu().numpy()
+        c = self.cfg.clothing
+        ng, bridge = garment_frame(V, N, self.drape, c.bridge, c.max_bridge)
+        bends = bend_amounts(J, self.body.semantic_joints, self.template.rest_joints)
+        return Posed(V, N, J, ng, bridge, bends, drift_vectors(J, self.body.semantic_joints, bends, self.rest_bends))
+
+    def clothed(self, st: Statics, posed: Posed) -> tuple[np.ndarray, np.ndarray]:
+        """(noise-free clothed points (N, 3), unit offset directions (N, 3)) float64 of the points of
+        ``st``: ``W V + offset * normalize(W garment normals) + tangential drift``; offset = base +
+        folds + bridging. Scan vertices and gt texels both come from here, so the gt is exact."""
+        pts, dirs = srf.posed_points(st.W, posed.vertices, posed.garment_normals)
+        bridged = st.cloth.astype(np.float64) * (st.W @ posed.bridge)
+        off = clo.offset_amount(st.base, st.folds, posed.bends, self.cfg.clothing, bridged)
+        return pts + off[:, None] * dirs + apply_drift(st.drift, posed.drift, dirs), dirs
 
     def make_frame(self, i: int) -> dict:
         """Write frame ``i`` (scan, fit, images, masks, gt) and return a small summary."""
@@ -139,13 +189,12 @@ class Studio:
         from uvatar.io_utils import write_image
 
         cfg, p, name = self.cfg, self.plan, self.plan["frames"][i]
-        V, N, joints = self.pose(i)
-        bends = bend_amounts(joints, self.body.semantic_joints, self.template.rest_joints)
+        posed = self.pose(i)
+        bends = posed.bends
 
         topo, vert, texel, flat, fill = self.segment(int(p["segment_of_frame"][i]))
-        pts, nrm = srf.posed_points(vert.W, V, N)
-        offset = clo.offset_amount(vert.base, vert.folds, bends, cfg.clothing)
-        vertices = pose_scan(pts, nrm, offset, cfg.scan_noise, frame_rng(cfg.seed, i, 1))
+        surface, dirs = self.clothed(vert, posed)
+        vertices = pose_scan(surface, dirs, np.zeros(len(surface)), cfg.scan_noise, frame_rng(cfg.seed, i, 1))
         R = cfg.scan_texture
         atlas = scatter_texels(app.shade(texel.albedo, texel.creases, bends, cfg.appearance), flat, R)
         atlas = atlas.reshape(-1, 3)[fill].reshape(R, R, 3)
@@ -166,12 +215,12 @@ class Studio:
                 write_image(self.root / "masks" / cam.name / f"{name}.png", mask.astype(np.uint8) * 255)
 
         g = self.gt
-        gp, gn = srf.posed_points(g.W, V, N)
-        goff = clo.offset_amount(g.base, g.folds, bends, cfg.clothing)
+        gsurf, _ = self.clothed(g, posed)
+        gp = srf.posed_points(g.W, posed.vertices, posed.normals)[0]
         Rg = cfg.gt_texels
         write_gt_frame(self.root, name, pose=p["poses"][i].reshape(-1), Rh=p["Rh"][i], Th=p["Th"][i],
                        texture=scatter_texels(app.shade(g.albedo, g.creases, bends, cfg.appearance), self.gt_flat, Rg),
-                       offset=scatter_texels((goff[:, None] * gn).astype(np.float32), self.gt_flat, Rg),
-                       surface=scatter_texels((gp + goff[:, None] * gn).astype(np.float32), self.gt_flat, Rg),
+                       offset=scatter_texels((gsurf - gp).astype(np.float32), self.gt_flat, Rg),
+                       surface=scatter_texels(gsurf.astype(np.float32), self.gt_flat, Rg),
                        mask=self.gt_mask, bends=bends.astype(np.float32), broken=np.bool_(bool(broken)))
         return {"frame": name, "faces": int(len(faces)), "broken": bool(broken)}

@@ -4,8 +4,9 @@
 heldout_frames, takes ({name: [first, end) frame indices}), texel_resolution, segments (scan
 topologies: first/last frame, face count), seed and the full config.
 ``gt/frames/<frame>.npz``: pose (J*3,) true local axis-angles, Rh (3,), Th (3,), texture (R, R, 3)
-float32 in [0, 1], offset (R, R, 3) world-space clothing offset of the posed frame (m), surface
-(R, R, 3) true clothed surface point per body texel (world, m, noise-free), mask (R, R) bool,
+float32 in [0, 1], offset (R, R, 3) world-space clothing offset of the posed frame (m; surface
+minus the body texel point, tangential drift included), surface (R, R, 3) true clothed surface
+point per body texel (world, m, noise-free), mask (R, R) bool,
 bends (K,) (see :mod:`.bends`), broken (bool). All maps in the body UV layout, row 0 = v 1.
 ``gt/motion.npz``: the whole true motion; ``gt/topologies/<segment>.npz``: scan topologies with each
 scan vertex's body origin.

@@ -6,7 +6,8 @@ lines (6 mm) are point-sampled at 256 texels, and resampling them blurs and alia
 itself (on /tmp/perfcap: 256 -> 512 bilinear is only ~28 dB against the exact 512 maps). Since the
 studio is a deterministic function of its config (saved in ``gt/info.json``), :class:`GtRenderer`
 re-evaluates the true appearance and surface at the texel centres of any resolution, from the
-frame's stored true pose (``gt/frames/F.npz``: pose, Rh, Th, bends).
+frame's stored true pose (``gt/frames/F.npz``: pose, Rh, Th; the bends, garment drape and drift are
+recomputed from it exactly as when the frame was made, :meth:`.frame.Studio.posed`).
 """
 
 from __future__ import annotations
@@ -41,14 +42,18 @@ def config_from_dict(data: dict):
             kw[f.name] = v
         return cls(**kw)
 
-    return build(SynthConfig, data or {})
+    data = dict(data or {})
+    if data and "bending_length" not in (data.get("clothing") or {"bending_length": None}):
+        # captures made before the drape and drift: cloth along the body normal, no bridging or drift
+        data["clothing"] = dict(data["clothing"], bending_length=0.0, drift_elbow=0.0, drift_knee=0.0)
+    return build(SynthConfig, data)
 
 
 class GtRenderer:
     """True texture / clothed surface of a synthetic capture's frames at ``resolution`` texels.
 
     ``render(frame)`` -> dict texture (R, R, 3) float32 [0, 1], surface (R, R, 3) float64 world
-    metres, normal (R, R, 3) unit outward normals of the (unclothed) body there, mask (R, R) bool
+    metres, normal (R, R, 3) unit offset directions there (the garment normal, :mod:`.drape`), mask (R, R) bool
     (all in the body UV layout, row 0 = v 1), or None when the frame has no gt file.
     """
 
@@ -69,33 +74,22 @@ class GtRenderer:
         self.resolution = int(resolution)
 
     def render(self, frame: str) -> dict | None:
-        import torch
-
         from uvatar.capture.synth import appearance as app
-        from uvatar.capture.synth import clothing as clo
-        from uvatar.capture.synth import surface as srf
         from uvatar.capture.synth.gt import scatter_texels
 
         path = self.root / "gt" / "frames" / f"{frame}.npz"
         if not path.is_file():
             return None
         with np.load(path) as z:
-            pose, Rh, Th, bends = (np.asarray(z[k]) for k in ("pose", "Rh", "Th", "bends"))
+            pose, Rh, Th = (np.asarray(z[k]) for k in ("pose", "Rh", "Th"))
         st = self.studio
-        with torch.no_grad():
-            posed = st.body.pose(torch.as_tensor(pose.reshape(1, -1, 3), dtype=torch.float32),
-                                 Rh=torch.as_tensor(Rh[None], dtype=torch.float32),
-                                 Th=torch.as_tensor(Th[None], dtype=torch.float32),
-                                 shape=torch.as_tensor(st.shape))
-        V = posed.vertices[0].double().cpu().numpy()
-        N = posed.normals[0].double().cpu().numpy()
+        posed = st.posed(pose, Rh, Th)   # bends recomputed in float64, exactly as when the frame was made
         g, R = st.gt, self.resolution
-        gp, gn = srf.posed_points(g.W, V, N)
-        goff = clo.offset_amount(g.base, g.folds, bends.astype(np.float64), self.cfg.clothing)
-        texture = scatter_texels(app.shade(g.albedo, g.creases, bends, self.cfg.appearance), st.gt_flat, R)
+        points, dirs = st.clothed(g, posed)
+        texture = scatter_texels(app.shade(g.albedo, g.creases, posed.bends, self.cfg.appearance), st.gt_flat, R)
         surface = np.zeros((R * R, 3))
-        surface[st.gt_flat] = gp + goff[:, None] * gn
+        surface[st.gt_flat] = points
         normal = np.zeros((R * R, 3))
-        normal[st.gt_flat] = gn / np.maximum(np.linalg.norm(gn, axis=1, keepdims=True), 1e-12)
+        normal[st.gt_flat] = dirs
         return {"texture": texture, "surface": surface.reshape(R, R, 3), "normal": normal.reshape(R, R, 3),
                 "mask": st.gt_mask.copy()}
