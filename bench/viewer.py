@@ -40,25 +40,34 @@ def python_ort_ms(model: Path, input_name: str, size: int, runs: int) -> float:
     return statistics.median(times)
 
 
-def measure(avatar: Path, runs: int) -> dict:
+def _page_run(avatar: Path, runs: int, query: str) -> tuple[dict, dict, list]:
     from uvatar.viewer.browser import viewer_page
     from uvatar.viewer.server import ViewerConfig, ViewerServer
 
-    manifest = json.loads((avatar / "manifest.json").read_text())
     with ViewerServer(avatar, ViewerConfig(port=0, open_browser=False)) as server, \
-            viewer_page(server.url, 960, 720, timeout_s=600) as page:
+            viewer_page(server.url + query, 960, 720, timeout_s=600) as page:
         info = page.evaluate("[self.crossOriginIsolated, navigator.hardwareConcurrency, navigator.userAgent]")
         bench = page.evaluate(f"window.uvatar.benchmark({runs})")
         page.evaluate("window.uvatar.playMotion(0)")  # the built-in sway: pose changes every frame
         page.wait_for_timeout(4000)
         playing = page.evaluate("window.uvatar.stats")
         page.evaluate("window.uvatar.stop()")
+    return bench, playing, info
+
+
+def measure(avatar: Path, runs: int) -> dict:
+    """Inference on the page's thread (the viewer's default) and in onnxruntime-web's proxy worker (?proxy=1)."""
+    manifest = json.loads((avatar / "manifest.json").read_text())
+    bench, playing, info = _page_run(avatar, runs, "")
+    worker, worker_playing, _ = _page_run(avatar, runs, "?proxy=1")
     g = manifest["generator"]
     return {
         "texels": manifest["texels"], "backend": bench["backend"],
         "browser_inference_ms_median": round(bench["median_ms"], 2), "browser_inference_ms_mean": round(bench["mean_ms"], 2),
         "browser_inference_ms_min": round(bench["min_ms"], 2),
         "render_fps_while_playing": round(playing["fps"], 1),
+        "worker_proxy_inference_ms_median": round(worker["median_ms"], 2),
+        "worker_proxy_render_fps_while_playing": round(worker_playing["fps"], 1),
         "python_onnxruntime_ms_median": round(python_ort_ms(avatar / g["file"], g["input"], g["input_size"], runs), 2),
         "cross_origin_isolated": info[0], "hardware_concurrency": info[1], "chromium": info[2].split("Chrome/")[-1].split(" ")[0],
         "mesh_triangles": manifest["mesh"]["triangles"],
