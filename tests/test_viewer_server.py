@@ -112,10 +112,14 @@ def test_uvatar_view_serves_until_stopped(server, tmp_path):
     import subprocess
     import sys
 
-    # stderr goes to a file, not a pipe nobody reads (a full pipe would block the server's writes)
+    # stderr goes to a file, not a pipe nobody reads (a full pipe would block the server's writes).
+    # SIGINT is reset to its default in the child: a runner that starts the tests in the background
+    # (`cmd &` without job control) passes SIGINT down as ignored, and Python then installs no
+    # KeyboardInterrupt handler, so Ctrl-C could never reach the server.
     with open(tmp_path / "stderr.txt", "w") as err:
         proc = subprocess.Popen([sys.executable, "-m", "uvatar", "view", str(server.avatar_dir), "--port", "0",
-                                 "--no-browser"], stdout=subprocess.PIPE, stderr=err, text=True)
+                                 "--no-browser"], stdout=subprocess.PIPE, stderr=err, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         line = proc.stdout.readline()
         assert line.startswith("uvatar viewer: http://localhost:"), line
