@@ -56,7 +56,7 @@ class SkinningRotations:
         self.shape = None if shape is None else torch.as_tensor(np.asarray(shape, np.float32))
         with torch.no_grad():
             rest = body.pose(torch.zeros(1, body.num_joints, 3, device=body.device), shape=self.shape)
-            self._rest_inverse = torch.linalg.inv(rest.joint_transforms[0, :, :3, :3].double())
+            self._rest_inverse = torch.linalg.inv(rest.joint_transforms[0, :, :3, :3].double().cpu())
         self._weights = torch.as_tensor(np.asarray(body.template.skin_weights, np.float64))
 
     def joint_rotations(self, poses) -> torch.Tensor:
