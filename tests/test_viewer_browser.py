@@ -179,9 +179,19 @@ def _bilinear_clamped(image, uv_gltf):
     return top * (1 - fy) + bottom * fy
 
 
+def generator_displacement(out, manifest, pose):
+    """(R, R, 3) displacement map the avatar's ONNX generator gives for ``pose``, times (1 - finger/toe
+    mask), row 0 at glTF t = 0: what the viewer uploads."""
+    import imageio.v3 as iio
+
+    io_names = {"input": "pose_angles", "texture": "texture", "displacement": "displacement"}
+    _, disp = run_generator(out / "model.onnx", io_names, pose_to_model_input(pose[None], manifest["pose_encoding"]))
+    keep = 1.0 - iio.imread(out / manifest["finger_toe_mask"]).astype(np.float32)[..., None] / 255.0
+    return disp[0].transpose(1, 2, 0) * keep  # row 0 is v = 1, i.e. glTF t = 0
+
+
 def test_displaced_vertices_match_python_reference(page, avatar):
     """Skinning + displacement sampled at TEXCOORD_1 after skinning, times (1 - finger/toe mask)."""
-    import imageio.v3 as iio
     import roma
     import torch
 
@@ -193,10 +203,7 @@ def test_displaced_vertices_match_python_reference(page, avatar):
     mesh = engine_mesh(toy_rest_body(), EngineExportConfig(subdivisions=1))  # the GLB's arrays
     idx = np.random.default_rng(0).choice(len(mesh.positions), 200, replace=False)
     js = np.array(page.evaluate("i => window.uvatar.displacedVertices(i)", idx.tolist()))
-    io_names = {"input": "pose_angles", "texture": "texture", "displacement": "displacement"}
-    _, disp = run_generator(out / "model.onnx", io_names, pose_to_model_input(pose[None], manifest["pose_encoding"]))
-    keep = 1.0 - iio.imread(out / manifest["finger_toe_mask"]).astype(np.float32)[..., None] / 255.0
-    dmap = disp[0].transpose(1, 2, 0) * keep  # row 0 is v = 1, i.e. glTF t = 0
+    dmap = generator_displacement(out, manifest, pose)
     rots = roma.rotvec_to_rotmat(torch.as_tensor(pose.reshape(4, 3), dtype=torch.float64)).numpy()
     ref = skin_reference(mesh, rots)[idx] + _bilinear_clamped(dmap, mesh.uv1[idx])
     assert np.abs(dmap).max() > 1e-3  # the toy really displaces

@@ -14,9 +14,8 @@ REASON = missing_browser_reason()
 if REASON:
     pytest.skip(f"browser tests skipped: {REASON}", allow_module_level=True)
 
-from test_viewer_browser import _bilinear_clamped  # noqa: E402
+from test_viewer_browser import _bilinear_clamped, generator_displacement  # noqa: E402
 
-from uvatar.avh.engine_export import pose_to_model_input, run_generator  # noqa: E402
 from uvatar.viewer.browser import set_pose, viewer_page  # noqa: E402
 from uvatar.viewer.server import ViewerConfig, ViewerServer  # noqa: E402
 from uvatar.viewer.toy import toy_rest_body, write_toy_avatar  # noqa: E402
@@ -26,7 +25,6 @@ def test_rest_frame_displacement_is_added_before_skinning(tmp_path):
     """A rest-frame avatar (manifest displacement.frame "rest"): p = skin(p_rest + D), so the bones turn D."""
     import dataclasses
 
-    import imageio.v3 as iio
     import roma
     import torch
 
@@ -41,10 +39,7 @@ def test_rest_frame_displacement_is_added_before_skinning(tmp_path):
         mesh = engine_mesh(toy_rest_body(), EngineExportConfig(subdivisions=1))
         idx = np.random.default_rng(1).choice(len(mesh.positions), 200, replace=False)
         js = np.array(page.evaluate("i => window.uvatar.displacedVertices(i)", idx.tolist()))
-    io_names = {"input": "pose_angles", "texture": "texture", "displacement": "displacement"}
-    _, disp = run_generator(tmp_path / "model.onnx", io_names, pose_to_model_input(pose[None], manifest["pose_encoding"]))
-    keep = 1.0 - iio.imread(tmp_path / manifest["finger_toe_mask"]).astype(np.float32)[..., None] / 255.0
-    d = _bilinear_clamped(disp[0].transpose(1, 2, 0) * keep, mesh.uv1)
+    d = _bilinear_clamped(generator_displacement(tmp_path, manifest, pose), mesh.uv1)
     rots = roma.rotvec_to_rotmat(torch.as_tensor(pose.reshape(4, 3), dtype=torch.float64)).numpy()
     ref = skin_reference(dataclasses.replace(mesh, positions=mesh.positions + d), rots)[idx]
     after = skin_reference(mesh, rots)[idx] + d[idx]  # the body-frame rule gives another surface here

@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 __all__ = ["DISPLACEMENT_FRAMES", "DISPLACEMENT_SPACES", "SkinningRotations", "vertex_skinning_rotations",
-           "texel_skinning_rotations", "body_to_rest", "rest_to_body", "maps_body_to_rest", "frame_of_space"]
+           "texel_skinning_rotations", "body_to_rest", "rest_to_body", "maps_body_to_rest", "displacements_to_frame",
+           "frame_of_space"]
 
 DISPLACEMENT_FRAMES = ("rest", "body")
 
@@ -110,3 +111,18 @@ def maps_body_to_rest(body, raster, faces, displacement: np.ndarray, poses: np.n
         for k, mv in enumerate(Mv):
             out[s + k] = body_to_rest(displacement[s + k], texel_skinning_rotations(raster, faces, mv))
     return out
+
+
+def displacements_to_frame(frames, frame: str, body, shape=None):
+    """:class:`uvatar.avh.data.BakedFrames` with their body-frame displacements converted to ``frame``
+    ("body": returned unchanged)."""
+    if frame == "body" or len(frames) == 0:
+        return frames
+    from dataclasses import replace
+
+    from uvatar.geometry import rasterize_uv
+
+    t = body.template
+    raster = rasterize_uv(t.uvs, t.uv_faces, frames.resolution)
+    return replace(frames, displacement=maps_body_to_rest(body, raster, t.faces, frames.displacement,
+                                                          frames.poses, shape))

@@ -103,7 +103,7 @@ class Baselines:
         # cleaned as training sees it: zero outside the UV charts and where any axis exceeds the threshold
         bad = ~frames.valid | (np.abs(frames.displacement).max(-1) > outlier_threshold)
         if displacement_frame == "rest":
-            from uvatar.avh.train import displacements_to_frame
+            from uvatar.avh.displacement_frame import displacements_to_frame
 
             frames = displacements_to_frame(frames, "rest", body, shape)
         self.displacement = np.where(bad[..., None], 0.0, frames.displacement).astype(np.float32)

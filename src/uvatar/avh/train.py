@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, read_dataset_meta, selection
-from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES, DISPLACEMENT_SPACES
+from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES, DISPLACEMENT_SPACES, displacements_to_frame
 from uvatar.avh.loss import avh_loss, displacement_mask
 from uvatar.avh.model import (
     AvhConfig,
@@ -132,18 +132,6 @@ def resolve_body(meta: dict, resolution: int, body=None, baked_dir: Path | None 
     excluded = np.asarray(part_masks(body, resolution)["fingers_toes"], bool)
     return cond, excluded, list(body.joint_names), body
 
-
-def displacements_to_frame(frames: BakedFrames, frame: str, body, shape) -> BakedFrames:
-    """``frames`` with body-frame displacements converted to ``frame`` ("body": unchanged)."""
-    if frame == "body" or len(frames) == 0:
-        return frames
-    from uvatar.avh.displacement_frame import maps_body_to_rest
-    from uvatar.geometry import rasterize_uv
-
-    t = body.template
-    raster = rasterize_uv(t.uvs, t.uv_faces, frames.resolution)
-    return replace(frames, displacement=maps_body_to_rest(body, raster, t.faces, frames.displacement,
-                                                          frames.poses, shape))
 
 
 def _load_checkpoint(path: Path) -> dict:
