@@ -18,7 +18,7 @@ from uvatar.avh.bake.confidence import (
 from uvatar.avh.bake.config import BakeConfig, PoseRefineConfig, RegistrationConfig
 from uvatar.avh.bake.correspond import choose_candidates, choose_candidates_reference, match_texels
 from uvatar.avh.bake.inpaint import inpaint_telea
-from uvatar.avh.bake.refine import region_weights, subtree_weights
+from uvatar.avh.bake.refine import region_weights, subtree_weights, untracked_skin_weight
 from uvatar.avh.bake.register import ScanSurface, register_to_scan, uniform_laplacian_matrix
 
 
@@ -205,3 +205,6 @@ def test_subtree_and_region_weights():
     np.testing.assert_array_equal(sub, [[0, 0], [1, 0], [1, 0], [1, 0], [0, 1]])
     reg = region_weights(skin, parents, [1, 4])
     np.testing.assert_array_equal(reg, [[1, 0], [1, 0], [1, 0], [1, 0], [0, 1]])
+    # joints 2 and 3 are neither the root nor refined: their weight is untracked
+    blend = np.array([[0.5, 0.5, 0, 0, 0], [0, 0.25, 0.75, 0, 0], [0, 0, 0.5, 0.5, 0], [0, 0, 0, 0, 1.0]])
+    np.testing.assert_allclose(untracked_skin_weight(blend, [1, 4]), [0.0, 0.75, 1.0, 0.0])

@@ -98,6 +98,29 @@ def test_pose_refinement_recovers_noisy_fit(setup):
     assert refined.poses.shape == fit.poses.shape
 
 
+def test_pose_refinement_ignores_fingers_the_fit_cannot_curl(setup):
+    """Scan with curled fingers, body-only fit with flat ones (and the true body pose): the refinement
+    must leave the arms where they are; matching the finger vertices too drags the wrists."""
+    model, layout, fit, _ = setup
+    pose = fit.poses.reshape(-1, 3).copy()
+    names = model.joint_names
+    for j, name in enumerate(names):
+        if name.startswith("finger"):
+            pose[j] = [0.0, 0.0, np.radians(40.0) * (1 if name.endswith(".L") else -1)]
+    curled = BodyFit(poses=pose.reshape(-1), Rh=fit.Rh, Th=fit.Th)
+    scan = offset_scan(model, curled)
+    wrists = [names.index("wrist.L"), names.index("wrist.R")]
+
+    def wrist_error(max_untracked_weight):
+        cfg = replace(FAST, pose_refine=PoseRefineConfig(iterations=6, max_untracked_weight=max_untracked_weight))
+        _, refined = bake_fit(model, fit, layout, scan, cfg)
+        d = refined.poses.reshape(-1, 3)[wrists] - fit.poses.reshape(-1, 3)[wrists]
+        return float(np.degrees(np.linalg.norm(d, axis=1)).max())
+
+    assert wrist_error(0.5) < 1.0
+    assert wrist_error(1.0) > 2 * wrist_error(0.5)
+
+
 def test_bad_inputs_raise_input_error(setup):
     model, layout, fit, scan = setup
     shadow = shadow_vertices(model, fit)

@@ -162,3 +162,10 @@ def test_noisy_fit():
     err = (Rotation.from_rotvec(noisy.poses.reshape(-1, 3)[1:]) * Rotation.from_rotvec(pose[1:]).inv()).magnitude()
     assert np.degrees(np.median(err)) == pytest.approx(2.0 * 0.674, rel=0.3)
     assert np.all(noisy.poses[:3] == 0)
+    # a body-only fit: untracked joints (here 50..103) in the rest pose, tracked ones as without
+    body_only = noisy_fit(pose, np.zeros(3), np.ones(3), np.full(6, 0.5), 2.0, np.random.default_rng(5),
+                          tracked=range(1, 50))
+    every = noisy_fit(pose, np.zeros(3), np.ones(3), np.full(6, 0.5), 2.0, np.random.default_rng(5))
+    assert np.all(body_only.poses.reshape(-1, 3)[50:] == 0)
+    np.testing.assert_array_equal(body_only.poses.reshape(-1, 3)[:50], every.poses.reshape(-1, 3)[:50])
+    np.testing.assert_array_equal(body_only.Rh, every.Rh)

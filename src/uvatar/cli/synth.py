@@ -26,6 +26,9 @@ def register(cli) -> None:
     for name, typ, help_text in _FLAGS:
         p.add_argument("--" + name.replace("_", "-"), dest=name, type=typ, default=None,
                        help=help_text + " (preset default if not given)")
+    p.add_argument("--fit-tracks", dest="fit_tracks", choices=("body", "all"), default=None,
+                   help="joints the fits track: body (no fingers, toes or eyes, as SMPL/EasyMocap "
+                        "body fits) or all (preset default: body)")
     p.add_argument("--no-preview", action="store_true", help="do not write OUT/preview.png")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     p.set_defaults(func=_synth)
@@ -39,6 +42,7 @@ def _synth(args) -> int:
     from uvatar.errors import InputError
 
     overrides = {name: getattr(args, name) for name, _, _ in _FLAGS}
+    overrides["fit_tracks"] = args.fit_tracks
     for key in ("frames", "image_size", "scan_texture", "gt_texels", "workers"):
         if overrides[key] is not None and overrides[key] < 1:
             raise InputError(f"--{key.replace('_', '-')}", f"must be at least 1, got {overrides[key]}")

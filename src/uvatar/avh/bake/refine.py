@@ -21,7 +21,7 @@ import numpy as np
 
 from uvatar.avh.bake.config import PoseRefineConfig
 
-__all__ = ["PoseRefineConfig", "refine_fit", "subtree_weights", "region_weights"]
+__all__ = ["PoseRefineConfig", "refine_fit", "subtree_weights", "region_weights", "untracked_skin_weight"]
 
 
 def subtree_weights(skin_weights, parents, joints) -> np.ndarray:
@@ -38,6 +38,16 @@ def subtree_weights(skin_weights, parents, joints) -> np.ndarray:
         ok = cur >= 0
         anc[np.flatnonzero(ok), cur[ok]] = True
     return np.asarray(skin_weights, dtype=np.float64) @ anc[:, list(joints)].astype(np.float64)
+
+
+def untracked_skin_weight(skin_weights, joints) -> np.ndarray:
+    """(V,) each vertex's skinning weight on joints that are neither the root (moved by Rh/Th) nor
+    among ``joints`` (the ones the refinement rotates): the parts a body fit cannot articulate."""
+    w = np.asarray(skin_weights, dtype=np.float64)
+    moved = np.zeros(w.shape[1], dtype=bool)
+    moved[0] = True
+    moved[list(joints)] = True
+    return w[:, ~moved].sum(1)
 
 
 def region_weights(skin_weights, parents, joints) -> np.ndarray:
@@ -75,9 +85,10 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     config = config or PoseRefineConfig()
     joints = list(body.conditioning_joints)
     tpl = body.template
-    nv = len(tpl.vertices)
-    use = (np.arange(nv) if config.max_vertices is None or config.max_vertices >= nv
-           else np.linspace(0, nv - 1, config.max_vertices).round().astype(np.int64))
+    tracked = untracked_skin_weight(tpl.skin_weights, joints) <= config.max_untracked_weight
+    candidates = np.flatnonzero(tracked)
+    use = (candidates if config.max_vertices is None or config.max_vertices >= len(candidates)
+           else candidates[np.linspace(0, len(candidates) - 1, config.max_vertices).round().astype(np.int64)])
     sub = subtree_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]    # (N, K)
     rot = body.joint_rotvecs_from_fit(fit).astype(np.float64)
     rh = np.asarray(fit.Rh, np.float64).copy()

@@ -20,6 +20,10 @@ class SynthConfig:
     """frames: total frames (takes + held-out); cameras: multi-view cameras (0: no images);
     image_size: square image side (px); scan_texture: scan atlas side (texels); gt_texels: side of
     the ground-truth maps in body UV space; fit_noise_deg: per-joint fit noise (degrees);
+    fit_tracks: which joints the fits track: "body" (the body model's conditioning joints, as
+    body-only capture fits do: SMPL and EasyMocap's smpl fits carry no finger articulation, so the
+    fitted fingers, toes and eyes stay in the rest pose while the scanned performer's curl) or "all"
+    (every joint, with noise);
     heldout: held-out frames at the end (None: 10 % of frames when there are at least 10);
     seed: everything is a deterministic function of it; workers: processes (1: in-process);
     segment_frames: mean frames per scan topology (each drawn in +-20 %); face_count: range of scan
@@ -35,6 +39,7 @@ class SynthConfig:
     scan_texture: int = 1024
     gt_texels: int = 256
     fit_noise_deg: float = 2.0
+    fit_tracks: str = "body"
     heldout: int | None = None
     seed: int = 0
     workers: int = 2

@@ -205,7 +205,9 @@ class Studio:
             faces, uv_faces = faces[keep], uv_faces[keep]
         write_mesh(self.root / "scans" / f"{name}.obj", TexturedMesh(vertices, faces, topo.uvs, uv_faces, atlas))
 
-        fit = noisy_fit(p["poses"][i], p["Rh"][i], p["Th"][i], self.shape, cfg.fit_noise_deg, frame_rng(cfg.seed, i, 2))
+        tracked = self.body.conditioning_joints if cfg.fit_tracks == "body" else None
+        fit = noisy_fit(p["poses"][i], p["Rh"][i], p["Th"][i], self.shape, cfg.fit_noise_deg, frame_rng(cfg.seed, i, 2),
+                        tracked=tracked)
         write_fit(self.root / "fits" / f"{name}.json", fit)
 
         if p["cameras"]:
