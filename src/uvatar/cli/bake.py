@@ -62,6 +62,9 @@ def register(cli) -> None:
                    help="per stage, match distance limit as a fraction of the bbox diagonal")
     p.add_argument("--registration-modes", type=_strs, default=rd.modes,
                    help="per stage: closest | rays | normal (comma-separated)")
+    p.add_argument("--registration-normal-smoothing", type=float, default=rd.normal_smoothing,
+                   help="normal stages move vertices along normals averaged over this length in metres "
+                        "(the cloth's bending length; 0 = raw normals)")
     p.add_argument("--eval", action="store_true", help="compare with the capture's gt/ (synthetic captures)")
     p.add_argument("--json", default=None, help="write the summary (and --eval metrics) to this JSON file")
     p.add_argument("--ablation-frames", type=int, default=4,
@@ -98,6 +101,7 @@ def _bake(args) -> int:
         registration_iterations=tuple(args.registration_iterations),
         registration_max_distance=tuple(args.registration_max_distance),
         registration_modes=tuple(args.registration_modes),
+        registration_normal_smoothing=args.registration_normal_smoothing,
     )
     from dataclasses import replace
 

@@ -16,6 +16,7 @@ from uvatar.geometry.sampling import (
     texel_positions,
     texel_tangent_frames,
 )
+from uvatar.geometry.smoothing import gaussian_surface_matrix, smoothed_normals
 from uvatar.geometry.subdivision import SubdivisionOrigin, subdivide, subdivide_loop, subdivide_midpoint
 from uvatar.geometry.uv_raster import UVRaster, UVRasterConfig, rasterize_uv, rasterize_uv_reference, texel_uv
 
@@ -27,4 +28,5 @@ __all__ = [
     "RayCaster", "RayCasterConfig", "RayHits",
     "subdivide_midpoint", "subdivide_loop", "subdivide", "SubdivisionOrigin",
     "cotangent_laplacian", "uniform_laplacian",
+    "gaussian_surface_matrix", "smoothed_normals",
 ]

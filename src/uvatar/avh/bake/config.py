@@ -32,6 +32,9 @@ class RegistrationConfig:
         "normal" (vertices move only along their normals by a smooth scalar offset).
     anchor_weight: tiny pull toward the previous iterate; keeps the system definite for vertices
         without any match.
+    normal_smoothing: "normal" stages move vertices along their normals Gaussian-averaged over this
+        length (metres; 0 = the raw vertex normals), the bending length of the cloth: a garment
+        cannot follow body detail finer than that, so it stands off along the low-passed normal.
     """
 
     stiffness: tuple[float, ...] = (30.0, 3.0)
@@ -40,6 +43,7 @@ class RegistrationConfig:
     modes: tuple[str, ...] = ("normal", "normal")
     max_normal_angle_deg: float = 60.0
     anchor_weight: float = 1e-4
+    normal_smoothing: float = 0.03
 
     def __post_init__(self) -> None:
         n = len(self.stiffness)

@@ -20,7 +20,7 @@ from uvatar.avh.bake.correspond import match_texels
 from uvatar.avh.bake.inpaint import inpaint_telea
 from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
 from uvatar.errors import InputError
-from uvatar.geometry import UVRaster, rasterize_uv, sample_texture, vertex_normals
+from uvatar.geometry import UVRaster, gaussian_surface_matrix, rasterize_uv, sample_texture, vertex_normals
 
 __all__ = ["BodyLayout", "BakedFrame", "bake_frame", "bake_fit", "shadow_vertices", "preview_image", "check_scan"]
 
@@ -30,7 +30,9 @@ class BodyLayout:
     """The body's mesh and UV layout rasterized at R (shared by every frame).
 
     faces (F, 3) int64; uvs (U, 2); uv_faces (F, 3); raster: UVRaster at R; texel_flat (M,) flat
-    indices of the valid texels; texel_face (M,), texel_bary (M, 3) their triangle and barycentrics.
+    indices of the valid texels; texel_face (M,), texel_bary (M, 3) their triangle and barycentrics;
+    rest_vertices (V, 3) the rest body (None: unknown), whose neighbourhoods define the
+    registration's normal smoothing (built once per length, :meth:`normal_smoothing_matrix`).
     """
 
     faces: np.ndarray
@@ -40,17 +42,31 @@ class BodyLayout:
     texel_flat: np.ndarray
     texel_face: np.ndarray
     texel_bary: np.ndarray
+    rest_vertices: np.ndarray | None = None
+    _smoothing: dict = field(default_factory=dict, repr=False)
 
     @classmethod
-    def build(cls, faces, uvs, uv_faces, resolution: int) -> BodyLayout:
+    def build(cls, faces, uvs, uv_faces, resolution: int, rest_vertices=None) -> BodyLayout:
         raster = rasterize_uv(uvs, uv_faces, int(resolution))
         flat = raster.valid_indices()
+        rest = None if rest_vertices is None else np.asarray(rest_vertices, np.float64)
         return cls(np.asarray(faces, np.int64), np.asarray(uvs, np.float32), np.asarray(uv_faces, np.int64),
-                   raster, flat, raster.face_index.ravel()[flat], raster.bary.reshape(-1, 3)[flat].astype(np.float64))
+                   raster, flat, raster.face_index.ravel()[flat], raster.bary.reshape(-1, 3)[flat].astype(np.float64),
+                   rest)
 
     @classmethod
     def from_template(cls, template, resolution: int) -> BodyLayout:
-        return cls.build(template.faces, template.uvs, template.uv_faces, resolution)
+        return cls.build(template.faces, template.uvs, template.uv_faces, resolution, template.vertices)
+
+    def normal_smoothing_matrix(self, sigma: float):
+        """(V, V) Gaussian averaging over the rest body at ``sigma`` metres (cached), or None when
+        sigma <= 0 or the rest body is unknown."""
+        if sigma <= 0 or self.rest_vertices is None:
+            return None
+        if sigma not in self._smoothing:
+            normals = vertex_normals(self.rest_vertices, self.faces)
+            self._smoothing[sigma] = gaussian_surface_matrix(self.rest_vertices, normals, sigma)
+        return self._smoothing[sigma]
 
     @property
     def resolution(self) -> int:
@@ -223,8 +239,9 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     reg_stats: dict = {}
     with _timed(sec, "register"):
         if config.register:
+            smoothing = layout.normal_smoothing_matrix(config.registration.normal_smoothing)
             registered, reg_stats = register_to_scan(shadow, layout.faces, surface, config.registration,
-                                                     bbox_diagonal=diag, epsilon=eps)
+                                                     bbox_diagonal=diag, epsilon=eps, smoothing=smoothing)
         else:
             registered = shadow
     with _timed(sec, "correspond"):

@@ -27,36 +27,17 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from uvatar.geometry.smoothing import gaussian_surface_matrix, smoothed_normals
+
 __all__ = ["drape_matrix", "garment_frame"]
 
 
 def drape_matrix(rest_vertices: np.ndarray, rest_normals: np.ndarray, sigma: float,
                  min_normal_dot: float = 0.3, support: float = 2.0, cell: float | None = None
                  ) -> sp.csr_matrix | None:
-    """(V, V) row-stochastic Gaussian averaging over the rest surface, or None when ``sigma <= 0``.
-
-    rest_vertices (V, 3) and unit rest_normals (V, 3) in metres; sigma (m) the bending length.
-    Averages run over one vertex per ``cell``-sized voxel (default sigma / 3), so every patch of
-    surface counts by its area, not by its vertex density (the hands and face are dense), and the
-    matrix stays small; neighbours within ``support * sigma`` whose rest normals have dot >=
-    ``min_normal_dot`` count. Built once per studio (k-d trees, no per-vertex loop).
-    """
-    if sigma <= 0:
-        return None
-    from scipy.spatial import cKDTree
-
-    v = np.asarray(rest_vertices, dtype=np.float64)
-    n = np.asarray(rest_normals, dtype=np.float64)
-    cell = float(cell or sigma / 3.0)
-    _, first = np.unique(np.floor(v / cell).astype(np.int64), axis=0, return_index=True)
-    cols = np.sort(first)
-    pairs = cKDTree(v).sparse_distance_matrix(cKDTree(v[cols]), support * sigma, output_type="ndarray")
-    i, j, d = pairs["i"], cols[pairs["j"]], pairs["v"]
-    keep = np.einsum("kc,kc->k", n[i], n[j]) >= min_normal_dot
-    i, j = np.concatenate([i[keep], np.arange(len(v))]), np.concatenate([j[keep], np.arange(len(v))])
-    w = np.concatenate([np.exp(-d[keep] ** 2 / (2.0 * sigma**2)), np.full(len(v), 1e-3)])  # self: never empty
-    m = sp.csr_matrix((w, (i, j)), shape=(len(v), len(v)))
-    return sp.diags(1.0 / np.asarray(m.sum(axis=1)).ravel()) @ m
+    """(V, V) Gaussian averaging over the rest surface at the bending length ``sigma`` (m), or None
+    when ``sigma <= 0``: :func:`uvatar.geometry.gaussian_surface_matrix` on the rest body."""
+    return gaussian_surface_matrix(rest_vertices, rest_normals, sigma, min_normal_dot, support, cell)
 
 
 def garment_frame(vertices: np.ndarray, normals: np.ndarray, G: sp.csr_matrix | None,
@@ -70,7 +51,6 @@ def garment_frame(vertices: np.ndarray, normals: np.ndarray, G: sp.csr_matrix | 
     n = np.asarray(normals, dtype=np.float64)
     if G is None:
         return n.copy(), np.zeros(len(v))
-    ng = G @ n
-    ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-12)
+    ng = smoothed_normals(G, n)
     depth = np.einsum("vc,vc->v", G @ v - v, ng)
     return ng, np.clip(bridge * depth, 0.0, max_bridge)
