@@ -96,3 +96,11 @@ def test_bad_arguments(baked, tmp_path, capsys):
     assert "64 texels" in capsys.readouterr().err
     assert main(["bake", str(cap), str(tmp_path / "o2"), *ARGS, "--frames", "999999"]) == 1
     assert "999999" in capsys.readouterr().err
+    assert main(["bake", str(cap), str(tmp_path / "o3"), *ARGS, "--registration-stiffness", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "one entry per stage" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert main(["bake", str(cap), str(tmp_path / "o3"), *ARGS, "--registration-normal-smoothing", "-0.01"]) == 1
+    assert "normal_smoothing must be >= 0" in capsys.readouterr().err
+    assert main(["bake", str(cap), str(tmp_path / "o3"), *ARGS, "--registration-modes", "normal,bogus"]) == 1
+    assert "unknown registration stage mode 'bogus'" in capsys.readouterr().err
+    assert not (tmp_path / "o3").exists()

@@ -148,6 +148,15 @@ def test_studio_cameras_look_at_the_person():
         assert np.allclose(c.project(np.array(StudioConfig().target)), [49.5, 49.5], atol=1e-6)
 
 
+def test_fit_tracks_is_checked():
+    from uvatar.capture.synth.config import SynthConfig, preset
+
+    assert preset("quick").fit_tracks == "body"
+    assert preset("quick", fit_tracks="all").fit_tracks == "all"
+    with pytest.raises(ValueError, match="fit_tracks"):
+        SynthConfig(fit_tracks="fingers")
+
+
 def test_noisy_fit():
     from uvatar.capture.synth.fits import noisy_fit
 

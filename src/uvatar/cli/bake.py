@@ -92,17 +92,20 @@ def _bake(args) -> int:
     from uvatar.errors import InputError
     from uvatar.io_utils import write_json
 
-    cfg = BakeConfig().with_updates(
-        texels=args.texels, refine_pose=args.refine_pose, pose_refine_iterations=args.refine_iterations,
-        register=args.register, polarity_rule=args.polarity_rule,
-        polarity_ratio=args.polarity_ratio, visibility_rays=args.visibility_rays,
-        distance_clip=args.distance_clip, inpaint_radius=args.inpaint_radius, reject_kappa=args.reject_kappa,
-        registration_stiffness=tuple(args.registration_stiffness),
-        registration_iterations=tuple(args.registration_iterations),
-        registration_max_distance=tuple(args.registration_max_distance),
-        registration_modes=tuple(args.registration_modes),
-        registration_normal_smoothing=args.registration_normal_smoothing,
-    )
+    try:
+        cfg = BakeConfig().with_updates(
+            texels=args.texels, refine_pose=args.refine_pose, pose_refine_iterations=args.refine_iterations,
+            register=args.register, polarity_rule=args.polarity_rule,
+            polarity_ratio=args.polarity_ratio, visibility_rays=args.visibility_rays,
+            distance_clip=args.distance_clip, inpaint_radius=args.inpaint_radius, reject_kappa=args.reject_kappa,
+            registration_stiffness=tuple(args.registration_stiffness),
+            registration_iterations=tuple(args.registration_iterations),
+            registration_max_distance=tuple(args.registration_max_distance),
+            registration_modes=tuple(args.registration_modes),
+            registration_normal_smoothing=args.registration_normal_smoothing,
+        )
+    except ValueError as exc:
+        raise InputError("--registration-* / --refine-* options", str(exc)) from None
     from dataclasses import replace
 
     cfg = replace(cfg, max_match_distance=args.max_match_distance or None,

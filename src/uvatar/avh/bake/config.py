@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
 
+STAGE_MODES = ("closest", "rays", "normal")
+
 
 @dataclass(frozen=True)
 class RegistrationConfig:
@@ -50,6 +52,11 @@ class RegistrationConfig:
         if not (len(self.iterations) == len(self.max_distance) == len(self.modes) == n):
             raise ValueError("registration stiffness, iterations, max_distance and modes "
                              "must have one entry per stage")
+        unknown = [m for m in self.modes if m not in STAGE_MODES]
+        if unknown:
+            raise ValueError(f"unknown registration stage mode {unknown[0]!r}; expected one of {STAGE_MODES}")
+        if self.normal_smoothing < 0:
+            raise ValueError(f"registration normal_smoothing must be >= 0 metres, got {self.normal_smoothing}")
 
 
 @dataclass(frozen=True)
@@ -74,6 +81,10 @@ class PoseRefineConfig:
     max_step_deg: float = 10.0
     max_vertices: int | None = 4000
     max_untracked_weight: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.max_untracked_weight <= 1.0:
+            raise ValueError(f"pose_refine max_untracked_weight must be in [0, 1], got {self.max_untracked_weight}")
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from uvatar.avh.bake.config import RegistrationConfig
+from uvatar.avh.bake.config import STAGE_MODES, RegistrationConfig
 from uvatar.geometry import (
     RayCaster,
     RayCasterConfig,
@@ -47,8 +47,6 @@ from uvatar.geometry import (
     smoothed_normals,
     vertex_normals,
 )
-
-STAGE_MODES = ("closest", "rays", "normal")
 
 __all__ = ["STAGE_MODES", "ScanSurface", "register_to_scan", "uniform_laplacian_matrix", "match_vertices"]
 

@@ -58,6 +58,10 @@ class SynthConfig:
     clothing: ClothingConfig = field(default_factory=ClothingConfig)
     studio: StudioConfig = field(default_factory=StudioConfig)
 
+    def __post_init__(self) -> None:
+        if self.fit_tracks not in ("body", "all"):
+            raise ValueError(f"fit_tracks must be 'body' or 'all', got {self.fit_tracks!r}")
+
     def heldout_count(self) -> int:
         if self.heldout is not None:
             return max(0, min(int(self.heldout), int(self.frames) - 1))
