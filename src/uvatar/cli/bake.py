@@ -104,12 +104,14 @@ def _bake(args) -> int:
             registration_modes=tuple(args.registration_modes),
             registration_normal_smoothing=args.registration_normal_smoothing,
         )
-    except ValueError as exc:
-        raise InputError("--registration-* / --refine-* options", str(exc)) from None
-    from dataclasses import replace
+        from dataclasses import replace
 
-    cfg = replace(cfg, max_match_distance=args.max_match_distance or None,
-                  inpaint_band=args.inpaint_band or None)
+        cfg = replace(cfg, max_match_distance=args.max_match_distance or None,
+                      inpaint_band=args.inpaint_band or None)
+    except ValueError as exc:
+        raise InputError("uvatar bake options", str(exc)) from None
+    if args.workers < 1:
+        raise InputError("--workers", f"must be at least 1, got {args.workers}")
     progress = not args.no_progress
     summary: dict = {}
     if args.frames_from:
@@ -152,8 +154,12 @@ def _bake(args) -> int:
 
 def _select(args) -> int:
     from uvatar.avh.bake.select import SelectConfig, select_from_baked, select_from_capture
+    from uvatar.errors import InputError
 
-    cfg = SelectConfig(n_train=args.num, n_val=args.val, seed=args.seed, features=args.features)
+    try:
+        cfg = SelectConfig(n_train=args.num, n_val=args.val, seed=args.seed, features=args.features)
+    except ValueError as exc:
+        raise InputError("uvatar select options", str(exc)) from None
     if args.from_capture:
         sel, out = select_from_capture(args.path, args.out, cfg)
         where = str(out)

@@ -136,6 +136,20 @@ class BakeConfig:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
 
+    def __post_init__(self) -> None:
+        checks = [(self.texels >= 1, "texels must be >= 1"),
+                  (self.visibility_rays >= 1, "visibility_rays must be >= 1"),
+                  (self.polarity_ratio >= 1, "polarity_ratio must be >= 1 (a positive match at most this many times farther)"),
+                  (self.distance_clip > 0, "distance_clip must be > 0"),
+                  (self.inpaint_radius >= 0, "inpaint_radius must be >= 0"),
+                  (0.0 <= self.reject_kappa <= 1.0, "reject_kappa must be in [0, 1]"),
+                  (0.0 <= self.interior_visibility < 1.0, "interior_visibility must be in [0, 1)"),
+                  (self.max_match_distance is None or self.max_match_distance > 0, "max_match_distance must be > 0"),
+                  (self.ray_epsilon >= 0, "ray_epsilon must be >= 0")]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(message)
+
     def with_updates(self, **changes) -> BakeConfig:
         """A copy with top-level fields (or ``registration_<field>``, ``pose_refine_<field>``) replaced;
         None values are ignored."""
