@@ -130,6 +130,13 @@ def test_cli_train_presets_and_bad_texels(baked, tmp_path, capsys):
     info = json.loads((tmp_path / "run" / "run.json").read_text())
     assert info["preset"] == "cpu-tiny" and info["model"]["resolution"] == 16
     assert main(["train", "avh", str(baked), str(tmp_path / "run2"), "--texels", "24", "--epochs", "1"]) == 1
+    capsys.readouterr()
+    for flag, value, words in (("--lr", "-1", "learning rate must be > 0"), ("--epochs", "0", "epochs must be >= 1"),
+                               ("--batch-size", "0", "batch size must be >= 1")):
+        assert main(["train", "avh", str(baked), str(tmp_path / "run3"), flag, value]) == 1
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err
+    assert not (tmp_path / "run3").exists()
     assert main(["export", str(tmp_path / "run"), str(tmp_path / "avatar")]) == 0
     meta = json.loads((tmp_path / "avatar" / "avatar.json").read_text())
     assert meta["onnx_max_abs_diff"] <= 1e-4 and meta["preset"] == "cpu-tiny"

@@ -28,3 +28,10 @@ def test_quick_demo_runs_every_stage_and_writes_report(tmp_path):
     assert main(["demo", "--quick", "--out", str(out)]) == 0
     again = json.loads((out / "metrics.json").read_text())
     assert {s["status"] for s in again["stages"]} == {"skipped (done)"}
+
+
+def test_demo_rejects_zero_epochs_before_doing_anything(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--quick", "--out", str(out), "--epochs", "0"]) == 1
+    assert "--epochs: must be at least 1" in capsys.readouterr().err
+    assert not out.exists()

@@ -64,6 +64,19 @@ class TrainConfig:
     tensorboard: bool = True
     progress: bool = True
 
+    def __post_init__(self) -> None:
+        checks = [(self.epochs >= 1, f"epochs must be >= 1, got {self.epochs}"),
+                  (self.batch_size >= 1, f"batch size must be >= 1, got {self.batch_size}"),
+                  (self.lr > 0, f"learning rate must be > 0, got {self.lr}"),
+                  (0 < self.lr_gamma <= 1, f"learning-rate decay gamma must be in (0, 1], got {self.lr_gamma}"),
+                  (self.displacement_weight >= 0, f"displacement weight must be >= 0, got {self.displacement_weight}"),
+                  (self.pose_noise >= 0, f"pose noise must be >= 0, got {self.pose_noise}"),
+                  (self.displacement_frame in ("rest", "body"),
+                   f"displacement frame must be 'rest' or 'body', got {self.displacement_frame!r}")]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(message)
+
 
 @dataclass
 class TrainingData:

@@ -115,10 +115,15 @@ def _train(args) -> int:
         from uvatar.errors import UvatarError
 
         raise UvatarError(f"--texels {args.texels}: {exc}") from exc
-    tcfg = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, lr_gamma=args.gamma,
-                       displacement_weight=args.displacement_weight, device=args.device, seed=args.seed,
-                       displacement_frame=args.displacement_frame, pose_noise=args.pose_noise,
-                       tensorboard=not args.no_tensorboard)
+    try:
+        tcfg = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, lr_gamma=args.gamma,
+                           displacement_weight=args.displacement_weight, device=args.device, seed=args.seed,
+                           displacement_frame=args.displacement_frame, pose_noise=args.pose_noise,
+                           tensorboard=not args.no_tensorboard)
+    except ValueError as exc:
+        from uvatar.errors import InputError
+
+        raise InputError("uvatar train avh options", str(exc)) from None
     summary = train_avh(args.baked, args.out, cfg, tcfg, resume=args.resume, preset_name=args.preset)
     final = summary["final"]
     print(f"trained {summary['epochs']} epochs: loss {final['loss']:.3e}"

@@ -26,6 +26,10 @@ def run(args) -> int:
     cfg = QUICK if args.quick else DEFAULT
     cfg = replace(cfg, seed=args.seed)
     if args.epochs is not None:
+        if args.epochs < 1:
+            from uvatar.errors import InputError
+
+            raise InputError("--epochs", f"must be at least 1, got {args.epochs}")
         cfg = replace(cfg, epochs=args.epochs)
     metrics = run_demo(args.out, cfg)
     print(f"uvatar demo: report at {args.out}/report.html, metrics at {args.out}/metrics.json")
