@@ -102,6 +102,18 @@ def test_cli_train_render_eval(capture, tmp_path):
                  "-o", str(out)]) == 1
 
 
+def test_cli_train_bad_values_are_one_line_errors(capture, tmp_path, capsys):
+    from uvatar.cli.main import main
+
+    run = tmp_path / "run"
+    for flag, value, words in (("--iters", "0", "--iters: must be at least 1"), ("--grid", "0", "--grid: must be"),
+                               ("--voxels", "-3", "--voxels: must be"), ("--minutes", "0", "--minutes: must be > 0")):
+        assert main(["train", "dva", str(capture), str(run), "--preset", "tiny", flag, value]) == 1
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err
+    assert not run.exists()
+
+
 def test_broken_frames_are_skipped(tmp_path):
     root = write_toy_capture(tmp_path / "cap", frames=4, cameras=4, size=8)  # frame 3 is held out
     (root / "images" / "cam01" / "000001.png").unlink()

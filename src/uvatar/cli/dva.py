@@ -61,16 +61,30 @@ def _set_threads(args) -> None:
         torch.set_num_threads(args.threads)
 
 
+def _check_train_args(args) -> None:
+    """One-line errors for values no training run can use (before anything is written)."""
+    from uvatar.errors import InputError
+
+    for flag, value, least in (("--grid", args.grid, 1), ("--voxels", args.voxels, 1), ("--iters", args.iters, 1)):
+        if value is not None and value < least:
+            raise InputError(flag, f"must be at least {least}, got {value}")
+    if args.minutes is not None and args.minutes <= 0:
+        raise InputError("--minutes", f"must be > 0, got {args.minutes}")
+    if args.threads < 0:
+        raise InputError("--threads", f"must be >= 0 (0: torch's default), got {args.threads}")
+
+
 def _train(args) -> int:
+    _check_train_args(args)
     _set_threads(args)
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
     cfg = preset(args.preset)
-    if args.grid:
+    if args.grid is not None:
         cfg.primitives.grid = args.grid
-    if args.voxels:
+    if args.voxels is not None:
         cfg.decoder.voxels = args.voxels
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=args.iters, minutes=args.minutes,
                         device=args.device, resume=args.resume, vgg_weights=args.vgg_weights)
