@@ -129,6 +129,21 @@ def test_bad_camera_and_motion(setup, tmp_path):
         load_pose_sequence(f"heldout:{tmp_path}", body)
 
 
+@pytest.mark.parametrize("flag, value, words", [("--size", "0", "size must be at least 16"),
+                                                ("--frames", "0", "frames must be at least 1"),
+                                                ("--stride", "0", "stride must be at least 1"),
+                                                ("--fps", "0", "fps must be > 0"),
+                                                ("--levels", "-1", "levels must be >= 0")])
+def test_cli_animate_bad_values(setup, tmp_path, capsys, flag, value, words):
+    from uvatar.cli.main import main
+
+    root, _, _ = setup
+    out = tmp_path / "x.mp4"
+    assert main(["animate", str(root / "avatar"), "--motion", "front", "-o", str(out), flag, value]) == 1
+    err = capsys.readouterr().err
+    assert words in err and "Traceback" not in err and not out.exists()
+
+
 def test_pose_sequences(setup):
     _, body, cap = setup
     seq = load_pose_sequence(f"heldout:{cap}", body)

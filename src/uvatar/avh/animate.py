@@ -49,6 +49,18 @@ class AnimateConfig:
     mesh_format: str = "obj"
     progress: bool = True
 
+    def __post_init__(self) -> None:
+        checks = [(self.size >= 16, f"size must be at least 16 pixels, got {self.size}"),
+                  (self.max_frames is None or self.max_frames >= 1, f"frames must be at least 1, got {self.max_frames}"),
+                  (self.stride >= 1, f"stride must be at least 1, got {self.stride}"),
+                  (self.levels >= 0, f"subdivision levels must be >= 0, got {self.levels}"),
+                  (self.fps is None or self.fps > 0, f"fps must be > 0, got {self.fps}"),
+                  (0 < self.fov_deg < 180, f"fov must be in (0, 180) degrees, got {self.fov_deg}"),
+                  (self.mesh_format in ("obj", "glb"), f"mesh format must be obj or glb, got {self.mesh_format!r}")]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(message)
+
 
 def frame_camera(config: AnimateConfig, t: int, count: int, vertices: np.ndarray, distance: float,
                  fixed_cameras: dict | None = None):

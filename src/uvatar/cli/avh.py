@@ -152,10 +152,14 @@ def _export(args) -> int:
 
 def _animate(args) -> int:
     from uvatar.avh.animate import AnimateConfig, animate
+    from uvatar.errors import InputError
 
-    cfg = AnimateConfig(size=args.size, camera=args.camera, camera_name=args.camera_name, max_frames=args.frames,
-                        stride=args.stride, fps=args.fps, mesh_format=args.mesh_format, shading=args.shading,
-                        levels=args.levels)
+    try:
+        cfg = AnimateConfig(size=args.size, camera=args.camera, camera_name=args.camera_name, max_frames=args.frames,
+                            stride=args.stride, fps=args.fps, mesh_format=args.mesh_format, shading=args.shading,
+                            levels=args.levels)
+    except ValueError as exc:
+        raise InputError("uvatar animate options", str(exc)) from None
     path = animate(args.avatar, args.motion, args.output, cfg, mesh_dir=args.obj_dir, device=args.device)
     print(f"wrote {path}")
     return 0

@@ -11,7 +11,7 @@ def register(cli) -> None:
     p = cli.command("motion convert", help="convert (and retarget) a motion to a uvatar motion .npz for a body model")
     p.add_argument("input", help=".bvh, AMASS .npz, uvatar .npz, EasyMocap fits folder or capture folder")
     p.add_argument("output", help="output .npz")
-    p.add_argument("--body", default="anny", help="target body model (anny | smpl | smplx)")
+    p.add_argument("--body", default="anny", choices=("anny", "smpl", "smplx"), help="target body model")
     p.add_argument("--fps", type=float, default=None, help="resample to this frame rate")
     p.add_argument("--fits", default=None, metavar="DIR", help="also write EasyMocap fits (one JSON per frame) here")
     p.set_defaults(func=_convert)
