@@ -213,3 +213,4 @@ def test_cli_eval_named(setup, tmp_path, monkeypatch):
     assert m["frames"] == ["000005", "000004"] and m["camera_names"] == cams[::-1]
     assert len(m["images"]) == 4 and np.isfinite(m["avh"]["psnr_db_full"])
     assert main(["eval", "avh", str(root / "avatar"), str(cap), "--frames", "000099"]) == 1
+    assert main(["eval", "avh", str(root / "avatar"), str(cap), "--image-size", "0"]) == 1

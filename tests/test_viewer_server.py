@@ -104,6 +104,9 @@ def test_cli_view_reports_bad_folder_in_one_line(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nope"), "--no-browser"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a folder" in err[0]
+    assert main(["view", str(tmp_path), "--no-browser", "--port", "70000"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--port: must be 0-65535" in err[0]
 
 
 def test_uvatar_view_serves_until_stopped(server, tmp_path):

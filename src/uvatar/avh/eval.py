@@ -315,7 +315,9 @@ def select_names(wanted, available, root, what: str) -> list[str]:
     available = set(available)
     missing = [w for w in wanted if w not in available]
     if missing:
-        raise InputError(root, f"{what}(s) {', '.join(missing)} not found (have {', '.join(sorted(available))})")
+        have = sorted(available)
+        shown = ", ".join(have) if len(have) <= 8 else f"{', '.join(have[:3])}, ..., {', '.join(have[-2:])}"
+        raise InputError(root, f"{what}(s) {', '.join(missing)} not found (have {len(have)}: {shown})")
     return list(wanted)
 
 

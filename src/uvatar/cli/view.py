@@ -15,8 +15,11 @@ def register(cli) -> None:
 
 
 def _run(args) -> int:
+    from uvatar.errors import InputError
     from uvatar.viewer.server import ViewerConfig, serve
 
+    if not 0 <= args.port <= 65535:
+        raise InputError("--port", f"must be 0-65535 (0: any free port), got {args.port}")
     serve(args.avatar, ViewerConfig(host=args.host, port=args.port, open_browser=not args.no_browser,
                                     motions=tuple(args.motion)))
     return 0
