@@ -133,3 +133,5 @@ def test_cli_convert_and_info(anny, shared_data, tmp_path, capsys):
     assert main(["motion", "info", clip, "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["joints"] == 31
     assert main(["motion", "convert", clip, str(tmp_path / "x.txt")]) == 1
+    assert main(["motion", "convert", clip, str(tmp_path / "x.npz"), "--fps", "0"]) == 1
+    assert not (tmp_path / "x.npz").exists()

@@ -83,6 +83,8 @@ def _convert(args) -> int:
 
     if Path(args.output).suffix.lower() != ".npz":
         raise InputError(args.output, "output must be a .npz file")
+    if args.fps is not None and args.fps <= 0:
+        raise InputError("--fps", f"must be > 0, got {args.fps}")
     print(f"loading {args.input} for body model '{args.body}' ...", file=sys.stderr)
     motion = load_motion(args.input, body=args.body, fps=args.fps)
     save_motion(args.output, motion)
