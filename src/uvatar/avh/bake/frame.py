@@ -77,10 +77,11 @@ class BodyLayout:
         sigma <= 0 or the rest body is unknown."""
         if sigma <= 0 or self.rest_vertices is None:
             return None
-        if sigma not in self._cache:
+        key = ("smoothing", float(sigma))
+        if key not in self._cache:
             normals = vertex_normals(self.rest_vertices, self.faces)
-            self._cache[sigma] = gaussian_surface_matrix(self.rest_vertices, normals, sigma)
-        return self._cache[sigma]
+            self._cache[key] = gaussian_surface_matrix(self.rest_vertices, normals, sigma)
+        return self._cache[key]
 
     @property
     def resolution(self) -> int:
