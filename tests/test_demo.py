@@ -35,3 +35,28 @@ def test_demo_rejects_zero_epochs_before_doing_anything(tmp_path, capsys):
     assert main(["demo", "--quick", "--out", str(out), "--epochs", "0"]) == 1
     assert "--epochs: must be at least 1" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_report_ablation_rows_say_where_each_step_acts(tmp_path):
+    from uvatar.demo_report import _bake_section
+
+    ablation = {"frames": ["000000"],
+                "full": {"median_mm": 1.2, "confident_fraction": 0.7, "texture_psnr_db": 30.0},
+                "no_vertex_registration": {"median_mm": 1.5, "confident_fraction": 0.48, "texture_psnr_db": 28.9,
+                                           "changed": {"against": "full", "fraction": 0.9, "median_mm_with": 1.28,
+                                                       "median_mm_without": 1.57}},
+                "no_polarity_rule": {"median_mm": 1.2, "confident_fraction": 0.7, "texture_psnr_db": 30.0,
+                                     "changed": {"against": "full", "fraction": 0.0, "median_mm_with": None,
+                                                 "median_mm_without": None}},
+                "no_registration_no_polarity_rule": {"median_mm": 11.6, "confident_fraction": 0.35,
+                                                     "texture_psnr_db": 18.8,
+                                                     "changed": {"against": "no_registration", "fraction": 0.001,
+                                                                 "median_mm_with": 13.0, "median_mm_without": 20.0}}}
+    section = _bake_section(tmp_path, {"eval": {"ablation": ablation}})
+    rows = {r["variant"]: r for r in section["tables"][1]}
+    assert rows["no vertex registration"]["there: with / without the step (mm)"] == "1.28 / 1.57"
+    assert rows["no vertex registration"]["confident texels it changes"] == "90.0 %"
+    assert rows["no polarity rule"]["there: with / without the step (mm)"] == "– / –"
+    assert rows["full"]["confident texels it changes"] == ""
+    key = "no registration no polarity rule (step measured against no registration)"
+    assert rows[key]["there: with / without the step (mm)"] == "13.0 / 20.0"
