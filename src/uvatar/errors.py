@@ -6,6 +6,8 @@ can print it as is and exit non-zero.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -45,3 +47,21 @@ def require(module: str, extra: str, purpose: str = ""):
         return importlib.import_module(module)
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise MissingDependencyError(module.split(".")[0], extra, purpose) from exc
+
+
+def check_values(checks: Iterable[tuple[bool, str]]) -> None:
+    """Raise ``ValueError(message)`` for the first ``(ok, message)`` pair that is not ok (config
+    dataclasses list their bounds this way in ``__post_init__``)."""
+    for ok, message in checks:
+        if not ok:
+            raise ValueError(message)
+
+
+@contextmanager
+def options_as_input_error(source: str) -> Iterator[None]:
+    """Turn a config's ``ValueError`` into a one-line :class:`InputError` naming ``source`` (the
+    command whose options were bad), for CLI commands that build a config from their flags."""
+    try:
+        yield
+    except ValueError as exc:
+        raise InputError(source, str(exc)) from None

@@ -19,7 +19,7 @@ import numpy as np
 
 from uvatar.avh.poses import PoseSequence, load_pose_sequence
 from uvatar.avh.runtime import AvatarRuntime
-from uvatar.errors import InputError
+from uvatar.errors import InputError, check_values
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +57,7 @@ class AnimateConfig:
                   (self.fps is None or self.fps > 0, f"fps must be > 0, got {self.fps}"),
                   (0 < self.fov_deg < 180, f"fov must be in (0, 180) degrees, got {self.fov_deg}"),
                   (self.mesh_format in ("obj", "glb"), f"mesh format must be obj or glb, got {self.mesh_format!r}")]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(message)
+        check_values(checks)
 
 
 def frame_camera(config: AnimateConfig, t: int, count: int, vertices: np.ndarray, distance: float,

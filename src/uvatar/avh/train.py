@@ -38,7 +38,7 @@ from uvatar.avh.model import (
     init_output_bias,
     select_conditioning_angles,
 )
-from uvatar.errors import InputError, UvatarError
+from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.io_utils import atomic_path, read_json, write_json
 
 log = logging.getLogger(__name__)
@@ -71,11 +71,9 @@ class TrainConfig:
                   (0 < self.lr_gamma <= 1, f"learning-rate decay gamma must be in (0, 1], got {self.lr_gamma}"),
                   (self.displacement_weight >= 0, f"displacement weight must be >= 0, got {self.displacement_weight}"),
                   (self.pose_noise >= 0, f"pose noise must be >= 0, got {self.pose_noise}"),
-                  (self.displacement_frame in ("rest", "body"),
-                   f"displacement frame must be 'rest' or 'body', got {self.displacement_frame!r}")]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(message)
+                  (self.displacement_frame in DISPLACEMENT_FRAMES,
+                   f"displacement frame must be one of {DISPLACEMENT_FRAMES}, got {self.displacement_frame!r}")]
+        check_values(checks)
 
 
 @dataclass
@@ -216,8 +214,6 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
     R = model_config.resolution
     cond, excluded_np, joint_names, body = resolve_body(meta, R, body, baked_dir)
     model_config = replace(model_config, num_pose_joints=len(cond))
-    if cfg.displacement_frame not in DISPLACEMENT_FRAMES:
-        raise UvatarError(f"displacement_frame must be one of {DISPLACEMENT_FRAMES}, got {cfg.displacement_frame!r}")
     if state is not None:
         cfg = replace(cfg, displacement_frame=state.get("train_config", {}).get("displacement_frame", "body"))
     if cfg.displacement_frame == "rest" and body is None:

@@ -115,15 +115,13 @@ def _train(args) -> int:
         from uvatar.errors import UvatarError
 
         raise UvatarError(f"--texels {args.texels}: {exc}") from exc
-    try:
+    from uvatar.errors import options_as_input_error
+
+    with options_as_input_error("uvatar train avh options"):
         tcfg = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, lr_gamma=args.gamma,
                            displacement_weight=args.displacement_weight, device=args.device, seed=args.seed,
                            displacement_frame=args.displacement_frame, pose_noise=args.pose_noise,
                            tensorboard=not args.no_tensorboard)
-    except ValueError as exc:
-        from uvatar.errors import InputError
-
-        raise InputError("uvatar train avh options", str(exc)) from None
     summary = train_avh(args.baked, args.out, cfg, tcfg, resume=args.resume, preset_name=args.preset)
     final = summary["final"]
     print(f"trained {summary['epochs']} epochs: loss {final['loss']:.3e}"
@@ -152,14 +150,12 @@ def _export(args) -> int:
 
 def _animate(args) -> int:
     from uvatar.avh.animate import AnimateConfig, animate
-    from uvatar.errors import InputError
+    from uvatar.errors import options_as_input_error
 
-    try:
+    with options_as_input_error("uvatar animate options"):
         cfg = AnimateConfig(size=args.size, camera=args.camera, camera_name=args.camera_name, max_frames=args.frames,
                             stride=args.stride, fps=args.fps, mesh_format=args.mesh_format, shading=args.shading,
                             levels=args.levels)
-    except ValueError as exc:
-        raise InputError("uvatar animate options", str(exc)) from None
     path = animate(args.avatar, args.motion, args.output, cfg, mesh_dir=args.obj_dir, device=args.device)
     print(f"wrote {path}")
     return 0

@@ -87,12 +87,14 @@ def register(cli) -> None:
 
 
 def _bake(args) -> int:
+    from dataclasses import replace
+
     from uvatar.avh.bake import BakeConfig
     from uvatar.avh.bake.pipeline import bake_capture, bake_selection
-    from uvatar.errors import InputError
+    from uvatar.errors import InputError, options_as_input_error
     from uvatar.io_utils import write_json
 
-    try:
+    with options_as_input_error("uvatar bake options"):
         cfg = BakeConfig().with_updates(
             texels=args.texels, refine_pose=args.refine_pose, pose_refine_iterations=args.refine_iterations,
             register=args.register, polarity_rule=args.polarity_rule,
@@ -104,12 +106,8 @@ def _bake(args) -> int:
             registration_modes=tuple(args.registration_modes),
             registration_normal_smoothing=args.registration_normal_smoothing,
         )
-        from dataclasses import replace
-
         cfg = replace(cfg, max_match_distance=args.max_match_distance or None,
                       inpaint_band=args.inpaint_band or None)
-    except ValueError as exc:
-        raise InputError("uvatar bake options", str(exc)) from None
     if args.workers < 1:
         raise InputError("--workers", f"must be at least 1, got {args.workers}")
     progress = not args.no_progress
@@ -154,12 +152,10 @@ def _bake(args) -> int:
 
 def _select(args) -> int:
     from uvatar.avh.bake.select import SelectConfig, select_from_baked, select_from_capture
-    from uvatar.errors import InputError
+    from uvatar.errors import options_as_input_error
 
-    try:
+    with options_as_input_error("uvatar select options"):
         cfg = SelectConfig(n_train=args.num, n_val=args.val, seed=args.seed, features=args.features)
-    except ValueError as exc:
-        raise InputError("uvatar select options", str(exc)) from None
     if args.from_capture:
         sel, out = select_from_capture(args.path, args.out, cfg)
         where = str(out)

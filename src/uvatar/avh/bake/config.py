@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
 
+from uvatar.errors import check_values
+
 STAGE_MODES = ("closest", "rays", "normal")
 
 
@@ -146,9 +148,7 @@ class BakeConfig:
                   (0.0 <= self.interior_visibility < 1.0, "interior_visibility must be in [0, 1)"),
                   (self.max_match_distance is None or self.max_match_distance > 0, "max_match_distance must be > 0"),
                   (self.ray_epsilon >= 0, "ray_epsilon must be >= 0")]
-        for ok, message in checks:
-            if not ok:
-                raise ValueError(message)
+        check_values(checks)
 
     def with_updates(self, **changes) -> BakeConfig:
         """A copy with top-level fields (or ``registration_<field>``, ``pose_refine_<field>``) replaced;

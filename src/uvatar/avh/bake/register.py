@@ -198,8 +198,6 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
     last_distance = float("nan")
     for k, iters, dmax, mode in zip(config.stiffness, config.iterations, config.max_distance,
                                     config.modes, strict=True):
-        if mode not in STAGE_MODES:
-            raise ValueError(f"unknown registration stage mode {mode!r}; expected one of {STAGE_MODES}")
         for _ in range(int(iters)):
             n = np.asarray(vertex_normals(x, f), dtype=np.float64)
             if mode == "normal" and smoothing is not None:
