@@ -51,9 +51,7 @@ class PoseSequence:
 def heldout_frames(capture_root: str | Path) -> list[str]:
     """``gt/info.json["heldout_frames"]`` of a synthetic capture."""
     path = Path(capture_root) / "gt" / "info.json"
-    if not path.is_file():
-        raise InputError(path, "not found: held-out frames need a synthetic capture's gt/info.json")
-    frames = read_json(path).get("heldout_frames")
+    frames = read_json(path, "not found: held-out frames need a synthetic capture's gt/info.json").get("heldout_frames")
     if not frames:
         raise InputError(path, "lists no heldout_frames")
     return [str(f) for f in frames]
@@ -64,9 +62,7 @@ def take_frames(capture_root: str | Path, take: str) -> list[str]:
     from uvatar.capture import Capture
 
     path = Path(capture_root) / "gt" / "info.json"
-    if not path.is_file():
-        raise InputError(path, "not found: takes need a synthetic capture's gt/info.json")
-    takes = read_json(path).get("takes") or {}
+    takes = read_json(path, "not found: takes need a synthetic capture's gt/info.json").get("takes") or {}
     if take not in takes:
         raise InputError(path, f"no take {take!r} (has {sorted(takes)})")
     first, end = (int(x) for x in takes[take][:2])

@@ -26,7 +26,6 @@ as ``texture_psnr_db_vs_resampled_gt``, for comparison only.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +34,7 @@ import numpy as np
 
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.errors import InputError
+from uvatar.io_utils import read_json
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +121,7 @@ class GtSource:
         if reference not in ("exact", "resampled"):
             raise ValueError(f"reference must be 'exact' or 'resampled', got {reference!r}")
         self.root, self.resolution = Path(capture_root), int(resolution)
-        info = json.loads((self.root / "gt" / "info.json").read_text())
+        info = read_json(self.root / "gt" / "info.json")
         self.gt_texels = int(info.get("texel_resolution") or info.get("texels")
                              or (info.get("config") or {}).get("gt_texels") or 0)
         self.renderer = None
@@ -174,9 +174,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
     config = config or EvalConfig()
     capture_root, baked_root = Path(capture_root), Path(baked_root)
     info_path = capture_root / "gt" / "info.json"
-    if not info_path.is_file():
-        raise InputError(info_path, "no ground truth (only synthetic captures from `uvatar synth` have gt/)")
-    gt_info = json.loads(info_path.read_text())
+    gt_info = read_json(info_path, "no ground truth (only synthetic captures from `uvatar synth` have gt/)")
     info = read_dataset_info(baked_root)
     if not info:
         raise InputError(baked_root / "dataset.json", "not found; bake first")
