@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from uvatar.capture.synth.config import preset
-from uvatar.capture.synth.drape import drape_matrix, garment_frame
+from uvatar.capture.synth.drape import garment_frame
 from uvatar.capture.synth.drift import DRIFT_SLOTS, apply_drift, drift_vectors
+from uvatar.geometry import gaussian_surface_matrix
 
 
 def _sphere(radius=0.1, subdivisions=4):
@@ -23,12 +24,12 @@ def test_without_drape_the_garment_normal_is_the_body_normal():
     v, n = _sphere()
     ng, bridge = garment_frame(v, n, None, 0.8, 0.02)
     assert np.array_equal(ng, n) and not bridge.any()
-    assert drape_matrix(v, n, 0.0) is None
+    assert gaussian_surface_matrix(v, n, 0.0) is None
 
 
 def test_sphere_keeps_its_normals_and_bridges_nothing():
     v, n = _sphere()
-    G = drape_matrix(v, n, 0.02)
+    G = gaussian_surface_matrix(v, n, 0.02)
     np.testing.assert_allclose(np.asarray(G.sum(axis=1)).ravel(), 1.0, atol=1e-12)
     ng, bridge = garment_frame(v, n, G, 0.8, 0.02)
     assert np.degrees(np.arccos(np.clip((ng * n).sum(1), -1, 1))).max() < 2.0  # symmetric: same normal
@@ -41,7 +42,7 @@ def test_a_crease_is_bridged_and_its_normals_tilt_toward_the_bisector():
     v = np.stack([x.ravel(), y.ravel(), 0.5 * np.abs(x.ravel())], 1)
     n = np.stack([-0.5 * np.sign(x.ravel()), np.zeros(x.size), np.ones(x.size)], 1)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    ng, bridge = garment_frame(v, n, drape_matrix(v, n, 0.01), 1.0, 0.05)
+    ng, bridge = garment_frame(v, n, gaussian_surface_matrix(v, n, 0.01), 1.0, 0.05)
     crease = (np.abs(v[:, 0]) < 1e-9) & (np.abs(v[:, 1]) < 0.02)
     flat = (np.abs(v[:, 0]) > 0.05) & (np.abs(v[:, 1]) < 0.02)
     assert bridge[crease].min() > 1e-3 and bridge[flat].max() < 1e-9
@@ -56,7 +57,7 @@ def test_facing_surfaces_are_not_averaged():
     a = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
     v = np.concatenate([a, a + [0, 0, 0.01]])
     n = np.concatenate([np.tile([0, 0, 1.0], (len(a), 1)), np.tile([0, 0, -1.0], (len(a), 1))])
-    ng, _ = garment_frame(v, n, drape_matrix(v, n, 0.02), 0.8, 0.02)
+    ng, _ = garment_frame(v, n, gaussian_surface_matrix(v, n, 0.02), 0.8, 0.02)
     np.testing.assert_allclose(ng, n, atol=1e-12)
 
 

@@ -27,25 +27,18 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from uvatar.geometry.smoothing import gaussian_surface_matrix, smoothed_normals
+from uvatar.geometry.smoothing import smoothed_normals
 
-__all__ = ["drape_matrix", "garment_frame"]
-
-
-def drape_matrix(rest_vertices: np.ndarray, rest_normals: np.ndarray, sigma: float,
-                 min_normal_dot: float = 0.3, support: float = 2.0, cell: float | None = None
-                 ) -> sp.csr_matrix | None:
-    """(V, V) Gaussian averaging over the rest surface at the bending length ``sigma`` (m), or None
-    when ``sigma <= 0``: :func:`uvatar.geometry.gaussian_surface_matrix` on the rest body."""
-    return gaussian_surface_matrix(rest_vertices, rest_normals, sigma, min_normal_dot, support, cell)
+__all__ = ["garment_frame"]
 
 
 def garment_frame(vertices: np.ndarray, normals: np.ndarray, G: sp.csr_matrix | None,
                   bridge: float = 0.0, max_bridge: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(garment normals (V, 3) unit, bridging depth (V,) metres >= 0) of posed body vertices.
 
-    vertices (V, 3) and unit normals (V, 3) of the posed body; G from :func:`drape_matrix` (None:
-    the body normals and zero bridging).
+    vertices (V, 3) and unit normals (V, 3) of the posed body; G the Gaussian averaging over the rest
+    body at the bending length (:func:`uvatar.geometry.gaussian_surface_matrix`; None: the body
+    normals and zero bridging).
     """
     v = np.asarray(vertices, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)

@@ -23,7 +23,7 @@ from uvatar.capture.synth import clothing as clo
 from uvatar.capture.synth import surface as srf
 from uvatar.capture.synth.bends import bend_amounts
 from uvatar.capture.synth.config import SynthConfig
-from uvatar.capture.synth.drape import drape_matrix, garment_frame
+from uvatar.capture.synth.drape import garment_frame
 from uvatar.capture.synth.drift import apply_drift, drift_maps, drift_vectors
 from uvatar.capture.synth.gt import scatter_texels, write_gt_frame
 from uvatar.capture.synth.scans import (
@@ -89,11 +89,11 @@ class Studio:
         raster = rasterize_uv(t.uvs, t.uv_faces, cfg.gt_texels)
         W, self.gt_flat = srf.raster_matrix(raster, t.faces, t.num_vertices)
         self.gt_mask = raster.mask
-        from uvatar.geometry.frames import vertex_normals
+        from uvatar.geometry import gaussian_surface_matrix, vertex_normals
 
         c = cfg.clothing
         rest_normals = vertex_normals(t.vertices.astype(np.float64), t.faces)
-        self.drape = drape_matrix(t.vertices, rest_normals, c.bending_length, c.drape_normal_dot)
+        self.drape = gaussian_surface_matrix(t.vertices, rest_normals, c.bending_length, c.drape_normal_dot)
         self.rest_bends = bend_amounts(t.rest_joints, self.body.semantic_joints, t.rest_joints)
         self.gt = self.statics(W)
         self._fine = None
