@@ -45,6 +45,22 @@ def ablation_variants(bake_cfg) -> dict:
 CHANGE_BASE = {"no_registration_no_polarity_rule": "no_registration"}
 
 
+def _new_tally() -> dict:
+    return {"count": 0, "of": 0, "with": [], "without": []}
+
+
+def _tally(acc: dict, base, variant, scored, moved, gt) -> None:
+    """Add one frame to ``acc``: of the ``scored`` texels, those whose match ``moved`` between the
+    base bake and the variant, with the errors of both there."""
+    from uvatar.avh.bake.evaluate import texel_errors
+
+    diff = scored & moved
+    acc["count"] += int(diff.sum())
+    acc["of"] += int(scored.sum())
+    acc["with"].append(texel_errors(base.points, base.texture, diff, *gt)[0])
+    acc["without"].append(texel_errors(variant.points, variant.texture, diff, *gt)[0])
+
+
 def _ceiling_sq(scan, gt_surface, gt_normal, gt_texture, sel):
     """Squared errors (K, 3) of the gt texture sampled through the scan atlas at the true points."""
     from uvatar.avh.bake.correspond import match_texels
@@ -75,8 +91,8 @@ def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, sourc
     common_sq = {k: [] for k in keys}
     own = {k: [] for k in keys}
     coverage = {k: [] for k in keys}
-    changed = {k: {"count": 0, "of": 0, "full": [], "variant": [], "all_count": 0, "all_of": 0, "all_with": [],
-                   "all_without": []} for k in keys if k != "full"}
+    # per variant, over its base's confident texels and over every texel both matched
+    changed = {k: {scope: _new_tally() for scope in ("confident", "all")} for k in keys if k != "full"}
     mixed, ceiling_sq = 0, []
     own_conf = {}
     for f in tqdm(names, desc="ablation", unit="frame", disable=not progress):
@@ -100,21 +116,12 @@ def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, sourc
         mixed += int(full.stats.get("mixed_polarity_texels", 0))
         for name, ch in changed.items():
             base_name = CHANGE_BASE.get(name, "full")
-            base = baked[base_name]
-            both = own_conf[base_name] & base.matched & baked[name].matched & gt[2]
-            diff = both & (np.linalg.norm(base.points - baked[name].points, axis=-1) > CHANGE_TOLERANCE_M)
-            ch["count"] += int(diff.sum())
-            ch["of"] += int(both.sum())
-            ch["base"] = base_name
-            ch["full"].append(texel_errors(base.points, base.texture, diff, *gt)[0])
-            ch["variant"].append(texel_errors(baked[name].points, baked[name].texture, diff, *gt)[0])
+            base, variant = baked[base_name], baked[name]
+            matched = base.matched & variant.matched & gt[2]
+            moved = np.linalg.norm(base.points - variant.points, axis=-1) > CHANGE_TOLERANCE_M
+            _tally(ch["confident"], base, variant, own_conf[base_name] & matched, moved, gt)
             # the same over every texel both matched, confident or not (where a rare step acts)
-            both_all = base.valid & base.matched & baked[name].matched & gt[2]
-            diff_all = both_all & (np.linalg.norm(base.points - baked[name].points, axis=-1) > CHANGE_TOLERANCE_M)
-            ch["all_count"] += int(diff_all.sum())
-            ch["all_of"] += int(both_all.sum())
-            ch["all_with"].append(texel_errors(base.points, base.texture, diff_all, *gt)[0])
-            ch["all_without"].append(texel_errors(baked[name].points, baked[name].texture, diff_all, *gt)[0])
+            _tally(ch["all"], base, variant, base.valid & matched, moved, gt)
         if source.renderer is not None:
             g = source.renderer.render(f)
             ceiling_sq.append(_ceiling_sq(scan, g["surface"], g["normal"], g["texture"].astype(np.float64),
@@ -123,21 +130,21 @@ def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, sourc
            "mixed_polarity_texels": mixed,
            "texture_ceiling_psnr_db": psnr(ceiling_sq) if ceiling_sq else None}
     for name in keys:
-        out[name] = {"median_mm": summary(common[name])["median"],
-                     "p90_mm": summary(common[name])["p90"],
+        common_summary = summary(common[name])
+        out[name] = {"median_mm": common_summary["median"],
+                     "p90_mm": common_summary["p90"],
                      "texture_psnr_db": psnr(common_sq[name]),
                      "median_mm_own_confident_texels": summary(own[name])["median"],
                      "confident_fraction": float(np.mean(coverage[name]))}
         if name in changed:
-            ch = changed[name]
-            out[name]["changed"] = {"against": ch.get("base", "full"), "texels": ch["count"],
-                                    "fraction": ch["count"] / max(ch["of"], 1),
-                                    "median_mm_with": summary(ch["full"])["median"],
-                                    "median_mm_without": summary(ch["variant"])["median"],
-                                    "p90_mm_with": summary(ch["full"])["p90"],
-                                    "p90_mm_without": summary(ch["variant"])["p90"],
-                                    "all_matched": {"texels": ch["all_count"],
-                                                    "fraction": ch["all_count"] / max(ch["all_of"], 1),
-                                                    "median_mm_with": summary(ch["all_with"])["median"],
-                                                    "median_mm_without": summary(ch["all_without"])["median"]}}
+            conf, every = changed[name]["confident"], changed[name]["all"]
+            with_, without = summary(conf["with"]), summary(conf["without"])
+            out[name]["changed"] = {"against": CHANGE_BASE.get(name, "full"), "texels": conf["count"],
+                                    "fraction": conf["count"] / max(conf["of"], 1),
+                                    "median_mm_with": with_["median"], "median_mm_without": without["median"],
+                                    "p90_mm_with": with_["p90"], "p90_mm_without": without["p90"],
+                                    "all_matched": {"texels": every["count"],
+                                                    "fraction": every["count"] / max(every["of"], 1),
+                                                    "median_mm_with": summary(every["with"])["median"],
+                                                    "median_mm_without": summary(every["without"])["median"]}}
     return out
