@@ -60,3 +60,18 @@ def test_report_ablation_rows_say_where_each_step_acts(tmp_path):
     assert rows["full"]["confident texels it changes"] == ""
     key = "no registration no polarity rule (step measured against no registration)"
     assert rows[key]["there: with / without the step (mm)"] == "13.0 / 20.0"
+
+
+def test_report_is_written_when_the_bake_measured_nothing(tmp_path):
+    """A demo whose bake accepted no frame still gets its report (dashes where there are no numbers)."""
+    from uvatar.demo_report import write_demo_report
+
+    empty = {"median": None, "mean": None, "p90": None, "texels": 0}
+    metrics = {"stages": [{"name": "bake", "status": "ran", "seconds": 3.0},
+                          {"name": "select", "status": "failed (exit 1)", "seconds": None}],
+               "bake": {"eval": {"correspondence_error_mm": empty, "texture_psnr_db": None,
+                                 "ablation": {"full": {"median_mm": None, "texture_psnr_db": float("nan")}}}}}
+    path = write_demo_report(tmp_path, metrics)
+    html = path.read_text()
+    assert "correspondence error median (mm)" in html and "–" in html
+    assert "failed (exit 1)" in html

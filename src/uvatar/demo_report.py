@@ -50,18 +50,23 @@ def _images(folder: Path, limit: int = 12) -> list[tuple[Path, str]]:
     return [(p, p.stem.replace("_", " ")) for p in files]
 
 
+def _rounded(x, digits: int = 2):
+    """A table cell: ``x`` rounded, or a dash where a stage had nothing to measure (None, NaN)."""
+    if x is None or (isinstance(x, float) and x != x):
+        return "–"
+    return round(x, digits)
+
+
 def _ablation_row(name: str, v: dict) -> dict:
     """One ablation variant: the overall numbers, and where the step acts (the texels whose match it
     changes, with the median error there with and without it)."""
-    def mm(x):
-        return "–" if x is None else round(x, 2)
-
+    mm = _rounded
     ch = v.get("changed") or {}
     against = ch.get("against", "full")
     label = name.replace("_", " ") + ("" if against == "full" else f" (step measured against {against.replace('_', ' ')})")
-    return {"variant": label, "median error (mm)": round(v["median_mm"], 2),
+    return {"variant": label, "median error (mm)": _rounded(v["median_mm"]),
             "confident texels": f"{100 * v.get('confident_fraction', 0):.0f} %",
-            "texture PSNR (dB)": round(v.get("texture_psnr_db", float("nan")), 2),
+            "texture PSNR (dB)": _rounded(v.get("texture_psnr_db")),
             "confident texels it changes": "" if not ch else f"{100 * ch.get('fraction', 0):.1f} %",
             "there: with / without the step (mm)": "" if not ch else
             f"{mm(ch.get('median_mm_with'))} / {mm(ch.get('median_mm_without'))}"}
@@ -77,9 +82,9 @@ def _bake_section(out: Path, bake: dict) -> dict:
             {"metric": "rejected = broken", "value": str(ev.get("rejected_equals_broken", ""))}]
     for key in ("median", "mean", "p90"):
         if key in err:
-            rows.append({"metric": f"correspondence error {key} (mm)", "value": round(err[key], 2)})
+            rows.append({"metric": f"correspondence error {key} (mm)", "value": _rounded(err[key])})
     if "texture_psnr_db" in ev:
-        rows.append({"metric": "texture PSNR (dB)", "value": round(ev["texture_psnr_db"], 2)})
+        rows.append({"metric": "texture PSNR (dB)", "value": _rounded(ev["texture_psnr_db"])})
     ablation = ev.get("ablation") or {}
     variants = [_ablation_row(name, v) for name, v in ablation.items() if isinstance(v, dict) and "median_mm" in v]
     return {"title": "Baking into UV space (against ground truth)",
@@ -94,7 +99,7 @@ def _bake_section(out: Path, bake: dict) -> dict:
 def write_demo_report(out: Path, metrics: dict) -> Path:
     """Write ``out/report.html`` from ``metrics`` and the images/videos the stages left in ``out``."""
     out = Path(out)
-    stage_rows = [{"stage": s["name"], "status": s["status"], "seconds": round(s["seconds"], 1)}
+    stage_rows = [{"stage": s["name"], "status": s["status"], "seconds": _rounded(s.get("seconds"), 1)}
                   for s in metrics.get("stages", [])]
     sections: list[dict] = [{
         "title": "Pipeline",

@@ -74,11 +74,11 @@ POSE_PROTOCOL = {
 def _refined_fit(body, fit, scan):
     """The fit refined against ``scan`` exactly as ``uvatar bake`` refines training frames."""
     from uvatar.avh.bake.config import PoseRefineConfig
-    from uvatar.avh.bake.frame import _single_threaded_blas
     from uvatar.avh.bake.refine import refine_fit
     from uvatar.avh.bake.register import ScanSurface
+    from uvatar.threads import single_threaded
 
-    with _single_threaded_blas():
+    with single_threaded():
         refined, _ = refine_fit(body, fit, ScanSurface.build(scan.vertices, scan.faces), PoseRefineConfig())
     return refined
 

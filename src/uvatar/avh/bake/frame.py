@@ -21,6 +21,7 @@ from uvatar.avh.bake.inpaint import inpaint_telea
 from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
 from uvatar.errors import InputError
 from uvatar.geometry import UVRaster, gaussian_surface_matrix, rasterize_uv, sample_texture, vertex_normals
+from uvatar.threads import single_threaded
 
 __all__ = ["BodyLayout", "BakedFrame", "bake_frame", "bake_fit", "shadow_vertices", "preview_image", "check_scan"]
 
@@ -188,28 +189,8 @@ def bake_fit(body, fit, layout: BodyLayout, scan, config: BakeConfig | None = No
              scan_path: str = "scan"):
     """Pose the shadow mesh from ``fit`` (refined against the scan first if ``config.refine_pose``)
     and bake. Returns (BakedFrame, the fit actually used: store it with the maps)."""
-    with _single_threaded_blas():
+    with single_threaded():
         return _bake_fit(body, fit, layout, scan, config, shape, scan_path)
-
-
-@contextmanager
-def _single_threaded_blas():
-    """BLAS and torch threads only spin against each other here (small dense solves and one-body
-    LBS, many processes): one thread makes the fit refinement ~4-8x faster on a busy 2-core machine."""
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        try:
-            from threadpoolctl import threadpool_limits
-        except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
-            yield
-            return
-        with threadpool_limits(limits=1, user_api="blas"):
-            yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _bake_fit(body, fit, layout, scan, config, shape, scan_path):

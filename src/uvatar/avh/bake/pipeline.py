@@ -29,6 +29,7 @@ from uvatar.avh.bake.dataset import (
     write_dataset_info,
 )
 from uvatar.errors import InputError
+from uvatar.threads import limit_process_to_one_thread
 
 log = logging.getLogger(__name__)
 
@@ -61,19 +62,6 @@ def load_body_and_layout(body_name: str, texels: int):
         body = load_body_model(body_name)
         _STATE[key] = (body, BodyLayout.from_template(body.template, texels))
     return _STATE[key]
-
-
-def _init_worker() -> None:
-    """One torch and one BLAS thread per worker process: workers already fill the cores, and
-    oversubscribed threads made the fit refinement several times slower."""
-    import torch
-
-    torch.set_num_threads(1)
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
-        return
-    threadpool_limits(limits=1)
 
 
 def heldout_frames(capture_root) -> list[str]:
@@ -226,7 +214,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
         import multiprocessing as mp
 
         with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                 initializer=_init_worker) as pool:
+                                 initializer=limit_process_to_one_thread) as pool:
             futures = {pool.submit(_bake_one, str(capture.root), str(out), f, config): f for f in todo}
             for fut in as_completed(futures):
                 try:
