@@ -67,12 +67,15 @@ def dva_parameters(run_dir) -> int | None:
     return int(sum(v.numel() for v in state.values() if hasattr(v, "numel") and v.dtype.is_floating_point))
 
 
-def figure(avatar, capture_root, dva_metrics: dict, frame: str, camera: str, out_path) -> dict:
+def figure(avatar, capture_root, dva_metrics: dict, frame: str, camera: str, out_path,
+           pose_source: str = "refined") -> dict:
     """Write photo | AVH | DVA for one view, cropped to the person; returns the per-view scores (AVH
-    against the photo here; DVA's from its eval JSON, whose union uses alpha > 0.5)."""
+    against the photo here; DVA's from its eval JSON, whose union uses alpha > 0.5). The avatar is
+    posed from ``pose_source`` as in its eval JSON: "refined" (the fit refined against the frame's
+    scan, ``uvatar eval avh``'s default) or "fit" (the capture's fit as it is)."""
     import imageio.v3 as iio
 
-    from uvatar.avh.eval import crop_to_masks, image_metrics
+    from uvatar.avh.eval import crop_to_masks, image_metrics, refined_fit
     from uvatar.avh.runtime import AvatarRuntime
     from uvatar.capture import Capture
     from uvatar.io_utils import write_image
@@ -82,6 +85,8 @@ def figure(avatar, capture_root, dva_metrics: dict, frame: str, camera: str, out
     cam = cap.cameras()[camera]
     rt = AvatarRuntime(avatar)
     fit = cap.load_fit(frame)
+    if pose_source == "refined":
+        fit = refined_fit(rt.body, fit, cap.load_scan(frame))
     pose = np.asarray(fit.poses, np.float32).reshape(1, -1)
     Rh = np.asarray(fit.Rh, np.float32).reshape(1, 3)
     shape = np.asarray(fit.shapes, np.float32) if np.size(fit.shapes) else None
@@ -100,8 +105,8 @@ def figure(avatar, capture_root, dva_metrics: dict, frame: str, camera: str, out
     s_dva = next(r for r in dva_metrics["per_image"] if r["frame"] == frame and r["camera"] == camera)
     s_avh = image_metrics(avh.rgb, avh.mask, photo, photo_mask)
     crops = crop_to_masks([photo, avh.rgb, dva], [photo_mask, avh.mask, dva_mask], height=256)
-    labels = ["photo", f"AVH {s_avh['psnr_db_full']:.1f}/{s_avh['psnr_db']:.1f} dB",
-              f"DVA {s_dva['psnr_db_full']:.1f}/{s_dva['psnr_db']:.1f} dB"]
+    labels = ["photo", f"AVH {s_avh['psnr_db_full']:.1f}/{s_avh['psnr_db_union_mask']:.1f} dB",
+              f"DVA {s_dva['psnr_db_full']:.1f}/{s_dva['psnr_db_union_mask']:.1f} dB"]
     write_image(out_path, contact_sheet(crops, cols=3, labels=labels))
     return {"frame": frame, "camera": camera, "avh": s_avh, "dva": s_dva, "path": str(out_path)}
 
@@ -133,7 +138,8 @@ def main(argv=None) -> int:
         for frame, cam in views:
             print(f"figure {frame} camera {cam}", file=sys.stderr)
             out["figures"].append(figure(args.avatar or avh["avatar"], args.capture or avh["capture"],
-                                         dva, frame, cam, Path(args.figures) / f"{frame}_{cam}.png"))
+                                         dva, frame, cam, Path(args.figures) / f"{frame}_{cam}.png",
+                                         avh.get("pose_source", "fit")))
     print(json.dumps(out, indent=2, default=float))
     return 0
 

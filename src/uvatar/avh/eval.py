@@ -71,7 +71,7 @@ POSE_PROTOCOL = {
 }
 
 
-def _refined_fit(body, fit, scan):
+def refined_fit(body, fit, scan):
     """The fit refined against ``scan`` exactly as ``uvatar bake`` refines training frames."""
     from uvatar.avh.bake.config import PoseRefineConfig
     from uvatar.avh.bake.refine import refine_fit
@@ -250,7 +250,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
             log.warning("skipping frame %s: %s", frame, exc)
             continue
         if config.pose_source == "refined":
-            fit = _refined_fit(runtime.body, fit, scan)
+            fit = refined_fit(runtime.body, fit, scan)
         pose = np.asarray(fit.poses, np.float32).reshape(-1)
         Rh = np.asarray(fit.Rh, np.float32).reshape(3)
         shape = np.asarray(fit.shapes, np.float32) if np.size(fit.shapes) else None
