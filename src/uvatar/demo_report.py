@@ -60,7 +60,6 @@ def _rounded(x, digits: int = 2):
 def _ablation_row(name: str, v: dict) -> dict:
     """One ablation variant: the overall numbers, and where the step acts (the texels whose match it
     changes, with the median error there with and without it)."""
-    mm = _rounded
     ch = v.get("changed") or {}
     against = ch.get("against", "full")
     label = name.replace("_", " ") + ("" if against == "full" else f" (step measured against {against.replace('_', ' ')})")
@@ -69,7 +68,7 @@ def _ablation_row(name: str, v: dict) -> dict:
             "texture PSNR (dB)": _rounded(v.get("texture_psnr_db")),
             "confident texels it changes": "" if not ch else f"{100 * ch.get('fraction', 0):.1f} %",
             "there: with / without the step (mm)": "" if not ch else
-            f"{mm(ch.get('median_mm_with'))} / {mm(ch.get('median_mm_without'))}"}
+            f"{_rounded(ch.get('median_mm_with'))} / {_rounded(ch.get('median_mm_without'))}"}
 
 
 def _bake_section(out: Path, bake: dict) -> dict:
