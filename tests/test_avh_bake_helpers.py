@@ -93,3 +93,17 @@ def make_capture(root, n_frames: int = 3, broken=(1,), unreadable=(), heldout=()
                                            "heldout_frames": [frames[i] for i in heldout],
                                            "texels": gt_texels})
     return root
+
+
+def test_heldout_frames_names_int_entries_and_is_empty_without_ground_truth(tmp_path):
+    from uvatar.avh.bake.pipeline import heldout_frames
+    from uvatar.capture import frame_name
+    from uvatar.io_utils import write_json
+
+    assert frame_name(5) == "000005" and frame_name("take_a_0003") == "take_a_0003"
+    assert heldout_frames(tmp_path) == []                      # a real capture: no gt/
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "gt" / "info.json").write_text("{not json")
+    assert heldout_frames(tmp_path) == []                      # unreadable: no held-out frames
+    write_json(tmp_path / "gt" / "info.json", {"heldout_frames": [7, "000009"]})
+    assert heldout_frames(tmp_path) == ["000007", "000009"]

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
 from uvatar.io_utils import read_json
 
@@ -54,7 +55,7 @@ def heldout_frames(capture_root: str | Path) -> list[str]:
     frames = read_json(path, "not found: held-out frames need a synthetic capture's gt/info.json").get("heldout_frames")
     if not frames:
         raise InputError(path, "lists no heldout_frames")
-    return [str(f) for f in frames]
+    return [frame_name(f) for f in frames]
 
 
 def take_frames(capture_root: str | Path, take: str) -> list[str]:

@@ -25,6 +25,11 @@ from uvatar.io_utils import read_json, write_json
 CAPTURE_JSON = "capture.json"
 
 
+def frame_name(frame) -> str:
+    """A frame's file stem: an int index becomes its zero-padded name (5 -> "000005"), a name stays."""
+    return f"{frame:06d}" if isinstance(frame, int) else str(frame)
+
+
 def write_capture_info(root: str | Path, frames: list[str], fps: float = 25.0, body_model: str = "anny",
                        shapes=None, provenance: dict | None = None, **extra) -> dict:
     """Write ``root/capture.json`` atomically and return the dict written."""

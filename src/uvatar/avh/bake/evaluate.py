@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.avh.bake.config import BakeConfig
+from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
 from uvatar.io_utils import read_json
 
@@ -207,7 +208,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
         matched = data.get("matched", data["valid"])
         all_matched.append(texel_errors(points, data["texture"], matched & data["valid"], *gt)[0])
         confident[f] = score & gt[2]
-    broken = sorted(str(b) if not isinstance(b, int) else f"{b:06d}" for b in gt_info.get("broken_frames", []))
+    broken = sorted(frame_name(b) for b in gt_info.get("broken_frames", []))
     rejected = sorted(info.get("rejected", {}))
     stats = info.get("frame_stats", {})
     result = {

@@ -11,7 +11,6 @@ to its cluster centre.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -28,6 +27,7 @@ from uvatar.avh.bake.dataset import (
     write_baked_frame,
     write_dataset_info,
 )
+from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
 from uvatar.threads import limit_process_to_one_thread
 
@@ -65,19 +65,14 @@ def load_body_and_layout(body_name: str, texels: int):
 
 
 def heldout_frames(capture_root) -> list[str]:
-    """Frames listed in a synthetic capture's ``gt/info.json`` ``heldout_frames`` ([] otherwise)."""
-    path = Path(capture_root) / "gt" / "info.json"
-    if not path.is_file():
-        return []
+    """A synthetic capture's held-out frames (:func:`uvatar.avh.poses.heldout_frames`); [] for a
+    capture without them (no, unreadable or empty ``gt/info.json``: a real capture)."""
+    from uvatar.avh.poses import heldout_frames as listed_heldout_frames
+
     try:
-        info = json.loads(path.read_text())
-    except (OSError, ValueError):
+        return listed_heldout_frames(capture_root)
+    except InputError:
         return []
-    return [_frame_name(f) for f in info.get("heldout_frames", [])]
-
-
-def _frame_name(f) -> str:
-    return f"{f:06d}" if isinstance(f, int) else str(f)
 
 
 def _capture_shape(capture):
@@ -186,7 +181,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     if previous.get("texels") not in (None, config.texels) and not overwrite:
         raise InputError(out / "dataset.json", f"holds a bake at {previous['texels']} texels, not "
                          f"{config.texels}; use another output folder or --overwrite")
-    frames = [_frame_name(f) for f in (capture.frames if frames is None else frames)]
+    frames = [frame_name(f) for f in (capture.frames if frames is None else frames)]
     unknown = sorted(set(frames) - set(capture.frames))
     if unknown:
         raise InputError(capture.root / "capture.json", f"has no frame(s) {', '.join(unknown[:5])}")
