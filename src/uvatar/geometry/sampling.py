@@ -24,6 +24,7 @@ __all__ = [
     "texel_tangent_frames",
     "face_tangents",
     "sample_texture",
+    "sample_surface",
 ]
 
 
@@ -278,3 +279,25 @@ def sample_texture(image, uv):
     if not torch_mode:
         out = out.astype(np.result_type(image.dtype, np.float32), copy=False)
     return out
+
+
+def sample_surface(vertices, faces, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points spread uniformly by area over a triangle mesh, with their face normals.
+
+    vertices (V, 3), faces (F, 3) -> points (count, 3) float32, unit normals (count, 3) float32.
+    Deterministic for a given ``seed``. Degenerate (zero-area) meshes give an InputError."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    tri = v[f]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    if len(f) == 0 or area.sum() <= 0:
+        raise InputError("mesh", "has no surface to sample (no faces or zero area)")
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(f), size=int(count), p=area / area.sum())
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    points = (tri[face] * bary[:, :, None]).sum(1)
+    normals = cross[face] / np.maximum(area[face], 1e-30)[:, None]
+    return points.astype(np.float32), normals.astype(np.float32)

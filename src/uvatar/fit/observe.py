@@ -1,0 +1,143 @@
+"""Per-frame observations for the body fit: 2D keypoints in each view, triangulated to 3D.
+
+Two sources (AVH §3.1 fits scans; DVA fits multi-view images):
+
+- ``scans``: each textured scan is rendered from virtual cameras around it
+  (:func:`uvatar.fit.views.scan_cameras`) and the detector runs on those renders;
+- ``images``: the capture's own calibrated cameras and images (with lens distortion).
+
+A frame's keypoints are saved to ``CAPTURE/fitting/keypoints/<frame>.npz`` (atomic, so a killed run
+resumes) with: ``source``, ``xy`` (C, K, 2) detected pixels, ``conf`` (C, K), the cameras used
+(``K`` (C, 3, 3), ``R``, ``T``, ``dist`` (C, 5), ``size`` (C, 2) as width, height, ``names``), and the
+triangulation ``points`` (K, 3) metres, ``points_conf`` (K,), ``reprojection_px`` (C, K).
+
+Several people in a view (a bystander): the detector first runs on the whole image (or, from the
+second frame on, inside the box around the previous frame's keypoints); views whose detection the
+triangulation rejects are detected again inside the box around the triangulated person.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.capture.types import Camera
+from uvatar.errors import InputError
+from uvatar.io_utils import read_npz, write_npz
+
+__all__ = ["FrameObservation", "observe_frame", "load_observation", "observation_path", "person_roi"]
+
+
+@dataclass
+class FrameObservation:
+    """One frame's keypoints in C views and their triangulation (see the module docstring)."""
+
+    source: str
+    cameras: list[Camera]
+    xy: np.ndarray              # (C, K, 2) pixels as detected (distorted)
+    conf: np.ndarray            # (C, K)
+    points: np.ndarray          # (K, 3) metres
+    points_conf: np.ndarray     # (K,)
+    reprojection_px: np.ndarray  # (C, K), nan where a view was not used
+    redetected: tuple[str, ...] = ()  # views detected a second time inside the person's box
+
+    @property
+    def num_detected_views(self) -> int:
+        return int((self.conf.max(axis=1) > 0).sum())
+
+
+def observation_path(capture_root: str | Path, frame: str) -> Path:
+    return Path(capture_root) / "fitting" / "keypoints" / f"{frame}.npz"
+
+
+def person_roi(points: np.ndarray, conf: np.ndarray, camera: Camera, margin: float = 0.25,
+               min_conf: float = 0.3) -> tuple[float, float, float, float] | None:
+    """Pixel box (x0, y0, x1, y1) around the projection of the confident 3D keypoints (K, 3),
+    grown by ``margin`` of its size on every side and clipped to the image; None if too few."""
+    from uvatar.render.cameras import project_points
+
+    ok = conf > min_conf
+    if ok.sum() < 4:
+        return None
+    xy, depth = project_points(camera, points[ok])
+    xy = xy[depth > 0]
+    if len(xy) < 4:
+        return None
+    lo, hi = xy.min(0), xy.max(0)
+    pad = margin * (hi - lo).max()
+    x0, y0 = np.maximum(lo - pad, 0)
+    x1, y1 = np.minimum(hi + pad, [camera.width - 1, camera.height - 1])
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None
+    return float(x0), float(y0), float(x1), float(y1)
+
+
+def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, triangulate_config,
+                  source: str, prior: FrameObservation | None = None,
+                  min_used_fraction: float = 0.5) -> FrameObservation:
+    """Detect keypoints in each view, triangulate, and re-detect rejected views inside the person's box.
+
+    images: C images (H, W, 3) float32 [0, 1], one per camera; prior: the previous frame's
+    observation (its 3D keypoints give each view a search box)."""
+    from uvatar.fit.triangulate import triangulate
+
+    names = [c.name for c in cameras]
+    K = len(detector.keypoint_names)
+    xy = np.zeros((len(cameras), K, 2), np.float32)
+    conf = np.zeros((len(cameras), K), np.float32)
+    for c, (image, camera) in enumerate(zip(images, cameras, strict=True)):
+        roi = None
+        if prior is not None:
+            roi = person_roi(prior.points, prior.points_conf, camera)
+        det = detector.detect(image, roi=roi)
+        xy[c], conf[c] = det.xy, det.conf
+    tri = triangulate(xy, conf, cameras, triangulate_config)
+    redetected = []
+    if (tri.conf > 0).sum() >= 4:
+        seen = conf >= triangulate_config.min_conf
+        used_fraction = (tri.used & seen).sum(1) / np.maximum(seen.sum(1), 1)
+        for c in np.flatnonzero(used_fraction < min_used_fraction):
+            roi = person_roi(tri.points, tri.conf, cameras[c])
+            if roi is None:
+                continue
+            det = detector.detect(images[c], roi=roi)
+            xy[c], conf[c] = det.xy, det.conf
+            redetected.append(names[c])
+        if redetected:
+            tri = triangulate(xy, conf, cameras, triangulate_config)
+    return FrameObservation(source=source, cameras=list(cameras), xy=xy, conf=conf,
+                            points=tri.points.astype(np.float32), points_conf=tri.conf.astype(np.float32),
+                            reprojection_px=tri.reprojection_px.astype(np.float32),
+                            redetected=tuple(redetected))
+
+
+def save_observation(path: str | Path, obs: FrameObservation) -> None:
+    cams = obs.cameras
+    write_npz(path, source=np.array(obs.source), names=np.array([c.name for c in cams]),
+              K=np.stack([c.K for c in cams]), R=np.stack([c.R for c in cams]),
+              T=np.stack([c.T for c in cams]), dist=np.stack([np.resize(c.dist, 5) for c in cams]),
+              size=np.array([[c.width, c.height] for c in cams], np.int64),
+              xy=obs.xy, conf=obs.conf, points=obs.points, points_conf=obs.points_conf,
+              reprojection_px=obs.reprojection_px, redetected=np.array(obs.redetected, dtype=str))
+
+
+def load_observation(path: str | Path) -> FrameObservation:
+    """Read a frame's keypoints written by :func:`save_observation` (errors name the file)."""
+    data = read_npz(path, "keypoint file is missing")
+    keys = ("source", "names", "K", "R", "T", "dist", "size", "xy", "conf", "points", "points_conf",
+            "reprojection_px")
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise InputError(path, f"missing array(s) {', '.join(missing)}")
+    C = len(data["names"])
+    if data["xy"].shape[:1] != (C,) or data["K"].shape != (C, 3, 3):
+        raise InputError(path, f"arrays disagree on the number of views ({C})")
+    cameras = [Camera(name=str(data["names"][c]), K=data["K"][c], R=data["R"][c], T=data["T"][c],
+                      width=int(data["size"][c][0]), height=int(data["size"][c][1]), dist=data["dist"][c])
+               for c in range(C)]
+    return FrameObservation(source=str(data["source"]), cameras=cameras, xy=data["xy"], conf=data["conf"],
+                            points=data["points"], points_conf=data["points_conf"],
+                            reprojection_px=data["reprojection_px"],
+                            redetected=tuple(str(x) for x in data.get("redetected", ())))

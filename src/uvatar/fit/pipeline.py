@@ -1,0 +1,324 @@
+"""``uvatar fit``: body fits for a capture that comes without them (AVH §3.1, DVA's LBS tracking).
+
+keypoints per view (detector) -> triangulation -> one batched body fit of the whole sequence (one
+shape for all frames) -> ``fits/<frame>.json`` (EasyMocap) + the shape and provenance in
+``capture.json`` + ``fitting/`` (per-frame keypoints, overlays, contact sheet, summary.json).
+
+Resumable: each frame's keypoints are written as soon as they are detected and reused by a re-run.
+One frame whose detection fails is reported and fitted from its neighbours (temporal smoothness) or
+its scan alone; it never stops the run. Existing fits are never replaced without ``force``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.capture.layout import CAPTURE_JSON, Capture
+from uvatar.errors import InputError, UvatarError, check_values
+from uvatar.io_utils import read_json, write_json
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FitConfig", "FIT_SOURCES", "fit_capture", "resolve_source"]
+
+FIT_SOURCES = ("auto", "scans", "images")
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """What ``uvatar fit`` fits from and what it writes.
+
+    source: "scans" (render each textured scan from virtual cameras and detect there), "images"
+        (the capture's calibrated cameras), or "auto" (images when the capture has cameras and
+        images, else scans); scans, when present, always add the scan-distance term.
+    scan_distance: add the scan-surface distance term where the capture has scans (off: fit to the
+        keypoints alone, as for a video capture).
+    scan_points: points sampled on each scan for the scan-distance term.
+    overlay_frames: frames drawn in ``fitting/contact_sheet.png`` (0: none); overlay_width: pixels.
+    force: replace existing fits.
+    """
+
+    source: str = "auto"
+    model: str = "anny"
+    model_dir: str | None = None
+    detector: str = "mediapipe"
+    scan_distance: bool = True
+    scan_points: int = 3000
+    overlay_frames: int = 6
+    overlay_width: int = 256
+    force: bool = False
+    device: str = "cpu"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_values([
+            (self.source in FIT_SOURCES, f"source must be one of {', '.join(FIT_SOURCES)}, got {self.source!r}"),
+            (self.scan_points >= 100, f"scan_points must be at least 100, got {self.scan_points}"),
+            (self.overlay_frames >= 0, f"overlay_frames must be >= 0, got {self.overlay_frames}"),
+            (self.overlay_width >= 32, f"overlay_width must be at least 32, got {self.overlay_width}"),
+        ])
+
+
+@dataclass
+class FitStages:
+    """Configs of the stages (each with its own defaults)."""
+
+    views: object = None        # uvatar.fit.views.ScanViewsConfig
+    detector: object = None     # uvatar.fit.keypoints.DetectorConfig
+    triangulate: object = None  # uvatar.fit.triangulate.TriangulateConfig
+    body: object = None         # uvatar.fit.body_fit.BodyFitConfig
+    timings: dict = field(default_factory=dict)
+
+
+def resolve_source(capture: Capture, source: str) -> str:
+    """The concrete source for ``source`` ("auto" picks images when cameras and images exist)."""
+    has_images = capture.has_cameras() and (capture.root / "images").is_dir()
+    has_scans = capture.scans_dir.is_dir() and any(capture.scans_dir.iterdir())
+    if source == "auto":
+        source = "images" if has_images else "scans"
+    if source == "images" and not has_images:
+        raise InputError(capture.root, "--from images needs cameras/intri.yml, cameras/extri.yml and images/")
+    if source == "scans" and not has_scans:
+        raise InputError(capture.scans_dir, "--from scans needs textured scans in scans/")
+    return source
+
+
+def _existing_fits(capture: Capture) -> list[Path]:
+    fits = sorted(capture.fits_dir.glob("*.json")) if capture.fits_dir.is_dir() else []
+    npz = capture.root / "fits.npz"
+    return fits + ([npz] if npz.is_file() else [])
+
+
+def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages):
+    """(images, cameras) the detector looks at for one frame."""
+    if source == "scans":
+        from uvatar.fit.views import render_scan_views, scan_cameras
+
+        mesh = capture.load_scan(frame)
+        cameras = scan_cameras(mesh.vertices, stages.views)
+        return render_scan_views(mesh, cameras), cameras
+    cameras = list(capture.cameras().values())
+    images = []
+    for cam in cameras:
+        path = capture.image_path(cam.name, frame)
+        if not path.is_file():
+            raise InputError(path, "image is missing")
+        images.append(capture.load_image(cam.name, frame))
+    return images, cameras
+
+
+def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
+                progress: bool) -> tuple[dict, dict]:
+    """Per-frame observations, from ``fitting/keypoints`` where a previous run left them."""
+    from tqdm import tqdm
+
+    from uvatar.fit.observe import load_observation, observation_path, observe_frame, save_observation
+
+    observations, failures = {}, {}
+    prior = None
+    bar = tqdm(frames, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
+    for frame in bar:
+        path = observation_path(capture.root, frame)
+        try:
+            if path.is_file():
+                obs = load_observation(path)
+                if obs.source != source:
+                    raise InputError(path, f"keypoints come from {obs.source}, not {source}")
+            else:
+                images, cameras = _frame_views(capture, frame, source, stages)
+                use_prior = prior if source == "images" else None
+                obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
+                save_observation(path, obs)
+        except UvatarError as exc:
+            failures[frame] = str(exc)
+            log.warning("frame %s: %s", frame, exc)
+            continue
+        observations[frame] = obs
+        if (obs.points_conf > 0).sum() >= 6:
+            prior = obs
+        else:
+            failures[frame] = "no person detected (fewer than 6 keypoints triangulated)"
+    return observations, failures
+
+
+def _scan_samples(capture: Capture, frames: list[str], config: FitConfig, progress: bool):
+    from tqdm import tqdm
+
+    from uvatar.geometry.sampling import sample_surface
+
+    samples = []
+    for frame in tqdm(frames, desc="scan points", unit="frame", disable=not progress, dynamic_ncols=True):
+        try:
+            mesh = capture.load_scan(frame) if capture.has_scan(frame) else None
+            samples.append(None if mesh is None else sample_surface(mesh.vertices, mesh.faces, config.scan_points,
+                                                                     config.seed))
+        except UvatarError as exc:
+            log.warning("frame %s: scan not used (%s)", frame, exc)
+            samples.append(None)
+    return samples
+
+
+def _observations(frames, observations, source, scans, keypoint_count):
+    """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`."""
+    from uvatar.fit.body_fit import FitObservations
+
+    T = len(frames)
+    k3 = np.zeros((T, keypoint_count, 3), np.float32)
+    c3 = np.zeros((T, keypoint_count), np.float32)
+    for t, frame in enumerate(frames):
+        obs = observations.get(frame)
+        if obs is not None:
+            k3[t], c3[t] = obs.points, obs.points_conf
+    k2 = c2 = cameras = None
+    if source == "images" and observations:
+        cameras = next(iter(observations.values())).cameras
+        C = len(cameras)
+        k2 = np.zeros((T, C, keypoint_count, 2), np.float32)
+        c2 = np.zeros((T, C, keypoint_count), np.float32)
+        for t, frame in enumerate(frames):
+            obs = observations.get(frame)
+            if obs is not None and len(obs.cameras) == C:
+                k2[t], c2[t] = obs.xy, obs.conf
+    return FitObservations(keypoints3d=k3, keypoints3d_conf=c3, keypoints2d=k2, keypoints2d_conf=c2,
+                           cameras=cameras, scans=scans)
+
+
+def _write_fits(capture: Capture, frames, result, body, config: FitConfig, provenance: dict) -> None:
+    from uvatar.capture.fits import write_fit
+    from uvatar.capture.types import BodyFit
+
+    for t, frame in enumerate(frames):
+        write_fit(capture.fit_path(frame), BodyFit(poses=result.poses[t].reshape(-1), Rh=result.Rh[t],
+                                                   Th=result.Th[t], shapes=result.shape,
+                                                   scale=float(result.scale[t])))
+    info = read_json(capture.root / CAPTURE_JSON)
+    info["body_model"] = {"name": body.name, "shapes": np.asarray(result.shape, np.float64).tolist()}
+    info.setdefault("provenance", {})["fit"] = provenance
+    write_json(capture.root / CAPTURE_JSON, info)
+
+
+def _reprojection_stats(observations: dict, frames, body_points: np.ndarray, min_conf: float) -> dict:
+    """Pixel errors: triangulated keypoints reprojected into the views that saw them, and the fitted
+    body's keypoints projected against every confident detection."""
+    from uvatar.render.cameras import project_points
+
+    tri, body_err = [], []
+    for t, frame in enumerate(frames):
+        obs = observations.get(frame)
+        if obs is None:
+            continue
+        err = obs.reprojection_px[np.isfinite(obs.reprojection_px)]
+        tri.append(err)
+        for c, cam in enumerate(obs.cameras):
+            seen = obs.conf[c] >= min_conf
+            if seen.any():
+                xy, _ = project_points(cam, body_points[t][seen])
+                body_err.append(np.linalg.norm(xy - obs.xy[c][seen], axis=1))
+
+    def stats(chunks):
+        a = np.concatenate(chunks) if chunks else np.zeros(0)
+        if a.size == 0:
+            return None
+        return {"mean": float(a.mean()), "median": float(np.median(a)), "p90": float(np.percentile(a, 90)),
+                "count": int(a.size)}
+
+    return {"triangulation_px": stats(tri), "fitted_body_px": stats(body_err)}
+
+
+def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitStages | None = None,
+                progress: bool = True, frames: list[str] | None = None) -> dict:
+    """Fit the body model to every frame of the capture at ``root``; returns the summary written to
+    ``fitting/summary.json``. Raises :class:`InputError` when nothing could be fitted."""
+    from uvatar.body.registry import load_body_model
+    from uvatar.fit.body_fit import BodyFitConfig, fit_body_sequence
+    from uvatar.fit.body_keypoints import BodyKeypoints
+    from uvatar.fit.keypoints import DetectorConfig, load_detector
+    from uvatar.fit.triangulate import TriangulateConfig
+    from uvatar.fit.views import ScanViewsConfig
+
+    config = config or FitConfig()
+    stages = stages or FitStages()
+    stages.views = stages.views or ScanViewsConfig()
+    stages.detector = stages.detector or DetectorConfig()
+    stages.triangulate = stages.triangulate or TriangulateConfig()
+    stages.body = stages.body or BodyFitConfig()
+    capture = Capture(root)
+    frames = list(frames or capture.frames)
+    if not frames:
+        raise InputError(capture.root, "the capture lists no frames")
+    existing = _existing_fits(capture)
+    if existing and not config.force:
+        raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); use --force to replace them")
+    source = resolve_source(capture, config.source)
+    body = load_body_model(config.model, config.model_dir, device=config.device)
+    detector = load_detector(config.detector, stages.detector)
+
+    t0 = time.perf_counter()
+    observations, failures = _detect_all(capture, frames, source, detector, stages, progress)
+    t_detect = time.perf_counter() - t0
+    use_scans = config.scan_distance and capture.scans_dir.is_dir()
+    scans = _scan_samples(capture, frames, config, progress) if use_scans else None
+    usable = [f for f in frames if f in observations and f not in failures]
+    has_scan = scans is not None and any(s is not None for s in scans)
+    if not usable and not has_scan:
+        counts: dict[str, int] = {}
+        for reason in failures.values():
+            counts[reason] = counts.get(reason, 0) + 1
+        why = "; ".join(f"{n} {r}" for r, n in counts.items())
+        raise InputError(capture.root, f"{len(frames)} frames, none usable for fitting: {why}")
+
+    t1 = time.perf_counter()
+    obs = _observations(frames, observations, source, scans, len(detector.keypoint_names))
+    result = fit_body_sequence(body, obs, stages.body, progress=progress)
+    t_fit = time.perf_counter() - t1
+
+    provenance = {
+        "tool": "uvatar fit", "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "source": source, "detector": {"name": detector.name, "version": detector.version},
+        "body_model": body.name, "losses": _loss_names(obs, stages.body),
+        "config": asdict(config), "frames_without_detection": sorted(failures),
+    }
+    _write_fits(capture, frames, result, body, config, provenance)
+
+    import torch
+
+    with torch.no_grad():
+        posed = body.pose(torch.as_tensor(result.poses, dtype=torch.float32, device=body.device),
+                          Rh=result.Rh, Th=result.Th, scale=result.scale,
+                          shape=torch.as_tensor(result.shape, dtype=torch.float32, device=body.device))
+        body_points = BodyKeypoints(body)(posed).cpu().numpy()
+    summary = {
+        "capture": str(capture.root), "source": source, "frames": len(frames),
+        "frames_fitted": len(frames), "frames_without_detection": failures,
+        "body_model": body.name, "shape": np.asarray(result.shape).tolist(),
+        "reprojection": _reprojection_stats(observations, frames, body_points, stages.triangulate.min_conf),
+        "frame_loss": {f: float(result.frame_loss[t]) for t, f in enumerate(frames)},
+        "seconds": {"detection": t_detect, "fit": t_fit,
+                    "detection_per_frame": t_detect / max(len(frames), 1),
+                    "fit_per_frame": t_fit / max(len(frames), 1)},
+        "provenance": provenance,
+    }
+    if config.overlay_frames:
+        from uvatar.fit.overlay import write_overlays
+
+        summary["contact_sheet"] = str(write_overlays(capture, frames, observations, posed, body, source,
+                                                      stages, config))
+    write_json(capture.root / "fitting" / "summary.json", summary)
+    return summary
+
+
+def _loss_names(obs, body_config) -> list[str]:
+    names = ["keypoints3d"]
+    if obs.keypoints2d is not None:
+        names.append("reprojection2d")
+    if obs.scans is not None and any(s is not None for s in obs.scans):
+        names.append("scan_distance")
+    if obs.masks is not None:
+        names.append("silhouette")
+    return names + ["pose_prior", "joint_limits", "temporal_smoothness", "shape_prior"]
