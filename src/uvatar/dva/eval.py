@@ -7,8 +7,11 @@ outside the mask) and compared with the photo: PSNR (dB) and SSIM from :mod:`uva
 ``psnr_db`` / ``ssim`` keep the source's protocol: the full image, or inside the projected body box
 for ZJU-MoCap (Neural Body). Two protocols shared with ``uvatar eval avh`` are always reported too:
 ``psnr_db_full`` / ``ssim_full`` over the full image, and ``psnr_db_union_mask`` / ``ssim_union_mask``
-inside the union of the predicted mask (alpha > 0.5) and the photo's mask. Side-by-side comparison
-images (photo | render | 4x |error|) are written beside the JSON.
+inside the union of the predicted mask (alpha > 0.5) and the photo's mask; and
+``psnr_db_person_mask`` / ``ssim_person_mask`` inside the photo's person mask alone. The same scores
+for the trivial baseline (the fitted body in the driving views' mean person colour,
+:mod:`uvatar.dva.baseline`) are in ``baseline_mean_colour``. Side-by-side comparison images
+(photo | render | 4x |error| | baseline) are written beside the JSON.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.dva.baseline import mean_colour, mean_colour_render
 from uvatar.dva.dataset import FrameBank
 from uvatar.dva.drive import render_camera
 from uvatar.io_utils import write_image, write_json
@@ -33,7 +37,8 @@ def spread(items, n):
     return [items[(i * len(items)) // n] for i in range(n)]
 
 
-METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_full", "ssim_full", "psnr_db_union_mask", "ssim_union_mask")
+METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_full", "ssim_full", "psnr_db_union_mask", "ssim_union_mask",
+               "psnr_db_person_mask", "ssim_person_mask")
 SHARED_PROTOCOLS = ("also reported for comparison with uvatar eval avh: full-image PSNR/SSIM (psnr_db_full, "
                     "ssim_full) and PSNR/SSIM inside the union of the predicted mask (alpha > 0.5) and the "
                     "photo's mask (psnr_db_union_mask, ssim_union_mask)")
@@ -41,8 +46,8 @@ SHARED_PROTOCOLS = ("also reported for comparison with uvatar eval avh: full-ima
 
 def image_scores(pred, gt, alpha, gt_mask, box=None) -> dict:
     """Scores of one render (H, W, 3) in [0, 1] against the photo: the source protocol (``box``: a
-    (H, W) bool mask, or None for the full image), the full image, and the union of alpha > 0.5 and
-    ``gt_mask`` (NaN when that union is empty)."""
+    (H, W) bool mask, or None for the full image), the full image, the union of alpha > 0.5 and
+    ``gt_mask`` (NaN when that union is empty) and the photo's person mask ``gt_mask`` alone."""
     from uvatar.render.metrics import psnr, ssim
 
     full_p, full_s = psnr(pred, gt), ssim(pred, gt)
@@ -51,9 +56,15 @@ def image_scores(pred, gt, alpha, gt_mask, box=None) -> dict:
         union_p, union_s = psnr(pred, gt, union), ssim(pred, gt, union)
     else:
         union_p = union_s = float("nan")
+    person = np.asarray(gt_mask, bool)
+    if person.any():
+        person_p, person_s = psnr(pred, gt, person), ssim(pred, gt, person)
+    else:
+        person_p = person_s = float("nan")
     main = (full_p, full_s) if box is None else (psnr(pred, gt, box), ssim(pred, gt, box))
     return {"psnr_db": main[0], "ssim": main[1], "psnr_db_full": full_p, "ssim_full": full_s,
-            "psnr_db_union_mask": union_p, "ssim_union_mask": union_s}
+            "psnr_db_union_mask": union_p, "ssim_union_mask": union_s,
+            "psnr_db_person_mask": person_p, "ssim_person_mask": person_s}
 
 
 def _names(wanted, available, source, what: str) -> list[str]:
@@ -89,7 +100,7 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
     cams = driving + test_cams
     bank = FrameBank(source, body, model.image_raster, model.template, frames, cams, progress)
     img_dir = Path(json_path).with_suffix("") if json_path else None
-    per_image = []
+    per_image, baseline = [], []
     drive_idx = list(range(len(driving)))
     for fi, frame in enumerate(bank.frames):
         tex = bank.image_texture(fi, drive_idx).to(device)
@@ -104,11 +115,16 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
             box = box_mask(cam, verts.cpu().numpy(), *gt.shape[:2]) if source.eval_box_mask else None
             scores = image_scores(pred, gt, alpha, bank.masks[fi][ci], box)
             per_image.append({"frame": frame, "camera": cam_name, **scores})
+            colour = mean_colour([bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx])
+            base, base_alpha = mean_colour_render(verts.cpu().numpy(), model.template.faces, cam, colour,
+                                                  bank.backgrounds[ci])
+            baseline.append(image_scores(base, gt, base_alpha, bank.masks[fi][ci], box))
             if images and img_dir is not None:
                 err = np.clip(np.abs(pred - gt) * 4, 0, 1)
-                write_image(img_dir / f"{frame}_{cam_name}.png", np.concatenate([gt, pred, err], 1))
+                write_image(img_dir / f"{frame}_{cam_name}.png", np.concatenate([gt, pred, err, base], 1))
     result = {
         **{k: float(np.nanmean([r[k] for r in per_image])) for k in METRIC_KEYS},
+        "baseline_mean_colour": {k: float(np.nanmean([r[k] for r in baseline])) for k in METRIC_KEYS},
         "protocol": (source.protocol.replace("{driving}", str(len(driving))) + f"; driving views {driving}; "
                      + SHARED_PROTOCOLS),
         "frames": bank.frames, "cameras": test_cams, "driving_cameras": driving, "train_steps": step,
