@@ -21,10 +21,10 @@ def test_mean_colour_is_the_mean_of_masked_pixels_over_all_views():
 
 def test_mean_colour_render_fills_the_body_with_the_colour_over_the_background():
     cam = look_at_camera((0, 0, 3), (0, 0, 0), width=32, height=32, fov_deg=40)
-    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)  # covers the whole view
+    v = 2 * np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)  # covers the whole view
     f = np.array([[0, 1, 2], [0, 2, 3]])
     rgb, alpha = mean_colour_render(v, f, cam, np.array([0.2, 0.4, 0.6]), np.array([0.0, 0.0, 1.0]))
     assert alpha.all() and np.allclose(rgb, [0.2, 0.4, 0.6], atol=1e-6)
-    small = v * 0.1
+    small = v * 0.05
     rgb, alpha = mean_colour_render(small, f, cam, np.array([0.2, 0.4, 0.6]), np.array([0.0, 0.0, 1.0]))
     assert 0 < alpha.mean() < 0.2 and np.allclose(rgb[0, 0], [0, 0, 1])
