@@ -63,3 +63,34 @@ def trained_toy_avatar():
         return body, cap, baked
 
     return make
+
+
+@pytest.fixture(scope="session")
+def fit_studio(tmp_path_factory):
+    """A small studio capture for the fit tests (2 frames, 4 cameras, 256^2 images, seed 0; ~10 s):
+    ``(root, true_joints)`` with true_joints ``{frame: (J, 3) world joint positions}`` of the true
+    (noise-free) pose from ``gt/frames``, and the anny body's ``semantic_joints`` under key "semantic"."""
+    import numpy as np
+    import torch
+
+    from uvatar.body import load_body_model
+    from uvatar.capture import Capture
+    from uvatar.capture.synth.config import preset
+    from uvatar.capture.synth.pipeline import synthesize
+
+    root = tmp_path_factory.mktemp("fit_studio") / "cap"
+    synthesize(root, preset("quick", frames=2, cameras=4, image_size=256, seed=0, preview=False),
+               progress=False)
+    cap = Capture(root)
+    body = load_body_model("anny")
+    shape = torch.tensor(np.asarray(cap.info["body_model"]["shapes"], np.float32))
+    joints = {}
+    for frame in cap.frames:
+        g = np.load(root / "gt" / "frames" / f"{frame}.npz")
+        with torch.no_grad():
+            posed = body.pose(torch.tensor(g["pose"], dtype=torch.float32).view(1, -1, 3),
+                              torch.tensor(g["Rh"], dtype=torch.float32)[None],
+                              torch.tensor(g["Th"], dtype=torch.float32)[None], shape=shape)
+        joints[frame] = posed.joint_transforms[0, :, :3, 3].numpy().astype(np.float64)
+    joints["semantic"] = dict(body.semantic_joints)
+    return root, joints
