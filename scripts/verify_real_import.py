@@ -173,6 +173,21 @@ def main() -> None:
     sheet = np.concatenate(tiles, axis=1)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(args.out, cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    # the world origin (a floor landmark of the calibration) up close: 300 px around it, x2
+    crops = []
+    for n, c in cams.items():
+        img = (images[frames[0]][n] * 255).astype(np.uint8)
+        o = reproject(c, np.array([[0, 0, 0], [0.6, 0, 0], [0, 0, -0.6]], float))
+        x, y = np.round(o[0]).astype(int)
+        pad = np.pad(img, ((150, 150), (150, 150), (0, 0)))
+        crop = pad[y:y + 300, x:x + 300].copy()
+        for k, col in ((1, (255, 0, 0)), (2, (0, 0, 255))):
+            end = np.round(o[k] - o[0] + 150).astype(int)
+            cv2.line(crop, (150, 150), (int(end[0]), int(end[1])), col, 1)
+        cv2.drawMarker(crop, (150, 150), (255, 0, 0), cv2.MARKER_CROSS, 30, 2)
+        crops.append(cv2.resize(crop, (600, 600), interpolation=cv2.INTER_NEAREST))
+    cv2.imwrite(str(Path(args.out).with_name(Path(args.out).stem + "_origin.png")),
+                cv2.cvtColor(np.concatenate(crops, axis=1), cv2.COLOR_RGB2BGR))
 
 
 if __name__ == "__main__":
