@@ -41,8 +41,9 @@ CFG = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17)
 GATHER = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17, sampler="gather")
 
 
-def pinhole_scene(n=10, dtype=torch.float64):
-    """A pinhole camera at z = 2.5 looking down -Z and its pixel rays (every pixel of an n x n image)."""
+def pinhole_scene(n=10, dtype=torch.float64, dist=(0, 0, 0, 0, 0)):
+    """A pinhole camera at z = 2.5 looking down -Z and its pixel rays (every pixel of an n x n image),
+    with lens distortion ``dist`` (OpenCV k1, k2, p1, p2, k3)."""
     import numpy as np
 
     from uvatar.capture.types import Camera
@@ -51,7 +52,7 @@ def pinhole_scene(n=10, dtype=torch.float64):
     f = n / (2 * 0.2)
     R = np.diag([1.0, -1.0, -1.0])  # x right, y down, looking toward -Z
     cam = Camera("c", np.array([[f, 0, n / 2 - 0.5], [0, f, n / 2 - 0.5], [0, 0, 1]]), R,
-                 -R @ np.array([0.05, 0.02, 2.5]), n, n)
+                 -R @ np.array([0.05, 0.02, 2.5]), n, n, dist)
     yy, xx = np.mgrid[:n, :n]
     pix = np.stack([xx.ravel(), yy.ravel()], 1)
     o, d = pixel_rays(cam, pix, dtype=dtype)
@@ -96,10 +97,14 @@ def test_gradient_parity(seed):
         assert (gf[:, sl] - gr[:, sl]).norm() / gr[:, sl].norm() <= 1e-3
 
 
-@pytest.mark.parametrize("seed", [0, 4])
-def test_pinhole_culling_parity(seed):
-    """Culling by projected rectangles gives the reference's image, forward and backward."""
-    cam, pix, o, d = pinhole_scene(n=12)
+STRONG_DISTORTION = (-0.35, 0.12, 0.01, -0.008, 0.02)  # stronger than real lenses
+
+
+@pytest.mark.parametrize("seed,dist", [(0, (0, 0, 0, 0, 0)), (4, (0, 0, 0, 0, 0)), (1, STRONG_DISTORTION)])
+def test_pinhole_culling_parity(seed, dist):
+    """Culling by projected rectangles gives the reference's image, forward and backward (also for
+    a distorted camera, whose rays and corner projections share one distortion model)."""
+    cam, pix, o, d = pinhole_scene(n=12, dist=dist)
     pos, rv, sc, pl = random_scene(K=6, S=3, seed=seed)
     keep = torch.randperm(o.shape[0], generator=torch.Generator().manual_seed(seed))[:100]  # sparse pixels
 
@@ -117,11 +122,12 @@ def test_pinhole_culling_parity(seed):
         assert (gp - gr).norm() <= 1e-3 * gr.norm()
 
 
-def test_pinhole_candidates_cover_exact_hits():
+@pytest.mark.parametrize("dist", [(0, 0, 0, 0, 0), STRONG_DISTORTION])
+def test_pinhole_candidates_cover_exact_hits(dist):
     """Every exact ray/box hit found by brute force is among the pinhole candidates."""
     from uvatar.dva.raymarch import candidate_pairs, pinhole_candidates
 
-    cam, pix, o, d = pinhole_scene(n=16)
+    cam, pix, o, d = pinhole_scene(n=16, dist=dist)
     prims = make_prims(*random_scene(K=9, S=2, seed=7))
     ray, prim, _, _ = candidate_pairs(o, d, prims)
     r2, p2 = pinhole_candidates(cam, torch.as_tensor(pix), prims)

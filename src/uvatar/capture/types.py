@@ -10,6 +10,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# Camera lives below capture and render; re-exported here, where the capture format's records live.
+from uvatar.geometry.camera import Camera
+
 
 @dataclass
 class TexturedMesh:
@@ -75,51 +78,4 @@ class BodyFit:
         self.scale = float(self.scale)
         self.id = int(self.id)
 
-
-@dataclass
-class Camera:
-    """A pinhole camera in the OpenCV convention (x right, y down, z forward).
-
-    K (3, 3) intrinsics in pixels; R (3, 3) world→camera rotation; T (3,) metres, so that
-    ``X_cam = R @ X_world + T``; width, height in pixels (0 when unknown); dist (5,) OpenCV
-    distortion (k1, k2, p1, p2, k3).
-    """
-
-    name: str
-    K: np.ndarray
-    R: np.ndarray = field(default_factory=lambda: np.eye(3))
-    T: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    width: int = 0
-    height: int = 0
-    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
-
-    def __post_init__(self) -> None:
-        self.name = str(self.name)
-        self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
-        self.R = np.asarray(self.R, dtype=np.float64).reshape(3, 3)
-        self.T = np.asarray(self.T, dtype=np.float64).reshape(3)
-        dist = np.asarray(self.dist, dtype=np.float64).reshape(-1)
-        self.dist = np.pad(dist, (0, max(0, 5 - dist.size)))[: max(5, dist.size)]
-        self.width = int(self.width)
-        self.height = int(self.height)
-
-    @property
-    def center(self) -> np.ndarray:
-        """Camera centre in world coordinates (3,), metres: ``-R.T @ T``."""
-        return -self.R.T @ self.T
-
-    def world_to_camera(self, points: np.ndarray) -> np.ndarray:
-        """(..., 3) world points → (..., 3) camera-frame points."""
-        return np.asarray(points, dtype=np.float64) @ self.R.T + self.T
-
-    def project(self, points: np.ndarray) -> np.ndarray:
-        """Project (..., 3) world points to (..., 2) pixel coordinates (x right, y down).
-
-        Distortion is ignored (ideal pinhole); points behind the camera give meaningless pixels;
-        check ``world_to_camera(points)[..., 2] > 0`` for that.
-        """
-        cam = self.world_to_camera(points)
-        z = cam[..., 2:3]
-        z = np.where(np.abs(z) < 1e-12, 1e-12, z)
-        pix = (cam / z) @ self.K.T
-        return pix[..., :2]
+__all__ = ["BodyFit", "Camera", "TexturedMesh"]

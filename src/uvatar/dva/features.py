@@ -86,13 +86,7 @@ def unwrap_view(points, normals, camera, image, mask=None, caster=None, eps: flo
     dist = np.linalg.norm(to_cam, axis=-1)
     facing = (np.asarray(normals) * to_cam).sum(-1) > 0
     z = camera.world_to_camera(points)[:, 2]
-    if np.any(camera.dist != 0):
-        import cv2
-
-        rvec, _ = cv2.Rodrigues(camera.R)
-        pix = cv2.projectPoints(points, rvec, camera.T, camera.K, camera.dist)[0].reshape(-1, 2)
-    else:
-        pix = camera.project(points)
+    pix = camera.project(points)  # lens distortion included
     H, W = image.shape[:2]
     inside = (z > 0) & (pix[:, 0] >= -0.5) & (pix[:, 0] <= W - 0.5) & (pix[:, 1] >= -0.5) & (pix[:, 1] <= H - 0.5)
     visible = facing & inside

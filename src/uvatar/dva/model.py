@@ -163,14 +163,10 @@ class DvaModel(nn.Module):
 
 
 def pixel_rays(camera, pixels: np.ndarray, device="cpu", dtype=torch.float32):
-    """World rays through pixel centres. pixels (N, 2) integer (x, y) -> origins, directions (N, 3).
+    """World rays through pixel centres. pixels (N, 2) integer (x, y) -> origins, directions (N, 3)
+    as tensors; lens distortion removed as everywhere else (:func:`uvatar.render.cameras.camera_rays`)."""
+    from uvatar.render.cameras import camera_rays
 
-    Pinhole model (distortion ignored: images are expected undistorted)."""
-    xy = np.asarray(pixels, np.float64) + 0.0
-    homo = np.concatenate([xy, np.ones((xy.shape[0], 1))], 1)
-    d_cam = homo @ np.linalg.inv(camera.K).T
-    d = d_cam @ camera.R  # R^T d_cam, as row vectors
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = np.broadcast_to(camera.center, d.shape)
+    o, d = camera_rays(camera, np.asarray(pixels, np.float64).reshape(-1, 2))
     return (torch.as_tensor(np.ascontiguousarray(o), dtype=dtype, device=device),
             torch.as_tensor(d, dtype=dtype, device=device))

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -56,7 +57,12 @@ def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: 
     """(ray, primitive) pairs for rays through integer ``pixels`` (N, 2) (x, y) of a pinhole ``camera``
     (K, R, T; OpenCV): every primitive lists the requested pixels inside its projected box's bounding
     rectangle (grown by ``margin`` px). Cost ~ sum of those rectangles, not N * K. Primitives reaching
-    behind the camera cover every pixel. Pairs come sorted by ray."""
+    behind the camera cover every pixel. Pairs come sorted by ray. A camera with lens distortion
+    projects the corners through the same distortion as its rays (``Camera.dist``, shared
+    :func:`uvatar.geometry.camera.distort`), with one more pixel of margin for the curvature of the
+    box's distorted outline."""
+    from uvatar.geometry.camera import distort
+
     dev, dt = prims.positions.device, prims.positions.dtype
     Kc = torch.as_tensor(camera.K, dtype=dt, device=dev)
     Rc = torch.as_tensor(camera.R, dtype=dt, device=dev)
@@ -71,7 +77,13 @@ def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: 
                                  prims.payload)) @ Rc.T + Tc  # (K, 8, 3)
     z = cam[..., 2]
     behind = (z <= 1e-6).any(1)
-    uv = (cam @ Kc.T)[..., :2] / z.clamp(min=1e-6)[..., None]
+    dist = np.asarray(getattr(camera, "dist", np.zeros(5)), np.float64)
+    if np.any(dist != 0):
+        xy = distort(cam[..., :2] / z.clamp(min=1e-6)[..., None], dist)
+        uv = xy @ Kc[:2, :2].T + Kc[:2, 2]
+        margin = margin + 1.0
+    else:
+        uv = (cam @ Kc.T)[..., :2] / z.clamp(min=1e-6)[..., None]
     lo = torch.floor(uv.min(1).values - margin).long()
     hi = torch.ceil(uv.max(1).values + margin).long()
     bx0 = torch.where(behind, x0, lo[:, 0].clamp(x0, x1 + 1))

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from uvatar.capture.types import Camera
+from uvatar.geometry.camera import Camera
 from uvatar.errors import InputError
 
 __all__ = ["look_at_camera", "orbit_cameras", "ring_cameras", "camera_rays", "project_points"]
@@ -75,7 +75,7 @@ def ring_cameras(target, distance: float, count: int, elevations_deg=(0.0, 30.0)
 
 
 def camera_rays(camera: Camera, pixels=None) -> tuple[np.ndarray, np.ndarray]:
-    """World-space rays through pixel centres (distortion ignored).
+    """World-space rays through pixel centres, lens distortion removed (:meth:`Camera.pixel_directions`).
 
     pixels: optional (N, 2) pixel coordinates (x, y); default: every pixel, row-major.
     Returns origins (N, 3) (the camera centre) and unit directions (N, 3); N = H*W by default.
@@ -85,23 +85,16 @@ def camera_rays(camera: Camera, pixels=None) -> tuple[np.ndarray, np.ndarray]:
             raise InputError(f"camera {camera.name}", "width/height unknown")
         ys, xs = np.mgrid[0 : camera.height, 0 : camera.width]
         pixels = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
-    pixels = np.asarray(pixels, dtype=np.float64)
-    homo = np.concatenate([pixels, np.ones((len(pixels), 1))], axis=1)
-    d_cam = homo @ np.linalg.inv(camera.K).T
-    d_world = d_cam @ camera.R  # R.T @ d for each row
-    d_world /= np.linalg.norm(d_world, axis=1, keepdims=True)
+    d_world = camera.pixel_directions(np.asarray(pixels, dtype=np.float64).reshape(-1, 2))
     origins = np.broadcast_to(camera.center, d_world.shape).copy()
     return origins, d_world
 
 
 def project_points(camera: Camera, points) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points (..., 3) -> pixels (..., 2) (x right, y down) and depth (...,) = camera z.
+    """Project world points (..., 3) -> pixels (..., 2) (x right, y down), lens distortion included
+    (:meth:`Camera.project`), and depth (...,) = camera z.
 
     Points with depth <= 0 are behind the camera; their pixels are meaningless.
     """
-    cam = np.asarray(points, dtype=np.float64) @ camera.R.T + camera.T
-    z = cam[..., 2]
-    safe = np.where(np.abs(z) < 1e-12, 1e-12, z)
-    pix = (cam[..., :2] / safe[..., None]) * np.diag(camera.K)[:2] + camera.K[:2, 2]
-    pix = pix + (cam[..., 1:2] / safe[..., None]) * camera.K[0, 1] * np.array([1.0, 0.0])
-    return pix, z
+    z = camera.world_to_camera(points)[..., 2]
+    return camera.project(points), z

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uvatar.capture.types import Camera
+from uvatar.geometry.camera import Camera
 from uvatar.errors import InputError
 from uvatar.geometry.frames import normalize, vertex_normals
 from uvatar.geometry.raycast import RayCaster, RayHits, first_hit_reference
