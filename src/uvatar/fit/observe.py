@@ -11,6 +11,10 @@ resumes) with: ``source``, ``xy`` (C, K, 2) detected pixels, ``conf`` (C, K), th
 (``K`` (C, 3, 3), ``R``, ``T``, ``dist`` (C, 5), ``size`` (C, 2) as width, height, ``names``), and the
 triangulation ``points`` (K, 3) metres, ``points_conf`` (K,), ``reprojection_px`` (C, K).
 
+Left and right: a detector labels a person seen from behind the other way round now and then, so
+each view's left/right labels are kept or swapped, whichever the triangulation agrees with best
+(:func:`resolve_left_right`; every combination for up to 6 views, view by view beyond).
+
 Several people in a view (a bystander): the detector first runs on the whole image (or, from the
 second frame on, inside the box around the previous frame's keypoints); views whose detection the
 triangulation rejects are detected again inside the box around the triangulated person.
@@ -27,7 +31,8 @@ from uvatar.capture.types import Camera
 from uvatar.errors import InputError
 from uvatar.io_utils import read_npz, write_npz
 
-__all__ = ["FrameObservation", "observe_frame", "load_observation", "observation_path", "person_roi"]
+__all__ = ["FrameObservation", "observe_frame", "load_observation", "observation_path", "person_roi",
+           "left_right_swap", "resolve_left_right"]
 
 
 @dataclass
@@ -74,6 +79,66 @@ def person_roi(points: np.ndarray, conf: np.ndarray, camera: Camera, margin: flo
     return float(x0), float(y0), float(x1), float(y1)
 
 
+def left_right_swap(names) -> np.ndarray:
+    """(K,) index permutation swapping each "left"/"right" keypoint with its mirror name."""
+    names = list(names)
+
+    def mirror(name: str) -> str:
+        return name.replace("left", "\0").replace("right", "left").replace("\0", "right")
+
+    return np.array([names.index(mirror(n)) if mirror(n) in names else k for k, n in enumerate(names)])
+
+
+def _agreement(tri, conf, min_conf: float, cap_px: float) -> float:
+    """Mean capped reprojection error over every confident detection (an unused one counts as the cap)."""
+    seen = conf >= min_conf
+    err = np.where(np.isfinite(tri.reprojection_px), np.minimum(tri.reprojection_px, cap_px), cap_px)
+    return float(err[seen].mean()) if seen.any() else cap_px
+
+
+def resolve_left_right(xy, conf, cameras, config, names, exhaustive_up_to: int = 6):
+    """Keep or swap each view's left/right labels so that the views agree best.
+
+    xy (C, K, 2), conf (C, K) -> (xy, conf, swapped (C,) bool) with the chosen labelling (the first
+    view fixes it). Every combination is tried for up to ``exhaustive_up_to`` views; beyond, each
+    view is flipped in turn while that helps."""
+    import itertools
+
+    from uvatar.fit.triangulate import triangulate
+
+    perm = left_right_swap(names)
+    C = len(cameras)
+    cap = float(config.max_reprojection_px)
+
+    def apply(flips):
+        f = np.asarray(flips, bool)[:, None]
+        return np.where(f[..., None], xy[:, perm], xy), np.where(f, conf[:, perm], conf)
+
+    def score(flips):
+        x, c = apply(flips)
+        return _agreement(triangulate(x, c, cameras, config), c, config.min_conf, cap)
+
+    if C < 2:
+        return xy, conf, np.zeros(C, bool)
+    if C <= exhaustive_up_to:
+        candidates = [(False, *rest) for rest in itertools.product((False, True), repeat=C - 1)]
+        best = min(candidates, key=score)
+    else:
+        best = [False] * C
+        best_score = score(best)
+        improved = True
+        while improved:
+            improved = False
+            for c in range(1, C):
+                trial = list(best)
+                trial[c] = not trial[c]
+                s = score(trial)
+                if s < best_score - 1e-6:
+                    best, best_score, improved = trial, s, True
+    x, c = apply(best)
+    return x, c, np.asarray(best, bool)
+
+
 def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, triangulate_config,
                   source: str, prior: FrameObservation | None = None,
                   min_used_fraction: float = 0.5) -> FrameObservation:
@@ -93,6 +158,8 @@ def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, tri
             roi = person_roi(prior.points, prior.points_conf, camera)
         det = detector.detect(image, roi=roi)
         xy[c], conf[c] = det.xy, det.conf
+    names_k = detector.keypoint_names
+    xy, conf, _ = resolve_left_right(xy, conf, cameras, triangulate_config, names_k)
     tri = triangulate(xy, conf, cameras, triangulate_config)
     redetected = []
     if (tri.conf > 0).sum() >= 4:
@@ -106,6 +173,7 @@ def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, tri
             xy[c], conf[c] = det.xy, det.conf
             redetected.append(names[c])
         if redetected:
+            xy, conf, _ = resolve_left_right(xy, conf, cameras, triangulate_config, names_k)
             tri = triangulate(xy, conf, cameras, triangulate_config)
     return FrameObservation(source=source, cameras=list(cameras), xy=xy, conf=conf,
                             points=tri.points.astype(np.float32), points_conf=tri.conf.astype(np.float32),

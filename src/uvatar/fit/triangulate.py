@@ -33,7 +33,7 @@ class TriangulateConfig:
 
     min_conf: float = 0.3
     min_views: int = 2
-    max_reprojection_px: float = 15.0
+    max_reprojection_px: float = 30.0
     conf_reduce: str = "mean"
 
     def __post_init__(self) -> None:
