@@ -17,7 +17,6 @@ so that a bystander elsewhere in the image neither draws the person detector nor
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -25,10 +24,11 @@ import numpy as np
 
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit._image import prepare_image
+from uvatar.fit._registry import GraphOwner, Registry
 from uvatar.fit.keypoints import import_mediapipe, mediapipe_pose_model
 
-__all__ = ["SegmenterConfig", "PersonSegmenter", "MediaPipeSegmenter", "load_segmenter", "register_segmenter",
-           "available_segmenters", "prior_roi", "mask_iou"]
+__all__ = ["SegmenterConfig", "PersonSegmenter", "MediaPipeSegmenter", "load_segmenter", "SEGMENTERS", "prior_roi",
+           "mask_iou"]
 
 
 class PersonSegmenter(Protocol):
@@ -93,9 +93,9 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
-class MediaPipeSegmenter:
-    """Person segmentation through ``mediapipe.solutions`` (static images); one graph per segmenter
-    (not thread-safe); ``close()`` frees it."""
+class MediaPipeSegmenter(GraphOwner):
+    """Person segmentation through ``mediapipe.solutions`` (static images; one graph per segmenter, see
+    :class:`GraphOwner`)."""
 
     def __init__(self, config: SegmenterConfig | None = None):
         self.config = config or SegmenterConfig()
@@ -162,34 +162,12 @@ class MediaPipeSegmenter:
         """(H, W) bool: :meth:`segment` above ``config.threshold``."""
         return self.segment(image, roi, prior) > self.config.threshold
 
-    def close(self) -> None:
-        """Free the MediaPipe graph."""
-        if self._graph is not None:
-            self._graph.close()
-            self._graph = None
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-
-_SEGMENTERS: dict[str, Callable[[SegmenterConfig], PersonSegmenter]] = {"mediapipe": MediaPipeSegmenter}
-
-
-def register_segmenter(name: str, factory: Callable[[SegmenterConfig], PersonSegmenter]) -> None:
-    """Make ``load_segmenter(name, config)`` build ``factory(config)``."""
-    _SEGMENTERS[str(name)] = factory
-
-
-def available_segmenters() -> tuple[str, ...]:
-    """Names :func:`load_segmenter` accepts."""
-    return tuple(sorted(_SEGMENTERS))
+SEGMENTERS = Registry("person segmenter", {"mediapipe": MediaPipeSegmenter})
+"""Known person segmenters: ``SEGMENTERS.register(name, factory)`` adds one (``factory(config: SegmenterConfig) ->
+PersonSegmenter``), ``SEGMENTERS.names()`` lists them."""
 
 
 def load_segmenter(name: str = "mediapipe", config: SegmenterConfig | None = None) -> PersonSegmenter:
-    """A person segmenter by name (see :func:`available_segmenters`); unknown names raise ``ValueError``."""
-    if name not in _SEGMENTERS:
-        raise ValueError(f"unknown person segmenter {name!r}; available: {', '.join(available_segmenters())}")
-    return _SEGMENTERS[name](config or SegmenterConfig())
+    """A person segmenter by name (see ``SEGMENTERS.names()``); unknown names raise ``ValueError``."""
+    return SEGMENTERS.load(name, config or SegmenterConfig())
