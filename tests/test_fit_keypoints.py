@@ -11,11 +11,10 @@ from uvatar.capture import Capture
 from uvatar.errors import InputError, MissingDependencyError, UvatarError
 from uvatar.fit.keypoints import (
     BLAZEPOSE_NAMES,
+    DETECTORS,
     DetectorConfig,
     Keypoints2D,
-    available_detectors,
     load_detector,
-    register_detector,
 )
 from uvatar.render.cameras import project_points
 
@@ -94,7 +93,7 @@ def test_missing_extra_names_it(monkeypatch):
 
 
 def test_registry_and_config():
-    assert "mediapipe" in available_detectors()
+    assert "mediapipe" in DETECTORS.names()
 
     class Fixed:
         name, version, keypoint_names = "fixed", "1", ("a", "b")
@@ -105,7 +104,7 @@ def test_registry_and_config():
         def detect(self, image, roi=None):
             return Keypoints2D(np.ones((2, 2), np.float32), np.ones(2, np.float32))
 
-    register_detector("fixed-test", Fixed)
+    DETECTORS.register("fixed-test", Fixed)
     det = load_detector("fixed-test", DetectorConfig(upsample_to=0))
     assert det.config.upsample_to == 0 and det.detect(np.zeros((4, 4, 3))).detected
     with pytest.raises(ValueError, match="unknown keypoint detector"):

@@ -4,7 +4,7 @@
 takes an image (H, W, 3) float32 in [0, 1] and an optional region of interest and returns
 :class:`Keypoints2D` in full-image OpenCV pixels (x right, y down, pixel centres at integers). A frame
 without a person gives ``conf`` all 0, never an exception. More detectors register with
-:func:`register_detector` (a name and a factory ``config -> detector``).
+:data:`DETECTORS` (``DETECTORS.register(name, factory)``, factory ``config -> detector``).
 
 BlazePose (legacy ``mediapipe.solutions.pose``, static-image mode): the mediapipe wheels 0.10.14 to
 0.10.21 ship ``pose_detection.tflite`` and ``pose_landmark_full.tflite`` (model complexity 1) inside
@@ -18,7 +18,6 @@ product of the two is used).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -26,10 +25,11 @@ import numpy as np
 
 from uvatar.errors import UvatarError, check_values, require
 from uvatar.fit._image import crop_to_image, prepare_image
+from uvatar.fit._registry import GraphOwner, Registry
 
 __all__ = [
     "BLAZEPOSE_NAMES", "Keypoints2D", "KeypointDetector", "DetectorConfig", "MediaPipePoseDetector",
-    "load_detector", "register_detector", "available_detectors", "import_mediapipe",
+    "load_detector", "DETECTORS", "import_mediapipe",
 ]
 
 BLAZEPOSE_NAMES: tuple[str, ...] = (
@@ -118,12 +118,9 @@ def mediapipe_pose_model(mp, model_complexity: int) -> str:
     return path
 
 
-class MediaPipePoseDetector:
-    """BlazePose (33 landmarks) through ``mediapipe.solutions.pose`` in static-image mode.
-
-    One MediaPipe graph per detector (not thread-safe: one detector per thread/process); ``close()``
-    frees it.
-    """
+class MediaPipePoseDetector(GraphOwner):
+    """BlazePose (33 landmarks) through ``mediapipe.solutions.pose`` in static-image mode (one graph per
+    detector, see :class:`GraphOwner`)."""
 
     name = "mediapipe-blazepose"
     keypoint_names = BLAZEPOSE_NAMES
@@ -133,7 +130,7 @@ class MediaPipePoseDetector:
         mp = import_mediapipe()
         mediapipe_pose_model(mp, self.config.model_complexity)
         self.version = f"mediapipe {mp.__version__} pose_landmark complexity {self.config.model_complexity}"
-        self._pose = mp.solutions.pose.Pose(
+        self._graph = mp.solutions.pose.Pose(
             static_image_mode=True, model_complexity=self.config.model_complexity,
             enable_segmentation=False, min_detection_confidence=self.config.min_detection_confidence)
 
@@ -143,7 +140,7 @@ class MediaPipePoseDetector:
         k = len(BLAZEPOSE_NAMES)
         if prep.rgb is None:
             return Keypoints2D.empty(k)
-        result = self._pose.process(prep.rgb)
+        result = self._graph.process(prep.rgb)
         if result.pose_landmarks is None:
             return Keypoints2D.empty(k)
         lm = result.pose_landmarks.landmark
@@ -156,36 +153,12 @@ class MediaPipePoseDetector:
         xy = np.where(conf[:, None] > 0, xy, 0.0)
         return Keypoints2D(xy.astype(np.float32), conf.astype(np.float32))
 
-    def close(self) -> None:
-        """Free the MediaPipe graph."""
-        if self._pose is not None:
-            self._pose.close()
-            self._pose = None
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-
-_DETECTORS: dict[str, Callable[[DetectorConfig], KeypointDetector]] = {
-    "mediapipe": MediaPipePoseDetector,
-}
-
-
-def register_detector(name: str, factory: Callable[[DetectorConfig], KeypointDetector]) -> None:
-    """Make ``load_detector(name, config)`` build ``factory(config)``."""
-    _DETECTORS[str(name)] = factory
-
-
-def available_detectors() -> tuple[str, ...]:
-    """Names :func:`load_detector` accepts."""
-    return tuple(sorted(_DETECTORS))
+DETECTORS = Registry("keypoint detector", {"mediapipe": MediaPipePoseDetector})
+"""Known keypoint detectors: ``DETECTORS.register(name, factory)`` adds one (``factory(config: DetectorConfig) ->
+KeypointDetector``), ``DETECTORS.names()`` lists them."""
 
 
 def load_detector(name: str = "mediapipe", config: DetectorConfig | None = None) -> KeypointDetector:
-    """A keypoint detector by name (see :func:`available_detectors`); unknown names raise ``ValueError``."""
-    if name not in _DETECTORS:
-        raise ValueError(f"unknown keypoint detector {name!r}; available: {', '.join(available_detectors())}")
-    return _DETECTORS[name](config or DetectorConfig())
+    """A keypoint detector by name (see ``DETECTORS.names()``); unknown names raise ``ValueError``."""
+    return DETECTORS.load(name, config or DetectorConfig())
