@@ -1,0 +1,1 @@
+"""Body fits for captures that come without them (AVH §3.1): keypoints, triangulation, fitting."""
