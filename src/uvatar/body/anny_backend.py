@@ -143,20 +143,31 @@ class AnnyBody(BodyModel):
             self._levels_by_device[key] = self._levels.to(device)
         return self._levels_by_device[key]
 
-    def _pose_local(self, rotvecs: torch.Tensor, shape):
+    def _kinematics(self, rotvecs: torch.Tensor, shape):
+        """Bind state, joint frames F (B, J, 3, 3) and heads p (B, J, 3) in anny axes."""
         import roma
 
-        dt = self._weights.dtype
         state = self._bind_state(shape)
-        D = roma.rotvec_to_rotmat(rotvecs.to(dt))  # anny local-ref deltas, anny axes
+        D = roma.rotvec_to_rotmat(rotvecs.to(self._weights.dtype))  # anny local-ref deltas, anny axes
         F, p = forward_kinematics(self._levels_on(D.device), D, state["offsets"])
-        T = skinning_transforms(F, p, state["bind_rotations"], state["bind_heads"])
-        vertices = skin(state["bind_vertices"], self._skin_weights_for(D.device), T)
+        return state, F, p
+
+    def _world_transforms(self, F, p):
         C = self._to_world
         B, J = F.shape[:2]
         top = torch.cat([C @ F, (C @ p[..., None])], -1)
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dt, device=D.device).expand(B, J, 1, 4)
-        return vertices @ C.T, torch.cat([top, bottom], -2)
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=F.dtype, device=F.device).expand(B, J, 1, 4)
+        return torch.cat([top, bottom], -2)
+
+    def _pose_local(self, rotvecs: torch.Tensor, shape):
+        state, F, p = self._kinematics(rotvecs, shape)
+        T = skinning_transforms(F, p, state["bind_rotations"], state["bind_heads"])
+        vertices = skin(state["bind_vertices"], self._skin_weights_for(F.device), T)
+        return vertices @ self._to_world.T, self._world_transforms(F, p)
+
+    def _joints_local(self, rotvecs: torch.Tensor, shape):
+        _, F, p = self._kinematics(rotvecs, shape)
+        return self._world_transforms(F, p)
 
     def _build_template(self) -> BodyTemplate:
         d = self._data

@@ -215,6 +215,24 @@ class BodyModel(torch.nn.Module):
         shape: (S,) or (B, S) backend shape parameters (default :meth:`default_shape`)
         -> :class:`PosedBody` with vertices (B, V, 3), joint_transforms (B, J, 4, 4), normals.
         """
+        rotvecs, (Rh, Th, scale) = self._pose_args(joint_rotvecs, Rh, Th, scale)
+        vertices, transforms = self._pose_local(rotvecs, shape)
+        vertices, transforms = apply_global_transform(vertices, transforms, Rh, Th, scale)
+        vertices = vertices.contiguous()
+        # sparse products on CPU; plain index_add_ (atomics) on GPUs, where it is fast already
+        adjacency = self._adjacency(vertices.shape[-2]) if vertices.device.type == "cpu" else None
+        return PosedBody(vertices=vertices, joint_transforms=transforms,
+                         normals=vertex_normals_torch(vertices, self._faces_t, adjacency))
+
+    def pose_joints(self, joint_rotvecs, Rh=None, Th=None, scale=None, shape=None) -> torch.Tensor:
+        """(B, J, 4, 4) ``pose(...).joint_transforms`` without skinning the mesh (kinematics only:
+        much cheaper, for fits that skin only a few vertices themselves)."""
+        rotvecs, (Rh, Th, scale) = self._pose_args(joint_rotvecs, Rh, Th, scale)
+        transforms = self._joints_local(rotvecs, shape)
+        empty = transforms.new_zeros(transforms.shape[0], 0, 3)
+        return apply_global_transform(empty, transforms, Rh, Th, scale)[1]
+
+    def _pose_args(self, joint_rotvecs, Rh, Th, scale):
         rotvecs = torch.as_tensor(joint_rotvecs, device=self.device)
         if not rotvecs.is_floating_point():
             rotvecs = rotvecs.float()
@@ -230,14 +248,7 @@ class BodyModel(torch.nn.Module):
             x = torch.as_tensor(x, device=self.device, dtype=rotvecs.dtype)
             return x.reshape(-1, *tail).expand(B, *tail)
 
-        vertices, transforms = self._pose_local(rotvecs, shape)
-        vertices, transforms = apply_global_transform(vertices, transforms, batch(Rh, (3,)), batch(Th, (3,)),
-                                                      batch(scale, ()))
-        vertices = vertices.contiguous()
-        # sparse products on CPU; plain index_add_ (atomics) on GPUs, where it is fast already
-        adjacency = self._adjacency(vertices.shape[-2]) if vertices.device.type == "cpu" else None
-        return PosedBody(vertices=vertices, joint_transforms=transforms,
-                         normals=vertex_normals_torch(vertices, self._faces_t, adjacency))
+        return rotvecs, (batch(Rh, (3,)), batch(Th, (3,)), batch(scale, ()))
 
     def _skin_weights_for(self, device: torch.device) -> torch.Tensor:
         """Skinning weights for :func:`~uvatar.body.kinematics.skin`: sparse CSR on CPU (~4x faster),
@@ -255,6 +266,11 @@ class BodyModel(torch.nn.Module):
     def _pose_local(self, rotvecs: torch.Tensor, shape) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, J, 3) -> vertices (B, V, 3), joint transforms (B, J, 4, 4) in model space."""
         raise NotImplementedError
+
+    def _joints_local(self, rotvecs: torch.Tensor, shape) -> torch.Tensor:
+        """(B, J, 3) -> joint transforms (B, J, 4, 4) in model space (backends override this with
+        kinematics alone)."""
+        return self._pose_local(rotvecs, shape)[1]
 
     def rest_to_posed_transforms(self, posed: PosedBody, shape=None) -> torch.Tensor:
         """(B, J, 4, 4) per-joint transforms taking rest-pose points (``template.vertices`` space, for

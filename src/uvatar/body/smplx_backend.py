@@ -216,6 +216,12 @@ class SmplxBody(BodyModel):
         self.to(cfg.device)
 
     def _pose_local(self, rotvecs: torch.Tensor, shape):
+        return self._forward(rotvecs, shape, with_vertices=True)
+
+    def _joints_local(self, rotvecs: torch.Tensor, shape):
+        return self._forward(rotvecs, shape, with_vertices=False)[1]
+
+    def _forward(self, rotvecs: torch.Tensor, shape, with_vertices: bool):
         import roma
 
         dt = self._v_template.dtype
@@ -229,9 +235,6 @@ class SmplxBody(BodyModel):
         v_shaped = self._v_template + torch.einsum("bl,vkl->bvk", betas, self._shapedirs)  # (Bs, V, 3)
         joints = self._J_regressor @ v_shaped  # (Bs, J, 3)
         R = roma.rotvec_to_rotmat(rotvecs.to(dt))
-        eye = torch.eye(3, dtype=dt, device=R.device)
-        pose_feature = (R[:, 1:] - eye).reshape(B, -1)
-        v_posed = v_shaped + (pose_feature @ self._posedirs).reshape(B, -1, 3)
         parents = self._parents.to(R.device)
         offsets = joints - joints[:, parents]
         offsets[:, 0] = joints[:, 0]
@@ -239,7 +242,13 @@ class SmplxBody(BodyModel):
         if key not in self._levels_by_device:
             self._levels_by_device[key] = self._levels.to(R.device)
         F, p = forward_kinematics(self._levels_by_device[key], R, offsets)
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dt, device=R.device).expand(B, J, 1, 4)
+        transforms = torch.cat([torch.cat([F, p[..., None]], -1), bottom], -2)
+        if not with_vertices:
+            return None, transforms
+        eye = torch.eye(3, dtype=dt, device=R.device)
+        pose_feature = (R[:, 1:] - eye).reshape(B, -1)
+        v_posed = v_shaped + (pose_feature @ self._posedirs).reshape(B, -1, 3)
         T = skinning_transforms(F, p, None, joints.expand(B, -1, -1))
         vertices = skin(v_posed, self._skin_weights_for(R.device), T)
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dt, device=R.device).expand(B, J, 1, 4)
-        return vertices, torch.cat([torch.cat([F, p[..., None]], -1), bottom], -2)
+        return vertices, transforms

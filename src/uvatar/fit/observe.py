@@ -185,7 +185,7 @@ def save_observation(path: str | Path, obs: FrameObservation) -> None:
     cams = obs.cameras
     write_npz(path, source=np.array(obs.source), names=np.array([c.name for c in cams]),
               K=np.stack([c.K for c in cams]), R=np.stack([c.R for c in cams]),
-              T=np.stack([c.T for c in cams]), dist=np.stack([np.resize(c.dist, 5) for c in cams]),
+              T=np.stack([c.T for c in cams]), dist=np.stack([np.pad(np.asarray(c.dist, np.float64).reshape(-1), (0, 5))[:5] for c in cams]),
               size=np.array([[c.width, c.height] for c in cams], np.int64),
               xy=obs.xy, conf=obs.conf, points=obs.points, points_conf=obs.points_conf,
               reprojection_px=obs.reprojection_px, redetected=np.array(obs.redetected, dtype=str))

@@ -1,70 +1,68 @@
-"""Projection and undistortion with the OpenCV lens model, batched over any leading shape.
+"""Projection through cameras with lens distortion, for the fit: numpy for triangulation, torch
+(differentiable, several cameras at once) for the reprojection and silhouette losses.
 
-``uvatar.render.cameras.project_points`` is the ideal pinhole (distortion ignored); the fit needs the
-detected, distorted pixels, so the distortion-aware twin lives here: :func:`project_distorted` applies
-the OpenCV model (k1, k2, p1, p2, k3[, k4, k5, k6] rational) in numpy, :func:`undistort_normalized`
-inverts it with ``cv2.undistortPointsIter``. Cameras with ``dist`` all zero take the pinhole path.
+The lens model itself (OpenCV k1, k2, p1, p2, k3) has one owner, :mod:`uvatar.geometry.camera`
+(:func:`~uvatar.geometry.camera.distort` takes numpy or torch, :func:`~uvatar.geometry.camera.undistort`
+inverts it); this module only batches it over views. ``X_cam = R @ X_world + T``; pixels
+``K @ (x_d, y_d, 1)`` (x right, y down, OpenCV pixel centres).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from uvatar.capture.types import Camera
-from uvatar.errors import InputError
+from uvatar.geometry.camera import distort, undistort
 
-__all__ = ["project_distorted", "undistort_normalized", "distort_normalized"]
-
-
-def _coefficients(camera: Camera) -> np.ndarray:
-    d = np.asarray(camera.dist, dtype=np.float64).reshape(-1)
-    if d.size > 8 and np.any(d[8:] != 0):
-        raise InputError(f"camera {camera.name}", f"distortion with {d.size} coefficients (thin prism/tilt) "
-                         "is not supported; the OpenCV k1,k2,p1,p2,k3[,k4,k5,k6] model is")
-    return np.pad(d[:8], (0, max(0, 8 - d.size)))
-
-
-def distort_normalized(camera: Camera, xy: np.ndarray) -> np.ndarray:
-    """Ideal normalised image coordinates (..., 2) (X/Z, Y/Z) -> distorted normalised coordinates (..., 2)."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = _coefficients(camera)
-    x, y = xy[..., 0], xy[..., 1]
-    r2 = x * x + y * y
-    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.stack([xd, yd], axis=-1)
+__all__ = ["project_distorted", "undistort_normalized", "CameraTensors", "camera_tensors", "project_cameras"]
 
 
 def project_distorted(camera: Camera, points) -> tuple[np.ndarray, np.ndarray]:
-    """World points (..., 3) metres -> distorted pixels (..., 2) (x right, y down) and depth (...,) =
-    camera z. Equals ``cv2.projectPoints`` with the camera's K and dist; points with depth <= 0 are
-    behind the camera and their pixels are meaningless."""
-    cam = np.asarray(points, dtype=np.float64) @ camera.R.T + camera.T
-    z = cam[..., 2]
-    safe = np.where(np.abs(z) < 1e-12, 1e-12, z)
-    n = cam[..., :2] / safe[..., None]
-    if np.any(camera.dist != 0):
-        n = distort_normalized(camera, n)
-    K = camera.K
-    pix = np.stack([K[0, 0] * n[..., 0] + K[0, 1] * n[..., 1] + K[0, 2], K[1, 1] * n[..., 1] + K[1, 2]], axis=-1)
-    return pix, z
+    """World points (..., 3) metres -> distorted pixels (..., 2) and depth (...,) = camera z (equals
+    ``cv2.projectPoints``; points with depth <= 0 are behind the camera, their pixels meaningless)."""
+    cam = camera.world_to_camera(points)
+    return camera.project(points), cam[..., 2]
 
 
 def undistort_normalized(camera: Camera, pixels) -> np.ndarray:
-    """Distorted pixels (..., 2) -> ideal normalised image coordinates (..., 2) (X/Z, Y/Z), inverting
-    K and the lens distortion (iterative, to 1e-12 or 100 iterations)."""
+    """Distorted pixels (..., 2) -> ideal normalised image coordinates (..., 2) (X/Z, Y/Z)."""
     pix = np.asarray(pixels, dtype=np.float64)
-    shape = pix.shape
-    flat = pix.reshape(-1, 2)
-    if not np.any(camera.dist != 0) or flat.shape[0] == 0:
-        K = camera.K
-        y = (flat[:, 1] - K[1, 2]) / K[1, 1]
-        x = (flat[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
-        return np.stack([x, y], axis=-1).reshape(shape)
-    import cv2
+    K = camera.K
+    y = (pix[..., 1] - K[1, 2]) / K[1, 1]
+    x = (pix[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return undistort(np.stack([x, y], axis=-1), camera.dist)
 
-    _coefficients(camera)
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    out = cv2.undistortPointsIter(np.ascontiguousarray(flat[:, None, :]), camera.K, camera.dist, None, None,
-                                  criteria)
-    return out.reshape(shape)
+
+class CameraTensors:
+    """Stacked camera parameters on one device: K (C, 3, 3), R (C, 3, 3), T (C, 3); ``dist`` keeps
+    each camera's (5,) coefficients as numpy (they are constants of the lens model)."""
+
+    def __init__(self, K, R, T, dist):
+        self.K, self.R, self.T, self.dist = K, R, T, dist
+
+    def to(self, device=None, dtype=None) -> CameraTensors:
+        return CameraTensors(*(x.to(device=device, dtype=dtype) for x in (self.K, self.R, self.T)), self.dist)
+
+
+def camera_tensors(cameras, device="cpu", dtype=torch.float32) -> CameraTensors:
+    """list[Camera] -> :class:`CameraTensors`."""
+    def stack(attr):
+        return torch.as_tensor(np.stack([np.asarray(getattr(c, attr), np.float64) for c in cameras]),
+                               device=device, dtype=dtype)
+    dist = [np.pad(np.asarray(c.dist, np.float64).reshape(-1), (0, 5))[:5] for c in cameras]
+    return CameraTensors(stack("K"), stack("R"), stack("T"), dist)
+
+
+def project_cameras(points: torch.Tensor, cams: CameraTensors, min_depth: float = 1e-3):
+    """points (..., N, 3) world -> (pixels (..., C, N, 2) distorted, depth (..., C, N) metres),
+    differentiable. Depth is clamped to ``min_depth`` before the division (points behind a camera
+    give finite but meaningless pixels: mask them with ``depth > 0``)."""
+    cam = torch.einsum("cij,...nj->...cni", cams.R, points) + cams.T[:, None, :]
+    z = cam[..., 2]
+    xy = cam[..., :2] / z.clamp_min(min_depth)[..., None]
+    xy = torch.stack([distort(xy[..., c, :, :], d) for c, d in enumerate(cams.dist)], dim=-3)  # C views, not points
+    K = cams.K
+    u = K[:, None, 0, 0] * xy[..., 0] + K[:, None, 0, 1] * xy[..., 1] + K[:, None, 0, 2]
+    v = K[:, None, 1, 1] * xy[..., 1] + K[:, None, 1, 2]
+    return torch.stack([u, v], -1), z

@@ -1,0 +1,183 @@
+"""Per-frame loss terms of the body fit (torch, batched over frames T; each returns (T,)).
+
+Robust terms use Geman-McClure, ``gmof(r, s) = s^2 r^2 / (s^2 + r^2)`` (metres^2; tends to ``s^2`` for
+outliers). Every data term is normalized by its total confidence, so a frame without observations
+contributes 0 (the temporal term then carries it).
+
+Scan distance (both directions) is signed along a normal, ``d = (v - p) . n``: d > 0 means the body
+lies OUTSIDE the scan surface, which clothing never explains, so it costs fully; the body lying
+inside (d < 0) is what clothing looks like (a garment stands off the skin by up to a few cm), so that
+side costs only beyond ``inside_tolerance`` and with ``inside_weight``: pulling the body onto the
+cloth would inflate the shape by the clothing thickness.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+__all__ = ["gmof", "keypoint3d_term", "keypoint2d_term", "signed_scan_cost", "ScanTerm", "MaskTerm",
+           "pose_prior_term", "smoothness_term"]
+
+
+def gmof(r: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Geman-McClure of residual magnitudes r (any shape, metres or pixels)."""
+    r2 = r * r
+    s2 = sigma * sigma
+    return s2 * r2 / (s2 + r2)
+
+
+def _normalized(cost: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """cost, weight (T, ...) -> (T,) weighted mean per frame (0 where the weight sums to 0)."""
+    w = weight.reshape(weight.shape[0], -1)
+    return (cost.reshape(cost.shape[0], -1) * w).sum(1) / w.sum(1).clamp_min(1e-9)
+
+
+def keypoint3d_term(pred, obs, conf, weights, sigma: float) -> torch.Tensor:
+    """pred, obs (T, K, 3) metres; conf (T, K); weights (K,) -> (T,) robust mean squared error."""
+    r = torch.linalg.norm(pred - obs, dim=-1)
+    return _normalized(gmof(r, sigma), conf * weights)
+
+
+def keypoint2d_term(pred, cams, obs, conf, weights, sigma_px: float) -> torch.Tensor:
+    """pred (T, K, 3) world; obs (T, C, K, 2) distorted pixels, conf (T, C, K) -> (T,).
+
+    The pixel error is turned into metres at the keypoint's depth (``px * z / f``, z and f not
+    differentiated), so its scale matches the 3D terms."""
+    from uvatar.fit.projection import project_cameras
+
+    px, z = project_cameras(pred, cams)                       # (T, C, K, 2), (T, C, K)
+    f = cams.K[:, 0, 0].reshape(1, -1, 1)
+    to_m = (z.detach().clamp_min(0.1) / f)
+    r = torch.linalg.norm(px - obs, dim=-1) * to_m
+    w = conf * weights * (z.detach() > 0.05)
+    return _normalized(gmof(r, sigma_px * float(to_m.mean())), w)
+
+
+def signed_scan_cost(d, sigma: float, inside_tolerance: float, inside_weight: float):
+    """d (...) signed body-minus-scan distance along the normal (metres) -> robust cost (...)."""
+    outside = gmof(torch.relu(d), sigma)
+    inside = gmof(torch.relu(-d - inside_tolerance), sigma)
+    return outside + inside_weight * inside
+
+
+class ScanTerm:
+    """Scan-surface distance both ways with nearest neighbours refreshed on demand (ICP style).
+
+    scans: per frame (points (P, 3), normals (P, 3)) or None; body_vertices: the template vertex ids
+    the body side uses; scan_samples: scan points per frame (evenly strided); max_distance: matches
+    farther than this (m) or with normals more than 60 degrees apart are dropped (missing scan parts,
+    fingers the body fit does not track)."""
+
+    def __init__(self, scans, body_vertices: np.ndarray, scan_samples: int, max_distance: float,
+                 device, dtype=torch.float32):
+        from scipy.spatial import cKDTree
+
+        self.frames = [t for t, s in enumerate(scans) if s is not None and len(s[0])]
+        self.body_vertices = torch.as_tensor(body_vertices, device=device)
+        self.max_distance = max_distance
+        self.trees, self.points, self.normals, self.sub = [], [], [], []
+        for t in self.frames:
+            p, n = (np.asarray(a, np.float64) for a in scans[t])
+            self.trees.append(cKDTree(p))
+            step = max(1, len(p) // scan_samples)
+            self.sub.append(p[::step][:scan_samples])
+            self.points.append(torch.as_tensor(p, device=device, dtype=dtype))
+            self.normals.append(torch.as_tensor(n, device=device, dtype=dtype))
+        self.sub_t = [torch.as_tensor(s, device=device, dtype=dtype) for s in self.sub]
+        self.sub_n = [torch.as_tensor(np.asarray(scans[t][1], np.float64)[::max(1, len(scans[t][0]) // scan_samples)]
+                                      [:scan_samples], device=device, dtype=dtype) for t in self.frames]
+        self.matches = None
+
+    def refresh(self, vertices: torch.Tensor, normals: torch.Tensor) -> None:
+        """Nearest neighbours for the current posed body (T, V, 3) (no gradient)."""
+        from scipy.spatial import cKDTree
+
+        v = vertices.detach()[:, self.body_vertices].cpu().double().numpy()
+        n = normals.detach()[:, self.body_vertices].cpu().double().numpy()
+        out = []
+        for i, t in enumerate(self.frames):
+            dist, idx = self.trees[i].query(v[t], distance_upper_bound=self.max_distance)
+            ok_b = np.isfinite(dist)
+            idx = np.where(ok_b, idx, 0)
+            sn = self.normals[i].cpu().numpy()[idx]
+            ok_b &= (sn * n[t]).sum(1) > 0.5
+            dist_s, idx_s = cKDTree(v[t]).query(self.sub[i], distance_upper_bound=self.max_distance)
+            ok_s = np.isfinite(dist_s)
+            idx_s = np.where(ok_s, idx_s, 0)
+            ok_s &= (self.sub_n[i].cpu().numpy() * n[t][idx_s]).sum(1) > 0.5
+            out.append(tuple(torch.as_tensor(a, device=vertices.device) for a in (idx, ok_b, idx_s, ok_s)))
+        self.matches = out
+
+    def __call__(self, vertices, normals, sigma: float, inside_tolerance: float, inside_weight: float):
+        """(T,) mean robust signed distance, body->scan and scan->body averaged (0 without scan)."""
+        T = vertices.shape[0]
+        out = [vertices.new_zeros(())] * T
+        vb, nb = vertices[:, self.body_vertices], normals[:, self.body_vertices]
+        for i, t in enumerate(self.frames):
+            idx, ok_b, idx_s, ok_s = self.matches[i]
+            d_b = ((vb[t] - self.points[i][idx]) * self.normals[i][idx]).sum(-1)
+            d_s = ((vb[t][idx_s] - self.sub_t[i]) * nb[t][idx_s].detach()).sum(-1)
+            cost_b = signed_scan_cost(d_b, sigma, inside_tolerance, inside_weight)
+            cost_s = signed_scan_cost(d_s, sigma, inside_tolerance, inside_weight)
+            out[t] = 0.5 * ((cost_b * ok_b).sum() / ok_b.sum().clamp_min(1)
+                            + (cost_s * ok_s).sum() / ok_s.sum().clamp_min(1))
+        return torch.stack(out)
+
+
+class MaskTerm:
+    """Silhouette: projected body vertices should fall inside each camera's person mask.
+
+    masks: per frame, per camera (H, W) bool or None. Stores the Euclidean distance transform of the
+    mask's outside (pixels; 0 inside), sampled with ``grid_sample`` at projected vertices, turned
+    into metres at the vertex depth."""
+
+    def __init__(self, masks, cams, body_vertices: np.ndarray, device, dtype=torch.float32):
+        from scipy.ndimage import distance_transform_edt
+
+        T, C = len(masks), cams.K.shape[0]
+        shapes = [m.shape for frame in masks for m in frame if m is not None]
+        H, W = shapes[0]
+        dt = np.zeros((T, C, H, W), np.float32)
+        valid = np.zeros((T, C), np.float32)
+        for t, frame in enumerate(masks):
+            for c, m in enumerate(frame):
+                if m is not None and m.shape == (H, W) and m.any():
+                    dt[t, c] = distance_transform_edt(~m.astype(bool))
+                    valid[t, c] = 1.0
+        self.dt = torch.as_tensor(dt, device=device, dtype=dtype).reshape(T * C, 1, H, W)
+        self.valid = torch.as_tensor(valid, device=device, dtype=dtype)
+        self.size = (W, H)
+        self.cams = cams
+        self.body_vertices = torch.as_tensor(body_vertices, device=device)
+
+    def __call__(self, vertices, sigma: float):
+        from uvatar.fit.projection import project_cameras
+
+        T = vertices.shape[0]
+        px, z = project_cameras(vertices[:, self.body_vertices], self.cams)   # (T, C, N, 2)
+        C, N = px.shape[1], px.shape[2]
+        W, H = self.size
+        grid = torch.stack([(px[..., 0] + 0.5) / W * 2 - 1, (px[..., 1] + 0.5) / H * 2 - 1], -1)
+        d = torch.nn.functional.grid_sample(self.dt, grid.reshape(T * C, 1, N, 2), align_corners=False,
+                                            padding_mode="border").reshape(T, C, N)
+        f = self.cams.K[:, 0, 0].reshape(1, -1, 1)
+        cost = gmof(d * z.detach().clamp_min(0.1) / f, sigma)
+        return _normalized(cost, self.valid[..., None].expand_as(cost))
+
+
+def pose_prior_term(rotvecs: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """rotvecs (T, Jc, 3) local axis-angles, weights (Jc,) -> (T,) weighted mean squared angle (rad^2)."""
+    return ((rotvecs ** 2).sum(-1) * weights).sum(-1) / weights.sum().clamp_min(1e-9)
+
+
+def smoothness_term(x: torch.Tensor) -> torch.Tensor:
+    """x (T, N, 3) per-frame points (or (T, N*3) values) -> (T,) mean squared first difference per
+    point, split between the two frames each difference touches (0 for a single frame)."""
+    T = x.shape[0]
+    out = x.new_zeros(T)
+    if T < 2:
+        return out
+    d = (x[1:] - x[:-1]).reshape(T - 1, -1).pow(2).sum(1) / max(1, x[0].numel() // 3)
+    out = out.index_add(0, torch.arange(T - 1, device=x.device), 0.5 * d)
+    return out.index_add(0, torch.arange(1, T, device=x.device), 0.5 * d)

@@ -1,0 +1,109 @@
+"""``uvatar fit`` end to end on a small studio capture: the real detector, triangulation, the body fit."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from uvatar.errors import InputError
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _copy_without_fits(src, dst):
+    shutil.copytree(src, dst)
+    shutil.rmtree(dst / "fits")
+    return dst
+
+
+def _fitted_joints(root, frames):
+    import torch
+
+    from uvatar.body import load_body_model
+    from uvatar.capture import Capture
+
+    cap = Capture(root)
+    body = load_body_model("anny")
+    out = {}
+    for frame in frames:
+        fit = cap.load_fit(frame)
+        with torch.no_grad():
+            posed = body.pose(body.joint_rotvecs_from_fit(fit), Rh=fit.Rh, Th=fit.Th, shape=torch.as_tensor(fit.shapes))
+        out[frame] = posed.joints[0].numpy()
+    return out
+
+
+def test_fit_refuses_to_replace_fits(fit_studio, tmp_path):
+    from uvatar.fit.pipeline import FitConfig, fit_capture
+
+    root = tmp_path / "cap"
+    shutil.copytree(fit_studio[0], root)
+    with pytest.raises(InputError, match="--force"):
+        fit_capture(root, FitConfig(source="images"), progress=False)
+
+
+def test_fit_from_images_writes_fits_shape_and_provenance_and_resumes(fit_studio, tmp_path):
+    from uvatar.capture import Capture
+    from uvatar.fit.pipeline import FitConfig, fit_capture
+
+    src, truth = fit_studio
+    root = _copy_without_fits(src, tmp_path / "cap")
+    summary = fit_capture(root, FitConfig(source="images", overlay_frames=1), progress=False)
+    cap = Capture(root)
+    assert summary["source"] == "images" and summary["frames"] == 2 and not summary["frames_without_detection"]
+    assert all(cap.has_fit(f) for f in cap.frames)
+    prov = cap.info["provenance"]["fit"]
+    assert prov["detector"]["name"] == "mediapipe" and "keypoints3d" in prov["losses"]
+    assert len(cap.body_shapes) == len(cap.load_fit(cap.frames[0]).shapes) > 0  # one shape, in capture.json
+    assert (root / "fitting" / "contact_sheet.png").is_file()
+    assert summary["reprojection"]["fitted_body_px"]["median"] < 12  # at 256^2
+    sem = truth["semantic"]
+    body_joints = [sem[k] for k in ("pelvis", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle",
+                                    "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist")]
+    fitted = _fitted_joints(root, cap.frames)
+    err = [np.linalg.norm(fitted[f][body_joints] - truth[f][body_joints], axis=1).mean() for f in cap.frames]
+    assert max(err) < 0.06, err  # metres, from 4 views of 256^2 pixels
+    # a re-run with --force reuses the saved keypoints (nothing detected again)
+    kp = sorted((root / "fitting" / "keypoints").glob("*.npz"))
+    stamps = [p.stat().st_mtime_ns for p in kp]
+    fit_capture(root, FitConfig(source="images", overlay_frames=0, force=True), progress=False)
+    assert [p.stat().st_mtime_ns for p in kp] == stamps
+
+
+def test_a_frame_without_a_person_is_reported_not_fatal(fit_studio, tmp_path):
+    import imageio.v3 as iio
+
+    from uvatar.capture import Capture
+    from uvatar.fit.pipeline import FitConfig, fit_capture
+
+    root = _copy_without_fits(fit_studio[0], tmp_path / "cap")
+    cap = Capture(root)
+    blank = cap.frames[1]
+    for cam in cap.cameras():
+        path = cap.image_path(cam, blank)
+        iio.imwrite(path, np.zeros_like(iio.imread(path)))
+    summary = fit_capture(root, FitConfig(source="images", overlay_frames=0, scan_distance=False), progress=False)
+    assert list(summary["frames_without_detection"]) == [blank]
+    assert Capture(root).has_fit(blank)  # fitted from its neighbour (temporal smoothness)
+    # with every frame blank and no scans there is nothing to fit: one line, nothing written
+    other = _copy_without_fits(fit_studio[0], tmp_path / "cap2")
+    shutil.rmtree(other / "scans")
+    for frame in Capture(other).frames:
+        for cam in Capture(other).cameras():
+            path = Capture(other).image_path(cam, frame)
+            iio.imwrite(path, np.zeros_like(iio.imread(path)))
+    with pytest.raises(InputError, match="none usable"):
+        fit_capture(other, FitConfig(source="images", overlay_frames=0), progress=False)
+    assert not (other / "fits").exists()
+
+
+def test_cli_fit_existing_fits_is_one_line(fit_studio, tmp_path, capsys):
+    from uvatar.cli.main import main
+
+    root = tmp_path / "cap"
+    shutil.copytree(fit_studio[0], root)
+    assert main(["fit", str(root), "--from", "images", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--force" in err[0] and "fits" in err[0]
