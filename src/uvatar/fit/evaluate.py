@@ -2,7 +2,7 @@
 
 :func:`evaluate_fits` compares fits (``{frame: BodyFit}``, e.g. from ``uvatar fit`` or the capture's
 own ``fits/``) with the true poses in ``gt/frames/<frame>.npz`` (local axis-angles, Rh, Th) and the
-true shape (``capture.json`` body_model shapes, which ``uvatar synth`` writes). The protocol text in
+true shape (:func:`true_body_shape`: ``gt/info.json`` ``body_shapes``, which ``uvatar synth`` writes). The protocol text in
 the returned dict says exactly what is measured.
 """
 
@@ -92,6 +92,20 @@ def _pose_batch(body, fits, shape):
                          scale=torch.as_tensor(scale), shape=None if shape is None else torch.as_tensor(shape))
 
 
+def true_body_shape(body, capture) -> np.ndarray | None:
+    """The studio's true shape: ``gt/info.json`` ``body_shapes``; for captures made before it was
+    recorded there, the body's default shape (what ``uvatar synth`` always used). capture.json is not
+    the truth: it holds the shape of the fits, which ``uvatar fit`` replaces."""
+    from uvatar.io_utils import read_json
+
+    info = read_json(capture.gt_dir / "info.json", "no ground truth (gt/info.json)")
+    shapes = info.get("body_shapes")
+    if shapes is None:
+        return body.default_shape().detach().cpu().numpy().astype(np.float32)
+    shapes = np.asarray(shapes, np.float32)
+    return shapes if shapes.size == len(body.shape_names) else None
+
+
 def evaluate_fits(body, capture, fits: dict, shape, scan_points: int = 20000, batch: int = 8) -> dict:
     """Fits ``{frame: BodyFit}`` of ``capture`` (with ``gt/``) against the truth -> dict (mm, deg).
 
@@ -104,7 +118,7 @@ def evaluate_fits(body, capture, fits: dict, shape, scan_points: int = 20000, ba
     frames = [f for f in capture.frames if f in fits and (gt_dir / f"{f}.npz").is_file()]
     if not frames:
         raise InputError(capture.root, "no frame has both a fit and ground truth (gt/frames/*.npz)")
-    true_shape = capture.body_shapes if capture.body_shapes.size == len(body.shape_names) else None
+    true_shape = true_body_shape(body, capture)
     if shape is None and np.asarray(fits[frames[0]].shapes).size == len(body.shape_names):
         shape = fits[frames[0]].shapes
     shape = None if shape is None else np.asarray(shape, np.float32)

@@ -101,7 +101,8 @@ def resolve_left_right(xy, conf, cameras, config, names, exhaustive_up_to: int =
 
     xy (C, K, 2), conf (C, K) -> (xy, conf, swapped (C,) bool) with the chosen labelling (the first
     view fixes it). Every combination is tried for up to ``exhaustive_up_to`` views; beyond, each
-    view is flipped in turn while that helps."""
+    view is flipped in turn while that helps. When all views agree on the mirror image
+    (:func:`mirrored_labels`), every view is swapped."""
     import itertools
 
     from uvatar.fit.triangulate import triangulate
@@ -135,8 +136,31 @@ def resolve_left_right(xy, conf, cameras, config, names, exhaustive_up_to: int =
                 s = score(trial)
                 if s < best_score - 1e-6:
                     best, best_score, improved = trial, s, True
+    best = np.asarray(best, bool)
     x, c = apply(best)
-    return x, c, np.asarray(best, bool)
+    if mirrored_labels(triangulate(x, c, cameras, config), names):
+        best = ~best  # every view agreed on the mirror image: the face points backwards
+        x, c = apply(best)
+    return x, c, best
+
+
+def mirrored_labels(tri, names) -> bool:
+    """True when the triangulated person's left/right labels are those of its mirror image: with
+    ``left`` the right-to-left shoulder (and hip) direction and ``up`` hips-to-shoulders, the face
+    (nose ahead of the ears) must point along ``left x up`` (uvatar's rest pose: left +X, up +Y,
+    facing +Z). False when the points needed are not all triangulated."""
+    names = list(names)
+    need = ("nose", "left_ear", "right_ear", "left_shoulder", "right_shoulder", "left_hip", "right_hip")
+    if any(n not in names for n in need):
+        return False
+    idx = {n: names.index(n) for n in need}
+    if not all(tri.conf[idx[n]] > 0 for n in need):
+        return False
+    p = {n: np.asarray(tri.points[idx[n]], np.float64) for n in need}
+    left = (p["left_shoulder"] - p["right_shoulder"]) + (p["left_hip"] - p["right_hip"])
+    up = (p["left_shoulder"] + p["right_shoulder"] - p["left_hip"] - p["right_hip"]) / 2
+    face = p["nose"] - (p["left_ear"] + p["right_ear"]) / 2
+    return float(np.dot(np.cross(left, up), face)) < 0
 
 
 def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, triangulate_config,

@@ -275,7 +275,8 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
 
     t1 = time.perf_counter()
     obs = _observations(frames, observations, source, scans, len(detector.keypoint_names))
-    result = fit_body_sequence(body, obs, stages.body, progress=progress)
+    with _fit_progress(progress) as callback:
+        result = fit_body_sequence(body, obs, stages.body, progress=callback)
     t_fit = time.perf_counter() - t1
 
     provenance = {
@@ -311,6 +312,28 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
                                                       stages, config))
     write_json(capture.root / "fitting" / "summary.json", summary)
     return summary
+
+
+class _fit_progress:
+    """A tqdm bar (with ETA) fed by :func:`fit_body_sequence`'s ``progress(done, total, info)``."""
+
+    def __init__(self, enabled: bool):
+        self.enabled, self.bar = enabled, None
+
+    def __enter__(self):
+        return self if self.enabled else None
+
+    def __call__(self, done: int, total: int, info: dict) -> None:
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, desc="body fit", unit="step", dynamic_ncols=True)
+        self.bar.update(done - self.bar.n)
+        self.bar.set_postfix(stage=info.get("stage"), loss=f"{info.get('loss', float('nan')):.4g}", refresh=False)
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _loss_names(obs, body_config) -> list[str]:

@@ -66,8 +66,11 @@ class GtRenderer:
             raise InputError(info_path, "no ground truth (only `uvatar synth` captures have gt/)")
         info = json.loads(info_path.read_text())
         cfg = config_from_dict(info.get("config", {})).replace(gt_texels=int(resolution), workers=1)
-        capture = json.loads((self.root / "capture.json").read_text())
-        shape = np.asarray(capture.get("body_model", {}).get("shapes", []), dtype=np.float32)
+        if "body_shapes" in info:  # the true shape (capture.json holds the fits' shape, e.g. after `uvatar fit`)
+            shape = np.asarray(info["body_shapes"], dtype=np.float32)
+        else:  # captures made before gt/info.json recorded it
+            capture = json.loads((self.root / "capture.json").read_text())
+            shape = np.asarray(capture.get("body_model", {}).get("shapes", []), dtype=np.float32)
         plan = {"shape": shape, "frames": [], "poses": None, "Rh": None, "Th": None}
         self.cfg = cfg
         self.studio = Studio(cfg, self.root, plan)

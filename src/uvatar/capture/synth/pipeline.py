@@ -98,7 +98,7 @@ def _write_meta(root: Path, cfg: SynthConfig, plan: dict) -> None:
         "heldout_frames": plan["heldout_frames"], "takes": plan["takes"],
         "texel_resolution": cfg.gt_texels, "scan_texture": cfg.scan_texture,
         "segments": plan["segments"], "seed": cfg.seed, "fit_noise_deg": cfg.fit_noise_deg,
-        "body_model": cfg.body_model,
+        "body_model": cfg.body_model, "body_shapes": np.asarray(plan["shape"], np.float64).tolist(),
         "config": {k: v for k, v in cfg.to_dict().items() if k not in ("workers", "preview")}})
     motion_path = root / "gt" / "motion.npz"
     if not motion_path.is_file():
