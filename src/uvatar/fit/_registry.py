@@ -15,7 +15,7 @@ __all__ = ["Registry", "GraphOwner", "quiet_native_stderr"]
 @contextmanager
 def quiet_native_stderr() -> Iterator[None]:
     """Silence file descriptor 2 for a block: MediaPipe's C++ side prints TensorFlow Lite / absl INFO and
-    WARNING lines (XNNPACK delegate, feedback tensors) while a graph starts and on its first frames,
+    WARNING lines (XNNPACK delegate, feedback tensors, NORM_RECT) while its graphs start and run,
     which no environment variable turns off (one "Created TensorFlow Lite XNNPACK delegate" line comes
     from a graph thread after start-up and still shows). Python exceptions still propagate (after the
     restore); other threads' stderr is lost for the duration of the block."""
@@ -59,15 +59,20 @@ class GraphOwner:
     ``close()`` (or leaving a ``with`` block) frees it."""
 
     _graph = None
-    _quiet_calls = 2   # the first calls print C++ start-up lines; later ones are silent anyway
+
+    def _start(self, make_graph: Callable[[], Any]) -> None:
+        """``self._graph = make_graph()`` and one warm-up frame, with fd 2 silenced: the graph's threads
+        finish starting (and print their start-up lines) only once a first frame has gone through."""
+        import numpy as np
+
+        with quiet_native_stderr():
+            self._graph = make_graph()
+            self._graph.process(np.zeros((64, 64, 3), np.uint8))
 
     def _process(self, rgb):
-        """``self._graph.process(rgb)``, with the C++ start-up chatter of the first calls silenced."""
-        if self._quiet_calls > 0:
-            self._quiet_calls -= 1
-            with quiet_native_stderr():
-                return self._graph.process(rgb)
-        return self._graph.process(rgb)
+        """``self._graph.process(rgb)`` with fd 2 silenced (subgraphs may still log; two dup2 per image)."""
+        with quiet_native_stderr():
+            return self._graph.process(rgb)
 
     def close(self) -> None:
         """Free the MediaPipe graph."""

@@ -25,7 +25,7 @@ import numpy as np
 
 from uvatar.errors import UvatarError, check_values, require
 from uvatar.fit._image import crop_to_image, prepare_image
-from uvatar.fit._registry import GraphOwner, Registry, quiet_native_stderr
+from uvatar.fit._registry import GraphOwner, Registry
 
 __all__ = [
     "BLAZEPOSE_NAMES", "Keypoints2D", "KeypointDetector", "DetectorConfig", "MediaPipePoseDetector",
@@ -130,10 +130,9 @@ class MediaPipePoseDetector(GraphOwner):
         mp = import_mediapipe()
         mediapipe_pose_model(mp, self.config.model_complexity)
         self.version = f"mediapipe {mp.__version__} pose_landmark complexity {self.config.model_complexity}"
-        with quiet_native_stderr():
-            self._graph = mp.solutions.pose.Pose(
-                static_image_mode=True, model_complexity=self.config.model_complexity,
-                enable_segmentation=False, min_detection_confidence=self.config.min_detection_confidence)
+        self._start(lambda: mp.solutions.pose.Pose(
+            static_image_mode=True, model_complexity=self.config.model_complexity,
+            enable_segmentation=False, min_detection_confidence=self.config.min_detection_confidence))
 
     def detect(self, image: np.ndarray, roi=None) -> Keypoints2D:
         """See :class:`KeypointDetector`; (K=33) keypoints in :data:`BLAZEPOSE_NAMES` order."""

@@ -24,7 +24,7 @@ import numpy as np
 
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit._image import prepare_image
-from uvatar.fit._registry import GraphOwner, Registry, quiet_native_stderr
+from uvatar.fit._registry import GraphOwner, Registry
 from uvatar.fit.keypoints import import_mediapipe, mediapipe_pose_model
 
 __all__ = ["SegmenterConfig", "PersonSegmenter", "MediaPipeSegmenter", "load_segmenter", "SEGMENTERS", "prior_roi",
@@ -102,10 +102,9 @@ class MediaPipeSegmenter(GraphOwner):
         mp = import_mediapipe()
         if self.config.model == "pose":
             mediapipe_pose_model(mp, 1)
-            with quiet_native_stderr():
-                self._graph = mp.solutions.pose.Pose(
-                    static_image_mode=True, model_complexity=1, enable_segmentation=True,
-                    min_detection_confidence=self.config.min_detection_confidence)
+            self._start(lambda: mp.solutions.pose.Pose(
+                static_image_mode=True, model_complexity=1, enable_segmentation=True,
+                min_detection_confidence=self.config.min_detection_confidence))
         else:
             landscape = self.config.model == "selfie_landscape"
             model_file = os.path.join(os.path.dirname(mp.__file__), "modules", "selfie_segmentation",
@@ -113,9 +112,8 @@ class MediaPipeSegmenter(GraphOwner):
                                       else "selfie_segmentation.tflite")
             if not os.path.isfile(model_file):
                 raise UvatarError(f"{model_file}: not in the installed mediapipe wheel; install 'uvatar[fit]'")
-            with quiet_native_stderr():
-                self._graph = mp.solutions.selfie_segmentation.SelfieSegmentation(
-                    model_selection=int(landscape))
+            self._start(lambda: mp.solutions.selfie_segmentation.SelfieSegmentation(
+                model_selection=int(landscape)))
         self.name = f"mediapipe-{self.config.model}-segmentation"
         self.version = f"mediapipe {mp.__version__} {self.config.model}"
 
