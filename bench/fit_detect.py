@@ -1,8 +1,7 @@
 """Seconds for the detection half of `uvatar fit`: BlazePose keypoints on a studio 256^2 image
 (upsampled to 512) and on a 1088x1920 portrait frame (the shared real recording's cam01 when present,
 else a studio image padded to that size), rendering + detecting a scan's 8 virtual views, the
-person segmenter, the left/right check and triangulation (one frame of 8 views x 33 keypoints; 60
-frames batched).
+person segmenter, and triangulation (one frame of 8 views x 33 keypoints; 60 frames batched).
 Prints one JSON object.
 
 python bench/fit_detect.py [--repeats 5] [--capture CAP]
@@ -63,8 +62,6 @@ def main(argv=None) -> int:
         scan_cameras,
         triangulate,
     )
-    from uvatar.fit.keypoints import BLAZEPOSE_MIRROR
-    from uvatar.fit.triangulate import fix_left_right
 
     tmp = None
     if args.capture:
@@ -105,8 +102,6 @@ def main(argv=None) -> int:
     xy = np.stack([k.xy for k in kps])
     conf = np.stack([k.conf for k in kps])
     result["triangulate_s_per_frame"] = per_call(lambda: triangulate(xy, conf, cams), args.repeats)
-    result["fix_left_right_s_per_frame"] = per_call(lambda: fix_left_right(xy, conf, cams, BLAZEPOSE_MIRROR),
-                                                    args.repeats)
     xy60, conf60 = np.broadcast_to(xy, (60, *xy.shape)), np.broadcast_to(conf, (60, *conf.shape))
     result["triangulate_s_per_frame_batched_60"] = per_call(lambda: triangulate(xy60, conf60, cams), 1) / 60
     det.close()

@@ -115,26 +115,3 @@ def test_registry_and_config():
         DetectorConfig(model_complexity=3)
     with pytest.raises(UvatarError, match="model_complexity=1"):
         load_detector("mediapipe", DetectorConfig(model_complexity=2))   # heavy: not in the wheel
-
-
-def test_overlay_draws_confident_keypoints_only():
-    from uvatar.fit.overlay import BLAZEPOSE_EDGES, draw_keypoints, draw_mask
-
-    assert len(BLAZEPOSE_EDGES) == 30 and max(max(e) for e in BLAZEPOSE_EDGES) < 33
-    image = np.zeros((100, 120, 3), np.float32)
-    kp = Keypoints2D.empty(33)
-    li, ri = BLAZEPOSE_NAMES.index("left_hip"), BLAZEPOSE_NAMES.index("right_hip")
-    kp.xy[li], kp.conf[li] = (30.0, 50.0), 0.9
-    kp.xy[ri], kp.conf[ri] = (90.0, 50.0), 0.1          # below min_conf: not drawn
-    out = draw_keypoints(image, kp, min_conf=0.3, radius=3)
-    assert out.shape == image.shape and out.dtype == np.float32 and not image.any()
-    assert out[50, 30, 2] > 0.8 and out[50, 30, 0] < 0.3      # the person's left: blue
-    assert not out[:, 60:].any()                              # nothing at the unconfident hip, no edge
-    kp.conf[ri] = 0.9
-    both = draw_keypoints(image, kp, radius=3)
-    assert both[50, 60].any() and both[50, 90, 0] > 0.8       # the hip edge, the right hip orange
-    mask = np.zeros((100, 120), bool)
-    mask[:10] = True
-    tinted = draw_mask(np.ones_like(image), mask, color=(0.0, 1.0, 0.0), alpha=0.5)
-    np.testing.assert_allclose(tinted[0, 0], [0.5, 1.0, 0.5])
-    np.testing.assert_allclose(tinted[50, 0], [1.0, 1.0, 1.0])

@@ -118,32 +118,3 @@ def test_dlt_weights_and_bad_input():
         triangulate(np.zeros((6, 33, 2)), np.zeros((6, 32)), cams)
     with pytest.raises(ValueError, match="min_views"):
         TriangulateConfig(min_views=1)
-
-
-def test_fix_left_right_swaps_mirrored_views_back():
-    from uvatar.fit.keypoints import BLAZEPOSE_MIRROR
-    from uvatar.fit.triangulate import fix_left_right
-
-    cams = _cameras(False, count=2)                          # 4 views
-    pts = _points((6, 33))
-    xy = _observe(cams, pts)                                 # (6, 4, 33, 2)
-    conf = np.ones(xy.shape[:-1])
-    mirror = np.asarray(BLAZEPOSE_MIRROR)
-    assert (mirror[mirror] == np.arange(33)).all() and mirror[0] == 0 and mirror[11] == 12
-    bad = xy.copy()
-    bad[[1, 4], 2] = xy[[1, 4], 2][:, mirror]                # view 2 mirrored in frames 1 and 4
-    bad[3, 0] = xy[3, 0][mirror]                             # view 0 in frame 3
-    fixed, fconf, swapped = fix_left_right(bad, conf, cams, mirror)
-    expected = np.zeros((6, 4), bool)
-    expected[[1, 4], 2] = expected[3, 0] = True
-    np.testing.assert_array_equal(swapped, expected)
-    np.testing.assert_allclose(fixed, xy)
-    assert fconf.shape == conf.shape
-    tri = triangulate(fixed, fconf, cams)
-    np.testing.assert_allclose(tri.points, pts, atol=1e-8)
-    _, _, none = fix_left_right(xy, conf, cams, mirror)       # nothing to fix
-    assert not none.any()
-    _, _, two = fix_left_right(xy[:, :2], conf[:, :2], cams[:2], mirror)   # too few views to judge
-    assert not two.any()
-    with pytest.raises(InputError, match="mirror"):
-        fix_left_right(xy, conf, cams, mirror[:5])

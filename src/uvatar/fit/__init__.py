@@ -6,7 +6,6 @@ extra is ``uvatar[fit]``.
 """
 
 from uvatar.fit.keypoints import (
-    BLAZEPOSE_MIRROR,
     BLAZEPOSE_NAMES,
     DETECTORS,
     DetectorConfig,
@@ -16,12 +15,12 @@ from uvatar.fit.keypoints import (
 )
 from uvatar.fit.projection import project_distorted, undistort_normalized
 from uvatar.fit.segment import SEGMENTERS, PersonSegmenter, SegmenterConfig, load_segmenter, mask_iou
-from uvatar.fit.triangulate import TriangulateConfig, Triangulation, fix_left_right, triangulate
+from uvatar.fit.triangulate import TriangulateConfig, Triangulation, triangulate
 from uvatar.fit.views import ScanViewsConfig, render_scan_views, scan_cameras
 
 __all__ = [
-    "BLAZEPOSE_NAMES", "BLAZEPOSE_MIRROR", "DetectorConfig", "KeypointDetector", "Keypoints2D", "DETECTORS",
+    "BLAZEPOSE_NAMES", "DetectorConfig", "KeypointDetector", "Keypoints2D", "DETECTORS",
     "load_detector", "project_distorted", "undistort_normalized",
-    "TriangulateConfig", "Triangulation", "triangulate", "fix_left_right", "ScanViewsConfig", "render_scan_views",
+    "TriangulateConfig", "Triangulation", "triangulate", "ScanViewsConfig", "render_scan_views",
     "scan_cameras", "PersonSegmenter", "SegmenterConfig", "load_segmenter", "mask_iou", "SEGMENTERS",
 ]

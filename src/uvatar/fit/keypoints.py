@@ -28,7 +28,7 @@ from uvatar.fit._image import crop_to_image, prepare_image
 from uvatar.fit._registry import GraphOwner, Registry
 
 __all__ = [
-    "BLAZEPOSE_NAMES", "BLAZEPOSE_MIRROR", "Keypoints2D", "KeypointDetector", "DetectorConfig", "MediaPipePoseDetector",
+    "BLAZEPOSE_NAMES", "Keypoints2D", "KeypointDetector", "DetectorConfig", "MediaPipePoseDetector",
     "load_detector", "DETECTORS", "import_mediapipe",
 ]
 
@@ -40,12 +40,6 @@ BLAZEPOSE_NAMES: tuple[str, ...] = (
     "left_knee", "right_knee", "left_ankle", "right_ankle", "left_heel", "right_heel",
     "left_foot_index", "right_foot_index",
 )
-
-BLAZEPOSE_MIRROR: tuple[int, ...] = tuple(
-    BLAZEPOSE_NAMES.index(n.replace("left", "@").replace("right", "left").replace("@", "right"))
-    for n in BLAZEPOSE_NAMES)
-"""For each keypoint, the index of its mirror image (left <-> right; centre points map to themselves)."""
-
 
 @dataclass
 class Keypoints2D:

@@ -6,12 +6,6 @@ once. Pixels are first undistorted with each camera's OpenCV ``dist`` and the DL
 normalised image coordinates (well conditioned whatever the image size). Reprojection errors are
 measured in the detected, distorted pixels (:func:`uvatar.fit.projection.project_distorted`).
 
-Left/right: detectors such as BlazePose sometimes label a whole view mirrored (the person's left as
-right, typically seen from behind); :func:`fix_left_right` finds those views (leave-one-out: a view
-reprojects the other views' triangulation much better with its labels swapped) and swaps them back,
-before :func:`triangulate`. On the shared real recording (4 cameras, 100 frames) it swapped 26
-frames of cam02 and brought the mean reprojection error over all views from 37.0 px to 14.2 px.
-
 Outliers: while a point's worst used view reprojects farther than ``max_reprojection_px`` and more
 than ``min_views`` views remain, that view is dropped and the point re-solved (at most C - min_views
 rounds, each vectorised over all points). A point seen by fewer than ``min_views`` views with
@@ -28,7 +22,7 @@ from uvatar.capture.types import Camera
 from uvatar.errors import InputError, check_values
 from uvatar.fit.projection import project_distorted, undistort_normalized
 
-__all__ = ["TriangulateConfig", "Triangulation", "triangulate", "dlt", "fix_left_right"]
+__all__ = ["TriangulateConfig", "Triangulation", "triangulate", "dlt"]
 
 
 @dataclass
@@ -152,45 +146,3 @@ def triangulate(xy, conf, cameras: list[Camera], config: TriangulateConfig | Non
         reprojection_px=np.moveaxis(err.reshape(-1, K, C), 1, 2).reshape(*lead, C, K),
         used=np.moveaxis(used.reshape(-1, K, C), 1, 2).reshape(*lead, C, K),
     )
-
-
-def fix_left_right(xy, conf, cameras: list[Camera], mirror, config: TriangulateConfig | None = None,
-                   ratio: float = 0.5, min_pairs: int = 3, rounds: int = 2):
-    """Swap back views whose keypoints are labelled mirrored.
-
-    xy (..., C, K, 2), conf (..., C, K) as for :func:`triangulate`; mirror (K,) int: each keypoint's
-    left/right twin (e.g. ``keypoints.BLAZEPOSE_MIRROR``). For each view, the other views are
-    triangulated (needs C >= min_views + 1) and projected into it; the view is swapped when, over its
-    lateral keypoints confident in both labellings (at least ``min_pairs``), the swapped labels'
-    summed pixel distance is below ``ratio`` x the original's. Repeated up to ``rounds`` times while
-    something changes. Returns (xy, conf, swapped (..., C) bool), new arrays with those views swapped.
-    """
-    config = config or TriangulateConfig()
-    xy = np.array(xy, dtype=np.float64)
-    conf = np.array(conf, dtype=np.float64)
-    mirror = np.asarray(mirror, dtype=np.int64).reshape(-1)
-    C, K = xy.shape[-3], xy.shape[-2]
-    if mirror.shape != (K,) or mirror.min() < 0 or mirror.max() >= K:
-        raise InputError("keypoints", f"mirror must be a permutation of {K} keypoint indices")
-    swapped = np.zeros(xy.shape[:-2], bool)
-    lateral = mirror != np.arange(K)
-    if C < config.min_views + 1 or not lateral.any():
-        return xy, conf, swapped
-    for _ in range(rounds):
-        flip = np.zeros_like(swapped)
-        for c in range(C):  # leave-one-out, each vectorised over frames and keypoints
-            others = [o for o in range(C) if o != c]
-            tri = triangulate(xy[..., others, :, :], conf[..., others, :], [cameras[o] for o in others], config)
-            pix, z = project_distorted(cameras[c], tri.points)                  # (..., K, 2)
-            mine, mine_conf = xy[..., c, :, :], conf[..., c, :]
-            ok = (tri.conf > 0) & (z > 0) & (mine_conf >= config.min_conf) & \
-                (mine_conf[..., mirror] >= config.min_conf) & lateral
-            e_keep = np.where(ok, np.linalg.norm(pix - mine, axis=-1), 0.0).sum(-1)
-            e_swap = np.where(ok, np.linalg.norm(pix - mine[..., mirror, :], axis=-1), 0.0).sum(-1)
-            flip[..., c] = (ok.sum(-1) >= min_pairs) & (e_swap < ratio * e_keep)
-        if not flip.any():
-            break
-        xy[flip] = xy[flip][:, mirror]
-        conf[flip] = conf[flip][:, mirror]
-        swapped ^= flip
-    return xy, conf, swapped
