@@ -3,10 +3,35 @@ a MediaPipe graph."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
-__all__ = ["Registry", "GraphOwner"]
+__all__ = ["Registry", "GraphOwner", "quiet_native_stderr"]
+
+
+@contextmanager
+def quiet_native_stderr() -> Iterator[None]:
+    """Silence file descriptor 2 for a block: MediaPipe's C++ side prints TensorFlow Lite / absl INFO and
+    WARNING lines (XNNPACK delegate, feedback tensors, NORM_RECT) while its graphs start and run,
+    which no environment variable turns off (one "Created TensorFlow Lite XNNPACK delegate" line comes
+    from a graph thread after start-up and still shows). Python exceptions still propagate (after the
+    restore); other threads' stderr is lost for the duration of the block."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real fd 2 (e.g. captured): nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 class Registry:
@@ -34,6 +59,20 @@ class GraphOwner:
     ``close()`` (or leaving a ``with`` block) frees it."""
 
     _graph = None
+
+    def _start(self, make_graph: Callable[[], Any]) -> None:
+        """``self._graph = make_graph()`` and one warm-up frame, with fd 2 silenced: the graph's threads
+        finish starting (and print their start-up lines) only once a first frame has gone through."""
+        import numpy as np
+
+        with quiet_native_stderr():
+            self._graph = make_graph()
+            self._graph.process(np.zeros((64, 64, 3), np.uint8))
+
+    def _process(self, rgb):
+        """``self._graph.process(rgb)`` with fd 2 silenced (subgraphs may still log; two dup2 per image)."""
+        with quiet_native_stderr():
+            return self._graph.process(rgb)
 
     def close(self) -> None:
         """Free the MediaPipe graph."""

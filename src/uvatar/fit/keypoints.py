@@ -41,7 +41,6 @@ BLAZEPOSE_NAMES: tuple[str, ...] = (
     "left_foot_index", "right_foot_index",
 )
 
-
 @dataclass
 class Keypoints2D:
     """xy (K, 2) float32 pixel coordinates (x right, y down; OpenCV: pixel centres at integers);
@@ -130,9 +129,9 @@ class MediaPipePoseDetector(GraphOwner):
         mp = import_mediapipe()
         mediapipe_pose_model(mp, self.config.model_complexity)
         self.version = f"mediapipe {mp.__version__} pose_landmark complexity {self.config.model_complexity}"
-        self._graph = mp.solutions.pose.Pose(
+        self._start(lambda: mp.solutions.pose.Pose(
             static_image_mode=True, model_complexity=self.config.model_complexity,
-            enable_segmentation=False, min_detection_confidence=self.config.min_detection_confidence)
+            enable_segmentation=False, min_detection_confidence=self.config.min_detection_confidence))
 
     def detect(self, image: np.ndarray, roi=None) -> Keypoints2D:
         """See :class:`KeypointDetector`; (K=33) keypoints in :data:`BLAZEPOSE_NAMES` order."""
@@ -140,7 +139,7 @@ class MediaPipePoseDetector(GraphOwner):
         k = len(BLAZEPOSE_NAMES)
         if prep.rgb is None:
             return Keypoints2D.empty(k)
-        result = self._graph.process(prep.rgb)
+        result = self._process(prep.rgb)
         if result.pose_landmarks is None:
             return Keypoints2D.empty(k)
         lm = result.pose_landmarks.landmark

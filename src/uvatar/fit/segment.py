@@ -102,9 +102,9 @@ class MediaPipeSegmenter(GraphOwner):
         mp = import_mediapipe()
         if self.config.model == "pose":
             mediapipe_pose_model(mp, 1)
-            self._graph = mp.solutions.pose.Pose(
+            self._start(lambda: mp.solutions.pose.Pose(
                 static_image_mode=True, model_complexity=1, enable_segmentation=True,
-                min_detection_confidence=self.config.min_detection_confidence)
+                min_detection_confidence=self.config.min_detection_confidence))
         else:
             landscape = self.config.model == "selfie_landscape"
             model_file = os.path.join(os.path.dirname(mp.__file__), "modules", "selfie_segmentation",
@@ -112,7 +112,8 @@ class MediaPipeSegmenter(GraphOwner):
                                       else "selfie_segmentation.tflite")
             if not os.path.isfile(model_file):
                 raise UvatarError(f"{model_file}: not in the installed mediapipe wheel; install 'uvatar[fit]'")
-            self._graph = mp.solutions.selfie_segmentation.SelfieSegmentation(model_selection=int(landscape))
+            self._start(lambda: mp.solutions.selfie_segmentation.SelfieSegmentation(
+                model_selection=int(landscape)))
         self.name = f"mediapipe-{self.config.model}-segmentation"
         self.version = f"mediapipe {mp.__version__} {self.config.model}"
 
@@ -145,7 +146,7 @@ class MediaPipeSegmenter(GraphOwner):
         prep = prepare_image(image, roi, self.config.upsample_to)
         if prep.rgb is None:
             return out
-        result = self._graph.process(prep.rgb)
+        result = self._process(prep.rgb)
         prob = getattr(result, "segmentation_mask", None)
         if prob is None:
             return out
