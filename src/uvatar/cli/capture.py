@@ -18,6 +18,9 @@ def register(cli) -> None:
     p.add_argument("directory", help="capture folder")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--deep", action="store_true", help="fully load every mesh, texture and image")
+    p.add_argument("--strict", action="store_true",
+                   help="fail on warnings (frames without fits, cameras without images, images without masks, "
+                        "image sizes that differ from the intrinsics)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_check)
     _register_import(cli)
@@ -83,6 +86,6 @@ def _check(args) -> int:
             return tqdm(items, total=total, desc=desc, unit="frame", file=sys.stderr, leave=False,
                         disable=None)
 
-    summary = validate_capture(args.directory, ValidateConfig(deep=args.deep), progress=progress)
+    summary = validate_capture(args.directory, ValidateConfig(deep=args.deep, strict=args.strict), progress=progress)
     print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
     return 0
