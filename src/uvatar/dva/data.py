@@ -139,7 +139,8 @@ class CaptureSource(MultiViewSource):
 
 class EasyMocapSource(MultiViewSource):
     """EasyMocap dataset folder: intri.yml + extri.yml, images/<cam>/<frame>.jpg, mask/<cam>/<frame>.png
-    (or masks/), SMPL fits in output-smpl-3d/smpl/, output/smpl/ or smpl/ (<frame>.json)."""
+    (or masks/), fits in output-smpl-3d/smpl/, output/smpl/, smpl/ or fits/ (<frame>.json). The fits
+    are SMPL's unless ``body_model`` says otherwise (``train dva --model anny`` after ``uvatar fit``)."""
 
     FIT_DIRS = ("output-smpl-3d/smpl", "output/smpl", "smpl", "fits")
 
@@ -150,7 +151,8 @@ class EasyMocapSource(MultiViewSource):
         self.cameras = read_cameras(self.root)
         self.fit_dir = next((self.root / d for d in self.FIT_DIRS if (self.root / d).is_dir()), None)
         if self.fit_dir is None:
-            raise InputError(self.root, f"no SMPL fits folder (looked for {', '.join(self.FIT_DIRS)})")
+            raise InputError(self.root, f"no fits folder (looked for {', '.join(self.FIT_DIRS)}; "
+                                        "`uvatar fit` writes fits/)")
         self.frames = sorted(p.stem for p in self.fit_dir.glob("*.json"))
         if not self.frames:
             raise InputError(self.fit_dir, "no fits (*.json)")

@@ -60,10 +60,10 @@ class FrameBank:
             stage = "fits"
             try:
                 fit = source.fit(frame)
+                stage = "fits for another body model"
                 try:
                     r, v = body_inputs(body, [fit])
                 except (ValueError, RuntimeError, IndexError) as exc:
-                    stage = "fits for another body model"
                     raise InputError(f"fit {frame}", f"does not fit the body model ({exc})") from None
                 stage = "images"
                 imgs = [source.image(c, frame) for c in self.cameras]
@@ -96,8 +96,9 @@ class FrameBank:
         self.causes = causes
         if not self.frames:
             counted = ", ".join(f"{n} {c}" for c, n in sorted(causes.items(), key=lambda kv: -kv[1]))
+            n = len(list(frames))
             raise InputError(getattr(source, "root", "source"),
-                             f"no usable frame ({len(list(frames))} frames: {counted})")
+                             f"no usable frame ({n} frame{'s' if n != 1 else ''}: {counted})")
         self.rotvecs = torch.stack(rot)
         self.vertices = torch.stack(verts)
         self.images, self.masks = images, masks
