@@ -192,9 +192,10 @@ def _check_camera_images(cap: Capture, camera, frames: list[str], deep: bool, im
 def format_summary(summary: dict) -> str:
     """Human-readable multi-line summary of :func:`validate_capture`'s result."""
     first, last = summary["frame_names"]
-    lines = [f"capture {summary['root']}: OK",
-             f"  frames      {summary['frames']} ({first} .. {last}) at {summary['fps']:g} fps, "
-             f"body model {summary['body_model']}"]
+    fps = f"at {summary['fps']:g} fps" if summary.get("fps") else "fps unknown"
+    layout = f" ({summary['layout']} layout)" if summary.get("layout") else ""
+    lines = [f"capture {summary['root']}{layout}: OK",
+             f"  frames      {summary['frames']} ({first} .. {last}) {fps}, body model {summary['body_model']}"]
     if summary["scans"]:
         tops = summary["topologies"]
         lines.append(f"  scans       {summary['scans']} in {len(tops)} topolog{'y' if len(tops) == 1 else 'ies'}")
@@ -206,8 +207,9 @@ def format_summary(summary: dict) -> str:
             lines.append(f"    ... {len(tops) - 8} more topologies")
     else:
         lines.append("  scans       none")
-    lines.append(f"  fits        {summary['fits']} ({summary['pose_values']} pose values, "
-                 f"{summary['shape_values']} shape values)" if summary["fits"] else "  fits        none")
+    values = (f" ({summary['pose_values']} pose values, {summary['shape_values']} shape values)"
+              if summary.get("pose_values") is not None else "")
+    lines.append(f"  fits        {summary['fits']}{values}" if summary["fits"] else "  fits        none")
     if summary["cameras"]:
         lines.append(f"  cameras     {len(summary['cameras'])}")
         for name in summary["cameras"]:
@@ -219,6 +221,6 @@ def format_summary(summary: dict) -> str:
     lines.append(f"  ground truth {'yes' if summary['gt'] else 'no'}")
     warnings = summary.get("warnings", [])
     if warnings:
-        lines[0] = f"capture {summary['root']}: OK with {len(warnings)} warning{'s' if len(warnings) > 1 else ''}"
+        lines[0] = f"capture {summary['root']}{layout}: OK with {len(warnings)} warning{'s' if len(warnings) > 1 else ''}"
         lines += [f"  warning: {w}" for w in warnings]
     return "\n".join(lines)
