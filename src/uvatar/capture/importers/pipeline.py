@@ -95,18 +95,10 @@ def fit_camera_to_image(cam: Camera, width: int, height: int, source: str) -> tu
                 f"taken as {dw} px cropped at the right / {dh} at the bottom (K kept)")
         return Camera(cam.name, cam.K, cam.R, cam.T, width, height, cam.dist), note
     if abs(width / cam.width - height / cam.height) < 2e-3:
-        scaled = scale_camera(cam, width, height)
+        scaled = cam.scaled(width, height)
         return scaled, f"{cam.name}: calibrated {cam.width}x{cam.height}, decoded {width}x{height}: K scaled"
     raise InputError(source, f"camera {cam.name}: images are {width}x{height} but the calibration says "
                              f"{cam.width}x{cam.height} (neither a crop of <= {MAX_CROP_PX} px nor a scale)")
-
-
-def scale_camera(cam: Camera, width: int, height: int) -> Camera:
-    """The camera for its image resized to ``width`` x ``height`` (pixel centres at integers:
-    ``x' = (x + 0.5) * s - 0.5``)."""
-    sx, sy = width / cam.width, height / cam.height
-    A = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
-    return Camera(cam.name, A @ cam.K, cam.R, cam.T, width, height, cam.dist)
 
 
 def _resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -193,7 +185,7 @@ def import_capture(src: str | Path, out: str | Path, cfg: ImportConfig | None = 
         if note:
             notes.append(note)
         if cfg.resize != 1.0:
-            cam = scale_camera(cam, max(1, round(cam.width * cfg.resize)), max(1, round(cam.height * cfg.resize)))
+            cam = cam.scaled(max(1, round(cam.width * cfg.resize)), max(1, round(cam.height * cfg.resize)))
         cam.name = sname
         cameras[sname] = cam
     for note in notes:
