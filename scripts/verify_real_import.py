@@ -23,6 +23,7 @@ import numpy as np
 
 from uvatar.capture.layout import Capture
 from uvatar.capture.types import Camera
+from uvatar.geometry.camera import undistort
 
 
 def detect(images: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -46,7 +47,8 @@ def triangulate(cams: list[Camera], pix: np.ndarray, weight: np.ndarray) -> np.n
     """DLT: cams (C,), pix (C, J, 2) distorted pixels, weight (C, J) → (J, 3) world points."""
     rows = []
     for cam, p, w in zip(cams, pix, weight):
-        und = cv2.undistortPoints(p.reshape(-1, 1, 2).astype(np.float64), cam.K, cam.dist).reshape(-1, 2)
+        Kinv = np.linalg.inv(cam.K)
+        und = undistort(p @ Kinv[:2, :2].T + Kinv[:2, 2], cam.dist)
         P = np.hstack([cam.R, cam.T[:, None]])  # normalized camera
         w = np.where(np.isfinite(w), w, 0.0)[:, None]
         und = np.nan_to_num(und)
@@ -58,8 +60,7 @@ def triangulate(cams: list[Camera], pix: np.ndarray, weight: np.ndarray) -> np.n
 
 
 def reproject(cam: Camera, X: np.ndarray) -> np.ndarray:
-    rvec = cv2.Rodrigues(cam.R)[0]
-    return cv2.projectPoints(X.reshape(-1, 1, 3), rvec, cam.T, cam.K, cam.dist)[0].reshape(-1, 2)
+    return cam.project(X.reshape(-1, 3))
 
 
 # MediaPipe's left/right landmark pairs: seen from behind it may label them the other way round
