@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from uvatar.capture.cameras import read_cameras, write_cameras
+from uvatar.capture.cameras import write_cameras
 from uvatar.capture.importers.calibration import read_calibration, read_qca, to_uvatar_world
 from uvatar.capture.importers.pipeline import ImportConfig, import_capture
 from uvatar.capture.layout import Capture
