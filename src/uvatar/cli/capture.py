@@ -46,7 +46,8 @@ def _register_import(cli) -> None:
     p.add_argument("--stride", type=int, default=d.stride, help="keep every n-th frame")
     p.add_argument("--resize", type=float, default=d.resize, help="image scale factor in (0, 1]")
     p.add_argument("--up", default=d.up, choices=("",) + UP_AXES,
-                   help="the calibration world's up axis (default: the format's own, +z for Qualisys/Pose2Sim)")
+                   help="the calibration world's up axis (default: the format's own, +z for Qualisys/Pose2Sim; "
+                        "write --up=-z for a negative axis)")
     p.add_argument("--units", default=d.units, choices=("",) + tuple(UNIT_SCALE),
                    help="units of the calibration's translations (default: the format's own)")
     p.add_argument("--image-format", default=d.image_format, choices=("jpg", "png"), help="image files written")
