@@ -23,6 +23,7 @@ import numpy as np
 
 from uvatar.capture.layout import Capture
 from uvatar.capture.types import Camera
+from uvatar.geometry.camera import undistort
 
 
 def detect(images: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -45,8 +46,9 @@ def detect(images: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 def triangulate(cams: list[Camera], pix: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """DLT: cams (C,), pix (C, J, 2) distorted pixels, weight (C, J) → (J, 3) world points."""
     rows = []
-    for cam, p, w in zip(cams, pix, weight):
-        und = cv2.undistortPoints(p.reshape(-1, 1, 2).astype(np.float64), cam.K, cam.dist).reshape(-1, 2)
+    for cam, p, w in zip(cams, pix, weight, strict=True):
+        Kinv = np.linalg.inv(cam.K)
+        und = undistort(p @ Kinv[:2, :2].T + Kinv[:2, 2], cam.dist)
         P = np.hstack([cam.R, cam.T[:, None]])  # normalized camera
         w = np.where(np.isfinite(w), w, 0.0)[:, None]
         und = np.nan_to_num(und)
@@ -58,8 +60,7 @@ def triangulate(cams: list[Camera], pix: np.ndarray, weight: np.ndarray) -> np.n
 
 
 def reproject(cam: Camera, X: np.ndarray) -> np.ndarray:
-    rvec = cv2.Rodrigues(cam.R)[0]
-    return cv2.projectPoints(X.reshape(-1, 1, 3), rvec, cam.T, cam.K, cam.dist)[0].reshape(-1, 2)
+    return cam.project(X.reshape(-1, 3))
 
 
 # MediaPipe's left/right landmark pairs: seen from behind it may label them the other way round
@@ -77,10 +78,10 @@ def solve_frame(cams: list[Camera], pix: np.ndarray, weight: np.ndarray):
     best = None
     for flips in itertools.product((False, True), repeat=len(cams) - 1):
         flips = (False,) + flips  # the first camera fixes the labelling
-        p = np.stack([q[_SWAP] if f else q for q, f in zip(pix, flips)])
-        w = np.stack([q[_SWAP] if f else q for q, f in zip(weight, flips)])
+        p = np.stack([q[_SWAP] if f else q for q, f in zip(pix, flips, strict=True)])
+        w = np.stack([q[_SWAP] if f else q for q, f in zip(weight, flips, strict=True)])
         X = triangulate(cams, p, w)
-        e = np.stack([np.linalg.norm(reproject(c, X) - q, axis=1) for c, q in zip(cams, p)])
+        e = np.stack([np.linalg.norm(reproject(c, X) - q, axis=1) for c, q in zip(cams, p, strict=True)])
         med = float(np.median(e[w > 0]))
         if best is None or med < best[0]:
             best = (med, X, p, w)
@@ -114,9 +115,9 @@ def geometry(cams: dict[str, Camera]) -> dict:
     axes = np.stack([c.R[2] for c in cams.values()])
     # least-squares point nearest to all optical axes
     A = sum(np.eye(3) - np.outer(a, a) for a in axes)
-    b = sum((np.eye(3) - np.outer(a, a)) @ c for a, c in zip(axes, centres))
+    b = sum((np.eye(3) - np.outer(a, a)) @ c for a, c in zip(axes, centres, strict=True))
     p = np.linalg.solve(A, b)
-    dist = [float(np.linalg.norm((np.eye(3) - np.outer(a, a)) @ (p - c))) for a, c in zip(axes, centres)]
+    dist = [float(np.linalg.norm((np.eye(3) - np.outer(a, a)) @ (p - c))) for a, c in zip(axes, centres, strict=True)]
     origin = {n: [round(float(v), 1) for v in reproject(c, np.zeros((1, 3)))[0]] for n, c in cams.items()}
     return {"centres_m": {n: np.round(c.center, 3).tolist() for n, c in cams.items()},
             "axes_meet_near_m": np.round(p, 3).tolist(), "axis_distance_m": [round(d, 3) for d in dist],

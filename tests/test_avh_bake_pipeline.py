@@ -74,13 +74,17 @@ def test_eval_protocol_and_step_effects(baked):
     assert abl["texture_ceiling_psnr_db"] is None                          # needs the exact reference
 
 
-def test_rerun_skips_done_frames_and_reclassifies(baked, tmp_path):
+def test_rerun_skips_done_frames_and_reclassifies(baked, tmp_path, capsys):
     cap, out, _ = baked
     before = (out / "frames" / "000000.npz").stat().st_mtime_ns
     assert main(["bake", str(cap), str(out), *ARGS]) == 0
     assert (out / "frames" / "000000.npz").stat().st_mtime_ns == before
-    # a stricter threshold moves accepted frames to rejected/ without baking again
-    assert main(["bake", str(cap), str(out), *ARGS, "--reject-kappa", "0.99"]) == 0
+    # a stricter threshold moves accepted frames to rejected/ without baking again; with nothing
+    # baked the command fails and counts the causes
+    capsys.readouterr()
+    assert main(["bake", str(cap), str(out), *ARGS, "--reject-kappa", "0.99"]) == 1
+    assert ("nothing baked (4 frames: 3 rejected (mean kappa < 252/255), 1 broken input)"
+            in capsys.readouterr().err)
     info = json.loads((out / "dataset.json").read_text())
     assert info["frames_baked"] == [] and (out / "rejected" / "000000.npz").is_file()
     assert main(["bake", str(cap), str(out), *ARGS]) == 0

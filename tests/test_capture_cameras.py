@@ -75,3 +75,72 @@ def test_missing_and_broken_files(tmp_path):
     (tmp_path / "extri.yml").write_text("%YAML:1.0\n---\nnames: [\n")
     with pytest.raises(InputError, match="extri.yml"):
         read_cameras(tmp_path)
+
+
+def _fuzz_seed_files(tmp_path_factory):
+    base = tmp_path_factory.mktemp("fuzz_seed")
+    write_cameras(base, make_cameras())
+    return {n: (base / n).read_bytes() for n in ("intri.yml", "extri.yml")}
+
+
+def test_truncated_camera_files_give_one_line_errors(tmp_path):
+    """Every truncation of intri.yml / extri.yml (each 7th byte) → the project's error naming the
+    file, one line (or, cut inside an optional trailing entry, cameras whose K, R, T are whole)."""
+    cams = make_cameras()
+    write_cameras(tmp_path, cams)
+    errors = tries = 0
+    for name in ("intri.yml", "extri.yml"):
+        full = (tmp_path / name).read_bytes()
+        for cut in range(0, len(full) - 1, 7):
+            (tmp_path / name).write_bytes(full[:cut])
+            tries += 1
+            try:
+                back = read_cameras(tmp_path)
+            except InputError as exc:
+                errors += 1
+                assert "\n" not in str(exc) and name in str(exc)
+                continue
+            for k, cam in back.items():
+                np.testing.assert_allclose(cam.K, cams[k].K)
+                np.testing.assert_allclose(cam.T, cams[k].T)
+        (tmp_path / name).write_bytes(full)
+    assert errors > 0.9 * tries
+
+
+def test_fuzz_byte_mutated_camera_files(tmp_path_factory):
+    """Hypothesis, 250 byte-mutated intri/extri pairs: a valid camera dict or InputError, nothing else."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    seed = _fuzz_seed_files(tmp_path_factory)
+    folder = tmp_path_factory.mktemp("fuzz")
+    edit = st.tuples(st.sampled_from(["intri.yml", "extri.yml"]), st.floats(0, 1, exclude_max=True),
+                     st.sampled_from(["flip", "delete", "insert", "truncate"]), st.integers(0, 255))
+
+    @settings(max_examples=250, deadline=None, database=None, derandomize=True,
+              suppress_health_check=list(HealthCheck))
+    @given(st.lists(edit, min_size=1, max_size=4))
+    def run(edits):
+        files = {k: bytearray(v) for k, v in seed.items()}
+        for name, where, op, byte in edits:
+            data = files[name]
+            i = int(where * len(data)) if data else 0
+            if op == "flip" and data:
+                data[i] = byte
+            elif op == "delete" and data:
+                del data[i]
+            elif op == "insert":
+                data.insert(i, byte)
+            else:
+                del data[i:]
+        for k, v in files.items():
+            (folder / k).write_bytes(bytes(v))
+        try:
+            cams = read_cameras(folder)
+        except InputError as exc:
+            assert "\n" not in str(exc)
+            return
+        for cam in cams.values():
+            assert cam.K.shape == (3, 3) and cam.R.shape == (3, 3) and cam.T.shape == (3,)
+
+    run()

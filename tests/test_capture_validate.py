@@ -126,8 +126,50 @@ def _break(root: Path, how: str) -> str:
 
 
 CASES = ["missing_texture", "unreadable_texture", "unreadable_mesh", "nan_fit", "wrong_shape_fit",
-         "frame_without_fit", "camera_without_images", "frame_without_scan", "missing_capture_json",
-         "bad_capture_json", "missing_mtl"]
+         "frame_without_scan", "missing_capture_json", "bad_capture_json", "missing_mtl"]
+
+
+def _warn(root: Path, how: str) -> str:
+    """Break the capture in a way that `capture check` warns about; return the warning's fragment."""
+    if how == "frame_without_fit":
+        (root / "fits" / "000002.json").unlink()
+        return "1 of 3 frames have no fit"
+    if how == "camera_without_images":
+        for p in (root / "images" / "c1").iterdir():
+            p.unlink()
+        return "camera c1 has no images"
+    if how == "images_without_masks":
+        import shutil
+
+        shutil.rmtree(root / "masks")
+        return "camera c0: 3 of 3 images have no mask"
+    if how == "image_size":
+        for frame in FRAMES:
+            write_image(root / "images" / "c1" / f"{frame}.png", np.zeros((24, 32, 3)))
+        return "camera c1: images are 32x24 but the intrinsics say 16x12"
+    if how == "mask_size":
+        write_image(root / "masks" / "c0" / "000000.png", np.ones((6, 8)))
+        return "camera c0: masks are 8x6 but the intrinsics say 16x12"
+    raise ValueError(how)
+
+
+@pytest.mark.parametrize("how", ["frame_without_fit", "camera_without_images", "images_without_masks",
+                                 "image_size", "mask_size"])
+def test_warnings_and_strict(capture, capsys, how):
+    """Warned about (exit 0, listed in the summary); --strict fails with one line."""
+    fragment = _warn(capture, how)
+    code, out, err = run_check(capture, capsys)
+    assert code == 0 and "OK with" in out and f"warning: {fragment}" in out
+    code, out, err = run_check(capture, capsys, "--strict")
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 1 and len(lines) == 1 and fragment in lines[0] and str(capture) in lines[0]
+
+
+def test_deep_checks_every_image_size(capture):
+    write_image(capture / "images" / "c0" / "000002.png", np.zeros((24, 32, 3)))
+    assert validate_capture(capture)["warnings"] == []  # the fast check looks at the first image only
+    warnings = validate_capture(capture, ValidateConfig(deep=True))["warnings"]
+    assert len(warnings) == 1 and "000002.png" in warnings[0]
 
 
 @pytest.mark.parametrize("how", CASES)

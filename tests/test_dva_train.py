@@ -122,5 +122,64 @@ def test_broken_frames_are_skipped(tmp_path):
     assert set(s["skipped_frames"]) == {"000000", "000001"} and s["frames"] == 1 and s["steps"] == 1
     assert "cam01" in s["skipped_frames"]["000001"] and "invalid JSON" in s["skipped_frames"]["000000"]
     (root / "fits" / "000002.json").unlink()
-    with pytest.raises(InputError, match="no usable frame"):
+    # 000002's fit is gone too: the capture source drops fitless frames, the rest are counted by cause
+    with pytest.raises(InputError, match=r"no usable frame \(2 frames: 1 unreadable fits, 1 missing images\)"):
         train_dva(open_source(root), tmp_path / "run2", preset("tiny"), iters=1, progress=False)
+
+
+def test_no_usable_frame_counts_missing_masks(tmp_path, capsys):
+    """A capture without masks: `train dva` exits 1 and says so by cause, not 'all broken'."""
+    import shutil
+
+    from uvatar.cli.main import main
+
+    root = write_toy_capture(tmp_path / "cap", frames=4, cameras=4, size=8)
+    shutil.rmtree(root / "masks")
+    assert main(["train", "dva", str(root), str(tmp_path / "run"), "--preset", "tiny", "--iters", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "no usable frame (3 frames: 3 missing masks)" in err and "Traceback" not in err
+
+
+def test_image_size_differing_from_intrinsics_is_warned(tmp_path, caplog):
+    from uvatar.io_utils import write_image
+
+    root = write_toy_capture(tmp_path / "cap", frames=2, cameras=4, size=8)
+    for f in ("000000", "000001"):
+        write_image(root / "images" / "cam01" / f"{f}.png", np.zeros((16, 16, 3)))
+        write_image(root / "masks" / "cam01" / f"{f}.png", np.ones((16, 16)))
+    with caplog.at_level("WARNING"):
+        train_dva(open_source(root), tmp_path / "run", preset("tiny"), iters=1, progress=False)
+    warned = [r.getMessage() for r in caplog.records if "intrinsics say" in r.getMessage()]
+    assert warned == ["camera cam01: images are 16x16 but its intrinsics say 8x8 (rays and projections will "
+                      "not match the pixels)"]
+
+
+def test_any_body_model_on_the_easymocap_layout(tmp_path, capsys):
+    """EasyMocap folders are not tied to SMPL: --model anny reads anny-sized fits (here the masks are
+    missing, so training stops there, after the fits were posed with anny); the default (SMPL, no
+    model files) fails with one line; a run refuses another --model at render/eval time."""
+    from uvatar.capture import BodyFit, write_cameras, write_fit
+    from uvatar.cli.main import main
+    from uvatar.dva.toy import toy_cameras
+    from uvatar.io_utils import write_image
+
+    cams = toy_cameras(4, 8)
+    write_cameras(tmp_path / "em", cams)
+    for f in ("000000", "000001"):
+        write_fit(tmp_path / "em" / "fits" / f"{f}.json", BodyFit(poses=np.zeros(312, np.float32)))
+        for c in cams:
+            write_image(tmp_path / "em" / "images" / c / f"{f}.jpg", np.full((8, 8, 3), 0.3, np.float32))
+    args = ["train", "dva", str(tmp_path / "em"), str(tmp_path / "run"), "--preset", "tiny", "--iters", "1"]
+    assert main([*args, "--model", "anny"]) == 1
+    assert "no usable frame (1 frame: 1 missing masks)" in capsys.readouterr().err
+    assert main([*args, "--model", "smpl", "--model-dir", str(tmp_path / "no_smpl")]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len([line for line in err.splitlines() if line.strip()]) == 1
+
+
+def test_run_refuses_another_body_model(capture, tmp_path):
+    train_dva(open_source(capture), tmp_path / "run", preset("tiny"), iters=1, progress=False)
+    with pytest.raises(InputError, match="was trained with body model 'toy', not 'anny'"):
+        load_run(tmp_path / "run", body_model="anny")
+    model, body, meta, _ = load_run(tmp_path / "run", body_model="toy")
+    assert meta["body_model"] == "toy" and meta["model_dir"] is None

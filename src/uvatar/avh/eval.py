@@ -123,15 +123,11 @@ class Baselines:
 
 
 def scaled_camera(camera, width: int | None):
-    """Camera with intrinsics scaled so that its width is ``width`` (None: unchanged)."""
+    """Camera for its image resized to ``width`` pixels wide, aspect kept (None: unchanged)."""
     if not width or width == camera.width:
         return camera
-    from dataclasses import replace
-
     s = width / camera.width
-    K = np.array(camera.K, np.float64).copy()
-    K[:2] *= s
-    return replace(camera, K=K, width=int(round(camera.width * s)), height=int(round(camera.height * s)))
+    return camera.scaled(int(round(camera.width * s)), int(round(camera.height * s)))
 
 
 METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_union_mask", "ssim_union_mask", "psnr_db_full", "ssim_full",

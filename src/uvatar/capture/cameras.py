@@ -8,6 +8,7 @@ optionally ``H_<cam>``/``W_<cam>`` image size in pixels. extri.yml: ``R_<cam>`` 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,19 @@ def _open(path: Path):
     if not fs.isOpened():
         raise InputError(path, "unreadable OpenCV YAML")
     return fs
+
+
+@contextmanager
+def _malformed(path: Path, what: str):
+    """Turn OpenCV's errors on a node of a truncated or mangled file into one InputError line."""
+    import cv2
+
+    try:
+        yield
+    except (cv2.error, SystemError, ValueError, TypeError, OverflowError) as exc:
+        text = " ".join(str(exc).split())
+        reason = text.split("error: ")[-1][:120] if "error: " in text else type(exc).__name__
+        raise InputError(path, f"malformed {what} ({reason})") from None
 
 
 def _names(path: Path, fs) -> list[str]:
@@ -68,18 +82,23 @@ def read_cameras(directory: str | Path) -> dict[str, Camera]:
     intri_path, extri_path = directory / INTRI, directory / EXTRI
     intri, extri = _open(intri_path), _open(extri_path)
     try:
-        names = _names(intri_path, intri)
+        with _malformed(intri_path, "camera names"):
+            names = _names(intri_path, intri)
         cameras = {}
         for name in names:
-            K = _matrix(intri_path, intri, f"K_{name}", (3, 3))
-            dist = _matrix(intri_path, intri, f"dist_{name}", None, required=False)
-            size = [intri.getNode(f"{k}_{name}") for k in ("H", "W")]
-            height, width = (int(n.real()) if not n.empty() else 0 for n in size)
-            rot = _matrix(extri_path, extri, f"Rot_{name}", (3, 3), required=False)
-            if rot is None:
-                rvec = _matrix(extri_path, extri, f"R_{name}", (3, 1))
-                rot = cv2.Rodrigues(rvec)[0]
-            T = _matrix(extri_path, extri, f"T_{name}", (3, 1)).reshape(3)
+            with _malformed(intri_path, f"intrinsics of camera {name}"):
+                K = _matrix(intri_path, intri, f"K_{name}", (3, 3))
+                dist = _matrix(intri_path, intri, f"dist_{name}", None, required=False)
+                size = [intri.getNode(f"{k}_{name}") for k in ("H", "W")]
+                height, width = (int(n.real()) if not n.empty() else 0 for n in size)
+            if height < 0 or width < 0:
+                raise InputError(intri_path, f"camera {name}: negative image size {width}x{height}")
+            with _malformed(extri_path, f"extrinsics of camera {name}"):
+                rot = _matrix(extri_path, extri, f"Rot_{name}", (3, 3), required=False)
+                if rot is None:
+                    rvec = _matrix(extri_path, extri, f"R_{name}", (3, 1))
+                    rot = cv2.Rodrigues(rvec)[0]
+                T = _matrix(extri_path, extri, f"T_{name}", (3, 1)).reshape(3)
             cameras[name] = Camera(name=name, K=K, R=rot, T=T, width=width, height=height,
                                    dist=dist if dist is not None else np.zeros(5))
         return cameras

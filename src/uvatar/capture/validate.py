@@ -24,11 +24,15 @@ POSE_VALUES = {"anny": 312, "smpl": 72}
 
 @dataclass
 class ValidateConfig:
-    """deep: fully load every mesh and texture; require_scans: fail on frames without a scan even
-    when the capture has no scans at all (image-only DVA captures normally have none)."""
+    """deep: fully load every mesh and texture (and check every image's size, not each camera's
+    first); require_scans: fail on frames without a scan even when the capture has no scans at all
+    (image-only DVA captures normally have none); strict: fail on the first warning (frames without
+    fits, cameras without images, images without masks, images or masks whose size differs from
+    the intrinsics) instead of listing them."""
 
     deep: bool = False
     require_scans: bool = False
+    strict: bool = False
 
 
 def _check_scan(path: Path, deep: bool, checked_textures: set) -> tuple[int, int]:
@@ -80,7 +84,8 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
     Summary keys: ``root``, ``frames`` (count), ``frame_names`` (first, last), ``fps``,
     ``body_model``, ``scans`` (count), ``topologies`` (list of {vertices, faces, frames,
     segments}), ``fits`` (count), ``pose_values``, ``cameras`` (names), ``images`` and ``masks``
-    ({camera: count}), ``frames_without_image`` ({camera: count}), ``gt`` (bool). ``progress(iterable, total, desc)`` wraps the frame loop
+    ({camera: count}), ``frames_without_image`` ({camera: count}), ``gt`` (bool), ``warnings``
+    (one line each; with ``config.strict`` the first one raises instead). ``progress(iterable, total, desc)`` wraps the frame loop
     (e.g. tqdm).
     """
     config = config or ValidateConfig()
@@ -99,6 +104,7 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
     keys, checked_textures = [], set()
     pose_values = shape_values = None
     iterator = progress(frames, len(frames), "checking frames") if progress else frames
+    no_fit: list[str] = []
     for frame in iterator:
         if want_scans:
             scan = cap.scan_path(frame)
@@ -111,7 +117,8 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
         elif npz_fits is not None and frame in npz_fits:
             fit, fit_path = npz_fits[frame], cap.root / "fits.npz"
         else:
-            raise InputError(fit_path, f"frame {frame} has no fit")
+            no_fit.append(frame)
+            continue
         if expected_poses is not None and fit.poses.size != expected_poses:
             raise InputError(fit_path, f"poses has {fit.poses.size} values, expected {expected_poses} "
                                        f"for body model '{cap.body_model}'")
@@ -121,38 +128,74 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
             raise InputError(fit_path, f"poses has {fit.poses.size} values, other frames have {pose_values}")
         elif fit.shapes.size != shape_values:
             raise InputError(fit_path, f"shapes has {fit.shapes.size} values, other frames have {shape_values}")
+    warnings = []
+    if no_fit:
+        warnings.append(f"{len(no_fit)} of {len(frames)} frames have no fit "
+                        f"({cap.fit_path(no_fit[0])}{' ...' if len(no_fit) > 1 else ''}; `uvatar fit` makes them)")
     images, masks, missing, cameras = {}, {}, {}, []
     if cap.cameras_dir.is_dir() and any(cap.cameras_dir.iterdir()):
         cams = cap.cameras()
         cameras = list(cams)
         for name in cameras:
-            folder = cap.root / "images" / name
-            stems = _image_stems(folder)
-            images[name] = len(stems)
-            if not stems:
-                raise InputError(folder, f"camera {name} has no images")
-            masks[name] = len(_image_stems(cap.root / "masks" / name))
-            missing[name] = len(set(frames) - stems)
-            if config.deep:
-                for frame in frames:
-                    path = cap.image_path(name, frame)
-                    if path.is_file():
-                        check_texture(path, what="image")
+            warnings += _check_camera_images(cap, cams[name], frames, config.deep, images, masks, missing)
     elif (cap.root / "images").is_dir():
         raise InputError(cap.cameras_dir / "intri.yml", "images/ exists but the cameras are missing")
+    if warnings and config.strict:
+        more = f" (+{len(warnings) - 1} more warnings)" if len(warnings) > 1 else ""
+        raise InputError(cap.root, f"strict check: {warnings[0]}{more}")
     return {"root": str(cap.root), "frames": len(frames), "frame_names": [frames[0], frames[-1]],
             "fps": cap.fps, "body_model": cap.body_model, "scans": len(keys),
-            "topologies": _segments(frames, keys) if keys else [], "fits": len(frames),
+            "topologies": _segments(frames, keys) if keys else [], "fits": len(frames) - len(no_fit),
             "pose_values": pose_values, "shape_values": shape_values, "cameras": cameras,
-            "images": images, "masks": masks, "frames_without_image": missing, "gt": cap.gt_dir.is_dir()}
+            "images": images, "masks": masks, "frames_without_image": missing, "gt": cap.gt_dir.is_dir(),
+            "warnings": warnings}
+
+
+def size_warning(what: str, camera, path: Path, size: tuple[int, int]) -> str | None:
+    """A warning when an image of ``size`` (width, height) does not match the camera's intrinsics."""
+    if camera.width and camera.height and tuple(size) != (camera.width, camera.height):
+        return (f"camera {camera.name}: {what} are {size[0]}x{size[1]} but the intrinsics say "
+                f"{camera.width}x{camera.height} ({path})")
+    return None
+
+
+def _check_camera_images(cap: Capture, camera, frames: list[str], deep: bool, images: dict, masks: dict,
+                         missing: dict) -> list[str]:
+    """Fill the per-camera counts; return this camera's warnings (no images, frames without an image,
+    images without a mask, image/mask sizes that differ from the intrinsics)."""
+    name = camera.name
+    folder = cap.root / "images" / name
+    stems, mask_stems = _image_stems(folder), _image_stems(cap.root / "masks" / name)
+    images[name], masks[name] = len(stems), len(mask_stems)
+    missing[name] = len(set(frames) - stems)
+    if not stems:
+        return [f"camera {name} has no images ({folder})"]
+    out = []
+    if missing[name]:
+        out.append(f"camera {name}: {missing[name]} of {len(frames)} frames have no image ({folder})")
+    unmasked = sorted(set(frames) & stems - mask_stems)
+    if unmasked:
+        out.append(f"camera {name}: {len(unmasked)} of {len(set(frames) & stems)} images have no mask "
+                    f"({cap.root / 'masks' / name}; `uvatar capture masks` makes them)")
+    checked = [f for f in frames if f in stems]
+    for kind, path_of, have in (("images", cap.image_path, stems), ("masks", cap.mask_path, mask_stems)):
+        sizes = []  # deep: every file is verified; one warning per camera and kind
+        for frame in [f for f in checked if f in have][: None if deep else 1]:
+            path = path_of(name, frame)
+            warning = size_warning(kind, camera, path, check_texture(path, what=kind[:-1]))
+            if warning and not sizes:
+                sizes.append(warning)
+        out += sizes
+    return out
 
 
 def format_summary(summary: dict) -> str:
     """Human-readable multi-line summary of :func:`validate_capture`'s result."""
     first, last = summary["frame_names"]
-    lines = [f"capture {summary['root']}: OK",
-             f"  frames      {summary['frames']} ({first} .. {last}) at {summary['fps']:g} fps, "
-             f"body model {summary['body_model']}"]
+    fps = f"at {summary['fps']:g} fps" if summary.get("fps") else "fps unknown"
+    layout = f" ({summary['layout']} layout)" if summary.get("layout") else ""
+    lines = [f"capture {summary['root']}{layout}: OK",
+             f"  frames      {summary['frames']} ({first} .. {last}) {fps}, body model {summary['body_model']}"]
     if summary["scans"]:
         tops = summary["topologies"]
         lines.append(f"  scans       {summary['scans']} in {len(tops)} topolog{'y' if len(tops) == 1 else 'ies'}")
@@ -164,8 +207,9 @@ def format_summary(summary: dict) -> str:
             lines.append(f"    ... {len(tops) - 8} more topologies")
     else:
         lines.append("  scans       none")
-    lines.append(f"  fits        {summary['fits']} ({summary['pose_values']} pose values, "
-                 f"{summary['shape_values']} shape values)")
+    values = (f" ({summary['pose_values']} pose values, {summary['shape_values']} shape values)"
+              if summary.get("pose_values") is not None else "")
+    lines.append(f"  fits        {summary['fits']}{values}" if summary["fits"] else "  fits        none")
     if summary["cameras"]:
         lines.append(f"  cameras     {len(summary['cameras'])}")
         for name in summary["cameras"]:
@@ -175,4 +219,8 @@ def format_summary(summary: dict) -> str:
     else:
         lines.append("  cameras     none")
     lines.append(f"  ground truth {'yes' if summary['gt'] else 'no'}")
+    warnings = summary.get("warnings", [])
+    if warnings:
+        lines[0] = f"capture {summary['root']}{layout}: OK with {len(warnings)} warning{'s' if len(warnings) > 1 else ''}"
+        lines += [f"  warning: {w}" for w in warnings]
     return "\n".join(lines)

@@ -90,7 +90,7 @@ def _bake(args) -> int:
     from dataclasses import replace
 
     from uvatar.avh.bake import BakeConfig
-    from uvatar.avh.bake.pipeline import bake_capture, bake_selection
+    from uvatar.avh.bake.pipeline import bake_capture, bake_selection, outcome_line
     from uvatar.errors import InputError, options_as_input_error
     from uvatar.io_utils import write_json
 
@@ -112,6 +112,7 @@ def _bake(args) -> int:
         raise InputError("--workers", f"must be at least 1, got {args.workers}")
     progress = not args.no_progress
     summary: dict = {}
+    requested: list[str] | None = None
     if args.frames_from:
         try:
             with open(args.frames_from) as fh:
@@ -125,7 +126,7 @@ def _bake(args) -> int:
         info = read_dataset_info(args.out)
     else:
         frames = [f.strip() for f in args.frames.split(",")] if args.frames else None
-        bake_capture(args.capture, args.out, cfg, frames, args.workers, progress, args.overwrite)
+        requested = list(bake_capture(args.capture, args.out, cfg, frames, args.workers, progress, args.overwrite))
         from uvatar.avh.bake.dataset import read_dataset_info
 
         info = read_dataset_info(args.out)
@@ -134,6 +135,16 @@ def _bake(args) -> int:
           file=sys.stderr)
     for frame, reason in summary["rejected"].items():
         print(f"  rejected {frame}: {reason}", file=sys.stderr)
+    if requested is None:  # a selection: its frames (after replacements) are those asked for
+        sel = summary["selection"]
+        requested = [f for part in ("train", "val") for f in sel.get(part, []) if f] or sorted(summary["rejected"])
+    summary["outcome"] = outcome_line(requested, info.get("frames_baked", []), summary["rejected"],
+                                      cfg.reject_kappa)
+    if not set(requested) & set(info.get("frames_baked", [])):
+        if args.json:
+            write_json(args.json, summary)
+        print(f"uvatar bake: nothing baked ({summary['outcome']})", file=sys.stderr)
+        return 1
     if args.eval:
         from uvatar.avh.bake.evaluate import EvalConfig, evaluate_bake
 

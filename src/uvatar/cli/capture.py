@@ -13,11 +13,15 @@ import sys
 def register(cli) -> None:
     p = cli.command("capture check", help="check a capture folder and print a summary",
                     description="Check a capture folder (capture.json, scans/, fits/, cameras/, images/, "
-                                "masks/) and print a summary; exit 1 with one line naming the file and "
-                                "the problem on bad input.")
+                                "masks/), an EasyMocap folder (intri.yml, images/, mask/, fits) or a ZJU-MoCap "
+                                "subject (annots.npy) and print a summary with warnings; exit 1 with one line "
+                                "naming the file and the problem on bad input (with --strict, on a warning).")
     p.add_argument("directory", help="capture folder")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--deep", action="store_true", help="fully load every mesh, texture and image")
+    p.add_argument("--strict", action="store_true",
+                   help="fail on warnings (frames without fits, cameras without images, images without masks, "
+                        "image sizes that differ from the intrinsics)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_check)
     _register_import(cli)
@@ -42,7 +46,8 @@ def _register_import(cli) -> None:
     p.add_argument("--stride", type=int, default=d.stride, help="keep every n-th frame")
     p.add_argument("--resize", type=float, default=d.resize, help="image scale factor in (0, 1]")
     p.add_argument("--up", default=d.up, choices=("",) + UP_AXES,
-                   help="the calibration world's up axis (default: the format's own, +z for Qualisys/Pose2Sim)")
+                   help="the calibration world's up axis (default: the format's own, +z for Qualisys/Pose2Sim; "
+                        "write --up=-z for a negative axis)")
     p.add_argument("--units", default=d.units, choices=("",) + tuple(UNIT_SCALE),
                    help="units of the calibration's translations (default: the format's own)")
     p.add_argument("--image-format", default=d.image_format, choices=("jpg", "png"), help="image files written")
@@ -83,6 +88,15 @@ def _check(args) -> int:
             return tqdm(items, total=total, desc=desc, unit="frame", file=sys.stderr, leave=False,
                         disable=None)
 
-    summary = validate_capture(args.directory, ValidateConfig(deep=args.deep), progress=progress)
+    from pathlib import Path
+
+    cfg = ValidateConfig(deep=args.deep, strict=args.strict)
+    root = Path(args.directory)
+    if not (root / "capture.json").is_file() and any((root / n).is_file() for n in ("intri.yml", "annots.npy")):
+        from uvatar.dva.check import check_layout  # EasyMocap / ZJU-MoCap folders, as `train dva` reads them
+
+        summary = check_layout(root, cfg)
+    else:
+        summary = validate_capture(root, cfg, progress=progress)
     print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
     return 0

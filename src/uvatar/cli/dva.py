@@ -17,6 +17,7 @@ def register(cli) -> None:
     p.add_argument("--vgg-weights", default=None,
                    help="torchvision VGG-19 state dict for the perceptual loss (without it: 1 - SSIM)")
     _threads(p)
+    _body(p, "body model (default: the capture's: capture.json's, smpl for EasyMocap / ZJU-MoCap)")
     p.add_argument("--grid", type=int, default=None, help="primitives per UV side W (K = W*W); unset = preset")
     p.add_argument("--voxels", type=int, default=None, help="voxels per primitive side S; unset = preset")
     p.set_defaults(func=_train)
@@ -32,6 +33,7 @@ def register(cli) -> None:
     p.add_argument("--device", default="cpu")
     _threads(p)
     p.add_argument("-o", "--output", required=True, help="video path (.mp4 or .gif)")
+    _body(p, "body model (default: the run's; must be the run's)")
     p.set_defaults(func=_render)
 
     p = cli.command("eval dva", help="score a DVA run on held-out cameras in held-out poses")
@@ -45,7 +47,16 @@ def register(cli) -> None:
                    help="camera names, comma separated (default: the protocol's held-out cameras)")
     p.add_argument("--device", default="cpu")
     _threads(p)
+    _body(p, "body model (default: the run's; must be the run's)")
     p.set_defaults(func=_eval)
+
+
+def _body(p, help_model: str) -> None:
+    from uvatar.body.registry import BODY_MODELS
+
+    p.add_argument("--model", default=None, choices=BODY_MODELS, help=help_model)
+    p.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (default: $UVATAR_SMPL_DIR, "
+                                                     "or the training run's)")
 
 
 def _threads(p) -> None:
@@ -87,7 +98,8 @@ def _train(args) -> int:
     if args.voxels is not None:
         cfg.decoder.voxels = args.voxels
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=args.iters, minutes=args.minutes,
-                        device=args.device, resume=args.resume, vgg_weights=args.vgg_weights)
+                        device=args.device, resume=args.resume, vgg_weights=args.vgg_weights,
+                        body_model=args.model, model_dir=args.model_dir)
     print(f"trained {summary['steps']} steps in {summary['seconds']} s -> {args.out}")
     return 0
 
@@ -103,7 +115,7 @@ def _render(args) -> int:
     from uvatar.render.cameras import orbit_cameras
     from uvatar.render.video import write_video
 
-    model, body, meta, _ = load_run(args.run, args.device)
+    model, body, meta, _ = load_run(args.run, args.device, args.model, args.model_dir)
     source = open_source(args.motion)
     views = [v for v in args.views.split(",") if v]
     if not views:
@@ -146,6 +158,6 @@ def _eval(args) -> int:
 
     r = evaluate_dva(args.run, open_source(args.capture), args.json, driving_views=args.driving_views,
                      max_frames=args.max_frames, device=args.device, frames=_split(args.frames),
-                     cameras=_split(args.cameras))
+                     cameras=_split(args.cameras), body_model=args.model, model_dir=args.model_dir)
     print(f"psnr {r['psnr_db']:.2f} dB, ssim {r['ssim']:.4f} over {len(r['per_image'])} images -> {args.json}")
     return 0

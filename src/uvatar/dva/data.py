@@ -52,13 +52,24 @@ class MultiViewSource:
     protocol: str = ""
     eval_box_mask: bool = False  # PSNR inside the projected body box (Neural Body)
 
+    image_scale: float = 1.0  # the loader resizes images by this factor (ZJU-MoCap's ratio)
+
     def fit(self, frame: str) -> BodyFit:
+        raise NotImplementedError
+
+    def has_fit(self, frame: str) -> bool:
         raise NotImplementedError
 
     def image(self, cam: str, frame: str) -> np.ndarray:
         raise NotImplementedError
 
     def mask(self, cam: str, frame: str) -> np.ndarray:
+        raise NotImplementedError
+
+    def image_path(self, cam: str, frame: str) -> Path:
+        raise NotImplementedError
+
+    def mask_path(self, cam: str, frame: str) -> Path:
         raise NotImplementedError
 
 
@@ -130,6 +141,15 @@ class CaptureSource(MultiViewSource):
     def fit(self, frame):
         return self.cap.load_fit(frame)
 
+    def has_fit(self, frame):
+        return self.cap.has_fit(frame)
+
+    def image_path(self, cam, frame):
+        return self.cap.image_path(cam, frame)
+
+    def mask_path(self, cam, frame):
+        return self.cap.mask_path(cam, frame)
+
     def image(self, cam, frame):
         return self.cap.load_image(cam, frame)
 
@@ -139,21 +159,27 @@ class CaptureSource(MultiViewSource):
 
 class EasyMocapSource(MultiViewSource):
     """EasyMocap dataset folder: intri.yml + extri.yml, images/<cam>/<frame>.jpg, mask/<cam>/<frame>.png
-    (or masks/), SMPL fits in output-smpl-3d/smpl/, output/smpl/ or smpl/ (<frame>.json)."""
+    (or masks/), fits in output-smpl-3d/smpl/, output/smpl/, smpl/ or fits/ (<frame>.json). The fits
+    are SMPL's unless ``body_model`` says otherwise (``train dva --model anny`` after ``uvatar fit``)."""
 
     FIT_DIRS = ("output-smpl-3d/smpl", "output/smpl", "smpl", "fits")
 
-    def __init__(self, root, body_model: str = "smpl"):
+    def __init__(self, root, body_model: str = "smpl", require_fits: bool = True):
         from uvatar.capture import read_cameras
 
         self.root = Path(root)
         self.cameras = read_cameras(self.root)
         self.fit_dir = next((self.root / d for d in self.FIT_DIRS if (self.root / d).is_dir()), None)
-        if self.fit_dir is None:
-            raise InputError(self.root, f"no SMPL fits folder (looked for {', '.join(self.FIT_DIRS)})")
-        self.frames = sorted(p.stem for p in self.fit_dir.glob("*.json"))
-        if not self.frames:
+        if self.fit_dir is None and require_fits:
+            raise InputError(self.root, f"no fits folder (looked for {', '.join(self.FIT_DIRS)}; "
+                                        "`uvatar fit` writes fits/)")
+        self.frames = sorted(p.stem for p in self.fit_dir.glob("*.json")) if self.fit_dir else []
+        if not self.frames and require_fits:
             raise InputError(self.fit_dir, "no fits (*.json)")
+        self.image_frames = sorted({p.stem for c in self.cameras for p in (self.root / "images" / c).glob("*")
+                                    if p.suffix.lower() in (".jpg", ".jpeg", ".png")})
+        if not self.frames:  # checking a folder before `uvatar fit`: its frames are its images
+            self.frames = self.image_frames
         self.body_model = body_model
         names = list(self.cameras)
         self.train_cameras = [c for i, c in enumerate(names) if i % 4 != 3] or names
@@ -173,7 +199,18 @@ class EasyMocapSource(MultiViewSource):
     def fit(self, frame):
         from uvatar.capture import read_fit
 
+        if self.fit_dir is None:
+            raise InputError(self.root / "fits" / f"{frame}.json", "fit is missing")
         return read_fit(self.fit_dir / f"{frame}.json")
+
+    def has_fit(self, frame):
+        return self.fit_dir is not None and (self.fit_dir / f"{frame}.json").is_file()
+
+    def image_path(self, cam, frame):
+        return self._find("images", cam, frame)
+
+    def mask_path(self, cam, frame):
+        return self._find("mask", cam, frame)
 
     def image(self, cam, frame):
         return _load_image(self._find("images", cam, frame))[..., :3]
@@ -225,6 +262,21 @@ class ZjuMocapSource(MultiViewSource):
                          f"test views = the others; images x{self.ratio}, background black; PSNR inside "
                          "the projected 3D body box")
 
+    @property
+    def image_scale(self) -> float:
+        return self.ratio
+
+    def has_fit(self, frame):
+        return (self.param_dir / f"{int(frame) + self.offset}.npy").is_file()
+
+    def image_path(self, cam, frame):
+        return self.root / self._rel(cam, frame)
+
+    def mask_path(self, cam, frame):
+        rel = Path(self._rel(cam, frame)).with_suffix(".png")
+        found = [self.root / d / rel for d in ("mask_cihp", "mask") if (self.root / d / rel).is_file()]
+        return found[0] if found else self.root / "mask_cihp" / rel
+
     def fit(self, frame):
         path = self.param_dir / f"{int(frame) + self.offset}.npy"
         if not path.is_file():
@@ -246,14 +298,9 @@ class ZjuMocapSource(MultiViewSource):
         return img * self.mask(cam, frame)[..., None]  # Neural Body: black background
 
     def mask(self, cam, frame):
-        rel = Path(self._rel(cam, frame)).with_suffix(".png")
-        for d in ("mask_cihp", "mask"):
-            p = self.root / d / rel
-            if p.is_file():
-                m = _load_image(p, "mask")
-                m = m.max(-1) if m.ndim == 3 else m
-                return _resize((m > 0).astype(np.float32), self.ratio, nearest=True)
-        raise InputError(self.root / "mask_cihp" / rel, "mask is missing")
+        m = _load_image(self.mask_path(cam, frame), "mask")
+        m = m.max(-1) if m.ndim == 3 else m
+        return _resize((m > 0).astype(np.float32), self.ratio, nearest=True)
 
 
 def box_mask(camera: Camera, vertices: np.ndarray, height: int, width: int, pad: float = 0.05) -> np.ndarray:

@@ -3,7 +3,9 @@
 ``FrameBank(source, body, model_raster, frames, cameras)`` loads every (frame, camera) once: the posed
 LBS vertices, joint rotations, uint8 images and masks, and the image unwrapped into UV at the model's
 image-feature resolution (with visibility). Frames whose fit, image or mask cannot be read are skipped
-with a warning (``bank.skipped`` says why).
+with a warning (``bank.skipped`` says why, ``bank.causes`` counts them by cause); with no frame left
+the error counts the causes ("100 frames: 100 missing masks"). Images whose size differs from their
+camera's intrinsics are warned about once per camera.
 """
 
 from __future__ import annotations
@@ -52,16 +54,34 @@ class FrameBank:
         self.cams = [source.cameras[c] for c in self.cameras]
         self.frames, self.skipped = [], {}
         rot, verts, images, masks, texs, vis = [], [], [], [], [], []
+        causes: dict[str, int] = {}
+        size_warned: set[str] = set()
         for frame in tqdm(list(frames), desc="loading frames", disable=not progress, unit="frame"):
+            stage = "fits"
             try:
                 fit = source.fit(frame)
-                r, v = body_inputs(body, [fit])
+                stage = "fits for another body model"
+                try:
+                    r, v = body_inputs(body, [fit])
+                except (ValueError, RuntimeError, IndexError) as exc:
+                    raise InputError(f"fit {frame}", f"does not fit the body model ({exc})") from None
+                stage = "images"
                 imgs = [source.image(c, frame) for c in self.cameras]
+                stage = "masks"
                 msks = [np.asarray(source.mask(c, frame), np.float32) for c in self.cameras]
+                stage = "image/mask size mismatch"
                 for c, im, m in zip(self.cams, imgs, msks, strict=False):
                     if im.shape[:2] != m.shape[:2]:
                         raise InputError(f"{c.name}/{frame}", f"image {im.shape[:2]} and mask {m.shape[:2]} differ")
+                    if c.width and c.height and im.shape[:2] != (c.height, c.width) and c.name not in size_warned:
+                        size_warned.add(c.name)
+                        log.warning("camera %s: images are %dx%d but its intrinsics say %dx%d (rays and "
+                                    "projections will not match the pixels)", c.name, im.shape[1], im.shape[0],
+                                    c.width, c.height)
             except InputError as exc:
+                cause = f"missing {stage}" if stage in ("fits", "images", "masks") and "missing" in str(exc) \
+                    else stage if stage not in ("fits", "images", "masks") else f"unreadable {stage}"
+                causes[cause] = causes.get(cause, 0) + 1
                 log.warning("skipping frame %s: %s", frame, exc)
                 self.skipped[frame] = str(exc)
                 continue
@@ -73,8 +93,12 @@ class FrameBank:
             masks.append([(m > 0.5) for m in msks])
             texs.append(torch.as_tensor(t, dtype=torch.float16))
             vis.append(torch.as_tensor(s))
+        self.causes = causes
         if not self.frames:
-            raise InputError(getattr(source, "root", "source"), "no usable frame (all fits/images broken)")
+            counted = ", ".join(f"{n} {c}" for c, n in sorted(causes.items(), key=lambda kv: -kv[1]))
+            n = len(list(frames))
+            raise InputError(getattr(source, "root", "source"),
+                             f"no usable frame ({n} frame{'s' if n != 1 else ''}: {counted})")
         self.rotvecs = torch.stack(rot)
         self.vertices = torch.stack(verts)
         self.images, self.masks = images, masks

@@ -29,15 +29,18 @@ log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.pt"
 
 
-def make_body(name: str, device="cpu"):
-    """The body model a run was trained with ("toy" is the test tube of :mod:`uvatar.dva.toy`)."""
+def make_body(name: str, device="cpu", model_dir=None):
+    """The body model a run was trained with ("toy" is the test tube of :mod:`uvatar.dva.toy`);
+    ``model_dir``: the SMPL/SMPL-X files (default ``$UVATAR_SMPL_DIR``; anny needs none)."""
     if name == "toy":
         from uvatar.dva.toy import ToyBody
 
         return ToyBody()
-    from uvatar.body.registry import load_body_model
+    from uvatar.body.registry import BODY_MODELS, load_body_model
 
-    return load_body_model(name, device=device)
+    if str(name).lower() not in BODY_MODELS:
+        raise InputError("body model", f"unknown body model {name!r}; choose one of {', '.join(BODY_MODELS)}")
+    return load_body_model(name, model_dir=model_dir, device=device)
 
 
 def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
@@ -64,8 +67,9 @@ def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict) -> None
         torch.save(state, tmp)
 
 
-def load_run(run_dir, device="cpu"):
-    """(model, body, meta, step) from a run folder's checkpoint."""
+def load_run(run_dir, device="cpu", body_model=None, model_dir=None):
+    """(model, body, meta, step) from a run folder's checkpoint. ``body_model``: must be the run's
+    own when given; ``model_dir``: where its SMPL/SMPL-X files are (default: the training run's)."""
     path = Path(run_dir) / CHECKPOINT
     if not path.is_file():
         raise InputError(path, "no DVA checkpoint here (train with `uvatar train dva` first)")
@@ -75,7 +79,9 @@ def load_run(run_dir, device="cpu"):
         meta = state["meta"]
     except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is the same user error
         raise InputError(path, f"unreadable checkpoint ({exc.__class__.__name__}: {exc})") from None
-    body = make_body(meta["body_model"], device)
+    if body_model and body_model != meta["body_model"]:
+        raise InputError(path, f"was trained with body model {meta['body_model']!r}, not {body_model!r}")
+    body = make_body(meta["body_model"], device, model_dir or meta.get("model_dir"))
     model = DvaModel(cfg, body.template, meta["conditioning_joints"]).to(device)
     model.load_state_dict(state["model"])
     model.eval()
@@ -86,7 +92,7 @@ class Trainer:
     """Holds the model, the data bank and the optimizer; ``run()`` trains until iters or minutes."""
 
     def __init__(self, source, out_dir, cfg: DvaConfig, body=None, device="cpu", vgg_weights=None,
-                 resume=False, seed=0, progress=True):
+                 resume=False, seed=0, progress=True, body_model=None, model_dir=None):
         self.source, self.out = source, Path(out_dir)
         self.device, self.progress = torch.device(device), progress
         self.rng = random.Random(seed)
@@ -99,8 +105,10 @@ class Trainer:
             cfg = DvaConfig.from_dict(state["config"])  # the run's own config wins on resume
             log.info("resuming from %s at step %d", ckpt, state["step"])
         self.cfg = cfg
-        body_name = getattr(body, "name", None) or source.body_model
-        self.body = body if body is not None else make_body(body_name, "cpu")
+        if state is not None and body_model and body_model != state["meta"]["body_model"]:
+            raise InputError(ckpt, f"was trained with body model {state['meta']['body_model']!r}, not {body_model!r}")
+        body_name = getattr(body, "name", None) or body_model or source.body_model
+        self.body = body if body is not None else make_body(body_name, "cpu", model_dir)
         joints = tuple(getattr(self.body, "conditioning_joints", range(self.body.num_joints)))
         self.model = DvaModel(cfg, self.body.template, joints).to(self.device)
         self.bank = FrameBank(source, self.body, self.model.image_raster, self.body.template,
@@ -109,7 +117,8 @@ class Trainer:
         self.loss = DvaLoss(cfg.loss, vgg).to(self.device)
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.train.lr)
         self.step = 0
-        self.meta = {"body_model": body_name, "conditioning_joints": list(joints),
+        self.meta = {"body_model": body_name, "model_dir": None if model_dir is None else str(model_dir),
+                     "conditioning_joints": list(joints),
                      "source": str(getattr(source, "root", "")), "train_cameras": list(source.train_cameras),
                      "train_frames": list(self.bank.frames), "skipped_frames": self.bank.skipped,
                      "backgrounds": {c: self.bank.backgrounds[i].tolist() for i, c in enumerate(self.bank.cameras)},
@@ -221,8 +230,10 @@ class Trainer:
 
 
 def train_dva(source, out_dir, cfg: DvaConfig, iters=None, minutes=None, device="cpu", resume=False,
-              body=None, vgg_weights=None, progress=True) -> dict:
-    """Train (or resume) a DVA run in ``out_dir``; returns a summary dict (also in run.json)."""
+              body=None, vgg_weights=None, progress=True, body_model=None, model_dir=None) -> dict:
+    """Train (or resume) a DVA run in ``out_dir``; returns a summary dict (also in run.json).
+    ``body_model`` ("anny", "smpl", "smplx"; default: the source's) and ``model_dir`` (SMPL files)
+    pick the body model on any layout."""
     trainer = Trainer(source, out_dir, cfg, body=body, device=device, vgg_weights=vgg_weights,
-                      resume=resume, progress=progress)
+                      resume=resume, progress=progress, body_model=body_model, model_dir=model_dir)
     return trainer.run(iters, minutes)

@@ -101,6 +101,16 @@ class Camera:
         """(..., 3) world points → (..., 3) camera-frame points."""
         return np.asarray(points, dtype=np.float64) @ self.R.T + self.T
 
+    def scaled(self, width: int, height: int) -> Camera:
+        """This camera for its image resized to ``width`` x ``height`` (as ``cv2.resize`` does: pixel
+        centres at integers, so ``x' = (x + 0.5) * sx - 0.5``); distortion is unchanged (it acts on
+        normalized coordinates)."""
+        if not self.width or not self.height:
+            raise ValueError(f"camera {self.name}: cannot scale a camera whose image size is unknown")
+        sx, sy = width / self.width, height / self.height
+        A = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+        return Camera(self.name, A @ self.K, self.R, self.T, int(width), int(height), self.dist)
+
     @property
     def distorted(self) -> bool:
         """True when the lens distortion is not zero."""

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from uvatar.geometry.camera import Camera
 from uvatar.errors import InputError
+from uvatar.geometry.camera import Camera
 
 __all__ = ["look_at_camera", "orbit_cameras", "ring_cameras", "camera_rays", "project_points"]
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uvatar.geometry.camera import Camera
 from uvatar.errors import InputError
+from uvatar.geometry.camera import Camera
 from uvatar.geometry.frames import normalize, vertex_normals
 from uvatar.geometry.raycast import RayCaster, RayHits, first_hit_reference
 from uvatar.geometry.sampling import sample_texture

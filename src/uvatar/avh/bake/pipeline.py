@@ -221,6 +221,26 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     return {f: results[f] for f in frames}
 
 
+def outcome_line(frames: list[str], baked: list[str], reasons: dict[str, str], reject_kappa: float) -> str:
+    """What became of ``frames``, counted by cause: "60 frames: 60 rejected (mean kappa < 130/255)",
+    "4 frames: 1 baked, 2 rejected (...), 1 broken input". ``reasons``: dataset.json's "rejected"."""
+    from collections import Counter
+
+    causes: Counter = Counter()
+    done = set(baked)
+    for f in frames:
+        if f in done:
+            causes["baked"] += 1
+        elif f not in reasons:
+            causes["not baked"] += 1
+        elif reasons[f].startswith("mean confidence"):
+            causes[f"rejected (mean kappa < {reject_kappa * 255:.0f}/255)"] += 1
+        else:
+            causes[reasons[f].split(":")[0]] += 1  # "broken input", "worker failed"
+    order = sorted(causes, key=lambda c: (c != "baked", -causes[c], c))
+    return f"{len(frames)} frames: " + ", ".join(f"{causes[c]} {c}" for c in order)
+
+
 def previous_results(info: dict) -> dict[str, FrameResult]:
     """Broken frames recorded by an earlier run (baked/rejected ones are re-read from their files)."""
     return {f: FrameResult(f, "broken", reason) for f, reason in info.get("rejected", {}).items()

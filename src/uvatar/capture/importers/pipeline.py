@@ -95,18 +95,10 @@ def fit_camera_to_image(cam: Camera, width: int, height: int, source: str) -> tu
                 f"taken as {dw} px cropped at the right / {dh} at the bottom (K kept)")
         return Camera(cam.name, cam.K, cam.R, cam.T, width, height, cam.dist), note
     if abs(width / cam.width - height / cam.height) < 2e-3:
-        scaled = scale_camera(cam, width, height)
+        scaled = cam.scaled(width, height)
         return scaled, f"{cam.name}: calibrated {cam.width}x{cam.height}, decoded {width}x{height}: K scaled"
     raise InputError(source, f"camera {cam.name}: images are {width}x{height} but the calibration says "
                              f"{cam.width}x{cam.height} (neither a crop of <= {MAX_CROP_PX} px nor a scale)")
-
-
-def scale_camera(cam: Camera, width: int, height: int) -> Camera:
-    """The camera for its image resized to ``width`` x ``height`` (pixel centres at integers:
-    ``x' = (x + 0.5) * s - 0.5``)."""
-    sx, sy = width / cam.width, height / cam.height
-    A = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
-    return Camera(cam.name, A @ cam.K, cam.R, cam.T, width, height, cam.dist)
 
 
 def _resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -135,6 +127,25 @@ def _sweep_temp(folder: Path) -> None:
                 p.unlink(missing_ok=True)
 
 
+IMAGE_OPTIONS = ".import-images.json"  # what the images on disk were written with (resume guard)
+
+
+def _check_image_options(out: Path, cfg: ImportConfig) -> None:
+    """Refuse to resume into images written with another resize / format / quality (they would be
+    kept and mix with the new ones); record the options before the first image is written."""
+    from uvatar.io_utils import read_json, write_json
+
+    want = {"resize": cfg.resize, "image_format": cfg.image_format, "jpeg_quality": cfg.jpeg_quality}
+    path = out / IMAGE_OPTIONS
+    if path.is_file():
+        have = read_json(path)
+        if have != want:
+            changed = ", ".join(f"{k} {have.get(k)!r} -> {v!r}" for k, v in want.items() if have.get(k) != v)
+            raise InputError(out, f"holds images imported with other options ({changed}); use another folder")
+    else:
+        write_json(path, want)
+
+
 def _frame_indices(sources: dict[str, FrameSource], cfg: ImportConfig) -> list[int]:
     counts = [s.count for s in sources.values() if s.count is not None]
     total = min(counts) if counts else None
@@ -154,11 +165,6 @@ def import_capture(src: str | Path, out: str | Path, cfg: ImportConfig | None = 
                    calibration: str | Path | None = None, progress: bool = True) -> dict:
     """Import a recording folder ``src`` (videos or image folders + a calibration) into the capture
     folder ``out``; returns the summary written to the log (frames, cameras, notes, seconds)."""
-    from tqdm import tqdm
-
-    from uvatar.capture.cameras import write_cameras
-    from uvatar.capture.layout import write_capture_info
-
     cfg = cfg or ImportConfig()
     src, out = Path(src), Path(out)
     t0 = time.perf_counter()
@@ -170,7 +176,21 @@ def import_capture(src: str | Path, out: str | Path, cfg: ImportConfig | None = 
     if calib_path is None:
         raise InputError(src, "no calibration found (intri.yml/extri.yml, .qca, .toml, .json); give --calibration")
     calib = read_calibration(calib_path)
-    sources = find_sources(src)
+    sources = find_sources(src, count=cfg.end == 0)
+    try:
+        return _import(src, out, cfg, calib, calib_path, sources, progress, t0)
+    finally:
+        for source in sources.values():
+            source.close()
+
+
+def _import(src: Path, out: Path, cfg: ImportConfig, calib, calib_path: Path, sources: dict[str, FrameSource],
+            progress: bool, t0: float) -> dict:
+    from tqdm import tqdm
+
+    from uvatar.capture.cameras import write_cameras
+    from uvatar.capture.layout import write_capture_info
+
     names = match_names(list(calib.cameras), list(sources))
     if cfg.cameras:
         unknown = [c for c in cfg.cameras if c not in sources]
@@ -193,13 +213,14 @@ def import_capture(src: str | Path, out: str | Path, cfg: ImportConfig | None = 
         if note:
             notes.append(note)
         if cfg.resize != 1.0:
-            cam = scale_camera(cam, max(1, round(cam.width * cfg.resize)), max(1, round(cam.height * cfg.resize)))
+            cam = cam.scaled(max(1, round(cam.width * cfg.resize)), max(1, round(cam.height * cfg.resize)))
         cam.name = sname
         cameras[sname] = cam
     for note in notes:
         log.warning(note)
     frames = _frame_indices({s: sources[s] for s in cameras}, cfg)
     out.mkdir(parents=True, exist_ok=True)
+    _check_image_options(out, cfg)
     write_cameras(out / "cameras", cameras)
     ext = "." + cfg.image_format
     todo = {}

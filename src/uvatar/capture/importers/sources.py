@@ -30,6 +30,7 @@ class FrameSource:
     height: int
     count: int | None
     fps: float
+    reader: object = None  # the probe's open imageio-ffmpeg reader, still at frame 0 (reused once)
 
     @property
     def is_video(self) -> bool:
@@ -39,10 +40,17 @@ class FrameSource:
         return sorted(p for p in self.path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
                       and not p.name.startswith("."))
 
+    def close(self) -> None:
+        """Stop the probe's reader if :meth:`frames` never used it."""
+        if self.reader is not None:
+            self.reader.close()
+            self.reader = None
+
     def frames(self, indices: list[int]) -> Iterator[tuple[int, np.ndarray]]:
         """Yield (index, (H, W, 3) uint8 RGB) for each wanted index (ascending), decoding lazily."""
         wanted = sorted(set(indices))
         if not wanted:
+            self.close()
             return
         if not self.is_video:
             files = self.images()
@@ -52,10 +60,12 @@ class FrameSource:
             return
         import imageio_ffmpeg
 
-        reader = imageio_ffmpeg.read_frames(str(self.path), pix_fmt="rgb24")
+        reader, self.reader = self.reader, None
         try:
-            meta = next(reader)
-            w, h = meta["size"]
+            if reader is None:
+                reader = imageio_ffmpeg.read_frames(str(self.path), pix_fmt="rgb24")
+                next(reader)  # the meta data
+            w, h = self.width, self.height
             frame_bytes = w * h * 3
             want = iter(wanted)
             target = next(want)
@@ -89,23 +99,25 @@ def _read_image(path: Path) -> np.ndarray:
     return np.ascontiguousarray(img[..., :3])
 
 
-def probe(name: str, path: Path) -> FrameSource:
-    """Size, frame count and fps of a video or image folder (reads one frame at most)."""
+def probe(name: str, path: Path, count: bool = True) -> FrameSource:
+    """Size, frame count and fps of a video or image folder (reads one frame at most; counting a
+    video's frames decodes it once, so ``count=False`` skips that when the range is given)."""
     if path.is_file():
         import imageio_ffmpeg
 
         try:
-            reader = imageio_ffmpeg.read_frames(str(path))
-            meta = next(reader)
-            reader.close()
+            reader = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24")
+            meta = next(reader)  # the reader stays open at frame 0 for FrameSource.frames
         except (OSError, RuntimeError, StopIteration) as exc:
             raise InputError(path, f"cannot open video ({' '.join(str(exc).split())[:200]})") from None
         w, h = meta["size"]
-        try:
-            count, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
-        except (OSError, RuntimeError):
-            count = None
-        return FrameSource(name, path, int(w), int(h), count, float(meta.get("fps") or 0.0))
+        frames = None
+        if count:
+            try:
+                frames, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
+            except (OSError, RuntimeError):
+                frames = None
+        return FrameSource(name, path, int(w), int(h), frames, float(meta.get("fps") or 0.0), reader)
     src = FrameSource(name, path, 0, 0, None, 0.0)
     files = src.images()
     if not files:
@@ -116,14 +128,15 @@ def probe(name: str, path: Path) -> FrameSource:
     return src
 
 
-def find_sources(folder: Path) -> dict[str, FrameSource]:
+def find_sources(folder: Path, count: bool = True) -> dict[str, FrameSource]:
     """Per-camera sources in a recording folder: videos in ``folder`` or ``folder/videos``, else
-    image folders ``folder/images/<cam>`` or ``folder/<cam>``; named by file stem / folder name."""
+    image folders ``folder/images/<cam>`` or ``folder/<cam>``; named by file stem / folder name.
+    ``count``: count each video's frames (see :func:`probe`)."""
     for base in (folder / "videos", folder):
         if base.is_dir():
             videos = sorted(p for p in base.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES)
             if videos:
-                return {p.stem: probe(p.stem, p) for p in videos}
+                return {p.stem: probe(p.stem, p, count) for p in videos}
     for base in (folder / "images", folder):
         if base.is_dir():
             dirs = sorted(p for p in base.iterdir() if p.is_dir() and not p.name.startswith(".")
