@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from tests.fixtures.toy_capture import make_toy_capture
 from uvatar.avh.data import load_frame
 from uvatar.avh.eval import (
     Baselines,
@@ -19,9 +20,8 @@ from uvatar.avh.eval import (
 from uvatar.avh.export import export_avatar
 from uvatar.avh.model import AvhConfig
 from uvatar.avh.runtime import AvatarRuntime
-from uvatar.avh.toy_body import ToyTubeBody
-from uvatar.avh.toy_capture import make_toy_capture
 from uvatar.avh.train import TrainConfig, train_avh
+from uvatar.body.toy import ToyTubeBody
 from uvatar.errors import InputError
 
 

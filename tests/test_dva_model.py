@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.fixtures.dva_capture import toy_cameras
 from uvatar.dva.decoders import DecoderConfig, DvaDecoder, payload_to_slab, slab_to_payload
 from uvatar.dva.features import average_views, pose_feature_maps, unwrap_views, view_feature_map
 from uvatar.dva.losses import DvaLoss, Vgg19Features, beta_prior, ssim_torch
@@ -17,7 +18,7 @@ from uvatar.dva.primitives import (
     build_uv_grid,
     volume_prior,
 )
-from uvatar.dva.toy import ToyBody, toy_cameras
+from uvatar.dva.toy import ToyBody
 from uvatar.errors import InputError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

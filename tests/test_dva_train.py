@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
+from tests.fixtures.dva_capture import write_toy_capture
 from uvatar.dva.data import open_source
 from uvatar.dva.model import preset
-from uvatar.dva.toy import write_toy_capture
 from uvatar.dva.train import CHECKPOINT, Trainer, load_run, patch_pixels, train_dva
 from uvatar.errors import InputError
 

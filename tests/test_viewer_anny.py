@@ -19,7 +19,7 @@ def anny_avatar(tmp_path_factory):
         body = load_body_model("anny")
     except Exception as exc:  # noqa: BLE001
         pytest.skip(f"anny body model unavailable: {exc}")
-    from uvatar.viewer.toy import write_random_body_avatar
+    from tests.fixtures.toy_avatar import write_random_body_avatar
 
     out = tmp_path_factory.mktemp("anny_avatar")
     manifest = write_random_body_avatar(out, body, resolution=32, subdivisions=1)

@@ -18,6 +18,7 @@ REASON = missing_browser_reason()
 if REASON:
     pytest.skip(f"browser tests skipped: {REASON}", allow_module_level=True)
 
+from tests.fixtures.toy_avatar import toy_rest_body, write_toy_avatar  # noqa: E402
 from uvatar.avh.engine_export import pose_to_model_input, posed_joint_transforms, run_generator  # noqa: E402
 from uvatar.errors import UvatarError  # noqa: E402
 from uvatar.viewer.browser import (  # noqa: E402
@@ -30,7 +31,6 @@ from uvatar.viewer.browser import (  # noqa: E402
     wait_idle,
 )
 from uvatar.viewer.server import ViewerConfig, ViewerServer  # noqa: E402
-from uvatar.viewer.toy import toy_rest_body, write_toy_avatar  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from tests.fixtures.toy_avatar import TOY_JOINTS, toy_rest_body, write_toy_avatar
 from uvatar.avh.engine_export import (
     EngineExportConfig,
     engine_mesh,
@@ -18,7 +19,6 @@ from uvatar.avh.engine_export import (
 )
 from uvatar.errors import InputError
 from uvatar.viewer.glb import read_glb_json
-from uvatar.viewer.toy import TOY_JOINTS, toy_rest_body, write_toy_avatar
 
 
 @pytest.fixture(scope="module")
