@@ -33,13 +33,14 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.avh.bake.config import BakeConfig
+from uvatar.avh.bake.metrics import error_summary, pooled_psnr, texel_errors
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
 from uvatar.io_utils import read_json
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EvalConfig", "GtSource", "resample_gt_map", "evaluate_bake", "texel_errors"]
+__all__ = ["EvalConfig", "GtSource", "resample_gt_map", "evaluate_bake"]
 
 
 @dataclass(frozen=True)
@@ -74,30 +75,6 @@ def resample_gt_map(values, mask, resolution: int):
            + vals[y1, x0] * (1 - fx) * fy + vals[y1, x1] * fx * fy)
     ok = m[y0, x0] & m[y0, x1] & m[y1, x0] & m[y1, x1]
     return out, ok
-
-
-def texel_errors(points, texture, score_mask, gt_surface, gt_texture, gt_ok):
-    """(errors in metres (K,), squared texture errors (K, 3)) over texels score_mask & gt_ok."""
-    sel = np.asarray(score_mask, bool) & np.asarray(gt_ok, bool)
-    err = np.linalg.norm(np.asarray(points)[sel] - gt_surface[sel], axis=-1)
-    sq = (np.asarray(texture, np.float64)[sel] - gt_texture[sel]) ** 2
-    return err, sq
-
-
-def _summary(errors_m: list[np.ndarray]) -> dict:
-    e = np.concatenate(errors_m) * 1000.0 if errors_m else np.zeros(0)
-    if not e.size:
-        return {"median": None, "mean": None, "p90": None, "texels": 0}
-    return {"median": float(np.median(e)), "mean": float(e.mean()), "p90": float(np.percentile(e, 90)),
-            "texels": int(e.size)}
-
-
-def _psnr(sq: list[np.ndarray]) -> float | None:
-    s = np.concatenate(sq) if sq else np.zeros((0, 3))
-    if not s.size:
-        return None
-    mse = float(s.mean())
-    return float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse))
 
 
 def _gt(capture_root: Path, frame: str, resolution: int):
@@ -217,9 +194,9 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
         "frames_evaluated": len(errors),
         "texels": r,
         "kappa_threshold": config.kappa_threshold,
-        "correspondence_error_mm": _summary(errors),
-        "texture_psnr_db": _psnr(sq),
-        "texture_psnr_db_vs_resampled_gt": _psnr(sq_resampled) if sq_resampled else _psnr(sq),
+        "correspondence_error_mm": error_summary(errors),
+        "texture_psnr_db": pooled_psnr(sq),
+        "texture_psnr_db_vs_resampled_gt": pooled_psnr(sq_resampled) if sq_resampled else pooled_psnr(sq),
         "frames_rejected": rejected,
         "broken_frames": broken,
         "rejected_equals_broken": rejected == broken,
@@ -228,11 +205,11 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
                      "rule_changed_texels": int(sum(v.get("polarity_rule_changed_texels", 0)
                                                     for v in stats.values())),
                      "frames": len(stats)},
-        "ablation": {"all_matched_texels_median_mm": _summary(all_matched)["median"]},
+        "ablation": {"all_matched_texels_median_mm": error_summary(all_matched)["median"]},
     }
     if config.ablation and confident:
         from uvatar.avh.bake.ablation import run_ablation
 
         result["ablation"].update(run_ablation(capture, body, layout, bake_cfg, confident, config, source,
-                                               progress, _summary, _psnr))
+                                               progress))
     return result
