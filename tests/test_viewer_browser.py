@@ -19,7 +19,7 @@ if REASON:
     pytest.skip(f"browser tests skipped: {REASON}", allow_module_level=True)
 
 from tests.fixtures.toy_avatar import toy_rest_body, write_toy_avatar  # noqa: E402
-from uvatar.avh.engine_export import pose_to_model_input, posed_joint_transforms, run_generator  # noqa: E402
+from uvatar.avh.exporters.engine import pose_to_model_input, posed_joint_transforms, run_generator  # noqa: E402
 from uvatar.errors import UvatarError  # noqa: E402
 from uvatar.viewer.browser import (  # noqa: E402
     call_page,
@@ -195,7 +195,7 @@ def test_displaced_vertices_match_python_reference(page, avatar):
     import roma
     import torch
 
-    from uvatar.avh.engine_export import EngineExportConfig, engine_mesh, skin_reference
+    from uvatar.avh.exporters.engine import EngineExportConfig, engine_mesh, skin_reference
 
     out, manifest = avatar
     pose = np.array([0, 0, 0.1, 0.2, 0, 0.3, 0, -0.4, 0.2, 0.5, 0.1, 0], np.float32)

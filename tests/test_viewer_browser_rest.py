@@ -28,7 +28,7 @@ def test_rest_frame_displacement_is_added_before_skinning(tmp_path):
     import roma
     import torch
 
-    from uvatar.avh.engine_export import EngineExportConfig, engine_mesh, skin_reference
+    from uvatar.avh.exporters.engine import EngineExportConfig, engine_mesh, skin_reference
 
     manifest = write_toy_avatar(tmp_path, resolution=32, displacement_frame="rest")
     assert manifest["displacement"]["frame"] == "rest" and manifest["displacement"]["applied"].startswith("before")
