@@ -116,3 +116,15 @@ def test_vertex_normals_known_answer_and_twin():
     expected = torch.sign(v) / math.sqrt(3)
     assert ((n_fast * expected).sum(-1) > 0.5).all()
     torch.testing.assert_close(n_fast.norm(dim=-1), torch.ones(2, 8, dtype=torch.float64))
+
+
+def test_tree_helpers_known_answer():
+    from uvatar.body.kinematics import ancestor_matrix, subtree
+
+    # 0 -> 1 -> 2, 0 -> 3 -> 4; joint 5's parent (4) comes before it, joint 1's child 6 comes last
+    parents = [-1, 0, 1, 0, 3, 4, 1]
+    anc = ancestor_matrix(parents)
+    assert anc[5].nonzero()[0].tolist() == [0, 3, 4, 5] and anc[6].nonzero()[0].tolist() == [0, 1, 6]
+    assert subtree(parents, 1).tolist() == [1, 2, 6]
+    assert subtree(parents, [1, 4], include_roots=False).tolist() == [2, 5, 6]
+    assert subtree(parents, 0).tolist() == list(range(7))

@@ -21,8 +21,34 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
+__all__ = ["ancestor_matrix", "subtree", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
            "skinning_transforms", "sparse_weights", "skin", "skin_reference"]
+
+
+def ancestor_matrix(parents) -> np.ndarray:
+    """(J, J) bool: ``anc[j, a]`` is True when ``a`` is ``j`` or one of its ancestors (parents (J,),
+    -1 for roots; any joint order). One pass per tree level, not per joint."""
+    parents = np.asarray(parents, dtype=np.int64).reshape(-1)
+    n = len(parents)
+    anc = np.eye(n, dtype=bool)
+    cur = np.arange(n)
+    for _ in range(n):
+        cur = np.where(cur >= 0, parents[np.maximum(cur, 0)], -1)
+        if (cur < 0).all():
+            break
+        ok = cur >= 0
+        anc[np.flatnonzero(ok), cur[ok]] = True
+    return anc
+
+
+def subtree(parents, roots, include_roots: bool = True) -> np.ndarray:
+    """Sorted joint indices of the subtrees hanging from ``roots`` (an int or a list): the roots
+    themselves (unless ``include_roots`` is False) and every joint below them."""
+    roots = np.atleast_1d(np.asarray(roots, dtype=np.int64))
+    inside = ancestor_matrix(parents)[:, roots].any(1)
+    if not include_roots:
+        inside[roots] = False
+    return np.flatnonzero(inside)
 
 
 @dataclass(frozen=True)

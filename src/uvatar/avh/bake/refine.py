@@ -26,17 +26,9 @@ __all__ = ["PoseRefineConfig", "refine_fit", "subtree_weights", "region_weights"
 
 def subtree_weights(skin_weights, parents, joints) -> np.ndarray:
     """(V, K) sum of each vertex's skinning weights over the subtree rooted at each of ``joints``."""
-    parents = np.asarray(parents, dtype=np.int64)
-    n = len(parents)
-    # ancestor matrix: anc[j, a] = a is j or an ancestor of j (loop over the tree depth, not vertices)
-    anc = np.eye(n, dtype=bool)
-    cur = np.arange(n)
-    for _ in range(n):
-        cur = np.where(cur >= 0, parents[np.maximum(cur, 0)], -1)
-        if (cur < 0).all():
-            break
-        ok = cur >= 0
-        anc[np.flatnonzero(ok), cur[ok]] = True
+    from uvatar.body.kinematics import ancestor_matrix
+
+    anc = ancestor_matrix(parents)
     return np.asarray(skin_weights, dtype=np.float64) @ anc[:, list(joints)].astype(np.float64)
 
 
