@@ -79,16 +79,12 @@ def body_model_info(meta: dict) -> tuple[str, np.ndarray | None]:
 
 
 def rotvec_to_rotmat(rotvec: np.ndarray) -> np.ndarray:
-    """(…, 3) axis-angle -> (…, 3, 3) rotation matrices (Rodrigues, numpy)."""
+    """(…, 3) axis-angle -> (…, 3, 3) float64 rotation matrices (numpy face of ``roma.rotvec_to_rotmat``)."""
+    import roma
+    import torch
+
     rotvec = np.asarray(rotvec, np.float64)
-    theta = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    axis = rotvec / np.maximum(theta, 1e-12)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = np.zeros_like(x)
-    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*rotvec.shape[:-1], 3, 3)
-    s, c = np.sin(theta)[..., None], np.cos(theta)[..., None]
-    eye = np.broadcast_to(np.eye(3), k.shape)
-    return eye + s * k + (1 - c) * (k @ k)
+    return roma.rotvec_to_rotmat(torch.from_numpy(rotvec.reshape(-1, 3))).numpy().reshape(*rotvec.shape[:-1], 3, 3)
 
 
 def world_to_body(d_world: np.ndarray, Rh: np.ndarray) -> np.ndarray:
