@@ -35,7 +35,6 @@ import numpy as np
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.metrics import error_summary, pooled_psnr, texel_errors
 from uvatar.capture.layout import frame_name
-from uvatar.errors import InputError
 from uvatar.io_utils import read_json
 
 log = logging.getLogger(__name__)
@@ -153,9 +152,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
     capture_root, baked_root = Path(capture_root), Path(baked_root)
     info_path = capture_root / "gt" / "info.json"
     gt_info = read_json(info_path, "no ground truth (only synthetic captures from `uvatar synth` have gt/)")
-    info = read_dataset_info(baked_root)
-    if not info:
-        raise InputError(baked_root / "dataset.json", "not found; bake first")
+    info = read_dataset_info(baked_root, required=True)
     bake_cfg = BakeConfig.from_dict(info.get("config", {}))
     capture = Capture(capture_root)
     body, layout = load_body_and_layout(info["body_model"]["name"], bake_cfg.texels)
