@@ -34,8 +34,7 @@ import numpy as np
 
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.metrics import error_summary, pooled_psnr, texel_errors
-from uvatar.capture.layout import frame_name
-from uvatar.io_utils import read_json
+from uvatar.capture.gt import read_gt_info
 
 log = logging.getLogger(__name__)
 
@@ -98,12 +97,11 @@ class GtSource:
         if reference not in ("exact", "resampled"):
             raise ValueError(f"reference must be 'exact' or 'resampled', got {reference!r}")
         self.root, self.resolution = Path(capture_root), int(resolution)
-        info = read_json(self.root / "gt" / "info.json")
-        self.gt_texels = int(info.get("texel_resolution") or info.get("texels")
-                             or (info.get("config") or {}).get("gt_texels") or 0)
+        info = read_gt_info(self.root)
+        self.gt_texels = info.texels
         self.renderer = None
         used = "resampled"
-        if reference == "exact" and self.gt_texels != self.resolution and info.get("config"):
+        if reference == "exact" and self.gt_texels != self.resolution and info.config:
             from uvatar.capture.synth.gtmaps import GtRenderer
 
             try:
@@ -150,8 +148,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
 
     config = config or EvalConfig()
     capture_root, baked_root = Path(capture_root), Path(baked_root)
-    info_path = capture_root / "gt" / "info.json"
-    gt_info = read_json(info_path, "no ground truth (only synthetic captures from `uvatar synth` have gt/)")
+    gt_info = read_gt_info(capture_root)
     info = read_dataset_info(baked_root, required=True)
     bake_cfg = BakeConfig.from_dict(info.get("config", {}))
     capture = Capture(capture_root)
@@ -182,7 +179,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
         matched = data.get("matched", data["valid"])
         all_matched.append(texel_errors(points, data["texture"], matched & data["valid"], *gt)[0])
         confident[f] = score & gt[2]
-    broken = sorted(frame_name(b) for b in gt_info.get("broken_frames", []))
+    broken = sorted(gt_info.broken_frames)
     rejected = sorted(info.get("rejected", {}))
     stats = info.get("frame_stats", {})
     result = {
