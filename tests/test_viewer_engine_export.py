@@ -18,8 +18,8 @@ from uvatar.avh.exporters.engine import (
     top_influences,
     write_engine_bundle,
 )
-from uvatar.errors import InputError
 from uvatar.avh.exporters.glb import read_glb_json
+from uvatar.errors import InputError
 
 
 @pytest.fixture(scope="module")

@@ -33,6 +33,7 @@ import numpy as np
 from uvatar.capture.gt import GtInfo, read_gt_info
 from uvatar.capture.types import BodyFit, Camera
 from uvatar.errors import InputError
+from uvatar.io_utils import read_image
 
 NEURAL_BODY_TRAIN_VIEWS = (0, 6, 12, 18)
 
@@ -63,18 +64,8 @@ class MultiViewSource:
 
 
 def _load_image(path: Path, what="image") -> np.ndarray:
-    import imageio.v3 as iio
-
-    if not path.is_file():
-        raise InputError(path, f"{what} is missing")
-    try:
-        arr = iio.imread(path)
-    except Exception as exc:  # noqa: BLE001 - any decoder failure is a bad file
-        raise InputError(path, f"cannot read {what} ({exc.__class__.__name__})") from None
-    arr = np.asarray(arr)
-    scale = 65535.0 if arr.dtype == np.uint16 else 255.0 if arr.dtype == np.uint8 else 1.0
-    arr = arr.astype(np.float32) / scale
-    return arr
+    """The file's own channels, float32 in [0, 1] (:func:`uvatar.io_utils.read_image`)."""
+    return read_image(path, what, rgb=False)
 
 
 def _resize(img: np.ndarray, ratio: float, nearest=False) -> np.ndarray:
