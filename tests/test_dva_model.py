@@ -16,7 +16,6 @@ from uvatar.dva.primitives import (
     apply_correctives,
     articulated_frames,
     build_uv_grid,
-    volume_prior,
 )
 from uvatar.dva.toy import ToyBody
 from uvatar.errors import InputError
@@ -70,7 +69,6 @@ def test_correctives(body):
     assert torch.allclose(p[..., 0], torch.full((1, K), 0.1)) and torch.allclose(s, torch.full((1, K, 3), 0.1))
     p, _, s = apply_correctives(pos, rot, rest, motion, cfg, enabled=False)
     assert torch.equal(p, pos) and torch.allclose(s[0], rest)
-    assert float(volume_prior(torch.full((1, K, 3), 0.5))) == pytest.approx(1.0)
 
 
 def test_pose_features_are_masked_by_skinning(body):

@@ -19,15 +19,13 @@ if REASON:
     pytest.skip(f"browser tests skipped: {REASON}", allow_module_level=True)
 
 from tests.fixtures.toy_avatar import toy_rest_body, write_toy_avatar  # noqa: E402
+from tests.fixtures.viewer_page import canvas_pixels, run_generator_in_browser, wait_for_page  # noqa: E402
 from uvatar.avh.exporters.engine import pose_to_model_input, posed_joint_transforms, run_generator  # noqa: E402
 from uvatar.errors import UvatarError  # noqa: E402
 from uvatar.viewer.browser import (  # noqa: E402
     call_page,
-    canvas_pixels,
-    run_generator_in_browser,
     set_pose,
     viewer_page,
-    wait_for_page,
     wait_idle,
 )
 from uvatar.viewer.server import ViewerConfig, ViewerServer  # noqa: E402
