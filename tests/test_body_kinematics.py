@@ -128,3 +128,14 @@ def test_tree_helpers_known_answer():
     assert subtree(parents, 1).tolist() == [1, 2, 6]
     assert subtree(parents, [1, 4], include_roots=False).tolist() == [2, 5, 6]
     assert subtree(parents, 0).tolist() == list(range(7))
+
+
+def test_nearest_ancestor_known_answer():
+    from uvatar.body.kinematics import nearest_ancestor
+
+    parents = [-1, 0, 1, 0, 3, 4, 1]
+    # candidates 1 and 4: joints 1, 2, 6 fall under 1 (position 0), 4 and 5 under 4 (position 1)
+    assert nearest_ancestor(parents, [1, 4]).tolist() == [-1, 0, 0, -1, 1, 1, 0]
+    # nested candidates: the deepest one wins
+    assert nearest_ancestor(parents, [0, 3]).tolist() == [0, 0, 0, 1, 1, 1, 0]
+    assert nearest_ancestor(parents, []).tolist() == [-1] * 7

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["ancestor_matrix", "subtree", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
+__all__ = ["ancestor_matrix", "subtree", "nearest_ancestor", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
            "skinning_transforms", "sparse_weights", "skin", "skin_reference"]
 
 
@@ -49,6 +49,18 @@ def subtree(parents, roots, include_roots: bool = True) -> np.ndarray:
     if not include_roots:
         inside[roots] = False
     return np.flatnonzero(inside)
+
+
+def nearest_ancestor(parents, joints) -> np.ndarray:
+    """(J,) for every joint, the position in ``joints`` of its nearest ancestor among them (itself
+    included), or -1 when none of ``joints`` is above it."""
+    joints = np.asarray(joints, dtype=np.int64).reshape(-1)
+    full = ancestor_matrix(parents)
+    if joints.size == 0:
+        return np.full(len(full), -1, dtype=np.int64)
+    anc = full[:, joints]                                     # (J, K): joints[k] is j or above j
+    scored = np.where(anc, full.sum(1)[joints][None], 0)      # 1 + depth of each candidate above j
+    return np.where(anc.any(1), scored.argmax(1), -1)
 
 
 @dataclass(frozen=True)

@@ -45,16 +45,11 @@ def untracked_skin_weight(skin_weights, joints) -> np.ndarray:
 def region_weights(skin_weights, parents, joints) -> np.ndarray:
     """(V, K) skinning weights gathered onto ``joints``: every other joint gives its weight to its
     nearest ancestor among ``joints`` (or to the first of ``joints`` if it has none)."""
-    parents = np.asarray(parents, dtype=np.int64)
-    index = {j: i for i, j in enumerate(joints)}
-    owner = np.zeros(len(parents), dtype=np.int64)
-    for j in range(len(parents)):  # loop over joints (~100), not vertices
-        a = j
-        while a >= 0 and a not in index:
-            a = parents[a]
-        owner[j] = index.get(a, 0)
-    gather = np.zeros((len(parents), len(joints)))
-    gather[np.arange(len(parents)), owner] = 1.0
+    from uvatar.body.kinematics import nearest_ancestor
+
+    owner = np.maximum(nearest_ancestor(parents, list(joints)), 0)
+    gather = np.zeros((len(owner), len(joints)))
+    gather[np.arange(len(owner)), owner] = 1.0
     return np.asarray(skin_weights, dtype=np.float64) @ gather
 
 
