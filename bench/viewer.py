@@ -75,8 +75,8 @@ def measure(avatar: Path, runs: int) -> dict:
 
 
 def build_avatar(out: Path, body, preset_name: str, texels: int) -> int:
-    from uvatar.avh.engine_export import write_engine_bundle
     from uvatar.avh.export import export_onnx
+    from uvatar.avh.exporters.engine import write_engine_bundle
     from uvatar.avh.model import AvhFromAngles, AvhGenerator, count_parameters, preset
     from uvatar.io_utils import write_json
 

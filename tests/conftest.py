@@ -45,13 +45,13 @@ def one_torch_thread():
 @pytest.fixture(scope="session")
 def trained_toy_avatar():
     """Factory ``(root, num_frames, heldout=2) -> (body, capture_dir, baked_dir)``: a toy tube capture
-    (:func:`uvatar.avh.toy_capture.make_toy_capture`, 32 texels), one AVH epoch on it (ROOT/run) and the
+    (:func:`tests.fixtures.toy_capture.make_toy_capture`, 32 texels), one AVH epoch on it (ROOT/run) and the
     exported avatar (ROOT/avatar), all on :class:`uvatar.body.toy.ToyTubeBody`."""
 
     def make(root, num_frames: int, heldout: int = 2):
+        from tests.fixtures.toy_capture import make_toy_capture
         from uvatar.avh.export import export_avatar
         from uvatar.avh.model import AvhConfig
-        from uvatar.avh.toy_capture import make_toy_capture
         from uvatar.avh.train import TrainConfig, train_avh
         from uvatar.body.toy import ToyTubeBody
 

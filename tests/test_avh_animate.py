@@ -103,19 +103,53 @@ def test_animate_writes_video_and_meshes(setup, tmp_path):
     assert video.min() < 200  # the body is visible on the white background
 
 
-@pytest.mark.parametrize("camera", ["front", "left"])
-def test_animate_fixed_views_and_motion_from_capture(setup, tmp_path, camera):
+def _decoded(path) -> np.ndarray:
+    import imageio.v3 as iio
+
+    return iio.imread(path).astype(np.float32) / 255.0
+
+
+@pytest.mark.parametrize("camera, azimuth", [("front", 0.0), ("left", 90.0)])
+def test_animate_fixed_views_and_motion_from_capture(setup, tmp_path, camera, azimuth):
+    from uvatar.avh.animate import frame_camera, render_sequence
+
     root, body, cap = setup
-    out = animate(root / "avatar", f"heldout:{cap}", tmp_path / "b.mp4",
-                  AnimateConfig(size=32, camera=camera, progress=False), body=body)
-    assert out.exists()
+    config = AnimateConfig(size=32, camera=camera, progress=False)
+    out = animate(root / "avatar", f"heldout:{cap}", tmp_path / "b.mp4", config, body=body)
+    # the video holds the capture's two held-out poses, rendered as render_sequence renders them
+    seq = load_pose_sequence(f"heldout:{cap}", body)
+    assert seq.names == ["000003", "000004"]
+    reference = np.stack(render_sequence(AvatarRuntime(root / "avatar", body=body), seq, config))
+    video = _decoded(out)
+    assert video.shape == reference.shape == (2, 32, 32, 3)
+    assert np.abs(video - reference).mean() < 0.02  # lossy codec only (another view: > 0.04)
+    assert (reference < 0.9).any(axis=-1).mean() > 0.05  # the body covers part of the white frame
+    # the view: from the body's front (+Z) or its left (+X), raised by elevation_deg, at the distance
+    box = np.array([[-0.2, 0.0, -0.1], [0.2, 1.0, 0.1]])
+    cam = frame_camera(config, 0, 2, box, 3.0)
+    el, az = np.radians(config.elevation_deg), np.radians(azimuth)
+    expected = np.array([0.0, 0.5, 0.0]) + 3.0 * np.array([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
+    np.testing.assert_allclose(cam.center, expected, atol=1e-9)
 
 
 def test_animate_with_capture_cameras(setup, tmp_path):
+    from uvatar.capture import read_cameras
+    from uvatar.render import render_mesh
+
     root, body, cap = setup
-    out = animate(root / "avatar", f"fits:{cap}", tmp_path / "c.mp4",
-                  AnimateConfig(camera=str(cap / "cameras"), max_frames=2, progress=False), body=body)
-    assert out.exists()
+    config = AnimateConfig(camera=str(cap / "cameras"), max_frames=2, progress=False)
+    out = animate(root / "avatar", f"fits:{cap}", tmp_path / "c.mp4", config, body=body)
+    # each frame is the first capture camera's view (at its own image size) of the fitted pose
+    cams = read_cameras(cap / "cameras")
+    cam = cams[sorted(cams)[0]]
+    rt = AvatarRuntime(root / "avatar", body=body)
+    seq = load_pose_sequence(f"fits:{cap}", body).subsample(2, 1)
+    reference = np.stack([render_mesh(m.vertices, m.faces, cam, m.uvs, m.uv_faces, m.texture, background=1.0).rgb
+                          for m in rt.meshes(seq.poses, seq.Rh, seq.Th, seq.scale)])
+    video = _decoded(out)
+    assert video.shape == reference.shape == (2, cam.height, cam.width, 3)
+    assert np.abs(video - reference).mean() < 0.02
+    assert (reference < 0.9).any(axis=-1).mean() > 0.02
 
 
 def test_bad_camera_and_motion(setup, tmp_path):

@@ -16,7 +16,7 @@ from uvatar.avh.displacement_frame import (
     texel_skinning_rotations,
     vertex_skinning_rotations,
 )
-from uvatar.avh.toy_body import ToyTubeBody
+from uvatar.body.toy import ToyTubeBody
 from uvatar.geometry import rasterize_uv
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from tests.fixtures.fake_baked import make_fake_baked_dataset
 from uvatar.avh.export import export_avatar, onnx_session, read_avatar, verify_onnx
-from uvatar.avh.fake_baked import make_fake_baked_dataset
 from uvatar.avh.model import AvhConfig, AvhFromAngles
 from uvatar.avh.train import TrainConfig, load_trained_generator, train_avh
 from uvatar.errors import InputError

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from tests.fixtures.fake_baked import fake_maps, make_fake_baked_dataset
 from uvatar.avh.data import body_to_world, load_baked_frames, load_frame, resample_map, world_to_body
-from uvatar.avh.fake_baked import fake_maps, make_fake_baked_dataset
 from uvatar.avh.loss import avh_loss, displacement_mask, masked_mse
 from uvatar.avh.model import AvhConfig
 from uvatar.avh.train import TrainConfig, load_trained_generator, train_avh

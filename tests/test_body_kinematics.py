@@ -103,15 +103,39 @@ def test_sparse_skin_matches_dense_and_gradcheck():
 def test_vertex_normals_known_answer_and_twin():
     import trimesh
 
-    from uvatar.body.base import vertex_face_adjacency, vertex_normals_torch
+    from uvatar.geometry.frames import vertex_face_adjacency, vertex_normals
 
     # cube centred at the origin: every corner normal points outward, along its corner
     box = trimesh.creation.box()
     v = torch.as_tensor(box.vertices, dtype=torch.float64)[None].repeat(2, 1, 1)
     f = torch.as_tensor(box.faces, dtype=torch.int64)
-    n_fast = vertex_normals_torch(v, f, vertex_face_adjacency(f, v.shape[1]))
-    n_ref = vertex_normals_torch(v, f)
+    n_fast = vertex_normals(v, f, vertex_face_adjacency(f, v.shape[1]))
+    n_ref = vertex_normals(v, f)
+    np.testing.assert_allclose(vertex_normals(v.numpy(), f.numpy()), n_ref.numpy(), atol=1e-12)  # numpy twin
     torch.testing.assert_close(n_fast, n_ref)
     expected = torch.sign(v) / math.sqrt(3)
     assert ((n_fast * expected).sum(-1) > 0.5).all()
     torch.testing.assert_close(n_fast.norm(dim=-1), torch.ones(2, 8, dtype=torch.float64))
+
+
+def test_tree_helpers_known_answer():
+    from uvatar.body.kinematics import ancestor_matrix, subtree
+
+    # 0 -> 1 -> 2, 0 -> 3 -> 4; joint 5's parent (4) comes before it, joint 1's child 6 comes last
+    parents = [-1, 0, 1, 0, 3, 4, 1]
+    anc = ancestor_matrix(parents)
+    assert anc[5].nonzero()[0].tolist() == [0, 3, 4, 5] and anc[6].nonzero()[0].tolist() == [0, 1, 6]
+    assert subtree(parents, 1).tolist() == [1, 2, 6]
+    assert subtree(parents, [1, 4], include_roots=False).tolist() == [2, 5, 6]
+    assert subtree(parents, 0).tolist() == list(range(7))
+
+
+def test_nearest_ancestor_known_answer():
+    from uvatar.body.kinematics import nearest_ancestor
+
+    parents = [-1, 0, 1, 0, 3, 4, 1]
+    # candidates 1 and 4: joints 1, 2, 6 fall under 1 (position 0), 4 and 5 under 4 (position 1)
+    assert nearest_ancestor(parents, [1, 4]).tolist() == [-1, 0, 0, -1, 1, 1, 0]
+    # nested candidates: the deepest one wins
+    assert nearest_ancestor(parents, [0, 3]).tolist() == [0, 0, 0, 1, 1, 1, 0]
+    assert nearest_ancestor(parents, []).tolist() == [-1] * 7

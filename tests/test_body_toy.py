@@ -90,9 +90,6 @@ def test_pose_rest_and_rigid_bend():
 
 
 def test_avh_default_chain_and_shape_scale():
-    from uvatar.avh.toy_body import ToyTubeBody as Reexported
-
-    assert Reexported is ToyTubeBody
     body = ToyTubeBody()
     assert body.template.num_vertices == 17 * 16 and body.num_joints == 6 and body.conditioning_joints == (1, 2, 3)
     g = torch.Generator().manual_seed(0)
@@ -113,8 +110,9 @@ def test_avh_default_chain_and_shape_scale():
 
 
 def test_dva_and_viewer_presets():
-    from uvatar.dva.toy import ToyBody, toy_cameras
-    from uvatar.viewer.toy import TOY_JOINTS, toy_rest_body
+    from tests.fixtures.dva_capture import toy_cameras
+    from tests.fixtures.toy_avatar import TOY_JOINTS, toy_rest_body
+    from uvatar.dva.toy import ToyBody
 
     dva = ToyBody()
     assert dva.template.num_vertices == 12 * 16 and dva.num_joints == 2 and dva.conditioning_joints == (1,)

@@ -92,8 +92,8 @@ def test_box_mask_is_the_projected_box():
 
 
 def test_easymocap_layout(tmp_path):
+    from tests.fixtures.dva_capture import toy_cameras
     from uvatar.capture import BodyFit, write_cameras, write_fit
-    from uvatar.dva.toy import toy_cameras
 
     cams = toy_cameras(4, 8)
     write_cameras(tmp_path, cams)
@@ -110,7 +110,7 @@ def test_easymocap_layout(tmp_path):
 
 
 def test_capture_source_protocol(tmp_path):
-    from uvatar.dva.toy import write_toy_capture
+    from tests.fixtures.dva_capture import write_toy_capture
 
     root = write_toy_capture(tmp_path / "cap", frames=3, cameras=4, size=8)
     src = open_source(root)

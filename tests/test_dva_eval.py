@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
+from tests.fixtures.dva_capture import write_toy_capture
 from uvatar.dva.data import open_source
 from uvatar.dva.eval import METRIC_KEYS, image_scores
 from uvatar.dva.model import preset
-from uvatar.dva.toy import write_toy_capture
 from uvatar.dva.train import train_dva
 
 

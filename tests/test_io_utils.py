@@ -71,3 +71,27 @@ def test_read_json_and_npz_errors_name_the_file(tmp_path):
         read_npz(tmp_path / "bad.npz")
     with pytest.raises(InputError, match=r"no\.npz: file is missing"):
         read_npz(tmp_path / "no.npz")
+
+
+def test_read_image_channels_depths_and_errors(tmp_path):
+    import cv2
+
+    from uvatar.io_utils import read_image
+
+    rgba = np.zeros((2, 3, 4), np.uint8)
+    rgba[..., 0], rgba[..., 1], rgba[..., 2], rgba[..., 3] = 255, 51, 0, 128  # orange, half alpha
+    write_image(tmp_path / "a.png", rgba)
+    np.testing.assert_allclose(read_image(tmp_path / "a.png")[0, 0], [1.0, 0.2, 0.0])
+    full = read_image(tmp_path / "a.png", rgb=False)
+    assert full.shape == (2, 3, 4) and full.dtype == np.float32
+    np.testing.assert_allclose(full[1, 2], [1.0, 0.2, 0.0, 128 / 255])
+    write_image(tmp_path / "g.png", np.full((4, 5), 0.6))
+    assert read_image(tmp_path / "g.png", rgb=False).shape == (4, 5)
+    np.testing.assert_allclose(read_image(tmp_path / "g.png"), np.full((4, 5, 3), 153 / 255))
+    cv2.imwrite(str(tmp_path / "d.png"), np.full((2, 2), 65535, np.uint16))  # 16-bit
+    np.testing.assert_allclose(read_image(tmp_path / "d.png"), 1.0)
+    with pytest.raises(InputError, match="mask is missing"):
+        read_image(tmp_path / "none.png", "mask")
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG not really")
+    with pytest.raises(InputError, match="unreadable"):
+        read_image(tmp_path / "bad.png")

@@ -15,7 +15,6 @@ from uvatar.motion.skeleton import SkeletonMotion, skeleton_motion_from_bvh
 
 @pytest.fixture(scope="module")
 def anny():
-    pytest.importorskip("anny", reason="the anny package is not installed")
     from uvatar.body.registry import load_body_model
 
     return load_body_model("anny")

@@ -64,3 +64,26 @@ def test_bad_inputs():
         ssim(np.zeros((4, 4)), np.zeros((4, 4)), mask=np.ones((3, 3), bool))
     with pytest.raises(InputError):
         ssim(np.zeros(4), np.zeros(4))
+
+
+def test_ssim_border_convention_matches_scikit_image_and_the_torch_loss():
+    """One border convention (only windows inside the image): parity with scikit-image (a test
+    dependency: a missing install fails here) and with the DVA loss's ssim_torch (valid windows)."""
+    from skimage.metrics import structural_similarity
+
+    from uvatar.dva.losses import ssim_torch
+
+    rng = np.random.default_rng(3)
+    for shape in [(40, 33, 3), (24, 24, 3), (12, 17, 1)]:
+        a = rng.uniform(size=shape)
+        b = np.clip(a + rng.normal(0, 0.15, shape) + np.linspace(0, 0.2, shape[1])[None, :, None], 0, 1)
+        ref = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                    data_range=1, channel_axis=-1)
+        assert ssim(a, b) == pytest.approx(ref, abs=1e-10)
+        t = ssim_torch(torch.as_tensor(a).permute(2, 0, 1)[None], torch.as_tensor(b).permute(2, 0, 1)[None])
+        assert float(t) == pytest.approx(ref, abs=1e-10)
+    # ssim averages the map without its 5-pixel frame
+    x = rng.uniform(size=(30, 30))
+    y = x.copy()
+    y[:, :2] = 1 - y[:, :2]
+    assert ssim(x, y) < 1 and ssim_map(x, y)[5:-5, 5:-5].mean() == pytest.approx(ssim(x, y))

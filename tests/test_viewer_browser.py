@@ -18,19 +18,17 @@ REASON = missing_browser_reason()
 if REASON:
     pytest.skip(f"browser tests skipped: {REASON}", allow_module_level=True)
 
-from uvatar.avh.engine_export import pose_to_model_input, posed_joint_transforms, run_generator  # noqa: E402
+from tests.fixtures.toy_avatar import toy_rest_body, write_toy_avatar  # noqa: E402
+from tests.fixtures.viewer_page import canvas_pixels, run_generator_in_browser, wait_for_page  # noqa: E402
+from uvatar.avh.exporters.engine import pose_to_model_input, posed_joint_transforms, run_generator  # noqa: E402
 from uvatar.errors import UvatarError  # noqa: E402
 from uvatar.viewer.browser import (  # noqa: E402
     call_page,
-    canvas_pixels,
-    run_generator_in_browser,
     set_pose,
     viewer_page,
-    wait_for_page,
     wait_idle,
 )
 from uvatar.viewer.server import ViewerConfig, ViewerServer  # noqa: E402
-from uvatar.viewer.toy import toy_rest_body, write_toy_avatar  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -195,7 +193,7 @@ def test_displaced_vertices_match_python_reference(page, avatar):
     import roma
     import torch
 
-    from uvatar.avh.engine_export import EngineExportConfig, engine_mesh, skin_reference
+    from uvatar.avh.exporters.engine import EngineExportConfig, engine_mesh, skin_reference
 
     out, manifest = avatar
     pose = np.array([0, 0, 0.1, 0.2, 0, 0.3, 0, -0.4, 0.2, 0.5, 0.1, 0], np.float32)

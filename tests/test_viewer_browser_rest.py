@@ -16,9 +16,9 @@ if REASON:
 
 from test_viewer_browser import _bilinear_clamped, generator_displacement  # noqa: E402
 
+from tests.fixtures.toy_avatar import toy_rest_body, write_toy_avatar  # noqa: E402
 from uvatar.viewer.browser import set_pose, viewer_page  # noqa: E402
 from uvatar.viewer.server import ViewerConfig, ViewerServer  # noqa: E402
-from uvatar.viewer.toy import toy_rest_body, write_toy_avatar  # noqa: E402
 
 
 def test_rest_frame_displacement_is_added_before_skinning(tmp_path):
@@ -28,7 +28,7 @@ def test_rest_frame_displacement_is_added_before_skinning(tmp_path):
     import roma
     import torch
 
-    from uvatar.avh.engine_export import EngineExportConfig, engine_mesh, skin_reference
+    from uvatar.avh.exporters.engine import EngineExportConfig, engine_mesh, skin_reference
 
     manifest = write_toy_avatar(tmp_path, resolution=32, displacement_frame="rest")
     assert manifest["displacement"]["frame"] == "rest" and manifest["displacement"]["applied"].startswith("before")

@@ -9,9 +9,9 @@ import urllib.request
 import numpy as np
 import pytest
 
+from tests.fixtures.toy_avatar import write_toy_avatar
 from uvatar.errors import InputError
 from uvatar.viewer.server import STATIC_DIR, ViewerConfig, ViewerServer, check_avatar_dir
-from uvatar.viewer.toy import write_toy_avatar
 
 
 @pytest.fixture(scope="module")

@@ -112,3 +112,29 @@ def write_image(path: str | Path, image: np.ndarray) -> None:
         arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     with atomic_path(path) as tmp:
         iio.imwrite(tmp, arr)
+
+
+def read_image(path: str | Path, what: str = "image", rgb: bool = True) -> np.ndarray:
+    """Read an image as float32 in [0, 1] (8- or 16-bit integer, or float such as EXR, clipped): the
+    project's one image reader. ``rgb``: (H, W, 3) RGB (grey repeated, alpha dropped); else the file's
+    own channels, (H, W) or (H, W, C) in RGB(A) order. ``what`` names the image in errors
+    (InputError: missing or undecodable)."""
+    import cv2
+
+    from uvatar.errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, f"{what} is missing")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
+        raise InputError(path, f"{what} is unreadable")
+    if image.ndim == 3:
+        image = np.concatenate([image[..., 2::-1], image[..., 3:]], axis=-1)  # BGR(A) -> RGB(A)
+    if rgb:
+        image = np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image[..., :3]
+    if image.dtype == np.uint8:
+        return np.ascontiguousarray(image, dtype=np.float32) / 255.0
+    if image.dtype == np.uint16:
+        return np.ascontiguousarray(image, dtype=np.float32) / 65535.0
+    return np.ascontiguousarray(np.clip(image, 0.0, 1.0), dtype=np.float32)

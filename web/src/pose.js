@@ -5,7 +5,7 @@ import * as THREE from 'three';
 
 /**
  * Full pose (J*3) -> generator input, as manifest.pose_encoding says (twin of
- * uvatar.avh.engine_export.pose_to_model_input).
+ * uvatar.avh.exporters.engine.pose_to_model_input).
  * type "angles": the 3*J_c angles of the conditioning joints (the model encodes sin/cos itself);
  * type "sincos": [sin a0, cos a0, sin a1, cos a1, ...].
  */

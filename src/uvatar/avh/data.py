@@ -15,14 +15,13 @@ Maps keep the UV image convention: row 0 is v = 1.
 from __future__ import annotations
 
 import logging
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from uvatar.avh.bake.dataset import frame_path, load_baked_frame
 from uvatar.errors import InputError
-from uvatar.io_utils import read_json
 
 log = logging.getLogger(__name__)
 
@@ -51,12 +50,6 @@ class BakedFrames:
         return int(self.texture.shape[1])
 
 
-def read_dataset_meta(baked_dir: str | Path) -> dict:
-    """Read ``BAKED/dataset.json`` (raises InputError when missing/malformed or without a selection)."""
-    path = Path(baked_dir) / "dataset.json"
-    return read_json(path, "not found; is this a `uvatar bake` output folder?")
-
-
 def selection(meta: dict, baked_dir: str | Path) -> tuple[list[str], list[str]]:
     """(train, val) frame names from ``dataset.json["selection"]``; without one, every baked frame trains."""
     sel = meta.get("selection")
@@ -79,16 +72,12 @@ def body_model_info(meta: dict) -> tuple[str, np.ndarray | None]:
 
 
 def rotvec_to_rotmat(rotvec: np.ndarray) -> np.ndarray:
-    """(…, 3) axis-angle -> (…, 3, 3) rotation matrices (Rodrigues, numpy)."""
+    """(…, 3) axis-angle -> (…, 3, 3) float64 rotation matrices (numpy face of ``roma.rotvec_to_rotmat``)."""
+    import roma
+    import torch
+
     rotvec = np.asarray(rotvec, np.float64)
-    theta = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    axis = rotvec / np.maximum(theta, 1e-12)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = np.zeros_like(x)
-    k = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(*rotvec.shape[:-1], 3, 3)
-    s, c = np.sin(theta)[..., None], np.cos(theta)[..., None]
-    eye = np.broadcast_to(np.eye(3), k.shape)
-    return eye + s * k + (1 - c) * (k @ k)
+    return roma.rotvec_to_rotmat(torch.from_numpy(rotvec.reshape(-1, 3))).numpy().reshape(*rotvec.shape[:-1], 3, 3)
 
 
 def world_to_body(d_world: np.ndarray, Rh: np.ndarray) -> np.ndarray:
@@ -122,11 +111,7 @@ def resample_map(image: np.ndarray, resolution: int, nearest: bool = False) -> n
 def load_frame(path: str | Path, resolution: int | None = None) -> dict[str, np.ndarray]:
     """Read one baked frame; maps resampled to ``resolution``; displacement moved to the body frame."""
     path = Path(path)
-    try:
-        with np.load(path) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise InputError(path, f"cannot read baked frame ({exc})") from exc
+    data = load_baked_frame(path)
     missing = [k for k in (*MAP_KEYS, "pose") if k not in data]
     if missing:
         raise InputError(path, f"missing arrays {missing}")
@@ -159,7 +144,7 @@ def load_baked_frames(baked_dir: str | Path, frames: list[str], resolution: int 
     loaded: dict[str, dict] = {}
     for name in tqdm(frames, desc="load baked", disable=not progress, leave=False):
         try:
-            loaded[name] = load_frame(Path(baked_dir) / "frames" / f"{name}.npz", resolution)
+            loaded[name] = load_frame(frame_path(baked_dir, name), resolution)
         except InputError as exc:
             log.warning("skipping frame %s: %s", name, exc)
     if not loaded:

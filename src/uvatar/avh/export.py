@@ -15,7 +15,7 @@ Output folder layout (names are stable; the viewer bundle builds on them)::
     OUT/body.npz      body template (rest pose, metres): vertices, faces, uvs, uv_faces, skin_weights,
                       joint_parents, rest_joints, shape; fingers_toes (R, R) bool texels where
                       displacement is not applied; absent when the run has no body model
-    OUT/...           whatever ``uvatar.avh.engine_export.write_engine_bundle`` adds (GLB + manifest)
+    OUT/...           whatever ``uvatar.avh.exporters.engine.write_engine_bundle`` adds (GLB + manifest)
 
 Displacement space (``avatar.json`` ``displacement_frame``, :mod:`uvatar.avh.displacement_frame`):
 "rest" (default): ``d_world = R(Rh) @ M @ d`` with M the blended LBS rotation at the texel, i.e. add d to
@@ -151,13 +151,10 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
                          "onnxruntime": onnxruntime.__version__, "torch": torch.__version__},
     }
     write_json(out_dir / "avatar.json", meta)
-    import importlib.util
+    if body is not None:  # the engine bundle (GLB + manifest) needs a body
+        from uvatar.avh.exporters.engine import write_engine_bundle
 
-    # the viewer bundle (GLB + manifest), when that module is installed and the avatar has a body
-    if body is not None and importlib.util.find_spec("uvatar.avh.engine_export") is not None:
-        from uvatar.avh import engine_export
-
-        engine_export.write_engine_bundle(out_dir, body_model=body, fingers_toes_mask=fingers_toes)
+        write_engine_bundle(out_dir, body_model=body, fingers_toes_mask=fingers_toes)
     return meta
 
 

@@ -19,9 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
-from uvatar.io_utils import read_json
 
 
 @dataclass
@@ -51,22 +49,23 @@ class PoseSequence:
 
 def heldout_frames(capture_root: str | Path) -> list[str]:
     """``gt/info.json["heldout_frames"]`` of a synthetic capture."""
-    path = Path(capture_root) / "gt" / "info.json"
-    frames = read_json(path, "not found: held-out frames need a synthetic capture's gt/info.json").get("heldout_frames")
-    if not frames:
-        raise InputError(path, "lists no heldout_frames")
-    return [frame_name(f) for f in frames]
+    from uvatar.capture.gt import read_gt_info
+
+    info = read_gt_info(capture_root)
+    if not info.heldout_frames:
+        raise InputError(info.path, "lists no heldout_frames")
+    return list(info.heldout_frames)
 
 
 def take_frames(capture_root: str | Path, take: str) -> list[str]:
     """Frames of take ``take`` (``gt/info.json["takes"][take] = [first, end)`` frame indices)."""
     from uvatar.capture import Capture
+    from uvatar.capture.gt import read_gt_info
 
-    path = Path(capture_root) / "gt" / "info.json"
-    takes = read_json(path, "not found: takes need a synthetic capture's gt/info.json").get("takes") or {}
-    if take not in takes:
-        raise InputError(path, f"no take {take!r} (has {sorted(takes)})")
-    first, end = (int(x) for x in takes[take][:2])
+    info = read_gt_info(capture_root)
+    if take not in info.takes:
+        raise InputError(info.path, f"no take {take!r} (has {sorted(info.takes)})")
+    first, end = info.takes[take]
     return Capture(capture_root).frames[first:end]
 
 

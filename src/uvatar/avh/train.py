@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, read_dataset_meta, selection
+from uvatar.avh.bake.dataset import read_dataset_info
+from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, selection
 from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES, DISPLACEMENT_SPACES, displacements_to_frame
 from uvatar.avh.loss import avh_loss, displacement_mask
 from uvatar.avh.model import (
@@ -209,7 +210,7 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
             log.warning("resuming %s with its checkpoint's model (f_c=%d, latent=%d, %d texels), not the one asked for",
                         run_dir, saved.feature_size, saved.latent, saved.resolution)
         model_config = saved
-    meta = read_dataset_meta(baked_dir)
+    meta = read_dataset_info(baked_dir, required=True)
     train_names, val_names = selection(meta, baked_dir)
     R = model_config.resolution
     cond, excluded_np, joint_names, body = resolve_body(meta, R, body, baked_dir)

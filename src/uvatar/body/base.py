@@ -18,16 +18,15 @@ elbow 60 degrees about world +X") into the backend's local axis-angle: ``local =
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from uvatar.errors import InputError
+from uvatar.geometry.frames import vertex_face_adjacency, vertex_normals
 
-__all__ = ["BodyTemplate", "PosedBody", "BodyModel", "vertex_normals_torch", "vertex_face_adjacency",
-           "apply_global_transform"]
+__all__ = ["BodyTemplate", "PosedBody", "BodyModel", "apply_global_transform"]
 
 
 @dataclass(frozen=True)
@@ -42,6 +41,9 @@ class BodyTemplate:
     joint_names: J names in the backend's order
     joint_parents: (J,) int64, -1 for the root
     rest_joints: (J, 3) float32 joint (bone head) positions in the rest pose
+    joint_world_rest: (J, 4, 4) float64 rest-pose world transform of each joint frame (rotation = the
+        frame's rest orientation, translation = its position), or None (not known: axis-aligned frames
+        at ``rest_joints``); the engine export's skeleton
     """
 
     vertices: np.ndarray
@@ -52,6 +54,7 @@ class BodyTemplate:
     joint_names: tuple[str, ...]
     joint_parents: np.ndarray
     rest_joints: np.ndarray
+    joint_world_rest: np.ndarray | None = None
 
     @property
     def num_vertices(self) -> int:
@@ -80,38 +83,6 @@ class PosedBody:
     def joints(self) -> torch.Tensor:
         """(B, J, 3) world joint positions."""
         return self.joint_transforms[..., :3, 3]
-
-
-def vertex_face_adjacency(faces: torch.Tensor, num_vertices: int) -> torch.Tensor:
-    """(V, F) sparse CSR matrix with a 1 where vertex v is a corner of face f (for normals)."""
-    F = faces.shape[0]
-    cols = torch.arange(F, device=faces.device).repeat_interleave(3)
-    values = torch.ones(3 * F, device=faces.device)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # sparse CSR is "beta"; invariant checks off
-        return torch.sparse_coo_tensor(torch.stack([faces.reshape(-1), cols]), values,
-                                       (num_vertices, F)).coalesce().to_sparse_csr()
-
-
-def vertex_normals_torch(vertices: torch.Tensor, faces: torch.Tensor, adjacency: torch.Tensor | None = None,
-                         eps: float = 1e-12) -> torch.Tensor:
-    """Area-weighted unit vertex normals. vertices (..., V, 3), faces (F, 3) int64 -> (..., V, 3).
-
-    ``adjacency``: :func:`vertex_face_adjacency` of these faces (faster: one sparse product);
-    without it the face normals are scattered with ``index_add_`` (the plain twin)."""
-    lead, V = vertices.shape[:-2], vertices.shape[-2]
-    rows = vertices.reshape(-1, V, 3).transpose(0, 1).reshape(V, -1)  # (V, N*3): gathers whole rows
-    tri = rows[faces].reshape(faces.shape[0], 3, -1, 3)
-    face_normals = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)  # |n| = 2 area
-    face_normals = face_normals.reshape(faces.shape[0], -1)
-    if adjacency is not None:
-        normals = adjacency.to(face_normals.dtype) @ face_normals
-    else:
-        normals = torch.zeros_like(rows)
-        for k in range(3):
-            normals.index_add_(0, faces[:, k], face_normals)
-    normals = torch.nn.functional.normalize(normals.reshape(V, -1, 3), dim=-1, eps=eps)
-    return normals.transpose(0, 1).reshape(*lead, V, 3)
 
 
 def apply_global_transform(vertices, joint_transforms, Rh=None, Th=None, scale=None):
@@ -222,7 +193,7 @@ class BodyModel(torch.nn.Module):
         # sparse products on CPU; plain index_add_ (atomics) on GPUs, where it is fast already
         adjacency = self._adjacency(vertices.shape[-2]) if vertices.device.type == "cpu" else None
         return PosedBody(vertices=vertices, joint_transforms=transforms,
-                         normals=vertex_normals_torch(vertices, self._faces_t, adjacency))
+                         normals=vertex_normals(vertices, self._faces_t, adjacency))
 
     def pose_joints(self, joint_rotvecs, Rh=None, Th=None, scale=None, shape=None) -> torch.Tensor:
         """(B, J, 4, 4) ``pose(...).joint_transforms`` without skinning the mesh (kinematics only:

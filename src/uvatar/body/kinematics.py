@@ -21,8 +21,46 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
+__all__ = ["ancestor_matrix", "subtree", "nearest_ancestor", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
            "skinning_transforms", "sparse_weights", "skin", "skin_reference"]
+
+
+def ancestor_matrix(parents) -> np.ndarray:
+    """(J, J) bool: ``anc[j, a]`` is True when ``a`` is ``j`` or one of its ancestors (parents (J,),
+    -1 for roots; any joint order). One pass per tree level, not per joint."""
+    parents = np.asarray(parents, dtype=np.int64).reshape(-1)
+    n = len(parents)
+    anc = np.eye(n, dtype=bool)
+    cur = np.arange(n)
+    for _ in range(n):
+        cur = np.where(cur >= 0, parents[np.maximum(cur, 0)], -1)
+        if (cur < 0).all():
+            break
+        ok = cur >= 0
+        anc[np.flatnonzero(ok), cur[ok]] = True
+    return anc
+
+
+def subtree(parents, roots, include_roots: bool = True) -> np.ndarray:
+    """Sorted joint indices of the subtrees hanging from ``roots`` (an int or a list): the roots
+    themselves (unless ``include_roots`` is False) and every joint below them."""
+    roots = np.atleast_1d(np.asarray(roots, dtype=np.int64))
+    inside = ancestor_matrix(parents)[:, roots].any(1)
+    if not include_roots:
+        inside[roots] = False
+    return np.flatnonzero(inside)
+
+
+def nearest_ancestor(parents, joints) -> np.ndarray:
+    """(J,) for every joint, the position in ``joints`` of its nearest ancestor among them (itself
+    included), or -1 when none of ``joints`` is above it."""
+    joints = np.asarray(joints, dtype=np.int64).reshape(-1)
+    full = ancestor_matrix(parents)
+    if joints.size == 0:
+        return np.full(len(full), -1, dtype=np.int64)
+    anc = full[:, joints]                                     # (J, K): joints[k] is j or above j
+    scored = np.where(anc, full.sum(1)[joints][None], 0)      # 1 + depth of each candidate above j
+    return np.where(anc.any(1), scored.argmax(1), -1)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uvatar.body.kinematics import subtree
+
 __all__ = ["PART_NAMES", "PartMaskConfig", "part_joint_groups", "part_vertex_weights", "part_masks"]
 
 PART_NAMES = ("hands", "feet", "face", "head", "fingers_toes")
@@ -34,17 +36,6 @@ class PartMaskConfig:
     face_min_forward: float = 0.5
 
 
-def _descendants(parents: np.ndarray, roots: list[int]) -> list[int]:
-    keep = np.zeros(len(parents), bool)
-    keep[roots] = True
-    changed = True
-    while changed:  # over tree depth (~15 passes), not over vertices
-        new = keep | ((parents >= 0) & keep[np.maximum(parents, 0)])
-        changed = bool((new != keep).any())
-        keep = new
-    return np.flatnonzero(keep).tolist()
-
-
 def part_joint_groups(body) -> dict[str, list[int]]:
     """Joint indices of each part ("hands", "feet", "head", "fingers_toes") from semantic joints."""
     t = body.template
@@ -52,10 +43,10 @@ def part_joint_groups(body) -> dict[str, list[int]]:
     sj = body.semantic_joints
     wrists = [sj["l_wrist"], sj["r_wrist"]]
     ankles = [sj["l_ankle"], sj["r_ankle"]]
-    hands = _descendants(parents, wrists)
-    feet = _descendants(parents, ankles)
+    hands = subtree(parents, wrists).tolist()
+    feet = subtree(parents, ankles).tolist()
     digits = [j for j in hands + feet if j not in wrists + ankles and "metacarpal" not in t.joint_names[j]]
-    return {"hands": hands, "feet": feet, "head": _descendants(parents, [sj["head"]]), "fingers_toes": digits}
+    return {"hands": hands, "feet": feet, "head": subtree(parents, sj["head"]).tolist(), "fingers_toes": digits}
 
 
 def part_vertex_weights(body) -> dict[str, np.ndarray]:

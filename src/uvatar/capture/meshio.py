@@ -19,7 +19,7 @@ import numpy as np
 from uvatar.capture import mesh_glb, mesh_obj, mesh_ply
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
-from uvatar.io_utils import write_image
+from uvatar.io_utils import read_image, write_image
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp")
 
@@ -54,26 +54,12 @@ def _format(path: Path) -> MeshFormat:
 
 
 def load_texture(path: str | Path, what: str = "texture image") -> np.ndarray:
-    """Read an image as float32 (H, W, 3) RGB in [0, 1] (8- or 16-bit; alpha dropped).
+    """Read an image as float32 (H, W, 3) RGB in [0, 1] (8- or 16-bit; alpha dropped):
+    :func:`uvatar.io_utils.read_image`, the mesh readers' texture callback.
 
     For a texture, row 0 is v = 1 (UV v up). ``what`` names the image in error messages.
     """
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, f"{what} is missing")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None or image.size == 0:
-        raise InputError(path, f"{what} is unreadable")
-    if image.ndim == 2:
-        image = np.repeat(image[..., None], 3, axis=-1)
-    image = image[..., :3][..., ::-1]  # BGR(A) → RGB
-    if image.dtype == np.uint8:
-        return np.ascontiguousarray(image, dtype=np.float32) / 255.0
-    if image.dtype == np.uint16:
-        return np.ascontiguousarray(image, dtype=np.float32) / 65535.0
-    return np.ascontiguousarray(np.clip(image, 0.0, 1.0), dtype=np.float32)
+    return read_image(path, what)
 
 
 def check_texture(path: str | Path, what: str = "texture image") -> tuple[int, int]:

@@ -25,6 +25,9 @@ def _preset_lines() -> str:
 
 
 def register(cli) -> None:
+    from uvatar.avh.animate import AnimateConfig
+    from uvatar.avh.eval import EvalConfig
+    from uvatar.avh.export import ONNX_OPSET, PARITY_TOLERANCE
     from uvatar.avh.model import PRESETS
 
     p = cli.command("train avh", help="train the AVH pose -> texture/displacement generator on baked maps")
@@ -60,8 +63,8 @@ def register(cli) -> None:
                 "OUT/avatar.json: metadata; OUT/body.npz: body template. See uvatar.avh.export.")
     p.add_argument("run", help="training run folder (uvatar train avh)")
     p.add_argument("out", help="avatar folder to write")
-    p.add_argument("--opset", type=int, default=17)
-    p.add_argument("--tolerance", type=float, default=1e-4, help="max ONNX vs PyTorch abs difference")
+    p.add_argument("--opset", type=int, default=ONNX_OPSET)
+    p.add_argument("--tolerance", type=float, default=PARITY_TOLERANCE, help="max ONNX vs PyTorch abs difference")
     p.set_defaults(func=_export)
 
     p = cli.command("animate", help="render an exported avatar driven by a motion to MP4")
@@ -71,16 +74,17 @@ def register(cli) -> None:
     p.add_argument("avatar", help="avatar folder (uvatar export)")
     p.add_argument("--motion", required=True, help="motion file or spec (see below)")
     p.add_argument("-o", "--output", required=True, help="video path (.mp4)")
-    p.add_argument("--camera", default="orbit", help="orbit, front, back, left, right, or a cameras folder")
-    p.add_argument("--camera-name", default=None, help="camera of the cameras folder (default: first)")
-    p.add_argument("--size", type=int, default=512, help="image side (pixels)")
-    p.add_argument("--frames", type=int, default=None, help="render at most this many frames")
-    p.add_argument("--stride", type=int, default=1, help="use every n-th motion frame")
-    p.add_argument("--fps", type=float, default=None, help="video fps (default: the motion's)")
+    a = AnimateConfig()
+    p.add_argument("--camera", default=a.camera, help="orbit, front, back, left, right, or a cameras folder")
+    p.add_argument("--camera-name", default=a.camera_name, help="camera of the cameras folder (default: first)")
+    p.add_argument("--size", type=int, default=a.size, help="image side (pixels)")
+    p.add_argument("--frames", type=int, default=a.max_frames, help="render at most this many frames")
+    p.add_argument("--stride", type=int, default=a.stride, help="use every n-th motion frame")
+    p.add_argument("--fps", type=float, default=a.fps, help="video fps (default: the motion's)")
     p.add_argument("--obj-dir", default=None, help="also write one mesh per frame here")
-    p.add_argument("--mesh-format", default="obj", choices=["obj", "glb"])
-    p.add_argument("--shading", action="store_true", help="add headlight shading")
-    p.add_argument("--levels", type=int, default=2, help="subdivision levels")
+    p.add_argument("--mesh-format", default=a.mesh_format, choices=["obj", "glb"])
+    p.add_argument("--shading", action="store_true", default=a.shading, help="add headlight shading")
+    p.add_argument("--levels", type=int, default=a.levels, help="subdivision levels")
     p.add_argument("--device", default="cpu", help="onnxruntime device (cpu or cuda)")
     p.set_defaults(func=_animate)
 
@@ -95,12 +99,12 @@ def register(cli) -> None:
                         "(e.g. 000054,000055, the frames uvatar eval dva reports)")
     p.add_argument("--cameras", default=None,
                    help="a count N (the first N cameras) or camera names, comma separated (e.g. 03,07)")
-    p.add_argument("--pose-source", choices=("refined", "fit"), default="refined",
+    p.add_argument("--pose-source", choices=("refined", "fit"), default=EvalConfig.pose_source,
                    help="held-out poses: the capture's fit refined against the frame's scan as bake does for "
                         "training frames (measures the avatar), or the fit as is (includes fit noise)")
     p.add_argument("--sheet-per-camera", action="store_true",
                    help="one comparison image per frame x camera (default: per frame, first camera)")
-    p.add_argument("--image-size", type=int, default=None, help="render width (default: the cameras')")
+    p.add_argument("--image-size", type=int, default=EvalConfig.image_size, help="render width (default: the cameras')")
     p.set_defaults(func=_eval)
 
 

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 
 def register(cli) -> None:
+    from uvatar.body.registry import BODY_MODELS
+
     p = cli.command("body info", help="print a body model's vertex/face/UV/joint counts and joint subsets")
-    p.add_argument("--model", default="anny", choices=["anny", "smpl", "smplx"], help="body model")
+    p.add_argument("--model", default=BODY_MODELS[0], choices=BODY_MODELS, help="body model")
     p.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (default: $UVATAR_SMPL_DIR)")
     p.add_argument("--uv-obj", default=None, help="OBJ with the SMPL/SMPL-X UV layout")
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -13,7 +15,7 @@ def register(cli) -> None:
 
     r = cli.command("body render", help="render the body model's rest pose (front and side) to a PNG")
     r.add_argument("out", help="output image (.png)")
-    r.add_argument("--model", default="anny", choices=["anny", "smpl", "smplx"], help="body model")
+    r.add_argument("--model", default=BODY_MODELS[0], choices=BODY_MODELS, help="body model")
     r.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (default: $UVATAR_SMPL_DIR)")
     r.add_argument("--uv-obj", default=None, help="OBJ with the SMPL/SMPL-X UV layout")
     r.add_argument("--size", type=int, default=384, help="height of each view in pixels")

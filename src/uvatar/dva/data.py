@@ -26,13 +26,14 @@ test: held-out cameras x held-out frames (all frames' last fifth when gt/ says n
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from uvatar.capture.gt import GtInfo, read_gt_info
 from uvatar.capture.types import BodyFit, Camera
 from uvatar.errors import InputError
+from uvatar.io_utils import read_image
 
 NEURAL_BODY_TRAIN_VIEWS = (0, 6, 12, 18)
 
@@ -74,18 +75,8 @@ class MultiViewSource:
 
 
 def _load_image(path: Path, what="image") -> np.ndarray:
-    import imageio.v3 as iio
-
-    if not path.is_file():
-        raise InputError(path, f"{what} is missing")
-    try:
-        arr = iio.imread(path)
-    except Exception as exc:  # noqa: BLE001 - any decoder failure is a bad file
-        raise InputError(path, f"cannot read {what} ({exc.__class__.__name__})") from None
-    arr = np.asarray(arr)
-    scale = 65535.0 if arr.dtype == np.uint16 else 255.0 if arr.dtype == np.uint8 else 1.0
-    arr = arr.astype(np.float32) / scale
-    return arr
+    """The file's own channels, float32 in [0, 1] (:func:`uvatar.io_utils.read_image`)."""
+    return read_image(path, what, rgb=False)
 
 
 def _resize(img: np.ndarray, ratio: float, nearest=False) -> np.ndarray:
@@ -114,19 +105,13 @@ class CaptureSource(MultiViewSource):
             raise InputError(self.cap.fits_dir, "no frame has a body fit")
         self.body_model = self.cap.body_model
         self.shapes = self.cap.body_shapes if self.cap.body_shapes.size else None
-        info = {}
-        info_path = self.cap.gt_dir / "info.json"
-        if info_path.is_file():
-            try:
-                info = json.loads(info_path.read_text())
-            except ValueError as exc:
-                raise InputError(info_path, f"invalid JSON ({exc})") from None
+        info = read_gt_info(self.cap.root, required=False) or GtInfo(self.cap.gt_dir / "info.json")
         names = list(self.cameras)
-        held_cams = [c for c in info.get("heldout_cameras", []) if c in self.cameras]
+        held_cams = [c for c in info.heldout_cameras if c in self.cameras]
         if not held_cams:
             held_cams = names[3::4] if len(names) >= 4 else names[-1:]
-        broken = {str(f) for f in info.get("broken_frames", [])}
-        held = [str(f) for f in info.get("heldout_frames", []) if str(f) in self.frames]
+        broken = set(info.broken_frames)
+        held = [f for f in info.heldout_frames if f in self.frames]
         if not held:
             held = self.frames[len(self.frames) * 4 // 5:]
         self.train_cameras = [c for c in names if c not in held_cams] or names

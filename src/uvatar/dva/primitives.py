@@ -125,8 +125,3 @@ def apply_correctives(positions, rotations, rest_scales, motion, cfg: PrimitiveC
     rotations = rotations @ drot
     scales = scales * torch.exp(ds)
     return positions, rotations, scales
-
-
-def volume_prior(scales: torch.Tensor) -> torch.Tensor:
-    """MVP volume prior: mean over primitives of the box volume prod(2 s), in cubic metres."""
-    return (2.0 * scales).prod(-1).mean()

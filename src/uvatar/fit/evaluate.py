@@ -96,10 +96,9 @@ def true_body_shape(body, capture) -> np.ndarray | None:
     """The studio's true shape: ``gt/info.json`` ``body_shapes``; for captures made before it was
     recorded there, the body's default shape (what ``uvatar synth`` always used). capture.json is not
     the truth: it holds the shape of the fits, which ``uvatar fit`` replaces."""
-    from uvatar.io_utils import read_json
+    from uvatar.capture.gt import read_gt_info
 
-    info = read_json(capture.gt_dir / "info.json", "no ground truth (gt/info.json)")
-    shapes = info.get("body_shapes")
+    shapes = read_gt_info(capture.root).body_shapes
     if shapes is None:
         return body.default_shape().detach().cpu().numpy().astype(np.float32)
     shapes = np.asarray(shapes, np.float32)

@@ -12,7 +12,10 @@ from scipy.ndimage import gaussian_filter
 
 from uvatar.errors import InputError
 
-__all__ = ["psnr", "ssim", "ssim_map", "mse"]
+__all__ = ["psnr", "ssim", "ssim_map", "mse", "SSIM_BORDER"]
+
+#: pixels at each edge whose 11-tap SSIM window (sigma 1.5, truncated at 3.5 sigma) leaves the image
+SSIM_BORDER = 5
 
 
 def _prep(a, b, mask):
@@ -55,8 +58,9 @@ def psnr(a, b, mask=None, data_range: float = 1.0) -> float:
 
 
 def ssim_map(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03):
-    """(H, W) local SSIM (Wang et al. 2004), Gaussian window sigma 1.5 (11 taps), channel mean,
-    reflective borders."""
+    """(H, W) local SSIM (Wang et al. 2004), Gaussian window sigma 1.5 (11 taps), channel mean.
+    Windows that reach past the image (within :data:`SSIM_BORDER` px of an edge) see reflected pixels;
+    :func:`ssim` leaves them out."""
     a, b, _ = _prep(a, b, None)
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
 
@@ -73,11 +77,20 @@ def ssim_map(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float = 0.01
 
 
 def ssim(a, b, mask=None, data_range: float = 1.0) -> float:
-    """Mean SSIM in [-1, 1] (1 = identical) over the image or the mask."""
+    """Mean SSIM in [-1, 1] (1 = identical) over the image or the mask.
+
+    Border convention (pinned; the same as scikit-image's ``structural_similarity(gaussian_weights=True,
+    sigma=1.5, use_sample_covariance=False)`` and :func:`uvatar.dva.losses.ssim_torch`): only windows
+    that lie inside the image count, i.e. the map without its :data:`SSIM_BORDER`-pixel frame (an image
+    too small to have such windows is averaged whole)."""
     _, _, m = _prep(a, b, mask)
     s = ssim_map(a, b, data_range)
+    r = SSIM_BORDER
+    if min(s.shape) > 2 * r:
+        s = s[r:-r, r:-r]
+        m = None if m is None else m[r:-r, r:-r]
     if m is None:
         return float(s.mean())
     if m.sum() <= 0:
-        raise InputError("mask", "is empty")
+        raise InputError("mask", "is empty (inside the SSIM border)" if mask is not None else "is empty")
     return float((s * m).sum() / m.sum())

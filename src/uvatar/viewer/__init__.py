@@ -1,7 +1,7 @@
 """Real-time browser viewer: a stdlib HTTP server for the built three.js + onnxruntime-web page.
 
 ``uvatar view AVATAR`` serves it; :mod:`uvatar.viewer.screenshot` shoots it headlessly;
-:mod:`uvatar.viewer.glb` writes the skinned GLB that :mod:`uvatar.avh.engine_export` bundles.
+it loads the engine bundle (skinned GLB + manifest) that :mod:`uvatar.avh.exporters.engine` writes.
 The JavaScript sources live in ``web/`` (``cd web && npm ci && npm run build``).
 """
 

@@ -7,7 +7,6 @@ without a GPU.
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import os
 import shutil
@@ -122,39 +121,3 @@ def set_pose(page, pose, timeout_s: float = PAGE_CALL_TIMEOUT_S) -> None:
     call_page(page, "p => window.uvatar.setPose(p)", [float(x) for x in np.asarray(pose).ravel()], timeout_s,
               "setPose")
     wait_idle(page, timeout_s)
-
-
-def wait_for_page(page, condition_js: str, timeout_s: float = PAGE_CALL_TIMEOUT_S, what: str = "") -> None:
-    """Wait until the JS expression ``condition_js`` is truthy; UvatarError with the console tail after ``timeout_s``."""
-    try:
-        page.wait_for_function(condition_js, timeout=timeout_s * 1000)
-    except Exception as exc:
-        raise UvatarError(f"viewer never reached {what or condition_js!r} within {timeout_s:.0f} s; "
-                          f"stats: {_safe_stats(page)}; console: {console_tail(page)}") from exc
-
-
-def _safe_stats(page):
-    try:
-        return page.evaluate("window.uvatar && window.uvatar.stats")
-    except Exception as exc:  # the page itself is gone or stuck
-        return f"unavailable ({type(exc).__name__})"
-
-
-def run_generator_in_browser(page, pose, timeout_s: float = PAGE_CALL_TIMEOUT_S) -> tuple[np.ndarray, np.ndarray, float]:
-    """The in-browser generator for ``pose`` (J*3): texture (1, 3, R, R), displacement (1, 3, R, R), ms."""
-    out = call_page(page, "p => window.uvatar.runGenerator(p)", [float(x) for x in np.asarray(pose).ravel()],
-                    timeout_s, "runGenerator")
-    dims = tuple(out["dims"])
-    tex = np.frombuffer(base64.b64decode(out["texture"]), np.float32).reshape(dims)
-    disp = np.frombuffer(base64.b64decode(out["displacement"]), np.float32).reshape(dims)
-    return tex, disp, float(out["ms"])
-
-
-def canvas_pixels(page) -> np.ndarray:
-    """Screenshot of the WebGL canvas as (H, W, 3) uint8."""
-    import io
-
-    import imageio.v3 as iio
-
-    png = page.locator("#view").screenshot()
-    return iio.imread(io.BytesIO(png))[..., :3]

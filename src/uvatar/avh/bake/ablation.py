@@ -27,6 +27,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from uvatar.avh.bake.metrics import error_summary, pooled_psnr, texel_errors
+
 __all__ = ["ablation_variants", "run_ablation"]
 
 CHANGE_TOLERANCE_M = 1e-4
@@ -52,8 +54,6 @@ def _new_tally() -> dict:
 def _tally(acc: dict, base, variant, scored, moved, gt) -> None:
     """Add one frame to ``acc``: of the ``scored`` texels, those whose match ``moved`` between the
     base bake and the variant, with the errors of both there."""
-    from uvatar.avh.bake.evaluate import texel_errors
-
     diff = scored & moved
     acc["count"] += int(diff.sum())
     acc["of"] += int(scored.sum())
@@ -73,13 +73,11 @@ def _ceiling_sq(scan, gt_surface, gt_normal, gt_texture, sel):
     return (np.asarray(sample_texture(scan.texture, uv), np.float64) - gt_texture[sel][m.hit]) ** 2
 
 
-def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, source, progress: bool,
-                 summary, psnr) -> dict:
+def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, source, progress: bool) -> dict:
     """Re-bake the chosen frames per variant; ``confident`` {frame: (R, R) bool} of the full bake;
-    ``source`` a GtSource; ``summary``/``psnr`` the metric reducers of :mod:`.evaluate`."""
+    ``source`` a GtSource."""
     from tqdm import tqdm
 
-    from uvatar.avh.bake.evaluate import texel_errors
     from uvatar.avh.bake.frame import bake_fit
 
     names = sorted(confident)
@@ -128,23 +126,23 @@ def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, sourc
                                           confident[f] & g["mask"]))
     out = {"frames": names, "change_tolerance_mm": CHANGE_TOLERANCE_M * 1000,
            "mixed_polarity_texels": mixed,
-           "texture_ceiling_psnr_db": psnr(ceiling_sq) if ceiling_sq else None}
+           "texture_ceiling_psnr_db": pooled_psnr(ceiling_sq) if ceiling_sq else None}
     for name in keys:
-        common_summary = summary(common[name])
+        common_summary = error_summary(common[name])
         out[name] = {"median_mm": common_summary["median"],
                      "p90_mm": common_summary["p90"],
-                     "texture_psnr_db": psnr(common_sq[name]),
-                     "median_mm_own_confident_texels": summary(own[name])["median"],
+                     "texture_psnr_db": pooled_psnr(common_sq[name]),
+                     "median_mm_own_confident_texels": error_summary(own[name])["median"],
                      "confident_fraction": float(np.mean(coverage[name]))}
         if name in changed:
             conf, every = changed[name]["confident"], changed[name]["all"]
-            with_, without = summary(conf["with"]), summary(conf["without"])
+            with_, without = error_summary(conf["with"]), error_summary(conf["without"])
             out[name]["changed"] = {"against": CHANGE_BASE.get(name, "full"), "texels": conf["count"],
                                     "fraction": conf["count"] / max(conf["of"], 1),
                                     "median_mm_with": with_["median"], "median_mm_without": without["median"],
                                     "p90_mm_with": with_["p90"], "p90_mm_without": without["p90"],
                                     "all_matched": {"texels": every["count"],
                                                     "fraction": every["count"] / max(every["of"], 1),
-                                                    "median_mm_with": summary(every["with"])["median"],
-                                                    "median_mm_without": summary(every["without"])["median"]}}
+                                                    "median_mm_with": error_summary(every["with"])["median"],
+                                                    "median_mm_without": error_summary(every["without"])["median"]}}
     return out

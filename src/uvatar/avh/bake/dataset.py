@@ -70,14 +70,18 @@ def write_baked_frame(root, frame: str, baked, fit, rejected: bool = False, floa
     return path
 
 
-def load_baked_frame(path) -> dict[str, np.ndarray]:
-    """All fields of a baked frame npz; float maps as float32. Raises InputError if unreadable."""
+def load_baked_frame(path, keys=None) -> dict[str, np.ndarray]:
+    """Fields of a baked frame npz (all, or only ``keys``, which must be present); float maps as
+    float32. The one reader of the frame format: raises InputError if unreadable or a key is missing."""
     path = Path(path)
     try:
-        with np.load(path) as z:
-            data = {k: z[k] for k in z.files}
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in keys if k not in z.files] if keys is not None else []
+            data = {k: z[k] for k in (z.files if keys is None else keys) if k in z.files}
     except Exception as exc:  # noqa: BLE001 - any unreadable file is one input error
         raise InputError(path, f"cannot read baked frame ({exc})") from None
+    if missing:
+        raise InputError(path, f"missing arrays {missing}")
     for key in ("texture", "kappa", "w"):
         if key in data:
             data[key] = data[key].astype(np.float32)
@@ -86,14 +90,16 @@ def load_baked_frame(path) -> dict[str, np.ndarray]:
 
 def read_frame_scalar(path, key: str) -> float:
     """One scalar field of a baked frame npz (loads only that member)."""
-    with np.load(path) as z:
-        return float(z[key])
+    return float(load_baked_frame(path, [key])[key])
 
 
-def read_dataset_info(root) -> dict:
-    """``BAKED/dataset.json`` as a dict ({} when absent). Raises InputError for bad JSON."""
+def read_dataset_info(root, required: bool = False) -> dict:
+    """``BAKED/dataset.json`` as a dict; when absent: {} or, if ``required``, InputError. Raises
+    InputError for bad JSON."""
     path = Path(root) / DATASET_JSON
     if not path.is_file():
+        if required:
+            raise InputError(path, "not found; is this a `uvatar bake` output folder?")
         return {}
     return read_json(path)
 

@@ -33,13 +33,12 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.avh.bake.config import BakeConfig
-from uvatar.capture.layout import frame_name
-from uvatar.errors import InputError
-from uvatar.io_utils import read_json
+from uvatar.avh.bake.metrics import error_summary, pooled_psnr, texel_errors
+from uvatar.capture.gt import read_gt_info
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EvalConfig", "GtSource", "resample_gt_map", "evaluate_bake", "texel_errors"]
+__all__ = ["EvalConfig", "GtSource", "resample_gt_map", "evaluate_bake"]
 
 
 @dataclass(frozen=True)
@@ -76,30 +75,6 @@ def resample_gt_map(values, mask, resolution: int):
     return out, ok
 
 
-def texel_errors(points, texture, score_mask, gt_surface, gt_texture, gt_ok):
-    """(errors in metres (K,), squared texture errors (K, 3)) over texels score_mask & gt_ok."""
-    sel = np.asarray(score_mask, bool) & np.asarray(gt_ok, bool)
-    err = np.linalg.norm(np.asarray(points)[sel] - gt_surface[sel], axis=-1)
-    sq = (np.asarray(texture, np.float64)[sel] - gt_texture[sel]) ** 2
-    return err, sq
-
-
-def _summary(errors_m: list[np.ndarray]) -> dict:
-    e = np.concatenate(errors_m) * 1000.0 if errors_m else np.zeros(0)
-    if not e.size:
-        return {"median": None, "mean": None, "p90": None, "texels": 0}
-    return {"median": float(np.median(e)), "mean": float(e.mean()), "p90": float(np.percentile(e, 90)),
-            "texels": int(e.size)}
-
-
-def _psnr(sq: list[np.ndarray]) -> float | None:
-    s = np.concatenate(sq) if sq else np.zeros((0, 3))
-    if not s.size:
-        return None
-    mse = float(s.mean())
-    return float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse))
-
-
 def _gt(capture_root: Path, frame: str, resolution: int):
     """(surface (R, R, 3), texture (R, R, 3), ok (R, R)) from the stored gt, resampled to R; or None."""
     path = capture_root / "gt" / "frames" / f"{frame}.npz"
@@ -122,12 +97,11 @@ class GtSource:
         if reference not in ("exact", "resampled"):
             raise ValueError(f"reference must be 'exact' or 'resampled', got {reference!r}")
         self.root, self.resolution = Path(capture_root), int(resolution)
-        info = read_json(self.root / "gt" / "info.json")
-        self.gt_texels = int(info.get("texel_resolution") or info.get("texels")
-                             or (info.get("config") or {}).get("gt_texels") or 0)
+        info = read_gt_info(self.root)
+        self.gt_texels = info.texels
         self.renderer = None
         used = "resampled"
-        if reference == "exact" and self.gt_texels != self.resolution and info.get("config"):
+        if reference == "exact" and self.gt_texels != self.resolution and info.config:
             from uvatar.capture.synth.gtmaps import GtRenderer
 
             try:
@@ -174,11 +148,8 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
 
     config = config or EvalConfig()
     capture_root, baked_root = Path(capture_root), Path(baked_root)
-    info_path = capture_root / "gt" / "info.json"
-    gt_info = read_json(info_path, "no ground truth (only synthetic captures from `uvatar synth` have gt/)")
-    info = read_dataset_info(baked_root)
-    if not info:
-        raise InputError(baked_root / "dataset.json", "not found; bake first")
+    gt_info = read_gt_info(capture_root)
+    info = read_dataset_info(baked_root, required=True)
     bake_cfg = BakeConfig.from_dict(info.get("config", {}))
     capture = Capture(capture_root)
     body, layout = load_body_and_layout(info["body_model"]["name"], bake_cfg.texels)
@@ -208,7 +179,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
         matched = data.get("matched", data["valid"])
         all_matched.append(texel_errors(points, data["texture"], matched & data["valid"], *gt)[0])
         confident[f] = score & gt[2]
-    broken = sorted(frame_name(b) for b in gt_info.get("broken_frames", []))
+    broken = sorted(gt_info.broken_frames)
     rejected = sorted(info.get("rejected", {}))
     stats = info.get("frame_stats", {})
     result = {
@@ -217,9 +188,9 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
         "frames_evaluated": len(errors),
         "texels": r,
         "kappa_threshold": config.kappa_threshold,
-        "correspondence_error_mm": _summary(errors),
-        "texture_psnr_db": _psnr(sq),
-        "texture_psnr_db_vs_resampled_gt": _psnr(sq_resampled) if sq_resampled else _psnr(sq),
+        "correspondence_error_mm": error_summary(errors),
+        "texture_psnr_db": pooled_psnr(sq),
+        "texture_psnr_db_vs_resampled_gt": pooled_psnr(sq_resampled) if sq_resampled else pooled_psnr(sq),
         "frames_rejected": rejected,
         "broken_frames": broken,
         "rejected_equals_broken": rejected == broken,
@@ -228,11 +199,11 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
                      "rule_changed_texels": int(sum(v.get("polarity_rule_changed_texels", 0)
                                                     for v in stats.values())),
                      "frames": len(stats)},
-        "ablation": {"all_matched_texels_median_mm": _summary(all_matched)["median"]},
+        "ablation": {"all_matched_texels_median_mm": error_summary(all_matched)["median"]},
     }
     if config.ablation and confident:
         from uvatar.avh.bake.ablation import run_ablation
 
         result["ablation"].update(run_ablation(capture, body, layout, bake_cfg, confident, config, source,
-                                               progress, _summary, _psnr))
+                                               progress))
     return result

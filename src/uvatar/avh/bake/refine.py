@@ -26,17 +26,9 @@ __all__ = ["PoseRefineConfig", "refine_fit", "subtree_weights", "region_weights"
 
 def subtree_weights(skin_weights, parents, joints) -> np.ndarray:
     """(V, K) sum of each vertex's skinning weights over the subtree rooted at each of ``joints``."""
-    parents = np.asarray(parents, dtype=np.int64)
-    n = len(parents)
-    # ancestor matrix: anc[j, a] = a is j or an ancestor of j (loop over the tree depth, not vertices)
-    anc = np.eye(n, dtype=bool)
-    cur = np.arange(n)
-    for _ in range(n):
-        cur = np.where(cur >= 0, parents[np.maximum(cur, 0)], -1)
-        if (cur < 0).all():
-            break
-        ok = cur >= 0
-        anc[np.flatnonzero(ok), cur[ok]] = True
+    from uvatar.body.kinematics import ancestor_matrix
+
+    anc = ancestor_matrix(parents)
     return np.asarray(skin_weights, dtype=np.float64) @ anc[:, list(joints)].astype(np.float64)
 
 
@@ -53,16 +45,11 @@ def untracked_skin_weight(skin_weights, joints) -> np.ndarray:
 def region_weights(skin_weights, parents, joints) -> np.ndarray:
     """(V, K) skinning weights gathered onto ``joints``: every other joint gives its weight to its
     nearest ancestor among ``joints`` (or to the first of ``joints`` if it has none)."""
-    parents = np.asarray(parents, dtype=np.int64)
-    index = {j: i for i, j in enumerate(joints)}
-    owner = np.zeros(len(parents), dtype=np.int64)
-    for j in range(len(parents)):  # loop over joints (~100), not vertices
-        a = j
-        while a >= 0 and a not in index:
-            a = parents[a]
-        owner[j] = index.get(a, 0)
-    gather = np.zeros((len(parents), len(joints)))
-    gather[np.arange(len(parents)), owner] = 1.0
+    from uvatar.body.kinematics import nearest_ancestor
+
+    owner = np.maximum(nearest_ancestor(parents, list(joints)), 0)
+    gather = np.zeros((len(owner), len(joints)))
+    gather[np.arange(len(owner)), owner] = 1.0
     return np.asarray(skin_weights, dtype=np.float64) @ gather
 
 

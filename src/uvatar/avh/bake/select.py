@@ -117,19 +117,14 @@ def select_frames(frames, poses, joints, config: SelectConfig | None = None, exc
 
 def select_from_baked(baked_root, config: SelectConfig | None = None) -> Selection:
     """Select among the accepted frames of a baked dataset; writes ``dataset.json["selection"]``."""
-    from uvatar.avh.bake.dataset import frame_path, read_dataset_info, write_dataset_info
+    from uvatar.avh.bake.dataset import frame_path, load_baked_frame, read_dataset_info, write_dataset_info
 
     root = Path(baked_root)
-    info = read_dataset_info(root)
-    if not info:
-        raise InputError(root / "dataset.json", "not found; is this a `uvatar bake` output folder?")
+    info = read_dataset_info(root, required=True)
     frames = [f for f in info.get("frames_baked", []) if frame_path(root, f).is_file()]
     if not frames:
         raise InputError(root / "frames", "no accepted baked frames to select from")
-    poses = []
-    for f in frames:
-        with np.load(frame_path(root, f)) as z:
-            poses.append(z["pose"].astype(np.float64))
+    poses = [load_baked_frame(frame_path(root, f), ["pose"])["pose"].astype(np.float64) for f in frames]
     joints = info.get("conditioning_joints")
     if joints is None:
         from uvatar.body import load_body_model

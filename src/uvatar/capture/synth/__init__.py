@@ -7,7 +7,8 @@ the body model, with exact ground truth in ``OUT/gt/`` (see docs/ARCHITECTURE.md
 Modules: ``motion`` (takes, held-out poses) on ``dofs``; ``surface``, ``appearance``, ``clothing``
 and ``bends`` (ground-truth texture and clothing as functions of body-surface features);
 ``scans`` (topologies, atlases, broken frames); ``fits``; ``cameras``; ``images``; ``gt``;
-``frame`` (one frame); ``pipeline`` (planning, parallel frames, resume); ``preview``; ``bench``.
+``frame`` (one frame); ``pipeline`` (planning, parallel frames, resume); ``preview``. The studio's
+benchmark is ``bench/synth.py``.
 """
 
 from uvatar.capture.synth.config import PRESETS, SynthConfig, preset

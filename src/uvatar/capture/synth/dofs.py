@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uvatar.body.kinematics import subtree
+
 __all__ = ["Dof", "build_dofs", "dofs_to_local_rotvecs", "finger_chains", "NEUTRAL_DEG"]
 
 X, Y, Z = np.eye(3)
@@ -44,22 +46,12 @@ def _unit(v) -> np.ndarray:
     return v / max(float(np.linalg.norm(v)), 1e-12)
 
 
-def _descendants(parents: np.ndarray, root: int) -> list[int]:
-    """All joints below ``root`` (not including it), in index order."""
-    out, frontier = [], {root}
-    for j in range(len(parents)):  # parents precede children in every supported rig
-        if parents[j] in frontier:
-            frontier.add(j)
-            out.append(j)
-    return out
-
-
 def finger_chains(body, side: str) -> tuple[list[int], list[int]]:
     """(finger joints, thumb joints) below the ``side`` ("l" | "r") wrist; thumb = name with
     "finger1" or "thumb" (anny/MakeHuman and SMPL-X naming), else the chain nearest the front."""
     t = body.template
     wrist = body.semantic_joints[f"{side}_wrist"]
-    below = _descendants(np.asarray(t.joint_parents), wrist)
+    below = subtree(t.joint_parents, wrist, include_roots=False).tolist()
     names = t.joint_names
     thumb = [j for j in below if "finger1" in names[j].lower() or "thumb" in names[j].lower()]
     fingers = [j for j in below if j not in thumb]

@@ -1,6 +1,6 @@
 """Ground truth beside a synthetic capture (``OUT/gt/``), see docs/ARCHITECTURE.md.
 
-``gt/info.json``: broken_frames (frame names), broken ({frame: {"kind", "fraction"}}),
+``gt/info.json`` (read and written by :mod:`uvatar.capture.gt`): broken_frames (frame names), broken ({frame: {"kind", "fraction"}}),
 heldout_frames, takes ({name: [first, end) frame indices}), texel_resolution, segments (scan
 topologies: first/last frame, face count), seed and the full config.
 ``gt/frames/<frame>.npz``: pose (J*3,) true local axis-angles, Rh (3,), Th (3,), texture (R, R, 3)
@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.io_utils import write_json, write_npz
+from uvatar.capture.gt import write_gt_info
+from uvatar.io_utils import write_npz
 
 __all__ = ["write_gt_frame", "write_gt_info", "gt_frame_path", "scatter_texels"]
 
@@ -36,7 +37,3 @@ def scatter_texels(values: np.ndarray, flat: np.ndarray, resolution: int, fill: 
 
 def write_gt_frame(root: str | Path, frame: str, **arrays) -> None:
     write_npz(gt_frame_path(root, frame), **{k: np.asarray(v) for k, v in arrays.items()})
-
-
-def write_gt_info(root: str | Path, info: dict) -> None:
-    write_json(Path(root) / "gt" / "info.json", info)

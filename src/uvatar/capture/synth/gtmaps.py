@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.errors import InputError
+from uvatar.capture.gt import read_gt_info
 
 __all__ = ["config_from_dict", "GtRenderer"]
 
@@ -61,13 +61,10 @@ class GtRenderer:
         from uvatar.capture.synth.frame import Studio
 
         self.root = Path(capture_root)
-        info_path = self.root / "gt" / "info.json"
-        if not info_path.is_file():
-            raise InputError(info_path, "no ground truth (only `uvatar synth` captures have gt/)")
-        info = json.loads(info_path.read_text())
-        cfg = config_from_dict(info.get("config", {})).replace(gt_texels=int(resolution), workers=1)
-        if "body_shapes" in info:  # the true shape (capture.json holds the fits' shape, e.g. after `uvatar fit`)
-            shape = np.asarray(info["body_shapes"], dtype=np.float32)
+        info = read_gt_info(self.root)
+        cfg = config_from_dict(info.config).replace(gt_texels=int(resolution), workers=1)
+        if info.body_shapes is not None:  # the true shape (capture.json holds the fits', e.g. after `uvatar fit`)
+            shape = np.asarray(info.body_shapes, dtype=np.float32)
         else:  # captures made before gt/info.json recorded it
             capture = json.loads((self.root / "capture.json").read_text())
             shape = np.asarray(capture.get("body_model", {}).get("shapes", []), dtype=np.float32)

@@ -24,7 +24,7 @@ def _facing_camera(Rh: np.ndarray, Th: np.ndarray, size: int, name: str, height:
 def write_preview(root: str | Path, plan: dict, cfg, count: int = 6, size: int = 256) -> Path:
     """Render the preview sheet (rows of: textured scan, shaded scan, camera image)."""
     from uvatar.capture.meshio import read_mesh
-    from uvatar.io_utils import write_image
+    from uvatar.io_utils import read_image, write_image
     from uvatar.render.contact import contact_sheet
     from uvatar.render.mesh_renderer import render_mesh
 
@@ -54,9 +54,7 @@ def write_preview(root: str | Path, plan: dict, cfg, count: int = 6, size: int =
             cam0 = plan["cameras"][i % len(plan["cameras"])]
             img = root / "images" / cam0.name / f"{name}.png"
             if img.is_file():
-                import imageio.v3 as iio
-
-                im = iio.imread(img).astype(np.float32) / 255.0
+                im = read_image(img)
                 rep = max(1, size // max(im.shape[:2]))
                 im = np.repeat(np.repeat(im, rep, 0), rep, 1)  # small camera images: nearest upscale
                 tiles.append(im[..., :3])

@@ -62,16 +62,13 @@ class SurfaceFeatures:
 
 def joint_groups(body) -> np.ndarray:
     """(J,) group index (into GROUPS) of every joint of ``body``."""
-    parents = np.asarray(body.template.joint_parents)
+    from uvatar.body.kinematics import nearest_ancestor
+
     starts = {body.semantic_joints[k]: GROUPS.index(g) for k, g in _GROUP_STARTS.items()
               if k in body.semantic_joints}
-    out = np.zeros(len(parents), dtype=np.int64)
-    for j in range(len(parents)):  # parents precede children in every supported rig
-        if j in starts:
-            out[j] = starts[j]
-        elif parents[j] >= 0:
-            out[j] = out[parents[j]]
-    return out
+    heads = list(starts)
+    below = nearest_ancestor(body.template.joint_parents, heads)
+    return np.where(below >= 0, np.array([starts[j] for j in heads] + [0])[below], 0).astype(np.int64)
 
 
 def vertex_groups(body) -> np.ndarray:

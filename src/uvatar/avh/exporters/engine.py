@@ -25,15 +25,17 @@ skinning in the skinned mesh's model space; ``manifest.json`` ``displacement.fra
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from uvatar.avh.displacement_frame import frame_of_space
+from uvatar.avh.exporters.glb import SkinnedMesh, local_joint_transforms, write_glb
+from uvatar.body.base import BodyTemplate
 from uvatar.errors import InputError
+from uvatar.geometry.frames import vertex_normals
 from uvatar.io_utils import read_json, write_image, write_json
-from uvatar.viewer.glb import SkinnedMesh, write_glb
 
 MANIFEST_FORMAT = "uvatar-engine/1"
 DEFAULT_SPACE = "body frame: world axes of the posed body with the global rotation Rh removed"
@@ -54,26 +56,18 @@ class EngineExportConfig:
     mask_name: str = "finger_toe_mask.png"
 
 
-@dataclass
-class RestBody:
-    """The avatar's body in its rest pose (numpy): what the GLB is built from.
-
-    vertices (V, 3) m; faces (F, 3); uvs (U, 2) v up; uv_faces (F, 3); skin_weights (V, J);
-    joint_names (J,); joint_parents (J,); joint_world_rest (J, 4, 4) rest world transform of each joint
-    frame (rotation = rest orientation, translation = joint position)."""
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    uvs: np.ndarray
-    uv_faces: np.ndarray
-    skin_weights: np.ndarray
-    joint_names: tuple[str, ...]
-    joint_parents: np.ndarray
-    joint_world_rest: np.ndarray
-
-
 # ----------------------------------------------------------------------------------------------- mesh
-def subdivide_with_weights(body: RestBody, levels: int) -> RestBody:
+def joint_frames(body: BodyTemplate) -> np.ndarray:
+    """(J, 4, 4) rest world transforms of the joint frames: ``body.joint_world_rest``, else axis-aligned
+    frames at ``body.rest_joints``."""
+    if body.joint_world_rest is not None:
+        return np.asarray(body.joint_world_rest, np.float64)
+    world = np.tile(np.eye(4), (len(body.joint_names), 1, 1))
+    world[:, :3, 3] = body.rest_joints
+    return world
+
+
+def subdivide_with_weights(body: BodyTemplate, levels: int) -> BodyTemplate:
     """Midpoint-subdivide ``levels`` times (``uvatar.geometry.subdivide``); skin weights follow the
     vertices linearly (a new vertex gets the mean weights of its edge's ends), renormalized."""
     from uvatar.geometry import subdivide
@@ -81,9 +75,9 @@ def subdivide_with_weights(body: RestBody, levels: int) -> RestBody:
     v, f, uv, uvf, origin = subdivide(body.vertices, body.faces, body.uvs, body.uv_faces, levels, "midpoint")
     weights = np.asarray(origin.vertex_matrix @ body.skin_weights.astype(np.float64))
     weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
-    return RestBody(np.asarray(v, np.float32), np.asarray(f, np.int64), np.asarray(uv, np.float32),
-                    np.asarray(uvf, np.int64), weights.astype(np.float32), body.joint_names,
-                    body.joint_parents, body.joint_world_rest)
+    return replace(body, vertices=np.asarray(v, np.float32), faces=np.asarray(f, np.int64),
+                   uvs=np.asarray(uv, np.float32), uv_faces=np.asarray(uvf, np.int64),
+                   skin_weights=weights.astype(np.float32))
 
 
 def top_influences(weights: np.ndarray, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
@@ -102,22 +96,12 @@ def top_influences(weights: np.ndarray, k: int = 4) -> tuple[np.ndarray, np.ndar
     return idx.astype(np.int64), w.astype(np.float32)
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals."""
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n = np.zeros_like(vertices, dtype=np.float64)
-    for c in range(3):
-        np.add.at(n, faces[:, c], fn)
-    return (n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)).astype(np.float32)
-
-
 def _to_gltf_uv(uv: np.ndarray) -> np.ndarray:
     """(N, 2) v-up UVs -> glTF texture coordinates (origin at the image's top-left): (u, 1 - v)."""
     return np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1).astype(np.float32)
 
 
-def engine_mesh(body: RestBody, config: EngineExportConfig = EngineExportConfig(),
+def engine_mesh(body: BodyTemplate, config: EngineExportConfig = EngineExportConfig(),
                 texture_png: bytes | None = None) -> SkinnedMesh:
     """Subdivide, split seams into one vertex per (vertex, UV) pair, and pack glTF arrays."""
     if config.subdivisions > 0:
@@ -131,11 +115,11 @@ def engine_mesh(body: RestBody, config: EngineExportConfig = EngineExportConfig(
     joints, weights = top_influences(body.skin_weights[vid], config.max_influences)
     return SkinnedMesh(
         positions=body.vertices[vid].astype(np.float32),
-        normals=vertex_normals(body.vertices.astype(np.float64), body.faces)[vid],
+        normals=vertex_normals(body.vertices.astype(np.float64), body.faces)[vid].astype(np.float32),
         uv0=_to_gltf_uv(body.uvs[uid]), uv1=_to_gltf_uv(body.uvs[first_uv[vid]]),
         joints=joints, weights=weights, indices=inverse.reshape(-1, 3).astype(np.uint32),
         joint_names=tuple(body.joint_names), joint_parents=np.asarray(body.joint_parents, np.int64),
-        joint_world_rest=np.asarray(body.joint_world_rest, np.float64), texture_png=texture_png,
+        joint_world_rest=joint_frames(body), texture_png=texture_png,
     )
 
 
@@ -143,40 +127,40 @@ def posed_joint_transforms(joint_world_rest: np.ndarray, joint_parents: np.ndarr
                            local_rotmats: np.ndarray) -> np.ndarray:
     """World transforms (J, 4, 4) of the joint frames for local rotations (J, 3, 3), glTF semantics:
     ``world_j = world_parent @ rest_local_j @ [R_j | 0]`` -- the viewer sets each bone's quaternion to
-    ``rest_quaternion * quat(rotvec)``. Matches ``BodyModel.pose(...).joint_transforms`` (tested)."""
-    from uvatar.viewer.glb import local_joint_transforms
+    ``rest_quaternion * quat(rotvec)``. Matches ``BodyModel.pose(...).joint_transforms`` (tested).
+    The chain is :func:`uvatar.body.kinematics.forward_kinematics` with local rotation
+    ``rest_local_j[:3, :3] @ R_j`` and offset ``rest_local_j[:3, 3]``."""
+    import torch
 
-    rest_local = local_joint_transforms(joint_world_rest, joint_parents)
-    J = len(joint_parents)
-    world = np.zeros((J, 4, 4))
-    for j in np.argsort(_depths(joint_parents), kind="stable"):  # parents before children
-        pose = np.eye(4)
-        pose[:3, :3] = local_rotmats[j]
-        local = rest_local[j] @ pose
-        p = joint_parents[j]
-        world[j] = local if p < 0 else world[p] @ local
+    from uvatar.body.kinematics import forward_kinematics, kinematic_levels
+
+    rest_local = torch.as_tensor(local_joint_transforms(joint_world_rest, joint_parents))
+    local = rest_local[:, :3, :3] @ torch.as_tensor(np.asarray(local_rotmats, np.float64))
+    F, p = forward_kinematics(kinematic_levels(joint_parents), local[None], rest_local[None, :, :3, 3])
+    world = np.tile(np.eye(4), (len(joint_parents), 1, 1))
+    world[:, :3, :3], world[:, :3, 3] = F[0].numpy(), p[0].numpy()
     return world
 
 
 def skin_reference(mesh: SkinnedMesh, local_rotmats: np.ndarray) -> np.ndarray:
-    """glTF linear blend skinning of ``mesh`` in numpy (the reference for the viewer's skinning).
+    """glTF linear blend skinning of ``mesh`` in numpy (the reference for the viewer's skinning):
+    :func:`uvatar.body.kinematics.skin` with the mesh's (at most 4) influences per vertex.
 
     local_rotmats (J, 3, 3): rotation of each joint relative to its rest frame. Returns (V, 3) metres.
     """
+    import torch
+
+    from uvatar.body.kinematics import skin
+
     world = posed_joint_transforms(mesh.joint_world_rest, mesh.joint_parents, local_rotmats)
-    skin = world @ np.linalg.inv(mesh.joint_world_rest)  # (J, 4, 4)
-    mats = np.einsum("vk,vkab->vab", mesh.weights.astype(np.float64), skin[mesh.joints])
-    return np.einsum("vab,vb->va", mats[:, :3, :3], mesh.positions) + mats[:, :3, 3]
-
-
-def _depths(parents: np.ndarray) -> np.ndarray:
-    depth = np.zeros(len(parents), np.int64)
-    for j in range(len(parents)):
-        p, d = parents[j], 0
-        while p >= 0:
-            p, d = parents[p], d + 1
-        depth[j] = d
-    return depth
+    transforms = world @ np.linalg.inv(mesh.joint_world_rest)  # (J, 4, 4) rest -> posed
+    V, J = len(mesh.positions), len(mesh.joint_parents)
+    weights = np.zeros((V, J))
+    np.add.at(weights, (np.repeat(np.arange(V), mesh.joints.shape[1]), mesh.joints.reshape(-1)),
+              mesh.weights.reshape(-1).astype(np.float64))
+    out = skin(torch.as_tensor(mesh.positions, dtype=torch.float64)[None], torch.as_tensor(weights),
+               torch.as_tensor(transforms[None, :, :3, :]))
+    return out[0].numpy()
 
 
 # ------------------------------------------------------------------------------------------- bundle
@@ -258,7 +242,7 @@ def pose_to_model_input(pose: np.ndarray, encoding: dict) -> np.ndarray:
     return angles
 
 
-def rest_body_from_model(body_model, shape=None) -> RestBody:
+def rest_body_from_model(body_model, shape=None) -> BodyTemplate:
     """The avatar's rest pose from a :class:`uvatar.body.BodyModel` (zero pose, its shape)."""
     import torch
 
@@ -278,13 +262,14 @@ def rest_body_from_model(body_model, shape=None) -> RestBody:
         world = transforms
     else:  # skinning transforms (identity at rest): joints from the template
         world[:, :3, 3] = t.rest_joints
-    return RestBody(vertices, np.asarray(t.faces, np.int64), np.asarray(t.uvs, np.float32),
-                    np.asarray(t.uv_faces, np.int64), np.asarray(t.skin_weights, np.float32),
-                    tuple(t.joint_names), np.asarray(t.joint_parents, np.int64), world)
+    return BodyTemplate(vertices, np.asarray(t.faces, np.int64), np.asarray(t.uvs, np.float32),
+                        np.asarray(t.uv_faces, np.int64), np.asarray(t.skin_weights, np.float32),
+                        tuple(t.joint_names), np.asarray(t.joint_parents, np.int64),
+                        world[:, :3, 3].astype(np.float32), world)
 
 
 def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = EngineExportConfig(), *,
-                        body: RestBody | None = None, body_model=None, fingers_toes_mask: np.ndarray | None = None,
+                        body: BodyTemplate | None = None, body_model=None, fingers_toes_mask: np.ndarray | None = None,
                         semantic_joints: dict | None = None) -> dict:
     """Write ``avatar.glb``, ``manifest.json`` and the finger/toe mask into ``avatar_dir``; return the manifest.
 
