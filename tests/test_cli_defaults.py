@@ -40,6 +40,9 @@ TARGETS = {
     "motion convert": ["uvatar.motion.sequences:load_motion", "uvatar.body.registry:load_body_model"],
     "synth": ["uvatar.capture.synth.config:SynthConfig"],
     "view": ["uvatar.viewer.server:ViewerConfig"],
+    "fit": ["uvatar.fit.pipeline:FitConfig"],
+    "capture masks": ["uvatar.fit.masks:MaskConfig"],
+    "capture import": ["uvatar.capture.importers.pipeline:ImportConfig"],
 }
 
 # (command, flag dest) -> field name in the targets ("Target.field" when two targets share a name)
@@ -80,6 +83,10 @@ NOT_CONFIG = {
     ("render dva", "size"), ("render dva", "fps"), ("render dva", "device"), ("render dva", "threads"),
     ("render dva", "output"), ("motion info", "json"), ("motion convert", "fits"), ("synth", "preset"),
     ("synth", "no_preview"), ("synth", "no_progress"),
+    ("train dva", "model"), ("eval dva", "model"), ("render dva", "model"), ("render dva", "model_dir"),
+    ("fit", "views"), ("fit", "eval"), ("fit", "json"), ("fit", "no_progress"),
+    ("capture masks", "model_dir"), ("capture masks", "no_progress"),
+    ("capture import", "calibration"), ("capture import", "no_progress"),
 }
 
 # Drifts in command modules another branch is editing (issue 17): the lead drops each entry once the

@@ -54,7 +54,7 @@ def _register_import(cli) -> None:
     p.add_argument("--jpeg-quality", type=int, default=d.jpeg_quality, help="JPEG quality 1..100")
     p.add_argument("--fps", type=float, default=d.fps, help="source frame rate (0: from the video)")
     p.add_argument("--body-model", default=d.body_model, help="body model named in capture.json for `uvatar fit`")
-    p.add_argument("--cameras", default="", help="comma-separated camera names to import (default: all)")
+    p.add_argument("--cameras", default=None, help="comma-separated camera names to import (default: all)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_import)
 
@@ -69,7 +69,7 @@ def _import(args) -> int:
         cfg = ImportConfig(start=args.start, end=args.end, stride=args.stride, resize=args.resize, up=args.up,
                            units=args.units, image_format=args.image_format, jpeg_quality=args.jpeg_quality,
                            fps=args.fps, body_model=args.body_model,
-                           cameras=tuple(c.strip() for c in args.cameras.split(",") if c.strip()))
+                           cameras=tuple(c.strip() for c in (args.cameras or "").split(",") if c.strip()))
     summary = import_capture(args.src, args.out, cfg, calibration=args.calibration, progress=not args.no_progress)
     print(json.dumps(summary, indent=2))
     return 0
