@@ -168,7 +168,7 @@ def test_any_body_model_on_the_easymocap_layout(tmp_path, capsys):
     model files) fails with one line; a run refuses another --model at render/eval time."""
     from uvatar.capture import BodyFit, write_cameras, write_fit
     from uvatar.cli.main import main
-    from uvatar.dva.toy import toy_cameras
+    from tests.fixtures.dva_capture import toy_cameras
     from uvatar.io_utils import write_image
 
     cams = toy_cameras(4, 8)
