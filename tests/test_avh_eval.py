@@ -181,8 +181,9 @@ def test_evaluate_named_frames_and_cameras(setup, tmp_path):
     assert m["split"] == "frames given" and "full image" in m["protocol"]
     for res in (m["avh"], *m["baselines"].values()):
         assert res["psnr_db"] == res["psnr_db_union_mask"] and res["ssim"] == res["ssim_union_mask"]
-        # outside the union both images are the white background, so the full image scores higher
-        assert res["psnr_db_full"] >= res["psnr_db"] and res["ssim_full"] >= res["ssim"]
+        # outside the union both images are the white background, so the full image scores higher (SSIM
+        # windows straddling the union's edge mix both, hence the small tolerance there)
+        assert res["psnr_db_full"] >= res["psnr_db"] and res["ssim_full"] >= res["ssim"] - 1e-3
     assert m["images"] == [str(tmp_path / f"000005_{cam}.png")] and (tmp_path / f"000005_{cam}.png").is_file()
 
 

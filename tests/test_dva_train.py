@@ -66,13 +66,14 @@ def test_train_resume_and_eval(capture, tmp_path):
     saved = json.loads((tmp_path / "m.json").read_text())
     assert saved["cameras"] == ["cam03"] and saved["frames"] == ["000002"]
     assert "held-out" in r["protocol"] and r["psnr_db"] == r["psnr_db_full"]  # no box on this capture
-    # the scores are those of the comparison image written beside them (gt | prediction | error)
+    # the scores are those of the comparison image written beside them (gt | prediction | error | baseline)
     from uvatar.io_utils import read_image
     from uvatar.render.metrics import psnr, ssim
 
     sheet = read_image(tmp_path / "m" / "000002_cam03.png")
-    w = sheet.shape[1] // 3
-    gt, pred = sheet[:, :w], sheet[:, w:2 * w]
+    w = sheet.shape[1] // 4
+    gt, pred, base = sheet[:, :w], sheet[:, w:2 * w], sheet[:, 3 * w:]
+    assert r["baseline_mean_colour"]["psnr_db_full"] == pytest.approx(psnr(base, gt), abs=0.05)
     assert r["psnr_db_full"] == pytest.approx(psnr(pred, gt), abs=0.05)  # 8-bit PNG rounding only
     assert r["ssim_full"] == pytest.approx(ssim(pred, gt), abs=0.005)
 
