@@ -76,10 +76,12 @@ class BodyFitConfig:
     iterations: tuple[int, int, int, int] = (40, 40, 80, 100)
     lr_rotation: float = 0.03
     lr_translation: float = 0.01
-    lr_shape: float = 0.05
+    lr_shape: float = 0.1
     fit_shape: bool = True
+    shape_from_stage: int = 2
     w_keypoints3d: float = 1.0
     keypoint_sigma: float = 0.05
+    keypoint_sigma_coarse: float = 0.3
     w_keypoints2d: float = 1.0
     keypoint2d_sigma_px: float = 15.0
     w_scan: float = 1.0
@@ -107,7 +109,7 @@ class BodyFitConfig:
             (len(self.iterations) == 4 and min(self.iterations) >= 0, "iterations: four counts >= 0"),
             (min(self.lr_rotation, self.lr_translation, self.lr_shape) > 0, "learning rates must be > 0"),
             (min(weights) >= 0, "loss weights must be >= 0"),
-            (min(self.keypoint_sigma, self.keypoint2d_sigma_px, self.scan_sigma, self.mask_sigma) > 0,
+            (min(self.keypoint_sigma, self.keypoint_sigma_coarse, self.keypoint2d_sigma_px, self.scan_sigma, self.mask_sigma) > 0,
              "robust scales (sigmas) must be > 0"),
             (self.scan_inside_tolerance >= 0 and 0 <= self.scan_inside_weight <= 1,
              "scan_inside_tolerance >= 0 and scan_inside_weight in [0, 1]"),
@@ -115,6 +117,7 @@ class BodyFitConfig:
             (min(self.scan_body_vertices, self.scan_samples, self.mask_vertices, self.refresh_every) >= 1,
              "vertex/sample counts and refresh_every must be >= 1"),
             (0 < self.max_untracked_weight <= 1, "max_untracked_weight must be in (0, 1]"),
+            (0 <= self.shape_from_stage <= 3, "shape_from_stage must be 0..3"),
             (self.min_torso_keypoints >= 3, "min_torso_keypoints must be >= 3"),
         ])
 
@@ -163,6 +166,17 @@ def _limb_joints(body, joints: list[int]) -> set[int]:
     return out
 
 
+def _clean(points, conf):
+    """Zero the confidence of non-finite points and the points of zero confidence (so that a missing
+    keypoint, NaN or not, contributes exactly nothing)."""
+    if points is None:
+        return None, None
+    if conf is None:
+        conf = torch.ones(points.shape[:-1], device=points.device)
+    ok = torch.isfinite(points).all(-1) & torch.isfinite(conf) & (conf > 0)
+    return torch.where(ok[..., None], points, 0.0), torch.where(ok, conf, 0.0)
+
+
 def procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray):
     """Weighted rigid fit dst ~ R src + t. src, dst (N, 3), w (N,) -> (R (3, 3), t (3,))."""
     w = w / w.sum()
@@ -174,25 +188,25 @@ def procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray):
     return R, cd - R @ cs
 
 
-def _initial_global(rest_kp: np.ndarray, kp_weights: np.ndarray, obs: FitObservations, torso: list[int],
+def _initial_global(rest_kp: np.ndarray, kp_weights: np.ndarray, kp3d, kp3d_conf, scans, torso: list[int],
                     min_points: int, rest_centre: np.ndarray):
     """Per-frame Rh, Th from torso keypoints (or scan centroids); unobserved frames interpolated."""
     from scipy.spatial.transform import Rotation
 
-    T = obs.num_frames
+    T = len(kp3d) if kp3d is not None else len(scans)
     Rh, Th = np.zeros((T, 3)), np.zeros((T, 3))
     ok = np.zeros(T, bool)
     for t in range(T):   # one 3x3 SVD per frame
-        if obs.keypoints3d is not None:
-            w = np.asarray(obs.keypoints3d_conf[t], np.float64)[torso] * kp_weights[torso]
+        if kp3d is not None:
+            w = np.asarray(kp3d_conf[t], np.float64)[torso] * kp_weights[torso]
             good = w > 0
             if good.sum() >= min_points:
-                R, tr = procrustes(rest_kp[torso][good], np.asarray(obs.keypoints3d[t], np.float64)[torso][good],
+                R, tr = procrustes(rest_kp[torso][good], np.asarray(kp3d[t], np.float64)[torso][good],
                                    w[good])
                 Rh[t], Th[t], ok[t] = Rotation.from_matrix(R).as_rotvec(), tr, True
                 continue
-        if obs.scans is not None and obs.scans[t] is not None and len(obs.scans[t][0]):
-            Th[t], ok[t] = np.asarray(obs.scans[t][0], np.float64).mean(0) - rest_centre, True
+        if scans is not None and scans[t] is not None and len(scans[t][0]):
+            Th[t], ok[t] = np.asarray(scans[t][0], np.float64).mean(0) - rest_centre, True
     if ok.any() and not ok.all():
         idx = np.flatnonzero(ok)
         for arr in (Rh, Th):
@@ -234,8 +248,8 @@ class _Problem:
         def t(x):
             return None if x is None else torch.as_tensor(np.asarray(x, np.float32), device=dev)
 
-        self.kp3d, self.kp3d_conf = t(obs.keypoints3d), t(obs.keypoints3d_conf)
-        self.kp2d, self.kp2d_conf = t(obs.keypoints2d), t(obs.keypoints2d_conf)
+        self.kp3d, self.kp3d_conf = _clean(t(obs.keypoints3d), t(obs.keypoints3d_conf))
+        self.kp2d, self.kp2d_conf = _clean(t(obs.keypoints2d), t(obs.keypoints2d_conf))
         for name, arr, shape in (("keypoints3d", self.kp3d, (T, K, 3)), ("keypoints3d_conf", self.kp3d_conf, (T, K))):
             if arr is not None and tuple(arr.shape) != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {tuple(arr.shape)}")
@@ -256,9 +270,9 @@ class _Problem:
         self.mask = L.MaskTerm(obs.masks, self.cams, np.searchsorted(self.ids, mask_ids), dev) if has_mask else None
         self._rest = None
         self.observed = np.zeros(T, bool)
-        for conf in (obs.keypoints3d_conf, obs.keypoints2d_conf):
+        for conf in (self.kp3d_conf, self.kp2d_conf):
             if conf is not None:
-                c = np.asarray(conf).reshape(T, -1)
+                c = conf.cpu().numpy().reshape(T, -1)
                 self.observed |= (c > 0).sum(1) >= cfg.min_torso_keypoints
         if obs.scans is not None:
             self.observed |= np.array([s is not None and len(s[0]) > 0 for s in obs.scans])
@@ -275,8 +289,9 @@ class _Problem:
         names = self.kp.names
         torso = [names.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip",
                                           "left_ear", "right_ear", "nose") if n in names]
-        Rh, Th = _initial_global(rest_kp, self.kp.weights.astype(np.float64), obs, torso, cfg.min_torso_keypoints,
-                                 rest_centre)
+        numpy = (None, None) if self.kp3d is None else (self.kp3d.cpu().numpy(), self.kp3d_conf.cpu().numpy())
+        Rh, Th = _initial_global(rest_kp, self.kp.weights.astype(np.float64), *numpy, obs.scans, torso,
+                                 cfg.min_torso_keypoints, rest_centre)
         self.Rh = torch.as_tensor(Rh, dtype=torch.float32, device=dev).requires_grad_(True)
         self.Th = torch.as_tensor(Th, dtype=torch.float32, device=dev).requires_grad_(True)
         self.rot = torch.zeros(T, len(self.joints), 3, device=dev, requires_grad=True)
@@ -309,12 +324,13 @@ class _Problem:
         cfg = self.cfg
         out = {}
         kp = posed.keypoints
+        coarse = 1.0 if stage >= 3 else cfg.keypoint_sigma_coarse / cfg.keypoint_sigma   # wide basin first
         if self.kp3d is not None and cfg.w_keypoints3d > 0:
             out["keypoints3d"] = cfg.w_keypoints3d * L.keypoint3d_term(kp, self.kp3d, self.kp3d_conf, self.kp_w,
-                                                                       cfg.keypoint_sigma)
+                                                                       cfg.keypoint_sigma * coarse)
         if self.kp2d is not None and cfg.w_keypoints2d > 0:
             out["keypoints2d"] = cfg.w_keypoints2d * L.keypoint2d_term(kp, self.cams, self.kp2d, self.kp2d_conf,
-                                                                       self.kp_w, cfg.keypoint2d_sigma_px)
+                                                                       self.kp_w, cfg.keypoint2d_sigma_px * coarse)
         if stage >= 1:
             w = torch.ones(len(self.joints), device=self.dev)
             out["pose_prior"] = cfg.w_pose_prior * L.pose_prior_term(self.rot, w)
@@ -327,9 +343,9 @@ class _Problem:
                                                      cfg.scan_inside_tolerance, cfg.scan_inside_weight)
             if self.mask is not None and cfg.w_mask > 0:
                 out["mask"] = cfg.w_mask * self.mask(posed.vertices, cfg.mask_sigma)
-            if cfg.fit_shape:
-                prior = ((self.shape_z - self.shape_prior_centre) ** 2).sum()
-                out["shape_prior"] = (cfg.w_shape_prior * prior / self.T).expand(self.T)
+        if cfg.fit_shape and stage >= cfg.shape_from_stage:
+            prior = ((self.shape_z - self.shape_prior_centre) ** 2).sum()
+            out["shape_prior"] = (cfg.w_shape_prior * prior / self.T).expand(self.T)
         return out
 
 
@@ -345,30 +361,40 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
     for stage, (name, steps) in enumerate(zip(STAGES, cfg.iterations, strict=True)):
         if steps == 0:
             continue
-        groups = [{"params": [prob.Rh], "lr": cfg.lr_rotation}, {"params": [prob.Th], "lr": cfg.lr_translation}]
-        if stage >= 1:
-            groups.append({"params": [prob.rot], "lr": cfg.lr_rotation})
-        shape_grad = stage >= 3 and cfg.fit_shape
-        if shape_grad:
-            groups.append({"params": [prob.shape_z], "lr": cfg.lr_shape})
-        opt = torch.optim.Adam(groups)
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i, n=steps: 1.0 - 0.9 * i / n)
-        joint_mask = prob.torso_mask if stage == 1 else None
-        for it in range(steps):
+        shape_grad = stage >= cfg.shape_from_stage and cfg.fit_shape
+        hook = prob.rot.register_hook(lambda g: g * prob.torso_mask[None, :, None]) if stage == 1 else None
+        last_loss = [float("nan")]
+
+        def closure(opt, stage=stage, shape_grad=shape_grad):
             opt.zero_grad(set_to_none=True)
-            posed = prob.pose(shape_grad)
-            if stage >= 3 and prob.scan is not None and it % cfg.refresh_every == 0:
-                prob.scan.refresh(posed.vertices, posed.normals)
-            terms = prob.terms(posed, stage)
+            terms = prob.terms(prob.pose(shape_grad), stage)
             loss = sum(v.sum() for v in terms.values()) / prob.T
             loss.backward()
-            if joint_mask is not None and prob.rot.grad is not None:
-                prob.rot.grad *= joint_mask[None, :, None]
-            opt.step()
-            sched.step()
-            done += 1
+            last_loss[0] = float(loss.detach())
+            return loss
+
+        refresh = stage >= 3 and prob.scan is not None
+        chunk = cfg.refresh_every if refresh else steps
+        groups = [{"params": [prob.Rh], "lr": cfg.lr_rotation}, {"params": [prob.Th], "lr": cfg.lr_translation}]
+        groups += [{"params": [prob.rot], "lr": cfg.lr_rotation}] if stage >= 1 else []
+        groups += [{"params": [prob.shape_z], "lr": cfg.lr_shape}] if shape_grad else []
+        opt = torch.optim.Adam(groups)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i, n=steps: 1.0 - 0.9 * i / n)
+        for first in range(0, steps, chunk):
+            n = min(chunk, steps - first)
+            if refresh:
+                with torch.no_grad():
+                    posed = prob.pose(False)
+                prob.scan.refresh(posed.vertices, posed.normals)
+            for _ in range(n):
+                closure(opt)
+                opt.step()
+                sched.step()
+            done += n
             if progress is not None:
-                progress(done, total, {"stage": name, "loss": float(loss.detach())})
+                progress(done, total, {"stage": name, "loss": last_loss[0]})
+        if hook is not None:
+            hook.remove()
     with torch.no_grad():
         posed = prob.pose(False)
         last = 3 if cfg.iterations[3] > 0 else 2

@@ -1,0 +1,238 @@
+"""uvatar.fit body half: keypoints on the body, projection, loss terms, the sequence fit, evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from uvatar.body import load_body_model
+from uvatar.fit.body_fit import BodyFitConfig, FitObservations, fit_body_sequence, procrustes
+from uvatar.fit.body_keypoints import BLAZEPOSE_NAMES, BodyKeypoints
+from uvatar.fit.losses import ScanTerm, keypoint3d_term, signed_scan_cost, smoothness_term
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+SHAPE = np.array([0.35, 0.6, 0.5, 0.5, 0.7, 0.45], np.float32)   # anny phenotypes (not the default)
+
+
+@pytest.fixture(scope="module")
+def anny():
+    return load_body_model("anny")
+
+
+@pytest.fixture(scope="module")
+def keypoints(anny):
+    return BodyKeypoints(anny)
+
+
+def _pose(anny, frames: int, seed: int, std: float = 0.2):
+    rng = np.random.default_rng(seed)
+    pose = np.zeros((frames, anny.num_joints, 3), np.float32)
+    pose[:, list(anny.conditioning_joints)] = rng.normal(0, std, (frames, len(anny.conditioning_joints), 3))
+    Rh = rng.normal(0, 0.4, (frames, 3)).astype(np.float32)
+    Th = rng.normal(0, 0.3, (frames, 3)).astype(np.float32)
+    return pose, Rh, Th
+
+
+def _posed(anny, pose, Rh, Th, shape):
+    with torch.no_grad():
+        return anny.pose(torch.as_tensor(pose), Rh=torch.as_tensor(Rh), Th=torch.as_tensor(Th),
+                         shape=torch.as_tensor(shape))
+
+
+def test_anny_keypoints_come_from_its_coco_regressor(anny, keypoints):
+    import anny as anny_pkg
+    from anny.keypoints import KeypointsRegressor
+
+    assert keypoints.names == BLAZEPOSE_NAMES and len(BLAZEPOSE_NAMES) == 33
+    assert (keypoints.weights > 0).all()                       # anny places all 33
+    reg = KeypointsRegressor.coco(anny.anny)
+    pose, Rh, Th = _pose(anny, 2, 0)
+    posed = _posed(anny, pose, Rh, Th, SHAPE)
+    ours = keypoints(posed).numpy()
+    theirs = torch.einsum("kv,bvc->bkc", reg.regression_weights.float(), posed.vertices).numpy()
+    for name in ("nose", "left_shoulder", "right_hip", "left_knee", "right_ankle", "left_heel", "right_ear"):
+        k = keypoints.names.index(name)
+        assert np.abs(ours[:, k] - theirs[:, reg.labels.index(name)]).max() < 5e-4, name   # pruning: < 0.5 mm
+    assert anny_pkg is not None
+    rest = keypoints(anny.rest_pose())[0].numpy()
+    for side, sign in (("left", 1), ("right", -1)):                # the person's left is +X
+        for part in ("eye", "shoulder", "wrist", "hip", "ankle", "foot_index", "pinky"):
+            assert sign * rest[keypoints.names.index(f"{side}_{part}"), 0] > 0.01
+
+
+def test_generic_fallback_places_keypoints_from_joints_and_template(anny):
+    kp = BodyKeypoints(anny, use_regressor=False)
+    w = dict(zip(kp.names, kp.weights, strict=True))
+    assert all(w[n] > 0 for n in kp.names)
+    assert w["left_hip"] == 0.5 and w["left_pinky"] < 1      # biased / untracked: down-weighted
+    rest = kp(anny.rest_pose())[0].numpy()
+    nose, heel, toe = (rest[kp.names.index(n)] for n in ("nose", "left_heel", "left_foot_index"))
+    assert nose[1] > 0.5 and nose[2] > 0.1                     # the face, in front
+    assert heel[2] < toe[2] - 0.15 and heel[1] < -0.75          # heel behind the toes, at the floor
+    only = BodyKeypoints(anny, names=("nose", "no_such_landmark"))
+    assert only.weights.tolist() == [1.0, 0.0]
+
+
+def test_pose_joints_and_subset_skinning_match_full_pose(anny):
+    from uvatar.fit.skinning import SubsetSkinner
+
+    pose, Rh, Th = _pose(anny, 3, 1, std=0.3)
+    posed = _posed(anny, pose, Rh, Th, SHAPE)
+    with torch.no_grad():
+        jt = anny.pose_joints(torch.as_tensor(pose), Rh=torch.as_tensor(Rh), Th=torch.as_tensor(Th),
+                              shape=torch.as_tensor(SHAPE))
+        assert torch.allclose(jt, posed.joint_transforms, atol=1e-5)
+        ids = np.arange(0, anny.template.num_vertices, 7)
+        sk = SubsetSkinner(anny, ids)
+        v, n = sk(jt, sk.rest(torch.as_tensor(SHAPE)))
+    err = (v - posed.vertices[:, ids]).norm(dim=-1)
+    assert err.mean() < 5e-4 and err.max() < 6e-3               # anny's LBS vs re-skinning the rest mesh
+    cos = (n * posed.normals[:, ids]).sum(-1)
+    assert cos.median() > 0.999 and (cos > 0.95).float().mean() > 0.95   # LBS-rotated rest normals
+
+
+def test_projection_matches_opencv_and_passes_gradcheck():
+    import cv2
+
+    from uvatar.capture.types import Camera
+    from uvatar.fit.projection import camera_tensors, project_cameras
+
+    rng = np.random.default_rng(0)
+    cams = [Camera(f"c{i}", K=[[500, 0, 120], [0, 510, 130], [0, 0, 1]], R=cv2.Rodrigues(rng.normal(size=3) * 0.2)[0],
+                   T=[0.1, 0.2, 3.0], dist=[0.1, -0.05, 0.001, 0.002, 0.01]) for i in range(2)]
+    P = rng.normal(size=(6, 3)) * 0.4
+    ct = camera_tensors(cams, dtype=torch.float64)
+    px, depth = project_cameras(torch.tensor(P), ct)
+    for i, c in enumerate(cams):
+        ref = cv2.projectPoints(P, cv2.Rodrigues(c.R)[0], c.T, c.K, c.dist)[0][:, 0]
+        assert np.abs(ref - px[i].numpy()).max() < 1e-9
+        assert np.allclose(depth[i].numpy(), c.world_to_camera(P)[:, 2])
+    x = torch.tensor(P, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda p: project_cameras(p, ct)[0], (x,))
+    dist = ct.dist.clone().requires_grad_(True)
+    from uvatar.fit.projection import CameraTensors
+    assert torch.autograd.gradcheck(lambda d: project_cameras(x.detach(), CameraTensors(ct.K, ct.R, ct.T, d))[0],
+                                    (dist,))
+
+
+def test_scan_term_is_zero_on_the_bodys_own_surface(anny):
+    pose, Rh, Th = _pose(anny, 2, 2)
+    posed = _posed(anny, pose, Rh, Th, SHAPE)
+    ids = np.arange(0, anny.template.num_vertices, 5)
+    v, n = posed.vertices[:, ids], posed.normals[:, ids]
+    scans = [(v[t].numpy(), n[t].numpy()) for t in range(2)]
+    term = ScanTerm(scans, np.arange(len(ids)), scan_samples=len(ids), max_distance=0.1, device="cpu")
+    term.refresh(v, n)
+    cost = term(v, n, sigma=0.05, inside_tolerance=0.0, inside_weight=1.0)
+    assert cost.shape == (2,) and float(cost.abs().max()) < 1e-10
+    moved = v + 0.01 * n                                        # body 1 cm outside its scan
+    term.refresh(moved, n)
+    assert (term(moved, n, 0.05, 0.0, 1.0) > 5e-5).all()
+
+
+def test_signed_scan_cost_tolerates_clothing_not_penetration():
+    d = torch.tensor([0.03, -0.03, -0.01, 0.0])
+    c = signed_scan_cost(d, sigma=0.05, inside_tolerance=0.02, inside_weight=0.5)
+    assert c[3] == 0 and c[2] == 0                              # inside, within the clothing tolerance
+    assert c[0] > 10 * c[1] > 0                                 # outside the scan costs far more
+
+
+def test_missing_keypoints_are_ignored(anny, keypoints):
+    pose, Rh, Th = _pose(anny, 2, 3)
+    k3 = keypoints(_posed(anny, pose, Rh, Th, SHAPE))
+    conf = torch.ones(k3.shape[:2])
+    w = torch.as_tensor(keypoints.weights)
+    bad = k3.clone()
+    bad[:, 5:9] = 1e3
+    conf_bad = conf.clone()
+    conf_bad[:, 5:9] = 0
+    assert float(keypoint3d_term(k3, bad, conf_bad, w, 0.05).abs().max()) < 1e-12
+    # through the whole fit: NaN or wild keypoints at confidence 0 change nothing
+    cfg = BodyFitConfig(iterations=(5, 5, 5, 5), fit_shape=False)
+    clean = fit_body_sequence(anny, FitObservations(k3.numpy(), conf.numpy()), cfg)
+    wild = bad.numpy().copy()
+    wild[0, 5] = np.nan
+    noisy = fit_body_sequence(anny, FitObservations(wild, conf_bad.numpy()), cfg)
+    conf_drop = conf.numpy().copy()
+    conf_drop[:, 5:9] = 0
+    ref = fit_body_sequence(anny, FitObservations(k3.numpy(), conf_drop), cfg)
+    assert np.isfinite(noisy.poses).all()
+    assert np.allclose(noisy.poses, ref.poses, atol=1e-6) and np.allclose(noisy.Th, ref.Th, atol=1e-6)
+    assert not np.allclose(clean.poses, ref.poses, atol=1e-6)
+
+
+def test_fit_recovers_known_pose_and_shape(anny, keypoints):
+    """Own keypoints plus the body's own surface as the scan: pose and shape come back."""
+    from uvatar.fit.evaluate import point_surface_distance
+
+    pose, Rh, Th = _pose(anny, 2, 4, std=0.15)
+    posed = _posed(anny, pose, Rh, Th, SHAPE)
+    k3 = keypoints(posed).numpy()
+    scans = [(posed.vertices[t].numpy(), posed.normals[t].numpy()) for t in range(2)]
+    obs = FitObservations(k3, np.ones(k3.shape[:2], np.float32), scans=scans)
+    seen = []
+    cfg = BodyFitConfig(iterations=(20, 20, 60, 120), w_smooth=0.0, scan_inside_tolerance=0.0, scan_inside_weight=1.0,
+                        scan_body_vertices=800, scan_samples=800)   # a bare body: no clothing tolerance
+    fit = fit_body_sequence(anny, obs, cfg, progress=lambda done, total, info: seen.append((done, total, info["stage"])))
+    assert seen[-1][:2] == (220, 220) and [s[2] for s in seen] == ["global", "torso", "limbs"] + ["full"] * 24
+    assert fit.poses.shape == pose.shape and fit.shape.shape == (6,) and fit.observed.all()
+    assert np.all(fit.poses[:, [j for j in range(anny.num_joints) if j not in anny.conditioning_joints]] == 0)
+    got = _posed(anny, fit.poses, fit.Rh, fit.Th, fit.shape)
+    cj = list(anny.conditioning_joints)
+    mpjpe = (got.joints[:, cj] - posed.joints[:, cj]).norm(dim=-1).mean() * 1000
+    assert mpjpe < 15, f"MPJPE {float(mpjpe):.1f} mm"
+    with torch.no_grad():
+        zero = torch.zeros(1, anny.num_joints, 3)
+        rest_fit = anny.pose(zero, shape=torch.as_tensor(fit.shape)).vertices[0]
+        rest_true = anny.pose(zero, shape=torch.as_tensor(SHAPE)).vertices[0]
+        rest_default = anny.rest_pose().vertices[0]
+    shape_err = (rest_fit - rest_true).norm(dim=-1).mean() * 1000
+    start_err = (rest_default - rest_true).norm(dim=-1).mean() * 1000
+    assert shape_err < 6 and shape_err < 0.3 * start_err, (float(shape_err), float(start_err))
+    d = point_surface_distance(scans[0][0][::20], got.vertices[0].numpy(), anny.template.faces) * 1000
+    assert np.median(d) < 4
+
+
+def test_a_frame_without_observations_is_carried_by_its_neighbours(anny, keypoints):
+    pose, Rh, Th = _pose(anny, 3, 5, std=0.15)
+    pose[1] = 0.5 * (pose[0] + pose[2])                      # a smooth motion through the gap
+    Rh[2], Th[2] = Rh[0] + 0.05, Th[0] + 0.03
+    Rh[1], Th[1] = Rh[0] + 0.025, Th[0] + 0.015
+    posed = _posed(anny, pose, Rh, Th, SHAPE)
+    k3 = keypoints(posed).numpy()
+    conf = np.ones(k3.shape[:2], np.float32)
+    conf[1] = 0
+    k3[1] = np.nan
+    fit = fit_body_sequence(anny, FitObservations(k3, conf), BodyFitConfig(iterations=(20, 20, 40, 40)))
+    assert fit.observed.tolist() == [True, False, True]
+    assert np.isfinite(fit.poses).all() and np.isfinite(fit.frame_loss).all()
+    got = _posed(anny, fit.poses, fit.Rh, fit.Th, fit.shape)
+    cj = list(anny.conditioning_joints)
+    err = (got.joints[:, cj] - posed.joints[:, cj]).norm(dim=-1).mean(-1) * 1000
+    assert err[1] < 60, err                                   # interpolated, not left at the origin
+    assert np.linalg.norm(fit.Th[1] - 0.5 * (fit.Th[0] + fit.Th[2])) < 0.02
+
+
+def test_procrustes_and_smoothness_known_answers():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(6, 3))
+    R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    R_fit, t_fit = procrustes(src, src @ R.T + [1, 2, 3], np.ones(6))
+    assert np.allclose(R_fit, R) and np.allclose(t_fit, [1, 2, 3])
+    x = torch.zeros(3, 1, 3)
+    x[2, 0, 0] = 1.0
+    assert torch.allclose(smoothness_term(x), torch.tensor([0.0, 0.5, 0.5]))
+    assert smoothness_term(x[:1]).tolist() == [0.0]
+
+
+def test_config_bounds_and_empty_input(anny):
+    with pytest.raises(ValueError, match="iterations"):
+        BodyFitConfig(iterations=(1, 2))
+    with pytest.raises(ValueError, match="scan_inside_weight"):
+        BodyFitConfig(scan_inside_weight=2.0)
+    with pytest.raises(ValueError, match="no frames"):
+        fit_body_sequence(anny, FitObservations(None, None))
