@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uvatar.motion.bvh import BvhMotion, forward_kinematics
+from uvatar.body.kinematics import forward_kinematics_numpy
+from uvatar.motion.bvh import BvhMotion
 
 # CMU BVH length unit: 1/0.45 inch
 CMU_UNIT_METRES = 0.0254 / 0.45
@@ -49,8 +50,7 @@ def clean_fps(fps: float) -> float:
 def guess_bvh_units(motion: BvhMotion) -> float | None:
     """Metres per file unit guessed from the leg length (CMU units, centimetres, metres, inches)."""
     sk = motion.skeleton
-    rest_r = np.broadcast_to(np.eye(3), (sk.num_joints, 3, 3))
-    _, rest = forward_kinematics(sk.parents, rest_r, sk.offsets)
+    _, rest = forward_kinematics_numpy(sk.parents, np.eye(3), sk.offsets)
     height = float(np.ptp(rest[:, 1]))
     if height <= 0:
         return None
@@ -66,9 +66,33 @@ def skeleton_motion_from_bvh(motion: BvhMotion, source: str = "") -> SkeletonMot
     """World rotations (relative to the zero-channel rest pose) and positions by FK."""
     sk = motion.skeleton
     world_r, world_p = motion.world_transforms()
-    rest_r = np.broadcast_to(np.eye(3), (sk.num_joints, 3, 3)).copy()
-    rest_world_r, rest_p = forward_kinematics(sk.parents, rest_r, sk.offsets)
-    deltas = world_r @ np.swapaxes(rest_world_r, -1, -2)  # rest is identity for plain BVH
+    _, rest_p = forward_kinematics_numpy(sk.parents, np.eye(3), sk.offsets)  # zero channels: identity frames
     return SkeletonMotion(names=sk.names, parents=sk.parents.copy(), rest_positions=rest_p,
-                          world_rotations=deltas, positions=world_p, fps=clean_fps(motion.fps),
+                          world_rotations=world_r, positions=world_p, fps=clean_fps(motion.fps),
                           units_to_metres=guess_bvh_units(motion), source=source)
+
+
+def skeleton_motion_from_rotations(names, parents, rest_joints, local_rotations, root_translation=None,
+                                   world_rotation=None, world_translation=None, fps: float = 30.0,
+                                   units_to_metres: float | None = 1.0, source: str = "") -> SkeletonMotion:
+    """A body-model rig whose joint frames are world-aligned at rest (SMPL family, AMASS) posed by
+    local rotations (T, J, 3, 3): FK from the rest joints (J, 3), the root moved by
+    ``root_translation`` (T, 3), then the world transform ``x → world_rotation (T or 1, 3, 3) @ x +
+    world_translation (T, 3)`` (EasyMocap Rh/Th; AMASS's Z-up → Y-up turn)."""
+    rest = np.asarray(rest_joints, np.float64)
+    parents = np.asarray(parents, np.int64)
+    T = local_rotations.shape[0]
+    offsets = rest - rest[np.maximum(parents, 0)]
+    offsets[parents < 0] = rest[parents < 0]
+    translations = np.broadcast_to(offsets, (T, len(parents), 3)).copy()
+    if root_translation is not None:
+        translations[:, parents < 0] += np.asarray(root_translation, np.float64)[:, None]
+    world_r, world_p = forward_kinematics_numpy(parents, local_rotations, translations)
+    if world_rotation is not None:
+        W = np.asarray(world_rotation, np.float64).reshape(-1, 1, 3, 3)
+        world_r = W @ world_r
+        world_p = (W @ world_p[..., None])[..., 0]
+    if world_translation is not None:
+        world_p = world_p + np.asarray(world_translation, np.float64).reshape(-1, 1, 3)
+    return SkeletonMotion(names=tuple(names), parents=parents, rest_positions=rest.copy(), world_rotations=world_r,
+                          positions=world_p, fps=float(fps), units_to_metres=units_to_metres, source=source)
