@@ -27,18 +27,21 @@ POSE_SIZES = {72: "smpl", 156: "smplh", 165: "smplx", 66: "smplx", 63: "smplx"}
 SMPL_FAMILY = ("smpl", "smplh", "smplx")
 
 
-def fits_body_name(pose_size: int, source: str = "fits") -> str:
-    """The body model whose fits have ``pose_size`` values per frame (anny: 3 per bone)."""
+def fits_body_name(pose_size: int, source: str = "fits", body=None) -> str:
+    """The body model whose fits have ``pose_size`` values per frame: SMPL-family sizes, else
+    ``body`` (a model or a name) when its joints match, else "unknown" when no body is asked for."""
     if pose_size in POSE_SIZES:
         return POSE_SIZES[pose_size]
-    from uvatar.body.anny_backend import ANNY_SEMANTIC_BONES  # noqa: F401  (anny is a hard dependency)
-    from uvatar.body.registry import load_body_model
+    if body is None:
+        return "unknown"
+    if isinstance(body, str):
+        from uvatar.body.registry import load_body_model
 
-    anny = load_body_model("anny")
-    if pose_size == 3 * anny.num_joints:
-        return "anny"
+        body = load_body_model(body)
+    if pose_size == 3 * body.num_joints:
+        return body.name
     raise InputError(source, f"cannot tell the body model from {pose_size} pose values per frame "
-                             f"(SMPL 72, SMPL-H 156, SMPL-X 165, anny {3 * anny.num_joints})")
+                             f"(SMPL 72, SMPL-H 156, SMPL-X 165, {body.name} {3 * body.num_joints})")
 
 
 def smpl_rest_joints(model: str, shape) -> tuple[np.ndarray, str]:

@@ -28,7 +28,7 @@ __all__ = ["Motion", "load_motion", "motion_from_fits", "resample_motion", "save
            "slerp_rotvecs_reference"]
 
 
-def motion_from_fits(fits: dict, fps: float, body_name: str | None, source: str, shape=None) -> Motion:
+def motion_from_fits(fits: dict, fps: float, body_name: str | None, source: str, shape=None, body=None) -> Motion:
     """{frame: BodyFit} → Motion for the body model the fits are of (``body_name``, or told by the
     pose size when None: 72 SMPL, 165 SMPL-X, ...). All fits must share the pose size."""
     items = list(fits.values())
@@ -37,7 +37,7 @@ def motion_from_fits(fits: dict, fps: float, body_name: str | None, source: str,
     sizes = {f.poses.size for f in items}
     if len(sizes) != 1:
         raise InputError(source, f"fits have different pose sizes {sorted(sizes)}")
-    body_name = body_name or fits_body_name(sizes.pop(), source)
+    body_name = body_name or fits_body_name(sizes.pop(), source, body)
     T = len(items)
     rot = np.stack([f.poses for f in items]).reshape(T, -1, 3)
     first_shape = items[0].shapes if items[0].shapes.size else None
@@ -79,8 +79,8 @@ def load_motion(path: str | Path, body=None, fps: float | None = None, default_f
 
 def _for_body(motion: Motion, body, config: RetargetConfig, path: Path) -> Motion:
     """Body-model fits of another model (SMPL, SMPL-X) → ``body`` by a real conversion."""
-    want = _body_name(body) or "anny"
-    if motion.body == want:
+    want = _body_name(body)
+    if want is None or motion.body == want:
         return motion
     try:
         return convert_body_motion(motion, _body_model(body), config)
@@ -101,7 +101,7 @@ def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motio
             return _for_body(motion_from_fits(fits, cap.fps, cap.body_model, str(path), shape), body, config, path)
         from uvatar.capture.fits import read_fits_dir
 
-        return _for_body(motion_from_fits(read_fits_dir(path), default_fps, None, str(path)), body, config, path)
+        return _for_body(motion_from_fits(read_fits_dir(path), default_fps, None, str(path), body=body), body, config, path)
     if suffix == ".bvh":
         return retarget(skeleton_motion_from_bvh(read_bvh(path), source=path.name), _body_model(body), config)
     if suffix == ".npz":
@@ -117,7 +117,7 @@ def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motio
         if {"frames", "poses", "Rh", "Th"} <= keys:
             from uvatar.capture.fits import read_fits_npz
 
-            return _for_body(motion_from_fits(read_fits_npz(path), default_fps, None, path.name), body, config, path)
+            return _for_body(motion_from_fits(read_fits_npz(path), default_fps, None, path.name, body=body), body, config, path)
         raise InputError(path, "NPZ is neither a uvatar motion, an AMASS motion nor a fits sequence")
     raise InputError(path, f"unsupported motion format {suffix!r} (.bvh, .npz, a fits or capture folder)")
 
