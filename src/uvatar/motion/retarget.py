@@ -130,9 +130,10 @@ def body_forward(P: dict) -> np.ndarray:
     return _unit(np.cross(_unit(left), _unit(top - P["pelvis"])))
 
 
-def rest_frame(sem: str, P: dict) -> np.ndarray | None:
-    """Anatomical frame (3, 3) of ``sem`` in a rest pose P (semantic name → (3,)): straight
-    hinges take the flexion convention (elbow and ankle forward, knee backward)."""
+def rest_frame(sem: str, P: dict, min_bend: float = 0.05) -> np.ndarray | None:
+    """Anatomical frame (3, 3) of ``sem`` in a rest pose P (semantic name → (3,)): hinges bent less
+    than ``min_bend`` (sine) or backwards take the flexion convention (elbow and ankle forward,
+    knee backward)."""
     u, v, hinge = _bone_vectors(sem, P)
     if u is None:
         return None
@@ -141,7 +142,7 @@ def rest_frame(sem: str, P: dict) -> np.ndarray | None:
         a, b = side + h[0], side + h[1]
         if a in P and b in P:
             convention = np.cross(_unit(P[b] - P[a]), h[3] * body_forward(P))
-            if v is None or np.linalg.norm(v) < 0.17 or np.dot(v, convention) <= 0:
+            if v is None or np.linalg.norm(v) < min_bend or np.dot(v, convention) <= 0:
                 v = convention
     return None if v is None else _frame(u, v)
 
@@ -210,7 +211,7 @@ def plan_retarget(source: SkeletonMotion, body, config: RetargetConfig | None = 
     P_src = {s: source.positions[:, i] for s, i in src_index.items()}
     plan = RetargetPlan(match, src_index, tgt_index, shared, {})
     for sem in shared:
-        A_t = rest_frame(sem, {k: P_t[k] for k in P_t if k in src_index})
+        A_t = rest_frame(sem, {k: P_t[k] for k in P_t if k in src_index}, config.min_evidence)
         A_s, how = None, "rest"
         if config.twist != "rest":
             A_s, evidence = motion_frame(sem, P_src, source.world_rotations[:, src_index[sem]])
@@ -218,7 +219,7 @@ def plan_retarget(source: SkeletonMotion, body, config: RetargetConfig | None = 
             if A_s is not None and config.twist == "auto" and evidence < config.min_evidence:
                 A_s = None
         if A_s is None and config.twist != "motion":
-            A_s, how = rest_frame(sem, P_rest), "rest"
+            A_s, how = rest_frame(sem, P_rest, config.min_evidence), "rest"
         if A_s is not None and A_t is not None:
             plan.alignment[sem] = A_s @ A_t.T
             plan.source_frames[sem], plan.target_frames[sem] = A_s, A_t
@@ -290,8 +291,8 @@ def foot_landmarks(body, tgt_index: dict[str, int], band: float = 0.02, per_foot
         if not len(verts):
             continue
         y = t.vertices[verts, 1]
-        sole = verts[y < y.min() + band]
-        sole = sole[np.linspace(0, len(sole) - 1, min(per_foot, len(sole))).astype(int)]
+        sole = verts[np.argsort(y)][: int((y < y.min() + band).sum())]  # lowest first
+        sole = sole[np.unique(np.linspace(0, len(sole) - 1, min(per_foot, len(sole))).astype(int))]
         joints.append(main[sole])
         points.append(t.vertices[sole].astype(np.float64))
         sides.append(np.full(len(sole), k_side))

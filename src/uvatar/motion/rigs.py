@@ -133,31 +133,36 @@ def _ancestors(parents, j: int) -> list[int]:
     return out
 
 
-def _assign(names, parents, candidates: dict[str, str], fill: list[dict[str, str]]) -> dict[str, str]:
+def _assign(names, parents, candidates: dict[str, str], fill: list[dict[str, str]],
+            fixed: dict[str, str | None]) -> dict[str, str]:
     index = {n: i for i, n in enumerate(names)}
-    mapping: dict[str, str] = {}
-    taken: set[str] = set()
+    mapping: dict[str, str] = {n: s for n, s in fixed.items() if s}
+    taken: set[str] = set(mapping.values())
     for table in [candidates, *fill]:  # first come (tree order) first served
         for n in names:
             sem = table.get(n)
-            if sem and sem != "spine" and sem not in taken and n not in mapping:
+            if sem and sem != "spine" and sem not in taken and n not in mapping and n not in fixed:
                 mapping[n] = sem
                 taken.add(sem)
     by_sem = {s: index[n] for n, s in mapping.items()}
+    chain: list[int] = []
     if "pelvis" in by_sem:  # the spine by structure: the joints between the pelvis and the neck
         top = by_sem.get("neck", by_sem.get("head"))
         if top is None:
             collars = [by_sem[s] for s in ("l_collar", "r_collar", "l_shoulder", "r_shoulder") if s in by_sem]
             top = collars[0] if collars else None
-        if top is not None:
-            up = _ancestors(parents, top)
-            if by_sem["pelvis"] in up:
-                chain = [j for j in reversed(up[: up.index(by_sem["pelvis"])]) if names[j] not in mapping]
-                slots = {1: ["spine1"], 2: ["spine1", "spine3"]}.get(len(chain), ["spine1", "spine2", "spine3"])
-                picks = [chain[0], chain[-1]] if len(slots) == 2 else [chain[0]] if len(slots) == 1 else \
-                    [chain[0], chain[len(chain) // 2], chain[-1]]
-                for j, sem in zip(picks if chain else [], slots, strict=False):
-                    mapping[names[j]] = sem
+        up = _ancestors(parents, top) if top is not None else []
+        if by_sem["pelvis"] in up:
+            chain = [j for j in reversed(up[: up.index(by_sem["pelvis"])])
+                     if names[j] not in mapping and names[j] not in fixed]
+    if not chain:  # no neck above the pelvis: the joints named like a spine, in tree order
+        chain = [index[n] for n in names if n not in mapping and n not in fixed
+                 and any(t.get(n) == "spine" for t in [candidates, *fill])]
+    if chain and not taken & {"spine1", "spine2", "spine3"}:
+        slots = {1: ["spine1"], 2: ["spine1", "spine3"]}.get(len(chain), ["spine1", "spine2", "spine3"])
+        picks = {1: [chain[0]], 2: [chain[0], chain[-1]]}.get(len(slots), [chain[0], chain[len(chain) // 2], chain[-1]])
+        for j, sem in zip(picks, slots, strict=True):
+            mapping[names[j]] = sem
     return mapping
 
 
@@ -175,8 +180,7 @@ def match_rig(names, parents, user_map: dict | None = None, target_names=None) -
     candidates = _rig_candidates(best, names, sides)
     rig_name = best.name if candidates else "unknown"
     fill = [_rig_candidates(r, names, sides) for r in RIGS if r is not best]
-    mapping = _assign(names, parents, candidates, fill)
-    user: dict[str, str] = {}
+    user: dict[str, str | None] = {}
     if user_map:
         unknown = [k for k in user_map if k not in names]
         if unknown:
@@ -187,14 +191,13 @@ def match_rig(names, parents, user_map: dict | None = None, target_names=None) -
             if sem is not None and sem not in SEMANTIC_JOINTS:
                 raise ValueError(f"the map sends {src!r} to {value!r}, which is neither a semantic joint "
                                  f"({', '.join(SEMANTIC_JOINTS)}) nor a joint of the target body")
-            mapping = {n: s for n, s in mapping.items() if n != src and s != sem}
-            if sem is not None:
-                mapping[src] = sem
-                user[src] = sem
+            user[src] = sem
         rig_name = f"{rig_name} + user map"
+    mapping = _assign(names, parents, candidates, fill, user)
     missing = [s for s in SEMANTIC_JOINTS if s not in mapping.values()]
     return RigMatch(rig=rig_name, mapping=mapping, unmapped=[n for n in names if n not in mapping], missing=missing,
-                    missing_required=[s for s in REQUIRED if s in missing], user=user)
+                    missing_required=[s for s in REQUIRED if s in missing],
+                    user={k: v for k, v in user.items() if v})
 
 
 def read_joint_map(path) -> dict:
