@@ -241,3 +241,38 @@ def test_cli_convert_and_info(anny, shared_data, tmp_path, capsys):
     assert main(["motion", "convert", clip, str(tmp_path / "x.txt")]) == 1
     assert main(["motion", "convert", clip, str(tmp_path / "x.npz"), "--fps", "0"]) == 1
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_reexpressed_clip_matches_the_cmu_retarget(anny, shared_data, tmp_path, capsys):
+    """The CMU clip with other names (Unity-like with _L/_R suffixes), another rest pose (every
+    bone along X), twisted joint frames and 6 channels per joint converts with no map and gives
+    the CMU result: per bone group median direction error <= 5 deg and twist error <= 10 deg; the
+    lowest foot within 2 cm of the floor whenever the source stands. Rest-pose alignment (bone
+    directions only) of the same file gets the twists wrong, so the check can fail."""
+    import json
+
+    from _motion_reexpress import reexpress, subsample
+
+    from uvatar.cli.main import main
+    from uvatar.motion.bvh import write_bvh
+    from uvatar.motion.report import compare_motions
+    from uvatar.motion.retarget import RetargetConfig
+    from uvatar.motion.sequences import load_motion
+
+    cmu = subsample(read_bvh(shared_data / "motions" / "cmu_01_01.bvh"), 16)
+    studio, _, twists = reexpress(cmu, twist_deg=80.0)
+    path = tmp_path / "studio.bvh"
+    write_bvh(path, studio)
+    report = tmp_path / "report.json"
+    assert main(["motion", "convert", str(path), str(tmp_path / "studio.npz"), "--report", str(report)]) == 0
+    assert "rig unity" in capsys.readouterr().out
+    reference = retarget(skeleton_motion_from_bvh(cmu, "cmu"), anny)
+    moved = load_motion(tmp_path / "studio.npz", body=anny)
+    groups = compare_motions(anny, reference, moved, max_frames=60)["bones"]
+    for name, r in groups.items():
+        assert r["direction_deg"]["median"] <= 5 and r["twist_deg"]["median"] <= 10, (name, r)
+    feet = json.loads(report.read_text())["lowest_foot_m"]
+    assert feet["within_2cm_source_contact_frames"] >= 0.9 and feet["min"] > -0.03, feet
+    wrong = retarget(skeleton_motion_from_bvh(read_bvh(path), "studio"), anny, RetargetConfig(twist="rest"))
+    bad = compare_motions(anny, reference, wrong, max_frames=60)["bones"]
+    assert max(r["twist_deg"]["median"] for r in bad.values()) > 20, bad
