@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uvatar.errors import InputError
 from uvatar.body.kinematics import forward_kinematics_numpy as forward_kinematics
+from uvatar.errors import InputError
 from uvatar.motion.bvh import format_bvh, parse_bvh, read_bvh, write_bvh
 from uvatar.motion.skeleton import CMU_UNIT_METRES, guess_bvh_units, skeleton_motion_from_bvh
 

@@ -107,7 +107,7 @@ def test_user_map_and_missing_joints(tmp_path):
     """An unknown naming is a one-line error listing what is missing and pointing to --map; a
     JSON or YAML map fixes it, and a map naming unknown joints is refused."""
     from uvatar.errors import InputError, UvatarError
-    from uvatar.motion.retarget import RetargetConfig, plan_retarget
+    from uvatar.motion.retarget import plan_retarget
     from uvatar.motion.rigs import match_rig, read_joint_map
 
     names, parents = _chain_skeleton(["Becken", "Ruecken", "Brust", "Hals", "Kopf"],

@@ -103,8 +103,10 @@ def retarget_report(source, motion, body, plan, max_frames: int = 200) -> dict:
     T = motion.num_frames
     frames = _sample(T, max_frames)
     F, P, Y = pose_frames(body, motion, frames)
-    F_rest, _, _ = pose_frames(body, motion.__class__(np.zeros_like(motion.joint_rotvecs[:1]), np.zeros((1, 3)),
-                                                      np.zeros((1, 3)), motion.fps, motion.body), np.array([0]))
+    import torch
+
+    with torch.no_grad():
+        F_rest = body.rest_pose().joint_transforms[..., :3, :3].double().cpu().numpy()
     G_t = F @ np.swapaxes(F_rest, -1, -2)  # world rotation relative to the rest pose
     sj, si = plan.tgt_index, plan.src_index
     bones = {}

@@ -324,7 +324,6 @@ def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None,
     plan = plan or plan_retarget(source, body, config)
     t_rest = np.asarray(body.template.rest_joints, np.float64)
     parents = np.asarray(body.template.joint_parents)
-    T = source.num_frames
     G = target_world_rotations(source, body, plan)
     pelvis = plan.tgt_index["pelvis"]
     Rh_mat = G[:, pelvis].copy()

@@ -17,7 +17,13 @@ import numpy as np
 
 from uvatar.errors import InputError, UvatarError
 from uvatar.io_utils import read_npz
-from uvatar.motion.amass import can_copy_amass, is_amass_npz, motion_from_amass, read_amass, skeleton_motion_from_amass
+from uvatar.motion.amass import (
+    can_copy_amass,
+    is_amass_npz,
+    motion_from_amass,
+    read_amass,
+    skeleton_motion_from_amass,
+)
 from uvatar.motion.bodyfits import convert_body_motion, fits_body_name
 from uvatar.motion.bvh import read_bvh
 from uvatar.motion.record import Motion, motion_from_npz, save_motion
