@@ -237,7 +237,9 @@ def test_cli_convert_and_info(anny, shared_data, tmp_path, capsys):
     info = json.loads(capsys.readouterr().out)
     assert info["frames"] == 230 and info["joints"] == anny.num_joints
     assert main(["motion", "info", clip, "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["joints"] == 31
+    info = json.loads(capsys.readouterr().out)
+    assert info["joints"] == 31 and info["rig"] == "cmu" and info["missing_required"] == []
+    assert info["mapped"]["LeftArm"] == "l_shoulder" and "LHipJoint" in info["unmapped_joints"]
     assert main(["motion", "convert", clip, str(tmp_path / "x.txt")]) == 1
     assert main(["motion", "convert", clip, str(tmp_path / "x.npz"), "--fps", "0"]) == 1
     assert not (tmp_path / "x.npz").exists()

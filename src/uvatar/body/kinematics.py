@@ -99,7 +99,10 @@ def forward_kinematics_numpy(parents, local_rotations, local_translations) -> tu
     lead = np.broadcast_shapes(R.shape[:-3], t.shape[:-2])
     R = torch.from_numpy(np.array(np.broadcast_to(R, (*lead, J, 3, 3)).reshape(-1, J, 3, 3)))
     t = torch.from_numpy(np.array(np.broadcast_to(t, (*lead, J, 3)).reshape(-1, J, 3)))
-    F, p = forward_kinematics(kinematic_levels(parents), R, t)
+    from uvatar.threads import single_threaded
+
+    with single_threaded():  # many small products: one thread beats a contended pool
+        F, p = forward_kinematics(kinematic_levels(parents), R, t)
     return F.numpy().reshape(*lead, J, 3, 3), p.numpy().reshape(*lead, J, 3)
 
 
