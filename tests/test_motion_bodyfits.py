@@ -103,7 +103,7 @@ def test_smpl_fits_to_anny_joints_match(smpl_fits):
     sj = anny.semantic_joints
     dist = np.stack([np.linalg.norm(got[:, sj[TO_SEMANTIC[n]]] - ref[:, i], axis=-1)
                      for i, n in enumerate(SMPL_BODY_JOINTS)], 1)  # (T, 22) metres
-    print(f"SMPL -> anny joint distance: max {dist.max():.4f} m, median {np.median(dist):.4f} m")
+    print(f"SMPL -> anny joint distance: max {1e3 * dist.max():.4f} mm, median {1e3 * np.median(dist):.4f} mm")
     assert dist.max() < 0.03, dict(zip(SMPL_BODY_JOINTS, dist.max(0).round(3), strict=True))
 
 

@@ -48,16 +48,23 @@ def clean_fps(fps: float) -> float:
 
 
 def guess_bvh_units(motion: BvhMotion) -> float | None:
-    """Metres per file unit guessed from the leg length (CMU units, centimetres, metres, inches)."""
+    """Metres per file unit guessed from the leg length (hip → knee → ankle, 0.5-1.3 m; CMU units,
+    centimetres, metres, inches, millimetres), or the rest height when the legs are not found."""
+    from uvatar.motion.rigs import match_rig
+
     sk = motion.skeleton
     _, rest = forward_kinematics_numpy(sk.parents, np.eye(3), sk.offsets)
-    height = float(np.ptp(rest[:, 1]))
-    if height <= 0:
-        return None
     if "LowerBack" in sk.names and "LHipJoint" in sk.names:
         return CMU_UNIT_METRES
-    for unit in (1.0, 0.01, 0.0254, CMU_UNIT_METRES, 0.001):  # plausible skeleton 0.8 .. 2.5 m tall
-        if 0.8 <= height * unit <= 2.5:
+    index = {s: sk.index(n) for n, s in match_rig(sk.names, sk.parents).mapping.items()}
+    legs = [np.linalg.norm(rest[index[p + "knee"]] - rest[index[p + "hip"]])
+            + np.linalg.norm(rest[index[p + "ankle"]] - rest[index[p + "knee"]])
+            for p in ("l_", "r_") if all(p + k in index for k in ("hip", "knee", "ankle"))]
+    size, low, high = (float(np.mean(legs)), 0.5, 1.3) if legs else (float(np.ptp(rest[:, 1])), 0.8, 2.5)
+    if size <= 0:
+        return None
+    for unit in (1.0, 0.01, 0.0254, CMU_UNIT_METRES, 0.001):
+        if low <= size * unit <= high:
             return unit
     return None
 
