@@ -109,7 +109,12 @@ def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motio
 
         return _for_body(motion_from_fits(read_fits_dir(path), default_fps, None, str(path), body=body), body, config, path)
     if suffix == ".bvh":
-        return retarget(skeleton_motion_from_bvh(read_bvh(path), source=path.name), _body_model(body), config)
+        try:
+            return retarget(skeleton_motion_from_bvh(read_bvh(path), source=path.name), _body_model(body), config)
+        except InputError:
+            raise
+        except UvatarError as exc:  # a retarget problem: name the whole path
+            raise InputError(path, str(exc).removeprefix(f"{path.name}: ")) from None
     if suffix == ".npz":
         data = read_npz(path)
         keys = set(data)
