@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "motions" / "cmu_01_01.bvh"
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the re-expression helper
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.fixtures: the re-expression helper
 
 
 def timed(fn):
@@ -36,8 +36,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="every 8th frame for the quality part")
     parser.add_argument("--bvh", default=str(CLIP), help="BVH clip")
     args = parser.parse_args()
-    from _motion_reexpress import reexpress, subsample
-
+    from tests.fixtures.motion_reexpress import reexpress, subsample
     from uvatar.body.registry import load_body_model
     from uvatar.motion import read_bvh, resample_motion, retarget, skeleton_motion_from_bvh, write_bvh
     from uvatar.motion.report import compare_motions, retarget_report

@@ -183,7 +183,7 @@ def test_non_root_position_channels_absolute_or_relative(tmp_path):
 def test_reexpressed_cmu_round_trips_in_world_space(shared_data, tmp_path):
     """The CMU clip re-expressed (other names, bones along X, twisted joint frames, 6 channels per
     joint) and written back reads to the same world joint positions."""
-    from _motion_reexpress import reexpress, subsample
+    from tests.fixtures.motion_reexpress import reexpress, subsample
 
     m = subsample(read_bvh(shared_data / "motions" / "cmu_01_01.bvh"), 40)
     new, _, _ = reexpress(m)

@@ -253,8 +253,7 @@ def test_reexpressed_clip_matches_the_cmu_retarget(anny, shared_data, tmp_path, 
     directions only) of the same file gets the twists wrong, so the check can fail."""
     import json
 
-    from _motion_reexpress import reexpress, subsample
-
+    from tests.fixtures.motion_reexpress import reexpress, subsample
     from uvatar.cli.main import main
     from uvatar.motion.bvh import write_bvh
     from uvatar.motion.report import compare_motions

@@ -22,7 +22,6 @@ import numpy as np
 import torch
 
 __all__ = ["KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
-           "forward_kinematics_numpy",
            "skinning_transforms", "sparse_weights", "skin", "skin_reference"]
 
 

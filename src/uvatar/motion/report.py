@@ -80,19 +80,11 @@ def compare_motions(body, a, b, max_frames: int = 200) -> dict:
 
 
 def _foot_vertices(body, tgt_index: dict) -> dict[str, np.ndarray]:
-    t = body.template
-    parents = np.asarray(t.joint_parents)
-    main = np.asarray(t.skin_weights).argmax(1)
-    out = {}
-    for side in ("l_", "r_"):
-        if side + "ankle" in tgt_index:
-            inside = np.zeros(len(parents), bool)
-            inside[tgt_index[side + "ankle"]] = True
-            for k in range(len(parents)):
-                if parents[k] >= 0 and inside[parents[k]]:
-                    inside[k] = True
-            out[side] = np.flatnonzero(inside[main])
-    return out
+    from uvatar.motion.retarget import below
+
+    main = np.asarray(body.template.skin_weights).argmax(1)
+    return {side: np.flatnonzero(below(body.template.joint_parents, [tgt_index[side + "ankle"]])[main])
+            for side in ("l_", "r_") if side + "ankle" in tgt_index}
 
 
 def retarget_report(source, motion, body, plan, max_frames: int = 200) -> dict:

@@ -271,6 +271,17 @@ def posed_joint_positions(G: np.ndarray, rest: np.ndarray, parents) -> np.ndarra
     return forward_kinematics_numpy(parents, local, offsets)[1]
 
 
+def below(parents, roots) -> np.ndarray:
+    """(J,) bool: the joints ``roots`` and every joint under them (parents precede children)."""
+    parents = np.asarray(parents)
+    inside = np.zeros(len(parents), bool)
+    inside[list(roots)] = True
+    for k in range(len(parents)):
+        if parents[k] >= 0 and inside[parents[k]]:
+            inside[k] = True
+    return inside
+
+
 def foot_landmarks(body, tgt_index: dict[str, int], band: float = 0.02, per_foot: int = 24):
     """Sole points of the target's rest mesh: (joint index (K,), rest position (K, 3), side (K,)
     0 left / 1 right) — the vertices within ``band`` metres of each foot's lowest point, each
@@ -282,12 +293,7 @@ def foot_landmarks(body, tgt_index: dict[str, int], band: float = 0.02, per_foot
     for k_side, side in enumerate(("l_", "r_")):
         if side + "ankle" not in tgt_index:
             continue
-        inside = np.zeros(len(parents), bool)
-        inside[tgt_index[side + "ankle"]] = True
-        for k in range(len(parents)):
-            if parents[k] >= 0 and inside[parents[k]]:
-                inside[k] = True
-        verts = np.flatnonzero(inside[main])
+        verts = np.flatnonzero(below(parents, [tgt_index[side + "ankle"]])[main])
         if not len(verts):
             continue
         y = t.vertices[verts, 1]
@@ -305,14 +311,7 @@ def source_clearance(source: SkeletonMotion, plan: RetargetPlan, floor: float = 
     """(T,) how high (source units) the source's feet are above their contact heights: the lowest
     over the foot joints (ankles and everything below them) of height minus that joint's 5th
     percentile height over the clip, never below 0."""
-    parents = source.parents
-    inside = np.zeros(len(parents), bool)
-    for a in ("l_ankle", "r_ankle"):
-        if a in plan.src_index:
-            inside[plan.src_index[a]] = True
-    for k in range(len(parents)):
-        if parents[k] >= 0 and inside[parents[k]]:
-            inside[k] = True
+    inside = below(source.parents, [plan.src_index[a] for a in ("l_ankle", "r_ankle") if a in plan.src_index])
     y = source.positions[:, inside, 1] - floor
     return np.maximum((y - np.percentile(y, 5, axis=0)).min(1), 0.0)
 
