@@ -4,7 +4,9 @@ Per bone group (:data:`BONE_GROUPS`): **direction error**, the angle between the
 (posed joint → next joint) and the source's; **twist error**, the swing–twist twist angle about
 the bone of the rotation between the target's and the source's anatomical frames (the frames of
 :mod:`uvatar.motion.retarget`, moved by each skeleton's own world rotations; for the target those
-come from posing the body model). Feet: the **lowest foot height** per frame (lowest vertex of the
+come from posing the body model: this checks the rotation chain, the frames themselves are the
+retarget's); **bend-plane error** for the limbs, from joint positions alone (no frames): the angle
+between the source's and the target's elbow/knee bend planes where both bend by > 15 degrees. Feet: the **lowest foot height** per frame (lowest vertex of the
 posed feet, metres above y = 0) and **foot sliding**, the horizontal speed of each foot's lowest
 sole point while it touches the floor (m/s). All angles in degrees.
 """
@@ -25,6 +27,22 @@ BONE_GROUPS = {
     "head": [("head", "neck", "head")],
 }
 CONTACT_M = 0.02
+HINGE_OF = {"shoulder": ("shoulder", "elbow", "wrist"), "elbow": ("shoulder", "elbow", "wrist"),
+            "hip": ("hip", "knee", "ankle"), "knee": ("hip", "knee", "ankle")}
+MIN_BEND = np.sin(np.radians(15.0))
+
+
+def _bend_plane_error(src: np.ndarray, tgt: np.ndarray) -> np.ndarray:
+    """Twist measured from joint positions alone: the angle (degrees) between the source's and the
+    target's bend-plane normals (a→b × b→c) of a limb, (N, 3 joints, 3) each, on the frames where
+    both limbs bend by more than 15 degrees."""
+    def normal(x):
+        a, b = x[:, 1] - x[:, 0], x[:, 2] - x[:, 1]
+        return np.cross(a / np.linalg.norm(a, axis=-1, keepdims=True), b / np.linalg.norm(b, axis=-1, keepdims=True))
+
+    ns, nt = normal(src), normal(tgt)
+    bent = (np.linalg.norm(ns, axis=-1) > MIN_BEND) & (np.linalg.norm(nt, axis=-1) > MIN_BEND)
+    return np.degrees(geodesic_angle(ns[bent], nt[bent]))
 
 
 def _stats(values: list[np.ndarray]) -> dict:
@@ -103,8 +121,13 @@ def retarget_report(source, motion, body, plan, max_frames: int = 200) -> dict:
     sj, si = plan.tgt_index, plan.src_index
     bones = {}
     for group, members in BONE_GROUPS.items():
-        dirs, twists = [], []
+        dirs, twists, planes = [], [], []
         for joint, start, end in members:
+            hinge = HINGE_OF.get(joint[2:]) if joint[:2] in ("l_", "r_") else None
+            names = [joint[:2] + n for n in hinge] if hinge else []
+            if names and all(n in si and n in sj for n in names):
+                planes.append(_bend_plane_error(source.positions[frames][:, [si[n] for n in names]],
+                                                P[:, [sj[n] for n in names]]))
             if not all(k in si and k in sj for k in (joint, start, end)):
                 continue
             ds = source.positions[frames, si[end]] - source.positions[frames, si[start]]
@@ -116,6 +139,8 @@ def retarget_report(source, motion, body, plan, max_frames: int = 200) -> dict:
                 Tf = G_t[:, sj[joint]] @ plan.target_frames[joint]
                 twists.append(np.degrees(twist_angle(Tf @ np.swapaxes(S, -1, -2), S[..., 0])))
         bones[group] = {"direction_deg": _stats(dirs), "twist_deg": _stats(twists)}
+        if planes:
+            bones[group]["bend_plane_deg"] = _stats(planes)
     feet = _foot_vertices(body, sj)
     lowest = np.min([Y[:, v].min(1) for v in feet.values()], 0)  # (N,) metres
     clearance = source_clearance(source, plan)[frames] * plan.scale
@@ -168,8 +193,10 @@ def summary_lines(report: dict) -> list[str]:
     lines = []
     for group, r in report["bones"].items():
         d, t = r["direction_deg"], r["twist_deg"]
+        plane = r.get("bend_plane_deg")
         lines.append(f"{group:>10}: direction median {d['median']} deg (p90 {d['p90']}), "
-                     f"twist median {t['median']} deg (p90 {t['p90']})")
+                     f"twist median {t['median']} deg (p90 {t['p90']})"
+                     + (f", bend plane median {plane['median']} deg (p90 {plane['p90']})" if plane else ""))
     if "lowest_foot_m" in report:
         f = report["lowest_foot_m"]
         lines.append(f"lowest foot: min {f['min']} m, median {f['median']} m, within 2 cm on "
