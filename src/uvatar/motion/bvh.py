@@ -238,9 +238,10 @@ def parse_bvh(text: str, path: str | Path = "<bvh>") -> BvhMotion:
     """Parse BVH text (HIERARCHY + MOTION) → :class:`BvhMotion` (every problem an InputError)."""
     import re
 
-    head, sep, motion = text.partition("MOTION")
-    if not sep or "HIERARCHY" not in head:
+    found = re.search(r"^[ \t]*MOTION[ \t]*\r?$", text, re.MULTILINE)  # the line, not a joint named MOTION...
+    if not found or "HIERARCHY" not in text[: found.start()]:
         raise InputError(path, "not a BVH file (needs HIERARCHY and MOTION sections)")
+    head, sep, motion = text[: found.start()], text[found.start(): found.end()], text[found.end():]
     tokens = head[head.index("HIERARCHY"):].split()
     try:
         names, parents, offsets, channels, end_sites = _parse_hierarchy(tokens, path)
