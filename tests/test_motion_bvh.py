@@ -193,3 +193,8 @@ def test_reexpressed_cmu_round_trips_in_world_space(shared_data, tmp_path):
     moved = np.linalg.norm(back.skeleton.offsets, axis=1) > 1e-3  # a 0 offset reads the same either way
     assert all(np.array(back.skeleton.absolute_positions)[1:][moved[1:]])
     np.testing.assert_allclose(back.world_transforms()[1], m.world_transforms()[1], atol=1e-4)
+
+
+def test_windows_line_endings_and_tabs():
+    m = parse_bvh(TWO_JOINTS.replace("\n", "\r\n").replace("Frames: 3", "Frames:\t3"))
+    np.testing.assert_allclose(m.channel_values, parse_bvh(TWO_JOINTS).channel_values)
