@@ -14,7 +14,7 @@ import numpy as np
 from uvatar.threads import single_threaded
 
 
-def _one_thread(fn):
+def one_thread(fn):
     """Small batched torch ops: one thread is several times faster than a contended pool."""
 
     @functools.wraps(fn)
@@ -31,7 +31,7 @@ def _t(x):
     return torch.as_tensor(np.asarray(x, np.float64))
 
 
-@_one_thread
+@one_thread
 def rotvec_to_matrix(rotvec) -> np.ndarray:
     """(..., 3) axis-angle (radians) → (..., 3, 3)."""
     import roma
@@ -39,7 +39,7 @@ def rotvec_to_matrix(rotvec) -> np.ndarray:
     return roma.rotvec_to_rotmat(_t(rotvec)).numpy()
 
 
-@_one_thread
+@one_thread
 def matrix_to_rotvec(matrix) -> np.ndarray:
     """(..., 3, 3) rotation matrices → (..., 3) axis-angle, angle in [0, pi]."""
     import roma
@@ -47,7 +47,7 @@ def matrix_to_rotvec(matrix) -> np.ndarray:
     return roma.rotmat_to_rotvec(_t(matrix)).numpy()
 
 
-@_one_thread
+@one_thread
 def euler_to_matrix(angles, order: str, degrees: bool = False) -> np.ndarray:
     """Intrinsic Euler angles (..., len(order)) in ``order`` (e.g. "ZYX") → (..., 3, 3) with
     ``R = R_order[0] @ R_order[1] @ ...`` (the BVH convention)."""
@@ -57,7 +57,7 @@ def euler_to_matrix(angles, order: str, degrees: bool = False) -> np.ndarray:
     return roma.euler_to_rotmat(order.upper(), angles, degrees=degrees).numpy()
 
 
-@_one_thread
+@one_thread
 def matrix_to_euler(matrix, order: str, degrees: bool = False) -> np.ndarray:
     """Inverse of :func:`euler_to_matrix` → (..., len(order)) (one of the solutions at gimbal lock).
     Orders of 1 or 2 axes need rotations about those axes only."""
@@ -94,7 +94,7 @@ def rotation_between(a, b) -> np.ndarray:
     return rotvec_to_matrix(axis / s * np.arctan2(s, c) if s >= 1e-12 and c > -1 + 1e-12 else axis / s * np.pi)
 
 
-@_one_thread
+@one_thread
 def twist_angle(matrix, axis) -> np.ndarray:
     """Swing-twist decomposition: the signed twist angle (radians, (...,)) of rotations (..., 3, 3)
     about unit directions ``axis`` (..., 3): ``2 atan2(q_xyz . axis, q_w)`` wrapped to (-pi, pi]."""

@@ -28,6 +28,7 @@ from uvatar.motion.bodyfits import convert_body_motion, fits_body_name
 from uvatar.motion.bvh import read_bvh
 from uvatar.motion.record import Motion, motion_from_npz, save_motion
 from uvatar.motion.retarget import RetargetConfig, retarget
+from uvatar.motion.rotations import one_thread
 from uvatar.motion.skeleton import skeleton_motion_from_bvh
 
 __all__ = ["Motion", "load_motion", "motion_from_fits", "resample_motion", "save_motion", "slerp_rotvecs",
@@ -133,6 +134,7 @@ def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motio
     raise InputError(path, f"unsupported motion format {suffix!r} (.bvh, .npz, a fits or capture folder)")
 
 
+@one_thread
 def slerp_rotvecs(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Geodesic interpolation between rotations (..., 3) with per-item weights broadcast to (...).
 
