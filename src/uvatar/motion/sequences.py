@@ -143,9 +143,9 @@ def slerp_rotvecs(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndar
     import roma
     import torch
 
-    q0 = roma.rotvec_to_unitquat(torch.as_tensor(np.asarray(r0), dtype=torch.float64))
-    q1 = roma.rotvec_to_unitquat(torch.as_tensor(np.asarray(r1), dtype=torch.float64))
-    w = torch.as_tensor(np.asarray(weight), dtype=torch.float64)
+    q0 = roma.rotvec_to_unitquat(torch.as_tensor(np.array(r0, np.float64)))
+    q1 = roma.rotvec_to_unitquat(torch.as_tensor(np.array(r1, np.float64)))
+    w = torch.as_tensor(np.array(weight, np.float64))
     rel = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(q0), q1))  # |rel| <= pi
     out = roma.quat_product(q0, roma.rotvec_to_unitquat(rel * w[..., None]))
     return roma.unitquat_to_rotvec(out).numpy()
