@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from uvatar.body.kinematics import forward_kinematics_numpy as forward_kinematics
 from uvatar.errors import InputError
-from uvatar.motion.bvh import format_bvh, forward_kinematics, parse_bvh, read_bvh, write_bvh
+from uvatar.motion.bvh import format_bvh, parse_bvh, read_bvh, write_bvh
 from uvatar.motion.skeleton import CMU_UNIT_METRES, guess_bvh_units, skeleton_motion_from_bvh
 
 TWO_JOINTS = """HIERARCHY
@@ -114,10 +115,19 @@ def test_cmu_clip_counts_and_round_trip(shared_data, tmp_path):
 
 @pytest.mark.parametrize("text,message", [
     ("hello", "not a BVH file"),
-    (TWO_JOINTS.replace("Frames: 3", "Frames: 4"), "expected 4 frames x 9 channels"),
-    (TWO_JOINTS.replace("Xposition", "Wposition"), "unknown channel"),
+    (TWO_JOINTS.replace("Frames: 3", "Frames: 4"), "3 rows of values, .Frames:. says 4"),
+    (TWO_JOINTS.replace("Xposition", "Wposition"), "unknown or repeated channel"),
     (TWO_JOINTS.replace("OFFSET 1 0 0", "OFFSET 1 zero 0"), "malformed HIERARCHY"),
     (TWO_JOINTS.replace("Frame Time: 0.04", "Frame Time: 0"), "Frame Time must be positive"),
+    (TWO_JOINTS.split("Frames:")[0] + "Frames: 0\nFrame Time: 0.04\n", r"no frames \(Frames: 0\)"),
+    (TWO_JOINTS.replace("1 2 3 90 0 0 0 0 0", "1 2 3 90 abc 0 0 0 0"), "line 20: 'abc' is not a number"),
+    (TWO_JOINTS.replace("1 2 3 90 0 0 0 0 0", "1 2 nan 90 0 0 0 0 0"), "line 20: channel value nan is not finite"),
+    (TWO_JOINTS.replace("1 2 3 90 0 0 0 0 0", "1 2 1e400 90 0 0 0 0 0"), "channel value inf is not finite"),
+    (TWO_JOINTS.replace("1 2 3 90 0 0 0 0 0", "1 2 3 90 0 0 0 0"), "line 20 has 8 values, expected 9"),
+    (TWO_JOINTS.replace("Frames: 3", "Frames: 2"), "3 rows of values, 'Frames:' says 2"),
+    (TWO_JOINTS.replace("OFFSET 1 0 0", "OFFSET 1 inf 0"), "not 3 finite numbers"),
+    (TWO_JOINTS.replace("JOINT Arm", "JOINT Hips"), "appears twice"),
+    (TWO_JOINTS.replace("CHANNELS 3 Zrotation", "CHANNELS 9 Zrotation"), "bad CHANNELS"),
 ])
 def test_bad_bvh(tmp_path, text, message):
     path = tmp_path / "bad.bvh"
@@ -135,8 +145,56 @@ def test_format_has_end_sites():
 def test_euler_matches_scipy_reference(order):
     from scipy.spatial.transform import Rotation
 
-    from uvatar.motion.bvh import euler_to_matrix
+    from uvatar.motion.rotations import euler_to_matrix, matrix_to_euler
 
     angles = np.random.default_rng(0).uniform(-3, 3, size=(5, 2, len(order)))
     ref = Rotation.from_euler(order, angles.reshape(-1, len(order))).as_matrix().reshape(5, 2, 3, 3)
     np.testing.assert_allclose(euler_to_matrix(angles, order), ref, atol=1e-12)
+    back = euler_to_matrix(matrix_to_euler(ref, order), order)
+    np.testing.assert_allclose(back, ref, atol=1e-9)
+
+
+SIX_CHANNELS = TWO_JOINTS.replace("CHANNELS 3 Zrotation Yrotation Xrotation",
+                                  "CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation")
+
+
+def test_non_root_position_channels_absolute_or_relative(tmp_path):
+    """A file that stores the full offset in every joint's position channels reads bones at their
+    length (not twice it); one whose channels are small displacements adds them to the offset."""
+    rows = ["0 0 0 0 0 0 1 0 0 0 0 0", "1 2 3 90 0 0 1 0 0 0 0 0", "0 0 0 0 90 0 1 0 0 90 0 0"]
+    text = SIX_CHANNELS.split("MOTION")[0] + "MOTION\nFrames: 3\nFrame Time: 0.04\n" + "\n".join(rows) + "\n"
+    absolute = parse_bvh(text)
+    assert absolute.skeleton.absolute_positions == (False, True)
+    _, P = absolute.world_transforms()
+    ref = parse_bvh(TWO_JOINTS)
+    np.testing.assert_allclose(P, ref.world_transforms()[1], atol=1e-12)  # 1 unit, not 2
+    relative = parse_bvh(text.replace(" 1 0 0 0 0 0", " 0.1 0 0 0 0 0").replace(" 1 0 0 90 0 0", " 0.1 0 0 90 0 0"))
+    assert relative.skeleton.absolute_positions == (False, False)
+    np.testing.assert_allclose(relative.world_transforms()[1][0, 1], [1.1, 0, 0], atol=1e-12)
+    # written back and read again: same channels, same meaning, same world positions
+    write_bvh(tmp_path / "six.bvh", absolute)
+    back = read_bvh(tmp_path / "six.bvh")
+    assert back.skeleton.absolute_positions == (False, True) and back.skeleton.channels == absolute.skeleton.channels
+    np.testing.assert_allclose(back.world_transforms()[1], P, atol=1e-6)
+    again = absolute.with_rotations(absolute.local_rotations())
+    np.testing.assert_allclose(again.world_transforms()[1], P, atol=1e-9)
+
+
+def test_reexpressed_cmu_round_trips_in_world_space(shared_data, tmp_path):
+    """The CMU clip re-expressed (other names, bones along X, twisted joint frames, 6 channels per
+    joint) and written back reads to the same world joint positions."""
+    from tests.fixtures.motion_reexpress import reexpress, subsample
+
+    m = subsample(read_bvh(shared_data / "motions" / "cmu_01_01.bvh"), 40)
+    new, _, _ = reexpress(m)
+    write_bvh(tmp_path / "studio.bvh", new)
+    back = read_bvh(tmp_path / "studio.bvh")
+    assert all(len(c) == 6 for c in back.skeleton.channels)
+    moved = np.linalg.norm(back.skeleton.offsets, axis=1) > 1e-3  # a 0 offset reads the same either way
+    assert all(np.array(back.skeleton.absolute_positions)[1:][moved[1:]])
+    np.testing.assert_allclose(back.world_transforms()[1], m.world_transforms()[1], atol=1e-4)
+
+
+def test_windows_line_endings_and_tabs():
+    m = parse_bvh(TWO_JOINTS.replace("\n", "\r\n").replace("Frames: 3", "Frames:\t3"))
+    np.testing.assert_allclose(m.channel_values, parse_bvh(TWO_JOINTS).channel_values)

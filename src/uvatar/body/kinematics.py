@@ -124,6 +124,25 @@ def forward_kinematics(levels: KinematicLevels, local_rotations: torch.Tensor, o
     return F, p
 
 
+def forward_kinematics_numpy(parents, local_rotations, local_translations) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`forward_kinematics` for numpy arrays with any leading dims (float64 throughout).
+
+    parents (J,) with a single root; local_rotations (..., J, 3, 3); local_translations (..., J, 3)
+    (the offsets, per item or broadcast) -> (world rotations (..., J, 3, 3), world positions (..., J, 3))."""
+    R = np.asarray(local_rotations, np.float64)
+    t = np.asarray(local_translations, np.float64)
+    J = t.shape[-2]
+    R = np.broadcast_to(R, (*R.shape[:-2][:-1], J, 3, 3)) if R.ndim >= 3 else np.broadcast_to(R, (J, 3, 3))
+    lead = np.broadcast_shapes(R.shape[:-3], t.shape[:-2])
+    R = torch.from_numpy(np.array(np.broadcast_to(R, (*lead, J, 3, 3)).reshape(-1, J, 3, 3)))
+    t = torch.from_numpy(np.array(np.broadcast_to(t, (*lead, J, 3)).reshape(-1, J, 3)))
+    from uvatar.threads import single_threaded
+
+    with single_threaded():  # many small products: one thread beats a contended pool
+        F, p = forward_kinematics(kinematic_levels(parents), R, t)
+    return F.numpy().reshape(*lead, J, 3, 3), p.numpy().reshape(*lead, J, 3)
+
+
 def forward_kinematics_reference(parents, local_rotations: torch.Tensor, offsets: torch.Tensor):
     """Plain twin of :func:`forward_kinematics`: one joint at a time in topological order."""
     parents = [int(p) for p in np.asarray(parents).reshape(-1)]

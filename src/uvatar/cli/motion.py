@@ -1,11 +1,15 @@
-"""``uvatar motion info FILE`` and ``uvatar motion convert IN OUT.npz [--body anny] [--fps 25]``."""
+"""``uvatar motion info FILE``, ``uvatar motion convert IN OUT.npz [--body anny] [--fps 25] [--map FILE]
+[--report R.json]`` and ``uvatar motion compare A.npz B.npz``."""
 
 from __future__ import annotations
 
 
 def register(cli) -> None:
+    from uvatar.motion.retarget import RetargetConfig
+
     p = cli.command("motion info", help="describe a motion file (.bvh, AMASS/uvatar .npz, fits or capture folder)")
     p.add_argument("path", help="motion file or folder")
+    p.add_argument("--map", default=None, metavar="FILE", help="joint map (JSON/YAML {source joint: semantic joint})")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_info)
     p = cli.command("motion convert", help="convert (and retarget) a motion to a uvatar motion .npz for a body model")
@@ -14,40 +18,62 @@ def register(cli) -> None:
     p.add_argument("--body", default="anny", choices=("anny", "smpl", "smplx"), help="target body model")
     p.add_argument("--fps", type=float, default=None, help="resample to this frame rate")
     p.add_argument("--fits", default=None, metavar="DIR", help="also write EasyMocap fits (one JSON per frame) here")
+    p.add_argument("--map", default=None, metavar="FILE",
+                   help="joint map (JSON/YAML {source joint: semantic or body joint, or null}) over the automatic match")
+    p.add_argument("--twist", default=RetargetConfig.twist, choices=("auto", "motion", "rest"),
+                   help="where the source's bone frames come from (RetargetConfig.twist)")
+    p.add_argument("--report", default=None, metavar="JSON",
+                   help="write per-bone direction/twist errors, lowest foot height and foot sliding here")
     p.set_defaults(func=_convert)
+    p = cli.command("motion compare", help="per-bone direction and twist differences of two motions of one body")
+    p.add_argument("a", help="uvatar motion .npz")
+    p.add_argument("b", help="uvatar motion .npz")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=_compare)
 
 
-def describe_motion_file(path) -> dict:
-    """A summary dict of any supported motion source (without retargeting)."""
+def _user_map(path):
+    from uvatar.motion.rigs import read_joint_map
+
+    return read_joint_map(path) if path else None
+
+
+def describe_motion_file(path, joint_map: dict | None = None) -> dict:
+    """A summary dict of any supported motion source (without retargeting); for skeletons, which
+    rig was recognised and which joints map."""
     from pathlib import Path
 
-    import numpy as np
-
     from uvatar.errors import InputError
+    from uvatar.io_utils import read_npz
 
     path = Path(path)
     if not path.exists():
         raise InputError(path, "motion file or folder is missing")
     if path.suffix.lower() == ".bvh":
         from uvatar.motion.bvh import read_bvh
+        from uvatar.motion.rigs import match_rig
         from uvatar.motion.skeleton import clean_fps, guess_bvh_units
 
         m = read_bvh(path)
-        unit = guess_bvh_units(m)
+        try:
+            rig = match_rig(m.skeleton.names, m.skeleton.parents, joint_map).summary()
+        except ValueError as exc:
+            raise InputError(path, str(exc)) from None
         return {"path": str(path), "kind": "bvh", "frames": m.num_frames, "fps": clean_fps(m.fps),
                 "duration_s": round((m.num_frames - 1) / m.fps, 3), "joints": m.skeleton.num_joints,
                 "joint_names": list(m.skeleton.names), "channels": int(m.channel_values.shape[1]),
-                "units_to_metres_guess": unit}
+                "absolute_position_channels": [n for n, a in zip(m.skeleton.names, m.skeleton.absolute_positions,
+                                                                 strict=True) if a],
+                "units_to_metres_guess": guess_bvh_units(m), **rig}
     if path.suffix.lower() == ".npz":
-        with np.load(path, allow_pickle=False) as npz:
-            keys = set(npz.files)
+        keys = set(read_npz(path))
         from uvatar.motion.amass import is_amass_npz, read_amass
 
         if is_amass_npz(keys):
             a = read_amass(path)
             return {"path": str(path), "kind": "amass", "model": a.model, "frames": a.num_frames, "fps": a.fps,
                     "duration_s": round((a.num_frames - 1) / a.fps, 3), "joints": len(a.names), "gender": a.gender,
-                    "betas": int(a.betas.size)}
+                    "betas": int(a.betas.size), "rig": "smpl"}
     from uvatar.motion.sequences import load_motion
 
     m = load_motion(path)
@@ -63,14 +89,16 @@ def describe_motion_file(path) -> dict:
 def _info(args) -> int:
     import json
 
-    info = describe_motion_file(args.path)
+    info = describe_motion_file(args.path, _user_map(args.map))
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
     for key, value in info.items():
-        if key == "joint_names":
-            value = ", ".join(value[:12]) + (" ..." if len(value) > 12 else "")
-        print(f"{key:>22}: {value}")
+        if key == "mapped":
+            value = ", ".join(f"{k}→{v}" for k, v in value.items())
+        elif isinstance(value, list):
+            value = ", ".join(map(str, value)) or "-"
+        print(f"{key:>26}: {value}")
     return 0
 
 
@@ -79,14 +107,22 @@ def _convert(args) -> int:
     from pathlib import Path
 
     from uvatar.errors import InputError
+    from uvatar.motion.retarget import RetargetConfig
     from uvatar.motion.sequences import load_motion, save_motion
 
     if Path(args.output).suffix.lower() != ".npz":
         raise InputError(args.output, "output must be a .npz file")
-    if args.fps is not None and args.fps <= 0:
+    if args.fps is not None and not args.fps > 0:
         raise InputError("--fps", f"must be > 0, got {args.fps}")
+    config = RetargetConfig(name_map=_user_map(args.map), twist=args.twist)
     print(f"loading {args.input} for body model '{args.body}' ...", file=sys.stderr)
-    motion = load_motion(args.input, body=args.body, fps=args.fps)
+    motion = load_motion(args.input, body=args.body, config=config)
+    if args.report:
+        _write_report(args, motion, config)
+    if args.fps:
+        from uvatar.motion.sequences import resample_motion
+
+        motion = resample_motion(motion, args.fps)
     save_motion(args.output, motion)
     if args.fits:
         from tqdm import tqdm
@@ -96,5 +132,45 @@ def _convert(args) -> int:
         for t, fit in enumerate(tqdm(motion.to_fits(), desc="writing fits", unit="frame", file=sys.stderr)):
             write_fit(Path(args.fits) / f"{t:06d}.json", fit)
     print(f"{args.output}: {motion.num_frames} frames at {motion.fps:g} fps, {motion.num_joints} joints, "
-          f"body {motion.body}")
+          f"body {motion.body}" + (f", rig {motion.info['rig']}" if "rig" in motion.info else ""))
+    return 0
+
+
+def _write_report(args, motion, config) -> None:
+    from pathlib import Path
+
+    from uvatar.body.registry import load_body_model
+    from uvatar.errors import InputError
+    from uvatar.io_utils import write_json
+    from uvatar.motion.report import retarget_report, summary_lines
+    from uvatar.motion.retarget import plan_retarget
+
+    path = Path(args.input)
+    if path.suffix.lower() != ".bvh":
+        raise InputError(path, "--report measures a skeleton retarget: give a .bvh input")
+    from uvatar.motion.bvh import read_bvh
+    from uvatar.motion.skeleton import skeleton_motion_from_bvh
+
+    source = skeleton_motion_from_bvh(read_bvh(path), source=path.name)
+    body = load_body_model(args.body)
+    report = retarget_report(source, motion, body, plan_retarget(source, body, config))
+    write_json(args.report, report)
+    for line in summary_lines(report):
+        print(line)
+
+
+def _compare(args) -> int:
+    import json
+
+    from uvatar.body.registry import load_body_model
+    from uvatar.errors import InputError
+    from uvatar.motion.report import compare_motions, summary_lines
+    from uvatar.motion.sequences import load_motion
+
+    a = load_motion(args.a)
+    b = load_motion(args.b)
+    if a.body != b.body or a.num_frames != b.num_frames:
+        raise InputError(args.b, f"{b.num_frames} frames of '{b.body}', {args.a} has {a.num_frames} of '{a.body}'")
+    report = compare_motions(load_body_model(a.body), a, b)
+    print(json.dumps(report, indent=2) if args.json else "\n".join(summary_lines(report)))
     return 0

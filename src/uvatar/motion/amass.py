@@ -15,8 +15,9 @@ import numpy as np
 
 from uvatar.errors import InputError
 from uvatar.io_utils import read_npz
-from uvatar.motion.bvh import forward_kinematics
-from uvatar.motion.skeleton import SkeletonMotion
+from uvatar.motion.record import Motion
+from uvatar.motion.rotations import matrix_to_rotvec, rotvec_to_matrix
+from uvatar.motion.skeleton import SkeletonMotion, skeleton_motion_from_rotations
 
 SMPL_BODY_JOINTS = (
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
@@ -83,27 +84,45 @@ def read_amass(path: str | Path) -> AmassMotion:
     """Read an AMASS npz → :class:`AmassMotion` (errors name the file and the field)."""
     path = Path(path)
     data = read_npz(path, "AMASS file is missing")
+
+    def numbers(key: str, default=None) -> np.ndarray:
+        value = np.asarray(data[key]) if key in data else default
+        if value.dtype.kind not in "iuf":
+            raise InputError(path, f"{key} is {value.dtype}, expected numbers")
+        return value.astype(np.float64)
+
     if "poses" in data:
-        poses = np.asarray(data["poses"], np.float64)
+        poses = numbers("poses")
     elif "pose_body" in data and "root_orient" in data:
-        T = len(data["pose_body"])
-        parts = [data["root_orient"], data["pose_body"], data.get("pose_jaw", np.zeros((T, 3))),
-                 data.get("pose_eye", np.zeros((T, 6))), data.get("pose_hand", np.zeros((T, 90)))]
-        poses = np.concatenate([np.asarray(p, np.float64).reshape(T, -1) for p in parts], 1)
+        T = len(np.atleast_1d(data["pose_body"]))
+        parts = [("root_orient", 3), ("pose_body", 63), ("pose_jaw", 3), ("pose_eye", 6), ("pose_hand", 90)]
+        arrays = [numbers(k, np.zeros((T, n))) for k, n in parts]
+        for (key, n), arr in zip(parts, arrays, strict=True):
+            if arr.shape != (T, n):
+                raise InputError(path, f"{key} has shape {arr.shape}, expected ({T}, {n})")
+        poses = np.concatenate(arrays, 1)
     else:
         raise InputError(path, "no 'poses' array (is this an AMASS motion, not a shape file?)")
     if poses.ndim != 2 or poses.shape[1] not in (156, 165, 72, 66):
         raise InputError(path, f"poses has shape {poses.shape}, expected (T, 156) SMPL-H or (T, 165) SMPL-X")
+    if poses.shape[0] == 0:
+        raise InputError(path, "the motion has 0 frames")
     if not np.all(np.isfinite(poses)):
         raise InputError(path, "poses contains NaN or infinite values")
     T = poses.shape[0]
-    fps = data.get("mocap_framerate", data.get("mocap_frame_rate"))
-    if fps is None:
+    key = next((k for k in ("mocap_framerate", "mocap_frame_rate") if k in data), None)
+    if key is None:
         raise InputError(path, "missing mocap_framerate / mocap_frame_rate")
-    fps = float(np.asarray(fps).reshape(-1)[0])
-    trans = np.asarray(data.get("trans", np.zeros((T, 3))), np.float64)
+    fps = numbers(key)
+    if fps.size != 1 or not np.isfinite(fps).all() or float(fps.reshape(-1)[0]) <= 0:
+        raise InputError(path, f"{key} must be one positive number, got {fps.reshape(-1)[:3]}")
+    fps = float(fps.reshape(-1)[0])
+    trans = numbers("trans", np.zeros((T, 3)))
     if trans.shape != (T, 3) or not np.all(np.isfinite(trans)):
         raise InputError(path, f"trans has shape {trans.shape} or non-finite values, expected ({T}, 3)")
+    betas = numbers("betas", np.zeros(0)).reshape(-1)
+    if not np.all(np.isfinite(betas)):
+        raise InputError(path, "betas contains NaN or infinite values")
     width = poses.shape[1]
     body = list(SMPL_BODY_JOINTS)
     parents = list(SMPL_BODY_PARENTS)
@@ -117,11 +136,10 @@ def read_amass(path: str | Path) -> AmassMotion:
     else:  # plain SMPL (24 joints: hands as single joints) or body only
         names, model = body + (["left_hand", "right_hand"] if width == 72 else []), "smpl"
         parents += [20, 21] if width == 72 else []
-    gender = str(np.asarray(data.get("gender", "neutral")).reshape(-1)[0]) if "gender" in data else "neutral"
+    gender = np.asarray(data.get("gender", "neutral")).reshape(-1)
+    gender = str(gender[0]) if gender.size and gender.dtype.kind in "USO" else "neutral"
     return AmassMotion(names=tuple(names), parents=np.array(parents, np.int64),
-                       rotvecs=poses.reshape(T, -1, 3), trans=trans, fps=fps,
-                       betas=np.asarray(data.get("betas", np.zeros(0)), np.float64).reshape(-1),
-                       gender=gender, model=model)
+                       rotvecs=poses.reshape(T, -1, 3), trans=trans, fps=fps, betas=betas, gender=gender, model=model)
 
 
 def skeleton_motion_from_amass(motion: AmassMotion, rest_joints: np.ndarray | None = None,
@@ -131,24 +149,12 @@ def skeleton_motion_from_amass(motion: AmassMotion, rest_joints: np.ndarray | No
     rest_joints (22, 3) rest joint positions of the subject (default: SMPL mean shape). SMPL poses
     rotate about the pelvis and add ``trans``: pelvis(t) = J_pelvis + trans(t).
     """
-    from scipy.spatial.transform import Rotation
-
     J = len(SMPL_BODY_JOINTS)
     rest = SMPL_MEAN_REST_JOINTS if rest_joints is None else np.asarray(rest_joints, np.float64)[:J]
-    parents = np.array(SMPL_BODY_PARENTS, np.int64)
-    T = motion.num_frames
-    local = Rotation.from_rotvec(motion.rotvecs[:, :J].reshape(-1, 3)).as_matrix().reshape(T, J, 3, 3)
-    offsets = rest - rest[np.maximum(parents, 0)]
-    offsets[0] = rest[0]
-    translations = np.broadcast_to(offsets, (T, J, 3)).copy()
-    translations[:, 0] += motion.trans
-    world_r, world_p = forward_kinematics(parents, local, translations)
-    if z_up:
-        world_r = Z_UP_TO_Y_UP @ world_r
-        world_p = world_p @ Z_UP_TO_Y_UP.T
-    return SkeletonMotion(names=SMPL_BODY_JOINTS, parents=parents, rest_positions=rest.copy(),
-                          world_rotations=world_r, positions=world_p, fps=motion.fps, units_to_metres=1.0,
-                          source=source)
+    local = rotvec_to_matrix(motion.rotvecs[:, :J])
+    return skeleton_motion_from_rotations(SMPL_BODY_JOINTS, SMPL_BODY_PARENTS, rest, local, motion.trans,
+                                          world_rotation=Z_UP_TO_Y_UP if z_up else None, fps=motion.fps,
+                                          source=source)
 
 
 def can_copy_amass(body) -> bool:
@@ -165,10 +171,6 @@ def motion_from_amass(motion: AmassMotion, body, z_up: bool = True, source: str 
     AMASS poses rotate about the pelvis J0 and add ``trans``: ``V = R (X - J0) + J0 + trans``. In
     EasyMocap form ``V = R(Rh) X + Th`` with ``Rh = C R`` and ``Th = C (J0 + trans) - C R J0``, C the
     Z-up → Y-up change. J0 is the body's rest pelvis (its default shape)."""
-    from scipy.spatial.transform import Rotation
-
-    from uvatar.motion.sequences import Motion
-
     index = {n: i for i, n in enumerate(motion.names)}
     T = motion.num_frames
     rot = np.zeros((T, body.num_joints, 3), np.float32)
@@ -178,9 +180,9 @@ def motion_from_amass(motion: AmassMotion, body, z_up: bool = True, source: str 
             rot[:, j] = motion.rotvecs[:, index[name]]
             copied.append(name)
     C = Z_UP_TO_Y_UP if z_up else np.eye(3)
-    R = C @ Rotation.from_rotvec(motion.rotvecs[:, 0]).as_matrix()
+    R = C @ rotvec_to_matrix(motion.rotvecs[:, 0])
     J0 = np.asarray(body.template.rest_joints, np.float64)[list(body.joint_names).index("pelvis")]
     Th = (J0 + motion.trans) @ C.T - R @ J0
-    return Motion(joint_rotvecs=rot, Rh=Rotation.from_matrix(R).as_rotvec(), Th=Th, fps=motion.fps, body=body.name,
+    return Motion(joint_rotvecs=rot, Rh=matrix_to_rotvec(R), Th=Th, fps=motion.fps, body=body.name,
                   source=source, joint_names=tuple(body.joint_names),
                   info={"copied_joints": len(copied), "amass_model": motion.model})

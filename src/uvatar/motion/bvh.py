@@ -1,37 +1,45 @@
 """BVH motion files: parse into numpy (vectorized over frames), forward kinematics, write.
 
-A joint's local transform is ``translate(offset + position channels) @ R``, with ``R`` the product
-of its rotation channels in the order the file lists them (``Zrotation Yrotation Xrotation`` →
-``Rz @ Ry @ Rx``, angles in degrees). World transforms compose parent first. Units are the file's
-(CMU: 1 unit = 1/0.45 inch ≈ 5.64 cm); nothing is rescaled here.
+A joint's local transform is ``translate(t) @ R``, with ``R`` the product of its rotation channels
+in the order the file lists them (``Zrotation Yrotation Xrotation`` → ``Rz @ Ry @ Rx``, degrees;
+:func:`uvatar.motion.rotations.euler_to_matrix`) and ``t`` its OFFSET. Position channels come in
+two kinds, told apart per joint by comparing them with the OFFSET over the clip: *absolute* ones
+hold the whole local translation (files that give every joint 6 channels store the offset there)
+and replace the OFFSET; *relative* ones are added to it (the usual root channels, whose OFFSET is
+0). World transforms compose parent first (:func:`uvatar.body.kinematics.forward_kinematics_numpy`).
+Units are the file's (CMU: 1 unit = 1/0.45 inch ≈ 5.64 cm); nothing is rescaled here.
 """
 
 from __future__ import annotations
 
-import re
-import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from uvatar.body.kinematics import forward_kinematics_numpy
 from uvatar.errors import InputError
 from uvatar.io_utils import atomic_path
+from uvatar.motion.rotations import euler_to_matrix, matrix_to_euler
 
 _AXES = {"Xrotation": "X", "Yrotation": "Y", "Zrotation": "Z"}
 _POSITIONS = {"Xposition": 0, "Yposition": 1, "Zposition": 2}
+MAX_CHANNELS = 6
 
 
 @dataclass(frozen=True)
 class Skeleton:
-    """names (J,), parents (J,) int64 (-1 root), offsets (J, 3) in file units, channels: per joint
-    the channel names in file order; end_sites: joint index → End Site offset (3,)."""
+    """names (J,), parents (J,) int64 (-1 root, parents before children), offsets (J, 3) in file
+    units, channels: per joint the channel names in file order; end_sites: joint index → End Site
+    offset (3,); absolute_positions: per joint, whether its position channels replace the offset
+    (True) or add to it (False; also for joints without position channels)."""
 
     names: tuple[str, ...]
     parents: np.ndarray
     offsets: np.ndarray
     channels: tuple[tuple[str, ...], ...]
     end_sites: dict[int, np.ndarray] = field(default_factory=dict)
+    absolute_positions: tuple[bool, ...] = ()
 
     @property
     def num_joints(self) -> int:
@@ -47,6 +55,9 @@ class Skeleton:
             out.append(np.arange(start, start + len(ch)))
             start += len(ch)
         return out
+
+    def is_absolute(self, j: int) -> bool:
+        return bool(self.absolute_positions[j]) if self.absolute_positions else False
 
 
 @dataclass
@@ -67,163 +78,193 @@ class BvhMotion:
     def fps(self) -> float:
         return 1.0 / self.frame_time
 
-    def local_rotations(self) -> np.ndarray:
-        """(T, J, 3, 3) each joint's rotation relative to its parent (file channel order)."""
-        T, J = self.num_frames, self.skeleton.num_joints
-        out = np.broadcast_to(np.eye(3), (T, J, 3, 3)).copy()
+    def _rotation_groups(self) -> dict[str, list[tuple[int, list[int]]]]:
         groups: dict[str, list[tuple[int, list[int]]]] = {}  # channel order → joints (one batch each)
         for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns(), strict=True)):
             rot = [(c, _AXES[n]) for n, c in zip(names, cols, strict=True) if n in _AXES]
             if rot:
                 groups.setdefault("".join(a for _, a in rot), []).append((j, [c for c, _ in rot]))
-        for order, members in groups.items():
+        return groups
+
+    def local_rotations(self) -> np.ndarray:
+        """(T, J, 3, 3) each joint's rotation relative to its parent (file channel order)."""
+        T, J = self.num_frames, self.skeleton.num_joints
+        out = np.broadcast_to(np.eye(3), (T, J, 3, 3)).copy()
+        for order, members in self._rotation_groups().items():
             joints = [j for j, _ in members]
             angles = self.channel_values[:, [c for _, cols in members for c in cols]].reshape(T, len(joints), -1)
-            out[:, joints] = euler_to_matrix(np.deg2rad(angles), order)
+            out[:, joints] = euler_to_matrix(angles, order, degrees=True)
         return out
 
     def local_translations(self) -> np.ndarray:
-        """(T, J, 3) offset plus any position channels, in file units."""
-        T = self.num_frames
-        out = np.broadcast_to(self.skeleton.offsets, (T, self.skeleton.num_joints, 3)).copy()
-        for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns(), strict=True)):
+        """(T, J, 3) offsets, with position channels replacing (absolute) or added to them."""
+        sk = self.skeleton
+        out = np.broadcast_to(sk.offsets, (self.num_frames, sk.num_joints, 3)).copy()
+        for j, (names, cols) in enumerate(zip(sk.channels, sk.channel_columns(), strict=True)):
             for n, c in zip(names, cols, strict=True):
                 if n in _POSITIONS:
-                    out[:, j, _POSITIONS[n]] += self.channel_values[:, c]
+                    k = _POSITIONS[n]
+                    out[:, j, k] = self.channel_values[:, c] + (0.0 if sk.is_absolute(j) else sk.offsets[j, k])
         return out
 
     def world_transforms(self) -> tuple[np.ndarray, np.ndarray]:
         """→ (world rotations (T, J, 3, 3), world positions (T, J, 3)) by forward kinematics."""
-        return forward_kinematics(self.skeleton.parents, self.local_rotations(), self.local_translations())
+        return forward_kinematics_numpy(self.skeleton.parents, self.local_rotations(), self.local_translations())
 
     def with_rotations(self, local_rotations: np.ndarray, root_positions: np.ndarray | None = None) -> BvhMotion:
-        """A copy whose rotation channels encode ``local_rotations`` (T, J, 3, 3) (and root position
-        channels ``root_positions`` (T, 3) minus the root offset, when given)."""
-        from scipy.spatial.transform import Rotation
-
+        """A copy whose rotation channels encode ``local_rotations`` (T, J, 3, 3) (and the root's
+        position channels the world root positions ``root_positions`` (T, 3), when given). Other
+        position channels keep their values (or, for a new frame count, their offset meaning)."""
+        sk = self.skeleton
         T = local_rotations.shape[0]
         values = np.zeros((T, self.channel_values.shape[1]))
-        for j, (names, cols) in enumerate(zip(self.skeleton.channels, self.skeleton.channel_columns(), strict=True)):
-            rot = [(c, _AXES[n]) for n, c in zip(names, cols, strict=True) if n in _AXES]
-            if rot:
-                order = "".join(a for _, a in rot)
-                with warnings.catch_warnings():  # gimbal lock: angles differ, the rotation is exact
-                    warnings.simplefilter("ignore", UserWarning)
-                    euler = Rotation.from_matrix(local_rotations[:, j]).as_euler(order, degrees=True)
-                values[:, [c for c, _ in rot]] = euler
+        for order, members in self._rotation_groups().items():
+            joints = [j for j, _ in members]
+            euler = matrix_to_euler(local_rotations[:, joints], order, degrees=True)
+            values[:, [c for _, cols in members for c in cols]] = euler.reshape(T, -1)
+        for j, (names, cols) in enumerate(zip(sk.channels, sk.channel_columns(), strict=True)):
             for n, c in zip(names, cols, strict=True):
                 if n in _POSITIONS:
-                    if root_positions is not None and j == 0:
-                        values[:, c] = root_positions[:, _POSITIONS[n]] - self.skeleton.offsets[0, _POSITIONS[n]]
+                    k, base = _POSITIONS[n], (0.0 if sk.is_absolute(j) else sk.offsets[j, _POSITIONS[n]])
+                    if root_positions is not None and sk.parents[j] < 0:
+                        values[:, c] = root_positions[:, k] - base
                     elif T == self.num_frames:
                         values[:, c] = self.channel_values[:, c]
+                    else:
+                        values[:, c] = sk.offsets[j, k] - base
         return replace(self, channel_values=values)
 
 
-def axis_rotation(angles: np.ndarray, axis: str) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) about "X", "Y" or "Z" by ``angles`` (...) radians."""
-    c, s = np.cos(angles), np.sin(angles)
-    out = np.zeros((*np.shape(angles), 3, 3))
-    i, j = {"X": (1, 2), "Y": (2, 0), "Z": (0, 1)}[axis]
-    k = 3 - i - j
-    out[..., k, k] = 1.0
-    out[..., i, i], out[..., i, j], out[..., j, i], out[..., j, j] = c, -s, s, c
-    return out
+def _absolute_position_channels(channels, columns, offsets, values) -> tuple[bool, ...]:
+    """Per joint: do its position channels hold the whole local translation? Yes when they stay
+    closer to the OFFSET than to 0 over the clip (median distance)."""
+    out = []
+    for j, (names, cols) in enumerate(zip(channels, columns, strict=True)):
+        pos = [(c, _POSITIONS[n]) for n, c in zip(names, cols, strict=True) if n in _POSITIONS]
+        if not pos or not len(values):
+            out.append(False)
+            continue
+        v = values[:, [c for c, _ in pos]]
+        o = offsets[j, [k for _, k in pos]]
+        out.append(bool(np.median(np.linalg.norm(v - o, axis=1)) < np.median(np.linalg.norm(v, axis=1))))
+    return tuple(out)
 
 
-def euler_to_matrix(angles: np.ndarray, order: str) -> np.ndarray:
-    """Intrinsic Euler angles (..., len(order)) radians in ``order`` (e.g. "ZYX") → (..., 3, 3)
-    ``R = R_order[0] @ R_order[1] @ ...`` (the BVH convention)."""
-    out = axis_rotation(angles[..., 0], order[0])
-    for k in range(1, len(order)):
-        out = out @ axis_rotation(angles[..., k], order[k])
-    return out
-
-
-def forward_kinematics(parents: np.ndarray, local_rotations: np.ndarray, local_translations: np.ndarray):
-    """World transforms of a joint tree, vectorized over leading dims.
-
-    parents (J,) with parents[j] < j; local_rotations (..., J, 3, 3); local_translations (..., J, 3)
-    → (world_rotations (..., J, 3, 3), world_positions (..., J, 3)).
-    """
-    world_r = np.empty_like(local_rotations)
-    world_p = np.empty_like(local_translations)
-    for j, p in enumerate(parents):
-        if p < 0:
-            world_r[..., j, :, :] = local_rotations[..., j, :, :]
-            world_p[..., j, :] = local_translations[..., j, :]
+def _parse_hierarchy(tokens: list[str], path) -> tuple[list, list, list, list, dict]:
+    names, parents, offsets, channels, end_sites = [], [], [], [], {}
+    stack: list[int] = []
+    i, pending_end = 1, False
+    while i < len(tokens):
+        tok = tokens[i]
+        if tok in ("ROOT", "JOINT"):
+            if (tok == "ROOT") != (not stack) or (names and not stack):
+                raise InputError(path, f"{tok} {tokens[i + 1]} is misplaced (one ROOT, JOINTs inside it)")
+            if tokens[i + 1] in names:
+                raise InputError(path, f"joint name {tokens[i + 1]!r} appears twice")
+            names.append(tokens[i + 1])
+            parents.append(stack[-1] if stack else -1)
+            offsets.append(np.zeros(3))
+            channels.append(())
+            i += 2
+        elif tok == "End":
+            if not stack or stack[-1] < 0:
+                raise InputError(path, "End Site outside a joint")
+            pending_end = True
+            i += 2
+        elif tok == "{":
+            if not names:
+                raise InputError(path, "'{' before the ROOT")
+            stack.append(-2 if pending_end else len(names) - 1)
+            i += 1
+        elif tok == "}":
+            if not stack:
+                raise InputError(path, "unbalanced braces in HIERARCHY")
+            stack.pop()
+            pending_end = False
+            i += 1
+        elif tok == "OFFSET":
+            value = np.array([float(t) for t in tokens[i + 1: i + 4]])
+            if value.shape != (3,) or not np.all(np.isfinite(value)):
+                raise InputError(path, f"OFFSET {' '.join(tokens[i + 1: i + 4])} is not 3 finite numbers")
+            if not stack:
+                raise InputError(path, "OFFSET outside a joint")
+            if pending_end:
+                end_sites[[s for s in stack if s >= 0][-1]] = value
+            else:
+                offsets[-1] = value
+            i += 4
+        elif tok == "CHANNELS":
+            n = int(tokens[i + 1])
+            chans = tuple(tokens[i + 2: i + 2 + n])
+            if not 0 <= n <= MAX_CHANNELS or len(chans) != n or pending_end or not names:
+                raise InputError(path, f"bad CHANNELS line ({n} channels)")
+            if any(c not in _AXES and c not in _POSITIONS for c in chans) or len(set(chans)) != n:
+                raise InputError(path, f"unknown or repeated channel in {' '.join(chans)}")
+            channels[-1] = chans
+            i += 2 + n
         else:
-            world_r[..., j, :, :] = world_r[..., p, :, :] @ local_rotations[..., j, :, :]
-            world_p[..., j, :] = (world_r[..., p, :, :] @ local_translations[..., j, :, None])[..., 0] + world_p[..., p, :]
-    return world_r, world_p
+            raise InputError(path, f"unexpected token {tok!r} in HIERARCHY")
+    if not names or stack:
+        raise InputError(path, "empty or unbalanced HIERARCHY")
+    return names, parents, offsets, channels, end_sites
+
+
+def _parse_values(body: str, n_frames: int, n_channels: int, first_line: int, path) -> np.ndarray:
+    """MOTION rows → (n_frames, n_channels) float64; errors give the line and the bad token."""
+    rows = [(k, line) for k, line in enumerate(body.splitlines(), first_line) if line.strip()]
+    if len(rows) != n_frames:
+        raise InputError(path, f"MOTION has {len(rows)} rows of values, 'Frames:' says {n_frames}")
+    try:
+        values = np.array(body.split(), dtype=np.float64)
+    except ValueError:
+        for k, line in rows:
+            for tok in line.split():
+                try:
+                    float(tok)
+                except ValueError:
+                    raise InputError(path, f"line {k}: {tok[:20]!r} is not a number") from None
+        raise InputError(path, "MOTION values are not numbers") from None
+    if values.size != n_frames * n_channels:
+        for k, line in rows:
+            if len(line.split()) != n_channels:
+                raise InputError(path, f"line {k} has {len(line.split())} values, expected {n_channels} channels")
+    if not np.all(np.isfinite(values)):
+        bad = int(np.flatnonzero(~np.isfinite(values))[0])
+        raise InputError(path, f"line {rows[bad // n_channels][0]}: channel value {values[bad]} is not finite")
+    return values.reshape(n_frames, n_channels)
 
 
 def parse_bvh(text: str, path: str | Path = "<bvh>") -> BvhMotion:
-    """Parse BVH text (HIERARCHY + MOTION) → :class:`BvhMotion`."""
-    head, sep, motion = text.partition("MOTION")
-    if not sep or "HIERARCHY" not in head:
+    """Parse BVH text (HIERARCHY + MOTION) → :class:`BvhMotion` (every problem an InputError)."""
+    import re
+
+    found = re.search(r"^[ \t]*MOTION[ \t]*\r?$", text, re.MULTILINE)  # the line, not a joint named MOTION...
+    if not found or "HIERARCHY" not in text[: found.start()]:
         raise InputError(path, "not a BVH file (needs HIERARCHY and MOTION sections)")
-    tokens = head.split()
-    names, parents, offsets, channels, end_sites = [], [], [], [], {}
-    stack: list[int] = []
-    i, pending_end = tokens.index("HIERARCHY") + 1, False
+    head, sep, motion = text[: found.start()], text[found.start(): found.end()], text[found.end():]
+    tokens = head[head.index("HIERARCHY"):].split()
     try:
-        while i < len(tokens):
-            tok = tokens[i]
-            if tok in ("ROOT", "JOINT"):
-                names.append(tokens[i + 1])
-                parents.append(stack[-1] if stack else -1)
-                offsets.append(np.zeros(3))
-                channels.append(())
-                i += 2
-            elif tok == "End":
-                pending_end = True
-                i += 2
-            elif tok == "{":
-                stack.append(-2 if pending_end else len(names) - 1)
-                i += 1
-            elif tok == "}":
-                if not stack:
-                    raise InputError(path, "unbalanced braces in HIERARCHY")
-                stack.pop()
-                pending_end = False
-                i += 1
-            elif tok == "OFFSET":
-                value = np.array([float(t) for t in tokens[i + 1: i + 4]])
-                if pending_end:
-                    end_sites[[s for s in stack if s >= 0][-1]] = value
-                else:
-                    offsets[-1] = value
-                i += 4
-            elif tok == "CHANNELS":
-                n = int(tokens[i + 1])
-                chans = tuple(tokens[i + 2: i + 2 + n])
-                if any(c not in _AXES and c not in _POSITIONS for c in chans):
-                    raise InputError(path, f"unknown channel in {' '.join(chans)}")
-                channels[-1] = chans
-                i += 2 + n
-            else:
-                raise InputError(path, f"unexpected token {tok!r} in HIERARCHY")
-    except (IndexError, ValueError) as exc:
+        names, parents, offsets, channels, end_sites = _parse_hierarchy(tokens, path)
+    except (IndexError, ValueError, OverflowError) as exc:
         raise InputError(path, f"malformed HIERARCHY ({exc})") from None
-    if not names or stack:
-        raise InputError(path, "empty or unbalanced HIERARCHY")
-    frames = re.search(r"Frames:\s*(\d+)", motion)
-    ftime = re.search(r"Frame Time:\s*([0-9.eE+-]+)", motion)
-    if not frames or not ftime:
-        raise InputError(path, "MOTION section lacks 'Frames:' or 'Frame Time:'")
-    body = motion[ftime.end():]
-    n_frames, n_channels = int(frames.group(1)), sum(len(c) for c in channels)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        values = np.fromstring(body, dtype=np.float64, sep=" ")  # noqa: NPY201
-    if values.size != n_frames * n_channels:
-        raise InputError(path, f"MOTION has {values.size} values, expected {n_frames} frames x {n_channels} channels")
-    frame_time = float(ftime.group(1))
-    if frame_time <= 0:
+    frames = re.match(r"\s*Frames:[ \t]*(\S+)[ \t]*\r?\n\s*Frame Time:[ \t]*(\S+)[ \t]*(?:\r?\n|$)", motion)
+    if not frames:
+        raise InputError(path, "MOTION must start with 'Frames: N' and 'Frame Time: SECONDS' lines")
+    try:
+        n_frames, frame_time = int(frames.group(1)), float(frames.group(2))
+    except ValueError:
+        raise InputError(path, f"'Frames: {frames.group(1)}' / 'Frame Time: {frames.group(2)}' are not numbers") from None
+    if n_frames <= 0:
+        raise InputError(path, f"the motion has no frames (Frames: {n_frames})")
+    if not np.isfinite(frame_time) or frame_time <= 0:
         raise InputError(path, f"Frame Time must be positive, got {frame_time}")
-    skeleton = Skeleton(tuple(names), np.array(parents, np.int64), np.array(offsets), tuple(channels), end_sites)
-    return BvhMotion(skeleton, frame_time, values.reshape(n_frames, n_channels))
+    first_line = text[: len(head) + len(sep) + frames.end()].count("\n") + 1
+    n_channels = sum(len(c) for c in channels)
+    values = _parse_values(motion[frames.end():], n_frames, n_channels, first_line, path)
+    offsets = np.array(offsets)
+    skeleton = Skeleton(tuple(names), np.array(parents, np.int64), offsets, tuple(channels), end_sites)
+    absolute = _absolute_position_channels(skeleton.channels, skeleton.channel_columns(), offsets, values)
+    return BvhMotion(replace(skeleton, absolute_positions=absolute), frame_time, values)
 
 
 def read_bvh(path: str | Path) -> BvhMotion:

@@ -1,207 +1,360 @@
-"""Retarget a named source skeleton (BVH, AMASS) onto any :class:`~uvatar.body.base.BodyModel`.
+"""Retarget a named source skeleton (BVH, AMASS, body-model fits) onto any body model, by full
+joint rotations (twist included) for any rest pose.
 
-For each source joint mapped to a semantic name (``pelvis``, ``l_elbow``, ...; tables below) the
-source's world rotation relative to its rest pose ``G_s(t)`` is carried over as the target joint's
-world-axis rotation ``G_j(t) = G_s(t) @ C_j``. ``C_j`` aligns the rest poses: the smallest rotation
-taking the target's rest bone direction (joint → next mapped joint) onto the source's, so a T-pose
-source drives an A-pose target. Unmapped target joints (fingers, twist bones) follow their parent.
-Global rotation goes to ``Rh``; each joint's rotation relative to its parent, in rest-pose world
-axes, is turned into the body's local axis-angles with ``body.world_to_local_rotvecs``.
+Each semantic joint (:mod:`uvatar.motion.rigs`) gets an *anatomical frame* in each skeleton: its
+bone direction ``u`` plus a second axis ``v`` that fixes the twist (:func:`bone_axes`): the hinge
+axis of the limb (shoulder–elbow–wrist, hip–knee–ankle, knee–ankle–toe) for limb bones, the hip
+line for the pelvis and the low spine, the shoulder line for the chest, neck and head, the trunk
+for the collars. The target's frames come from its rest pose, hinge axes from the flexion
+direction where the rest limb is straight (elbows and ankles bend forward, knees backward). The
+source's come from the clip itself: every frame's world ``u``, ``v`` (from joint positions) is
+turned back into the joint's rest frame by its world rotation and averaged. That is exact for
+rigid parts and does not depend on the source's rest pose or on how its joint axes are twisted;
+a bone whose hinge never bends in the clip falls back to the rest-pose rule (``info`` says which).
+With ``A_s``, ``A_t`` the frames (columns u, v, u×v) the target joint's world rotation relative to
+its rest pose is ``G_t(t) = G_s(t) @ A_s @ A_t^T``; unmapped target joints follow their parent.
 
-The root translation is the source pelvis trajectory scaled by the ratio of leg lengths
-(hip→knee→ankle, source units → metres). Its height is set so that the target's lowest ankle is
-at its rest height above a floor at y = 0 whenever the source's lowest ankle is at its contact
-height (5th percentile over the clip), and rises by the scaled amount when the source's does.
+Root: ``root="floor"`` (mocap) scales the source pelvis path by the ratio of leg lengths and sets
+the height so that the target's lowest sole point is as high above y = 0 as the source's feet are
+above their own contact heights (each foot joint's 5th percentile over the clip), never below it;
+``root="pelvis"`` (body-model fits) keeps the source pelvis where it is.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from uvatar.errors import UvatarError
+from uvatar.errors import UvatarError, check_values
+from uvatar.motion.record import Motion
+from uvatar.motion.rigs import LIMB, RigMatch, match_rig
+from uvatar.motion.rotations import matrix_to_rotvec, rotation_between
 from uvatar.motion.skeleton import SkeletonMotion
 
-SIDES = {"Left": "l_", "Right": "r_"}
-
-# CMU BVH (and close variants) → semantic joint names
-CMU_TO_SEMANTIC = {"Hips": "pelvis", "LowerBack": "spine1", "Spine": "spine2", "Spine1": "spine3",
-                   "Neck": "neck", "Head": "head"}
-MIXAMO_TO_SEMANTIC = {"Hips": "pelvis", "Spine": "spine1", "Spine1": "spine2", "Spine2": "spine3",
-                      "Neck": "neck", "Head": "head"}
-for _side, _p in SIDES.items():
-    for _table in (CMU_TO_SEMANTIC, MIXAMO_TO_SEMANTIC):
-        _table.update({f"{_side}Shoulder": f"{_p}collar", f"{_side}Arm": f"{_p}shoulder",
-                       f"{_side}ForeArm": f"{_p}elbow", f"{_side}Hand": f"{_p}wrist",
-                       f"{_side}UpLeg": f"{_p}hip", f"{_side}Leg": f"{_p}knee", f"{_side}Foot": f"{_p}ankle",
-                       f"{_side}ToeBase": f"{_p}toe"})
-
-SMPL_TO_SEMANTIC = {"pelvis": "pelvis", "spine1": "spine1", "spine2": "spine2", "spine3": "spine3",
-                    "neck": "neck", "head": "head"}
-for _side, _p in (("left", "l_"), ("right", "r_")):
-    SMPL_TO_SEMANTIC.update({f"{_side}_collar": f"{_p}collar", f"{_side}_shoulder": f"{_p}shoulder",
-                             f"{_side}_elbow": f"{_p}elbow", f"{_side}_wrist": f"{_p}wrist",
-                             f"{_side}_hip": f"{_p}hip", f"{_side}_knee": f"{_p}knee",
-                             f"{_side}_ankle": f"{_p}ankle", f"{_side}_foot": f"{_p}toe"})
-
-# the joint whose rest position gives each semantic joint's bone direction
-BONE_CHILD = {"spine1": "spine2", "spine2": "spine3", "spine3": "neck", "neck": "head"}
-for _p in ("l_", "r_"):
-    BONE_CHILD.update({f"{_p}collar": f"{_p}shoulder", f"{_p}shoulder": f"{_p}elbow", f"{_p}elbow": f"{_p}wrist",
-                       f"{_p}hip": f"{_p}knee", f"{_p}knee": f"{_p}ankle", f"{_p}ankle": f"{_p}toe"})
-NO_ALIGNMENT = ("pelvis", "head", "l_toe", "r_toe")  # keep the rest frames as they are
-
-
-def semantic_map(names) -> dict[str, str]:
-    """Source joint name → semantic name, picking the table that fits the skeleton."""
-    stripped = {n: n.split(":")[-1] for n in names}  # "mixamorig:Hips" → "Hips"
-    base = set(stripped.values())
-    if "pelvis" in base and "left_hip" in base:
-        table = SMPL_TO_SEMANTIC
-    elif "LowerBack" in base or "Spine2" not in base:
-        table = CMU_TO_SEMANTIC
-    else:
-        table = MIXAMO_TO_SEMANTIC
-    out = {n: table[s] for n, s in stripped.items() if s in table}
-    semantic = set(CMU_TO_SEMANTIC.values())
-    out.update({n: s for n, s in stripped.items() if s in semantic and n not in out})
-    return out
+UP_CHAIN = ("pelvis", "spine1", "spine2", "spine3", "neck", "head")
+HINGES = {"shoulder": ("shoulder", "elbow", "wrist", 1.0), "elbow": ("shoulder", "elbow", "wrist", 1.0),
+          "wrist": ("shoulder", "elbow", "wrist", 1.0), "hip": ("hip", "knee", "ankle", -1.0),
+          "knee": ("hip", "knee", "ankle", -1.0), "ankle": ("knee", "ankle", "toe", 1.0),
+          "toe": ("knee", "ankle", "toe", 1.0)}  # joints of the hinge, flexion toward +-forward
+LIMB_BONE = {"collar": ("collar", "shoulder"), "shoulder": ("shoulder", "elbow"), "elbow": ("elbow", "wrist"),
+             "wrist": ("elbow", "wrist"), "hip": ("hip", "knee"), "knee": ("knee", "ankle"),
+             "ankle": ("ankle", "toe"), "toe": ("ankle", "toe")}
 
 
 @dataclass
 class RetargetConfig:
-    """name_map: source joint name → semantic name (None → :func:`semantic_map`); source_floor:
-    the floor height in source units (BVH and AMASS: 0)."""
+    """name_map: source joint → semantic joint (or target joint name), merged over the automatic
+    rig match (None/"" drops a joint); twist: where the source's bone frames come from ("auto":
+    the clip, the rest pose where the clip has no evidence; "motion"; "rest": the rest pose, right
+    for T/A-pose body models); root: "floor" or "pelvis" (module docstring); source_floor: floor
+    height in source units; min_evidence: mean sine of the hinge bend (or length of the averaged
+    second axis) below which "auto" uses the rest pose."""
 
-    name_map: dict[str, str] | None = None
+    name_map: dict[str, str | None] | None = None
+    twist: str = "auto"
+    root: str = "floor"
     source_floor: float = 0.0
+    min_evidence: float = 0.05
+
+    def __post_init__(self) -> None:
+        check_values([(self.twist in ("auto", "motion", "rest"), f"twist must be auto|motion|rest, got {self.twist!r}"),
+                      (self.root in ("floor", "pelvis"), f"root must be floor|pelvis, got {self.root!r}"),
+                      (np.isfinite(self.source_floor), "source_floor must be finite"),
+                      (0 <= self.min_evidence < 1, "min_evidence must be in [0, 1)")])
 
 
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotation (3, 3) taking direction a onto direction b."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(np.dot(a, b))
-    if c < -1 + 1e-8:  # opposite: rotate pi about any axis orthogonal to a
-        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1 + c)
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
 
 
-def _descendants(parents: np.ndarray, j: int) -> np.ndarray:
-    inside = np.zeros(len(parents), bool)
-    inside[j] = True
-    for k in range(j + 1, len(parents)):  # parents precede children
-        if parents[k] >= 0 and inside[parents[k]]:
-            inside[k] = True
-    inside[j] = False
-    return np.flatnonzero(inside)
-
-
-def _bone_direction(semantic: str, joint: int, index: dict[str, int], rest: np.ndarray, parents) -> np.ndarray | None:
-    child = BONE_CHILD.get(semantic)
-    if child in index:
-        d = rest[index[child]] - rest[joint]
-        if np.linalg.norm(d) > 1e-6:
-            return d
-    desc = _descendants(np.asarray(parents), joint)
-    if len(desc):
-        d = rest[desc].mean(0) - rest[joint]
-        if np.linalg.norm(d) > 1e-6:
-            return d
+def _first(P: dict, names, origin: np.ndarray | None = None) -> np.ndarray | None:
+    """The first of ``names`` in P (away from ``origin``, when given: joints at the same place,
+    like CMU's neck and collars on the chest, give no direction)."""
+    for n in names:
+        if n in P and (origin is None or np.mean(np.linalg.norm(P[n] - origin, axis=-1)) > 1e-6):
+            return P[n]
     return None
 
 
-def _leg_length(index: dict[str, int], rest: np.ndarray) -> float:
+def _lateral(P: dict, upper: bool) -> np.ndarray | None:
+    pairs = [("l_shoulder", "r_shoulder"), ("l_collar", "r_collar")] if upper else []
+    for a, b in [*pairs, ("l_hip", "r_hip")]:
+        if a in P and b in P:
+            return P[a] - P[b]
+    return None
+
+
+def _bone_vectors(sem: str, P: dict) -> tuple[np.ndarray | None, np.ndarray | None, bool]:
+    """(u, v, is_hinge) world vectors (..., 3) of semantic joint ``sem`` from positions P."""
+    if sem in UP_CHAIN:
+        k = UP_CHAIN.index(sem)
+        if sem == "pelvis":
+            top = _first(P, UP_CHAIN[:0:-1], P[sem])
+            return _lateral(P, False), None if top is None else top - P[sem], False
+        above, below = _first(P, UP_CHAIN[k + 1:], P[sem]), _first(P, UP_CHAIN[k - 1::-1], P[sem])
+        u = above - P[sem] if above is not None else (P[sem] - below if below is not None else None)
+        return u, _lateral(P, sem in ("spine3", "neck", "head")), False
+    side, kind = sem[:2], sem[2:]
+    a, b = (side + n for n in LIMB_BONE[kind])
+    u = P[b] - P[a] if a in P and b in P else None
+    if kind == "collar":
+        top, low = _first(P, ("head", "neck")), _first(P, ("pelvis", "spine1", "spine2", "spine3"))
+        return u, None if top is None or low is None else top - low, False
+    h = HINGES[kind]
+    names = [side + n for n in h[:3]]
+    if not all(n in P for n in names):
+        return u, None, True
+    x, y, z = (P[n] for n in names)
+    return u, np.cross(_unit(y - x), _unit(z - y)), True
+
+
+def _frame(u: np.ndarray, v: np.ndarray) -> np.ndarray | None:
+    """Columns (u, v ⊥ u, u × v), unit; None when degenerate."""
+    if np.linalg.norm(u) < 1e-9:
+        return None
+    e1 = _unit(u)
+    v = v - np.dot(v, e1) * e1
+    if np.linalg.norm(v) < 1e-6:
+        return None
+    e2 = _unit(v)
+    return np.stack([e1, e2, np.cross(e1, e2)], 1)
+
+
+def body_forward(P: dict) -> np.ndarray:
+    """Facing direction of a skeleton from its joint positions: left × up (+Z for uvatar bodies)."""
+    left = _lateral(P, False)
+    top = _first(P, UP_CHAIN[:0:-1])
+    if left is None or top is None or "pelvis" not in P:
+        return np.array([0.0, 0.0, 1.0])
+    return _unit(np.cross(_unit(left), _unit(top - P["pelvis"])))
+
+
+def rest_frame(sem: str, P: dict, min_bend: float = 0.05) -> np.ndarray | None:
+    """Anatomical frame (3, 3) of ``sem`` in a rest pose P (semantic name → (3,)): hinges bent less
+    than ``min_bend`` (sine) or backwards take the flexion convention (elbow and ankle forward,
+    knee backward)."""
+    u, v, hinge = _bone_vectors(sem, P)
+    if u is None:
+        return None
+    if hinge:
+        side, h = sem[:2], HINGES[sem[2:]]
+        a, b = side + h[0], side + h[1]
+        if a in P and b in P:
+            convention = np.cross(_unit(P[b] - P[a]), h[3] * body_forward(P))
+            if v is None or np.linalg.norm(v) < min_bend or np.dot(v, convention) <= 0:
+                v = convention
+    return None if v is None else _frame(u, v)
+
+
+def motion_frame(sem: str, P: dict, G: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """Anatomical frame of ``sem`` in the source's rest frame, averaged over the clip: P semantic
+    name → (T, 3) world positions, G (T, 3, 3) the joint's world rotations relative to rest.
+    → (frame or None, evidence = length of the averaged second axis ⊥ u)."""
+    u, v, hinge = _bone_vectors(sem, P)
+    if u is None or v is None:
+        return None, 0.0
+    Gt = np.swapaxes(G, -1, -2)
+    u_rest = (Gt @ _unit(u)[..., None])[..., 0].mean(0)
+    v_rest = (Gt @ (v if hinge else _unit(v))[..., None])[..., 0].mean(0)
+    e1 = _unit(u_rest)
+    evidence = float(np.linalg.norm(v_rest - np.dot(v_rest, e1) * e1))
+    return _frame(u_rest, v_rest), evidence
+
+
+@dataclass
+class RetargetPlan:
+    """match: the rig match; src_index / tgt_index: semantic → joint index; shared: semantic
+    joints in both; alignment: semantic → A_s @ A_t^T (3, 3); source_frames / target_frames:
+    semantic → A (3, 3) (when known); twist_from: semantic → "motion" | "rest" | "direction" |
+    "none"; scale: metres per source unit."""
+
+    match: RigMatch
+    src_index: dict[str, int]
+    tgt_index: dict[str, int]
+    shared: list[str]
+    alignment: dict[str, np.ndarray]
+    source_frames: dict[str, np.ndarray] = field(default_factory=dict)
+    target_frames: dict[str, np.ndarray] = field(default_factory=dict)
+    twist_from: dict[str, str] = field(default_factory=dict)
+    scale: float = 1.0
+
+
+def _leg_length(index: dict[str, int], rest: np.ndarray) -> float | None:
     lengths = []
     for p in ("l_", "r_"):
         if all(f"{p}{k}" in index for k in ("hip", "knee", "ankle")):
             h, k, a = (rest[index[f"{p}{n}"]] for n in ("hip", "knee", "ankle"))
             lengths.append(np.linalg.norm(k - h) + np.linalg.norm(a - k))
-    if not lengths:
-        raise UvatarError("cannot scale the root translation: hip, knee and ankle are not all mapped")
-    return float(np.mean(lengths))
+    return float(np.mean(lengths)) if lengths and np.mean(lengths) > 0 else None
 
 
-def _positions_from_pelvis(G: np.ndarray, rest: np.ndarray, parents: np.ndarray, pelvis: int) -> np.ndarray:
-    """Joint positions (T, J, 3) relative to the pelvis, from world-axis rotations G (T, J, 3, 3):
-    each bone's rest offset turned by its parent's G."""
-    T, J = G.shape[:2]
-    pos = np.zeros((T, J, 3))
-    for j in range(J):
-        p = parents[j]
-        if p >= 0:
-            pos[:, j] = pos[:, p] + G[:, p] @ (rest[j] - rest[p])
-    return pos - pos[:, pelvis: pelvis + 1]
-
-
-def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None):
-    """Retarget ``source`` onto ``body`` → :class:`~uvatar.motion.sequences.Motion` for that body.
-
-    Returns joint_rotvecs (T, J, 3) local axis-angles, Rh (T, 3), Th (T, 3) metres (floor y = 0).
-    """
-    from scipy.spatial.transform import Rotation
-
-    from uvatar.motion.sequences import Motion
-
+def plan_retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None) -> RetargetPlan:
+    """Match the joints and align the rest frames (see the module docstring)."""
     config = config or RetargetConfig()
-    name_map = config.name_map or semantic_map(source.names)
-    src_index = {sem: source.index(n) for n, sem in name_map.items() if n in source.names}
+    target_names = {body.joint_names[i]: s for s, i in body.semantic_joints.items()}
+    try:
+        match = match_rig(source.names, source.parents, config.name_map, target_names)
+    except ValueError as exc:
+        raise UvatarError(f"{source.source or 'source skeleton'}: {exc}") from None
+    if match.missing_required:
+        raise UvatarError(f"{source.source or 'source skeleton'}: rig '{match.rig}': no joint maps to "
+                          f"{', '.join(match.missing_required)}; unmapped joints: {', '.join(match.unmapped[:12])}"
+                          f"{' ...' if len(match.unmapped) > 12 else ''}; give them with --map FILE "
+                          "(JSON/YAML {source joint: semantic joint})")
+    src_index = {s: source.index(n) for n, s in match.mapping.items()}
     tgt_index = dict(body.semantic_joints)
     shared = [s for s in src_index if s in tgt_index]
-    if "pelvis" not in shared:
-        raise UvatarError(f"retargeting needs a 'pelvis' joint in both skeletons (source {source.source})")
-    template = body.template
-    t_rest = np.asarray(template.rest_joints, np.float64)
-    t_parents = np.asarray(template.joint_parents)
-    s_rest = np.asarray(source.rest_positions, np.float64)
+    t_rest = np.asarray(body.template.rest_joints, np.float64)
+    P_t = {s: t_rest[i] for s, i in tgt_index.items()}
+    P_rest = {s: source.rest_positions[i] for s, i in src_index.items()}
+    P_src = {s: source.positions[:, i] for s, i in src_index.items()}
+    plan = RetargetPlan(match, src_index, tgt_index, shared, {})
+    for sem in shared:
+        A_t = rest_frame(sem, {k: P_t[k] for k in P_t if k in src_index}, config.min_evidence)
+        A_s, how = None, "rest"
+        if config.twist != "rest":
+            A_s, evidence = motion_frame(sem, P_src, source.world_rotations[:, src_index[sem]])
+            how = "motion"
+            if A_s is not None and config.twist == "auto" and evidence < config.min_evidence:
+                A_s = None
+        if A_s is None and config.twist != "motion":
+            A_s, how = rest_frame(sem, P_rest, config.min_evidence), "rest"
+        if A_s is not None and A_t is not None:
+            plan.alignment[sem] = A_s @ A_t.T
+            plan.source_frames[sem], plan.target_frames[sem] = A_s, A_t
+            plan.twist_from[sem] = how
+            continue
+        u_s, _, _ = _bone_vectors(sem, P_rest)
+        u_t, _, _ = _bone_vectors(sem, P_t)
+        ok = u_s is not None and u_t is not None and min(np.linalg.norm(u_s), np.linalg.norm(u_t)) > 1e-9
+        plan.alignment[sem] = rotation_between(u_t, u_s) if ok else np.eye(3)
+        plan.twist_from[sem] = "direction" if ok else "none"
+    if config.root == "floor":
+        ls, lt = _leg_length(src_index, source.rest_positions), _leg_length(tgt_index, t_rest)
+        if ls is None or lt is None:
+            raise UvatarError(f"{source.source or 'source skeleton'}: cannot scale the root translation: "
+                              "the legs have no length")
+        plan.scale = lt / ls
+    else:
+        plan.scale = float(source.units_to_metres or 1.0)
+    return plan
+
+
+def target_world_rotations(source: SkeletonMotion, body, plan: RetargetPlan) -> np.ndarray:
+    """(T, J, 3, 3) every target joint's world rotation relative to its rest pose."""
     T, J = source.num_frames, body.num_joints
-    # world-axis rotation of every target joint: mapped ones from the source (rest-aligned), the
-    # others follow their parent
+    parents = np.asarray(body.template.joint_parents)
+    by_joint = {plan.tgt_index[s]: s for s in plan.shared}
     G = np.empty((T, J, 3, 3))
-    mapped = {tgt_index[s]: s for s in shared}
-    for j in range(J):
-        if j in mapped:
-            sem = mapped[j]
-            C = np.eye(3)
-            if sem not in NO_ALIGNMENT:
-                d_src = _bone_direction(sem, src_index[sem], src_index, s_rest, source.parents)
-                d_tgt = _bone_direction(sem, j, tgt_index, t_rest, t_parents)
-                if d_src is not None and d_tgt is not None:
-                    C = _rotation_between(d_tgt, d_src)
-            G[:, j] = source.world_rotations[:, src_index[sem]] @ C
-        elif t_parents[j] >= 0:
-            G[:, j] = G[:, t_parents[j]]
+    for j in range(J):  # parents precede children
+        if j in by_joint:
+            sem = by_joint[j]
+            G[:, j] = source.world_rotations[:, plan.src_index[sem]] @ plan.alignment[sem]
+        elif parents[j] >= 0:
+            G[:, j] = G[:, parents[j]]
         else:
-            G[:, j] = source.world_rotations[:, src_index["pelvis"]]
-    pelvis = tgt_index["pelvis"]
+            G[:, j] = source.world_rotations[:, plan.src_index["pelvis"]] @ plan.alignment["pelvis"]
+    return G
+
+
+def posed_joint_positions(G: np.ndarray, rest: np.ndarray, parents) -> np.ndarray:
+    """Joint positions (T, J, 3) from world rotations G (T, J, 3, 3) relative to a rest pose whose
+    joint frames are world-aligned (rest joints (J, 3)), the root kept at its rest position."""
+    from uvatar.body.kinematics import forward_kinematics_numpy
+
+    parents = np.asarray(parents)
+    parent_G = G[:, np.maximum(parents, 0)]
+    local = np.where((parents >= 0)[None, :, None, None], np.swapaxes(parent_G, -1, -2) @ G, G)
+    offsets = rest - rest[np.maximum(parents, 0)]
+    offsets[parents < 0] = rest[parents < 0]
+    return forward_kinematics_numpy(parents, local, offsets)[1]
+
+
+def below(parents, roots) -> np.ndarray:
+    """(J,) bool: the joints ``roots`` and every joint under them (parents precede children)."""
+    parents = np.asarray(parents)
+    inside = np.zeros(len(parents), bool)
+    inside[list(roots)] = True
+    for k in range(len(parents)):
+        if parents[k] >= 0 and inside[parents[k]]:
+            inside[k] = True
+    return inside
+
+
+def foot_landmarks(body, tgt_index: dict[str, int], band: float = 0.02, per_foot: int = 24):
+    """Sole points of the target's rest mesh: (joint index (K,), rest position (K, 3), side (K,)
+    0 left / 1 right) — the vertices within ``band`` metres of each foot's lowest point, each
+    riding its main bone."""
+    t = body.template
+    parents = np.asarray(t.joint_parents)
+    main = np.asarray(t.skin_weights).argmax(1)
+    joints, points, sides = [], [], []
+    for k_side, side in enumerate(("l_", "r_")):
+        if side + "ankle" not in tgt_index:
+            continue
+        verts = np.flatnonzero(below(parents, [tgt_index[side + "ankle"]])[main])
+        if not len(verts):
+            continue
+        y = t.vertices[verts, 1]
+        sole = verts[np.argsort(y)][: int((y < y.min() + band).sum())]  # lowest first
+        sole = sole[np.unique(np.linspace(0, len(sole) - 1, min(per_foot, len(sole))).astype(int))]
+        joints.append(main[sole])
+        points.append(t.vertices[sole].astype(np.float64))
+        sides.append(np.full(len(sole), k_side))
+    if not joints:
+        raise UvatarError(f"body model '{body.name}' has no mapped ankle to put on the floor")
+    return np.concatenate(joints), np.concatenate(points), np.concatenate(sides)
+
+
+def source_clearance(source: SkeletonMotion, plan: RetargetPlan, floor: float = 0.0) -> np.ndarray:
+    """(T,) how high (source units) the source's feet are above their contact heights: the lowest
+    over the foot joints (ankles and everything below them) of height minus that joint's 5th
+    percentile height over the clip, never below 0."""
+    inside = below(source.parents, [plan.src_index[a] for a in ("l_ankle", "r_ankle") if a in plan.src_index])
+    y = source.positions[:, inside, 1] - floor
+    return np.maximum((y - np.percentile(y, 5, axis=0)).min(1), 0.0)
+
+
+def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None, plan: RetargetPlan | None = None):
+    """Retarget ``source`` onto ``body`` → :class:`~uvatar.motion.record.Motion` for that body:
+    joint_rotvecs (T, J, 3) local axis-angles, Rh (T, 3), Th (T, 3) metres."""
+    config = config or RetargetConfig()
+    plan = plan or plan_retarget(source, body, config)
+    t_rest = np.asarray(body.template.rest_joints, np.float64)
+    parents = np.asarray(body.template.joint_parents)
+    G = target_world_rotations(source, body, plan)
+    pelvis = plan.tgt_index["pelvis"]
     Rh_mat = G[:, pelvis].copy()
     Gp = np.swapaxes(Rh_mat, -1, -2)[:, None] @ G  # without the global rotation
-    parent_G = np.where((t_parents >= 0)[None, :, None, None], Gp[:, np.maximum(t_parents, 0)], np.eye(3))
-    local_world = np.swapaxes(parent_G, -1, -2) @ Gp
-    world_rotvecs = Rotation.from_matrix(local_world.reshape(-1, 3, 3)).as_rotvec().reshape(T, J, 3)
+    parent_G = np.where((parents >= 0)[None, :, None, None], Gp[:, np.maximum(parents, 0)], np.eye(3))
+    world_rotvecs = matrix_to_rotvec(np.swapaxes(parent_G, -1, -2) @ Gp)
     joint_rotvecs = np.asarray(body.world_to_local_rotvecs(world_rotvecs.astype(np.float32)), np.float32)
-    joint_rotvecs[:, t_parents < 0] = 0.0  # the root's rotation is Rh
-    # root translation
-    scale = _leg_length(tgt_index, t_rest) / _leg_length(src_index, s_rest)  # metres per source unit
-    floor_t = float(template.vertices[:, 1].min())
-    ankles_s = [src_index[a] for a in ("l_ankle", "r_ankle") if a in src_index]
-    ankles_t = [tgt_index[a] for a in ("l_ankle", "r_ankle") if a in src_index and a in tgt_index]
-    if not ankles_s or not ankles_t:
-        raise UvatarError("cannot place the body on the floor: no ankle is mapped")
-    # feet touch the floor when the source's do: the lowest target ankle sits at its rest height
-    # above the floor plus the scaled height of the lowest source ankle above its contact height
-    src_ankle = source.positions[:, ankles_s, 1].min(1) - config.source_floor
-    contact_s = float(np.percentile(src_ankle, 5))
-    ankle_rest_t = float(t_rest[ankles_t, 1].mean()) - floor_t
-    relative = _positions_from_pelvis(G, t_rest, t_parents, pelvis)  # (T, J, 3), pelvis at 0
-    P = source.positions[:, src_index["pelvis"]] * scale
-    P[:, 1] = ankle_rest_t + (src_ankle - contact_s) * scale - relative[:, ankles_t, 1].min(1)
+    joint_rotvecs[:, parents < 0] = 0.0  # the root's rotation is Rh
+    P = source.positions[:, plan.src_index["pelvis"]] * plan.scale
+    info = {"rig": plan.match.rig, "mapping": dict(plan.match.mapping), "mapped_joints": sorted(plan.shared),
+            "twist_from": dict(plan.twist_from), "scale_m_per_unit": plan.scale,
+            "units_to_metres_hint": source.units_to_metres, "root": config.root}
+    if config.root == "floor":
+        pos = posed_joint_positions(G, t_rest, parents)
+        rel = pos - pos[:, pelvis: pelvis + 1]
+        lj, lp, _ = foot_landmarks(body, plan.tgt_index)
+        sole = rel[:, lj] + (G[:, lj] @ (lp - t_rest[lj])[..., None])[..., 0]  # (T, K, 3) rel. to the pelvis
+        clearance = source_clearance(source, plan, config.source_floor)
+        P[:, 1] = clearance * plan.scale - sole[..., 1].min(1)  # lowest sole point at the clearance
     Th = P - (Rh_mat @ t_rest[pelvis])  # V = R(Rh) X + Th puts the pelvis at P
-    return Motion(joint_rotvecs=joint_rotvecs, Rh=Rotation.from_matrix(Rh_mat).as_rotvec().astype(np.float32),
+    return Motion(joint_rotvecs=joint_rotvecs, Rh=matrix_to_rotvec(Rh_mat).astype(np.float32),
                   Th=Th.astype(np.float32), fps=source.fps, body=body.name, source=source.source,
-                  joint_names=tuple(body.joint_names),
-                  info={"scale_m_per_unit": scale, "units_to_metres_hint": source.units_to_metres,
-                        "mapped_joints": sorted(shared)})
+                  joint_names=tuple(body.joint_names), info=info)
+
+
+def semantic_map(names, parents=None) -> dict[str, str]:
+    """Source joint name → semantic name by the rig registry (parents: the tree, for the spine;
+    without it the names are taken as a chain in order)."""
+    names = tuple(names)
+    parents = np.arange(-1, len(names) - 1) if parents is None else parents
+    return match_rig(names, parents).mapping
+
+
+__all__ = ["LIMB", "RetargetConfig", "RetargetPlan", "plan_retarget", "retarget", "semantic_map", "rest_frame",
+           "motion_frame", "target_world_rotations", "posed_joint_positions", "foot_landmarks", "source_clearance"]

@@ -10,110 +10,41 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from uvatar.errors import InputError
-from uvatar.io_utils import read_npz, write_npz
+from uvatar.errors import InputError, UvatarError
+from uvatar.io_utils import read_npz
+from uvatar.motion.amass import (
+    can_copy_amass,
+    is_amass_npz,
+    motion_from_amass,
+    read_amass,
+    skeleton_motion_from_amass,
+)
+from uvatar.motion.bodyfits import convert_body_motion, fits_body_name
+from uvatar.motion.bvh import read_bvh
+from uvatar.motion.record import Motion, motion_from_npz, save_motion
+from uvatar.motion.retarget import RetargetConfig, retarget
+from uvatar.motion.rotations import one_thread
+from uvatar.motion.skeleton import skeleton_motion_from_bvh
 
-MOTION_FORMAT = "uvatar-motion-1"
-
-
-@dataclass
-class Motion:
-    """joint_rotvecs (T, J, 3) float32 local axis-angles (radians) in ``body``'s joint order, root
-    zero; Rh (T, 3) global axis-angle about the model origin; Th (T, 3) metres (EasyMocap:
-    ``V = R(Rh) @ X + Th``); fps; body (model name); source (where it came from); joint_names (J,)
-    when known; shape (S,) body shape parameters or None; info: free-form provenance."""
-
-    joint_rotvecs: np.ndarray
-    Rh: np.ndarray
-    Th: np.ndarray
-    fps: float
-    body: str
-    source: str = ""
-    joint_names: tuple[str, ...] = ()
-    shape: np.ndarray | None = None
-    info: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.joint_rotvecs = np.asarray(self.joint_rotvecs, np.float32)
-        T = self.joint_rotvecs.shape[0]
-        if self.joint_rotvecs.ndim != 3 or self.joint_rotvecs.shape[2] != 3:
-            raise ValueError(f"joint_rotvecs must be (T, J, 3), got {self.joint_rotvecs.shape}")
-        self.Rh = np.asarray(self.Rh, np.float32).reshape(T, 3)
-        self.Th = np.asarray(self.Th, np.float32).reshape(T, 3)
-        self.fps = float(self.fps)
-        self.joint_names = tuple(self.joint_names)
-
-    @property
-    def num_frames(self) -> int:
-        return int(self.joint_rotvecs.shape[0])
-
-    @property
-    def num_joints(self) -> int:
-        return int(self.joint_rotvecs.shape[1])
-
-    @property
-    def duration(self) -> float:
-        """Seconds from the first to the last frame."""
-        return (self.num_frames - 1) / self.fps if self.num_frames else 0.0
-
-    def __getitem__(self, index) -> Motion:
-        """Frames ``index`` (a slice or index array) as a new Motion."""
-        if isinstance(index, int):
-            index = slice(index, index + 1)
-        return replace(self, joint_rotvecs=self.joint_rotvecs[index], Rh=self.Rh[index], Th=self.Th[index])
-
-    def to_fits(self) -> list:
-        """One :class:`~uvatar.capture.types.BodyFit` per frame."""
-        from uvatar.capture.types import BodyFit
-
-        shapes = np.zeros(0) if self.shape is None else self.shape
-        return [BodyFit(poses=self.joint_rotvecs[t].reshape(-1), Rh=self.Rh[t], Th=self.Th[t], shapes=shapes)
-                for t in range(self.num_frames)]
+__all__ = ["Motion", "load_motion", "motion_from_fits", "resample_motion", "save_motion", "slerp_rotvecs",
+           "slerp_rotvecs_reference"]
 
 
-def save_motion(path: str | Path, motion: Motion) -> None:
-    """Write a uvatar motion ``.npz`` atomically."""
-    import json
-
-    write_npz(path, format=np.array(MOTION_FORMAT), joint_rotvecs=motion.joint_rotvecs, Rh=motion.Rh,
-              Th=motion.Th, fps=np.array(motion.fps), body=np.array(motion.body), source=np.array(motion.source),
-              joint_names=np.array(motion.joint_names, dtype=str),
-              shape=np.zeros(0, np.float32) if motion.shape is None else np.asarray(motion.shape, np.float32),
-              info=np.array(json.dumps(motion.info, default=str)))
-
-
-def _read_uvatar_npz(path: Path, data: dict) -> Motion:
-    import json
-
-    for key in ("joint_rotvecs", "Rh", "Th", "fps", "body"):
-        if key not in data:
-            raise InputError(path, f"uvatar motion lacks {key!r}")
-    rot = data["joint_rotvecs"]
-    if rot.ndim != 3 or rot.shape[2] != 3:
-        raise InputError(path, f"joint_rotvecs has shape {rot.shape}, expected (T, J, 3)")
-    for key in ("joint_rotvecs", "Rh", "Th"):
-        if not np.all(np.isfinite(data[key])):
-            raise InputError(path, f"{key} contains NaN or infinite values")
-        if key != "joint_rotvecs" and data[key].shape != (rot.shape[0], 3):
-            raise InputError(path, f"{key} has shape {data[key].shape}, expected ({rot.shape[0]}, 3)")
-    shape = data.get("shape")
-    return Motion(joint_rotvecs=rot, Rh=data["Rh"], Th=data["Th"], fps=float(data["fps"]), body=str(data["body"]),
-                  source=str(data.get("source", path.name)), joint_names=tuple(data.get("joint_names", ())),
-                  shape=shape if shape is not None and shape.size else None,
-                  info=json.loads(str(data["info"])) if "info" in data else {})
-
-
-def motion_from_fits(fits: dict, fps: float, body_name: str, source: str, shape=None) -> Motion:
-    """{frame: BodyFit} → Motion (all fits must share the pose size)."""
+def motion_from_fits(fits: dict, fps: float, body_name: str | None, source: str, shape=None, body=None) -> Motion:
+    """{frame: BodyFit} → Motion for the body model the fits are of (``body_name``, or told by the
+    pose size when None: 72 SMPL, 165 SMPL-X, ...). All fits must share the pose size."""
     items = list(fits.values())
+    if not items:
+        raise InputError(source, "no fits")
     sizes = {f.poses.size for f in items}
     if len(sizes) != 1:
         raise InputError(source, f"fits have different pose sizes {sorted(sizes)}")
+    body_name = body_name or fits_body_name(sizes.pop(), source, body)
     T = len(items)
     rot = np.stack([f.poses for f in items]).reshape(T, -1, 3)
     first_shape = items[0].shapes if items[0].shapes.size else None
@@ -132,25 +63,41 @@ def _body_model(body):
     return load_body_model(body or "anny") if body is None or isinstance(body, str) else body
 
 
-def load_motion(path: str | Path, body=None, fps: float | None = None, default_fps: float = 25.0) -> Motion:
+def load_motion(path: str | Path, body=None, fps: float | None = None, default_fps: float = 25.0,
+                config: RetargetConfig | None = None) -> Motion:
     """Load a motion for ``body`` (a BodyModel or a name; default "anny") from any supported source;
-    resample to ``fps`` when given. ``default_fps`` applies to fits folders/NPZ without a rate."""
+    resample to ``fps`` when given. ``default_fps`` applies to fits folders/NPZ without a rate;
+    ``config`` steers retargeting (joint map, twist, root)."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "motion file or folder is missing")
-    motion = _load(path, body, default_fps)
+    motion = _load(path, body, default_fps, config or RetargetConfig())
     want = _body_name(body)
     if want is not None and motion.body != want:
         raise InputError(path, f"motion is for body model '{motion.body}', not '{want}'")
     if hasattr(body, "num_joints") and motion.num_joints != body.num_joints:
         raise InputError(path, f"motion has {motion.num_joints} joints, body model '{body.name}' has {body.num_joints}")
+    names = getattr(body, "shape_names", None)
+    if motion.shape is not None and names is not None and motion.shape.size != len(names):
+        raise InputError(path, f"the motion's body shape has {motion.shape.size} values, body model "
+                               f"'{body.name}' has {len(names)} shape parameters")
     return resample_motion(motion, fps) if fps else motion
 
 
-def _load(path: Path, body, default_fps: float) -> Motion:
-    from uvatar.motion.retarget import retarget
+def _for_body(motion: Motion, body, config: RetargetConfig, path: Path) -> Motion:
+    """Body-model fits of another model (SMPL, SMPL-X) → ``body`` by a real conversion."""
+    want = _body_name(body)
+    if want is None or motion.body == want:
+        return motion
+    try:
+        return convert_body_motion(motion, _body_model(body), config)
+    except UvatarError as exc:
+        raise InputError(path, str(exc)) from None
 
+
+def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motion:
     suffix = path.suffix.lower()
+    rest_config = replace(config, twist="rest") if config.twist == "auto" else config
     if path.is_dir():
         if (path / "capture.json").is_file():
             from uvatar.capture.layout import Capture
@@ -158,41 +105,36 @@ def _load(path: Path, body, default_fps: float) -> Motion:
             cap = Capture(path)
             fits = {f: cap.load_fit(f) for f in cap.frames}
             shape = cap.body_shapes if cap.body_shapes.size else None
-            return motion_from_fits(fits, cap.fps, cap.body_model, str(path), shape)
+            return _for_body(motion_from_fits(fits, cap.fps, cap.body_model, str(path), shape), body, config, path)
         from uvatar.capture.fits import read_fits_dir
 
-        return motion_from_fits(read_fits_dir(path), default_fps, _body_name(body) or "anny", str(path))
+        return _for_body(motion_from_fits(read_fits_dir(path), default_fps, None, str(path), body=body), body, config, path)
     if suffix == ".bvh":
-        from uvatar.motion.bvh import read_bvh
-        from uvatar.motion.skeleton import skeleton_motion_from_bvh
-
-        return retarget(skeleton_motion_from_bvh(read_bvh(path), source=path.name), _body_model(body))
+        try:
+            return retarget(skeleton_motion_from_bvh(read_bvh(path), source=path.name), _body_model(body), config)
+        except InputError:
+            raise
+        except UvatarError as exc:  # a retarget problem: name the whole path
+            raise InputError(path, str(exc).removeprefix(f"{path.name}: ")) from None
     if suffix == ".npz":
         data = read_npz(path)
         keys = set(data)
         if "joint_rotvecs" in keys:
-            return _read_uvatar_npz(path, data)
-        from uvatar.motion.amass import (
-            can_copy_amass,
-            is_amass_npz,
-            motion_from_amass,
-            read_amass,
-            skeleton_motion_from_amass,
-        )
-
+            return motion_from_npz(path, data)
         if is_amass_npz(keys):
             amass, model = read_amass(path), _body_model(body)
             if can_copy_amass(model):  # SMPL family: copy by joint name, no retargeting
                 return motion_from_amass(amass, model, source=path.name)
-            return retarget(skeleton_motion_from_amass(amass, source=path.name), model)
+            return retarget(skeleton_motion_from_amass(amass, source=path.name), model, rest_config)
         if {"frames", "poses", "Rh", "Th"} <= keys:
             from uvatar.capture.fits import read_fits_npz
 
-            return motion_from_fits(read_fits_npz(path), default_fps, _body_name(body) or "anny", path.name)
+            return _for_body(motion_from_fits(read_fits_npz(path), default_fps, None, path.name, body=body), body, config, path)
         raise InputError(path, "NPZ is neither a uvatar motion, an AMASS motion nor a fits sequence")
     raise InputError(path, f"unsupported motion format {suffix!r} (.bvh, .npz, a fits or capture folder)")
 
 
+@one_thread
 def slerp_rotvecs(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Geodesic interpolation between rotations (..., 3) with per-item weights broadcast to (...).
 
@@ -201,9 +143,9 @@ def slerp_rotvecs(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndar
     import roma
     import torch
 
-    q0 = roma.rotvec_to_unitquat(torch.as_tensor(np.asarray(r0), dtype=torch.float64))
-    q1 = roma.rotvec_to_unitquat(torch.as_tensor(np.asarray(r1), dtype=torch.float64))
-    w = torch.as_tensor(np.asarray(weight), dtype=torch.float64)
+    q0 = roma.rotvec_to_unitquat(torch.as_tensor(np.array(r0, np.float64)))
+    q1 = roma.rotvec_to_unitquat(torch.as_tensor(np.array(r1, np.float64)))
+    w = torch.as_tensor(np.array(weight, np.float64))
     rel = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(q0), q1))  # |rel| <= pi
     out = roma.quat_product(q0, roma.rotvec_to_unitquat(rel * w[..., None]))
     return roma.unitquat_to_rotvec(out).numpy()
@@ -224,7 +166,7 @@ def slerp_rotvecs_reference(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) 
 
 def resample_motion(motion: Motion, fps: float) -> Motion:
     """Resample to ``fps`` over the same duration (rotations by slerp, Th linearly)."""
-    if fps <= 0:
+    if not np.isfinite(fps) or fps <= 0:
         raise ValueError(f"fps must be positive, got {fps}")
     if motion.num_frames < 2 or abs(fps - motion.fps) < 1e-9:
         return replace(motion, fps=fps)

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uvatar.motion.bvh import BvhMotion, forward_kinematics
+from uvatar.body.kinematics import forward_kinematics_numpy
+from uvatar.motion.bvh import BvhMotion
 
 # CMU BVH length unit: 1/0.45 inch
 CMU_UNIT_METRES = 0.0254 / 0.45
@@ -47,17 +48,23 @@ def clean_fps(fps: float) -> float:
 
 
 def guess_bvh_units(motion: BvhMotion) -> float | None:
-    """Metres per file unit guessed from the leg length (CMU units, centimetres, metres, inches)."""
+    """Metres per file unit guessed from the leg length (hip → knee → ankle, 0.5-1.3 m; CMU units,
+    centimetres, metres, inches, millimetres), or the rest height when the legs are not found."""
+    from uvatar.motion.rigs import match_rig
+
     sk = motion.skeleton
-    rest_r = np.broadcast_to(np.eye(3), (sk.num_joints, 3, 3))
-    _, rest = forward_kinematics(sk.parents, rest_r, sk.offsets)
-    height = float(np.ptp(rest[:, 1]))
-    if height <= 0:
-        return None
+    _, rest = forward_kinematics_numpy(sk.parents, np.eye(3), sk.offsets)
     if "LowerBack" in sk.names and "LHipJoint" in sk.names:
         return CMU_UNIT_METRES
-    for unit in (1.0, 0.01, 0.0254, CMU_UNIT_METRES, 0.001):  # plausible skeleton 0.8 .. 2.5 m tall
-        if 0.8 <= height * unit <= 2.5:
+    index = {s: sk.index(n) for n, s in match_rig(sk.names, sk.parents).mapping.items()}
+    legs = [np.linalg.norm(rest[index[p + "knee"]] - rest[index[p + "hip"]])
+            + np.linalg.norm(rest[index[p + "ankle"]] - rest[index[p + "knee"]])
+            for p in ("l_", "r_") if all(p + k in index for k in ("hip", "knee", "ankle"))]
+    size, low, high = (float(np.mean(legs)), 0.5, 1.3) if legs else (float(np.ptp(rest[:, 1])), 0.8, 2.5)
+    if size <= 0:
+        return None
+    for unit in (1.0, 0.01, 0.0254, CMU_UNIT_METRES, 0.001):
+        if low <= size * unit <= high:
             return unit
     return None
 
@@ -66,9 +73,33 @@ def skeleton_motion_from_bvh(motion: BvhMotion, source: str = "") -> SkeletonMot
     """World rotations (relative to the zero-channel rest pose) and positions by FK."""
     sk = motion.skeleton
     world_r, world_p = motion.world_transforms()
-    rest_r = np.broadcast_to(np.eye(3), (sk.num_joints, 3, 3)).copy()
-    rest_world_r, rest_p = forward_kinematics(sk.parents, rest_r, sk.offsets)
-    deltas = world_r @ np.swapaxes(rest_world_r, -1, -2)  # rest is identity for plain BVH
+    _, rest_p = forward_kinematics_numpy(sk.parents, np.eye(3), sk.offsets)  # zero channels: identity frames
     return SkeletonMotion(names=sk.names, parents=sk.parents.copy(), rest_positions=rest_p,
-                          world_rotations=deltas, positions=world_p, fps=clean_fps(motion.fps),
+                          world_rotations=world_r, positions=world_p, fps=clean_fps(motion.fps),
                           units_to_metres=guess_bvh_units(motion), source=source)
+
+
+def skeleton_motion_from_rotations(names, parents, rest_joints, local_rotations, root_translation=None,
+                                   world_rotation=None, world_translation=None, fps: float = 30.0,
+                                   units_to_metres: float | None = 1.0, source: str = "") -> SkeletonMotion:
+    """A body-model rig whose joint frames are world-aligned at rest (SMPL family, AMASS) posed by
+    local rotations (T, J, 3, 3): FK from the rest joints (J, 3), the root moved by
+    ``root_translation`` (T, 3), then the world transform ``x → world_rotation (T or 1, 3, 3) @ x +
+    world_translation (T, 3)`` (EasyMocap Rh/Th; AMASS's Z-up → Y-up turn)."""
+    rest = np.asarray(rest_joints, np.float64)
+    parents = np.asarray(parents, np.int64)
+    T = local_rotations.shape[0]
+    offsets = rest - rest[np.maximum(parents, 0)]
+    offsets[parents < 0] = rest[parents < 0]
+    translations = np.broadcast_to(offsets, (T, len(parents), 3)).copy()
+    if root_translation is not None:
+        translations[:, parents < 0] += np.asarray(root_translation, np.float64)[:, None]
+    world_r, world_p = forward_kinematics_numpy(parents, local_rotations, translations)
+    if world_rotation is not None:
+        W = np.asarray(world_rotation, np.float64).reshape(-1, 1, 3, 3)
+        world_r = W @ world_r
+        world_p = (W @ world_p[..., None])[..., 0]
+    if world_translation is not None:
+        world_p = world_p + np.asarray(world_translation, np.float64).reshape(-1, 1, 3)
+    return SkeletonMotion(names=tuple(names), parents=parents, rest_positions=rest.copy(), world_rotations=world_r,
+                          positions=world_p, fps=float(fps), units_to_metres=units_to_metres, source=source)

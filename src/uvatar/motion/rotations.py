@@ -1,0 +1,114 @@
+"""Rotation conversions for the motion code: thin numpy (float64) wrappers over roma.
+
+roma owns the math (axis-angle, Euler, quaternions); these only move arrays between numpy and
+torch so that the readers and the retargeter stay in numpy. Shapes: rotvecs (..., 3) radians,
+matrices (..., 3, 3), Euler angles (..., len(order)).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from uvatar.threads import single_threaded
+
+
+def one_thread(fn):
+    """Small batched torch ops: one thread is several times faster than a contended pool."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with single_threaded():
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+def _t(x):
+    import torch
+
+    return torch.as_tensor(np.asarray(x, np.float64))
+
+
+@one_thread
+def rotvec_to_matrix(rotvec) -> np.ndarray:
+    """(..., 3) axis-angle (radians) → (..., 3, 3)."""
+    import roma
+
+    return roma.rotvec_to_rotmat(_t(rotvec)).numpy()
+
+
+@one_thread
+def matrix_to_rotvec(matrix) -> np.ndarray:
+    """(..., 3, 3) rotation matrices → (..., 3) axis-angle, angle in [0, pi]."""
+    import roma
+
+    return roma.rotmat_to_rotvec(_t(matrix)).numpy()
+
+
+@one_thread
+def euler_to_matrix(angles, order: str, degrees: bool = False) -> np.ndarray:
+    """Intrinsic Euler angles (..., len(order)) in ``order`` (e.g. "ZYX") → (..., 3, 3) with
+    ``R = R_order[0] @ R_order[1] @ ...`` (the BVH convention)."""
+    import roma
+
+    angles = _t(angles)
+    return roma.euler_to_rotmat(order.upper(), angles, degrees=degrees).numpy()
+
+
+@one_thread
+def matrix_to_euler(matrix, order: str, degrees: bool = False) -> np.ndarray:
+    """Inverse of :func:`euler_to_matrix` → (..., len(order)) (one of the solutions at gimbal lock).
+    Orders of 1 or 2 axes need rotations about those axes only."""
+    import roma
+
+    R = _t(matrix)
+    order = order.upper()
+    if len(order) == 3 and len(set(order)) == 3:
+        out = roma.rotmat_to_euler(order, R, degrees=degrees)
+        return out.numpy() if hasattr(out, "numpy") else np.stack([a.numpy() for a in out], -1)
+    full = order + "".join(a for a in "XYZ" if a not in order)[: 3 - len(order)]
+    if len(full) != 3 or len(set(full)) != 3:
+        raise ValueError(f"unsupported Euler order {order!r}")
+    angles = matrix_to_euler(R.numpy(), full)
+    alt = angles + np.pi * np.array([1.0, 0, 1.0])  # the other Tait-Bryan solution (a+pi, pi-b, c+pi)
+    alt[..., 1] = np.pi - angles[..., 1]
+    alt = (alt + np.pi) % (2 * np.pi) - np.pi
+    pick = np.abs(alt[..., 2:]) < np.abs(angles[..., 2:])  # the one whose dropped angle is ~0
+    out = np.where(pick, alt, angles)[..., : len(order)]
+    return np.rad2deg(out) if degrees else out
+
+
+def rotation_between(a, b) -> np.ndarray:
+    """Smallest rotation (3, 3) taking direction ``a`` onto direction ``b`` (any lengths)."""
+    a = np.asarray(a, np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, np.float64) / np.linalg.norm(b)
+    axis, c = np.cross(a, b), float(np.clip(np.dot(a, b), -1.0, 1.0))
+    s = float(np.linalg.norm(axis))
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])  # opposite: pi about any normal
+        s = float(np.linalg.norm(axis))
+    return rotvec_to_matrix(axis / s * np.arctan2(s, c) if s >= 1e-12 and c > -1 + 1e-12 else axis / s * np.pi)
+
+
+@one_thread
+def twist_angle(matrix, axis) -> np.ndarray:
+    """Swing-twist decomposition: the signed twist angle (radians, (...,)) of rotations (..., 3, 3)
+    about unit directions ``axis`` (..., 3): ``2 atan2(q_xyz . axis, q_w)`` wrapped to (-pi, pi]."""
+    import roma
+
+    q = roma.rotmat_to_unitquat(_t(matrix)).numpy()  # (..., 4) xyzw
+    axis = np.asarray(axis, np.float64)
+    axis = axis / np.linalg.norm(axis, axis=-1, keepdims=True)
+    angle = 2 * np.arctan2((q[..., :3] * axis).sum(-1), q[..., 3])
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def geodesic_angle(a, b) -> np.ndarray:
+    """Angle (radians) between unit-free directions a, b (..., 3)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    cos = (a * b).sum(-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-300)
+    return np.arccos(np.clip(cos, -1.0, 1.0))
