@@ -28,7 +28,7 @@ from uvatar.errors import check_values, require
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EXECUTORS", "ExecutorConfig", "TaskFailure", "run_tasks", "worker_cache"]
+__all__ = ["EXECUTORS", "ExecutorConfig", "TaskFailure", "clear_worker_cache", "run_tasks", "worker_cache"]
 
 EXECUTORS = ("local", "ray")
 
@@ -90,6 +90,11 @@ def worker_cache(key, factory: Callable[[], Any]):
         _CACHE.clear()
         _CACHE[key] = factory()
     return _CACHE[key]
+
+
+def clear_worker_cache() -> None:
+    """Drop what :func:`worker_cache` holds in this process (a stage run in process calls it at its end)."""
+    _CACHE.clear()
 
 
 def _quiet_loads(payload: bytes):
