@@ -92,9 +92,13 @@ def all_sum(x: torch.Tensor, differentiable: bool = False) -> torch.Tensor:
     if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
         return x
     if differentiable:
+        import warnings
+
         from torch.distributed.nn.functional import all_reduce
 
-        return all_reduce(x)
+        with warnings.catch_warnings():  # deprecated for torch.compile's functional collectives; works as is
+            warnings.simplefilter("ignore", FutureWarning)
+            return all_reduce(x)
     y = x.detach().clone()
     dist.all_reduce(y)
     return y
