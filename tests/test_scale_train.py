@@ -4,19 +4,18 @@ same global batch, checkpoints moving between the two, and kill -9 / resume of `
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
 import subprocess
 import sys
 import textwrap
-import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from subprocess_helpers import child_env, kill_group_when
 
 from uvatar.avh.fake_baked import make_fake_baked_dataset
 from uvatar.avh.model import AvhConfig
@@ -24,17 +23,8 @@ from uvatar.avh.train import TrainConfig, train_avh
 from uvatar.distributed import GlobalBatchNorm2d, distributed_context
 from uvatar.errors import UvatarError
 
-SRC = str(Path(__file__).resolve().parents[1] / "src")
 SMALL = AvhConfig(feature_size=4, latent=32, resolution=16)
 TEN = TrainConfig(epochs=10, batch_size=4, progress=False, tensorboard=False)  # 8 frames: 2 steps, 20 in all
-
-
-def _env() -> dict:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = SRC + os.pathsep + env.get("PYTHONPATH", "")
-    for key in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
-        env.pop(key, None)
-    return env
 
 
 def _step_losses(run: Path) -> np.ndarray:
@@ -93,7 +83,7 @@ def torchrun(baked, single, tmp_path_factory):
     script = root / "ddp_train.py"
     script.write_text(textwrap.dedent(TORCHRUN_SCRIPT))
     proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-                           str(script), str(baked), str(root)], env=_env(), capture_output=True, text=True,
+                           str(script), str(baked), str(root)], env=child_env(), capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return root
@@ -161,17 +151,6 @@ t.train_avh(sys.argv[1], sys.argv[2], AvhConfig(feature_size=4, latent=32, resol
 """
 
 
-def _kill_group_when(proc: subprocess.Popen, ready, timeout: float = 120) -> None:
-    """kill -9 the process group of ``proc`` once ``ready()`` holds (fails if it ends first)."""
-    t0 = time.time()
-    while not ready():
-        assert proc.poll() is None, "the run ended before it could be killed"
-        assert time.time() - t0 < timeout, "the run never reached the kill point"
-        time.sleep(0.05)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait(30)
-
-
 def _epochs_done(run: Path) -> int:
     try:
         return len(json.loads((run / "history.json").read_text()))
@@ -183,9 +162,9 @@ def test_train_avh_killed_with_kill_9_resumes_to_the_uninterrupted_weights(baked
     script = tmp_path / "kill_train.py"
     script.write_text(textwrap.dedent(KILL_SCRIPT))
     run = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, str(script), str(baked), str(run)], env=_env(),
+    proc = subprocess.Popen([sys.executable, str(script), str(baked), str(run)], env=child_env(),
                             start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _kill_group_when(proc, lambda: _epochs_done(run) >= 4)
+    kill_group_when(proc, lambda: _epochs_done(run) >= 4)
     assert proc.returncode == -signal.SIGKILL
     assert not (run / "done.json").exists()
     with pytest.raises(UvatarError, match="--resume"):
