@@ -22,7 +22,7 @@ from torch import nn
 from uvatar.errors import UvatarError
 
 __all__ = ["DistContext", "GlobalBatchNorm2d", "all_sum", "distributed_context", "global_batchnorm",
-           "local_share"]
+           "is_main_process", "local_share"]
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,11 @@ class DistContext:
     def barrier(self) -> None:
         if self.active:
             torch.distributed.barrier()
+
+
+def is_main_process() -> bool:
+    """True alone or on rank 0 under torchrun (for CLI output printed once)."""
+    return os.environ.get("RANK", "0") == "0"
 
 
 def _env_int(name: str, default: int) -> int:

@@ -38,7 +38,7 @@ from uvatar.avh.model import (
     init_output_bias,
     select_conditioning_angles,
 )
-from uvatar.distributed import DistContext, all_sum, distributed_context, global_batchnorm
+from uvatar.distributed import DistContext, all_sum, distributed_context, global_batchnorm, local_share
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.io_utils import atomic_path, read_json, write_json
 
@@ -204,12 +204,14 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
                           preset_name)
 
 
-def _epoch_indices(n: int, epoch: int, cfg: TrainConfig, ctx: DistContext) -> list[int]:
-    """This rank's frame indices of an epoch: DistributedSampler(seed, epoch), equal for any world size
-    in the sense that global batch s is frames perm[s·B:(s+1)·B] of the same permutation."""
+def _epoch_order(n: int, epoch: int, cfg: TrainConfig) -> list[int]:
+    """The epoch's frame order, the same in every process: DistributedSampler's seeded shuffle
+    (seed + epoch) over the whole set. Global batch s is ``order[s·B:(s+1)·B]`` for any number of
+    processes; rank r takes every world-th of it (:func:`uvatar.distributed.local_share`), so there is
+    no padding and no frame counted twice, whatever the frame count."""
     from torch.utils.data import DistributedSampler
 
-    sampler = DistributedSampler(range(n), num_replicas=ctx.world, rank=ctx.rank, shuffle=True, seed=cfg.seed)
+    sampler = DistributedSampler(range(n), num_replicas=1, rank=0, shuffle=True, seed=cfg.seed)
     sampler.set_epoch(epoch)
     return list(sampler)
 
@@ -305,16 +307,16 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(run_dir / "tb"), purge_step=start_epoch)
-    steps_per_epoch = math.ceil(math.ceil(len(train) / ctx.world) / local_batch)
+    steps_per_epoch = math.ceil(len(train) / cfg.batch_size)
     bar = tqdm(total=(cfg.epochs - start_epoch) * steps_per_epoch, desc="train avh",
                disable=not (cfg.progress and ctx.is_main), unit="step")
     t0, samples = time.perf_counter(), 0
     for epoch in range(start_epoch, cfg.epochs):
         model.train()
-        perm = torch.tensor(_epoch_indices(len(train), epoch, cfg, ctx), dtype=torch.long).to(device)
+        perm = torch.tensor(_epoch_order(len(train), epoch, cfg), dtype=torch.long).to(device)
         sums, step_losses = np.zeros(3), []
         for s in range(steps_per_epoch):
-            idx = perm[s * local_batch:(s + 1) * local_batch]
+            idx = local_share(perm[s * cfg.batch_size:(s + 1) * cfg.batch_size], ctx)
             pose, batch = train.batch(idx, cfg.pose_noise)
             if use_cuda:
                 batch = {k: v.contiguous(memory_format=torch.channels_last) for k, v in batch.items()}

@@ -88,7 +88,10 @@ def _train(args) -> int:
         cfg.decoder.voxels = args.voxels
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=args.iters, minutes=args.minutes,
                         device=args.device, resume=args.resume, vgg_weights=args.vgg_weights)
-    print(f"trained {summary['steps']} steps in {summary['seconds']} s -> {args.out}")
+    from uvatar.distributed import is_main_process
+
+    if is_main_process():
+        print(f"trained {summary['steps']} steps in {summary['seconds']} s -> {args.out}")
     return 0
 
 

@@ -112,7 +112,16 @@ def _bake_task(shared: dict, frame: str) -> FrameResult:
     folders, the config and the (body, layout) pair, shipped once per worker process."""
     config = shared["config"]
     _STATE.setdefault((shared["body_name"], int(config.texels)), shared["body_layout"])
-    return _bake_one(shared["capture_root"], shared["out_root"], frame, config)
+    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config)
+    result.stats["worker_peak_rss_mb"] = _peak_rss_mb()
+    return result
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MiB (Linux ru_maxrss is in KiB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _reject_reason(kappa_mean: float, config: BakeConfig) -> str:
