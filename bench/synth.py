@@ -68,13 +68,12 @@ def main(argv=None) -> int:
         torch.set_num_threads(1)
         plan = make_plan(body, cfg)
         studio = Studio(cfg, root, plan)
-        pipeline._STUDIO = studio
         t = time.perf_counter()
         studio.fine()
         result["fine_mesh_s"] = round(time.perf_counter() - t, 2)
         (root / "gt" / "topologies" / "000.npz").unlink()
         t = time.perf_counter()
-        pipeline._topology_task(0)
+        pipeline._topology_task(studio, 0)
         result["topology_s"] = round(time.perf_counter() - t, 2)
         result["topology_faces"] = plan["segments"][0]["target_faces"]
         t = time.perf_counter()
@@ -85,7 +84,6 @@ def main(argv=None) -> int:
         for i in range(n):
             studio.make_frame(i)
         result["frame_s"] = round((time.perf_counter() - t) / n, 3)
-        pipeline._STUDIO = None
     print(json.dumps(result))
     return 0
 

@@ -70,7 +70,7 @@ def test_bake_selection_replaces_rejected_frames(monkeypatch, tmp_path):
     rejected = {"000000", "000007"}
     calls = []
 
-    def fake_bake(capture_root, out_root, config, frames, workers, progress, overwrite):
+    def fake_bake(capture_root, out_root, config, frames, workers, progress, overwrite, executor=None):
         calls.append(list(frames))
         return {f: FrameResult(f, "rejected" if f in rejected else "baked", "low kappa" if f in rejected else None)
                 for f in frames}

@@ -36,7 +36,7 @@ def test_curriculum_switches_to_three_views(capture):
     trainer = Trainer(open_source(capture), capture.parent / "cur", cfg, progress=False)
     assert trainer.bank.textures.shape[1] == 3  # three training cameras
     trainer.step = 0
-    _, _, tex = trainer.sample()
+    _, _, tex, _ = trainer.sample()
     full = trainer.bank.image_texture(0, [0, 1, 2])
     assert tex.shape == (1,) + tuple(full.shape)
     lr = cfg.train.lr
@@ -46,7 +46,7 @@ def test_curriculum_switches_to_three_views(capture):
     trainer.cfg.train.driving_views = 2
     trainer.step = cfg.train.all_views_iters
     for _ in range(5):
-        _, _, tex = trainer.sample()
+        _, _, tex, _ = trainer.sample()
         assert float(tex[0, 3].max()) <= 1.0
 
 

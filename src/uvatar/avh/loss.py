@@ -24,22 +24,27 @@ def displacement_mask(displacement: torch.Tensor, w: torch.Tensor, valid: torch.
     return mask
 
 
-def masked_mse(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
-    """Σ weight·(pred − target)² / (C·Σ weight); pred/target (B, C, R, R), weight (B, 1, R, R)."""
+def masked_mse(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, eps: float = 1e-8,
+               total=None) -> torch.Tensor:
+    """Σ weight·(pred − target)² / (C·Σ weight); pred/target (B, C, R, R), weight (B, 1, R, R).
+
+    total: maps this batch's Σ weight to the global batch's (:func:`uvatar.distributed.all_sum` under
+    data parallelism, so that the per-process terms add up to the global batch's loss); None: as is."""
     err = (pred.float() - target.float()).square() * weight.float()
-    return err.sum() / (pred.shape[1] * weight.float().sum() + eps)
+    wsum = weight.float().sum()
+    return err.sum() / (pred.shape[1] * (wsum if total is None else total(wsum)) + eps)
 
 
 def avh_loss(pred_texture: torch.Tensor, pred_displacement: torch.Tensor, batch: dict[str, torch.Tensor],
              excluded: torch.Tensor | None = None, outlier_threshold: float = 0.05,
-             displacement_weight: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(total, texture term, displacement term).
+             displacement_weight: float = 1.0, total=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(total, texture term, displacement term). ``total``: see :func:`masked_mse`.
 
     batch: texture (B,3,R,R), displacement (B,3,R,R) metres, kappa (B,1,R,R), w (B,1,R,R), valid (B,1,R,R).
     total = texture + displacement_weight · displacement (the paper uses weight 1).
     """
     valid = batch["valid"].to(batch["kappa"].dtype)
-    tex = masked_mse(pred_texture, batch["texture"], batch["kappa"] * valid)
+    tex = masked_mse(pred_texture, batch["texture"], batch["kappa"] * valid, total=total)
     dmask = displacement_mask(batch["displacement"], batch["w"], batch["valid"], excluded, outlier_threshold)
-    disp = masked_mse(pred_displacement, batch["displacement"], dmask)
+    disp = masked_mse(pred_displacement, batch["displacement"], dmask, total=total)
     return tex + displacement_weight * disp, tex, disp

@@ -39,6 +39,7 @@ from uvatar.avh.model import (
     init_output_bias,
     select_conditioning_angles,
 )
+from uvatar.distributed import DistContext, all_sum, distributed_context, global_batchnorm, local_share
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.io_utils import atomic_path, read_json, write_json
 
@@ -193,14 +194,42 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
 
     ``model_config.num_pose_joints`` is replaced by the number of conditioning joints of the body.
     Raises UvatarError if ``run_dir`` holds a checkpoint and ``resume`` is False.
+
+    Under ``torchrun`` (:mod:`uvatar.distributed`) each of the N processes trains on ``batch_size / N``
+    samples of every global batch (DistributedSampler order, the same alone or not), DDP averages the
+    gradients and BatchNorm and the loss use global-batch sums, so the steps are those of one process;
+    rank 0 alone logs and writes the run folder. A checkpoint resumes under any number of processes.
     """
+    with distributed_context(train_config.device) as ctx:
+        return _train_avh(ctx, Path(baked_dir), Path(run_dir), model_config, train_config, resume, body,
+                          preset_name)
+
+
+def _epoch_order(n: int, epoch: int, cfg: TrainConfig) -> list[int]:
+    """The epoch's frame order, the same in every process: DistributedSampler's seeded shuffle
+    (seed + epoch) over the whole set. Global batch s is ``order[s·B:(s+1)·B]`` for any number of
+    processes; rank r takes every world-th of it (:func:`uvatar.distributed.local_share`), so there is
+    no padding and no frame counted twice, whatever the frame count."""
+    from torch.utils.data import DistributedSampler
+
+    sampler = DistributedSampler(range(n), num_replicas=1, rank=0, shuffle=True, seed=cfg.seed)
+    sampler.set_epoch(epoch)
+    return list(sampler)
+
+
+def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: AvhConfig, cfg: TrainConfig,
+               resume: bool, body, preset_name: str | None) -> dict:
     from tqdm import tqdm
 
-    baked_dir, run_dir = Path(baked_dir), Path(run_dir)
-    cfg = train_config
+    if cfg.batch_size % ctx.world:
+        raise UvatarError(f"batch size {cfg.batch_size} is not divisible by the {ctx.world} processes "
+                          "(the batch size is the global batch)")
+    local_batch = cfg.batch_size // ctx.world
     ckpt_path = run_dir / "checkpoint.pt"
     state = None
-    if ckpt_path.exists():
+    has_checkpoint = ckpt_path.exists()
+    ctx.barrier()  # every rank has looked before rank 0 writes anything
+    if has_checkpoint:
         if not resume:
             raise UvatarError(f"{run_dir}: holds a checkpoint; pass --resume to continue or pick a new folder")
         state = _load_checkpoint(ckpt_path)
@@ -222,7 +251,7 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
         cfg = replace(cfg, displacement_frame="body")
     _, shapes = body_model_info(meta)
 
-    device = torch.device(cfg.device)
+    device = ctx.device
     if device.type == "cuda" and not torch.cuda.is_available():
         raise UvatarError("--device cuda requested but CUDA is not available")
     torch.manual_seed(cfg.seed)
@@ -230,7 +259,7 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
         frames = load_baked_frames(baked_dir, names, R, progress)
         return to_training_data(displacements_to_frame(frames, cfg.displacement_frame, body, shapes), cond, device)
 
-    train = load(train_names, cfg.progress)
+    train = load(train_names, cfg.progress and ctx.is_main)
     val = load(val_names) if val_names else None
     excluded = None if excluded_np is None else torch.from_numpy(excluded_np).to(device)
 
@@ -239,6 +268,8 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
     if use_cuda:
         model = model.to(memory_format=torch.channels_last)
         torch.backends.cudnn.benchmark = True
+    if ctx.active:  # before the optimizer takes the parameters: BatchNorm over the global batch
+        model = global_batchnorm(model, device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=cfg.lr_gamma)
     history: list[dict] = []
@@ -252,6 +283,12 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
         history, start_epoch = state["history"], state["epoch"] + 1
         torch.set_rng_state(state["rng"])
     n_params = count_parameters(model)
+    net = model
+    if ctx.active:
+        from torch.nn.parallel import DistributedDataParallel
+
+        net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+    total = all_sum if ctx.active else None
     run_info = {"preset": preset_name, "model": model_config.to_dict(), "train": asdict(cfg), "baked": str(baked_dir.resolve()),
                 "body_model": {"name": body_model_info(meta)[0],
                                "shapes": None if shapes is None else shapes.tolist()},
@@ -259,49 +296,59 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
                 "train_frames": train.names, "val_frames": [] if val is None else val.names,
                 "parameters": n_params, "displacement_frame": cfg.displacement_frame,
                 "displacement_space": DISPLACEMENT_SPACES[cfg.displacement_frame]}
-    write_json(run_dir / "run.json", run_info)
-    print(f"AVH generator: {n_params:,} parameters (f_c={model_config.feature_size}, "
-          f"latent={model_config.latent}, {R}x{R}); {len(train)} train / "
-          f"{0 if val is None else len(val)} val frames; device {device}")
+    if ctx.is_main:
+        write_json(run_dir / "run.json", run_info)
+        print(f"AVH generator: {n_params:,} parameters (f_c={model_config.feature_size}, "
+              f"latent={model_config.latent}, {R}x{R}); {len(train)} train / "
+              f"{0 if val is None else len(val)} val frames; device {device}"
+              + (f"; {ctx.world} processes x {local_batch} samples" if ctx.active else ""))
 
     writer = None
-    if cfg.tensorboard:
+    if cfg.tensorboard and ctx.is_main:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(run_dir / "tb"), purge_step=start_epoch)
     steps_per_epoch = math.ceil(len(train) / cfg.batch_size)
-    bar = tqdm(total=(cfg.epochs - start_epoch) * steps_per_epoch, desc="train avh", disable=not cfg.progress,
-               unit="step")
+    bar = tqdm(total=(cfg.epochs - start_epoch) * steps_per_epoch, desc="train avh",
+               disable=not (cfg.progress and ctx.is_main), unit="step")
     t0, samples = time.perf_counter(), 0
     for epoch in range(start_epoch, cfg.epochs):
         model.train()
-        perm = torch.randperm(len(train)).to(device)
-        sums = np.zeros(3)
+        perm = torch.tensor(_epoch_order(len(train), epoch, cfg), dtype=torch.long).to(device)
+        sums, step_losses = np.zeros(3), []
         for s in range(steps_per_epoch):
-            idx = perm[s * cfg.batch_size:(s + 1) * cfg.batch_size]
+            idx = local_share(perm[s * cfg.batch_size:(s + 1) * cfg.batch_size], ctx)
             pose, batch = train.batch(idx, cfg.pose_noise)
             if use_cuda:
                 batch = {k: v.contiguous(memory_format=torch.channels_last) for k, v in batch.items()}
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_cuda):
-                tex, disp = model(pose)
-            losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight)
+                tex, disp = net(pose)
+            losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight, total)
             opt.zero_grad(set_to_none=True)
-            losses[0].backward()
+            (losses[0] * ctx.world).backward()  # DDP averages over the world: undo it, the terms are shares
             opt.step()
-            sums += np.array([float(x.detach()) for x in losses]) * len(idx)
-            samples += len(idx)
+            # this rank's shares summed over the ranks: the global batch's losses, and its size
+            step = all_sum(torch.stack([x.detach().float() for x in losses] + [torch.tensor(
+                float(len(idx)), device=device)])).cpu().double().numpy()
+            sums += step[:3] * step[3]
+            step_losses.append(float(step[0]))
+            samples += int(step[3])
             bar.update(1)
-            bar.set_postfix(epoch=epoch, loss=f"{float(losses[0].detach()):.2e}")
+            bar.set_postfix(epoch=epoch, loss=f"{step[0]:.2e}")
         sched.step()
         entry = {"epoch": epoch, "lr": opt.param_groups[0]["lr"],
-                 **dict(zip(("loss", "texture", "displacement"), (sums / len(train)).tolist(), strict=True))}
+                 **dict(zip(("loss", "texture", "displacement"), (sums / len(train)).tolist(), strict=True)),
+                 "step_loss": step_losses}
+        if not ctx.is_main:  # rank 0 alone validates, logs and writes the run folder
+            history.append(entry)
+            continue
         if val is not None:
             entry.update(dict(zip(("val_loss", "val_texture", "val_displacement"),
                                   evaluate_loss(model, val, excluded, cfg), strict=True)))
         history.append(entry)
         if writer is not None:
             for k, v in entry.items():
-                if k != "epoch":
+                if k not in ("epoch", "step_loss"):
                     writer.add_scalar(k.replace("val_", "val/") if k.startswith("val_") else f"train/{k}", v, epoch)
             if epoch % max(cfg.preview_every, 1) == 0 or epoch == cfg.epochs - 1:
                 model.eval()
@@ -316,12 +363,15 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
     bar.close()
     if writer is not None:
         writer.close()
+    ctx.barrier()  # the run folder is complete before any rank returns
     seconds = time.perf_counter() - t0
     if not history:
         raise UvatarError(f"{run_dir}: nothing trained (epochs={cfg.epochs})")
     summary = {"run": str(run_dir), "epochs": len(history), "parameters": n_params, "seconds": seconds,
-               "samples_per_second": samples / seconds if seconds > 0 else None, "final": history[-1]}
-    write_json(run_dir / "done.json", summary)
+               "samples_per_second": samples / seconds if seconds > 0 else None, "final": history[-1],
+               "processes": ctx.world}
+    if ctx.is_main:
+        write_json(run_dir / "done.json", summary)
     return summary
 
 

@@ -127,9 +127,12 @@ def _train(args) -> int:
                            displacement_frame=args.displacement_frame, pose_noise=args.pose_noise,
                            tensorboard=not args.no_tensorboard)
     summary = train_avh(args.baked, args.out, cfg, tcfg, resume=args.resume, preset_name=args.preset)
+    from uvatar.distributed import is_main_process
+
     final = summary["final"]
-    print(f"trained {summary['epochs']} epochs: loss {final['loss']:.3e}"
-          + (f", val {final['val_loss']:.3e}" if "val_loss" in final else "") + f" -> {args.out}")
+    if is_main_process():
+        print(f"trained {summary['epochs']} epochs: loss {final['loss']:.3e}"
+              + (f", val {final['val_loss']:.3e}" if "val_loss" in final else "") + f" -> {args.out}")
     return 0
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 import sys
 
+from uvatar.cli.executor import add_executor_flags, executor_from_args
+
 
 def _floats(text: str) -> tuple[float, ...]:
     return tuple(float(x) for x in text.split(",") if x.strip())
@@ -70,6 +72,7 @@ def register(cli) -> None:
     p.add_argument("--ablation-frames", type=int, default=4,
                    help="frames re-baked without registration / polarity for --eval (0 = no ablation)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_executor_flags(p)
     p.set_defaults(func=_bake)
 
     s = cli.command("select", help="select training/validation frames by k-means on joint-angle cosines")
@@ -111,6 +114,7 @@ def _bake(args) -> int:
     if args.workers < 1:
         raise InputError("--workers", f"must be at least 1, got {args.workers}")
     progress = not args.no_progress
+    executor = executor_from_args(args, args.workers)
     summary: dict = {}
     requested: list[str] | None = None
     if args.frames_from:
@@ -120,13 +124,14 @@ def _bake(args) -> int:
         except (OSError, ValueError) as exc:
             raise InputError(args.frames_from, f"cannot read selection ({exc})") from None
         summary["selection"] = bake_selection(args.capture, args.out, selection, cfg, args.workers, progress,
-                                              args.overwrite)
+                                              args.overwrite, executor)
         from uvatar.avh.bake.dataset import read_dataset_info
 
         info = read_dataset_info(args.out)
     else:
         frames = [f.strip() for f in args.frames.split(",")] if args.frames else None
-        requested = list(bake_capture(args.capture, args.out, cfg, frames, args.workers, progress, args.overwrite))
+        requested = list(bake_capture(args.capture, args.out, cfg, frames, args.workers, progress, args.overwrite,
+                                      executor))
         from uvatar.avh.bake.dataset import read_dataset_info
 
         info = read_dataset_info(args.out)

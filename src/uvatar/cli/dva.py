@@ -100,7 +100,10 @@ def _train(args) -> int:
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=args.iters, minutes=args.minutes,
                         device=args.device, resume=args.resume, vgg_weights=args.vgg_weights,
                         body_model=args.model, model_dir=args.model_dir)
-    print(f"trained {summary['steps']} steps in {summary['seconds']} s -> {args.out}")
+    from uvatar.distributed import is_main_process
+
+    if is_main_process():
+        print(f"trained {summary['steps']} steps in {summary['seconds']} s -> {args.out}")
     return 0
 
 

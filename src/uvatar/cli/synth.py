@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from uvatar.cli.executor import add_executor_flags, executor_from_args
+
 # flag -> SynthConfig field; defaults come from the preset (no second source of defaults)
 _FLAGS = (("frames", int, "total frames (takes + held-out)"),
           ("cameras", int, "multi-view cameras (ring + elevated); 0 for none"),
@@ -31,6 +33,7 @@ def register(cli) -> None:
                         "body fits) or all (preset default: body)")
     p.add_argument("--no-preview", action="store_true", help="do not write OUT/preview.png")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    add_executor_flags(p)
     p.set_defaults(func=_synth)
 
 
@@ -54,6 +57,7 @@ def _synth(args) -> int:
     cfg = preset(args.preset, **overrides)
     if args.no_preview:
         cfg = cfg.replace(preview=False)
-    summary = synthesize(args.out, cfg, progress=not args.no_progress)
+    executor = executor_from_args(args, args.workers if args.executor == "ray" else cfg.workers)
+    summary = synthesize(args.out, cfg, progress=not args.no_progress, executor=executor)
     print(json.dumps(summary, indent=2))
     return 1 if summary["failed"] else 0

@@ -6,7 +6,14 @@ follow the paper's two-stage curriculum: for the first ``all_views_iters`` steps
 training view, afterwards from ``driving_views`` (3) random training views. Primitive correctives are off
 for the first ``warmup_iters`` steps. The run folder holds ``checkpoint.pt`` (written atomically every
 ``checkpoint_every`` steps and at the end; ``resume=True`` continues from it), ``run.json`` and
-TensorBoard logs in ``tb/``.
+TensorBoard logs in ``tb/``. The checkpoint also holds the sampling RNG, torch's RNG and the seconds
+already trained (time budget and learning-rate clock), so a resumed run takes the same steps as an
+uninterrupted one; a run folder with a checkpoint is never replaced without ``resume``.
+
+Under ``torchrun`` (:mod:`uvatar.distributed`) every process draws the same global batch and renders
+its share (samples ``rank::world``); the gradients are averaged over the processes (one all-reduce per
+step, gloo on CPU, NCCL on GPUs), so the steps are those of one process at the same batch. Rank 0
+alone shows progress and writes the run folder.
 """
 
 from __future__ import annotations
@@ -19,10 +26,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from uvatar.distributed import DistContext, all_sum, distributed_context
 from uvatar.dva.dataset import FrameBank
 from uvatar.dva.losses import DvaLoss, Vgg19Features
 from uvatar.dva.model import DvaConfig, DvaModel, pixel_rays
-from uvatar.errors import InputError
+from uvatar.errors import InputError, UvatarError
 from uvatar.io_utils import atomic_path, write_json
 
 log = logging.getLogger(__name__)
@@ -60,9 +68,11 @@ def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], 1)
 
 
-def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict) -> None:
+def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict, clock: dict | None = None) -> None:
+    """Write a run's checkpoint atomically. clock: what a resume needs to take the same steps
+    (``rng``: the sampling RNG state, ``torch_rng``, ``seconds`` trained so far)."""
     state = {"model": model.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
-             "step": step, "config": model.cfg.to_dict(), "meta": meta}
+             "step": step, "config": model.cfg.to_dict(), "meta": meta, "clock": clock}
     with atomic_path(path, suffix=".pt") as tmp:
         torch.save(state, tmp)
 
@@ -92,16 +102,26 @@ class Trainer:
     """Holds the model, the data bank and the optimizer; ``run()`` trains until iters or minutes."""
 
     def __init__(self, source, out_dir, cfg: DvaConfig, body=None, device="cpu", vgg_weights=None,
-                 resume=False, seed=0, progress=True, body_model=None, model_dir=None):
+                 resume=False, seed=0, progress=True, body_model=None, model_dir=None,
+                 ctx: DistContext | None = None):
         self.source, self.out = source, Path(out_dir)
-        self.device, self.progress = torch.device(device), progress
+        self.ctx = ctx or DistContext(device=torch.device(device))
+        self.device, self.progress = self.ctx.device, progress and self.ctx.is_main
         self.rng = random.Random(seed)
+        self.seconds = 0.0  # trained so far, over every resumed part of the run
         torch.manual_seed(seed)
         self.out.mkdir(parents=True, exist_ok=True)
         ckpt = self.out / CHECKPOINT
         state = None
-        if resume and ckpt.is_file():
-            state = torch.load(ckpt, map_location=self.device, weights_only=False)
+        exists = ckpt.is_file()
+        self.ctx.barrier()  # every rank has looked before rank 0 writes
+        if exists and not resume:
+            raise UvatarError(f"{self.out}: holds a checkpoint; pass --resume to continue or pick a new folder")
+        if exists:
+            try:
+                state = torch.load(ckpt, map_location=self.device, weights_only=False)
+            except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is the same user error
+                raise InputError(ckpt, f"unreadable checkpoint ({exc.__class__.__name__}: {exc})") from None
             cfg = DvaConfig.from_dict(state["config"])  # the run's own config wins on resume
             log.info("resuming from %s at step %d", ckpt, state["step"])
         self.cfg = cfg
@@ -128,9 +148,18 @@ class Trainer:
             if state.get("optimizer"):
                 self.opt.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
+            clock = state.get("clock") or {}
+            if "rng" in clock:
+                self.rng.setstate(_tupled(clock["rng"]))
+                torch.set_rng_state(clock["torch_rng"])
+                self.seconds = float(clock["seconds"])
+            else:  # a checkpoint from before the clock was saved: continues, but not step for step
+                log.warning("%s has no sampling RNG state: the resumed steps differ from an uninterrupted run", ckpt)
 
     def sample(self):
-        """One batch: (frame indices, camera indices, image textures (B,4,R,R))."""
+        """This process's share of one global batch: (frame indices, camera indices, image textures
+        (b,4,R,R), pixel crops [(P*P, 2)]). Every process draws the whole global batch (same RNG
+        stream) and keeps samples ``rank::world``; one process keeps them all."""
         t = self.cfg.train
         n_cam = len(self.bank.cameras)
         frames = [self.rng.randrange(len(self.bank)) for _ in range(t.batch)]
@@ -139,21 +168,23 @@ class Trainer:
             views = [list(range(n_cam))] * t.batch
         else:
             views = [self.rng.sample(range(n_cam), min(t.driving_views, n_cam)) for _ in range(t.batch)]
+        pixels = [patch_pixels(self.bank.masks[f][c], t.patch, self.rng) for f, c in zip(frames, cams, strict=True)]
+        mine = slice(self.ctx.rank, None, self.ctx.world)
+        frames, cams, views, pixels = frames[mine], cams[mine], views[mine], pixels[mine]
         tex = torch.stack([self.bank.image_texture(f, v) for f, v in zip(frames, views, strict=False)])
-        return frames, cams, tex.to(self.device)
+        return frames, cams, tex.to(self.device), pixels
 
     def train_step(self) -> dict:
         t = self.cfg.train
         self.model.correctives_on.fill_(self.step >= t.warmup_iters)
-        frames, cams, tex = self.sample()
+        frames, cams, tex, pixels = self.sample()
         fi = torch.tensor(frames)
         centers = torch.as_tensor(np.stack([self.bank.cams[c].center for c in cams]), dtype=torch.float32)
         out = self.model(self.bank.vertices[fi].to(self.device), self.bank.rotvecs[fi].to(self.device), tex,
                          centers.to(self.device))
         preds, targets, alphas, masks = [], [], [], []
-        for b, (f, c) in enumerate(zip(frames, cams, strict=False)):
+        for b, (f, c, pix) in enumerate(zip(frames, cams, pixels, strict=True)):
             mask = self.bank.masks[f][c]
-            pix = patch_pixels(mask, t.patch, self.rng)
             o, d = pixel_rays(self.bank.cams[c], pix, self.device)
             bg = torch.as_tensor(self.bank.backgrounds[c], device=self.device)
             rgb, alpha = self.model.render_rays(out, b, o, d, bg, camera=self.bank.cams[c], pixels=pix)
@@ -167,10 +198,14 @@ class Trainer:
         total, terms = self.loss(torch.stack(preds), torch.stack(targets), torch.stack(alphas),
                                  torch.stack(masks), out.scales, self.model.rest_scales)
         self.opt.zero_grad(set_to_none=True)
-        if not total.requires_grad:  # no ray met a primitive (and correctives are off): nothing to learn
-            pass
-        elif torch.isfinite(total):
+        learn = bool(total.requires_grad) and bool(torch.isfinite(total))
+        if learn:
             total.backward()
+        if self.ctx.active:
+            learn = self._average_gradients(learn)
+        if not total.requires_grad and not learn:  # no ray met a primitive (and correctives are off)
+            pass
+        elif learn:
             norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
             if torch.isfinite(norm):
                 self.opt.step()
@@ -180,9 +215,31 @@ class Trainer:
             log.warning("step %d: non-finite loss, update skipped", self.step)
         self.step += 1
         terms["total"] = float(total.detach())
-        mse = float(((torch.stack(preds) - torch.stack(targets)) ** 2).mean().detach())
-        terms["psnr"] = float(-10 * np.log10(max(mse, 1e-10)))
+        terms["mse"] = float(((torch.stack(preds) - torch.stack(targets)) ** 2).mean().detach())
+        if self.ctx.active:  # the global batch's terms: the mean of the processes' equal shares
+            keys = sorted(terms)
+            mean = all_sum(torch.tensor([float(terms[k]) for k in keys], dtype=torch.float64)) / self.ctx.world
+            terms = dict(zip(keys, mean.tolist(), strict=True))
+        terms["psnr"] = float(-10 * np.log10(max(terms.pop("mse"), 1e-10)))
         return terms
+
+    def _average_gradients(self, learned: bool) -> bool:
+        """Average the gradients over the processes (one all-reduce of every gradient, zeros where
+        this process has none, plus a has-gradient flag per parameter); a parameter no process has a
+        gradient for keeps ``grad=None`` (Adam skips it, as in one process). True when any process
+        learned something this step."""
+        params = list(self.model.parameters())
+        flags = [float(p.grad is not None) for p in params] + [float(learned)]
+        flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params]
+                         + [torch.tensor(flags, dtype=params[0].dtype, device=self.device)])
+        flat = all_sum(flat)
+        flags = flat[-len(flags):].tolist()
+        offset = 0
+        for p, has in zip(params, flags, strict=False):
+            n = p.numel()
+            p.grad = flat[offset:offset + n].view_as(p) / self.ctx.world if has else None
+            offset += n
+        return flags[-1] > 0
 
     def set_lr(self, progress: float) -> float:
         """Learning rate for run progress in [0, 1] (exponential decay in the last part of the run)."""
@@ -193,8 +250,11 @@ class Trainer:
             group["lr"] = lr
         return lr
 
-    def save(self):
-        save_checkpoint(self.out / CHECKPOINT, self.model, self.opt, self.step, self.meta)
+    def save(self, seconds: float) -> None:
+        """Checkpoint (rank 0) with the clock: sampling RNG, torch RNG and ``seconds`` trained."""
+        if self.ctx.is_main:
+            clock = {"rng": self.rng.getstate(), "torch_rng": torch.get_rng_state(), "seconds": seconds}
+            save_checkpoint(self.out / CHECKPOINT, self.model, self.opt, self.step, self.meta, clock)
 
     def run(self, iters: int | None = None, minutes: float | None = None) -> dict:
         from torch.utils.tensorboard import SummaryWriter
@@ -203,29 +263,39 @@ class Trainer:
         t = self.cfg.train
         iters = t.iters if iters is None else iters
         minutes = t.minutes if minutes is None else minutes
-        writer = SummaryWriter(str(self.out / "tb"))
-        start, last = time.time(), {}
+        writer = SummaryWriter(str(self.out / "tb")) if self.ctx.is_main else None
+        start, last = time.time() - self.seconds, {}  # the time budget counts earlier parts of the run
         bar = tqdm(total=iters, initial=min(self.step, iters), desc="train dva", disable=not self.progress)
+
+        def elapsed() -> float:  # rank 0's clock for every rank: all stop at the same step
+            t_ = torch.tensor([time.time() - start], dtype=torch.float64)
+            if self.ctx.active:
+                torch.distributed.broadcast(t_, 0)
+            return float(t_[0])
+
         try:
-            while self.step < iters and (time.time() - start) < minutes * 60:
-                progress = max(self.step / max(iters, 1), (time.time() - start) / max(minutes * 60, 1e-9))
+            while self.step < iters and (seconds := elapsed()) < minutes * 60:
+                progress = max(self.step / max(iters, 1), seconds / max(minutes * 60, 1e-9))
                 self.set_lr(progress)
                 last = self.train_step()
-                if self.step % 10 == 0 or self.step == 1:
+                if writer is not None and (self.step % 10 == 0 or self.step == 1):
                     for k, v in last.items():
                         writer.add_scalar(f"loss/{k}", v, self.step)
                 bar.update(1)
                 bar.set_postfix(loss=f"{last['total']:.4f}", psnr=f"{last['psnr']:.1f}")
                 if self.step % t.checkpoint_every == 0:
-                    self.save()
+                    self.save(elapsed())
         finally:
             bar.close()
-            writer.close()
-        self.save()
+            if writer is not None:
+                writer.close()
+        self.save(elapsed())
+        self.ctx.barrier()
         summary = {"steps": self.step, "seconds": round(time.time() - start, 1), "last": last,
                    "frames": len(self.bank), "skipped_frames": self.bank.skipped, **{
                        k: self.meta[k] for k in ("train_cameras", "perceptual", "body_model")}}
-        write_json(self.out / "run.json", {"config": self.cfg.to_dict(), "summary": summary})
+        if self.ctx.is_main:
+            write_json(self.out / "run.json", {"config": self.cfg.to_dict(), "summary": summary})
         return summary
 
 
@@ -233,7 +303,14 @@ def train_dva(source, out_dir, cfg: DvaConfig, iters=None, minutes=None, device=
               body=None, vgg_weights=None, progress=True, body_model=None, model_dir=None) -> dict:
     """Train (or resume) a DVA run in ``out_dir``; returns a summary dict (also in run.json).
     ``body_model`` ("anny", "smpl", "smplx"; default: the source's) and ``model_dir`` (SMPL files)
-    pick the body model on any layout."""
-    trainer = Trainer(source, out_dir, cfg, body=body, device=device, vgg_weights=vgg_weights,
-                      resume=resume, progress=progress, body_model=body_model, model_dir=model_dir)
-    return trainer.run(iters, minutes)
+    pick the body model on any layout. Under torchrun the processes share each global batch (see the
+    module docstring)."""
+    with distributed_context(device) as ctx:
+        trainer = Trainer(source, out_dir, cfg, body=body, device=ctx.device, vgg_weights=vgg_weights,
+                          resume=resume, progress=progress, body_model=body_model, model_dir=model_dir, ctx=ctx)
+        return trainer.run(iters, minutes)
+
+
+def _tupled(state):
+    """random.Random state as ``setstate`` wants it (tuples; torch.save may hand back lists)."""
+    return tuple(_tupled(x) for x in state) if isinstance(state, (list, tuple)) else state

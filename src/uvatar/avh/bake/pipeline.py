@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from uvatar.avh.bake.dataset import (
 )
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
+from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
 from uvatar.threads import limit_process_to_one_thread
 
 log = logging.getLogger(__name__)
@@ -107,6 +107,23 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig) 
                        baked.kappa_mean, time.perf_counter() - t0, stats)
 
 
+def _bake_task(shared: dict, frame: str) -> FrameResult:
+    """One frame under :func:`uvatar.parallel.run_tasks`: ``shared`` holds the capture and output
+    folders, the config and the (body, layout) pair, shipped once per worker process."""
+    config = shared["config"]
+    _STATE.setdefault((shared["body_name"], int(config.texels)), shared["body_layout"])
+    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config)
+    result.stats["worker_peak_rss_mb"] = _peak_rss_mb()
+    return result
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MiB (Linux ru_maxrss is in KiB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def _reject_reason(kappa_mean: float, config: BakeConfig) -> str:
     return (f"mean confidence {kappa_mean:.3f} ({kappa_mean * 255:.0f}/255) below "
             f"{config.reject_kappa:.3f} ({config.reject_kappa * 255:.0f}/255)")
@@ -163,17 +180,19 @@ def _write_info(out_root: Path, capture, body_name: str, config: BakeConfig, res
 
 
 def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frames=None, workers: int = 1,
-                 progress: bool = True, overwrite: bool = False) -> dict[str, FrameResult]:
+                 progress: bool = True, overwrite: bool = False,
+                 executor: ExecutorConfig | None = None) -> dict[str, FrameResult]:
     """Bake ``frames`` (default: every frame) of a capture into ``out_root``; returns {frame: result}.
 
-    workers: processes (1 = in this process). overwrite: bake frames again even when on disk.
+    workers: local processes (1 = in this process), used when ``executor`` is None; executor: where the
+    frames run (:class:`uvatar.parallel.ExecutorConfig`, local pool or Ray; same arrays either way).
+    overwrite: bake frames again even when on disk.
     ``dataset.json`` is rewritten after every frame, so an interrupted run can be resumed.
     """
-    from tqdm import tqdm
-
     from uvatar.capture import Capture
 
     config = config or BakeConfig()
+    executor = executor or ExecutorConfig(workers=max(1, int(workers)))
     capture = Capture(capture_root)
     out = Path(out_root)
     out.mkdir(parents=True, exist_ok=True)
@@ -193,30 +212,19 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
         if done is not None:
             results[f] = done
     todo = [f for f in frames if overwrite or f not in results or results[f].status == "broken"]
-    bar = tqdm(total=len(todo), desc="bake", unit="frame", disable=not progress)
 
     def finish(result: FrameResult) -> None:
         results[result.frame] = result
         if result.status != "baked":
             log.warning("frame %s %s: %s", result.frame, result.status, result.reason)
         _write_info(out, capture, body_name, config, results)
-        bar.update(1)
 
-    if workers <= 1 or len(todo) <= 1:
-        for f in todo:
-            finish(_bake_one(str(capture.root), str(out), f, config))
-    else:
-        import multiprocessing as mp
-
-        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                                 initializer=limit_process_to_one_thread) as pool:
-            futures = {pool.submit(_bake_one, str(capture.root), str(out), f, config): f for f in todo}
-            for fut in as_completed(futures):
-                try:
-                    finish(fut.result())
-                except Exception as exc:  # noqa: BLE001 - a crashed worker marks its frame broken
-                    finish(FrameResult(futures[fut], "broken", f"worker failed: {exc}"))
-    bar.close()
+    shared = {"capture_root": str(capture.root), "out_root": str(out), "config": config, "body_name": body_name,
+              "body_layout": load_body_and_layout(body_name, config.texels)}
+    for frame, result in run_tasks(_bake_task, todo, shared, executor, desc="bake", progress=progress,
+                                   initializer=limit_process_to_one_thread):
+        finish(FrameResult(frame, "broken", f"worker failed: {result.reason}")
+               if isinstance(result, TaskFailure) else result)
     _write_info(out, capture, body_name, config, results)
     return {f: results[f] for f in frames}
 
@@ -248,7 +256,8 @@ def previous_results(info: dict) -> dict[str, FrameResult]:
 
 
 def bake_selection(capture_root, out_root, selection: dict, config: BakeConfig | None = None,
-                   workers: int = 1, progress: bool = True, overwrite: bool = False) -> dict:
+                   workers: int = 1, progress: bool = True, overwrite: bool = False,
+                   executor: ExecutorConfig | None = None) -> dict:
     """Bake the frames of a pre-bake selection; replace each rejected/broken one by the next candidate.
 
     selection: {"clusters": [{"split": "train"|"val", "candidates": [frames, nearest first]}], ...}
@@ -278,7 +287,7 @@ def bake_selection(capture_root, out_root, selection: dict, config: BakeConfig |
         if not wanted:
             break
         results = bake_capture(capture_root, out_root, config, sorted(set(wanted.values())), workers,
-                               progress, overwrite)
+                               progress, overwrite, executor)
         pending = []
         for c, f in wanted.items():
             status[f] = results[f].status

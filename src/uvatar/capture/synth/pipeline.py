@@ -10,13 +10,13 @@ fails is reported and skipped.
 from __future__ import annotations
 
 import logging
-from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import numpy as np
 
 from uvatar.capture.synth.config import SynthConfig
-from uvatar.errors import InputError
+from uvatar.errors import InputError, UvatarError
+from uvatar.parallel import ExecutorConfig, clear_worker_cache
 
 __all__ = ["make_plan", "synthesize"]
 
@@ -107,24 +107,26 @@ def _write_meta(root: Path, cfg: SynthConfig, plan: dict) -> None:
 
 
 # -- tasks (module level so that worker processes can run them) --------------------------------
-_STUDIO = None
-
-
-def _init_worker(cfg, root, plan):
+def _one_torch_thread() -> None:
     import torch
 
-    torch.set_num_threads(1)
-    global _STUDIO
+    torch.set_num_threads(1)  # identical float results in every process (byte-identical outputs)
+
+
+def _studio(shared: dict):
+    """This process's :class:`~uvatar.capture.synth.frame.Studio` for the run ``shared`` describes
+    (built once per worker process, kept for its later tasks)."""
     from uvatar.capture.synth.frame import Studio
+    from uvatar.parallel import worker_cache
 
-    _STUDIO = Studio(cfg, root, plan)
+    return worker_cache(("synth-studio", shared["token"]),
+                        lambda: Studio(shared["cfg"], Path(shared["root"]), shared["plan"]))
 
 
-def _topology_task(index: int) -> int:
+def _topology_task(st, index: int) -> int:
     from uvatar.capture.synth.scans import build_topology
     from uvatar.io_utils import write_npz
 
-    st = _STUDIO
     fine, rest_offset, rest_normals = st.fine()
     seg = st.plan["segments"][index]
     rng = np.random.default_rng([int(st.cfg.seed), 202, index])
@@ -134,49 +136,52 @@ def _topology_task(index: int) -> int:
     return index
 
 
-def _frame_task(i: int) -> dict:
+def _frame_task(st, i: int) -> dict:
     try:
-        return _STUDIO.make_frame(i)
+        return st.make_frame(i)
     except Exception as exc:  # a broken frame must not stop the capture; it is reported at the end
         log.exception("frame %d failed", i)
-        return {"frame": _STUDIO.plan["frames"][i], "error": f"{type(exc).__name__}: {exc}"}
+        return {"frame": st.plan["frames"][i], "error": f"{type(exc).__name__}: {exc}"}
 
 
-def _run(tasks, fn, pool, desc, progress):
-    """Run ``fn`` over ``tasks`` in ``pool`` (or in process when None) with a tqdm bar."""
-    from tqdm import tqdm
+def _synth_task(shared: dict, task: tuple[str, int]):
+    """One ("topology", segment) or ("frame", index) task under :func:`uvatar.parallel.run_tasks`."""
+    kind, index = task
+    return (_topology_task if kind == "topology" else _frame_task)(_studio(shared), index)
 
-    bar = tqdm(total=len(tasks), desc=desc, unit="frame" if fn is _frame_task else "topology",
-               disable=not progress, dynamic_ncols=True)
-    results = []
-    if pool is None:
-        for t in tasks:
-            results.append(fn(t))
-            bar.update(1)
-    else:
-        from concurrent.futures import as_completed
 
-        futures = [pool.submit(fn, t) for t in tasks]
-        for fut in as_completed(futures):
-            results.append(fut.result())
-            bar.update(1)
-    bar.close()
+def _run_phase(shared, kind, indices, executor, progress) -> list:
+    """Run one phase's tasks; those whose worker failed (not the frame itself) run again in this process."""
+    from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
+
+    desc, unit = ("frames", "frame") if kind == "frame" else ("scan topologies", "topology")
+    results, lost = [], []
+    for (_, index), result in run_tasks(_synth_task, [(kind, i) for i in indices], shared, executor, desc, unit,
+                                        progress, initializer=_one_torch_thread):
+        if isinstance(result, TaskFailure):
+            lost.append(index)
+        else:
+            results.append(result)
+    if lost:
+        log.warning("%d %s task(s) lost their worker (%s); running them in this process", len(lost), kind,
+                    executor.kind)
+        for (_, index), result in run_tasks(_synth_task, [(kind, i) for i in lost], shared, ExecutorConfig(),
+                                            desc, unit, progress):
+            if isinstance(result, TaskFailure) and kind == "topology":
+                raise UvatarError(f"scan topology {index} failed: {result.reason}")
+            results.append({"frame": shared["plan"]["frames"][index], "error": result.reason}
+                           if isinstance(result, TaskFailure) else result)
     return results
 
 
-def _run_pool(cfg, root, plan, topo_todo, frame_todo, workers, progress) -> list[dict]:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
-                             initargs=(cfg, root, plan)) as pool:
-        _run(topo_todo, _topology_task, pool, "scan topologies", progress)
-        return _run(frame_todo, _frame_task, pool, "frames", progress)
-
-
-def synthesize(out: str | Path, config: SynthConfig | None = None, progress: bool = True) -> dict:
+def synthesize(out: str | Path, config: SynthConfig | None = None, progress: bool = True,
+               executor: ExecutorConfig | None = None) -> dict:
     """Make (or resume) a synthetic capture in ``out``; returns a summary dict
-    (frames, made, skipped, failed, topologies, broken_frames, heldout_frames)."""
+    (frames, made, skipped, failed, topologies, broken_frames, heldout_frames).
+
+    executor: where topologies and frames run (default: a local pool of ``config.workers`` processes)."""
+    import uuid
+
     import torch
 
     from uvatar.body import load_body_model
@@ -196,20 +201,12 @@ def synthesize(out: str | Path, config: SynthConfig | None = None, progress: boo
         frame_todo = [i for i, name in enumerate(plan["frames"]) if not gt_frame_path(root, name).is_file()]
         needed = sorted(set(plan["segment_of_frame"][frame_todo].tolist()))
         topo_todo = [s for s in topo_todo if s in needed]
-        workers = max(1, min(int(cfg.workers), len(frame_todo) or 1))
+        executor = executor or ExecutorConfig(workers=max(1, min(int(cfg.workers), len(frame_todo) or 1)))
+        shared = {"cfg": cfg, "root": str(root), "plan": plan, "token": uuid.uuid4().hex}
         results = []
-        if frame_todo and workers > 1:
-            try:
-                results = _run_pool(cfg, root, plan, topo_todo, frame_todo, workers, progress)
-            except BrokenProcessPool as exc:  # e.g. no importable __main__ for spawn, or a worker died
-                log.warning("worker pool failed (%s); making the remaining frames in this process", exc)
-                topo_todo = [s for s in topo_todo if not (root / "gt" / "topologies" / f"{s:03d}.npz").is_file()]
-                frame_todo = [i for i in frame_todo if not gt_frame_path(root, plan["frames"][i]).is_file()]
-                workers = 1
-        if frame_todo and workers == 1:
-            _init_worker(cfg, root, plan)
-            _run(topo_todo, _topology_task, None, "scan topologies", progress)
-            results += _run(frame_todo, _frame_task, None, "frames", progress)
+        if frame_todo:
+            _run_phase(shared, "topology", topo_todo, executor, progress)
+            results = _run_phase(shared, "frame", frame_todo, executor, progress)
         failed = {r["frame"]: r["error"] for r in results if "error" in r}
         if cfg.preview:
             from uvatar.capture.synth.preview import write_preview
@@ -217,8 +214,7 @@ def synthesize(out: str | Path, config: SynthConfig | None = None, progress: boo
             write_preview(root, plan, cfg)
     finally:
         torch.set_num_threads(threads)
-        global _STUDIO
-        _STUDIO = None
+        clear_worker_cache()
     return {"root": str(root), "frames": len(plan["frames"]), "made": len(frame_todo) - len(failed),
             "skipped": len(plan["frames"]) - len(frame_todo), "failed": failed,
             "topologies": len(plan["segments"]), "broken_frames": sorted(plan["broken"]),
