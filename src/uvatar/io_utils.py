@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,8 +36,11 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix if suffix is not None else path.suffix,
-                               dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix if suffix is not None else path.suffix,
+                                   dir=path.parent)
+    except OSError as exc:  # read-only or full file system: name the destination, not the temp name
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -44,10 +48,32 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         if tmp_path.exists():  # mkstemp makes 0600 files; give the usual umask-based mode
             os.chmod(tmp_path, 0o666 & ~_UMASK)
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        if isinstance(exc, OSError) and exc.errno is not None and exc.filename in (None, str(tmp_path)):
+            # a writer that lost the name (numpy, imageio, torch) or named the temp file: name the destination
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
         raise
+
+
+_PARTIAL = re.compile(r"^\..+\.[a-z0-9_]{8}(\.[A-Za-z0-9]+)?$")
+
+
+def sweep_partial_writes(root: str | Path) -> list[Path]:
+    """Delete the temp files that killed :func:`atomic_path` writes left under ``root`` (recursively:
+    ``frames/.000000.k3j_x9a2.npz``, ``.checkpoint.abcd1234.pt``, ``scans/.000001.q8w2e0r1.png``);
+    returns what was removed. Call it at the start of a job that writes into ``root``, never while
+    another job writes there."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    removed = []
+    for path in root.rglob(".*"):
+        if _PARTIAL.match(path.name) and path.is_file() and not path.is_symlink():
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
 
 
 def read_json(path: str | Path, missing: str = "file is missing", expect_object: bool = True) -> Any:
@@ -99,8 +125,12 @@ def write_json(path: str | Path, obj: Any, indent: int = 2) -> None:
 
 def write_npz(path: str | Path, **arrays: np.ndarray) -> None:
     """Write a compressed ``.npz`` atomically."""
+    import io
+
+    buffer = io.BytesIO()  # compress in memory, then one plain write (no zip file left open on a full disk)
+    np.savez_compressed(buffer, **arrays)
     with atomic_path(path, suffix=".npz") as tmp:
-        np.savez_compressed(tmp, **arrays)
+        tmp.write_bytes(buffer.getbuffer())
 
 
 def write_image(path: str | Path, image: np.ndarray) -> None:
@@ -110,5 +140,6 @@ def write_image(path: str | Path, image: np.ndarray) -> None:
     arr = np.asarray(image)
     if arr.dtype != np.uint8:
         arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    data = iio.imwrite("<bytes>", arr, extension=Path(path).suffix or ".png")  # encode, then one plain write
     with atomic_path(path) as tmp:
-        iio.imwrite(tmp, arr)
+        tmp.write_bytes(data)

@@ -23,7 +23,7 @@ from uvatar.dva.dataset import FrameBank
 from uvatar.dva.losses import DvaLoss, Vgg19Features
 from uvatar.dva.model import DvaConfig, DvaModel, pixel_rays
 from uvatar.errors import InputError
-from uvatar.io_utils import atomic_path, write_json
+from uvatar.io_utils import atomic_path, sweep_partial_writes, write_json
 
 log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.pt"
@@ -92,6 +92,7 @@ class Trainer:
         self.rng = random.Random(seed)
         torch.manual_seed(seed)
         self.out.mkdir(parents=True, exist_ok=True)
+        sweep_partial_writes(self.out)  # temp files of writes a kill cut short
         ckpt = self.out / CHECKPOINT
         state = None
         if resume and ckpt.is_file():

@@ -24,11 +24,13 @@ from uvatar.avh.bake.dataset import (
     read_dataset_info,
     read_frame_scalar,
     rejected_path,
+    restore_preview,
     write_baked_frame,
     write_dataset_info,
 )
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
+from uvatar.io_utils import sweep_partial_writes
 from uvatar.threads import limit_process_to_one_thread
 
 log = logging.getLogger(__name__)
@@ -177,6 +179,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     capture = Capture(capture_root)
     out = Path(out_root)
     out.mkdir(parents=True, exist_ok=True)
+    sweep_partial_writes(out)  # temp files of writes a kill cut short (frames/.000000.*.npz, ...)
     previous = read_dataset_info(out)
     if previous.get("texels") not in (None, config.texels) and not overwrite:
         raise InputError(out / "dataset.json", f"holds a bake at {previous['texels']} texels, not "
@@ -192,6 +195,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
         done = _existing_result(out, f, config)
         if done is not None:
             results[f] = done
+            restore_preview(out, f)
     todo = [f for f in frames if overwrite or f not in results or results[f].status == "broken"]
     bar = tqdm(total=len(todo), desc="bake", unit="frame", disable=not progress)
 
@@ -214,6 +218,8 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
             for fut in as_completed(futures):
                 try:
                     finish(fut.result())
+                except OSError:  # writing the frame failed (full disk, read-only): the run cannot go on
+                    raise
                 except Exception as exc:  # noqa: BLE001 - a crashed worker marks its frame broken
                     finish(FrameResult(futures[fut], "broken", f"worker failed: {exc}"))
     bar.close()

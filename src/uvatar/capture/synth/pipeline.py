@@ -17,6 +17,7 @@ import numpy as np
 
 from uvatar.capture.synth.config import SynthConfig
 from uvatar.errors import InputError
+from uvatar.io_utils import sweep_partial_writes
 
 __all__ = ["make_plan", "synthesize"]
 
@@ -185,6 +186,7 @@ def synthesize(out: str | Path, config: SynthConfig | None = None, progress: boo
     cfg = config or SynthConfig()
     root = Path(out)
     root.mkdir(parents=True, exist_ok=True)
+    sweep_partial_writes(root)  # temp files of writes a kill cut short (scans/.000001.*.png, ...)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # identical float results in every process (byte-identical outputs)
     try:
