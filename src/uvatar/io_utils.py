@@ -57,6 +57,31 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         raise
 
 
+def check_output_location(path: str | Path) -> Path:
+    """Raise the ``OSError`` that writing ``path`` would raise later, now: its nearest existing
+    ancestor is a file (``ENOTDIR``) or not writable (``EROFS`` on a read-only file system, else
+    ``EACCES``). For jobs that compute for a while before they write. Returns ``path``."""
+    import errno
+
+    path = Path(path)
+    ancestor = path.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise OSError(errno.ENOTDIR, f"{ancestor} is a file, not a folder", str(path))
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        code = errno.EROFS if _read_only(ancestor) else errno.EACCES
+        raise OSError(code, os.strerror(code) + f" ({ancestor})", str(path))
+    return path
+
+
+def _read_only(folder: Path) -> bool:
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):  # pragma: no cover - not POSIX
+        return False
+
+
 _PARTIAL = re.compile(r"^\..+\.[a-z0-9_]{8}(\.[A-Za-z0-9]+)?$")
 
 

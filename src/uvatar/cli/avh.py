@@ -179,8 +179,10 @@ def _count_or_names(value: str | None, flag: str) -> tuple[int | None, tuple[str
 def _eval(args) -> int:
     from uvatar.avh.eval import EvalConfig, evaluate_avatar
     from uvatar.errors import InputError
-    from uvatar.io_utils import write_json
+    from uvatar.io_utils import check_output_location, write_json
 
+    if args.json:
+        check_output_location(args.json)  # before minutes of rendering
     if args.image_size is not None and args.image_size < 16:
         raise InputError("--image-size", f"must be at least 16 pixels, got {args.image_size}")
     max_frames, frames = _count_or_names(args.frames, "--frames")

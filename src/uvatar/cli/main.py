@@ -8,6 +8,7 @@ A command module defines ``register(cli: Cli) -> None`` and calls ``cli.command(
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import os
@@ -89,6 +90,8 @@ def os_error_line(exc: OSError) -> str:
     """
     path = exc.filename2 if exc.filename2 is not None else exc.filename
     reason = exc.strerror or str(exc) or type(exc).__name__
+    if exc.errno == errno.EEXIST and path is not None and os.path.isfile(path):
+        reason = "exists as a file, not a folder"
     if path is None:
         return reason
     return f"{os.fsdecode(path) if isinstance(path, bytes) else path}: {reason}"
