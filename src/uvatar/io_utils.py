@@ -85,19 +85,21 @@ def _read_only(folder: Path) -> bool:
 _PARTIAL = re.compile(r"^\..+\.[a-z0-9_]{8}(\.[A-Za-z0-9]+)?$")
 
 
-def sweep_partial_writes(root: str | Path) -> list[Path]:
-    """Delete the temp files that killed :func:`atomic_path` writes left under ``root`` (recursively:
-    ``frames/.000000.k3j_x9a2.npz``, ``.checkpoint.abcd1234.pt``, ``scans/.000001.q8w2e0r1.png``);
-    returns what was removed. Call it at the start of a job that writes into ``root``, never while
-    another job writes there."""
+def find_partial_writes(root: str | Path) -> list[Path]:
+    """The temp files that killed :func:`atomic_path` writes left under ``root`` (recursively:
+    ``frames/.000000.k3j_x9a2.npz``, ``.checkpoint.abcd1234.pt``, ``scans/.000001.q8w2e0r1.png``)."""
     root = Path(root)
     if not root.is_dir():
         return []
-    removed = []
-    for path in root.rglob(".*"):
-        if _PARTIAL.match(path.name) and path.is_file() and not path.is_symlink():
-            path.unlink(missing_ok=True)
-            removed.append(path)
+    return sorted(p for p in root.rglob(".*") if _PARTIAL.match(p.name) and p.is_file() and not p.is_symlink())
+
+
+def sweep_partial_writes(root: str | Path) -> list[Path]:
+    """Delete :func:`find_partial_writes` under ``root``; returns what was removed. Call it at the start
+    of a job that writes into ``root``, never while another job writes there."""
+    removed = find_partial_writes(root)
+    for path in removed:
+        path.unlink(missing_ok=True)
     return removed
 
 

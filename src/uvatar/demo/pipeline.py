@@ -1,10 +1,11 @@
-"""``uvatar demo``: the whole AVH pipeline on a synthetic studio capture, with nothing to download.
+"""``uvatar demo``: synth → bake (+ eval against ground truth) → select → train → export → animate an
+unseen motion → eval on held-out poses → ``OUT/metrics.json`` and ``OUT/report.html``.
 
-synth → bake (+ eval against ground truth) → select → train → export → animate an unseen motion →
-eval on held-out poses → ``OUT/metrics.json`` and ``OUT/report.html``.
-
-Each stage runs the same code path as its command (``uvatar synth``, ``uvatar bake`` …), in
-process. A stage whose output already exists is skipped, so an interrupted demo resumes.
+Each stage calls the library function behind its command (:func:`~uvatar.capture.synth.pipeline.synthesize`,
+:func:`~uvatar.avh.bake.pipeline.bake_capture`, ...) in process. A stage is done when its own
+completion record ``OUT/stages/<stage>.json`` says so; the record is written last, after every output
+of the stage, so a demo killed at any point resumes: a stage cut short runs again (and itself resumes
+what it finished: frames, epochs), later stages run after it.
 """
 
 from __future__ import annotations
@@ -16,9 +17,12 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from uvatar.errors import UvatarError
 from uvatar.io_utils import write_json
 
 log = logging.getLogger(__name__)
+
+STAGES = ("synth", "bake", "select", "train", "export", "animate", "eval")
 
 
 @dataclass(frozen=True)
@@ -52,96 +56,116 @@ QUICK = DemoConfig(frames=12, heldout=3, cameras=2, image_size=96, scan_texture=
 @dataclass
 class StageResult:
     name: str
-    status: str                 # "ran", "skipped (done)", "missing", "failed: ..."
+    status: str                 # "ran", "skipped (done)", "failed: ...", "not run (...)"
     seconds: float = 0.0
     outputs: dict = field(default_factory=dict)
 
 
-def _run_cli(argv: list[str]) -> int:
-    from uvatar.cli.main import main
-
-    log.info("$ uvatar %s", " ".join(argv))
-    return main(argv)
+def stage_record(out: Path, name: str) -> Path:
+    """``OUT/stages/<name>.json``: the completion record of a stage (written last)."""
+    return Path(out) / "stages" / f"{name}.json"
 
 
-def _available_commands() -> set[str]:
-    """Names of registered commands, nested ones as 'train avh'."""
-    import argparse
-
-    from uvatar.cli.main import build_cli
-
-    names: set[str] = set()
-
-    def walk(parser: argparse.ArgumentParser, prefix: tuple[str, ...]) -> None:
-        for action in parser._actions:
-            if isinstance(action, argparse._SubParsersAction):
-                for name, sub in action.choices.items():
-                    names.add(" ".join(prefix + (name,)))
-                    walk(sub, prefix + (name,))
-
-    walk(build_cli().parser, ())
-    return names
-
-
-def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, str, list[str], Path]]:
-    """The pipeline as (stage name, command, argv, output that marks it done)."""
+def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None]]]:
+    """The pipeline as (stage name, function that runs it and writes its outputs)."""
+    out = Path(out)
     cap, baked, run, avatar = out / "capture", out / "baked", out / "run", out / "avatar"
-    return [
-        ("synth", "synth", ["synth", str(cap), "--preset", cfg.synth_preset, "--frames", str(cfg.frames), "--heldout", str(cfg.heldout),
-                            "--cameras", str(cfg.cameras), "--image-size", str(cfg.image_size),
-                            "--scan-texture", str(cfg.scan_texture), "--gt-texels", str(cfg.gt_texels),
-                            "--seed", str(cfg.seed), "--workers", str(cfg.workers)], cap / "capture.json"),
-        ("bake", "bake", ["bake", str(cap), str(baked), "--texels", str(cfg.texels), "--workers",
-                          str(cfg.workers), "--eval", "--json", str(out / "bake_metrics.json")],
-         out / "bake_metrics.json"),
-        ("select", "select", ["select", str(baked), "-n", str(cfg.train_frames), "--val", str(cfg.val_frames)],
-         baked / ".selected"),
-        ("train", "train avh", ["train", "avh", str(baked), str(run), "--preset", cfg.preset,
-                                "--epochs", str(cfg.epochs), "--resume"], run / "done.json"),
-        ("export", "export", ["export", str(run), str(avatar)], avatar / "avatar.json"),
-        ("animate", "animate", ["animate", str(avatar), "--motion", "heldout:" + str(cap),
-                                "--frames", str(cfg.animate_frames), "--size", str(cfg.animate_size),
-                                "-o", str(out / "animation.mp4")], out / "animation.mp4"),
-        ("eval", "eval avh", ["eval", "avh", str(avatar), str(cap), "--json", str(out / "eval.json"),
-                              "--images", str(out / "eval_images")], out / "eval.json"),
-    ]
+
+    def synth() -> None:
+        from uvatar.capture.synth.config import preset
+        from uvatar.capture.synth.pipeline import synthesize
+
+        summary = synthesize(cap, preset(cfg.synth_preset, frames=cfg.frames, heldout=cfg.heldout,
+                                         cameras=cfg.cameras, image_size=cfg.image_size,
+                                         scan_texture=cfg.scan_texture, gt_texels=cfg.gt_texels, seed=cfg.seed,
+                                         workers=cfg.workers), progress=True)
+        if summary["failed"]:
+            raise UvatarError(f"{cap}: synth failed on frame(s) {', '.join(sorted(summary['failed']))[:200]}")
+
+    def bake() -> None:
+        from uvatar.avh.bake import BakeConfig
+        from uvatar.avh.bake.dataset import read_dataset_info
+        from uvatar.avh.bake.evaluate import EvalConfig, evaluate_bake
+        from uvatar.avh.bake.pipeline import bake_capture
+
+        bake_capture(cap, baked, BakeConfig().with_updates(texels=cfg.texels), None, cfg.workers, True)
+        info = read_dataset_info(baked)
+        if not info.get("frames_baked"):
+            raise UvatarError(f"{baked}: no frame was baked (rejected: {len(info.get('rejected', {}))})")
+        metrics = evaluate_bake(cap, baked, EvalConfig(), True)
+        write_json(out / "bake_metrics.json", {"frames_baked": len(info["frames_baked"]),
+                                               "rejected": info.get("rejected", {}), "eval": metrics})
+
+    def select() -> None:
+        from uvatar.avh.bake.select import SelectConfig, select_from_baked
+
+        select_from_baked(baked, SelectConfig(n_train=cfg.train_frames, n_val=cfg.val_frames, seed=cfg.seed))
+
+    def train() -> None:
+        from uvatar.avh.model import preset
+        from uvatar.avh.train import TrainConfig, train_avh
+
+        train_avh(baked, run, preset(cfg.preset), TrainConfig(epochs=cfg.epochs), resume=True,
+                  preset_name=cfg.preset)
+
+    def export() -> None:
+        from uvatar.avh.export import export_avatar
+
+        export_avatar(run, avatar)
+
+    def animate() -> None:
+        from uvatar.avh.animate import AnimateConfig
+        from uvatar.avh.animate import animate as render_motion
+
+        render_motion(avatar, f"heldout:{cap}", out / "animation.mp4",
+                      AnimateConfig(size=cfg.animate_size, max_frames=cfg.animate_frames))
+
+    def evaluate() -> None:
+        from uvatar.avh.eval import EvalConfig, evaluate_avatar
+
+        write_json(out / "eval.json", evaluate_avatar(avatar, cap, EvalConfig(), image_dir=out / "eval_images"))
+
+    return [("synth", synth), ("bake", bake), ("select", select), ("train", train), ("export", export),
+            ("animate", animate), ("eval", evaluate)]
 
 
 def run_demo(out: str | Path = "demo_out", cfg: DemoConfig = DEFAULT,
              on_stage: Callable[[str], None] | None = None) -> dict:
-    """Run every stage that exists; return (and write) ``OUT/metrics.json``."""
+    """Run every stage whose completion record is missing; return (and write) ``OUT/metrics.json``.
+
+    A stage that raises :class:`~uvatar.errors.UvatarError` is reported as failed and the later
+    stages are not run; an ``OSError`` (the file system said no) propagates.
+    """
+    from uvatar.demo.report import write_demo_report
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    available = _available_commands()
     results: list[StageResult] = []
     failed = False
-    for name, command, argv, done_marker in demo_stages(out, cfg):
+    for name, stage in demo_stages(out, cfg):
         if on_stage:
             on_stage(name)
-        if command not in available:
-            results.append(StageResult(name, "missing"))
-            log.warning("demo: stage '%s' skipped: command 'uvatar %s' is not implemented yet", name, command)
-            continue
         if failed:
             results.append(StageResult(name, "not run (an earlier stage failed)"))
             continue
-        if done_marker.exists():
+        record = stage_record(out, name)
+        if record.is_file():
             results.append(StageResult(name, "skipped (done)"))
             continue
+        log.info("demo: stage %s", name)
         t0 = time.perf_counter()
-        code = _run_cli(argv)
-        dt = time.perf_counter() - t0
-        if code != 0:
+        try:
+            stage()
+        except UvatarError as exc:
             failed = True
-            results.append(StageResult(name, f"failed (exit {code})", dt))
+            log.error("demo: stage %s failed: %s", name, exc)
+            results.append(StageResult(name, f"failed: {str(exc).splitlines()[0][:300]}", time.perf_counter() - t0))
             continue
-        if name == "select":
-            done_marker.write_text("ok\n")
+        dt = time.perf_counter() - t0
+        write_json(record, {"stage": name, "seconds": dt, "config": asdict(cfg)})  # last: the stage is done
         results.append(StageResult(name, "ran", dt))
     metrics = collect_metrics(out, cfg, results)
     write_json(out / "metrics.json", metrics)
-    from uvatar.demo_report import write_demo_report
-
     write_demo_report(out, metrics)
     return metrics
 
