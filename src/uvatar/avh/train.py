@@ -227,7 +227,11 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
         raise UvatarError("--device cuda requested but CUDA is not available")
     torch.manual_seed(cfg.seed)
     def load(names, progress=False):
-        frames = load_baked_frames(baked_dir, names, R, progress)
+        frames = load_baked_frames(baked_dir, names, R, progress,
+                                   None if body is None else 3 * body.num_joints)
+        if max(cond, default=-1) >= frames.poses.shape[1] // 3:
+            raise InputError(baked_dir / "dataset.json", f"conditioning joint {max(cond)} is not in the "
+                             f"frames' poses ({frames.poses.shape[1] // 3} joints)")
         return to_training_data(displacements_to_frame(frames, cfg.displacement_frame, body, shapes), cond, device)
 
     train = load(train_names, cfg.progress)

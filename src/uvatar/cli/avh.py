@@ -108,7 +108,7 @@ def _train(args) -> int:
     from uvatar.avh.model import preset
     from uvatar.avh.train import TrainConfig, train_avh
 
-    overrides = {"resolution": args.texels} if args.texels else {}
+    overrides = {"resolution": args.texels} if args.texels is not None else {}
     try:
         cfg = preset(args.preset, **overrides)
     except ValueError as exc:

@@ -31,6 +31,7 @@ from uvatar.avh.bake.dataset import (
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
 from uvatar.io_utils import sweep_partial_writes
+from uvatar.resources import check_memory
 from uvatar.threads import limit_process_to_one_thread
 
 log = logging.getLogger(__name__)
@@ -49,6 +50,10 @@ class FrameResult:
     seconds: float = 0.0
     stats: dict = field(default_factory=dict)
 
+
+# Peak memory of one frame's bake per texel (UV layout, visibility, match and map buffers), bytes:
+# measured ~75 B/texel above a 640 MB base at 512² on anny; rounded up for registration and inpainting.
+BAKE_BYTES_PER_TEXEL = 256
 
 # -- per-process state ----------------------------------------------------------------------------
 _STATE: dict = {}
@@ -176,6 +181,8 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     from uvatar.capture import Capture
 
     config = config or BakeConfig()
+    check_memory(BAKE_BYTES_PER_TEXEL * config.texels ** 2 * max(1, workers), "texels",
+                 f"baking {config.texels}² texels in {max(1, workers)} process(es)")
     capture = Capture(capture_root)
     out = Path(out_root)
     out.mkdir(parents=True, exist_ok=True)
