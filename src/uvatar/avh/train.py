@@ -39,7 +39,7 @@ from uvatar.avh.model import (
     select_conditioning_angles,
 )
 from uvatar.errors import InputError, UvatarError, check_values
-from uvatar.io_utils import atomic_path, read_json, sweep_partial_writes, write_json
+from uvatar.io_utils import atomic_path, check_output_location, read_json, sweep_partial_writes, write_json
 
 log = logging.getLogger(__name__)
 
@@ -198,6 +198,7 @@ def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfi
     baked_dir, run_dir = Path(baked_dir), Path(run_dir)
     cfg = train_config
     ckpt_path = run_dir / "checkpoint.pt"
+    check_output_location(ckpt_path)  # before loading the data
     sweep_partial_writes(run_dir)  # temp files of checkpoint writes a kill cut short
     state = None
     if ckpt_path.exists():

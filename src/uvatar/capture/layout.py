@@ -55,10 +55,8 @@ def read_capture_info(root: str | Path) -> dict:
         body = {"name": body}
     if not isinstance(body, dict) or "name" not in body:
         raise InputError(path, "'body_model' must be {\"name\": ..., \"shapes\": [...]}")
-    from uvatar.body.registry import BODY_MODELS
-
-    if not isinstance(body["name"], str) or body["name"].lower() not in BODY_MODELS:
-        raise InputError(path, f"unknown body model {str(body['name'])[:40]!r}; choose one of {', '.join(BODY_MODELS)}")
+    if not isinstance(body["name"], str) or not body["name"]:
+        raise InputError(path, f"'body_model.name' must be a name (anny, smpl, smplx), got {str(body['name'])[:40]!r}")
     shapes = body.get("shapes")
     if shapes is not None and (not isinstance(shapes, list) or not all(
             isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v) for v in shapes)):

@@ -196,7 +196,10 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     if unknown:
         raise InputError(capture.root / "capture.json", f"has no frame(s) {', '.join(unknown[:5])}")
     body_name = capture.body_model
-    load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
+    try:
+        load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
+    except ValueError as exc:  # an unknown name
+        raise InputError(capture.root / "capture.json", str(exc)) from None
     results: dict[str, FrameResult] = previous_results(previous)
     for f in capture.frames:  # everything already on disk (also from earlier calls with other frames)
         done = _existing_result(out, f, config)
