@@ -32,7 +32,7 @@ import numpy as np
 
 from uvatar.avh.displacement_frame import frame_of_space
 from uvatar.errors import InputError
-from uvatar.io_utils import read_json, write_image, write_json
+from uvatar.io_utils import read_json, read_npz, write_image, write_json
 from uvatar.viewer.glb import SkinnedMesh, write_glb
 
 MANIFEST_FORMAT = "uvatar-engine/1"
@@ -331,9 +331,7 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
     write_glb(avatar_dir / config.glb_name, mesh)
 
     if fingers_toes_mask is None and (avatar_dir / "body.npz").is_file():
-        with np.load(avatar_dir / "body.npz") as npz:
-            if "fingers_toes" in npz.files:
-                fingers_toes_mask = npz["fingers_toes"]
+        fingers_toes_mask = read_npz(avatar_dir / "body.npz").get("fingers_toes")  # errors name the file
     if fingers_toes_mask is None and body_model is not None:
         from uvatar.body import part_masks
 
