@@ -133,3 +133,320 @@ def expect_valid_or_own_error(read, check=None):
     if check is not None:
         check(result)
     return result
+
+
+# -- seeds ----------------------------------------------------------------------------------------------
+
+def _seed_mesh():
+    from uvatar.capture import TexturedMesh
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    f = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1]], np.int64)
+    uv = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], np.float32)
+    tex = np.linspace(0, 1, 8 * 8 * 3, dtype=np.float32).reshape(8, 8, 3)
+    return TexturedMesh(v, f, uv, f.copy(), tex)
+
+
+ASCII_PLY = (b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+             b"property float s\nproperty float t\nelement face 3\nproperty list uchar int vertex_indices\nend_header\n"
+             b"0 0 0 0 0\n1 0 0 1 0\n0 1 0 0 1\n0 0 1 1 1\n3 0 1 2\n3 0 2 3\n3 0 3 1\n")
+
+
+def check_mesh(mesh):
+    nv, nuv = len(mesh.vertices), len(mesh.uvs)
+    assert mesh.faces.ndim == 2 and mesh.faces.shape[1] == 3 and len(mesh.faces) > 0 and nv > 0
+    assert mesh.faces.min() >= 0 and mesh.faces.max() < nv
+    assert np.isfinite(mesh.vertices).all()
+    if nuv:
+        assert mesh.uv_faces.shape == mesh.faces.shape and mesh.uv_faces.min() >= 0 and mesh.uv_faces.max() < nuv
+    if mesh.texture is not None:
+        assert mesh.texture.ndim == 3 and mesh.texture.shape[-1] == 3 and mesh.texture.size > 0
+
+
+@pytest.fixture(scope="module")
+def seeds(tmp_path_factory):
+    from uvatar.capture import write_mesh
+
+    root = tmp_path_factory.mktemp("seeds")
+    mesh = _seed_mesh()
+    for name in ("m.obj", "m.ply", "m.glb"):
+        write_mesh(root / name, mesh)
+    (root / "a.ply").write_bytes(ASCII_PLY)
+    return root
+
+
+def _mesh_reader_test(seeds, tmp_path, name, data):
+    from uvatar.capture import read_mesh
+
+    folder = tmp_path / "case"
+    if folder.exists():
+        shutil.rmtree(folder)
+    shutil.copytree(seeds, folder)  # the OBJ's .mtl and texture sit beside it
+    (folder / name).write_bytes(data)
+    expect_valid_or_own_error(lambda: read_mesh(folder / name), check_mesh)
+
+
+@pytest.mark.parametrize("name", ["m.obj", "m.ply", "a.ply", "m.glb"])
+def test_mesh_readers(seeds, tmp_path, name):
+    seed = (seeds / name).read_bytes()
+
+    @FUZZ
+    @given(data=mutated(seed))
+    def run(data):
+        _mesh_reader_test(seeds, tmp_path, name, data)
+
+    run()
+
+
+def test_obj_material_library(seeds, tmp_path):
+    mtl = next(seeds.glob("*.mtl"))
+
+    @FUZZ
+    @given(data=mutated(mtl.read_bytes()))
+    def run(data):
+        from uvatar.capture import read_mesh
+
+        folder = tmp_path / "case"
+        if folder.exists():
+            shutil.rmtree(folder)
+        shutil.copytree(seeds, folder)
+        (folder / mtl.name).write_bytes(data)
+        expect_valid_or_own_error(lambda: read_mesh(folder / "m.obj"), check_mesh)
+
+    run()
+
+
+def test_texture_image(seeds, tmp_path):
+    from uvatar.capture.meshio import check_texture, load_texture
+
+    png = next(p for p in seeds.iterdir() if p.suffix == ".png")
+
+    def check(image):
+        assert image.dtype == np.float32 and image.ndim == 3 and image.shape[-1] == 3
+        assert np.isfinite(image).all() and image.min() >= 0 and image.max() <= 1
+
+    @FUZZ
+    @given(data=mutated(png.read_bytes()))
+    def run(data):
+        path = tmp_path / "t.png"
+        path.write_bytes(data)
+        expect_valid_or_own_error(lambda: check_texture(path))
+        expect_valid_or_own_error(lambda: load_texture(path), check)
+
+    run()
+
+
+# -- fits ---------------------------------------------------------------------------------------------
+
+FIT = [{"id": 0, "Rh": [[0.1, 0.2, 0.3]], "Th": [[0.0, 1.0, 2.0]], "poses": [[0.0] * 12], "shapes": [[0.5, 0.5]],
+        "scale": 1.1}]
+
+
+def check_fits(fits):
+    for fit in fits:
+        assert fit.poses.size % 3 == 0 and fit.poses.size > 0 and fit.Rh.shape == (3,) and fit.Th.shape == (3,)
+        assert np.isfinite(fit.poses).all() and np.isfinite(fit.Rh).all() and np.isfinite(fit.Th).all()
+        assert np.isfinite(fit.scale) and fit.scale > 0 and isinstance(fit.id, int)
+
+
+def test_fits_json_bytes(tmp_path):
+    from uvatar.capture.fits import read_fits
+
+    @FUZZ
+    @given(data=mutated(json.dumps(FIT).encode()))
+    def run(data):
+        path = tmp_path / "000000.json"
+        path.write_bytes(data)
+        expect_valid_or_own_error(lambda: read_fits(path), check_fits)
+
+    run()
+
+
+def test_fits_json_values(tmp_path):
+    from uvatar.capture.fits import read_fits
+
+    @FUZZ
+    @given(obj=json_edit(FIT))
+    def run(obj):
+        path = tmp_path / "000000.json"
+        path.write_text(json.dumps(obj))
+        expect_valid_or_own_error(lambda: read_fits(path), check_fits)
+
+    run()
+
+
+def _fits_npz_seed():
+    return {"frames": np.array(["000000", "000001"]), "poses": np.zeros((2, 12), np.float32),
+            "Rh": np.zeros((2, 3), np.float32), "Th": np.ones((2, 3), np.float32),
+            "shapes": np.zeros((2, 2), np.float32), "scale": np.ones(2, np.float32), "ids": np.zeros(2, np.int64)}
+
+
+def test_fits_npz_arrays(tmp_path):
+    from uvatar.capture.fits import read_fits_npz
+
+    @FUZZ
+    @given(arrays=npz_edit(_fits_npz_seed()))
+    def run(arrays):
+        path = tmp_path / "fits.npz"
+        _write_npz(path, arrays)
+        expect_valid_or_own_error(lambda: read_fits_npz(path), lambda d: check_fits(list(d.values())))
+
+    run()
+
+
+def test_fits_npz_bytes(tmp_path):
+    import io
+
+    from uvatar.capture.fits import read_fits_npz
+
+    buffer = io.BytesIO()
+    np.savez(buffer, **_fits_npz_seed())
+
+    @FUZZ
+    @given(data=mutated(buffer.getvalue()))
+    def run(data):
+        path = tmp_path / "fits.npz"
+        path.write_bytes(data)
+        expect_valid_or_own_error(lambda: read_fits_npz(path), lambda d: check_fits(list(d.values())))
+
+    run()
+
+
+# -- baked frame ----------------------------------------------------------------------------------------
+
+def _baked_seed(R=8):
+    rng = np.random.default_rng(0)
+    return {"texture": rng.random((R, R, 3)).astype(np.float16), "displacement": rng.normal(0, 0.01, (R, R, 3)).astype(np.float32),
+            "kappa": rng.random((R, R)).astype(np.float16), "w": rng.random((R, R)).astype(np.float16),
+            "valid": rng.random((R, R)) > 0.3, "matched": rng.random((R, R)) > 0.5,
+            "pose": np.zeros(12, np.float32), "Rh": np.array([0, 0.5, 0], np.float32), "Th": np.zeros(3, np.float32),
+            "shapes": np.zeros(2, np.float32), "scale": np.float32(1), "kappa_mean": np.float64(0.7),
+            "matched_fraction": np.float64(0.5)}
+
+
+def check_frame(frame):
+    R = frame["texture"].shape[0]
+    assert frame["texture"].shape == (R, R, 3) and frame["displacement"].shape == (R, R, 3)
+    assert frame["kappa"].shape == frame["w"].shape == frame["valid"].shape == (R, R)
+    assert frame["pose"].size % 3 == 0 and frame["Rh"].shape == frame["Th"].shape == (3,)
+    assert np.isfinite(frame["texture"]).all() and np.isfinite(frame["displacement"]).all()
+
+
+@pytest.mark.parametrize("resolution", [None, 16])
+def test_baked_frame_arrays(tmp_path, resolution):
+    from uvatar.avh.data import load_frame
+
+    @FUZZ
+    @given(arrays=npz_edit(_baked_seed()))
+    def run(arrays):
+        path = tmp_path / "000000.npz"
+        _write_npz(path, arrays)
+        expect_valid_or_own_error(lambda: load_frame(path, resolution), check_frame)
+
+    run()
+
+
+def test_baked_frame_bytes(tmp_path):
+    import io
+
+    from uvatar.avh.data import load_frame
+
+    buffer = io.BytesIO()
+    np.savez(buffer, **_baked_seed())
+
+    @FUZZ
+    @given(data=mutated(buffer.getvalue()))
+    def run(data):
+        path = tmp_path / "000000.npz"
+        path.write_bytes(data)
+        expect_valid_or_own_error(lambda: load_frame(path), check_frame)
+
+    run()
+
+
+# -- avatar folder and engine manifest ------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def toy_avatar(tmp_path_factory):
+    from uvatar.viewer.toy import write_toy_avatar
+
+    root = tmp_path_factory.mktemp("avatar")
+    write_toy_avatar(root, resolution=16)
+    meta = {"format": "uvatar-avh", "version": 1, "model": "model.onnx", "body": "body.npz",
+            "conditioning_joints": [0, 1, 2, 3], "resolution": 16, "displacement_scale": 0.05,
+            "body_model": {"name": "anny", "shapes": None}}
+    (root / "avatar.json").write_text(json.dumps(meta))
+    np.savez(root / "body.npz", fingers_toes=np.zeros((16, 16), bool), vertices=np.zeros((4, 3), np.float32))
+    return root
+
+
+def _fresh(avatar, tmp_path) -> Path:
+    folder = tmp_path / "avatar"
+    if folder.exists():
+        shutil.rmtree(folder)
+    shutil.copytree(avatar, folder)
+    return folder
+
+
+def test_avatar_json(toy_avatar, tmp_path):
+    from uvatar.avh.export import read_avatar
+
+    seed = json.loads((toy_avatar / "avatar.json").read_text())
+
+    def check(meta):
+        assert isinstance(meta["model"], str) and isinstance(meta["resolution"], int)
+
+    @FUZZ
+    @given(obj=json_edit(seed), data=mutated(json.dumps(seed).encode()), as_bytes=st.booleans())
+    def run(obj, data, as_bytes):
+        folder = _fresh(toy_avatar, tmp_path)
+        if as_bytes:
+            (folder / "avatar.json").write_bytes(data)
+        else:
+            (folder / "avatar.json").write_text(json.dumps(obj))
+        expect_valid_or_own_error(lambda: read_avatar(folder), check)
+
+    run()
+
+
+def test_avatar_body_npz(toy_avatar, tmp_path):
+    import io
+
+    from uvatar.avh.export import read_fingers_toes_mask
+
+    seed = dict(np.load(toy_avatar / "body.npz"))
+    buffer = io.BytesIO()
+    np.savez(buffer, **seed)
+
+    def check(mask):
+        assert mask is None or (mask.dtype == bool and mask.ndim == 2 and mask.shape[0] == mask.shape[1])
+
+    @FUZZ
+    @given(arrays=npz_edit(seed), data=mutated(buffer.getvalue()), as_bytes=st.booleans())
+    def run(arrays, data, as_bytes):
+        path = tmp_path / "body.npz"
+        if as_bytes:
+            path.write_bytes(data)
+        else:
+            _write_npz(path, arrays)
+        expect_valid_or_own_error(lambda: read_fingers_toes_mask(tmp_path), check)
+
+    run()
+
+
+def test_engine_manifest(toy_avatar, tmp_path):
+    from uvatar.viewer.server import check_avatar_dir
+
+    seed = json.loads((toy_avatar / "manifest.json").read_text())
+
+    @FUZZ
+    @given(obj=json_edit(seed), data=mutated(json.dumps(seed).encode()), as_bytes=st.booleans())
+    def run(obj, data, as_bytes):
+        folder = _fresh(toy_avatar, tmp_path)
+        if as_bytes:
+            (folder / "manifest.json").write_bytes(data)
+        else:
+            (folder / "manifest.json").write_text(json.dumps(obj))
+        expect_valid_or_own_error(lambda: check_avatar_dir(folder))
+
+    run()

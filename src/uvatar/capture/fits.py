@@ -35,8 +35,9 @@ def _vector(path: Path, person: dict, key: str, size: int | None) -> np.ndarray:
     if arr.ndim != 1 or (size is not None and arr.shape[0] != size):
         want = f"({size},) or (1, {size})" if size is not None else "(N,) or (1, N)"
         raise InputError(path, f"{key} has shape {tuple(np.shape(person[key]))}, expected {want}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(path, f"{key} contains NaN or infinite values")
+    with np.errstate(over="ignore"):
+        if not np.all(np.isfinite(arr.astype(np.float32))):  # fits are kept as float32
+            raise InputError(path, f"{key} contains NaN, infinite or out-of-range (> 3.4e38) values")
     return arr
 
 
@@ -57,7 +58,8 @@ def fit_from_dict(path: str | Path, person: dict, num_pose_values: int | None = 
         value = person["scale"]
         if isinstance(value, list) and len(value) == 1:
             value = value[0]
-        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value) or value <= 0:
+        if (isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < 3.4e38
+                or not np.isfinite(value)):
             raise InputError(path, f"scale must be one positive number, got {str(person['scale'])[:40]!r}")
         scale = float(value)
     person_id = person.get("id", 0)
@@ -143,6 +145,8 @@ def read_fits_npz(path: str | Path) -> dict[str, BodyFit]:
     for key in ("frames", "poses", "Rh", "Th"):
         if key not in data:
             raise InputError(path, f"missing array {key!r}")
+    if data["frames"].ndim != 1 or data["frames"].dtype.kind not in "US":
+        raise InputError(path, f"frames must be a list of names, got {data['frames'].dtype} {data['frames'].shape}")
     t = len(data["frames"])
     poses = data["poses"]
     if poses.ndim != 2 or poses.shape[0] != t:
@@ -161,8 +165,6 @@ def read_fits_npz(path: str | Path) -> dict[str, BodyFit]:
             raise InputError(path, f"{key} is not a real numeric array (dtype {data[key].dtype})")
         if not np.all(np.isfinite(data[key])):
             raise InputError(path, f"{key} contains NaN or infinite values")
-    if data["frames"].ndim != 1:
-        raise InputError(path, f"frames has shape {data['frames'].shape}, expected ({t},)")
     if "scale" in data and np.any(data["scale"] <= 0):
         raise InputError(path, "scale must be positive")
     if poses.shape[1] == 0 or poses.shape[1] % 3:

@@ -66,10 +66,22 @@ def check_avatar_dir(avatar_dir: str | Path) -> Path:
     for key in ("glb", "generator", "pose_encoding", "joint_names", "texels"):
         if key not in manifest:
             raise InputError(manifest_path, f"missing key {key!r}")
-    for name in (manifest["glb"], manifest["generator"]["file"]):
-        if not (avatar_dir / name).is_file():
-            raise InputError(avatar_dir / name, "missing (named in manifest.json)")
-    check_generator(avatar_dir / manifest["generator"]["file"])
+    generator = manifest["generator"]
+    checks = [(isinstance(manifest["glb"], str) and manifest["glb"], "'glb' must be a file name"),
+              (isinstance(generator, dict) and isinstance(generator.get("file"), str) and generator["file"],
+               "'generator' must be an object with a 'file' name"),
+              (isinstance(manifest["pose_encoding"], dict), "'pose_encoding' must be an object"),
+              (isinstance(manifest["joint_names"], list) and all(isinstance(n, str) for n in manifest["joint_names"]),
+               "'joint_names' must be a list of names"),
+              (isinstance(manifest["texels"], int) and not isinstance(manifest["texels"], bool)
+               and manifest["texels"] >= 1, "'texels' must be a positive integer")]
+    for ok, problem in checks:
+        if not ok:
+            raise InputError(manifest_path, problem)
+    for name in (manifest["glb"], generator["file"]):
+        if "\x00" in name or _inside(avatar_dir, name) is None:
+            raise InputError(avatar_dir / name.replace("\x00", "?"), "missing (named in manifest.json)")
+    check_generator(avatar_dir / generator["file"])
     if not (STATIC_DIR / "viewer.js").is_file():
         raise InputError(STATIC_DIR, "viewer assets not built; run `cd web && npm ci && npm run build`")
     return avatar_dir
