@@ -294,22 +294,26 @@ def test_fits_npz_arrays(tmp_path):
     run()
 
 
-def test_fits_npz_bytes(tmp_path):
+def _fuzz_npz_bytes(seed: dict, path: Path, read, check) -> None:
+    """Byte mutations of ``np.savez(seed)`` written to ``path``; ``read(path)``."""
     import io
 
-    from uvatar.capture.fits import read_fits_npz
-
     buffer = io.BytesIO()
-    np.savez(buffer, **_fits_npz_seed())
+    np.savez(buffer, **seed)
 
     @FUZZ
     @given(data=mutated(buffer.getvalue()))
     def run(data):
-        path = tmp_path / "fits.npz"
         path.write_bytes(data)
-        expect_valid_or_own_error(lambda: read_fits_npz(path), lambda d: check_fits(list(d.values())))
+        expect_valid_or_own_error(lambda: read(path), check)
 
     run()
+
+
+def test_fits_npz_bytes(tmp_path):
+    from uvatar.capture.fits import read_fits_npz
+
+    _fuzz_npz_bytes(_fits_npz_seed(), tmp_path / "fits.npz", read_fits_npz, lambda d: check_fits(list(d.values())))
 
 
 # -- baked frame ----------------------------------------------------------------------------------------
@@ -347,21 +351,9 @@ def test_baked_frame_arrays(tmp_path, resolution):
 
 
 def test_baked_frame_bytes(tmp_path):
-    import io
-
     from uvatar.avh.data import load_frame
 
-    buffer = io.BytesIO()
-    np.savez(buffer, **_baked_seed())
-
-    @FUZZ
-    @given(data=mutated(buffer.getvalue()))
-    def run(data):
-        path = tmp_path / "000000.npz"
-        path.write_bytes(data)
-        expect_valid_or_own_error(lambda: load_frame(path), check_frame)
-
-    run()
+    _fuzz_npz_bytes(_baked_seed(), tmp_path / "000000.npz", load_frame, check_frame)
 
 
 # -- avatar folder and engine manifest ------------------------------------------------------------------
@@ -388,25 +380,30 @@ def _fresh(avatar, tmp_path) -> Path:
     return folder
 
 
-def test_avatar_json(toy_avatar, tmp_path):
-    from uvatar.avh.export import read_avatar
-
-    seed = json.loads((toy_avatar / "avatar.json").read_text())
-
-    def check(meta):
-        assert isinstance(meta["model"], str) and isinstance(meta["resolution"], int)
+def _fuzz_json_file(avatar, tmp_path, name: str, read, check=None) -> None:
+    """Fuzz ``AVATAR/<name>`` (a JSON file) by value edits and byte mutations; ``read(folder)``."""
+    seed = json.loads((avatar / name).read_text())
 
     @FUZZ
     @given(obj=json_edit(seed), data=mutated(json.dumps(seed).encode()), as_bytes=st.booleans())
     def run(obj, data, as_bytes):
-        folder = _fresh(toy_avatar, tmp_path)
+        folder = _fresh(avatar, tmp_path)
         if as_bytes:
-            (folder / "avatar.json").write_bytes(data)
+            (folder / name).write_bytes(data)
         else:
-            (folder / "avatar.json").write_text(json.dumps(obj))
-        expect_valid_or_own_error(lambda: read_avatar(folder), check)
+            (folder / name).write_text(json.dumps(obj))
+        expect_valid_or_own_error(lambda: read(folder), check)
 
     run()
+
+
+def test_avatar_json(toy_avatar, tmp_path):
+    from uvatar.avh.export import read_avatar
+
+    def check(meta):
+        assert isinstance(meta["model"], str) and isinstance(meta["resolution"], int)
+
+    _fuzz_json_file(toy_avatar, tmp_path, "avatar.json", read_avatar, check)
 
 
 def test_avatar_body_npz(toy_avatar, tmp_path):
@@ -437,16 +434,4 @@ def test_avatar_body_npz(toy_avatar, tmp_path):
 def test_engine_manifest(toy_avatar, tmp_path):
     from uvatar.viewer.server import check_avatar_dir
 
-    seed = json.loads((toy_avatar / "manifest.json").read_text())
-
-    @FUZZ
-    @given(obj=json_edit(seed), data=mutated(json.dumps(seed).encode()), as_bytes=st.booleans())
-    def run(obj, data, as_bytes):
-        folder = _fresh(toy_avatar, tmp_path)
-        if as_bytes:
-            (folder / "manifest.json").write_bytes(data)
-        else:
-            (folder / "manifest.json").write_text(json.dumps(obj))
-        expect_valid_or_own_error(lambda: check_avatar_dir(folder))
-
-    run()
+    _fuzz_json_file(toy_avatar, tmp_path, "manifest.json", check_avatar_dir)
