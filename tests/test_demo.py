@@ -38,7 +38,7 @@ def test_demo_rejects_zero_epochs_before_doing_anything(tmp_path, capsys):
 
 
 def test_report_ablation_rows_say_where_each_step_acts(tmp_path):
-    from uvatar.demo_report import _bake_section
+    from uvatar.demo.report import _bake_section
 
     ablation = {"frames": ["000000"],
                 "full": {"median_mm": 1.2, "confident_fraction": 0.7, "texture_psnr_db": 30.0},
@@ -64,7 +64,7 @@ def test_report_ablation_rows_say_where_each_step_acts(tmp_path):
 
 def test_report_is_written_when_the_bake_measured_nothing(tmp_path):
     """A demo whose bake accepted no frame still gets its report (dashes where there are no numbers)."""
-    from uvatar.demo_report import write_demo_report
+    from uvatar.demo.report import write_demo_report
 
     empty = {"median": None, "mean": None, "p90": None, "texels": 0}
     metrics = {"stages": [{"name": "bake", "status": "ran", "seconds": 3.0},

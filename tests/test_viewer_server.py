@@ -139,3 +139,62 @@ def test_uvatar_view_serves_until_stopped(server, tmp_path):
             code = "no exit 60 s after Ctrl-C"
         proc.stdout.close()
     assert code == 0, f"{code}; stderr: {(tmp_path / 'stderr.txt').read_text()[-2000:]}"
+
+
+def _raw(server, request: bytes) -> bytes:
+    import socket
+
+    with socket.create_connection(("127.0.0.1", server.httpd.server_address[1]), timeout=10) as conn:
+        conn.sendall(request)
+        data = b""
+        while chunk := conn.recv(65536):
+            data += chunk
+    return data
+
+
+@pytest.mark.parametrize("request_bytes", [
+    b"GET /a\x00b HTTP/1.1\r\nHost: x\r\n\r\n",
+    b"GET /avatar/manifest.json%00.png HTTP/1.1\r\nHost: x\r\n\r\n",
+    b"GET /api/motion/%00 HTTP/1.1\r\nHost: x\r\n\r\n",
+    b"POST /api/retarget HTTP/1.1\r\nHost: x\r\nContent-Length: abc\r\n\r\nHIERARCHY",
+    b"POST /api/retarget HTTP/1.1\r\nHost: x\r\nContent-Length: -5\r\n\r\nHIERARCHY",
+])
+def test_malformed_requests_are_400_without_a_traceback(server, request_bytes, capfd):
+    answer = _raw(server, request_bytes)
+    assert answer.split(b"\r\n", 1)[0].split()[1] == b"400", answer[:200]
+    assert "Traceback" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("folder", ["ort/", "avatar/", "avatar/motions/"])
+def test_folders_are_never_listed(server, folder):
+    with pytest.raises(urllib.error.HTTPError) as err:
+        _get(server.url + folder)
+    assert err.value.code == 404
+
+
+def test_corrupt_generator_is_refused_up_front(server, tmp_path):
+    import shutil
+
+    bundle = tmp_path / "avatar"
+    shutil.copytree(server.avatar_dir, bundle)
+    model = bundle / "model.onnx"
+    model.write_bytes(model.read_bytes()[: model.stat().st_size // 2])
+    with pytest.raises(InputError, match="model.onnx: not a valid ONNX model"):
+        ViewerServer(bundle, ViewerConfig(port=0, open_browser=False))
+    model.write_bytes(b"\x00" * 64)
+    with pytest.raises(InputError, match="model.onnx: not a valid ONNX model"):
+        check_avatar_dir(bundle)
+
+
+def test_a_burst_of_concurrent_connections_is_all_answered(server):
+    """100 connections at once (the bench, bench/viewer_load.py, measures 500): none refused or lost."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_viewer_load", Path(__file__).resolve().parents[1] / "bench" / "viewer_load.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    result = bench.load_test(server.url, requests=100, timeout=30.0)
+    assert result["outcomes"] == {"ok": 100}, result
+    assert result["all_answered"] is True

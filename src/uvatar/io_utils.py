@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,8 +36,11 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix if suffix is not None else path.suffix,
-                               dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix if suffix is not None else path.suffix,
+                                   dir=path.parent)
+    except OSError as exc:  # read-only or full file system: name the destination, not the temp name
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -44,10 +48,59 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         if tmp_path.exists():  # mkstemp makes 0600 files; give the usual umask-based mode
             os.chmod(tmp_path, 0o666 & ~_UMASK)
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        if isinstance(exc, OSError) and exc.errno is not None and exc.filename in (None, str(tmp_path)):
+            # a writer that lost the name (numpy, imageio, torch) or named the temp file: name the destination
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
         raise
+
+
+def check_output_location(path: str | Path) -> Path:
+    """Raise the ``OSError`` that writing ``path`` would raise later, now: its nearest existing
+    ancestor is a file (``ENOTDIR``) or not writable (``EROFS`` on a read-only file system, else
+    ``EACCES``). For jobs that compute for a while before they write. Returns ``path``."""
+    import errno
+
+    path = Path(path)
+    ancestor = path.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise OSError(errno.ENOTDIR, f"{ancestor} is a file, not a folder", str(path))
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        code = errno.EROFS if _read_only(ancestor) else errno.EACCES
+        raise OSError(code, os.strerror(code) + f" ({ancestor})", str(path))
+    return path
+
+
+def _read_only(folder: Path) -> bool:
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):  # pragma: no cover - not POSIX
+        return False
+
+
+_PARTIAL = re.compile(r"^\..+\.[a-z0-9_]{8}(\.[A-Za-z0-9]+)?$")
+
+
+def find_partial_writes(root: str | Path) -> list[Path]:
+    """The temp files that killed :func:`atomic_path` writes left under ``root`` (recursively:
+    ``frames/.000000.k3j_x9a2.npz``, ``.checkpoint.abcd1234.pt``, ``scans/.000001.q8w2e0r1.png``)."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    return sorted(p for p in root.rglob(".*") if _PARTIAL.match(p.name) and p.is_file() and not p.is_symlink())
+
+
+def sweep_partial_writes(root: str | Path) -> list[Path]:
+    """Delete :func:`find_partial_writes` under ``root``; returns what was removed. Call it at the start
+    of a job that writes into ``root``, never while another job writes there."""
+    removed = find_partial_writes(root)
+    for path in removed:
+        path.unlink(missing_ok=True)
+    return removed
 
 
 def read_json(path: str | Path, missing: str = "file is missing", expect_object: bool = True) -> Any:
@@ -99,8 +152,12 @@ def write_json(path: str | Path, obj: Any, indent: int = 2) -> None:
 
 def write_npz(path: str | Path, **arrays: np.ndarray) -> None:
     """Write a compressed ``.npz`` atomically."""
+    import io
+
+    buffer = io.BytesIO()  # compress in memory, then one plain write (no zip file left open on a full disk)
+    np.savez_compressed(buffer, **arrays)
     with atomic_path(path, suffix=".npz") as tmp:
-        np.savez_compressed(tmp, **arrays)
+        tmp.write_bytes(buffer.getbuffer())
 
 
 def write_image(path: str | Path, image: np.ndarray) -> None:
@@ -110,8 +167,9 @@ def write_image(path: str | Path, image: np.ndarray) -> None:
     arr = np.asarray(image)
     if arr.dtype != np.uint8:
         arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    data = iio.imwrite("<bytes>", arr, extension=Path(path).suffix or ".png")  # encode, then one plain write
     with atomic_path(path) as tmp:
-        iio.imwrite(tmp, arr)
+        tmp.write_bytes(data)
 
 
 def read_image(path: str | Path, what: str = "image", rgb: bool = True) -> np.ndarray:

@@ -159,6 +159,8 @@ def _run_inline(fn, items, shared):
     for item in items:
         try:
             yield item, fn(shared, item)
+        except OSError:  # the file system said no (full disk, read-only): no later item can succeed
+            raise
         except Exception as exc:  # noqa: BLE001 - a failed item is reported, never fatal
             yield item, TaskFailure(_one_line(exc))
 
@@ -175,6 +177,8 @@ def _run_pool(fn, items, shared, workers, initializer):
             item = items[futures[fut]]
             try:
                 yield item, fut.result()
+            except OSError:  # the file system said no (full disk, read-only): no later item can succeed
+                raise
             except Exception as exc:  # noqa: BLE001 - e.g. BrokenProcessPool: a worker process died
                 yield item, TaskFailure(f"worker failed: {_one_line(exc)}")
 
@@ -211,6 +215,8 @@ def _run_ray(fn, items, shared, config: ExecutorConfig, initializer):
                     yield item, ray.get(ref)
                 except ray.exceptions.RayTaskError as exc:  # the task raised: its own failure, once
                     cause = exc.cause if getattr(exc, "cause", None) is not None else exc
+                    if isinstance(cause, OSError):  # the shared file system said no: stop, as locally
+                        raise cause from None
                     yield item, TaskFailure(_one_line(cause))
                 except ray.exceptions.RayError as exc:  # worker/node lost after every retry
                     yield item, TaskFailure(f"worker lost: {_one_line(exc)}")

@@ -26,6 +26,9 @@ log = logging.getLogger(__name__)
 VIEW_AZIMUTH = {"front": 0.0, "left": 90.0, "back": 180.0, "right": 270.0}
 
 
+RENDER_BYTES_PER_PIXEL = 96  # rasterizer buffers of one frame (depth, barycentrics, face ids, colour), float32
+
+
 @dataclass(frozen=True)
 class AnimateConfig:
     """size: image side in pixels; camera: see module docstring; orbit_degrees: turn over the clip;
@@ -144,11 +147,17 @@ def animate(avatar_dir: str | Path, motion: str | Path | PoseSequence, output: s
     Returns the path written (a GIF beside it if MP4 encoding is unavailable).
     """
     from uvatar.render import write_video
+    from uvatar.render.video import check_video_path
+    from uvatar.resources import check_memory
 
     if config.mesh_format not in ("obj", "glb"):
         raise InputError(config.mesh_format, "mesh format must be obj or glb")
+    check_video_path(output)
+    check_memory(RENDER_BYTES_PER_PIXEL * config.size ** 2, "size", f"rendering {config.size}² pixels")
     runtime = AvatarRuntime(avatar_dir, body=body, device=device, levels=config.levels, scheme=config.scheme)
     seq = motion if isinstance(motion, PoseSequence) else load_pose_sequence(motion, runtime.body)
     seq = seq.subsample(config.max_frames, config.stride)
+    check_memory((RENDER_BYTES_PER_PIXEL + 3 * len(seq)) * config.size ** 2, "size",
+                 f"{len(seq)} frames of {config.size}² pixels")
     frames = render_sequence(runtime, seq, config, mesh_dir)
     return Path(write_video(output, frames, fps=config.fps or seq.fps))

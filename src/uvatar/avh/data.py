@@ -108,17 +108,31 @@ def resample_map(image: np.ndarray, resolution: int, nearest: bool = False) -> n
     return out.reshape(resolution, resolution, *image.shape[2:])
 
 
-def load_frame(path: str | Path, resolution: int | None = None) -> dict[str, np.ndarray]:
-    """Read one baked frame; maps resampled to ``resolution``; displacement moved to the body frame."""
+def load_frame(path: str | Path, resolution: int | None = None,
+               num_pose_values: int | None = None) -> dict[str, np.ndarray]:
+    """Read one baked frame; maps resampled to ``resolution``; displacement moved to the body frame.
+    ``num_pose_values``: the pose length the body needs (J·3; None: any positive multiple of 3)."""
     path = Path(path)
     data = load_baked_frame(path)
     missing = [k for k in (*MAP_KEYS, "pose") if k not in data]
     if missing:
         raise InputError(path, f"missing arrays {missing}")
+    for k in (*MAP_KEYS, "pose", "Rh", "Th"):
+        if k in data and data[k].dtype.kind not in "biuf":
+            raise InputError(path, f"{k} is not a numeric array (dtype {data[k].dtype})")
+    if data["texture"].ndim != 3 or data["texture"].shape[-1] != 3 or data["texture"].shape[0] < 1:
+        raise InputError(path, f"texture has shape {data['texture'].shape}, expected (R, R, 3)")
     R = data["texture"].shape[0]
-    for k in MAP_KEYS:
-        if data[k].shape[:2] != (R, R):
-            raise InputError(path, f"{k} has shape {data[k].shape}, expected ({R}, {R}, ...)")
+    for k, tail in (("texture", (3,)), ("displacement", (3,)), ("kappa", ()), ("w", ()), ("valid", ())):
+        if data[k].shape != (R, R, *tail):
+            raise InputError(path, f"{k} has shape {data[k].shape}, expected {(R, R, *tail)}")
+    pose = data["pose"].reshape(-1)
+    if pose.size == 0 or pose.size % 3 or (num_pose_values is not None and pose.size != num_pose_values):
+        want = f"{num_pose_values}" if num_pose_values is not None else "a positive multiple of 3"
+        raise InputError(path, f"pose has {pose.size} values, expected {want}")
+    for k in ("Rh", "Th"):
+        if k in data and data[k].size != 3:
+            raise InputError(path, f"{k} has {data[k].size} values, expected 3")
     res = resolution or R
     out = {
         "texture": resample_map(data["texture"].astype(np.float32), res),
@@ -137,16 +151,24 @@ def load_frame(path: str | Path, resolution: int | None = None) -> dict[str, np.
 
 
 def load_baked_frames(baked_dir: str | Path, frames: list[str], resolution: int | None = None,
-                      progress: bool = False) -> BakedFrames:
-    """Load ``frames`` from ``BAKED/frames``; broken or missing frames are skipped with a warning."""
+                      progress: bool = False, num_pose_values: int | None = None) -> BakedFrames:
+    """Load ``frames`` from ``BAKED/frames``; broken or missing frames are skipped with a warning, as
+    are frames whose pose length is not ``num_pose_values`` (None: the most common length)."""
+    from collections import Counter
+
     from tqdm import tqdm
 
     loaded: dict[str, dict] = {}
     for name in tqdm(frames, desc="load baked", disable=not progress, leave=False):
         try:
-            loaded[name] = load_frame(frame_path(baked_dir, name), resolution)
+            loaded[name] = load_frame(frame_path(baked_dir, name), resolution, num_pose_values)
         except InputError as exc:
             log.warning("skipping frame %s: %s", name, exc)
+    if loaded and num_pose_values is None:
+        common = Counter(f["pose"].size for f in loaded.values()).most_common(1)[0][0]
+        for name in [n for n, f in loaded.items() if f["pose"].size != common]:
+            log.warning("skipping frame %s: pose has %d values, the other frames %d", name,
+                        loaded.pop(name)["pose"].size, common)
     if not loaded:
         raise InputError(Path(baked_dir) / "frames", f"none of the {len(frames)} frames could be read")
     names = list(loaded)

@@ -158,6 +158,22 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
     return meta
 
 
+def read_fingers_toes_mask(avatar_dir: str | Path) -> np.ndarray | None:
+    """``AVATAR/body.npz["fingers_toes"]`` as an (R, R) bool map, or None when the file or the array is
+    absent. A truncated or malformed file is an :class:`InputError` naming it."""
+    from uvatar.io_utils import read_npz
+
+    path = Path(avatar_dir) / "body.npz"
+    if not path.is_file():
+        return None
+    mask = read_npz(path).get("fingers_toes")
+    if mask is None:
+        return None
+    if mask.ndim != 2 or mask.shape[0] != mask.shape[1] or mask.dtype.kind not in "biuf":
+        raise InputError(path, f"fingers_toes is {mask.dtype} {mask.shape}, expected a square (R, R) mask")
+    return mask.astype(bool)
+
+
 def read_avatar(avatar_dir: str | Path) -> dict:
     """Read and check ``AVATAR/avatar.json`` (written by :func:`export_avatar`)."""
     path = Path(avatar_dir) / "avatar.json"
@@ -165,6 +181,20 @@ def read_avatar(avatar_dir: str | Path) -> dict:
     for key in ("model", "conditioning_joints", "resolution", "displacement_scale"):
         if key not in meta:
             raise InputError(path, f"missing key {key!r}")
+    if not isinstance(meta["model"], str) or not meta["model"] or "\x00" in meta["model"]:
+        raise InputError(path, f"'model' must be a file name, got {str(meta['model'])[:40]!r}")
+    cond = meta["conditioning_joints"]
+    if not isinstance(cond, list) or not all(isinstance(j, int) and not isinstance(j, bool) and j >= 0 for j in cond):
+        raise InputError(path, "'conditioning_joints' must be a list of joint indices")
+    res = meta["resolution"]
+    if isinstance(res, bool) or not isinstance(res, int) or not 1 <= res <= 1 << 14:
+        raise InputError(path, f"'resolution' must be a texel count in 1..16384, got {str(res)[:40]!r}")
+    scale = meta["displacement_scale"]
+    if isinstance(scale, bool) or not isinstance(scale, int | float) or not np.isfinite(scale):
+        raise InputError(path, f"'displacement_scale' must be a number, got {str(scale)[:40]!r}")
+    for key in ("body_model",):
+        if meta.get(key) is not None and not isinstance(meta[key], dict):
+            raise InputError(path, f"{key!r} must be an object")
     if not (Path(avatar_dir) / meta["model"]).is_file():
         raise InputError(Path(avatar_dir) / meta["model"], "ONNX model missing")
     return meta

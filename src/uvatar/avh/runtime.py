@@ -96,11 +96,11 @@ class AvatarRuntime:
 
     def fingers_toes_mask(self) -> np.ndarray:
         """(R, R) bool texels where displacement is not applied (body.npz, else part_masks)."""
-        npz = self.avatar_dir / "body.npz"
-        if npz.is_file():
-            with np.load(npz) as z:
-                if "fingers_toes" in z.files and z["fingers_toes"].shape == (self.resolution,) * 2:
-                    return z["fingers_toes"].astype(bool)
+        from uvatar.avh.export import read_fingers_toes_mask
+
+        mask = read_fingers_toes_mask(self.avatar_dir)  # a truncated file is an InputError naming it
+        if mask is not None and mask.shape == (self.resolution,) * 2:
+            return mask
         from uvatar.body import part_masks
 
         return np.asarray(part_masks(self.body, self.resolution)["fingers_toes"], bool)

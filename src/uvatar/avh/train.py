@@ -41,7 +41,7 @@ from uvatar.avh.model import (
 )
 from uvatar.distributed import DistContext, all_sum, distributed_context, global_batchnorm, local_share
 from uvatar.errors import InputError, UvatarError, check_values
-from uvatar.io_utils import atomic_path, read_json, write_json
+from uvatar.io_utils import atomic_path, check_output_location, read_json, sweep_partial_writes, write_json
 
 log = logging.getLogger(__name__)
 
@@ -226,6 +226,8 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
                           "(the batch size is the global batch)")
     local_batch = cfg.batch_size // ctx.world
     ckpt_path = run_dir / "checkpoint.pt"
+    check_output_location(ckpt_path)  # before loading the data
+    sweep_partial_writes(run_dir)  # temp files of checkpoint writes a kill cut short
     state = None
     has_checkpoint = ckpt_path.exists()
     ctx.barrier()  # every rank has looked before rank 0 writes anything
@@ -256,7 +258,11 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
         raise UvatarError("--device cuda requested but CUDA is not available")
     torch.manual_seed(cfg.seed)
     def load(names, progress=False):
-        frames = load_baked_frames(baked_dir, names, R, progress)
+        frames = load_baked_frames(baked_dir, names, R, progress,
+                                   None if body is None else 3 * body.num_joints)
+        if max(cond, default=-1) >= frames.poses.shape[1] // 3:
+            raise InputError(baked_dir / "dataset.json", f"conditioning joint {max(cond)} is not in the "
+                             f"frames' poses ({frames.poses.shape[1] // 3} joints)")
         return to_training_data(displacements_to_frame(frames, cfg.displacement_frame, body, shapes), cond, device)
 
     train = load(train_names, cfg.progress and ctx.is_main)

@@ -35,8 +35,9 @@ def _vector(path: Path, person: dict, key: str, size: int | None) -> np.ndarray:
     if arr.ndim != 1 or (size is not None and arr.shape[0] != size):
         want = f"({size},) or (1, {size})" if size is not None else "(N,) or (1, N)"
         raise InputError(path, f"{key} has shape {tuple(np.shape(person[key]))}, expected {want}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(path, f"{key} contains NaN or infinite values")
+    with np.errstate(over="ignore"):
+        if not np.all(np.isfinite(arr.astype(np.float32))):  # fits are kept as float32
+            raise InputError(path, f"{key} contains NaN, infinite or out-of-range (> 3.4e38) values")
     return arr
 
 
@@ -54,12 +55,20 @@ def fit_from_dict(path: str | Path, person: dict, num_pose_values: int | None = 
     shapes = _vector(path, person, "shapes", None) if "shapes" in person else np.zeros(0)
     scale = 1.0
     if "scale" in person:
-        scale_arr = np.asarray(person["scale"], dtype=np.float64).reshape(-1)
-        if scale_arr.size != 1 or not np.isfinite(scale_arr[0]) or scale_arr[0] <= 0:
-            raise InputError(path, f"scale must be one positive number, got {person['scale']!r}")
-        scale = float(scale_arr[0])
+        value = person["scale"]
+        if isinstance(value, list) and len(value) == 1:
+            value = value[0]
+        if (isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < 3.4e38
+                or not np.isfinite(value)):
+            raise InputError(path, f"scale must be one positive number, got {str(person['scale'])[:40]!r}")
+        scale = float(value)
+    person_id = person.get("id", 0)
+    if isinstance(person_id, str) and person_id.strip().lstrip("-").isdigit():
+        person_id = int(person_id)
+    if isinstance(person_id, bool) or not isinstance(person_id, int | float) or person_id != int(person_id):
+        raise InputError(path, f"id must be an integer, got {str(person.get('id'))[:40]!r}")
     return BodyFit(poses=poses, Rh=_vector(path, person, "Rh", 3), Th=_vector(path, person, "Th", 3),
-                   shapes=shapes, scale=scale, id=int(person.get("id", 0)))
+                   shapes=shapes, scale=scale, id=int(person_id))
 
 
 def read_fits(path: str | Path, num_pose_values: int | None = None) -> list[BodyFit]:
@@ -136,6 +145,8 @@ def read_fits_npz(path: str | Path) -> dict[str, BodyFit]:
     for key in ("frames", "poses", "Rh", "Th"):
         if key not in data:
             raise InputError(path, f"missing array {key!r}")
+    if data["frames"].ndim != 1 or data["frames"].dtype.kind not in "US":
+        raise InputError(path, f"frames must be a list of names, got {data['frames'].dtype} {data['frames'].shape}")
     t = len(data["frames"])
     poses = data["poses"]
     if poses.ndim != 2 or poses.shape[0] != t:
@@ -143,9 +154,21 @@ def read_fits_npz(path: str | Path) -> dict[str, BodyFit]:
     for key in ("Rh", "Th"):
         if data[key].shape != (t, 3):
             raise InputError(path, f"{key} has shape {data[key].shape}, expected ({t}, 3)")
-    for key in ("poses", "Rh", "Th", "shapes", "scale"):
-        if key in data and not np.all(np.isfinite(data[key])):
+    want = {"shapes": (t, None), "scale": (t,), "ids": (t,)}
+    for key, shape in want.items():
+        if key in data and (data[key].ndim != len(shape) or data[key].shape[0] != t):
+            raise InputError(path, f"{key} has shape {data[key].shape}, expected ({t}{', S' if key == 'shapes' else ''})")
+    for key in ("poses", "Rh", "Th", "shapes", "scale", "ids"):
+        if key not in data:
+            continue
+        if data[key].dtype.kind not in "biuf":
+            raise InputError(path, f"{key} is not a real numeric array (dtype {data[key].dtype})")
+        if not np.all(np.isfinite(data[key])):
             raise InputError(path, f"{key} contains NaN or infinite values")
+    if "scale" in data and np.any(data["scale"] <= 0):
+        raise InputError(path, "scale must be positive")
+    if poses.shape[1] == 0 or poses.shape[1] % 3:
+        raise InputError(path, f"poses has {poses.shape[1]} values per frame, expected a positive multiple of 3")
     shapes = data.get("shapes", np.zeros((t, 0), np.float32))
     scale = data.get("scale", np.ones(t, np.float32))
     ids = data.get("ids", np.zeros(t, np.int64))

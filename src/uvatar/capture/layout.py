@@ -55,6 +55,12 @@ def read_capture_info(root: str | Path) -> dict:
         body = {"name": body}
     if not isinstance(body, dict) or "name" not in body:
         raise InputError(path, "'body_model' must be {\"name\": ..., \"shapes\": [...]}")
+    if not isinstance(body["name"], str) or not body["name"]:
+        raise InputError(path, f"'body_model.name' must be a name (anny, smpl, smplx), got {str(body['name'])[:40]!r}")
+    shapes = body.get("shapes")
+    if shapes is not None and (not isinstance(shapes, list) or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v) for v in shapes)):
+        raise InputError(path, "'body_model.shapes' must be a list of numbers (or null)")
     info["body_model"] = body
     return info
 
@@ -107,7 +113,7 @@ class Capture:
 
     @property
     def body_shapes(self) -> np.ndarray:
-        return np.asarray(self.info["body_model"].get("shapes", []), dtype=np.float32)
+        return np.asarray(self.info["body_model"].get("shapes") or [], dtype=np.float32)
 
     @cached_property
     def frames(self) -> list[str]:

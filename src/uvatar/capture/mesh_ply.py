@@ -165,7 +165,12 @@ def read_ply(path: Path, load_texture) -> TexturedMesh:
     index_name = next((n for n in ("vertex_indices", "vertex_index") if n in face), None)
     if index_name is None:
         raise InputError(path, "PLY faces have no vertex_indices list")
-    polys = np.asarray(face[index_name]).astype(np.int64).reshape(len(face[index_name]), -1)
+    if len(face[index_name]) == 0 or len(vertices) == 0:
+        raise InputError(path, f"PLY has {len(face[index_name])} faces and {len(vertices)} vertices; a mesh needs both")
+    try:
+        polys = np.asarray(face[index_name]).astype(np.int64).reshape(len(face[index_name]), -1)
+    except (ValueError, TypeError):  # lists of different lengths (mixed polygons are fanned per size only)
+        raise InputError(path, "PLY faces mix polygon sizes; triangulate the mesh") from None
     if polys.shape[1] < 3:
         raise InputError(path, "PLY faces have fewer than 3 vertices")
     if polys.size and (polys.min() < 0 or polys.max() >= len(vertices)):

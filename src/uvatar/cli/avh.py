@@ -112,7 +112,7 @@ def _train(args) -> int:
     from uvatar.avh.model import preset
     from uvatar.avh.train import TrainConfig, train_avh
 
-    overrides = {"resolution": args.texels} if args.texels else {}
+    overrides = {"resolution": args.texels} if args.texels is not None else {}
     try:
         cfg = preset(args.preset, **overrides)
     except ValueError as exc:
@@ -186,8 +186,10 @@ def _count_or_names(value: str | None, flag: str) -> tuple[int | None, tuple[str
 def _eval(args) -> int:
     from uvatar.avh.eval import EvalConfig, evaluate_avatar
     from uvatar.errors import InputError
-    from uvatar.io_utils import write_json
+    from uvatar.io_utils import check_output_location, write_json
 
+    if args.json:
+        check_output_location(args.json)  # before minutes of rendering
     if args.image_size is not None and args.image_size < 16:
         raise InputError("--image-size", f"must be at least 16 pixels, got {args.image_size}")
     max_frames, frames = _count_or_names(args.frames, "--frames")

@@ -9,7 +9,7 @@ def register(cli) -> None:
         help="run synth → bake → select → train → export → animate → eval on a synthetic capture",
         description="Run the whole AVH pipeline on a synthetic studio capture made on the fly "
         "(nothing is downloaded) and write OUT/report.html and OUT/metrics.json. "
-        "An interrupted demo resumes: finished stages are skipped.",
+        "An interrupted demo resumes: a stage whose completion record (OUT/stages/<stage>.json) exists is skipped.",
     )
     p.add_argument("--out", default="demo_out", help="output folder")
     p.add_argument("--quick", action="store_true", help="smoke run (~3 min on 2 CPU cores)")
@@ -20,6 +20,7 @@ def register(cli) -> None:
 
 def run(args) -> int:
     from dataclasses import replace
+    from pathlib import Path
 
     from uvatar.demo import DEFAULT, QUICK, run_demo
 
@@ -32,11 +33,8 @@ def run(args) -> int:
             raise InputError("--epochs", f"must be at least 1, got {args.epochs}")
         cfg = replace(cfg, epochs=args.epochs)
     metrics = run_demo(args.out, cfg)
-    print(f"uvatar demo: report at {args.out}/report.html, metrics at {args.out}/metrics.json")
+    print(f"uvatar demo: report at {Path(args.out) / 'report.html'}, metrics at {Path(args.out) / 'metrics.json'}")
     for stage in metrics["stages"]:
         print(f"  {stage['name']:<8} {stage['status']:<28} {stage['seconds']:7.1f} s")
-    missing = [s["name"] for s in metrics["stages"] if s["status"] == "missing"]
-    if missing:
-        print(f"  not implemented yet: {', '.join(missing)}")
     failed = [s["name"] for s in metrics["stages"] if s["status"].startswith("failed")]
     return 1 if failed else 0

@@ -8,8 +8,10 @@ A command module defines ``register(cli: Cli) -> None`` and calls ``cli.command(
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
+import os
 import pkgutil
 import sys
 
@@ -80,6 +82,21 @@ def _apply_default_subcommands(argv: list[str]) -> list[str]:
     return argv
 
 
+def os_error_line(exc: OSError) -> str:
+    """``path: reason`` for an ``OSError`` (the destination of a failed rename/copy when there is one).
+
+    >>> os_error_line(FileNotFoundError(2, "No such file or directory", "out/a.npz"))
+    'out/a.npz: No such file or directory'
+    """
+    path = exc.filename2 if exc.filename2 is not None else exc.filename
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    if exc.errno == errno.EEXIST and path is not None and os.path.isfile(path):
+        reason = "exists as a file, not a folder"
+    if path is None:
+        return reason
+    return f"{os.fsdecode(path) if isinstance(path, bytes) else path}: {reason}"
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     cli = build_cli()
@@ -91,17 +108,21 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         code = args.func(args)
+    except BrokenPipeError:  # output piped into `head` and closed early
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except UvatarError as exc:
         print(f"uvatar: error: {exc}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print("uvatar: error: out of memory; use smaller sizes (frames, texels, image size)", file=sys.stderr)
+        return 1
+    except OSError as exc:  # the file system said no: full disk, read-only, a file where a folder should be
+        print(f"uvatar: error: {os_error_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("uvatar: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # output piped into `head` and closed early
-        import os
-
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
     return int(code or 0)
 
 

@@ -31,7 +31,7 @@ from uvatar.dva.dataset import FrameBank
 from uvatar.dva.losses import DvaLoss, Vgg19Features
 from uvatar.dva.model import DvaConfig, DvaModel, pixel_rays
 from uvatar.errors import InputError, UvatarError
-from uvatar.io_utils import atomic_path, write_json
+from uvatar.io_utils import atomic_path, sweep_partial_writes, write_json
 
 log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.pt"
@@ -111,6 +111,8 @@ class Trainer:
         self.seconds = 0.0  # trained so far, over every resumed part of the run
         torch.manual_seed(seed)
         self.out.mkdir(parents=True, exist_ok=True)
+        if self.ctx.is_main:
+            sweep_partial_writes(self.out)  # temp files of writes a kill cut short
         ckpt = self.out / CHECKPOINT
         state = None
         exists = ckpt.is_file()

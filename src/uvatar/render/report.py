@@ -18,7 +18,7 @@ _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1100px;
 margin:2em auto;padding:0 1em;color:#222;line-height:1.45}
 h1{border-bottom:2px solid #ddd;padding-bottom:.3em} h2{margin-top:1.8em;color:#333}
-table{border-collapse:collapse;margin:.8em 0} th,td{border:1px solid #ccc;padding:.3em .7em;
+.wide{max-width:100%;overflow-x:auto} table{border-collapse:collapse;margin:.8em 0} th,td{border:1px solid #ccc;padding:.3em .7em;
 text-align:right} th{background:#f3f3f3} td:first-child,th:first-child{text-align:left}
 figure{display:inline-block;margin:.4em;vertical-align:top} figcaption{font-size:.85em;color:#555;
 text-align:center} img,video{max-width:100%;border:1px solid #ddd}
@@ -42,7 +42,7 @@ def _table(table) -> str:
         rows = [[r.get(c, "") for c in columns] for r in rows_d]
     head = "".join(f"<th>{html.escape(str(c))}</th>" for c in columns)
     body = "".join("<tr>" + "".join(f"<td>{_fmt(v)}</td>" for v in row) + "</tr>" for row in rows)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    return f'<div class="wide"><table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table></div>'
 
 
 def _media(items, root: Path, kind: str) -> str:
@@ -50,7 +50,7 @@ def _media(items, root: Path, kind: str) -> str:
     for item in items:
         src, caption = (item, "") if isinstance(item, str | Path) else (item[0], item[1])
         p = Path(src)
-        rel = os.path.relpath(p, root) if p.is_absolute() else str(p)
+        rel = os.path.relpath(p.resolve(), root)  # as the program sees it -> relative to the report's folder
         rel = html.escape(Path(rel).as_posix(), quote=True)
         tag = (f'<img src="{rel}" alt="{html.escape(caption or p.name)}" loading="lazy">' if kind == "img"
                else f'<video src="{rel}" controls loop muted playsinline></video>')
@@ -64,8 +64,9 @@ def html_report(path, title: str, sections, subtitle: str | None = None) -> Path
 
     sections: list of dicts with optional keys ``title``, ``text`` (str, paragraphs split on blank
     lines), ``pre`` (preformatted text), ``table`` (see :func:`_table`) or ``tables`` (list),
-    ``images`` and ``videos`` (lists of paths or (path, caption); relative paths are taken as
-    relative to the report, absolute ones are made relative to it).
+    ``images`` and ``videos`` (lists of paths or (path, caption): absolute, or relative to the
+    working directory like every other path; the report links them relative to its own folder, so
+    it opens from anywhere and the folder can be moved or zipped).
     """
     path = Path(path)
     root = path.parent.resolve()

@@ -12,9 +12,22 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.errors import InputError
-from uvatar.io_utils import atomic_path
+from uvatar.io_utils import atomic_path, check_output_location
 
-__all__ = ["write_video", "to_uint8"]
+__all__ = ["write_video", "to_uint8", "check_video_path", "VIDEO_SUFFIXES"]
+
+VIDEO_SUFFIXES = (".mp4", ".gif")
+
+
+def check_video_path(path) -> Path:
+    """Raise :class:`InputError` unless ``path`` can take a video: a ``.mp4``/``.gif`` name that is
+    not an existing folder (call it before rendering, so a bad ``-o`` fails in a second)."""
+    path = Path(path)
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise InputError(path, f"a video must end in {' or '.join(VIDEO_SUFFIXES)}, got {path.suffix or 'no suffix'!r}")
+    if path.is_dir():
+        raise InputError(path, "is a folder; give a video file name")
+    return check_output_location(path)
 
 
 def to_uint8(frame) -> np.ndarray:
@@ -39,7 +52,7 @@ def _even(f: np.ndarray) -> np.ndarray:
 def write_video(path, frames, fps: float = 25.0, quality: int = 7) -> Path:
     """Write ``frames`` to ``path`` (.mp4; .gif also accepted). Returns the path actually written:
     if MP4 encoding fails (no ffmpeg), a GIF next to it (same stem, .gif) with a warning."""
-    path = Path(path)
+    path = check_video_path(path)
     frames = [to_uint8(f) for f in frames]
     if not frames:
         raise InputError(path, "no frames to write")
@@ -55,6 +68,11 @@ def write_video(path, frames, fps: float = 25.0, quality: int = 7) -> Path:
                     for f in frames:
                         w.append_data(_even(f))
             return path
+        except OSError as exc:
+            if exc.errno is not None:  # the file system said no (full, read-only): a GIF would fail too
+                raise
+            warnings.warn(f"MP4 encoding failed ({exc}); writing a GIF instead", stacklevel=2)
+            path = path.with_suffix(".gif")
         except Exception as exc:  # no ffmpeg binary or codec: fall back to GIF
             warnings.warn(f"MP4 encoding failed ({exc}); writing a GIF instead", stacklevel=2)
             path = path.with_suffix(".gif")

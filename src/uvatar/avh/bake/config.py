@@ -85,8 +85,12 @@ class PoseRefineConfig:
     max_untracked_weight: float = 0.5
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.max_untracked_weight <= 1.0:
-            raise ValueError(f"pose_refine max_untracked_weight must be in [0, 1], got {self.max_untracked_weight}")
+        check_values([
+            (self.iterations >= 0, f"pose_refine iterations must be >= 0, got {self.iterations}"),
+            (0.0 <= self.max_untracked_weight <= 1.0,
+             f"pose_refine max_untracked_weight must be in [0, 1], got {self.max_untracked_weight}"),
+            (self.max_vertices is None or self.max_vertices >= 1,
+             f"pose_refine max_vertices must be >= 1, got {self.max_vertices}")])
 
 
 @dataclass(frozen=True)

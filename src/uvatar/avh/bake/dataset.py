@@ -26,7 +26,7 @@ from uvatar.io_utils import read_json, write_image, write_json, write_npz
 
 __all__ = [
     "DATASET_JSON", "frame_path", "rejected_path", "preview_path", "write_baked_frame", "load_baked_frame",
-    "read_frame_scalar", "read_dataset_info", "write_dataset_info", "is_baked_dataset",
+    "read_frame_scalar", "read_dataset_info", "write_dataset_info", "is_baked_dataset", "restore_preview",
 ]
 
 DATASET_JSON = "dataset.json"
@@ -55,6 +55,9 @@ def write_baked_frame(root, frame: str, baked, fit, rejected: bool = False, floa
 
     half = np.float16 if float16 else np.float32
     path = rejected_path(root, frame) if rejected else frame_path(root, frame)
+    if preview:  # before the frame: a frame on disk always has its preview, even after a kill
+        write_image(preview_path(root, frame),
+                    preview_image(baked.texture, baked.displacement, baked.kappa, baked.valid))
     write_npz(
         path,
         texture=baked.texture.astype(half), displacement=baked.displacement.astype(np.float32),
@@ -64,10 +67,21 @@ def write_baked_frame(root, frame: str, baked, fit, rejected: bool = False, floa
         scale=np.float32(fit.scale), kappa_mean=np.float64(baked.stats["kappa_mean"]),
         matched_fraction=np.float64(baked.stats["matched_fraction"]),
     )
-    if preview:
-        write_image(preview_path(root, frame),
-                    preview_image(baked.texture, baked.displacement, baked.kappa, baked.valid))
     return path
+
+
+def restore_preview(root, frame: str) -> bool:
+    """Write ``preview/<frame>.png`` from the frame on disk if it is missing (bakes older than the
+    preview-first order could lose it to a kill); True if one was written."""
+    from uvatar.avh.bake.frame import preview_image
+
+    target = preview_path(root, frame)
+    source = next((p for p in (frame_path(root, frame), rejected_path(root, frame)) if p.is_file()), None)
+    if target.is_file() or source is None:
+        return False
+    z = load_baked_frame(source)
+    write_image(target, preview_image(z["texture"], z["displacement"], z["kappa"], z["valid"]))
+    return True
 
 
 def load_baked_frame(path, keys=None) -> dict[str, np.ndarray]:

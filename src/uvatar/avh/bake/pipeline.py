@@ -23,12 +23,15 @@ from uvatar.avh.bake.dataset import (
     read_dataset_info,
     read_frame_scalar,
     rejected_path,
+    restore_preview,
     write_baked_frame,
     write_dataset_info,
 )
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError
+from uvatar.io_utils import sweep_partial_writes
 from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
+from uvatar.resources import check_memory
 from uvatar.threads import limit_process_to_one_thread
 
 log = logging.getLogger(__name__)
@@ -47,6 +50,10 @@ class FrameResult:
     seconds: float = 0.0
     stats: dict = field(default_factory=dict)
 
+
+# Peak memory of one frame's bake per texel (UV layout, visibility, match and map buffers), bytes:
+# measured ~75 B/texel above a 640 MB base at 512² on anny; rounded up for registration and inpainting.
+BAKE_BYTES_PER_TEXEL = 256
 
 # -- per-process state ----------------------------------------------------------------------------
 _STATE: dict = {}
@@ -193,9 +200,12 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
 
     config = config or BakeConfig()
     executor = executor or ExecutorConfig(workers=max(1, int(workers)))
+    check_memory(BAKE_BYTES_PER_TEXEL * config.texels ** 2 * max(1, workers), "texels",
+                 f"baking {config.texels}² texels in {max(1, workers)} process(es)")
     capture = Capture(capture_root)
     out = Path(out_root)
     out.mkdir(parents=True, exist_ok=True)
+    sweep_partial_writes(out)  # temp files of writes a kill cut short (frames/.000000.*.npz, ...)
     previous = read_dataset_info(out)
     if previous.get("texels") not in (None, config.texels) and not overwrite:
         raise InputError(out / "dataset.json", f"holds a bake at {previous['texels']} texels, not "
@@ -205,12 +215,16 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     if unknown:
         raise InputError(capture.root / "capture.json", f"has no frame(s) {', '.join(unknown[:5])}")
     body_name = capture.body_model
-    load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
+    try:
+        load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
+    except ValueError as exc:  # an unknown name
+        raise InputError(capture.root / "capture.json", str(exc)) from None
     results: dict[str, FrameResult] = previous_results(previous)
     for f in capture.frames:  # everything already on disk (also from earlier calls with other frames)
         done = _existing_result(out, f, config)
         if done is not None:
             results[f] = done
+            restore_preview(out, f)
     todo = [f for f in frames if overwrite or f not in results or results[f].status == "broken"]
 
     def finish(result: FrameResult) -> None:

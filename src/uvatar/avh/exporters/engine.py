@@ -35,7 +35,7 @@ from uvatar.avh.exporters.glb import SkinnedMesh, local_joint_transforms, write_
 from uvatar.body.base import BodyTemplate
 from uvatar.errors import InputError
 from uvatar.geometry.frames import vertex_normals
-from uvatar.io_utils import read_json, write_image, write_json
+from uvatar.io_utils import read_json, read_npz, write_image, write_json
 
 MANIFEST_FORMAT = "uvatar-engine/1"
 DEFAULT_SPACE = "body frame: world axes of the posed body with the global rotation Rh removed"
@@ -316,9 +316,7 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
     write_glb(avatar_dir / config.glb_name, mesh)
 
     if fingers_toes_mask is None and (avatar_dir / "body.npz").is_file():
-        with np.load(avatar_dir / "body.npz") as npz:
-            if "fingers_toes" in npz.files:
-                fingers_toes_mask = npz["fingers_toes"]
+        fingers_toes_mask = read_npz(avatar_dir / "body.npz").get("fingers_toes")  # errors name the file
     if fingers_toes_mask is None and body_model is not None:
         from uvatar.body import part_masks
 

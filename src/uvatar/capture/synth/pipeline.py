@@ -16,7 +16,9 @@ import numpy as np
 
 from uvatar.capture.synth.config import SynthConfig
 from uvatar.errors import InputError, UvatarError
+from uvatar.io_utils import sweep_partial_writes
 from uvatar.parallel import ExecutorConfig, clear_worker_cache
+from uvatar.resources import check_memory
 
 __all__ = ["make_plan", "synthesize"]
 
@@ -190,10 +192,13 @@ def synthesize(out: str | Path, config: SynthConfig | None = None, progress: boo
     cfg = config or SynthConfig()
     root = Path(out)
     root.mkdir(parents=True, exist_ok=True)
+    sweep_partial_writes(root)  # temp files of writes a kill cut short (scans/.000001.*.png, ...)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # identical float results in every process (byte-identical outputs)
     try:
         body = load_body_model(cfg.body_model)
+        # the plan holds a few (frames, joints, 3) float64 arrays (true motion, fits, takes)
+        check_memory(8 * 3 * 8 * body.num_joints * cfg.frames, "frames", f"planning {cfg.frames} frames")
         plan = make_plan(body, cfg)
         _write_meta(root, cfg, plan)
         topo_todo = [s for s in range(len(plan["segments"]))

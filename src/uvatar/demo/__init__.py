@@ -1,0 +1,11 @@
+"""``uvatar demo``: the whole AVH pipeline on a synthetic studio capture, with nothing to download.
+
+:mod:`uvatar.demo.pipeline` runs the stages (library calls, each stage done when its own completion
+record ``OUT/stages/<stage>.json`` says so); :mod:`uvatar.demo.report` writes ``OUT/report.html``.
+"""
+
+from uvatar.demo.pipeline import DEFAULT, QUICK, DemoConfig, StageResult, demo_stages, quick_config, run_demo
+from uvatar.demo.report import write_demo_report
+
+__all__ = ["DEFAULT", "QUICK", "DemoConfig", "StageResult", "demo_stages", "quick_config", "run_demo",
+           "write_demo_report"]

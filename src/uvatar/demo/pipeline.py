@@ -1,0 +1,199 @@
+"""``uvatar demo``: synth → bake (+ eval against ground truth) → select → train → export → animate an
+unseen motion → eval on held-out poses → ``OUT/metrics.json`` and ``OUT/report.html``.
+
+Each stage calls the library function behind its command (:func:`~uvatar.capture.synth.pipeline.synthesize`,
+:func:`~uvatar.avh.bake.pipeline.bake_capture`, ...) in process. A stage is done when its own
+completion record ``OUT/stages/<stage>.json`` says so; the record is written last, after every output
+of the stage, so a demo killed at any point resumes: a stage cut short runs again (and itself resumes
+what it finished: frames, epochs), later stages run after it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+from uvatar.errors import UvatarError
+from uvatar.io_utils import write_json
+
+log = logging.getLogger(__name__)
+
+STAGES = ("synth", "bake", "select", "train", "export", "animate", "eval")
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """Sizes of the demo run. ``DEFAULT`` fits in ~15 min on a 2-core CPU, ``QUICK`` in ~3 min."""
+
+    frames: int = 100           # synthetic capture frames in all (takes + held-out poses)
+    heldout: int = 8            # held-out frames with poses not in the takes
+    cameras: int = 4
+    image_size: int = 256
+    scan_texture: int = 512
+    gt_texels: int = 256
+    texels: int = 128           # bake resolution = the generator preset's output resolution
+    train_frames: int = 80
+    val_frames: int = 6
+    preset: str = "cpu-small"
+    epochs: int = 40
+    animate_frames: int = 48
+    animate_size: int = 256
+    seed: int = 0
+    workers: int = 2
+    synth_preset: str = "default"  # "quick": small scans (6k-12k faces), short topology segments
+
+
+DEFAULT = DemoConfig()
+QUICK = DemoConfig(frames=12, heldout=3, cameras=2, image_size=96, scan_texture=256, gt_texels=64,
+                   texels=64, train_frames=8, val_frames=2, preset="cpu-tiny", epochs=2,
+                   animate_frames=6, animate_size=96, synth_preset="quick")
+
+
+@dataclass
+class StageResult:
+    name: str
+    status: str                 # "ran", "skipped (done)", "failed: ...", "not run (...)"
+    seconds: float = 0.0
+    outputs: dict = field(default_factory=dict)
+
+
+def stage_record(out: Path, name: str) -> Path:
+    """``OUT/stages/<name>.json``: the completion record of a stage (written last)."""
+    return Path(out) / "stages" / f"{name}.json"
+
+
+def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None]]]:
+    """The pipeline as (stage name, function that runs it and writes its outputs)."""
+    out = Path(out)
+    cap, baked, run, avatar = out / "capture", out / "baked", out / "run", out / "avatar"
+
+    def synth() -> None:
+        from uvatar.capture.synth.config import preset
+        from uvatar.capture.synth.pipeline import synthesize
+
+        summary = synthesize(cap, preset(cfg.synth_preset, frames=cfg.frames, heldout=cfg.heldout,
+                                         cameras=cfg.cameras, image_size=cfg.image_size,
+                                         scan_texture=cfg.scan_texture, gt_texels=cfg.gt_texels, seed=cfg.seed,
+                                         workers=cfg.workers), progress=True)
+        if summary["failed"]:
+            raise UvatarError(f"{cap}: synth failed on frame(s) {', '.join(sorted(summary['failed']))[:200]}")
+
+    def bake() -> None:
+        from uvatar.avh.bake import BakeConfig
+        from uvatar.avh.bake.dataset import read_dataset_info
+        from uvatar.avh.bake.evaluate import EvalConfig, evaluate_bake
+        from uvatar.avh.bake.pipeline import bake_capture
+
+        bake_capture(cap, baked, BakeConfig().with_updates(texels=cfg.texels), None, cfg.workers, True)
+        info = read_dataset_info(baked)
+        if not info.get("frames_baked"):
+            raise UvatarError(f"{baked}: no frame was baked (rejected: {len(info.get('rejected', {}))})")
+        metrics = evaluate_bake(cap, baked, EvalConfig(), True)
+        write_json(out / "bake_metrics.json", {"frames_baked": len(info["frames_baked"]),
+                                               "rejected": info.get("rejected", {}), "eval": metrics})
+
+    def select() -> None:
+        from uvatar.avh.bake.select import SelectConfig, select_from_baked
+
+        select_from_baked(baked, SelectConfig(n_train=cfg.train_frames, n_val=cfg.val_frames, seed=cfg.seed))
+
+    def train() -> None:
+        from uvatar.avh.model import preset
+        from uvatar.avh.train import TrainConfig, train_avh
+
+        train_avh(baked, run, preset(cfg.preset), TrainConfig(epochs=cfg.epochs), resume=True,
+                  preset_name=cfg.preset)
+
+    def export() -> None:
+        from uvatar.avh.export import export_avatar
+
+        export_avatar(run, avatar)
+
+    def animate() -> None:
+        from uvatar.avh.animate import AnimateConfig
+        from uvatar.avh.animate import animate as render_motion
+
+        render_motion(avatar, f"heldout:{cap}", out / "animation.mp4",
+                      AnimateConfig(size=cfg.animate_size, max_frames=cfg.animate_frames))
+
+    def evaluate() -> None:
+        from uvatar.avh.eval import EvalConfig, evaluate_avatar
+
+        write_json(out / "eval.json", evaluate_avatar(avatar, cap, EvalConfig(), image_dir=out / "eval_images"))
+
+    return [("synth", synth), ("bake", bake), ("select", select), ("train", train), ("export", export),
+            ("animate", animate), ("eval", evaluate)]
+
+
+def run_demo(out: str | Path = "demo_out", cfg: DemoConfig = DEFAULT,
+             on_stage: Callable[[str], None] | None = None) -> dict:
+    """Run every stage whose completion record is missing; return (and write) ``OUT/metrics.json``.
+
+    A stage that raises :class:`~uvatar.errors.UvatarError` is reported as failed and the later
+    stages are not run; an ``OSError`` (the file system said no) propagates.
+    """
+    from uvatar.demo.report import write_demo_report
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    results: list[StageResult] = []
+    failed = False
+    for name, stage in demo_stages(out, cfg):
+        if on_stage:
+            on_stage(name)
+        if failed:
+            results.append(StageResult(name, "not run (an earlier stage failed)"))
+            continue
+        record = stage_record(out, name)
+        if record.is_file():
+            results.append(StageResult(name, "skipped (done)"))
+            continue
+        log.info("demo: stage %s", name)
+        t0 = time.perf_counter()
+        try:
+            stage()
+        except UvatarError as exc:
+            failed = True
+            log.error("demo: stage %s failed: %s", name, exc)
+            results.append(StageResult(name, f"failed: {str(exc).splitlines()[0][:300]}", time.perf_counter() - t0))
+            continue
+        dt = time.perf_counter() - t0
+        write_json(record, {"stage": name, "seconds": dt, "config": asdict(cfg)})  # last: the stage is done
+        results.append(StageResult(name, "ran", dt))
+    metrics = collect_metrics(out, cfg, results)
+    write_json(out / "metrics.json", metrics)
+    write_demo_report(out, metrics)
+    return metrics
+
+
+def _load(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def collect_metrics(out: Path, cfg: DemoConfig, results: list[StageResult]) -> dict:
+    """Merge the stage JSONs into one metrics object (``avh``, ``baselines``, ``bake``, ``stages``)."""
+    evaluation = _load(out / "eval.json") or {}
+    metrics: dict = {
+        "config": asdict(cfg),
+        "stages": [asdict(r) for r in results],
+        "bake": _load(out / "bake_metrics.json"),
+    }
+    if evaluation:
+        metrics["avh"] = evaluation.get("avh")
+        metrics["baselines"] = evaluation.get("baselines")
+        metrics["protocol"] = evaluation.get("protocol")
+    export = _load(out / "avatar" / "avatar.json")
+    if export:
+        metrics["export"] = {k: export[k] for k in ("onnx_max_abs_diff", "parameters", "preset") if k in export}
+    return metrics
+
+
+def quick_config(**overrides) -> DemoConfig:
+    return replace(QUICK, **overrides)
