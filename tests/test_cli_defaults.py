@@ -28,7 +28,7 @@ TARGETS = {
     "animate": ["uvatar.avh.animate:AnimateConfig", "uvatar.avh.animate:animate"],
     "eval avh": ["uvatar.avh.eval:EvalConfig"],
     "eval dva": ["uvatar.dva.eval:evaluate_dva"],
-    "bake": ["uvatar.avh.bake.config:BakeConfig", "uvatar.avh.bake.config:RegistrationConfig",
+    "bake": ["uvatar.parallel:ExecutorConfig", "uvatar.avh.bake.config:BakeConfig", "uvatar.avh.bake.config:RegistrationConfig",
              "uvatar.avh.bake.config:PoseRefineConfig", "uvatar.avh.bake.evaluate:EvalConfig"],
     "select": ["uvatar.avh.bake.select:SelectConfig"],
     "body info": ["uvatar.body.registry:load_body_model"],
@@ -37,8 +37,10 @@ TARGETS = {
     "demo": [],
     "render dva": [],
     "motion info": [],
-    "motion convert": ["uvatar.motion.sequences:load_motion", "uvatar.body.registry:load_body_model"],
-    "synth": ["uvatar.capture.synth.config:SynthConfig"],
+    "motion convert": ["uvatar.motion.sequences:load_motion", "uvatar.body.registry:load_body_model",
+                       "uvatar.motion.retarget:RetargetConfig"],
+    "motion compare": [],
+    "synth": ["uvatar.capture.synth.config:SynthConfig", "uvatar.parallel:ExecutorConfig"],
     "view": ["uvatar.viewer.server:ViewerConfig"],
     "fit": ["uvatar.fit.pipeline:FitConfig"],
     "capture masks": ["uvatar.fit.masks:MaskConfig"],
@@ -47,6 +49,8 @@ TARGETS = {
 
 # (command, flag dest) -> field name in the targets ("Target.field" when two targets share a name)
 RENAMED = {
+    ("bake", "executor"): "kind",
+    ("synth", "executor"): "kind",
     ("train avh", "gamma"): "lr_gamma",
     ("train avh", "no_tensorboard"): "!tensorboard",
     ("animate", "frames"): "max_frames",
@@ -84,6 +88,7 @@ NOT_CONFIG = {
     ("render dva", "output"), ("motion info", "json"), ("motion convert", "fits"), ("synth", "preset"),
     ("synth", "no_preview"), ("synth", "no_progress"),
     ("train dva", "model"), ("eval dva", "model"), ("render dva", "model"), ("render dva", "model_dir"),
+    ("motion convert", "map"), ("motion convert", "report"), ("motion info", "map"), ("motion compare", "json"),
     ("fit", "views"), ("fit", "eval"), ("fit", "json"), ("fit", "no_progress"),
     ("capture masks", "model_dir"), ("capture masks", "no_progress"),
     ("capture import", "calibration"), ("capture import", "no_progress"),

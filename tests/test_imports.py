@@ -17,9 +17,7 @@ SRC = Path(uvatar.__file__).resolve().parent
 
 # Known cycles being removed on another branch (issue 17, "motion" helper): the lead drops this entry
 # after merging that branch. Each entry is the sorted tuple of the cycle's modules.
-KNOWN_CYCLES: set[tuple[str, ...]] = {
-    ("uvatar.motion.amass", "uvatar.motion.retarget", "uvatar.motion.sequences"),
-}
+KNOWN_CYCLES: set[tuple[str, ...]] = set()
 
 
 def module_names() -> dict[str, Path]:
