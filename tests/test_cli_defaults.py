@@ -82,7 +82,7 @@ NOT_CONFIG = {
     ("bake", "overwrite"), ("bake", "json"), ("bake", "eval"), ("bake", "no_progress"),
     ("select", "from_capture"), ("select", "out"), ("select", "json"), ("body info", "json"),
     ("body render", "size"), ("body render", "parts"), ("capture check", "json"),
-    ("capture check", "no_progress"), ("demo", "out"), ("demo", "quick"), ("demo", "seed"), ("demo", "epochs"),
+    ("capture check", "no_progress"), ("demo", "out"), ("demo", "quick"), ("demo", "seed"), ("demo", "epochs"), ("demo", "fits"),
     ("render dva", "motion"), ("render dva", "views"), ("render dva", "camera"), ("render dva", "frames"),
     ("render dva", "size"), ("render dva", "fps"), ("render dva", "device"), ("render dva", "threads"),
     ("render dva", "output"), ("motion info", "json"), ("motion convert", "fits"), ("synth", "preset"),

@@ -15,6 +15,10 @@ def register(cli) -> None:
     p.add_argument("--quick", action="store_true", help="smoke run (~3 min on 2 CPU cores)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the synthetic capture")
     p.add_argument("--epochs", type=int, default=None, help="override the training epochs")
+    p.add_argument("--fits", choices=("studio", "fit"), default=None,
+                   help="studio: the studio's own noisy fits; fit: the studio's fits are moved out and "
+                        "`uvatar fit --from scans` makes them, the path a real capture takes (needs uvatar[fit]) "
+                        "(default: the config's)")
     p.set_defaults(func=run)
 
 
@@ -26,6 +30,8 @@ def run(args) -> int:
 
     cfg = QUICK if args.quick else DEFAULT
     cfg = replace(cfg, seed=args.seed)
+    if args.fits is not None:
+        cfg = replace(cfg, fits=args.fits)
     if args.epochs is not None:
         if args.epochs < 1:
             from uvatar.errors import InputError

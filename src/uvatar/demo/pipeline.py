@@ -1,9 +1,11 @@
-"""``uvatar demo``: synth → bake (+ eval against ground truth) → select → train → export → animate an
+"""``uvatar demo``: synth → (fit) → bake (+ eval against ground truth) → select → train → export → animate an
 unseen motion → eval on held-out poses → ``OUT/metrics.json`` and ``OUT/report.html``.
 
 Each stage calls the library function behind its command (:func:`~uvatar.capture.synth.pipeline.synthesize`,
 :func:`~uvatar.avh.bake.pipeline.bake_capture`, ...) in process. A stage is done when its own
-completion record ``OUT/stages/<stage>.json`` says so; the record is written last, after every output
+completion record ``OUT/stages/<stage>.json`` says so;
+with ``fits="fit"`` the studio's own fits are moved out of the capture (to ``OUT/studio_fits/``) and
+``uvatar fit --from scans`` makes the fits the rest of the pipeline uses, as for a real capture; the record is written last, after every output
 of the stage, so a demo killed at any point resumes: a stage cut short runs again (and itself resumes
 what it finished: frames, epochs), later stages run after it.
 """
@@ -22,7 +24,8 @@ from uvatar.io_utils import write_json
 
 log = logging.getLogger(__name__)
 
-STAGES = ("synth", "bake", "select", "train", "export", "animate", "eval")
+FIT_SOURCES = ("studio", "fit")
+STAGES = ("synth", "fit", "bake", "select", "train", "export", "animate", "eval")
 
 
 @dataclass(frozen=True)
@@ -45,6 +48,12 @@ class DemoConfig:
     seed: int = 0
     workers: int = 2
     synth_preset: str = "default"  # "quick": small scans (6k-12k faces), short topology segments
+    fits: str = "studio"        # "studio": the studio's noisy fits; "fit": made by `uvatar fit --from scans`
+
+    def __post_init__(self) -> None:
+        from uvatar.errors import check_values
+
+        check_values([(self.fits in FIT_SOURCES, f"fits must be one of {', '.join(FIT_SOURCES)}, got {self.fits!r}")])
 
 
 DEFAULT = DemoConfig()
@@ -81,6 +90,29 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
                                          workers=cfg.workers), progress=True)
         if summary["failed"]:
             raise UvatarError(f"{cap}: synth failed on frame(s) {', '.join(sorted(summary['failed']))[:200]}")
+
+    def fit() -> None:
+        import shutil
+
+        from uvatar.body.registry import load_body_model
+        from uvatar.capture import Capture
+        from uvatar.fit.evaluate import evaluate_fits
+        from uvatar.fit.pipeline import FitConfig, fit_capture
+
+        studio = out / "studio_fits"
+        if (cap / "fits").is_dir() and not studio.exists():  # the studio's fits leave the capture once
+            shutil.move(str(cap / "fits"), str(studio))
+        summary = fit_capture(cap, FitConfig(source="scans", force=True), progress=True)
+        capture = Capture(cap)
+        body = load_body_model(capture.body_model)
+        fits = {f: capture.load_fit(f) for f in capture.frames}
+        metrics = {"fit": evaluate_fits(body, capture, fits, capture.body_shapes),
+                   "seconds": summary["seconds"], "contact_sheet": summary.get("contact_sheet")}
+        if studio.is_dir():
+            from uvatar.capture.fits import read_fits_dir
+
+            metrics["studio_fits"] = evaluate_fits(body, capture, read_fits_dir(studio), None)
+        write_json(out / "fit_metrics.json", metrics)
 
     def bake() -> None:
         from uvatar.avh.bake import BakeConfig
@@ -125,7 +157,8 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
 
         write_json(out / "eval.json", evaluate_avatar(avatar, cap, EvalConfig(), image_dir=out / "eval_images"))
 
-    return [("synth", synth), ("bake", bake), ("select", select), ("train", train), ("export", export),
+    fit_stage = [("fit", fit)] if cfg.fits == "fit" else []
+    return [("synth", synth), *fit_stage, ("bake", bake), ("select", select), ("train", train), ("export", export),
             ("animate", animate), ("eval", evaluate)]
 
 
@@ -185,6 +218,11 @@ def collect_metrics(out: Path, cfg: DemoConfig, results: list[StageResult]) -> d
         "stages": [asdict(r) for r in results],
         "bake": _load(out / "bake_metrics.json"),
     }
+    fit = _load(out / "fit_metrics.json")
+    if fit:
+        keep = ("mpjpe_mm", "mpjpe_median_mm", "angle_error_deg", "scan_to_body_median_mm", "shape_error_mm", "frames")
+        metrics["fit"] = {name: {k: fit[name].get(k) for k in keep} for name in ("fit", "studio_fits") if fit.get(name)}
+        metrics["fit"]["seconds"] = fit.get("seconds")
     if evaluation:
         metrics["avh"] = evaluation.get("avh")
         metrics["baselines"] = evaluation.get("baselines")
