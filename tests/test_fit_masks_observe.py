@@ -112,3 +112,15 @@ def test_sample_surface_is_on_the_mesh_and_uniform_by_area():
     assert np.array_equal(pts, sample_surface(v, f, 20000, seed=1)[0])  # deterministic
     with pytest.raises(InputError):
         sample_surface(v, np.zeros((0, 3), int), 10)
+
+
+def test_continuity_cuts_where_the_person_jumps():
+    from uvatar.fit.pipeline import continuity
+
+    T, K = 6, 10
+    pts = np.zeros((T, K, 3))
+    pts[:, :, 0] = np.arange(T)[:, None] * 0.05           # walking 5 cm per frame
+    pts[4:, :, 2] += 2.0                                  # frame 4 is another take, 2 m away
+    conf = np.ones((T, K))
+    conf[2] = 0                                           # frame 2 undetected: bridged
+    assert continuity(pts, conf, 0.2).tolist() == [True, True, True, False, True]

@@ -45,7 +45,8 @@ class FitObservations:
     keypoints3d (T, K, 3) metres and keypoints3d_conf (T, K) in [0, 1] (from triangulation);
     keypoints2d (T, C, K, 2) distorted pixels, keypoints2d_conf (T, C, K), with ``cameras``;
     scans: per frame (points (P, 3), normals (P, 3)) or None; masks: per frame, per camera (H, W)
-    bool or None."""
+    bool or None; continuous: (T-1,) bool, False where frame t+1 does not follow frame t in time (a cut
+    between takes): no smoothness across it (None: all continuous)."""
 
     keypoints3d: np.ndarray | None
     keypoints3d_conf: np.ndarray | None
@@ -54,6 +55,7 @@ class FitObservations:
     cameras: list | None = None
     scans: list | None = None
     masks: list | None = None
+    continuous: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -254,6 +256,8 @@ class _Problem:
             if arr is not None and tuple(arr.shape) != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {tuple(arr.shape)}")
         self.cams = camera_tensors(obs.cameras, device=dev) if obs.cameras else None
+        self.continuous = (None if obs.continuous is None
+                           else torch.as_tensor(np.asarray(obs.continuous, np.float32), device=dev))
         if self.kp2d is not None and self.cams is None:
             raise ValueError("keypoints2d need cameras")
         tpl = body.template
@@ -334,9 +338,9 @@ class _Problem:
         if stage >= 1:
             w = torch.ones(len(self.joints), device=self.dev)
             out["pose_prior"] = cfg.w_pose_prior * L.pose_prior_term(self.rot, w)
-            out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index])
+            out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index], self.continuous)
         else:
-            out["smooth"] = cfg.w_smooth * L.smoothness_term(torch.cat([self.Rh, self.Th], 1)[:, None])
+            out["smooth"] = cfg.w_smooth * L.smoothness_term(torch.cat([self.Rh, self.Th], 1)[:, None], self.continuous)
         if stage >= 3:
             if self.scan is not None and cfg.w_scan > 0:
                 out["scan"] = cfg.w_scan * self.scan(posed.vertices, posed.normals, cfg.scan_sigma,

@@ -40,6 +40,8 @@ class FitConfig:
     scan_distance: add the scan-surface distance term where the capture has scans (off: fit to the
         keypoints alone, as for a video capture).
     scan_points: points sampled on each scan for the scan-distance term.
+    cut_distance: metres; where the median triangulated keypoint moves farther than this from one
+        frame to the next, the capture cuts to another take and no smoothness ties the two frames.
     overlay_frames: frames drawn in ``fitting/contact_sheet.png`` (0: none); overlay_width: pixels.
     force: replace existing fits.
     """
@@ -50,6 +52,7 @@ class FitConfig:
     detector: str = "mediapipe"
     scan_distance: bool = True
     scan_points: int = 3000
+    cut_distance: float = 0.2
     overlay_frames: int = 6
     overlay_width: int = 256
     force: bool = False
@@ -60,6 +63,7 @@ class FitConfig:
         check_values([
             (self.source in FIT_SOURCES, f"source must be one of {', '.join(FIT_SOURCES)}, got {self.source!r}"),
             (self.scan_points >= 100, f"scan_points must be at least 100, got {self.scan_points}"),
+            (self.cut_distance > 0, f"cut_distance must be > 0, got {self.cut_distance}"),
             (self.overlay_frames >= 0, f"overlay_frames must be >= 0, got {self.overlay_frames}"),
             (self.overlay_width >= 32, f"overlay_width must be at least 32, got {self.overlay_width}"),
         ])
@@ -164,7 +168,19 @@ def _scan_samples(capture: Capture, frames: list[str], config: FitConfig, progre
     return samples
 
 
-def _observations(frames, observations, source, scans, keypoint_count):
+def continuity(points: np.ndarray, conf: np.ndarray, cut_distance: float) -> np.ndarray:
+    """(T-1,) bool: False where the median displacement of the keypoints triangulated in both frames t
+    and t+1 (points (T, K, 3) metres, conf (T, K)) exceeds ``cut_distance`` (a cut between takes);
+    True where fewer than 3 keypoints are shared (an undetected frame is bridged by smoothness)."""
+    both = (conf[1:] > 0) & (conf[:-1] > 0)
+    step = np.linalg.norm(points[1:] - points[:-1], axis=-1)
+    out = np.ones(max(len(points) - 1, 0), bool)
+    for t in np.flatnonzero(both.sum(1) >= 3):  # T-1 frame pairs, not keypoints
+        out[t] = np.median(step[t][both[t]]) <= cut_distance
+    return out
+
+
+def _observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.2):
     """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`."""
     from uvatar.fit.body_fit import FitObservations
 
@@ -186,7 +202,7 @@ def _observations(frames, observations, source, scans, keypoint_count):
             if obs is not None and len(obs.cameras) == C:
                 k2[t], c2[t] = obs.xy, obs.conf
     return FitObservations(keypoints3d=k3, keypoints3d_conf=c3, keypoints2d=k2, keypoints2d_conf=c2,
-                           cameras=cameras, scans=scans)
+                           cameras=cameras, scans=scans, continuous=continuity(k3, c3, cut_distance))
 
 
 def _write_fits(capture: Capture, frames, result, body, config: FitConfig, provenance: dict) -> None:
@@ -274,7 +290,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         raise InputError(capture.root, f"{len(frames)} frames, none usable for fitting: {why}")
 
     t1 = time.perf_counter()
-    obs = _observations(frames, observations, source, scans, len(detector.keypoint_names))
+    obs = _observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance)
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
     t_fit = time.perf_counter() - t1
@@ -297,6 +313,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     summary = {
         "capture": str(capture.root), "source": source, "frames": len(frames),
         "frames_fitted": len(frames), "frames_without_detection": failures,
+        "cuts_after": [frames[t] for t in np.flatnonzero(~obs.continuous)],
         "body_model": body.name, "shape": np.asarray(result.shape).tolist(),
         "reprojection": _reprojection_stats(observations, frames, body_points, stages.triangulate.min_conf),
         "frame_loss": {f: float(result.frame_loss[t]) for t, f in enumerate(frames)},
