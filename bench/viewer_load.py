@@ -76,7 +76,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         avatar = args.avatar
         if avatar is None:
-            from uvatar.viewer.toy import write_toy_avatar
+            sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.fixtures: the benchmark's fixture
+            from tests.fixtures.toy_avatar import write_toy_avatar
 
             write_toy_avatar(tmp, resolution=32)
             avatar = tmp

@@ -38,7 +38,7 @@ def toy_body(toy, monkeypatch):
 
 @pytest.fixture(scope="module")
 def dva_capture(tmp_path_factory):
-    from uvatar.dva.toy import write_toy_capture
+    from tests.fixtures.dva_capture import write_toy_capture
 
     return write_toy_capture(tmp_path_factory.mktemp("dva") / "cap", frames=2, cameras=4, size=24)
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from test_dva_data import make_zju
 
+from tests.fixtures.dva_capture import toy_cameras
 from uvatar.capture import BodyFit, write_cameras, write_fit
 from uvatar.cli.main import main
 from uvatar.dva.check import check_layout
-from tests.fixtures.dva_capture import toy_cameras
 from uvatar.errors import InputError
 from uvatar.io_utils import write_image
 

@@ -167,9 +167,9 @@ def test_any_body_model_on_the_easymocap_layout(tmp_path, capsys):
     """EasyMocap folders are not tied to SMPL: --model anny reads anny-sized fits (here the masks are
     missing, so training stops there, after the fits were posed with anny); the default (SMPL, no
     model files) fails with one line; a run refuses another --model at render/eval time."""
+    from tests.fixtures.dva_capture import toy_cameras
     from uvatar.capture import BodyFit, write_cameras, write_fit
     from uvatar.cli.main import main
-    from tests.fixtures.dva_capture import toy_cameras
     from uvatar.io_utils import write_image
 
     cams = toy_cameras(4, 8)

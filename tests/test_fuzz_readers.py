@@ -360,7 +360,7 @@ def test_baked_frame_bytes(tmp_path):
 
 @pytest.fixture(scope="module")
 def toy_avatar(tmp_path_factory):
-    from uvatar.viewer.toy import write_toy_avatar
+    from tests.fixtures.toy_avatar import write_toy_avatar
 
     root = tmp_path_factory.mktemp("avatar")
     write_toy_avatar(root, resolution=16)

@@ -17,9 +17,9 @@ import pytest
 import torch
 from subprocess_helpers import child_env, kill_group_when
 
+from tests.fixtures.dva_capture import write_toy_capture
 from uvatar.dva.data import open_source
 from uvatar.dva.model import preset
-from uvatar.dva.toy import write_toy_capture
 from uvatar.dva.train import CHECKPOINT, train_dva
 from uvatar.errors import UvatarError
 

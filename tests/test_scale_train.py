@@ -17,7 +17,7 @@ import pytest
 import torch
 from subprocess_helpers import child_env, kill_group_when
 
-from uvatar.avh.fake_baked import make_fake_baked_dataset
+from tests.fixtures.fake_baked import make_fake_baked_dataset
 from uvatar.avh.model import AvhConfig
 from uvatar.avh.train import TrainConfig, train_avh
 from uvatar.distributed import GlobalBatchNorm2d, distributed_context

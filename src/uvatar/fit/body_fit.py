@@ -99,6 +99,7 @@ class BodyFitConfig:
     mask_vertices: int = 800
     w_pose_prior: float = 2e-4
     w_smooth: float = 0.5
+    smooth_sigma: float = 0.05  # robust scale of a joint's step from the limbs stage on (quadratic before)
     w_shape_prior: float = 1e-5
     max_untracked_weight: float = 0.5
     min_torso_keypoints: int = 3
@@ -256,6 +257,7 @@ class _Problem:
             if arr is not None and tuple(arr.shape) != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {tuple(arr.shape)}")
         self.cams = camera_tensors(obs.cameras, device=dev) if obs.cameras else None
+        self.both_observed = None  # set once ``observed`` is known (below)
         self.continuous = (None if obs.continuous is None
                            else torch.as_tensor(np.asarray(obs.continuous, np.float32), device=dev))
         if self.kp2d is not None and self.cams is None:
@@ -280,6 +282,7 @@ class _Problem:
                 self.observed |= (c > 0).sum(1) >= cfg.min_torso_keypoints
         if obs.scans is not None:
             self.observed |= np.array([s is not None and len(s[0]) > 0 for s in obs.scans])
+        self.both_observed = torch.as_tensor(self.observed[1:] & self.observed[:-1], device=dev)
 
         # parameters
         shape0 = body.default_shape().detach().to(dev)
@@ -338,7 +341,9 @@ class _Problem:
         if stage >= 1:
             w = torch.ones(len(self.joints), device=self.dev)
             out["pose_prior"] = cfg.w_pose_prior * L.pose_prior_term(self.rot, w)
-            out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index], self.continuous)
+            out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index], self.continuous,
+                                                             cfg.smooth_sigma if stage >= 2 else None,
+                                                             self.both_observed)
         else:
             out["smooth"] = cfg.w_smooth * L.smoothness_term(torch.cat([self.Rh, self.Th], 1)[:, None], self.continuous)
         if stage >= 3:

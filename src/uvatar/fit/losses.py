@@ -171,15 +171,24 @@ def pose_prior_term(rotvecs: torch.Tensor, weights: torch.Tensor) -> torch.Tenso
     return ((rotvecs ** 2).sum(-1) * weights).sum(-1) / weights.sum().clamp_min(1e-9)
 
 
-def smoothness_term(x: torch.Tensor, continuous: torch.Tensor | None = None) -> torch.Tensor:
+def smoothness_term(x: torch.Tensor, continuous: torch.Tensor | None = None,
+                    sigma: float | None = None, robust: torch.Tensor | None = None) -> torch.Tensor:
     """x (T, N, 3) per-frame points (or (T, N*3) values) -> (T,) mean squared first difference per
     point, split between the two frames each difference touches (0 for a single frame).
-    continuous: (T-1,) 1 where frame t+1 follows frame t in time, 0 at a cut (another take)."""
+    continuous: (T-1,) 1 where frame t+1 follows frame t in time, 0 at a cut (another take).
+    sigma: robust (Geman-McClure) scale of a point's step, metres: a step much larger than it (a fast
+    move the keypoints see) costs a bounded amount instead of pulling the frames together; robust:
+    (T-1,) bool, the steps it applies to (default all; a frame nothing observes is pulled to its
+    neighbours quadratically, whatever the distance)."""
     T = x.shape[0]
     out = x.new_zeros(T)
     if T < 2:
         return out
-    d = (x[1:] - x[:-1]).reshape(T - 1, -1).pow(2).sum(1) / max(1, x[0].numel() // 3)
+    step = x[1:] - x[:-1]
+    d = step.reshape(T - 1, -1).pow(2).sum(1) / max(1, x[0].numel() // 3)
+    if sigma is not None and x.dim() == 3:
+        d_robust = gmof(step.norm(dim=-1), sigma).sum(1) / x.shape[1]
+        d = d_robust if robust is None else torch.where(robust.to(torch.bool), d_robust, d)
     if continuous is not None:
         d = d * continuous.to(d)
     out = out.index_add(0, torch.arange(T - 1, device=x.device), 0.5 * d)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 __all__ = ["FitConfig", "FIT_SOURCES", "fit_capture", "resolve_source"]
 
 FIT_SOURCES = ("auto", "scans", "images")
+MIN_SCAN_VIEWS_SEEN = 0.75  # share of a scan's virtual views that must show a person
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,7 @@ class FitConfig:
     detector: str = "mediapipe"
     scan_distance: bool = True
     scan_points: int = 3000
-    cut_distance: float = 0.2
+    cut_distance: float = 0.1
     overlay_frames: int = 6
     overlay_width: int = 256
     force: bool = False
@@ -144,10 +145,14 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             log.warning("frame %s: %s", frame, exc)
             continue
         observations[frame] = obs
-        if (obs.points_conf > 0).sum() >= 6:
-            prior = obs
-        else:
+        views, seen = len(obs.cameras), obs.num_detected_views
+        if (obs.points_conf > 0).sum() < 6:
             failures[frame] = "no person detected (fewer than 6 keypoints triangulated)"
+        elif source == "scans" and seen < np.ceil(MIN_SCAN_VIEWS_SEEN * views):
+            # every virtual view frames the whole scan: a person missing from several is a broken scan
+            failures[frame] = f"only {seen} of {views} views of the scan show a person (a broken scan?)"
+        else:
+            prior = obs
     return observations, failures
 
 
@@ -180,10 +185,15 @@ def continuity(points: np.ndarray, conf: np.ndarray, cut_distance: float) -> np.
     return out
 
 
-def _observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.2):
-    """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`."""
+def _observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.1,
+                  failures=()):
+    """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`; frames in
+    ``failures`` contribute nothing (neither keypoints nor scan): their neighbours carry them."""
     from uvatar.fit.body_fit import FitObservations
 
+    observations = {f: o for f, o in observations.items() if f not in failures}
+    if scans is not None:
+        scans = [None if f in failures else s for f, s in zip(frames, scans, strict=True)]
     T = len(frames)
     k3 = np.zeros((T, keypoint_count, 3), np.float32)
     c3 = np.zeros((T, keypoint_count), np.float32)
@@ -290,13 +300,14 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         raise InputError(capture.root, f"{len(frames)} frames, none usable for fitting: {why}")
 
     t1 = time.perf_counter()
-    obs = _observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance)
+    obs = _observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance,
+                        failures)
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
     t_fit = time.perf_counter() - t1
 
     provenance = {
-        "tool": "uvatar fit", "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "tool": "uvatar fit", "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "source": source, "detector": {"name": detector.name, "version": detector.version},
         "body_model": body.name, "losses": _loss_names(obs, stages.body),
         "config": asdict(config), "frames_without_detection": sorted(failures),
