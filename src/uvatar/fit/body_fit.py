@@ -79,6 +79,7 @@ class BodyFitConfig:
     lr_shape: float = 0.1
     fit_shape: bool = True
     shape_from_stage: int = 2
+    shape_every: int = 4
     w_keypoints3d: float = 1.0
     keypoint_sigma: float = 0.05
     keypoint_sigma_coarse: float = 0.3
@@ -118,6 +119,7 @@ class BodyFitConfig:
              "vertex/sample counts and refresh_every must be >= 1"),
             (0 < self.max_untracked_weight <= 1, "max_untracked_weight must be in (0, 1]"),
             (0 <= self.shape_from_stage <= 3, "shape_from_stage must be 0..3"),
+            (self.shape_every >= 1, "shape_every must be >= 1"),
             (self.min_torso_keypoints >= 3, "min_torso_keypoints must be >= 3"),
         ])
 
@@ -319,8 +321,9 @@ class _Problem:
         joints = jt[..., :3, 3]
         return _Posed(v, n, joints, self.kp.blend(v, self.ids, joints))
 
-    def terms(self, posed, stage: int) -> dict[str, torch.Tensor]:
-        """Per-frame (T,) weighted terms for stage index ``stage``."""
+    def terms(self, posed, stage: int, with_shape: bool = True) -> dict[str, torch.Tensor]:
+        """Per-frame (T,) weighted terms for stage index ``stage`` (the shape prior only where the
+        shape is being optimized: ``with_shape``)."""
         cfg = self.cfg
         out = {}
         kp = posed.keypoints
@@ -343,7 +346,7 @@ class _Problem:
                                                      cfg.scan_inside_tolerance, cfg.scan_inside_weight)
             if self.mask is not None and cfg.w_mask > 0:
                 out["mask"] = cfg.w_mask * self.mask(posed.vertices, cfg.mask_sigma)
-        if cfg.fit_shape and stage >= cfg.shape_from_stage:
+        if cfg.fit_shape and stage >= cfg.shape_from_stage and with_shape:
             prior = ((self.shape_z - self.shape_prior_centre) ** 2).sum()
             out["shape_prior"] = (cfg.w_shape_prior * prior / self.T).expand(self.T)
         return out
@@ -365,9 +368,15 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
         hook = prob.rot.register_hook(lambda g: g * prob.torso_mask[None, :, None]) if stage == 1 else None
         last_loss = [float("nan")]
 
+        count = [0]
+
         def closure(opt, stage=stage, shape_grad=shape_grad):
             opt.zero_grad(set_to_none=True)
-            terms = prob.terms(prob.pose(shape_grad), stage)
+            # anny's shape-dependent rest state is costly to differentiate: the shape (one global
+            # parameter set) takes a step every shape_every iterations, the pose every iteration
+            with_shape = shape_grad and count[0] % cfg.shape_every == 0
+            count[0] += 1
+            terms = prob.terms(prob.pose(with_shape), stage, with_shape)
             loss = sum(v.sum() for v in terms.values()) / prob.T
             loss.backward()
             last_loss[0] = float(loss.detach())
