@@ -98,6 +98,7 @@ class BodyFitConfig:
     mask_vertices: int = 800
     w_pose_prior: float = 2e-4
     w_smooth: float = 0.5
+    smooth_sigma: float = 0.03
     w_shape_prior: float = 1e-5
     max_untracked_weight: float = 0.5
     min_torso_keypoints: int = 3
@@ -110,7 +111,7 @@ class BodyFitConfig:
             (len(self.iterations) == 4 and min(self.iterations) >= 0, "iterations: four counts >= 0"),
             (min(self.lr_rotation, self.lr_translation, self.lr_shape) > 0, "learning rates must be > 0"),
             (min(weights) >= 0, "loss weights must be >= 0"),
-            (min(self.keypoint_sigma, self.keypoint_sigma_coarse, self.keypoint2d_sigma_px, self.scan_sigma, self.mask_sigma) > 0,
+            (min(self.keypoint_sigma, self.keypoint_sigma_coarse, self.smooth_sigma, self.keypoint2d_sigma_px, self.scan_sigma, self.mask_sigma) > 0,
              "robust scales (sigmas) must be > 0"),
             (self.scan_inside_tolerance >= 0 and 0 <= self.scan_inside_weight <= 1,
              "scan_inside_tolerance >= 0 and scan_inside_weight in [0, 1]"),
@@ -337,9 +338,9 @@ class _Problem:
         if stage >= 1:
             w = torch.ones(len(self.joints), device=self.dev)
             out["pose_prior"] = cfg.w_pose_prior * L.pose_prior_term(self.rot, w)
-            out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index])
+            out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index], cfg.smooth_sigma)
         else:
-            out["smooth"] = cfg.w_smooth * L.smoothness_term(torch.cat([self.Rh, self.Th], 1)[:, None])
+            out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, :1], cfg.smooth_sigma)
         if stage >= 3:
             if self.scan is not None and cfg.w_scan > 0:
                 out["scan"] = cfg.w_scan * self.scan(posed.vertices, posed.normals, cfg.scan_sigma,

@@ -178,13 +178,17 @@ def pose_prior_term(rotvecs: torch.Tensor, weights: torch.Tensor) -> torch.Tenso
     return ((rotvecs ** 2).sum(-1) * weights).sum(-1) / weights.sum().clamp_min(1e-9)
 
 
-def smoothness_term(x: torch.Tensor) -> torch.Tensor:
-    """x (T, N, 3) per-frame points (or (T, N*3) values) -> (T,) mean squared first difference per
-    point, split between the two frames each difference touches (0 for a single frame)."""
+def smoothness_term(x: torch.Tensor, sigma: float | None = None) -> torch.Tensor:
+    """x (T, N, 3) per-frame points -> (T,) mean squared displacement per point between consecutive
+    frames, split between the two frames each difference touches (0 for a single frame).
+
+    ``sigma`` (m): robust (Geman-McClure) instead of squared, so a cut in the sequence (a new take,
+    an unrelated pose) costs at most ``sigma^2`` per point instead of dragging both sides together."""
     T = x.shape[0]
     out = x.new_zeros(T)
     if T < 2:
         return out
-    d = (x[1:] - x[:-1]).reshape(T - 1, -1).pow(2).sum(1) / max(1, x[0].numel() // 3)
+    d = torch.linalg.norm(x[1:] - x[:-1], dim=-1).reshape(T - 1, -1)
+    d = (d * d if sigma is None else gmof(d, sigma)).mean(1)
     out = out.index_add(0, torch.arange(T - 1, device=x.device), 0.5 * d)
     return out.index_add(0, torch.arange(1, T, device=x.device), 0.5 * d)
