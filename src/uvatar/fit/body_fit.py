@@ -371,7 +371,7 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
 
         count = [0]
 
-        def closure(opt, stage=stage, shape_grad=shape_grad):
+        def closure(opt, stage=stage, shape_grad=shape_grad, count=count, last_loss=last_loss):
             opt.zero_grad(set_to_none=True)
             # anny's shape-dependent rest state is costly to differentiate: the shape (one global
             # parameter set) takes a step every shape_every iterations, the pose every iteration
