@@ -300,6 +300,27 @@ class _Problem:
         self.rot = torch.zeros(T, len(self.joints), 3, device=dev, requires_grad=True)
         self.joint_index = torch.as_tensor(self.joints, device=dev)
 
+    def interpolate_unobserved(self) -> None:
+        """Give frames without observations the linear blend of their nearest observed neighbours'
+        parameters (the robust temporal term alone does not reach across a far gap)."""
+        ok = self.observed
+        if ok.all() or not ok.any():
+            return
+        T = self.T
+        idx = np.flatnonzero(ok)
+        right = np.clip(np.searchsorted(idx, np.arange(T)), 0, len(idx) - 1)
+        left = np.clip(right - 1, 0, len(idx) - 1)
+        left = np.where(idx[right] <= np.arange(T), right, left)
+        a, b = idx[left], idx[right]
+        w = np.where(b > a, (np.arange(T) - a) / np.maximum(b - a, 1), 0.0)
+        gap = torch.as_tensor(np.flatnonzero(~ok), device=self.dev)
+        w_t = torch.as_tensor(w, dtype=torch.float32, device=self.dev)[gap]
+        with torch.no_grad():
+            for p in (self.rot, self.Rh, self.Th):
+                lo, hi = p[torch.as_tensor(a, device=self.dev)[gap]], p[torch.as_tensor(b, device=self.dev)[gap]]
+                wv = w_t.reshape(-1, *([1] * (p.dim() - 1)))
+                p[gap] = (1 - wv) * lo + wv * hi
+
     def shape(self):
         return torch.sigmoid(self.shape_z) if self.bounded else self.shape_z
 
@@ -405,6 +426,7 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
                 progress(done, total, {"stage": name, "loss": last_loss[0]})
         if hook is not None:
             hook.remove()
+        prob.interpolate_unobserved()
     with torch.no_grad():
         posed = prob.pose(False)
         last = 3 if cfg.iterations[3] > 0 else 2
