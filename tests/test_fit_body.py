@@ -174,7 +174,7 @@ def test_fit_recovers_known_pose_and_shape(anny, keypoints):
     obs = FitObservations(k3, np.ones(k3.shape[:2], np.float32), scans=scans)
     seen = []
     cfg = BodyFitConfig(iterations=(20, 20, 60, 120), w_smooth=0.0, scan_inside_tolerance=0.0, scan_inside_weight=1.0,
-                        scan_body_vertices=800, scan_samples=800)   # a bare body: no clothing tolerance
+                        scan_body_vertices=800, scan_samples=800, refresh_every=5)   # a bare body: no clothing
     fit = fit_body_sequence(anny, obs, cfg, progress=lambda done, total, info: seen.append((done, total, info["stage"])))
     assert seen[-1][:2] == (220, 220) and [s[2] for s in seen] == ["global", "torso", "limbs"] + ["full"] * 24
     assert fit.poses.shape == pose.shape and fit.shape.shape == (6,) and fit.observed.all()

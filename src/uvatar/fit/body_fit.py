@@ -90,9 +90,9 @@ class BodyFitConfig:
     scan_inside_tolerance: float = 0.02
     scan_inside_weight: float = 0.5
     scan_max_distance: float = 0.15
-    scan_body_vertices: int = 2000
-    scan_samples: int = 2000
-    refresh_every: int = 5
+    scan_body_vertices: int = 1000
+    scan_samples: int = 1000
+    refresh_every: int = 10
     w_mask: float = 0.5
     mask_sigma: float = 0.05
     mask_vertices: int = 800
