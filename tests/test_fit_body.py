@@ -174,6 +174,7 @@ def test_fit_recovers_known_pose_and_shape(anny, keypoints):
     obs = FitObservations(k3, np.ones(k3.shape[:2], np.float32), scans=scans)
     seen = []
     cfg = BodyFitConfig(iterations=(20, 20, 60, 120), w_smooth=0.0, scan_inside_tolerance=0.0, scan_inside_weight=1.0,
+                        w_shape_prior=1e-5,                  # a weak prior: the known shape is far from the mean
                         scan_body_vertices=800, scan_samples=800, refresh_every=5)   # a bare body: no clothing
     fit = fit_body_sequence(anny, obs, cfg, progress=lambda done, total, info: seen.append((done, total, info["stage"])))
     assert seen[-1][:2] == (220, 220) and [s[2] for s in seen] == ["global", "torso", "limbs"] + ["full"] * 24
@@ -190,7 +191,7 @@ def test_fit_recovers_known_pose_and_shape(anny, keypoints):
         rest_default = anny.rest_pose().vertices[0]
     shape_err = (rest_fit - rest_true).norm(dim=-1).mean() * 1000
     start_err = (rest_default - rest_true).norm(dim=-1).mean() * 1000
-    assert shape_err < 6 and shape_err < 0.3 * start_err, (float(shape_err), float(start_err))
+    assert shape_err < 8 and shape_err < 0.1 * start_err, (float(shape_err), float(start_err))   # 129 mm at the start
     d = point_surface_distance(scans[0][0][::20], got.vertices[0].numpy(), anny.template.faces) * 1000
     assert np.median(d) < 4
 

@@ -85,7 +85,7 @@ class BodyFitConfig:
     keypoint_sigma_coarse: float = 0.3
     w_keypoints2d: float = 1.0
     keypoint2d_sigma_px: float = 15.0
-    w_scan: float = 1.0
+    w_scan: float = 3.0
     scan_sigma: float = 0.05
     scan_inside_tolerance: float = 0.02
     scan_inside_weight: float = 0.5
@@ -93,13 +93,13 @@ class BodyFitConfig:
     scan_body_vertices: int = 1000
     scan_samples: int = 1000
     refresh_every: int = 10
-    w_mask: float = 0.5
+    w_mask: float = 2.0
     mask_sigma: float = 0.05
     mask_vertices: int = 800
     w_pose_prior: float = 2e-4
     w_smooth: float = 0.5
     smooth_sigma: float = 0.03
-    w_shape_prior: float = 1e-5
+    w_shape_prior: float = 1e-3
     max_untracked_weight: float = 0.5
     min_torso_keypoints: int = 3
 
