@@ -31,6 +31,7 @@ import torch
 
 from uvatar.errors import check_values
 from uvatar.fit import losses as L
+from uvatar.fit.initialize import initial_global
 from uvatar.fit.skinning import SubsetSkinner
 
 __all__ = ["FitObservations", "BodyFitConfig", "SequenceFit", "fit_body_sequence", "STAGES"]
@@ -180,44 +181,6 @@ def _clean(points, conf):
     return torch.where(ok[..., None], points, 0.0), torch.where(ok, conf, 0.0)
 
 
-def procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray):
-    """Weighted rigid fit dst ~ R src + t. src, dst (N, 3), w (N,) -> (R (3, 3), t (3,))."""
-    w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    H = ((src - cs) * w[:, None]).T @ (dst - cd)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
-
-
-def _initial_global(rest_kp: np.ndarray, kp_weights: np.ndarray, kp3d, kp3d_conf, scans, torso: list[int],
-                    min_points: int, rest_centre: np.ndarray):
-    """Per-frame Rh, Th from torso keypoints (or scan centroids); unobserved frames interpolated."""
-    from scipy.spatial.transform import Rotation
-
-    T = len(kp3d) if kp3d is not None else len(scans)
-    Rh, Th = np.zeros((T, 3)), np.zeros((T, 3))
-    ok = np.zeros(T, bool)
-    for t in range(T):   # one 3x3 SVD per frame
-        if kp3d is not None:
-            w = np.asarray(kp3d_conf[t], np.float64)[torso] * kp_weights[torso]
-            good = w > 0
-            if good.sum() >= min_points:
-                R, tr = procrustes(rest_kp[torso][good], np.asarray(kp3d[t], np.float64)[torso][good],
-                                   w[good])
-                Rh[t], Th[t], ok[t] = Rotation.from_matrix(R).as_rotvec(), tr, True
-                continue
-        if scans is not None and scans[t] is not None and len(scans[t][0]):
-            Th[t], ok[t] = np.asarray(scans[t][0], np.float64).mean(0) - rest_centre, True
-    if ok.any() and not ok.all():
-        idx = np.flatnonzero(ok)
-        for arr in (Rh, Th):
-            for c in range(3):
-                arr[:, c] = np.interp(np.arange(T), idx, arr[idx, c])
-    return Rh, Th
-
-
 @dataclass
 class _Posed:
     """Posed subset: vertices, normals (T, N, 3); joints (T, J, 3); keypoints (T, K, 3)."""
@@ -293,7 +256,7 @@ class _Problem:
         torso = [names.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip",
                                           "left_ear", "right_ear", "nose") if n in names]
         numpy = (None, None) if self.kp3d is None else (self.kp3d.cpu().numpy(), self.kp3d_conf.cpu().numpy())
-        Rh, Th = _initial_global(rest_kp, self.kp.weights.astype(np.float64), *numpy, obs.scans, torso,
+        Rh, Th = initial_global(rest_kp, self.kp.weights.astype(np.float64), *numpy, obs.scans, torso,
                                  cfg.min_torso_keypoints, rest_centre)
         self.Rh = torch.as_tensor(Rh, dtype=torch.float32, device=dev).requires_grad_(True)
         self.Th = torch.as_tensor(Th, dtype=torch.float32, device=dev).requires_grad_(True)
