@@ -8,8 +8,8 @@ import torch
 
 from uvatar.body import load_body_model
 from uvatar.fit.body_fit import BodyFitConfig, FitObservations, fit_body_sequence
-from uvatar.fit.initialize import procrustes
 from uvatar.fit.body_keypoints import BLAZEPOSE_NAMES, BodyKeypoints
+from uvatar.fit.initialize import procrustes
 from uvatar.fit.losses import ScanTerm, keypoint3d_term, signed_scan_cost, smoothness_term
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
