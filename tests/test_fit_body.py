@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from uvatar.body import load_body_model
-from uvatar.fit.body_fit import BodyFitConfig, FitObservations, fit_body_sequence, procrustes
+from uvatar.fit.body_fit import BodyFitConfig, FitObservations, fit_body_sequence
 from uvatar.fit.body_keypoints import BLAZEPOSE_NAMES, BodyKeypoints
+from uvatar.fit.initialize import procrustes
 from uvatar.fit.losses import ScanTerm, keypoint3d_term, signed_scan_cost, smoothness_term
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -170,7 +171,8 @@ def test_fit_recovers_known_pose_and_shape(anny, keypoints):
     obs = FitObservations(k3, np.ones(k3.shape[:2], np.float32), scans=scans)
     seen = []
     cfg = BodyFitConfig(iterations=(20, 20, 60, 120), w_smooth=0.0, scan_inside_tolerance=0.0, scan_inside_weight=1.0,
-                        scan_body_vertices=800, scan_samples=800)   # a bare body: no clothing tolerance
+                        w_shape_prior=1e-5,                  # a weak prior: the known shape is far from the mean
+                        scan_body_vertices=800, scan_samples=800, refresh_every=5)   # a bare body: no clothing
     fit = fit_body_sequence(anny, obs, cfg, progress=lambda done, total, info: seen.append((done, total, info["stage"])))
     assert seen[-1][:2] == (220, 220) and [s[2] for s in seen] == ["global", "torso", "limbs"] + ["full"] * 24
     assert fit.poses.shape == pose.shape and fit.shape.shape == (6,) and fit.observed.all()
@@ -186,14 +188,15 @@ def test_fit_recovers_known_pose_and_shape(anny, keypoints):
         rest_default = anny.rest_pose().vertices[0]
     shape_err = (rest_fit - rest_true).norm(dim=-1).mean() * 1000
     start_err = (rest_default - rest_true).norm(dim=-1).mean() * 1000
-    assert shape_err < 6 and shape_err < 0.3 * start_err, (float(shape_err), float(start_err))
+    assert shape_err < 8 and shape_err < 0.1 * start_err, (float(shape_err), float(start_err))   # 129 mm at the start
     d = point_surface_distance(scans[0][0][::20], got.vertices[0].numpy(), anny.template.faces) * 1000
     assert np.median(d) < 4
 
 
 def test_a_frame_without_observations_is_carried_by_its_neighbours(anny, keypoints):
     pose, Rh, Th = _pose(anny, 3, 5, std=0.15)
-    pose[1] = 0.5 * (pose[0] + pose[2])                      # a smooth motion through the gap
+    pose[2] = pose[0] + 0.2 * (pose[2] - pose[0])              # a smooth motion through the gap
+    pose[1] = 0.5 * (pose[0] + pose[2])
     Rh[2], Th[2] = Rh[0] + 0.05, Th[0] + 0.03
     Rh[1], Th[1] = Rh[0] + 0.025, Th[0] + 0.015
     posed = _posed(anny, pose, Rh, Th, SHAPE)
@@ -201,13 +204,13 @@ def test_a_frame_without_observations_is_carried_by_its_neighbours(anny, keypoin
     conf = np.ones(k3.shape[:2], np.float32)
     conf[1] = 0
     k3[1] = np.nan
-    fit = fit_body_sequence(anny, FitObservations(k3, conf), BodyFitConfig(iterations=(20, 20, 40, 40)))
+    fit = fit_body_sequence(anny, FitObservations(k3, conf), BodyFitConfig(iterations=(20, 20, 60, 40)))
     assert fit.observed.tolist() == [True, False, True]
     assert np.isfinite(fit.poses).all() and np.isfinite(fit.frame_loss).all()
     got = _posed(anny, fit.poses, fit.Rh, fit.Th, fit.shape)
     cj = list(anny.conditioning_joints)
     err = (got.joints[:, cj] - posed.joints[:, cj]).norm(dim=-1).mean(-1) * 1000
-    assert err[1] < 60, err                                   # interpolated, not left at the origin
+    assert err.max() < 60 and err[1] < 1.3 * err[[0, 2]].mean(), err   # the gap as good as its neighbours
     assert np.linalg.norm(fit.Th[1] - 0.5 * (fit.Th[0] + fit.Th[2])) < 0.02
 
 
@@ -223,6 +226,8 @@ def test_procrustes_and_smoothness_known_answers():
     x[2, 0, 0] = 1.0
     assert torch.allclose(smoothness_term(x), torch.tensor([0.0, 0.5, 0.5]))
     assert smoothness_term(x[:1]).tolist() == [0.0]
+    x[2, 0, 0] = 1.0                                           # a cut in the sequence: robust cost is bounded
+    assert float(smoothness_term(x, sigma=0.03).max()) < 0.5 * 0.03 ** 2 + 1e-9
 
 
 def test_config_bounds_and_empty_input(anny):

@@ -31,6 +31,7 @@ import torch
 
 from uvatar.errors import check_values
 from uvatar.fit import losses as L
+from uvatar.fit.initialize import initial_global
 from uvatar.fit.skinning import SubsetSkinner
 
 __all__ = ["FitObservations", "BodyFitConfig", "SequenceFit", "fit_body_sequence", "STAGES"]
@@ -81,26 +82,27 @@ class BodyFitConfig:
     lr_shape: float = 0.1
     fit_shape: bool = True
     shape_from_stage: int = 2
+    shape_every: int = 4
     w_keypoints3d: float = 1.0
     keypoint_sigma: float = 0.05
     keypoint_sigma_coarse: float = 0.3
     w_keypoints2d: float = 1.0
     keypoint2d_sigma_px: float = 15.0
-    w_scan: float = 1.0
+    w_scan: float = 3.0
     scan_sigma: float = 0.05
     scan_inside_tolerance: float = 0.02
     scan_inside_weight: float = 0.5
     scan_max_distance: float = 0.15
-    scan_body_vertices: int = 2000
-    scan_samples: int = 2000
-    refresh_every: int = 5
-    w_mask: float = 0.5
+    scan_body_vertices: int = 1000
+    scan_samples: int = 1000
+    refresh_every: int = 10
+    w_mask: float = 2.0
     mask_sigma: float = 0.05
     mask_vertices: int = 800
     w_pose_prior: float = 2e-4
     w_smooth: float = 0.5
-    smooth_sigma: float = 0.05  # robust scale of a joint's step from the limbs stage on (quadratic before)
-    w_shape_prior: float = 1e-5
+    smooth_sigma: float = 0.03
+    w_shape_prior: float = 1e-3
     max_untracked_weight: float = 0.5
     min_torso_keypoints: int = 3
 
@@ -112,7 +114,7 @@ class BodyFitConfig:
             (len(self.iterations) == 4 and min(self.iterations) >= 0, "iterations: four counts >= 0"),
             (min(self.lr_rotation, self.lr_translation, self.lr_shape) > 0, "learning rates must be > 0"),
             (min(weights) >= 0, "loss weights must be >= 0"),
-            (min(self.keypoint_sigma, self.keypoint_sigma_coarse, self.keypoint2d_sigma_px, self.scan_sigma, self.mask_sigma) > 0,
+            (min(self.keypoint_sigma, self.keypoint_sigma_coarse, self.smooth_sigma, self.keypoint2d_sigma_px, self.scan_sigma, self.mask_sigma) > 0,
              "robust scales (sigmas) must be > 0"),
             (self.scan_inside_tolerance >= 0 and 0 <= self.scan_inside_weight <= 1,
              "scan_inside_tolerance >= 0 and scan_inside_weight in [0, 1]"),
@@ -121,6 +123,7 @@ class BodyFitConfig:
              "vertex/sample counts and refresh_every must be >= 1"),
             (0 < self.max_untracked_weight <= 1, "max_untracked_weight must be in (0, 1]"),
             (0 <= self.shape_from_stage <= 3, "shape_from_stage must be 0..3"),
+            (self.shape_every >= 1, "shape_every must be >= 1"),
             (self.min_torso_keypoints >= 3, "min_torso_keypoints must be >= 3"),
         ])
 
@@ -180,44 +183,6 @@ def _clean(points, conf):
     return torch.where(ok[..., None], points, 0.0), torch.where(ok, conf, 0.0)
 
 
-def procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray):
-    """Weighted rigid fit dst ~ R src + t. src, dst (N, 3), w (N,) -> (R (3, 3), t (3,))."""
-    w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    H = ((src - cs) * w[:, None]).T @ (dst - cd)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return R, cd - R @ cs
-
-
-def _initial_global(rest_kp: np.ndarray, kp_weights: np.ndarray, kp3d, kp3d_conf, scans, torso: list[int],
-                    min_points: int, rest_centre: np.ndarray):
-    """Per-frame Rh, Th from torso keypoints (or scan centroids); unobserved frames interpolated."""
-    from scipy.spatial.transform import Rotation
-
-    T = len(kp3d) if kp3d is not None else len(scans)
-    Rh, Th = np.zeros((T, 3)), np.zeros((T, 3))
-    ok = np.zeros(T, bool)
-    for t in range(T):   # one 3x3 SVD per frame
-        if kp3d is not None:
-            w = np.asarray(kp3d_conf[t], np.float64)[torso] * kp_weights[torso]
-            good = w > 0
-            if good.sum() >= min_points:
-                R, tr = procrustes(rest_kp[torso][good], np.asarray(kp3d[t], np.float64)[torso][good],
-                                   w[good])
-                Rh[t], Th[t], ok[t] = Rotation.from_matrix(R).as_rotvec(), tr, True
-                continue
-        if scans is not None and scans[t] is not None and len(scans[t][0]):
-            Th[t], ok[t] = np.asarray(scans[t][0], np.float64).mean(0) - rest_centre, True
-    if ok.any() and not ok.all():
-        idx = np.flatnonzero(ok)
-        for arr in (Rh, Th):
-            for c in range(3):
-                arr[:, c] = np.interp(np.arange(T), idx, arr[idx, c])
-    return Rh, Th
-
-
 @dataclass
 class _Posed:
     """Posed subset: vertices, normals (T, N, 3); joints (T, J, 3); keypoints (T, K, 3)."""
@@ -257,7 +222,6 @@ class _Problem:
             if arr is not None and tuple(arr.shape) != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {tuple(arr.shape)}")
         self.cams = camera_tensors(obs.cameras, device=dev) if obs.cameras else None
-        self.both_observed = None  # set once ``observed`` is known (below)
         self.continuous = (None if obs.continuous is None
                            else torch.as_tensor(np.asarray(obs.continuous, np.float32), device=dev))
         if self.kp2d is not None and self.cams is None:
@@ -282,7 +246,6 @@ class _Problem:
                 self.observed |= (c > 0).sum(1) >= cfg.min_torso_keypoints
         if obs.scans is not None:
             self.observed |= np.array([s is not None and len(s[0]) > 0 for s in obs.scans])
-        self.both_observed = torch.as_tensor(self.observed[1:] & self.observed[:-1], device=dev)
 
         # parameters
         shape0 = body.default_shape().detach().to(dev)
@@ -297,12 +260,33 @@ class _Problem:
         torso = [names.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip",
                                           "left_ear", "right_ear", "nose") if n in names]
         numpy = (None, None) if self.kp3d is None else (self.kp3d.cpu().numpy(), self.kp3d_conf.cpu().numpy())
-        Rh, Th = _initial_global(rest_kp, self.kp.weights.astype(np.float64), *numpy, obs.scans, torso,
+        Rh, Th = initial_global(rest_kp, self.kp.weights.astype(np.float64), *numpy, obs.scans, torso,
                                  cfg.min_torso_keypoints, rest_centre)
         self.Rh = torch.as_tensor(Rh, dtype=torch.float32, device=dev).requires_grad_(True)
         self.Th = torch.as_tensor(Th, dtype=torch.float32, device=dev).requires_grad_(True)
         self.rot = torch.zeros(T, len(self.joints), 3, device=dev, requires_grad=True)
         self.joint_index = torch.as_tensor(self.joints, device=dev)
+
+    def interpolate_unobserved(self) -> None:
+        """Give frames without observations the linear blend of their nearest observed neighbours'
+        parameters (the robust temporal term alone does not reach across a far gap)."""
+        ok = self.observed
+        if ok.all() or not ok.any():
+            return
+        T = self.T
+        idx = np.flatnonzero(ok)
+        right = np.clip(np.searchsorted(idx, np.arange(T)), 0, len(idx) - 1)
+        left = np.clip(right - 1, 0, len(idx) - 1)
+        left = np.where(idx[right] <= np.arange(T), right, left)
+        a, b = idx[left], idx[right]
+        w = np.where(b > a, (np.arange(T) - a) / np.maximum(b - a, 1), 0.0)
+        gap = torch.as_tensor(np.flatnonzero(~ok), device=self.dev)
+        w_t = torch.as_tensor(w, dtype=torch.float32, device=self.dev)[gap]
+        with torch.no_grad():
+            for p in (self.rot, self.Rh, self.Th):
+                lo, hi = p[torch.as_tensor(a, device=self.dev)[gap]], p[torch.as_tensor(b, device=self.dev)[gap]]
+                wv = w_t.reshape(-1, *([1] * (p.dim() - 1)))
+                p[gap] = (1 - wv) * lo + wv * hi
 
     def shape(self):
         return torch.sigmoid(self.shape_z) if self.bounded else self.shape_z
@@ -326,8 +310,9 @@ class _Problem:
         joints = jt[..., :3, 3]
         return _Posed(v, n, joints, self.kp.blend(v, self.ids, joints))
 
-    def terms(self, posed, stage: int) -> dict[str, torch.Tensor]:
-        """Per-frame (T,) weighted terms for stage index ``stage``."""
+    def terms(self, posed, stage: int, with_shape: bool = True) -> dict[str, torch.Tensor]:
+        """Per-frame (T,) weighted terms for stage index ``stage`` (the shape prior only where the
+        shape is being optimized: ``with_shape``)."""
         cfg = self.cfg
         out = {}
         kp = posed.keypoints
@@ -342,17 +327,16 @@ class _Problem:
             w = torch.ones(len(self.joints), device=self.dev)
             out["pose_prior"] = cfg.w_pose_prior * L.pose_prior_term(self.rot, w)
             out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index], self.continuous,
-                                                             cfg.smooth_sigma if stage >= 2 else None,
-                                                             self.both_observed)
+                                                             cfg.smooth_sigma)
         else:
-            out["smooth"] = cfg.w_smooth * L.smoothness_term(torch.cat([self.Rh, self.Th], 1)[:, None], self.continuous)
+            out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, :1], self.continuous, cfg.smooth_sigma)
         if stage >= 3:
             if self.scan is not None and cfg.w_scan > 0:
                 out["scan"] = cfg.w_scan * self.scan(posed.vertices, posed.normals, cfg.scan_sigma,
                                                      cfg.scan_inside_tolerance, cfg.scan_inside_weight)
             if self.mask is not None and cfg.w_mask > 0:
                 out["mask"] = cfg.w_mask * self.mask(posed.vertices, cfg.mask_sigma)
-        if cfg.fit_shape and stage >= cfg.shape_from_stage:
+        if cfg.fit_shape and stage >= cfg.shape_from_stage and with_shape:
             prior = ((self.shape_z - self.shape_prior_centre) ** 2).sum()
             out["shape_prior"] = (cfg.w_shape_prior * prior / self.T).expand(self.T)
         return out
@@ -374,9 +358,15 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
         hook = prob.rot.register_hook(lambda g: g * prob.torso_mask[None, :, None]) if stage == 1 else None
         last_loss = [float("nan")]
 
-        def closure(opt, stage=stage, shape_grad=shape_grad):
+        count = [0]
+
+        def closure(opt, stage=stage, shape_grad=shape_grad, count=count, last_loss=last_loss):
             opt.zero_grad(set_to_none=True)
-            terms = prob.terms(prob.pose(shape_grad), stage)
+            # anny's shape-dependent rest state is costly to differentiate: the shape (one global
+            # parameter set) takes a step every shape_every iterations, the pose every iteration
+            with_shape = shape_grad and count[0] % cfg.shape_every == 0
+            count[0] += 1
+            terms = prob.terms(prob.pose(with_shape), stage, with_shape)
             loss = sum(v.sum() for v in terms.values()) / prob.T
             loss.backward()
             last_loss[0] = float(loss.detach())
@@ -404,6 +394,7 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
                 progress(done, total, {"stage": name, "loss": last_loss[0]})
         if hook is not None:
             hook.remove()
+        prob.interpolate_unobserved()
     with torch.no_grad():
         posed = prob.pose(False)
         last = 3 if cfg.iterations[3] > 0 else 2

@@ -97,7 +97,6 @@ class BodyKeypoints(torch.nn.Module):
     def _place(self, body: BodyModel, coco: dict[str, np.ndarray] | None) -> None:
         t = body.template
         rest = t.vertices.astype(np.float64)
-        sem = body.semantic_joints
         joints = {n: i for i, n in enumerate(t.joint_names)}
         rj = t.rest_joints.astype(np.float64)
 
@@ -130,7 +129,7 @@ class BodyKeypoints(torch.nn.Module):
                 self._set(f"mouth_{side}", vertex=_nearest_vertex(rest, n + [sx * 0.024, -0.045, -0.01], head),
                           source="template")
         # hands: finger joints where the rig has them, else the hand end of the wrist
-        for side, s, _, sx in _SIDES:
+        for side, s, _, _ in _SIDES:
             for name, bone, smpl in (("pinky", "finger5-1", "pinky1"), ("index", "finger2-1", "index1"),
                                      ("thumb", "finger1-3", "thumb3")):
                 j = joints.get(f"{bone}.{s}", joints.get(f"{side}_{smpl}"))
@@ -154,7 +153,7 @@ class BodyKeypoints(torch.nn.Module):
     def _generic_core(self, body: BodyModel, rest: np.ndarray, rj: np.ndarray) -> None:
         """Fallback from semantic joints and template vertices (any BodyModel)."""
         sem = body.semantic_joints
-        for side, _, s, sx in _SIDES:
+        for side, _, s, _ in _SIDES:
             for name, key in (("shoulder", "shoulder"), ("elbow", "elbow"), ("wrist", "wrist"),
                               ("knee", "knee"), ("ankle", "ankle")):
                 if f"{s}_{key}" in sem:

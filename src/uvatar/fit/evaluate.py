@@ -93,14 +93,19 @@ def _pose_batch(body, fits, shape):
 
 
 def true_body_shape(body, capture) -> np.ndarray | None:
-    """The studio's true shape: ``gt/info.json`` ``body_shapes``; for captures made before it was
-    recorded there, the body's default shape (what ``uvatar synth`` always used). capture.json is not
-    the truth: it holds the shape of the fits, which ``uvatar fit`` replaces."""
+    """The studio's true shape: ``gt/info.json`` ``body_shapes``. Captures made before it was recorded
+    there: capture.json's shape, unless ``uvatar fit`` replaced it (provenance ``fit``), then the
+    body's default shape (what ``uvatar synth`` always used)."""
     from uvatar.capture.gt import read_gt_info
 
-    shapes = read_gt_info(capture.root).body_shapes
+    info = read_gt_info(capture.root, required=False)
+    shapes = None if info is None else info.body_shapes
     if shapes is None:
-        return body.default_shape().detach().cpu().numpy().astype(np.float32)
+        fitted = "fit" in (capture.info.get("provenance") or {})
+        if capture.body_shapes.size and not fitted:
+            shapes = capture.body_shapes
+        else:
+            return body.default_shape().detach().cpu().numpy().astype(np.float32)
     shapes = np.asarray(shapes, np.float32)
     return shapes if shapes.size == len(body.shape_names) else None
 

@@ -64,29 +64,33 @@ def signed_scan_cost(d, sigma: float, inside_tolerance: float, inside_weight: fl
 class ScanTerm:
     """Scan-surface distance both ways with nearest neighbours refreshed on demand (ICP style).
 
-    scans: per frame (points (P, 3), normals (P, 3)) or None; body_vertices: the template vertex ids
-    the body side uses; scan_samples: scan points per frame (evenly strided); max_distance: matches
-    farther than this (m) or with normals more than 60 degrees apart are dropped (missing scan parts,
-    fingers the body fit does not track)."""
+    scans: per frame (points (P, 3), normals (P, 3)) or None; body_vertices: indices (into the posed
+    vertices the term is called with) of the body side; scan_samples: scan points per frame (evenly
+    strided); max_distance: matches farther than this (m) or with normals more than 60 degrees apart
+    are dropped (missing scan parts, fingers the body fit does not track). :meth:`refresh` stores
+    the matches as constant tensors, so the loss itself is one batched expression over frames."""
 
     def __init__(self, scans, body_vertices: np.ndarray, scan_samples: int, max_distance: float,
                  device, dtype=torch.float32):
         from scipy.spatial import cKDTree
 
         self.frames = [t for t, s in enumerate(scans) if s is not None and len(s[0])]
-        self.body_vertices = torch.as_tensor(body_vertices, device=device)
+        self.body_vertices = torch.as_tensor(np.asarray(body_vertices, np.int64), device=device)
         self.max_distance = max_distance
-        self.trees, self.points, self.normals, self.sub = [], [], [], []
-        for t in self.frames:
+        self.device, self.dtype = device, dtype
+        self.trees, self.points, self.normals = [], [], []
+        S = scan_samples
+        self.sub = np.zeros((len(self.frames), S, 3))
+        self.sub_n = np.zeros((len(self.frames), S, 3))
+        self.sub_ok = np.zeros((len(self.frames), S), bool)
+        for i, t in enumerate(self.frames):
             p, n = (np.asarray(a, np.float64) for a in scans[t])
             self.trees.append(cKDTree(p))
-            step = max(1, len(p) // scan_samples)
-            self.sub.append(p[::step][:scan_samples])
-            self.points.append(torch.as_tensor(p, device=device, dtype=dtype))
-            self.normals.append(torch.as_tensor(n, device=device, dtype=dtype))
-        self.sub_t = [torch.as_tensor(s, device=device, dtype=dtype) for s in self.sub]
-        self.sub_n = [torch.as_tensor(np.asarray(scans[t][1], np.float64)[::max(1, len(scans[t][0]) // scan_samples)]
-                                      [:scan_samples], device=device, dtype=dtype) for t in self.frames]
+            self.points.append(p)
+            self.normals.append(n)
+            take = np.linspace(0, len(p) - 1, min(S, len(p))).round().astype(np.int64)
+            self.sub[i, : len(take)], self.sub_n[i, : len(take)], self.sub_ok[i, : len(take)] = p[take], n[take], True
+        self.frame_index = torch.as_tensor(self.frames, device=device, dtype=torch.int64)
         self.matches = None
 
     def refresh(self, vertices: torch.Tensor, normals: torch.Tensor) -> None:
@@ -95,34 +99,37 @@ class ScanTerm:
 
         v = vertices.detach()[:, self.body_vertices].cpu().double().numpy()
         n = normals.detach()[:, self.body_vertices].cpu().double().numpy()
-        out = []
-        for i, t in enumerate(self.frames):
+        F, N, S = len(self.frames), v.shape[1], self.sub.shape[1]
+        tp, tn, ok_b = np.zeros((F, N, 3)), np.zeros((F, N, 3)), np.zeros((F, N), bool)
+        idx_s, ok_s = np.zeros((F, S), np.int64), np.zeros((F, S), bool)
+        for i, t in enumerate(self.frames):   # one k-d tree query per frame
             dist, idx = self.trees[i].query(v[t], distance_upper_bound=self.max_distance)
-            ok_b = np.isfinite(dist)
-            idx = np.where(ok_b, idx, 0)
-            sn = self.normals[i].cpu().numpy()[idx]
-            ok_b &= (sn * n[t]).sum(1) > 0.5
-            dist_s, idx_s = cKDTree(v[t]).query(self.sub[i], distance_upper_bound=self.max_distance)
-            ok_s = np.isfinite(dist_s)
-            idx_s = np.where(ok_s, idx_s, 0)
-            ok_s &= (self.sub_n[i].cpu().numpy() * n[t][idx_s]).sum(1) > 0.5
-            out.append(tuple(torch.as_tensor(a, device=vertices.device) for a in (idx, ok_b, idx_s, ok_s)))
-        self.matches = out
+            found = np.isfinite(dist)
+            idx = np.where(found, idx, 0)
+            tp[i], tn[i] = self.points[i][idx], self.normals[i][idx]
+            ok_b[i] = found & ((tn[i] * n[t]).sum(1) > 0.5)
+            dist_s, j = cKDTree(v[t]).query(self.sub[i], distance_upper_bound=self.max_distance)
+            found = np.isfinite(dist_s) & self.sub_ok[i]
+            idx_s[i] = np.where(found, j, 0)
+            ok_s[i] = found & ((self.sub_n[i] * n[t][idx_s[i]]).sum(1) > 0.5)
+
+        def t_(a, dtype=None):
+            return torch.as_tensor(a, device=self.device, dtype=dtype or self.dtype)
+        self.matches = (t_(tp), t_(tn), t_(ok_b), t_(idx_s, torch.int64), t_(ok_s))
 
     def __call__(self, vertices, normals, sigma: float, inside_tolerance: float, inside_weight: float):
         """(T,) mean robust signed distance, body->scan and scan->body averaged (0 without scan)."""
-        T = vertices.shape[0]
-        out = [vertices.new_zeros(())] * T
-        vb, nb = vertices[:, self.body_vertices], normals[:, self.body_vertices]
-        for i, t in enumerate(self.frames):
-            idx, ok_b, idx_s, ok_s = self.matches[i]
-            d_b = ((vb[t] - self.points[i][idx]) * self.normals[i][idx]).sum(-1)
-            d_s = ((vb[t][idx_s] - self.sub_t[i]) * nb[t][idx_s].detach()).sum(-1)
-            cost_b = signed_scan_cost(d_b, sigma, inside_tolerance, inside_weight)
-            cost_s = signed_scan_cost(d_s, sigma, inside_tolerance, inside_weight)
-            out[t] = 0.5 * ((cost_b * ok_b).sum() / ok_b.sum().clamp_min(1)
-                            + (cost_s * ok_s).sum() / ok_s.sum().clamp_min(1))
-        return torch.stack(out)
+        tp, tn, ok_b, idx_s, ok_s = self.matches
+        vb = vertices[self.frame_index][:, self.body_vertices]                     # (F, N, 3)
+        nb = normals[self.frame_index][:, self.body_vertices].detach()
+        d_b = ((vb - tp) * tn).sum(-1)
+        gather = idx_s[..., None].expand(-1, -1, 3)
+        sub = torch.as_tensor(self.sub, device=vb.device, dtype=vb.dtype)
+        d_s = ((vb.gather(1, gather) - sub) * nb.gather(1, gather)).sum(-1)
+        cost_b = signed_scan_cost(d_b, sigma, inside_tolerance, inside_weight)
+        cost_s = signed_scan_cost(d_s, sigma, inside_tolerance, inside_weight)
+        per = 0.5 * ((cost_b * ok_b).sum(1) / ok_b.sum(1).clamp_min(1) + (cost_s * ok_s).sum(1) / ok_s.sum(1).clamp_min(1))
+        return vertices.new_zeros(vertices.shape[0]).index_add(0, self.frame_index, per)
 
 
 class MaskTerm:
