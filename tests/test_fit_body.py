@@ -170,7 +170,7 @@ def test_fit_recovers_known_pose_and_shape(anny, keypoints):
     scans = [(posed.vertices[t].numpy(), posed.normals[t].numpy()) for t in range(2)]
     obs = FitObservations(k3, np.ones(k3.shape[:2], np.float32), scans=scans)
     seen = []
-    cfg = BodyFitConfig(iterations=(20, 20, 60, 120), w_smooth=0.0, scan_inside_tolerance=0.0, scan_inside_weight=1.0,
+    cfg = BodyFitConfig(iterations=(20, 20, 60, 120), w_smooth=0.0, joints="conditioning", scan_inside_tolerance=0.0, scan_inside_weight=1.0,
                         w_shape_prior=1e-5,                  # a weak prior: the known shape is far from the mean
                         scan_body_vertices=800, scan_samples=800, refresh_every=5)   # a bare body: no clothing
     fit = fit_body_sequence(anny, obs, cfg, progress=lambda done, total, info: seen.append((done, total, info["stage"])))

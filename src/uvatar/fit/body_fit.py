@@ -37,6 +37,23 @@ from uvatar.fit.skinning import SubsetSkinner
 __all__ = ["FitObservations", "BodyFitConfig", "SequenceFit", "fit_body_sequence", "STAGES"]
 
 STAGES = ("global", "torso", "limbs", "full")
+FITTED_JOINTS = ("semantic", "conditioning")
+# semantic joints that keypoints cannot turn: toes and eyes stay at rest, as in EasyMocap's body fits
+_AT_REST = ("l_toe", "r_toe", "l_eye", "r_eye")
+
+
+def fitted_joints(body, which: str = "semantic") -> list[int]:
+    """Indices of the joints a fit rotates. "semantic": the body's semantic skeleton (pelvis, spine,
+    neck, head, collars, shoulders, elbows, wrists, hips, knees, ankles; the joints of an EasyMocap /
+    SMPL body fit), so that helper and twist bones a keypoint cannot see (anny's upperarm02,
+    lowerarm02, shoulder01, ...) stay at rest instead of soaking up twist; "conditioning": every
+    pose-conditioning joint. The root is left out (Rh turns the body)."""
+    conditioning = [int(j) for j in body.conditioning_joints]
+    if which == "conditioning":
+        return conditioning
+    keep = {int(j) for name, j in body.semantic_joints.items() if name not in _AT_REST}
+    root = [j for j, p in enumerate(body.template.joint_parents) if p < 0]
+    return [j for j in conditioning if j in keep and j not in root] or conditioning
 
 
 @dataclass
@@ -105,6 +122,7 @@ class BodyFitConfig:
     w_shape_prior: float = 1e-3
     max_untracked_weight: float = 0.5
     min_torso_keypoints: int = 3
+    joints: str = "semantic"  # which joints move: "semantic" (an EasyMocap body) or "conditioning"
 
     def __post_init__(self) -> None:
         self.iterations = tuple(int(i) for i in self.iterations)
@@ -122,6 +140,7 @@ class BodyFitConfig:
             (min(self.scan_body_vertices, self.scan_samples, self.mask_vertices, self.refresh_every) >= 1,
              "vertex/sample counts and refresh_every must be >= 1"),
             (0 < self.max_untracked_weight <= 1, "max_untracked_weight must be in (0, 1]"),
+            (self.joints in FITTED_JOINTS, f"joints must be one of {', '.join(FITTED_JOINTS)}, got {self.joints!r}"),
             (0 <= self.shape_from_stage <= 3, "shape_from_stage must be 0..3"),
             (self.shape_every >= 1, "shape_every must be >= 1"),
             (self.min_torso_keypoints >= 3, "min_torso_keypoints must be >= 3"),
@@ -208,7 +227,7 @@ class _Problem:
         self.kp = BodyKeypoints(body).to(dev)
         K = len(self.kp.names)
         self.kp_w = torch.as_tensor(self.kp.weights, device=dev)
-        self.joints = [int(j) for j in body.conditioning_joints]
+        self.joints = fitted_joints(body, cfg.joints)
         limbs = _limb_joints(body, self.joints)
         self.torso_mask = torch.tensor([j not in limbs for j in self.joints], device=dev, dtype=torch.float32)
         self.bounded = body.name == "anny"   # anny's phenotypes live in [0, 1]
