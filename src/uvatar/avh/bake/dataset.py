@@ -96,6 +96,9 @@ def load_baked_frame(path, keys=None) -> dict[str, np.ndarray]:
         raise InputError(path, f"cannot read baked frame ({exc})") from None
     if missing:
         raise InputError(path, f"missing arrays {missing}")
+    for key, value in data.items():
+        if value.dtype.kind not in "biuf":
+            raise InputError(path, f"array {key!r} is not numeric (dtype {value.dtype})")
     for key in ("texture", "kappa", "w"):
         if key in data:
             data[key] = data[key].astype(np.float32)
