@@ -22,9 +22,6 @@ from uvatar.io_utils import write_json
 
 log = logging.getLogger(__name__)
 
-STAGES = ("synth", "bake", "select", "train", "export", "animate", "eval")
-
-
 @dataclass(frozen=True)
 class DemoConfig:
     """Sizes of the demo run. ``DEFAULT`` fits in ~15 min on a 2-core CPU, ``QUICK`` in ~3 min."""
