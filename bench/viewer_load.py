@@ -1,58 +1,51 @@
 """Viewer server under load: N concurrent connections on loopback, every one a GET, all at once.
 
-    python bench/viewer_load.py [--requests 500] [--path avatar/manifest.json] [--avatar DIR] [--timeout 60]
+    PYTHONPATH=src python bench/viewer_load.py [--requests 500] [--path avatar/manifest.json] [--avatar DIR] [--timeout 60]
 
 Starts ``uvatar.viewer.server.ViewerServer`` on 127.0.0.1 (port 0) for a toy avatar (or ``--avatar``),
-opens ``--requests`` connections together (asyncio, one request each, HTTP/1.0 so the server closes
-after answering), and prints one JSON object: how many were answered 200, failed or timed out, and
-the p50/p99/max latency in ms from connect to the last byte. Bounded: every request has ``--timeout``
-seconds, then the run stops by itself.
+releases ``--requests`` client threads at once (a barrier), each making one GET, and prints one JSON
+object: how many were answered 200, failed or timed out, and the p50/p99/max latency in ms from
+connect to the last byte. Bounded: every request has ``--timeout`` seconds, then the run stops by itself.
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
-import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-
-
-async def _one(host: str, port: int, path: str, timeout: float) -> tuple[str, float]:
-    t0 = time.perf_counter()
-    try:
-        async with asyncio.timeout(timeout):
-            reader, writer = await asyncio.open_connection(host, port)
-            writer.write(f"GET /{path} HTTP/1.0\r\nHost: {host}\r\n\r\n".encode())
-            await writer.drain()
-            data = await reader.read()  # the server closes after one response (HTTP/1.0)
-            writer.close()
-    except TimeoutError:
-        return "timeout", time.perf_counter() - t0
-    except OSError as exc:
-        return f"error: {type(exc).__name__}", time.perf_counter() - t0
-    status = data.split(b"\r\n", 1)[0].split(b" ")[1:2]
-    return ("ok" if status == [b"200"] else f"status {status[0].decode() if status else '?'}"), time.perf_counter() - t0
-
-
-async def _burst(host: str, port: int, path: str, n: int, timeout: float) -> list[tuple[str, float]]:
-    return await asyncio.gather(*(_one(host, port, path, timeout) for _ in range(n)))
-
 
 def load_test(url: str, requests: int = 500, path: str = "avatar/manifest.json", timeout: float = 60.0) -> dict:
-    """``requests`` concurrent GETs of ``url + path`` -> counts and latency percentiles (ms)."""
-    from urllib.parse import urlsplit
+    """``requests`` concurrent GETs of ``url + path`` -> counts and latency percentiles (ms).
 
-    parts = urlsplit(url)
-    host = "127.0.0.1" if parts.hostname in ("localhost", None) else parts.hostname
+    One client thread per request, all released together by a barrier (a burst of connections, as
+    many browser tabs or a script would make), each with ``timeout`` seconds."""
+    import threading
+    import urllib.error
+    import urllib.request
+    from concurrent.futures import ThreadPoolExecutor
+
+    barrier = threading.Barrier(requests)
+
+    def one(_) -> tuple[str, float]:
+        barrier.wait()
+        t0 = time.perf_counter()
+        try:
+            with urllib.request.urlopen(url + path, timeout=timeout) as response:
+                response.read()
+                outcome = "ok" if response.status == 200 else f"status {response.status}"
+        except urllib.error.HTTPError as exc:
+            outcome = f"status {exc.code}"
+        except (TimeoutError, OSError) as exc:
+            outcome = "timeout" if "timed out" in str(exc) else f"error: {type(exc).__name__}"
+        return outcome, time.perf_counter() - t0
+
     t0 = time.perf_counter()
-    results = asyncio.run(_burst(host, parts.port, path, requests, timeout))
+    with ThreadPoolExecutor(max_workers=requests) as pool:
+        results = list(pool.map(one, range(requests)))
     wall = time.perf_counter() - t0
     ms = np.array([dt for _, dt in results]) * 1e3
     outcomes: dict[str, int] = {}

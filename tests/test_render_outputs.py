@@ -1,5 +1,7 @@
 """Videos, HTML reports and contact sheets."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -35,7 +37,8 @@ def test_write_gif_and_bad_frames(tmp_path):
         write_video(tmp_path / "x.mp4", [np.zeros((4, 4, 3)), np.zeros((4, 6, 3))])
 
 
-def test_html_report(tmp_path):
+def test_html_report(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # relative media paths are relative to the working directory
     img = tmp_path / "media" / "a.png"
     img.parent.mkdir()
     img.write_bytes(b"")
@@ -51,6 +54,18 @@ def test_html_report(tmp_path):
     assert 'src="media/a.png"' in text and 'src="media/b.png"' in text and "caption b" in text
     assert '<video src="v.mp4"' in text and "<th>value</th>" in text
     assert "http" not in text.replace("http-equiv", "")  # self-contained: nothing fetched
+
+
+def test_html_report_links_relative_to_its_folder_from_any_working_directory(tmp_path, monkeypatch):
+    """A report written as ``out/report.html`` from the folder above links ``out/capture/x.png`` as
+    ``capture/x.png`` (the demo's bug: links relative to the working directory broke every image)."""
+    out = tmp_path / "work" / "out"
+    (out / "capture").mkdir(parents=True)
+    monkeypatch.chdir(tmp_path / "work")
+    html_report(Path("out") / "report.html", "r", [{"images": [Path("out") / "capture" / "x.png"],
+                                                   "videos": [tmp_path / "work" / "out" / "a.mp4"]}])
+    text = (out / "report.html").read_text()
+    assert 'src="capture/x.png"' in text and 'src="a.mp4"' in text
 
 
 def test_contact_sheet_layout_and_labels():

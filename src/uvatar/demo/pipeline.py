@@ -25,7 +25,6 @@ from uvatar.io_utils import write_json
 log = logging.getLogger(__name__)
 
 FIT_SOURCES = ("studio", "fit")
-STAGES = ("synth", "fit", "bake", "select", "train", "export", "animate", "eval")
 
 
 @dataclass(frozen=True)
