@@ -78,11 +78,12 @@ def main(argv=None) -> int:
     if root is None:
         tmp = tempfile.TemporaryDirectory()
         root = os.path.join(tmp.name, "cap")
-        from uvatar.cli.main import main as cli
+        from uvatar.capture.synth.config import preset
+        from uvatar.capture.synth.pipeline import synthesize
 
         print("making a studio capture ...", file=sys.stderr)
-        cli(["synth", root, "--frames", str(args.frames + 1), "--cameras", "4", "--image-size", "256",
-             "--no-preview", "--no-progress"])
+        synthesize(root, preset("default", frames=args.frames + 1, heldout=0, cameras=4, image_size=256,
+                                preview=False), progress=False)
     capture = Capture(root)
     frames = [f for f in capture.frames if capture.has_scan(f)][: args.frames]
     body = load_body_model("anny", device=args.device)
