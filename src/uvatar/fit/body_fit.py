@@ -38,6 +38,9 @@ __all__ = ["FitObservations", "BodyFitConfig", "SequenceFit", "fit_body_sequence
 
 STAGES = ("global", "torso", "limbs", "full")
 FITTED_JOINTS = ("semantic", "conditioning")
+# joints whose rotation keypoints barely see (a collar moves the shoulder point as an arm does; a wrist
+# turns a hand whose finger points are weak): their pose prior is ``stiff_prior`` times stronger
+STIFF_JOINTS = ("l_collar", "r_collar", "l_wrist", "r_wrist")
 # semantic joints that keypoints cannot turn: toes and eyes stay at rest, as in EasyMocap's body fits
 _AT_REST = ("l_toe", "r_toe", "l_eye", "r_eye")
 
@@ -123,6 +126,7 @@ class BodyFitConfig:
     max_untracked_weight: float = 0.5
     min_torso_keypoints: int = 3
     joints: str = "semantic"  # which joints move: "semantic" (an EasyMocap body) or "conditioning"
+    stiff_prior: float = 20.0  # pose-prior weight of STIFF_JOINTS relative to the others
 
     def __post_init__(self) -> None:
         self.iterations = tuple(int(i) for i in self.iterations)
@@ -140,6 +144,7 @@ class BodyFitConfig:
             (min(self.scan_body_vertices, self.scan_samples, self.mask_vertices, self.refresh_every) >= 1,
              "vertex/sample counts and refresh_every must be >= 1"),
             (0 < self.max_untracked_weight <= 1, "max_untracked_weight must be in (0, 1]"),
+            (self.stiff_prior >= 0, f"stiff_prior must be >= 0, got {self.stiff_prior}"),
             (self.joints in FITTED_JOINTS, f"joints must be one of {', '.join(FITTED_JOINTS)}, got {self.joints!r}"),
             (0 <= self.shape_from_stage <= 3, "shape_from_stage must be 0..3"),
             (self.shape_every >= 1, "shape_every must be >= 1"),
@@ -285,6 +290,9 @@ class _Problem:
         self.Th = torch.as_tensor(Th, dtype=torch.float32, device=dev).requires_grad_(True)
         self.rot = torch.zeros(T, len(self.joints), 3, device=dev, requires_grad=True)
         self.joint_index = torch.as_tensor(self.joints, device=dev)
+        stiff = {int(body.semantic_joints[n]) for n in STIFF_JOINTS if n in body.semantic_joints}
+        self.prior_weights = torch.tensor([cfg.stiff_prior if j in stiff else 1.0 for j in self.joints],
+                                          device=dev, dtype=torch.float32)
 
     def interpolate_unobserved(self) -> None:
         """Give frames without observations the linear blend of their nearest observed neighbours'
@@ -343,8 +351,7 @@ class _Problem:
             out["keypoints2d"] = cfg.w_keypoints2d * L.keypoint2d_term(kp, self.cams, self.kp2d, self.kp2d_conf,
                                                                        self.kp_w, cfg.keypoint2d_sigma_px * coarse)
         if stage >= 1:
-            w = torch.ones(len(self.joints), device=self.dev)
-            out["pose_prior"] = cfg.w_pose_prior * L.pose_prior_term(self.rot, w)
+            out["pose_prior"] = cfg.w_pose_prior * L.pose_prior_term(self.rot, self.prior_weights)
             out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index], self.continuous,
                                                              cfg.smooth_sigma)
         else:
