@@ -8,7 +8,6 @@ Written to ``fitting/overlays/<frame>_<view>.jpg`` and ``fitting/contact_sheet.p
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,13 +21,8 @@ BODY_COLOR = (0.25, 0.5, 1.0)
 
 
 def resized_camera(camera: Camera, width: int) -> Camera:
-    """The camera seeing the same scene in an image ``width`` pixels wide (pixel centres kept:
-    a pixel x maps to (x + 0.5) * s - 0.5)."""
-    s = width / camera.width
-    K = np.array(camera.K, np.float64).copy()
-    K[:2, :2] *= s
-    K[:2, 2] = (K[:2, 2] + 0.5) * s - 0.5
-    return replace(camera, K=K, width=int(width), height=max(1, int(round(camera.height * s))))
+    """The camera for its image resized to ``width`` pixels wide, aspect kept (:meth:`Camera.scaled`)."""
+    return camera.scaled(int(width), max(1, int(round(camera.height * width / camera.width))))
 
 
 def overlay_view(image: np.ndarray, camera: Camera, body_vertices: np.ndarray, faces: np.ndarray,
