@@ -126,8 +126,7 @@ def scaled_camera(camera, width: int | None):
     """Camera for its image resized to ``width`` pixels wide, aspect kept (None: unchanged)."""
     if not width or width == camera.width:
         return camera
-    s = width / camera.width
-    return camera.scaled(int(round(camera.width * s)), int(round(camera.height * s)))
+    return camera.scaled_to_width(width)
 
 
 METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_union_mask", "ssim_union_mask", "psnr_db_full", "ssim_full",

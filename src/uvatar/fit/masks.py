@@ -50,10 +50,9 @@ def body_silhouette(vertices: np.ndarray, faces: np.ndarray, camera, render_widt
     ``render_width`` wide by ray casting, then resized to the camera's size)."""
     import cv2
 
-    from uvatar.fit.overlay import resized_camera
     from uvatar.render.mesh_renderer import render_mesh
 
-    small = resized_camera(camera, min(render_width, camera.width))
+    small = camera.scaled_to_width(min(render_width, camera.width))
     mask = render_mesh(vertices, faces, small).mask.astype(np.uint8)
     return cv2.resize(mask, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST) > 0
 

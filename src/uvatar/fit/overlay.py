@@ -15,14 +15,9 @@ import numpy as np
 from uvatar.capture.types import Camera
 from uvatar.io_utils import write_image
 
-__all__ = ["resized_camera", "overlay_view", "write_overlays"]
+__all__ = ["overlay_view", "write_overlays"]
 
 BODY_COLOR = (0.25, 0.5, 1.0)
-
-
-def resized_camera(camera: Camera, width: int) -> Camera:
-    """The camera for its image resized to ``width`` pixels wide, aspect kept (:meth:`Camera.scaled`)."""
-    return camera.scaled(int(width), max(1, int(round(camera.height * width / camera.width))))
 
 
 def overlay_view(image: np.ndarray, camera: Camera, body_vertices: np.ndarray, faces: np.ndarray,
@@ -34,7 +29,7 @@ def overlay_view(image: np.ndarray, camera: Camera, body_vertices: np.ndarray, f
 
     from uvatar.render.mesh_renderer import render_mesh
 
-    small = resized_camera(camera, width)
+    small = camera.scaled_to_width(width)
     img = cv2.resize(np.asarray(image, np.float32), (small.width, small.height), interpolation=cv2.INTER_AREA)
     body = render_mesh(body_vertices, faces, small, shading=True, background=0.0,
                        vertex_colors=np.broadcast_to(np.asarray(BODY_COLOR, np.float32), body_vertices.shape))
@@ -58,7 +53,7 @@ def _views_for_overlay(capture, frame: str, obs, source: str, width: int):
     from uvatar.fit.views import render_scan_views
 
     mesh = capture.load_scan(frame)
-    smalls = [resized_camera(cam, width) for cam in obs.cameras]
+    smalls = [cam.scaled_to_width(width) for cam in obs.cameras]
     return render_scan_views(mesh, smalls)
 
 
@@ -84,7 +79,7 @@ def write_overlays(capture, frames: list[str], observations: dict, posed, body, 
         used = np.isfinite(obs.reprojection_px)
         for c, cam in enumerate(obs.cameras):
             if images[c].shape[1] != cam.width:  # already rendered at the overlay size
-                view = overlay_view(images[c], resized_camera(cam, images[c].shape[1]), vertices[t], faces,
+                view = overlay_view(images[c], cam.scaled_to_width(images[c].shape[1]), vertices[t], faces,
                                     (obs.xy[c] + 0.5) * images[c].shape[1] / cam.width - 0.5, obs.conf[c],
                                     used[c], config.overlay_width, stages.triangulate.min_conf)
             else:

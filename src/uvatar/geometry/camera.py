@@ -111,6 +111,10 @@ class Camera:
         A = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
         return Camera(self.name, A @ self.K, self.R, self.T, int(width), int(height), self.dist)
 
+    def scaled_to_width(self, width: int) -> Camera:
+        """This camera for its image resized to ``width`` pixels wide, aspect kept (:meth:`scaled`)."""
+        return self.scaled(int(width), max(1, int(round(self.height * width / self.width))))
+
     @property
     def distorted(self) -> bool:
         """True when the lens distortion is not zero."""
