@@ -39,6 +39,13 @@ class MissingDependencyError(UvatarError):
         )
 
 
+def one_line(exc: BaseException) -> str:
+    """The first line of an exception's message (its type name when the message is empty), for
+    reports that must stay one line per failure."""
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def require(module: str, extra: str, purpose: str = ""):
     """Import an optional module lazily, or raise :class:`MissingDependencyError` naming the extra."""
     import importlib

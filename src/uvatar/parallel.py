@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from uvatar.errors import check_values, require
+from uvatar.errors import check_values, one_line, require
 
 log = logging.getLogger(__name__)
 
@@ -71,11 +71,6 @@ class TaskFailure:
     """A task that did not return: ``reason`` is one line (the task's own exception, or a lost worker)."""
 
     reason: str
-
-
-def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
 
 
 # -- worker-process state ---------------------------------------------------------------------------
@@ -162,7 +157,7 @@ def _run_inline(fn, items, shared):
         except OSError:  # the file system said no (full disk, read-only): no later item can succeed
             raise
         except Exception as exc:  # noqa: BLE001 - a failed item is reported, never fatal
-            yield item, TaskFailure(_one_line(exc))
+            yield item, TaskFailure(one_line(exc))
 
 
 def _run_pool(fn, items, shared, workers, initializer):
@@ -180,7 +175,7 @@ def _run_pool(fn, items, shared, workers, initializer):
             except OSError:  # the file system said no (full disk, read-only): no later item can succeed
                 raise
             except Exception as exc:  # noqa: BLE001 - e.g. BrokenProcessPool: a worker process died
-                yield item, TaskFailure(f"worker failed: {_one_line(exc)}")
+                yield item, TaskFailure(f"worker failed: {one_line(exc)}")
 
 
 def _ray_init(ray, config: ExecutorConfig) -> bool:
@@ -217,9 +212,9 @@ def _run_ray(fn, items, shared, config: ExecutorConfig, initializer):
                     cause = exc.cause if getattr(exc, "cause", None) is not None else exc
                     if isinstance(cause, OSError):  # the shared file system said no: stop, as locally
                         raise cause from None
-                    yield item, TaskFailure(_one_line(cause))
+                    yield item, TaskFailure(one_line(cause))
                 except ray.exceptions.RayError as exc:  # worker/node lost after every retry
-                    yield item, TaskFailure(f"worker lost: {_one_line(exc)}")
+                    yield item, TaskFailure(f"worker lost: {one_line(exc)}")
     finally:
         if started:
             ray.shutdown()

@@ -28,7 +28,7 @@ from uvatar.avh.bake.dataset import (
     write_dataset_info,
 )
 from uvatar.capture.layout import frame_name
-from uvatar.errors import InputError
+from uvatar.errors import InputError, one_line
 from uvatar.io_utils import sweep_partial_writes
 from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
 from uvatar.resources import check_memory
@@ -102,8 +102,7 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig) 
         baked, fit = bake_fit(body, fit, layout, scan, config, None if fit.shapes.size else _capture_shape(capture),
                               scan_path=str(scan_path))
     except Exception as exc:  # noqa: BLE001 - a broken frame is reported, never fatal
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        return FrameResult(frame, "broken", f"broken input: {reason}", seconds=time.perf_counter() - t0)
+        return FrameResult(frame, "broken", f"broken input: {one_line(exc)}", seconds=time.perf_counter() - t0)
     rejected = baked.kappa_mean < config.reject_kappa
     write_baked_frame(out_root, frame, baked, fit, rejected=rejected, float16=config.texture_float16)
     stale = frame_path(out_root, frame) if rejected else rejected_path(out_root, frame)
