@@ -87,9 +87,10 @@ def _fit(args) -> int:
 
 
 def _has_fits(root) -> bool:
-    from pathlib import Path
+    from uvatar.capture.layout import Capture
+    from uvatar.fit.pipeline import existing_fits
 
-    return any((Path(root) / "fits").glob("*.json"))
+    return bool(existing_fits(Capture(root)))
 
 
 def _evaluate(root, model: str, model_dir, device: str) -> dict:

@@ -94,7 +94,8 @@ def resolve_source(capture: Capture, source: str) -> str:
     return source
 
 
-def _existing_fits(capture: Capture) -> list[Path]:
+def existing_fits(capture: Capture) -> list[Path]:
+    """The capture's fit files (``fits/*.json`` and ``fits.npz``)."""
     fits = sorted(capture.fits_dir.glob("*.json")) if capture.fits_dir.is_dir() else []
     npz = capture.root / "fits.npz"
     return fits + ([npz] if npz.is_file() else [])
@@ -278,7 +279,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     frames = list(frames or capture.frames)
     if not frames:
         raise InputError(capture.root, "the capture lists no frames")
-    existing = _existing_fits(capture)
+    existing = existing_fits(capture)
     if existing and not config.force:
         raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); use --force to replace them")
     source = resolve_source(capture, config.source)
