@@ -10,7 +10,7 @@ import pytest
 from tests.fixtures.dva_capture import write_toy_capture
 from uvatar.dva.data import open_source
 from uvatar.dva.model import preset
-from uvatar.dva.train import CHECKPOINT, Trainer, load_run, patch_pixels, train_dva
+from uvatar.dva.train import CHECKPOINT, Trainer, load_run, patch_pixels, target_pixels, train_dva
 from uvatar.errors import InputError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -29,6 +29,26 @@ def test_patch_pixels_stay_in_the_image():
     pix = patch_pixels(mask, 8, random.Random(0))
     assert pix.shape == (64, 2) and pix[:, 0].max() <= 29 and pix[:, 1].max() <= 19
     assert len({tuple(p) for p in pix}) == 64
+
+
+def test_target_pixels_put_the_background_colour_outside_the_mask():
+    """'mask': a cluttered room outside the person's mask becomes the colour the render is composited
+    over; inside the mask (and everywhere with 'photo') the photo's own values, scaled to [0, 1]."""
+    from uvatar.dva.model import TrainConfig
+
+    image = np.zeros((4, 5, 3), np.uint8)
+    image[..., 0] = 255  # a red room
+    image[1:3, 1:3] = (0, 51, 102)  # the person
+    mask = np.zeros((4, 5), bool)
+    mask[1:3, 1:3] = True
+    pix = np.array([[1, 1], [2, 2], [0, 0], [4, 3]])  # (x, y): two inside, two outside
+    bg = np.array([0.25, 0.5, 0.75], np.float32)
+    got = target_pixels(image, mask, pix, bg, "mask")
+    np.testing.assert_allclose(got, [[0, 0.2, 0.4], [0, 0.2, 0.4], bg, bg], atol=1e-6)
+    np.testing.assert_allclose(target_pixels(image, mask, pix, bg, "photo")[2:], [[1, 0, 0], [1, 0, 0]])
+    assert TrainConfig().background == "mask"
+    with pytest.raises(ValueError, match="background"):
+        TrainConfig(background="room")
 
 
 def test_curriculum_switches_to_three_views(capture):

@@ -27,6 +27,9 @@ from uvatar.dva.losses import LossConfig
 from uvatar.dva.primitives import PrimitiveConfig, apply_correctives, articulated_frames, build_uv_grid
 from uvatar.dva.raymarch import raymarch
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig
+from uvatar.errors import check_values
+
+BACKGROUNDS = ("mask", "photo")
 
 
 @dataclass
@@ -36,7 +39,10 @@ class TrainConfig:
     curriculum stage 1 (image features from every training view) length; afterwards ``driving_views``
     random views. checkpoint_every: steps between checkpoints. The learning rate decays exponentially to
     ``lr * lr_final`` over the last ``1 - lr_decay_start`` of the run (by steps or by minutes, whichever
-    is further along)."""
+    is further along). background: what the render is compared with outside the person's mask: "mask"
+    replaces the photo there by the camera's background colour (the colour the render is composited
+    over), so a cluttered real room is not something the primitives must learn (as Neural Body trains
+    on masked photos); "photo" compares with the raw photo (a studio's clean backdrop)."""
 
     lr: float = 2e-3
     lr_decay_start: float = 0.6
@@ -49,6 +55,11 @@ class TrainConfig:
     checkpoint_every: int = 200
     iters: int = 100_000
     minutes: float = 18.0
+    background: str = "mask"
+
+    def __post_init__(self) -> None:
+        check_values([(self.background in BACKGROUNDS,
+                       f"background must be one of {BACKGROUNDS}, got {self.background!r}")])
 
 
 @dataclass
@@ -67,6 +78,8 @@ class DvaConfig:
     def from_dict(cls, d: dict) -> DvaConfig:
         kinds = {"primitives": PrimitiveConfig, "features": FeatureConfig, "decoder": DecoderConfig,
                  "raymarch": RaymarchConfig, "loss": LossConfig, "train": TrainConfig}
+        if "background" not in d.get("train", {"background": None}):  # a run from before the option
+            d = {**d, "train": {**d["train"], "background": "photo"}}  # compared with the raw photo
         return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
 
 

@@ -51,6 +51,19 @@ def make_body(name: str, device="cpu", model_dir=None):
     return load_body_model(name, model_dir=model_dir, device=device)
 
 
+def target_pixels(image: np.ndarray, mask: np.ndarray, pixels: np.ndarray, background: np.ndarray,
+                  mode: str = "mask") -> np.ndarray:
+    """(N, 3) float32 in [0, 1]: what the render at ``pixels`` (N, 2) integer (x, y) is compared with.
+    image (H, W, 3) uint8, mask (H, W) bool, background (3,) the colour the render is composited over;
+    mode "mask" (:class:`~uvatar.dva.model.TrainConfig` ``background``) puts that colour wherever the
+    mask is off, "photo" keeps the photo."""
+    x, y = pixels[:, 0], pixels[:, 1]
+    out = image[y, x].astype(np.float32) / 255.0
+    if mode == "mask":
+        out = np.where(mask[y, x][:, None], out, np.asarray(background, np.float32)[None])
+    return out
+
+
 def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
     """(size*size, 2) integer (x, y) pixels of a square crop whose centre lies in the mask's bounding
     box (grown by half a patch), clipped to the image."""
@@ -191,7 +204,7 @@ class Trainer:
             bg = torch.as_tensor(self.bank.backgrounds[c], device=self.device)
             rgb, alpha = self.model.render_rays(out, b, o, d, bg, camera=self.bank.cams[c], pixels=pix)
             P = int(round(np.sqrt(pix.shape[0])))
-            img = self.bank.images[f][c][pix[:, 1], pix[:, 0]].astype(np.float32) / 255.0
+            img = target_pixels(self.bank.images[f][c], mask, pix, self.bank.backgrounds[c], t.background)
             preds.append(rgb.T.reshape(3, P, P))
             targets.append(torch.as_tensor(img, device=self.device).T.reshape(3, P, P))
             alphas.append(alpha.reshape(P, P))
