@@ -7,7 +7,8 @@ the foot is moved rigidly (its ankle's world orientation, and everything below t
 so that its contact point (its lowest sole point; a rolling foot passes from heel to toe) does
 not move horizontally from frame to frame, the foot staying where it was on average over the
 segment, and lies on y = 0. The move fades in and out over ``blend`` frames outside the segment
-(smoothstep of the move at the segment's first/last frame; overlapping fades are averaged).
+(smoothstep of the move at the segment's first/last frame; overlapping fades are averaged; a
+fade never takes a foot below y = 0, or lower than it was when it was below already).
 
 The leg follows by an analytic two-bone IK: hip fixed, thigh and shin lengths kept, the knee in
 the plane through the hip, the new ankle and the original knee (its swivel plane), falling back
@@ -64,6 +65,7 @@ def foot_moves(sole: np.ndarray, side: np.ndarray, contacts: np.ndarray, blend: 
             num += w[:, None] * d
             den += w
         move[:, f] = num / np.maximum(den, 1.0)[:, None]
+        move[:, f, 1] = np.maximum(move[:, f, 1], -np.maximum(low, 0.0))  # a fade never goes through the floor
     return move
 
 
