@@ -152,6 +152,16 @@ def test_rotation_between_known_answers():
         R = _rotation_between(np.array(a, float), np.array(b, float))
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
         np.testing.assert_allclose(R @ np.array(a) / np.linalg.norm(a), np.array(b) / np.linalg.norm(b), atol=1e-12)
+    # batched (the foot clean-up's leg IK) = one at a time, opposite and equal directions included
+    rng = np.random.default_rng(0)
+    A, B = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    A[4], B[4] = [0, 0, 1.0], [0, 0, -2.0]
+    B[5] = 3 * A[5]
+    batch = _rotation_between(A, B)
+    assert batch.shape == (6, 3, 3)
+    for k in range(6):
+        np.testing.assert_allclose(batch[k], _rotation_between(A[k], B[k]), atol=1e-12)
+        np.testing.assert_allclose(batch[k] @ A[k] / np.linalg.norm(A[k]), B[k] / np.linalg.norm(B[k]), atol=1e-12)
 
 
 def test_cmu_clip_on_anny(anny, cmu):
