@@ -174,6 +174,10 @@ def test_straight_legs_lower_the_body_smoothly(anny):
     drop = floor.Th[:, 1] - clean.Th[:, 1]
     assert drop.min() >= -1e-6 and drop.max() == pytest.approx(info["max_drop_m"], abs=1e-4)
     assert np.abs(np.diff(drop)).max() < 0.4 * drop.max()  # spread over frames, no step
+    capped = retarget(src, anny, RetargetConfig(feet="clean", contacts=FootContactConfig(speed_m_s=0.5, max_drop_m=0.002)),
+                      plan)
+    info = capped.info["foot_contacts"]
+    assert info["max_drop_m"] == pytest.approx(0.002, abs=1e-6) and info["max_miss_m"] > 0.001, info  # short of it
 
 
 def test_cmu_clip_clean_feet(anny, shared_data):

@@ -33,20 +33,23 @@ class FootContactConfig:
     target) is below ``height_m`` and its lowest joint moves slower than ``speed_m_s``
     horizontally; the contact goes on while both stay below ``release`` times those (hysteresis);
     min_s: shorter contacts are dropped; blend_s: the clean-up fades in and out over this long
-    outside each contact."""
+    outside each contact; max_drop_m: it lowers the body by at most this much where a leg cannot
+    reach (a foot that still cannot is left short of its target: ``info["max_miss_m"]``)."""
 
     height_m: float = 0.02
     speed_m_s: float = 0.3
     release: float = 1.5
     min_s: float = 0.05
     blend_s: float = 0.1
+    max_drop_m: float = 0.1
 
     def __post_init__(self) -> None:
         check_values([(self.height_m > 0, f"contact height_m must be > 0, got {self.height_m}"),
                       (self.speed_m_s > 0, f"contact speed_m_s must be > 0, got {self.speed_m_s}"),
                       (self.release >= 1, f"contact release must be >= 1, got {self.release}"),
                       (self.min_s >= 0, f"contact min_s must be >= 0, got {self.min_s}"),
-                      (self.blend_s >= 0, f"contact blend_s must be >= 0, got {self.blend_s}")])
+                      (self.blend_s >= 0, f"contact blend_s must be >= 0, got {self.blend_s}"),
+                      (self.max_drop_m >= 0, f"contact max_drop_m must be >= 0, got {self.max_drop_m}")])
 
 
 def below(parents, roots) -> np.ndarray:

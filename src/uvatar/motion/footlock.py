@@ -15,8 +15,8 @@ the plane through the hip, the new ankle and the original knee (its swivel plane
 to the body's forward direction carried by the thigh where the original leg is straight. The
 thigh and shin turn by the smallest rotations taking their old directions onto the new ones, so
 a frame whose ankle target equals its ankle is unchanged. Where a leg cannot reach its target
-the whole body is lowered by the least amount that lets it, spread over ``blend`` frames each
-side (a running maximum, then a moving average, never below what is needed).
+the whole body is lowered by the least amount that lets it (at most ``max_drop``), spread over
+``blend`` frames each side (a running maximum, then a moving average, never below what is needed).
 Vectorised over frames; loops run over feet and segments.
 """
 
@@ -113,10 +113,11 @@ def two_bone_ik(hip, knee, ankle, target, pole):
 
 
 def pin_feet(G: np.ndarray, positions: np.ndarray, sole: np.ndarray, side: np.ndarray, contacts: np.ndarray,
-             tgt_index: dict[str, int], parents, blend: int, forward=(0.0, 0.0, 1.0)):
+             tgt_index: dict[str, int], parents, blend: int, forward=(0.0, 0.0, 1.0), max_drop: float = np.inf):
     """The clean-up of the module docstring. G (T, J, 3, 3), positions (T, J, 3) world, sole
     (T, K, 3) world sole points, side (K,), contacts (T, F) bool, tgt_index semantic → joint,
-    parents (J,), blend frames, forward the body's rest facing direction.
+    parents (J,), blend frames, forward the body's rest facing direction, max_drop metres the body
+    may be lowered at most.
     → (G', positions', info: drop (T,) metres the body was lowered, miss (T, F) metres each
     pinned ankle stayed away from its target)."""
     parents = np.asarray(parents)
@@ -132,7 +133,7 @@ def pin_feet(G: np.ndarray, positions: np.ndarray, sole: np.ndarray, side: np.nd
         reach = np.maximum(np.linalg.norm(p[:, a] - p[:, h], axis=1),
                            REACH * (np.linalg.norm(p[:, k] - p[:, h], axis=1) + np.linalg.norm(p[:, a] - p[:, k], axis=1)))
         drop = np.maximum(drop, needed_drop(p[:, h], targets[f], reach))
-    drop = spread_drop(drop, blend)
+    drop = spread_drop(np.minimum(drop, max_drop), blend)
     positions[..., 1] -= drop[:, None]
     miss = np.zeros((T, F))
     for f, (h, k, a) in legs:

@@ -350,7 +350,8 @@ def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None,
         contacts = source_contacts(source, plan, config.contacts)
         forward = body_forward({s: t_rest[i] for s, i in plan.tgt_index.items()})
         G, pos, out = pin_feet(G, rel + P[:, None], sole + P[:, None], landmarks[2], contacts, plan.tgt_index,
-                               parents, int(round(config.contacts.blend_s * source.fps)), forward)
+                               parents, int(round(config.contacts.blend_s * source.fps)), forward,
+                               config.contacts.max_drop_m)
         P = pos[:, pelvis]
         info["foot_contacts"] = {"frames": contacts.sum(0).tolist(),
                                  "segments": [len(segments(c)) for c in contacts.T],
