@@ -53,14 +53,10 @@ class FootContactConfig:
 
 
 def below(parents, roots) -> np.ndarray:
-    """(J,) bool: the joints ``roots`` and every joint under them (parents precede children)."""
-    parents = np.asarray(parents)
-    inside = np.zeros(len(parents), bool)
-    inside[list(roots)] = True
-    for k in range(len(parents)):
-        if parents[k] >= 0 and inside[parents[k]]:
-            inside[k] = True
-    return inside
+    """(J,) bool: the joints ``roots`` and every joint under them (:func:`uvatar.body.kinematics.ancestor_matrix`)."""
+    from uvatar.body.kinematics import ancestor_matrix
+
+    return ancestor_matrix(parents)[:, list(roots)].any(1)
 
 
 def foot_landmarks(body, tgt_index: dict[str, int], band: float = 0.02, per_foot: int = 128):
