@@ -152,6 +152,16 @@ def test_rotation_between_known_answers():
         R = _rotation_between(np.array(a, float), np.array(b, float))
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
         np.testing.assert_allclose(R @ np.array(a) / np.linalg.norm(a), np.array(b) / np.linalg.norm(b), atol=1e-12)
+    # batched (the foot clean-up's leg IK) = one at a time, opposite and equal directions included
+    rng = np.random.default_rng(0)
+    A, B = rng.normal(size=(6, 3)), rng.normal(size=(6, 3))
+    A[4], B[4] = [0, 0, 1.0], [0, 0, -2.0]
+    B[5] = 3 * A[5]
+    batch = _rotation_between(A, B)
+    assert batch.shape == (6, 3, 3)
+    for k in range(6):
+        np.testing.assert_allclose(batch[k], _rotation_between(A[k], B[k]), atol=1e-12)
+        np.testing.assert_allclose(batch[k] @ A[k] / np.linalg.norm(A[k]), B[k] / np.linalg.norm(B[k]), atol=1e-12)
 
 
 def test_cmu_clip_on_anny(anny, cmu):
@@ -249,7 +259,8 @@ def test_reexpressed_clip_matches_the_cmu_retarget(anny, shared_data, tmp_path, 
     """The CMU clip with other names (Unity-like with _L/_R suffixes), another rest pose (every
     bone along X), twisted joint frames and 6 channels per joint converts with no map and gives
     the CMU result: per bone group median direction error <= 5 deg and twist error <= 10 deg; the
-    lowest foot within 2 cm of the floor whenever the source stands. Rest-pose alignment (bone
+    lowest foot within 2 cm of the floor whenever the source stands; the same with the foot-contact
+    clean-up (--feet clean), whose feet stop sliding. Rest-pose alignment (bone
     directions only) of the same file gets the twists wrong, so the check can fail."""
     import json
 
@@ -274,6 +285,22 @@ def test_reexpressed_clip_matches_the_cmu_retarget(anny, shared_data, tmp_path, 
         assert r["direction_deg"]["median"] <= 5 and r["twist_deg"]["median"] <= 10, (name, r)
     feet = json.loads(report.read_text())["lowest_foot_m"]
     assert feet["within_2cm_source_contact_frames"] >= 0.9 and feet["min"] > -0.03, feet
+    # with the foot-contact clean-up: the same bars against the CMU retarget with and without it
+    clean = tmp_path / "clean.json"
+    assert main(["motion", "convert", str(path), str(tmp_path / "clean.npz"), "--feet", "clean", "--report", str(clean)]) == 0
+    assert "after clean-up" in capsys.readouterr().out
+    moved = load_motion(tmp_path / "clean.npz", body=anny)
+    assert moved.info["feet"] == "clean"
+    for ref in (retarget(skeleton_motion_from_bvh(cmu, "cmu"), anny, RetargetConfig(feet="clean")), reference):
+        for name, r in compare_motions(anny, ref, moved, max_frames=60)["bones"].items():
+            assert r["direction_deg"]["median"] <= 5 and r["twist_deg"]["median"] <= 10, (name, r)
+    clean = json.loads(clean.read_text())
+    contacts = clean["foot_contacts"]
+    assert contacts["after"]["sliding_m_per_s"]["median"] < contacts["before"]["sliding_m_per_s"]["median"] / 100, contacts
+    assert contacts["after"]["sole_height_abs_m"]["max"] < 0.005, contacts
+    feet = clean["lowest_foot_m"]
+    assert feet["within_2cm_source_contact_frames"] >= 0.9 and feet["min"] > -0.03, feet
+    assert feet["within_2cm_all_frames"] <= 1 - feet["source_airborne_share"] + 0.05, feet
     wrong = retarget(skeleton_motion_from_bvh(read_bvh(path), "studio"), anny, RetargetConfig(twist="rest"))
     bad = compare_motions(anny, reference, wrong, max_frames=60)["bones"]
     assert max(r["twist_deg"]["median"] for r in bad.values()) > 20, bad

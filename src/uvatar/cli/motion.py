@@ -1,5 +1,5 @@
 """``uvatar motion info FILE``, ``uvatar motion convert IN OUT.npz [--body anny] [--fps 25] [--map FILE]
-[--report R.json]`` and ``uvatar motion compare A.npz B.npz``."""
+[--feet clean] [--report R.json]`` and ``uvatar motion compare A.npz B.npz``."""
 
 from __future__ import annotations
 
@@ -22,6 +22,9 @@ def register(cli) -> None:
                    help="joint map (JSON/YAML {source joint: semantic or body joint, or null}) over the automatic match")
     p.add_argument("--twist", default=RetargetConfig.twist, choices=("auto", "motion", "rest"),
                    help="where the source's bone frames come from (RetargetConfig.twist)")
+    p.add_argument("--feet", default=RetargetConfig.feet, choices=("floor", "clean"),
+                   help="floor: root height alone; clean: also pin the feet in the source's contacts by leg IK "
+                        "(RetargetConfig.feet)")
     p.add_argument("--report", default=None, metavar="JSON",
                    help="write per-bone direction/twist errors, lowest foot height and foot sliding here")
     p.set_defaults(func=_convert)
@@ -114,7 +117,7 @@ def _convert(args) -> int:
         raise InputError(args.output, "output must be a .npz file")
     if args.fps is not None and not args.fps > 0:
         raise InputError("--fps", f"must be > 0, got {args.fps}")
-    config = RetargetConfig(name_map=_user_map(args.map), twist=args.twist)
+    config = RetargetConfig(name_map=_user_map(args.map), twist=args.twist, feet=args.feet)
     print(f"loading {args.input} for body model '{args.body}' ...", file=sys.stderr)
     motion = load_motion(args.input, body=args.body, config=config)
     if args.report:
@@ -137,13 +140,14 @@ def _convert(args) -> int:
 
 
 def _write_report(args, motion, config) -> None:
+    from dataclasses import replace
     from pathlib import Path
 
     from uvatar.body.registry import load_body_model
     from uvatar.errors import InputError
     from uvatar.io_utils import write_json
     from uvatar.motion.report import retarget_report, summary_lines
-    from uvatar.motion.retarget import plan_retarget
+    from uvatar.motion.retarget import plan_retarget, retarget
 
     path = Path(args.input)
     if path.suffix.lower() != ".bvh":
@@ -153,7 +157,9 @@ def _write_report(args, motion, config) -> None:
 
     source = skeleton_motion_from_bvh(read_bvh(path), source=path.name)
     body = load_body_model(args.body)
-    report = retarget_report(source, motion, body, plan_retarget(source, body, config))
+    plan = plan_retarget(source, body, config)
+    before = retarget(source, body, replace(config, feet="floor"), plan) if config.feet == "clean" else None
+    report = retarget_report(source, motion, body, plan, contacts_config=config.contacts, before=before)
     write_json(args.report, report)
     for line in summary_lines(report):
         print(line)

@@ -7,8 +7,9 @@ the bone of the rotation between the target's and the source's anatomical frames
 come from posing the body model: this checks the rotation chain, the frames themselves are the
 retarget's); **bend-plane error** for the limbs, from joint positions alone (no frames): the angle
 between the source's and the target's elbow/knee bend planes where both bend by > 15 degrees. Feet: the **lowest foot height** per frame (lowest vertex of the
-posed feet, metres above y = 0) and **foot sliding**, the horizontal speed of each foot's lowest
-sole point while it touches the floor (m/s). All angles in degrees.
+posed feet, metres above y = 0); over the source's foot contacts (:mod:`uvatar.motion.feet`)
+**foot sliding**, the horizontal speed of each foot's lowest sole point (m/s), and that point's
+height; and the share of frames the source itself is airborne. All angles in degrees.
 """
 
 from __future__ import annotations
@@ -98,17 +99,40 @@ def compare_motions(body, a, b, max_frames: int = 200) -> dict:
 
 
 def _foot_vertices(body, tgt_index: dict) -> dict[str, np.ndarray]:
-    from uvatar.motion.retarget import below
+    from uvatar.motion.feet import SIDES, below
 
     main = np.asarray(body.template.skin_weights).argmax(1)
     return {side: np.flatnonzero(below(body.template.joint_parents, [tgt_index[side + "ankle"]])[main])
-            for side in ("l_", "r_") if side + "ankle" in tgt_index}
+            for side in SIDES if side + "ankle" in tgt_index}
 
 
-def retarget_report(source, motion, body, plan, max_frames: int = 200) -> dict:
+def feet_in_contact(motion, body, plan, contacts: np.ndarray) -> dict:
+    """Foot sliding (m/s, :func:`uvatar.motion.feet.sliding_speeds`) and each standing foot's lowest
+    sole point height (metres) of ``motion`` over the source's contact frames ``contacts`` (T, F)."""
+    from uvatar.motion.feet import foot_landmarks, lowest_point_tracks, sliding_speeds, sole_points
+    from uvatar.motion.retarget import motion_world
+
+    G, pos = motion_world(motion, body)
+    landmarks = foot_landmarks(body, plan.tgt_index)
+    sole = sole_points(G, pos, np.asarray(body.template.rest_joints, np.float64), landmarks)
+    speed = sliding_speeds(sole, landmarks[2], contacts, motion.fps)
+    heights = [point[contacts[:, f], 1] for f, point, _ in lowest_point_tracks(sole, landmarks[2])]
+    height = np.concatenate(heights) if heights else np.zeros(0)
+    return {"sliding_m_per_s": {"median": round(float(np.median(speed)), 5) if speed.size else None,
+                                "p90": round(float(np.percentile(speed, 90)), 5) if speed.size else None,
+                                "contact_frame_pairs": int(speed.size)},
+            "sole_height_abs_m": {"median": round(float(np.median(np.abs(height))), 5) if height.size else None,
+                                  "max": round(float(np.abs(height).max()), 5) if height.size else None}}
+
+
+def retarget_report(source, motion, body, plan, max_frames: int = 200, contacts_config=None, before=None) -> dict:
     """Direction/twist errors against ``source`` (a SkeletonMotion), lowest foot height and foot
-    sliding of ``motion`` (its retarget onto ``body`` by ``plan``)."""
-    from uvatar.motion.retarget import foot_landmarks, source_clearance
+    sliding of ``motion`` (its retarget onto ``body`` by ``plan``). Feet: the source's contacts
+    (:func:`uvatar.motion.feet.source_contacts` with ``contacts_config``), the share of frames the
+    source is airborne (its lower foot more than 2 cm, scaled to the target, above its contact
+    height), and :func:`feet_in_contact` of ``motion`` and of ``before`` (the same retarget
+    without the foot clean-up) when given."""
+    from uvatar.motion.feet import segments, source_clearance, source_contacts
 
     T = motion.num_frames
     frames = _sample(T, max_frames)
@@ -143,49 +167,27 @@ def retarget_report(source, motion, body, plan, max_frames: int = 200) -> dict:
             bones[group]["bend_plane_deg"] = _stats(planes)
     feet = _foot_vertices(body, sj)
     lowest = np.min([Y[:, v].min(1) for v in feet.values()], 0)  # (N,) metres
-    clearance = source_clearance(source, plan)[frames] * plan.scale
-    contact = clearance < CONTACT_M
-    # sliding: each foot's lowest sole point (FK of the sole landmarks, every frame) while it is down
-    from uvatar.motion.retarget import posed_joint_positions, target_world_rotations
-
-    G = target_world_rotations(source, body, plan)
-    t_rest = np.asarray(body.template.rest_joints, np.float64)
-    pos = posed_joint_positions(G, t_rest, body.template.joint_parents)
-    lj, lp, side = foot_landmarks(body, sj)
-    sole = pos[:, lj] + (G[:, lj] @ (lp - t_rest[lj])[..., None])[..., 0]
-    pelvis = sj["pelvis"]
-    world_pelvis = motion.Th.astype(np.float64) + np.einsum("tij,j->ti", _rotmats(motion.Rh), t_rest[pelvis])
-    sole = sole - pos[:, pelvis: pelvis + 1] + world_pelvis[:, None]
-    speeds = []
-    for mask in (side == 0, side == 1):
-        if not mask.any():
-            continue
-        k = sole[:, mask, 1].argmin(1)
-        point = sole[:, mask][np.arange(T), k]  # (T, 3) lowest sole point of the foot
-        down = point[:, 1] < CONTACT_M
-        both = down[1:] & down[:-1] & (k[1:] == k[:-1])
-        step = np.linalg.norm(point[1:, [0, 2]] - point[:-1, [0, 2]], axis=1)
-        speeds.append(step[both] * motion.fps)
-    speed = np.concatenate(speeds) if speeds else np.zeros(0)
+    clearance = source_clearance(source, plan) * plan.scale
+    contact = clearance[frames] < CONTACT_M
+    contacts = source_contacts(source, plan, contacts_config)
+    after = feet_in_contact(motion, body, plan, contacts)
     return {
         "frames": T, "frames_posed": int(len(frames)), "rig": plan.match.rig, "twist_from": dict(plan.twist_from),
+        "feet_mode": motion.info.get("feet", "floor"),
         "bones": bones,
         "lowest_foot_m": {"per_frame": [round(float(x), 4) for x in lowest], "frames": frames.tolist(),
                           "min": round(float(lowest.min()), 4), "median": round(float(np.median(lowest)), 4),
                           "within_2cm_all_frames": round(float(np.mean(np.abs(lowest) <= CONTACT_M)), 4),
                           "within_2cm_source_contact_frames": round(float(np.mean(np.abs(lowest[contact]) <= CONTACT_M)), 4)
                           if contact.any() else None,
-                          "source_contact_frames": int(contact.sum())},
-        "foot_sliding_m_per_s": {"median": round(float(np.median(speed)), 4) if speed.size else None,
-                                 "p90": round(float(np.percentile(speed, 90)), 4) if speed.size else None,
-                                 "contact_frame_pairs": int(speed.size)},
+                          "source_contact_frames": int(contact.sum()),
+                          "source_airborne_share": round(float(np.mean(clearance >= CONTACT_M)), 4)},
+        "foot_contacts": {"frames_per_foot": contacts.sum(0).tolist(),
+                          "segments_per_foot": [len(segments(c)) for c in contacts.T],
+                          "any_foot_share": round(float(contacts.any(1).mean()), 4),
+                          "after": after, "before": None if before is None else feet_in_contact(before, body, plan, contacts)},
+        "foot_sliding_m_per_s": after["sliding_m_per_s"],
     }
-
-
-def _rotmats(rotvecs) -> np.ndarray:
-    from uvatar.motion.rotations import rotvec_to_matrix
-
-    return rotvec_to_matrix(np.asarray(rotvecs, np.float64))
 
 
 def summary_lines(report: dict) -> list[str]:
@@ -203,6 +205,16 @@ def summary_lines(report: dict) -> list[str]:
                      f"{100 * f['within_2cm_all_frames']:.1f}% of frames"
                      + (f" ({100 * f['within_2cm_source_contact_frames']:.1f}% of the source's contact frames)"
                         if f["within_2cm_source_contact_frames"] is not None else ""))
-        s = report["foot_sliding_m_per_s"]
-        lines.append(f"foot sliding while down: median {s['median']} m/s, p90 {s['p90']} m/s")
+        lines.append(f"source airborne (lower foot > 2 cm above its contact height) on "
+                     f"{100 * f['source_airborne_share']:.1f}% of frames: at most "
+                     f"{100 * (1 - f['source_airborne_share']):.1f}% of frames can have a foot on the floor")
+    if "foot_contacts" in report:
+        c = report["foot_contacts"]
+        for when in ("before", "after"):
+            r = c[when]
+            if r is not None:
+                s, h = r["sliding_m_per_s"], r["sole_height_abs_m"]
+                label = f" ({when} clean-up)" if c["before"] is not None else ""
+                lines.append(f"feet in the source's contacts{label}: sliding median {s['median']} m/s "
+                             f"(p90 {s['p90']}), sole height |median| {h['median']} m (max {h['max']})")
     return lines

@@ -18,6 +18,10 @@ Root: ``root="floor"`` (mocap) scales the source pelvis path by the ratio of leg
 the height so that the target's lowest sole point is as high above y = 0 as the source's feet are
 above their own contact heights (each foot joint's 5th percentile over the clip), never below it;
 ``root="pelvis"`` (body-model fits) keeps the source pelvis where it is.
+
+Feet: ``feet="clean"`` then finds the source's foot contacts (:func:`uvatar.motion.feet.source_contacts`)
+and pins each standing foot's sole to the floor by a two-bone IK of its leg
+(:mod:`uvatar.motion.footlock`), lowering the body only where a leg cannot reach.
 """
 
 from __future__ import annotations
@@ -27,9 +31,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from uvatar.errors import UvatarError, check_values
+from uvatar.motion.feet import (
+    FootContactConfig,
+    foot_landmarks,
+    segments,
+    sole_points,
+    source_clearance,
+    source_contacts,
+)
+from uvatar.motion.footlock import pin_feet
 from uvatar.motion.record import Motion
 from uvatar.motion.rigs import LIMB, RigMatch, match_rig
-from uvatar.motion.rotations import matrix_to_rotvec, rotation_between
+from uvatar.motion.rotations import matrix_to_rotvec, rotation_between, rotvec_to_matrix
 from uvatar.motion.skeleton import SkeletonMotion
 
 UP_CHAIN = ("pelvis", "spine1", "spine2", "spine3", "neck", "head")
@@ -49,19 +62,23 @@ class RetargetConfig:
     the clip, the rest pose where the clip has no evidence; "motion"; "rest": the rest pose, right
     for T/A-pose body models); root: "floor" or "pelvis" (module docstring); source_floor: floor
     height in source units; min_evidence: mean sine of the hinge bend (or length of the averaged
-    second axis) below which "auto" uses the rest pose."""
+    second axis) below which "auto" uses the rest pose; feet: "floor" (the root height alone) or
+    "clean" (also pin each foot in the source's contacts, found by ``contacts``)."""
 
     name_map: dict[str, str | None] | None = None
     twist: str = "auto"
     root: str = "floor"
     source_floor: float = 0.0
     min_evidence: float = 0.05
+    feet: str = "floor"
+    contacts: FootContactConfig = field(default_factory=FootContactConfig)
 
     def __post_init__(self) -> None:
         check_values([(self.twist in ("auto", "motion", "rest"), f"twist must be auto|motion|rest, got {self.twist!r}"),
                       (self.root in ("floor", "pelvis"), f"root must be floor|pelvis, got {self.root!r}"),
                       (np.isfinite(self.source_floor), "source_floor must be finite"),
-                      (0 <= self.min_evidence < 1, "min_evidence must be in [0, 1)")])
+                      (0 <= self.min_evidence < 1, "min_evidence must be in [0, 1)"),
+                      (self.feet in ("floor", "clean"), f"feet must be floor|clean, got {self.feet!r}")])
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -271,81 +288,76 @@ def posed_joint_positions(G: np.ndarray, rest: np.ndarray, parents) -> np.ndarra
     return forward_kinematics_numpy(parents, local, offsets)[1]
 
 
-def below(parents, roots) -> np.ndarray:
-    """(J,) bool: the joints ``roots`` and every joint under them (parents precede children)."""
-    parents = np.asarray(parents)
-    inside = np.zeros(len(parents), bool)
-    inside[list(roots)] = True
-    for k in range(len(parents)):
-        if parents[k] >= 0 and inside[parents[k]]:
-            inside[k] = True
-    return inside
+def motion_world(motion: Motion, body) -> tuple[np.ndarray, np.ndarray]:
+    """A motion of ``body`` in world space by the same kinematics as :func:`posed_joint_positions`:
+    (G (T, J, 3, 3) world rotations relative to the rest pose, Rh included; joint positions (T, J, 3)
+    metres, ``V = R(Rh) X + Th`` applied)."""
+    from uvatar.body.kinematics import forward_kinematics_numpy
+
+    rest = np.asarray(body.template.rest_joints, np.float64)
+    parents = np.asarray(body.template.joint_parents)
+    local = rotvec_to_matrix(body.local_to_world_rotvecs(np.asarray(motion.joint_rotvecs, np.float64)))
+    R = rotvec_to_matrix(motion.Rh)
+    roots = np.flatnonzero(parents < 0)
+    local[:, roots] = R[:, None] @ local[:, roots]
+    offsets = rest - rest[np.maximum(parents, 0)]
+    offsets[roots] = rest[roots]
+    G, p = forward_kinematics_numpy(parents, local, offsets)
+    root = rest[roots[0]]
+    return G, p + ((R @ root) + motion.Th.astype(np.float64) - root)[:, None]
 
 
-def foot_landmarks(body, tgt_index: dict[str, int], band: float = 0.02, per_foot: int = 24):
-    """Sole points of the target's rest mesh: (joint index (K,), rest position (K, 3), side (K,)
-    0 left / 1 right) — the vertices within ``band`` metres of each foot's lowest point, each
-    riding its main bone."""
-    t = body.template
-    parents = np.asarray(t.joint_parents)
-    main = np.asarray(t.skin_weights).argmax(1)
-    joints, points, sides = [], [], []
-    for k_side, side in enumerate(("l_", "r_")):
-        if side + "ankle" not in tgt_index:
-            continue
-        verts = np.flatnonzero(below(parents, [tgt_index[side + "ankle"]])[main])
-        if not len(verts):
-            continue
-        y = t.vertices[verts, 1]
-        sole = verts[np.argsort(y)][: int((y < y.min() + band).sum())]  # lowest first
-        sole = sole[np.unique(np.linspace(0, len(sole) - 1, min(per_foot, len(sole))).astype(int))]
-        joints.append(main[sole])
-        points.append(t.vertices[sole].astype(np.float64))
-        sides.append(np.full(len(sole), k_side))
-    if not joints:
-        raise UvatarError(f"body model '{body.name}' has no mapped ankle to put on the floor")
-    return np.concatenate(joints), np.concatenate(points), np.concatenate(sides)
-
-
-def source_clearance(source: SkeletonMotion, plan: RetargetPlan, floor: float = 0.0) -> np.ndarray:
-    """(T,) how high (source units) the source's feet are above their contact heights: the lowest
-    over the foot joints (ankles and everything below them) of height minus that joint's 5th
-    percentile height over the clip, never below 0."""
-    inside = below(source.parents, [plan.src_index[a] for a in ("l_ankle", "r_ankle") if a in plan.src_index])
-    y = source.positions[:, inside, 1] - floor
-    return np.maximum((y - np.percentile(y, 5, axis=0)).min(1), 0.0)
-
-
-def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None, plan: RetargetPlan | None = None):
-    """Retarget ``source`` onto ``body`` → :class:`~uvatar.motion.record.Motion` for that body:
-    joint_rotvecs (T, J, 3) local axis-angles, Rh (T, 3), Th (T, 3) metres."""
-    config = config or RetargetConfig()
-    plan = plan or plan_retarget(source, body, config)
+def _motion(G: np.ndarray, P: np.ndarray, body, pelvis: int, fps: float, source: str, info: dict) -> Motion:
+    """World rotations G (T, J, 3, 3) relative to the rest pose and the pelvis path P (T, 3) →
+    Motion (the pelvis's rotation becomes Rh)."""
     t_rest = np.asarray(body.template.rest_joints, np.float64)
     parents = np.asarray(body.template.joint_parents)
-    G = target_world_rotations(source, body, plan)
-    pelvis = plan.tgt_index["pelvis"]
     Rh_mat = G[:, pelvis].copy()
     Gp = np.swapaxes(Rh_mat, -1, -2)[:, None] @ G  # without the global rotation
     parent_G = np.where((parents >= 0)[None, :, None, None], Gp[:, np.maximum(parents, 0)], np.eye(3))
     world_rotvecs = matrix_to_rotvec(np.swapaxes(parent_G, -1, -2) @ Gp)
     joint_rotvecs = np.asarray(body.world_to_local_rotvecs(world_rotvecs.astype(np.float32)), np.float32)
     joint_rotvecs[:, parents < 0] = 0.0  # the root's rotation is Rh
+    Th = P - (Rh_mat @ t_rest[pelvis])  # V = R(Rh) X + Th puts the pelvis at P
+    return Motion(joint_rotvecs=joint_rotvecs, Rh=matrix_to_rotvec(Rh_mat).astype(np.float32),
+                  Th=Th.astype(np.float32), fps=fps, body=body.name, source=source,
+                  joint_names=tuple(body.joint_names), info=info)
+
+
+def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None, plan: RetargetPlan | None = None):
+    """Retarget ``source`` onto ``body`` → :class:`~uvatar.motion.record.Motion` for that body:
+    joint_rotvecs (T, J, 3) local axis-angles, Rh (T, 3), Th (T, 3) metres. ``config.feet ==
+    "clean"`` then pins the feet in the source's contacts (:mod:`uvatar.motion.footlock`)."""
+    config = config or RetargetConfig()
+    plan = plan or plan_retarget(source, body, config)
+    t_rest = np.asarray(body.template.rest_joints, np.float64)
+    parents = np.asarray(body.template.joint_parents)
+    G = target_world_rotations(source, body, plan)
+    pelvis = plan.tgt_index["pelvis"]
     P = source.positions[:, plan.src_index["pelvis"]] * plan.scale
     info = {"rig": plan.match.rig, "mapping": dict(plan.match.mapping), "mapped_joints": sorted(plan.shared),
             "twist_from": dict(plan.twist_from), "scale_m_per_unit": plan.scale,
-            "units_to_metres_hint": source.units_to_metres, "root": config.root}
-    if config.root == "floor":
+            "units_to_metres_hint": source.units_to_metres, "root": config.root, "feet": config.feet}
+    if config.root == "floor" or config.feet == "clean":
         pos = posed_joint_positions(G, t_rest, parents)
         rel = pos - pos[:, pelvis: pelvis + 1]
-        lj, lp, _ = foot_landmarks(body, plan.tgt_index)
-        sole = rel[:, lj] + (G[:, lj] @ (lp - t_rest[lj])[..., None])[..., 0]  # (T, K, 3) rel. to the pelvis
+        landmarks = foot_landmarks(body, plan.tgt_index)
+        sole = sole_points(G, rel, t_rest, landmarks)  # (T, K, 3) relative to the pelvis
+    if config.root == "floor":
         clearance = source_clearance(source, plan, config.source_floor)
         P[:, 1] = clearance * plan.scale - sole[..., 1].min(1)  # lowest sole point at the clearance
-    Th = P - (Rh_mat @ t_rest[pelvis])  # V = R(Rh) X + Th puts the pelvis at P
-    return Motion(joint_rotvecs=joint_rotvecs, Rh=matrix_to_rotvec(Rh_mat).astype(np.float32),
-                  Th=Th.astype(np.float32), fps=source.fps, body=body.name, source=source.source,
-                  joint_names=tuple(body.joint_names), info=info)
+    if config.feet == "clean":
+        contacts = source_contacts(source, plan, config.contacts)
+        forward = body_forward({s: t_rest[i] for s, i in plan.tgt_index.items()})
+        G, pos, out = pin_feet(G, rel + P[:, None], sole + P[:, None], landmarks[2], contacts, plan.tgt_index,
+                               parents, int(round(config.contacts.blend_s * source.fps)), forward,
+                               config.contacts.max_drop_m)
+        P = pos[:, pelvis]
+        info["foot_contacts"] = {"frames": contacts.sum(0).tolist(),
+                                 "segments": [len(segments(c)) for c in contacts.T],
+                                 "max_drop_m": round(float(out["drop"].max()), 4),
+                                 "max_miss_m": round(float(out["miss"].max()), 4)}
+    return _motion(G, P, body, pelvis, source.fps, source.source, info)
 
 
 def semantic_map(names, parents=None) -> dict[str, str]:
@@ -357,4 +369,5 @@ def semantic_map(names, parents=None) -> dict[str, str]:
 
 
 __all__ = ["LIMB", "RetargetConfig", "RetargetPlan", "plan_retarget", "retarget", "semantic_map", "rest_frame",
-           "motion_frame", "target_world_rotations", "posed_joint_positions", "foot_landmarks", "source_clearance"]
+           "motion_frame", "target_world_rotations", "posed_joint_positions", "motion_world", "foot_landmarks",
+           "source_clearance"]

@@ -81,17 +81,19 @@ def matrix_to_euler(matrix, order: str, degrees: bool = False) -> np.ndarray:
 
 
 def rotation_between(a, b) -> np.ndarray:
-    """Smallest rotation (3, 3) taking direction ``a`` onto direction ``b`` (any lengths)."""
-    a = np.asarray(a, np.float64) / np.linalg.norm(a)
-    b = np.asarray(b, np.float64) / np.linalg.norm(b)
-    axis, c = np.cross(a, b), float(np.clip(np.dot(a, b), -1.0, 1.0))
-    s = float(np.linalg.norm(axis))
-    if s < 1e-12:
-        if c > 0:
-            return np.eye(3)
-        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])  # opposite: pi about any normal
-        s = float(np.linalg.norm(axis))
-    return rotvec_to_matrix(axis / s * np.arctan2(s, c) if s >= 1e-12 and c > -1 + 1e-12 else axis / s * np.pi)
+    """Smallest rotations (..., 3, 3) taking directions ``a`` onto directions ``b`` ((..., 3), any
+    lengths, broadcast; (3,) and (3,) give one (3, 3)); opposite directions: pi about a normal."""
+    a, b = np.broadcast_arrays(np.asarray(a, np.float64), np.asarray(b, np.float64))
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    axis, c = np.cross(a, b), np.clip((a * b).sum(-1), -1.0, 1.0)
+    s = np.linalg.norm(axis, axis=-1)
+    normal = np.cross(a, np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0, 0], [0, 1.0, 0]))  # for opposite ones
+    flip = (s < 1e-12) & (c < 0)
+    axis = np.where(flip[..., None], normal, axis)
+    angle = np.where(flip, np.pi, np.arctan2(s, c))
+    n = np.linalg.norm(axis, axis=-1, keepdims=True)
+    return rotvec_to_matrix(np.where(n > 1e-12, axis / np.maximum(n, 1e-300), 0.0) * angle[..., None])
 
 
 @one_thread
