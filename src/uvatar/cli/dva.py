@@ -1,25 +1,47 @@
-"""``uvatar train dva``, ``uvatar render dva``, ``uvatar eval dva``: drivable volumetric avatars."""
+"""``uvatar train dva``, ``uvatar render dva``, ``uvatar eval dva``: drivable volumetric avatars.
+
+``train dva``'s size and budget flags are generated from the DVA configs (:mod:`uvatar.cli.flags`), their
+defaults the ``--preset``'s (``uvatar.dva.model.PRESETS``).
+"""
 
 from __future__ import annotations
 
+from uvatar.cli.flags import ConfigFlags
+
+
+def _flags() -> tuple[ConfigFlags, ...]:
+    """(budget, primitives, decoder) flags of ``train dva``; defaults from the preset picked."""
+    from uvatar.dva.decoders import DecoderConfig
+    from uvatar.dva.model import PRESETS, TrainConfig
+    from uvatar.dva.primitives import PrimitiveConfig
+
+    return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
+                        help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
+            ConfigFlags(PrimitiveConfig, fields=("grid",), presets={k: c.primitives for k, c in PRESETS.items()},
+                        help={"grid": "primitives per UV side W (K = W*W)"}),
+            ConfigFlags(DecoderConfig, fields=("voxels",), presets={k: c.decoder for k, c in PRESETS.items()},
+                        help={"voxels": "voxels per primitive side S"}))
+
 
 def register(cli) -> None:
+    from uvatar.dva.model import PRESETS
+
+    budget, primitives, decoder = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
     p.add_argument("out", help="run folder (checkpoint.pt, run.json, tb/)")
-    p.add_argument("--preset", default="cpu", choices=("cpu", "paper", "tiny"),
+    p.add_argument("--preset", default="cpu", choices=tuple(PRESETS),
                    help="config preset: cpu (K=256, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
-    p.add_argument("--minutes", type=float, default=None, help="wall-clock budget in minutes; unset = the preset's")
-    p.add_argument("--iters", type=int, default=None, help="stop after this many steps; unset = the preset's")
+    budget.add_to(p)
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--vgg-weights", default=None,
                    help="torchvision VGG-19 state dict for the perceptual loss (without it: 1 - SSIM)")
     _threads(p)
     _body(p, "body model (default: the capture's: capture.json's, smpl for EasyMocap / ZJU-MoCap)")
-    p.add_argument("--grid", type=int, default=None, help="primitives per UV side W (K = W*W); unset = preset")
-    p.add_argument("--voxels", type=int, default=None, help="voxels per primitive side S; unset = preset")
+    primitives.add_to(p)
+    decoder.add_to(p)
     p.set_defaults(func=_train)
 
     p = cli.command("render dva", help="drive a DVA avatar with a pose sequence + 2-3 driving views")
@@ -76,11 +98,12 @@ def _check_train_args(args) -> None:
     """One-line errors for values no training run can use (before anything is written)."""
     from uvatar.errors import InputError
 
-    for flag, value, least in (("--grid", args.grid, 1), ("--voxels", args.voxels, 1), ("--iters", args.iters, 1)):
-        if value is not None and value < least:
-            raise InputError(flag, f"must be at least {least}, got {value}")
-    if args.minutes is not None and args.minutes <= 0:
-        raise InputError("--minutes", f"must be > 0, got {args.minutes}")
+    given = vars(args)
+    for name, least in (("grid", 1), ("voxels", 1), ("iters", 1)):
+        if given.get(name) is not None and given[name] < least:
+            raise InputError(f"--{name}", f"must be at least {least}, got {given[name]}")
+    if given.get("minutes") is not None and given["minutes"] <= 0:
+        raise InputError("--minutes", f"must be > 0, got {given['minutes']}")
     if args.threads < 0:
         raise InputError("--threads", f"must be >= 0 (0: torch's default), got {args.threads}")
 
@@ -92,14 +115,14 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
+    budget, primitives, decoder = _flags()
     cfg = preset(args.preset)
-    if args.grid is not None:
-        cfg.primitives.grid = args.grid
-    if args.voxels is not None:
-        cfg.decoder.voxels = args.voxels
-    summary = train_dva(open_source(args.capture), args.out, cfg, iters=args.iters, minutes=args.minutes,
-                        device=args.device, resume=args.resume, vgg_weights=args.vgg_weights,
-                        body_model=args.model, model_dir=args.model_dir)
+    cfg.primitives = primitives.config(args, base=cfg.primitives)
+    cfg.decoder = decoder.config(args, base=cfg.decoder)
+    given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
+    summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
+                        minutes=given.get("minutes"), device=args.device, resume=args.resume,
+                        vgg_weights=args.vgg_weights, body_model=args.model, model_dir=args.model_dir)
     from uvatar.distributed import is_main_process
 
     if is_main_process():
