@@ -5,14 +5,9 @@ Config flags are generated from ``AvhConfig`` / ``TrainConfig`` / ``AnimateConfi
 
 from __future__ import annotations
 
-import argparse
 import json
 
 from uvatar.cli.flags import ConfigFlags
-
-
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    pass
 
 
 def _preset_lines() -> str:
@@ -75,9 +70,8 @@ def register(cli) -> None:
     from uvatar.avh.model import PRESETS
 
     flags = _flags()
-    p = cli.command("train avh", help="train the AVH pose -> texture/displacement generator on baked maps")
-    p.formatter_class = _Formatter
-    p.epilog = _preset_lines()
+    p = cli.command("train avh", help="train the AVH pose -> texture/displacement generator on baked maps",
+                    epilog=_preset_lines())
     p.add_argument("baked", help="baked dataset folder (uvatar bake output)")
     p.add_argument("out", help="run folder (checkpoints, TensorBoard logs, model.pt)")
     p.add_argument("--preset", default="cpu-small", choices=tuple(PRESETS), help="model size")
@@ -90,20 +84,20 @@ def register(cli) -> None:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=_presets)
 
-    p = cli.command("export", help="export a trained AVH run: ONNX + body template + avatar.json")
-    p.formatter_class = _Formatter
-    p.epilog = ("OUT/model.onnx: input pose_angles (B, 3*J_c) radians -> texture, displacement (B, 3, R, R);\n"
-                "OUT/avatar.json: metadata; OUT/body.npz: body template. See uvatar.avh.export.")
+    p = cli.command("export", help="export a trained AVH run: ONNX + body template + avatar.json",
+                    epilog="OUT/model.onnx: input pose_angles (B, 3*J_c) radians -> texture, displacement "
+                           "(B, 3, R, R);\nOUT/avatar.json: metadata; OUT/body.npz: body template. "
+                           "See uvatar.avh.export.")
     p.add_argument("run", help="training run folder (uvatar train avh)")
     p.add_argument("out", help="avatar folder to write")
     p.add_argument("--opset", type=int, default=ONNX_OPSET)
     p.add_argument("--tolerance", type=float, default=PARITY_TOLERANCE, help="max ONNX vs PyTorch abs difference")
     p.set_defaults(func=_export)
 
-    p = cli.command("animate", help="render an exported avatar driven by a motion to MP4")
-    p.formatter_class = _Formatter
-    p.epilog = ("motion: a BVH/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE (its fits),\n"
-                "heldout:CAPTURE (its held-out poses), take:NAME:CAPTURE (one take of a synthetic capture)")
+    p = cli.command("animate", help="render an exported avatar driven by a motion to MP4",
+                    epilog="motion: a BVH/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE "
+                           "(its fits),\nheldout:CAPTURE (its held-out poses), take:NAME:CAPTURE (one take of a "
+                           "synthetic capture)")
     p.add_argument("avatar", help="avatar folder (uvatar export)")
     p.add_argument("--motion", required=True, help="motion file or spec (see below)")
     p.add_argument("-o", "--output", required=True, help="video path (.mp4)")

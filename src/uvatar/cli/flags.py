@@ -184,9 +184,23 @@ class ConfigFlags:
     def config(self, args: argparse.Namespace, base=None, **fixed):
         """The config from the parsed flags: ``base`` (default: the dataclass's defaults) with the flag
         values and then ``fixed`` (fields the command sets itself) replaced. Raises the config's own
-        ValueError on out-of-bounds values."""
-        values = {**self.values(args), **fixed}
-        return dataclasses.replace(base, **values) if base is not None else self.cls(**values)
+        ValueError on out-of-bounds values, with the flags given that changed a value appended
+        (``... (--texels 0)``)."""
+        given = self.values(args)
+        values = {**given, **fixed}
+        try:
+            return dataclasses.replace(base, **values) if base is not None else self.cls(**values)
+        except ValueError as exc:  # the config names its field; say which flags the user changed
+            start = base if base is not None else self.cls()
+            changed = [self.spelled(k, v) for k, v in given.items() if v != getattr(start, k)]
+            raise ValueError(f"{exc} ({', '.join(changed)})" if changed else str(exc)) from None
+
+    def spelled(self, name: str, value) -> str:
+        """How the flag of field ``name`` is written for ``value`` (``--texels 0``, ``--no-register``)."""
+        flag = self.flag(name)
+        if isinstance(value, bool):
+            return flag if value else "--no-" + flag[2:]
+        return f"{flag} {_show(value).replace('%%', '%')}"
 
 
 def _show(value) -> str:
