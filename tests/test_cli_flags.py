@@ -222,3 +222,26 @@ def test_documented_spellings_still_parse():
     assert _parse(["synth", "o", "--no-preview"]).preview is False
     assert _parse(["animate", "a", "--motion", "m", "-o", "x.mp4", "--frames", "3"]).max_frames == 3
     assert _parse(["eval", "avh", "a", "c", "--sheet-per-camera"]).sheets_per_camera is True
+
+
+def test_library_errors_name_parameters_not_cli_flags():
+    """Errors raised outside uvatar.cli name the parameter (``force=True``), never a flag (``--force``):
+    the library is called from Python too, and flag names belong to the CLI."""
+    import ast
+    import re
+    from pathlib import Path
+
+    import uvatar
+
+    root = Path(uvatar.__file__).parent
+    flag = re.compile(r"(^|[\s(`'\"])--?[a-z][a-z-]*")
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        if "cli" in path.relative_to(root).parts[:1] or path.name == "screenshot.py":  # own argparse front ends
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Raise) and node.exc is not None:
+                for sub in ast.walk(node.exc):
+                    if isinstance(sub, ast.Constant) and isinstance(sub.value, str) and flag.search(sub.value):
+                        found.append(f"{path.relative_to(root)}:{sub.lineno}: {sub.value!r}")
+    assert not found, "\n".join(found)

@@ -224,7 +224,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     training = runtime.meta.get("training") or {}
     baked_dir = Path(baked_dir or training.get("baked") or "")
     if not (baked_dir / "dataset.json").is_file():
-        raise InputError(baked_dir, "baked training data not found (needed for the baselines); pass --baked")
+        raise InputError(baked_dir, "baked training data not found (needed for the baselines); pass baked_dir")
     baselines = Baselines(baked_dir, training.get("train_frames") or [], runtime.resolution, runtime.conditioning,
                           body=runtime.body, displacement_frame=runtime.displacement_frame, shape=runtime.shape)
     try:

@@ -37,11 +37,11 @@ def _flags():
                          help={"iterations": "Gauss-Newton steps of the articulated fit refinement"})
     registration = ConfigFlags(
         RegistrationConfig, fields=("stiffness", "iterations", "max_distance", "modes", "normal_smoothing"),
-        prefix="registration", choices={"modes": STAGE_MODES}, help={
+        prefix="registration", help={
             "stiffness": "Laplacian weight per registration stage, stiff to flexible (comma-separated)",
             "iterations": "solves per stage",
             "max_distance": "per stage, match distance limit as a fraction of the bbox diagonal",
-            "modes": "per stage: closest | rays | normal (comma-separated)",
+            "modes": f"per stage: {' | '.join(STAGE_MODES)} (comma-separated; RegistrationConfig checks them)",
             "normal_smoothing": "normal stages move vertices along normals averaged over this length in metres "
                                 "(the cloth's bending length; 0 = raw normals)"})
     select = ConfigFlags(SelectConfig, fields=("n_train", "n_val", "seed", "features"),

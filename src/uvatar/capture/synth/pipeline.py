@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.capture.synth.config import SynthConfig
-from uvatar.errors import InputError, UvatarError
+from uvatar.errors import UvatarError
 from uvatar.io_utils import sweep_partial_writes
 from uvatar.parallel import ExecutorConfig, clear_worker_cache
 from uvatar.resources import check_memory
