@@ -26,9 +26,10 @@ def _preset_lines() -> str:
 
 def _flags() -> dict[str, ConfigFlags]:
     """The config flags of ``train avh`` (generator size, optimization), ``animate`` and ``eval avh``."""
-    from uvatar.avh.animate import AnimateConfig
+    from uvatar.avh.animate import AnimateConfig, animate
     from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES
     from uvatar.avh.eval import EvalConfig
+    from uvatar.avh.export import export_avatar
     from uvatar.avh.model import PRESETS, AvhConfig
     from uvatar.avh.train import TrainConfig
 
@@ -55,6 +56,10 @@ def _flags() -> dict[str, ConfigFlags]:
                 "max_frames": "render at most this many frames (none: all)", "stride": "use every n-th motion frame",
                 "fps": "video fps (none: the motion's)", "mesh_format": "format of the --obj-dir meshes",
                 "shading": "add headlight shading", "levels": "subdivision levels"}),
+        "export": ConfigFlags(export_avatar, fields=("opset", "tolerance"), help={
+            "opset": "ONNX opset", "tolerance": "max ONNX vs PyTorch abs difference"}),
+        "animate_call": ConfigFlags(animate, fields=("mesh_dir", "device"), rename={"mesh_dir": "obj_dir"}, help={
+            "mesh_dir": "also write one mesh per frame here", "device": "onnxruntime device (cpu or cuda)"}),
         "eval": ConfigFlags(
             EvalConfig, fields=("pose_source", "sheets_per_camera", "image_size"),
             rename={"sheets_per_camera": "sheet_per_camera"}, choices={"pose_source": ("refined", "fit")}, help={
@@ -66,7 +71,6 @@ def _flags() -> dict[str, ConfigFlags]:
 
 
 def register(cli) -> None:
-    from uvatar.avh.export import ONNX_OPSET, PARITY_TOLERANCE
     from uvatar.avh.model import PRESETS
 
     flags = _flags()
@@ -90,8 +94,7 @@ def register(cli) -> None:
                            "See uvatar.avh.export.")
     p.add_argument("run", help="training run folder (uvatar train avh)")
     p.add_argument("out", help="avatar folder to write")
-    p.add_argument("--opset", type=int, default=ONNX_OPSET)
-    p.add_argument("--tolerance", type=float, default=PARITY_TOLERANCE, help="max ONNX vs PyTorch abs difference")
+    flags["export"].add_to(p)
     p.set_defaults(func=_export)
 
     p = cli.command("animate", help="render an exported avatar driven by a motion to MP4",
@@ -102,8 +105,7 @@ def register(cli) -> None:
     p.add_argument("--motion", required=True, help="motion file or spec (see below)")
     p.add_argument("-o", "--output", required=True, help="video path (.mp4)")
     flags["animate"].add_to(p)
-    p.add_argument("--obj-dir", default=None, help="also write one mesh per frame here")
-    p.add_argument("--device", default="cpu", help="onnxruntime device (cpu or cuda)")
+    flags["animate_call"].add_to(p)
     p.set_defaults(func=_animate)
 
     p = cli.command("eval avh", help="evaluate an avatar on a capture's held-out poses vs two baselines")
@@ -153,7 +155,7 @@ def _presets(args) -> int:
 def _export(args) -> int:
     from uvatar.avh.export import export_avatar
 
-    meta = export_avatar(args.run, args.out, opset=args.opset, tolerance=args.tolerance)
+    meta = export_avatar(args.run, args.out, **_flags()["export"].values(args))
     print(f"exported {meta['parameters']:,} parameters to {args.out} "
           f"(ONNX max abs diff vs PyTorch {meta['onnx_max_abs_diff']:.2e})")
     return 0
@@ -163,9 +165,10 @@ def _animate(args) -> int:
     from uvatar.avh.animate import animate
     from uvatar.errors import options_as_input_error
 
+    flags = _flags()
     with options_as_input_error("uvatar animate options"):
-        cfg = _flags()["animate"].config(args)
-    path = animate(args.avatar, args.motion, args.output, cfg, mesh_dir=args.obj_dir, device=args.device)
+        cfg = flags["animate"].config(args)
+    path = animate(args.avatar, args.motion, args.output, cfg, **flags["animate_call"].values(args))
     print(f"wrote {path}")
     return 0
 

@@ -54,8 +54,6 @@ def _flags():
 
 
 def register(cli) -> None:
-    from uvatar.avh.bake.evaluate import EvalConfig
-
     bake, registration, refine, select = _flags()
     p = cli.command("bake", help="bake a capture's scans into body UV space (AVH stage 1)")
     p.add_argument("capture", help="capture folder (capture.json, scans/, fits/)")
@@ -69,8 +67,9 @@ def register(cli) -> None:
         flags.add_to(p)
     p.add_argument("--eval", action="store_true", help="compare with the capture's gt/ (synthetic captures)")
     p.add_argument("--json", default=None, help="write the summary (and --eval metrics) to this JSON file")
-    p.add_argument("--ablation-frames", type=int, default=EvalConfig.ablation_frames,
-                   help="frames re-baked without registration / polarity for --eval (0 = no ablation)")
+    p.add_argument("--ablation-frames", type=int, default=None,
+                   help="frames re-baked without registration / polarity for --eval (0 = no ablation; "
+                        "default: the evaluation config's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_executor_flags(p)
     p.set_defaults(func=_bake)
@@ -135,7 +134,9 @@ def _bake(args) -> int:
     if args.eval:
         from uvatar.avh.bake.evaluate import EvalConfig, evaluate_bake
 
-        ecfg = EvalConfig(ablation=args.ablation_frames > 0, ablation_frames=max(args.ablation_frames, 1))
+        ecfg = EvalConfig()
+        if args.ablation_frames is not None:
+            ecfg = EvalConfig(ablation=args.ablation_frames > 0, ablation_frames=max(args.ablation_frames, 1))
         summary["eval"] = metrics = evaluate_bake(args.capture, args.out, ecfg, progress)
         summary.update({k: metrics[k] for k in ("protocol", "correspondence_error_mm", "texture_psnr_db",
                                                 "texture_psnr_db_vs_resampled_gt", "frames_rejected",

@@ -10,23 +10,31 @@ from uvatar.cli.flags import ConfigFlags
 
 
 def _flags() -> tuple[ConfigFlags, ...]:
-    """(budget, primitives, decoder) flags of ``train dva``; defaults from the preset picked."""
+    """(budget, primitives, decoder) flags of ``train dva``, defaults from the preset picked; then the
+    ``train_dva`` and ``evaluate_dva`` parameters."""
     from uvatar.dva.decoders import DecoderConfig
+    from uvatar.dva.eval import evaluate_dva
     from uvatar.dva.model import PRESETS, TrainConfig
     from uvatar.dva.primitives import PrimitiveConfig
+    from uvatar.dva.train import train_dva
 
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
             ConfigFlags(PrimitiveConfig, fields=("grid",), presets={k: c.primitives for k, c in PRESETS.items()},
                         help={"grid": "primitives per UV side W (K = W*W)"}),
             ConfigFlags(DecoderConfig, fields=("voxels",), presets={k: c.decoder for k, c in PRESETS.items()},
-                        help={"voxels": "voxels per primitive side S"}))
+                        help={"voxels": "voxels per primitive side S"}),
+            ConfigFlags(train_dva, fields=("device", "resume"), help={
+                "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt"}),
+            ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device"), help={
+                "driving_views": "training cameras that drive the avatar (evenly spread)",
+                "max_frames": "score at most this many test frames (none: all)", "device": "torch device"}))
 
 
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, primitives, decoder = _flags()
+    budget, primitives, decoder, train, evaluate = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
@@ -34,8 +42,7 @@ def register(cli) -> None:
     p.add_argument("--preset", default="cpu", choices=tuple(PRESETS),
                    help="config preset: cpu (K=256, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
     budget.add_to(p)
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    train.add_to(p)
     p.add_argument("--vgg-weights", default=None,
                    help="torchvision VGG-19 state dict for the perceptual loss (without it: 1 - SSIM)")
     _threads(p)
@@ -62,12 +69,10 @@ def register(cli) -> None:
     p.add_argument("run", help="DVA run folder")
     p.add_argument("capture", help="capture folder (its protocol picks test frames and cameras)")
     p.add_argument("--json", required=True, help="metrics JSON path (comparison images go beside it)")
-    p.add_argument("--driving-views", type=int, default=3)
-    p.add_argument("--max-frames", type=int, default=None)
+    evaluate.add_to(p)
     p.add_argument("--frames", default=None, help="frame names, comma separated (default: the protocol's test frames)")
     p.add_argument("--cameras", default=None,
                    help="camera names, comma separated (default: the protocol's held-out cameras)")
-    p.add_argument("--device", default="cpu")
     _threads(p)
     _body(p, "body model (default: the run's; must be the run's)")
     p.set_defaults(func=_eval)
@@ -115,14 +120,14 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
-    budget, primitives, decoder = _flags()
+    budget, primitives, decoder, train, _ = _flags()
     cfg = preset(args.preset)
     cfg.primitives = primitives.config(args, base=cfg.primitives)
     cfg.decoder = decoder.config(args, base=cfg.decoder)
     given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
-                        minutes=given.get("minutes"), device=args.device, resume=args.resume,
-                        vgg_weights=args.vgg_weights, body_model=args.model, model_dir=args.model_dir)
+                        minutes=given.get("minutes"), vgg_weights=args.vgg_weights, body_model=args.model,
+                        model_dir=args.model_dir, **train.values(args))
     from uvatar.distributed import is_main_process
 
     if is_main_process():
@@ -182,8 +187,8 @@ def _eval(args) -> int:
     from uvatar.dva.data import open_source
     from uvatar.dva.eval import evaluate_dva
 
-    r = evaluate_dva(args.run, open_source(args.capture), args.json, driving_views=args.driving_views,
-                     max_frames=args.max_frames, device=args.device, frames=_split(args.frames),
-                     cameras=_split(args.cameras), body_model=args.model, model_dir=args.model_dir)
+    r = evaluate_dva(args.run, open_source(args.capture), args.json, frames=_split(args.frames),
+                     cameras=_split(args.cameras), body_model=args.model, model_dir=args.model_dir,
+                     **_flags()[4].values(args))
     print(f"psnr {r['psnr_db']:.2f} dB, ssim {r['ssim']:.4f} over {len(r['per_image'])} images -> {args.json}")
     return 0

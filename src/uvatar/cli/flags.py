@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import types
 import typing
 from collections.abc import Callable, Mapping
@@ -34,11 +35,15 @@ _SCALARS = {int: "int", float: "float", str: "str"}
 
 
 def _unwrap_optional(tp) -> tuple[object, bool]:
-    """(X, True) for ``X | None`` / ``Optional[X]``, else (tp, False)."""
+    """(X, True) for ``X | None`` / ``Optional[X]``, else (tp, False); a union holding ``str`` (a path:
+    ``str | Path``) is spelled as ``str``."""
     if typing.get_origin(tp) in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
-        if len(args) == 1 and len(typing.get_args(tp)) == 2:
-            return args[0], True
+        optional = len(args) < len(typing.get_args(tp))
+        if len(args) == 1:
+            return args[0], optional
+        if str in args:
+            return str, optional
     return tp, False
 
 
@@ -95,20 +100,53 @@ def flag_parser(tp, choices: tuple | None = None, zero_is_none: bool = False) ->
     raise TypeError(f"no flag for {tp!r}")
 
 
+class _Param(typing.NamedTuple):
+    name: str
+    type: object       # the annotation (None: not annotated, nor a default to take the type from)
+    default: object
+    metadata: Mapping
+
+
+def _params(cls) -> dict[str, _Param]:
+    """name -> _Param of a dataclass's fields (defaults of ``cls()``), or of a function's parameters
+    that have a default (a parameter without annotation takes the type of its default)."""
+    hints = typing.get_type_hints(cls)
+    if dataclasses.is_dataclass(cls):
+        base = cls()
+        return {f.name: _Param(f.name, hints.get(f.name), getattr(base, f.name), f.metadata)
+                for f in dataclasses.fields(cls)}
+    out = {}
+    for p in inspect.signature(cls).parameters.values():
+        if p.default is not p.empty and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY):
+            tp = hints.get(p.name, None if p.default is None else type(p.default))
+            out[p.name] = _Param(p.name, tp, p.default, {})
+    return out
+
+
+def _spellable(tp) -> bool:
+    try:
+        if tp is not bool:
+            flag_parser(tp)
+    except TypeError:
+        return False
+    return True
+
+
 @dataclass(frozen=True)
 class ConfigFlags:
-    """The flags of one config dataclass.
+    """The flags of one config dataclass (or of a library function's parameters with defaults).
 
-    cls: the dataclass. fields: the fields that get a flag, in this order (None: every field whose
-    type a flag can spell; bools included). prefix: flag and dest prefix (``"registration"`` makes
-    ``--registration-stiffness``, dest ``registration_stiffness``). rename: field -> flag name (without
-    dashes) for documented names; the dest stays ``prefix_field``. short: field -> a short option
-    (``"-n"``). help: field -> help text (field metadata ``help`` wins). choices: field -> allowed
-    values (metadata ``choices`` and ``Literal`` work too). zero_is_none: optional fields where 0 means
-    None. presets: name -> config; defaults come from the preset picked at run time.
+    cls: the dataclass, or a function (then :meth:`values` gives its keyword arguments). fields: the
+    fields that get a flag, in this order (None: every field whose type a flag can spell; bools
+    included). prefix: flag and dest prefix (``"registration"`` makes ``--registration-stiffness``,
+    dest ``registration_stiffness``). rename: field -> flag name (without dashes) for documented
+    names; the dest stays ``prefix_field``. short: field -> a short option (``"-n"``). help: field ->
+    help text (field metadata ``help`` wins). choices: field -> allowed values (metadata ``choices``
+    and ``Literal`` work too). zero_is_none: optional fields where 0 means None. presets: name ->
+    config; defaults come from the preset picked at run time.
     """
 
-    cls: type
+    cls: Callable
     fields: tuple[str, ...] | None = None
     prefix: str = ""
     rename: Mapping[str, str] = field(default_factory=dict)
@@ -119,27 +157,18 @@ class ConfigFlags:
     presets: Mapping[str, object] | None = None
 
     def __post_init__(self) -> None:
-        known = {f.name for f in dataclasses.fields(self.cls)}
+        known = set(_params(self.cls))
         for what, names in (("fields", self.fields or ()), ("rename", self.rename), ("short", self.short),
                             ("help", self.help), ("choices", self.choices), ("zero_is_none", self.zero_is_none)):
             unknown = sorted(set(names) - known)
             if unknown:
                 raise ValueError(f"ConfigFlags {what}: {self.cls.__name__} has no field {unknown[0]!r}")
 
-    def _fields(self) -> list[dataclasses.Field]:
-        by_name = {f.name: f for f in dataclasses.fields(self.cls)}
-        hints = typing.get_type_hints(self.cls)
+    def _fields(self) -> list[_Param]:
+        params = _params(self.cls)
         if self.fields is not None:
-            return [by_name[n] for n in self.fields]
-        out = []
-        for f in by_name.values():
-            try:
-                if hints[f.name] is not bool:
-                    flag_parser(hints[f.name])
-            except TypeError:
-                continue
-            out.append(f)
-        return out
+            return [params[n] for n in self.fields]
+        return [p for p in params.values() if _spellable(p.type)]
 
     def dest(self, name: str) -> str:
         """The namespace attribute of field ``name``."""
@@ -151,25 +180,22 @@ class ConfigFlags:
 
     def add_to(self, parser: argparse.ArgumentParser) -> ConfigFlags:
         """Add one flag per field to ``parser``; returns self."""
-        hints = typing.get_type_hints(self.cls)
-        base = self.cls()
         for f in self._fields():
-            tp = hints[f.name]
             text = f.metadata.get("help", self.help.get(f.name, ""))
-            kwargs: dict = {"dest": self.dest(f.name), "default": getattr(base, f.name)}
+            kwargs: dict = {"dest": self.dest(f.name), "default": f.default}
             if self.presets is not None:
                 kwargs["default"] = argparse.SUPPRESS
                 shown = {name: _show(getattr(cfg, f.name)) for name, cfg in self.presets.items()}
                 values = (next(iter(shown.values())) + " in every preset" if len(set(shown.values())) == 1
                           else "the preset's: " + ", ".join(f"{name} {v}" for name, v in shown.items()))
                 text = f"{text} (default: {values})".strip()
-            if tp is bool:
+            if f.type is bool:
                 kwargs["action"] = argparse.BooleanOptionalAction
             else:
-                parse, choices = flag_parser(tp, f.metadata.get("choices", self.choices.get(f.name)),
+                parse, choices = flag_parser(f.type, f.metadata.get("choices", self.choices.get(f.name)),
                                              f.name in self.zero_is_none)
                 kwargs.update(type=parse, choices=choices)
-                if typing.get_origin(tp) is tuple:
+                if typing.get_origin(f.type) is tuple:
                     kwargs["metavar"] = parse.__name__.split()[-1].upper() + ",..."
             names = [self.short[f.name]] if f.name in self.short else []
             action = parser.add_argument(*names, self.flag(f.name), help=text, **kwargs)
@@ -186,6 +212,8 @@ class ConfigFlags:
         values and then ``fixed`` (fields the command sets itself) replaced. Raises the config's own
         ValueError on out-of-bounds values, with the flags given that changed a value appended
         (``... (--texels 0)``)."""
+        if not dataclasses.is_dataclass(self.cls):
+            raise TypeError(f"{self.cls.__name__} is a function: pass values(args) as its keyword arguments")
         given = self.values(args)
         values = {**given, **fixed}
         try:
