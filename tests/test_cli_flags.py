@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import pytest
@@ -145,6 +146,25 @@ def test_a_mapping_naming_no_field_is_refused():
         ConfigFlags(Toy, fields=("table",)).add_to(argparse.ArgumentParser())
 
 
+def _render(avatar, views: int = 3, out: str | Path | None = None, device="cpu", resume=False, body=None):
+    return avatar, views, out, device, resume, body
+
+
+def test_a_function_parameters_give_flags_and_keyword_arguments():
+    p = argparse.ArgumentParser()
+    flags = add_config_flags(p, _render, rename={"out": "output"})  # body (no type, default None) is left out
+    opts = {a.dest: a for a in p._actions if a.option_strings and a.dest != "help"}
+    assert set(opts) == {"views", "out", "device", "resume"}
+    assert opts["views"].type is int and opts["views"].default == 3
+    assert opts["out"].option_strings == ["--output"] and opts["out"].default is None
+    assert opts["device"].default == "cpu" and isinstance(opts["resume"], argparse.BooleanOptionalAction)
+    assert _render("a", **flags.values(p.parse_args([]))) == ("a", 3, None, "cpu", False, None)
+    args = p.parse_args(["--views", "2", "--output", "x.mp4", "--device", "cuda", "--resume"])
+    assert _render("a", **flags.values(args)) == ("a", 2, "x.mp4", "cuda", True, None)
+    with pytest.raises(TypeError, match="is a function"):
+        flags.config(args)
+
+
 def test_flag_parser_doctests_hold():
     parse, choices = flag_parser(tuple[str, ...], choices=("a", "b"))
     assert parse("a, b") == ("a", "b") and choices is None
@@ -229,7 +249,6 @@ def test_library_errors_name_parameters_not_cli_flags():
     the library is called from Python too, and flag names belong to the CLI."""
     import ast
     import re
-    from pathlib import Path
 
     import uvatar
 

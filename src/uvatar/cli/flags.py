@@ -14,7 +14,9 @@ A field ``refine_iterations: int = 15`` becomes ``--refine-iterations`` (argpars
 
 :class:`ConfigFlags` holds the mapping once (which fields, a prefix, renames for documented flag names,
 short options) and serves both directions: :meth:`ConfigFlags.add_to` adds the flags to a parser,
-:meth:`ConfigFlags.config` builds the config from the parsed namespace. With ``presets`` (the command
+:meth:`ConfigFlags.config` builds the config from the parsed namespace. A library function's
+parameters with defaults work the same way (``ConfigFlags(export_avatar, fields=("opset",))``;
+:meth:`ConfigFlags.values` gives its keyword arguments). With ``presets`` (the command
 picks a preset at run time), flags have no argparse default (``SUPPRESS``): a flag not given leaves
 the preset's value, and the help lists each preset's value.
 """
