@@ -13,10 +13,10 @@ class MeshCounts:
 
     @property
     def num_vertices(self) -> int:
-        """V."""
-        return int(self.vertices.shape[0])
+        """V (rows of ``vertices``)."""
+        return len(self.vertices)
 
     @property
     def num_faces(self) -> int:
-        """F."""
-        return int(self.faces.shape[0])
+        """F (rows of ``faces``)."""
+        return len(self.faces)
