@@ -135,7 +135,7 @@ def test_evaluate_avatar_reports_all_methods(setup, tmp_path):
 
 def test_evaluate_needs_baked_data(setup, tmp_path):
     root, body, cap, _ = setup
-    with pytest.raises(InputError, match="--baked"):
+    with pytest.raises(InputError, match="pass baked_dir"):
         evaluate_avatar(root / "avatar", cap, EvalConfig(progress=False), baked_dir=tmp_path, body=body)
 
 

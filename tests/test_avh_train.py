@@ -104,7 +104,7 @@ def test_train_learns_and_resumes(baked, tmp_path):
     assert any((run / "tb").iterdir()) and (run / "done.json").is_file()
     info = json.loads((run / "run.json").read_text())
     assert info["conditioning_joints"] == [1, 2, 3, 4] and info["model"]["num_pose_joints"] == 4
-    with pytest.raises(UvatarError, match="--resume"):
+    with pytest.raises(UvatarError, match="resume=True continues it"):
         train_avh(baked, run, SMALL, FAST)
     summary = train_avh(baked, run, SMALL, TrainConfig(epochs=8, batch_size=4, progress=False, lr=3e-3,
                                                        tensorboard=False), resume=True)

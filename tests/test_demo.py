@@ -33,7 +33,7 @@ def test_quick_demo_runs_every_stage_and_writes_report(tmp_path):
 def test_demo_rejects_zero_epochs_before_doing_anything(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--quick", "--out", str(out), "--epochs", "0"]) == 1
-    assert "--epochs: must be at least 1" in capsys.readouterr().err
+    assert "epochs must be at least 1, got 0" in capsys.readouterr().err
     assert not out.exists()
 
 

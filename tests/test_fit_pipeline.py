@@ -40,7 +40,7 @@ def test_fit_refuses_to_replace_fits(fit_studio, tmp_path):
 
     root = tmp_path / "cap"
     shutil.copytree(fit_studio[0], root)
-    with pytest.raises(InputError, match="--force"):
+    with pytest.raises(InputError, match="force=True replaces them"):
         fit_capture(root, FitConfig(source="images"), progress=False)
 
 
@@ -106,4 +106,4 @@ def test_cli_fit_existing_fits_is_one_line(fit_studio, tmp_path, capsys):
     shutil.copytree(fit_studio[0], root)
     assert main(["fit", str(root), "--from", "images", "--no-progress"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--force" in err[0] and "fits" in err[0]
+    assert len(err) == 1 and "force=True" in err[0] and "fits" in err[0]

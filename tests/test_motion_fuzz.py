@@ -177,7 +177,7 @@ def test_listed_bad_inputs_are_one_line_errors(tmp_path, capsys):
     p = tmp_path / "legs.bvh"  # a left leg only: the missing joints are listed, with the way out
     p.write_text(BVH)
     _one_line_error(capsys, ["motion", "convert", str(p), str(tmp_path / "o.npz")], str(p),
-                    "no joint maps to l_ankle, r_hip, r_knee, r_ankle", "--map FILE")
+                    "no joint maps to l_ankle, r_hip, r_knee, r_ankle", "give them in a joint map")
     p = tmp_path / "empty.bvh"
     p.write_text(rows[0].replace("Frames: 3", "Frames: 0") + "Frame Time: 0.04\n")
     _one_line_error(capsys, ["motion", "info", str(p)], "no frames (Frames: 0)")

@@ -74,7 +74,7 @@ def test_resume_takes_the_steps_of_an_uninterrupted_run(capture, tmp_path):
 
 def test_existing_run_is_refused_without_resume(capture, uninterrupted):
     before = (uninterrupted / CHECKPOINT).read_bytes()
-    with pytest.raises(UvatarError, match="--resume"):
+    with pytest.raises(UvatarError, match="resume=True continues it"):
         train_dva(open_source(capture), uninterrupted, _cfg(), iters=ITERS, progress=False)
     assert (uninterrupted / CHECKPOINT).read_bytes() == before
 

@@ -167,7 +167,7 @@ def test_train_avh_killed_with_kill_9_resumes_to_the_uninterrupted_weights(baked
     kill_group_when(proc, lambda: _epochs_done(run) >= 4)
     assert proc.returncode == -signal.SIGKILL
     assert not (run / "done.json").exists()
-    with pytest.raises(UvatarError, match="--resume"):
+    with pytest.raises(UvatarError, match="resume=True continues it"):
         train_avh(baked, run, SMALL, TEN)  # a run with a checkpoint is never silently replaced
     train_avh(baked, run, SMALL, TEN, resume=True)
     assert not list(run.glob(".*.pt")) and not list(run.glob(".*.json"))  # no temp file left behind

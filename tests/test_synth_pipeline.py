@@ -109,7 +109,7 @@ def test_cli_rejects_bad_input(tmp_path, capsys):
     from uvatar.cli.main import main
 
     assert main(["synth", str(tmp_path / "x"), "--preset", "quick", "--frames", "0"]) == 1
-    assert "--frames" in capsys.readouterr().err
+    assert "frames must be at least 1, got 0" in capsys.readouterr().err
 
 
 def test_cli_makes_a_capture(tmp_path, capsys):

@@ -38,7 +38,7 @@ def format_bytes(n: float) -> str:
 
 
 def check_memory(needed_bytes: float, source: str, what: str, available: int | None = None) -> None:
-    """Raise :class:`InputError` (naming ``source``, e.g. ``"--texels"``) if ``needed_bytes`` (an
+    """Raise :class:`InputError` (naming ``source``, the parameter, e.g. ``"texels"``) if ``needed_bytes`` (an
     estimate of the job's peak memory; ``what`` says for what) exceeds the memory available."""
     have = available_memory() if available is None else available
     if needed_bytes > have:

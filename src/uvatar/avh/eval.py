@@ -28,7 +28,7 @@ import numpy as np
 from uvatar.avh.data import load_baked_frames, resample_map, rotvec_to_rotmat
 from uvatar.avh.poses import heldout_frames
 from uvatar.avh.runtime import AvatarRuntime
-from uvatar.errors import InputError
+from uvatar.errors import InputError, check_values
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +61,13 @@ class EvalConfig:
     sheets_per_camera: bool = False
     pose_source: str = "refined"   # "refined": the fit refined against the frame's scan, as bake does for
                                    # training frames; "fit": the capture's fit as is (pose error included)
+
+    def __post_init__(self) -> None:
+        check_values([
+            (self.image_size is None or self.image_size >= 16,
+             f"image_size must be at least 16 pixels, got {self.image_size}"),
+            (self.pose_source in POSE_PROTOCOL, f"pose_source must be one of {', '.join(POSE_PROTOCOL)}, "
+                                                f"got {self.pose_source!r}")])
 
 
 POSE_PROTOCOL = {
@@ -217,7 +224,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     training = runtime.meta.get("training") or {}
     baked_dir = Path(baked_dir or training.get("baked") or "")
     if not (baked_dir / "dataset.json").is_file():
-        raise InputError(baked_dir, "baked training data not found (needed for the baselines); pass --baked")
+        raise InputError(baked_dir, "baked training data not found (needed for the baselines); pass baked_dir")
     baselines = Baselines(baked_dir, training.get("train_frames") or [], runtime.resolution, runtime.conditioning,
                           body=runtime.body, displacement_frame=runtime.displacement_frame, shape=runtime.shape)
     try:

@@ -233,7 +233,7 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
     ctx.barrier()  # every rank has looked before rank 0 writes anything
     if has_checkpoint:
         if not resume:
-            raise UvatarError(f"{run_dir}: holds a checkpoint; pass --resume to continue or pick a new folder")
+            raise UvatarError(f"{run_dir}: holds a checkpoint; resume=True continues it, or pick a new folder")
         state = _load_checkpoint(ckpt_path)
         saved = AvhConfig(**state["model_config"])
         if (saved.feature_size, saved.latent, saved.resolution) != (model_config.feature_size, model_config.latent,
@@ -255,7 +255,7 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
 
     device = ctx.device
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise UvatarError("--device cuda requested but CUDA is not available")
+        raise UvatarError("device 'cuda' requested but CUDA is not available")
     torch.manual_seed(cfg.seed)
     def load(names, progress=False):
         frames = load_baked_frames(baked_dir, names, R, progress,

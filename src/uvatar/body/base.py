@@ -25,12 +25,13 @@ import torch
 
 from uvatar.errors import InputError
 from uvatar.geometry.frames import vertex_face_adjacency, vertex_normals
+from uvatar.geometry.mesh import MeshCounts
 
 __all__ = ["BodyTemplate", "PosedBody", "BodyModel", "apply_global_transform"]
 
 
 @dataclass(frozen=True)
-class BodyTemplate:
+class BodyTemplate(MeshCounts):
     """Rest-pose template in numpy (metres).
 
     vertices: (V, 3) float32 rest-pose positions (what ``pose`` gives for zero rotations)
@@ -55,14 +56,6 @@ class BodyTemplate:
     joint_parents: np.ndarray
     rest_joints: np.ndarray
     joint_world_rest: np.ndarray | None = None
-
-    @property
-    def num_vertices(self) -> int:
-        return int(self.vertices.shape[0])
-
-    @property
-    def num_faces(self) -> int:
-        return int(self.faces.shape[0])
 
 
 @dataclass

@@ -85,7 +85,7 @@ def find_model_file(model_type: str, model_dir: str | os.PathLike | None, gender
              for n in _FILES[model_type]]
     if model_dir is None:
         raise InputError("UVATAR_SMPL_DIR", f"no {model_type.upper()} model folder given: download the model "
-                         f"from {where}, put {names[0]} in a folder and pass model_dir= (or --model-dir) or set "
+                         f"from {where}, put {names[0]} in a folder and pass model_dir or set "
                          "UVATAR_SMPL_DIR to it")
     root = Path(model_dir).expanduser()
     if root.is_file():

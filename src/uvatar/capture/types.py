@@ -12,10 +12,11 @@ import numpy as np
 
 # Camera lives below capture and render; re-exported here, where the capture format's records live.
 from uvatar.geometry.camera import Camera
+from uvatar.geometry.mesh import MeshCounts
 
 
 @dataclass
-class TexturedMesh:
+class TexturedMesh(MeshCounts):
     """A triangle mesh with its own UV triangles (seams split UVs, not vertices).
 
     vertices (V, 3) float32 metres; faces (F, 3) int64 into vertices; uvs (U, 2) float32 in [0, 1]
@@ -41,14 +42,6 @@ class TexturedMesh:
             if tex.ndim == 2:
                 tex = np.repeat(tex[..., None], 3, axis=-1)
             self.texture = np.ascontiguousarray(tex[..., :3], dtype=np.float32)
-
-    @property
-    def num_vertices(self) -> int:
-        return int(self.vertices.shape[0])
-
-    @property
-    def num_faces(self) -> int:
-        return int(self.faces.shape[0])
 
     @property
     def has_uvs(self) -> bool:

@@ -1,13 +1,13 @@
-"""AVH stage 2 commands: ``train avh``, ``export``, ``animate``, ``eval avh``, ``presets``."""
+"""AVH stage 2 commands: ``train avh``, ``export``, ``animate``, ``eval avh``, ``presets``.
+
+Config flags are generated from ``AvhConfig`` / ``TrainConfig`` / ``AnimateConfig`` / ``EvalConfig``
+(:mod:`uvatar.cli.flags`); ``--preset`` choices and ``--texels`` defaults come from the preset table."""
 
 from __future__ import annotations
 
-import argparse
 import json
 
-
-class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
-    pass
+from uvatar.cli.flags import ConfigFlags
 
 
 def _preset_lines() -> str:
@@ -24,68 +24,88 @@ def _preset_lines() -> str:
     return "\n".join(lines)
 
 
-def register(cli) -> None:
-    from uvatar.avh.animate import AnimateConfig
+def _flags() -> dict[str, ConfigFlags]:
+    """The config flags of ``train avh`` (generator size, optimization), ``animate`` and ``eval avh``."""
+    from uvatar.avh.animate import AnimateConfig, animate
+    from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES
     from uvatar.avh.eval import EvalConfig
-    from uvatar.avh.export import ONNX_OPSET, PARITY_TOLERANCE
+    from uvatar.avh.export import export_avatar
+    from uvatar.avh.model import PRESETS, AvhConfig
+    from uvatar.avh.train import TrainConfig
+
+    return {
+        "model": ConfigFlags(AvhConfig, fields=("resolution",), rename={"resolution": "texels"}, presets=PRESETS,
+                             help={"resolution": "output resolution"}),
+        "train": ConfigFlags(
+            TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
+                                 "pose_noise", "device", "seed", "tensorboard"),
+            rename={"lr_gamma": "gamma"}, choices={"displacement_frame": DISPLACEMENT_FRAMES}, help={
+                "epochs": "epochs (the paper uses 500)", "batch_size": "frames per batch", "lr": "Adam learning rate",
+                "lr_gamma": "ExponentialLR decay per epoch", "displacement_weight": "weight of the displacement loss",
+                "displacement_frame": "frame the displacement is learned in: rest (unposed by each texel's skinning "
+                                      "rotation, generalizes to new poses) or body (as baked; the paper's maps)",
+                "pose_noise": "std (radians) of Gaussian noise added to training pose angles (augmentation)",
+                "device": "cpu or cuda (bf16 autocast + channels_last)", "seed": "random seed",
+                "tensorboard": "write TensorBoard logs to OUT/tb"}),
+        "animate": ConfigFlags(
+            AnimateConfig, fields=("camera", "camera_name", "size", "max_frames", "stride", "fps", "mesh_format",
+                                   "shading", "levels"),
+            rename={"max_frames": "frames"}, choices={"mesh_format": ("obj", "glb")}, help={
+                "camera": "orbit, front, back, left, right, or a cameras folder",
+                "camera_name": "camera of the cameras folder (none: the first)", "size": "image side (pixels)",
+                "max_frames": "render at most this many frames (none: all)", "stride": "use every n-th motion frame",
+                "fps": "video fps (none: the motion's)", "mesh_format": "format of the --obj-dir meshes",
+                "shading": "add headlight shading", "levels": "subdivision levels"}),
+        "export": ConfigFlags(export_avatar, fields=("opset", "tolerance"), help={
+            "opset": "ONNX opset", "tolerance": "max ONNX vs PyTorch abs difference"}),
+        "animate_call": ConfigFlags(animate, fields=("mesh_dir", "device"), rename={"mesh_dir": "obj_dir"}, help={
+            "mesh_dir": "also write one mesh per frame here", "device": "onnxruntime device (cpu or cuda)"}),
+        "eval": ConfigFlags(
+            EvalConfig, fields=("pose_source", "sheets_per_camera", "image_size"),
+            rename={"sheets_per_camera": "sheet_per_camera"}, choices={"pose_source": ("refined", "fit")}, help={
+                "pose_source": "held-out poses: the capture's fit refined against the frame's scan as bake does for "
+                               "training frames (measures the avatar), or the fit as is (includes fit noise)",
+                "sheets_per_camera": "one comparison image per frame x camera (default: per frame, first camera)",
+                "image_size": "render width (none: the cameras')"}),
+    }
+
+
+def register(cli) -> None:
     from uvatar.avh.model import PRESETS
 
-    p = cli.command("train avh", help="train the AVH pose -> texture/displacement generator on baked maps")
-    p.formatter_class = _Formatter
-    p.epilog = _preset_lines()
+    flags = _flags()
+    p = cli.command("train avh", help="train the AVH pose -> texture/displacement generator on baked maps",
+                    epilog=_preset_lines())
     p.add_argument("baked", help="baked dataset folder (uvatar bake output)")
     p.add_argument("out", help="run folder (checkpoints, TensorBoard logs, model.pt)")
-    p.add_argument("--preset", default="cpu-small", choices=sorted(PRESETS), help="model size")
-    p.add_argument("--texels", type=int, default=None, help="output resolution (default: the preset's)")
-    p.add_argument("--epochs", type=int, default=500, help="epochs (the paper uses 500)")
-    p.add_argument("--batch-size", type=int, default=8)
-    p.add_argument("--lr", type=float, default=1.31e-3)
-    p.add_argument("--gamma", type=float, default=0.99, help="ExponentialLR decay per epoch")
-    p.add_argument("--displacement-weight", type=float, default=1.0, help="weight of the displacement loss")
-    p.add_argument("--displacement-frame", choices=("rest", "body"), default="rest",
-                   help="frame the displacement is learned in: rest (unposed by each texel's skinning rotation, "
-                        "generalizes to new poses) or body (as baked; the paper's maps)")
-    p.add_argument("--pose-noise", type=float, default=0.0,
-                   help="std (radians) of Gaussian noise added to training pose angles (augmentation)")
-    p.add_argument("--device", default="cpu", help="cpu or cuda (bf16 autocast + channels_last)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--preset", default="cpu-small", choices=tuple(PRESETS), help="model size")
+    flags["model"].add_to(p)
+    flags["train"].add_to(p)
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt when it exists")
-    p.add_argument("--no-tensorboard", action="store_true")
     p.set_defaults(func=_train)
 
     p = cli.command("presets", help="list the AVH generator presets and their parameter counts")
     p.add_argument("--json", action="store_true", help="print JSON")
     p.set_defaults(func=_presets)
 
-    p = cli.command("export", help="export a trained AVH run: ONNX + body template + avatar.json")
-    p.formatter_class = _Formatter
-    p.epilog = ("OUT/model.onnx: input pose_angles (B, 3*J_c) radians -> texture, displacement (B, 3, R, R);\n"
-                "OUT/avatar.json: metadata; OUT/body.npz: body template. See uvatar.avh.export.")
+    p = cli.command("export", help="export a trained AVH run: ONNX + body template + avatar.json",
+                    epilog="OUT/model.onnx: input pose_angles (B, 3*J_c) radians -> texture, displacement "
+                           "(B, 3, R, R);\nOUT/avatar.json: metadata; OUT/body.npz: body template. "
+                           "See uvatar.avh.export.")
     p.add_argument("run", help="training run folder (uvatar train avh)")
     p.add_argument("out", help="avatar folder to write")
-    p.add_argument("--opset", type=int, default=ONNX_OPSET)
-    p.add_argument("--tolerance", type=float, default=PARITY_TOLERANCE, help="max ONNX vs PyTorch abs difference")
+    flags["export"].add_to(p)
     p.set_defaults(func=_export)
 
-    p = cli.command("animate", help="render an exported avatar driven by a motion to MP4")
-    p.formatter_class = _Formatter
-    p.epilog = ("motion: a BVH/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE (its fits),\n"
-                "heldout:CAPTURE (its held-out poses), take:NAME:CAPTURE (one take of a synthetic capture)")
+    p = cli.command("animate", help="render an exported avatar driven by a motion to MP4",
+                    epilog="motion: a BVH/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE "
+                           "(its fits),\nheldout:CAPTURE (its held-out poses), take:NAME:CAPTURE (one take of a "
+                           "synthetic capture)")
     p.add_argument("avatar", help="avatar folder (uvatar export)")
     p.add_argument("--motion", required=True, help="motion file or spec (see below)")
     p.add_argument("-o", "--output", required=True, help="video path (.mp4)")
-    a = AnimateConfig()
-    p.add_argument("--camera", default=a.camera, help="orbit, front, back, left, right, or a cameras folder")
-    p.add_argument("--camera-name", default=a.camera_name, help="camera of the cameras folder (default: first)")
-    p.add_argument("--size", type=int, default=a.size, help="image side (pixels)")
-    p.add_argument("--frames", type=int, default=a.max_frames, help="render at most this many frames")
-    p.add_argument("--stride", type=int, default=a.stride, help="use every n-th motion frame")
-    p.add_argument("--fps", type=float, default=a.fps, help="video fps (default: the motion's)")
-    p.add_argument("--obj-dir", default=None, help="also write one mesh per frame here")
-    p.add_argument("--mesh-format", default=a.mesh_format, choices=["obj", "glb"])
-    p.add_argument("--shading", action="store_true", default=a.shading, help="add headlight shading")
-    p.add_argument("--levels", type=int, default=a.levels, help="subdivision levels")
-    p.add_argument("--device", default="cpu", help="onnxruntime device (cpu or cuda)")
+    flags["animate"].add_to(p)
+    flags["animate_call"].add_to(p)
     p.set_defaults(func=_animate)
 
     p = cli.command("eval avh", help="evaluate an avatar on a capture's held-out poses vs two baselines")
@@ -99,33 +119,19 @@ def register(cli) -> None:
                         "(e.g. 000054,000055, the frames uvatar eval dva reports)")
     p.add_argument("--cameras", default=None,
                    help="a count N (the first N cameras) or camera names, comma separated (e.g. 03,07)")
-    p.add_argument("--pose-source", choices=("refined", "fit"), default=EvalConfig.pose_source,
-                   help="held-out poses: the capture's fit refined against the frame's scan as bake does for "
-                        "training frames (measures the avatar), or the fit as is (includes fit noise)")
-    p.add_argument("--sheet-per-camera", action="store_true",
-                   help="one comparison image per frame x camera (default: per frame, first camera)")
-    p.add_argument("--image-size", type=int, default=EvalConfig.image_size, help="render width (default: the cameras')")
+    flags["eval"].add_to(p)
     p.set_defaults(func=_eval)
 
 
 def _train(args) -> int:
     from uvatar.avh.model import preset
-    from uvatar.avh.train import TrainConfig, train_avh
-
-    overrides = {"resolution": args.texels} if args.texels is not None else {}
-    try:
-        cfg = preset(args.preset, **overrides)
-    except ValueError as exc:
-        from uvatar.errors import UvatarError
-
-        raise UvatarError(f"--texels {args.texels}: {exc}") from exc
+    from uvatar.avh.train import train_avh
     from uvatar.errors import options_as_input_error
 
+    flags = _flags()
     with options_as_input_error("uvatar train avh options"):
-        tcfg = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, lr_gamma=args.gamma,
-                           displacement_weight=args.displacement_weight, device=args.device, seed=args.seed,
-                           displacement_frame=args.displacement_frame, pose_noise=args.pose_noise,
-                           tensorboard=not args.no_tensorboard)
+        cfg = flags["model"].config(args, base=preset(args.preset))
+        tcfg = flags["train"].config(args)
     summary = train_avh(args.baked, args.out, cfg, tcfg, resume=args.resume, preset_name=args.preset)
     from uvatar.distributed import is_main_process
 
@@ -149,21 +155,20 @@ def _presets(args) -> int:
 def _export(args) -> int:
     from uvatar.avh.export import export_avatar
 
-    meta = export_avatar(args.run, args.out, opset=args.opset, tolerance=args.tolerance)
+    meta = export_avatar(args.run, args.out, **_flags()["export"].values(args))
     print(f"exported {meta['parameters']:,} parameters to {args.out} "
           f"(ONNX max abs diff vs PyTorch {meta['onnx_max_abs_diff']:.2e})")
     return 0
 
 
 def _animate(args) -> int:
-    from uvatar.avh.animate import AnimateConfig, animate
+    from uvatar.avh.animate import animate
     from uvatar.errors import options_as_input_error
 
+    flags = _flags()
     with options_as_input_error("uvatar animate options"):
-        cfg = AnimateConfig(size=args.size, camera=args.camera, camera_name=args.camera_name, max_frames=args.frames,
-                            stride=args.stride, fps=args.fps, mesh_format=args.mesh_format, shading=args.shading,
-                            levels=args.levels)
-    path = animate(args.avatar, args.motion, args.output, cfg, mesh_dir=args.obj_dir, device=args.device)
+        cfg = flags["animate"].config(args)
+    path = animate(args.avatar, args.motion, args.output, cfg, **flags["animate_call"].values(args))
     print(f"wrote {path}")
     return 0
 
@@ -184,19 +189,17 @@ def _count_or_names(value: str | None, flag: str) -> tuple[int | None, tuple[str
 
 
 def _eval(args) -> int:
-    from uvatar.avh.eval import EvalConfig, evaluate_avatar
-    from uvatar.errors import InputError
+    from uvatar.avh.eval import evaluate_avatar
+    from uvatar.errors import options_as_input_error
     from uvatar.io_utils import check_output_location, write_json
 
     if args.json:
         check_output_location(args.json)  # before minutes of rendering
-    if args.image_size is not None and args.image_size < 16:
-        raise InputError("--image-size", f"must be at least 16 pixels, got {args.image_size}")
     max_frames, frames = _count_or_names(args.frames, "--frames")
     max_cameras, cameras = _count_or_names(args.cameras, "--cameras")
-    cfg = EvalConfig(max_frames=max_frames, max_cameras=max_cameras, frames=frames, cameras=cameras,
-                     image_size=args.image_size, sheets_per_camera=args.sheet_per_camera,
-                     pose_source=args.pose_source)
+    with options_as_input_error("uvatar eval avh options"):
+        cfg = _flags()["eval"].config(args, max_frames=max_frames, max_cameras=max_cameras, frames=frames,
+                                      cameras=cameras)
     metrics = evaluate_avatar(args.avatar, args.capture, cfg, baked_dir=args.baked, image_dir=args.images)
     if args.json:
         write_json(args.json, metrics)

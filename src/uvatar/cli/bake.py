@@ -1,7 +1,7 @@
 """``uvatar bake CAPTURE OUT`` and ``uvatar select PATH`` (AVH stage 1: baking and frame choice).
 
-Flags map one to one onto :class:`uvatar.avh.bake.BakeConfig` / ``SelectConfig`` fields; their
-defaults are read from those dataclasses (one source of defaults).
+Flags are generated from :class:`uvatar.avh.bake.BakeConfig` (and its registration / pose-refinement
+configs) and ``SelectConfig`` (:mod:`uvatar.cli.flags`): defaults and types come from the dataclasses.
 """
 
 from __future__ import annotations
@@ -10,107 +10,88 @@ import json
 import sys
 
 from uvatar.cli.executor import add_executor_flags, executor_from_args
+from uvatar.cli.flags import ConfigFlags
 
 
-def _floats(text: str) -> tuple[float, ...]:
-    return tuple(float(x) for x in text.split(",") if x.strip())
+def _flags():
+    """(BakeConfig, RegistrationConfig, PoseRefineConfig, SelectConfig) flags of ``bake`` and ``select``."""
+    from uvatar.avh.bake.config import STAGE_MODES, BakeConfig, PoseRefineConfig, RegistrationConfig
+    from uvatar.avh.bake.select import SelectConfig
 
-
-def _ints(text: str) -> tuple[int, ...]:
-    return tuple(int(x) for x in text.split(",") if x.strip())
-
-
-def _strs(text: str) -> tuple[str, ...]:
-    return tuple(x.strip() for x in text.split(",") if x.strip())
+    bake = ConfigFlags(BakeConfig, fields=(
+        "texels", "refine_pose", "register", "polarity_rule", "polarity_ratio", "max_match_distance",
+        "visibility_rays", "distance_clip", "inpaint_radius", "inpaint_band", "reject_kappa"),
+        rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band"), help={
+            "texels": "UV map resolution R",
+            "refine_pose": "refine the fit against the scan (articulated); --no-refine-pose keeps the fit as is",
+            "register": "pairwise registration; --no-register skips it (ablation)",
+            "polarity_rule": "normal-polarity rule; --no-polarity takes the nearest ray hit (ablation)",
+            "polarity_ratio": "a positive match wins unless more than this times farther than the negative one",
+            "max_match_distance": "texel ray length in metres (0 = unlimited)",
+            "visibility_rays": "hemisphere rays per face",
+            "distance_clip": "delta clips at this fraction of the fit's bounding-box diagonal",
+            "inpaint_radius": "Telea radius in texels",
+            "inpaint_band": "Telea only within this many texels of matched ones, nearest fill beyond (0 = everywhere)",
+            "reject_kappa": "reject frames whose mean confidence is below this"})
+    refine = ConfigFlags(PoseRefineConfig, fields=("iterations",), prefix="refine",
+                         help={"iterations": "Gauss-Newton steps of the articulated fit refinement"})
+    registration = ConfigFlags(
+        RegistrationConfig, fields=("stiffness", "iterations", "max_distance", "modes", "normal_smoothing"),
+        prefix="registration", help={
+            "stiffness": "Laplacian weight per registration stage, stiff to flexible (comma-separated)",
+            "iterations": "solves per stage",
+            "max_distance": "per stage, match distance limit as a fraction of the bbox diagonal",
+            "modes": f"per stage: {' | '.join(STAGE_MODES)} (comma-separated; RegistrationConfig checks them)",
+            "normal_smoothing": "normal stages move vertices along normals averaged over this length in metres "
+                                "(the cloth's bending length; 0 = raw normals)"})
+    select = ConfigFlags(SelectConfig, fields=("n_train", "n_val", "seed", "features"),
+                         rename={"n_train": "num", "n_val": "val"}, short={"n_train": "-n"},
+                         choices={"features": ("cos", "sincos")}, help={
+                             "n_train": "training frames", "n_val": "validation frames",
+                             "seed": "k-means and validation-split seed",
+                             "features": "pose features: cosines (paper) or sines and cosines"})
+    return bake, registration, refine, select
 
 
 def register(cli) -> None:
-    from uvatar.avh.bake.config import BakeConfig, PoseRefineConfig, RegistrationConfig
-
-    d, rd, pd = BakeConfig(), RegistrationConfig(), PoseRefineConfig()
+    bake, registration, refine, select = _flags()
     p = cli.command("bake", help="bake a capture's scans into body UV space (AVH stage 1)")
     p.add_argument("capture", help="capture folder (capture.json, scans/, fits/)")
     p.add_argument("out", help="output folder (dataset.json, frames/, rejected/, preview/)")
-    p.add_argument("--texels", type=int, default=d.texels, help="UV map resolution R")
     p.add_argument("--workers", type=int, default=1, help="processes baking frames in parallel")
     p.add_argument("--frames", default=None, help="comma-separated frame names (default: all)")
     p.add_argument("--frames-from", default=None, metavar="SELECTION_JSON",
                    help="bake the frames of `uvatar select CAPTURE --from-capture`, replacing rejected ones")
     p.add_argument("--overwrite", action="store_true", help="bake frames again even when already on disk")
-    p.add_argument("--no-refine-pose", dest="refine_pose", action="store_false",
-                   help="keep the fit as is (no articulated refinement against the scan)")
-    p.add_argument("--refine-iterations", type=int, default=pd.iterations,
-                   help="Gauss-Newton steps of the articulated fit refinement")
-    p.add_argument("--no-register", dest="register", action="store_false",
-                   help="skip the pairwise registration (ablation)")
-    p.add_argument("--no-polarity", dest="polarity_rule", action="store_false",
-                   help="nearest ray hit, ignoring normal polarity (ablation)")
-    p.add_argument("--polarity-ratio", type=float, default=d.polarity_ratio,
-                   help="a positive match wins unless more than this times farther than the negative one")
-    p.add_argument("--max-match-distance", type=float, default=d.max_match_distance,
-                   help="texel ray length in metres (0 = unlimited)")
-    p.add_argument("--visibility-rays", type=int, default=d.visibility_rays, help="hemisphere rays per face")
-    p.add_argument("--distance-clip", type=float, default=d.distance_clip,
-                   help="delta clips at this fraction of the fit's bounding-box diagonal")
-    p.add_argument("--inpaint-radius", type=int, default=d.inpaint_radius, help="Telea radius in texels")
-    p.add_argument("--inpaint-band", type=int, default=d.inpaint_band,
-                   help="Telea only within this many texels of matched ones, nearest fill beyond (0 = everywhere)")
-    p.add_argument("--reject-kappa", type=float, default=d.reject_kappa,
-                   help="reject frames whose mean confidence is below this")
-    p.add_argument("--registration-stiffness", type=_floats, default=rd.stiffness,
-                   help="Laplacian weight per registration stage, stiff to flexible (comma-separated)")
-    p.add_argument("--registration-iterations", type=_ints, default=rd.iterations, help="solves per stage")
-    p.add_argument("--registration-max-distance", type=_floats, default=rd.max_distance,
-                   help="per stage, match distance limit as a fraction of the bbox diagonal")
-    p.add_argument("--registration-modes", type=_strs, default=rd.modes,
-                   help="per stage: closest | rays | normal (comma-separated)")
-    p.add_argument("--registration-normal-smoothing", type=float, default=rd.normal_smoothing,
-                   help="normal stages move vertices along normals averaged over this length in metres "
-                        "(the cloth's bending length; 0 = raw normals)")
+    for flags in (bake, refine, registration):
+        flags.add_to(p)
     p.add_argument("--eval", action="store_true", help="compare with the capture's gt/ (synthetic captures)")
     p.add_argument("--json", default=None, help="write the summary (and --eval metrics) to this JSON file")
-    p.add_argument("--ablation-frames", type=int, default=4,
-                   help="frames re-baked without registration / polarity for --eval (0 = no ablation)")
+    p.add_argument("--ablation-frames", type=int, default=None,
+                   help="frames re-baked without registration / polarity for --eval (0 = no ablation; "
+                        "default: the evaluation config's)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_executor_flags(p)
     p.set_defaults(func=_bake)
 
     s = cli.command("select", help="select training/validation frames by k-means on joint-angle cosines")
     s.add_argument("path", help="a baked dataset (uvatar bake OUT) or, with --from-capture, a capture folder")
-    s.add_argument("-n", "--num", type=int, default=100, help="training frames")
-    s.add_argument("--val", type=int, default=10, help="validation frames")
+    select.add_to(s)
     s.add_argument("--from-capture", action="store_true",
                    help="select from the capture's fits before baking (writes a file for bake --frames-from)")
     s.add_argument("-o", "--out", default=None, help="selection file for --from-capture (default CAPTURE/selection.json)")
-    s.add_argument("--seed", type=int, default=0, help="k-means and validation-split seed")
-    s.add_argument("--features", choices=("cos", "sincos"), default="cos",
-                   help="pose features: cosines (paper) or sines and cosines")
     s.add_argument("--json", action="store_true", help="print the selection as JSON")
     s.set_defaults(func=_select)
 
 
 def _bake(args) -> int:
-    from dataclasses import replace
-
-    from uvatar.avh.bake import BakeConfig
     from uvatar.avh.bake.pipeline import bake_capture, bake_selection, outcome_line
     from uvatar.errors import InputError, options_as_input_error
     from uvatar.io_utils import write_json
 
+    bake, registration, refine, _ = _flags()
     with options_as_input_error("uvatar bake options"):
-        cfg = BakeConfig().with_updates(
-            texels=args.texels, refine_pose=args.refine_pose, pose_refine_iterations=args.refine_iterations,
-            register=args.register, polarity_rule=args.polarity_rule,
-            polarity_ratio=args.polarity_ratio, visibility_rays=args.visibility_rays,
-            distance_clip=args.distance_clip, inpaint_radius=args.inpaint_radius, reject_kappa=args.reject_kappa,
-            registration_stiffness=tuple(args.registration_stiffness),
-            registration_iterations=tuple(args.registration_iterations),
-            registration_max_distance=tuple(args.registration_max_distance),
-            registration_modes=tuple(args.registration_modes),
-            registration_normal_smoothing=args.registration_normal_smoothing,
-        )
-        cfg = replace(cfg, max_match_distance=args.max_match_distance or None,
-                      inpaint_band=args.inpaint_band or None)
+        cfg = bake.config(args, registration=registration.config(args), pose_refine=refine.config(args))
     if args.workers < 1:
         raise InputError("--workers", f"must be at least 1, got {args.workers}")
     progress = not args.no_progress
@@ -153,7 +134,9 @@ def _bake(args) -> int:
     if args.eval:
         from uvatar.avh.bake.evaluate import EvalConfig, evaluate_bake
 
-        ecfg = EvalConfig(ablation=args.ablation_frames > 0, ablation_frames=max(args.ablation_frames, 1))
+        ecfg = EvalConfig()
+        if args.ablation_frames is not None:
+            ecfg = EvalConfig(ablation=args.ablation_frames > 0, ablation_frames=max(args.ablation_frames, 1))
         summary["eval"] = metrics = evaluate_bake(args.capture, args.out, ecfg, progress)
         summary.update({k: metrics[k] for k in ("protocol", "correspondence_error_mm", "texture_psnr_db",
                                                 "texture_psnr_db_vs_resampled_gt", "frames_rejected",
@@ -167,11 +150,11 @@ def _bake(args) -> int:
 
 
 def _select(args) -> int:
-    from uvatar.avh.bake.select import SelectConfig, select_from_baked, select_from_capture
+    from uvatar.avh.bake.select import select_from_baked, select_from_capture
     from uvatar.errors import options_as_input_error
 
     with options_as_input_error("uvatar select options"):
-        cfg = SelectConfig(n_train=args.num, n_val=args.val, seed=args.seed, features=args.features)
+        cfg = _flags()[3].config(args)
     if args.from_capture:
         sel, out = select_from_capture(args.path, args.out, cfg)
         where = str(out)

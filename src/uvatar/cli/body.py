@@ -2,22 +2,28 @@
 
 from __future__ import annotations
 
+from uvatar.cli.flags import ConfigFlags
+
+
+def _flags() -> ConfigFlags:
+    """``load_body_model``'s parameters: --model, --model-dir, --uv-obj."""
+    from uvatar.body.registry import BODY_MODELS, load_body_model
+
+    return ConfigFlags(load_body_model, fields=("name", "model_dir", "uv_obj"), rename={"name": "model"},
+                       choices={"name": BODY_MODELS}, help={
+                           "name": "body model", "model_dir": "SMPL/SMPL-X model folder (none: $UVATAR_SMPL_DIR)",
+                           "uv_obj": "OBJ with the SMPL/SMPL-X UV layout"})
+
 
 def register(cli) -> None:
-    from uvatar.body.registry import BODY_MODELS
-
     p = cli.command("body info", help="print a body model's vertex/face/UV/joint counts and joint subsets")
-    p.add_argument("--model", default=BODY_MODELS[0], choices=BODY_MODELS, help="body model")
-    p.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (default: $UVATAR_SMPL_DIR)")
-    p.add_argument("--uv-obj", default=None, help="OBJ with the SMPL/SMPL-X UV layout")
+    _flags().add_to(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_info)
 
     r = cli.command("body render", help="render the body model's rest pose (front and side) to a PNG")
     r.add_argument("out", help="output image (.png)")
-    r.add_argument("--model", default=BODY_MODELS[0], choices=BODY_MODELS, help="body model")
-    r.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (default: $UVATAR_SMPL_DIR)")
-    r.add_argument("--uv-obj", default=None, help="OBJ with the SMPL/SMPL-X UV layout")
+    _flags().add_to(r)
     r.add_argument("--size", type=int, default=384, help="height of each view in pixels")
     r.add_argument("--parts", action="store_true", help="colour hands, feet, head and face")
     r.set_defaults(func=_render)
@@ -45,7 +51,7 @@ def _info(args) -> int:
 
     from uvatar.body import load_body_model
 
-    body = load_body_model(args.model, model_dir=args.model_dir, uv_obj=args.uv_obj)
+    body = load_body_model(**_flags().values(args))
     s = body_summary(body)
     if args.json:
         print(json.dumps(s))
@@ -77,7 +83,7 @@ def _render(args) -> int:
 
     if args.size < 16:
         raise InputError("--size", f"must be at least 16, got {args.size}")
-    body = load_body_model(args.model, model_dir=args.model_dir, uv_obj=args.uv_obj)
+    body = load_body_model(**_flags().values(args))
     t = body.template
     colors = None
     if args.parts:

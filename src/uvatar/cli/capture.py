@@ -1,13 +1,14 @@
 """``uvatar capture check DIR`` (validate and summarize a capture folder) and ``uvatar capture
 import SRC OUT`` (per-camera videos or image folders + a calibration → a capture folder).
 
-Import flags map one to one onto :class:`uvatar.capture.importers.ImportConfig` fields; their
-defaults are read from it (one source of defaults).
+Import flags are generated from :class:`uvatar.capture.importers.ImportConfig` (:mod:`uvatar.cli.flags`).
 """
 
 from __future__ import annotations
 
 import sys
+
+from uvatar.cli.flags import ConfigFlags
 
 
 def register(cli) -> None:
@@ -18,20 +19,39 @@ def register(cli) -> None:
                                 "naming the file and the problem on bad input (with --strict, on a warning).")
     p.add_argument("directory", help="capture folder")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
-    p.add_argument("--deep", action="store_true", help="fully load every mesh, texture and image")
-    p.add_argument("--strict", action="store_true",
-                   help="fail on warnings (frames without fits, cameras without images, images without masks, "
-                        "image sizes that differ from the intrinsics)")
+    _check_flags().add_to(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_check)
     _register_import(cli)
 
 
-def _register_import(cli) -> None:
+def _check_flags() -> ConfigFlags:
+    from uvatar.capture.validate import ValidateConfig
+
+    return ConfigFlags(ValidateConfig, fields=("deep", "strict"), help={
+        "deep": "fully load every mesh, texture and image",
+        "strict": "fail on warnings (frames without fits, cameras without images, images without masks, "
+                  "image sizes that differ from the intrinsics)"})
+
+
+def _import_flags() -> ConfigFlags:
     from uvatar.capture.importers.calibration import UNIT_SCALE, UP_AXES
     from uvatar.capture.importers.pipeline import ImportConfig
 
-    d = ImportConfig()
+    return ConfigFlags(
+        ImportConfig, choices={"up": ("",) + UP_AXES, "units": ("",) + tuple(UNIT_SCALE), "image_format": ("jpg", "png")},
+        help={"start": "first source frame", "end": "stop before this source frame (0: to the end)",
+              "stride": "keep every n-th frame", "resize": "image scale factor in (0, 1]",
+              "up": "the calibration world's up axis (default: the format's own, +z for Qualisys/Pose2Sim; "
+                    "write --up=-z for a negative axis)",
+              "units": "units of the calibration's translations (default: the format's own)",
+              "image_format": "image files written", "jpeg_quality": "JPEG quality 1..100",
+              "fps": "source frame rate (0: from the video)",
+              "body_model": "body model named in capture.json for `uvatar fit`",
+              "cameras": "comma-separated camera names to import (empty: all)"})
+
+
+def _register_import(cli) -> None:
     p = cli.command("capture import", help="make a capture folder from videos (or image folders) + a calibration",
                     description="Import a multi-view recording: SRC holds one video per camera (SRC/videos/*.mp4 "
                                 "or SRC/*.mp4) or one image folder per camera (SRC/images/<cam>/), and a "
@@ -41,20 +61,7 @@ def _register_import(cli) -> None:
     p.add_argument("src", help="recording folder")
     p.add_argument("out", help="output capture folder")
     p.add_argument("--calibration", default=None, help="calibration file or folder (default: found in SRC)")
-    p.add_argument("--start", type=int, default=d.start, help="first source frame")
-    p.add_argument("--end", type=int, default=d.end, help="stop before this source frame (0: to the end)")
-    p.add_argument("--stride", type=int, default=d.stride, help="keep every n-th frame")
-    p.add_argument("--resize", type=float, default=d.resize, help="image scale factor in (0, 1]")
-    p.add_argument("--up", default=d.up, choices=("",) + UP_AXES,
-                   help="the calibration world's up axis (default: the format's own, +z for Qualisys/Pose2Sim; "
-                        "write --up=-z for a negative axis)")
-    p.add_argument("--units", default=d.units, choices=("",) + tuple(UNIT_SCALE),
-                   help="units of the calibration's translations (default: the format's own)")
-    p.add_argument("--image-format", default=d.image_format, choices=("jpg", "png"), help="image files written")
-    p.add_argument("--jpeg-quality", type=int, default=d.jpeg_quality, help="JPEG quality 1..100")
-    p.add_argument("--fps", type=float, default=d.fps, help="source frame rate (0: from the video)")
-    p.add_argument("--body-model", default=d.body_model, help="body model named in capture.json for `uvatar fit`")
-    p.add_argument("--cameras", default=None, help="comma-separated camera names to import (default: all)")
+    _import_flags().add_to(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_import)
 
@@ -62,14 +69,11 @@ def _register_import(cli) -> None:
 def _import(args) -> int:
     import json
 
-    from uvatar.capture.importers.pipeline import ImportConfig, import_capture
+    from uvatar.capture.importers.pipeline import import_capture
     from uvatar.errors import options_as_input_error
 
     with options_as_input_error("uvatar capture import options"):
-        cfg = ImportConfig(start=args.start, end=args.end, stride=args.stride, resize=args.resize, up=args.up,
-                           units=args.units, image_format=args.image_format, jpeg_quality=args.jpeg_quality,
-                           fps=args.fps, body_model=args.body_model,
-                           cameras=tuple(c.strip() for c in (args.cameras or "").split(",") if c.strip()))
+        cfg = _import_flags().config(args)
     summary = import_capture(args.src, args.out, cfg, calibration=args.calibration, progress=not args.no_progress)
     print(json.dumps(summary, indent=2))
     return 0
@@ -78,7 +82,7 @@ def _import(args) -> int:
 def _check(args) -> int:
     import json
 
-    from uvatar.capture.validate import ValidateConfig, format_summary, validate_capture
+    from uvatar.capture.validate import format_summary, validate_capture
 
     progress = None
     if not args.no_progress:
@@ -90,7 +94,7 @@ def _check(args) -> int:
 
     from pathlib import Path
 
-    cfg = ValidateConfig(deep=args.deep, strict=args.strict)
+    cfg = _check_flags().config(args)
     root = Path(args.directory)
     if not (root / "capture.json").is_file() and any((root / n).is_file() for n in ("intri.yml", "annots.npy")):
         from uvatar.dva.check import check_layout  # EasyMocap / ZJU-MoCap folders, as `train dva` reads them

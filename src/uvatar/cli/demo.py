@@ -1,6 +1,23 @@
-"""``uvatar demo``: run the whole AVH pipeline on a synthetic capture (see :mod:`uvatar.demo`)."""
+"""``uvatar demo``: run the whole AVH pipeline on a synthetic capture (see :mod:`uvatar.demo`).
+
+``--seed``, ``--epochs`` and ``--fits`` are generated from :class:`uvatar.demo.DemoConfig`; their
+defaults are those of ``DEFAULT`` or, with ``--quick``, ``QUICK``.
+"""
 
 from __future__ import annotations
+
+from uvatar.cli.flags import ConfigFlags
+
+
+def _flags() -> ConfigFlags:
+    from uvatar.demo.pipeline import DEFAULT, FIT_SOURCES, QUICK, DemoConfig
+
+    return ConfigFlags(DemoConfig, fields=("seed", "epochs", "fits"), choices={"fits": FIT_SOURCES},
+                       presets={"default": DEFAULT, "quick": QUICK}, help={
+                           "seed": "random seed of the synthetic capture", "epochs": "training epochs",
+                           "fits": "studio: the studio's own noisy fits; fit: the studio's fits are moved out and "
+                                   "`uvatar fit --from scans` makes them, the path a real capture takes "
+                                   "(needs uvatar[fit])"})
 
 
 def register(cli) -> None:
@@ -12,32 +29,19 @@ def register(cli) -> None:
         "An interrupted demo resumes: a stage whose completion record (OUT/stages/<stage>.json) exists is skipped.",
     )
     p.add_argument("--out", default="demo_out", help="output folder")
-    p.add_argument("--quick", action="store_true", help="smoke run (~3 min on 2 CPU cores)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the synthetic capture")
-    p.add_argument("--epochs", type=int, default=None, help="override the training epochs")
-    p.add_argument("--fits", choices=("studio", "fit"), default=None,
-                   help="studio: the studio's own noisy fits; fit: the studio's fits are moved out and "
-                        "`uvatar fit --from scans` makes them, the path a real capture takes (needs uvatar[fit]) "
-                        "(default: the config's)")
+    p.add_argument("--quick", action="store_true", help="smoke run (~3 min on 2 CPU cores); the quick preset")
+    _flags().add_to(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from dataclasses import replace
     from pathlib import Path
 
     from uvatar.demo import DEFAULT, QUICK, run_demo
+    from uvatar.errors import options_as_input_error
 
-    cfg = QUICK if args.quick else DEFAULT
-    cfg = replace(cfg, seed=args.seed)
-    if args.fits is not None:
-        cfg = replace(cfg, fits=args.fits)
-    if args.epochs is not None:
-        if args.epochs < 1:
-            from uvatar.errors import InputError
-
-            raise InputError("--epochs", f"must be at least 1, got {args.epochs}")
-        cfg = replace(cfg, epochs=args.epochs)
+    with options_as_input_error("uvatar demo options"):
+        cfg = _flags().config(args, base=QUICK if args.quick else DEFAULT)
     metrics = run_demo(args.out, cfg)
     print(f"uvatar demo: report at {Path(args.out) / 'report.html'}, metrics at {Path(args.out) / 'metrics.json'}")
     for stage in metrics["stages"]:

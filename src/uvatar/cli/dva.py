@@ -1,25 +1,54 @@
-"""``uvatar train dva``, ``uvatar render dva``, ``uvatar eval dva``: drivable volumetric avatars."""
+"""``uvatar train dva``, ``uvatar render dva``, ``uvatar eval dva``: drivable volumetric avatars.
+
+``train dva``'s size and budget flags are generated from the DVA configs (:mod:`uvatar.cli.flags`), their
+defaults the ``--preset``'s (``uvatar.dva.model.PRESETS``).
+"""
 
 from __future__ import annotations
 
+from uvatar.cli.flags import ConfigFlags
+
+
+def _flags() -> tuple[ConfigFlags, ...]:
+    """(budget, primitives, decoder) flags of ``train dva``, defaults from the preset picked; then the
+    ``train_dva`` and ``evaluate_dva`` parameters."""
+    from uvatar.dva.decoders import DecoderConfig
+    from uvatar.dva.eval import evaluate_dva
+    from uvatar.dva.model import PRESETS, TrainConfig
+    from uvatar.dva.primitives import PrimitiveConfig
+    from uvatar.dva.train import train_dva
+
+    return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
+                        help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
+            ConfigFlags(PrimitiveConfig, fields=("grid",), presets={k: c.primitives for k, c in PRESETS.items()},
+                        help={"grid": "primitives per UV side W (K = W*W)"}),
+            ConfigFlags(DecoderConfig, fields=("voxels",), presets={k: c.decoder for k, c in PRESETS.items()},
+                        help={"voxels": "voxels per primitive side S"}),
+            ConfigFlags(train_dva, fields=("device", "resume"), help={
+                "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt"}),
+            ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device"), help={
+                "driving_views": "training cameras that drive the avatar (evenly spread)",
+                "max_frames": "score at most this many test frames (none: all)", "device": "torch device"}))
+
 
 def register(cli) -> None:
+    from uvatar.dva.model import PRESETS
+
+    budget, primitives, decoder, train, evaluate = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
     p.add_argument("out", help="run folder (checkpoint.pt, run.json, tb/)")
-    p.add_argument("--preset", default="cpu", choices=("cpu", "paper", "tiny"),
+    p.add_argument("--preset", default="cpu", choices=tuple(PRESETS),
                    help="config preset: cpu (K=256, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
-    p.add_argument("--minutes", type=float, default=None, help="wall-clock budget in minutes; unset = the preset's")
-    p.add_argument("--iters", type=int, default=None, help="stop after this many steps; unset = the preset's")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    budget.add_to(p)
+    train.add_to(p)
     p.add_argument("--vgg-weights", default=None,
                    help="torchvision VGG-19 state dict for the perceptual loss (without it: 1 - SSIM)")
     _threads(p)
     _body(p, "body model (default: the capture's: capture.json's, smpl for EasyMocap / ZJU-MoCap)")
-    p.add_argument("--grid", type=int, default=None, help="primitives per UV side W (K = W*W); unset = preset")
-    p.add_argument("--voxels", type=int, default=None, help="voxels per primitive side S; unset = preset")
+    primitives.add_to(p)
+    decoder.add_to(p)
     p.set_defaults(func=_train)
 
     p = cli.command("render dva", help="drive a DVA avatar with a pose sequence + 2-3 driving views")
@@ -40,12 +69,10 @@ def register(cli) -> None:
     p.add_argument("run", help="DVA run folder")
     p.add_argument("capture", help="capture folder (its protocol picks test frames and cameras)")
     p.add_argument("--json", required=True, help="metrics JSON path (comparison images go beside it)")
-    p.add_argument("--driving-views", type=int, default=3)
-    p.add_argument("--max-frames", type=int, default=None)
+    evaluate.add_to(p)
     p.add_argument("--frames", default=None, help="frame names, comma separated (default: the protocol's test frames)")
     p.add_argument("--cameras", default=None,
                    help="camera names, comma separated (default: the protocol's held-out cameras)")
-    p.add_argument("--device", default="cpu")
     _threads(p)
     _body(p, "body model (default: the run's; must be the run's)")
     p.set_defaults(func=_eval)
@@ -76,11 +103,12 @@ def _check_train_args(args) -> None:
     """One-line errors for values no training run can use (before anything is written)."""
     from uvatar.errors import InputError
 
-    for flag, value, least in (("--grid", args.grid, 1), ("--voxels", args.voxels, 1), ("--iters", args.iters, 1)):
-        if value is not None and value < least:
-            raise InputError(flag, f"must be at least {least}, got {value}")
-    if args.minutes is not None and args.minutes <= 0:
-        raise InputError("--minutes", f"must be > 0, got {args.minutes}")
+    given = vars(args)
+    for name, least in (("grid", 1), ("voxels", 1), ("iters", 1)):
+        if given.get(name) is not None and given[name] < least:
+            raise InputError(f"--{name}", f"must be at least {least}, got {given[name]}")
+    if given.get("minutes") is not None and given["minutes"] <= 0:
+        raise InputError("--minutes", f"must be > 0, got {given['minutes']}")
     if args.threads < 0:
         raise InputError("--threads", f"must be >= 0 (0: torch's default), got {args.threads}")
 
@@ -92,14 +120,14 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
+    budget, primitives, decoder, train, _ = _flags()
     cfg = preset(args.preset)
-    if args.grid is not None:
-        cfg.primitives.grid = args.grid
-    if args.voxels is not None:
-        cfg.decoder.voxels = args.voxels
-    summary = train_dva(open_source(args.capture), args.out, cfg, iters=args.iters, minutes=args.minutes,
-                        device=args.device, resume=args.resume, vgg_weights=args.vgg_weights,
-                        body_model=args.model, model_dir=args.model_dir)
+    cfg.primitives = primitives.config(args, base=cfg.primitives)
+    cfg.decoder = decoder.config(args, base=cfg.decoder)
+    given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
+    summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
+                        minutes=given.get("minutes"), vgg_weights=args.vgg_weights, body_model=args.model,
+                        model_dir=args.model_dir, **train.values(args))
     from uvatar.distributed import is_main_process
 
     if is_main_process():
@@ -159,8 +187,8 @@ def _eval(args) -> int:
     from uvatar.dva.data import open_source
     from uvatar.dva.eval import evaluate_dva
 
-    r = evaluate_dva(args.run, open_source(args.capture), args.json, driving_views=args.driving_views,
-                     max_frames=args.max_frames, device=args.device, frames=_split(args.frames),
-                     cameras=_split(args.cameras), body_model=args.model, model_dir=args.model_dir)
+    r = evaluate_dva(args.run, open_source(args.capture), args.json, frames=_split(args.frames),
+                     cameras=_split(args.cameras), body_model=args.model, model_dir=args.model_dir,
+                     **_flags()[4].values(args))
     print(f"psnr {r['psnr_db']:.2f} dB, ssim {r['ssim']:.4f} over {len(r['per_image'])} images -> {args.json}")
     return 0

@@ -1,6 +1,7 @@
 """``uvatar fit CAPTURE``: body fits for a capture that has none (AVH §3.1; DVA's body tracking).
 
-Flags map onto :class:`uvatar.fit.pipeline.FitConfig` (defaults read from it) and the views config.
+Flags are generated from :class:`uvatar.fit.pipeline.FitConfig` and the scan views' ``ScanViewsConfig``
+(:mod:`uvatar.cli.flags`).
 """
 
 from __future__ import annotations
@@ -8,11 +9,34 @@ from __future__ import annotations
 import json
 import sys
 
+from uvatar.cli.flags import ConfigFlags
+
+
+def _flags() -> tuple[ConfigFlags, ConfigFlags]:
+    """The flags of :class:`FitConfig` and of the scan views' :class:`ScanViewsConfig`."""
+    from uvatar.body.registry import BODY_MODELS
+    from uvatar.fit.pipeline import FIT_SOURCES, FitConfig
+    from uvatar.fit.views import ScanViewsConfig
+
+    fit = ConfigFlags(FitConfig, fields=("source", "model", "model_dir", "detector", "scan_distance", "scan_points",
+                                         "overlay_frames", "device", "force"),
+                      rename={"source": "from"}, choices={"source": FIT_SOURCES, "model": BODY_MODELS}, help={
+                          "source": "images: the capture's cameras; scans: renders of each scan from virtual "
+                                    "cameras; auto: images when the capture has cameras and images",
+                          "model": "body model", "model_dir": "folder with the SMPL/SMPL-X model files",
+                          "detector": "2D keypoint detector",
+                          "scan_distance": "fit to the scan surface too where the capture has scans "
+                                           "(--no-scan-distance: to the keypoints alone)",
+                          "scan_points": "points sampled on each scan for the scan-distance term",
+                          "overlay_frames": "frames drawn in fitting/contact_sheet.png (0: none)",
+                          "device": "torch device of the fit (cpu, cuda)", "force": "replace existing fits"})
+    views = ConfigFlags(ScanViewsConfig, fields=("count",), rename={"count": "views"},
+                        help={"count": "virtual cameras per scan for --from scans"})
+    return fit, views
+
 
 def register(cli) -> None:
-    from uvatar.fit.pipeline import FIT_SOURCES, FitConfig
-
-    d = FitConfig()
+    fit, views = _flags()
     p = cli.command(
         "fit", help="fit the body model to every frame of a capture (writes fits/ and the shared shape)",
         description="Detect 2D body keypoints (MediaPipe BlazePose; install uvatar[fit]) in the capture's "
@@ -22,21 +46,8 @@ def register(cli) -> None:
                     "provenance into capture.json, and fitting/ (keypoints, overlays, contact sheet, "
                     "summary.json). Resumes an interrupted run; never replaces fits without --force.")
     p.add_argument("capture", help="capture folder")
-    p.add_argument("--from", dest="source", choices=FIT_SOURCES, default=d.source,
-                   help="images: the capture's cameras; scans: renders of each scan from virtual cameras")
-    p.add_argument("--model", default=d.model, choices=("anny", "smpl", "smplx"), help="body model")
-    p.add_argument("--model-dir", default=d.model_dir, help="folder with the SMPL/SMPL-X model files")
-    p.add_argument("--detector", default=d.detector, help="2D keypoint detector")
-    p.add_argument("--views", type=int, default=None,
-                   help="virtual cameras per scan for --from scans (default: the views config's)")
-    p.add_argument("--no-scan-distance", dest="scan_distance", action="store_false",
-                   help="fit to the keypoints alone even where the capture has scans")
-    p.add_argument("--scan-points", type=int, default=d.scan_points,
-                   help="points sampled on each scan for the scan-distance term")
-    p.add_argument("--overlay-frames", type=int, default=d.overlay_frames,
-                   help="frames drawn in fitting/contact_sheet.png (0: none)")
-    p.add_argument("--device", default=d.device, help="torch device of the fit (cpu, cuda)")
-    p.add_argument("--force", action="store_true", help="replace existing fits")
+    fit.add_to(p)
+    views.add_to(p)
     p.add_argument("--eval", action="store_true",
                    help="compare with the capture's gt/ (synthetic captures): MPJPE, angles, scan distance")
     p.add_argument("--json", default=None, help="write the summary (and --eval metrics) to this JSON file")
@@ -45,21 +56,14 @@ def register(cli) -> None:
 
 
 def _fit(args) -> int:
-    from dataclasses import replace
-
     from uvatar.errors import options_as_input_error
-    from uvatar.fit.pipeline import FitConfig, FitStages, fit_capture
+    from uvatar.fit.pipeline import FitStages, fit_capture
     from uvatar.io_utils import write_json
 
+    fit, views = _flags()
     with options_as_input_error("uvatar fit options"):
-        config = FitConfig(source=args.source, model=args.model, model_dir=args.model_dir,
-                           detector=args.detector, scan_distance=args.scan_distance, scan_points=args.scan_points,
-                           overlay_frames=args.overlay_frames, force=args.force, device=args.device)
-        stages = FitStages()
-        if args.views is not None:
-            from uvatar.fit.views import ScanViewsConfig
-
-            stages.views = replace(ScanViewsConfig(), count=args.views)
+        config = fit.config(args)
+        stages = FitStages(views=views.config(args))
     if args.eval and args.force is False and _has_fits(args.capture):
         summary = {"capture": args.capture, "note": "existing fits evaluated, nothing fitted"}
     else:

@@ -22,6 +22,10 @@ from uvatar.errors import UvatarError
 DEFAULT_SUBCOMMAND = {"eval": "avh"}
 
 
+class _EpilogFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Flag defaults in the help; the description and epilog keep their line breaks."""
+
+
 class Cli:
     """Builds the argparse tree; nested groups are made on demand."""
 
@@ -46,13 +50,15 @@ class Cli:
         self._subparsers[path] = sub
         return sub
 
-    def command(self, name: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
-        """Add a (possibly nested, space-separated) command and return its parser."""
+    def command(self, name: str, help: str, description: str | None = None,
+                epilog: str | None = None) -> argparse.ArgumentParser:
+        """Add a (possibly nested, space-separated) command and return its parser; ``epilog``: text after
+        the flags, printed with its own line breaks."""
         path = tuple(name.split())
         sub = self._group(path[:-1])
         return sub.add_parser(
-            path[-1], help=help, description=description or help,
-            formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+            path[-1], help=help, description=description or help, epilog=epilog,
+            formatter_class=_EpilogFormatter if epilog else argparse.ArgumentDefaultsHelpFormatter,
         )
 
 

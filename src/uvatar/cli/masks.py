@@ -1,17 +1,29 @@
 """``uvatar capture masks CAPTURE``: a person mask for every image, restricted to the fitted person.
 
-Flags map onto :class:`uvatar.fit.masks.MaskConfig` (defaults read from it).
+Flags are generated from :class:`uvatar.fit.masks.MaskConfig` (:mod:`uvatar.cli.flags`).
 """
 
 from __future__ import annotations
 
 import sys
 
+from uvatar.cli.flags import ConfigFlags
 
-def register(cli) -> None:
+
+def _flags() -> ConfigFlags:
     from uvatar.fit.masks import MaskConfig
 
-    d = MaskConfig()
+    return ConfigFlags(MaskConfig, fields=("threshold", "dilate", "render_width", "use_fit", "overwrite"),
+                       rename={"use_fit": "fit"}, help={
+                           "threshold": "person probability threshold",
+                           "dilate": "grow the fitted body's silhouette by this fraction of the image height",
+                           "render_width": "width at which the body silhouette is rendered",
+                           "use_fit": "restrict to the fitted person (--no-fit: the segmenter alone, "
+                                      "bystanders are masked in)",
+                           "overwrite": "replace existing masks"})
+
+
+def register(cli) -> None:
     p = cli.command(
         "capture masks", help="write masks/<cam>/<frame>.png: the fitted person in every image",
         description="Segment people in every image (MediaPipe; install uvatar[fit]) and keep only the "
@@ -19,26 +31,18 @@ def register(cli) -> None:
                     "silhouette, grown by --dilate of the image height. Run `uvatar fit` first. Existing "
                     "masks are kept (a re-run resumes) unless --overwrite.")
     p.add_argument("capture", help="capture folder with cameras/, images/ and fits/")
-    p.add_argument("--threshold", type=float, default=d.threshold, help="person probability threshold")
-    p.add_argument("--dilate", type=float, default=d.dilate,
-                   help="grow the fitted body's silhouette by this fraction of the image height")
-    p.add_argument("--render-width", type=int, default=d.render_width,
-                   help="width at which the body silhouette is rendered")
-    p.add_argument("--no-fit", dest="use_fit", action="store_false",
-                   help="segmenter alone, not restricted to the fitted person (bystanders are masked in)")
+    _flags().add_to(p)
     p.add_argument("--model-dir", default=None, help="folder with the SMPL/SMPL-X files (SMPL fits)")
-    p.add_argument("--overwrite", action="store_true", help="replace existing masks")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_masks)
 
 
 def _masks(args) -> int:
     from uvatar.errors import options_as_input_error
-    from uvatar.fit.masks import MaskConfig, write_capture_masks
+    from uvatar.fit.masks import write_capture_masks
 
     with options_as_input_error("uvatar capture masks options"):
-        config = MaskConfig(threshold=args.threshold, dilate=args.dilate, render_width=args.render_width,
-                            use_fit=args.use_fit, overwrite=args.overwrite)
+        config = _flags().config(args)
     summary = write_capture_masks(args.capture, config, progress=not args.no_progress, model_dir=args.model_dir)
     print(f"masks: {summary['written']} written, {summary['kept']} kept, {len(summary['failed'])} failed",
           file=sys.stderr)

@@ -1,12 +1,25 @@
 """``uvatar motion info FILE``, ``uvatar motion convert IN OUT.npz [--body anny] [--fps 25] [--map FILE]
-[--feet clean] [--report R.json]`` and ``uvatar motion compare A.npz B.npz``."""
+[--feet clean] [--report R.json]`` and ``uvatar motion compare A.npz B.npz``.
+
+``motion convert``'s retargeting flags are generated from :class:`uvatar.motion.retarget.RetargetConfig`."""
 
 from __future__ import annotations
 
+from uvatar.cli.flags import ConfigFlags
 
-def register(cli) -> None:
+
+def _retarget_flags() -> ConfigFlags:
     from uvatar.motion.retarget import RetargetConfig
 
+    return ConfigFlags(RetargetConfig, fields=("twist", "feet"),
+                       choices={"twist": ("auto", "motion", "rest"), "feet": ("floor", "clean")},
+                       help={"twist": "where the source's bone frames come from: the clip (motion), the rest pose "
+                                      "(rest), or the clip where it has evidence (auto)",
+                             "feet": "floor: root height alone; clean: also pin the feet in the source's contacts "
+                                     "by leg IK"})
+
+
+def register(cli) -> None:
     p = cli.command("motion info", help="describe a motion file (.bvh, AMASS/uvatar .npz, fits or capture folder)")
     p.add_argument("path", help="motion file or folder")
     p.add_argument("--map", default=None, metavar="FILE", help="joint map (JSON/YAML {source joint: semantic joint})")
@@ -20,11 +33,7 @@ def register(cli) -> None:
     p.add_argument("--fits", default=None, metavar="DIR", help="also write EasyMocap fits (one JSON per frame) here")
     p.add_argument("--map", default=None, metavar="FILE",
                    help="joint map (JSON/YAML {source joint: semantic or body joint, or null}) over the automatic match")
-    p.add_argument("--twist", default=RetargetConfig.twist, choices=("auto", "motion", "rest"),
-                   help="where the source's bone frames come from (RetargetConfig.twist)")
-    p.add_argument("--feet", default=RetargetConfig.feet, choices=("floor", "clean"),
-                   help="floor: root height alone; clean: also pin the feet in the source's contacts by leg IK "
-                        "(RetargetConfig.feet)")
+    _retarget_flags().add_to(p)
     p.add_argument("--report", default=None, metavar="JSON",
                    help="write per-bone direction/twist errors, lowest foot height and foot sliding here")
     p.set_defaults(func=_convert)
@@ -109,15 +118,15 @@ def _convert(args) -> int:
     import sys
     from pathlib import Path
 
-    from uvatar.errors import InputError
-    from uvatar.motion.retarget import RetargetConfig
+    from uvatar.errors import InputError, options_as_input_error
     from uvatar.motion.sequences import load_motion, save_motion
 
     if Path(args.output).suffix.lower() != ".npz":
         raise InputError(args.output, "output must be a .npz file")
     if args.fps is not None and not args.fps > 0:
         raise InputError("--fps", f"must be > 0, got {args.fps}")
-    config = RetargetConfig(name_map=_user_map(args.map), twist=args.twist, feet=args.feet)
+    with options_as_input_error("uvatar motion convert options"):
+        config = _retarget_flags().config(args, name_map=_user_map(args.map))
     print(f"loading {args.input} for body model '{args.body}' ...", file=sys.stderr)
     motion = load_motion(args.input, body=args.body, config=config)
     if args.report:

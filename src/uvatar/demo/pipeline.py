@@ -52,7 +52,8 @@ class DemoConfig:
     def __post_init__(self) -> None:
         from uvatar.errors import check_values
 
-        check_values([(self.fits in FIT_SOURCES, f"fits must be one of {', '.join(FIT_SOURCES)}, got {self.fits!r}")])
+        check_values([(self.fits in FIT_SOURCES, f"fits must be one of {', '.join(FIT_SOURCES)}, got {self.fits!r}"),
+                      (self.epochs >= 1, f"epochs must be at least 1, got {self.epochs}")])
 
 
 DEFAULT = DemoConfig()

@@ -130,7 +130,7 @@ class DvaLoss(nn.Module):
         self.cfg = cfg or LossConfig()
         self.vgg = vgg
         log.info("DVA perceptual loss: %s", "VGG-19 features" if vgg is not None
-                 else "off (no --vgg-weights); using 1 - SSIM instead")
+                 else "off (no vgg_weights); using 1 - SSIM instead")
 
     def forward(self, pred, target, alpha, mask, scales, rest_scales):
         c = self.cfg

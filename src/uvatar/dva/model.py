@@ -111,7 +111,7 @@ def preset(name: str) -> DvaConfig:
     from uvatar.errors import InputError
 
     if name not in PRESETS:
-        raise InputError("--preset", f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+        raise InputError("preset", f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
     return copy.deepcopy(PRESETS[name])
 
 

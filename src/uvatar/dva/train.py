@@ -131,7 +131,7 @@ class Trainer:
         exists = ckpt.is_file()
         self.ctx.barrier()  # every rank has looked before rank 0 writes
         if exists and not resume:
-            raise UvatarError(f"{self.out}: holds a checkpoint; pass --resume to continue or pick a new folder")
+            raise UvatarError(f"{self.out}: holds a checkpoint; resume=True continues it, or pick a new folder")
         if exists:
             try:
                 state = torch.load(ckpt, map_location=self.device, weights_only=False)

@@ -111,7 +111,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     if config.use_fit:
         missing = [f for f in frames if not capture.has_fit(f)]
         if len(missing) == len(frames):
-            raise InputError(capture.fits_dir, "no fits: run `uvatar fit` first (or --no-fit to use the "
+            raise InputError(capture.fits_dir, "no fits: run `uvatar fit` first (or use_fit=False to use the "
                                                "segmenter alone, which also masks bystanders)")
     body = load_body_model(capture.body_model, model_dir) if config.use_fit else None
     segmenter = load_segmenter(config.segmenter)

@@ -88,9 +88,9 @@ def resolve_source(capture: Capture, source: str) -> str:
     if source == "auto":
         source = "images" if has_images else "scans"
     if source == "images" and not has_images:
-        raise InputError(capture.root, "--from images needs cameras/intri.yml, cameras/extri.yml and images/")
+        raise InputError(capture.root, "source 'images' needs cameras/intri.yml, cameras/extri.yml and images/")
     if source == "scans" and not has_scans:
-        raise InputError(capture.scans_dir, "--from scans needs textured scans in scans/")
+        raise InputError(capture.scans_dir, "source 'scans' needs textured scans in scans/")
     return source
 
 
@@ -281,7 +281,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         raise InputError(capture.root, "the capture lists no frames")
     existing = existing_fits(capture)
     if existing and not config.force:
-        raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); use --force to replace them")
+        raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); force=True replaces them")
     source = resolve_source(capture, config.source)
     body = load_body_model(config.model, config.model_dir, device=config.device)
     detector = load_detector(config.detector, stages.detector)

@@ -217,8 +217,8 @@ def plan_retarget(source: SkeletonMotion, body, config: RetargetConfig | None = 
     if match.missing_required:
         raise UvatarError(f"{source.source or 'source skeleton'}: rig '{match.rig}': no joint maps to "
                           f"{', '.join(match.missing_required)}; unmapped joints: {', '.join(match.unmapped[:12])}"
-                          f"{' ...' if len(match.unmapped) > 12 else ''}; give them with --map FILE "
-                          "(JSON/YAML {source joint: semantic joint})")
+                          f"{' ...' if len(match.unmapped) > 12 else ''}; give them in a joint map "
+                          "(name_map, {source joint: semantic joint})")
     src_index = {s: source.index(n) for n, s in match.mapping.items()}
     tgt_index = dict(body.semantic_joints)
     shared = [s for s in src_index if s in tgt_index]

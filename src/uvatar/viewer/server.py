@@ -273,7 +273,7 @@ class ViewerServer:
             self.httpd = ViewerHTTPServer((config.host, config.port), handler)
         except OSError as exc:
             raise UvatarError(f"cannot listen on {config.host}:{config.port} ({exc.strerror}); "
-                              f"try another --port (0 picks a free one)") from None
+                              f"try another port (0 picks a free one)") from None
         host, port = self.httpd.server_address[:2]
         self.url = f"http://{'localhost' if host in ('127.0.0.1', '0.0.0.0') else host}:{port}/"
         self._thread: threading.Thread | None = None

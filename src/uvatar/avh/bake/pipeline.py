@@ -208,7 +208,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     previous = read_dataset_info(out)
     if previous.get("texels") not in (None, config.texels) and not overwrite:
         raise InputError(out / "dataset.json", f"holds a bake at {previous['texels']} texels, not "
-                         f"{config.texels}; use another output folder or --overwrite")
+                         f"{config.texels}; use another output folder or overwrite=True")
     frames = [frame_name(f) for f in (capture.frames if frames is None else frames)]
     unknown = sorted(set(frames) - set(capture.frames))
     if unknown:
@@ -279,7 +279,7 @@ def bake_selection(capture_root, out_root, selection: dict, config: BakeConfig |
     """
     clusters = selection.get("clusters")
     if not clusters:
-        raise InputError("selection", "has no 'clusters' (make it with `uvatar select CAPTURE --from-capture`)")
+        raise InputError("selection", "has no 'clusters' (make it with select_from_capture)")
     config = config or BakeConfig()
     heldout = set(heldout_frames(capture_root))
     cursor = [0] * len(clusters)

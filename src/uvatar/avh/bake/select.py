@@ -40,9 +40,9 @@ class SelectConfig:
 
     def __post_init__(self) -> None:
         if self.n_train < 1:
-            raise ValueError(f"select needs at least 1 training frame (-n), got {self.n_train}")
+            raise ValueError(f"select needs at least 1 training frame (n_train), got {self.n_train}")
         if self.n_val < 0:
-            raise ValueError(f"validation frames (--val) must not be negative, got {self.n_val}")
+            raise ValueError(f"validation frames (n_val) must not be negative, got {self.n_val}")
         if self.features not in ("cos", "sincos"):
             raise ValueError(f"features must be 'cos' or 'sincos', got {self.features!r}")
 

@@ -306,9 +306,9 @@ def to_uvatar_world(calib: Calibration, up: str | None = None, units: str | None
     up = up or calib.up
     units = units or calib.units
     if up not in UP_AXES:
-        raise InputError("--up", f"must be one of {', '.join(UP_AXES)}, got {up!r}")
+        raise InputError("up", f"must be one of {', '.join(UP_AXES)}, got {up!r}")
     if units not in UNIT_SCALE:
-        raise InputError("--units", f"must be one of {', '.join(UNIT_SCALE)}, got {units!r}")
+        raise InputError("units", f"must be one of {', '.join(UNIT_SCALE)}, got {units!r}")
     W, s = _up_rotation(up), UNIT_SCALE[units]
     out = {name: Camera(name=cam.name, K=cam.K, R=cam.R @ W.T, T=cam.T * s, width=cam.width,
                         height=cam.height, dist=cam.dist) for name, cam in calib.cameras.items()}

@@ -151,13 +151,13 @@ def _frame_indices(sources: dict[str, FrameSource], cfg: ImportConfig) -> list[i
     total = min(counts) if counts else None
     end = cfg.end or total
     if end is None:
-        raise InputError("--end", "the videos do not report their frame count; give --end")
+        raise InputError("end", "the videos do not report their frame count; give end")
     if total is not None and end > total:
         log.warning("end %d is past the shortest source (%d frames): stopping at %d", end, total, total)
         end = total
     frames = list(range(cfg.start, end, cfg.stride))
     if not frames:
-        raise InputError("--start", f"no frame in [{cfg.start}, {end}) with stride {cfg.stride}")
+        raise InputError("start", f"no frame in [{cfg.start}, {end}) with stride {cfg.stride}")
     return frames
 
 
@@ -174,7 +174,7 @@ def import_capture(src: str | Path, out: str | Path, cfg: ImportConfig | None = 
         raise InputError(out, "output exists and is not a folder")
     calib_path = Path(calibration) if calibration else find_calibration(src)
     if calib_path is None:
-        raise InputError(src, "no calibration found (intri.yml/extri.yml, .qca, .toml, .json); give --calibration")
+        raise InputError(src, "no calibration found (intri.yml/extri.yml, .qca, .toml, .json); give calibration")
     calib = read_calibration(calib_path)
     sources = find_sources(src, count=cfg.end == 0)
     try:
@@ -195,7 +195,7 @@ def _import(src: Path, out: Path, cfg: ImportConfig, calib, calib_path: Path, so
     if cfg.cameras:
         unknown = [c for c in cfg.cameras if c not in sources]
         if unknown:
-            raise InputError("--cameras", f"no source for {', '.join(unknown)} (have {', '.join(sources)})")
+            raise InputError("cameras", f"no source for {', '.join(unknown)} (have {', '.join(sources)})")
         names = {s: c for s, c in names.items() if s in cfg.cameras}
     missing = [s for s in (cfg.cameras or sources) if s not in names]
     if missing:

@@ -11,6 +11,7 @@ from uvatar.capture.synth.appearance import AppearanceConfig
 from uvatar.capture.synth.cameras import StudioConfig
 from uvatar.capture.synth.clothing import ClothingConfig
 from uvatar.capture.synth.motion import MotionConfig
+from uvatar.errors import check_values
 
 __all__ = ["SynthConfig", "PRESETS", "preset"]
 
@@ -59,8 +60,16 @@ class SynthConfig:
     studio: StudioConfig = field(default_factory=StudioConfig)
 
     def __post_init__(self) -> None:
-        if self.fit_tracks not in ("body", "all"):
-            raise ValueError(f"fit_tracks must be 'body' or 'all', got {self.fit_tracks!r}")
+        check_values([
+            (self.frames >= 1, f"frames must be at least 1, got {self.frames}"),
+            (self.cameras >= 0, f"cameras must not be negative, got {self.cameras}"),
+            (self.image_size >= 1, f"image_size must be at least 1, got {self.image_size}"),
+            (self.scan_texture >= 1, f"scan_texture must be at least 1, got {self.scan_texture}"),
+            (self.gt_texels >= 1, f"gt_texels must be at least 1, got {self.gt_texels}"),
+            (self.fit_noise_deg >= 0, f"fit_noise_deg must not be negative, got {self.fit_noise_deg}"),
+            (self.fit_tracks in ("body", "all"), f"fit_tracks must be 'body' or 'all', got {self.fit_tracks!r}"),
+            (self.heldout is None or self.heldout >= 0, f"heldout must not be negative, got {self.heldout}"),
+            (self.workers >= 1, f"workers must be at least 1, got {self.workers}")])
 
     def heldout_count(self) -> int:
         if self.heldout is not None:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.capture.synth.config import SynthConfig
-from uvatar.errors import InputError, UvatarError
+from uvatar.errors import UvatarError
 from uvatar.io_utils import sweep_partial_writes
 from uvatar.parallel import ExecutorConfig, clear_worker_cache
 from uvatar.resources import check_memory
@@ -67,9 +67,7 @@ def make_plan(body, cfg: SynthConfig) -> dict:
     from uvatar.capture.synth.cameras import studio_cameras
     from uvatar.capture.synth.motion import concat_takes, make_heldout, make_takes
 
-    n = int(cfg.frames)
-    if n < 1:
-        raise InputError("--frames", f"must be at least 1, got {n}")
+    n = int(cfg.frames)  # >= 1 (SynthConfig checks it)
     heldout = cfg.heldout_count()
     shape = body.default_shape().detach().cpu().numpy().astype(np.float32)
     motion = make_takes(body, n - heldout, cfg.seed, cfg.motion, shape)
