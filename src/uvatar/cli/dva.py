@@ -14,12 +14,17 @@ def _flags() -> tuple[ConfigFlags, ...]:
     ``train_dva`` and ``evaluate_dva`` parameters."""
     from uvatar.dva.decoders import DecoderConfig
     from uvatar.dva.eval import evaluate_dva
-    from uvatar.dva.model import PRESETS, TrainConfig
+    from uvatar.dva.model import BACKGROUNDS, PRESETS, TrainConfig
     from uvatar.dva.primitives import PrimitiveConfig
     from uvatar.dva.train import train_dva
 
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
+            ConfigFlags(TrainConfig, fields=("background",), choices={"background": BACKGROUNDS},
+                        presets={k: c.train for k, c in PRESETS.items()},
+                        help={"background": "what the render is compared with outside the person's mask: "
+                                            "mask (the camera's background colour; real rooms) or photo "
+                                            "(the raw photo; a clean studio backdrop)"}),
             ConfigFlags(PrimitiveConfig, fields=("grid",), presets={k: c.primitives for k, c in PRESETS.items()},
                         help={"grid": "primitives per UV side W (K = W*W)"}),
             ConfigFlags(DecoderConfig, fields=("voxels",), presets={k: c.decoder for k, c in PRESETS.items()},
@@ -34,7 +39,7 @@ def _flags() -> tuple[ConfigFlags, ...]:
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, primitives, decoder, train, evaluate = _flags()
+    budget, target, primitives, decoder, train, evaluate = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
@@ -42,6 +47,7 @@ def register(cli) -> None:
     p.add_argument("--preset", default="cpu", choices=tuple(PRESETS),
                    help="config preset: cpu (K=256, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
     budget.add_to(p)
+    target.add_to(p)
     train.add_to(p)
     p.add_argument("--vgg-weights", default=None,
                    help="torchvision VGG-19 state dict for the perceptual loss (without it: 1 - SSIM)")
@@ -120,8 +126,9 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
-    budget, primitives, decoder, train, _ = _flags()
+    budget, target, primitives, decoder, train, _ = _flags()
     cfg = preset(args.preset)
+    cfg.train = target.config(args, base=cfg.train)
     cfg.primitives = primitives.config(args, base=cfg.primitives)
     cfg.decoder = decoder.config(args, base=cfg.decoder)
     given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
@@ -189,6 +196,6 @@ def _eval(args) -> int:
 
     r = evaluate_dva(args.run, open_source(args.capture), args.json, frames=_split(args.frames),
                      cameras=_split(args.cameras), body_model=args.model, model_dir=args.model_dir,
-                     **_flags()[4].values(args))
+                     **_flags()[5].values(args))
     print(f"psnr {r['psnr_db']:.2f} dB, ssim {r['ssim']:.4f} over {len(r['per_image'])} images -> {args.json}")
     return 0
