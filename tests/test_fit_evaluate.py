@@ -75,3 +75,26 @@ def test_evaluate_fits_needs_ground_truth(tmp_path):
     write_capture_info(tmp_path, ["000000"])
     with pytest.raises(InputError, match="ground truth"):
         evaluate_fits(load_body_model("anny"), Capture(tmp_path), {"000000": BodyFit(poses=np.zeros(3))}, None)
+
+
+def test_cli_eval_of_existing_fits_prints_the_measures(tiny_capture, tmp_path, capsys):
+    """``uvatar fit CAP --eval`` on a capture that already has fits evaluates them (nothing fitted)
+    and prints MPJPE over the body joints, angle, shape and scan-to-body error (known answers: fits
+    1 cm above the truth)."""
+    import json
+    import shutil
+
+    from uvatar.capture.fits import write_fit
+    from uvatar.cli.main import main
+
+    src, body, truth, shape = tiny_capture
+    root = tmp_path / "cap"
+    shutil.copytree(src, root)
+    for f, b in truth.items():
+        write_fit(root / "fits" / f"{f}.json", BodyFit(poses=b.poses, Rh=b.Rh, Th=b.Th + [0.0, 0.01, 0.0], shapes=b.shapes))
+    assert main(["fit", str(root), "--eval", "--json", str(tmp_path / "e.json")]) == 0
+    err = capsys.readouterr().err
+    n = len(body.conditioning_joints)
+    assert f"MPJPE 10.0 mm over {n} body joints, angle 0.0 deg, shape 0.0 mm; scan-to-body median" in err, err
+    ev = json.loads((tmp_path / "e.json").read_text())["eval"]
+    assert ev["mpjpe_mm"] == pytest.approx(10.0, abs=1e-3) and not (root / "fitting").exists()

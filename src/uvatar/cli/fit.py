@@ -79,9 +79,10 @@ def _fit(args) -> int:
               f"contact sheet: {summary.get('contact_sheet', '-')}", file=sys.stderr)
     if args.eval:
         ev = summary["eval"]
-        print(f"MPJPE {ev['mpjpe_mm']:.1f} mm over {ev.get('num_joints', '?')} body joints; "
-              f"scan-to-body median {ev.get('scan_to_body_mm', {}).get('median', float('nan')):.2f} mm",
-              file=sys.stderr)
+        scan = ev.get("scan_to_body_median_mm")
+        print(f"MPJPE {ev['mpjpe_mm']:.1f} mm over {len(ev.get('per_joint_mpjpe_mm', {}))} body joints, "
+              f"angle {ev['angle_error_deg']:.1f} deg, shape {ev.get('shape_error_mm', float('nan')):.1f} mm"
+              + (f"; scan-to-body median {scan:.2f} mm" if scan is not None else ""), file=sys.stderr)
     if args.json:
         write_json(args.json, summary)
     else:
