@@ -14,7 +14,11 @@ BodyKeypoints`) in warm-started stages, as EasyMocap does:
    keypoints; frames without them take their neighbours' values);
 2. ``torso``: + spine, neck, pelvis and clavicle joints;
 3. ``limbs``: + every other pose-conditioning joint;
-4. ``full``: + the shared shape, the scan and silhouette terms.
+4. ``full``: + the shared shape, the scan and silhouette terms;
+5. ``texture`` (where the observations carry photometric views and ``w_photo`` > 0): + the
+   photometric consistency of the body surface across frames (:mod:`uvatar.fit.photometric`), the
+   pose alone (the shape stays what the surface made it): it turns limbs and trunk about their own
+   axes, which neither keypoints nor surface distance see.
 
 Only ``body.conditioning_joints`` move (fingers, toes, eyes stay at rest, as EasyMocap's body fits);
 scan matches skip vertices mostly skinned to the untracked joints (``untracked_skin_weight``, as the
@@ -32,11 +36,13 @@ import torch
 from uvatar.errors import check_values
 from uvatar.fit import losses as L
 from uvatar.fit.initialize import initial_global
+from uvatar.fit.photometric import PhotoTerm
 from uvatar.fit.skinning import SubsetSkinner
 
 __all__ = ["FitObservations", "BodyFitConfig", "SequenceFit", "fit_body_sequence", "STAGES"]
 
 STAGES = ("global", "torso", "limbs", "full")
+PHOTO_STAGE = "texture"  # after "full", where photometric views exist
 FITTED_JOINTS = ("semantic", "conditioning")
 # joints whose rotation keypoints barely see (a collar moves the shoulder point as an arm does; a wrist
 # turns a hand whose finger points are weak): their pose prior is ``stiff_prior`` times stronger
@@ -67,7 +73,8 @@ class FitObservations:
     keypoints2d (T, C, K, 2) distorted pixels, keypoints2d_conf (T, C, K), with ``cameras``;
     scans: per frame (points (P, 3), normals (P, 3)) or None; masks: per frame, per camera (H, W)
     bool or None; continuous: (T-1,) bool, False where frame t+1 does not follow frame t in time (a cut
-    between takes): no smoothness across it (None: all continuous)."""
+    between takes): no smoothness across it (None: all continuous); photo: per frame
+    :class:`~uvatar.fit.photometric.PhotoViews` (views with depth for the photometric term) or None."""
 
     keypoints3d: np.ndarray | None
     keypoints3d_conf: np.ndarray | None
@@ -77,6 +84,7 @@ class FitObservations:
     scans: list | None = None
     masks: list | None = None
     continuous: np.ndarray | None = None
+    photo: list | None = None
 
     @property
     def num_frames(self) -> int:
@@ -123,6 +131,12 @@ class BodyFitConfig:
     scan_body_vertices: int = 1000
     scan_samples: int = 1000
     refresh_every: int = 10
+    w_photo: float = 0.0
+    photo_iterations: int = 60
+    photo_sigma: float = 0.1
+    photo_vertices: int = 2000
+    photo_clothing: float = 0.03
+    photo_blur_px: float = 1.0
     w_mask: float = 2.0
     mask_sigma: float = 0.05
     mask_vertices: int = 800
@@ -138,8 +152,11 @@ class BodyFitConfig:
     def __post_init__(self) -> None:
         self.iterations = tuple(int(i) for i in self.iterations)
         weights = [self.w_keypoints3d, self.w_keypoints2d, self.w_scan, self.w_mask, self.w_pose_prior,
-                   self.w_smooth, self.w_shape_prior]
+                   self.w_smooth, self.w_shape_prior, self.w_photo]
         check_values([
+            (self.photo_iterations >= 0 and self.photo_sigma > 0 and self.photo_vertices >= 1 and self.photo_clothing > 0
+             and self.photo_blur_px >= 0, "photo_sigma, photo_vertices, photo_clothing must be > 0, "
+                                          "photo_blur_px >= 0"),
             (len(self.iterations) == 4 and min(self.iterations) >= 0, "iterations: four counts >= 0"),
             (min(self.lr_rotation, self.lr_translation, self.lr_shape) > 0, "learning rates must be > 0"),
             (min(weights) >= 0, "loss weights must be >= 0"),
@@ -264,11 +281,15 @@ class _Problem:
                     and any(m is not None for f in obs.masks for m in f))
         scan_ids = _strided(tracked, cfg.scan_body_vertices) if has_scan else np.zeros(0, np.int64)
         mask_ids = _strided(np.arange(tpl.num_vertices), cfg.mask_vertices) if has_mask else np.zeros(0, np.int64)
-        self.ids = np.unique(np.concatenate([self.kp.support, scan_ids, mask_ids]))
+        has_photo = cfg.w_photo > 0 and obs.photo is not None and any(v is not None for v in obs.photo)
+        photo_ids = _strided(tracked, cfg.photo_vertices) if has_photo else np.zeros(0, np.int64)
+        self.ids = np.unique(np.concatenate([self.kp.support, scan_ids, mask_ids, photo_ids]))
         self.skinner = SubsetSkinner(body, self.ids)
         self.scan = L.ScanTerm(obs.scans, np.searchsorted(self.ids, scan_ids), cfg.scan_samples,
                                cfg.scan_max_distance, dev) if has_scan else None
         self.mask = L.MaskTerm(obs.masks, self.cams, np.searchsorted(self.ids, mask_ids), dev) if has_mask else None
+        self.photo = PhotoTerm(obs.photo, np.searchsorted(self.ids, photo_ids), dev, cfg.photo_clothing,
+                               cfg.photo_blur_px) if has_photo else None
         self._rest = None
         self.observed = np.zeros(T, bool)
         for conf in (self.kp3d_conf, self.kp2d_conf):
@@ -322,6 +343,12 @@ class _Problem:
                 wv = w_t.reshape(-1, *([1] * (p.dim() - 1)))
                 p[gap] = (1 - wv) * lo + wv * hi
 
+    def refresh(self, posed: _Posed) -> None:
+        """Refresh the scan matches and the photometric references for ``posed`` (no gradient)."""
+        for term in (self.scan, self.photo):
+            if term is not None:
+                term.refresh(posed.vertices, posed.normals)
+
     def shape(self):
         return torch.sigmoid(self.shape_z) if self.bounded else self.shape_z
 
@@ -369,6 +396,8 @@ class _Problem:
                                                      cfg.scan_inside_tolerance, cfg.scan_inside_weight)
             if self.mask is not None and cfg.w_mask > 0:
                 out["mask"] = cfg.w_mask * self.mask(posed.vertices, cfg.mask_sigma)
+            if self.photo is not None and stage >= 4:
+                out["photo"] = cfg.w_photo * self.photo(posed.vertices, cfg.photo_sigma)
         if cfg.fit_shape and stage >= cfg.shape_from_stage and with_shape:
             prior = ((self.shape_z - self.shape_prior_centre) ** 2).sum()
             out["shape_prior"] = (cfg.w_shape_prior * prior / self.T).expand(self.T)
@@ -383,11 +412,14 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
     if obs.num_frames == 0:
         raise ValueError("no frames to fit: the observations are empty")
     prob = _Problem(body, obs, cfg)
-    total, done = sum(cfg.iterations), 0
-    for stage, (name, steps) in enumerate(zip(STAGES, cfg.iterations, strict=True)):
+    plan = list(zip(STAGES, cfg.iterations, strict=True))
+    if prob.photo is not None:   # the texture stage: pose only, the shape stays what the surface made it
+        plan.append((PHOTO_STAGE, cfg.photo_iterations))
+    total, done = sum(steps for _, steps in plan), 0
+    for stage, (name, steps) in enumerate(plan):
         if steps == 0:
             continue
-        shape_grad = stage >= cfg.shape_from_stage and cfg.fit_shape
+        shape_grad = cfg.shape_from_stage <= stage <= 3 and cfg.fit_shape
         hook = prob.rot.register_hook(lambda g: g * prob.torso_mask[None, :, None]) if stage == 1 else None
         last_loss = [float("nan")]
 
@@ -405,7 +437,7 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
             last_loss[0] = float(loss.detach())
             return loss
 
-        refresh = stage >= 3 and prob.scan is not None
+        refresh = stage >= 3 and (prob.scan is not None or prob.photo is not None)
         chunk = cfg.refresh_every if refresh else steps
         groups = [{"params": [prob.Rh], "lr": cfg.lr_rotation}, {"params": [prob.Th], "lr": cfg.lr_translation}]
         groups += [{"params": [prob.rot], "lr": cfg.lr_rotation}] if stage >= 1 else []
@@ -417,7 +449,7 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
             if refresh:
                 with torch.no_grad():
                     posed = prob.pose(False)
-                prob.scan.refresh(posed.vertices, posed.normals)
+                prob.refresh(posed)
             for _ in range(n):
                 closure(opt)
                 opt.step()
@@ -430,9 +462,9 @@ def fit_body_sequence(body, obs: FitObservations, config: BodyFitConfig | None =
         prob.interpolate_unobserved()
     with torch.no_grad():
         posed = prob.pose(False)
-        last = 3 if cfg.iterations[3] > 0 else 2
-        if prob.scan is not None and last == 3:
-            prob.scan.refresh(posed.vertices, posed.normals)
+        last = 4 if prob.photo is not None and cfg.photo_iterations > 0 else 3 if cfg.iterations[3] > 0 else 2
+        if last >= 3:
+            prob.refresh(posed)
         terms = prob.terms(posed, last)
         frame_loss = sum(terms.values()).cpu().numpy()
         return SequenceFit(

@@ -43,6 +43,8 @@ class FitConfig:
     scan_points: points sampled on each scan for the scan-distance term.
     cut_distance: metres; where the median triangulated keypoint moves farther than this from one
         frame to the next, the capture cuts to another take and no smoothness ties the two frames.
+    photo_size: pixels of the unshaded scan renders the photometric term compares across frames
+        (where scans exist and the body config's ``w_photo`` > 0; 0: off).
     overlay_frames: frames drawn in ``fitting/contact_sheet.png`` (0: none); overlay_width: pixels.
     force: replace existing fits.
     """
@@ -54,6 +56,7 @@ class FitConfig:
     scan_distance: bool = True
     scan_points: int = 3000
     cut_distance: float = 0.1
+    photo_size: int = 256
     overlay_frames: int = 6
     overlay_width: int = 256
     force: bool = False
@@ -65,6 +68,7 @@ class FitConfig:
             (self.source in FIT_SOURCES, f"source must be one of {', '.join(FIT_SOURCES)}, got {self.source!r}"),
             (self.scan_points >= 100, f"scan_points must be at least 100, got {self.scan_points}"),
             (self.cut_distance > 0, f"cut_distance must be > 0, got {self.cut_distance}"),
+            (self.photo_size == 0 or self.photo_size >= 32, f"photo_size must be 0 or >= 32, got {self.photo_size}"),
             (self.overlay_frames >= 0, f"overlay_frames must be >= 0, got {self.overlay_frames}"),
             (self.overlay_width >= 32, f"overlay_width must be at least 32, got {self.overlay_width}"),
         ])
@@ -172,6 +176,28 @@ def _scan_samples(capture: Capture, frames: list[str], config: FitConfig, progre
             log.warning("frame %s: scan not used (%s)", frame, exc)
             samples.append(None)
     return samples
+
+
+def _photo_views(capture: Capture, frames: list[str], config: FitConfig, stages: FitStages, failures,
+                 progress: bool) -> list:
+    """Per frame the scan's unshaded texture seen by the virtual cameras, with depth (photometric
+    term), at ``config.photo_size`` pixels; None for frames without a usable scan."""
+    from dataclasses import replace
+
+    from tqdm import tqdm
+
+    from uvatar.fit.views import scan_photo_views
+
+    views = replace(stages.views, image_size=config.photo_size)
+    out = []
+    for frame in tqdm(frames, desc="photo views", unit="frame", disable=not progress, dynamic_ncols=True):
+        try:
+            ok = frame not in failures and capture.has_scan(frame)
+            out.append(scan_photo_views(capture.load_scan(frame), views) if ok else None)
+        except UvatarError as exc:
+            log.warning("frame %s: no photo views (%s)", frame, exc)
+            out.append(None)
+    return out
 
 
 def continuity(points: np.ndarray, conf: np.ndarray, cut_distance: float) -> np.ndarray:
@@ -303,6 +329,8 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     t1 = time.perf_counter()
     obs = _observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance,
                         failures)
+    if use_scans and config.photo_size and stages.body.w_photo > 0:
+        obs.photo = _photo_views(capture, frames, config, stages, failures, progress)
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
     t_fit = time.perf_counter() - t1

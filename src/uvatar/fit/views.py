@@ -22,7 +22,7 @@ import numpy as np
 from uvatar.capture.types import Camera, TexturedMesh
 from uvatar.errors import InputError, check_values
 
-__all__ = ["ScanViewsConfig", "scan_cameras", "render_scan_views"]
+__all__ = ["ScanViewsConfig", "scan_cameras", "render_scan_views", "scan_photo_views"]
 
 
 @dataclass
@@ -84,22 +84,34 @@ def scan_cameras(vertices: np.ndarray, config: ScanViewsConfig | None = None) ->
     return cams
 
 
+def _render(mesh: TexturedMesh, cameras: list[Camera], background: float, shading: bool):
+    from uvatar.geometry.raycast import RayCaster
+    from uvatar.render.mesh_renderer import render_mesh
+
+    textured = mesh.texture is not None and mesh.has_uvs
+    caster = RayCaster(mesh.vertices, mesh.faces)
+    return [render_mesh(mesh.vertices, mesh.faces, cam, uvs=mesh.uvs if textured else None,
+                        uv_faces=mesh.uv_faces if textured else None, texture=mesh.texture if textured else None,
+                        background=background, shading=shading or not textured, raycaster=caster)
+            for cam in cameras]
+
+
 def render_scan_views(mesh: TexturedMesh, cameras: list[Camera],
                       config: ScanViewsConfig | None = None) -> list[np.ndarray]:
     """The scan with its texture seen by each camera: [(H, W, 3) float32 in [0, 1]] on
     ``config.background``, shaded when ``config.shading``. An untextured scan renders flat grey, always
     shaded (so the detector sees its shape)."""
-    from uvatar.geometry.raycast import RayCaster
-    from uvatar.render.mesh_renderer import render_mesh
+    config = config or ScanViewsConfig()
+    return [np.asarray(r.rgb, dtype=np.float32) for r in _render(mesh, cameras, config.background, config.shading)]
+
+
+def scan_photo_views(mesh: TexturedMesh, config: ScanViewsConfig | None = None):
+    """The scan's texture, unshaded (a colour must not change with the view), with depth, from
+    :func:`scan_cameras` -> :class:`~uvatar.fit.photometric.PhotoViews` for the photometric term."""
+    from uvatar.fit.photometric import PhotoViews
 
     config = config or ScanViewsConfig()
-    textured = mesh.texture is not None and mesh.has_uvs
-    caster = RayCaster(mesh.vertices, mesh.faces)
-    out = []
-    for cam in cameras:
-        r = render_mesh(mesh.vertices, mesh.faces, cam, uvs=mesh.uvs if textured else None,
-                        uv_faces=mesh.uv_faces if textured else None, texture=mesh.texture if textured else None,
-                        background=config.background, shading=config.shading or not textured,
-                        raycaster=caster)
-        out.append(np.asarray(r.rgb, dtype=np.float32))
-    return out
+    cams = scan_cameras(mesh.vertices, config)
+    renders = _render(mesh, cams, config.background, False)
+    return PhotoViews(images=np.stack([np.asarray(r.rgb, np.float32) for r in renders]),
+                      depth=np.stack([np.asarray(r.depth, np.float32) for r in renders]), cameras=cams)

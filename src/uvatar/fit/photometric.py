@@ -1,0 +1,150 @@
+"""Photometric consistency of the body surface across frames: what pins a limb's twist.
+
+Keypoints fix where joints are, the scan distance where the surface is; neither sees a limb or the
+trunk turning about its own axis (a cylinder turned is the same cylinder). The texture does: a
+plaid shirt or a logo moves with the body. Each frame is seen by C views (renders of its textured
+scan, or the capture's calibrated images) with a depth map. A body vertex is *visible* in a view
+when it faces the camera and its depth lies within ``clothing`` metres of the view's depth there
+(behind the visible cloth, in front of anything occluding it); it then takes the view's colour at
+its projection (bilinear, differentiable in the vertex position). :meth:`PhotoTerm.refresh` sets
+each vertex's reference colour to the median over frames of its colour (a frame's colour: the mean
+over the views that see it); the term is the robust colour distance of every visible sample to its
+vertex's reference, so a frame whose surface slid or turned against the others pays for it.
+Images are blurred by ``blur_px`` so the basin reaches a few pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from uvatar.capture.types import Camera
+
+__all__ = ["PhotoViews", "PhotoTerm"]
+
+
+@dataclass
+class PhotoViews:
+    """One frame's views: images (C, H, W, 3) float32 in [0, 1], depth (C, H, W) camera-z metres
+    (0 where nothing was seen), cameras (C) with those image sizes."""
+
+    images: np.ndarray
+    depth: np.ndarray
+    cameras: list[Camera]
+
+
+def _blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
+    """(B, 3, H, W) -> Gaussian blur of std ``sigma`` pixels (separable, reflect padding)."""
+    if sigma <= 0:
+        return images
+    r = max(1, int(np.ceil(3 * sigma)))
+    x = torch.arange(-r, r + 1, dtype=images.dtype, device=images.device)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    k = (k / k.sum()).reshape(1, 1, 1, -1).expand(images.shape[1], 1, 1, -1)
+    pad = torch.nn.functional.pad
+    out = torch.nn.functional.conv2d(pad(images, (r, r, 0, 0), mode="reflect"), k, groups=images.shape[1])
+    return torch.nn.functional.conv2d(pad(out, (0, 0, r, r), mode="reflect"), k.transpose(-1, -2),
+                                      groups=images.shape[1])
+
+
+class PhotoTerm:
+    """views: per frame a :class:`PhotoViews` or None (all with the same C, H, W); body_vertices:
+    indices (into the posed vertices the term is called with) of the body side. Call
+    :meth:`refresh` before the first use and whenever the reference should follow the fit."""
+
+    def __init__(self, views, body_vertices: np.ndarray, device, clothing: float = 0.03, blur_px: float = 1.0,
+                 min_frames: int = 2, dtype=torch.float32):
+        self.frames = [t for t, v in enumerate(views) if v is not None]
+        if not self.frames:
+            raise ValueError("PhotoTerm needs at least one frame with views")
+        first = views[self.frames[0]]
+        C, H, W = first.images.shape[:3]
+        for t in self.frames:
+            if views[t].images.shape[:3] != (C, H, W) or views[t].depth.shape != (C, H, W):
+                raise ValueError(f"frame {t}: views must all be {C} x {H} x {W}")
+        self.size, self.C = (W, H), C
+        self.clothing, self.min_frames = clothing, min_frames
+        self.device, self.dtype = device, dtype
+
+        def stack(fn):
+            return torch.as_tensor(np.stack([np.stack([fn(c) for c in views[t].cameras]) for t in self.frames]),
+                                   device=device, dtype=dtype)
+        self.K, self.R, self.T = stack(lambda c: c.K), stack(lambda c: c.R), stack(lambda c: np.reshape(c.T, 3))
+        dist = [[np.pad(np.asarray(c.dist, np.float64).reshape(-1), (0, 5))[:5] for c in views[t].cameras]
+                for t in self.frames]
+        self.distorted = [(f, c, d) for f, row in enumerate(dist) for c, d in enumerate(row) if np.any(d != 0)]
+        imgs = torch.as_tensor(np.stack([views[t].images for t in self.frames]), device=device, dtype=dtype)
+        self.images = _blur(imgs.reshape(-1, H, W, 3).permute(0, 3, 1, 2), blur_px)   # (F*C, 3, H, W)
+        self.depth = torch.as_tensor(np.stack([views[t].depth for t in self.frames]), device=device,
+                                     dtype=dtype).reshape(-1, 1, H, W)
+        self.centres = -torch.einsum("fcji,fcj->fci", self.R, self.T)                  # camera centres (F, C, 3)
+        self.frame_index = torch.as_tensor(self.frames, device=device, dtype=torch.int64)
+        self.body_vertices = torch.as_tensor(np.asarray(body_vertices, np.int64), device=device)
+        self.reference = self.visible = None
+
+    def project(self, points: torch.Tensor):
+        """points (F, N, 3) world -> pixels (F, C, N, 2) (distorted where a camera has distortion),
+        depth (F, C, N)."""
+        from uvatar.geometry.camera import distort
+
+        cam = torch.einsum("fcij,fnj->fcni", self.R, points) + self.T[:, :, None, :]
+        z = cam[..., 2]
+        xy = cam[..., :2] / z.clamp_min(1e-3)[..., None]
+        if self.distorted:
+            xy = xy.clone()
+            for f, c, d in self.distorted:
+                xy[f, c] = distort(xy[f, c], d)
+        K = self.K[:, :, None]
+        u = K[..., 0, 0] * xy[..., 0] + K[..., 0, 1] * xy[..., 1] + K[..., 0, 2]
+        v = K[..., 1, 1] * xy[..., 1] + K[..., 1, 2]
+        return torch.stack([u, v], -1), z
+
+    def _sample(self, maps: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
+        """maps (F*C, ch, H, W), px (F, C, N, 2) -> (F, C, N, ch) bilinear samples."""
+        F, C, N = px.shape[:3]
+        W, H = self.size
+        grid = torch.stack([(px[..., 0] + 0.5) / W * 2 - 1, (px[..., 1] + 0.5) / H * 2 - 1], -1)
+        out = torch.nn.functional.grid_sample(maps, grid.reshape(F * C, 1, N, 2), align_corners=False,
+                                              padding_mode="border")
+        return out.reshape(F, C, maps.shape[1], N).permute(0, 1, 3, 2)
+
+    def refresh(self, vertices: torch.Tensor, normals: torch.Tensor) -> None:
+        """Visibility of each (frame, view, vertex) and each vertex's reference colour for the current
+        posed body (vertices, normals (T, V', 3)); no gradient."""
+        with torch.no_grad():
+            v = vertices[self.frame_index][:, self.body_vertices].to(self.dtype)
+            n = normals[self.frame_index][:, self.body_vertices].to(self.dtype)
+            px, z = self.project(v)
+            W, H = self.size
+            inside = (px[..., 0] >= 0) & (px[..., 0] <= W - 1) & (px[..., 1] >= 0) & (px[..., 1] <= H - 1)
+            d = torch.nn.functional.grid_sample(
+                self.depth, torch.stack([(px[..., 0] + 0.5) / W * 2 - 1, (px[..., 1] + 0.5) / H * 2 - 1], -1)
+                .reshape(px.shape[0] * self.C, 1, -1, 2), mode="nearest", align_corners=False)
+            d = d.reshape(z.shape)
+            to_cam = self.centres[:, :, None, :] - v[:, None]
+            facing = (n[:, None] * to_cam).sum(-1) > 0.3 * to_cam.norm(dim=-1)
+            vis = inside & facing & (d > 0) & ((z - d).abs() < self.clothing)
+            colour = self._sample(self.images, px)                                  # (F, C, N, 3)
+            w = vis.to(self.dtype)[..., None]
+            per_frame = (colour * w).sum(1) / w.sum(1).clamp_min(1e-9)              # (F, N, 3)
+            seen = vis.any(1)                                                       # (F, N)
+            ref = torch.where(seen[..., None], per_frame, torch.nan).nanmedian(0).values
+            ok = seen.sum(0) >= self.min_frames
+            self.reference = torch.nan_to_num(ref)
+            self.visible = (vis & ok[None, None]).to(self.dtype)
+
+    def __call__(self, vertices: torch.Tensor, sigma: float) -> torch.Tensor:
+        """(T,) mean robust colour distance of the visible samples to their references (0 for frames
+        without views)."""
+        from uvatar.fit.losses import _normalized, gmof
+
+        if self.reference is None:
+            raise RuntimeError("PhotoTerm.refresh must run before the term is evaluated")
+        v = vertices[self.frame_index][:, self.body_vertices]
+        px, _ = self.project(v)
+        colour = self._sample(self.images, px)
+        r = torch.linalg.norm(colour - self.reference[None, None], dim=-1)
+        per = _normalized(gmof(r, sigma), self.visible)
+        return vertices.new_zeros(vertices.shape[0]).index_add(0, self.frame_index, per)
