@@ -237,3 +237,40 @@ def test_config_bounds_and_empty_input(anny):
         BodyFitConfig(scan_inside_weight=2.0)
     with pytest.raises(ValueError, match="no frames"):
         fit_body_sequence(anny, FitObservations(None, None))
+
+
+def test_texture_stage_runs_after_full_and_moves_the_pose_only(anny, keypoints):
+    """With photometric views (the body's own colours rendered with depth from two cameras) a
+    'texture' stage follows 'full'; it reports the photo term, moves the pose and leaves the shape
+    exactly where 'full' put it; with w_photo 0 the views are ignored."""
+    from uvatar.fit.photometric import PhotoViews
+    from uvatar.render.cameras import look_at_camera
+    from uvatar.render.mesh_renderer import render_mesh
+
+    pose, Rh, Th = _pose(anny, 2, 7, std=0.1)
+    Rh[:] = 0.0
+    Th[:] = [0.0, 0.9, 0.0]
+    posed = _posed(anny, pose, Rh, Th, SHAPE)
+    k3 = keypoints(posed).numpy()
+    rest = anny.template.vertices
+    colours = 0.5 + 0.5 * np.stack([np.sin(25 * rest[:, 0]), np.sin(25 * rest[:, 1]), np.cos(25 * rest[:, 2])], -1)
+    cams = [look_at_camera(eye, (0.0, 0.9, 0.0), (0.0, 1.0, 0.0), 50.0, 96, 96, str(i))
+            for i, eye in enumerate([(0.0, 1.0, 3.0), (2.5, 1.2, -1.5)])]
+    views = []
+    for t in range(2):
+        r = [render_mesh(posed.vertices[t].numpy(), anny.template.faces, c, vertex_colors=colours) for c in cams]
+        views.append(PhotoViews(np.stack([x.rgb for x in r]).astype(np.float32),
+                                np.stack([x.depth for x in r]).astype(np.float32), cams))
+    stages_seen = []
+    cfg = dict(iterations=(10, 10, 20, 20), photo_iterations=20, refresh_every=10)
+    obs = FitObservations(k3, np.ones(k3.shape[:2], np.float32), photo=views)
+    fit = fit_body_sequence(anny, obs, BodyFitConfig(w_photo=1.0, **cfg),
+                            progress=lambda d, n, info: stages_seen.append(info["stage"]))
+    before = fit_body_sequence(anny, obs, BodyFitConfig(w_photo=1.0, **dict(cfg, photo_iterations=0)))
+    assert stages_seen == ["global", "torso", "limbs", "full", "full", "texture", "texture"]  # refreshes every 10
+    assert "photo" in fit.losses and np.isfinite(fit.losses["photo"]) and "photo" not in before.losses
+    np.testing.assert_array_equal(fit.shape, before.shape)   # the texture stage leaves the shape alone
+    assert np.abs(fit.poses - before.poses).max() > 1e-4      # and moves the pose
+    plain = fit_body_sequence(anny, FitObservations(k3, np.ones(k3.shape[:2], np.float32)), BodyFitConfig(**cfg))
+    off = fit_body_sequence(anny, obs, BodyFitConfig(w_photo=0.0, **cfg))  # the views are ignored
+    np.testing.assert_array_equal(off.poses, plain.poses)

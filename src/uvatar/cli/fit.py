@@ -19,7 +19,7 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
     from uvatar.fit.views import ScanViewsConfig
 
     fit = ConfigFlags(FitConfig, fields=("source", "model", "model_dir", "detector", "scan_distance", "scan_points",
-                                         "overlay_frames", "device", "force"),
+                                         "photo_size", "overlay_frames", "device", "force"),
                       rename={"source": "from"}, choices={"source": FIT_SOURCES, "model": BODY_MODELS}, help={
                           "source": "images: the capture's cameras; scans: renders of each scan from virtual "
                                     "cameras; auto: images when the capture has cameras and images",
@@ -28,6 +28,8 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
                           "scan_distance": "fit to the scan surface too where the capture has scans "
                                            "(--no-scan-distance: to the keypoints alone)",
                           "scan_points": "points sampled on each scan for the scan-distance term",
+                          "photo_size": "pixels of the unshaded scan renders whose colours the texture "
+                                        "stage keeps consistent across frames (0: no texture stage)",
                           "overlay_frames": "frames drawn in fitting/contact_sheet.png (0: none)",
                           "device": "torch device of the fit (cpu, cuda)", "force": "replace existing fits"})
     views = ConfigFlags(ScanViewsConfig, fields=("count",), rename={"count": "views"},
