@@ -20,14 +20,18 @@ import numpy as np
 
 
 def _timed_source(capture, frames, source, views_cfg, detector, tri_cfg, body, body_cfg):
+    from dataclasses import replace
+
     from uvatar.fit.body_fit import FitObservations, fit_body_sequence
-    from uvatar.fit.pipeline import FitStages, _frame_views
+    from uvatar.fit.pipeline import FitConfig, FitStages, _frame_views
     from uvatar.fit.triangulate import triangulate
+    from uvatar.fit.views import scan_photo_views
     from uvatar.geometry.sampling import sample_surface
 
     stages = FitStages(views=views_cfg)
-    t_views = t_detect = t_tri = 0.0
-    k3, c3, scans = [], [], []
+    t_views = t_detect = t_tri = t_photo = 0.0
+    k3, c3, scans, photo = [], [], [], []
+    photo_cfg = replace(views_cfg, image_size=FitConfig().photo_size)
     views = 0
     for frame in frames:
         t0 = time.perf_counter()
@@ -48,15 +52,19 @@ def _timed_source(capture, frames, source, views_cfg, detector, tri_cfg, body, b
         if source == "scans":  # images alone is what a video capture has
             mesh = capture.load_scan(frame)
             scans.append(sample_surface(mesh.vertices, mesh.faces, 3000))
-    obs = FitObservations(keypoints3d=np.stack(k3), keypoints3d_conf=np.stack(c3), scans=scans or None)
+            t0 = time.perf_counter()
+            photo.append(scan_photo_views(mesh, photo_cfg))   # the texture stage's unshaded views
+            t_photo += time.perf_counter() - t0
+    obs = FitObservations(keypoints3d=np.stack(k3), keypoints3d_conf=np.stack(c3), scans=scans or None,
+                          photo=photo or None)
     t0 = time.perf_counter()
     fit_body_sequence(body, obs, body_cfg)
     t_fit = time.perf_counter() - t0
     n = len(frames)
     return {"views": views, "render_views_s_per_frame": t_views / n, "detection_s_per_frame": t_detect / n,
             "detection_s_per_image": t_detect / (n * views), "triangulation_s_per_frame": t_tri / n,
-            "fit_s_per_frame": t_fit / n,
-            "total_s_per_frame": (t_views + t_detect + t_tri + t_fit) / n}
+            "photo_views_s_per_frame": t_photo / n, "fit_s_per_frame": t_fit / n,
+            "total_s_per_frame": (t_views + t_detect + t_tri + t_photo + t_fit) / n}
 
 
 def main(argv=None) -> int:
