@@ -115,7 +115,7 @@ def test_sample_surface_is_on_the_mesh_and_uniform_by_area():
 
 
 def test_continuity_cuts_where_the_person_jumps():
-    from uvatar.fit.pipeline import continuity
+    from uvatar.fit.sequence import continuity
 
     T, K = 6, 10
     pts = np.zeros((T, K, 3))

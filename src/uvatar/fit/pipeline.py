@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -21,6 +21,7 @@ import numpy as np
 
 from uvatar.capture.layout import CAPTURE_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
+from uvatar.fit.sequence import photo_views, scan_samples, stack_observations
 from uvatar.io_utils import read_json, write_json
 
 log = logging.getLogger(__name__)
@@ -161,87 +162,6 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     return observations, failures
 
 
-def _scan_samples(capture: Capture, frames: list[str], config: FitConfig, progress: bool):
-    from tqdm import tqdm
-
-    from uvatar.geometry.sampling import sample_surface
-
-    samples = []
-    for frame in tqdm(frames, desc="scan points", unit="frame", disable=not progress, dynamic_ncols=True):
-        try:
-            mesh = capture.load_scan(frame) if capture.has_scan(frame) else None
-            samples.append(None if mesh is None else sample_surface(mesh.vertices, mesh.faces, config.scan_points,
-                                                                     config.seed))
-        except UvatarError as exc:
-            log.warning("frame %s: scan not used (%s)", frame, exc)
-            samples.append(None)
-    return samples
-
-
-def _photo_views(capture: Capture, frames: list[str], config: FitConfig, stages: FitStages, failures,
-                 progress: bool) -> list:
-    """Per frame the scan's unshaded texture seen by the virtual cameras, with depth (photometric
-    term), at ``config.photo_size`` pixels; None for frames without a usable scan."""
-    from dataclasses import replace
-
-    from tqdm import tqdm
-
-    from uvatar.fit.views import scan_photo_views
-
-    views = replace(stages.views, image_size=config.photo_size)
-    out = []
-    for frame in tqdm(frames, desc="photo views", unit="frame", disable=not progress, dynamic_ncols=True):
-        try:
-            ok = frame not in failures and capture.has_scan(frame)
-            out.append(scan_photo_views(capture.load_scan(frame), views) if ok else None)
-        except UvatarError as exc:
-            log.warning("frame %s: no photo views (%s)", frame, exc)
-            out.append(None)
-    return out
-
-
-def continuity(points: np.ndarray, conf: np.ndarray, cut_distance: float) -> np.ndarray:
-    """(T-1,) bool: False where the median displacement of the keypoints triangulated in both frames t
-    and t+1 (points (T, K, 3) metres, conf (T, K)) exceeds ``cut_distance`` (a cut between takes);
-    True where fewer than 3 keypoints are shared (an undetected frame is bridged by smoothness)."""
-    both = (conf[1:] > 0) & (conf[:-1] > 0)
-    step = np.linalg.norm(points[1:] - points[:-1], axis=-1)
-    out = np.ones(max(len(points) - 1, 0), bool)
-    for t in np.flatnonzero(both.sum(1) >= 3):  # T-1 frame pairs, not keypoints
-        out[t] = np.median(step[t][both[t]]) <= cut_distance
-    return out
-
-
-def _observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.1,
-                  failures=()):
-    """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`; frames in
-    ``failures`` contribute nothing (neither keypoints nor scan): their neighbours carry them."""
-    from uvatar.fit.body_fit import FitObservations
-
-    observations = {f: o for f, o in observations.items() if f not in failures}
-    if scans is not None:
-        scans = [None if f in failures else s for f, s in zip(frames, scans, strict=True)]
-    T = len(frames)
-    k3 = np.zeros((T, keypoint_count, 3), np.float32)
-    c3 = np.zeros((T, keypoint_count), np.float32)
-    for t, frame in enumerate(frames):
-        obs = observations.get(frame)
-        if obs is not None:
-            k3[t], c3[t] = obs.points, obs.points_conf
-    k2 = c2 = cameras = None
-    if source == "images" and observations:
-        cameras = next(iter(observations.values())).cameras
-        C = len(cameras)
-        k2 = np.zeros((T, C, keypoint_count, 2), np.float32)
-        c2 = np.zeros((T, C, keypoint_count), np.float32)
-        for t, frame in enumerate(frames):
-            obs = observations.get(frame)
-            if obs is not None and len(obs.cameras) == C:
-                k2[t], c2[t] = obs.xy, obs.conf
-    return FitObservations(keypoints3d=k3, keypoints3d_conf=c3, keypoints2d=k2, keypoints2d_conf=c2,
-                           cameras=cameras, scans=scans, continuous=continuity(k3, c3, cut_distance))
-
-
 def _write_fits(capture: Capture, frames, result, body, config: FitConfig, provenance: dict) -> None:
     from uvatar.capture.fits import write_fit
     from uvatar.capture.types import BodyFit
@@ -316,7 +236,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     observations, failures = _detect_all(capture, frames, source, detector, stages, progress)
     t_detect = time.perf_counter() - t0
     use_scans = config.scan_distance and capture.scans_dir.is_dir()
-    scans = _scan_samples(capture, frames, config, progress) if use_scans else None
+    scans = scan_samples(capture, frames, config.scan_points, config.seed, progress) if use_scans else None
     usable = [f for f in frames if f in observations and f not in failures]
     has_scan = scans is not None and any(s is not None for s in scans)
     if not usable and not has_scan:
@@ -327,10 +247,11 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         raise InputError(capture.root, f"{len(frames)} frames, none usable for fitting: {why}")
 
     t1 = time.perf_counter()
-    obs = _observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance,
-                        failures)
+    obs = stack_observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance,
+                              failures)
     if use_scans and config.photo_size and stages.body.w_photo > 0:
-        obs.photo = _photo_views(capture, frames, config, stages, failures, progress)
+        obs.photo = photo_views(capture, frames, replace(stages.views, image_size=config.photo_size), failures,
+                                progress)
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
     t_fit = time.perf_counter() - t1

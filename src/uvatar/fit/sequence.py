@@ -1,0 +1,93 @@
+"""The inputs of a sequence fit, gathered from a capture: per-frame keypoint observations stacked
+over frames, cuts between takes, scan samples and the photometric views (``uvatar fit`` calls these)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from uvatar.capture.layout import Capture
+from uvatar.errors import UvatarError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["scan_samples", "photo_views", "continuity", "stack_observations"]
+
+
+def scan_samples(capture: Capture, frames: list[str], points: int, seed: int, progress: bool) -> list:
+    """Per frame ``points`` samples (points, normals) of its scan (the scan-distance term), or None."""
+    from tqdm import tqdm
+
+    from uvatar.geometry.sampling import sample_surface
+
+    samples = []
+    for frame in tqdm(frames, desc="scan points", unit="frame", disable=not progress, dynamic_ncols=True):
+        try:
+            mesh = capture.load_scan(frame) if capture.has_scan(frame) else None
+            samples.append(None if mesh is None else sample_surface(mesh.vertices, mesh.faces, points, seed))
+        except UvatarError as exc:
+            log.warning("frame %s: scan not used (%s)", frame, exc)
+            samples.append(None)
+    return samples
+
+
+def photo_views(capture: Capture, frames: list[str], views, failures, progress: bool) -> list:
+    """Per frame the scan's unshaded texture seen by the virtual cameras of ``views``
+    (:class:`~uvatar.fit.views.ScanViewsConfig`), with depth (the photometric term); None for frames
+    without a usable scan or in ``failures``."""
+    from tqdm import tqdm
+
+    from uvatar.fit.views import scan_photo_views
+
+    out = []
+    for frame in tqdm(frames, desc="photo views", unit="frame", disable=not progress, dynamic_ncols=True):
+        try:
+            ok = frame not in failures and capture.has_scan(frame)
+            out.append(scan_photo_views(capture.load_scan(frame), views) if ok else None)
+        except UvatarError as exc:
+            log.warning("frame %s: no photo views (%s)", frame, exc)
+            out.append(None)
+    return out
+
+
+def continuity(points: np.ndarray, conf: np.ndarray, cut_distance: float) -> np.ndarray:
+    """(T-1,) bool: False where the median displacement of the keypoints triangulated in both frames t
+    and t+1 (points (T, K, 3) metres, conf (T, K)) exceeds ``cut_distance`` (a cut between takes);
+    True where fewer than 3 keypoints are shared (an undetected frame is bridged by smoothness)."""
+    both = (conf[1:] > 0) & (conf[:-1] > 0)
+    step = np.linalg.norm(points[1:] - points[:-1], axis=-1)
+    out = np.ones(max(len(points) - 1, 0), bool)
+    for t in np.flatnonzero(both.sum(1) >= 3):  # T-1 frame pairs, not keypoints
+        out[t] = np.median(step[t][both[t]]) <= cut_distance
+    return out
+
+
+def stack_observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.1,
+                  failures=()):
+    """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`; frames in
+    ``failures`` contribute nothing (neither keypoints nor scan): their neighbours carry them."""
+    from uvatar.fit.body_fit import FitObservations
+
+    observations = {f: o for f, o in observations.items() if f not in failures}
+    if scans is not None:
+        scans = [None if f in failures else s for f, s in zip(frames, scans, strict=True)]
+    T = len(frames)
+    k3 = np.zeros((T, keypoint_count, 3), np.float32)
+    c3 = np.zeros((T, keypoint_count), np.float32)
+    for t, frame in enumerate(frames):
+        obs = observations.get(frame)
+        if obs is not None:
+            k3[t], c3[t] = obs.points, obs.points_conf
+    k2 = c2 = cameras = None
+    if source == "images" and observations:
+        cameras = next(iter(observations.values())).cameras
+        C = len(cameras)
+        k2 = np.zeros((T, C, keypoint_count, 2), np.float32)
+        c2 = np.zeros((T, C, keypoint_count), np.float32)
+        for t, frame in enumerate(frames):
+            obs = observations.get(frame)
+            if obs is not None and len(obs.cameras) == C:
+                k2[t], c2[t] = obs.xy, obs.conf
+    return FitObservations(keypoints3d=k3, keypoints3d_conf=c3, keypoints2d=k2, keypoints2d_conf=c2,
+                           cameras=cameras, scans=scans, continuous=continuity(k3, c3, cut_distance))
