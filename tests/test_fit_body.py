@@ -112,6 +112,18 @@ def test_projection_matches_opencv_and_passes_gradcheck():
         assert np.allclose(depth[i].numpy(), c.world_to_camera(P)[:, 2])
     x = torch.tensor(P, requires_grad=True)
     assert torch.autograd.gradcheck(lambda p: project_cameras(p, ct)[0], (x,))  # the lens is a constant
+    # per-frame cameras (F, C): frame f's points through frame f's cameras, lens included
+    per = camera_tensors([cams, cams[::-1]], dtype=torch.float64)
+    assert per.K.shape == (2, 2, 3, 3) and per.dist.shape == (2, 2, 5)
+    two = torch.tensor(np.stack([P, P[::-1].copy()]))
+    px2, depth2 = project_cameras(two, per)
+    for f, (points, order) in enumerate(((P, cams), (P[::-1], cams[::-1]))):
+        for c, cam in enumerate(order):
+            ref = cv2.projectPoints(points, cv2.Rodrigues(cam.R)[0], cam.T, cam.K, cam.dist)[0][:, 0]
+            assert np.abs(ref - px2[f, c].numpy()).max() < 1e-9
+            assert np.allclose(depth2[f, c].numpy(), cam.world_to_camera(points)[:, 2])
+    y = two.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: project_cameras(p, per)[0], (y,))
 
 
 def test_scan_term_is_zero_on_the_bodys_own_surface(anny):

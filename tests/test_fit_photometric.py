@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from uvatar.fit.photometric import PhotoTerm, PhotoViews, _blur
+from uvatar.fit.projection import project_cameras
 from uvatar.render.cameras import look_at_camera
 
 SIZE = 64
@@ -44,7 +45,7 @@ def test_projection_matches_the_camera():
     views, cam = _views()
     pts = _plane_points()
     term = PhotoTerm([views], np.arange(len(pts)), "cpu", blur_px=0.0)
-    px, z = term.project(torch.as_tensor(pts, dtype=torch.float32)[None])
+    px, z = project_cameras(torch.as_tensor(pts, dtype=torch.float32)[None], term.cams)   # per-frame cameras
     np.testing.assert_allclose(px[0, 0].numpy(), cam.project(pts), atol=1e-3)
     np.testing.assert_allclose(z[0, 0].numpy(), 2.0, atol=1e-5)
 
@@ -60,7 +61,7 @@ def test_consistent_frames_cost_nothing_and_a_slid_frame_is_pulled_back():
     term.refresh(verts, norms)
     assert term.visible.sum() == 3 * len(pts)
     x_colour = term.reference[:, 0].numpy()
-    px = term.project(torch.as_tensor(pts, dtype=torch.float32)[None])[0][0, 0, :, 0].numpy()
+    px = project_cameras(torch.as_tensor(pts, dtype=torch.float32)[None], term.cams)[0][0, 0, :, 0].numpy()
     np.testing.assert_allclose(x_colour, (px + 0.5) / SIZE, atol=1e-4)    # the median is the unslid colour
     verts.requires_grad_(True)
     cost = term(verts, sigma=0.1)

@@ -159,15 +159,10 @@ class MaskTerm:
         self.body_vertices = torch.as_tensor(body_vertices, device=device)
 
     def __call__(self, vertices, sigma: float):
-        from uvatar.fit.projection import project_cameras
+        from uvatar.fit.projection import project_cameras, sample_views
 
-        T = vertices.shape[0]
         px, z = project_cameras(vertices[:, self.body_vertices], self.cams)   # (T, C, N, 2)
-        C, N = px.shape[1], px.shape[2]
-        W, H = self.size
-        grid = torch.stack([(px[..., 0] + 0.5) / W * 2 - 1, (px[..., 1] + 0.5) / H * 2 - 1], -1)
-        d = torch.nn.functional.grid_sample(self.dt, grid.reshape(T * C, 1, N, 2), align_corners=False,
-                                            padding_mode="border").reshape(T, C, N)
+        d = sample_views(self.dt, px, self.size)[..., 0]                      # (T, C, N) pixels
         f = self.cams.K[:, 0, 0].reshape(1, -1, 1)
         cost = gmof(d * z.detach().clamp_min(0.1) / f, sigma)
         return _normalized(cost, self.valid[..., None].expand_as(cost))

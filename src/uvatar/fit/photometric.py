@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from uvatar.capture.types import Camera
+from uvatar.fit.projection import camera_tensors, project_cameras, sample_views
 
 __all__ = ["PhotoViews", "PhotoTerm"]
 
@@ -64,51 +65,19 @@ class PhotoTerm:
         for t in self.frames:
             if views[t].images.shape[:3] != (C, H, W) or views[t].depth.shape != (C, H, W):
                 raise ValueError(f"frame {t}: views must all be {C} x {H} x {W}")
-        self.size, self.C = (W, H), C
+        self.size = (W, H)
         self.clothing, self.min_frames = clothing, min_frames
         self.device, self.dtype = device, dtype
 
-        def stack(fn):
-            return torch.as_tensor(np.stack([np.stack([fn(c) for c in views[t].cameras]) for t in self.frames]),
-                                   device=device, dtype=dtype)
-        self.K, self.R, self.T = stack(lambda c: c.K), stack(lambda c: c.R), stack(lambda c: np.reshape(c.T, 3))
-        dist = [[np.pad(np.asarray(c.dist, np.float64).reshape(-1), (0, 5))[:5] for c in views[t].cameras]
-                for t in self.frames]
-        self.distorted = [(f, c, d) for f, row in enumerate(dist) for c, d in enumerate(row) if np.any(d != 0)]
+        self.cams = camera_tensors([views[t].cameras for t in self.frames], device=device, dtype=dtype)  # (F, C)
         imgs = torch.as_tensor(np.stack([views[t].images for t in self.frames]), device=device, dtype=dtype)
         self.images = _blur(imgs.reshape(-1, H, W, 3).permute(0, 3, 1, 2), blur_px)   # (F*C, 3, H, W)
         self.depth = torch.as_tensor(np.stack([views[t].depth for t in self.frames]), device=device,
                                      dtype=dtype).reshape(-1, 1, H, W)
-        self.centres = -torch.einsum("fcji,fcj->fci", self.R, self.T)                  # camera centres (F, C, 3)
+        self.centres = -torch.einsum("fcji,fcj->fci", self.cams.R, self.cams.T)        # camera centres (F, C, 3)
         self.frame_index = torch.as_tensor(self.frames, device=device, dtype=torch.int64)
         self.body_vertices = torch.as_tensor(np.asarray(body_vertices, np.int64), device=device)
         self.reference = self.visible = None
-
-    def project(self, points: torch.Tensor):
-        """points (F, N, 3) world -> pixels (F, C, N, 2) (distorted where a camera has distortion),
-        depth (F, C, N)."""
-        from uvatar.geometry.camera import distort
-
-        cam = torch.einsum("fcij,fnj->fcni", self.R, points) + self.T[:, :, None, :]
-        z = cam[..., 2]
-        xy = cam[..., :2] / z.clamp_min(1e-3)[..., None]
-        if self.distorted:
-            xy = xy.clone()
-            for f, c, d in self.distorted:
-                xy[f, c] = distort(xy[f, c], d)
-        K = self.K[:, :, None]
-        u = K[..., 0, 0] * xy[..., 0] + K[..., 0, 1] * xy[..., 1] + K[..., 0, 2]
-        v = K[..., 1, 1] * xy[..., 1] + K[..., 1, 2]
-        return torch.stack([u, v], -1), z
-
-    def _sample(self, maps: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
-        """maps (F*C, ch, H, W), px (F, C, N, 2) -> (F, C, N, ch) bilinear samples."""
-        F, C, N = px.shape[:3]
-        W, H = self.size
-        grid = torch.stack([(px[..., 0] + 0.5) / W * 2 - 1, (px[..., 1] + 0.5) / H * 2 - 1], -1)
-        out = torch.nn.functional.grid_sample(maps, grid.reshape(F * C, 1, N, 2), align_corners=False,
-                                              padding_mode="border")
-        return out.reshape(F, C, maps.shape[1], N).permute(0, 1, 3, 2)
 
     def refresh(self, vertices: torch.Tensor, normals: torch.Tensor) -> None:
         """Visibility of each (frame, view, vertex) and each vertex's reference colour for the current
@@ -116,17 +85,14 @@ class PhotoTerm:
         with torch.no_grad():
             v = vertices[self.frame_index][:, self.body_vertices].to(self.dtype)
             n = normals[self.frame_index][:, self.body_vertices].to(self.dtype)
-            px, z = self.project(v)
+            px, z = project_cameras(v, self.cams)
             W, H = self.size
             inside = (px[..., 0] >= 0) & (px[..., 0] <= W - 1) & (px[..., 1] >= 0) & (px[..., 1] <= H - 1)
-            d = torch.nn.functional.grid_sample(
-                self.depth, torch.stack([(px[..., 0] + 0.5) / W * 2 - 1, (px[..., 1] + 0.5) / H * 2 - 1], -1)
-                .reshape(px.shape[0] * self.C, 1, -1, 2), mode="nearest", align_corners=False)
-            d = d.reshape(z.shape)
+            d = sample_views(self.depth, px, self.size, mode="nearest")[..., 0]
             to_cam = self.centres[:, :, None, :] - v[:, None]
             facing = (n[:, None] * to_cam).sum(-1) > 0.3 * to_cam.norm(dim=-1)
             vis = inside & facing & (d > 0) & ((z - d).abs() < self.clothing)
-            colour = self._sample(self.images, px)                                  # (F, C, N, 3)
+            colour = sample_views(self.images, px, self.size)                      # (F, C, N, 3)
             w = vis.to(self.dtype)[..., None]
             per_frame = (colour * w).sum(1) / w.sum(1).clamp_min(1e-9)              # (F, N, 3)
             seen = vis.any(1)                                                       # (F, N)
@@ -143,8 +109,8 @@ class PhotoTerm:
         if self.reference is None:
             raise RuntimeError("PhotoTerm.refresh must run before the term is evaluated")
         v = vertices[self.frame_index][:, self.body_vertices]
-        px, _ = self.project(v)
-        colour = self._sample(self.images, px)
+        px, _ = project_cameras(v, self.cams)
+        colour = sample_views(self.images, px, self.size)
         r = torch.linalg.norm(colour - self.reference[None, None], dim=-1)
         per = _normalized(gmof(r, sigma), self.visible)
         return vertices.new_zeros(vertices.shape[0]).index_add(0, self.frame_index, per)

@@ -15,7 +15,8 @@ import torch
 from uvatar.capture.types import Camera
 from uvatar.geometry.camera import distort, undistort
 
-__all__ = ["project_distorted", "undistort_normalized", "CameraTensors", "camera_tensors", "project_cameras"]
+__all__ = ["project_distorted", "undistort_normalized", "CameraTensors", "camera_tensors", "project_cameras",
+           "sample_views"]
 
 
 def project_distorted(camera: Camera, points) -> tuple[np.ndarray, np.ndarray]:
@@ -35,8 +36,9 @@ def undistort_normalized(camera: Camera, pixels) -> np.ndarray:
 
 
 class CameraTensors:
-    """Stacked camera parameters on one device: K (C, 3, 3), R (C, 3, 3), T (C, 3); ``dist`` keeps
-    each camera's (5,) coefficients as numpy (they are constants of the lens model)."""
+    """Stacked camera parameters on one device: K (..., C, 3, 3), R (..., C, 3, 3), T (..., C, 3), the
+    leading dims absent for one set of C cameras shared by every frame, (F,) for per-frame cameras;
+    ``dist`` (..., C, 5) numpy (the lens coefficients are constants of the model)."""
 
     def __init__(self, K, R, T, dist):
         self.K, self.R, self.T, self.dist = K, R, T, dist
@@ -46,23 +48,47 @@ class CameraTensors:
 
 
 def camera_tensors(cameras, device="cpu", dtype=torch.float32) -> CameraTensors:
-    """list[Camera] -> :class:`CameraTensors`."""
-    def stack(attr):
-        return torch.as_tensor(np.stack([np.asarray(getattr(c, attr), np.float64) for c in cameras]),
-                               device=device, dtype=dtype)
-    dist = [np.pad(np.asarray(c.dist, np.float64).reshape(-1), (0, 5))[:5] for c in cameras]
-    return CameraTensors(stack("K"), stack("R"), stack("T"), dist)
+    """list[Camera] (C cameras every frame shares) -> :class:`CameraTensors` of shape (C, ...); a list
+    of such lists, one per frame with the same C (e.g. virtual cameras framing each scan) -> (F, C, ...)."""
+    per_frame = len(cameras) > 0 and isinstance(cameras[0], (list, tuple))
+    rows = cameras if per_frame else [cameras]
+
+    def stack(fn) -> np.ndarray:
+        out = np.stack([np.stack([fn(c) for c in row]) for row in rows])
+        return out if per_frame else out[0]
+
+    def tensor(fn):
+        return torch.as_tensor(stack(fn), device=device, dtype=dtype)
+
+    dist = stack(lambda c: np.pad(np.asarray(c.dist, np.float64).reshape(-1), (0, 5))[:5])
+    return CameraTensors(tensor(lambda c: np.asarray(c.K, np.float64)), tensor(lambda c: np.asarray(c.R, np.float64)),
+                         tensor(lambda c: np.asarray(c.T, np.float64).reshape(3)), dist)
 
 
 def project_cameras(points: torch.Tensor, cams: CameraTensors, min_depth: float = 1e-3):
     """points (..., N, 3) world -> (pixels (..., C, N, 2) distorted, depth (..., C, N) metres),
-    differentiable. Depth is clamped to ``min_depth`` before the division (points behind a camera
-    give finite but meaningless pixels: mask them with ``depth > 0``)."""
-    cam = torch.einsum("cij,...nj->...cni", cams.R, points) + cams.T[:, None, :]
+    differentiable; per-frame cameras (F, C, ...) take points (F, N, 3). Depth is clamped to
+    ``min_depth`` before the division (points behind a camera give finite but meaningless pixels:
+    mask them with ``depth > 0``)."""
+    cam = torch.einsum("...cij,...nj->...cni", cams.R, points) + cams.T[..., None, :]
     z = cam[..., 2]
     xy = cam[..., :2] / z.clamp_min(min_depth)[..., None]
-    xy = torch.stack([distort(xy[..., c, :, :], d) for c, d in enumerate(cams.dist)], dim=-3)  # C views, not points
-    K = cams.K
-    u = K[:, None, 0, 0] * xy[..., 0] + K[:, None, 0, 1] * xy[..., 1] + K[:, None, 0, 2]
-    v = K[:, None, 1, 1] * xy[..., 1] + K[:, None, 1, 2]
+    dist = np.asarray(cams.dist).reshape(-1, 5)                  # one lens per camera (and frame)
+    flat = xy.reshape(*xy.shape[: xy.dim() - cams.K.dim()], len(dist), *xy.shape[-2:])   # camera dims flattened
+    xy = torch.stack([distort(flat[..., k, :, :], d) for k, d in enumerate(dist)], dim=-3).reshape(xy.shape)
+    K = cams.K[..., None, :, :]
+    u = K[..., 0, 0] * xy[..., 0] + K[..., 0, 1] * xy[..., 1] + K[..., 0, 2]
+    v = K[..., 1, 1] * xy[..., 1] + K[..., 1, 2]
     return torch.stack([u, v], -1), z
+
+
+def sample_views(maps: torch.Tensor, pixels: torch.Tensor, size: tuple[int, int], mode: str = "bilinear"):
+    """maps (B*C, ch, H, W), one per (frame, view); pixels (B, C, N, 2) OpenCV pixel coordinates;
+    size (W, H) -> (B, C, N, ch) samples (``grid_sample``, differentiable in the pixels for
+    "bilinear"; pixels outside the image take the border's value)."""
+    B, C, N = pixels.shape[:3]
+    W, H = size
+    grid = torch.stack([(pixels[..., 0] + 0.5) / W * 2 - 1, (pixels[..., 1] + 0.5) / H * 2 - 1], -1)
+    out = torch.nn.functional.grid_sample(maps, grid.reshape(B * C, 1, N, 2), mode=mode, align_corners=False,
+                                          padding_mode="border")
+    return out.reshape(B, C, maps.shape[1], N).permute(0, 1, 3, 2)
