@@ -56,6 +56,7 @@ def test_fit_from_images_writes_fits_shape_and_provenance_and_resumes(fit_studio
     assert all(cap.has_fit(f) for f in cap.frames)
     prov = cap.info["provenance"]["fit"]
     assert prov["detector"]["name"].startswith("mediapipe") and "keypoints3d" in prov["losses"]
+    assert {"scan_distance", "photometric"} <= set(prov["losses"])   # the studio has scans: texture stage too
     assert len(cap.body_shapes) == len(cap.load_fit(cap.frames[0]).shapes) > 0  # one shape, in capture.json
     assert (root / "fitting" / "contact_sheet.png").is_file()
     assert summary["reprojection"]["fitted_body_px"]["median"] < 12  # at 256^2

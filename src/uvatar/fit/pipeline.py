@@ -21,7 +21,7 @@ import numpy as np
 
 from uvatar.capture.layout import CAPTURE_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
-from uvatar.fit.sequence import photo_views, scan_samples, stack_observations
+from uvatar.fit.sequence import scan_inputs, stack_observations
 from uvatar.io_utils import read_json, write_json
 
 log = logging.getLogger(__name__)
@@ -236,7 +236,10 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     observations, failures = _detect_all(capture, frames, source, detector, stages, progress)
     t_detect = time.perf_counter() - t0
     use_scans = config.scan_distance and capture.scans_dir.is_dir()
-    scans = scan_samples(capture, frames, config.scan_points, config.seed, progress) if use_scans else None
+    photo = (replace(stages.views, image_size=config.photo_size)
+             if use_scans and config.photo_size and stages.body.w_photo > 0 else None)
+    scans, photo_views = (scan_inputs(capture, frames, config.scan_points, config.seed, photo, failures, progress)
+                          if use_scans else (None, None))
     usable = [f for f in frames if f in observations and f not in failures]
     has_scan = scans is not None and any(s is not None for s in scans)
     if not usable and not has_scan:
@@ -249,9 +252,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     t1 = time.perf_counter()
     obs = stack_observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance,
                               failures)
-    if use_scans and config.photo_size and stages.body.w_photo > 0:
-        obs.photo = photo_views(capture, frames, replace(stages.views, image_size=config.photo_size), failures,
-                                progress)
+    obs.photo = photo_views
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
     t_fit = time.perf_counter() - t1
@@ -322,4 +323,6 @@ def _loss_names(obs, body_config) -> list[str]:
         names.append("scan_distance")
     if obs.masks is not None:
         names.append("silhouette")
+    if body_config.w_photo > 0 and obs.photo is not None and any(v is not None for v in obs.photo):
+        names.append("photometric")
     return names + ["pose_prior", "joint_limits", "temporal_smoothness", "shape_prior"]

@@ -12,43 +12,37 @@ from uvatar.errors import UvatarError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["scan_samples", "photo_views", "continuity", "stack_observations"]
+__all__ = ["scan_inputs", "continuity", "stack_observations"]
 
 
-def scan_samples(capture: Capture, frames: list[str], points: int, seed: int, progress: bool) -> list:
-    """Per frame ``points`` samples (points, normals) of its scan (the scan-distance term), or None."""
+def scan_inputs(capture: Capture, frames: list[str], points: int, seed: int, photo=None, failures=(),
+                progress: bool = True) -> tuple[list, list | None]:
+    """Each frame's scan, loaded once: ``points`` surface samples (points, normals) for the
+    scan-distance term, and, with ``photo`` (a :class:`~uvatar.fit.views.ScanViewsConfig`), its
+    unshaded texture seen by the virtual cameras with depth for the photometric term (None for frames
+    in ``failures``). Returns (samples, photo views or None); None where a frame has no usable scan."""
     from tqdm import tqdm
 
+    from uvatar.fit.views import scan_photo_views
     from uvatar.geometry.sampling import sample_surface
 
-    samples = []
-    for frame in tqdm(frames, desc="scan points", unit="frame", disable=not progress, dynamic_ncols=True):
+    samples, views = [], []
+    for frame in tqdm(frames, desc="scans", unit="frame", disable=not progress, dynamic_ncols=True):
+        mesh = None
         try:
             mesh = capture.load_scan(frame) if capture.has_scan(frame) else None
             samples.append(None if mesh is None else sample_surface(mesh.vertices, mesh.faces, points, seed))
         except UvatarError as exc:
             log.warning("frame %s: scan not used (%s)", frame, exc)
             samples.append(None)
-    return samples
-
-
-def photo_views(capture: Capture, frames: list[str], views, failures, progress: bool) -> list:
-    """Per frame the scan's unshaded texture seen by the virtual cameras of ``views``
-    (:class:`~uvatar.fit.views.ScanViewsConfig`), with depth (the photometric term); None for frames
-    without a usable scan or in ``failures``."""
-    from tqdm import tqdm
-
-    from uvatar.fit.views import scan_photo_views
-
-    out = []
-    for frame in tqdm(frames, desc="photo views", unit="frame", disable=not progress, dynamic_ncols=True):
+            mesh = None
         try:
-            ok = frame not in failures and capture.has_scan(frame)
-            out.append(scan_photo_views(capture.load_scan(frame), views) if ok else None)
+            use = photo is not None and mesh is not None and frame not in failures
+            views.append(scan_photo_views(mesh, photo) if use else None)
         except UvatarError as exc:
             log.warning("frame %s: no photo views (%s)", frame, exc)
-            out.append(None)
-    return out
+            views.append(None)
+    return samples, (views if photo is not None else None)
 
 
 def continuity(points: np.ndarray, conf: np.ndarray, cut_distance: float) -> np.ndarray:
