@@ -78,8 +78,9 @@ class DvaConfig:
     def from_dict(cls, d: dict) -> DvaConfig:
         kinds = {"primitives": PrimitiveConfig, "features": FeatureConfig, "decoder": DecoderConfig,
                  "raymarch": RaymarchConfig, "loss": LossConfig, "train": TrainConfig}
-        if "background" not in d.get("train", {"background": None}):  # a run from before the option
-            d = {**d, "train": {**d["train"], "background": "photo"}}  # compared with the raw photo
+        train = d.get("train")
+        if train is not None and "background" not in train:  # a run from before the option: raw photo
+            d = {**d, "train": {**train, "background": "photo"}}
         return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
 
 
