@@ -51,6 +51,38 @@ def test_target_pixels_put_the_background_colour_outside_the_mask():
         TrainConfig(background="room")
 
 
+def test_scale_correctives_never_shrink_a_primitive_below_touching_its_neighbours():
+    """Under a push of constant sign (the volume prior alone; on a real capture the image losses did
+    the same) Adam drives every scale corrective to its lower bound within tens of steps, where the
+    clamp takes the gradient. The bound is -log(scale_factor): the boxes still touch (their
+    half-extents are the rest half-spacing), so the body stays covered. Runs saved before the option
+    keep -2."""
+    import torch
+
+    from uvatar.dva.decoders import MotionDecoder
+    from uvatar.dva.model import DvaConfig
+    from uvatar.dva.primitives import PrimitiveConfig, apply_correctives
+
+    W, B = 4, 2
+    cfg = PrimitiveConfig()
+    assert cfg.scale_corrective_bounds == (pytest.approx(-np.log(cfg.scale_factor)), 1.0)
+    features = torch.randn(B, 8, W, W, generator=torch.Generator().manual_seed(0))
+    rest = torch.full((W * W, 3), 0.01 * cfg.scale_factor)
+    torch.manual_seed(0)
+    motion = MotionDecoder(8, W, 16)
+    opt = torch.optim.Adam(motion.parameters(), lr=2e-3)
+    for _ in range(100):
+        _, _, scales = apply_correctives(torch.zeros(B, W * W, 3), torch.eye(3).expand(B, W * W, 3, 3), rest,
+                                         motion(features), cfg, True)
+        opt.zero_grad()
+        (0.01 * (scales.prod(-1) / rest.prod(-1)).mean()).backward()
+        opt.step()
+    assert torch.allclose(scales, torch.full_like(scales, 0.01), rtol=1e-5)   # exactly touching
+    old = preset("tiny").to_dict()
+    del old["primitives"]["min_scale_corrective"]
+    assert DvaConfig.from_dict(old).primitives.scale_corrective_bounds == (-2.0, 1.0)
+
+
 def test_curriculum_switches_to_three_views(capture):
     cfg = preset("tiny")
     trainer = Trainer(open_source(capture), capture.parent / "cur", cfg, progress=False)

@@ -81,6 +81,9 @@ class DvaConfig:
         train = d.get("train")
         if train is not None and "background" not in train:  # a run from before the option: raw photo
             d = {**d, "train": {**train, "background": "photo"}}
+        prims = d.get("primitives")
+        if prims is not None and "min_scale_corrective" not in prims:  # before the option: -2
+            d = {**d, "primitives": {**prims, "min_scale_corrective": -2.0}}
         return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
 
 

@@ -10,7 +10,11 @@ Texels outside UV islands are snapped to the nearest covered texel, so every pri
 Correctives from the motion branch, 9 values per primitive (switched on after a warm-up):
 ``t = t_hat + R_hat @ (dt * max_translation)`` (a local-frame offset, metres),
 ``R = R_hat @ exp(drot * max_rotation)`` (axis-angle in the local frame),
-``s = s_hat * exp(clamp(ds, -2, 1))`` (multiplicative; keeps scales positive).
+``s = s_hat * exp(clamp(ds, lo, 1))`` (multiplicative; keeps scales positive), with
+``lo = -log(scale_factor)`` by default: at its smallest a primitive still touches its neighbours, so
+the body's surface stays covered (with the earlier ``lo = -2`` every scale corrective of a real
+capture ran to its bound after the warm-up and the avatar vanished; see
+:class:`~uvatar.dva.model.TrainConfig`).
 """
 
 from __future__ import annotations
@@ -27,7 +31,9 @@ from uvatar.errors import InputError
 class PrimitiveConfig:
     """grid: W (K = W*W primitives). scale_factor: multiplies the rest half-spacing (1 = boxes touch,
     > 1 overlap). min_scale / max_scale: clamp on the initial half-extent, metres.
-    max_translation (m) / max_rotation (rad): size of a unit corrective."""
+    max_translation (m) / max_rotation (rad): size of a unit corrective. min_scale_corrective: lower
+    bound of the log scale corrective (None: ``-log(scale_factor)``, the size at which neighbouring
+    primitives touch; runs saved before the option used -2)."""
 
     grid: int = 16
     scale_factor: float = 1.5
@@ -35,6 +41,14 @@ class PrimitiveConfig:
     max_scale: float = 0.2
     max_translation: float = 0.05
     max_rotation: float = 0.5
+    min_scale_corrective: float | None = None
+
+    @property
+    def scale_corrective_bounds(self) -> tuple[float, float]:
+        """(lo, hi) of the log scale corrective."""
+        lo = (-float(np.log(self.scale_factor)) if self.min_scale_corrective is None
+              else float(self.min_scale_corrective))
+        return min(lo, 0.0), 1.0
 
 
 @dataclass
@@ -120,7 +134,7 @@ def apply_correctives(positions, rotations, rest_scales, motion, cfg: PrimitiveC
     m = motion.reshape(B, 9, K).transpose(1, 2)  # (B, K, 9)
     dt = torch.tanh(m[..., 0:3]) * cfg.max_translation
     drot = roma.rotvec_to_rotmat(torch.tanh(m[..., 3:6]) * cfg.max_rotation)
-    ds = m[..., 6:9].clamp(-2.0, 1.0)
+    ds = m[..., 6:9].clamp(*cfg.scale_corrective_bounds)
     positions = positions + torch.einsum("bkij,bkj->bki", rotations, dt)
     rotations = rotations @ drot
     scales = scales * torch.exp(ds)

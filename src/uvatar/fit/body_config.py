@@ -13,28 +13,46 @@ import numpy as np
 from uvatar.errors import check_values
 
 __all__ = ["STAGES", "PHOTO_STAGE", "FITTED_JOINTS", "STIFF_JOINTS", "fitted_joints", "FitObservations",
-           "BodyFitConfig", "SequenceFit"]
+           "BodyFitConfig", "SequenceFit", "hip_chain_joints", "HIP_CHAIN"]
 
 STAGES = ("global", "torso", "limbs", "full")
+HIP_CHAIN = ("auto", "free", "rest")
 PHOTO_STAGE = "texture"  # after "full", where photometric views exist
 FITTED_JOINTS = ("semantic", "conditioning")
 # joints whose rotation keypoints barely see (a collar moves the shoulder point as an arm does; a wrist
-# turns a hand whose finger points are weak): their pose prior is ``stiff_prior`` times stronger
+# turns a hand whose finger points are weak): their pose prior is ``stiff_prior`` times stronger, as
+# is that of the hip chain (hip_chain_joints: a pelvis bone moves the hip point as the thigh does)
 STIFF_JOINTS = ("l_collar", "r_collar", "l_wrist", "r_wrist")
 # semantic joints that keypoints cannot turn: toes and eyes stay at rest, as in EasyMocap's body fits
 _AT_REST = ("l_toe", "r_toe", "l_eye", "r_eye")
 
 
-def fitted_joints(body, which: str = "semantic") -> list[int]:
+def hip_chain_joints(body) -> set[int]:
+    """The bones between the root and each semantic hip (anny's ``pelvis.L`` / ``pelvis.R``; none in
+    SMPL, whose hips hang from the root)."""
+    parents = body.template.joint_parents
+    out: set[int] = set()
+    for hip in ("l_hip", "r_hip"):
+        j = int(parents[body.semantic_joints[hip]]) if hip in body.semantic_joints else -1
+        while j >= 0 and parents[j] >= 0:
+            out.add(j)
+            j = int(parents[j])
+    return out
+
+
+def fitted_joints(body, which: str = "semantic", hip_chain: bool = False) -> list[int]:
     """Indices of the joints a fit rotates. "semantic": the body's semantic skeleton (pelvis, spine,
     neck, head, collars, shoulders, elbows, wrists, hips, knees, ankles; the joints of an EasyMocap /
     SMPL body fit), so that helper and twist bones a keypoint cannot see (anny's upperarm02,
     lowerarm02, shoulder01, ...) stay at rest instead of soaking up twist; "conditioning": every
-    pose-conditioning joint. The root is left out (Rh turns the body)."""
+    pose-conditioning joint. The root is left out (Rh turns the body). ``hip_chain``: the semantic
+    set also turns the bones between the root and each hip (:func:`hip_chain_joints`)."""
     conditioning = [int(j) for j in body.conditioning_joints]
     if which == "conditioning":
         return conditioning
     keep = {int(j) for name, j in body.semantic_joints.items() if name not in _AT_REST}
+    if hip_chain:
+        keep |= hip_chain_joints(body)
     root = [j for j, p in enumerate(body.template.joint_parents) if p < 0]
     return [j for j in conditioning if j in keep and j not in root] or conditioning
 
@@ -88,7 +106,17 @@ class BodyFitConfig:
     ``uvatar fit`` renders them where scans exist). Same capture, colour residual Geman-McClure
     ``photo_sigma`` 0.1, views at 256 px blurred by 1 px: world angle error of the joints 9.2 deg
     without it, 8.0 with w_photo 0.2 x 60 steps, 6.4 with 1.0 x 120 (3.0 x 200: 6.8; 512 px: 6.8);
-    the bake from those fits: texture 25.2 -> 25.7 -> 26.3 dB, correspondence 2.49 -> 2.35 mm."""
+    the bake from those fits: texture 25.2 -> 25.7 -> 26.3 dB, correspondence 2.49 -> 2.35 mm.
+
+    ``hip_chain``: whether the bones between the root and the hips (:func:`hip_chain_joints`, anny's
+    ``pelvis.L`` / ``pelvis.R``) turn, under the stiff prior: "free", "rest", or "auto" (free where
+    no scan constrains the surface). Held at rest, a real person's pelvis cannot turn against the
+    legs: on the real 4-camera recording (``uvatar fit --from images``, 100 frames) the fitted hip
+    line's yaw was off the triangulated hips' by 13.3 deg mean / 32 deg max (right hip 33 mm off);
+    free, 4.0 / 15 deg (15 mm). ``uvatar synth``
+    moves the semantic joints alone, so freeing them costs a little there: from scans MPJPE 12.3 ->
+    12.5 mm, angle 6.4 -> 7.1 deg, shape 1.2 -> 2.4 mm; from images 23.2 -> 24.4 mm. Where scans
+    exist the surface places the hips, hence "auto"."""
 
     device: str = "cpu"
     iterations: tuple[int, int, int, int] = (40, 40, 80, 100)
@@ -127,7 +155,8 @@ class BodyFitConfig:
     max_untracked_weight: float = 0.5
     min_torso_keypoints: int = 3
     joints: str = "semantic"  # which joints move: "semantic" (an EasyMocap body) or "conditioning"
-    stiff_prior: float = 20.0  # pose-prior weight of STIFF_JOINTS relative to the others
+    stiff_prior: float = 20.0  # pose-prior weight of STIFF_JOINTS (and the hip chain) relative to the others
+    hip_chain: str = "auto"
 
     def __post_init__(self) -> None:
         self.iterations = tuple(int(i) for i in self.iterations)
@@ -149,6 +178,7 @@ class BodyFitConfig:
              "vertex/sample counts and refresh_every must be >= 1"),
             (0 < self.max_untracked_weight <= 1, "max_untracked_weight must be in (0, 1]"),
             (self.stiff_prior >= 0, f"stiff_prior must be >= 0, got {self.stiff_prior}"),
+            (self.hip_chain in HIP_CHAIN, f"hip_chain must be one of {', '.join(HIP_CHAIN)}, got {self.hip_chain!r}"),
             (self.joints in FITTED_JOINTS, f"joints must be one of {', '.join(FITTED_JOINTS)}, got {self.joints!r}"),
             (0 <= self.shape_from_stage <= 3, "shape_from_stage must be 0..3"),
             (self.shape_every >= 1, "shape_every must be >= 1"),

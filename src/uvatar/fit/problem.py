@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from uvatar.fit import losses as L
-from uvatar.fit.body_config import STIFF_JOINTS, BodyFitConfig, FitObservations, fitted_joints
+from uvatar.fit.body_config import STIFF_JOINTS, BodyFitConfig, FitObservations, fitted_joints, hip_chain_joints
 from uvatar.fit.initialize import initial_global
 from uvatar.fit.photometric import PhotoTerm
 from uvatar.fit.skinning import SubsetSkinner
@@ -74,7 +74,9 @@ class FitProblem:
         self.kp = BodyKeypoints(body).to(dev)
         K = len(self.kp.names)
         self.kp_w = torch.as_tensor(self.kp.weights, device=dev)
-        self.joints = fitted_joints(body, cfg.joints)
+        has_scan = obs.scans is not None and any(s is not None for s in obs.scans)
+        hips = cfg.hip_chain == "free" or (cfg.hip_chain == "auto" and not has_scan)
+        self.joints = fitted_joints(body, cfg.joints, hip_chain=hips)
         limbs = _limb_joints(body, self.joints)
         self.torso_mask = torch.tensor([j not in limbs for j in self.joints], device=dev, dtype=torch.float32)
         self.bounded = body.name == "anny"   # anny's phenotypes live in [0, 1]
@@ -94,7 +96,6 @@ class FitProblem:
             raise ValueError("keypoints2d need cameras")
         tpl = body.template
         tracked = np.flatnonzero(untracked_skin_weight(tpl.skin_weights, self.joints) <= cfg.max_untracked_weight)
-        has_scan = obs.scans is not None and any(s is not None for s in obs.scans)
         has_mask = (obs.masks is not None and self.cams is not None
                     and any(m is not None for f in obs.masks for m in f))
         scan_ids = _strided(tracked, cfg.scan_body_vertices) if has_scan else np.zeros(0, np.int64)
@@ -137,6 +138,7 @@ class FitProblem:
         self.rot = torch.zeros(T, len(self.joints), 3, device=dev, requires_grad=True)
         self.joint_index = torch.as_tensor(self.joints, device=dev)
         stiff = {int(body.semantic_joints[n]) for n in STIFF_JOINTS if n in body.semantic_joints}
+        stiff |= hip_chain_joints(body) if hips else set()
         self.prior_weights = torch.tensor([cfg.stiff_prior if j in stiff else 1.0 for j in self.joints],
                                           device=dev, dtype=torch.float32)
 
