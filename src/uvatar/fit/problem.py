@@ -9,7 +9,13 @@ import numpy as np
 import torch
 
 from uvatar.fit import losses as L
-from uvatar.fit.body_config import STIFF_JOINTS, BodyFitConfig, FitObservations, fitted_joints, hip_chain_joints
+from uvatar.fit.body_config import (
+    STIFF_JOINTS,
+    BodyFitConfig,
+    FitObservations,
+    fitted_joints,
+    hip_chain_joints,
+)
 from uvatar.fit.initialize import initial_global
 from uvatar.fit.photometric import PhotoTerm
 from uvatar.fit.skinning import SubsetSkinner
