@@ -13,8 +13,9 @@ Correctives from the motion branch, 9 values per primitive (switched on after a 
 ``s = s_hat * exp(clamp(ds, lo, 1))`` (multiplicative; keeps scales positive), with
 ``lo = -log(scale_factor)`` by default: at its smallest a primitive still touches its neighbours, so
 the body's surface stays covered (with the earlier ``lo = -2`` every scale corrective of a real
-capture ran to its bound after the warm-up and the avatar vanished; see
-:class:`~uvatar.dva.model.TrainConfig`).
+capture ran to its bound within tens of steps of the warm-up's end, since every loss asks for
+smaller boxes there and Adam steps do not shrink with the gradient; the clamp then took the gradient
+and the avatar vanished: ``docs/real.md`` §4).
 """
 
 from __future__ import annotations
