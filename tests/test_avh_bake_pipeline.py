@@ -96,6 +96,14 @@ def test_bad_arguments(baked, tmp_path, capsys):
     cap, out, _ = baked
     assert main(["bake", str(tmp_path / "nope"), str(tmp_path / "o"), *ARGS]) == 1
     assert "does not exist" in capsys.readouterr().err
+    import shutil
+
+    video_only = tmp_path / "video_only"            # cameras and images but no scans: refused up front
+    shutil.copytree(cap, video_only, ignore=shutil.ignore_patterns("scans"))
+    assert main(["bake", str(video_only), str(tmp_path / "o0"), *ARGS]) == 1
+    err = capsys.readouterr().err
+    assert "scans" in err and "uvatar train dva" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o0").exists()
     assert main(["bake", str(cap), str(out), "--texels", "32", "--no-progress"]) == 1
     assert "64 texels" in capsys.readouterr().err
     assert main(["bake", str(cap), str(tmp_path / "o2"), *ARGS, "--frames", "999999"]) == 1

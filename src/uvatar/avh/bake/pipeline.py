@@ -202,6 +202,10 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     check_memory(BAKE_BYTES_PER_TEXEL * config.texels ** 2 * max(1, workers), "texels",
                  f"baking {config.texels}² texels in {max(1, workers)} process(es)")
     capture = Capture(capture_root)
+    if not capture.scans_dir.is_dir():   # a camera-only capture: nothing to bake, and no output made
+        raise InputError(capture.scans_dir, "does not exist: AVH bakes one textured scan per frame (a "
+                         "volumetric-video capture); a capture of camera images alone drives DVA "
+                         "(uvatar train dva)")
     out = Path(out_root)
     out.mkdir(parents=True, exist_ok=True)
     sweep_partial_writes(out)  # temp files of writes a kill cut short (frames/.000000.*.npz, ...)
