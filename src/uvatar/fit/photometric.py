@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from uvatar.capture.types import Camera
+from uvatar.fit.losses import _normalized, gmof
 from uvatar.fit.projection import camera_tensors, project_cameras, sample_views
 
 __all__ = ["PhotoViews", "PhotoTerm"]
@@ -104,8 +105,6 @@ class PhotoTerm:
     def __call__(self, vertices: torch.Tensor, sigma: float) -> torch.Tensor:
         """(T,) mean robust colour distance of the visible samples to their references (0 for frames
         without views)."""
-        from uvatar.fit.losses import _normalized, gmof
-
         if self.reference is None:
             raise RuntimeError("PhotoTerm.refresh must run before the term is evaluated")
         v = vertices[self.frame_index][:, self.body_vertices]

@@ -35,7 +35,7 @@ def scan_inputs(capture: Capture, frames: list[str], points: int, seed: int, pho
         except UvatarError as exc:
             log.warning("frame %s: scan not used (%s)", frame, exc)
             samples.append(None)
-            mesh = None
+            mesh = None   # a scan that loaded but could not be sampled gives no photo views either
         try:
             use = photo is not None and mesh is not None and frame not in failures
             views.append(scan_photo_views(mesh, photo) if use else None)
@@ -58,7 +58,7 @@ def continuity(points: np.ndarray, conf: np.ndarray, cut_distance: float) -> np.
 
 
 def stack_observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.1,
-                  failures=()):
+                       failures=()):
     """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`; frames in
     ``failures`` contribute nothing (neither keypoints nor scan): their neighbours carry them."""
     from uvatar.fit.body_fit import FitObservations
