@@ -58,6 +58,8 @@ PRESET_COMMANDS = {"synth", "train avh", "train dva", "demo"}
 # (command, flag dest) -> field name in the targets ("Target.field" when two targets share a name)
 RENAMED = {
     ("bake", "refine_iterations"): "PoseRefineConfig.iterations",
+    ("bake", "refine_photometric_radii"): "photometric_radii",
+    ("bake", "refine_photometric_weight"): "photometric_weight",
     ("bake", "registration_stiffness"): "stiffness",
     ("bake", "registration_iterations"): "RegistrationConfig.iterations",
     ("bake", "registration_max_distance"): "RegistrationConfig.max_distance",

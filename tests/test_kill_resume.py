@@ -63,7 +63,7 @@ def test_bake_killed_mid_run_resumes_to_identical_arrays(whole, tmp_path):
     (baked / "preview" / "000000.png").unlink()  # as a bake older than the preview-first order could leave it
     run(["-m", "uvatar", "bake", "cap", "baked", *BAKE], tmp_path)
     assert find_partial_writes(baked) == []
-    assert assert_same_npz(whole / "baked", baked) == 4
+    assert assert_same_npz(whole / "baked", baked) == 5   # 4 frames and the refined fits (photo_reference.npz)
     assert assert_same_bytes(whole / "baked", baked, "preview/00000[123].png") == 3
     import imageio.v3 as iio  # the restored preview is drawn from the stored (float16) maps: within 1 level
 

@@ -33,8 +33,13 @@ def _flags():
             "inpaint_radius": "Telea radius in texels",
             "inpaint_band": "Telea only within this many texels of matched ones, nearest fill beyond (0 = everywhere)",
             "reject_kappa": "reject frames whose mean confidence is below this"})
-    refine = ConfigFlags(PoseRefineConfig, fields=("iterations",), prefix="refine",
-                         help={"iterations": "Gauss-Newton steps of the articulated fit refinement"})
+    refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight"),
+                         prefix="refine", help={
+                             "iterations": "Gauss-Newton steps of the articulated fit refinement (per round)",
+                             "photometric_radii": "one colour-consistency round across frames per stencil radius "
+                                                  "in metres, coarse to fine (comma-separated)",
+                             "photometric_weight": "weight of the colour term against the surface distance "
+                                                   "(0 = geometry only)"})
     registration = ConfigFlags(
         RegistrationConfig, fields=("stiffness", "iterations", "max_distance", "modes", "normal_smoothing"),
         prefix="registration", help={

@@ -22,6 +22,7 @@ __all__ = [
     "texel_positions",
     "texel_normals",
     "texel_tangent_frames",
+    "tangent_basis",
     "face_tangents",
     "sample_texture",
     "sample_surface",
@@ -221,6 +222,14 @@ def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, norma
     out = np.broadcast_to(np.eye(3, dtype=frames.dtype), (*frames.shape[:-3], r * r, 3, 3)).copy()
     out[..., flat, :, :] = frames
     return out.reshape(*frames.shape[:-3], r, r, 3, 3)
+
+
+def tangent_basis(normals):
+    """(t, b) (N, 3) unit tangents with (t, b, n) right-handed, for unit normals (N, 3) (numpy)."""
+    n = np.asarray(normals, dtype=np.float64)
+    t = np.cross(n, _any_perpendicular(n))
+    t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-12)
+    return t, np.cross(n, t)
 
 
 def _any_perpendicular(n):

@@ -3,7 +3,8 @@
 Variants: ``full``; ``no_registration`` (neither the articulated pose refinement nor the vertex
 stages); ``no_pose_refinement``; ``no_vertex_registration``; ``no_polarity_rule`` (nearest candidate
 always); ``no_registration_no_polarity_rule`` (the rule's effect when the texel rays start on the
-unregistered shadow mesh, centimetres from the scan). Per variant, over the full pipeline's confident texels (kappa > threshold) that the variant
+unregistered shadow mesh, centimetres from the scan); ``no_colour_refinement`` (each frame refined
+alone against its scan, without the cross-frame colour term; listed when the bake used it). Per variant, over the full pipeline's confident texels (kappa > threshold) that the variant
 also matched: median / p90 error and texture PSNR; over its own confident texels: median error and
 the confident fraction of valid texels.
 
@@ -29,18 +30,36 @@ import numpy as np
 
 from uvatar.avh.bake.metrics import error_summary, pooled_psnr, texel_errors
 
-__all__ = ["ablation_variants", "run_ablation"]
+__all__ = ["ablation_variants", "run_ablation", "variant_input"]
 
 CHANGE_TOLERANCE_M = 1e-4
 
 
 def ablation_variants(bake_cfg) -> dict:
-    return {"full": bake_cfg, "no_registration": replace(bake_cfg, register=False, refine_pose=False),
-            "no_pose_refinement": replace(bake_cfg, refine_pose=False),
-            "no_vertex_registration": replace(bake_cfg, register=False),
-            "no_polarity_rule": replace(bake_cfg, polarity_rule=False),
-            "no_registration_no_polarity_rule": replace(bake_cfg, register=False, refine_pose=False,
-                                                        polarity_rule=False)}
+    variants = {"full": bake_cfg, "no_registration": replace(bake_cfg, register=False, refine_pose=False),
+                "no_pose_refinement": replace(bake_cfg, refine_pose=False),
+                "no_vertex_registration": replace(bake_cfg, register=False),
+                "no_polarity_rule": replace(bake_cfg, polarity_rule=False),
+                "no_registration_no_polarity_rule": replace(bake_cfg, register=False, refine_pose=False,
+                                                            polarity_rule=False)}
+    if _refines_across_frames(bake_cfg):
+        variants["no_colour_refinement"] = replace(bake_cfg, pose_refine=replace(bake_cfg.pose_refine,
+                                                                                 photometric_weight=0.0))
+    return variants
+
+
+def _refines_across_frames(cfg) -> bool:
+    pr = cfg.pose_refine
+    return bool(cfg.refine_pose and pr.photometric_radii and pr.photometric_weight > 0)
+
+
+def variant_input(cfg, stored_fit, capture_fit):
+    """(fit, config) a variant bakes one frame from. The colour refinement needs every frame, so a
+    variant that keeps it takes the bake's stored fit (already refined, baked as is); the others start
+    from the capture's fit (refined alone against the scan when the variant refines)."""
+    if _refines_across_frames(cfg) and stored_fit is not None:
+        return stored_fit, replace(cfg, refine_pose=False)
+    return capture_fit, cfg
 
 
 # the variant each one's ``changed`` texels are measured against (default: the full pipeline)
@@ -73,9 +92,11 @@ def _ceiling_sq(scan, gt_surface, gt_normal, gt_texture, sel):
     return (np.asarray(sample_texture(scan.texture, uv), np.float64) - gt_texture[sel][m.hit]) ** 2
 
 
-def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, source, progress: bool) -> dict:
+def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, source, progress: bool,
+                 stored_fits: dict | None = None) -> dict:
     """Re-bake the chosen frames per variant; ``confident`` {frame: (R, R) bool} of the full bake;
-    ``source`` a GtSource."""
+    ``source`` a GtSource; ``stored_fits`` {frame: BodyFit} the fits the bake stored (see
+    :func:`variant_input`)."""
     from tqdm import tqdm
 
     from uvatar.avh.bake.frame import bake_fit
@@ -100,7 +121,8 @@ def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, sourc
         scan = capture.load_scan(f)
         baked = {}
         for name, cfg in variants.items():
-            b, _ = bake_fit(body, fit, layout, scan, cfg, shape)
+            variant_fit, variant_cfg = variant_input(cfg, (stored_fits or {}).get(f), fit)
+            b, _ = bake_fit(body, variant_fit, layout, scan, variant_cfg, shape)
             baked[name] = b
             score_common = confident[f] & b.matched
             e, q = texel_errors(b.points, b.texture, score_common, *gt)

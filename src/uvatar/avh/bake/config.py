@@ -65,14 +65,25 @@ class RegistrationConfig:
 class PoseRefineConfig:
     """iterations: Gauss-Newton steps; max_distance: match limit as a fraction of the bounding-box
     diagonal; max_normal_angle_deg: normal compatibility of matches; huber: robust (IRLS) scale in
-    metres; damping: Levenberg-Marquardt factor on the diagonal; prior: pull of each joint's update
-    toward zero, in metres^2 per radian^2 per matched vertex; max_step_deg: cap on one update;
+    metres; damping: Levenberg-Marquardt factor on the diagonal; prior: pull of each update toward zero
+    (joint and root rotations, translation, clothing offsets), per matched vertex, in metres^2 per
+    radian^2 or per metre^2; max_step_deg: cap on one update;
     max_vertices: evenly spread subset of shadow vertices used for matching (None = all);
     max_untracked_weight: vertices with more skinning weight than this on joints the refinement does
     not move (fingers, metacarpals, toes, eyes: not among the body's conditioning joints) are left
     out of the matching. Body-only fits (SMPL, EasyMocap) keep flat hands while the scanned
     performer curls the fingers; those vertices would drag the wrist and forearm (16 deg of wrist
-    error and +3 dB of texture error on the forearms of a `uvatar synth` capture without this)."""
+    error and +3 dB of texture error on the forearms of a `uvatar synth` capture without this).
+
+    Cross-frame colour consistency (:mod:`uvatar.avh.bake.photometric`), for a bake of several
+    frames: after the geometric refinement of every frame, one round per entry of
+    ``photometric_radii`` (stencil radius in metres, coarse to fine; () = off) re-refines each frame
+    with its colours pulled toward the median over frames; photometric_weight: weight of a squared
+    colour error (RGB in [0, 1]) against a squared metre of surface distance; photometric_huber:
+    robust scale of the colour error; photometric_max_distance: how far (metres) a vertex looks along
+    its normal for the scan's colour; photometric_min_frames: the term runs only when at least this
+    many frames are refined together, and a vertex has a reference only where this many frames saw
+    it."""
 
     iterations: int = 15
     max_distance: float = 1 / 20
@@ -83,6 +94,11 @@ class PoseRefineConfig:
     max_step_deg: float = 10.0
     max_vertices: int | None = 4000
     max_untracked_weight: float = 0.5
+    photometric_radii: tuple[float, ...] = (0.006, 0.003, 0.002)
+    photometric_weight: float = 1e-2
+    photometric_huber: float = 0.1
+    photometric_max_distance: float = 0.03
+    photometric_min_frames: int = 3
 
     def __post_init__(self) -> None:
         check_values([
@@ -90,7 +106,15 @@ class PoseRefineConfig:
             (0.0 <= self.max_untracked_weight <= 1.0,
              f"pose_refine max_untracked_weight must be in [0, 1], got {self.max_untracked_weight}"),
             (self.max_vertices is None or self.max_vertices >= 1,
-             f"pose_refine max_vertices must be >= 1, got {self.max_vertices}")])
+             f"pose_refine max_vertices must be >= 1, got {self.max_vertices}"),
+            (all(r > 0 for r in self.photometric_radii),
+             f"pose_refine photometric_radii must be > 0 metres, got {self.photometric_radii}"),
+            (self.photometric_weight >= 0, f"pose_refine photometric_weight must be >= 0, got {self.photometric_weight}"),
+            (self.photometric_huber > 0, f"pose_refine photometric_huber must be > 0, got {self.photometric_huber}"),
+            (self.photometric_max_distance > 0,
+             f"pose_refine photometric_max_distance must be > 0, got {self.photometric_max_distance}"),
+            (self.photometric_min_frames >= 2,
+             f"pose_refine photometric_min_frames must be >= 2, got {self.photometric_min_frames}")])
 
 
 @dataclass(frozen=True)

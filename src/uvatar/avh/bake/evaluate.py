@@ -158,6 +158,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
     frames = [f for f in info.get("frames_baked", []) if frame_path(baked_root, f).is_file()]
     errors, sq, sq_resampled, all_matched = [], [], [], []
     confident: dict[str, np.ndarray] = {}
+    stored_fits = {}
     for f in tqdm(frames, desc="eval", unit="frame", disable=not progress):
         gt = source.get(f)
         if gt is None:
@@ -165,6 +166,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
         data = load_baked_frame(frame_path(baked_root, f))
         fit = BodyFit(poses=data["pose"], Rh=data["Rh"], Th=data["Th"], shapes=data.get("shapes", []),
                       scale=float(data.get("scale", 1.0)))
+        stored_fits[f] = fit
         shadow = shadow_vertices(body, fit, None if fit.shapes.size else
                                  (capture.body_shapes if capture.body_shapes.size else None))
         s = layout.to_map(layout.at_texels(shadow), dtype=np.float64)
@@ -205,5 +207,5 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
         from uvatar.avh.bake.ablation import run_ablation
 
         result["ablation"].update(run_ablation(capture, body, layout, bake_cfg, confident, config, source,
-                                               progress))
+                                               progress, stored_fits))
     return result

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from uvatar.avh.bake.config import BakeConfig
@@ -27,6 +27,7 @@ from uvatar.avh.bake.dataset import (
     write_baked_frame,
     write_dataset_info,
 )
+from uvatar.avh.bake.refine_together import refine_frames_together
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError, one_line
 from uvatar.io_utils import sweep_partial_writes
@@ -36,7 +37,7 @@ from uvatar.threads import limit_process_to_one_thread
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FrameResult", "bake_capture", "bake_selection", "heldout_frames", "load_body_and_layout"]
+__all__ = ["FrameResult", "bake_capture", "bake_selection", "heldout_frames", "load_body_and_layout", "start_fit"]
 
 
 @dataclass
@@ -87,8 +88,15 @@ def _capture_shape(capture):
     return shapes if shapes.size else None
 
 
-def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig) -> FrameResult:
-    """Bake one frame in a worker. Every failure becomes a "broken" result with a one-line reason."""
+def start_fit(capture, frame: str):
+    """(the capture's fit of ``frame``, the shape to pose it with: None when the fit carries its own)."""
+    fit = capture.load_fit(frame)
+    return fit, None if fit.shapes.size else _capture_shape(capture)
+
+
+def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, refined=None) -> FrameResult:
+    """Bake one frame in a worker. Every failure becomes a "broken" result with a one-line reason.
+    refined: the frame's fit already refined across frames (:mod:`.refine_together`), baked as is."""
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.capture import Capture
 
@@ -96,11 +104,12 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig) 
     try:
         capture = Capture(capture_root)
         body, layout = load_body_and_layout(capture.body_model, config.texels)
-        fit = capture.load_fit(frame)
+        fit, shape = start_fit(capture, frame)
+        if refined is not None:
+            fit, config = refined, replace(config, refine_pose=False)
         scan_path = capture.scan_path(frame)
         scan = capture.load_scan(frame)
-        baked, fit = bake_fit(body, fit, layout, scan, config, None if fit.shapes.size else _capture_shape(capture),
-                              scan_path=str(scan_path))
+        baked, fit = bake_fit(body, fit, layout, scan, config, shape, scan_path=str(scan_path))
     except Exception as exc:  # noqa: BLE001 - a broken frame is reported, never fatal
         return FrameResult(frame, "broken", f"broken input: {one_line(exc)}", seconds=time.perf_counter() - t0)
     rejected = baked.kappa_mean < config.reject_kappa
@@ -118,7 +127,7 @@ def _bake_task(shared: dict, frame: str) -> FrameResult:
     folders, the config and the (body, layout) pair, shipped once per worker process."""
     config = shared["config"]
     _STATE.setdefault((shared["body_name"], int(config.texels)), shared["body_layout"])
-    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config)
+    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, shared["fits"].get(frame))
     result.stats["worker_peak_rss_mb"] = _peak_rss_mb()
     return result
 
@@ -236,8 +245,10 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
             log.warning("frame %s %s: %s", result.frame, result.status, result.reason)
         _write_info(out, capture, body_name, config, results)
 
+    refined = refine_frames_together(capture.root, out, todo, config, body_name, executor, progress,
+                                     rebuild_reference=overwrite)
     shared = {"capture_root": str(capture.root), "out_root": str(out), "config": config, "body_name": body_name,
-              "body_layout": load_body_and_layout(body_name, config.texels)}
+              "body_layout": load_body_and_layout(body_name, config.texels), "fits": refined}
     for frame, result in run_tasks(_bake_task, todo, shared, executor, desc="bake", progress=progress,
                                    initializer=limit_process_to_one_thread):
         finish(FrameResult(frame, "broken", f"worker failed: {result.reason}")

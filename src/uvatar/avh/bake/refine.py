@@ -21,7 +21,8 @@ import numpy as np
 
 from uvatar.avh.bake.config import PoseRefineConfig
 
-__all__ = ["PoseRefineConfig", "refine_fit", "subtree_weights", "region_weights", "untracked_skin_weight"]
+__all__ = ["PoseRefineConfig", "refine_fit", "refine_vertices", "fit_colours", "subtree_weights", "region_weights",
+           "untracked_skin_weight"]
 
 
 def subtree_weights(skin_weights, parents, joints) -> np.ndarray:
@@ -58,50 +59,109 @@ def _rotation_step(step: np.ndarray, max_angle: float) -> np.ndarray:
     return step * np.minimum(1.0, max_angle / np.maximum(angle, 1e-12))
 
 
-def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None):
+def refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
+    """(N,) int64 the shadow vertices the refinement matches: those the conditioning joints move
+    (:func:`untracked_skin_weight` at most ``max_untracked_weight``), evenly thinned to
+    ``max_vertices``. The same for every frame, so per-vertex colours compare across frames."""
+    tracked = untracked_skin_weight(body.template.skin_weights, list(body.conditioning_joints))
+    candidates = np.flatnonzero(tracked <= config.max_untracked_weight)
+    if config.max_vertices is None or config.max_vertices >= len(candidates):
+        return candidates
+    return candidates[np.linspace(0, len(candidates) - 1, config.max_vertices).round().astype(np.int64)]
+
+
+def _posed(body, rot, rh, th, scale, shape_t):
+    """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 of one posed frame."""
+    import torch
+
+    with torch.no_grad():
+        out = body.pose(torch.as_tensor(rot, dtype=torch.float32)[None],
+                        Rh=torch.as_tensor(rh, dtype=torch.float32)[None],
+                        Th=torch.as_tensor(th, dtype=torch.float32)[None],
+                        scale=torch.tensor([float(scale)]), shape=shape_t)
+    return (out.vertices[0].numpy().astype(np.float64), out.normals[0].numpy().astype(np.float64),
+            out.joint_transforms[0].numpy().astype(np.float64))
+
+
+def _shape_tensor(fit, shape):
+    import torch
+
+    if shape is None and np.asarray(fit.shapes).size:
+        shape = fit.shapes
+    return None if shape is None else torch.as_tensor(np.asarray(shape, np.float32))
+
+
+def fit_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None):
+    """(N, 3) blurred scan colour at each refinement vertex (:func:`refine_vertices`) of the body posed
+    by ``fit``; NaN where the stencil missed the scan. The per-frame input of the cross-frame
+    reference (:func:`uvatar.avh.bake.photometric.reference_colours`)."""
+    from uvatar.avh.bake.photometric import surface_colours
+
+    use = refine_vertices(body, config)
+    v, n, _ = _posed(body, body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale, _shape_tensor(fit, shape))
+    colour, _, ok = surface_colours(surface, scan_mesh, v[use], n[use], radius, config.photometric_max_distance,
+                                    float(np.cos(np.radians(config.max_normal_angle_deg))))
+    return np.where(ok[:, None], colour, np.nan)
+
+
+def _clothing_offsets(residuals, skin, huber: float, steps: int = 3) -> np.ndarray:
+    """(K,) clothing thickness per joint region (metres) that best explains point-to-plane
+    ``residuals`` (N,) at the start pose, robustly (IRLS Huber): the pose steps then start from a
+    consistent layer instead of spending their first updates on it."""
+    offsets = np.zeros(skin.shape[1])
+    for _ in range(steps):
+        rr = residuals + skin @ offsets
+        w = np.minimum(1.0, huber / np.maximum(np.abs(rr), 1e-12))
+        a = (skin * w[:, None]).T @ skin
+        offsets = -np.linalg.solve(a + 1e-9 * np.eye(len(a)), (skin * w[:, None]).T @ residuals)
+    return offsets
+
+
+def _motion_rows(points, directions, subtree, centres, centre0):
+    """Jacobian rows of ``directions . dv`` (N rows) for the refinement's unknowns: per joint a
+    world rotation d_k (vertex moves ``s_ik d_k x (v - c_k)``), the root rotation about ``centre0``
+    and the translation. -> (N, 3K + 6)."""
+    arm = np.cross(points[:, None, :] - centres[None], directions[:, None, :])       # (N, K, 3)
+    return np.concatenate([(subtree[..., None] * arm).reshape(len(points), -1),
+                           np.cross(points - centre0, directions), directions], axis=1)
+
+
+def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None):
     """Refine ``fit`` (BodyFit) toward ``scan`` (:class:`~uvatar.avh.bake.register.ScanSurface`).
 
-    Returns (refined BodyFit, stats: mean |point-to-plane residual| in mm before/after, matched
-    fraction). Only the body's ``conditioning_joints`` and Rh/Th change; shape and scale stay.
+    photo: a :class:`~uvatar.avh.bake.photometric.PhotoTarget` (reference colours of the refinement
+    vertices) adds the cross-frame colour term, weighted by ``config.photometric_weight`` (squared
+    colour error per squared metre of surface distance); it needs ``scan_mesh``, the textured scan.
+    Returns (refined BodyFit, stats: mean |point-to-plane residual| in mm per iteration, matched
+    fraction, and with ``photo`` the mean |colour - reference| per iteration). Only the body's
+    ``conditioning_joints`` and Rh/Th change; shape and scale stay.
     """
-    import torch
     from scipy.spatial.transform import Rotation
 
+    from uvatar.avh.bake.photometric import surface_colours
     from uvatar.capture import BodyFit
 
     config = config or PoseRefineConfig()
+    if photo is not None and scan_mesh is None:
+        raise ValueError("refine_fit: a photometric target needs the textured scan (scan_mesh)")
     joints = list(body.conditioning_joints)
     tpl = body.template
-    tracked = untracked_skin_weight(tpl.skin_weights, joints) <= config.max_untracked_weight
-    candidates = np.flatnonzero(tracked)
-    use = (candidates if config.max_vertices is None or config.max_vertices >= len(candidates)
-           else candidates[np.linspace(0, len(candidates) - 1, config.max_vertices).round().astype(np.int64)])
+    use = refine_vertices(body, config)
     sub = subtree_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]    # (N, K)
     rot = body.joint_rotvecs_from_fit(fit).astype(np.float64)
     rh = np.asarray(fit.Rh, np.float64).copy()
     th = np.asarray(fit.Th, np.float64).copy()
-    if shape is None and np.asarray(fit.shapes).size:
-        shape = fit.shapes
-    shape_t = None if shape is None else torch.as_tensor(np.asarray(shape, np.float32))
+    shape_t = _shape_tensor(fit, shape)
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
     max_angle = np.radians(config.max_step_deg)
     k = len(joints)
     skin = region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]   # (N, K)
     offsets = np.zeros(skin.shape[1])   # clothing thickness per joint region (metres), estimated jointly
-    residuals, matched = [], []
-
-    def pose():
-        with torch.no_grad():
-            out = body.pose(torch.as_tensor(rot, dtype=torch.float32)[None],
-                            Rh=torch.as_tensor(rh, dtype=torch.float32)[None],
-                            Th=torch.as_tensor(th, dtype=torch.float32)[None],
-                            scale=torch.tensor([float(fit.scale)]), shape=shape_t)
-        return (out.vertices[0].numpy().astype(np.float64), out.normals[0].numpy().astype(np.float64),
-                out.joint_transforms[0].numpy().astype(np.float64))
+    residuals, matched, colour_residuals = [], [], []
 
     diag = None
     for it in range(config.iterations + 1):
-        v, n, tr = pose()
+        v, n, tr = _posed(body, rot, rh, th, fit.scale, shape_t)
         v, n = v[use], n[use]
         if diag is None:
             diag = float(np.linalg.norm(v.max(0) - v.min(0)))
@@ -110,24 +170,39 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         idx = np.where(found, idx, 0)
         m = scan.sample_normals[idx]
         ok = found & ((m * n).sum(1) >= cos_max)
-        r = ((v - scan.sample_points[idx]) * m).sum(1) + skin @ offsets
+        r = ((v - scan.sample_points[idx]) * m).sum(1)
+        if it == 0 and ok.any():
+            offsets = _clothing_offsets(r[ok], skin[ok], config.huber)
+        r = r + skin @ offsets
         residuals.append(float(np.abs(r[ok]).mean() * 1000) if ok.any() else float("nan"))
         matched.append(float(ok.mean()))
+        if photo is not None:
+            colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
+                                                 config.photometric_max_distance, cos_max)
+            seen &= photo.known
+            rc = (colour - photo.reference)[seen]                                   # (Nc, 3)
+            colour_residuals.append(float(np.abs(rc).mean()) if seen.any() else float("nan"))
         if it == config.iterations or ok.sum() < 3 * k:
             break
-        vi, mi, ri, si, wi = v[ok], m[ok], r[ok], sub[ok], skin[ok]
-        w = np.minimum(1.0, config.huber / np.maximum(np.abs(ri), 1e-12))          # IRLS Huber weights
         centres = tr[joints, :3, 3]                                                  # (K, 3)
-        arm = np.cross(vi[:, None, :] - centres[None], mi[:, None, :])               # (N, K, 3)
         centre0 = v.mean(0)
-        jac = np.concatenate([(si[..., None] * arm).reshape(len(vi), 3 * k),
-                              np.cross(vi - centre0, mi), mi, wi], axis=1)           # (N, 3K + 6 + K)
+        jac = np.concatenate([_motion_rows(v[ok], m[ok], sub[ok], centres, centre0), skin[ok]], axis=1)
+        res = r[ok]
+        w = np.minimum(1.0, config.huber / np.maximum(np.abs(res), 1e-12))           # IRLS Huber weights
+        if photo is not None and seen.any():
+            # one row per (vertex, channel): d colour_c = grad_c . dv; no clothing-offset column
+            g = grad[seen].reshape(-1, 3)
+            rows = _motion_rows(np.repeat(v[seen], 3, axis=0), g, np.repeat(sub[seen], 3, axis=0), centres, centre0)
+            jac = np.concatenate([jac, np.concatenate([rows, np.zeros((len(rows), k))], axis=1)])
+            rc = rc.reshape(-1)
+            wc = config.photometric_weight * np.minimum(1.0, config.photometric_huber / np.maximum(np.abs(rc), 1e-12))
+            res, w = np.concatenate([res, rc]), np.concatenate([w, wc])
         jac_w = jac * np.sqrt(w)[:, None]
         a = jac_w.T @ jac_w                     # X^T X of one buffer: BLAS syrk, half the flops
-        g = jac.T @ (w * ri)
-        prior = np.zeros(a.shape[0])
-        prior[: 3 * k] = config.prior * len(vi)
-        a += np.diag(config.damping * np.diag(a) + prior + 1e-12)
+        g = jac.T @ (w * res)
+        # the prior also holds every other unknown where nothing observes it (a round limb's turn
+        # with the colour term off, a tube's slide along its axis): no singular steps
+        a += np.diag(config.damping * np.diag(a) + config.prior * int(ok.sum()) + 1e-12)
         step = -np.linalg.solve(a, g)
         d_joint = _rotation_step(step[: 3 * k].reshape(k, 3), max_angle)
         d_root = _rotation_step(step[3 * k: 3 * k + 3], max_angle)
@@ -142,5 +217,8 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         th = r_delta.apply(th - centre0) + centre0 + d_trans
     refined = BodyFit(poses=rot.astype(np.float32).reshape(-1), Rh=rh, Th=th, shapes=fit.shapes,
                       scale=fit.scale, id=fit.id)
-    return refined, {"residual_mm": residuals, "matched_fraction": matched,
-                     "offset_mm_mean": float((skin @ offsets).mean() * 1000)}
+    stats = {"residual_mm": residuals, "matched_fraction": matched,
+             "offset_mm_mean": float((skin @ offsets).mean() * 1000)}
+    if photo is not None:
+        stats["colour_residual"] = colour_residuals
+    return refined, stats

@@ -1,0 +1,103 @@
+"""Cross-frame colour consistency for the bake's articulated refinement (:mod:`.refine`).
+
+The surface distance cannot see a limb or the trunk turning about its own axis (a cylinder turned is
+the same cylinder), nor the surface sliding along itself; the scan's texture can: a plaid shirt
+moves with the body. Each refinement vertex of the posed shadow mesh looks along +/- its normal onto
+the scan (the nearer compatible hit, as the texel rays of :mod:`.correspond` do) and takes the
+texture colour there. Colours are averaged over a stencil in the vertex's tangent plane: the centre
+and 8 points on a ring of ``radius`` metres (a blur *on the surface*: scans' texture atlases are cut
+into many small charts, so blurring the texture image would mix unrelated charts). The least-squares
+slope of the ring's colours, ``G = 2 / (8 radius^2) sum_j c_j delta_j``, is the derivative of the
+blurred colour with respect to the vertex moving in its tangent plane; :func:`.refine.refine_fit`
+chains it with the LBS Jacobian.
+
+Each vertex's *reference* is the median over frames of its colour (:func:`reference_colours`), so a
+frame whose surface slid or turned against the others pays for it. A bias shared by all frames is
+invisible to this term (the fit's own keypoints and the scan distance must get it right).
+The image-space twin used by ``uvatar fit`` is :mod:`uvatar.fit.photometric`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from uvatar.avh.bake.register import ScanSurface
+from uvatar.geometry import sample_texture, tangent_basis
+
+__all__ = ["PhotoTarget", "RING_POINTS", "stencil_offsets", "surface_colours", "ray_colours", "reference_colours"]
+
+RING_POINTS = 8
+
+
+@dataclass
+class PhotoTarget:
+    """What a frame's colours should be: reference (N, 3) per refinement vertex, known (N,) bool
+    where the reference exists, radius the stencil radius (metres) the reference was sampled with."""
+
+    reference: np.ndarray
+    known: np.ndarray
+    radius: float
+
+
+def stencil_offsets(normals, radius: float) -> np.ndarray:
+    """(RING_POINTS, N, 3) tangent-plane offsets on a ring of ``radius`` metres around each point."""
+    t, b = tangent_basis(normals)
+    angles = np.arange(RING_POINTS) * (2 * np.pi / RING_POINTS)
+    return radius * (np.cos(angles)[:, None, None] * t[None] + np.sin(angles)[:, None, None] * b[None])
+
+
+def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float, min_normal_cos: float,
+                epsilon: float = 1e-3):
+    """Scan colour where the +/-normal rays from ``points`` (N, 3) first meet a compatible scan surface
+    (scan normal within the angle of ``min_normal_cos``; the nearer of the two) within ``max_distance``
+    metres. Returns (colours (N, 3) float64, ok (N,) bool). ``scan``: the TexturedMesh."""
+    p = np.asarray(points, np.float64)
+    n = np.asarray(normals, np.float64)
+    best = np.full(len(p), np.inf)
+    face = np.full(len(p), -1, np.int64)
+    bary = np.zeros((len(p), 3))
+    for sign in (1.0, -1.0):
+        d = sign * n
+        hits = surface.caster.first_hit(p - epsilon * d, d, max_distance=max_distance + epsilon)
+        m = surface.normals_at(hits.face, hits.bary)
+        better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
+        best = np.where(better, hits.distance, best)
+        face = np.where(better, hits.face, face)
+        bary = np.where(better[:, None], hits.bary, bary)
+    ok = face >= 0
+    colours = np.zeros((len(p), 3))
+    uv = (scan.uvs[scan.uv_faces[face[ok]]] * bary[ok][..., None]).sum(1)
+    colours[ok] = sample_texture(scan.texture, uv)
+    return colours, ok
+
+
+def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, max_distance: float,
+                    min_normal_cos: float):
+    """Blurred colour and its tangent-plane gradient at each point (module doc).
+
+    Returns (colour (N, 3), gradient (N, 3, 3) d colour_c / d point, ok (N,) bool: every stencil ray
+    found the scan)."""
+    p = np.asarray(points, np.float64)
+    centre, ok = ray_colours(surface, scan, p, normals, max_distance, min_normal_cos)
+    offsets = stencil_offsets(normals, radius)
+    ring, ring_ok = ray_colours(surface, scan, (p[None] + offsets).reshape(-1, 3),
+                                np.broadcast_to(normals, offsets.shape).reshape(-1, 3), max_distance, min_normal_cos)
+    ring = ring.reshape(RING_POINTS, len(p), 3)
+    ok = ok & ring_ok.reshape(RING_POINTS, len(p)).all(0)
+    colour = (centre + ring.sum(0)) / (RING_POINTS + 1)
+    gradient = np.einsum("jnc,jnd->ncd", ring, offsets) * (2.0 / (RING_POINTS * radius ** 2))
+    return colour, gradient, ok
+
+
+def reference_colours(colours, min_frames: int = 3):
+    """Median over frames of per-vertex colours. colours: (T, N, 3) with NaN where a frame did not see
+    the vertex. Returns (reference (N, 3), known (N,) bool: seen in at least ``min_frames`` frames)."""
+    c = np.asarray(colours, np.float64)
+    seen = np.isfinite(c).all(-1)
+    known = seen.sum(0) >= max(1, int(min_frames))
+    reference = np.zeros(c.shape[1:])
+    if known.any():
+        reference[known] = np.nanmedian(c[:, known], axis=0)
+    return reference, known

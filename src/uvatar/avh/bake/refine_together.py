@@ -1,0 +1,166 @@
+"""Refine the fits of a bake's frames together: geometry per frame, then colour consistency across them.
+
+Round 0 refines every frame against its own scan (:func:`.refine.refine_fit`, surface distance only)
+and samples each refinement vertex's blurred scan colour (:func:`.refine.fit_colours`). Each further
+round (one per ``PoseRefineConfig.photometric_radii``, coarse to fine) takes the median colour over
+frames as the reference (:func:`.photometric.reference_colours`) and refines every frame again with
+the colour term. Frames are independent within a round, so each round runs through
+:func:`uvatar.parallel.run_tasks` (local processes or Ray), with progress.
+
+The final reference and every refined fit are saved as ``BAKED/photo_reference.npz`` (atomic write)
+before any frame is baked. A later call on the same output bakes the saved fits as they are (so a
+run killed while baking resumes to identical maps) and refines frames new to it (a frame replaced
+by ``bake_selection``) against the saved reference instead of a median over only them. A frame that
+fails here is left out; the per-frame bake then refines it alone, or reports it if its input is
+broken.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.avh.bake.photometric import PhotoTarget, reference_colours
+from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
+from uvatar.threads import limit_process_to_one_thread
+
+log = logging.getLogger(__name__)
+
+__all__ = ["REFERENCE_FILE", "refine_frames_together", "load_reference"]
+
+REFERENCE_FILE = "photo_reference.npz"
+
+
+def load_reference(out_root, vertices: int):
+    """(PhotoTarget, {frame: (poses, Rh, Th, scale)} refined earlier) saved by an earlier call, or
+    None (absent, unreadable, or for another vertex set)."""
+    path = Path(out_root) / REFERENCE_FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as z:
+            target = PhotoTarget(z["reference"].astype(np.float64), z["known"].astype(bool), float(z["radius"]))
+            fits = {str(f): (p, rh, th, float(sc)) for f, p, rh, th, sc in
+                    zip(z["frames"], z["poses"], z["Rh"], z["Th"], z["scale"], strict=True)}
+    except Exception as exc:  # noqa: BLE001 - a damaged file is rebuilt
+        log.warning("%s: unreadable (%s); the reference is rebuilt", path, exc)
+        return None
+    return (target, fits) if len(target.reference) == vertices else None
+
+
+def _save_reference(out_root, target: PhotoTarget, fits: dict) -> None:
+    """The reference and every refined fit so far (a resumed bake bakes exactly these)."""
+    from uvatar.io_utils import write_npz
+
+    names = sorted(fits)
+    write_npz(Path(out_root) / REFERENCE_FILE, reference=target.reference.astype(np.float32), known=target.known,
+              radius=np.float64(target.radius), frames=np.array(names),
+              poses=np.stack([np.asarray(fits[f].poses, np.float32) for f in names]),
+              Rh=np.stack([np.asarray(fits[f].Rh, np.float64) for f in names]),
+              Th=np.stack([np.asarray(fits[f].Th, np.float64) for f in names]),
+              scale=np.array([float(fits[f].scale) for f in names]))
+
+
+def _restore(capture_root, saved: dict, frames) -> dict:
+    """{frame: BodyFit} of the saved refined fits among ``frames`` (shapes as the capture's fit)."""
+    from uvatar.avh.bake.pipeline import start_fit
+    from uvatar.capture import BodyFit, Capture
+
+    capture = Capture(capture_root)
+    out = {}
+    for f in frames:
+        if f in saved:
+            poses, rh, th, scale = saved[f]
+            out[f] = BodyFit(poses=poses, Rh=rh, Th=th, shapes=start_fit(capture, f)[0].shapes, scale=scale)
+    return out
+
+
+def _refine_task(shared: dict, frame: str):
+    """One frame of one round: -> (refined BodyFit, colours (N, 3) at the next radius or None)."""
+    from uvatar.avh.bake.pipeline import _STATE, start_fit
+    from uvatar.avh.bake.refine import fit_colours, refine_fit
+    from uvatar.avh.bake.register import ScanSurface
+    from uvatar.capture import Capture
+
+    config = shared["config"]
+    body, _ = _STATE.setdefault((shared["body_name"], int(config.texels)), shared["body_layout"])
+    capture = Capture(shared["capture_root"])
+    scan = capture.load_scan(frame)
+    surface = ScanSurface.build(scan.vertices, scan.faces)
+    fit, shape = start_fit(capture, frame)
+    fit = shared["fits"].get(frame, fit)
+    target = shared["target"]
+    fit, _ = refine_fit(body, fit, surface, config.pose_refine, shape, photo=target,
+                        scan_mesh=scan if target is not None else None)
+    radius = shared["sample_radius"]
+    colours = None if radius is None else fit_colours(body, fit, surface, scan, config.pose_refine, radius, shape)
+    return fit, colours
+
+
+def refine_frames_together(capture_root, out_root, frames, config, body_name: str,
+                           executor: ExecutorConfig | None = None, progress: bool = True,
+                           rebuild_reference: bool = False) -> dict:
+    """{frame: refined BodyFit} for ``frames`` (module doc); {} when the term is off
+    (``refine_pose`` false or no ``photometric_radii``) or fewer than ``photometric_min_frames``
+    frames can build a reference and none is saved."""
+    from uvatar.avh.bake.pipeline import load_body_and_layout
+    from uvatar.avh.bake.refine import refine_vertices
+
+    pr = config.pose_refine
+    frames = list(frames)
+    if not (config.refine_pose and pr.photometric_radii and pr.photometric_weight > 0 and frames):
+        return {}
+    body, _ = load_body_and_layout(body_name, config.texels)
+    vertices = len(refine_vertices(body, pr))
+    saved = None if rebuild_reference else load_reference(out_root, vertices)
+    if saved is None and len(frames) < pr.photometric_min_frames:
+        return {}
+    radii = list(pr.photometric_radii)
+    done: dict = {}
+    shared = {"capture_root": str(capture_root), "config": config, "body_name": body_name, "fits": {},
+              "body_layout": load_body_and_layout(body_name, config.texels)}
+    if saved is not None:
+        target, stored = saved
+        done = _restore(capture_root, stored, frames)
+        frames = [f for f in frames if f not in done]
+        if not frames:
+            return done
+        # the new frames: refined alone, then against the saved reference, once per radius
+        rounds = [(None, None)] + [(target, None)] * len(radii)
+    else:
+        # (target to refine against, stencil radius to sample afterwards) per round
+        rounds = [(None, radii[0])] + [("median", r) for r in radii[1:]] + [("median", None)]
+    colours: dict = {}
+    last_radius = radii[0]
+    for i, (target, radius) in enumerate(rounds):
+        if target == "median":
+            stacked = np.stack([colours[f] for f in frames if f in colours])
+            reference, known = reference_colours(stacked, pr.photometric_min_frames)
+            target = PhotoTarget(reference, known, last_radius)
+        shared.update(target=target, sample_radius=radius)
+        colours = {}
+        desc = "refine poses" if i == 0 else f"colour round {i}/{len(rounds) - 1}"
+        for frame, result in run_tasks(_refine_task, frames, shared, executor, desc=desc, progress=progress,
+                                       initializer=limit_process_to_one_thread):
+            if isinstance(result, TaskFailure):
+                log.warning("frame %s: pose refinement across frames skipped it (%s)", frame, result.reason)
+                continue
+            shared["fits"][frame], c = result
+            if c is not None:
+                colours[frame] = c
+        frames = [f for f in frames if f in shared["fits"]]
+        if radius is not None:
+            last_radius = radius
+        if not frames:
+            return done
+        if saved is None and radius is not None and len(colours) < pr.photometric_min_frames:
+            return dict(shared["fits"])   # too few frames left for a median: geometry only
+    refined = dict(shared["fits"])
+    if saved is None:
+        _save_reference(out_root, target, refined)
+    else:
+        _save_reference(out_root, saved[0], {**_restore(capture_root, saved[1], saved[1]), **refined})
+        refined.update(done)
+    return refined
