@@ -5,7 +5,10 @@ once (27k -> 110k faces), pushed out along its normals by a clothing-like offset
 textured with a 1024^2 pattern in the body's UV layout. Prints ONE JSON object to stdout:
 seconds_per_frame (mean over the timed frames, excluding the one-off UV raster of the layout and
 the registration's normal-smoothing matrix and the surface-texel mask, built once per body) and
-a per-stage breakdown; progress goes to stderr.
+a per-stage breakdown; colour_round_seconds_per_frame: one round of the cross-frame colour
+refinement on one frame (``uvatar.avh.bake.refine_together``; the bake runs one round per
+``photometric_radii`` before baking), and seconds_per_frame_with_colour_rounds the two together;
+progress goes to stderr.
 
     python bench/bake.py [--quick] [--frames 2] [--texels 1024]
 """
@@ -35,6 +38,21 @@ def make_scan(model, fit, rng):
     y, x = np.mgrid[0:size, 0:size] / size
     tex = np.stack([0.5 + 0.4 * np.sin(40 * x), 0.5 + 0.4 * np.sin(40 * y), 0.4 + 0.2 * x], -1).astype(np.float32)
     return TexturedMesh(v + offset[:, None] * n, f, uv, uvf, tex)
+
+
+def _colour_round_seconds(model, fit, truth, scan, config) -> float:
+    """Seconds of one colour round on one frame: refine ``fit`` against colours sampled at ``truth``."""
+    from uvatar.avh.bake.photometric import PhotoTarget
+    from uvatar.avh.bake.refine import fit_colours, refine_fit
+    from uvatar.avh.bake.register import ScanSurface
+
+    surface = ScanSurface.build(scan.vertices, scan.faces)
+    radius = config.pose_refine.photometric_radii[-1]
+    reference = fit_colours(model, truth, surface, scan, config.pose_refine, radius)
+    target = PhotoTarget(np.nan_to_num(reference), np.isfinite(reference).all(1), radius)
+    t0 = time.perf_counter()
+    refine_fit(model, fit, surface, config.pose_refine, photo=target, scan_mesh=scan)
+    return time.perf_counter() - t0
 
 
 def main(argv=None) -> int:
@@ -80,8 +98,13 @@ def main(argv=None) -> int:
         for k, v in baked.stats["seconds"].items():
             stages.setdefault(k, []).append(v)
         print(f"frame {i}: {totals[-1]:.2f} s, kappa mean {kappa[-1]:.3f}", file=sys.stderr)
+    colour_round = _colour_round_seconds(model, fit, truth, scan, config)
+    rounds = len(config.pose_refine.photometric_radii)
     print(json.dumps({
         "seconds_per_frame": round(float(np.mean(totals)), 3),
+        "colour_round_seconds_per_frame": round(colour_round, 3),
+        "colour_rounds": rounds,
+        "seconds_per_frame_with_colour_rounds": round(float(np.mean(totals)) + rounds * colour_round, 3),
         "texels": texels,
         "scan_faces": int(faces),
         "frames": frames,
