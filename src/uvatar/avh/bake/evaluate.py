@@ -143,7 +143,7 @@ def evaluate_bake(capture_root, baked_root, config: EvalConfig | None = None, pr
 
     from uvatar.avh.bake.dataset import frame_path, load_baked_frame, read_dataset_info
     from uvatar.avh.bake.frame import shadow_vertices
-    from uvatar.avh.bake.pipeline import load_body_and_layout
+    from uvatar.avh.bake.inputs import load_body_and_layout
     from uvatar.capture import BodyFit, Capture
 
     config = config or EvalConfig()

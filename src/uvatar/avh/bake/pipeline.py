@@ -27,6 +27,7 @@ from uvatar.avh.bake.dataset import (
     write_baked_frame,
     write_dataset_info,
 )
+from uvatar.avh.bake.inputs import adopt_body_and_layout, load_body_and_layout, start_fit
 from uvatar.avh.bake.refine_together import refine_frames_together
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError, one_line
@@ -56,22 +57,6 @@ class FrameResult:
 # measured ~75 B/texel above a 640 MB base at 512² on anny; rounded up for registration and inpainting.
 BAKE_BYTES_PER_TEXEL = 256
 
-# -- per-process state ----------------------------------------------------------------------------
-_STATE: dict = {}
-
-
-def load_body_and_layout(body_name: str, texels: int):
-    """(BodyModel, BodyLayout) for a body model at a texel resolution; memoized per process."""
-    key = (body_name, int(texels))
-    if key not in _STATE:
-        from uvatar.avh.bake.frame import BodyLayout
-        from uvatar.body import load_body_model
-
-        body = load_body_model(body_name)
-        _STATE[key] = (body, BodyLayout.from_template(body.template, texels))
-    return _STATE[key]
-
-
 def heldout_frames(capture_root) -> list[str]:
     """A synthetic capture's held-out frames (:func:`uvatar.avh.poses.heldout_frames`); [] for a
     capture without them (no, unreadable or empty ``gt/info.json``: a real capture)."""
@@ -81,17 +66,6 @@ def heldout_frames(capture_root) -> list[str]:
         return listed_heldout_frames(capture_root)
     except InputError:
         return []
-
-
-def _capture_shape(capture):
-    shapes = capture.body_shapes
-    return shapes if shapes.size else None
-
-
-def start_fit(capture, frame: str):
-    """(the capture's fit of ``frame``, the shape to pose it with: None when the fit carries its own)."""
-    fit = capture.load_fit(frame)
-    return fit, None if fit.shapes.size else _capture_shape(capture)
 
 
 def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, refined=None) -> FrameResult:
@@ -126,7 +100,7 @@ def _bake_task(shared: dict, frame: str) -> FrameResult:
     """One frame under :func:`uvatar.parallel.run_tasks`: ``shared`` holds the capture and output
     folders, the config and the (body, layout) pair, shipped once per worker process."""
     config = shared["config"]
-    _STATE.setdefault((shared["body_name"], int(config.texels)), shared["body_layout"])
+    adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
     result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, shared["fits"].get(frame))
     result.stats["worker_peak_rss_mb"] = _peak_rss_mb()
     return result

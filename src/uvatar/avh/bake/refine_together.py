@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.avh.bake.inputs import adopt_body_and_layout, load_body_and_layout, start_fit
 from uvatar.avh.bake.photometric import PhotoTarget, reference_colours
 from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
 from uvatar.threads import limit_process_to_one_thread
@@ -65,7 +66,6 @@ def _save_reference(out_root, target: PhotoTarget, fits: dict) -> None:
 
 def _restore(capture_root, saved: dict, frames) -> dict:
     """{frame: BodyFit} of the saved refined fits among ``frames`` (shapes as the capture's fit)."""
-    from uvatar.avh.bake.pipeline import start_fit
     from uvatar.capture import BodyFit, Capture
 
     capture = Capture(capture_root)
@@ -79,13 +79,12 @@ def _restore(capture_root, saved: dict, frames) -> dict:
 
 def _refine_task(shared: dict, frame: str):
     """One frame of one round: -> (refined BodyFit, colours (N, 3) at the next radius or None)."""
-    from uvatar.avh.bake.pipeline import _STATE, start_fit
     from uvatar.avh.bake.refine import fit_colours, refine_fit
     from uvatar.avh.bake.register import ScanSurface
     from uvatar.capture import Capture
 
     config = shared["config"]
-    body, _ = _STATE.setdefault((shared["body_name"], int(config.texels)), shared["body_layout"])
+    body, _ = adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
     capture = Capture(shared["capture_root"])
     scan = capture.load_scan(frame)
     surface = ScanSurface.build(scan.vertices, scan.faces)
@@ -105,7 +104,6 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
     """{frame: refined BodyFit} for ``frames`` (module doc); {} when the term is off
     (``refine_pose`` false or no ``photometric_radii``) or fewer than ``photometric_min_frames``
     frames can build a reference and none is saved."""
-    from uvatar.avh.bake.pipeline import load_body_and_layout
     from uvatar.avh.bake.refine import refine_vertices
 
     pr = config.pose_refine
