@@ -81,7 +81,8 @@ class PoseRefineConfig:
     with its colours pulled toward the median over frames; photometric_weight: weight of a squared
     colour error (RGB in [0, 1]) against a squared metre of surface distance; photometric_huber:
     robust scale of the colour error; photometric_max_distance: how far (metres) a vertex looks along
-    its normal for the scan's colour; photometric_min_frames: the term runs only when at least this
+    its normal for the scan's colour; photometric_iterations: Gauss-Newton steps per colour round
+    (None: ``iterations``); photometric_min_frames: the term runs only when at least this
     many frames are refined together, and a vertex has a reference only where this many frames saw
     it."""
 
@@ -98,6 +99,7 @@ class PoseRefineConfig:
     photometric_weight: float = 1e-2
     photometric_huber: float = 0.1
     photometric_max_distance: float = 0.03
+    photometric_iterations: int | None = 8
     photometric_min_frames: int = 3
 
     def __post_init__(self) -> None:
@@ -113,6 +115,8 @@ class PoseRefineConfig:
             (self.photometric_huber > 0, f"pose_refine photometric_huber must be > 0, got {self.photometric_huber}"),
             (self.photometric_max_distance > 0,
              f"pose_refine photometric_max_distance must be > 0, got {self.photometric_max_distance}"),
+            (self.photometric_iterations is None or self.photometric_iterations >= 0,
+             f"pose_refine photometric_iterations must be >= 0, got {self.photometric_iterations}"),
             (self.photometric_min_frames >= 2,
              f"pose_refine photometric_min_frames must be >= 2, got {self.photometric_min_frames}")])
 

@@ -158,9 +158,12 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     skin = region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]   # (N, K)
     offsets = np.zeros(skin.shape[1])   # clothing thickness per joint region (metres), estimated jointly
     residuals, matched, colour_residuals = [], [], []
+    iterations = config.iterations
+    if photo is not None and config.photometric_iterations is not None:
+        iterations = config.photometric_iterations
 
     diag = None
-    for it in range(config.iterations + 1):
+    for it in range(iterations + 1):
         v, n, tr = _posed(body, rot, rh, th, fit.scale, shape_t)
         v, n = v[use], n[use]
         if diag is None:
@@ -182,7 +185,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
             seen &= photo.known
             rc = (colour - photo.reference)[seen]                                   # (Nc, 3)
             colour_residuals.append(float(np.abs(rc).mean()) if seen.any() else float("nan"))
-        if it == config.iterations or ok.sum() < 3 * k:
+        if it == iterations or ok.sum() < 3 * k:
             break
         centres = tr[joints, :3, 3]                                                  # (K, 3)
         centre0 = v.mean(0)
