@@ -71,9 +71,14 @@ def _restore(capture_root, saved: dict, frames) -> dict:
     capture = Capture(capture_root)
     out = {}
     for f in frames:
-        if f in saved:
-            poses, rh, th, scale = saved[f]
-            out[f] = BodyFit(poses=poses, Rh=rh, Th=th, shapes=start_fit(capture, f)[0].shapes, scale=scale)
+        if f not in saved:
+            continue
+        try:
+            shapes = start_fit(capture, f)[0].shapes
+        except Exception:  # noqa: BLE001 - its fit is gone or broken now: the per-frame bake reports it
+            continue
+        poses, rh, th, scale = saved[f]
+        out[f] = BodyFit(poses=poses, Rh=rh, Th=th, shapes=shapes, scale=scale)
     return out
 
 
