@@ -11,8 +11,14 @@ by the skinning weights and estimated jointly, so the clothing layer does not bi
 damped Gauss-Newton with the analytic LBS
 Jacobian: a world-frame rotation d_k about joint k moves vertex i by ``s_ik d_k x (V_i - c_k)`` with
 ``s_ik`` the skinning weight of vertex i on k's subtree; it is applied as
-``Rot(L_k) <- Rot(L_k) Rot(R_k^T d_k)`` (R_k: joint k's world frame). The refined fit is what the
-bake stores, so ``d = x - s`` stays consistent with the stored pose.
+``Rot(L_k) <- Rot(L_k) Rot(R_k^T d_k)`` (R_k: joint k's world frame). The clothing thickness starts
+from its robust fit at the start pose, so the first pose steps are not spent on it. The refined fit
+is what the bake stores, so ``d = x - s`` stays consistent with the stored pose.
+
+Surface sliding *along* itself (a limb turning about its own axis) is invisible to this distance;
+with a :class:`~uvatar.avh.bake.photometric.PhotoTarget` the same Gauss-Newton also pulls the scan
+colours at the vertices toward their median over frames (one row per vertex and channel, the colour
+slope chained with the same LBS Jacobian). :mod:`.refine_together` runs those rounds over a bake.
 """
 
 from __future__ import annotations
