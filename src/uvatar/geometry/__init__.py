@@ -9,6 +9,7 @@ from uvatar.geometry.laplacian import cotangent_laplacian, uniform_laplacian
 from uvatar.geometry.raycast import RayCaster, RayCasterConfig, RayHits
 from uvatar.geometry.sampling import (
     face_tangents,
+    sample_mesh_texture,
     sample_texture,
     sample_vertex_attribute,
     tangent_basis,
@@ -24,7 +25,7 @@ from uvatar.geometry.uv_raster import UVRaster, UVRasterConfig, rasterize_uv, ra
 __all__ = [
     "UVRaster", "UVRasterConfig", "rasterize_uv", "rasterize_uv_reference", "texel_uv",
     "sample_vertex_attribute", "texel_corners", "texel_positions", "texel_normals",
-    "texel_tangent_frames", "face_tangents", "sample_texture", "tangent_basis",
+    "texel_tangent_frames", "face_tangents", "sample_texture", "sample_mesh_texture", "tangent_basis",
     "face_normals", "vertex_normals", "normalize",
     "RayCaster", "RayCasterConfig", "RayHits",
     "subdivide_midpoint", "subdivide_loop", "subdivide", "SubdivisionOrigin",

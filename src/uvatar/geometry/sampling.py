@@ -23,6 +23,7 @@ __all__ = [
     "texel_normals",
     "texel_tangent_frames",
     "tangent_basis",
+    "sample_mesh_texture",
     "face_tangents",
     "sample_texture",
     "sample_surface",
@@ -247,6 +248,14 @@ def _any_perpendicular(n):
     ey = np.zeros_like(n)
     ey[..., 1] = 1.0
     return np.where(np.abs(n[..., :1]) > 0.9, ey, ex)
+
+
+def sample_mesh_texture(uvs, uv_faces, texture, face, bary) -> np.ndarray:
+    """Texture colour at points given by triangle ``face`` (K,) and barycentrics ``bary`` (K, 3) on a
+    UV-mapped mesh (``uvs`` (U, 2), ``uv_faces`` (F, 3), ``texture`` (H, W, C)) -> (K, C), bilinear
+    (:func:`sample_texture`)."""
+    uv = (np.asarray(uvs)[np.asarray(uv_faces)[face]] * np.asarray(bary)[..., None]).sum(1)
+    return sample_texture(texture, uv)
 
 
 def sample_texture(image, uv):

@@ -42,22 +42,17 @@ def ablation_variants(bake_cfg) -> dict:
                 "no_polarity_rule": replace(bake_cfg, polarity_rule=False),
                 "no_registration_no_polarity_rule": replace(bake_cfg, register=False, refine_pose=False,
                                                             polarity_rule=False)}
-    if _refines_across_frames(bake_cfg):
+    if bake_cfg.refines_across_frames:
         variants["no_colour_refinement"] = replace(bake_cfg, pose_refine=replace(bake_cfg.pose_refine,
                                                                                  photometric_weight=0.0))
     return variants
-
-
-def _refines_across_frames(cfg) -> bool:
-    pr = cfg.pose_refine
-    return bool(cfg.refine_pose and pr.photometric_radii and pr.photometric_weight > 0)
 
 
 def variant_input(cfg, stored_fit, capture_fit):
     """(fit, config) a variant bakes one frame from. The colour refinement needs every frame, so a
     variant that keeps it takes the bake's stored fit (already refined, baked as is); the others start
     from the capture's fit (refined alone against the scan when the variant refines)."""
-    if _refines_across_frames(cfg) and stored_fit is not None:
+    if cfg.refines_across_frames and stored_fit is not None:
         return stored_fit, replace(cfg, refine_pose=False)
     return capture_fit, cfg
 
@@ -84,12 +79,12 @@ def _ceiling_sq(scan, gt_surface, gt_normal, gt_texture, sel):
     """Squared errors (K, 3) of the gt texture sampled through the scan atlas at the true points."""
     from uvatar.avh.bake.correspond import match_texels
     from uvatar.avh.bake.register import ScanSurface
-    from uvatar.geometry import sample_texture
+    from uvatar.geometry import sample_mesh_texture
 
     surface = ScanSurface.build(scan.vertices, scan.faces)
     m = match_texels(gt_surface[sel], gt_normal[sel], surface, True, 2.0, 0.02, 1e-4)
-    uv = (scan.uvs[scan.uv_faces[m.face[m.hit]]] * m.bary[m.hit][..., None]).sum(1)
-    return (np.asarray(sample_texture(scan.texture, uv), np.float64) - gt_texture[sel][m.hit]) ** 2
+    colours = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, m.face[m.hit], m.bary[m.hit])
+    return (np.asarray(colours, np.float64) - gt_texture[sel][m.hit]) ** 2
 
 
 def run_ablation(capture, body, layout, bake_cfg, confident: dict, config, source, progress: bool,

@@ -182,6 +182,13 @@ class BakeConfig:
                   (self.ray_epsilon >= 0, "ray_epsilon must be >= 0")]
         check_values(checks)
 
+    @property
+    def refines_across_frames(self) -> bool:
+        """The bake refines its frames' poses together, with the cross-frame colour term
+        (:mod:`uvatar.avh.bake.refine_together`)."""
+        pr = self.pose_refine
+        return bool(self.refine_pose and pr.photometric_radii and pr.photometric_weight > 0)
+
     def with_updates(self, **changes) -> BakeConfig:
         """A copy with top-level fields (or ``registration_<field>``, ``pose_refine_<field>``) replaced;
         None values are ignored."""

@@ -20,7 +20,13 @@ from uvatar.avh.bake.correspond import match_texels
 from uvatar.avh.bake.inpaint import inpaint_telea
 from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
 from uvatar.errors import InputError
-from uvatar.geometry import UVRaster, gaussian_surface_matrix, rasterize_uv, sample_texture, vertex_normals
+from uvatar.geometry import (
+    UVRaster,
+    gaussian_surface_matrix,
+    rasterize_uv,
+    sample_mesh_texture,
+    vertex_normals,
+)
 from uvatar.threads import single_threaded
 
 __all__ = ["BodyLayout", "BakedFrame", "bake_frame", "bake_fit", "shadow_vertices", "preview_image", "check_scan"]
@@ -249,10 +255,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
                                config.max_match_distance, eps)
         hit = matches.hit
     with _timed(sec, "texture"):
-        uv_corners = scan.uvs[scan.uv_faces[matches.face[hit]]]                  # (K, 3, 2)
-        uv = (uv_corners * matches.bary[hit][..., None]).sum(1)
         colors = np.zeros((len(r), 3), np.float32)
-        colors[hit] = sample_texture(scan.texture, uv)
+        colors[hit] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, matches.face[hit], matches.bary[hit])
         s = layout.at_texels(shadow)
         disp = np.where(hit[:, None], matches.points - s, 0.0)
     with _timed(sec, "visibility_scan"):

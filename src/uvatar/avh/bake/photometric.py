@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uvatar.avh.bake.register import ScanSurface
-from uvatar.geometry import sample_texture, tangent_basis
+from uvatar.geometry import sample_mesh_texture, tangent_basis
 
 __all__ = ["PhotoTarget", "RING_POINTS", "stencil_offsets", "surface_colours", "ray_colours", "reference_colours"]
 
@@ -68,8 +68,7 @@ def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float
         bary = np.where(better[:, None], hits.bary, bary)
     ok = face >= 0
     colours = np.zeros((len(p), 3))
-    uv = (scan.uvs[scan.uv_faces[face[ok]]] * bary[ok][..., None]).sum(1)
-    colours[ok] = sample_texture(scan.texture, uv)
+    colours[ok] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, face[ok], bary[ok])
     return colours, ok
 
 

@@ -34,6 +34,12 @@ __all__ = ["REFERENCE_FILE", "refine_frames_together", "load_reference"]
 REFERENCE_FILE = "photo_reference.npz"
 
 
+def _row(fit) -> tuple:
+    """What the reference file keeps of a refined fit: (poses, Rh, Th, scale)."""
+    return np.asarray(fit.poses, np.float32), np.asarray(fit.Rh, np.float64), np.asarray(fit.Th, np.float64), \
+        float(fit.scale)
+
+
 def load_reference(out_root, vertices: int):
     """(PhotoTarget, {frame: (poses, Rh, Th, scale)} refined earlier) saved by an earlier call, or
     None (absent, unreadable, or for another vertex set)."""
@@ -51,17 +57,16 @@ def load_reference(out_root, vertices: int):
     return (target, fits) if len(target.reference) == vertices else None
 
 
-def _save_reference(out_root, target: PhotoTarget, fits: dict) -> None:
-    """The reference and every refined fit so far (a resumed bake bakes exactly these)."""
+def _save_reference(out_root, target: PhotoTarget, rows: dict) -> None:
+    """The reference and every refined fit so far, {frame: :func:`_row`} (a resumed bake bakes
+    exactly these)."""
     from uvatar.io_utils import write_npz
 
-    names = sorted(fits)
+    names = sorted(rows)
+    poses, rh, th, scale = zip(*(rows[f] for f in names), strict=True)
     write_npz(Path(out_root) / REFERENCE_FILE, reference=target.reference.astype(np.float32), known=target.known,
-              radius=np.float64(target.radius), frames=np.array(names),
-              poses=np.stack([np.asarray(fits[f].poses, np.float32) for f in names]),
-              Rh=np.stack([np.asarray(fits[f].Rh, np.float64) for f in names]),
-              Th=np.stack([np.asarray(fits[f].Th, np.float64) for f in names]),
-              scale=np.array([float(fits[f].scale) for f in names]))
+              radius=np.float64(target.radius), frames=np.array(names), poses=np.stack(poses), Rh=np.stack(rh),
+              Th=np.stack(th), scale=np.array(scale))
 
 
 def _restore(capture_root, saved: dict, frames) -> dict:
@@ -113,17 +118,17 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
 
     pr = config.pose_refine
     frames = list(frames)
-    if not (config.refine_pose and pr.photometric_radii and pr.photometric_weight > 0 and frames):
+    if not (config.refines_across_frames and frames):
         return {}
-    body, _ = load_body_and_layout(body_name, config.texels)
-    vertices = len(refine_vertices(body, pr))
+    body_layout = load_body_and_layout(body_name, config.texels)
+    vertices = len(refine_vertices(body_layout[0], pr))
     saved = None if rebuild_reference else load_reference(out_root, vertices)
     if saved is None and len(frames) < pr.photometric_min_frames:
         return {}
     radii = list(pr.photometric_radii)
     done: dict = {}
     shared = {"capture_root": str(capture_root), "config": config, "body_name": body_name, "fits": {},
-              "body_layout": load_body_and_layout(body_name, config.texels)}
+              "body_layout": body_layout}
     if saved is not None:
         target, stored = saved
         done = _restore(capture_root, stored, frames)
@@ -161,9 +166,10 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
         if saved is None and radius is not None and len(colours) < pr.photometric_min_frames:
             return dict(shared["fits"])   # too few frames left for a median: geometry only
     refined = dict(shared["fits"])
+    rows = {f: _row(fit) for f, fit in refined.items()}
     if saved is None:
-        _save_reference(out_root, target, refined)
+        _save_reference(out_root, target, rows)
     else:
-        _save_reference(out_root, saved[0], {**_restore(capture_root, saved[1], saved[1]), **refined})
+        _save_reference(out_root, saved[0], {**saved[1], **rows})
         refined.update(done)
     return refined
