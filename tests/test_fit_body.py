@@ -182,11 +182,11 @@ def test_fit_recovers_known_pose_and_shape(anny, keypoints):
     scans = [(posed.vertices[t].numpy(), posed.normals[t].numpy()) for t in range(2)]
     obs = FitObservations(k3, np.ones(k3.shape[:2], np.float32), scans=scans)
     seen = []
-    cfg = BodyFitConfig(iterations=(20, 20, 60, 120), w_smooth=0.0, joints="conditioning", scan_inside_tolerance=0.0, scan_inside_weight=1.0,
+    cfg = BodyFitConfig(iterations=(20, 20, 120, 120), w_smooth=0.0, joints="conditioning", scan_inside_tolerance=0.0, scan_inside_weight=1.0,
                         w_shape_prior=1e-5,                  # a weak prior: the known shape is far from the mean
                         scan_body_vertices=800, scan_samples=800, refresh_every=5)   # a bare body: no clothing
     fit = fit_body_sequence(anny, obs, cfg, progress=lambda done, total, info: seen.append((done, total, info["stage"])))
-    assert seen[-1][:2] == (220, 220) and [s[2] for s in seen] == ["global", "torso", "limbs"] + ["full"] * 24
+    assert seen[-1][:2] == (280, 280) and [s[2] for s in seen] == ["global", "torso", "limbs"] + ["full"] * 24
     assert fit.poses.shape == pose.shape and fit.shape.shape == (6,) and fit.observed.all()
     assert np.all(fit.poses[:, [j for j in range(anny.num_joints) if j not in anny.conditioning_joints]] == 0)
     got = _posed(anny, fit.poses, fit.Rh, fit.Th, fit.shape)
@@ -203,6 +203,27 @@ def test_fit_recovers_known_pose_and_shape(anny, keypoints):
     assert shape_err < 8 and shape_err < 0.1 * start_err, (float(shape_err), float(start_err))   # 129 mm at the start
     d = point_surface_distance(scans[0][0][::20], got.vertices[0].numpy(), anny.template.faces) * 1000
     assert np.median(d) < 4
+
+
+def test_torso_stage_ignores_the_arms_keypoints(anny, keypoints):
+    """With the arms at rest in the torso stage, a raised arm's elbow and wrist points could only be
+    reached by turning the collar: that stage does not see them; the limbs stage does."""
+    from uvatar.fit.body_config import ARM_KEYPOINTS
+    from uvatar.fit.problem import FitProblem
+
+    pose, Rh, Th = _pose(anny, 2, 6, std=0.1)
+    k3 = keypoints(_posed(anny, pose, Rh, Th, SHAPE)).numpy()
+    arm = [BLAZEPOSE_NAMES.index(n) for n in ARM_KEYPOINTS]
+    moved = k3.copy()
+    moved[:, arm] += 0.3                                          # the arm points somewhere else
+    conf = np.ones(k3.shape[:2], np.float32)
+    problems = [FitProblem(anny, FitObservations(k, conf), BodyFitConfig()) for k in (k3, moved)]
+    with torch.no_grad():
+        posed = problems[0].pose(False)
+        torso = [float(p.terms(posed, 1)["keypoints3d"].sum()) for p in problems]
+        limbs = [float(p.terms(posed, 2)["keypoints3d"].sum()) for p in problems]
+    assert torso[0] == torso[1] and torso[0] > 0
+    assert limbs[1] > limbs[0] + 0.01                          # robust: each far point adds a bounded cost
 
 
 def test_a_frame_without_observations_is_carried_by_its_neighbours(anny, keypoints):
@@ -319,12 +340,12 @@ def test_hip_chain_turns_where_no_scan_places_the_hips(anny, keypoints):
 
     err = {}
     for mode in ("rest", "auto"):
-        cfg = BodyFitConfig(iterations=(20, 60, 60, 60), w_smooth=0.0, fit_shape=False, hip_chain=mode)
+        cfg = BodyFitConfig(iterations=(20, 60, 120, 60), w_smooth=0.0, fit_shape=False, hip_chain=mode)
         assert (chain <= set(FitProblem(anny, obs, cfg).joints)) == (mode == "auto")
         fit = fit_body_sequence(anny, obs, cfg)
         got = keypoints(_posed(anny, fit.poses, fit.Rh, fit.Th, fit.shape)).numpy()
         err[mode] = float(np.abs(yaw(got) - yaw(k3)).mean())
-    assert err["auto"] < 6 and err["rest"] > 1.5 * err["auto"], err    # measured 4.4 and 8.8 deg at 15 deg
+    assert err["auto"] < 6 and err["rest"] > 1.5 * err["auto"], err    # measured 3.2 and 8.8 deg
     scan = [(posed.vertices[t].numpy(), posed.normals[t].numpy()) for t in range(2)]
     with_scan = FitObservations(k3, obs.keypoints3d_conf, scans=scan)
     assert not chain & set(FitProblem(anny, with_scan, BodyFitConfig(hip_chain="auto")).joints)

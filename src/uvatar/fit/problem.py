@@ -10,6 +10,7 @@ import torch
 
 from uvatar.fit import losses as L
 from uvatar.fit.body_config import (
+    ARM_KEYPOINTS,
     STIFF_JOINTS,
     BodyFitConfig,
     FitObservations,
@@ -80,6 +81,9 @@ class FitProblem:
         self.kp = BodyKeypoints(body).to(dev)
         K = len(self.kp.names)
         self.kp_w = torch.as_tensor(self.kp.weights, device=dev)
+        # the torso stage does not see the arms' keypoints (see ARM_KEYPOINTS)
+        arm = torch.tensor([n in ARM_KEYPOINTS for n in self.kp.names], device=dev, dtype=torch.float32)
+        self.torso_kp_w = self.kp_w * (1 - arm)
         has_scan = obs.scans is not None and any(s is not None for s in obs.scans)
         hips = cfg.hip_chain == "free" or (cfg.hip_chain == "auto" and not has_scan)
         self.joints = fitted_joints(body, cfg.joints, hip_chain=hips)
@@ -203,13 +207,14 @@ class FitProblem:
         cfg = self.cfg
         out = {}
         kp = posed.keypoints
+        kp_w = self.torso_kp_w if stage == 1 else self.kp_w
         coarse = 1.0 if stage >= 3 else cfg.keypoint_sigma_coarse / cfg.keypoint_sigma   # wide basin first
         if self.kp3d is not None and cfg.w_keypoints3d > 0:
-            out["keypoints3d"] = cfg.w_keypoints3d * L.keypoint3d_term(kp, self.kp3d, self.kp3d_conf, self.kp_w,
+            out["keypoints3d"] = cfg.w_keypoints3d * L.keypoint3d_term(kp, self.kp3d, self.kp3d_conf, kp_w,
                                                                        cfg.keypoint_sigma * coarse)
         if self.kp2d is not None and cfg.w_keypoints2d > 0:
             out["keypoints2d"] = cfg.w_keypoints2d * L.keypoint2d_term(kp, self.cams, self.kp2d, self.kp2d_conf,
-                                                                       self.kp_w, cfg.keypoint2d_sigma_px * coarse)
+                                                                       kp_w, cfg.keypoint2d_sigma_px * coarse)
         if stage >= 1:
             out["pose_prior"] = cfg.w_pose_prior * L.pose_prior_term(self.rot, self.prior_weights)
             out["smooth"] = cfg.w_smooth * L.smoothness_term(posed.joints[:, self.joint_index], self.continuous,
