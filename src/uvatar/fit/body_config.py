@@ -12,8 +12,8 @@ import numpy as np
 
 from uvatar.errors import check_values
 
-__all__ = ["STAGES", "PHOTO_STAGE", "FITTED_JOINTS", "STIFF_JOINTS", "ARM_KEYPOINTS", "fitted_joints", "FitObservations",
-           "BodyFitConfig", "SequenceFit", "hip_chain_joints", "HIP_CHAIN"]
+__all__ = ["STAGES", "PHOTO_STAGE", "FITTED_JOINTS", "STIFF_JOINTS", "ARM_KEYPOINTS", "fitted_joints",
+           "FitObservations", "BodyFitConfig", "SequenceFit", "hip_chain_joints", "HIP_CHAIN"]
 
 STAGES = ("global", "torso", "limbs", "full")
 HIP_CHAIN = ("auto", "free", "rest")
@@ -28,7 +28,9 @@ STIFF_JOINTS = ("l_collar", "r_collar", "l_wrist", "r_wrist")
 # turning the collar, which the later stages never fully undo. (The legs' keypoints stay: they hang
 # from the root, which the torso stage turns, and they place the hip line.) Measured on the 60-frame
 # studio capture (``uvatar fit``, 2026-11-23): from scans, the right collar's world angle error
-# 14.7 -> 8.9 deg, left 7.1 -> 4.0 deg; from the 4 images MPJPE 23.2 -> 13.3 mm
+# 14.7 -> 8.9 deg, left 7.1 -> 4.0 deg, and the bake from those fits 27.5 -> 29.1 dB; from the 4
+# images alone MPJPE 24.4 -> 22.6 mm. Leaving out the legs' too: the real recording's hip line
+# 4.0 -> 7.8 deg off the triangulated hips
 ARM_KEYPOINTS = ("left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_pinky", "right_pinky",
                  "left_index", "right_index", "left_thumb", "right_thumb")
 # semantic joints that keypoints cannot turn: toes and eyes stay at rest, as in EasyMocap's body fits

@@ -12,7 +12,8 @@ BodyKeypoints`) in warm-started stages, as EasyMocap does:
 
 1. ``global``: Rh, Th from keypoints (initialized per frame by a weighted Procrustes of the torso
    keypoints; frames without them take their neighbours' values);
-2. ``torso``: + spine, neck, pelvis and clavicle joints;
+2. ``torso``: + spine, neck, pelvis and clavicle joints, fitted to every keypoint but the arms'
+   (``ARM_KEYPOINTS``: with the arms at rest, a raised arm would be reached by the collar);
 3. ``limbs``: + every other pose-conditioning joint;
 4. ``full``: + the shared shape, the scan and silhouette terms;
 5. ``texture`` (where the observations carry photometric views and ``w_photo`` > 0): + the
