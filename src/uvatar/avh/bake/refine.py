@@ -110,6 +110,11 @@ def fit_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius:
     return np.where(ok[:, None], colour, np.nan)
 
 
+def _huber_weights(residuals, scale: float) -> np.ndarray:
+    """IRLS weights of a Huber loss with ``scale``: 1 inside it, ``scale / |r|`` beyond."""
+    return np.minimum(1.0, scale / np.maximum(np.abs(residuals), 1e-12))
+
+
 def _clothing_offsets(residuals, skin, huber: float, steps: int = 3) -> np.ndarray:
     """(K,) clothing thickness per joint region (metres) that best explains point-to-plane
     ``residuals`` (N,) at the start pose, robustly (IRLS Huber): the pose steps then start from a
@@ -117,7 +122,7 @@ def _clothing_offsets(residuals, skin, huber: float, steps: int = 3) -> np.ndarr
     offsets = np.zeros(skin.shape[1])
     for _ in range(steps):
         rr = residuals + skin @ offsets
-        w = np.minimum(1.0, huber / np.maximum(np.abs(rr), 1e-12))
+        w = _huber_weights(rr, huber)
         a = (skin * w[:, None]).T @ skin
         offsets = -np.linalg.solve(a + 1e-9 * np.eye(len(a)), (skin * w[:, None]).T @ residuals)
     return offsets
@@ -197,14 +202,14 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         centre0 = v.mean(0)
         jac = np.concatenate([_motion_rows(v[ok], m[ok], sub[ok], centres, centre0), skin[ok]], axis=1)
         res = r[ok]
-        w = np.minimum(1.0, config.huber / np.maximum(np.abs(res), 1e-12))           # IRLS Huber weights
+        w = _huber_weights(res, config.huber)
         if photo is not None and seen.any():
             # one row per (vertex, channel): d colour_c = grad_c . dv; no clothing-offset column
             g = grad[seen].reshape(-1, 3)
             rows = _motion_rows(np.repeat(v[seen], 3, axis=0), g, np.repeat(sub[seen], 3, axis=0), centres, centre0)
             jac = np.concatenate([jac, np.concatenate([rows, np.zeros((len(rows), k))], axis=1)])
             rc = rc.reshape(-1)
-            wc = config.photometric_weight * np.minimum(1.0, config.photometric_huber / np.maximum(np.abs(rc), 1e-12))
+            wc = config.photometric_weight * _huber_weights(rc, config.photometric_huber)
             res, w = np.concatenate([res, rc]), np.concatenate([w, wc])
         jac_w = jac * np.sqrt(w)[:, None]
         a = jac_w.T @ jac_w                     # X^T X of one buffer: BLAS syrk, half the flops
