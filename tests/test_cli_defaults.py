@@ -26,7 +26,7 @@ from uvatar.cli.main import build_cli
 TARGETS = {
     "train avh": ["uvatar.avh.train:TrainConfig", "uvatar.avh.model:AvhConfig"],
     "train dva": ["uvatar.dva.train:train_dva", "uvatar.dva.model:TrainConfig", "uvatar.dva.primitives:PrimitiveConfig",
-                  "uvatar.dva.decoders:DecoderConfig"],
+                  "uvatar.dva.decoders:DecoderConfig", "uvatar.dva.raymarch_ref:RaymarchConfig"],
     "presets": [],
     "export": ["uvatar.avh.export:export_avatar"],
     "animate": ["uvatar.avh.animate:AnimateConfig", "uvatar.avh.animate:animate"],
@@ -39,7 +39,7 @@ TARGETS = {
     "body render": ["uvatar.body.registry:load_body_model"],
     "capture check": ["uvatar.capture.validate:ValidateConfig"],
     "demo": ["uvatar.demo.pipeline:DemoConfig"],
-    "render dva": [],
+    "render dva": ["uvatar.dva.train:load_run"],
     "motion info": [],
     "motion convert": ["uvatar.motion.sequences:load_motion", "uvatar.body.registry:load_body_model",
                        "uvatar.motion.retarget:RetargetConfig"],

@@ -37,8 +37,8 @@ def make_prims(positions, rotvecs, scales, payload):
     return Primitives(positions, roma.rotvec_to_rotmat(rotvecs), scales, payload)
 
 
-CFG = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17)
-GATHER = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17, sampler="gather")
+CFG = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17, marcher="torch")  # the torch twin here
+GATHER = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17, sampler="gather", marcher="torch")
 
 
 def pinhole_scene(n=10, dtype=torch.float64, dist=(0, 0, 0, 0, 0)):
@@ -139,7 +139,7 @@ def test_pinhole_candidates_cover_exact_hits(dist):
 def test_gradcheck_float64():
     pos, rv, sc, pl = random_scene(K=3, S=2, seed=5, density=6.0)
     o, d = camera_rays(n=4)
-    cfg = RaymarchConfig(step=0.05, border_fade=0.3)
+    cfg = RaymarchConfig(step=0.05, border_fade=0.3, marcher="torch")
 
     near_far = (torch.full((o.shape[0],), 1.5, dtype=torch.float64),
                 torch.full((o.shape[0],), 3.5, dtype=torch.float64))  # fixed sample placement
@@ -163,7 +163,7 @@ def test_constant_slab_analytic():
         payload[:, 3] = sigma
         prims = Primitives(torch.zeros(1, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)[None],
                            torch.full((1, 3), 0.5, dtype=torch.float64), payload)
-        cfg = RaymarchConfig(step=0.001, border_fade=0.0)
+        cfg = RaymarchConfig(step=0.001, border_fade=0.0, marcher="torch")
         o = torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64)
         d = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64)
         for fn in (raymarch, raymarch_reference):

@@ -37,7 +37,16 @@ from uvatar.dva.raymarch_ref import (
 )
 
 __all__ = ["Primitives", "RaymarchConfig", "raymarch", "render_rays", "candidate_pairs", "sphere_candidates",
-           "pinhole_candidates", "slab_intervals", "payload_atlas"]
+           "pinhole_candidates", "slab_intervals", "step_ranges", "payload_atlas", "resolve_marcher"]
+
+
+def resolve_marcher(name: str) -> str:
+    """"auto" -> "warp" when warp-lang is importable, else "torch"; other names as given."""
+    if name != "auto":
+        return name
+    import importlib.util
+
+    return "warp" if importlib.util.find_spec("warp") is not None else "torch"
 
 
 @torch.no_grad()
@@ -121,6 +130,16 @@ def slab_intervals(origins, directions, ray, prim, prims: Primitives):
     return (t_out > t_in) & (t_out >= 0), t_in, t_out
 
 
+def step_ranges(t_in, t_out, t_near, t_far, T: int, step: float):
+    """First and last fixed-grid step (``t_near + i * step``, i < T) inside each pair's interval
+    [t_in, t_out] and the ray's [t_near, t_far] (all (P,)); a pair has no step where last < first."""
+    lo = torch.maximum(t_in, t_near)
+    hi = torch.minimum(t_out, t_far)
+    i0 = torch.ceil((lo - t_near) / step).long().clamp(min=0)
+    i1 = torch.floor((hi - t_near) / step).long().clamp(max=T - 1)
+    return i0, i1
+
+
 def candidate_pairs(origins, directions, prims: Primitives):
     """Exact ray/box hits by brute-force sphere culling + slab test.
     Returns ray index (P,), primitive index (P,), t_enter (P,), t_exit (P,)."""
@@ -182,10 +201,7 @@ def _march_chunk(origins, directions, t_near, t_far, T, prims: Primitives, sampl
     with torch.no_grad():
         keep, t_in, t_out = slab_intervals(origins.detach(), directions.detach(), ray, prim, prims)
         ray, prim, t_in, t_out = ray[keep], prim[keep], t_in[keep], t_out[keep]
-        lo = torch.maximum(t_in, t_near[ray])
-        hi = torch.minimum(t_out, t_far[ray])
-        i0 = torch.ceil((lo - t_near[ray]) / cfg.step).long().clamp(min=0)
-        i1 = torch.floor((hi - t_near[ray]) / cfg.step).long().clamp(max=T - 1)
+        i0, i1 = step_ranges(t_in, t_out, t_near[ray], t_far[ray], T, cfg.step)
         count = (i1 - i0 + 1).clamp(min=0)
         pair = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
         if pair.numel() == 0:
@@ -221,9 +237,14 @@ def raymarch(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,
     culling uses the primitives' projected rectangles (:func:`pinhole_candidates`) instead of testing
     every (ray, primitive) pair; the result is the same.
     Returns rgb (N, 3) premultiplied by alpha and alpha (N,) in [0, 1]; same model as
-    :func:`uvatar.dva.raymarch_ref.raymarch_reference`.
+    :func:`uvatar.dva.raymarch_ref.raymarch_reference`. ``cfg.marcher`` "warp" (or "auto" with warp-lang
+    installed) runs the fused kernels of :mod:`uvatar.dva.raymarch_warp` instead of the torch code below.
     """
     cfg = cfg or RaymarchConfig()
+    if resolve_marcher(cfg.marcher) == "warp":
+        from uvatar.dva.raymarch_warp import raymarch_warp
+
+        return raymarch_warp(origins, directions, prims, cfg, near_far, camera, pixels)
     N, K = origins.shape[0], prims.num
     if N == 0 or K == 0:
         return origins.new_zeros(N, 3), origins.new_zeros(N)

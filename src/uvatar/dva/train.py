@@ -18,6 +18,7 @@ alone shows progress and writes the run folder.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import random
 import time
@@ -90,15 +91,18 @@ def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict, clock: 
         torch.save(state, tmp)
 
 
-def load_run(run_dir, device="cpu", body_model=None, model_dir=None):
+def load_run(run_dir, device="cpu", body_model=None, model_dir=None, marcher: str | None = None):
     """(model, body, meta, step) from a run folder's checkpoint. ``body_model``: must be the run's
-    own when given; ``model_dir``: where its SMPL/SMPL-X files are (default: the training run's)."""
+    own when given; ``model_dir``: where its SMPL/SMPL-X files are (default: the training run's);
+    ``marcher``: the ray marcher to render with (``RaymarchConfig.marcher``; default: the run's)."""
     path = Path(run_dir) / CHECKPOINT
     if not path.is_file():
         raise InputError(path, "no DVA checkpoint here (train with `uvatar train dva` first)")
     try:
         state = torch.load(path, map_location=device, weights_only=False)
         cfg = DvaConfig.from_dict(state["config"])
+        if marcher is not None:
+            cfg.raymarch = dataclasses.replace(cfg.raymarch, marcher=marcher)
         meta = state["meta"]
     except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is the same user error
         raise InputError(path, f"unreadable checkpoint ({exc.__class__.__name__}: {exc})") from None
@@ -137,7 +141,9 @@ class Trainer:
                 state = torch.load(ckpt, map_location=self.device, weights_only=False)
             except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is the same user error
                 raise InputError(ckpt, f"unreadable checkpoint ({exc.__class__.__name__}: {exc})") from None
+            marcher = cfg.raymarch.marcher  # how to render, not what was learned: the caller's
             cfg = DvaConfig.from_dict(state["config"])  # the run's own config wins on resume
+            cfg.raymarch = dataclasses.replace(cfg.raymarch, marcher=marcher)
             log.info("resuming from %s at step %d", ckpt, state["step"])
         self.cfg = cfg
         if state is not None and body_model and body_model != state["meta"]["body_model"]:
