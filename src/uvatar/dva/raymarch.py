@@ -37,7 +37,7 @@ from uvatar.dva.raymarch_ref import (
 )
 
 __all__ = ["Primitives", "RaymarchConfig", "raymarch", "render_rays", "candidate_pairs", "sphere_candidates",
-           "pinhole_candidates", "slab_intervals", "step_ranges", "payload_atlas", "resolve_marcher"]
+           "pinhole_candidates", "pinhole_rects", "slab_intervals", "step_ranges", "payload_atlas", "resolve_marcher"]
 
 
 def resolve_marcher(name: str) -> str:
@@ -62,14 +62,10 @@ def sphere_candidates(origins, directions, prims: Primitives):
 
 
 @torch.no_grad()
-def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: float = 1.0):
-    """(ray, primitive) pairs for rays through integer ``pixels`` (N, 2) (x, y) of a pinhole ``camera``
-    (K, R, T; OpenCV): every primitive lists the requested pixels inside its projected box's bounding
-    rectangle (grown by ``margin`` px). Cost ~ sum of those rectangles, not N * K. Primitives reaching
-    behind the camera cover every pixel. Pairs come sorted by ray. A camera with lens distortion
-    projects the corners through the same distortion as its rays (``Camera.dist``, shared
-    :func:`uvatar.geometry.camera.distort`), with one more pixel of margin for the curvature of the
-    box's distorted outline."""
+def pinhole_rects(camera, pixels: torch.Tensor, prims: Primitives, margin: float = 1.0):
+    """The pixel rectangles of :func:`pinhole_candidates`: (lookup (h*w,) ray index of each pixel of the
+    requested pixels' bounding box (x0, y0, width w), -1 where no ray; x0; y0; w; rects (K, 4) inclusive
+    [x_lo, y_lo, x_hi, y_hi] per primitive, clipped to the box (empty where hi < lo))."""
     from uvatar.geometry.camera import distort
 
     dev, dt = prims.positions.device, prims.positions.dtype
@@ -95,10 +91,25 @@ def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: 
         uv = (cam @ Kc.T)[..., :2] / z.clamp(min=1e-6)[..., None]
     lo = torch.floor(uv.min(1).values - margin).long()
     hi = torch.ceil(uv.max(1).values + margin).long()
-    bx0 = torch.where(behind, x0, lo[:, 0].clamp(x0, x1 + 1))
-    by0 = torch.where(behind, y0, lo[:, 1].clamp(y0, y1 + 1))
-    bx1 = torch.where(behind, x1, hi[:, 0].clamp(x0 - 1, x1))
-    by1 = torch.where(behind, y1, hi[:, 1].clamp(y0 - 1, y1))
+    rects = torch.stack([torch.where(behind, x0, lo[:, 0].clamp(x0, x1 + 1)),
+                         torch.where(behind, y0, lo[:, 1].clamp(y0, y1 + 1)),
+                         torch.where(behind, x1, hi[:, 0].clamp(x0 - 1, x1)),
+                         torch.where(behind, y1, hi[:, 1].clamp(y0 - 1, y1))], 1)
+    return lookup, x0, y0, w, rects
+
+
+@torch.no_grad()
+def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: float = 1.0):
+    """(ray, primitive) pairs for rays through integer ``pixels`` (N, 2) (x, y) of a pinhole ``camera``
+    (K, R, T; OpenCV): every primitive lists the requested pixels inside its projected box's bounding
+    rectangle (grown by ``margin`` px). Cost ~ sum of those rectangles, not N * K. Primitives reaching
+    behind the camera cover every pixel. Pairs come sorted by ray. A camera with lens distortion
+    projects the corners through the same distortion as its rays (``Camera.dist``, shared
+    :func:`uvatar.geometry.camera.distort`), with one more pixel of margin for the curvature of the
+    box's distorted outline."""
+    dev = prims.positions.device
+    lookup, x0, y0, w, rects = pinhole_rects(camera, pixels, prims, margin)
+    bx0, by0, bx1, by1 = rects.unbind(1)
     bw, bh = (bx1 - bx0 + 1).clamp(min=0), (by1 - by0 + 1).clamp(min=0)
     count = bw * bh
     prim = torch.repeat_interleave(torch.arange(prims.num, device=dev), count)

@@ -3,9 +3,11 @@
 The model is :mod:`uvatar.dva.raymarch_ref`'s exactly (the parity tests hold the three marchers together);
 this twin fuses everything after culling into one kernel launch per direction:
 
-1. culling (torch, no gradient, shared with :mod:`uvatar.dva.raymarch`): candidate (ray, primitive)
-   pairs from the projected rectangles (camera + pixels) or bounding spheres, an exact slab test, and
-   each pair's range of fixed-grid steps; pairs are sorted by (ray, first step) into a per-ray list;
+1. culling (no gradient): for a pinhole camera's pixels, one thread per primitive walks the pixels of
+   its projected rectangle (:func:`uvatar.dva.raymarch.pinhole_rects`), keeps the rays that cross its
+   box (exact slab test) with their range of fixed-grid steps, and writes them into per-ray lists
+   (a counting pass, a prefix sum, a filling pass); other rays take the torch twin's bounding-sphere
+   candidates and a per-pair slab test;
 2. forward kernel, one thread per ray: march the ray's steps from its first candidate's entry; at each
    step sum the active primitives' samples (position in the primitive's frame, border fade, trilinear
    RGB + density lookup) and accumulate front to back with the saturating opacity, stopping at the step
@@ -18,7 +20,7 @@ this twin fuses everything after culling into one kernel launch per direction:
    payload voxels (trilinear weights) and the primitives' positions, rotations and scales (atomic
    adds) and sums the rays' origin/direction gradients per thread.
 
-The payload goes to the kernels channels-last ((K, S, S, S, 4), one 16-byte load per voxel corner).
+The kernels read the payload in place ((K, 4, S, S, S), no copy: at K = 4096, S = 16 it is 268 MB).
 ``warp-lang`` is the ``kernels`` extra; kernels compile on first use per dtype (float32, float64) and
 device, then come from Warp's kernel cache. On the CPU Warp runs a launch on one thread.
 """
@@ -29,7 +31,7 @@ device, then come from Warp's kernel cache. On the CPU Warp runs a launch on one
 
 import torch
 
-from uvatar.dva.raymarch import pinhole_candidates, sphere_candidates
+from uvatar.dva.raymarch import pinhole_rects, sphere_candidates
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, num_steps, ray_range
 from uvatar.errors import require
 
@@ -62,30 +64,36 @@ def _build(wp, F):
         return i, g - F(i)
 
     @wp.func
-    def lookup(payload: wp.array(dtype=V4), base: int, S: int, y: V3):
-        """Trilinear (r, g, b, density) of one primitive's channels-last block at local y in [-1, 1]."""
+    def voxel(payload: wp.array(dtype=F), idx: int, S3: int):
+        """(r, g, b, density) of one voxel; channels are S^3 apart ([k, c, z, y, x] layout)."""
+        return V4(payload[idx], payload[idx + S3], payload[idx + 2 * S3], payload[idx + 3 * S3])
+
+    @wp.func
+    def lookup(payload: wp.array(dtype=F), base: int, S: int, y: V3):
+        """Trilinear (r, g, b, density) of primitive block ``base`` (= k * 4 * S^3) at local y in [-1, 1]."""
         ix, fx = corner(y[0], S)
         iy, fy = corner(y[1], S)
         iz, fz = corner(y[2], S)
+        S3 = S * S * S
         out = V4()
         for dz in range(2):
             wz = wp.where(dz == 1, fz, F(1.0) - fz)
             zi = wp.min(iz + dz, S - 1)
             for dy in range(2):
                 wy = wp.where(dy == 1, fy, F(1.0) - fy)
-                yi = wp.min(iy + dy, S - 1)
-                row = base + (zi * S + yi) * S
-                out += (wz * wy * (F(1.0) - fx)) * payload[row + ix]
-                out += (wz * wy * fx) * payload[row + wp.min(ix + 1, S - 1)]
+                row = base + (zi * S + wp.min(iy + dy, S - 1)) * S
+                out += (wz * wy * (F(1.0) - fx)) * voxel(payload, row + ix, S3)
+                out += (wz * wy * fx) * voxel(payload, row + wp.min(ix + 1, S - 1), S3)
         return out
 
     @wp.func
-    def lookup_backward(payload: wp.array(dtype=V4), grad_payload: wp.array(dtype=V4), base: int, S: int,
+    def lookup_backward(payload: wp.array(dtype=F), grad_payload: wp.array(dtype=F), base: int, S: int,
                         y: V3, grad: V4):
         """Scatter d loss / d sample (4,) into the voxels; returns d loss / d y (3,)."""
         ix, fx = corner(y[0], S)
         iy, fy = corner(y[1], S)
         iz, fz = corner(y[2], S)
+        S3 = S * S * S
         gx = F(0.0)
         gy = F(0.0)
         gz = F(0.0)
@@ -96,14 +104,15 @@ def _build(wp, F):
             for dy in range(2):
                 wy = wp.where(dy == 1, fy, F(1.0) - fy)
                 sy = wp.where(dy == 1, F(1.0), F(-1.0))
-                yi = wp.min(iy + dy, S - 1)
-                row = base + (zi * S + yi) * S
+                row = base + (zi * S + wp.min(iy + dy, S - 1)) * S
                 for dx in range(2):
                     wx = wp.where(dx == 1, fx, F(1.0) - fx)
                     sx = wp.where(dx == 1, F(1.0), F(-1.0))
                     idx = row + wp.min(ix + dx, S - 1)
-                    wp.atomic_add(grad_payload, idx, (wx * wy * wz) * grad)
-                    v = wp.dot(payload[idx], grad)
+                    wgt = wx * wy * wz
+                    for c in range(4):
+                        wp.atomic_add(grad_payload, idx + c * S3, wgt * grad[c])
+                    v = wp.dot(voxel(payload, idx, S3), grad)
                     gx += sx * wy * wz * v
                     gy += wx * sy * wz * v
                     gz += wx * wy * sz * v
@@ -159,41 +168,72 @@ def _build(wp, F):
                 nxt = wp.min(nxt, pair_i0[j])
         return nxt
 
+    @wp.func
+    def slab_steps(o: V3, d: V3, tn: F, tf: F, k: int, positions: wp.array(dtype=V3),
+                   rotations: wp.array(dtype=M33), scales: wp.array(dtype=V3), T: int, step: F):
+        """Slab test of a ray against box k in the box's frame (raymarch.slab_intervals) and the steps
+        inside it (raymarch.step_ranges): (first, last); last < first where the ray misses the box."""
+        Rt = wp.transpose(rotations[k])
+        ol = wp.cw_div(Rt * (o - positions[k]), scales[k])
+        dl = wp.cw_div(Rt * d, scales[k])
+        t_in = F(-1.0e30)
+        t_out = F(1.0e30)
+        for a in range(3):
+            da = wp.where(wp.abs(dl[a]) < F(1.0e-12), F(1.0e-12), dl[a])
+            t0 = (F(-1.0) - ol[a]) / da
+            t1 = (F(1.0) - ol[a]) / da
+            t_in = wp.max(t_in, wp.min(t0, t1))
+            t_out = wp.min(t_out, wp.max(t0, t1))
+        i0 = int(0)
+        i1 = int(-1)
+        if t_out > t_in and t_out >= F(0.0):
+            i0 = wp.max(int(wp.ceil((wp.max(t_in, tn) - tn) / step)), 0)
+            i1 = wp.min(int(wp.floor((wp.min(t_out, tf) - tn) / step)), T - 1)
+        return i0, i1
+
     @wp.kernel(module="unique")
     def pair_steps(origins: wp.array(dtype=V3), directions: wp.array(dtype=V3), t_near: wp.array(dtype=F),
                    t_far: wp.array(dtype=F), pair_ray: wp.array(dtype=int), pair_prim: wp.array(dtype=int),
                    positions: wp.array(dtype=V3), rotations: wp.array(dtype=M33), scales: wp.array(dtype=V3),
                    T: int, step: F, pair_i0: wp.array(dtype=int), pair_i1: wp.array(dtype=int)):
-        """Slab test of one (ray, primitive) pair in the box's frame (raymarch.slab_intervals) and its
-        steps (raymarch.step_ranges); a pair that misses gets an empty range (last < first)."""
+        """Steps of each given (ray, primitive) pair (an empty range where the ray misses the box)."""
         p = wp.tid()
         r = pair_ray[p]
-        k = pair_prim[p]
-        Rt = wp.transpose(rotations[k])
-        o = wp.cw_div(Rt * (origins[r] - positions[k]), scales[k])
-        d = wp.cw_div(Rt * directions[r], scales[k])
-        t_in = F(-1.0e30)
-        t_out = F(1.0e30)
-        for a in range(3):
-            da = wp.where(wp.abs(d[a]) < F(1.0e-12), F(1.0e-12), d[a])
-            t0 = (F(-1.0) - o[a]) / da
-            t1 = (F(1.0) - o[a]) / da
-            t_in = wp.max(t_in, wp.min(t0, t1))
-            t_out = wp.min(t_out, wp.max(t0, t1))
-        tn = t_near[r]
-        i0 = int(0)
-        i1 = int(-1)
-        if t_out > t_in and t_out >= F(0.0):
-            i0 = wp.max(int(wp.ceil((wp.max(t_in, tn) - tn) / step)), 0)
-            i1 = wp.min(int(wp.floor((wp.min(t_out, t_far[r]) - tn) / step)), T - 1)
+        i0, i1 = slab_steps(origins[r], directions[r], t_near[r], t_far[r], pair_prim[p], positions, rotations,
+                            scales, T, step)
         pair_i0[p] = i0
         pair_i1[p] = i1
+
+    @wp.kernel(module="unique")
+    def rect_pairs(origins: wp.array(dtype=V3), directions: wp.array(dtype=V3), t_near: wp.array(dtype=F),
+                   t_far: wp.array(dtype=F), lookup: wp.array(dtype=int), x0: int, y0: int, w: int,
+                   rects: wp.array(dtype=wp.vec4i), positions: wp.array(dtype=V3), rotations: wp.array(dtype=M33),
+                   scales: wp.array(dtype=V3), T: int, step: F, write: int, count: wp.array(dtype=int),
+                   offsets: wp.array(dtype=int), pair_prim: wp.array(dtype=int), pair_i0: wp.array(dtype=int),
+                   pair_i1: wp.array(dtype=int)):
+        """One thread per primitive: the rays of the pixels in its projected rectangle that really cross
+        its box. write 0 counts them per ray; write 1 fills the per-ray lists (``count`` as cursor)."""
+        k = wp.tid()
+        rc = rects[k]
+        for py in range(rc[1], rc[3] + 1):
+            for px in range(rc[0], rc[2] + 1):
+                r = lookup[(py - y0) * w + (px - x0)]
+                if r >= 0:
+                    i0, i1 = slab_steps(origins[r], directions[r], t_near[r], t_far[r], k, positions, rotations,
+                                        scales, T, step)
+                    if i1 >= i0:
+                        slot = wp.atomic_add(count, r, 1)
+                        if write == 1:
+                            p = offsets[r] + slot
+                            pair_prim[p] = k
+                            pair_i0[p] = i0
+                            pair_i1[p] = i1
 
     @wp.kernel(module="unique")
     def forward(origins: wp.array(dtype=V3), directions: wp.array(dtype=V3), t_near: wp.array(dtype=F),
                 offsets: wp.array(dtype=int), pair_prim: wp.array(dtype=int), pair_i0: wp.array(dtype=int),
                 pair_i1: wp.array(dtype=int), positions: wp.array(dtype=V3), rotations: wp.array(dtype=M33),
-                scales: wp.array(dtype=V3), payload: wp.array(dtype=V4), S: int, step: F, fw: F,
+                scales: wp.array(dtype=V3), payload: wp.array(dtype=F), S: int, step: F, fw: F,
                 rgb_out: wp.array(dtype=V3), alpha_out: wp.array(dtype=F), total_out: wp.array(dtype=F),
                 last_out: wp.array(dtype=int), sat_out: wp.array(dtype=V4), sat_rem: wp.array(dtype=F)):
         r = wp.tid()
@@ -219,7 +259,7 @@ def _build(wp, F):
                     y, inside = local(x, k, positions, rotations, scales)
                     if inside:
                         f, df = fade(y, fw)
-                        v = lookup(payload, k * S3, S, y)
+                        v = lookup(payload, k * 4 * S3, S, y)
                         w = step * v[3] * f
                         a += w
                         c += w * V3(v[0], v[1], v[2])
@@ -249,11 +289,11 @@ def _build(wp, F):
     def backward(origins: wp.array(dtype=V3), directions: wp.array(dtype=V3), t_near: wp.array(dtype=F),
                  offsets: wp.array(dtype=int), pair_prim: wp.array(dtype=int), pair_i0: wp.array(dtype=int),
                  pair_i1: wp.array(dtype=int), positions: wp.array(dtype=V3), rotations: wp.array(dtype=M33),
-                 scales: wp.array(dtype=V3), payload: wp.array(dtype=V4), S: int, step: F, fw: F,
+                 scales: wp.array(dtype=V3), payload: wp.array(dtype=F), S: int, step: F, fw: F,
                  total_in: wp.array(dtype=F), last_in: wp.array(dtype=int), sat_in: wp.array(dtype=V4),
                  sat_rem: wp.array(dtype=F), grad_rgb: wp.array(dtype=V3), grad_alpha: wp.array(dtype=F),
                  g_positions: wp.array(dtype=V3), g_rotations: wp.array(dtype=M33), g_scales: wp.array(dtype=V3),
-                 g_payload: wp.array(dtype=V4), g_origins: wp.array(dtype=V3), g_directions: wp.array(dtype=V3)):
+                 g_payload: wp.array(dtype=F), g_origins: wp.array(dtype=V3), g_directions: wp.array(dtype=V3)):
         r = wp.tid()
         beg, end, lo, hi = ray_bounds(offsets, pair_i0, pair_i1, r)
         last = last_in[r]
@@ -292,11 +332,11 @@ def _build(wp, F):
                     y, inside = local(x, k, positions, rotations, scales)
                     if inside:
                         f, df = fade(y, fw)
-                        v = lookup(payload, k * S3, S, y)
+                        v = lookup(payload, k * 4 * S3, S, y)
                         w = step * v[3] * f
                         gw = ga + wp.dot(gc, V3(v[0], v[1], v[2]))
                         gv = V4(w * gc[0], w * gc[1], w * gc[2], step * f * gw)
-                        gy = lookup_backward(payload, g_payload, k * S3, S, y, gv)
+                        gy = lookup_backward(payload, g_payload, k * 4 * S3, S, y, gv)
                         gy += (step * v[3] * gw) * df
                         s = scales[k]
                         R = rotations[k]
@@ -314,7 +354,7 @@ def _build(wp, F):
         g_origins[r] = g_o
         g_directions[r] = g_d
 
-    return pair_steps, forward, backward
+    return pair_steps, rect_pairs, forward, backward
 
 
 def _kernels(dtype: torch.dtype):
@@ -341,27 +381,41 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     if T == 0:
         return None
     o, d = origins.detach().contiguous(), directions.detach().contiguous()
-    if camera is not None and pixels is not None:
-        ray, prim = pinhole_candidates(camera, torch.as_tensor(pixels), prims)  # sorted by ray
-    else:
-        parts = [sphere_candidates(o[lo:lo + cfg.chunk_rays], d[lo:lo + cfg.chunk_rays], prims)
-                 for lo in range(0, N, cfg.chunk_rays)]
-        ray = torch.cat([p[0] + lo for p, lo in zip(parts, range(0, N, cfg.chunk_rays), strict=True)])
-        prim = torch.cat([p[1] for p in parts])
+    wp, (pair_steps, rect_pairs, _, _) = _kernels(origins.dtype)
+    dt, dev = origins.dtype, origins.device
+    V3, _, M33 = _types(wp, dt)
+    box = [_wp(wp, prims.positions.to(dt).contiguous(), V3), _wp(wp, prims.rotations.to(dt).contiguous(), M33),
+           _wp(wp, prims.scales.to(dt).contiguous(), V3), T, _scalar(wp, dt)(cfg.step)]
+    rays = [_wp(wp, o, V3), _wp(wp, d, V3), _wp(wp, t_near), _wp(wp, t_far)]
+    launch = {"device": wp.device_from_torch(dev), "stream": _stream(wp, dev)}
+    i32 = torch.int32
+    offsets = torch.zeros(N + 1, dtype=i32, device=dev)
+    if camera is not None and pixels is not None:  # per primitive: the pixels of its rectangle
+        lookup, x0, y0, w, rects = pinhole_rects(camera, torch.as_tensor(pixels), prims)
+        count = torch.zeros(N, dtype=i32, device=dev)
+        pairs = [torch.zeros(0, dtype=i32, device=dev)] * 3
+        args = rays + [_wp(wp, lookup.to(i32)), x0, y0, w, _wp(wp, rects.to(i32).contiguous(), wp.vec4i)] + box
+        wp.launch(rect_pairs, dim=prims.num, inputs=args + [0, _wp(wp, count), _wp(wp, offsets)]
+                  + [_wp(wp, t) for t in pairs], **launch)
+        offsets[1:] = torch.cumsum(count, 0)
+        P = int(offsets[-1])
+        if P == 0:
+            return None
+        count.zero_()
+        pairs = [torch.empty(P, dtype=i32, device=dev) for _ in range(3)]
+        wp.launch(rect_pairs, dim=prims.num, inputs=args + [1, _wp(wp, count), _wp(wp, offsets)]
+                  + [_wp(wp, t) for t in pairs], **launch)
+        return (t_near, offsets, *pairs)
+    parts = [sphere_candidates(o[lo:lo + cfg.chunk_rays], d[lo:lo + cfg.chunk_rays], prims)
+             for lo in range(0, N, cfg.chunk_rays)]  # each sorted by ray
+    ray = torch.cat([p[0] + lo for p, lo in zip(parts, range(0, N, cfg.chunk_rays), strict=True)])
     if ray.numel() == 0:
         return None
-    offsets = torch.zeros(N + 1, dtype=torch.int32, device=ray.device)
     offsets[1:] = torch.cumsum(torch.bincount(ray, minlength=N), 0)
-    ray, prim = ray.to(torch.int32).contiguous(), prim.to(torch.int32).contiguous()
+    ray, prim = ray.to(i32).contiguous(), torch.cat([p[1] for p in parts]).to(i32).contiguous()
     i0, i1 = torch.empty_like(ray), torch.empty_like(ray)
-    wp, (pair_steps, _, _) = _kernels(origins.dtype)
-    V3, M33 = _types(wp, origins.dtype)[:3:2]
-    dt = origins.dtype
-    wp.launch(pair_steps, dim=ray.numel(), inputs=[
-        _wp(wp, o, V3), _wp(wp, d, V3), _wp(wp, t_near), _wp(wp, t_far), _wp(wp, ray), _wp(wp, prim),
-        _wp(wp, prims.positions.to(dt).contiguous(), V3), _wp(wp, prims.rotations.to(dt).contiguous(), M33),
-        _wp(wp, prims.scales.to(dt).contiguous(), V3), T, _scalar(wp, dt)(cfg.step), _wp(wp, i0), _wp(wp, i1)],
-        device=wp.device_from_torch(o.device), stream=_stream(wp, o.device))
+    wp.launch(pair_steps, dim=ray.numel(), inputs=rays + [_wp(wp, ray), _wp(wp, prim)] + box
+              + [_wp(wp, i0), _wp(wp, i1)], **launch)
     return t_near, offsets, prim, i0, i1
 
 
@@ -369,12 +423,12 @@ class _March(torch.autograd.Function):
     @staticmethod
     def forward(ctx, origins, directions, positions, rotations, scales, payload, *plan_consts):
         plan, (S, step, fw) = plan_consts[:5], plan_consts[5:]
-        wp, (_, fwd, _) = _kernels(origins.dtype)
+        wp, (_, _, fwd, _) = _kernels(origins.dtype)
         N, dev, dt = origins.shape[0], origins.device, origins.dtype
         V3, V4, M33 = _types(wp, dt)
         inputs = [_wp(wp, origins, V3), _wp(wp, directions, V3), _wp(wp, plan[0])] + \
                  [_wp(wp, t) for t in plan[1:]] + \
-                 [_wp(wp, positions, V3), _wp(wp, rotations, M33), _wp(wp, scales, V3), _wp(wp, payload, V4),
+                 [_wp(wp, positions, V3), _wp(wp, rotations, M33), _wp(wp, scales, V3), _wp(wp, payload),
                   S, _scalar(wp, dt)(step), _scalar(wp, dt)(fw)]
         rgb, alpha, total = origins.new_zeros(N, 3), origins.new_zeros(N), origins.new_zeros(N)
         last = torch.full((N,), -1, dtype=torch.int32, device=dev)
@@ -392,17 +446,17 @@ class _March(torch.autograd.Function):
         origins, directions, positions, rotations, scales, payload, *rest = ctx.saved_tensors
         plan, (total, last, sat, rem) = rest[:5], rest[5:]
         S, step, fw = ctx.consts
-        wp, (_, _, bwd) = _kernels(origins.dtype)
+        wp, (_, _, _, bwd) = _kernels(origins.dtype)
         dev, dt = origins.device, origins.dtype
         V3, V4, M33 = _types(wp, dt)
         grads = [torch.zeros_like(t) for t in (positions, rotations, scales, payload, origins, directions)]
         inputs = [_wp(wp, origins, V3), _wp(wp, directions, V3), _wp(wp, plan[0])] + \
                  [_wp(wp, t) for t in plan[1:]] + \
-                 [_wp(wp, positions, V3), _wp(wp, rotations, M33), _wp(wp, scales, V3), _wp(wp, payload, V4),
+                 [_wp(wp, positions, V3), _wp(wp, rotations, M33), _wp(wp, scales, V3), _wp(wp, payload),
                   S, _scalar(wp, dt)(step), _scalar(wp, dt)(fw),
                   _wp(wp, total), _wp(wp, last), _wp(wp, sat, V4), _wp(wp, rem),
                   _wp(wp, grad_rgb.contiguous(), V3), _wp(wp, grad_alpha.contiguous())]
-        outputs = [_wp(wp, grads[0], V3), _wp(wp, grads[1], M33), _wp(wp, grads[2], V3), _wp(wp, grads[3], V4),
+        outputs = [_wp(wp, grads[0], V3), _wp(wp, grads[1], M33), _wp(wp, grads[2], V3), _wp(wp, grads[3]),
                    _wp(wp, grads[4], V3), _wp(wp, grads[5], V3)]
         wp.launch(bwd, dim=origins.shape[0], inputs=inputs + outputs, device=wp.device_from_torch(dev),
                   stream=_stream(wp, dev))
@@ -442,10 +496,9 @@ def raymarch_warp(origins: torch.Tensor, directions: torch.Tensor, prims: Primit
     if plan is None:
         zero = (prims.payload.sum() + prims.positions.sum() + prims.rotations.sum() + prims.scales.sum()) * 0
         return origins.new_zeros(N, 3) + zero, origins.new_zeros(N) + zero
-    K, S = prims.num, prims.voxels
-    payload = prims.payload.to(dt).permute(0, 2, 3, 4, 1).contiguous()  # (K, S, S, S, 4) channels-last
+    S = prims.voxels
     rgb, alpha = _March.apply(origins.contiguous(), directions.contiguous(), prims.positions.to(dt).contiguous(),
                               prims.rotations.to(dt).contiguous(), prims.scales.to(dt).contiguous(),
-                              payload.view(K * S ** 3, 4), *(p.contiguous() for p in plan), S,
+                              prims.payload.to(dt).contiguous().view(-1), *(p.contiguous() for p in plan), S,
                               float(cfg.step), float(cfg.border_fade))
     return rgb, alpha
