@@ -145,3 +145,30 @@ def test_cuda_parity_with_cpu():
     assert torch.allclose(gpu[0].cpu(), cpu[0], atol=1e-5) and torch.allclose(gpu[1].cpu(), cpu[1], atol=1e-5)
     for name, gg, gc in zip(NAMES, gpu[2], cpu[2], strict=True):
         assert (gg.cpu() - gc).norm() <= 1e-4 * gc.norm(), name
+
+
+def test_cli_marcher_flags(tmp_path):
+    """--marcher reaches training (and a resume, whose marcher is the caller's, not the checkpoint's)
+    and evaluation; both marchers score the run alike."""
+    import json
+
+    from tests.fixtures.dva_capture import write_toy_capture
+    from uvatar.cli.main import main
+
+    cap = write_toy_capture(tmp_path / "cap", frames=3, cameras=4, size=24)
+    run = tmp_path / "run"
+
+    def marcher():
+        return json.loads((run / "run.json").read_text())["config"]["raymarch"]["marcher"]
+
+    assert main(["train", "dva", str(cap), str(run), "--preset", "tiny", "--iters", "1", "--marcher", "torch"]) == 0
+    assert marcher() == "torch"
+    assert main(["train", "dva", str(cap), str(run), "--preset", "tiny", "--iters", "2", "--resume",
+                 "--marcher", "warp"]) == 0
+    assert marcher() == "warp"
+    scores = {}
+    for m in ("torch", "warp"):
+        path = tmp_path / f"{m}.json"
+        assert main(["eval", "dva", str(run), str(cap), "--json", str(path), "--marcher", m]) == 0
+        scores[m] = json.loads(path.read_text())["psnr_db"]
+    assert scores["torch"] == pytest.approx(scores["warp"], abs=1e-3)
