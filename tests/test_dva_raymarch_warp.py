@@ -1,5 +1,6 @@
 """The fused Warp marcher against the reference and the torch twin: values and gradients (float32 and
-float64, with and without pinhole culling), float64 gradcheck, early termination, empty rays, CUDA."""
+float64, with and without pinhole culling), early termination, empty rays, the CLI flag, CUDA. Its
+float64 gradcheck is ``tests/test_dva_raymarch.py::test_gradcheck_float64[warp]``."""
 
 from __future__ import annotations
 
@@ -60,20 +61,6 @@ def test_pinhole_culling_parity_with_torch_twin(seed, dist):
     assert torch.allclose(rgb_w, rgb_t, atol=1e-5) and torch.allclose(a_w, a_t, atol=1e-5)
     for name, gw, gt in zip(NAMES, g_w, g_t, strict=True):
         assert (gw - gt).norm() <= 1e-4 * gt.norm(), name
-
-
-def test_gradcheck_float64():
-    pos, rv, sc, pl = random_scene(K=3, S=2, seed=5, density=6.0)
-    o, d = camera_rays(n=4)
-    cfg = RaymarchConfig(step=0.05, border_fade=0.3, marcher="warp")
-    near_far = (torch.full((o.shape[0],), 1.5, dtype=torch.float64),
-                torch.full((o.shape[0],), 3.5, dtype=torch.float64))  # fixed sample placement
-
-    def fn(p, r, s, payload, origins):
-        return raymarch(origins, d, make_prims(p, r, s, payload), cfg, near_far=near_far)
-
-    inputs = tuple(t.clone().requires_grad_(True) for t in (pos, rv, sc, pl, o))
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5)
 
 
 def two_boxes(front_density: float, dtype=torch.float64):

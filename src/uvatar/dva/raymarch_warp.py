@@ -146,6 +146,19 @@ def _build(wp, F):
         return y, inside
 
     @wp.func
+    def sample(x: V3, k: int, positions: wp.array(dtype=V3), rotations: wp.array(dtype=M33),
+               scales: wp.array(dtype=V3), payload: wp.array(dtype=F), S: int, fw: F):
+        """Primitive k at world x: inside its box?, local y, fade and its gradient, (r, g, b, density)."""
+        y, inside = local(x, k, positions, rotations, scales)
+        f = F(0.0)
+        df = V3()
+        v = V4()
+        if inside:
+            f, df = fade(y, fw)
+            v = lookup(payload, k * 4 * S * S * S, S, y)
+        return inside, y, f, df, v
+
+    @wp.func
     def ray_bounds(offsets: wp.array(dtype=int), pair_i0: wp.array(dtype=int), pair_i1: wp.array(dtype=int),
                    r: int):
         """The ray's pairs [beg, end) and the steps [lo, hi] any of them covers."""
@@ -240,7 +253,6 @@ def _build(wp, F):
         beg, end, lo, hi = ray_bounds(offsets, pair_i0, pair_i1, r)
         o = origins[r]
         d = directions[r]
-        S3 = S * S * S
         total = F(0.0)
         rgb = V3()
         last = int(-1)
@@ -255,11 +267,8 @@ def _build(wp, F):
             for j in range(beg, end):
                 if pair_i0[j] <= i and i <= pair_i1[j]:
                     active += 1
-                    k = pair_prim[j]
-                    y, inside = local(x, k, positions, rotations, scales)
+                    inside, y, f, df, v = sample(x, pair_prim[j], positions, rotations, scales, payload, S, fw)
                     if inside:
-                        f, df = fade(y, fw)
-                        v = lookup(payload, k * 4 * S3, S, y)
                         w = step * v[3] * f
                         a += w
                         c += w * V3(v[0], v[1], v[2])
@@ -329,10 +338,8 @@ def _build(wp, F):
                 if pair_i0[j] <= i and i <= pair_i1[j]:
                     active += 1
                     k = pair_prim[j]
-                    y, inside = local(x, k, positions, rotations, scales)
+                    inside, y, f, df, v = sample(x, k, positions, rotations, scales, payload, S, fw)
                     if inside:
-                        f, df = fade(y, fw)
-                        v = lookup(payload, k * 4 * S3, S, y)
                         w = step * v[3] * f
                         gw = ga + wp.dot(gc, V3(v[0], v[1], v[2]))
                         gv = V4(w * gc[0], w * gc[1], w * gc[2], step * f * gw)
