@@ -56,7 +56,7 @@ def register(cli) -> None:
     p.add_argument("capture", help="multi-view capture folder")
     p.add_argument("out", help="run folder (checkpoint.pt, run.json, tb/)")
     p.add_argument("--preset", default="cpu", choices=tuple(PRESETS),
-                   help="config preset: cpu (K=256, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
+                   help="config preset: cpu (K=576, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
     budget.add_to(p)
     target.add_to(p)
     train.add_to(p)
