@@ -30,6 +30,7 @@ device, then come from Warp's kernel cache. On the CPU Warp runs a launch on one
 # captured from the enclosing function
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from uvatar.dva.raymarch import pinhole_rects, sphere_candidates
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, num_steps, ray_range
@@ -427,6 +428,10 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
 
 
 class _March(torch.autograd.Function):
+    """(origins, directions, positions, rotations, scales, payload (flat), *plan, S, step, fade width)
+    -> rgb (N, 3), alpha (N,); the backward kernel gives the first six their gradients (once
+    differentiable: no gradient of a gradient)."""
+
     @staticmethod
     def forward(ctx, origins, directions, positions, rotations, scales, payload, *plan_consts):
         plan, (S, step, fw) = plan_consts[:5], plan_consts[5:]
@@ -449,6 +454,7 @@ class _March(torch.autograd.Function):
         return rgb, alpha
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_rgb, grad_alpha):
         origins, directions, positions, rotations, scales, payload, *rest = ctx.saved_tensors
         plan, (total, last, sat, rem) = rest[:5], rest[5:]
