@@ -52,7 +52,7 @@ def _warp():
 
 
 def _build(wp, F):
-    """Forward and backward kernels for scalar type F (wp.float32 / wp.float64)."""
+    """The kernels (pair_steps, rect_pairs, forward, backward) for scalar type F (wp.float32 / wp.float64)."""
     V3 = wp.types.vector(3, F)
     V4 = wp.types.vector(4, F)
     M33 = wp.types.matrix((3, 3), F)
@@ -438,10 +438,7 @@ class _March(torch.autograd.Function):
         wp, (_, _, fwd, _) = _kernels(origins.dtype)
         N, dev, dt = origins.shape[0], origins.device, origins.dtype
         V3, V4, M33 = _types(wp, dt)
-        inputs = [_wp(wp, origins, V3), _wp(wp, directions, V3), _wp(wp, plan[0])] + \
-                 [_wp(wp, t) for t in plan[1:]] + \
-                 [_wp(wp, positions, V3), _wp(wp, rotations, M33), _wp(wp, scales, V3), _wp(wp, payload),
-                  S, _scalar(wp, dt)(step), _scalar(wp, dt)(fw)]
+        inputs = _march_args(wp, origins, directions, plan, positions, rotations, scales, payload, S, step, fw)
         rgb, alpha, total = origins.new_zeros(N, 3), origins.new_zeros(N), origins.new_zeros(N)
         last = torch.full((N,), -1, dtype=torch.int32, device=dev)
         sat, rem = origins.new_zeros(N, 4), origins.new_zeros(N)
@@ -463,11 +460,8 @@ class _March(torch.autograd.Function):
         dev, dt = origins.device, origins.dtype
         V3, V4, M33 = _types(wp, dt)
         grads = [torch.zeros_like(t) for t in (positions, rotations, scales, payload, origins, directions)]
-        inputs = [_wp(wp, origins, V3), _wp(wp, directions, V3), _wp(wp, plan[0])] + \
-                 [_wp(wp, t) for t in plan[1:]] + \
-                 [_wp(wp, positions, V3), _wp(wp, rotations, M33), _wp(wp, scales, V3), _wp(wp, payload),
-                  S, _scalar(wp, dt)(step), _scalar(wp, dt)(fw),
-                  _wp(wp, total), _wp(wp, last), _wp(wp, sat, V4), _wp(wp, rem),
+        inputs = _march_args(wp, origins, directions, plan, positions, rotations, scales, payload, S, step, fw) + \
+                 [_wp(wp, total), _wp(wp, last), _wp(wp, sat, V4), _wp(wp, rem),
                   _wp(wp, grad_rgb.contiguous(), V3), _wp(wp, grad_alpha.contiguous())]
         outputs = [_wp(wp, grads[0], V3), _wp(wp, grads[1], M33), _wp(wp, grads[2], V3), _wp(wp, grads[3]),
                    _wp(wp, grads[4], V3), _wp(wp, grads[5], V3)]
@@ -475,6 +469,14 @@ class _March(torch.autograd.Function):
                   stream=_stream(wp, dev))
         g_pos, g_rot, g_scl, g_pay, g_o, g_d = grads
         return (g_o, g_d, g_pos, g_rot, g_scl, g_pay) + (None,) * 8
+
+
+def _march_args(wp, origins, directions, plan, positions, rotations, scales, payload, S, step, fw) -> list:
+    """The arguments the forward and backward kernels share: rays, culling plan, primitives, constants."""
+    V3, _, M33 = _types(wp, origins.dtype)
+    F = _scalar(wp, origins.dtype)
+    return [_wp(wp, origins, V3), _wp(wp, directions, V3)] + [_wp(wp, t) for t in plan] + \
+        [_wp(wp, positions, V3), _wp(wp, rotations, M33), _wp(wp, scales, V3), _wp(wp, payload), S, F(step), F(fw)]
 
 
 def _types(wp, dtype):
