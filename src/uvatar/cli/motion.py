@@ -22,7 +22,8 @@ def _retarget_flags() -> ConfigFlags:
 def register(cli) -> None:
     p = cli.command("motion info", help="describe a motion file (.bvh, AMASS/uvatar .npz, fits or capture folder)")
     p.add_argument("path", help="motion file or folder")
-    p.add_argument("--map", default=None, metavar="FILE", help="joint map (JSON/YAML {source joint: semantic joint})")
+    p.add_argument("--map", dest="name_map", default=None, metavar="FILE",
+                   help="joint map (JSON/YAML {source joint: semantic joint})")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_info)
     p = cli.command("motion convert", help="convert (and retarget) a motion to a uvatar motion .npz for a body model")
@@ -31,7 +32,7 @@ def register(cli) -> None:
     p.add_argument("--body", default="anny", choices=("anny", "smpl", "smplx"), help="target body model")
     p.add_argument("--fps", type=float, default=None, help="resample to this frame rate")
     p.add_argument("--fits", default=None, metavar="DIR", help="also write EasyMocap fits (one JSON per frame) here")
-    p.add_argument("--map", default=None, metavar="FILE",
+    p.add_argument("--map", dest="name_map", default=None, metavar="FILE",
                    help="joint map (JSON/YAML {source joint: semantic or body joint, or null}) over the automatic match")
     _retarget_flags().add_to(p)
     p.add_argument("--report", default=None, metavar="JSON",
@@ -101,7 +102,7 @@ def describe_motion_file(path, joint_map: dict | None = None) -> dict:
 def _info(args) -> int:
     import json
 
-    info = describe_motion_file(args.path, _user_map(args.map))
+    info = describe_motion_file(args.path, _user_map(args.name_map))
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -126,7 +127,7 @@ def _convert(args) -> int:
     if args.fps is not None and not args.fps > 0:
         raise InputError("--fps", f"must be > 0, got {args.fps}")
     with options_as_input_error("uvatar motion convert options"):
-        config = _retarget_flags().config(args, name_map=_user_map(args.map))
+        config = _retarget_flags().config(args, name_map=_user_map(args.name_map))
     print(f"loading {args.input} for body model '{args.body}' ...", file=sys.stderr)
     motion = load_motion(args.input, body=args.body, config=config)
     if args.report:
