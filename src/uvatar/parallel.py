@@ -206,7 +206,7 @@ def _ray_init(ray, config: ExecutorConfig) -> bool:
         reason = _unreachable(config.address)
         if reason:
             raise UvatarError(f"{config.address}: no Ray cluster answers there ({reason}); start one "
-                              "(ray start --head) or use address=None for a private local Ray")
+                              "there (ray start) or use address=None for a private local Ray")
     kwargs = {"address": config.address} if config.address else {}
     with tempfile.TemporaryFile() as captured:
         saved = os.dup(2)
