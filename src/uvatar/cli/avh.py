@@ -98,7 +98,7 @@ def register(cli) -> None:
     p.set_defaults(func=_export)
 
     p = cli.command("animate", help="render an exported avatar driven by a motion to MP4",
-                    epilog="motion: a BVH/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE "
+                    epilog="motion: a BVH/FBX/glTF/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE "
                            "(its fits),\nheldout:CAPTURE (its held-out poses), take:NAME:CAPTURE (one take of a "
                            "synthetic capture)")
     p.add_argument("avatar", help="avatar folder (uvatar export)")
