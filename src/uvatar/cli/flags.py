@@ -253,6 +253,7 @@ def config_from_args(config: type | ConfigFlags, args: argparse.Namespace, base=
 
 # -- library messages in the terms of a command's flags ------------------------------------------------
 _ASSIGNED = re.compile(r"(?<![\w./-])([a-z][a-z0-9_]*)=(True|False|None|'[^']*'|[-\w.]+)")
+_VERB = re.compile(r"\b(pass|give|use) ([a-z][a-z0-9_]*)(?![\w/.=-])")
 _SNAKE = re.compile(r"(?<![\w./$-])([a-z][a-z0-9]*(?:_[a-z0-9]+)+)(?![\w/.=-])")
 
 
@@ -290,10 +291,11 @@ def _spell_flag(action: argparse.Action, value: str | None) -> str:
 
 def in_flag_terms(message: str, parser: argparse.ArgumentParser, command: str, all_parsers=()) -> str:
     """A library message (which names parameters: ``force=True replaces them``, ``use_fit=False``,
-    ``pass model_dir``) in the terms of ``command``'s flags: ``--force replaces them``, ``--no-fit``,
-    ``pass --model-dir``. A parameter the command has no flag for is kept, with a note saying so
-    (``model_dir (no flag of `uvatar motion convert` sets it)``); bare snake_case words are taken for
-    parameters only when some command has a flag of that name (``all_parsers``)."""
+    ``pass model_dir``, ``give calibration``) in the terms of ``command``'s flags: ``--force replaces
+    them``, ``--no-fit``, ``pass --model-dir``, ``give --calibration``. A parameter the command has no
+    flag for is kept, with a note saying so (``model_dir (no flag of `uvatar motion convert` sets
+    it)``); bare words (snake_case ones, or one after pass/give/use) are taken for parameters only
+    when some command has a flag of that name (``all_parsers``)."""
     flags = _flags_by_param(parser)
     known = set(flags)
     for other in all_parsers:
@@ -305,10 +307,12 @@ def in_flag_terms(message: str, parser: argparse.ArgumentParser, command: str, a
             return _spell_flag(flags[name], value)
         return f"{m.group(0)} (no flag of `{command}` sets {name})"
 
-    def bare(m: re.Match) -> str:
-        name = m.group(1)
+    def spell(name: str) -> str:
         if name in flags:
             return _spell_flag(flags[name], None)
         return f"{name} (no flag of `{command}` sets it)" if name in known else name
 
-    return _SNAKE.sub(bare, _ASSIGNED.sub(assigned, message))
+    def verb(m: re.Match) -> str:  # snake_case names are left to _SNAKE
+        return m.group(0) if "_" in m.group(2) else f"{m.group(1)} {spell(m.group(2))}"
+
+    return _SNAKE.sub(lambda m: spell(m.group(1)), _VERB.sub(verb, _ASSIGNED.sub(assigned, message)))
