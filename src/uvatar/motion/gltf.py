@@ -90,7 +90,7 @@ def _sample(times: np.ndarray, keys: np.ndarray, values: np.ndarray, mode: str, 
         return values[i0] * (1 - w[:, None]) + values[i1] * w[:, None]
     from scipy.spatial.transform import Rotation
 
-    from uvatar.motion.sequences import slerp_rotvecs
+    from uvatar.motion.rotations import slerp_rotvecs
 
     r0, r1 = (Rotation.from_quat(values[i]).as_rotvec() for i in (i0, i1))
     return Rotation.from_rotvec(slerp_rotvecs(r0, r1, w)).as_quat()
