@@ -46,7 +46,7 @@ def captures(tmp_path_factory):
     (["capture", "import", "{root}/no_calibration", "{root}/imported"], "; give --calibration"),
     (["motion", "convert", "{root}/legless.bvh", "{root}/x.npz"], "give them in a joint map (--map,"),
     (["motion", "convert", "{root}/legless.bvh", "{root}/x.npz", "--body", "smpl"],
-     "pass model_dir (no flag of `uvatar motion convert` sets it) or set UVATAR_SMPL_DIR"),
+     "pass --model-dir or set UVATAR_SMPL_DIR"),
 ])
 def test_library_messages_name_the_commands_flags(captures, capsys, monkeypatch, argv, flag_words):
     from uvatar.io_utils import write_json

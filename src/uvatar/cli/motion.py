@@ -32,6 +32,7 @@ def register(cli) -> None:
                                   "folder")
     p.add_argument("output", help="output .npz")
     p.add_argument("--body", default="anny", choices=("anny", "smpl", "smplx"), help="target body model")
+    p.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (none: $UVATAR_SMPL_DIR)")
     p.add_argument("--fps", type=float, default=None, help="resample to this frame rate")
     p.add_argument("--fits", default=None, metavar="DIR", help="also write EasyMocap fits (one JSON per frame) here")
     p.add_argument("--map", dest="name_map", default=None, metavar="FILE",
@@ -143,9 +144,12 @@ def _convert(args) -> int:
     with options_as_input_error("uvatar motion convert options"):
         config = _retarget_flags().config(args, name_map=_user_map(args.name_map))
     print(f"loading {args.input} for body model '{args.body}' ...", file=sys.stderr)
-    motion = load_motion(args.input, body=args.body, config=config)
+    from uvatar.body.registry import load_body_model
+
+    body = load_body_model(args.body, model_dir=args.model_dir)
+    motion = load_motion(args.input, body=body, config=config)
     if args.report:
-        _write_report(args, motion, config)
+        _write_report(args, motion, config, body)
     if args.fps:
         from uvatar.motion.sequences import resample_motion
 
@@ -163,11 +167,10 @@ def _convert(args) -> int:
     return 0
 
 
-def _write_report(args, motion, config) -> None:
+def _write_report(args, motion, config, body) -> None:
     from dataclasses import replace
     from pathlib import Path
 
-    from uvatar.body.registry import load_body_model
     from uvatar.errors import InputError
     from uvatar.io_utils import write_json
     from uvatar.motion.report import retarget_report, summary_lines
@@ -178,7 +181,6 @@ def _write_report(args, motion, config) -> None:
     if path.suffix.lower() not in SKELETON_READERS:
         raise InputError(path, f"--report measures a skeleton retarget: give a {', '.join(SKELETON_READERS)} input")
     source = read_skeleton_motion(path)
-    body = load_body_model(args.body)
     plan = plan_retarget(source, body, config)
     before = retarget(source, body, replace(config, feet="floor"), plan) if config.feet == "clean" else None
     report = retarget_report(source, motion, body, plan, contacts_config=config.contacts, before=before)
