@@ -30,7 +30,7 @@ class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
     def _get_help_string(self, action) -> str:
         text = action.help or ""
         own = text.replace(" (default: %(default)s)", "")  # what BooleanOptionalAction appends itself
-        if re.search(r"\bdefault\b", own, re.IGNORECASE):
+        if re.search(r"\(default\b|\bdefault:", own, re.IGNORECASE):  # "(default: found in SRC)"
             return own
         return super()._get_help_string(action)
 
