@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from uvatar.errors import check_values, one_line, require
+from uvatar.errors import UvatarError, check_values, one_line, require
 
 log = logging.getLogger(__name__)
 
@@ -178,12 +178,48 @@ def _run_pool(fn, items, shared, workers, initializer):
                 yield item, TaskFailure(f"worker failed: {one_line(exc)}")
 
 
+def _unreachable(address: str, timeout_s: float = 3.0) -> str | None:
+    """Why nothing answers at a Ray address ``HOST:PORT`` / ``ray://HOST:PORT`` (a TCP connect with a
+    timeout), or None when something does (or the address is ``auto``/``local``, resolved by Ray)."""
+    import socket
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit():
+        return None
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    return None
+
+
 def _ray_init(ray, config: ExecutorConfig) -> bool:
-    """Connect to (or start) Ray; True when this call started it (and must shut it down)."""
+    """Connect to (or start) Ray; True when this call started it (and must shut it down). An address
+    where nothing answers is refused at once, and Ray's own start-up log (its GCS client retries for
+    minutes, tens of lines) is kept off the terminal: a failed start is one line (the log at debug)."""
+    import os
+    import tempfile
+
     if ray.is_initialized():
         return False
+    if config.address:
+        reason = _unreachable(config.address)
+        if reason:
+            raise UvatarError(f"{config.address}: no Ray cluster answers there ({reason}); start one "
+                              "there (ray start) or use address=None for a private local Ray")
     kwargs = {"address": config.address} if config.address else {}
-    ray.init(include_dashboard=False, log_to_driver=True, **kwargs)
+    with tempfile.TemporaryFile() as captured:
+        saved = os.dup(2)
+        os.dup2(captured.fileno(), 2)  # Ray's C++ core logs to the process's stderr, below Python's
+        try:
+            ray.init(include_dashboard=False, log_to_driver=True, logging_level=logging.WARNING, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - ConnectionError, RuntimeError, TimeoutError ...
+            captured.seek(0)
+            log.debug("ray.init failed; its log:\n%s", captured.read().decode(errors="replace"))
+            raise UvatarError(f"{config.address or 'a local Ray'}: Ray did not start: {one_line(exc)}") from None
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
     return True
 
 
