@@ -16,7 +16,10 @@ import numpy as np
 
 from uvatar.errors import InputError, require
 
-__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "first_hit_reference", "count_hits_reference"]
+__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "RAY_BACKENDS", "make_caster", "first_hit_reference",
+           "count_hits_reference"]
+
+RAY_BACKENDS = ("auto", "embree", "warp")
 
 
 @dataclass(frozen=True)
@@ -120,7 +123,9 @@ class RayCaster:
     >>> hits = rc.first_hit(origins, directions, max_distance=2.0)
     """
 
-    def __init__(self, vertices, faces, config: RayCasterConfig | None = None):
+    def __init__(self, vertices, faces, config: RayCasterConfig | None = None, build: bool = True):
+        """``build=False`` validates the mesh without making the Embree scene (a subclass with its own
+        :meth:`_run`, e.g. :class:`uvatar.geometry.raycast_warp.WarpRayCaster`, builds its own)."""
         self.config = config or RayCasterConfig()
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.faces = np.asarray(faces, dtype=np.int64)
@@ -132,6 +137,10 @@ class RayCaster:
             raise InputError("faces", f"indices out of range [0, {len(self.vertices)})")
         if len(self.faces) == 0:
             raise InputError("faces", "mesh has no triangles")
+        lo, hi = self.vertices.min(0), self.vertices.max(0)
+        self.extent = float(np.linalg.norm(hi - lo) + np.abs(np.stack([lo, hi])).max())
+        if not build:
+            return
         rtcore_scene = require("embreex.rtcore_scene", "embree", "ray casting")
         mesh_construction = require("embreex.mesh_construction", "embree", "ray casting")
         self._scene = rtcore_scene.EmbreeScene()
@@ -140,8 +149,6 @@ class RayCaster:
             np.ascontiguousarray(self.vertices, dtype=np.float32),
             np.ascontiguousarray(self.faces, dtype=np.int32),
         )
-        lo, hi = self.vertices.min(0), self.vertices.max(0)
-        self.extent = float(np.linalg.norm(hi - lo) + np.abs(np.stack([lo, hi])).max())
 
     @property
     def _triangles(self) -> np.ndarray:
@@ -254,6 +261,23 @@ class RayCaster:
             remaining[alive] -= advance
             alive = alive[remaining[alive] > 0]
         return count
+
+
+def make_caster(vertices, faces, config: RayCasterConfig | None = None, device: str = "cpu",
+                backend: str = "auto") -> RayCaster:
+    """The ray caster for ``device``: ``backend`` "auto" is Embree on the CPU (the fastest there) and
+    Warp's mesh BVH on CUDA (:class:`uvatar.geometry.raycast_warp.WarpRayCaster`); "embree" or "warp"
+    force one (Warp also runs on the CPU, single-threaded). Same queries and results either way."""
+    if backend not in RAY_BACKENDS:
+        raise ValueError(f"ray backend must be one of {RAY_BACKENDS}, got {backend!r}")
+    on_cpu = str(device) == "cpu"
+    if backend == "embree" or (backend == "auto" and on_cpu):
+        if not on_cpu:
+            raise InputError("device", f"{device}: Embree runs on the CPU only (use the warp ray backend)")
+        return RayCaster(vertices, faces, config)
+    from uvatar.geometry.raycast_warp import WarpRayCaster
+
+    return WarpRayCaster(vertices, faces, config, device=str(device))
 
 
 def first_hit_reference(vertices, faces, origins, directions, max_distance=np.inf) -> RayHits:

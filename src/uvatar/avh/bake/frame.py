@@ -192,20 +192,22 @@ def check_scan(scan, path="scan") -> None:
 
 
 def bake_fit(body, fit, layout: BodyLayout, scan, config: BakeConfig | None = None, shape=None,
-             scan_path: str = "scan"):
+             scan_path: str = "scan", surface: ScanSurface | None = None):
     """Pose the shadow mesh from ``fit`` (refined against the scan first if ``config.refine_pose``)
-    and bake. Returns (BakedFrame, the fit actually used: store it with the maps)."""
+    and bake. ``surface``: the scan already prepared on ``config.device`` (built here when None).
+    Returns (BakedFrame, the fit actually used: store it with the maps)."""
     with single_threaded():
-        return _bake_fit(body, fit, layout, scan, config, shape, scan_path)
+        return _bake_fit(body, fit, layout, scan, config, shape, scan_path, surface)
 
 
-def _bake_fit(body, fit, layout, scan, config, shape, scan_path):
+def _bake_fit(body, fit, layout, scan, config, shape, scan_path, surface):
     from uvatar.avh.bake.refine import refine_fit
 
     config = config or BakeConfig()
     check_scan(scan, scan_path)
     t0 = time.perf_counter()
-    surface = ScanSurface.build(scan.vertices, scan.faces)
+    if surface is None:
+        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     t1 = time.perf_counter()
     refine_stats = None
     if config.refine_pose:
@@ -238,7 +240,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
 
     if surface is None:
         with _timed(sec, "prepare_scan"):
-            surface = ScanSurface.build(scan.vertices, scan.faces)
+            surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     reg_stats: dict = {}
     with _timed(sec, "register"):
         if config.register:
@@ -267,7 +269,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         v = np.zeros(len(r))
         v[hit] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[hit])
     with _timed(sec, "visibility_registered"):
-        w_vertex = vertex_visibility(registered, layout.faces, fast_caster(registered, layout.faces),
+        w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
+        w_vertex = vertex_visibility(registered, layout.faces, w_caster,
                                      config.visibility_rays, eps, needed=layout.texel_vertices.ravel())
         w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
     with _timed(sec, "confidence"):

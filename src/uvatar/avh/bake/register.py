@@ -42,6 +42,7 @@ from uvatar.avh.bake.config import STAGE_MODES, RegistrationConfig
 from uvatar.geometry import (
     RayCaster,
     RayCasterConfig,
+    make_caster,
     face_normals,
     gaussian_surface_matrix,
     smoothed_normals,
@@ -79,7 +80,8 @@ class ScanSurface:
     tree: object
 
     @classmethod
-    def build(cls, vertices, faces) -> ScanSurface:
+    def build(cls, vertices, faces, device: str = "cpu", backend: str = "auto") -> ScanSurface:
+        """Prepare a scan; its rays run on ``device`` through ``backend`` (:func:`fast_caster`)."""
         from scipy.spatial import cKDTree
 
         v = np.asarray(vertices, dtype=np.float64)
@@ -91,7 +93,7 @@ class ScanSurface:
         normals = np.concatenate([vn, fn])
         # sliding-midpoint tree: ~3x faster to build than the balanced one, same (exact) answers
         tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
-        return cls(v, f, vn, fn, points, normals, fast_caster(v, f), tree)
+        return cls(v, f, vn, fn, points, normals, fast_caster(v, f, device, backend), tree)
 
     def normals_at(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0."""
@@ -108,10 +110,11 @@ class ScanSurface:
         return out
 
 
-def fast_caster(vertices, faces) -> RayCaster:
-    """Embree scene on the float32 fast path: no float64 ray preparation or re-intersection of hits
-    (float32 hits are ~0.1 um at 1 m); RayHits come back in float32."""
-    return RayCaster(vertices, faces, RayCasterConfig(refine=False, precision="float32"))
+def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:
+    """Ray caster on the float32 fast path: no float64 ray preparation or re-intersection of hits
+    (float32 hits are ~0.1 um at 1 m); RayHits come back in float32. Embree on the CPU, Warp on CUDA
+    (:func:`uvatar.geometry.raycast.make_caster`)."""
+    return make_caster(vertices, faces, RayCasterConfig(refine=False, precision="float32"), device, backend)
 
 
 def uniform_laplacian_matrix(faces, num_vertices: int) -> sp.csr_matrix:
