@@ -16,10 +16,18 @@ import numpy as np
 
 from uvatar.errors import InputError, require
 
-__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "RAY_BACKENDS", "make_caster", "first_hit_reference",
+__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "RAY_BACKENDS", "make_caster", "rays_cast", "first_hit_reference",
            "count_hits_reference"]
 
 RAY_BACKENDS = ("auto", "embree", "warp")
+
+_RAYS = {"INTERSECT": 0, "OCCLUDED": 0}   # rays cast by this process, by query kind (bench and stats)
+
+
+def rays_cast() -> int:
+    """Rays cast so far by every :class:`RayCaster` of this process (first hits, occlusion tests and
+    each re-launch of ``count_hits``): the difference around a stage is that stage's ray count."""
+    return _RAYS["INTERSECT"] + _RAYS["OCCLUDED"]
 
 
 @dataclass(frozen=True)
@@ -159,6 +167,11 @@ class RayCaster:
         return tri
 
     # -- raw Embree call -------------------------------------------------------------------------
+    def _cast(self, origins, directions, tfar, query="INTERSECT"):
+        """:meth:`_run`, counted (:func:`rays_cast`)."""
+        _RAYS[query] += len(origins)
+        return self._run(origins, directions, tfar, query)
+
     def _run(self, origins, directions, tfar, query="INTERSECT"):
         """Embree in batches of float32 rays. Returns (primID (N,) int32, u, v, tfar float32), or for
         OCCLUDED the primID-like array only (-1 = not occluded)."""
@@ -200,7 +213,7 @@ class RayCaster:
         n = len(origins)
         start = origins + directions * dtype(min_distance) if min_distance else origins
         tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
-        prim, u, v, t = self._run(start, directions, tfar)
+        prim, u, v, t = self._cast(start, directions, tfar)
         hit = prim >= 0
         face = prim.astype(np.int64)
         distance = np.where(hit, t.astype(dtype) + dtype(min_distance), dtype(np.inf))
@@ -216,7 +229,7 @@ class RayCaster:
             bary[idx, 1] = np.where(good, ru, bary[idx, 1])
             bary[idx, 2] = np.where(good, rv, bary[idx, 2])
         bary[:, 0] = 1 - bary[:, 1] - bary[:, 2]
-        if bary.min() < 0 or bary.max() > 1:  # round-off at edges
+        if len(bary) and (bary.min() < 0 or bary.max() > 1):  # round-off at edges
             np.clip(bary, 0.0, 1.0, out=bary)
             bary /= np.maximum(bary.sum(1, keepdims=True), dtype(1e-30))
         bary *= hit[:, None]
@@ -230,7 +243,7 @@ class RayCaster:
         origins, directions, max_distance = _prepare_rays(origins, directions, max_distance, dtype)
         start = origins + directions * dtype(min_distance) if min_distance else origins
         tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
-        return self._run(start, directions, tfar, query="OCCLUDED") != -1
+        return self._cast(start, directions, tfar, query="OCCLUDED") != -1
 
     def count_hits(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
         """(N,) int64: number of surface crossings within (min_distance, max_distance].
@@ -250,7 +263,7 @@ class RayCaster:
         for _ in range(self.config.max_layers):
             if not len(alive):
                 break
-            prim, _, _, t = self._run(pos[alive], directions[alive], remaining[alive])
+            prim, _, _, t = self._cast(pos[alive], directions[alive], remaining[alive])
             hit = prim >= 0
             alive, prim, t = alive[hit], prim[hit], t[hit].astype(np.float64)
             fresh = prim != last_face[alive]  # same face again: float32 re-hit, do not count it

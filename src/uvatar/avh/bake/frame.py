@@ -22,6 +22,7 @@ from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
 from uvatar.errors import InputError
 from uvatar.geometry import (
     UVRaster,
+    rays_cast,
     gaussian_surface_matrix,
     rasterize_uv,
     sample_mesh_texture,
@@ -131,7 +132,7 @@ class BakedFrame:
     texels with a scan match (the rest is inpainted); points (R, R, 3) float64 match x (zeros where
     unmatched; kept in memory for evaluation, not stored); stats: kappa_mean (over the body's
     surface texels, :meth:`BodyLayout.surface_texels`), kappa_mean_all_texels, matched_fraction,
-    registration info and ``seconds`` per stage.
+    registration info, ``seconds`` and ``rays`` (rays cast) per stage.
     """
 
     texture: np.ndarray
@@ -149,10 +150,13 @@ class BakedFrame:
 
 
 @contextmanager
-def _timed(seconds: dict, name: str):
-    t0 = time.perf_counter()
+def _timed(seconds: dict, name: str, rays: dict | None = None):
+    """Add the block's seconds to ``seconds[name]`` and the rays it cast to ``rays[name]``."""
+    t0, r0 = time.perf_counter(), rays_cast()
     yield
     seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+    if rays is not None:
+        rays[name] = rays.get(name, 0) + rays_cast() - r0
 
 
 def shadow_vertices(body, fit, shape=None) -> np.ndarray:
@@ -205,17 +209,19 @@ def _bake_fit(body, fit, layout, scan, config, shape, scan_path, surface):
 
     config = config or BakeConfig()
     check_scan(scan, scan_path)
-    t0 = time.perf_counter()
-    if surface is None:
-        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
-    t1 = time.perf_counter()
+    sec: dict[str, float] = {}
+    rays: dict[str, int] = {}
+    with _timed(sec, "prepare_scan", rays):
+        if surface is None:
+            surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     refine_stats = None
-    if config.refine_pose:
-        fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape)
-    shadow = shadow_vertices(body, fit, shape)
-    t2 = time.perf_counter()
+    with _timed(sec, "refine_pose", rays):
+        if config.refine_pose:
+            fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape)
+        shadow = shadow_vertices(body, fit, shape)
     baked = bake_frame(shadow, layout, scan, config, scan_path, surface=surface)
-    baked.stats["seconds"] = {"prepare_scan": t1 - t0, "refine_pose": t2 - t1, **baked.stats["seconds"]}
+    baked.stats["seconds"] = {**sec, **baked.stats["seconds"]}
+    baked.stats["rays"] = {**rays, **baked.stats["rays"]}
     if refine_stats is not None:
         baked.stats["pose_refine"] = refine_stats
     return baked, fit
@@ -234,50 +240,53 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     if layout.resolution != config.texels:
         raise ValueError(f"layout resolution {layout.resolution} != config.texels {config.texels}")
     sec: dict[str, float] = {}
+    rays: dict[str, int] = {}
     shadow = np.asarray(shadow, dtype=np.float64)
     diag = float(np.linalg.norm(shadow.max(0) - shadow.min(0)))
     eps = config.ray_epsilon
 
     if surface is None:
-        with _timed(sec, "prepare_scan"):
+        with _timed(sec, "prepare_scan", rays):
             surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     reg_stats: dict = {}
-    with _timed(sec, "register"):
+    with _timed(sec, "register", rays):
         if config.register:
             smoothing = layout.normal_smoothing_matrix(config.registration.normal_smoothing)
             registered, reg_stats = register_to_scan(shadow, layout.faces, surface, config.registration,
                                                      bbox_diagonal=diag, epsilon=eps, smoothing=smoothing)
         else:
             registered = shadow
-    with _timed(sec, "correspond"):
+    with _timed(sec, "correspond", rays):
         r = layout.at_texels(registered)
         n = layout.at_texels(vertex_normals(registered, layout.faces))
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         matches = match_texels(r, n, surface, config.polarity_rule, config.polarity_ratio,
                                config.max_match_distance, eps)
         hit = matches.hit
-    with _timed(sec, "texture"):
+    with _timed(sec, "texture", rays):
         colors = np.zeros((len(r), 3), np.float32)
         colors[hit] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, matches.face[hit], matches.bary[hit])
         s = layout.at_texels(shadow)
         disp = np.where(hit[:, None], matches.points - s, 0.0)
-    with _timed(sec, "visibility_scan"):
-        # only the scan faces around matched texels are ray cast (same values there)
-        hit_vertices = surface.faces[matches.face[hit]]                           # (K, 3)
-        v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster,
-                                     config.visibility_rays, eps, needed=hit_vertices.ravel())
-        v = np.zeros(len(r))
-        v[hit] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[hit])
-    with _timed(sec, "visibility_registered"):
+    with _timed(sec, "visibility_registered", rays):
         w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
         w_vertex = vertex_visibility(registered, layout.faces, w_caster,
                                      config.visibility_rays, eps, needed=layout.texel_vertices.ravel())
         w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
-    with _timed(sec, "confidence"):
+    with _timed(sec, "confidence", rays):
         delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
         nms = normal_match_score(n, matches.scan_normal)
-        kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)
-    with _timed(sec, "inpaint"):
+        use = hit & (w * delta * nms > 0)
+    with _timed(sec, "visibility_scan", rays):
+        # the scan's visibility v only matters where the other factors of kappa are not zero: only the
+        # scan faces around those texels' matches are ray cast (the same values there)
+        hit_vertices = surface.faces[matches.face[use]]                           # (K, 3)
+        v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster,
+                                     config.visibility_rays, eps, needed=hit_vertices.ravel())
+        v = np.zeros(len(r))
+        v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
+        kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
+    with _timed(sec, "inpaint", rays):
         matched_map = layout.to_map(hit, fill=False, dtype=bool)
         unknown = ~matched_map
         # one call for both maps: the nearest-texel fill (distance transform) is computed once
@@ -299,6 +308,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         "bbox_diagonal": diag,
         "registration": reg_stats,
         "seconds": sec,
+        "rays": rays,
     }
     return BakedFrame(
         texture=np.clip(texture, 0.0, 1.0).astype(np.float32),
