@@ -22,9 +22,9 @@ from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
 from uvatar.errors import InputError
 from uvatar.geometry import (
     UVRaster,
-    rays_cast,
     gaussian_surface_matrix,
     rasterize_uv,
+    rays_cast,
     sample_mesh_texture,
     vertex_normals,
 )
@@ -132,7 +132,8 @@ class BakedFrame:
     texels with a scan match (the rest is inpainted); points (R, R, 3) float64 match x (zeros where
     unmatched; kept in memory for evaluation, not stored); stats: kappa_mean (over the body's
     surface texels, :meth:`BodyLayout.surface_texels`), kappa_mean_all_texels, matched_fraction,
-    registration info, ``seconds`` and ``rays`` (rays cast) per stage.
+    registration info, ``seconds`` (wall), ``cpu_seconds`` (this process) and ``rays`` (rays cast) per
+    stage.
     """
 
     texture: np.ndarray
@@ -150,13 +151,16 @@ class BakedFrame:
 
 
 @contextmanager
-def _timed(seconds: dict, name: str, rays: dict | None = None):
-    """Add the block's seconds to ``seconds[name]`` and the rays it cast to ``rays[name]``."""
-    t0, r0 = time.perf_counter(), rays_cast()
+def _timed(seconds: dict, name: str, rays: dict | None = None, cpu: dict | None = None):
+    """Add the block's wall seconds to ``seconds[name]``, the rays it cast to ``rays[name]`` and this
+    process's CPU seconds to ``cpu[name]`` (what a frame costs on a machine shared with other jobs)."""
+    t0, r0, c0 = time.perf_counter(), rays_cast(), time.process_time()
     yield
     seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
     if rays is not None:
         rays[name] = rays.get(name, 0) + rays_cast() - r0
+    if cpu is not None:
+        cpu[name] = cpu.get(name, 0.0) + time.process_time() - c0
 
 
 def shadow_vertices(body, fit, shape=None) -> np.ndarray:
@@ -211,17 +215,19 @@ def _bake_fit(body, fit, layout, scan, config, shape, scan_path, surface):
     check_scan(scan, scan_path)
     sec: dict[str, float] = {}
     rays: dict[str, int] = {}
-    with _timed(sec, "prepare_scan", rays):
+    cpu: dict[str, float] = {}
+    with _timed(sec, "prepare_scan", rays, cpu):
         if surface is None:
             surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     refine_stats = None
-    with _timed(sec, "refine_pose", rays):
+    with _timed(sec, "refine_pose", rays, cpu):
         if config.refine_pose:
             fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape)
         shadow = shadow_vertices(body, fit, shape)
     baked = bake_frame(shadow, layout, scan, config, scan_path, surface=surface)
     baked.stats["seconds"] = {**sec, **baked.stats["seconds"]}
     baked.stats["rays"] = {**rays, **baked.stats["rays"]}
+    baked.stats["cpu_seconds"] = {**cpu, **baked.stats["cpu_seconds"]}
     if refine_stats is not None:
         baked.stats["pose_refine"] = refine_stats
     return baked, fit
@@ -241,43 +247,44 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         raise ValueError(f"layout resolution {layout.resolution} != config.texels {config.texels}")
     sec: dict[str, float] = {}
     rays: dict[str, int] = {}
+    cpu: dict[str, float] = {}
     shadow = np.asarray(shadow, dtype=np.float64)
     diag = float(np.linalg.norm(shadow.max(0) - shadow.min(0)))
     eps = config.ray_epsilon
 
     if surface is None:
-        with _timed(sec, "prepare_scan", rays):
+        with _timed(sec, "prepare_scan", rays, cpu):
             surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     reg_stats: dict = {}
-    with _timed(sec, "register", rays):
+    with _timed(sec, "register", rays, cpu):
         if config.register:
             smoothing = layout.normal_smoothing_matrix(config.registration.normal_smoothing)
             registered, reg_stats = register_to_scan(shadow, layout.faces, surface, config.registration,
                                                      bbox_diagonal=diag, epsilon=eps, smoothing=smoothing)
         else:
             registered = shadow
-    with _timed(sec, "correspond", rays):
+    with _timed(sec, "correspond", rays, cpu):
         r = layout.at_texels(registered)
         n = layout.at_texels(vertex_normals(registered, layout.faces))
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         matches = match_texels(r, n, surface, config.polarity_rule, config.polarity_ratio,
                                config.max_match_distance, eps)
         hit = matches.hit
-    with _timed(sec, "texture", rays):
+    with _timed(sec, "texture", rays, cpu):
         colors = np.zeros((len(r), 3), np.float32)
         colors[hit] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, matches.face[hit], matches.bary[hit])
         s = layout.at_texels(shadow)
         disp = np.where(hit[:, None], matches.points - s, 0.0)
-    with _timed(sec, "visibility_registered", rays):
+    with _timed(sec, "visibility_registered", rays, cpu):
         w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
         w_vertex = vertex_visibility(registered, layout.faces, w_caster,
                                      config.visibility_rays, eps, needed=layout.texel_vertices.ravel())
         w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
-    with _timed(sec, "confidence", rays):
+    with _timed(sec, "confidence", rays, cpu):
         delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
         nms = normal_match_score(n, matches.scan_normal)
         use = hit & (w * delta * nms > 0)
-    with _timed(sec, "visibility_scan", rays):
+    with _timed(sec, "visibility_scan", rays, cpu):
         # the scan's visibility v only matters where the other factors of kappa are not zero: only the
         # scan faces around those texels' matches are ray cast (the same values there)
         hit_vertices = surface.faces[matches.face[use]]                           # (K, 3)
@@ -286,7 +293,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         v = np.zeros(len(r))
         v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
         kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
-    with _timed(sec, "inpaint", rays):
+    with _timed(sec, "inpaint", rays, cpu):
         matched_map = layout.to_map(hit, fill=False, dtype=bool)
         unknown = ~matched_map
         # one call for both maps: the nearest-texel fill (distance transform) is computed once
@@ -309,6 +316,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         "registration": reg_stats,
         "seconds": sec,
         "rays": rays,
+        "cpu_seconds": cpu,
     }
     return BakedFrame(
         texture=np.clip(texture, 0.0, 1.0).astype(np.float32),

@@ -42,9 +42,9 @@ from uvatar.avh.bake.config import STAGE_MODES, RegistrationConfig
 from uvatar.geometry import (
     RayCaster,
     RayCasterConfig,
-    make_caster,
     face_normals,
     gaussian_surface_matrix,
+    make_caster,
     smoothed_normals,
     vertex_normals,
 )
