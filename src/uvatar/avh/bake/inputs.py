@@ -44,7 +44,8 @@ def start_fit(capture, frame: str):
 def _scan_bytes(scan, surface) -> int:
     """Rough memory of a prepared scan: its arrays, plus as much again for the k-d tree and the BVH."""
     arrays = [scan.vertices, scan.faces, scan.uvs, scan.uv_faces, scan.texture, surface.vertices, surface.faces,
-              surface.vertex_normals, surface.face_normals, surface.sample_points, surface.sample_normals]
+              surface.vertex_normals, surface.face_normals, surface.sample_points, surface.sample_normals,
+              surface.corner_normals]
     return sum(int(a.nbytes) for a in arrays if a is not None) + 2 * int(surface.sample_points.nbytes)
 
 
