@@ -208,6 +208,10 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     unknown = sorted(set(frames) - set(capture.frames))
     if unknown:
         raise InputError(capture.root / "capture.json", f"has no frame(s) {', '.join(unknown[:5])}")
+    if config.device != "cpu":   # fail early, in one line, without a GPU or without Warp
+        from uvatar.geometry.raycast_warp import warp_device
+
+        warp_device(config.device)
     body_name = capture.body_model
     try:
         load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
