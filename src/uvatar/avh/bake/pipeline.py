@@ -189,6 +189,10 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     from uvatar.capture import Capture
 
     config = config or BakeConfig()
+    if config.device != "cpu":   # fail early, in one line, without a GPU or without Warp
+        from uvatar.geometry.raycast_warp import warp_device
+
+        warp_device(config.device)
     executor = executor or ExecutorConfig(workers=max(1, int(workers)))
     check_memory(BAKE_BYTES_PER_TEXEL * config.texels ** 2 * max(1, workers), "texels",
                  f"baking {config.texels}² texels in {max(1, workers)} process(es)")
@@ -208,10 +212,6 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     unknown = sorted(set(frames) - set(capture.frames))
     if unknown:
         raise InputError(capture.root / "capture.json", f"has no frame(s) {', '.join(unknown[:5])}")
-    if config.device != "cpu":   # fail early, in one line, without a GPU or without Warp
-        from uvatar.geometry.raycast_warp import warp_device
-
-        warp_device(config.device)
     body_name = capture.body_model
     try:
         load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
