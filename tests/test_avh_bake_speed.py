@@ -108,3 +108,25 @@ def test_scans_are_read_once_per_frame_and_bake_the_same_maps(tmp_path, monkeypa
             for key in a.files:
                 np.testing.assert_array_equal(a[key], b[key], err_msg=key)
                 np.testing.assert_array_equal(a[key], c[key], err_msg=key)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("device, backend", [("cpu", "warp"), pytest.param("cuda", "auto", marks=pytest.mark.gpu)])
+def test_whole_bake_through_warp_matches_embree(tmp_path, device, backend):
+    """The whole bake (geometry round, colour rounds, per-frame bake) with every ray through Warp:
+    on the CPU here (the same code as on CUDA but the device), on the GPU where one is present."""
+    pytest.importorskip("warp")
+    from uvatar.avh.bake.pipeline import bake_capture
+
+    cap = make_capture(tmp_path / "cap", n_frames=3, broken=(), fit_noise_deg=1.0)
+    cfg = BakeConfig().with_updates(texels=32, visibility_rays=8, pose_refine_iterations=2,
+                                    pose_refine_photometric_radii=(0.004,), pose_refine_photometric_iterations=2)
+    bake_capture(cap, tmp_path / "embree", cfg, progress=False)
+    bake_capture(cap, tmp_path / "warp", replace(cfg, device=device, ray_backend=backend), progress=False)
+    for frame in ("000000", "000001", "000002"):
+        with np.load(tmp_path / "embree" / "frames" / f"{frame}.npz") as a, \
+                np.load(tmp_path / "warp" / "frames" / f"{frame}.npz") as b:
+            np.testing.assert_allclose(b["pose"], a["pose"], atol=1e-3)                 # radians
+            assert np.abs(b["kappa"].astype(float) - a["kappa"]).mean() < 5e-3
+            assert np.abs(b["displacement"].astype(float) - a["displacement"]).mean() < 1e-4   # metres
+            assert np.abs(b["texture"].astype(float) - a["texture"]).mean() < 5e-3
