@@ -11,6 +11,8 @@ __all__ = ["load_body_and_layout", "adopt_body_and_layout", "start_fit", "prepar
 # -- per-process state ----------------------------------------------------------------------------
 _STATE: dict = {}
 _SCANS: dict = {}      # (capture root, frame, device, backend, file stamp) -> (TexturedMesh, ScanSurface, bytes)
+_SCAN_RUN: list = [None]   # the run whose scans _SCANS holds
+_MEMORY_RESERVE = 1 << 30  # a scan is kept only while this much memory stays available beside it
 
 
 def load_body_and_layout(body_name: str, texels: int):
@@ -49,14 +51,21 @@ def _scan_bytes(scan, surface) -> int:
     return sum(int(a.nbytes) for a in arrays if a is not None) + 2 * int(surface.sample_points.nbytes)
 
 
-def prepared_scan(capture, frame: str, config):
+def prepared_scan(capture, frame: str, config, run=None):
     """(TexturedMesh, :class:`~uvatar.avh.bake.register.ScanSurface`) of ``frame``'s scan, its rays on
-    ``config.device``. Kept in this process while the kept scans stay under ``config.scan_cache_mb``,
-    so the colour rounds and the bake read and prepare each scan once. Scans are kept first come,
-    first kept (no eviction): every round visits the frames in the same order, where a least-recently-
-    used cache smaller than the frames would drop each scan just before its next use. A scan file
-    changed on disk is read again (its size and time are part of the key)."""
+    ``config.device``. Kept in this process while the kept scans stay under ``config.scan_cache_mb``
+    (and 1 GiB of memory stays available), so the colour rounds and the bake read and prepare each
+    scan once. Scans are kept first come, first kept (no eviction): every round visits the frames in
+    the same order, where a least-recently-used cache smaller than the frames would drop each scan
+    just before its next use. ``run``: a token of the bake; a new one drops the scans of the previous
+    run (a long-lived Ray worker bakes one capture after another). A scan file changed on disk is read
+    again (its size and time are part of the key)."""
     from uvatar.avh.bake.register import ScanSurface
+    from uvatar.resources import available_memory
+
+    if run != _SCAN_RUN[0]:
+        clear_scan_cache()
+        _SCAN_RUN[0] = run
 
     path = capture.scan_path(frame)
     try:
@@ -71,7 +80,8 @@ def prepared_scan(capture, frame: str, config):
     scan = capture.load_scan(frame)
     surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     size = _scan_bytes(scan, surface)
-    if stamp is not None and sum(v[2] for v in _SCANS.values()) + size <= config.scan_cache_mb * 2**20:
+    if (stamp is not None and sum(v[2] for v in _SCANS.values()) + size <= config.scan_cache_mb * 2**20
+            and available_memory() > size + _MEMORY_RESERVE):
         _SCANS[key] = (scan, surface, size)
     return scan, surface
 

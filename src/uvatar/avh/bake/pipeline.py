@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+import uuid
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -74,9 +75,11 @@ def heldout_frames(capture_root) -> list[str]:
         return []
 
 
-def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, refined=None) -> FrameResult:
+def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, refined=None,
+              run=None) -> FrameResult:
     """Bake one frame in a worker. Every failure becomes a "broken" result with a one-line reason.
-    refined: the frame's fit already refined across frames (:mod:`.refine_together`), baked as is."""
+    refined: the frame's fit already refined across frames (:mod:`.refine_together`), baked as is;
+    run: the bake's token for the scans kept from the colour rounds (:func:`.inputs.prepared_scan`)."""
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.capture import Capture
 
@@ -88,7 +91,7 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, 
         if refined is not None:
             fit, config = refined, replace(config, refine_pose=False)
         scan_path = capture.scan_path(frame)
-        scan, surface = prepared_scan(capture, frame, config)   # kept from the colour rounds
+        scan, surface = prepared_scan(capture, frame, config, run)   # kept from the colour rounds
         baked, fit = bake_fit(body, fit, layout, scan, config, shape, scan_path=str(scan_path), surface=surface)
     except Exception as exc:  # noqa: BLE001 - a broken frame is reported, never fatal
         return FrameResult(frame, "broken", f"broken input: {one_line(exc)}", seconds=time.perf_counter() - t0)
@@ -109,7 +112,7 @@ def _bake_task(shared: dict, item) -> FrameResult:
     frame, refined = item
     config = shared["config"]
     adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
-    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, refined)
+    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, refined, shared.get("run"))
     result.stats["worker_peak_rss_mb"] = _peak_rss_mb()
     return result
 
@@ -232,7 +235,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
         _write_info(out, capture, body_name, config, results)
 
     shared = {"capture_root": str(capture.root), "out_root": str(out), "config": config, "body_name": body_name,
-              "body_layout": load_body_and_layout(body_name, config.texels)}
+              "body_layout": load_body_and_layout(body_name, config.texels), "run": uuid.uuid4().hex}
     # one pool for the colour rounds and the bake: its workers keep each scan read and prepared
     with keep_pool(shared):
         try:

@@ -18,6 +18,7 @@ broken.
 from __future__ import annotations
 
 import logging
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -98,7 +99,7 @@ def _refine_task(shared: dict, item):
     config = shared["config"]
     body, _ = adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
     capture = Capture(shared["capture_root"])
-    scan, surface = prepared_scan(capture, frame, config)     # read and prepared once for all rounds
+    scan, surface = prepared_scan(capture, frame, config, shared.get("run"))   # once for all rounds
     fit, shape = start_fit(capture, frame)
     fit = fit if start is None else start
     fit, _ = refine_fit(body, fit, surface, config.pose_refine, shape, photo=target,
@@ -130,7 +131,7 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
     done: dict = {}
     if shared is None:
         shared = {"capture_root": str(capture_root), "config": config, "body_name": body_name,
-                  "body_layout": body_layout}
+                  "body_layout": body_layout, "run": uuid.uuid4().hex}
     fits: dict = {}
     if saved is not None:
         target, stored = saved
