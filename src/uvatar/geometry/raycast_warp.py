@@ -26,8 +26,10 @@ __all__ = ["WarpRayCaster", "warp_device"]
 
 
 def _warp():
+    import logging
+
     wp = require("warp", "kernels", "ray casting with Warp (the GPU bake)")
-    wp.config.quiet = True
+    wp.config.log_level = logging.ERROR    # no start-up banner or missing-driver notes: warp_device reports
     wp.init()
     return wp
 
