@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -28,7 +29,7 @@ from uvatar.errors import UvatarError, check_values, one_line, require
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EXECUTORS", "ExecutorConfig", "TaskFailure", "clear_worker_cache", "run_tasks", "worker_cache"]
+__all__ = ["EXECUTORS", "ExecutorConfig", "TaskFailure", "clear_worker_cache", "keep_pool", "run_tasks", "worker_cache"]
 
 EXECUTORS = ("local", "ray")
 
@@ -76,6 +77,25 @@ class TaskFailure:
 # -- worker-process state ---------------------------------------------------------------------------
 _SHARED: Any = None
 _CACHE: dict = {}
+_KEPT: dict = {}     # the local pool kept by :func:`keep_pool`: {"shared", "pool", "workers", "initializer"}
+
+
+@contextmanager
+def keep_pool(shared: Any):
+    """Inside the block, :func:`run_tasks` calls on the local executor that pass this very ``shared``
+    object run in one process pool, made on first use and closed at the end of the block, instead of
+    a new pool per call: worker processes keep what they cache between calls (a bake's scans,
+    :func:`uvatar.avh.bake.inputs.prepared_scan`, from one colour round to the next) and ``shared``
+    is shipped to them once. Per-call data must then travel in the items, not in ``shared``."""
+    _KEPT.clear()
+    _KEPT["shared"] = shared
+    try:
+        yield
+    finally:
+        pool = _KEPT.get("pool")
+        _KEPT.clear()
+        if pool is not None:
+            pool.shutdown()
 
 
 def worker_cache(key, factory: Callable[[], Any]):
@@ -160,13 +180,34 @@ def _run_inline(fn, items, shared):
             yield item, TaskFailure(one_line(exc))
 
 
-def _run_pool(fn, items, shared, workers, initializer):
+def _make_pool(shared, workers, initializer):
     import multiprocessing as mp
     import pickle
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=mp.get_context("spawn"),
-                             initializer=_init_local, initargs=(pickle.dumps(shared), initializer)) as pool:
+    return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                               initializer=_init_local, initargs=(pickle.dumps(shared), initializer))
+
+
+@contextmanager
+def _pool_for(shared, workers, initializer):
+    """The pool :func:`keep_pool` keeps for ``shared`` (made on first use), else a new one for this call."""
+    if _KEPT.get("shared") is shared:
+        if _KEPT.get("pool") is None or _KEPT["workers"] != workers or _KEPT["initializer"] is not initializer:
+            if _KEPT.get("pool") is not None:
+                _KEPT["pool"].shutdown()
+            _KEPT.update(pool=_make_pool(shared, workers, initializer), workers=workers, initializer=initializer)
+        yield _KEPT["pool"]
+        return
+    with _make_pool(shared, workers, initializer) as pool:
+        yield pool
+
+
+def _run_pool(fn, items, shared, workers, initializer):
+    from concurrent.futures import as_completed
+
+    kept = _KEPT.get("shared") is shared
+    with _pool_for(shared, workers if kept else min(workers, len(items)), initializer) as pool:
         futures = {pool.submit(_local_call, fn, item): i for i, item in enumerate(items)}
         for fut in as_completed(futures):
             item = items[futures[fut]]
