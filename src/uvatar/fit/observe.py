@@ -15,9 +15,16 @@ Left and right: a detector labels a person seen from behind the other way round 
 each view's left/right labels are kept or swapped, whichever the triangulation agrees with best
 (:func:`resolve_left_right`; every combination for up to 6 views, view by view beyond).
 
-Several people in a view (a bystander): the detector first runs on the whole image (or, from the
-second frame on, inside the box around the previous frame's keypoints); views whose detection the
-triangulation rejects are detected again inside the box around the triangulated person.
+Several people in a view (a bystander): the detector first runs on the whole image (or inside the
+box around the tracked subject: the previous frame's keypoints, or the subject chosen by
+:mod:`uvatar.fit.person`); views whose detection the triangulation rejects are detected again inside
+the box around the triangulated person. A view that still disagrees with the subject (fewer than
+``min_used_fraction`` of its confident keypoints used by the triangulation: another person, a
+mirrored or wrong detection) is *rejected*: its confidences are set to 0, so nothing of it reaches
+the fit, and its name is kept in ``rejected`` (reported by ``uvatar fit`` and ``capture check``).
+
+Image thumbnails (``thumbs`` (C, 24, 24) grey, :func:`uvatar.fit.tracking.image_thumbnail`) are kept
+for the cut detection of the capture's own images.
 """
 
 from __future__ import annotations
@@ -32,7 +39,7 @@ from uvatar.errors import InputError
 from uvatar.io_utils import read_npz, write_npz
 
 __all__ = ["FrameObservation", "observe_frame", "load_observation", "observation_path", "person_roi",
-           "left_right_swap", "resolve_left_right"]
+           "left_right_swap", "resolve_left_right", "disagreeing_views", "reject_views"]
 
 
 @dataclass
@@ -47,6 +54,8 @@ class FrameObservation:
     points_conf: np.ndarray     # (K,)
     reprojection_px: np.ndarray  # (C, K), nan where a view was not used
     redetected: tuple[str, ...] = ()  # views detected a second time inside the person's box
+    rejected: tuple[str, ...] = ()    # views that disagree with the subject (conf set to 0)
+    thumbs: np.ndarray | None = None  # (C, S, S) grey image thumbnails, or None
 
     @property
     def num_detected_views(self) -> int:
@@ -163,13 +172,49 @@ def mirrored_labels(tri, names) -> bool:
     return float(np.dot(np.cross(left, up), face)) < 0
 
 
+def _used_fraction(conf, reprojection_px, min_conf: float) -> np.ndarray:
+    """(C,) share of each view's confident keypoints the triangulation used (1 for a view with none)."""
+    seen = conf >= min_conf
+    used = np.isfinite(reprojection_px) & seen
+    return np.where(seen.sum(1) > 0, used.sum(1) / np.maximum(seen.sum(1), 1), 1.0)
+
+
+def disagreeing_views(obs: FrameObservation, min_conf: float = 0.3, min_used_fraction: float = 0.5,
+                      min_points: int = 4) -> tuple[str, ...]:
+    """Names of the views whose detection disagrees with the triangulated subject: at least
+    ``min_points`` confident keypoints, fewer than ``min_used_fraction`` of them used by the
+    triangulation (each unused one reprojects farther than the triangulation's limit). Views already
+    rejected are included; none when fewer than 4 keypoints are triangulated (no subject to judge by)."""
+    if (obs.points_conf > 0).sum() < 4:
+        return tuple(obs.rejected)
+    frac = _used_fraction(obs.conf, obs.reprojection_px, min_conf)
+    enough = (obs.conf >= min_conf).sum(1) >= min_points
+    bad = {obs.cameras[c].name for c in np.flatnonzero(enough & (frac < min_used_fraction))}
+    return tuple(c.name for c in obs.cameras if c.name in bad or c.name in obs.rejected)
+
+
+def reject_views(obs: FrameObservation, names) -> FrameObservation:
+    """``obs`` with the confidences of the views ``names`` set to 0 (their pixels kept for the record)."""
+    from dataclasses import replace
+
+    names = tuple(names)
+    if not names:
+        return obs
+    drop = np.array([c.name in names for c in obs.cameras])
+    conf = np.where(drop[:, None], 0.0, obs.conf).astype(np.float32)
+    return replace(obs, conf=conf, rejected=tuple(c.name for c in obs.cameras if c.name in names))
+
+
 def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, triangulate_config,
                   source: str, prior: FrameObservation | None = None,
                   min_used_fraction: float = 0.5) -> FrameObservation:
-    """Detect keypoints in each view, triangulate, and re-detect rejected views inside the person's box.
+    """Detect keypoints in each view, triangulate, re-detect disagreeing views inside the person's
+    box, and reject the views that still disagree (see the module docstring).
 
-    images: C images (H, W, 3) float32 [0, 1], one per camera; prior: the previous frame's
-    observation (its 3D keypoints give each view a search box)."""
+    images: C images (H, W, 3) float32 [0, 1], one per camera; prior: the subject so far (anything
+    with ``points`` (K, 3) and ``points_conf`` (K,): the previous frame's observation, or the chosen
+    person), whose 3D keypoints give each view a search box."""
+    from uvatar.fit.tracking import image_thumbnail
     from uvatar.fit.triangulate import triangulate
 
     names = [c.name for c in cameras]
@@ -199,10 +244,13 @@ def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, tri
         if redetected:
             xy, conf, _ = resolve_left_right(xy, conf, cameras, triangulate_config, names_k)
             tri = triangulate(xy, conf, cameras, triangulate_config)
-    return FrameObservation(source=source, cameras=list(cameras), xy=xy, conf=conf,
-                            points=tri.points.astype(np.float32), points_conf=tri.conf.astype(np.float32),
-                            reprojection_px=tri.reprojection_px.astype(np.float32),
-                            redetected=tuple(redetected))
+    thumbs = np.stack([image_thumbnail(im) for im in images]) if source == "images" else None
+    obs = FrameObservation(source=source, cameras=list(cameras), xy=xy, conf=conf,
+                           points=tri.points.astype(np.float32), points_conf=tri.conf.astype(np.float32),
+                           reprojection_px=tri.reprojection_px.astype(np.float32),
+                           redetected=tuple(redetected), thumbs=thumbs)
+    bad = disagreeing_views(obs, triangulate_config.min_conf, min_used_fraction)
+    return reject_views(obs, bad)
 
 
 def save_observation(path: str | Path, obs: FrameObservation) -> None:
@@ -212,7 +260,9 @@ def save_observation(path: str | Path, obs: FrameObservation) -> None:
               T=np.stack([c.T for c in cams]), dist=np.stack([np.pad(np.asarray(c.dist, np.float64).reshape(-1), (0, 5))[:5] for c in cams]),
               size=np.array([[c.width, c.height] for c in cams], np.int64),
               xy=obs.xy, conf=obs.conf, points=obs.points, points_conf=obs.points_conf,
-              reprojection_px=obs.reprojection_px, redetected=np.array(obs.redetected, dtype=str))
+              reprojection_px=obs.reprojection_px, redetected=np.array(obs.redetected, dtype=str),
+              rejected=np.array(obs.rejected, dtype=str),
+              **({} if obs.thumbs is None else {"thumbs": np.asarray(obs.thumbs, np.float32)}))
 
 
 def load_observation(path: str | Path) -> FrameObservation:
@@ -232,4 +282,6 @@ def load_observation(path: str | Path) -> FrameObservation:
     return FrameObservation(source=str(data["source"]), cameras=cameras, xy=data["xy"], conf=data["conf"],
                             points=data["points"], points_conf=data["points_conf"],
                             reprojection_px=data["reprojection_px"],
-                            redetected=tuple(str(x) for x in data.get("redetected", ())))
+                            redetected=tuple(str(x) for x in data.get("redetected", ())),
+                            rejected=tuple(str(x) for x in data.get("rejected", ())),
+                            thumbs=data.get("thumbs"))

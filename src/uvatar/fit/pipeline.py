@@ -48,6 +48,8 @@ class FitConfig:
         (where scans exist and the body config's ``w_photo`` > 0; 0: off).
     overlay_frames: frames drawn in ``fitting/contact_sheet.png`` (0: none); overlay_width: pixels.
     force: replace existing fits.
+    person: which person to fit from images when several are in view (:mod:`uvatar.fit.person`):
+        most-views, largest, centre, nearest-to:X,Y,Z, box:CAM:FRAME:X0,Y0,X1,Y1 or point:CAM:FRAME:X,Y.
     """
 
     source: str = "auto"
@@ -63,6 +65,7 @@ class FitConfig:
     force: bool = False
     device: str = "cpu"
     seed: int = 0
+    person: str = "most-views"
 
     def __post_init__(self) -> None:
         check_values([
@@ -124,17 +127,58 @@ def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages):
     return images, cameras
 
 
+def _choose_subject(capture: Capture, frames: list[str], choice, detector, stages: FitStages) -> tuple:
+    """(seed frame, the chosen :class:`~uvatar.fit.person.Person` or None, a report dict)."""
+    from uvatar.fit.person import choose_person, find_people
+
+    seed = choice.frame or frames[0]
+    if seed not in frames:
+        raise InputError("--person", f"frame {seed!r} is not one of the capture's frames being fitted")
+    images, cameras = _frame_views(capture, seed, "images", stages)
+    names = [c.name for c in cameras]
+    if choice.camera is not None and choice.camera not in names:
+        raise InputError("--person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
+    forced = {names.index(choice.camera): choice.box} if choice.rule == "box" else None
+    people = find_people(images, cameras, detector, stages.triangulate, forced=forced)
+    i, why = choose_person(people, choice, cameras)
+    report = {"rule": choice.rule, "frame": seed, "people_found": len(people), "chosen": i, "why": why,
+              "people": [{"cameras": [names[c] for c in sorted(p.members)],
+                          "position_m": np.round(np.median(p.points[p.points_conf > 0], axis=0), 3).tolist()}
+                         for p in people]}
+    log.info("person: %d found at frame %s; fitting #%d, %s", len(people), seed, i, why)
+    return seed, people[i], report
+
+
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
-                progress: bool) -> tuple[dict, dict]:
-    """Per-frame observations, from ``fitting/keypoints`` where a previous run left them."""
+                progress: bool, choice=None) -> tuple[dict, dict, dict]:
+    """Per-frame observations, from ``fitting/keypoints`` where a previous run left them; failures;
+    the person report (images: the subject chosen at the seed frame is tracked forward from it, then
+    backward). Views that disagree with the subject are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
     from tqdm import tqdm
 
-    from uvatar.fit.observe import load_observation, observation_path, observe_frame, save_observation
+    from uvatar.fit.observe import (
+        disagreeing_views,
+        load_observation,
+        observation_path,
+        observe_frame,
+        reject_views,
+        save_observation,
+    )
 
     observations, failures = {}, {}
-    prior = None
-    bar = tqdm(frames, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
-    for frame in bar:
+    person = None
+    start, seed_prior = 0, None
+    if source == "images" and choice is not None:
+        seed = choice.frame or frames[0]
+        if not observation_path(capture.root, seed).is_file():
+            seed, seed_prior, person = _choose_subject(capture, frames, choice, detector, stages)
+        start = frames.index(seed) if seed in frames else 0
+    order = frames[start:] + frames[:start][::-1]   # forward from the seed, then backward from it
+    prior = seed_prior
+    bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
+    for n, frame in enumerate(bar):
+        if start and n == len(frames) - start:
+            prior = observations.get(frames[start], seed_prior)  # the backward pass starts at the seed
         path = observation_path(capture.root, frame)
         try:
             if path.is_file():
@@ -150,6 +194,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             failures[frame] = str(exc)
             log.warning("frame %s: %s", frame, exc)
             continue
+        obs = reject_views(obs, disagreeing_views(obs, stages.triangulate.min_conf))
         observations[frame] = obs
         views, seen = len(obs.cameras), obs.num_detected_views
         if (obs.points_conf > 0).sum() < 6:
@@ -159,7 +204,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             failures[frame] = f"only {seen} of {views} views of the scan show a person (a broken scan?)"
         else:
             prior = obs
-    return observations, failures
+    return {f: observations[f] for f in frames if f in observations}, failures, person
 
 
 def _write_fits(capture: Capture, frames, result, body, config: FitConfig, provenance: dict) -> None:
@@ -229,11 +274,14 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     if existing and not config.force:
         raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); force=True replaces them")
     source = resolve_source(capture, config.source)
+    from uvatar.fit.person import parse_person
+
+    choice = parse_person(config.person)
     body = load_body_model(config.model, config.model_dir, device=config.device)
     detector = load_detector(config.detector, stages.detector)
 
     t0 = time.perf_counter()
-    observations, failures = _detect_all(capture, frames, source, detector, stages, progress)
+    observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice)
     t_detect = time.perf_counter() - t0
     use_scans = config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
@@ -251,7 +299,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
 
     t1 = time.perf_counter()
     obs = stack_observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance,
-                              failures)
+                             failures, detector.keypoint_names)
     obs.photo = photo_views
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
@@ -276,6 +324,9 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         "capture": str(capture.root), "source": source, "frames": len(frames),
         "frames_fitted": len(frames), "frames_without_detection": failures,
         "cuts_after": [frames[t] for t in np.flatnonzero(~obs.continuous)],
+        "relabelled_left_right": [frames[t] for t in np.flatnonzero(obs.relabelled)],
+        "views_disagree": {f: list(o.rejected) for f, o in observations.items() if o.rejected},
+        "person": person,
         "body_model": body.name, "shape": np.asarray(result.shape).tolist(),
         "reprojection": _reprojection_stats(observations, frames, body_points, stages.triangulate.min_conf),
         "frame_loss": {f: float(result.frame_loss[t]) for t, f in enumerate(frames)},
