@@ -7,7 +7,8 @@ matched across views by triangulation (two views propose a 3D person, every othe
 the detection that reprojects onto it), giving 3D people, each seen by a set of views.
 :func:`choose_person` picks the subject by a :class:`PersonChoice`:
 
-- ``most-views`` (default): the person seen by the most cameras (ties: the smallest reprojection);
+- ``most-views`` (default): the person seen by the most cameras (ties: the nearest to the centre of
+  the capture volume, where a studio puts its subject);
 - ``largest``: the largest mean box (pixels^2) over the views that see the person;
 - ``centre``: nearest to the centre of the capture volume (the point closest to every camera's
   optical axis);
@@ -211,7 +212,12 @@ def choose_person(people: list[Person], choice: PersonChoice, cameras) -> tuple[
         raise InputError("--person", "no person is seen by two views in the frame the choice is made at")
     rule = choice.rule
     if rule == "most-views":
-        return 0, f"seen by the most cameras ({len(people[0].members)} of {len(cameras)})"
+        most = max(len(p.members) for p in people)
+        tied = [i for i, p in enumerate(people) if len(p.members) == most]
+        centre = volume_centre(cameras)
+        i = min(tied, key=lambda k: float(np.linalg.norm(_position(people[k]) - centre)))
+        tie = f", the nearest of {len(tied)} to the capture volume's centre" if len(tied) > 1 else ""
+        return i, f"seen by the most cameras ({most} of {len(cameras)}){tie}"
     if rule == "largest":
         def area(p):
             boxes = [p.box(c) for c in p.members]
