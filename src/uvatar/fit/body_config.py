@@ -76,8 +76,7 @@ class FitObservations:
     scans: per frame (points (P, 3), normals (P, 3)) or None; masks: per frame, per camera (H, W)
     bool or None; continuous: (T-1,) bool, False where frame t+1 does not follow frame t in time (a cut
     between takes): no smoothness across it (None: all continuous); photo: per frame
-    :class:`~uvatar.fit.photometric.PhotoViews` (views with depth for the photometric term) or None;
-    relabelled: (T,) bool, frames whose left/right labels were swapped to follow the track (a report)."""
+    :class:`~uvatar.fit.photometric.PhotoViews` (views with depth for the photometric term) or None."""
 
     keypoints3d: np.ndarray | None
     keypoints3d_conf: np.ndarray | None
@@ -88,7 +87,6 @@ class FitObservations:
     masks: list | None = None
     continuous: np.ndarray | None = None
     photo: list | None = None
-    relabelled: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:

@@ -21,7 +21,7 @@ import numpy as np
 
 from uvatar.capture.layout import CAPTURE_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
-from uvatar.fit.sequence import scan_inputs, stack_observations
+from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
 from uvatar.io_utils import read_json, write_json
 
 log = logging.getLogger(__name__)
@@ -298,8 +298,9 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         raise InputError(capture.root, f"{len(frames)} frames, none usable for fitting: {why}")
 
     t1 = time.perf_counter()
+    observations, relabelled = relabel_left_right(frames, observations, detector.keypoint_names, config.cut_distance)
     obs = stack_observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance,
-                             failures, detector.keypoint_names)
+                             failures)
     obs.photo = photo_views
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
@@ -324,7 +325,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         "capture": str(capture.root), "source": source, "frames": len(frames),
         "frames_fitted": len(frames), "frames_without_detection": failures,
         "cuts_after": [frames[t] for t in np.flatnonzero(~obs.continuous)],
-        "relabelled_left_right": [frames[t] for t in np.flatnonzero(obs.relabelled)],
+        "relabelled_left_right": relabelled,
         "views_disagree": {f: list(o.rejected) for f, o in observations.items() if o.rejected},
         "person": person,
         "body_model": body.name, "shape": np.asarray(result.shape).tolist(),

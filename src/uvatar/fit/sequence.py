@@ -13,7 +13,7 @@ from uvatar.fit.tracking import continuity, image_change, track_left_right
 
 log = logging.getLogger(__name__)
 
-__all__ = ["scan_inputs", "continuity", "stack_observations"]  # continuity: re-exported from tracking
+__all__ = ["scan_inputs", "continuity", "relabel_left_right", "stack_observations"]  # continuity: from tracking
 
 
 def scan_inputs(capture: Capture, frames: list[str], points: int, seed: int, photo=None, failures=(),
@@ -46,17 +46,36 @@ def scan_inputs(capture: Capture, frames: list[str], points: int, seed: int, pho
     return samples, (views if photo is not None else None)
 
 
-def stack_observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.1,
-                       failures=(), keypoint_names=None):
-    """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`; frames in
-    ``failures`` contribute nothing (neither keypoints nor scan): their neighbours carry them.
+def relabel_left_right(frames, observations: dict, keypoint_names, cut_distance: float) -> tuple[dict, list]:
+    """Each frame's left/right labels made to follow the previous frame's
+    (:func:`uvatar.fit.tracking.track_left_right`): (observations with the relabelled frames swapped in
+    every view and in 3D, the relabelled frame names)."""
+    from dataclasses import replace
 
-    With ``keypoint_names``, each frame's left/right labels follow the previous frame's
-    (:func:`uvatar.fit.tracking.track_left_right`); the frames relabelled are in the result's
-    ``relabelled`` (T,) bool. Cuts come from :func:`uvatar.fit.tracking.continuity` (with the
-    observations' image thumbnails where they have them)."""
-    from uvatar.fit.body_fit import FitObservations
     from uvatar.fit.observe import left_right_swap
+
+    perm = left_right_swap(keypoint_names)
+    present = [f for f in frames if f in observations]
+    if not present:
+        return observations, []
+    points = np.stack([observations[f].points for f in present])
+    conf = np.stack([observations[f].points_conf for f in present])
+    swap = track_left_right(points, conf, perm, cut_distance)
+    out = dict(observations)
+    for f in np.asarray(present)[swap]:
+        o = observations[f]
+        out[f] = replace(o, xy=o.xy[:, perm], conf=o.conf[:, perm], points=o.points[perm],
+                         points_conf=o.points_conf[perm], reprojection_px=o.reprojection_px[:, perm])
+    return out, [str(f) for f in np.asarray(present)[swap]]
+
+
+def stack_observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.1,
+                       failures=()):
+    """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`; frames in
+    ``failures`` contribute nothing (neither keypoints nor scan): their neighbours carry them. Cuts
+    come from :func:`uvatar.fit.tracking.continuity` (with the observations' image thumbnails where
+    they have them)."""
+    from uvatar.fit.body_fit import FitObservations
 
     observations = {f: o for f, o in observations.items() if f not in failures}
     if scans is not None:
@@ -68,12 +87,6 @@ def stack_observations(frames, observations, source, scans, keypoint_count, cut_
         obs = observations.get(frame)
         if obs is not None:
             k3[t], c3[t] = obs.points, obs.points_conf
-    swapped = np.zeros(T, bool)
-    perm = None
-    if keypoint_names is not None:
-        perm = left_right_swap(keypoint_names)
-        swapped = track_left_right(k3, c3, perm, cut_distance)
-        k3[swapped], c3[swapped] = k3[swapped][:, perm], c3[swapped][:, perm]
     k2 = c2 = cameras = None
     if source == "images" and observations:
         cameras = next(iter(observations.values())).cameras
@@ -84,12 +97,9 @@ def stack_observations(frames, observations, source, scans, keypoint_count, cut_
             obs = observations.get(frame)
             if obs is not None and len(obs.cameras) == C:
                 k2[t], c2[t] = obs.xy, obs.conf
-        if perm is not None:
-            k2[swapped], c2[swapped] = k2[swapped][:, :, perm], c2[swapped][:, :, perm]
     changed = image_change(_thumbnails(frames, observations)) if source == "images" else None
     out = FitObservations(keypoints3d=k3, keypoints3d_conf=c3, keypoints2d=k2, keypoints2d_conf=c2,
-                          cameras=cameras, scans=scans, continuous=continuity(k3, c3, cut_distance, changed),
-                          relabelled=swapped)
+                          cameras=cameras, scans=scans, continuous=continuity(k3, c3, cut_distance, changed))
     return out
 
 
