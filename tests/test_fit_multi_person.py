@@ -173,7 +173,8 @@ def test_find_and_choose_people_with_a_fake_detector():
     rng = np.random.default_rng(3)
     cams = _cams(4, (1280, 960))
     subject = _body(rng, centre=(0.0, 1.0, 0.0))
-    near = _body(rng, centre=(0.0, 1.0, 1.5))           # close to camera 00: largest there, behind others
+    near = _body(rng, centre=(0.8, 1.0, 1.3))
+    near = (near - near.mean(0)) * 1.5 + near.mean(0)   # a bigger person, nearer the cameras: the largest
     det = _FakeDetector(cams, [subject, near])
     images = [det.image(c) for c in range(len(cams))]
     people = find_people(images, cams, det, TriangulateConfig())
@@ -185,12 +186,13 @@ def test_find_and_choose_people_with_a_fake_detector():
     assert which[i] == 0 and "most cameras" in why
     i, _ = choose_person(people, PersonChoice(rule="centre"), cams)
     assert which[i] == 0
-    i, _ = choose_person(people, PersonChoice(rule="nearest-to", target=(0.0, 1.0, 1.6)), cams)
+    i, _ = choose_person(people, PersonChoice(rule="nearest-to", target=(0.8, 1.0, 1.4)), cams)
     assert which[i] == 1
     i, _ = choose_person(people, PersonChoice(rule="largest"), cams)
     assert which[i] == 1
-    xy = project_distorted(cams[0], near)[0]
-    i, _ = choose_person(people, PersonChoice("point", cams[0].name, "0", (*xy.mean(0), *xy.mean(0))), cams)
+    c = min(next(p for k, p in enumerate(people) if which[k] == 1).members)   # a view that sees the near one
+    xy = project_distorted(cams[c], near)[0]
+    i, _ = choose_person(people, PersonChoice("point", cams[c].name, "0", (*xy.mean(0), *xy.mean(0))), cams)
     assert which[i] == 1
     with pytest.raises(InputError, match="--person"):
         choose_person([], PersonChoice(), cams)

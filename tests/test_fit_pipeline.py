@@ -122,11 +122,12 @@ def test_views_that_disagree_are_named_left_out_and_fail_strict(fit_studio, tmp_
 
     root = _copy_without_fits(fit_studio[0], tmp_path / "cap")
     cap = Capture(root)
-    cam, frame = list(cap.cameras())[1], cap.frames[1]
+    frame = cap.frames[1]
     args = ["fit", str(root), "--from", "images", "--no-progress", "--no-scan-distance", "--overlay-frames", "0"]
     assert main(args) == 0 and "disagree" not in capsys.readouterr().err
     path = root / "fitting" / "keypoints" / f"{frame}.npz"
     obs = load_observation(path)
+    cam = obs.cameras[1].name
     xy = obs.xy.copy()
     xy[1, :, 0] += 80.0
     tri = triangulate(xy, obs.conf, obs.cameras, TriangulateConfig())

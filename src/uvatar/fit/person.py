@@ -4,7 +4,8 @@ BlazePose finds one person per image. :func:`find_people` finds several in one f
 the detector runs, the person found is painted over (the box around their keypoints, in the image's
 median colour) and it runs again, up to ``max_people`` times; the per-view detections are then
 matched across views by triangulation (two views propose a 3D person, every other view joins with
-the detection that reprojects onto it), giving 3D people, each seen by a set of views.
+the detection that reprojects onto it, within ``MATCH_FRACTION`` of that detection's height), giving
+3D people, each seen by a set of views (two proposals closer than ``SAME_PERSON_M`` are one person).
 :func:`choose_person` picks the subject by a :class:`PersonChoice`:
 
 - ``most-views`` (default): the person seen by the most cameras (ties: the nearest to the centre of
@@ -30,7 +31,8 @@ from uvatar.errors import InputError
 __all__ = ["PERSON_RULES", "PersonChoice", "Person", "parse_person", "find_people", "choose_person"]
 
 PERSON_RULES = ("most-views", "largest", "centre", "nearest-to", "box", "point")
-MATCH_PX_FRACTION = 0.05   # a view joins a 3D person when its detection reprojects within this x image height
+MATCH_FRACTION = 0.1    # a view joins a 3D person when its detection lies within this x its box height
+SAME_PERSON_M = 0.3     # two 3D people whose keypoints lie this close (median, metres) are one
 
 
 @dataclass(frozen=True)
@@ -141,7 +143,6 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
     dets = [_view_detections(images[c], detector, 1 if c in forced else max_people, forced.get(c))
             for c in range(C)]
     K = len(detector.keypoint_names)
-    tol = [MATCH_PX_FRACTION * cam.height for cam in cameras]
 
     def solve(members: dict):
         xy = np.zeros((C, K, 2))
@@ -164,12 +165,14 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
                         if c in members:
                             continue
                         pix, z = project_distorted(cameras[c], tri.points[ok])
-                        best, best_err = None, tol[c]
+                        best, best_err = None, np.inf
                         for n, (xy, conf) in enumerate(dets[c]):
                             seen = conf[ok] >= triangulate_config.min_conf
                             if seen.sum() < 4:
                                 continue
+                            tol = MATCH_FRACTION * np.ptp(xy[ok][seen][:, 1])
                             err = float(np.median(np.linalg.norm(pix[seen] - xy[ok][seen], axis=1)))
+                            err = err if err < tol else np.inf
                             if err < best_err:
                                 best, best_err = n, err
                         if best is not None:
@@ -183,10 +186,17 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
         if any((c, i) in taken for c, i in members.items()):
             continue
         taken.update(members.items())
+        if any(_same_person(p.points, p.points_conf, tri.points, tri.conf) for p in people):
+            continue  # the same person from other views (detections the matching left apart)
         people.append(Person(points=tri.points.astype(np.float64), points_conf=tri.conf.astype(np.float64),
                              members=dict(members), detections={c: dets[c][i] for c, i in members.items()},
                              reprojection_px=-neg_rep))
     return people
+
+
+def _same_person(a, ca, b, cb) -> bool:
+    both = (ca > 0) & (cb > 0)
+    return bool(both.sum() >= 4 and np.median(np.linalg.norm(a[both] - b[both], axis=1)) < SAME_PERSON_M)
 
 
 def volume_centre(cameras) -> np.ndarray:
