@@ -127,20 +127,36 @@ def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages):
     return images, cameras
 
 
+SEED_TRIES = 4  # frames tried (from the first on, 1/8 of the capture apart) until one person is seen by every camera
+
+
 def _choose_subject(capture: Capture, frames: list[str], choice, detector, stages: FitStages) -> tuple:
-    """(seed frame, the chosen :class:`~uvatar.fit.person.Person` or None, a report dict)."""
+    """(seed frame, the chosen :class:`~uvatar.fit.person.Person`, a report dict). Without a frame in
+    the choice, up to ``SEED_TRIES`` frames are tried until the chosen person is seen by every camera
+    (people overlapping in a view at the first frame are told apart a little later); the frame where
+    the chosen person is seen by the most cameras seeds the track."""
     from uvatar.fit.person import choose_person, find_people
 
-    seed = choice.frame or frames[0]
-    if seed not in frames:
-        raise InputError("--person", f"frame {seed!r} is not one of the capture's frames being fitted")
-    images, cameras = _frame_views(capture, seed, "images", stages)
-    names = [c.name for c in cameras]
-    if choice.camera is not None and choice.camera not in names:
-        raise InputError("--person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
-    forced = {names.index(choice.camera): choice.box} if choice.rule == "box" else None
-    people = find_people(images, cameras, detector, stages.triangulate, forced=forced)
-    i, why = choose_person(people, choice, cameras)
+    if choice.frame is not None and choice.frame not in frames:
+        raise InputError("--person", f"frame {choice.frame!r} is not one of the capture's frames being fitted")
+    step = max(1, len(frames) // 8)
+    tries = [choice.frame] if choice.frame is not None else frames[: SEED_TRIES * step: step]
+    best = None
+    for seed in tries:
+        images, cameras = _frame_views(capture, seed, "images", stages)
+        names = [c.name for c in cameras]
+        if choice.camera is not None and choice.camera not in names:
+            raise InputError("--person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
+        forced = {names.index(choice.camera): choice.box} if choice.rule == "box" else None
+        people = find_people(images, cameras, detector, stages.triangulate, forced=forced)
+        if not people and seed != tries[-1]:
+            continue
+        i, why = choose_person(people, choice, cameras)
+        if best is None or len(people[i].members) > len(best[1][best[2]].members):
+            best = (seed, people, i, why, names)
+        if len(people[i].members) == len(cameras):
+            break
+    seed, people, i, why, names = best
     report = {"rule": choice.rule, "frame": seed, "people_found": len(people), "chosen": i, "why": why,
               "people": [{"cameras": [names[c] for c in sorted(p.members)],
                           "position_m": np.round(np.median(p.points[p.points_conf > 0], axis=0), 3).tolist()}
@@ -169,10 +185,9 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     person = None
     start, seed_prior = 0, None
     if source == "images" and choice is not None:
-        seed = choice.frame or frames[0]
-        if not observation_path(capture.root, seed).is_file():
+        if not all(observation_path(capture.root, f).is_file() for f in frames):
             seed, seed_prior, person = _choose_subject(capture, frames, choice, detector, stages)
-        start = frames.index(seed) if seed in frames else 0
+            start = frames.index(seed)
     order = frames[start:] + frames[:start][::-1]   # forward from the seed, then backward from it
     prior = seed_prior
     bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
