@@ -209,7 +209,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             failures[frame] = str(exc)
             log.warning("frame %s: %s", frame, exc)
             continue
-        obs = reject_views(obs, disagreeing_views(obs, stages.triangulate.min_conf))
+        obs = reject_views(obs, disagreeing_views(obs, stages.triangulate), stages.triangulate)
         observations[frame] = obs
         views, seen = len(obs.cameras), obs.num_detected_views
         if (obs.points_conf > 0).sum() < 6:
