@@ -189,8 +189,9 @@ def disagreeing_views(obs: FrameObservation, config=None, min_used_fraction: flo
     disagrees when its keypoints lie farther from that than ``DISAGREE_FRACTION`` of the height of
     its own detection (median; the detector's noise scales with the person's size in pixels: on the
     real recording at 1088x1920 the agreeing views stay below 0.05 of it, one wrong view reached 0.25).
-    Left out in turn, one wrong view among three or more cannot outvote the others (the per-point
-    outlier rejection of a joint triangulation can keep the wrong pair of views). With fewer than 3
+    The worst such view is rejected and the others judged again without it. Left out in turn, one
+    wrong view among three or more cannot outvote the others (the per-point outlier rejection of a
+    joint triangulation can keep the wrong pair of views). With fewer than 3
     such views, a view disagrees when fewer than ``min_used_fraction`` of its confident keypoints were
     used by the joint triangulation. Views already rejected are included."""
     from uvatar.fit.projection import project_distorted
@@ -199,19 +200,26 @@ def disagreeing_views(obs: FrameObservation, config=None, min_used_fraction: flo
     config = config or TriangulateConfig()
     enough = (obs.conf >= config.min_conf).sum(1) >= min_points
     bad = set(obs.rejected)
-    if enough.sum() >= 3:
+    conf = obs.conf.copy()
+    few = enough.sum() < 3
+    while enough.sum() >= 3:  # the worst view first, then again without it
+        ratio = np.zeros(len(conf))
         for c in np.flatnonzero(enough):
-            conf = obs.conf.copy()
-            conf[c] = 0
-            tri = triangulate(obs.xy, conf, obs.cameras, config)
-            seen = (obs.conf[c] >= config.min_conf) & (tri.conf > 0)
+            others = conf.copy()
+            others[c] = 0
+            tri = triangulate(obs.xy, others, obs.cameras, config)
+            seen = (conf[c] >= config.min_conf) & (tri.conf > 0)
             if seen.sum() < min_points:
                 continue
             pix, _ = project_distorted(obs.cameras[c], tri.points[seen])
-            height = np.ptp(obs.xy[c][obs.conf[c] >= config.min_conf][:, 1])
-            if np.median(np.linalg.norm(pix - obs.xy[c][seen], axis=1)) > DISAGREE_FRACTION * height:
-                bad.add(obs.cameras[c].name)
-    elif (obs.points_conf > 0).sum() >= 4:
+            height = max(float(np.ptp(obs.xy[c][conf[c] >= config.min_conf][:, 1])), 1.0)
+            ratio[c] = np.median(np.linalg.norm(pix - obs.xy[c][seen], axis=1)) / height
+        worst = int(np.argmax(ratio))
+        if ratio[worst] <= DISAGREE_FRACTION:
+            break
+        bad.add(obs.cameras[worst].name)
+        conf[worst], enough[worst] = 0, False
+    if few and (obs.points_conf > 0).sum() >= 4:
         frac = _used_fraction(obs.conf, obs.reprojection_px, config.min_conf)
         bad |= {obs.cameras[c].name for c in np.flatnonzero(enough & (frac < min_used_fraction))}
     return tuple(c.name for c in obs.cameras if c.name in bad)

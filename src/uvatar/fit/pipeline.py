@@ -130,46 +130,83 @@ def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages):
 SEED_TRIES = 4  # frames tried (from the first on, 1/8 of the capture apart) until one person is seen by every camera
 
 
+def _find_and_choose(capture: Capture, frame: str, choice, detector, stages: FitStages):
+    """(people found at ``frame``, index chosen, why, camera names)."""
+    from uvatar.fit.person import choose_person, find_people
+
+    images, cameras = _frame_views(capture, frame, "images", stages)
+    names = [c.name for c in cameras]
+    if choice.camera is not None and choice.camera not in names:
+        raise InputError("--person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
+    forced = {names.index(choice.camera): choice.box} if choice.rule == "box" else None
+    people = find_people(images, cameras, detector, stages.triangulate, forced=forced)
+    i, why = choose_person(people, choice, cameras)
+    return people, i, why, names
+
+
 def _choose_subject(capture: Capture, frames: list[str], choice, detector, stages: FitStages) -> tuple:
     """(seed frame, the chosen :class:`~uvatar.fit.person.Person`, a report dict). Without a frame in
     the choice, up to ``SEED_TRIES`` frames are tried until the chosen person is seen by every camera
     (people overlapping in a view at the first frame are told apart a little later); the frame where
     the chosen person is seen by the most cameras seeds the track."""
-    from uvatar.fit.person import choose_person, find_people
-
     if choice.frame is not None and choice.frame not in frames:
         raise InputError("--person", f"frame {choice.frame!r} is not one of the capture's frames being fitted")
     step = max(1, len(frames) // 8)
     tries = [choice.frame] if choice.frame is not None else frames[: SEED_TRIES * step: step]
     best = None
     for seed in tries:
-        images, cameras = _frame_views(capture, seed, "images", stages)
-        names = [c.name for c in cameras]
-        if choice.camera is not None and choice.camera not in names:
-            raise InputError("--person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
-        forced = {names.index(choice.camera): choice.box} if choice.rule == "box" else None
-        people = find_people(images, cameras, detector, stages.triangulate, forced=forced)
-        if not people and seed != tries[-1]:
+        try:
+            people, i, why, names = _find_and_choose(capture, seed, choice, detector, stages)
+        except InputError:
+            if seed == tries[-1] and best is None:
+                raise
             continue
-        i, why = choose_person(people, choice, cameras)
         if best is None or len(people[i].members) > len(best[1][best[2]].members):
             best = (seed, people, i, why, names)
-        if len(people[i].members) == len(cameras):
+        if len(people[i].members) == len(names):
             break
     seed, people, i, why, names = best
     report = {"rule": choice.rule, "frame": seed, "people_found": len(people), "chosen": i, "why": why,
               "people": [{"cameras": [names[c] for c in sorted(p.members)],
                           "position_m": np.round(np.median(p.points[p.points_conf > 0], axis=0), 3).tolist()}
-                         for p in people]}
+                         for p in people], "chosen_again_after_cuts": []}
     log.info("person: %d found at frame %s; fitting #%d, %s", len(people), seed, i, why)
     return seed, people[i], report
 
 
+def _lost(prior, obs, cut_distance: float) -> bool:
+    """True when ``obs`` does not continue the subject ``prior`` (too few keypoints, or every keypoint
+    jumped at once: a cut to another take, where the subject may be anywhere)."""
+    from uvatar.fit.tracking import continuity
+
+    if (obs.points_conf > 0).sum() < 6:
+        return True
+    pts = np.stack([prior.points, obs.points]).astype(np.float64)
+    conf = np.stack([prior.points_conf, obs.points_conf])
+    return not bool(continuity(pts, conf, cut_distance)[0])
+
+
+def _rechoose(capture, frame, choice, detector, stages, last):
+    """The subject chosen again at ``frame`` after the track was lost: by the same rule where it does
+    not name a frame, else the person nearest the subject's last position; None if nobody is found."""
+    from uvatar.fit.person import PersonChoice
+
+    if choice.rule in ("box", "point"):
+        ok = last.points_conf > 0
+        choice = PersonChoice(rule="nearest-to", target=tuple(np.median(last.points[ok], axis=0)))
+    try:
+        people, i, _, _ = _find_and_choose(capture, frame, choice, detector, stages)
+    except InputError:
+        return None
+    return people[i]
+
+
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
-                progress: bool, choice=None) -> tuple[dict, dict, dict]:
+                progress: bool, choice=None, cut_distance: float = 0.1) -> tuple[dict, dict, dict]:
     """Per-frame observations, from ``fitting/keypoints`` where a previous run left them; failures;
     the person report (images: the subject chosen at the seed frame is tracked forward from it, then
-    backward). Views that disagree with the subject are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
+    backward; where the track is lost, at a cut, it is chosen again by the same rule). Views that
+    disagree with the subject are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
     from tqdm import tqdm
 
     from uvatar.fit.observe import (
@@ -204,6 +241,11 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                 images, cameras = _frame_views(capture, frame, source, stages)
                 use_prior = prior if source == "images" else None
                 obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
+                if person is not None and use_prior is not None and _lost(use_prior, obs, cut_distance):
+                    again = _rechoose(capture, frame, choice, detector, stages, use_prior)
+                    if again is not None:
+                        obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=again)
+                        person["chosen_again_after_cuts"].append(frame)
                 save_observation(path, obs)
         except UvatarError as exc:
             failures[frame] = str(exc)
@@ -296,7 +338,8 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     detector = load_detector(config.detector, stages.detector)
 
     t0 = time.perf_counter()
-    observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice)
+    observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
+                                                 config.cut_distance)
     t_detect = time.perf_counter() - t0
     use_scans = config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
