@@ -181,45 +181,57 @@ def _used_fraction(conf, reprojection_px, min_conf: float) -> np.ndarray:
     return np.where(seen.sum(1) > 0, used.sum(1) / np.maximum(seen.sum(1), 1), 1.0)
 
 
+def _view_errors(obs: FrameObservation, conf: np.ndarray, points, points_conf, min_conf: float, min_points: int):
+    """(C,) each view's median distance from ``points`` (K, 3) projected, over its confident keypoints,
+    as a share of its detection's height; inf where fewer than ``min_points`` can be compared."""
+    from uvatar.fit.projection import project_distorted
+
+    out = np.full(len(conf), np.inf)
+    for c, cam in enumerate(obs.cameras):  # C views, each vectorised over its keypoints
+        seen = (conf[c] >= min_conf) & (points_conf > 0)
+        if seen.sum() < min_points:
+            continue
+        pix, _ = project_distorted(cam, points[seen])
+        height = max(float(np.ptp(obs.xy[c][conf[c] >= min_conf][:, 1])), 1.0)
+        out[c] = np.median(np.linalg.norm(pix - obs.xy[c][seen], axis=1)) / height
+    return out
+
+
 def disagreeing_views(obs: FrameObservation, config=None, min_used_fraction: float = 0.5,
                       min_points: int = 4) -> tuple[str, ...]:
-    """Names of the views whose detection disagrees with the subject triangulated from the *other*
-    views: each view with at least ``min_points`` confident keypoints is left out in turn, the rest
-    triangulated (``config``: a :class:`~uvatar.fit.triangulate.TriangulateConfig`), and the view
-    disagrees when its keypoints lie farther from that than ``DISAGREE_FRACTION`` of the height of
-    its own detection (median; the detector's noise scales with the person's size in pixels: on the
-    real recording at 1088x1920 the agreeing views stay below 0.05 of it, one wrong view reached 0.25).
-    The worst such view is rejected and the others judged again without it. Left out in turn, one
-    wrong view among three or more cannot outvote the others (the per-point outlier rejection of a
-    joint triangulation can keep the wrong pair of views). With fewer than 3
-    such views, a view disagrees when fewer than ``min_used_fraction`` of its confident keypoints were
-    used by the joint triangulation. Views already rejected are included."""
-    from uvatar.fit.projection import project_distorted
+    """Names of the views whose detection disagrees with the subject the other views agree on.
+
+    With 3 or more views of at least ``min_points`` confident keypoints: every pair of them is
+    triangulated alone (``config``: a :class:`~uvatar.fit.triangulate.TriangulateConfig`) and the
+    views whose keypoints lie within ``DISAGREE_FRACTION`` of their own detection's height (median)
+    from it agree with that pair; the largest such set (ties: the smallest error) is the subject, the
+    other views disagree (the detector's noise scales with the person's size in pixels: on the real
+    recording at 1088x1920 the agreeing views stay below 0.05 of it, a wrong view reached 0.25). A
+    joint triangulation's per-point outlier rejection can keep a wrong pair; a consensus of pairs
+    cannot be outvoted by one wrong view. Nothing is rejected where no pair finds a third view to agree.
+    With fewer such views, a view disagrees when fewer than ``min_used_fraction`` of its confident
+    keypoints were used by the joint triangulation. Views already rejected are included."""
+    import itertools
+
     from uvatar.fit.triangulate import TriangulateConfig, triangulate
 
     config = config or TriangulateConfig()
     enough = (obs.conf >= config.min_conf).sum(1) >= min_points
     bad = set(obs.rejected)
-    conf = obs.conf.copy()
-    few = enough.sum() < 3
-    while enough.sum() >= 3:  # the worst view first, then again without it
-        ratio = np.zeros(len(conf))
-        for c in np.flatnonzero(enough):
-            others = conf.copy()
-            others[c] = 0
-            tri = triangulate(obs.xy, others, obs.cameras, config)
-            seen = (conf[c] >= config.min_conf) & (tri.conf > 0)
-            if seen.sum() < min_points:
-                continue
-            pix, _ = project_distorted(obs.cameras[c], tri.points[seen])
-            height = max(float(np.ptp(obs.xy[c][conf[c] >= config.min_conf][:, 1])), 1.0)
-            ratio[c] = np.median(np.linalg.norm(pix - obs.xy[c][seen], axis=1)) / height
-        worst = int(np.argmax(ratio))
-        if ratio[worst] <= DISAGREE_FRACTION:
-            break
-        bad.add(obs.cameras[worst].name)
-        conf[worst], enough[worst] = 0, False
-    if few and (obs.points_conf > 0).sum() >= 4:
+    if enough.sum() >= 3:
+        best = None
+        for a, b in itertools.combinations(np.flatnonzero(enough), 2):
+            conf = np.zeros_like(obs.conf)
+            conf[[a, b]] = obs.conf[[a, b]]
+            tri = triangulate(obs.xy, conf, obs.cameras, config)
+            err = _view_errors(obs, obs.conf, tri.points, tri.conf, config.min_conf, min_points)
+            agree = enough & (err <= DISAGREE_FRACTION)
+            key = (int(agree.sum()), -float(err[agree].mean()) if agree.any() else -np.inf)
+            if best is None or key > best[0]:
+                best = (key, agree)
+        if best is not None and best[0][0] >= 3:
+            bad |= {obs.cameras[c].name for c in np.flatnonzero(enough & ~best[1])}
+    elif (obs.points_conf > 0).sum() >= 4:
         frac = _used_fraction(obs.conf, obs.reprojection_px, config.min_conf)
         bad |= {obs.cameras[c].name for c in np.flatnonzero(enough & (frac < min_used_fraction))}
     return tuple(c.name for c in obs.cameras if c.name in bad)
