@@ -28,7 +28,14 @@ import numpy as np
 
 from uvatar.errors import InputError
 
-__all__ = ["PERSON_RULES", "PersonChoice", "Person", "parse_person", "find_people", "choose_person"]
+__all__ = ["PERSON_RULES", "PersonChoice", "Person", "parse_person", "find_people", "choose_person",
+           "body_signature", "same_body"]
+
+# BlazePose keypoint pairs whose 3D distances describe a body's build (shoulders, hips, upper arms,
+# forearms, thighs, shins): the same person keeps them whatever the pose, another person does not
+_SIGNATURE_BONES = ((11, 12), (23, 24), (11, 13), (12, 14), (13, 15), (14, 16), (23, 25), (24, 26), (25, 27),
+                    (26, 28), (11, 23), (12, 24))
+SAME_BODY = 0.12  # median relative difference of the bone lengths below which two bodies are the same
 
 PERSON_RULES = ("most-views", "largest", "centre", "nearest-to", "box", "point")
 MATCH_FRACTION = 0.1    # a view joins a 3D person when its detection lies within this x its box height
@@ -197,6 +204,21 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
 def _same_person(a, ca, b, cb) -> bool:
     both = (ca > 0) & (cb > 0)
     return bool(both.sum() >= 4 and np.median(np.linalg.norm(a[both] - b[both], axis=1)) < SAME_PERSON_M)
+
+
+def body_signature(points: np.ndarray, conf: np.ndarray) -> np.ndarray:
+    """(B,) metres: the lengths of :data:`_SIGNATURE_BONES` (nan where an end is not triangulated)."""
+    a, b = np.array(_SIGNATURE_BONES).T
+    ok = (conf[a] > 0) & (conf[b] > 0)
+    return np.where(ok, np.linalg.norm(points[a] - points[b], axis=-1), np.nan)
+
+
+def same_body(sig_a: np.ndarray, sig_b: np.ndarray) -> float:
+    """Median relative difference of two :func:`body_signature` (inf with fewer than 4 bones in both)."""
+    both = np.isfinite(sig_a) & np.isfinite(sig_b)
+    if both.sum() < 4:
+        return np.inf
+    return float(np.median(np.abs(sig_a[both] - sig_b[both]) / np.maximum(sig_b[both], 1e-6)))
 
 
 def volume_centre(cameras) -> np.ndarray:

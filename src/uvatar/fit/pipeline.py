@@ -145,27 +145,42 @@ def _find_and_choose(capture: Capture, frame: str, choice, detector, stages: Fit
 
 
 def _choose_subject(capture: Capture, frames: list[str], choice, detector, stages: FitStages) -> tuple:
-    """(seed frame, the chosen :class:`~uvatar.fit.person.Person`, a report dict). Without a frame in
-    the choice, up to ``SEED_TRIES`` frames are tried until the chosen person is seen by every camera
-    (people overlapping in a view at the first frame are told apart a little later); the frame where
-    the chosen person is seen by the most cameras seeds the track."""
+    """(seed frame, the chosen :class:`~uvatar.fit.person.Person`, a report dict).
+
+    Without a frame in the choice, ``SEED_TRIES`` frames (1/8 of the capture apart) are looked at and
+    the people found are told apart across them by their build (:func:`~uvatar.fit.person.same_body`);
+    for ``most-views`` the person seen by the most cameras over those frames wins (one frame can hide
+    the subject behind a bystander in a view); for the other rules, the rule at the frame where the
+    person it picks is seen by the most cameras. The seed is that person's best-seen frame."""
+    from uvatar.fit.person import SAME_BODY, body_signature, same_body
+
     if choice.frame is not None and choice.frame not in frames:
         raise InputError("--person", f"frame {choice.frame!r} is not one of the capture's frames being fitted")
     step = max(1, len(frames) // 8)
     tries = [choice.frame] if choice.frame is not None else frames[: SEED_TRIES * step: step]
-    best = None
+    found = []   # (frame, people, chosen index, why, names)
     for seed in tries:
         try:
-            people, i, why, names = _find_and_choose(capture, seed, choice, detector, stages)
+            found.append((seed, *_find_and_choose(capture, seed, choice, detector, stages)))
         except InputError:
-            if seed == tries[-1] and best is None:
+            if seed == tries[-1] and not found:
                 raise
-            continue
-        if best is None or len(people[i].members) > len(best[1][best[2]].members):
-            best = (seed, people, i, why, names)
-        if len(people[i].members) == len(names):
-            break
-    seed, people, i, why, names = best
+    if choice.rule == "most-views" and len(found) > 1:
+        clusters = []   # [signature, total views, best (views, frame index, person index)]
+        for f, (_, people, _, _, _) in enumerate(found):
+            for k, p in enumerate(people):
+                sig = body_signature(p.points, p.points_conf)
+                near = [c for c in clusters if same_body(sig, c[0]) < SAME_BODY]
+                if near:
+                    near[0][1] += len(p.members)
+                    near[0][2] = max(near[0][2], (len(p.members), -f, k))
+                else:
+                    clusters.append([sig, len(p.members), (len(p.members), -f, k)])
+        total, (_, f, k) = max(((c[1], c[2]) for c in clusters), key=lambda t: (t[0], t[1]))
+        seed, people, _, _, names = found[-f]
+        i, why = k, f"seen by the most cameras over frames {', '.join(t[0] for t in found)} ({total} views)"
+    else:
+        seed, people, i, why, names = max(found, key=lambda t: len(t[1][t[2]].members))
     report = {"rule": choice.rule, "frame": seed, "people_found": len(people), "chosen": i, "why": why,
               "people": [{"cameras": [names[c] for c in sorted(p.members)],
                           "position_m": np.round(np.median(p.points[p.points_conf > 0], axis=0), 3).tolist()}
@@ -186,26 +201,41 @@ def _lost(prior, obs, cut_distance: float) -> bool:
     return not bool(continuity(pts, conf, cut_distance)[0])
 
 
-def _rechoose(capture, frame, choice, detector, stages, last):
-    """The subject chosen again at ``frame`` after the track was lost: by the same rule where it does
-    not name a frame, else the person nearest the subject's last position; None if nobody is found."""
-    from uvatar.fit.person import PersonChoice
+def _signature(observations: dict, seed) -> np.ndarray:
+    """(B,) the subject's build so far: the median bone lengths over the frames tracked."""
+    import warnings
 
-    if choice.rule in ("box", "point"):
-        ok = last.points_conf > 0
-        choice = PersonChoice(rule="nearest-to", target=tuple(np.median(last.points[ok], axis=0)))
-    try:
-        people, i, _, _ = _find_and_choose(capture, frame, choice, detector, stages)
-    except InputError:
+    from uvatar.fit.person import body_signature
+
+    sigs = [body_signature(o.points, o.points_conf) for o in observations.values()]
+    if seed is not None:
+        sigs.append(body_signature(seed.points, seed.points_conf))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a bone never seen stays nan
+        return np.nanmedian(np.stack(sigs), axis=0)
+
+
+def _rechoose(capture, frame, detector, stages, signature):
+    """The subject found again at ``frame`` after the track was lost: the person whose build
+    (:func:`~uvatar.fit.person.body_signature`) is the subject's (``signature``, the median over the
+    frames tracked so far), if one is within ``SAME_BODY``; else None (the frame keeps what the
+    tracking found, and its views are judged as usual)."""
+    from uvatar.fit.person import SAME_BODY, body_signature, find_people, same_body
+
+    images, cameras = _frame_views(capture, frame, "images", stages)
+    people = find_people(images, cameras, detector, stages.triangulate)
+    scored = [(same_body(body_signature(p.points, p.points_conf), signature), -len(p.members), k)
+              for k, p in enumerate(people)]
+    if not scored or min(scored)[0] > SAME_BODY:
         return None
-    return people[i]
+    return people[min(scored)[2]]
 
 
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
                 progress: bool, choice=None, cut_distance: float = 0.1) -> tuple[dict, dict, dict]:
     """Per-frame observations, from ``fitting/keypoints`` where a previous run left them; failures;
     the person report (images: the subject chosen at the seed frame is tracked forward from it, then
-    backward; where the track is lost, at a cut, it is chosen again by the same rule). Views that
+    backward; where the track is lost, at a cut, the person of the subject's build is found again). Views that
     disagree with the subject are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
     from tqdm import tqdm
 
@@ -242,7 +272,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                 use_prior = prior if source == "images" else None
                 obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
                 if person is not None and use_prior is not None and _lost(use_prior, obs, cut_distance):
-                    again = _rechoose(capture, frame, choice, detector, stages, use_prior)
+                    again = _rechoose(capture, frame, detector, stages, _signature(observations, seed_prior))
                     if again is not None:
                         obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=again)
                         person["chosen_again_after_cuts"].append(frame)
