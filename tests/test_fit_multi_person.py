@@ -202,3 +202,24 @@ def test_volume_centre_is_where_the_cameras_look():
     cams = _cams(5)
     np.testing.assert_allclose(volume_centre(cams), [0.0, 1.0, 0.0], atol=1e-9)
     assert isinstance(Person(np.zeros((33, 3)), np.zeros(33)).members, dict)
+
+
+def test_build_tells_people_apart_whatever_the_pose():
+    from uvatar.fit.person import SAME_BODY, body_signature, same_body
+
+    rng = np.random.default_rng(4)
+    body = _body(rng)
+    conf = np.ones(33)
+    moved = body.copy()
+    elbow, wrist = BLAZEPOSE_NAMES.index("left_elbow"), BLAZEPOSE_NAMES.index("left_wrist")
+    forearm = moved[wrist] - moved[elbow]
+    c, s_ = np.cos(1.0), np.sin(1.0)
+    moved[wrist] = moved[elbow] + np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]]) @ forearm   # another pose
+    moved += [1.0, 0.0, -2.0]                                                                 # elsewhere
+    sig = body_signature(body, conf)
+    assert same_body(body_signature(moved, conf), sig) < 1e-9
+    other = (body - body.mean(0)) * 1.2 + body.mean(0)                                       # a bigger build
+    assert same_body(body_signature(other, conf), sig) > SAME_BODY
+    hidden = conf.copy()
+    hidden[11:] = 0
+    assert same_body(body_signature(body, hidden), sig) == np.inf                             # too few bones
