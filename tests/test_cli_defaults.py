@@ -87,7 +87,7 @@ NOT_CONFIG = {
     ("synth", "no_progress"),
     ("train dva", "model"), ("eval dva", "model"), ("render dva", "model"), ("render dva", "model_dir"),
     ("motion convert", "map"), ("motion convert", "report"), ("motion info", "map"), ("motion compare", "json"),
-    ("fit", "eval"), ("fit", "json"), ("fit", "no_progress"),
+    ("fit", "eval"), ("fit", "json"), ("fit", "no_progress"), ("fit", "strict"),
     ("capture masks", "model_dir"), ("capture masks", "no_progress"),
     ("capture import", "calibration"), ("capture import", "no_progress"),
 }
