@@ -96,7 +96,8 @@ def _fit(args) -> int:
               + "; ".join(f"{f} {','.join(cams)}" for f, cams in sorted(disagree.items())), file=sys.stderr)
     if summary.get("person"):
         p = summary["person"]
-        print(f"person: {p['people_found']} found at frame {p['frame']}; fitted #{p['chosen']}, {p['why']}",
+        print(f"person: {p['people_found']} found at frame {p['frame']}; fitted #{p['chosen']}, {p['why']}"
+              if p["chosen"] is not None else "person: nobody seen by two cameras where the subject is chosen",
               file=sys.stderr)
     if args.json:
         write_json(args.json, summary)

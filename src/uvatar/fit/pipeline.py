@@ -164,7 +164,12 @@ def _choose_subject(capture: Capture, frames: list[str], choice, detector, stage
             found.append((seed, *_find_and_choose(capture, seed, choice, detector, stages)))
         except InputError:
             if seed == tries[-1] and not found:
-                raise
+                if choice.rule != "most-views":
+                    raise
+                log.warning("person: nobody seen by two views at frames %s; detecting without a subject",
+                            ", ".join(tries))
+                return frames[0], None, {"rule": choice.rule, "frame": None, "people_found": 0, "chosen": None,
+                                         "why": "nobody found", "people": [], "chosen_again_after_cuts": []}
     if choice.rule == "most-views" and len(found) > 1:
         clusters = []   # [signature, total views, best (views, frame index, person index)]
         for f, (_, people, _, _, _) in enumerate(found):
