@@ -87,7 +87,7 @@ NOT_CONFIG = {
     ("synth", "no_progress"),
     ("train dva", "model"), ("eval dva", "model"), ("render dva", "model"), ("render dva", "model_dir"),
     ("motion convert", "name_map"), ("motion convert", "model_dir"), ("motion convert", "report"), ("motion info", "name_map"), ("motion compare", "json"),
-    ("fit", "eval"), ("fit", "json"), ("fit", "no_progress"),
+    ("fit", "eval"), ("fit", "json"), ("fit", "no_progress"), ("fit", "strict"),
     ("capture masks", "model_dir"), ("capture masks", "no_progress"),
     ("capture import", "calibration"), ("capture import", "no_progress"),
 }

@@ -32,7 +32,7 @@ class SynthConfig:
     broken frame per this many (at least one when frames >= 20); broken_fraction: range of the
     surface fraction cut away; scan_noise: scan vertex noise along the normal (m); chart_area:
     max xatlas chart area (m^2); background: image background grey level; preview: write
-    OUT/preview.png."""
+    OUT/preview.png; bystanders: more people in the images (:mod:`.bystanders`)."""
 
     frames: int = 100
     cameras: int = 8
@@ -54,6 +54,7 @@ class SynthConfig:
     background: float = 1.0
     body_model: str = "anny"
     preview: bool = True
+    bystanders: int = 0
     motion: MotionConfig = field(default_factory=MotionConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     clothing: ClothingConfig = field(default_factory=ClothingConfig)
@@ -69,7 +70,8 @@ class SynthConfig:
             (self.fit_noise_deg >= 0, f"fit_noise_deg must not be negative, got {self.fit_noise_deg}"),
             (self.fit_tracks in ("body", "all"), f"fit_tracks must be 'body' or 'all', got {self.fit_tracks!r}"),
             (self.heldout is None or self.heldout >= 0, f"heldout must not be negative, got {self.heldout}"),
-            (self.workers >= 1, f"workers must be at least 1, got {self.workers}")])
+            (self.workers >= 1, f"workers must be at least 1, got {self.workers}"),
+            (self.bystanders >= 0, f"bystanders must not be negative, got {self.bystanders}")])
 
     def heldout_count(self) -> int:
         if self.heldout is not None:
