@@ -15,6 +15,7 @@ def _flags() -> tuple[ConfigFlags, ...]:
     """(budget, primitives, decoder) flags of ``train dva``, defaults from the preset picked; then the
     ``train_dva`` and ``evaluate_dva`` parameters; then the marcher of ``train dva`` (preset) and of
     ``render dva`` (``load_run``: default the run's)."""
+    from uvatar.dva.corrections import CorrectionConfig
     from uvatar.dva.decoders import DecoderConfig
     from uvatar.dva.eval import evaluate_dva
     from uvatar.dva.model import BACKGROUNDS, PRESETS, TrainConfig
@@ -44,13 +45,16 @@ def _flags() -> tuple[ConfigFlags, ...]:
                 "max_frames": "score at most this many test frames (none: all)", "device": "torch device",
                 **run_marcher}),
             ConfigFlags(RaymarchConfig, fields=("marcher",), presets={k: c.raymarch for k, c in PRESETS.items()}),
-            ConfigFlags(load_run, fields=("marcher",), choices={"marcher": MARCHERS}, help=run_marcher))
+            ConfigFlags(load_run, fields=("marcher",), choices={"marcher": MARCHERS}, help=run_marcher),
+            ConfigFlags(CorrectionConfig, fields=("pose", "colour"), prefix="correct", help={
+                "pose": "learn per-frame pose and translation offsets of the fits during training",
+                "colour": "learn a per-camera colour gain and bias during training"}))
 
 
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher = _flags()
+    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
@@ -67,6 +71,7 @@ def register(cli) -> None:
     _body(p, "body model (default: the capture's: capture.json's, smpl for EasyMocap / ZJU-MoCap)")
     primitives.add_to(p)
     decoder.add_to(p)
+    corrections.add_to(p)
     p.set_defaults(func=_train)
 
     p = cli.command("render dva", help="drive a DVA avatar with a pose sequence + 2-3 driving views")
@@ -139,12 +144,13 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
-    budget, target, primitives, decoder, train, _, marcher, _ = _flags()
+    budget, target, primitives, decoder, train, _, marcher, _, corrections = _flags()
     cfg = preset(args.preset)
     cfg.train = target.config(args, base=cfg.train)
     cfg.raymarch = marcher.config(args, base=cfg.raymarch)
     cfg.primitives = primitives.config(args, base=cfg.primitives)
     cfg.decoder = decoder.config(args, base=cfg.decoder)
+    cfg.corrections = corrections.config(args, base=cfg.corrections)
     given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
                         minutes=given.get("minutes"), vgg_weights=args.vgg_weights, body_model=args.model,

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from uvatar.dva.corrections import CorrectionConfig
 from uvatar.dva.decoders import DecoderConfig, DvaDecoder
 from uvatar.dva.features import (
     FeatureConfig,
@@ -70,6 +71,7 @@ class DvaConfig:
     raymarch: RaymarchConfig = field(default_factory=RaymarchConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    corrections: CorrectionConfig = field(default_factory=CorrectionConfig)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -77,7 +79,10 @@ class DvaConfig:
     @classmethod
     def from_dict(cls, d: dict) -> DvaConfig:
         kinds = {"primitives": PrimitiveConfig, "features": FeatureConfig, "decoder": DecoderConfig,
-                 "raymarch": RaymarchConfig, "loss": LossConfig, "train": TrainConfig}
+                 "raymarch": RaymarchConfig, "loss": LossConfig, "train": TrainConfig,
+                 "corrections": CorrectionConfig}
+        if "corrections" not in d:  # a run from before the corrections: trained without them
+            d = {**d, "corrections": {"pose": False, "colour": False}}
         train = d.get("train")
         if train is not None and "background" not in train:  # a run from before the option: raw photo
             d = {**d, "train": {**train, "background": "photo"}}
