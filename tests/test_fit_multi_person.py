@@ -126,7 +126,7 @@ def test_parse_person(spec, expected):
 @pytest.mark.parametrize("spec", ["tallest", "nearest-to:1,2", "box:cam01:10,20,30,40", "box:c:f:5,5,1,1",
                                   "point:c:f:x,y", "largest:3"])
 def test_parse_person_bad_specs_are_one_line(spec):
-    with pytest.raises(InputError, match="--person") as err:
+    with pytest.raises(InputError, match="^person: ") as err:
         parse_person(spec)
     assert "\n" not in str(err.value)
 
@@ -194,7 +194,7 @@ def test_find_and_choose_people_with_a_fake_detector():
     xy = project_distorted(cams[c], near)[0]
     i, _ = choose_person(people, PersonChoice("point", cams[c].name, "0", (*xy.mean(0), *xy.mean(0))), cams)
     assert which[i] == 1
-    with pytest.raises(InputError, match="--person"):
+    with pytest.raises(InputError, match="^person: "):
         choose_person([], PersonChoice(), cams)
 
 

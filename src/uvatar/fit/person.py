@@ -60,7 +60,7 @@ def _numbers(text: str, count: int, spec: str) -> tuple[float, ...]:
     except ValueError:
         values = ()
     if len(values) != count or not all(np.isfinite(values)):
-        raise InputError("--person", f"{spec!r}: expected {count} comma-separated numbers after the last ':'")
+        raise InputError("person", f"{spec!r}: expected {count} comma-separated numbers after the last ':'")
     return values
 
 
@@ -75,17 +75,17 @@ def parse_person(spec: str) -> PersonChoice:
     if rule in ("box", "point"):
         parts = rest.split(":")
         if len(parts) != 3 or not parts[0] or not parts[1]:
-            raise InputError("--person", f"{spec!r}: expected {rule}:CAMERA:FRAME:" +
+            raise InputError("person", f"{spec!r}: expected {rule}:CAMERA:FRAME:" +
                              ("X0,Y0,X1,Y1" if rule == "box" else "X,Y"))
         cam, frame = parts[0], parts[1]
         if rule == "box":
             x0, y0, x1, y1 = _numbers(parts[2], 4, spec)
             if x1 <= x0 or y1 <= y0:
-                raise InputError("--person", f"{spec!r}: the box must have x1 > x0 and y1 > y0")
+                raise InputError("person", f"{spec!r}: the box must have x1 > x0 and y1 > y0")
             return PersonChoice(rule=rule, camera=cam, frame=frame, box=(x0, y0, x1, y1))
         x, y = _numbers(parts[2], 2, spec)
         return PersonChoice(rule=rule, camera=cam, frame=frame, box=(x, y, x, y))
-    raise InputError("--person", f"{spec!r}: expected one of most-views, largest, centre, nearest-to:X,Y,Z, "
+    raise InputError("person", f"{spec!r}: expected one of most-views, largest, centre, nearest-to:X,Y,Z, "
                      "box:CAM:FRAME:X0,Y0,X1,Y1, point:CAM:FRAME:X,Y")
 
 
@@ -241,7 +241,7 @@ def _position(p: Person) -> np.ndarray:
 def choose_person(people: list[Person], choice: PersonChoice, cameras) -> tuple[int, str]:
     """(index into ``people``, a sentence saying why). Raises :class:`InputError` when nobody fits."""
     if not people:
-        raise InputError("--person", "no person is seen by two views in the frame the choice is made at")
+        raise InputError("person", "no person is seen by two views in the frame the choice is made at")
     rule = choice.rule
     if rule == "most-views":
         most = max(len(p.members) for p in people)
@@ -277,6 +277,6 @@ def choose_person(people: list[Person], choice: PersonChoice, cameras) -> tuple[
         if d < best_d:
             best, best_d = i, d
     if best is None:
-        raise InputError("--person", f"nobody seen by another camera matches the {rule} in {choice.camera} "
+        raise InputError("person", f"nobody seen by another camera matches the {rule} in {choice.camera} "
                          f"at frame {choice.frame}")
     return best, f"the person at the {rule} given in {choice.camera}, frame {choice.frame}"

@@ -137,7 +137,7 @@ def _find_and_choose(capture: Capture, frame: str, choice, detector, stages: Fit
     images, cameras = _frame_views(capture, frame, "images", stages)
     names = [c.name for c in cameras]
     if choice.camera is not None and choice.camera not in names:
-        raise InputError("--person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
+        raise InputError("person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
     forced = {names.index(choice.camera): choice.box} if choice.rule == "box" else None
     people = find_people(images, cameras, detector, stages.triangulate, forced=forced)
     i, why = choose_person(people, choice, cameras)
@@ -155,7 +155,7 @@ def _choose_subject(capture: Capture, frames: list[str], choice, detector, stage
     from uvatar.fit.person import SAME_BODY, body_signature, same_body
 
     if choice.frame is not None and choice.frame not in frames:
-        raise InputError("--person", f"frame {choice.frame!r} is not one of the capture's frames being fitted")
+        raise InputError("person", f"frame {choice.frame!r} is not one of the capture's frames being fitted")
     step = max(1, len(frames) // 8)
     tries = [choice.frame] if choice.frame is not None else frames[: SEED_TRIES * step: step]
     found = []   # (frame, people, chosen index, why, names)

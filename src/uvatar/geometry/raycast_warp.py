@@ -42,7 +42,7 @@ def warp_device(device: str) -> str:
     wp = _warp()
     name = str(device)
     if name.startswith("cuda") and not wp.is_cuda_available():
-        raise InputError("device", f"{name}: Warp finds no CUDA device (use --device cpu)")
+        raise InputError("device", f"{name}: Warp finds no CUDA device (device=cpu runs the bake on the CPU)")
     try:
         return str(wp.get_device(name))
     except (RuntimeError, ValueError) as exc:
