@@ -37,7 +37,8 @@ __all__ = ["LightConfig", "Occluder", "StudioLight", "ambient_occlusion", "snap_
 
 @dataclass(frozen=True)
 class LightConfig:
-    """The rig. key / fill: unit-free directions toward each light (world, +Y up; normalized);
+    """The rig. key / fill: directions toward each light (world, +Y up; normalized): the key high
+    in front on the person's left (+X), the fill lower on the right, a little behind;
     key_intensity, fill_intensity, ambient: weights of the three terms (a surface facing the key,
     unoccluded, gets ambient + key ~ 1); ao_rays: cosine-weighted hemisphere rays per occluder
     vertex; ao_distance (m): occluders further than this do not count; ao_smooth: passes of
@@ -49,10 +50,10 @@ class LightConfig:
     occluder_levels: template subdivisions of the occluder mesh (1: ~110k triangles)."""
 
     key: tuple = (0.55, 0.65, 0.75)
-    fill: tuple = (-0.8, 0.2, 0.45)
-    key_intensity: float = 0.62
-    fill_intensity: float = 0.18
-    ambient: float = 0.42
+    fill: tuple = (-0.75, 0.35, -0.3)
+    key_intensity: float = 0.55
+    fill_intensity: float = 0.3
+    ambient: float = 0.45
     ao_rays: int = 96
     ao_distance: float = 0.35
     ao_smooth: int = 2
