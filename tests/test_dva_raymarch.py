@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import math
 
 import pytest
@@ -37,8 +38,8 @@ def make_prims(positions, rotvecs, scales, payload):
     return Primitives(positions, roma.rotvec_to_rotmat(rotvecs), scales, payload)
 
 
-CFG = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17)
-GATHER = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17, sampler="gather")
+CFG = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17, marcher="torch")  # the torch twin here
+GATHER = RaymarchConfig(step=0.02, border_fade=0.2, chunk_rays=17, sampler="gather", marcher="torch")
 
 
 def pinhole_scene(n=10, dtype=torch.float64, dist=(0, 0, 0, 0, 0)):
@@ -136,19 +137,23 @@ def test_pinhole_candidates_cover_exact_hits(dist):
     assert torch.all(r2[1:] >= r2[:-1])  # sorted by ray
 
 
-def test_gradcheck_float64():
+@pytest.mark.parametrize("marcher", ["torch", pytest.param("warp", marks=pytest.mark.skipif(
+    importlib.util.find_spec("warp") is None, reason="the kernels extra (warp-lang) is not installed"))])
+def test_gradcheck_float64(marcher):
+    """Both fast marchers (the torch twin, the fused Warp kernels): float64 gradients w.r.t. the
+    primitives and the rays' origins against finite differences."""
     pos, rv, sc, pl = random_scene(K=3, S=2, seed=5, density=6.0)
     o, d = camera_rays(n=4)
-    cfg = RaymarchConfig(step=0.05, border_fade=0.3)
+    cfg = RaymarchConfig(step=0.05, border_fade=0.3, marcher=marcher)
 
     near_far = (torch.full((o.shape[0],), 1.5, dtype=torch.float64),
                 torch.full((o.shape[0],), 3.5, dtype=torch.float64))  # fixed sample placement
 
-    def fn(p, r, s, payload):
-        rgb, alpha = raymarch(o, d, make_prims(p, r, s, payload), cfg, near_far=near_far)
+    def fn(p, r, s, payload, origins):
+        rgb, alpha = raymarch(origins, d, make_prims(p, r, s, payload), cfg, near_far=near_far)
         return rgb, alpha
 
-    inputs = tuple(t.clone().requires_grad_(True) for t in (pos, rv, sc, pl))
+    inputs = tuple(t.clone().requires_grad_(True) for t in (pos, rv, sc, pl, o))
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5)
 
 
@@ -163,7 +168,7 @@ def test_constant_slab_analytic():
         payload[:, 3] = sigma
         prims = Primitives(torch.zeros(1, 3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)[None],
                            torch.full((1, 3), 0.5, dtype=torch.float64), payload)
-        cfg = RaymarchConfig(step=0.001, border_fade=0.0)
+        cfg = RaymarchConfig(step=0.001, border_fade=0.0, marcher="torch")
         o = torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64)
         d = torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64)
         for fn in (raymarch, raymarch_reference):

@@ -44,6 +44,34 @@ def test_person_mask_keeps_the_fitted_person_and_drops_the_bystander():
     assert x1 < 70                             # the segmenter only searched around the person
 
 
+class TouchingDetector:
+    """A second person standing right against the first one (x 30..50): BlazePose-like keypoints,
+    found only where the image was not painted over."""
+
+    def detect(self, image, roi=None):
+        from uvatar.fit.keypoints import Keypoints2D
+
+        xy = np.zeros((33, 2), np.float32)
+        conf = np.zeros(33, np.float32)
+        for k, (x, y) in {0: (40, 12), 11: (33, 18), 12: (45, 18), 23: (33, 32), 24: (45, 32), 25: (33, 40),
+                          26: (45, 40), 27: (33, 48), 28: (45, 48)}.items():
+            xy[k], conf[k] = (x, y), 0.9
+        return Keypoints2D(xy, conf)
+
+
+def test_another_person_in_the_grown_band_is_dropped_the_fitted_body_kept():
+    seg = BlobSegmenter()
+    seg.prob[10:50, 30:50] = 0.9                       # the second person touches the first one
+    image = np.zeros((60, 100, 3), np.float32)
+    prior = np.zeros((60, 100), bool)
+    prior[14:46, 13:29] = True
+    config = MaskConfig(dilate=0.1)
+    leaky = person_mask(image, seg, prior, config)
+    assert leaky[20:40, 30:34].all()                  # without the detector: the band takes them in
+    mask = person_mask(image, seg, prior, config, TouchingDetector())
+    assert not mask[20:40, 30:34].any() and mask[prior].all() and mask[10:50, 10:13].all()
+
+
 def test_person_mask_without_prior_takes_the_largest_person_and_empty_prior_gives_empty():
     seg = BlobSegmenter()
     image = np.zeros((60, 100, 3), np.float32)

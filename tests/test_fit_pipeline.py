@@ -108,3 +108,33 @@ def test_cli_fit_existing_fits_is_one_line(fit_studio, tmp_path, capsys):
     assert main(["fit", str(root), "--from", "images", "--no-progress"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "force=True" in err[0] and "fits" in err[0]
+
+
+def test_views_that_disagree_are_named_left_out_and_fail_strict(fit_studio, tmp_path, capsys):
+    """Camera 01's keypoints of frame 000001 moved 80 px (as a view that sees another person): fit
+    names frame and camera, leaves the view out, fails under --strict, and ``capture check`` warns."""
+    from dataclasses import replace
+
+    from uvatar.capture import Capture
+    from uvatar.cli.main import main
+    from uvatar.fit.observe import load_observation, save_observation
+    from uvatar.fit.triangulate import TriangulateConfig, triangulate
+
+    root = _copy_without_fits(fit_studio[0], tmp_path / "cap")
+    cap = Capture(root)
+    frame = cap.frames[1]
+    args = ["fit", str(root), "--from", "images", "--no-progress", "--no-scan-distance", "--overlay-frames", "0"]
+    assert main(args) == 0 and "disagree" not in capsys.readouterr().err
+    path = root / "fitting" / "keypoints" / f"{frame}.npz"
+    obs = load_observation(path)
+    cam = obs.cameras[1].name
+    xy = obs.xy.copy()
+    xy[1, :, 0] += 80.0
+    tri = triangulate(xy, obs.conf, obs.cameras, TriangulateConfig())
+    save_observation(path, replace(obs, xy=xy, points=tri.points.astype(np.float32), points_conf=tri.conf,
+                                   reprojection_px=tri.reprojection_px.astype(np.float32)))
+    assert main(args + ["--force", "--strict"]) == 1
+    err = capsys.readouterr().err
+    assert f"{frame} {cam}" in err and "--strict" in err
+    assert main(["capture", "check", str(root), "--no-progress"]) == 0
+    assert f"{frame} {cam}" in capsys.readouterr().out

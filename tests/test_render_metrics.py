@@ -87,3 +87,34 @@ def test_ssim_border_convention_matches_scikit_image_and_the_torch_loss():
     y = x.copy()
     y[:, :2] = 1 - y[:, :2]
     assert ssim(x, y) < 1 and ssim_map(x, y)[5:-5, 5:-5].mean() == pytest.approx(ssim(x, y))
+
+
+def test_one_ssim_owner_serves_the_metric_and_the_dva_loss():
+    """The DVA loss's SSIM is render.metrics' (one formula): the same value as the metric on large
+    and on window-sized images, reflected maps agree with scipy's reflect-mode filter, and it has
+    a gradient."""
+    from scipy.ndimage import gaussian_filter
+
+    import uvatar.dva.losses as losses
+    from uvatar.render.metrics import ssim_torch
+
+    assert losses.ssim_torch is ssim_torch
+    rng = np.random.default_rng(5)
+    for shape in [(23, 19, 3), (8, 9, 3), (4, 3, 1)]:
+        a = rng.uniform(size=shape)
+        b = np.clip(a + rng.normal(0, 0.2, shape), 0, 1)
+        ta = torch.as_tensor(a).permute(2, 0, 1)[None].requires_grad_(True)
+        value = ssim_torch(ta, torch.as_tensor(b).permute(2, 0, 1)[None])
+        assert float(value.detach()) == pytest.approx(ssim(a, b), abs=1e-12)
+        value.backward()
+        assert torch.isfinite(ta.grad).all() and ta.grad.abs().sum() > 0
+        # the reflected map equals the moments filtered by scipy (mode "reflect", truncate 3.5)
+
+        def blur(x):
+            return gaussian_filter(x, sigma=(1.5, 1.5, 0), truncate=3.5, mode="reflect")
+
+        mu_a, mu_b = blur(a), blur(b)
+        va, vb, cov = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2, blur(a * b) - mu_a * mu_b
+        c1, c2 = 0.01**2, 0.03**2
+        ref = ((2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a**2 + mu_b**2 + c1) * (va + vb + c2))).mean(-1)
+        np.testing.assert_allclose(ssim_map(a, b), ref, atol=1e-12)

@@ -21,14 +21,15 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from uvatar.errors import check_values, one_line, require
+from uvatar.errors import UvatarError, check_values, one_line, require
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EXECUTORS", "ExecutorConfig", "TaskFailure", "clear_worker_cache", "run_tasks", "worker_cache"]
+__all__ = ["EXECUTORS", "ExecutorConfig", "TaskFailure", "clear_worker_cache", "keep_pool", "run_tasks", "worker_cache"]
 
 EXECUTORS = ("local", "ray")
 
@@ -76,6 +77,25 @@ class TaskFailure:
 # -- worker-process state ---------------------------------------------------------------------------
 _SHARED: Any = None
 _CACHE: dict = {}
+_KEPT: dict = {}     # the local pool kept by :func:`keep_pool`: {"shared", "pool", "workers", "initializer"}
+
+
+@contextmanager
+def keep_pool(shared: Any):
+    """Inside the block, :func:`run_tasks` calls on the local executor that pass this very ``shared``
+    object run in one process pool, made on first use and closed at the end of the block, instead of
+    a new pool per call: worker processes keep what they cache between calls (a bake's scans,
+    :func:`uvatar.avh.bake.inputs.prepared_scan`, from one colour round to the next) and ``shared``
+    is shipped to them once. Per-call data must then travel in the items, not in ``shared``."""
+    _KEPT.clear()
+    _KEPT["shared"] = shared
+    try:
+        yield
+    finally:
+        pool = _KEPT.get("pool")
+        _KEPT.clear()
+        if pool is not None:
+            pool.shutdown()
 
 
 def worker_cache(key, factory: Callable[[], Any]):
@@ -160,13 +180,34 @@ def _run_inline(fn, items, shared):
             yield item, TaskFailure(one_line(exc))
 
 
-def _run_pool(fn, items, shared, workers, initializer):
+def _make_pool(shared, workers, initializer):
     import multiprocessing as mp
     import pickle
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=mp.get_context("spawn"),
-                             initializer=_init_local, initargs=(pickle.dumps(shared), initializer)) as pool:
+    return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                               initializer=_init_local, initargs=(pickle.dumps(shared), initializer))
+
+
+@contextmanager
+def _pool_for(shared, workers, initializer):
+    """The pool :func:`keep_pool` keeps for ``shared`` (made on first use), else a new one for this call."""
+    if _KEPT.get("shared") is shared:
+        if _KEPT.get("pool") is None or _KEPT["workers"] != workers or _KEPT["initializer"] is not initializer:
+            if _KEPT.get("pool") is not None:
+                _KEPT["pool"].shutdown()
+            _KEPT.update(pool=_make_pool(shared, workers, initializer), workers=workers, initializer=initializer)
+        yield _KEPT["pool"]
+        return
+    with _make_pool(shared, workers, initializer) as pool:
+        yield pool
+
+
+def _run_pool(fn, items, shared, workers, initializer):
+    from concurrent.futures import as_completed
+
+    kept = _KEPT.get("shared") is shared
+    with _pool_for(shared, workers if kept else min(workers, len(items)), initializer) as pool:
         futures = {pool.submit(_local_call, fn, item): i for i, item in enumerate(items)}
         for fut in as_completed(futures):
             item = items[futures[fut]]
@@ -178,12 +219,48 @@ def _run_pool(fn, items, shared, workers, initializer):
                 yield item, TaskFailure(f"worker failed: {one_line(exc)}")
 
 
+def _unreachable(address: str, timeout_s: float = 3.0) -> str | None:
+    """Why nothing answers at a Ray address ``HOST:PORT`` / ``ray://HOST:PORT`` (a TCP connect with a
+    timeout), or None when something does (or the address is ``auto``/``local``, resolved by Ray)."""
+    import socket
+
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit():
+        return None
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    return None
+
+
 def _ray_init(ray, config: ExecutorConfig) -> bool:
-    """Connect to (or start) Ray; True when this call started it (and must shut it down)."""
+    """Connect to (or start) Ray; True when this call started it (and must shut it down). An address
+    where nothing answers is refused at once, and Ray's own start-up log (its GCS client retries for
+    minutes, tens of lines) is kept off the terminal: a failed start is one line (the log at debug)."""
+    import os
+    import tempfile
+
     if ray.is_initialized():
         return False
+    if config.address:
+        reason = _unreachable(config.address)
+        if reason:
+            raise UvatarError(f"{config.address}: no Ray cluster answers there ({reason}); start one "
+                              "there (ray start) or use address=None for a private local Ray")
     kwargs = {"address": config.address} if config.address else {}
-    ray.init(include_dashboard=False, log_to_driver=True, **kwargs)
+    with tempfile.TemporaryFile() as captured:
+        saved = os.dup(2)
+        os.dup2(captured.fileno(), 2)  # Ray's C++ core logs to the process's stderr, below Python's
+        try:
+            ray.init(include_dashboard=False, log_to_driver=True, logging_level=logging.WARNING, **kwargs)
+        except Exception as exc:  # noqa: BLE001 - ConnectionError, RuntimeError, TimeoutError ...
+            captured.seek(0)
+            log.debug("ray.init failed; its log:\n%s", captured.read().decode(errors="replace"))
+            raise UvatarError(f"{config.address or 'a local Ray'}: Ray did not start: {one_line(exc)}") from None
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
     return True
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from uvatar.capture.fits import read_fit
 from uvatar.capture.layout import Capture
 from uvatar.capture.meshio import IMAGE_SUFFIXES, MESH_FORMATS, check_texture, read_mesh, read_mesh_header
-from uvatar.errors import InputError
+from uvatar.errors import InputError, UvatarError
 
 # poses values per fit for body models whose joint count is fixed (others: consistent across frames)
 POSE_VALUES = {"anny": 312, "smpl": 72}
@@ -140,6 +140,7 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
             warnings += _check_camera_images(cap, cams[name], frames, config.deep, images, masks, missing)
     elif (cap.root / "images").is_dir():
         raise InputError(cap.cameras_dir / "intri.yml", "images/ exists but the cameras are missing")
+    warnings += fit_warnings(cap.root)
     if warnings and config.strict:
         more = f" (+{len(warnings) - 1} more warnings)" if len(warnings) > 1 else ""
         raise InputError(cap.root, f"strict check: {warnings[0]}{more}")
@@ -149,6 +150,26 @@ def validate_capture(root: str | Path, config: ValidateConfig | None = None,
             "pose_values": pose_values, "shape_values": shape_values, "cameras": cameras,
             "images": images, "masks": masks, "frames_without_image": missing, "gt": cap.gt_dir.is_dir(),
             "warnings": warnings}
+
+
+def fit_warnings(root: Path) -> list[str]:
+    """Warnings from ``fitting/summary.json`` (written by ``uvatar fit``): frames whose views disagree
+    with the subject (named with their cameras; left out of the fit)."""
+    from uvatar.io_utils import read_json
+
+    path = Path(root) / "fitting" / "summary.json"
+    if not path.is_file():
+        return []
+    try:
+        disagree = read_json(path).get("views_disagree") or {}
+    except UvatarError:
+        return [f"{path}: unreadable, the fit's report is not checked"]
+    if not disagree:
+        return []
+    listed = "; ".join(f"{f} {','.join(c)}" for f, c in sorted(disagree.items())[:8])
+    more = f" (+{len(disagree) - 8} more)" if len(disagree) > 8 else ""
+    return [f"{len(disagree)} frame(s) have views that disagree with the fitted subject, left out of the fit "
+            f"({path}): {listed}{more}"]
 
 
 def size_warning(what: str, camera, path: Path, size: tuple[int, int]) -> str | None:

@@ -98,7 +98,7 @@ def register(cli) -> None:
     p.set_defaults(func=_export)
 
     p = cli.command("animate", help="render an exported avatar driven by a motion to MP4",
-                    epilog="motion: a BVH/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE "
+                    epilog="motion: a BVH/FBX/glTF/AMASS/EasyMocap file (uvatar.motion), a capture folder or fits:CAPTURE "
                            "(its fits),\nheldout:CAPTURE (its held-out poses), take:NAME:CAPTURE (one take of a "
                            "synthetic capture)")
     p.add_argument("avatar", help="avatar folder (uvatar export)")
@@ -113,7 +113,8 @@ def register(cli) -> None:
     p.add_argument("capture", help="capture folder with gt/ (synthetic)")
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument("--images", default=None, help="write comparison images here")
-    p.add_argument("--baked", default=None, help="baked training data (default: the one avatar.json names)")
+    p.add_argument("--baked", dest="baked_dir", default=None,
+                   help="baked training data (default: the one avatar.json names)")
     p.add_argument("--frames", default=None,
                    help="a count N (the first N held-out frames) or frame names, comma separated "
                         "(e.g. 000054,000055, the frames uvatar eval dva reports)")
@@ -200,7 +201,7 @@ def _eval(args) -> int:
     with options_as_input_error("uvatar eval avh options"):
         cfg = _flags()["eval"].config(args, max_frames=max_frames, max_cameras=max_cameras, frames=frames,
                                       cameras=cameras)
-    metrics = evaluate_avatar(args.avatar, args.capture, cfg, baked_dir=args.baked, image_dir=args.images)
+    metrics = evaluate_avatar(args.avatar, args.capture, cfg, baked_dir=args.baked_dir, image_dir=args.images)
     if args.json:
         write_json(args.json, metrics)
     rows = [("avh", metrics["avh"])] + list(metrics["baselines"].items())

@@ -20,7 +20,7 @@ def _flags():
 
     bake = ConfigFlags(BakeConfig, fields=(
         "texels", "refine_pose", "register", "polarity_rule", "polarity_ratio", "max_match_distance",
-        "visibility_rays", "distance_clip", "inpaint_radius", "inpaint_band", "reject_kappa"),
+        "visibility_rays", "distance_clip", "inpaint_radius", "inpaint_band", "reject_kappa", "device", "scan_cache_mb"),
         rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band"), help={
             "texels": "UV map resolution R",
             "refine_pose": "refine the fit against the scan (articulated); --no-refine-pose keeps the fit as is",
@@ -32,7 +32,11 @@ def _flags():
             "distance_clip": "delta clips at this fraction of the fit's bounding-box diagonal",
             "inpaint_radius": "Telea radius in texels",
             "inpaint_band": "Telea only within this many texels of matched ones, nearest fill beyond (0 = everywhere)",
-            "reject_kappa": "reject frames whose mean confidence is below this"})
+            "reject_kappa": "reject frames whose mean confidence is below this",
+            "device": "where the ray stages run: cpu (Embree) or cuda[:N] (NVIDIA Warp; pip install "
+                      "'uvatar[kernels]')",
+            "scan_cache_mb": "MB of scans each worker keeps read and prepared between the colour rounds and the "
+                             "bake (0 = read every time; same results)"})
     refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight"),
                          prefix="refine", help={
                              "iterations": "Gauss-Newton steps of the articulated fit refinement (per round)",

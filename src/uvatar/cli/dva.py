@@ -6,17 +6,25 @@ defaults the ``--preset``'s (``uvatar.dva.model.PRESETS``).
 
 from __future__ import annotations
 
+import dataclasses
+
 from uvatar.cli.flags import ConfigFlags
 
 
 def _flags() -> tuple[ConfigFlags, ...]:
     """(budget, primitives, decoder) flags of ``train dva``, defaults from the preset picked; then the
-    ``train_dva`` and ``evaluate_dva`` parameters."""
+    ``train_dva`` and ``evaluate_dva`` parameters; then the marcher of ``train dva`` (preset) and of
+    ``render dva`` (``load_run``: default the run's)."""
+    from uvatar.dva.corrections import CorrectionConfig
     from uvatar.dva.decoders import DecoderConfig
     from uvatar.dva.eval import evaluate_dva
     from uvatar.dva.model import BACKGROUNDS, PRESETS, TrainConfig
     from uvatar.dva.primitives import PrimitiveConfig
-    from uvatar.dva.train import train_dva
+    from uvatar.dva.raymarch_ref import MARCHERS, RaymarchConfig
+    from uvatar.dva.train import load_run, train_dva
+
+    marcher_help = next(f for f in dataclasses.fields(RaymarchConfig) if f.name == "marcher").metadata["help"]
+    run_marcher = {"marcher": marcher_help + "; default: the run's"}
 
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
@@ -31,30 +39,39 @@ def _flags() -> tuple[ConfigFlags, ...]:
                         help={"voxels": "voxels per primitive side S"}),
             ConfigFlags(train_dva, fields=("device", "resume"), help={
                 "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt"}),
-            ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device"), help={
+            ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher"),
+                        choices={"marcher": MARCHERS}, help={
                 "driving_views": "training cameras that drive the avatar (evenly spread)",
-                "max_frames": "score at most this many test frames (none: all)", "device": "torch device"}))
+                "max_frames": "score at most this many test frames (none: all)", "device": "torch device",
+                **run_marcher}),
+            ConfigFlags(RaymarchConfig, fields=("marcher",), presets={k: c.raymarch for k, c in PRESETS.items()}),
+            ConfigFlags(load_run, fields=("marcher",), choices={"marcher": MARCHERS}, help=run_marcher),
+            ConfigFlags(CorrectionConfig, fields=("pose", "colour"), prefix="correct", help={
+                "pose": "learn per-frame pose and translation offsets of the fits during training",
+                "colour": "learn a per-camera colour gain and bias during training"}))
 
 
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, target, primitives, decoder, train, evaluate = _flags()
+    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
     p.add_argument("out", help="run folder (checkpoint.pt, run.json, tb/)")
     p.add_argument("--preset", default="cpu", choices=tuple(PRESETS),
-                   help="config preset: cpu (K=256, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
+                   help="config preset: cpu (K=576, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
     budget.add_to(p)
     target.add_to(p)
     train.add_to(p)
+    marcher.add_to(p)
     p.add_argument("--vgg-weights", default=None,
                    help="torchvision VGG-19 state dict for the perceptual loss (without it: 1 - SSIM)")
     _threads(p)
     _body(p, "body model (default: the capture's: capture.json's, smpl for EasyMocap / ZJU-MoCap)")
     primitives.add_to(p)
     decoder.add_to(p)
+    corrections.add_to(p)
     p.set_defaults(func=_train)
 
     p = cli.command("render dva", help="drive a DVA avatar with a pose sequence + 2-3 driving views")
@@ -66,6 +83,7 @@ def register(cli) -> None:
     p.add_argument("--size", type=int, default=256, help="orbit camera size in pixels")
     p.add_argument("--fps", type=float, default=25.0)
     p.add_argument("--device", default="cpu")
+    run_marcher.add_to(p)
     _threads(p)
     p.add_argument("-o", "--output", required=True, help="video path (.mp4 or .gif)")
     _body(p, "body model (default: the run's; must be the run's)")
@@ -126,11 +144,13 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
-    budget, target, primitives, decoder, train, _ = _flags()
+    budget, target, primitives, decoder, train, _, marcher, _, corrections = _flags()
     cfg = preset(args.preset)
     cfg.train = target.config(args, base=cfg.train)
+    cfg.raymarch = marcher.config(args, base=cfg.raymarch)
     cfg.primitives = primitives.config(args, base=cfg.primitives)
     cfg.decoder = decoder.config(args, base=cfg.decoder)
+    cfg.corrections = corrections.config(args, base=cfg.corrections)
     given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
                         minutes=given.get("minutes"), vgg_weights=args.vgg_weights, body_model=args.model,
@@ -153,7 +173,7 @@ def _render(args) -> int:
     from uvatar.render.cameras import orbit_cameras
     from uvatar.render.video import write_video
 
-    model, body, meta, _ = load_run(args.run, args.device, args.model, args.model_dir)
+    model, body, meta, _ = load_run(args.run, args.device, args.model, args.model_dir, **_flags()[7].values(args))
     source = open_source(args.motion)
     views = [v for v in args.views.split(",") if v]
     if not views:

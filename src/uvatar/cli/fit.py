@@ -19,7 +19,7 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
     from uvatar.fit.views import ScanViewsConfig
 
     fit = ConfigFlags(FitConfig, fields=("source", "model", "model_dir", "detector", "scan_distance", "scan_points",
-                                         "photo_size", "overlay_frames", "device", "force"),
+                                         "photo_size", "overlay_frames", "device", "force", "person"),
                       rename={"source": "from"}, choices={"source": FIT_SOURCES, "model": BODY_MODELS}, help={
                           "source": "images: the capture's cameras; scans: renders of each scan from virtual "
                                     "cameras; auto: images when the capture has cameras and images",
@@ -31,7 +31,10 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
                           "photo_size": "pixels of the unshaded scan renders whose colours the texture "
                                         "stage keeps consistent across frames (0: no texture stage)",
                           "overlay_frames": "frames drawn in fitting/contact_sheet.png (0: none)",
-                          "device": "torch device of the fit (cpu, cuda)", "force": "replace existing fits"})
+                          "device": "torch device of the fit (cpu, cuda)", "force": "replace existing fits",
+                          "person": "which person to fit from images when several are in view: most-views "
+                                    "(seen by the most cameras), largest, centre, nearest-to:X,Y,Z (metres), "
+                                    "box:CAM:FRAME:X0,Y0,X1,Y1 or point:CAM:FRAME:X,Y (pixels)"})
     views = ConfigFlags(ScanViewsConfig, fields=("count",), rename={"count": "views"},
                         help={"count": "virtual cameras per scan for --from scans"})
     return fit, views
@@ -54,6 +57,8 @@ def register(cli) -> None:
                    help="compare with the capture's gt/ (synthetic captures): MPJPE, angles, scan distance")
     p.add_argument("--json", default=None, help="write the summary (and --eval metrics) to this JSON file")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--strict", action="store_true",
+                   help="exit non-zero when any frame has views that disagree with the subject")
     p.set_defaults(func=_fit)
 
 
@@ -85,11 +90,24 @@ def _fit(args) -> int:
         print(f"MPJPE {ev['mpjpe_mm']:.1f} mm over {len(ev.get('per_joint_mpjpe_mm', {}))} body joints, "
               f"angle {ev['angle_error_deg']:.1f} deg, shape {ev.get('shape_error_mm', float('nan')):.1f} mm"
               + (f"; scan-to-body median {scan:.2f} mm" if scan is not None else ""), file=sys.stderr)
+    disagree = summary.get("views_disagree") or {}
+    if disagree:
+        print(f"views that disagree with the subject in {len(disagree)} frame(s), left out of the fit: "
+              + "; ".join(f"{f} {','.join(cams)}" for f, cams in sorted(disagree.items())), file=sys.stderr)
+    if summary.get("person"):
+        p = summary["person"]
+        print(f"person: {p['people_found']} found at frame {p['frame']}; fitted #{p['chosen']}, {p['why']}"
+              if p["chosen"] is not None else "person: nobody seen by two cameras where the subject is chosen",
+              file=sys.stderr)
     if args.json:
         write_json(args.json, summary)
     else:
         print(json.dumps(summary.get("eval", {k: summary[k] for k in ("frames", "source") if k in summary}),
                          indent=2))
+    if args.strict and disagree:
+        print(f"error: {args.capture}: --strict: {len(disagree)} frame(s) have views that disagree with the "
+              "subject (listed above)", file=sys.stderr)
+        return 1
     return 0
 
 

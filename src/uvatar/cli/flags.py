@@ -26,12 +26,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import inspect
+import re
 import types
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
-__all__ = ["ConfigFlags", "add_config_flags", "config_from_args", "flag_parser"]
+__all__ = ["ConfigFlags", "add_config_flags", "config_from_args", "flag_parser", "in_flag_terms"]
 
 _SCALARS = {int: "int", float: "float", str: "str"}
 
@@ -248,3 +249,70 @@ def config_from_args(config: type | ConfigFlags, args: argparse.Namespace, base=
     :meth:`ConfigFlags.config`."""
     flags = config if isinstance(config, ConfigFlags) else ConfigFlags(config)
     return flags.config(args, base, **fixed)
+
+
+# -- library messages in the terms of a command's flags ------------------------------------------------
+_ASSIGNED = re.compile(r"(?<![\w./-])([a-z][a-z0-9_]*)=(True|False|None|'[^']*'|[-\w.]+)")
+_VERB = re.compile(r"\b(pass|give|use) ([a-z][a-z0-9_]*)(?![\w/.=-])")
+_SNAKE = re.compile(r"(?<![\w./$-])([a-z][a-z0-9]*(?:_[a-z0-9]+)+)(?![\w/.=-])")
+
+
+def _flags_by_param(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    """Library parameter name → the flag that sets it: the flag's dest, and for generated flags the
+    config field (``--fit`` sets ``use_fit``)."""
+    out = {}
+    for action in parser._actions:
+        if not action.option_strings or action.dest == "help":
+            continue
+        out.setdefault(action.dest, action)
+        field_of = getattr(action, "config_field", None)
+        if field_of:
+            out.setdefault(field_of[1], action)
+    return out
+
+
+def _spell_flag(action: argparse.Action, value: str | None) -> str:
+    """How the user writes ``param=value`` with this flag (``--force``, ``--no-fit``, ``--texels 64``)."""
+    long = [o for o in action.option_strings if o.startswith("--")] or list(action.option_strings)
+    yes = next((o for o in long if not o.startswith("--no-")), long[0])
+    no = next((o for o in long if o.startswith("--no-")), None)
+    if isinstance(action, argparse.BooleanOptionalAction) or action.nargs == 0:
+        store_false = action.const is False
+        if value is None:
+            return "/".join(long) if no else yes
+        on = (value == "True") != store_false  # --no-progress stores progress=False
+        if on:
+            return yes
+        return no if no else f"no {yes}"
+    if value is None:
+        return yes
+    return f"{yes} {'none' if value == 'None' else value.strip(chr(39))}"
+
+
+def in_flag_terms(message: str, parser: argparse.ArgumentParser, command: str, all_parsers=()) -> str:
+    """A library message (which names parameters: ``force=True replaces them``, ``use_fit=False``,
+    ``pass model_dir``, ``give calibration``) in the terms of ``command``'s flags: ``--force replaces
+    them``, ``--no-fit``, ``pass --model-dir``, ``give --calibration``. A parameter the command has no
+    flag for is kept, with a note saying so (``model_dir (no flag of `uvatar motion convert` sets
+    it)``); bare words (snake_case ones, or one after pass/give/use) are taken for parameters only
+    when some command has a flag of that name (``all_parsers``)."""
+    flags = _flags_by_param(parser)
+    known = set(flags)
+    for other in all_parsers:
+        known.update(_flags_by_param(other))
+
+    def assigned(m: re.Match) -> str:
+        name, value = m.group(1), m.group(2)
+        if name in flags:
+            return _spell_flag(flags[name], value)
+        return f"{m.group(0)} (no flag of `{command}` sets {name})"
+
+    def spell(name: str) -> str:
+        if name in flags:
+            return _spell_flag(flags[name], None)
+        return f"{name} (no flag of `{command}` sets it)" if name in known else name
+
+    def verb(m: re.Match) -> str:  # snake_case names are left to _SNAKE
+        return m.group(0) if "_" in m.group(2) else f"{m.group(1)} {spell(m.group(2))}"
+
+    return _SNAKE.sub(lambda m: spell(m.group(1)), _VERB.sub(verb, _ASSIGNED.sub(assigned, message)))

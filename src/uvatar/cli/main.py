@@ -13,6 +13,7 @@ import importlib
 import logging
 import os
 import pkgutil
+import re
 import sys
 
 from uvatar import __version__
@@ -22,7 +23,19 @@ from uvatar.errors import UvatarError
 DEFAULT_SUBCOMMAND = {"eval": "avh"}
 
 
-class _EpilogFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+class _DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Flag defaults in the help, unless the help text states its own default ("(default: found in
+    SRC)"): then argparse's "(default: None)" would contradict it, and is left out."""
+
+    def _get_help_string(self, action) -> str:
+        text = action.help or ""
+        own = text.replace(" (default: %(default)s)", "")  # what BooleanOptionalAction appends itself
+        if re.search(r"\(default\b|\bdefault:", own, re.IGNORECASE):  # "(default: found in SRC)"
+            return own
+        return super()._get_help_string(action)
+
+
+class _EpilogFormatter(argparse.RawDescriptionHelpFormatter, _DefaultsFormatter):
     """Flag defaults in the help; the description and epilog keep their line breaks."""
 
 
@@ -38,6 +51,7 @@ class Cli:
         self.parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
         self._subparsers = {(): self.parser.add_subparsers(dest="command", metavar="COMMAND")}
         self._groups: dict[tuple[str, ...], argparse.ArgumentParser] = {(): self.parser}
+        self.commands: dict[str, argparse.ArgumentParser] = {}
 
     def _group(self, path: tuple[str, ...], help: str | None = None):
         if path in self._subparsers:
@@ -56,10 +70,13 @@ class Cli:
         the flags, printed with its own line breaks."""
         path = tuple(name.split())
         sub = self._group(path[:-1])
-        return sub.add_parser(
+        parser = sub.add_parser(
             path[-1], help=help, description=description or help, epilog=epilog,
-            formatter_class=_EpilogFormatter if epilog else argparse.ArgumentDefaultsHelpFormatter,
+            formatter_class=_EpilogFormatter if epilog else _DefaultsFormatter,
         )
+        self.commands[name] = parser
+        parser.set_defaults(uvatar_command=name)  # main() words a library error in this command's flags
+        return parser
 
 
 def build_cli() -> Cli:
@@ -103,6 +120,16 @@ def os_error_line(exc: OSError) -> str:
     return f"{os.fsdecode(path) if isinstance(path, bytes) else path}: {reason}"
 
 
+def _in_flags(message: str, cli: Cli, args) -> str:
+    """A library message in the terms of the command that ran (``force=True`` → ``--force``)."""
+    from uvatar.cli.flags import in_flag_terms
+
+    name = getattr(args, "uvatar_command", None)
+    if name not in cli.commands:
+        return message
+    return in_flag_terms(message, cli.commands[name], f"uvatar {name}", cli.commands.values())
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     cli = build_cli()
@@ -118,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except UvatarError as exc:
-        print(f"uvatar: error: {exc}", file=sys.stderr)
+        print(f"uvatar: error: {_in_flags(str(exc), cli, args)}", file=sys.stderr)
         return 1
     except MemoryError:
         print("uvatar: error: out of memory; use smaller sizes (frames, texels, image size)", file=sys.stderr)

@@ -13,11 +13,14 @@ from uvatar.cli.flags import ConfigFlags
 def _flags() -> ConfigFlags:
     from uvatar.fit.masks import MaskConfig
 
-    return ConfigFlags(MaskConfig, fields=("threshold", "dilate", "render_width", "use_fit", "overwrite"),
+    return ConfigFlags(MaskConfig, fields=("threshold", "dilate", "render_width", "use_fit", "exclude_others",
+                                                   "overwrite"),
                        rename={"use_fit": "fit"}, help={
                            "threshold": "person probability threshold",
                            "dilate": "grow the fitted body's silhouette by this fraction of the image height",
                            "render_width": "width at which the body silhouette is rendered",
+                           "exclude_others": "drop another person's pixels next to the fitted one (one more "
+                                             "keypoint detection per image)",
                            "use_fit": "restrict to the fitted person (--no-fit: the segmenter alone, "
                                       "bystanders are masked in)",
                            "overwrite": "replace existing masks"})

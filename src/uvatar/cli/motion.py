@@ -20,18 +20,22 @@ def _retarget_flags() -> ConfigFlags:
 
 
 def register(cli) -> None:
-    p = cli.command("motion info", help="describe a motion file (.bvh, AMASS/uvatar .npz, fits or capture folder)")
+    p = cli.command("motion info", help="describe a motion file (.bvh, .fbx, .gltf/.glb, AMASS/uvatar .npz, fits or "
+                                        "capture folder)")
     p.add_argument("path", help="motion file or folder")
-    p.add_argument("--map", default=None, metavar="FILE", help="joint map (JSON/YAML {source joint: semantic joint})")
+    p.add_argument("--map", dest="name_map", default=None, metavar="FILE",
+                   help="joint map (JSON/YAML {source joint: semantic joint})")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_info)
     p = cli.command("motion convert", help="convert (and retarget) a motion to a uvatar motion .npz for a body model")
-    p.add_argument("input", help=".bvh, AMASS .npz, uvatar .npz, EasyMocap fits folder or capture folder")
+    p.add_argument("input", help=".bvh, .fbx, .gltf/.glb, AMASS .npz, uvatar .npz, EasyMocap fits folder or capture "
+                                  "folder")
     p.add_argument("output", help="output .npz")
     p.add_argument("--body", default="anny", choices=("anny", "smpl", "smplx"), help="target body model")
+    p.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (none: $UVATAR_SMPL_DIR)")
     p.add_argument("--fps", type=float, default=None, help="resample to this frame rate")
     p.add_argument("--fits", default=None, metavar="DIR", help="also write EasyMocap fits (one JSON per frame) here")
-    p.add_argument("--map", default=None, metavar="FILE",
+    p.add_argument("--map", dest="name_map", default=None, metavar="FILE",
                    help="joint map (JSON/YAML {source joint: semantic or body joint, or null}) over the automatic match")
     _retarget_flags().add_to(p)
     p.add_argument("--report", default=None, metavar="JSON",
@@ -77,6 +81,18 @@ def describe_motion_file(path, joint_map: dict | None = None) -> dict:
                 "absolute_position_channels": [n for n, a in zip(m.skeleton.names, m.skeleton.absolute_positions,
                                                                  strict=True) if a],
                 "units_to_metres_guess": guess_bvh_units(m), **rig}
+    if path.suffix.lower() in (".fbx", ".gltf", ".glb"):
+        from uvatar.motion.rigs import match_rig
+        from uvatar.motion.sequences import read_skeleton_motion
+
+        sk = read_skeleton_motion(path)
+        try:
+            rig = match_rig(sk.names, sk.parents, joint_map).summary()
+        except ValueError as exc:
+            raise InputError(path, str(exc)) from None
+        return {"path": str(path), "kind": "fbx" if path.suffix.lower() == ".fbx" else "gltf",
+                "frames": sk.num_frames, "fps": sk.fps, "duration_s": round((sk.num_frames - 1) / sk.fps, 3),
+                "joints": len(sk.names), "joint_names": list(sk.names), "units": "m", **rig}
     if path.suffix.lower() == ".npz":
         keys = set(read_npz(path))
         from uvatar.motion.amass import is_amass_npz, read_amass
@@ -101,7 +117,7 @@ def describe_motion_file(path, joint_map: dict | None = None) -> dict:
 def _info(args) -> int:
     import json
 
-    info = describe_motion_file(args.path, _user_map(args.map))
+    info = describe_motion_file(args.path, _user_map(args.name_map))
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -126,11 +142,14 @@ def _convert(args) -> int:
     if args.fps is not None and not args.fps > 0:
         raise InputError("--fps", f"must be > 0, got {args.fps}")
     with options_as_input_error("uvatar motion convert options"):
-        config = _retarget_flags().config(args, name_map=_user_map(args.map))
+        config = _retarget_flags().config(args, name_map=_user_map(args.name_map))
     print(f"loading {args.input} for body model '{args.body}' ...", file=sys.stderr)
-    motion = load_motion(args.input, body=args.body, config=config)
+    from uvatar.body.registry import load_body_model
+
+    body = load_body_model(args.body, model_dir=args.model_dir)
+    motion = load_motion(args.input, body=body, config=config)
     if args.report:
-        _write_report(args, motion, config)
+        _write_report(args, motion, config, body)
     if args.fps:
         from uvatar.motion.sequences import resample_motion
 
@@ -148,24 +167,20 @@ def _convert(args) -> int:
     return 0
 
 
-def _write_report(args, motion, config) -> None:
+def _write_report(args, motion, config, body) -> None:
     from dataclasses import replace
     from pathlib import Path
 
-    from uvatar.body.registry import load_body_model
     from uvatar.errors import InputError
     from uvatar.io_utils import write_json
     from uvatar.motion.report import retarget_report, summary_lines
     from uvatar.motion.retarget import plan_retarget, retarget
+    from uvatar.motion.sequences import SKELETON_READERS, read_skeleton_motion
 
     path = Path(args.input)
-    if path.suffix.lower() != ".bvh":
-        raise InputError(path, "--report measures a skeleton retarget: give a .bvh input")
-    from uvatar.motion.bvh import read_bvh
-    from uvatar.motion.skeleton import skeleton_motion_from_bvh
-
-    source = skeleton_motion_from_bvh(read_bvh(path), source=path.name)
-    body = load_body_model(args.body)
+    if path.suffix.lower() not in SKELETON_READERS:
+        raise InputError(path, f"--report measures a skeleton retarget: give a {', '.join(SKELETON_READERS)} input")
+    source = read_skeleton_motion(path)
     plan = plan_retarget(source, body, config)
     before = retarget(source, body, replace(config, feet="floor"), plan) if config.feet == "clean" else None
     report = retarget_report(source, motion, body, plan, contacts_config=config.contacts, before=before)

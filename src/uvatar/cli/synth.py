@@ -15,7 +15,7 @@ def _flags() -> ConfigFlags:
 
     return ConfigFlags(
         SynthConfig, fields=("frames", "cameras", "image_size", "scan_texture", "gt_texels", "fit_noise_deg",
-                             "fit_tracks", "heldout", "seed", "workers", "preview", "light"),
+                             "fit_tracks", "heldout", "seed", "workers", "preview", "bystanders", "light"),
         choices={"fit_tracks": ("body", "all"), "light": ("studio", "none")}, presets=PRESETS, help={
             "frames": "total frames (takes + held-out)", "cameras": "multi-view cameras (ring + elevated); 0 for none",
             "image_size": "square image side in pixels", "scan_texture": "scan atlas texture side in texels",
@@ -25,6 +25,8 @@ def _flags() -> ConfigFlags:
             "heldout": "held-out frames at the end (none: 10%% of frames)",
             "seed": "random seed; same seed, same capture", "workers": "worker processes",
             "preview": "write OUT/preview.png",
+            "bystanders": "more people in the images (own shape, clothes and motion); ground truth, "
+                          "scans and masks stay the subject's",
             "light": "studio: key/fill/ambient light with cast shadows and ambient occlusion baked into the "
                      "texture; none: unlit (as captures made before the light)"})
 

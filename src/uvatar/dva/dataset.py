@@ -15,27 +15,40 @@ import logging
 import numpy as np
 import torch
 
+from uvatar.dva.corrections import FitParams
 from uvatar.dva.features import average_views, unwrap_views
 from uvatar.errors import InputError
 
 log = logging.getLogger(__name__)
 
 
-def body_inputs(body, fits, device="cpu"):
-    """fits list[BodyFit] -> joint_rotvecs (B, J, 3), posed vertices (B, V, 3) (torch, no grad)."""
+def fit_params(body, fits, device="cpu") -> FitParams:
+    """fits list[BodyFit] -> :class:`~uvatar.dva.corrections.FitParams` (the body model's local
+    rotations, Rh, Th, scale and the shape when every fit has one of the same size)."""
     rot = np.stack([np.asarray(body.joint_rotvecs_from_fit(f), np.float32) for f in fits])
     Rh = np.stack([np.asarray(f.Rh, np.float32).reshape(3) for f in fits])
     Th = np.stack([np.asarray(f.Th, np.float32).reshape(3) for f in fits])
     scale = np.array([float(getattr(f, "scale", 1.0)) for f in fits], np.float32)
-    kwargs = {}
     shapes = [np.asarray(f.shapes, np.float32).reshape(-1) for f in fits]
-    if all(s.size for s in shapes) and len({s.size for s in shapes}) == 1:
-        kwargs["shape"] = torch.as_tensor(np.stack(shapes), device=device)
+    shape = np.stack(shapes) if all(s.size for s in shapes) and len({s.size for s in shapes}) == 1 else None
+
+    def t(a):
+        return None if a is None else torch.as_tensor(a, device=device)
+
+    return FitParams(t(rot), t(Rh), t(Th), t(scale), t(shape))
+
+
+def pose_vertices(body, rotvecs, Rh, Th, scale, shape) -> torch.Tensor:
+    """(B, V, 3) float32 posed vertices of the body model (differentiable in every input)."""
+    kwargs = {} if shape is None else {"shape": shape}
+    return body.pose(rotvecs, Rh=Rh, Th=Th, scale=scale, **kwargs).vertices.float()
+
+
+def body_inputs(body, fits, device="cpu"):
+    """fits list[BodyFit] -> joint_rotvecs (B, J, 3), posed vertices (B, V, 3) (torch, no grad)."""
+    p = fit_params(body, fits, device)
     with torch.no_grad():
-        rot_t = torch.as_tensor(rot, device=device)
-        posed = body.pose(rot_t, Rh=torch.as_tensor(Rh, device=device), Th=torch.as_tensor(Th, device=device),
-                          scale=torch.as_tensor(scale, device=device), **kwargs)
-    return rot_t, posed.vertices.float()
+        return p.rotvecs, pose_vertices(body, p.rotvecs, p.Rh, p.Th, p.scale, p.shape)
 
 
 def estimate_background(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -53,7 +66,7 @@ class FrameBank:
         self.cameras = list(cameras)
         self.cams = [source.cameras[c] for c in self.cameras]
         self.frames, self.skipped = [], {}
-        rot, verts, images, masks, texs, vis = [], [], [], [], [], []
+        rot, verts, images, masks, texs, vis, fits = [], [], [], [], [], [], []
         causes: dict[str, int] = {}
         size_warned: set[str] = set()
         for frame in tqdm(list(frames), desc="loading frames", disable=not progress, unit="frame"):
@@ -87,6 +100,7 @@ class FrameBank:
                 continue
             t, s = unwrap_views(image_raster, template, v[0].cpu().numpy(), self.cams, imgs, msks)
             self.frames.append(frame)
+            fits.append(fit)
             rot.append(r[0])
             verts.append(v[0])
             images.append([(np.clip(i, 0, 1) * 255 + 0.5).astype(np.uint8) for i in imgs])
@@ -100,6 +114,7 @@ class FrameBank:
             raise InputError(getattr(source, "root", "source"),
                              f"no usable frame ({n} frame{'s' if n != 1 else ''}: {counted})")
         self.rotvecs = torch.stack(rot)
+        self.fits = fit_params(body, fits)  # what a pose correction starts from
         self.vertices = torch.stack(verts)
         self.images, self.masks = images, masks
         self.textures = torch.stack(texs)  # (F, C, R, R, 3)

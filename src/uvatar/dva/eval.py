@@ -78,17 +78,19 @@ def _names(wanted, available, source, what: str) -> list[str]:
 
 def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_frames: int | None = None,
                  max_cameras: int | None = None, device="cpu", images=True, progress=True,
-                 frames=None, cameras=None, body_model=None, model_dir=None) -> dict:
+                 frames=None, cameras=None, body_model=None, model_dir=None,
+                 marcher: str | None = None) -> dict:
     """Render and score; returns the metrics dict (also written to ``json_path``): the means of
     :data:`METRIC_KEYS` over frames x cameras, ``protocol``, ``per_image`` and more. ``frames`` /
-    ``cameras``: names replacing the source's test frames / cameras (cameras must not drive)."""
+    ``cameras``: names replacing the source's test frames / cameras (cameras must not drive);
+    ``marcher``: the ray marcher (``RaymarchConfig.marcher``; default: the run's)."""
     import torch
 
     from uvatar.dva.data import box_mask
     from uvatar.dva.train import load_run
     from uvatar.errors import InputError
 
-    model, body, meta, step = load_run(run_dir, device, body_model, model_dir)
+    model, body, meta, step = load_run(run_dir, device, body_model, model_dir, marcher)
     frames = _names(frames, source.frames, source, "frame") if frames else list(source.test_frames)
     test_cams = _names(cameras, source.cameras, source, "camera") if cameras else list(source.test_cameras)
     frames = frames[:max_frames] if max_frames else frames

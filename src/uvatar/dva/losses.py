@@ -22,6 +22,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from uvatar.errors import InputError
+from uvatar.render.metrics import ssim_torch  # the one SSIM (render/metrics.py)
 
 log = logging.getLogger(__name__)
 
@@ -34,29 +35,6 @@ class LossConfig:
     mask: float = 0.1
     volume: float = 0.01
     beta: float = 0.01
-
-
-def ssim_torch(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Mean SSIM of images (B, C, H, W) in [0, 1] (valid-region Gaussian windows); differentiable."""
-    x = torch.arange(window, dtype=a.dtype, device=a.device) - (window - 1) / 2
-    g = torch.exp(-(x ** 2) / (2 * sigma ** 2))
-    g = g / g.sum()
-    C = a.shape[1]
-    win = (g[:, None] * g[None, :]).expand(C, 1, window, window)
-    if min(a.shape[-2:]) < window:
-        win = win[..., : a.shape[-2], : a.shape[-1]]
-        win = win / win.sum((-2, -1), keepdim=True)
-
-    def blur(t):
-        return F.conv2d(t, win, groups=C)
-
-    mu_a, mu_b = blur(a), blur(b)
-    saa = blur(a * a) - mu_a ** 2
-    sbb = blur(b * b) - mu_b ** 2
-    sab = blur(a * b) - mu_a * mu_b
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    s = ((2 * mu_a * mu_b + c1) * (2 * sab + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (saa + sbb + c2))
-    return s.mean()
 
 
 _VGG19 = [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512, 512, 512, "M", 512, 512, 512, 512]

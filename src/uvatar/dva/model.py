@@ -14,6 +14,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from uvatar.dva.corrections import CorrectionConfig
 from uvatar.dva.decoders import DecoderConfig, DvaDecoder
 from uvatar.dva.features import (
     FeatureConfig,
@@ -70,6 +71,7 @@ class DvaConfig:
     raymarch: RaymarchConfig = field(default_factory=RaymarchConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    corrections: CorrectionConfig = field(default_factory=CorrectionConfig)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -77,7 +79,10 @@ class DvaConfig:
     @classmethod
     def from_dict(cls, d: dict) -> DvaConfig:
         kinds = {"primitives": PrimitiveConfig, "features": FeatureConfig, "decoder": DecoderConfig,
-                 "raymarch": RaymarchConfig, "loss": LossConfig, "train": TrainConfig}
+                 "raymarch": RaymarchConfig, "loss": LossConfig, "train": TrainConfig,
+                 "corrections": CorrectionConfig}
+        if "corrections" not in d:  # a run from before the corrections: trained without them
+            d = {**d, "corrections": {"pose": False, "colour": False}}
         train = d.get("train")
         if train is not None and "background" not in train:  # a run from before the option: raw photo
             d = {**d, "train": {**train, "background": "photo"}}
@@ -103,8 +108,10 @@ PRESETS = {
     # the paper: K = 4096 primitives of 16^3 voxels (GPU territory)
     "paper": _preset(64, 16, 256, 0.005, 64, 64, batch=4, patch=128, lr=5e-4, warmup_iters=2000,
                      all_views_iters=1000, minutes=24 * 60.0),
-    # a 2-core CPU in ~20 minutes: K = 256 primitives of 8^3 voxels
-    "cpu": _preset(16, 8, 32, 0.012),
+    # a 2-core CPU in ~20 minutes: K = 576 primitives of 8^3 voxels, the largest grid whose training
+    # step with the fused marcher takes no longer than K = 256's with the torch marcher
+    # (bench/dva_train.py, docs/results.md "DVA marcher kernel"); runs saved before kept K = 256
+    "cpu": _preset(24, 8, 32, 0.012),
     # unit tests and smoke runs
     "tiny": _preset(8, 4, 8, 0.03, 4, 4, batch=1, patch=16, warmup_iters=2, all_views_iters=3,
                     checkpoint_every=2, minutes=1.0),

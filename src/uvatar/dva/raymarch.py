@@ -37,7 +37,16 @@ from uvatar.dva.raymarch_ref import (
 )
 
 __all__ = ["Primitives", "RaymarchConfig", "raymarch", "render_rays", "candidate_pairs", "sphere_candidates",
-           "pinhole_candidates", "slab_intervals", "payload_atlas"]
+           "pinhole_candidates", "pinhole_rects", "slab_intervals", "step_ranges", "payload_atlas", "resolve_marcher"]
+
+
+def resolve_marcher(name: str) -> str:
+    """"auto" -> "warp" when warp-lang is importable, else "torch"; other names as given."""
+    if name != "auto":
+        return name
+    import importlib.util
+
+    return "warp" if importlib.util.find_spec("warp") is not None else "torch"
 
 
 @torch.no_grad()
@@ -53,14 +62,10 @@ def sphere_candidates(origins, directions, prims: Primitives):
 
 
 @torch.no_grad()
-def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: float = 1.0):
-    """(ray, primitive) pairs for rays through integer ``pixels`` (N, 2) (x, y) of a pinhole ``camera``
-    (K, R, T; OpenCV): every primitive lists the requested pixels inside its projected box's bounding
-    rectangle (grown by ``margin`` px). Cost ~ sum of those rectangles, not N * K. Primitives reaching
-    behind the camera cover every pixel. Pairs come sorted by ray. A camera with lens distortion
-    projects the corners through the same distortion as its rays (``Camera.dist``, shared
-    :func:`uvatar.geometry.camera.distort`), with one more pixel of margin for the curvature of the
-    box's distorted outline."""
+def pinhole_rects(camera, pixels: torch.Tensor, prims: Primitives, margin: float = 1.0):
+    """The pixel rectangles of :func:`pinhole_candidates`: (lookup (h*w,) ray index of each pixel of the
+    requested pixels' bounding box (x0, y0, width w), -1 where no ray; x0; y0; w; rects (K, 4) inclusive
+    [x_lo, y_lo, x_hi, y_hi] per primitive, clipped to the box (empty where hi < lo))."""
     from uvatar.geometry.camera import distort
 
     dev, dt = prims.positions.device, prims.positions.dtype
@@ -86,10 +91,25 @@ def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: 
         uv = (cam @ Kc.T)[..., :2] / z.clamp(min=1e-6)[..., None]
     lo = torch.floor(uv.min(1).values - margin).long()
     hi = torch.ceil(uv.max(1).values + margin).long()
-    bx0 = torch.where(behind, x0, lo[:, 0].clamp(x0, x1 + 1))
-    by0 = torch.where(behind, y0, lo[:, 1].clamp(y0, y1 + 1))
-    bx1 = torch.where(behind, x1, hi[:, 0].clamp(x0 - 1, x1))
-    by1 = torch.where(behind, y1, hi[:, 1].clamp(y0 - 1, y1))
+    rects = torch.stack([torch.where(behind, x0, lo[:, 0].clamp(x0, x1 + 1)),
+                         torch.where(behind, y0, lo[:, 1].clamp(y0, y1 + 1)),
+                         torch.where(behind, x1, hi[:, 0].clamp(x0 - 1, x1)),
+                         torch.where(behind, y1, hi[:, 1].clamp(y0 - 1, y1))], 1)
+    return lookup, x0, y0, w, rects
+
+
+@torch.no_grad()
+def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: float = 1.0):
+    """(ray, primitive) pairs for rays through integer ``pixels`` (N, 2) (x, y) of a pinhole ``camera``
+    (K, R, T; OpenCV): every primitive lists the requested pixels inside its projected box's bounding
+    rectangle (grown by ``margin`` px). Cost ~ sum of those rectangles, not N * K. Primitives reaching
+    behind the camera cover every pixel. Pairs come sorted by ray. A camera with lens distortion
+    projects the corners through the same distortion as its rays (``Camera.dist``, shared
+    :func:`uvatar.geometry.camera.distort`), with one more pixel of margin for the curvature of the
+    box's distorted outline."""
+    dev = prims.positions.device
+    lookup, x0, y0, w, rects = pinhole_rects(camera, pixels, prims, margin)
+    bx0, by0, bx1, by1 = rects.unbind(1)
     bw, bh = (bx1 - bx0 + 1).clamp(min=0), (by1 - by0 + 1).clamp(min=0)
     count = bw * bh
     prim = torch.repeat_interleave(torch.arange(prims.num, device=dev), count)
@@ -119,6 +139,16 @@ def slab_intervals(origins, directions, ray, prim, prims: Primitives):
     t_in = torch.minimum(t0, t1).max(-1).values
     t_out = torch.maximum(t0, t1).min(-1).values
     return (t_out > t_in) & (t_out >= 0), t_in, t_out
+
+
+def step_ranges(t_in, t_out, t_near, t_far, T: int, step: float):
+    """First and last fixed-grid step (``t_near + i * step``, i < T) inside each pair's interval
+    [t_in, t_out] and the ray's [t_near, t_far] (all (P,)); a pair has no step where last < first."""
+    lo = torch.maximum(t_in, t_near)
+    hi = torch.minimum(t_out, t_far)
+    i0 = torch.ceil((lo - t_near) / step).long().clamp(min=0)
+    i1 = torch.floor((hi - t_near) / step).long().clamp(max=T - 1)
+    return i0, i1
 
 
 def candidate_pairs(origins, directions, prims: Primitives):
@@ -182,10 +212,7 @@ def _march_chunk(origins, directions, t_near, t_far, T, prims: Primitives, sampl
     with torch.no_grad():
         keep, t_in, t_out = slab_intervals(origins.detach(), directions.detach(), ray, prim, prims)
         ray, prim, t_in, t_out = ray[keep], prim[keep], t_in[keep], t_out[keep]
-        lo = torch.maximum(t_in, t_near[ray])
-        hi = torch.minimum(t_out, t_far[ray])
-        i0 = torch.ceil((lo - t_near[ray]) / cfg.step).long().clamp(min=0)
-        i1 = torch.floor((hi - t_near[ray]) / cfg.step).long().clamp(max=T - 1)
+        i0, i1 = step_ranges(t_in, t_out, t_near[ray], t_far[ray], T, cfg.step)
         count = (i1 - i0 + 1).clamp(min=0)
         pair = torch.repeat_interleave(torch.arange(count.numel(), device=count.device), count)
         if pair.numel() == 0:
@@ -221,9 +248,14 @@ def raymarch(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,
     culling uses the primitives' projected rectangles (:func:`pinhole_candidates`) instead of testing
     every (ray, primitive) pair; the result is the same.
     Returns rgb (N, 3) premultiplied by alpha and alpha (N,) in [0, 1]; same model as
-    :func:`uvatar.dva.raymarch_ref.raymarch_reference`.
+    :func:`uvatar.dva.raymarch_ref.raymarch_reference`. ``cfg.marcher`` "warp" (or "auto" with warp-lang
+    installed) runs the fused kernels of :mod:`uvatar.dva.raymarch_warp` instead of the torch code below.
     """
     cfg = cfg or RaymarchConfig()
+    if resolve_marcher(cfg.marcher) == "warp":
+        from uvatar.dva.raymarch_warp import raymarch_warp
+
+        return raymarch_warp(origins, directions, prims, cfg, near_far, camera, pixels)
     N, K = origins.shape[0], prims.num
     if N == 0 or K == 0:
         return origins.new_zeros(N, 3), origins.new_zeros(N)

@@ -27,7 +27,7 @@ the gradient finite). Outputs: ``rgb`` (N, 3) (premultiplied, background not inc
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -57,6 +57,9 @@ class Primitives:
         return self.payload.shape[-1]
 
 
+MARCHERS = ("auto", "torch", "warp")
+
+
 @dataclass
 class RaymarchConfig:
     """Ray-marching settings.
@@ -67,6 +70,10 @@ class RaymarchConfig:
     max_steps: cap on samples per ray (guards against a huge union box).
     sampler: fast marcher's payload lookup, "atlas" (one 3D grid_sample over all primitives packed in
         an atlas) or "gather" (8 explicit corner gathers); both are trilinear and match the reference.
+    marcher: which twin :func:`uvatar.dva.raymarch.raymarch` runs: "torch" (:mod:`raymarch`, plain torch
+        autograd), "warp" (:mod:`raymarch_warp`, fused Warp kernels; the ``kernels`` extra) or "auto"
+        (warp when warp-lang is installed, else torch). All give the same image and gradients; warp is
+        the faster (``bench/dva.py``, ``docs/results.md``).
     """
 
     step: float = 0.01
@@ -74,6 +81,14 @@ class RaymarchConfig:
     chunk_rays: int = 4096
     max_steps: int = 2048
     sampler: str = "atlas"
+    marcher: str = field(default="auto", metadata={"choices": MARCHERS, "help": (
+        "ray marcher: warp (fused kernels, the kernels extra), torch (plain PyTorch), auto (warp when "
+        "installed)")})
+
+    def __post_init__(self) -> None:
+        from uvatar.errors import check_values
+
+        check_values([(self.marcher in MARCHERS, f"marcher must be one of {MARCHERS}, got {self.marcher!r}")])
 
 
 def smoothstep(x: torch.Tensor) -> torch.Tensor:

@@ -18,6 +18,7 @@ alone shows progress and writes the run folder.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import random
 import time
@@ -27,7 +28,8 @@ import numpy as np
 import torch
 
 from uvatar.distributed import DistContext, all_sum, distributed_context
-from uvatar.dva.dataset import FrameBank
+from uvatar.dva.corrections import TrainingCorrections
+from uvatar.dva.dataset import FrameBank, pose_vertices
 from uvatar.dva.losses import DvaLoss, Vgg19Features
 from uvatar.dva.model import DvaConfig, DvaModel, pixel_rays
 from uvatar.errors import InputError, UvatarError
@@ -81,24 +83,30 @@ def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], 1)
 
 
-def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict, clock: dict | None = None) -> None:
+def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict, clock: dict | None = None,
+                    corrections=None) -> None:
     """Write a run's checkpoint atomically. clock: what a resume needs to take the same steps
-    (``rng``: the sampling RNG state, ``torch_rng``, ``seconds`` trained so far)."""
+    (``rng``: the sampling RNG state, ``torch_rng``, ``seconds`` trained so far); corrections: the
+    :class:`~uvatar.dva.corrections.TrainingCorrections` learned beside the model."""
     state = {"model": model.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
-             "step": step, "config": model.cfg.to_dict(), "meta": meta, "clock": clock}
+             "step": step, "config": model.cfg.to_dict(), "meta": meta, "clock": clock,
+             "corrections": corrections.state_dict() if corrections is not None else None}
     with atomic_path(path, suffix=".pt") as tmp:
         torch.save(state, tmp)
 
 
-def load_run(run_dir, device="cpu", body_model=None, model_dir=None):
+def load_run(run_dir, device="cpu", body_model=None, model_dir=None, marcher: str | None = None):
     """(model, body, meta, step) from a run folder's checkpoint. ``body_model``: must be the run's
-    own when given; ``model_dir``: where its SMPL/SMPL-X files are (default: the training run's)."""
+    own when given; ``model_dir``: where its SMPL/SMPL-X files are (default: the training run's);
+    ``marcher``: the ray marcher to render with (``RaymarchConfig.marcher``; default: the run's)."""
     path = Path(run_dir) / CHECKPOINT
     if not path.is_file():
         raise InputError(path, "no DVA checkpoint here (train with `uvatar train dva` first)")
     try:
         state = torch.load(path, map_location=device, weights_only=False)
         cfg = DvaConfig.from_dict(state["config"])
+        if marcher is not None:
+            cfg.raymarch = dataclasses.replace(cfg.raymarch, marcher=marcher)
         meta = state["meta"]
     except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is the same user error
         raise InputError(path, f"unreadable checkpoint ({exc.__class__.__name__}: {exc})") from None
@@ -137,7 +145,9 @@ class Trainer:
                 state = torch.load(ckpt, map_location=self.device, weights_only=False)
             except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is the same user error
                 raise InputError(ckpt, f"unreadable checkpoint ({exc.__class__.__name__}: {exc})") from None
+            marcher = cfg.raymarch.marcher  # how to render, not what was learned: the caller's
             cfg = DvaConfig.from_dict(state["config"])  # the run's own config wins on resume
+            cfg.raymarch = dataclasses.replace(cfg.raymarch, marcher=marcher)
             log.info("resuming from %s at step %d", ckpt, state["step"])
         self.cfg = cfg
         if state is not None and body_model and body_model != state["meta"]["body_model"]:
@@ -150,7 +160,14 @@ class Trainer:
                               source.train_frames, source.train_cameras, progress)
         vgg = Vgg19Features.from_file(vgg_weights).to(self.device) if vgg_weights else None
         self.loss = DvaLoss(cfg.loss, vgg).to(self.device)
-        self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.train.lr)
+        c = cfg.corrections
+        self.corrections = TrainingCorrections(c, len(self.bank), len(self.bank.cameras), joints).to(self.device) \
+            if (c.pose or c.colour) else None
+        groups = [{"params": list(self.model.parameters()), "lr": cfg.train.lr}]
+        if self.corrections is not None:
+            groups.append({"params": list(self.corrections.parameters()), "lr": c.lr})
+        self.params = [p for g in groups for p in g["params"]]
+        self.opt = torch.optim.Adam(groups)
         self.step = 0
         self.meta = {"body_model": body_name, "model_dir": None if model_dir is None else str(model_dir),
                      "conditioning_joints": list(joints),
@@ -160,6 +177,8 @@ class Trainer:
                      "perceptual": "vgg19" if vgg else "ssim", "protocol": source.protocol}
         if state is not None:
             self.model.load_state_dict(state["model"])
+            if self.corrections is not None and state.get("corrections"):
+                self.corrections.load_state_dict(state["corrections"])
             if state.get("optimizer"):
                 self.opt.load_state_dict(state["optimizer"])
             self.step = int(state["step"])
@@ -195,14 +214,17 @@ class Trainer:
         frames, cams, tex, pixels = self.sample()
         fi = torch.tensor(frames)
         centers = torch.as_tensor(np.stack([self.bank.cams[c].center for c in cams]), dtype=torch.float32)
-        out = self.model(self.bank.vertices[fi].to(self.device), self.bank.rotvecs[fi].to(self.device), tex,
-                         centers.to(self.device))
+        vertices, rotvecs = self._posed(fi, self.step >= t.warmup_iters)
+        out = self.model(vertices, rotvecs, tex, centers.to(self.device))
         preds, targets, alphas, masks = [], [], [], []
         for b, (f, c, pix) in enumerate(zip(frames, cams, pixels, strict=True)):
             mask = self.bank.masks[f][c]
             o, d = pixel_rays(self.bank.cams[c], pix, self.device)
             bg = torch.as_tensor(self.bank.backgrounds[c], device=self.device)
-            rgb, alpha = self.model.render_rays(out, b, o, d, bg, camera=self.bank.cams[c], pixels=pix)
+            rgb, alpha = self.model.render_rays(out, b, o, d, None, camera=self.bank.cams[c], pixels=pix)
+            if self.corrections is not None:
+                rgb = self.corrections.colour(rgb, alpha, c)
+            rgb = rgb + (1.0 - alpha)[:, None] * bg
             P = int(round(np.sqrt(pix.shape[0])))
             img = target_pixels(self.bank.images[f][c], mask, pix, self.bank.backgrounds[c], t.background)
             preds.append(rgb.T.reshape(3, P, P))
@@ -212,6 +234,10 @@ class Trainer:
                                          device=self.device).reshape(P, P))
         total, terms = self.loss(torch.stack(preds), torch.stack(targets), torch.stack(alphas),
                                  torch.stack(masks), out.scales, self.model.rest_scales)
+        if self.corrections is not None:
+            for k, v in self.corrections.prior(fi.to(self.device), torch.tensor(cams, device=self.device)).items():
+                total = total + v
+                terms[k] = float(v.detach())
         self.opt.zero_grad(set_to_none=True)
         learn = bool(total.requires_grad) and bool(torch.isfinite(total))
         if learn:
@@ -221,7 +247,7 @@ class Trainer:
         if not total.requires_grad and not learn:  # no ray met a primitive (and correctives are off)
             pass
         elif learn:
-            norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+            norm = torch.nn.utils.clip_grad_norm_(self.params, 1.0)
             if torch.isfinite(norm):
                 self.opt.step()
             else:
@@ -238,12 +264,24 @@ class Trainer:
         terms["psnr"] = float(-10 * np.log10(max(terms.pop("mse"), 1e-10)))
         return terms
 
+    def _posed(self, frames: torch.Tensor, corrected: bool):
+        """(posed vertices (B, V, 3), joint rotvecs (B, J, 3)) of bank frames (B,) on the device: the
+        fits as they are, or re-posed with the learned pose offsets once ``corrected`` (after warm-up;
+        the body model poses on the CPU, as it was loaded)."""
+        if self.corrections is None or not (corrected and self.cfg.corrections.pose):
+            return self.bank.vertices[frames].to(self.device), self.bank.rotvecs[frames].to(self.device)
+        fits = self.bank.fits
+        rot, Rh, Th = self.corrections.pose_inputs(fits, frames, True)
+        shape = None if fits.shape is None else fits.shape[frames]
+        verts = pose_vertices(self.body, rot.cpu(), Rh.cpu(), Th.cpu(), fits.scale[frames], shape)
+        return verts.to(self.device), rot.to(self.device)
+
     def _average_gradients(self, learned: bool) -> bool:
         """Average the gradients over the processes (one all-reduce of every gradient, zeros where
         this process has none, plus a has-gradient flag per parameter); a parameter no process has a
         gradient for keeps ``grad=None`` (Adam skips it, as in one process). True when any process
         learned something this step."""
-        params = list(self.model.parameters())
+        params = self.params
         flags = [float(p.grad is not None) for p in params] + [float(learned)]
         flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params]
                          + [torch.tensor(flags, dtype=params[0].dtype, device=self.device)])
@@ -260,16 +298,19 @@ class Trainer:
         """Learning rate for run progress in [0, 1] (exponential decay in the last part of the run)."""
         t = self.cfg.train
         frac = min(1.0, max(0.0, (progress - t.lr_decay_start) / max(1e-9, 1.0 - t.lr_decay_start)))
-        lr = t.lr * t.lr_final ** frac
-        for group in self.opt.param_groups:
-            group["lr"] = lr
+        decay = t.lr_final ** frac
+        lr = t.lr * decay
+        bases = [t.lr, self.cfg.corrections.lr]  # the model's group, then the corrections'
+        for group, base in zip(self.opt.param_groups, bases, strict=False):
+            group["lr"] = base * decay
         return lr
 
     def save(self, seconds: float) -> None:
         """Checkpoint (rank 0) with the clock: sampling RNG, torch RNG and ``seconds`` trained."""
         if self.ctx.is_main:
             clock = {"rng": self.rng.getstate(), "torch_rng": torch.get_rng_state(), "seconds": seconds}
-            save_checkpoint(self.out / CHECKPOINT, self.model, self.opt, self.step, self.meta, clock)
+            save_checkpoint(self.out / CHECKPOINT, self.model, self.opt, self.step, self.meta, clock,
+                            self.corrections)
 
     def run(self, iters: int | None = None, minutes: float | None = None) -> dict:
         from torch.utils.tensorboard import SummaryWriter
@@ -307,7 +348,8 @@ class Trainer:
         self.save(elapsed())
         self.ctx.barrier()
         summary = {"steps": self.step, "seconds": round(time.time() - start, 1), "last": last,
-                   "frames": len(self.bank), "skipped_frames": self.bank.skipped, **{
+                   "frames": len(self.bank), "skipped_frames": self.bank.skipped,
+                   "corrections": self.corrections.summary() if self.corrections is not None else None, **{
                        k: self.meta[k] for k in ("train_cameras", "perceptual", "body_model")}}
         if self.ctx.is_main:
             write_json(self.out / "run.json", {"config": self.cfg.to_dict(), "summary": summary})

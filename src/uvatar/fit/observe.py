@@ -15,9 +15,15 @@ Left and right: a detector labels a person seen from behind the other way round 
 each view's left/right labels are kept or swapped, whichever the triangulation agrees with best
 (:func:`resolve_left_right`; every combination for up to 6 views, view by view beyond).
 
-Several people in a view (a bystander): the detector first runs on the whole image (or, from the
-second frame on, inside the box around the previous frame's keypoints); views whose detection the
-triangulation rejects are detected again inside the box around the triangulated person.
+Several people in a view (a bystander): the detector first runs on the whole image (or inside the
+box around the tracked subject: the previous frame's keypoints, or the subject chosen by
+:mod:`uvatar.fit.person`); views whose detection the triangulation rejects are detected again inside
+the box around the triangulated person. A view that still disagrees with the subject triangulated from the other
+views (:func:`disagreeing_views`: another person, a mirrored or wrong detection) is *rejected*: its confidences are set to 0, so nothing of it reaches
+the fit, and its name is kept in ``rejected`` (reported by ``uvatar fit`` and ``capture check``).
+
+Image thumbnails (``thumbs`` (C, 24, 24) grey, :func:`uvatar.fit.tracking.image_thumbnail`) are kept
+for the cut detection of the capture's own images.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from uvatar.errors import InputError
 from uvatar.io_utils import read_npz, write_npz
 
 __all__ = ["FrameObservation", "observe_frame", "load_observation", "observation_path", "person_roi",
-           "left_right_swap", "resolve_left_right"]
+           "left_right_swap", "resolve_left_right", "disagreeing_views", "reject_views"]
 
 
 @dataclass
@@ -47,6 +53,8 @@ class FrameObservation:
     points_conf: np.ndarray     # (K,)
     reprojection_px: np.ndarray  # (C, K), nan where a view was not used
     redetected: tuple[str, ...] = ()  # views detected a second time inside the person's box
+    rejected: tuple[str, ...] = ()    # views that disagree with the subject (conf set to 0)
+    thumbs: np.ndarray | None = None  # (C, S, S) grey image thumbnails, or None
 
     @property
     def num_detected_views(self) -> int:
@@ -163,13 +171,100 @@ def mirrored_labels(tri, names) -> bool:
     return float(np.dot(np.cross(left, up), face)) < 0
 
 
+DISAGREE_FRACTION = 0.1  # a view disagrees beyond this share of its detection's height (see disagreeing_views)
+
+
+def _used_fraction(conf, reprojection_px, min_conf: float) -> np.ndarray:
+    """(C,) share of each view's confident keypoints the triangulation used (1 for a view with none)."""
+    seen = conf >= min_conf
+    used = np.isfinite(reprojection_px) & seen
+    return np.where(seen.sum(1) > 0, used.sum(1) / np.maximum(seen.sum(1), 1), 1.0)
+
+
+def _view_errors(obs: FrameObservation, conf: np.ndarray, points, points_conf, min_conf: float, min_points: int):
+    """(C,) each view's median distance from ``points`` (K, 3) projected, over its confident keypoints,
+    as a share of its detection's height; inf where fewer than ``min_points`` can be compared."""
+    from uvatar.fit.projection import project_distorted
+
+    out = np.full(len(conf), np.inf)
+    for c, cam in enumerate(obs.cameras):  # C views, each vectorised over its keypoints
+        seen = (conf[c] >= min_conf) & (points_conf > 0)
+        if seen.sum() < min_points:
+            continue
+        pix, _ = project_distorted(cam, points[seen])
+        height = max(float(np.ptp(obs.xy[c][conf[c] >= min_conf][:, 1])), 1.0)
+        out[c] = np.median(np.linalg.norm(pix - obs.xy[c][seen], axis=1)) / height
+    return out
+
+
+def disagreeing_views(obs: FrameObservation, config=None, min_used_fraction: float = 0.5,
+                      min_points: int = 4) -> tuple[str, ...]:
+    """Names of the views whose detection disagrees with the subject the other views agree on.
+
+    With 3 or more views of at least ``min_points`` confident keypoints: every pair of them is
+    triangulated alone (``config``: a :class:`~uvatar.fit.triangulate.TriangulateConfig`) and the
+    views whose keypoints lie within ``DISAGREE_FRACTION`` of their own detection's height (median)
+    from it agree with that pair; the largest such set (ties: the smallest error) is the subject, the
+    other views disagree (the detector's noise scales with the person's size in pixels: on the real
+    recording at 1088x1920 the agreeing views stay below 0.05 of it, a wrong view reached 0.25). A
+    joint triangulation's per-point outlier rejection can keep a wrong pair; a consensus of pairs
+    cannot be outvoted by one wrong view. Nothing is rejected where no pair finds a third view to agree.
+    With fewer such views, a view disagrees when fewer than ``min_used_fraction`` of its confident
+    keypoints were used by the joint triangulation. Views already rejected are included."""
+    import itertools
+
+    from uvatar.fit.triangulate import TriangulateConfig, triangulate
+
+    config = config or TriangulateConfig()
+    enough = (obs.conf >= config.min_conf).sum(1) >= min_points
+    bad = set(obs.rejected)
+    if enough.sum() >= 3:
+        best = None
+        for a, b in itertools.combinations(np.flatnonzero(enough), 2):
+            conf = np.zeros_like(obs.conf)
+            conf[[a, b]] = obs.conf[[a, b]]
+            tri = triangulate(obs.xy, conf, obs.cameras, config)
+            err = _view_errors(obs, obs.conf, tri.points, tri.conf, config.min_conf, min_points)
+            agree = enough & (err <= DISAGREE_FRACTION)
+            key = (int(agree.sum()), -float(err[agree].mean()) if agree.any() else -np.inf)
+            if best is None or key > best[0]:
+                best = (key, agree)
+        if best is not None and best[0][0] >= 3:
+            bad |= {obs.cameras[c].name for c in np.flatnonzero(enough & ~best[1])}
+    elif (obs.points_conf > 0).sum() >= 4:
+        frac = _used_fraction(obs.conf, obs.reprojection_px, config.min_conf)
+        bad |= {obs.cameras[c].name for c in np.flatnonzero(enough & (frac < min_used_fraction))}
+    return tuple(c.name for c in obs.cameras if c.name in bad)
+
+
+def reject_views(obs: FrameObservation, names, config=None) -> FrameObservation:
+    """``obs`` with the confidences of the views ``names`` set to 0 (their pixels kept for the record)
+    and the subject triangulated again without them."""
+    from dataclasses import replace
+
+    from uvatar.fit.triangulate import triangulate
+
+    names = tuple(names)
+    if not names:
+        return obs
+    drop = np.array([c.name in names for c in obs.cameras])
+    conf = np.where(drop[:, None], 0.0, obs.conf).astype(np.float32)
+    tri = triangulate(obs.xy, conf, obs.cameras, config)
+    return replace(obs, conf=conf, rejected=tuple(c.name for c in obs.cameras if c.name in names),
+                   points=tri.points.astype(np.float32), points_conf=tri.conf.astype(np.float32),
+                   reprojection_px=tri.reprojection_px.astype(np.float32))
+
+
 def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, triangulate_config,
                   source: str, prior: FrameObservation | None = None,
                   min_used_fraction: float = 0.5) -> FrameObservation:
-    """Detect keypoints in each view, triangulate, and re-detect rejected views inside the person's box.
+    """Detect keypoints in each view, triangulate, re-detect disagreeing views inside the person's
+    box, and reject the views that still disagree (see the module docstring).
 
-    images: C images (H, W, 3) float32 [0, 1], one per camera; prior: the previous frame's
-    observation (its 3D keypoints give each view a search box)."""
+    images: C images (H, W, 3) float32 [0, 1], one per camera; prior: the subject so far (anything
+    with ``points`` (K, 3) and ``points_conf`` (K,): the previous frame's observation, or the chosen
+    person), whose 3D keypoints give each view a search box."""
+    from uvatar.fit.tracking import image_thumbnail
     from uvatar.fit.triangulate import triangulate
 
     names = [c.name for c in cameras]
@@ -199,10 +294,13 @@ def observe_frame(images: list[np.ndarray], cameras: list[Camera], detector, tri
         if redetected:
             xy, conf, _ = resolve_left_right(xy, conf, cameras, triangulate_config, names_k)
             tri = triangulate(xy, conf, cameras, triangulate_config)
-    return FrameObservation(source=source, cameras=list(cameras), xy=xy, conf=conf,
-                            points=tri.points.astype(np.float32), points_conf=tri.conf.astype(np.float32),
-                            reprojection_px=tri.reprojection_px.astype(np.float32),
-                            redetected=tuple(redetected))
+    thumbs = np.stack([image_thumbnail(im) for im in images]) if source == "images" else None
+    obs = FrameObservation(source=source, cameras=list(cameras), xy=xy, conf=conf,
+                           points=tri.points.astype(np.float32), points_conf=tri.conf.astype(np.float32),
+                           reprojection_px=tri.reprojection_px.astype(np.float32),
+                           redetected=tuple(redetected), thumbs=thumbs)
+    bad = disagreeing_views(obs, triangulate_config, min_used_fraction)
+    return reject_views(obs, bad, triangulate_config)
 
 
 def save_observation(path: str | Path, obs: FrameObservation) -> None:
@@ -212,7 +310,9 @@ def save_observation(path: str | Path, obs: FrameObservation) -> None:
               T=np.stack([c.T for c in cams]), dist=np.stack([np.pad(np.asarray(c.dist, np.float64).reshape(-1), (0, 5))[:5] for c in cams]),
               size=np.array([[c.width, c.height] for c in cams], np.int64),
               xy=obs.xy, conf=obs.conf, points=obs.points, points_conf=obs.points_conf,
-              reprojection_px=obs.reprojection_px, redetected=np.array(obs.redetected, dtype=str))
+              reprojection_px=obs.reprojection_px, redetected=np.array(obs.redetected, dtype=str),
+              rejected=np.array(obs.rejected, dtype=str),
+              **({} if obs.thumbs is None else {"thumbs": np.asarray(obs.thumbs, np.float32)}))
 
 
 def load_observation(path: str | Path) -> FrameObservation:
@@ -232,4 +332,6 @@ def load_observation(path: str | Path) -> FrameObservation:
     return FrameObservation(source=str(data["source"]), cameras=cameras, xy=data["xy"], conf=data["conf"],
                             points=data["points"], points_conf=data["points_conf"],
                             reprojection_px=data["reprojection_px"],
-                            redetected=tuple(str(x) for x in data.get("redetected", ())))
+                            redetected=tuple(str(x) for x in data.get("redetected", ())),
+                            rejected=tuple(str(x) for x in data.get("rejected", ())),
+                            thumbs=data.get("thumbs"))

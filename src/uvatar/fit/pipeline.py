@@ -21,7 +21,7 @@ import numpy as np
 
 from uvatar.capture.layout import CAPTURE_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
-from uvatar.fit.sequence import scan_inputs, stack_observations
+from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
 from uvatar.io_utils import read_json, write_json
 
 log = logging.getLogger(__name__)
@@ -48,6 +48,8 @@ class FitConfig:
         (where scans exist and the body config's ``w_photo`` > 0; 0: off).
     overlay_frames: frames drawn in ``fitting/contact_sheet.png`` (0: none); overlay_width: pixels.
     force: replace existing fits.
+    person: which person to fit from images when several are in view (:mod:`uvatar.fit.person`):
+        most-views, largest, centre, nearest-to:X,Y,Z, box:CAM:FRAME:X0,Y0,X1,Y1 or point:CAM:FRAME:X,Y.
     """
 
     source: str = "auto"
@@ -63,6 +65,7 @@ class FitConfig:
     force: bool = False
     device: str = "cpu"
     seed: int = 0
+    person: str = "most-views"
 
     def __post_init__(self) -> None:
         check_values([
@@ -124,17 +127,145 @@ def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages):
     return images, cameras
 
 
+SEED_TRIES = 4  # frames tried (from the first on, 1/8 of the capture apart) until one person is seen by every camera
+
+
+def _find_and_choose(capture: Capture, frame: str, choice, detector, stages: FitStages):
+    """(people found at ``frame``, index chosen, why, camera names)."""
+    from uvatar.fit.person import choose_person, find_people
+
+    images, cameras = _frame_views(capture, frame, "images", stages)
+    names = [c.name for c in cameras]
+    if choice.camera is not None and choice.camera not in names:
+        raise InputError("--person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
+    forced = {names.index(choice.camera): choice.box} if choice.rule == "box" else None
+    people = find_people(images, cameras, detector, stages.triangulate, forced=forced)
+    i, why = choose_person(people, choice, cameras)
+    return people, i, why, names
+
+
+def _choose_subject(capture: Capture, frames: list[str], choice, detector, stages: FitStages) -> tuple:
+    """(seed frame, the chosen :class:`~uvatar.fit.person.Person`, a report dict).
+
+    Without a frame in the choice, ``SEED_TRIES`` frames (1/8 of the capture apart) are looked at and
+    the people found are told apart across them by their build (:func:`~uvatar.fit.person.same_body`);
+    for ``most-views`` the person seen by the most cameras over those frames wins (one frame can hide
+    the subject behind a bystander in a view); for the other rules, the rule at the frame where the
+    person it picks is seen by the most cameras. The seed is that person's best-seen frame."""
+    from uvatar.fit.person import SAME_BODY, body_signature, same_body
+
+    if choice.frame is not None and choice.frame not in frames:
+        raise InputError("--person", f"frame {choice.frame!r} is not one of the capture's frames being fitted")
+    step = max(1, len(frames) // 8)
+    tries = [choice.frame] if choice.frame is not None else frames[: SEED_TRIES * step: step]
+    found = []   # (frame, people, chosen index, why, names)
+    for seed in tries:
+        try:
+            found.append((seed, *_find_and_choose(capture, seed, choice, detector, stages)))
+        except InputError:
+            if seed == tries[-1] and not found:
+                if choice.rule != "most-views":
+                    raise
+                log.warning("person: nobody seen by two views at frames %s; detecting without a subject",
+                            ", ".join(tries))
+                return frames[0], None, {"rule": choice.rule, "frame": None, "people_found": 0, "chosen": None,
+                                         "why": "nobody found", "people": [], "chosen_again_after_cuts": []}
+    if choice.rule == "most-views" and len(found) > 1:
+        clusters = []   # [signature, total views, best (views, frame index, person index)]
+        for f, (_, people, _, _, _) in enumerate(found):
+            for k, p in enumerate(people):
+                sig = body_signature(p.points, p.points_conf)
+                near = [c for c in clusters if same_body(sig, c[0]) < SAME_BODY]
+                if near:
+                    near[0][1] += len(p.members)
+                    near[0][2] = max(near[0][2], (len(p.members), -f, k))
+                else:
+                    clusters.append([sig, len(p.members), (len(p.members), -f, k)])
+        total, (_, f, k) = max(((c[1], c[2]) for c in clusters), key=lambda t: (t[0], t[1]))
+        seed, people, _, _, names = found[-f]
+        i, why = k, f"seen by the most cameras over frames {', '.join(t[0] for t in found)} ({total} views)"
+    else:
+        seed, people, i, why, names = max(found, key=lambda t: len(t[1][t[2]].members))
+    report = {"rule": choice.rule, "frame": seed, "people_found": len(people), "chosen": i, "why": why,
+              "people": [{"cameras": [names[c] for c in sorted(p.members)],
+                          "position_m": np.round(np.median(p.points[p.points_conf > 0], axis=0), 3).tolist()}
+                         for p in people], "chosen_again_after_cuts": []}
+    log.info("person: %d found at frame %s; fitting #%d, %s", len(people), seed, i, why)
+    return seed, people[i], report
+
+
+def _lost(prior, obs, cut_distance: float) -> bool:
+    """True when ``obs`` does not continue the subject ``prior`` (too few keypoints, or every keypoint
+    jumped at once: a cut to another take, where the subject may be anywhere)."""
+    from uvatar.fit.tracking import continuity
+
+    if (obs.points_conf > 0).sum() < 6:
+        return True
+    pts = np.stack([prior.points, obs.points]).astype(np.float64)
+    conf = np.stack([prior.points_conf, obs.points_conf])
+    return not bool(continuity(pts, conf, cut_distance)[0])
+
+
+def _signature(observations: dict, seed) -> np.ndarray:
+    """(B,) the subject's build so far: the median bone lengths over the frames tracked."""
+    import warnings
+
+    from uvatar.fit.person import body_signature
+
+    sigs = [body_signature(o.points, o.points_conf) for o in observations.values()]
+    if seed is not None:
+        sigs.append(body_signature(seed.points, seed.points_conf))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a bone never seen stays nan
+        return np.nanmedian(np.stack(sigs), axis=0)
+
+
+def _rechoose(capture, frame, detector, stages, signature):
+    """The subject found again at ``frame`` after the track was lost: the person whose build
+    (:func:`~uvatar.fit.person.body_signature`) is the subject's (``signature``, the median over the
+    frames tracked so far), if one is within ``SAME_BODY``; else None (the frame keeps what the
+    tracking found, and its views are judged as usual)."""
+    from uvatar.fit.person import SAME_BODY, body_signature, find_people, same_body
+
+    images, cameras = _frame_views(capture, frame, "images", stages)
+    people = find_people(images, cameras, detector, stages.triangulate)
+    scored = [(same_body(body_signature(p.points, p.points_conf), signature), -len(p.members), k)
+              for k, p in enumerate(people)]
+    if not scored or min(scored)[0] > SAME_BODY:
+        return None
+    return people[min(scored)[2]]
+
+
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
-                progress: bool) -> tuple[dict, dict]:
-    """Per-frame observations, from ``fitting/keypoints`` where a previous run left them."""
+                progress: bool, choice=None, cut_distance: float = 0.1) -> tuple[dict, dict, dict]:
+    """Per-frame observations, from ``fitting/keypoints`` where a previous run left them; failures;
+    the person report (images: the subject chosen at the seed frame is tracked forward from it, then
+    backward; where the track is lost, at a cut, the person of the subject's build is found again). Views that
+    disagree with the subject are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
     from tqdm import tqdm
 
-    from uvatar.fit.observe import load_observation, observation_path, observe_frame, save_observation
+    from uvatar.fit.observe import (
+        disagreeing_views,
+        load_observation,
+        observation_path,
+        observe_frame,
+        reject_views,
+        save_observation,
+    )
 
     observations, failures = {}, {}
-    prior = None
-    bar = tqdm(frames, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
-    for frame in bar:
+    person = None
+    start, seed_prior = 0, None
+    if source == "images" and choice is not None:
+        if not all(observation_path(capture.root, f).is_file() for f in frames):
+            seed, seed_prior, person = _choose_subject(capture, frames, choice, detector, stages)
+            start = frames.index(seed)
+    order = frames[start:] + frames[:start][::-1]   # forward from the seed, then backward from it
+    prior = seed_prior
+    bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
+    for n, frame in enumerate(bar):
+        if start and n == len(frames) - start:
+            prior = observations.get(frames[start], seed_prior)  # the backward pass starts at the seed
         path = observation_path(capture.root, frame)
         try:
             if path.is_file():
@@ -145,11 +276,17 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                 images, cameras = _frame_views(capture, frame, source, stages)
                 use_prior = prior if source == "images" else None
                 obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
+                if person is not None and use_prior is not None and _lost(use_prior, obs, cut_distance):
+                    again = _rechoose(capture, frame, detector, stages, _signature(observations, seed_prior))
+                    if again is not None:
+                        obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=again)
+                        person["chosen_again_after_cuts"].append(frame)
                 save_observation(path, obs)
         except UvatarError as exc:
             failures[frame] = str(exc)
             log.warning("frame %s: %s", frame, exc)
             continue
+        obs = reject_views(obs, disagreeing_views(obs, stages.triangulate), stages.triangulate)
         observations[frame] = obs
         views, seen = len(obs.cameras), obs.num_detected_views
         if (obs.points_conf > 0).sum() < 6:
@@ -159,7 +296,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             failures[frame] = f"only {seen} of {views} views of the scan show a person (a broken scan?)"
         else:
             prior = obs
-    return observations, failures
+    return {f: observations[f] for f in frames if f in observations}, failures, person
 
 
 def _write_fits(capture: Capture, frames, result, body, config: FitConfig, provenance: dict) -> None:
@@ -229,11 +366,15 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     if existing and not config.force:
         raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); force=True replaces them")
     source = resolve_source(capture, config.source)
+    from uvatar.fit.person import parse_person
+
+    choice = parse_person(config.person)
     body = load_body_model(config.model, config.model_dir, device=config.device)
     detector = load_detector(config.detector, stages.detector)
 
     t0 = time.perf_counter()
-    observations, failures = _detect_all(capture, frames, source, detector, stages, progress)
+    observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
+                                                 config.cut_distance)
     t_detect = time.perf_counter() - t0
     use_scans = config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
@@ -250,8 +391,9 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         raise InputError(capture.root, f"{len(frames)} frames, none usable for fitting: {why}")
 
     t1 = time.perf_counter()
+    observations, relabelled = relabel_left_right(frames, observations, detector.keypoint_names, config.cut_distance)
     obs = stack_observations(frames, observations, source, scans, len(detector.keypoint_names), config.cut_distance,
-                              failures)
+                             failures)
     obs.photo = photo_views
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
@@ -276,6 +418,9 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         "capture": str(capture.root), "source": source, "frames": len(frames),
         "frames_fitted": len(frames), "frames_without_detection": failures,
         "cuts_after": [frames[t] for t in np.flatnonzero(~obs.continuous)],
+        "relabelled_left_right": relabelled,
+        "views_disagree": {f: list(o.rejected) for f, o in observations.items() if o.rejected},
+        "person": person,
         "body_model": body.name, "shape": np.asarray(result.shape).tolist(),
         "reprojection": _reprojection_stats(observations, frames, body_points, stages.triangulate.min_conf),
         "frame_loss": {f: float(result.frame_loss[t]) for t, f in enumerate(frames)},

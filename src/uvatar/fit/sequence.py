@@ -9,10 +9,11 @@ import numpy as np
 
 from uvatar.capture.layout import Capture
 from uvatar.errors import UvatarError
+from uvatar.fit.tracking import continuity, image_change, track_left_right
 
 log = logging.getLogger(__name__)
 
-__all__ = ["scan_inputs", "continuity", "stack_observations"]
+__all__ = ["scan_inputs", "continuity", "relabel_left_right", "stack_observations"]  # continuity: from tracking
 
 
 def scan_inputs(capture: Capture, frames: list[str], points: int, seed: int, photo=None, failures=(),
@@ -45,22 +46,35 @@ def scan_inputs(capture: Capture, frames: list[str], points: int, seed: int, pho
     return samples, (views if photo is not None else None)
 
 
-def continuity(points: np.ndarray, conf: np.ndarray, cut_distance: float) -> np.ndarray:
-    """(T-1,) bool: False where the median displacement of the keypoints triangulated in both frames t
-    and t+1 (points (T, K, 3) metres, conf (T, K)) exceeds ``cut_distance`` (a cut between takes);
-    True where fewer than 3 keypoints are shared (an undetected frame is bridged by smoothness)."""
-    both = (conf[1:] > 0) & (conf[:-1] > 0)
-    step = np.linalg.norm(points[1:] - points[:-1], axis=-1)
-    out = np.ones(max(len(points) - 1, 0), bool)
-    for t in np.flatnonzero(both.sum(1) >= 3):  # T-1 frame pairs, not keypoints
-        out[t] = np.median(step[t][both[t]]) <= cut_distance
-    return out
+def relabel_left_right(frames, observations: dict, keypoint_names, cut_distance: float) -> tuple[dict, list]:
+    """Each frame's left/right labels made to follow the previous frame's
+    (:func:`uvatar.fit.tracking.track_left_right`): (observations with the relabelled frames swapped in
+    every view and in 3D, the relabelled frame names)."""
+    from dataclasses import replace
+
+    from uvatar.fit.observe import left_right_swap
+
+    perm = left_right_swap(keypoint_names)
+    present = [f for f in frames if f in observations]
+    if not present:
+        return observations, []
+    points = np.stack([observations[f].points for f in present])
+    conf = np.stack([observations[f].points_conf for f in present])
+    swap = track_left_right(points, conf, perm, cut_distance)
+    out = dict(observations)
+    for f in np.asarray(present)[swap]:
+        o = observations[f]
+        out[f] = replace(o, xy=o.xy[:, perm], conf=o.conf[:, perm], points=o.points[perm],
+                         points_conf=o.points_conf[perm], reprojection_px=o.reprojection_px[:, perm])
+    return out, [str(f) for f in np.asarray(present)[swap]]
 
 
 def stack_observations(frames, observations, source, scans, keypoint_count, cut_distance: float = 0.1,
                        failures=()):
     """Stack the per-frame observations into :class:`uvatar.fit.body_fit.FitObservations`; frames in
-    ``failures`` contribute nothing (neither keypoints nor scan): their neighbours carry them."""
+    ``failures`` contribute nothing (neither keypoints nor scan): their neighbours carry them. Cuts
+    come from :func:`uvatar.fit.tracking.continuity` (with the observations' image thumbnails where
+    they have them)."""
     from uvatar.fit.body_fit import FitObservations
 
     observations = {f: o for f, o in observations.items() if f not in failures}
@@ -83,5 +97,20 @@ def stack_observations(frames, observations, source, scans, keypoint_count, cut_
             obs = observations.get(frame)
             if obs is not None and len(obs.cameras) == C:
                 k2[t], c2[t] = obs.xy, obs.conf
-    return FitObservations(keypoints3d=k3, keypoints3d_conf=c3, keypoints2d=k2, keypoints2d_conf=c2,
-                           cameras=cameras, scans=scans, continuous=continuity(k3, c3, cut_distance))
+    changed = image_change(_thumbnails(frames, observations)) if source == "images" else None
+    out = FitObservations(keypoints3d=k3, keypoints3d_conf=c3, keypoints2d=k2, keypoints2d_conf=c2,
+                          cameras=cameras, scans=scans, continuous=continuity(k3, c3, cut_distance, changed))
+    return out
+
+
+def _thumbnails(frames, observations) -> np.ndarray | None:
+    """(T, C, S, S) the observations' image thumbnails, nan where a frame has none; None if none has."""
+    have = [o.thumbs for o in observations.values() if getattr(o, "thumbs", None) is not None]
+    if not have:
+        return None
+    out = np.full((len(frames), *have[0].shape), np.nan, np.float32)
+    for t, frame in enumerate(frames):
+        obs = observations.get(frame)
+        if obs is not None and obs.thumbs is not None and obs.thumbs.shape == have[0].shape:
+            out[t] = obs.thumbs
+    return out

@@ -6,7 +6,7 @@ Conventions: metres; UV v up with UV-image row 0 at v = 1; numpy or torch where 
 
 from uvatar.geometry.frames import face_normals, normalize, vertex_normals
 from uvatar.geometry.laplacian import cotangent_laplacian, uniform_laplacian
-from uvatar.geometry.raycast import RayCaster, RayCasterConfig, RayHits
+from uvatar.geometry.raycast import RayCaster, RayCasterConfig, RayHits, make_caster, rays_cast
 from uvatar.geometry.sampling import (
     face_tangents,
     sample_mesh_texture,
@@ -27,7 +27,7 @@ __all__ = [
     "sample_vertex_attribute", "texel_corners", "texel_positions", "texel_normals",
     "texel_tangent_frames", "face_tangents", "sample_texture", "sample_mesh_texture", "tangent_basis",
     "face_normals", "vertex_normals", "normalize",
-    "RayCaster", "RayCasterConfig", "RayHits",
+    "RayCaster", "RayCasterConfig", "RayHits", "make_caster", "rays_cast",
     "subdivide_midpoint", "subdivide_loop", "subdivide", "SubdivisionOrigin",
     "cotangent_laplacian", "uniform_laplacian",
     "gaussian_surface_matrix", "smoothed_normals",

@@ -16,7 +16,18 @@ import numpy as np
 
 from uvatar.errors import InputError, require
 
-__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "first_hit_reference", "count_hits_reference"]
+__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "RAY_BACKENDS", "make_caster", "rays_cast", "first_hit_reference",
+           "count_hits_reference"]
+
+RAY_BACKENDS = ("auto", "embree", "warp")
+
+_RAYS = {"INTERSECT": 0, "OCCLUDED": 0}   # rays cast by this process, by query kind (bench and stats)
+
+
+def rays_cast() -> int:
+    """Rays cast so far by every :class:`RayCaster` of this process (first hits, occlusion tests and
+    each re-launch of ``count_hits``): the difference around a stage is that stage's ray count."""
+    return _RAYS["INTERSECT"] + _RAYS["OCCLUDED"]
 
 
 @dataclass(frozen=True)
@@ -120,7 +131,9 @@ class RayCaster:
     >>> hits = rc.first_hit(origins, directions, max_distance=2.0)
     """
 
-    def __init__(self, vertices, faces, config: RayCasterConfig | None = None):
+    def __init__(self, vertices, faces, config: RayCasterConfig | None = None, build: bool = True):
+        """``build=False`` validates the mesh without making the Embree scene (a subclass with its own
+        :meth:`_run`, e.g. :class:`uvatar.geometry.raycast_warp.WarpRayCaster`, builds its own)."""
         self.config = config or RayCasterConfig()
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.faces = np.asarray(faces, dtype=np.int64)
@@ -132,6 +145,10 @@ class RayCaster:
             raise InputError("faces", f"indices out of range [0, {len(self.vertices)})")
         if len(self.faces) == 0:
             raise InputError("faces", "mesh has no triangles")
+        lo, hi = self.vertices.min(0), self.vertices.max(0)
+        self.extent = float(np.linalg.norm(hi - lo) + np.abs(np.stack([lo, hi])).max())
+        if not build:
+            return
         rtcore_scene = require("embreex.rtcore_scene", "embree", "ray casting")
         mesh_construction = require("embreex.mesh_construction", "embree", "ray casting")
         self._scene = rtcore_scene.EmbreeScene()
@@ -140,8 +157,6 @@ class RayCaster:
             np.ascontiguousarray(self.vertices, dtype=np.float32),
             np.ascontiguousarray(self.faces, dtype=np.int32),
         )
-        lo, hi = self.vertices.min(0), self.vertices.max(0)
-        self.extent = float(np.linalg.norm(hi - lo) + np.abs(np.stack([lo, hi])).max())
 
     @property
     def _triangles(self) -> np.ndarray:
@@ -152,6 +167,11 @@ class RayCaster:
         return tri
 
     # -- raw Embree call -------------------------------------------------------------------------
+    def _cast(self, origins, directions, tfar, query="INTERSECT"):
+        """:meth:`_run`, counted (:func:`rays_cast`)."""
+        _RAYS[query] += len(origins)
+        return self._run(origins, directions, tfar, query)
+
     def _run(self, origins, directions, tfar, query="INTERSECT"):
         """Embree in batches of float32 rays. Returns (primID (N,) int32, u, v, tfar float32), or for
         OCCLUDED the primID-like array only (-1 = not occluded)."""
@@ -193,7 +213,7 @@ class RayCaster:
         n = len(origins)
         start = origins + directions * dtype(min_distance) if min_distance else origins
         tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
-        prim, u, v, t = self._run(start, directions, tfar)
+        prim, u, v, t = self._cast(start, directions, tfar)
         hit = prim >= 0
         face = prim.astype(np.int64)
         distance = np.where(hit, t.astype(dtype) + dtype(min_distance), dtype(np.inf))
@@ -209,7 +229,7 @@ class RayCaster:
             bary[idx, 1] = np.where(good, ru, bary[idx, 1])
             bary[idx, 2] = np.where(good, rv, bary[idx, 2])
         bary[:, 0] = 1 - bary[:, 1] - bary[:, 2]
-        if bary.min() < 0 or bary.max() > 1:  # round-off at edges
+        if len(bary) and (bary.min() < 0 or bary.max() > 1):  # round-off at edges
             np.clip(bary, 0.0, 1.0, out=bary)
             bary /= np.maximum(bary.sum(1, keepdims=True), dtype(1e-30))
         bary *= hit[:, None]
@@ -223,7 +243,7 @@ class RayCaster:
         origins, directions, max_distance = _prepare_rays(origins, directions, max_distance, dtype)
         start = origins + directions * dtype(min_distance) if min_distance else origins
         tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
-        return self._run(start, directions, tfar, query="OCCLUDED") != -1
+        return self._cast(start, directions, tfar, query="OCCLUDED") != -1
 
     def count_hits(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
         """(N,) int64: number of surface crossings within (min_distance, max_distance].
@@ -243,7 +263,7 @@ class RayCaster:
         for _ in range(self.config.max_layers):
             if not len(alive):
                 break
-            prim, _, _, t = self._run(pos[alive], directions[alive], remaining[alive])
+            prim, _, _, t = self._cast(pos[alive], directions[alive], remaining[alive])
             hit = prim >= 0
             alive, prim, t = alive[hit], prim[hit], t[hit].astype(np.float64)
             fresh = prim != last_face[alive]  # same face again: float32 re-hit, do not count it
@@ -254,6 +274,23 @@ class RayCaster:
             remaining[alive] -= advance
             alive = alive[remaining[alive] > 0]
         return count
+
+
+def make_caster(vertices, faces, config: RayCasterConfig | None = None, device: str = "cpu",
+                backend: str = "auto") -> RayCaster:
+    """The ray caster for ``device``: ``backend`` "auto" is Embree on the CPU (the fastest there) and
+    Warp's mesh BVH on CUDA (:class:`uvatar.geometry.raycast_warp.WarpRayCaster`); "embree" or "warp"
+    force one (Warp also runs on the CPU, single-threaded). Same queries and results either way."""
+    if backend not in RAY_BACKENDS:
+        raise ValueError(f"ray backend must be one of {RAY_BACKENDS}, got {backend!r}")
+    on_cpu = str(device) == "cpu"
+    if backend == "embree" or (backend == "auto" and on_cpu):
+        if not on_cpu:
+            raise InputError("device", f"{device}: Embree runs on the CPU only (use the warp ray backend)")
+        return RayCaster(vertices, faces, config)
+    from uvatar.geometry.raycast_warp import WarpRayCaster
+
+    return WarpRayCaster(vertices, faces, config, device=str(device))
 
 
 def first_hit_reference(vertices, faces, origins, directions, max_distance=np.inf) -> RayHits:

@@ -216,7 +216,7 @@ def plan_retarget(source: SkeletonMotion, body, config: RetargetConfig | None = 
         raise UvatarError(f"{source.source or 'source skeleton'}: {exc}") from None
     if match.missing_required:
         raise UvatarError(f"{source.source or 'source skeleton'}: rig '{match.rig}': no joint maps to "
-                          f"{', '.join(match.missing_required)}; unmapped joints: {', '.join(match.unmapped[:12])}"
+                          f"{', '.join(match.missing_required)}; unmapped joints: {', '.join(match.unmapped[:12]) or 'none'}"
                           f"{' ...' if len(match.unmapped) > 12 else ''}; give them in a joint map "
                           "(name_map, {source joint: semantic joint})")
     src_index = {s: source.index(n) for n, s in match.mapping.items()}

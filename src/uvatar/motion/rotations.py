@@ -114,3 +114,33 @@ def geodesic_angle(a, b) -> np.ndarray:
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     cos = (a * b).sum(-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-300)
     return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+@one_thread
+def slerp_rotvecs(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Geodesic interpolation between rotations (..., 3) with per-item weights broadcast to (...).
+
+    ``q(w) = q0 * Exp(w * Log(q0^-1 q1))`` in unit quaternions (roma): shortest arc, w = 0 → r0,
+    w = 1 → r1. :func:`slerp_rotvecs_reference` is the plain rotation-matrix twin."""
+    import roma
+    import torch
+
+    q0 = roma.rotvec_to_unitquat(torch.as_tensor(np.array(r0, np.float64)))
+    q1 = roma.rotvec_to_unitquat(torch.as_tensor(np.array(r1, np.float64)))
+    w = torch.as_tensor(np.array(weight, np.float64))
+    rel = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(q0), q1))  # |rel| <= pi
+    out = roma.quat_product(q0, roma.rotvec_to_unitquat(rel * w[..., None]))
+    return roma.unitquat_to_rotvec(out).numpy()
+
+
+def slerp_rotvecs_reference(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Reference twin of :func:`slerp_rotvecs` with rotation matrices: ``R0 @ Exp(w Log(R0^T R1))``."""
+    from scipy.spatial.transform import Rotation
+
+    r0, r1 = np.asarray(r0, np.float64), np.asarray(r1, np.float64)
+    shape = np.broadcast_shapes(r0.shape, r1.shape)
+    w = np.broadcast_to(np.asarray(weight, np.float64), shape[:-1]).reshape(-1).copy()
+    R0 = Rotation.from_rotvec(np.broadcast_to(r0, shape).reshape(-1, 3).copy())
+    R1 = Rotation.from_rotvec(np.broadcast_to(r1, shape).reshape(-1, 3).copy())
+    rel = (R0.inv() * R1).as_rotvec()
+    return (R0 * Rotation.from_rotvec(rel * w[:, None])).as_rotvec().reshape(shape)

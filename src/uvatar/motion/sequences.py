@@ -2,7 +2,9 @@
 
 ``load_motion(path, body)`` dispatches on what ``path`` is:
 
-- ``.bvh``: parsed, then retargeted onto ``body`` (:mod:`uvatar.motion.retarget`);
+- a skeleton file (:data:`SKELETON_READERS`: ``.bvh``, ``.fbx`` binary or ASCII, ``.gltf``/``.glb`` skin
+  animations; one reader module per format): read as a :class:`SkeletonMotion`, then retargeted onto
+  ``body`` (:mod:`uvatar.motion.retarget`);
 - ``.npz``: a uvatar motion (``joint_rotvecs``), an AMASS motion (``poses`` + ``mocap_framerate``;
   copied by joint name onto SMPL/SMPL-X bodies, retargeted onto others), or an EasyMocap fits sequence (``frames``, ``poses``, ``Rh``, ``Th``);
 - a folder: a capture (``capture.json``: its fits and fps) or an EasyMocap fits folder (``*.json``).
@@ -26,13 +28,33 @@ from uvatar.motion.amass import (
 )
 from uvatar.motion.bodyfits import convert_body_motion, fits_body_name
 from uvatar.motion.bvh import read_bvh
+from uvatar.motion.fbx import read_fbx_skeleton
+from uvatar.motion.gltf import read_gltf_skeleton
 from uvatar.motion.record import Motion, motion_from_npz, save_motion
 from uvatar.motion.retarget import RetargetConfig, retarget
-from uvatar.motion.rotations import one_thread
-from uvatar.motion.skeleton import skeleton_motion_from_bvh
+from uvatar.motion.rotations import slerp_rotvecs, slerp_rotvecs_reference  # noqa: F401 (re-exported)
+from uvatar.motion.skeleton import SkeletonMotion, skeleton_motion_from_bvh
 
-__all__ = ["Motion", "load_motion", "motion_from_fits", "resample_motion", "save_motion", "slerp_rotvecs",
-           "slerp_rotvecs_reference"]
+__all__ = ["Motion", "SKELETON_READERS", "load_motion", "motion_from_fits", "read_skeleton_motion", "resample_motion",
+           "save_motion", "slerp_rotvecs", "slerp_rotvecs_reference"]
+
+
+def _read_bvh_skeleton(path: Path) -> SkeletonMotion:
+    return skeleton_motion_from_bvh(read_bvh(path), source=path.name)
+
+
+#: suffix → reader of a skeleton file (path → SkeletonMotion); one module per format
+SKELETON_READERS = {".bvh": _read_bvh_skeleton, ".fbx": read_fbx_skeleton, ".gltf": read_gltf_skeleton,
+                    ".glb": read_gltf_skeleton}
+
+
+def read_skeleton_motion(path: str | Path) -> SkeletonMotion:
+    """A skeleton file (.bvh, .fbx, .gltf, .glb) → :class:`SkeletonMotion` (before retargeting)."""
+    path = Path(path)
+    reader = SKELETON_READERS.get(path.suffix.lower())
+    if reader is None:
+        raise InputError(path, f"not a skeleton motion file ({', '.join(SKELETON_READERS)})")
+    return reader(path)
 
 
 def motion_from_fits(fits: dict, fps: float, body_name: str | None, source: str, shape=None, body=None) -> Motion:
@@ -109,9 +131,9 @@ def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motio
         from uvatar.capture.fits import read_fits_dir
 
         return _for_body(motion_from_fits(read_fits_dir(path), default_fps, None, str(path), body=body), body, config, path)
-    if suffix == ".bvh":
+    if suffix in SKELETON_READERS:
         try:
-            return retarget(skeleton_motion_from_bvh(read_bvh(path), source=path.name), _body_model(body), config)
+            return retarget(read_skeleton_motion(path), _body_model(body), config)
         except InputError:
             raise
         except UvatarError as exc:  # a retarget problem: name the whole path
@@ -131,37 +153,8 @@ def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motio
 
             return _for_body(motion_from_fits(read_fits_npz(path), default_fps, None, path.name, body=body), body, config, path)
         raise InputError(path, "NPZ is neither a uvatar motion, an AMASS motion nor a fits sequence")
-    raise InputError(path, f"unsupported motion format {suffix!r} (.bvh, .npz, a fits or capture folder)")
-
-
-@one_thread
-def slerp_rotvecs(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """Geodesic interpolation between rotations (..., 3) with per-item weights broadcast to (...).
-
-    ``q(w) = q0 * Exp(w * Log(q0^-1 q1))`` in unit quaternions (roma): shortest arc, w = 0 → r0,
-    w = 1 → r1. :func:`slerp_rotvecs_reference` is the plain rotation-matrix twin."""
-    import roma
-    import torch
-
-    q0 = roma.rotvec_to_unitquat(torch.as_tensor(np.array(r0, np.float64)))
-    q1 = roma.rotvec_to_unitquat(torch.as_tensor(np.array(r1, np.float64)))
-    w = torch.as_tensor(np.array(weight, np.float64))
-    rel = roma.unitquat_to_rotvec(roma.quat_product(roma.quat_conjugation(q0), q1))  # |rel| <= pi
-    out = roma.quat_product(q0, roma.rotvec_to_unitquat(rel * w[..., None]))
-    return roma.unitquat_to_rotvec(out).numpy()
-
-
-def slerp_rotvecs_reference(r0: np.ndarray, r1: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """Reference twin of :func:`slerp_rotvecs` with rotation matrices: ``R0 @ Exp(w Log(R0^T R1))``."""
-    from scipy.spatial.transform import Rotation
-
-    r0, r1 = np.asarray(r0, np.float64), np.asarray(r1, np.float64)
-    shape = np.broadcast_shapes(r0.shape, r1.shape)
-    w = np.broadcast_to(np.asarray(weight, np.float64), shape[:-1]).reshape(-1).copy()
-    R0 = Rotation.from_rotvec(np.broadcast_to(r0, shape).reshape(-1, 3).copy())
-    R1 = Rotation.from_rotvec(np.broadcast_to(r1, shape).reshape(-1, 3).copy())
-    rel = (R0.inv() * R1).as_rotvec()
-    return (R0 * Rotation.from_rotvec(rel * w[:, None])).as_rotvec().reshape(shape)
+    raise InputError(path, f"unsupported motion format {suffix!r} (.bvh, .fbx, .gltf, .glb, .npz, a fits or "
+                           "capture folder)")
 
 
 def resample_motion(motion: Motion, fps: float) -> Motion:

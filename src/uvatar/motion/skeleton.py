@@ -103,3 +103,56 @@ def skeleton_motion_from_rotations(names, parents, rest_joints, local_rotations,
         world_p = world_p + np.asarray(world_translation, np.float64).reshape(-1, 1, 3)
     return SkeletonMotion(names=tuple(names), parents=parents, rest_positions=rest.copy(), world_rotations=world_r,
                           positions=world_p, fps=float(fps), units_to_metres=units_to_metres, source=source)
+
+
+def _nearest_rotations(M: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) linear parts (rotation times scale, possibly mirrored) → the nearest rotations
+    (polar decomposition by SVD, determinant +1)."""
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    U[..., :, -1] *= d[..., None]
+    return U @ Vt
+
+
+def skeleton_motion_from_world(names, parents, rest_world: np.ndarray, world: np.ndarray, fps: float,
+                               units_to_metres: float | None = 1.0, source: str = "", what=None) -> SkeletonMotion:
+    """A skeleton animated by world matrices (scene files: FBX, glTF): names (J,), parents (J,) (-1
+    for a root; any order), rest_world (J, 4, 4) the rest pose's world matrices, world (T, J, 4, 4)
+    each frame's, in a +Y-up world. Rotations are the matrices' nearest rotations (scale and
+    mirroring dropped), positions their translations; joints are reordered parents first. ``what``
+    (a path) names the source in errors."""
+    from uvatar.errors import InputError
+
+    names, parents = list(names), np.asarray(parents, np.int64)
+    if not np.all(np.isfinite(world)) or not np.all(np.isfinite(rest_world)):
+        raise InputError(what or source, "the skeleton's transforms are not finite")
+    order, placed = [], set()
+    while len(order) < len(names):  # parents first
+        ready = [j for j in range(len(names)) if j not in placed and (parents[j] < 0 or int(parents[j]) in placed)]
+        if not ready:
+            raise InputError(what or source, "the skeleton's parent links form a cycle")
+        order += ready
+        placed.update(ready)
+    new = {old: k for k, old in enumerate(order)}
+    R_rest = _nearest_rotations(rest_world[order, :3, :3])
+    R = _nearest_rotations(world[:, order, :3, :3])
+    return SkeletonMotion(names=tuple(names[j] for j in order),
+                          parents=np.array([new[int(parents[j])] if parents[j] >= 0 else -1 for j in order], np.int64),
+                          rest_positions=rest_world[order][:, :3, 3].copy(), world_rotations=R @ np.swapaxes(R_rest, -1, -2)[None],
+                          positions=world[:, order][..., :3, 3].copy(), fps=float(fps), units_to_metres=units_to_metres,
+                          source=source)
+
+
+def trs_to_matrix(t: np.ndarray, q: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Translation (..., 3), unit quaternion (..., 4) (x, y, z, w; a zero one is the identity), scale
+    (..., 3) → (..., 4, 4) ``T @ R @ S`` (the node transforms of glTF and FBX)."""
+    from scipy.spatial.transform import Rotation
+
+    shape = np.broadcast_shapes(t.shape[:-1], q.shape[:-1], s.shape[:-1])
+    q = np.broadcast_to(q, (*shape, 4)).reshape(-1, 4)
+    norms = np.linalg.norm(q, axis=-1, keepdims=True)
+    R = Rotation.from_quat(np.where(norms > 1e-12, q, [0, 0, 0, 1])).as_matrix().reshape(*shape, 3, 3)
+    out = np.broadcast_to(np.eye(4), (*shape, 4, 4)).copy()
+    out[..., :3, :3] = R * np.broadcast_to(s, (*shape, 3))[..., None, :]
+    out[..., :3, 3] = t
+    return out

@@ -8,11 +8,10 @@ is averaged over the mask; windows still see unmasked neighbours).
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from uvatar.errors import InputError
 
-__all__ = ["psnr", "ssim", "ssim_map", "mse", "SSIM_BORDER"]
+__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_torch", "ssim_torch", "mse", "SSIM_BORDER"]
 
 #: pixels at each edge whose 11-tap SSIM window (sigma 1.5, truncated at 3.5 sigma) leaves the image
 SSIM_BORDER = 5
@@ -57,23 +56,63 @@ def psnr(a, b, mask=None, data_range: float = 1.0) -> float:
     return float("inf") if m == 0 else float(10.0 * np.log10(data_range**2 / m))
 
 
-def ssim_map(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03):
-    """(H, W) local SSIM (Wang et al. 2004), Gaussian window sigma 1.5 (11 taps), channel mean.
-    Windows that reach past the image (within :data:`SSIM_BORDER` px of an edge) see reflected pixels;
-    :func:`ssim` leaves them out."""
-    a, b, _ = _prep(a, b, None)
+def _symmetric_index(n: int, r: int):
+    """Indices of a length-``n`` axis padded by ``r`` on each side with edge-including reflection
+    (scipy's ``mode="reflect"``, numpy's ``"symmetric"``; periodic for pads longer than the axis)."""
+    i = np.arange(-r, n + r) % (2 * n)
+    return np.where(i < n, i, 2 * n - 1 - i)
+
+
+def ssim_map_torch(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03,
+                   pad: bool = False):
+    """Local SSIM (Wang et al. 2004) of torch images (B, C, H, W) → (B, H', W') channel mean, Gaussian
+    window sigma 1.5 truncated at 3.5 sigma (11 taps). ``pad=False``: valid windows only, (H - 10,
+    W - 10); ``pad=True``: the image reflected by :data:`SSIM_BORDER` pixels, (H, W). Differentiable;
+    the one SSIM formula (:func:`ssim_map`, :func:`ssim`, :func:`ssim_torch` and the DVA loss use it)."""
+    import torch
+    import torch.nn.functional as F
+
+    r = int(3.5 * sigma + 0.5)
+    x = torch.arange(-r, r + 1, dtype=a.dtype, device=a.device)
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+    C = a.shape[1]
+    if pad:
+        rows = torch.as_tensor(_symmetric_index(a.shape[-2], r), device=a.device)
+        cols = torch.as_tensor(_symmetric_index(a.shape[-1], r), device=a.device)
+        a, b = (t.index_select(-2, rows).index_select(-1, cols) for t in (a, b))
+
+    def blur(t):
+        t = F.conv2d(t, g.view(1, 1, 1, -1).expand(C, 1, 1, 2 * r + 1), groups=C)
+        return F.conv2d(t, g.view(1, 1, -1, 1).expand(C, 1, 2 * r + 1, 1), groups=C)
+
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
-
-    def blur(x):
-        return gaussian_filter(x, sigma=(sigma, sigma, 0), truncate=3.5, mode="reflect")
-
     mu_a, mu_b = blur(a), blur(b)
     var_a = blur(a * a) - mu_a**2
     var_b = blur(b * b) - mu_b**2
     cov = blur(a * b) - mu_a * mu_b
     num = (2 * mu_a * mu_b + c1) * (2 * cov + c2)
     den = (mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2)
-    return (num / den).mean(-1)
+    return (num / den).mean(1)
+
+
+def ssim_torch(a, b, data_range: float = 1.0):
+    """Mean SSIM of torch images (B, C, H, W) in [0, ``data_range``], differentiable (the DVA loss):
+    the same value as :func:`ssim` (valid windows; an image too small for them averaged whole)."""
+    small = min(a.shape[-2:]) <= 2 * SSIM_BORDER
+    return ssim_map_torch(a, b, data_range, pad=small).mean()
+
+
+def ssim_map(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03):
+    """(H, W) local SSIM of numpy images, channel mean (:func:`ssim_map_torch` in float64). Windows
+    that reach past the image (within :data:`SSIM_BORDER` px of an edge) see reflected pixels;
+    :func:`ssim` leaves them out."""
+    import torch
+
+    a, b, _ = _prep(a, b, None)
+    ta, tb = (torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))[None] for x in (a, b))
+    with torch.no_grad():
+        return ssim_map_torch(ta, tb, data_range, sigma, k1, k2, pad=True)[0].numpy()
 
 
 def ssim(a, b, mask=None, data_range: float = 1.0) -> float:

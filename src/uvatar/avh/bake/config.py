@@ -150,6 +150,15 @@ class BakeConfig:
     interior_visibility: rest-pose visibility below which a texel counts as interior (the split is
         sharp: 4.07 % of anny's texels below 0.02, 4.12 % below 0.1).
     texture_float16: store the texture as float16 (half the disk space).
+    device: where the ray stages run (registration and texel rays, visibility, colour sampling):
+        "cpu" or "cuda" / "cuda:N" (a GPU through NVIDIA Warp's mesh BVH, ``uvatar[kernels]``); the
+        other stages stay on the CPU. Same maps within float32 round-off.
+    ray_backend: "auto" (Embree on the CPU, Warp on CUDA), "embree" or "warp" (Warp also runs on
+        the CPU, single-threaded and ~3x slower than Embree: for parity checks); checked by
+        :func:`uvatar.geometry.raycast.make_caster`.
+    scan_cache_mb: scans (with their ray and k-d tree structures) kept in memory per worker process
+        between the colour rounds and the bake, so a frame's scan is read and prepared once instead
+        of once per round (0 = read every time; results are the same either way).
     registration: :class:`RegistrationConfig`; pose_refine: :class:`PoseRefineConfig`.
     """
 
@@ -167,6 +176,9 @@ class BakeConfig:
     reject_kappa: float = 130 / 255
     interior_visibility: float = 0.02
     texture_float16: bool = True
+    device: str = "cpu"
+    ray_backend: str = "auto"
+    scan_cache_mb: int = 2048
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
 
@@ -179,7 +191,9 @@ class BakeConfig:
                   (0.0 <= self.reject_kappa <= 1.0, "reject_kappa must be in [0, 1]"),
                   (0.0 <= self.interior_visibility < 1.0, "interior_visibility must be in [0, 1)"),
                   (self.max_match_distance is None or self.max_match_distance > 0, "max_match_distance must be > 0"),
-                  (self.ray_epsilon >= 0, "ray_epsilon must be >= 0")]
+                  (self.ray_epsilon >= 0, "ray_epsilon must be >= 0"),
+                  (self.device == "cpu" or self.device.startswith("cuda"), "device must be cpu or cuda[:N]"),
+                  (self.scan_cache_mb >= 0, "scan_cache_mb must be >= 0")]
         check_values(checks)
 
     @property

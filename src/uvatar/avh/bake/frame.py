@@ -24,6 +24,7 @@ from uvatar.geometry import (
     UVRaster,
     gaussian_surface_matrix,
     rasterize_uv,
+    rays_cast,
     sample_mesh_texture,
     vertex_normals,
 )
@@ -131,7 +132,8 @@ class BakedFrame:
     texels with a scan match (the rest is inpainted); points (R, R, 3) float64 match x (zeros where
     unmatched; kept in memory for evaluation, not stored); stats: kappa_mean (over the body's
     surface texels, :meth:`BodyLayout.surface_texels`), kappa_mean_all_texels, matched_fraction,
-    registration info and ``seconds`` per stage.
+    registration info, ``seconds`` (wall), ``cpu_seconds`` (this process) and ``rays`` (rays cast) per
+    stage.
     """
 
     texture: np.ndarray
@@ -149,10 +151,16 @@ class BakedFrame:
 
 
 @contextmanager
-def _timed(seconds: dict, name: str):
-    t0 = time.perf_counter()
+def _timed(seconds: dict, name: str, rays: dict | None = None, cpu: dict | None = None):
+    """Add the block's wall seconds to ``seconds[name]``, the rays it cast to ``rays[name]`` and this
+    process's CPU seconds to ``cpu[name]`` (what a frame costs on a machine shared with other jobs)."""
+    t0, r0, c0 = time.perf_counter(), rays_cast(), time.process_time()
     yield
     seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+    if rays is not None:
+        rays[name] = rays.get(name, 0) + rays_cast() - r0
+    if cpu is not None:
+        cpu[name] = cpu.get(name, 0.0) + time.process_time() - c0
 
 
 def shadow_vertices(body, fit, shape=None) -> np.ndarray:
@@ -192,28 +200,34 @@ def check_scan(scan, path="scan") -> None:
 
 
 def bake_fit(body, fit, layout: BodyLayout, scan, config: BakeConfig | None = None, shape=None,
-             scan_path: str = "scan"):
+             scan_path: str = "scan", surface: ScanSurface | None = None):
     """Pose the shadow mesh from ``fit`` (refined against the scan first if ``config.refine_pose``)
-    and bake. Returns (BakedFrame, the fit actually used: store it with the maps)."""
+    and bake. ``surface``: the scan already prepared on ``config.device`` (built here when None).
+    Returns (BakedFrame, the fit actually used: store it with the maps)."""
     with single_threaded():
-        return _bake_fit(body, fit, layout, scan, config, shape, scan_path)
+        return _bake_fit(body, fit, layout, scan, config, shape, scan_path, surface)
 
 
-def _bake_fit(body, fit, layout, scan, config, shape, scan_path):
+def _bake_fit(body, fit, layout, scan, config, shape, scan_path, surface):
     from uvatar.avh.bake.refine import refine_fit
 
     config = config or BakeConfig()
     check_scan(scan, scan_path)
-    t0 = time.perf_counter()
-    surface = ScanSurface.build(scan.vertices, scan.faces)
-    t1 = time.perf_counter()
+    sec: dict[str, float] = {}
+    rays: dict[str, int] = {}
+    cpu: dict[str, float] = {}
+    with _timed(sec, "prepare_scan", rays, cpu):
+        if surface is None:
+            surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     refine_stats = None
-    if config.refine_pose:
-        fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape)
-    shadow = shadow_vertices(body, fit, shape)
-    t2 = time.perf_counter()
+    with _timed(sec, "refine_pose", rays, cpu):
+        if config.refine_pose:
+            fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape)
+        shadow = shadow_vertices(body, fit, shape)
     baked = bake_frame(shadow, layout, scan, config, scan_path, surface=surface)
-    baked.stats["seconds"] = {"prepare_scan": t1 - t0, "refine_pose": t2 - t1, **baked.stats["seconds"]}
+    baked.stats["seconds"] = {**sec, **baked.stats["seconds"]}
+    baked.stats["rays"] = {**rays, **baked.stats["rays"]}
+    baked.stats["cpu_seconds"] = {**cpu, **baked.stats["cpu_seconds"]}
     if refine_stats is not None:
         baked.stats["pose_refine"] = refine_stats
     return baked, fit
@@ -232,49 +246,54 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     if layout.resolution != config.texels:
         raise ValueError(f"layout resolution {layout.resolution} != config.texels {config.texels}")
     sec: dict[str, float] = {}
+    rays: dict[str, int] = {}
+    cpu: dict[str, float] = {}
     shadow = np.asarray(shadow, dtype=np.float64)
     diag = float(np.linalg.norm(shadow.max(0) - shadow.min(0)))
     eps = config.ray_epsilon
 
     if surface is None:
-        with _timed(sec, "prepare_scan"):
-            surface = ScanSurface.build(scan.vertices, scan.faces)
+        with _timed(sec, "prepare_scan", rays, cpu):
+            surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     reg_stats: dict = {}
-    with _timed(sec, "register"):
+    with _timed(sec, "register", rays, cpu):
         if config.register:
             smoothing = layout.normal_smoothing_matrix(config.registration.normal_smoothing)
             registered, reg_stats = register_to_scan(shadow, layout.faces, surface, config.registration,
                                                      bbox_diagonal=diag, epsilon=eps, smoothing=smoothing)
         else:
             registered = shadow
-    with _timed(sec, "correspond"):
+    with _timed(sec, "correspond", rays, cpu):
         r = layout.at_texels(registered)
         n = layout.at_texels(vertex_normals(registered, layout.faces))
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         matches = match_texels(r, n, surface, config.polarity_rule, config.polarity_ratio,
                                config.max_match_distance, eps)
         hit = matches.hit
-    with _timed(sec, "texture"):
+    with _timed(sec, "texture", rays, cpu):
         colors = np.zeros((len(r), 3), np.float32)
         colors[hit] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, matches.face[hit], matches.bary[hit])
         s = layout.at_texels(shadow)
         disp = np.where(hit[:, None], matches.points - s, 0.0)
-    with _timed(sec, "visibility_scan"):
-        # only the scan faces around matched texels are ray cast (same values there)
-        hit_vertices = surface.faces[matches.face[hit]]                           # (K, 3)
+    with _timed(sec, "visibility_registered", rays, cpu):
+        w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
+        w_vertex = vertex_visibility(registered, layout.faces, w_caster,
+                                     config.visibility_rays, eps, needed=layout.texel_vertices.ravel())
+        w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
+    with _timed(sec, "confidence", rays, cpu):
+        delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
+        nms = normal_match_score(n, matches.scan_normal)
+        use = hit & (w * delta * nms > 0)
+    with _timed(sec, "visibility_scan", rays, cpu):
+        # the scan's visibility v only matters where the other factors of kappa are not zero: only the
+        # scan faces around those texels' matches are ray cast (the same values there)
+        hit_vertices = surface.faces[matches.face[use]]                           # (K, 3)
         v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster,
                                      config.visibility_rays, eps, needed=hit_vertices.ravel())
         v = np.zeros(len(r))
-        v[hit] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[hit])
-    with _timed(sec, "visibility_registered"):
-        w_vertex = vertex_visibility(registered, layout.faces, fast_caster(registered, layout.faces),
-                                     config.visibility_rays, eps, needed=layout.texel_vertices.ravel())
-        w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
-    with _timed(sec, "confidence"):
-        delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
-        nms = normal_match_score(n, matches.scan_normal)
-        kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)
-    with _timed(sec, "inpaint"):
+        v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
+        kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
+    with _timed(sec, "inpaint", rays, cpu):
         matched_map = layout.to_map(hit, fill=False, dtype=bool)
         unknown = ~matched_map
         # one call for both maps: the nearest-texel fill (distance transform) is computed once
@@ -296,6 +315,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         "bbox_diagonal": diag,
         "registration": reg_stats,
         "seconds": sec,
+        "rays": rays,
+        "cpu_seconds": cpu,
     }
     return BakedFrame(
         texture=np.clip(texture, 0.0, 1.0).astype(np.float32),

@@ -1,14 +1,18 @@
 """What a bake worker loads: the body model with its UV layout at R texels (memoized once per
 process, or adopted from the parent so a worker does not raster it again), and a frame's starting
 fit with the shape to pose it by. Shared by the per-frame bake (:mod:`.pipeline`) and the refinement
-across frames (:mod:`.refine_together`)."""
+across frames (:mod:`.refine_together`). :func:`prepared_scan` keeps a frame's scan, read and prepared
+for ray queries once, for the colour rounds and the bake that follow in the same process."""
 
 from __future__ import annotations
 
-__all__ = ["load_body_and_layout", "adopt_body_and_layout", "start_fit"]
+__all__ = ["load_body_and_layout", "adopt_body_and_layout", "start_fit", "prepared_scan", "clear_scan_cache"]
 
 # -- per-process state ----------------------------------------------------------------------------
 _STATE: dict = {}
+_SCANS: dict = {}      # (capture root, frame, device, backend, file stamp) -> (TexturedMesh, ScanSurface, bytes)
+_SCAN_RUN: list = [None]   # the run whose scans _SCANS holds
+_MEMORY_RESERVE = 1 << 30  # a scan is kept only while this much memory stays available beside it
 
 
 def load_body_and_layout(body_name: str, texels: int):
@@ -37,3 +41,51 @@ def start_fit(capture, frame: str):
         return fit, None
     shapes = capture.body_shapes
     return fit, shapes if shapes.size else None
+
+
+def _scan_bytes(scan, surface) -> int:
+    """Rough memory of a prepared scan: its arrays, plus as much again for the k-d tree and the BVH."""
+    arrays = [scan.vertices, scan.faces, scan.uvs, scan.uv_faces, scan.texture, surface.vertices, surface.faces,
+              surface.vertex_normals, surface.face_normals, surface.sample_points, surface.sample_normals,
+              surface.corner_normals]
+    return sum(int(a.nbytes) for a in arrays if a is not None) + 2 * int(surface.sample_points.nbytes)
+
+
+def prepared_scan(capture, frame: str, config, run=None):
+    """(TexturedMesh, :class:`~uvatar.avh.bake.register.ScanSurface`) of ``frame``'s scan, its rays on
+    ``config.device``. Kept in this process while the kept scans stay under ``config.scan_cache_mb``
+    (and 1 GiB of memory stays available), so the colour rounds and the bake read and prepare each
+    scan once. Scans are kept first come, first kept (no eviction): every round visits the frames in
+    the same order, where a least-recently-used cache smaller than the frames would drop each scan
+    just before its next use. ``run``: a token of the bake; a new one drops the scans of the previous
+    run (a long-lived Ray worker bakes one capture after another). A scan file changed on disk is read
+    again (its size and time are part of the key)."""
+    from uvatar.avh.bake.register import ScanSurface
+    from uvatar.resources import available_memory
+
+    if run != _SCAN_RUN[0]:
+        clear_scan_cache()
+        _SCAN_RUN[0] = run
+
+    path = capture.scan_path(frame)
+    try:
+        st = path.stat()
+        stamp = (st.st_size, st.st_mtime_ns)
+    except OSError:
+        stamp = None     # read_mesh reports the missing file
+    key = (str(capture.root), frame, config.device, config.ray_backend, stamp)
+    hit = _SCANS.get(key)
+    if hit is not None:
+        return hit[0], hit[1]
+    scan = capture.load_scan(frame)
+    surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
+    size = _scan_bytes(scan, surface)
+    if (stamp is not None and sum(v[2] for v in _SCANS.values()) + size <= config.scan_cache_mb * 2**20
+            and available_memory() > size + _MEMORY_RESERVE):
+        _SCANS[key] = (scan, surface, size)
+    return scan, surface
+
+
+def clear_scan_cache() -> None:
+    """Drop the scans :func:`prepared_scan` keeps in this process (a bake run in process calls it at its end)."""
+    _SCANS.clear()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+import uuid
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -27,12 +28,18 @@ from uvatar.avh.bake.dataset import (
     write_baked_frame,
     write_dataset_info,
 )
-from uvatar.avh.bake.inputs import adopt_body_and_layout, load_body_and_layout, start_fit
+from uvatar.avh.bake.inputs import (
+    adopt_body_and_layout,
+    clear_scan_cache,
+    load_body_and_layout,
+    prepared_scan,
+    start_fit,
+)
 from uvatar.avh.bake.refine_together import refine_frames_together
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError, one_line
 from uvatar.io_utils import sweep_partial_writes
-from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
+from uvatar.parallel import ExecutorConfig, TaskFailure, keep_pool, run_tasks
 from uvatar.resources import check_memory
 from uvatar.threads import limit_process_to_one_thread
 
@@ -68,9 +75,11 @@ def heldout_frames(capture_root) -> list[str]:
         return []
 
 
-def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, refined=None) -> FrameResult:
+def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, refined=None,
+              run=None) -> FrameResult:
     """Bake one frame in a worker. Every failure becomes a "broken" result with a one-line reason.
-    refined: the frame's fit already refined across frames (:mod:`.refine_together`), baked as is."""
+    refined: the frame's fit already refined across frames (:mod:`.refine_together`), baked as is;
+    run: the bake's token for the scans kept from the colour rounds (:func:`.inputs.prepared_scan`)."""
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.capture import Capture
 
@@ -82,8 +91,8 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, 
         if refined is not None:
             fit, config = refined, replace(config, refine_pose=False)
         scan_path = capture.scan_path(frame)
-        scan = capture.load_scan(frame)
-        baked, fit = bake_fit(body, fit, layout, scan, config, shape, scan_path=str(scan_path))
+        scan, surface = prepared_scan(capture, frame, config, run)   # kept from the colour rounds
+        baked, fit = bake_fit(body, fit, layout, scan, config, shape, scan_path=str(scan_path), surface=surface)
     except Exception as exc:  # noqa: BLE001 - a broken frame is reported, never fatal
         return FrameResult(frame, "broken", f"broken input: {one_line(exc)}", seconds=time.perf_counter() - t0)
     rejected = baked.kappa_mean < config.reject_kappa
@@ -96,12 +105,14 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, 
                        baked.kappa_mean, time.perf_counter() - t0, stats)
 
 
-def _bake_task(shared: dict, frame: str) -> FrameResult:
-    """One frame under :func:`uvatar.parallel.run_tasks`: ``shared`` holds the capture and output
-    folders, the config and the (body, layout) pair, shipped once per worker process."""
+def _bake_task(shared: dict, item) -> FrameResult:
+    """One frame under :func:`uvatar.parallel.run_tasks`, item = (frame, its fit refined across frames
+    or None): ``shared`` holds the capture and output folders, the config and the (body, layout) pair,
+    shipped once per worker process."""
+    frame, refined = item
     config = shared["config"]
     adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
-    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, shared["fits"].get(frame))
+    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, refined, shared.get("run"))
     result.stats["worker_peak_rss_mb"] = _peak_rss_mb()
     return result
 
@@ -181,6 +192,10 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     from uvatar.capture import Capture
 
     config = config or BakeConfig()
+    if config.device != "cpu":   # fail early, in one line, without a GPU or without Warp
+        from uvatar.geometry.raycast_warp import warp_device
+
+        warp_device(config.device)
     executor = executor or ExecutorConfig(workers=max(1, int(workers)))
     check_memory(BAKE_BYTES_PER_TEXEL * config.texels ** 2 * max(1, workers), "texels",
                  f"baking {config.texels}² texels in {max(1, workers)} process(es)")
@@ -219,14 +234,20 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
             log.warning("frame %s %s: %s", result.frame, result.status, result.reason)
         _write_info(out, capture, body_name, config, results)
 
-    refined = refine_frames_together(capture.root, out, todo, config, body_name, executor, progress,
-                                     rebuild_reference=overwrite)
     shared = {"capture_root": str(capture.root), "out_root": str(out), "config": config, "body_name": body_name,
-              "body_layout": load_body_and_layout(body_name, config.texels), "fits": refined}
-    for frame, result in run_tasks(_bake_task, todo, shared, executor, desc="bake", progress=progress,
-                                   initializer=limit_process_to_one_thread):
-        finish(FrameResult(frame, "broken", f"worker failed: {result.reason}")
-               if isinstance(result, TaskFailure) else result)
+              "body_layout": load_body_and_layout(body_name, config.texels), "run": uuid.uuid4().hex}
+    # one pool for the colour rounds and the bake: its workers keep each scan read and prepared
+    with keep_pool(shared):
+        try:
+            refined = refine_frames_together(capture.root, out, todo, config, body_name, executor, progress,
+                                             rebuild_reference=overwrite, shared=shared)
+            items = [(f, refined.get(f)) for f in todo]
+            for (frame, _), result in run_tasks(_bake_task, items, shared, executor, desc="bake",
+                                                progress=progress, initializer=limit_process_to_one_thread):
+                finish(FrameResult(frame, "broken", f"worker failed: {result.reason}")
+                       if isinstance(result, TaskFailure) else result)
+        finally:
+            clear_scan_cache()   # the scans a bake in this process kept (pool workers end with the block)
     _write_info(out, capture, body_name, config, results)
     return {f: results[f] for f in frames}
 

@@ -18,11 +18,12 @@ broken.
 from __future__ import annotations
 
 import logging
+import uuid
 from pathlib import Path
 
 import numpy as np
 
-from uvatar.avh.bake.inputs import adopt_body_and_layout, load_body_and_layout, start_fit
+from uvatar.avh.bake.inputs import adopt_body_and_layout, load_body_and_layout, prepared_scan, start_fit
 from uvatar.avh.bake.photometric import PhotoTarget, reference_colours
 from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
 from uvatar.threads import limit_process_to_one_thread
@@ -87,33 +88,34 @@ def _restore(capture_root, saved: dict, frames) -> dict:
     return out
 
 
-def _refine_task(shared: dict, frame: str):
-    """One frame of one round: -> (refined BodyFit, colours (N, 3) at the next radius or None)."""
+def _refine_task(shared: dict, item):
+    """One frame of one round, item = (frame, fit to start from or None, PhotoTarget or None, stencil
+    radius to sample afterwards or None) -> (refined BodyFit, colours (N, 3) at that radius or None).
+    ``shared`` (capture root, config, body and layout) is the same for every round and the bake."""
     from uvatar.avh.bake.refine import fit_colours, refine_fit
-    from uvatar.avh.bake.register import ScanSurface
     from uvatar.capture import Capture
 
+    frame, start, target, radius = item
     config = shared["config"]
     body, _ = adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
     capture = Capture(shared["capture_root"])
-    scan = capture.load_scan(frame)
-    surface = ScanSurface.build(scan.vertices, scan.faces)
+    scan, surface = prepared_scan(capture, frame, config, shared.get("run"))   # once for all rounds
     fit, shape = start_fit(capture, frame)
-    fit = shared["fits"].get(frame, fit)
-    target = shared["target"]
+    fit = fit if start is None else start
     fit, _ = refine_fit(body, fit, surface, config.pose_refine, shape, photo=target,
                         scan_mesh=scan if target is not None else None)
-    radius = shared["sample_radius"]
     colours = None if radius is None else fit_colours(body, fit, surface, scan, config.pose_refine, radius, shape)
     return fit, colours
 
 
 def refine_frames_together(capture_root, out_root, frames, config, body_name: str,
                            executor: ExecutorConfig | None = None, progress: bool = True,
-                           rebuild_reference: bool = False) -> dict:
+                           rebuild_reference: bool = False, shared: dict | None = None) -> dict:
     """{frame: refined BodyFit} for ``frames`` (module doc); {} when the term is off
     (``refine_pose`` false or no ``photometric_radii``) or fewer than ``photometric_min_frames``
-    frames can build a reference and none is saved."""
+    frames can build a reference and none is saved. ``shared``: the bake's task inputs (capture_root,
+    config, body_name, body_layout), passed on so that one kept pool (:func:`uvatar.parallel.keep_pool`)
+    runs every round and the bake."""
     from uvatar.avh.bake.refine import refine_vertices
 
     pr = config.pose_refine
@@ -127,8 +129,10 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
         return {}
     radii = list(pr.photometric_radii)
     done: dict = {}
-    shared = {"capture_root": str(capture_root), "config": config, "body_name": body_name, "fits": {},
-              "body_layout": body_layout}
+    if shared is None:
+        shared = {"capture_root": str(capture_root), "config": config, "body_name": body_name,
+                  "body_layout": body_layout, "run": uuid.uuid4().hex}
+    fits: dict = {}
     if saved is not None:
         target, stored = saved
         done = _restore(capture_root, stored, frames)
@@ -147,25 +151,25 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
             stacked = np.stack([colours[f] for f in frames if f in colours])
             reference, known = reference_colours(stacked, pr.photometric_min_frames)
             target = PhotoTarget(reference, known, last_radius)
-        shared.update(target=target, sample_radius=radius)
         colours = {}
         desc = "refine poses" if i == 0 else f"colour round {i}/{len(rounds) - 1}"
-        for frame, result in run_tasks(_refine_task, frames, shared, executor, desc=desc, progress=progress,
-                                       initializer=limit_process_to_one_thread):
+        items = [(f, fits.get(f), target, radius) for f in frames]
+        for (frame, *_), result in run_tasks(_refine_task, items, shared, executor, desc=desc, progress=progress,
+                                             initializer=limit_process_to_one_thread):
             if isinstance(result, TaskFailure):
                 log.warning("frame %s: pose refinement across frames skipped it (%s)", frame, result.reason)
                 continue
-            shared["fits"][frame], c = result
+            fits[frame], c = result
             if c is not None:
                 colours[frame] = c
-        frames = [f for f in frames if f in shared["fits"]]
+        frames = [f for f in frames if f in fits]
         if radius is not None:
             last_radius = radius
         if not frames:
             return done
         if saved is None and radius is not None and len(colours) < pr.photometric_min_frames:
-            return dict(shared["fits"])   # too few frames left for a median: geometry only
-    refined = dict(shared["fits"])
+            return dict(fits)   # too few frames left for a median: geometry only
+    refined = dict(fits)
     rows = {f: _row(fit) for f, fit in refined.items()}
     if saved is None:
         _save_reference(out_root, target, rows)

@@ -44,6 +44,7 @@ from uvatar.geometry import (
     RayCasterConfig,
     face_normals,
     gaussian_surface_matrix,
+    make_caster,
     smoothed_normals,
     vertex_normals,
 )
@@ -66,7 +67,8 @@ class ScanSurface:
     vertices (V, 3) float64 metres; faces (F, 3) int64; vertex_normals (V, 3) unit (area weighted);
     face_normals (F, 3) unit; sample_points (V + F, 3) vertices then face centroids, with
     sample_normals (V + F, 3); caster: :class:`uvatar.geometry.RayCaster`; tree: scipy cKDTree over
-    sample_points.
+    sample_points; corner_normals (F, 3, 3) the vertex normals at each face's corners (one gather per
+    hit in :meth:`normals_at`).
     """
 
     vertices: np.ndarray
@@ -77,9 +79,11 @@ class ScanSurface:
     sample_normals: np.ndarray
     caster: RayCaster
     tree: object
+    corner_normals: np.ndarray | None = None
 
     @classmethod
-    def build(cls, vertices, faces) -> ScanSurface:
+    def build(cls, vertices, faces, device: str = "cpu", backend: str = "auto") -> ScanSurface:
+        """Prepare a scan; its rays run on ``device`` through ``backend`` (:func:`fast_caster`)."""
         from scipy.spatial import cKDTree
 
         v = np.asarray(vertices, dtype=np.float64)
@@ -91,27 +95,30 @@ class ScanSurface:
         normals = np.concatenate([vn, fn])
         # sliding-midpoint tree: ~3x faster to build than the balanced one, same (exact) answers
         tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
-        return cls(v, f, vn, fn, points, normals, fast_caster(v, f), tree)
+        return cls(v, f, vn, fn, points, normals, fast_caster(v, f, device, backend), tree, vn[f])
 
     def normals_at(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0."""
-        out = np.zeros((len(face), 3))
+        if self.corner_normals is None:
+            self.corner_normals = self.vertex_normals[self.faces]
         ok = face >= 0
-        fo = face[ok]
-        n = np.einsum("kjc,kj->kc", self.vertex_normals[self.faces[fo]], bary[ok])
+        fo = np.where(ok, face, 0)
+        n = np.einsum("kjc,kj->kc", self.corner_normals[fo], np.asarray(bary, np.float64))
         length = np.sqrt(np.einsum("kc,kc->k", n, n))
-        bad = length < 1e-12  # opposite normals cancelled: use the (unit) face normal
+        bad = ok & (length < 1e-12)  # opposite normals cancelled: use the (unit) face normal
         if bad.any():
             n[bad] = self.face_normals[fo[bad]]
             length[bad] = 1.0
-        out[ok] = n / length[:, None]
+        out = n / np.where(ok, length, 1.0)[:, None]
+        out[~ok] = 0.0
         return out
 
 
-def fast_caster(vertices, faces) -> RayCaster:
-    """Embree scene on the float32 fast path: no float64 ray preparation or re-intersection of hits
-    (float32 hits are ~0.1 um at 1 m); RayHits come back in float32."""
-    return RayCaster(vertices, faces, RayCasterConfig(refine=False, precision="float32"))
+def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:
+    """Ray caster on the float32 fast path: no float64 ray preparation or re-intersection of hits
+    (float32 hits are ~0.1 um at 1 m); RayHits come back in float32. Embree on the CPU, Warp on CUDA
+    (:func:`uvatar.geometry.raycast.make_caster`)."""
+    return make_caster(vertices, faces, RayCasterConfig(refine=False, precision="float32"), device, backend)
 
 
 def uniform_laplacian_matrix(faces, num_vertices: int) -> sp.csr_matrix:

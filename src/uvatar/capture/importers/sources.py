@@ -99,6 +99,26 @@ def _read_image(path: Path) -> np.ndarray:
     return np.ascontiguousarray(img[..., :3])
 
 
+def ffmpeg_problem(text: str, limit: int = 200) -> str:
+    """What ffmpeg said was wrong, from an imageio-ffmpeg error ("Could not load meta information
+    === stderr === ffmpeg version ... configuration: ... moov atom not found ... Invalid data found
+    when processing input"): its version banner, build configuration and library versions dropped,
+    ``[in#0 @ 0x...]`` prefixes and repeated lines removed, the last distinct lines kept."""
+    import re
+
+    head, _, stderr = text.partition("=== stderr ===")
+    banner = re.compile(r"^(ffmpeg version|built with|configuration:|lib[a-z]+\s+\d|Input #|Duration:|Stream #)")
+    lines: list[str] = []
+    for raw in stderr.splitlines():
+        line = re.sub(r"^\[[^\]]*@ 0x[0-9a-f]+\]\s*", "", raw.strip())
+        if line and not banner.match(line) and not line.startswith("Error opening input file") \
+                and line not in lines:
+            lines.append(line)
+    kept = [ln for ln in lines if "misdetection possible" not in ln][-2:] or [" ".join(head.split())]
+    out = "; ".join(kept)
+    return out if len(out) <= limit else out[: limit - 3] + "..."
+
+
 def probe(name: str, path: Path, count: bool = True) -> FrameSource:
     """Size, frame count and fps of a video or image folder (reads one frame at most; counting a
     video's frames decodes it once, so ``count=False`` skips that when the range is given)."""
@@ -109,7 +129,7 @@ def probe(name: str, path: Path, count: bool = True) -> FrameSource:
             reader = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24")
             meta = next(reader)  # the reader stays open at frame 0 for FrameSource.frames
         except (OSError, RuntimeError, StopIteration) as exc:
-            raise InputError(path, f"cannot open video ({' '.join(str(exc).split())[:200]})") from None
+            raise InputError(path, f"cannot open video ({ffmpeg_problem(str(exc))})") from None
         w, h = meta["size"]
         frames = None
         if count:

@@ -33,9 +33,10 @@ class SynthConfig:
     broken frame per this many (at least one when frames >= 20); broken_fraction: range of the
     surface fraction cut away; scan_noise: scan vertex noise along the normal (m); chart_area:
     max xatlas chart area (m^2); background: image background grey level; preview: write
-    OUT/preview.png; light: "studio" (the fixed key/fill/ambient rig with cast shadows and ambient
-    occlusion baked into every frame's texture, :mod:`.lighting`, set by ``lighting``) or "none"
-    (unlit: albedo times creases, as captures made before the rig)."""
+    OUT/preview.png; bystanders: more people in the images (:mod:`.bystanders`); light: "studio" (the
+    fixed key/fill/ambient rig with cast shadows and ambient occlusion baked into every frame's
+    texture, :mod:`.lighting`, set by ``lighting``) or "none" (unlit: albedo times creases, as
+    captures made before the rig)."""
 
     frames: int = 100
     cameras: int = 8
@@ -57,6 +58,7 @@ class SynthConfig:
     background: float = 1.0
     body_model: str = "anny"
     preview: bool = True
+    bystanders: int = 0
     light: str = "studio"
     motion: MotionConfig = field(default_factory=MotionConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
@@ -75,7 +77,8 @@ class SynthConfig:
             (self.fit_tracks in ("body", "all"), f"fit_tracks must be 'body' or 'all', got {self.fit_tracks!r}"),
             (self.light in ("studio", "none"), f"light must be 'studio' or 'none', got {self.light!r}"),
             (self.heldout is None or self.heldout >= 0, f"heldout must not be negative, got {self.heldout}"),
-            (self.workers >= 1, f"workers must be at least 1, got {self.workers}")])
+            (self.workers >= 1, f"workers must be at least 1, got {self.workers}"),
+            (self.bystanders >= 0, f"bystanders must not be negative, got {self.bystanders}")])
 
     def heldout_count(self) -> int:
         if self.heldout is not None:

@@ -234,10 +234,19 @@ class Studio:
         write_fit(self.root / "fits" / f"{name}.json", fit)
 
         if p["cameras"]:
-            views = render_views(vertices, topo.faces, topo.uvs, topo.uv_faces, atlas, p["cameras"], cfg.background)
-            for cam, (rgb, mask) in zip(p["cameras"], views, strict=True):
+            if p.get("bystanders"):
+                from uvatar.capture.synth.bystanders import render_with_bystanders
+
+                views = render_with_bystanders(self, i, vertices, topo.faces, topo.uvs, topo.uv_faces, atlas,
+                                               p["cameras"], cfg.background)
+            else:
+                views = render_views(vertices, topo.faces, topo.uvs, topo.uv_faces, atlas, p["cameras"], cfg.background)
+            for cam, (rgb, mask, *others) in zip(p["cameras"], views, strict=True):
                 write_image(self.root / "images" / cam.name / f"{name}.png", rgb)
                 write_image(self.root / "masks" / cam.name / f"{name}.png", mask.astype(np.uint8) * 255)
+                if others:
+                    write_image(self.root / "gt" / "bystander_masks" / cam.name / f"{name}.png",
+                                others[0].astype(np.uint8) * 255)
 
         g = self.gt
         Rg = cfg.gt_texels

@@ -76,7 +76,10 @@ def make_plan(body, cfg: SynthConfig) -> dict:
     names = [f"{i:06d}" for i in range(n)]
     segment_of_frame, segments = _segments(n, cfg)
     cams = studio_cameras(cfg.cameras, cfg.image_size, cfg.studio) if cfg.cameras > 0 else []
-    return {"frames": names, "poses": motion.poses, "Rh": motion.Rh, "Th": motion.Th, "shape": shape,
+    from uvatar.capture.synth.bystanders import plan_bystanders
+
+    others = plan_bystanders(body, cfg, motion.Th) if cfg.bystanders and cams else []
+    return {"bystanders": others,"frames": names, "poses": motion.poses, "Rh": motion.Rh, "Th": motion.Th, "shape": shape,
             "take_names": list(motion.names), "take_of_frame": motion.take_of_frame,
             "takes": motion.ranges(), "heldout_frames": names[n - heldout:] if heldout else [],
             "segment_of_frame": segment_of_frame, "segments": segments,
@@ -100,6 +103,9 @@ def _write_meta(root: Path, cfg: SynthConfig, plan: dict) -> None:
         "segments": plan["segments"], "seed": cfg.seed, "fit_noise_deg": cfg.fit_noise_deg,
         "body_model": cfg.body_model, "body_shapes": np.asarray(plan["shape"], np.float64).tolist(),
         "config": {k: v for k, v in cfg.to_dict().items() if k not in ("workers", "preview")}})
+    if plan.get("bystanders"):
+        write_npz(root / "gt" / "bystanders.npz",
+                  **{f"{k}_{b}": v for b, person in enumerate(plan["bystanders"]) for k, v in person.items()})
     motion_path = root / "gt" / "motion.npz"
     if not motion_path.is_file():
         write_npz(motion_path, poses=plan["poses"], Rh=plan["Rh"], Th=plan["Th"],

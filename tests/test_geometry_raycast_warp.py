@@ -1,0 +1,90 @@
+"""Warp's mesh BVH (the GPU bake's ray backend) against Embree, on the CPU: the same hits, faces,
+barycentrics, distances, occlusion and hit counts; the backend choice and its errors."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from uvatar.errors import InputError
+from uvatar.geometry.raycast import RayCaster, RayCasterConfig, first_hit_reference, make_caster
+
+pytest.importorskip("warp")
+
+from uvatar.geometry.raycast_warp import WarpRayCaster  # noqa: E402
+
+
+def scene():
+    """Two nested icospheres (r = 1 and 0.6) and a box poking through both: folds, inner surfaces."""
+    outer = trimesh.creation.icosphere(subdivisions=3)
+    inner = trimesh.creation.icosphere(subdivisions=2, radius=0.6)
+    box = trimesh.creation.box(extents=(0.3, 0.3, 2.6))
+    mesh = trimesh.util.concatenate([outer, inner, box])
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+def rays(n=4000, seed=0):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    return rng.uniform(-1.2, 1.2, (n, 3)), d * rng.uniform(0.5, 2.0, (n, 1))   # not unit on purpose
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_first_hit_matches_embree(precision):
+    v, f = scene()
+    o, d = rays()
+    config = RayCasterConfig(precision=precision)
+    for kwargs in ({}, {"max_distance": 0.7}, {"min_distance": 0.05}):
+        ref = RayCaster(v, f, config).first_hit(o, d, **kwargs)
+        got = WarpRayCaster(v, f, config, device="cpu").first_hit(o, d, **kwargs)
+        assert ref.hit.mean() > 0.3
+        # a ray grazing an edge may report either neighbour: faces agree almost everywhere, hits
+        # and distances everywhere
+        np.testing.assert_array_equal(got.hit, ref.hit)
+        assert (got.face == ref.face).mean() > 0.999
+        np.testing.assert_allclose(got.distance[got.hit], ref.distance[ref.hit], atol=2e-6)
+        np.testing.assert_allclose(got.points, ref.points, atol=2e-6)
+        same = got.face == ref.face
+        np.testing.assert_allclose(got.bary[same], ref.bary[same], atol=2e-5)
+        assert got.distance.dtype == ref.distance.dtype and got.face.dtype == ref.face.dtype
+
+
+def test_first_hit_agrees_with_the_numpy_twin_and_reconstructs_points():
+    v, f = scene()
+    o, d = rays(500, seed=1)
+    ref = first_hit_reference(v, f, o, d)
+    got = WarpRayCaster(v, f, device="cpu").first_hit(o, d)
+    np.testing.assert_array_equal(got.hit, ref.hit)
+    np.testing.assert_allclose(got.distance[got.hit], ref.distance[ref.hit], atol=2e-6)
+    recon = (v[f[got.face[got.hit]]] * got.bary[got.hit][:, :, None]).sum(1)   # Embree's barycentric order
+    np.testing.assert_allclose(recon, got.points[got.hit], atol=2e-6)
+
+
+def test_any_hit_and_count_hits_match_embree():
+    v, f = scene()
+    o, d = rays(3000, seed=2)
+    embree, warp = RayCaster(v, f), WarpRayCaster(v, f, device="cpu")
+    for limit in (np.inf, 0.4):
+        np.testing.assert_array_equal(warp.any_hit(o, d, limit), embree.any_hit(o, d, limit))
+    np.testing.assert_array_equal(warp.count_hits(o, d), embree.count_hits(o, d))
+
+
+def test_empty_batch_and_make_caster_choices():
+    v, f = scene()
+    empty = WarpRayCaster(v, f, device="cpu").first_hit(np.zeros((0, 3)), np.zeros((0, 3)))
+    assert empty.hit.shape == (0,) and empty.bary.shape == (0, 3)
+    assert type(make_caster(v, f)) is RayCaster                               # Embree on the CPU
+    assert isinstance(make_caster(v, f, backend="warp"), WarpRayCaster)        # Warp asked for
+    with pytest.raises(ValueError, match="ray backend"):
+        make_caster(v, f, backend="optix")
+    with pytest.raises(InputError, match="Embree runs on the CPU only"):
+        make_caster(v, f, device="cuda", backend="embree")
+
+
+def test_missing_cuda_is_one_line_naming_the_device():
+    import warp as wp
+
+    if wp.is_cuda_available():
+        pytest.skip("a CUDA device is present")
+    v, f = scene()
+    with pytest.raises(InputError, match="no CUDA device"):
+        make_caster(v, f, device="cuda")
