@@ -26,7 +26,8 @@ from uvatar.cli.main import build_cli
 TARGETS = {
     "train avh": ["uvatar.avh.train:TrainConfig", "uvatar.avh.model:AvhConfig"],
     "train dva": ["uvatar.dva.train:train_dva", "uvatar.dva.model:TrainConfig", "uvatar.dva.primitives:PrimitiveConfig",
-                  "uvatar.dva.decoders:DecoderConfig", "uvatar.dva.raymarch_ref:RaymarchConfig"],
+                  "uvatar.dva.decoders:DecoderConfig", "uvatar.dva.raymarch_ref:RaymarchConfig",
+                  "uvatar.dva.corrections:CorrectionConfig"],
     "presets": [],
     "export": ["uvatar.avh.export:export_avatar"],
     "animate": ["uvatar.avh.animate:AnimateConfig", "uvatar.avh.animate:animate"],
@@ -57,6 +58,8 @@ PRESET_COMMANDS = {"synth", "train avh", "train dva", "demo"}
 
 # (command, flag dest) -> field name in the targets ("Target.field" when two targets share a name)
 RENAMED = {
+    ("train dva", "correct_pose"): "CorrectionConfig.pose",
+    ("train dva", "correct_colour"): "CorrectionConfig.colour",
     ("bake", "refine_iterations"): "PoseRefineConfig.iterations",
     ("bake", "refine_photometric_radii"): "photometric_radii",
     ("bake", "refine_photometric_weight"): "photometric_weight",
