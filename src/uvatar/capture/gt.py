@@ -3,7 +3,8 @@
 The one reader and writer of that file. Fields (all optional): ``heldout_frames`` and
 ``broken_frames`` (frame names or int indices), ``heldout_cameras``, ``takes`` ({name: [first, end)
 frame indices}), ``texel_resolution`` (older files: ``texels``; else ``config.gt_texels``), ``config``
-(the studio's ``SynthConfig.to_dict()``), ``body_shapes`` (the true body shape; capture.json holds
+(the studio's ``SynthConfig.to_dict()``; its ``light`` says whether the gt texture carries the
+studio's light, absent in captures made before the light: unlit), ``body_shapes`` (the true body shape; capture.json holds
 the fits' shape, which ``uvatar fit`` replaces), plus whatever else the studio records (``broken``,
 ``segments``, ``seed``: kept in :attr:`GtInfo.raw`). A real capture has no ``gt/``.
 """

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field, replace
 from uvatar.capture.synth.appearance import AppearanceConfig
 from uvatar.capture.synth.cameras import StudioConfig
 from uvatar.capture.synth.clothing import ClothingConfig
+from uvatar.capture.synth.lighting import LightConfig
 from uvatar.capture.synth.motion import MotionConfig
 from uvatar.errors import check_values
 
@@ -32,7 +33,10 @@ class SynthConfig:
     broken frame per this many (at least one when frames >= 20); broken_fraction: range of the
     surface fraction cut away; scan_noise: scan vertex noise along the normal (m); chart_area:
     max xatlas chart area (m^2); background: image background grey level; preview: write
-    OUT/preview.png; bystanders: more people in the images (:mod:`.bystanders`)."""
+    OUT/preview.png; bystanders: more people in the images (:mod:`.bystanders`); light: "studio" (the
+    fixed key/fill/ambient rig with cast shadows and ambient occlusion baked into every frame's
+    texture, :mod:`.lighting`, set by ``lighting``) or "none" (unlit: albedo times creases, as
+    captures made before the rig)."""
 
     frames: int = 100
     cameras: int = 8
@@ -55,10 +59,12 @@ class SynthConfig:
     body_model: str = "anny"
     preview: bool = True
     bystanders: int = 0
+    light: str = "studio"
     motion: MotionConfig = field(default_factory=MotionConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     clothing: ClothingConfig = field(default_factory=ClothingConfig)
     studio: StudioConfig = field(default_factory=StudioConfig)
+    lighting: LightConfig = field(default_factory=LightConfig)
 
     def __post_init__(self) -> None:
         check_values([
@@ -69,6 +75,7 @@ class SynthConfig:
             (self.gt_texels >= 1, f"gt_texels must be at least 1, got {self.gt_texels}"),
             (self.fit_noise_deg >= 0, f"fit_noise_deg must not be negative, got {self.fit_noise_deg}"),
             (self.fit_tracks in ("body", "all"), f"fit_tracks must be 'body' or 'all', got {self.fit_tracks!r}"),
+            (self.light in ("studio", "none"), f"light must be 'studio' or 'none', got {self.light!r}"),
             (self.heldout is None or self.heldout >= 0, f"heldout must not be negative, got {self.heldout}"),
             (self.workers >= 1, f"workers must be at least 1, got {self.workers}"),
             (self.bystanders >= 0, f"bystanders must not be negative, got {self.bystanders}")])
@@ -89,7 +96,9 @@ PRESETS = {
     "default": SynthConfig(),
     # tests and demo smoke runs: seconds, not minutes
     "quick": SynthConfig(frames=8, cameras=2, image_size=64, scan_texture=128, gt_texels=64, workers=1,
-                         segment_frames=4, face_count=(6_000, 12_000), subdivision_levels=1),
+                         segment_frames=4, face_count=(6_000, 12_000), subdivision_levels=1,
+                         # the light on the template itself, 32 AO rays: ~0.6 s per frame instead of ~4
+                         lighting=LightConfig(ao_rays=32, occluder_levels=0)),
 }
 
 

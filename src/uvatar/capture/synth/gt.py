@@ -7,7 +7,13 @@ topologies: first/last frame, face count), seed and the full config.
 float32 in [0, 1], offset (R, R, 3) world-space clothing offset of the posed frame (m; surface
 minus the body texel point, tangential drift included), surface (R, R, 3) true clothed surface
 point per body texel (world, m, noise-free), mask (R, R) bool,
-bends (K,) (see :mod:`.bends`), broken (bool). All maps in the body UV layout, row 0 = v 1.
+bends (K,) (see :mod:`.bends`), broken (bool). With the studio light on (``config.light ==
+"studio"``, :mod:`.lighting`), ``texture`` is what the scans and cameras see, the light included,
+and the frame also keeps its parts apart: albedo (R, R, 3) float32 (pose independent), crease (R, R)
+float32 crease darkening of the pose, shading (R, R) float32 the rig's light (ambient x AO + key +
+fill, cast shadows included), ao (R, R) float32 ambient occlusion in [0, 1]; ``texture =
+clip(albedo * crease * shading, 0, 1)``. Unlit captures (``light == "none"``) have none of these four
+and ``texture = albedo * crease``. All maps in the body UV layout, row 0 = v 1.
 ``gt/motion.npz``: the whole true motion; ``gt/topologies/<segment>.npz``: scan topologies with each
 scan vertex's body origin.
 """
