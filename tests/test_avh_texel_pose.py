@@ -9,7 +9,13 @@ import roma
 import torch
 
 from tests.fixtures.toy_capture import make_toy_capture
-from uvatar.avh.model import AvhConfig, AvhFromAngles, AvhGenerator, count_parameters, expected_parameter_count
+from uvatar.avh.model import (
+    AvhConfig,
+    AvhFromAngles,
+    AvhGenerator,
+    count_parameters,
+    expected_parameter_count,
+)
 from uvatar.avh.texel_pose import TexelPoseMap, conditioning_skin_weights, rotvec_to_rot6d, texel_skin_weights
 from uvatar.body.toy import ToyTubeBody
 
