@@ -126,6 +126,9 @@ PRESETS: dict[str, AvhConfig] = {
     "cpu-tiny": AvhConfig(8, 64, resolution=64, output_bias=True),
     "cpu-small": AvhConfig(16, 128, resolution=128, output_bias=True),
     "cpu-medium": AvhConfig(16, 256, resolution=256, output_bias=True),
+    # 256² maps at about cpu-small's cost: the per-texel bias carries the static detail at full resolution,
+    # the narrow decoder (64 -> 8 channels) the pose-dependent residual
+    "cpu-256": AvhConfig(16, 64, resolution=256, output_bias=True),
 }
 
 

@@ -40,7 +40,7 @@ class DemoConfig:
     texels: int = 256           # bake resolution = the generator preset's output resolution
     train_frames: int = 80
     val_frames: int = 6
-    preset: str = "cpu-medium"
+    preset: str = "cpu-256"
     # generator conditionings trained (AvhConfig.conditioning); the first is the demo's avatar (OUT/run,
     # OUT/avatar), each other one gets OUT/run_<c>, OUT/avatar_<c> and is evaluated beside it
     conditionings: tuple[str, ...] = ("texel", "global")
