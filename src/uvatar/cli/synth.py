@@ -15,8 +15,8 @@ def _flags() -> ConfigFlags:
 
     return ConfigFlags(
         SynthConfig, fields=("frames", "cameras", "image_size", "scan_texture", "gt_texels", "fit_noise_deg",
-                             "fit_tracks", "heldout", "seed", "workers", "preview"),
-        choices={"fit_tracks": ("body", "all")}, presets=PRESETS, help={
+                             "fit_tracks", "heldout", "seed", "workers", "preview", "light"),
+        choices={"fit_tracks": ("body", "all"), "light": ("studio", "none")}, presets=PRESETS, help={
             "frames": "total frames (takes + held-out)", "cameras": "multi-view cameras (ring + elevated); 0 for none",
             "image_size": "square image side in pixels", "scan_texture": "scan atlas texture side in texels",
             "gt_texels": "ground-truth map side in body-UV texels",
@@ -24,7 +24,9 @@ def _flags() -> ConfigFlags:
             "fit_tracks": "joints the fits track: body (no fingers, toes or eyes, as SMPL/EasyMocap body fits) or all",
             "heldout": "held-out frames at the end (none: 10%% of frames)",
             "seed": "random seed; same seed, same capture", "workers": "worker processes",
-            "preview": "write OUT/preview.png"})
+            "preview": "write OUT/preview.png",
+            "light": "studio: key/fill/ambient light with cast shadows and ambient occlusion baked into the "
+                     "texture; none: unlit (as captures made before the light)"})
 
 
 def register(cli) -> None:

@@ -19,7 +19,7 @@ import numpy as np
 from uvatar.capture.synth.bends import BENDS, limb_coordinates, smoothstep, value_noise
 from uvatar.capture.synth.surface import BodyLandmarks, SurfaceFeatures
 
-__all__ = ["AppearanceConfig", "Regions", "regions", "albedo", "crease_maps", "shade"]
+__all__ = ["AppearanceConfig", "Regions", "regions", "albedo", "crease_maps", "crease_factor", "shade"]
 
 
 @dataclass(frozen=True)
@@ -252,7 +252,11 @@ def crease_maps(f: SurfaceFeatures, L: BodyLandmarks) -> np.ndarray:
 def shade(albedo_rgb: np.ndarray, creases: np.ndarray, bends: np.ndarray,
           cfg: AppearanceConfig | None = None) -> np.ndarray:
     """(N, 3) float32 texture of one pose: albedo (N, 3) darkened by creases (N, K) x bends (K,)."""
+    return (albedo_rgb * crease_factor(creases, bends, cfg)[:, None]).astype(np.float32)
+
+
+def crease_factor(creases: np.ndarray, bends: np.ndarray, cfg: AppearanceConfig | None = None) -> np.ndarray:
+    """(N,) float64 darkening of one pose: prod_k (1 - strength_k * bend_k * creases (N, K))."""
     cfg = cfg or AppearanceConfig()
     strength = np.asarray(cfg.crease_strength, dtype=np.float64) * np.asarray(bends, dtype=np.float64)
-    factor = np.prod(1.0 - creases * strength[None, :], axis=1)
-    return (albedo_rgb * factor[:, None]).astype(np.float32)
+    return np.prod(1.0 - creases * strength[None, :], axis=1)

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field, replace
 from uvatar.capture.synth.appearance import AppearanceConfig
 from uvatar.capture.synth.cameras import StudioConfig
 from uvatar.capture.synth.clothing import ClothingConfig
+from uvatar.capture.synth.lighting import LightConfig
 from uvatar.capture.synth.motion import MotionConfig
 from uvatar.errors import check_values
 
@@ -32,7 +33,9 @@ class SynthConfig:
     broken frame per this many (at least one when frames >= 20); broken_fraction: range of the
     surface fraction cut away; scan_noise: scan vertex noise along the normal (m); chart_area:
     max xatlas chart area (m^2); background: image background grey level; preview: write
-    OUT/preview.png."""
+    OUT/preview.png; light: "studio" (the fixed key/fill/ambient rig with cast shadows and ambient
+    occlusion baked into every frame's texture, :mod:`.lighting`, set by ``lighting``) or "none"
+    (unlit: albedo times creases, as captures made before the rig)."""
 
     frames: int = 100
     cameras: int = 8
@@ -54,10 +57,12 @@ class SynthConfig:
     background: float = 1.0
     body_model: str = "anny"
     preview: bool = True
+    light: str = "studio"
     motion: MotionConfig = field(default_factory=MotionConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     clothing: ClothingConfig = field(default_factory=ClothingConfig)
     studio: StudioConfig = field(default_factory=StudioConfig)
+    lighting: LightConfig = field(default_factory=LightConfig)
 
     def __post_init__(self) -> None:
         check_values([
@@ -68,6 +73,7 @@ class SynthConfig:
             (self.gt_texels >= 1, f"gt_texels must be at least 1, got {self.gt_texels}"),
             (self.fit_noise_deg >= 0, f"fit_noise_deg must not be negative, got {self.fit_noise_deg}"),
             (self.fit_tracks in ("body", "all"), f"fit_tracks must be 'body' or 'all', got {self.fit_tracks!r}"),
+            (self.light in ("studio", "none"), f"light must be 'studio' or 'none', got {self.light!r}"),
             (self.heldout is None or self.heldout >= 0, f"heldout must not be negative, got {self.heldout}"),
             (self.workers >= 1, f"workers must be at least 1, got {self.workers}")])
 

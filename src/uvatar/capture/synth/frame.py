@@ -96,6 +96,7 @@ class Studio:
         self.drape = gaussian_surface_matrix(t.vertices, rest_normals, c.bending_length, c.drape_normal_dot)
         self.rest_bends = bend_amounts(t.rest_joints, self.body.semantic_joints, t.rest_joints)
         self.gt = self.statics(W)
+        self.light = None  # the studio light (:mod:`.lighting`), built on first use when cfg.light is on
         self._fine = None
         self._segments: OrderedDict[int, tuple] = OrderedDict()
 
@@ -140,7 +141,7 @@ class Studio:
         vert = self.statics(Wv, looks=False)
         raster = rasterize_uv(topo.uvs, topo.uv_faces, self.cfg.scan_texture)
         Wt, flat = atlas_texel_matrix(topo, raster, self.template.faces, self.template.num_vertices)
-        texel = self.statics(Wt, geometry=False)
+        texel = self.statics(Wt, geometry=self.cfg.light != "none")  # lit texels need their clothed points
         entry = (topo, vert, texel, flat, fill_atlas_index(raster.mask))
         self._segments[index] = entry
         while len(self._segments) > 2:
@@ -179,6 +180,27 @@ class Studio:
         off = clo.offset_amount(st.base, st.folds, posed.bends, self.cfg.clothing, bridged)
         return pts + off[:, None] * dirs + apply_drift(st.drift, posed.drift, dirs), dirs
 
+    def texture(self, st: Statics, posed: Posed, occluder=None, points=None, dirs=None) -> tuple:
+        """(texture (N, 3) float32, parts or None) of the points of ``st`` in ``posed``: albedo times
+        creases, lit by the studio rig unless ``cfg.light`` is "none" (parts: albedo, crease,
+        shading, ao; see :meth:`.lighting.StudioLight.texture`). occluder: the frame's
+        :class:`.lighting.Occluder` (built when not given); points, dirs: ``clothed(st, posed)``
+        when already at hand."""
+        if self.cfg.light == "none":
+            return app.shade(st.albedo, st.creases, posed.bends, self.cfg.appearance), None
+        occluder = occluder or self.occluder(posed)  # builds self.light on first use
+        return self.light.texture(st, posed, occluder, points, dirs)
+
+    def occluder(self, posed: Posed):
+        """The frame's light occluder (:class:`.lighting.Occluder`), or None when the light is off."""
+        if self.cfg.light == "none":
+            return None
+        if self.light is None:
+            from uvatar.capture.synth.lighting import StudioLight
+
+            self.light = StudioLight(self)
+        return self.light.occluder(posed)
+
     def make_frame(self, i: int) -> dict:
         """Write frame ``i`` (scan, fit, images, masks, gt) and return a small summary."""
         from uvatar.capture.fits import write_fit
@@ -196,7 +218,8 @@ class Studio:
         surface, dirs = self.clothed(vert, posed)
         vertices = pose_scan(surface, dirs, np.zeros(len(surface)), cfg.scan_noise, frame_rng(cfg.seed, i, 1))
         R = cfg.scan_texture
-        atlas = scatter_texels(app.shade(texel.albedo, texel.creases, bends, cfg.appearance), flat, R)
+        occluder = self.occluder(posed)
+        atlas = scatter_texels(self.texture(texel, posed, occluder)[0], flat, R)
         atlas = atlas.reshape(-1, 3)[fill].reshape(R, R, 3)
         faces, uv_faces = topo.faces, topo.uv_faces
         broken = p["broken"].get(name)
@@ -217,11 +240,15 @@ class Studio:
                 write_image(self.root / "masks" / cam.name / f"{name}.png", mask.astype(np.uint8) * 255)
 
         g = self.gt
-        gsurf, _ = self.clothed(g, posed)
-        gp = srf.posed_points(g.W, posed.vertices, posed.normals)[0]
         Rg = cfg.gt_texels
+        gsurf, gdirs = self.clothed(g, posed)
+        gtex, parts = self.texture(g, posed, occluder, gsurf, gdirs)
+        lit = {} if parts is None else {  # albedo and shading kept apart (see :mod:`.gt`)
+            k: scatter_texels(v.reshape(len(v), -1), self.gt_flat, Rg).squeeze(-1) if v.ndim == 1
+            else scatter_texels(v, self.gt_flat, Rg) for k, v in parts.items()}
+        gp = srf.posed_points(g.W, posed.vertices, posed.normals)[0]
         write_gt_frame(self.root, name, pose=p["poses"][i].reshape(-1), Rh=p["Rh"][i], Th=p["Th"][i],
-                       texture=scatter_texels(app.shade(g.albedo, g.creases, bends, cfg.appearance), self.gt_flat, Rg),
+                       texture=scatter_texels(gtex, self.gt_flat, Rg), **lit,
                        offset=scatter_texels((gsurf - gp).astype(np.float32), self.gt_flat, Rg),
                        surface=scatter_texels(gsurf.astype(np.float32), self.gt_flat, Rg),
                        mask=self.gt_mask, bends=bends.astype(np.float32), broken=np.bool_(bool(broken)))

@@ -46,6 +46,8 @@ def config_from_dict(data: dict):
     if data and "bending_length" not in (data.get("clothing") or {"bending_length": None}):
         # captures made before the drape and drift: cloth along the body normal, no bridging or drift
         data["clothing"] = dict(data["clothing"], bending_length=0.0, drift_elbow=0.0, drift_knee=0.0)
+    if data and "light" not in data:  # captures made before the studio light: unlit
+        data["light"] = "none"
     return build(SynthConfig, data)
 
 
@@ -74,7 +76,6 @@ class GtRenderer:
         self.resolution = int(resolution)
 
     def render(self, frame: str) -> dict | None:
-        from uvatar.capture.synth import appearance as app
         from uvatar.capture.synth.gt import scatter_texels
 
         path = self.root / "gt" / "frames" / f"{frame}.npz"
@@ -86,7 +87,7 @@ class GtRenderer:
         posed = st.posed(pose, Rh, Th)   # bends recomputed in float64, exactly as when the frame was made
         g, R = st.gt, self.resolution
         points, dirs = st.clothed(g, posed)
-        texture = scatter_texels(app.shade(g.albedo, g.creases, posed.bends, self.cfg.appearance), st.gt_flat, R)
+        texture = scatter_texels(st.texture(g, posed, points=points, dirs=dirs)[0], st.gt_flat, R)
         surface = np.zeros((R * R, 3))
         surface[st.gt_flat] = points
         normal = np.zeros((R * R, 3))
