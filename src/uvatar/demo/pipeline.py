@@ -29,7 +29,8 @@ FIT_SOURCES = ("studio", "fit")
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """Sizes of the demo run. ``DEFAULT`` fits in ~15 min on a 2-core CPU, ``QUICK`` in ~3 min."""
+    """Sizes of the demo run. ``DEFAULT`` (256² maps, two conditionings) took 65 min on a 2-core CPU shared with
+    other jobs (docs/results.md; 6 epochs), ``QUICK`` ~3 min alone (14 min under that load)."""
 
     frames: int = 100           # synthetic capture frames in all (takes + held-out poses)
     heldout: int = 8            # held-out frames with poses not in the takes
