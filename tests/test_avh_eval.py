@@ -224,3 +224,26 @@ def test_cli_eval_named(setup, tmp_path, monkeypatch):
     assert len(m["images"]) == 4 and np.isfinite(m["avh"]["psnr_db_full"])
     assert main(["eval", "avh", str(root / "avatar"), str(cap), "--frames", "000099"]) == 1
     assert main(["eval", "avh", str(root / "avatar"), str(cap), "--image-size", "0"]) == 1
+
+
+def test_evaluate_uv_r2_distances_and_a_second_avatar(setup):
+    from uvatar.avh.pose_metrics import pose_distance_deg
+
+    root, body, cap, baked = setup
+    m = evaluate_avatar(root / "avatar", cap, EvalConfig(progress=False, image_size=32, max_cameras=1,
+                                                         pose_source="fit"), body=body, others={"twin": root / "avatar"})
+    # the same avatar under another name scores the same
+    for key in ("psnr_db", "geometry_mm", "texture_r2", "displacement_r2"):
+        assert m["others"]["twin"][key] == pytest.approx(m["avh"][key])
+    # known answer: the mean-texture baseline's texture is the mean map itself
+    assert m["baselines"]["mean_texture"]["texture_r2"] == pytest.approx(0.0, abs=1e-9)
+    assert all(np.isfinite(v[k]) for v in (m["avh"], *m["baselines"].values()) for k in ("texture_r2", "displacement_r2"))
+    # the nearest-training-pose distance is the minimum over the training frames' poses
+    train = json.loads((baked / "dataset.json").read_text())["selection"]["train"]
+    poses = np.stack([load_frame(baked / "frames" / f"{f}.npz")["pose"] for f in train])
+    for f in m["frames"]:
+        d = pose_distance_deg(load_frame(baked / "frames" / f"{f}.npz")["pose"][None], poses, body.conditioning_joints)
+        assert m["nearest_training_distance_deg"][f] == pytest.approx(d.min(), abs=1e-3)
+    assert sorted(sum((b["frames"] for b in m["distance_bins"]), [])) == sorted(m["frames"])
+    assert m["avatars"]["twin"]["conditioning"] == "global"
+    json.dumps(m)

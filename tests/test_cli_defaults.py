@@ -77,7 +77,7 @@ NOT_CONFIG = {
     ("train avh", "preset"), ("train avh", "resume"),
     ("train dva", "preset"), ("train dva", "threads"), ("train dva", "vgg_weights"),
     ("presets", "json"), ("animate", "motion"), ("animate", "output"),
-    ("eval avh", "json"), ("eval avh", "images"), ("eval avh", "baked_dir"), ("eval avh", "frames"),
+    ("eval avh", "json"), ("eval avh", "images"), ("eval avh", "baked_dir"), ("eval avh", "frames"), ("eval avh", "also"),
     ("eval avh", "cameras"), ("eval dva", "json"), ("eval dva", "threads"), ("eval dva", "frames"),
     ("eval dva", "cameras"), ("bake", "workers"), ("bake", "frames"), ("bake", "frames_from"),
     ("bake", "overwrite"), ("bake", "json"), ("bake", "eval"), ("bake", "no_progress"),

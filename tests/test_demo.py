@@ -21,7 +21,9 @@ def test_quick_demo_runs_every_stage_and_writes_report(tmp_path):
         assert method["geometry_mm"] > 0.0
     assert metrics["bake"]["eval"]["rejected_equals_broken"] is True
     report = (out / "report.html").read_text()
-    assert "animation.mp4" in report and "AVH (ours)" in report and "mean texture" in report
+    assert "animation.mp4" in report and "AVH, texel conditioning" in report and "mean texture" in report
+    assert set(metrics["avh_by_conditioning"]) == {"texel", "global"} and metrics["distance_bins"]
+    assert all(-10 < m["texture_r2"] <= 1 for m in metrics["avh_by_conditioning"].values())
     assert (out / "animation.mp4").stat().st_size > 1000
 
     # A second run resumes: every stage is found done and skipped.
@@ -75,3 +77,20 @@ def test_report_is_written_when_the_bake_measured_nothing(tmp_path):
     html = path.read_text()
     assert "correspondence error median (mm)" in html and "–" in html
     assert "failed (exit 1)" in html
+
+
+def test_report_rows_for_each_conditioning_and_distance_bin():
+    from uvatar.demo.report import _bin_rows, _metric_rows
+
+    avh = {"psnr_db": 20.0, "texture_r2": 0.5, "displacement_r2": 0.25}
+    metrics = {"avh": avh, "avh_by_conditioning": {"texel": avh, "global": {"psnr_db": 19.0, "texture_r2": 0.1}},
+               "baselines": {"nearest_pose": {"psnr_db": 18.0, "texture_r2": -0.2}},
+               "distance_bins": [{"bin": "near", "frames": ["a"], "distance_deg_min": 3.0, "distance_deg_max": 3.0,
+                                  "avh_texture_r2": 0.6, "avh_global_texture_r2": 0.2,
+                                  "nearest_pose_texture_r2": 0.0}]}
+    rows = {r["method"]: r for r in _metric_rows(metrics)}
+    assert list(rows) == ["AVH, texel conditioning", "AVH, global conditioning", "baseline: nearest pose"]
+    assert rows["AVH, texel conditioning"]["texture R² (UV)"] == 0.5
+    assert rows["AVH, global conditioning"]["displacement R² (UV)"] == "–"
+    bins = _bin_rows(metrics)
+    assert [r["texture R²"] for r in bins] == [0.6, 0.2, 0.0] and bins[0]["bin"].startswith("near (3.0-3.0 deg")

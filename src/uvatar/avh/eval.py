@@ -15,6 +15,11 @@ over ``mask``. The same numbers for two baselines:
   displacement in the avatar's frame (rest or body), re-posed exactly like the avatar's.
 
 All three go through the same runtime (subdivision, gutter fill of texels outside the UV charts).
+More avatars (``others``, e.g. the other generator conditioning) are evaluated in the same loop.
+
+The pose-dependent part (:mod:`uvatar.avh.pose_metrics`): per method, R² of its texture and
+displacement maps against the studio's true maps over confident texels, and every metric binned
+by the held-out pose's distance to its nearest training pose.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.avh.data import load_baked_frames, resample_map, rotvec_to_rotmat
+from uvatar.avh.pose_metrics import R2Sums, distance_bins, pose_distance_deg
 from uvatar.avh.poses import heldout_frames
 from uvatar.avh.runtime import AvatarRuntime
 from uvatar.errors import InputError, check_values
@@ -39,7 +45,13 @@ PROTOCOL = ("held-out frames (gt/info.json heldout_frames), not trained on; avat
             "PSNR (dB) and SSIM (Gaussian window sigma 1.5) over the union of the two foreground masks "
             "(psnr_db, ssim = psnr_db_union_mask, ssim_union_mask) and over the full image (psnr_db_full, "
             "ssim_full), averaged over frames x cameras; geometry: mean / median / p90 distance (mm) between predicted "
-            "and ground-truth clothed surface point per texel over gt mask (texels at the gt resolution)")
+            "and ground-truth clothed surface point per texel over gt mask (texels at the gt resolution); "
+            "pose-dependent part: texture_r2 / displacement_r2 = 1 - sum |pred - gt|^2 / sum |mean - gt|^2 pooled over "
+            "the held-out frames' confident texels (gt mask, training frames' mean kappa > 0.5, no fingers/toes), "
+            "mean = the training frames' mean map; texture at the avatar's resolution against gt/ texture "
+            "area-averaged to it, displacement as the clothed surface point per texel against gt/ surface (gt "
+            "resolution); nearest_training_distance_deg: mean over conditioning joints of the geodesic angle to "
+            "the nearest training pose; distance_bins: frames split at its median")
 
 
 @dataclass(frozen=True)
@@ -114,6 +126,9 @@ class Baselines:
 
             frames = displacements_to_frame(frames, "rest", body, shape)
         self.displacement = np.where(bad[..., None], 0.0, frames.displacement).astype(np.float32)
+        good = (~bad).sum(0)[..., None]
+        self.mean_displacement = (self.displacement.sum(0) / np.maximum(good, 1)).astype(np.float32)
+        self.mean_kappa = (frames.kappa * frames.valid).mean(0).astype(np.float32)
         self.frames = frames
         self.codes = encoded_conditioning(frames.poses, conditioning)
         self.conditioning = list(conditioning)
@@ -176,9 +191,17 @@ def surface_error_mm(runtime: AvatarRuntime, base_vertices, displacement, Rh, gt
     """Per-texel distances (mm) between predicted clothed surface and gt ``surface`` (G, G, 3) over ``gt_mask``.
 
     rotations: (V, 3, 3) blended skinning rotations of the pose (rest-frame avatars)."""
+    pos, covered = predicted_surface(runtime, base_vertices, displacement, Rh, gt_surface.shape[0], rotations)
+    m = np.asarray(gt_mask, bool) & covered
+    return np.linalg.norm(pos[m] - gt_surface[m], axis=-1) * 1000.0
+
+
+def predicted_surface(runtime: AvatarRuntime, base_vertices, displacement, Rh, G: int,
+                      rotations=None) -> tuple[np.ndarray, np.ndarray]:
+    """(predicted clothed surface point per texel (G, G, 3) world metres, texels covered (G, G) bool):
+    the posed body's texel point plus the displacement map (None: none) in world axes."""
     from uvatar.geometry import rasterize_uv, texel_positions
 
-    G = gt_surface.shape[0]
     t = runtime.body.template
     raster = rasterize_uv(t.uvs, t.uv_faces, G)
     pos = np.asarray(texel_positions(raster, t.faces, np.asarray(base_vertices, np.float32)), np.float32)
@@ -190,8 +213,7 @@ def surface_error_mm(runtime: AvatarRuntime, base_vertices, displacement, Rh, gt
 
             d = rest_to_body(d, texel_skinning_rotations(raster, t.faces, np.asarray(rotations, np.float32)))
         pos = pos + d @ rotvec_to_rotmat(np.asarray(Rh, np.float64)).T.astype(np.float32)
-    m = np.asarray(gt_mask, bool) & raster.mask
-    return np.linalg.norm(pos[m] - gt_surface[m], axis=-1) * 1000.0
+    return pos, raster.mask
 
 
 def _summary(values: list[dict]) -> dict:
@@ -211,8 +233,14 @@ def _geometry_summary(errors: list[np.ndarray]) -> dict:
 
 
 def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: EvalConfig = EvalConfig(),
-                    baked_dir: str | Path | None = None, image_dir: str | Path | None = None, body=None) -> dict:
-    """Metrics dict (``protocol``, ``frames``, ``cameras``, ``avh``, ``baselines``, ``per_frame``)."""
+                    baked_dir: str | Path | None = None, image_dir: str | Path | None = None, body=None,
+                    others: dict[str, str | Path] | None = None) -> dict:
+    """Metrics dict (``protocol``, ``frames``, ``cameras``, ``avh``, ``others``, ``baselines``,
+    ``distance_bins``, ``per_frame``).
+
+    ``others``: {name: avatar folder} evaluated beside ``avatar_dir`` on the same frames, cameras and
+    poses (same body; e.g. another generator conditioning); the baselines come from ``avatar_dir``'s
+    training data."""
     from tqdm import tqdm
 
     from uvatar.capture import Capture
@@ -221,6 +249,9 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
 
     capture = Capture(capture_root)
     runtime = AvatarRuntime(avatar_dir, body=body, levels=config.levels, scheme=config.scheme)
+    runtimes = {"avh": runtime, **{name: AvatarRuntime(path, body=runtime.body, levels=config.levels,
+                                                       scheme=config.scheme) for name, path in (others or {}).items()}}
+    methods = [*runtimes, "mean_texture", "nearest_pose"]
     training = runtime.meta.get("training") or {}
     baked_dir = Path(baked_dir or training.get("baked") or "")
     if not (baked_dir / "dataset.json").is_file():
@@ -242,8 +273,9 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
             raise InputError(capture.root, "cameras were named but the capture has none")
         cams = {c: cams[c] for c in select_names(config.cameras, list(cams), capture.root, "camera")}
     camera_names = list(cams)[: config.max_cameras or None] if cams else None
-    results = {m: [] for m in METHODS}
-    geometry = {m: [] for m in METHODS}
+    results = {m: [] for m in methods}
+    geometry = {m: [] for m in methods}
+    r2 = {"texture": R2Sums(), "displacement": R2Sums()}
     per_frame, sheets = [], []
     for frame in tqdm(frames, desc="eval avh", disable=not config.progress):
         try:
@@ -258,18 +290,23 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         shape = np.asarray(fit.shapes, np.float32) if np.size(fit.shapes) else None
         base = runtime.posed_vertices(pose[None], Rh[None], np.asarray(fit.Th, np.float32).reshape(1, 3),
                                       np.array([fit.scale], np.float32), shape)[0]
-        tex, disp = runtime.generate(pose[None])
         nn_index, nn_tex, nn_disp = baselines.nearest(pose)
-        maps = {"avh": (tex[0], disp[0]), "mean_texture": (baselines.mean_texture, None),
-                "nearest_pose": (nn_tex, nn_disp)}
-        rotations = runtime.skinning_rotations(pose[None])[0] if runtime.displacement_frame == "rest" else None
-        meshes = {m: runtime.mesh(base, t, d, Rh, rotations=rotations) for m, (t, d) in maps.items()}
+        maps = {}
+        for m, rt in runtimes.items():
+            tex, disp = rt.generate(pose[None])
+            maps[m] = (tex[0], disp[0])
+        maps.update({"mean_texture": (baselines.mean_texture, None), "nearest_pose": (nn_tex, nn_disp)})
+        rotations = runtime.skinning_rotations(pose[None])[0]
+        meshes = {m: runtimes.get(m, runtime).mesh(base, t, d, Rh, rotations=rotations) for m, (t, d) in maps.items()}
         cameras = list(cams.values()) if cams else orbit_cameras(
             0.5 * (scan.vertices.min(0) + scan.vertices.max(0)), 3.0, 4, 10.0, width=256, height=256)
         cameras = [scaled_camera(c, config.image_size) for c in cameras[: config.max_cameras or None]]
         casters = {m: RayCaster(mesh.vertices, mesh.faces) for m, mesh in meshes.items()}
         gt_caster = RayCaster(scan.vertices, scan.faces)
-        entry = {"frame": frame, "nearest_training_frame": baselines.frames.names[nn_index]}
+        distances = pose_distance_deg(pose[None], baselines.frames.poses, baselines.conditioning)[0]
+        entry = {"frame": frame, "nearest_training_frame": baselines.frames.names[nn_index],
+                 "nearest_training_distance_deg": float(distances.min()),
+                 "nearest_pose_baseline_distance_deg": float(distances[nn_index])}
         for ci, cam in enumerate(cameras):
             gt = render_mesh(scan.vertices, scan.faces, cam, scan.uvs, scan.uv_faces, scan.texture, raycaster=gt_caster)
             row, masks, labels = [gt.rgb], [gt.mask], ["ground truth"]
@@ -280,7 +317,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
                 results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask))
                 row.append(r.rgb)
                 masks.append(r.mask)
-                labels.append(f"{SHORT_NAMES[m]} {results[m][-1]['psnr_db']:.1f} dB")
+                labels.append(f"{SHORT_NAMES.get(m, m.replace('_', ' '))} {results[m][-1]['psnr_db']:.1f} dB")
                 errors.append(error_image(r.rgb, gt.rgb))
                 error_labels.append(f"IoU {results[m][-1]['silhouette_iou']:.3f}")
             if (config.sheets_per_camera and camera_names) or ci == 0:
@@ -289,26 +326,59 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         gt_npz = capture.gt_dir / "frames" / f"{frame}.npz"
         if gt_npz.is_file():
             with np.load(gt_npz) as z:
-                surface, mask = z["surface"].astype(np.float32), z["mask"].astype(bool)
+                gt_maps = {k: z[k].astype(np.float32) for k in ("surface", "texture") if k in z.files}
+                mask = z["mask"].astype(bool)
             for m, (_, d) in maps.items():
-                err = surface_error_mm(runtime, base, d, Rh, surface, mask, rotations)
+                err = surface_error_mm(runtime, base, d, Rh, gt_maps["surface"], mask, rotations)
                 geometry[m].append(err)
                 entry[f"{m}_geometry_mm"] = float(err.mean()) if len(err) else None
-        for m in METHODS:
+            entry.update(_uv_r2(runtime, baselines, maps, base, Rh, rotations, gt_maps, mask, r2))
+        for m in methods:
             n = len(cameras)
-            entry[f"{m}_psnr_db"] = float(np.mean([x["psnr_db"] for x in results[m][-n:]]))
+            for key in ("psnr_db", "psnr_db_inside_both"):
+                entry[f"{m}_{key}"] = float(np.nanmean([x[key] for x in results[m][-n:]]))
         per_frame.append(entry)
     if not per_frame:
         raise InputError(capture.root, "no frame could be evaluated")
-    summary = {m: {**_summary(results[m]), **_geometry_summary(geometry[m])} for m in METHODS}
+    summary = {m: {**_summary(results[m]), **_geometry_summary(geometry[m])} for m in methods}
+    for kind, sums in r2.items():
+        for m, value in sums.r2().items():
+            summary[m][f"{kind}_r2"] = value
+    conditioning = {m: rt.meta.get("model_config", {}).get("conditioning", "global") for m, rt in runtimes.items()}
     out = {"protocol": PROTOCOL + POSE_PROTOCOL[config.pose_source], "pose_source": config.pose_source,
            "split": split, "frames": [e["frame"] for e in per_frame],
            "cameras": len(cameras), "camera_names": camera_names, "avatar": str(avatar_dir), "capture": str(capture_root),
-           "avh": summary["avh"], "baselines": {"mean_texture": summary["mean_texture"],
-                                                 "nearest_pose": summary["nearest_pose"]},
+           "avh": summary["avh"], "others": {m: summary[m] for m in runtimes if m != "avh"},
+           "avatars": {m: {"path": str(rt.avatar_dir), "conditioning": conditioning[m]} for m, rt in runtimes.items()},
+           "baselines": {"mean_texture": summary["mean_texture"], "nearest_pose": summary["nearest_pose"]},
+           "nearest_training_distance_deg": {e["frame"]: e["nearest_training_distance_deg"] for e in per_frame},
+           "distance_bins": distance_bins(per_frame, methods),
            "per_frame": per_frame, "config": asdict(config)}
     if image_dir is not None:
         out["images"] = write_comparison_images(image_dir, sheets)
+    return out
+
+
+def _uv_r2(runtime: AvatarRuntime, baselines: Baselines, maps: dict, base, Rh, rotations, gt_maps: dict,
+           gt_mask: np.ndarray, sums: dict[str, R2Sums]) -> dict:
+    """Add one frame to the texture / displacement R² sums (:mod:`uvatar.avh.pose_metrics`) over its
+    confident texels; returns the frame's ``<method>_texture_r2`` / ``<method>_displacement_r2``."""
+    out = {}
+    R = runtime.resolution
+    keep = ~runtime.fingers_toes_mask()
+    if "texture" in gt_maps:
+        confident = (resample_map(baselines.mean_kappa, R) > 0.5) & keep & (
+            resample_map(gt_mask.astype(np.float32), R) > 0.999)
+        preds = {m: resample_map(np.asarray(t, np.float32), R) for m, (t, _) in maps.items()}
+        frame_r2 = sums["texture"].add(preds, baselines.mean_texture, resample_map(gt_maps["texture"], R), confident)
+        out.update({f"{m}_texture_r2": v for m, v in frame_r2.items()})
+    G = gt_maps["surface"].shape[0]
+    mean_pos, covered = predicted_surface(runtime, base, baselines.mean_displacement, Rh, G, rotations)
+    confident = (resample_map(baselines.mean_kappa, G) > 0.5) & covered & gt_mask & (
+        resample_map(keep.astype(np.float32), G) > 0.5)
+    preds = {m: predicted_surface(runtime, base, d, Rh, G, rotations)[0] for m, (_, d) in maps.items()}
+    frame_r2 = sums["displacement"].add(preds, mean_pos, gt_maps["surface"], confident)
+    out.update({f"{m}_displacement_r2": v for m, v in frame_r2.items()})
     return out
 
 

@@ -18,8 +18,15 @@ up-conv" with the up-conv leading) gives, per decoder, 2·C² + 18·(C/2)² = 6.
 level and ≈ 6.5·4/3 = 8.67·latent² over all levels, which reproduces every Table 1 parameter count to
 within ~1 % (e.g. (32, 1024): 32²·1024 + 2·8.67·1024² + MLP ≈ 19.5 M).
 
+Texel conditioning (``conditioning="texel"``, beyond the paper; :mod:`uvatar.avh.texel_pose`): the
+same raw angles also make a UV map of the skinning-weighted rotations of the joints that skin each
+texel (B, 6, R, R); each decoder adds a 1×1 projection of it (average-pooled to the level's
+resolution) to its features at the cuboid and after every transposed conv. The projections start at
+zero, so training starts from the global model and learns how much local pose to use.
+
 Maps are BCHW float32; image row 0 is v = 1 (UV v up), the layout of the baked maps. Only
-ONNX-portable ops are used (Linear, Mul, ConvTranspose, Conv, BatchNorm, Relu, Tanh, Sin, Cos).
+ONNX-portable ops are used (Linear, Mul, ConvTranspose, Conv, BatchNorm, Relu, Tanh, Sin, Cos;
+texel conditioning adds Sqrt, MatMul, AveragePool).
 """
 
 from __future__ import annotations
@@ -29,6 +36,11 @@ from dataclasses import asdict, dataclass, replace
 
 import torch
 from torch import nn
+
+from uvatar.avh.texel_pose import TexelPoseMap, pooled
+
+#: Pose conditioning of the decoders: the paper's global latent only, or also a texel-aligned pose map.
+CONDITIONINGS = ("global", "texel")
 
 #: Paper Table 1 parameter counts, keyed by preset name.
 PAPER_PARAMETER_COUNTS: dict[str, int] = {
@@ -57,6 +69,9 @@ class AvhConfig:
         network then learns the pose-dependent residual. Off for the paper's Table 1 presets (their
         parameter counts are the paper's), on for the CPU presets, whose short trainings would
         otherwise spend most steps learning the static texture detail.
+    conditioning: "global" (the paper: the pose reaches the decoders only through the cuboid) or
+        "texel" (also a UV map of the skinning-weighted rotations of the joints that skin each texel,
+        fed to every decoder level; :mod:`uvatar.avh.texel_pose`).
     """
 
     feature_size: int = 32
@@ -67,6 +82,7 @@ class AvhConfig:
     displacement_scale: float = 0.05
     min_channels: int = 8
     output_bias: bool = False
+    conditioning: str = "global"
 
     def __post_init__(self):
         ratio = self.resolution / self.feature_size
@@ -75,6 +91,8 @@ class AvhConfig:
                              f"times a power of two")
         if self.latent < 1 or self.num_pose_joints < 1 or self.hidden < 1:
             raise ValueError("latent, num_pose_joints and hidden must be positive")
+        if self.conditioning not in CONDITIONINGS:
+            raise ValueError(f"conditioning must be one of {', '.join(CONDITIONINGS)}, got {self.conditioning!r}")
 
     @property
     def num_levels(self) -> int:
@@ -84,6 +102,10 @@ class AvhConfig:
     def pose_input_size(self) -> int:
         """Size of the encoded pose: (sin, cos) of each of the 3·J_c angles."""
         return 6 * self.num_pose_joints
+
+    def level_resolutions(self) -> list[int]:
+        """Side of the decoder features at the cuboid and after each level (f_c, 2 f_c, ..., R)."""
+        return [self.feature_size << k for k in range(self.num_levels + 1)]
 
     def level_channels(self) -> list[int]:
         """Channels after each level's transposed conv (C_k = max(latent / 2^k, min_channels))."""
@@ -104,6 +126,9 @@ PRESETS: dict[str, AvhConfig] = {
     "cpu-tiny": AvhConfig(8, 64, resolution=64, output_bias=True),
     "cpu-small": AvhConfig(16, 128, resolution=128, output_bias=True),
     "cpu-medium": AvhConfig(16, 256, resolution=256, output_bias=True),
+    # 256² maps at about cpu-small's cost: the per-texel bias carries the static detail at full resolution,
+    # the narrow decoder (64 -> 8 channels) the pose-dependent residual
+    "cpu-256": AvhConfig(16, 64, resolution=256, output_bias=True),
 }
 
 
@@ -135,7 +160,10 @@ def double_conv(channels: int) -> nn.Sequential:
 
 
 class MapDecoder(nn.Module):
-    """Feature cuboid (B, latent, f_c, f_c) -> raw 3-channel map (B, 3, R, R) (before the output activation)."""
+    """Feature cuboid (B, latent, f_c, f_c) -> raw 3-channel map (B, 3, R, R) (before the output activation).
+
+    With texel conditioning, ``pose_proj[k]`` (1×1 conv, zero at start) adds the texel pose map
+    pooled to the level's resolution: at the cuboid (k = 0) and after the k-th transposed conv."""
 
     def __init__(self, config: AvhConfig):
         super().__init__()
@@ -151,14 +179,35 @@ class MapDecoder(nn.Module):
         self.net = nn.Sequential(*layers)
         R = config.resolution
         self.bias = nn.Parameter(torch.zeros(1, 3, R, R)) if config.output_bias else None
+        self.pose_proj = None
+        if config.conditioning == "texel":
+            self.pose_proj = nn.ModuleList(nn.Conv2d(TexelPoseMap.channels, c, 1)
+                                           for c in [config.latent, *config.level_channels()])
+            for conv in self.pose_proj:
+                nn.init.zeros_(conv.weight)
+                nn.init.zeros_(conv.bias)
+            self.level_resolutions = config.level_resolutions()
 
-    def forward(self, cuboid: torch.Tensor) -> torch.Tensor:
-        out = self.net(cuboid)
+    def forward(self, cuboid: torch.Tensor, pose_map: torch.Tensor | None = None) -> torch.Tensor:
+        if self.pose_proj is None:
+            out = self.net(cuboid)
+        else:
+            x = cuboid + self.pose_proj[0](pooled(pose_map, self.level_resolutions[0]))
+            k = 1
+            for layer in self.net:
+                x = layer(x)
+                if isinstance(layer, nn.ConvTranspose2d):
+                    x = x + self.pose_proj[k](pooled(pose_map, self.level_resolutions[k]))
+                    k += 1
+            out = x
         return out if self.bias is None else out + self.bias
 
 
 class AvhGenerator(nn.Module):
-    """Encoded pose (B, 6·J_c) -> texture (B, 3, R, R) in [0, 1], displacement (B, 3, R, R) metres."""
+    """Encoded pose (B, 6·J_c) -> texture (B, 3, R, R) in [0, 1], displacement (B, 3, R, R) metres.
+
+    Texel conditioning also needs the raw angles (B, 3·J_c) (``pose_angles``) and the texel skinning
+    weights in ``texel_pose`` (:meth:`TexelPoseMap.set_weights`; saved in the state dict)."""
 
     def __init__(self, config: AvhConfig):
         super().__init__()
@@ -171,20 +220,28 @@ class AvhGenerator(nn.Module):
         self.feature_maps = nn.Parameter(torch.randn(config.latent, f, f) * 0.5)
         self.texture_decoder = MapDecoder(config)
         self.displacement_decoder = MapDecoder(config)
+        self.texel_pose = (TexelPoseMap(config.num_pose_joints, config.resolution)
+                           if config.conditioning == "texel" else None)
 
     def cuboid(self, pose_encoded: torch.Tensor) -> torch.Tensor:
         """(B, 6·J_c) -> feature cuboid (B, latent, f_c, f_c)."""
         z = self.pose_mlp(pose_encoded)
         return self.feature_maps.unsqueeze(0) * z[:, :, None, None]
 
-    def forward(self, pose_encoded: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, pose_encoded: torch.Tensor,
+                pose_angles: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         tracing = torch.jit.is_tracing() or torch.compiler.is_compiling()
         if not tracing and (pose_encoded.ndim != 2 or pose_encoded.shape[1] != self.config.pose_input_size):
             raise ValueError(f"pose_encoded must be (B, {self.config.pose_input_size}), "
                              f"got {tuple(pose_encoded.shape)}")
+        pose_map = None
+        if self.texel_pose is not None:
+            if pose_angles is None:
+                raise ValueError("texel conditioning needs pose_angles (B, 3·J_c) radians")
+            pose_map = self.texel_pose(pose_angles)
         cub = self.cuboid(pose_encoded)
-        texture = (torch.tanh(self.texture_decoder(cub)) + 1.0) * 0.5
-        displacement = torch.tanh(self.displacement_decoder(cub)) * self.config.displacement_scale
+        texture = (torch.tanh(self.texture_decoder(cub, pose_map)) + 1.0) * 0.5
+        displacement = torch.tanh(self.displacement_decoder(cub, pose_map)) * self.config.displacement_scale
         return texture, displacement
 
 
@@ -199,7 +256,7 @@ class AvhFromAngles(nn.Module):
         self.generator = generator
 
     def forward(self, pose_angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.generator(encode_pose(pose_angles))
+        return self.generator(encode_pose(pose_angles), pose_angles)
 
 
 def count_parameters(module: nn.Module) -> int:
@@ -223,6 +280,8 @@ def expected_parameter_count(config: AvhConfig) -> int:
     dec += 3 * c_in + 3
     if config.output_bias:
         dec += 3 * config.resolution ** 2
+    if config.conditioning == "texel":
+        dec += sum((TexelPoseMap.channels + 1) * c for c in [config.latent, *config.level_channels()])
     return n + 2 * dec
 
 

@@ -86,13 +86,15 @@ class TrainingData:
     pose_angles: torch.Tensor
     maps: dict[str, torch.Tensor]
 
-    def batch(self, idx: torch.Tensor, pose_noise: float = 0.0) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """(encoded poses (B, 6·J_c), maps) of frames ``idx``; ``pose_noise``: std (radians) of Gaussian
-        noise added to the angles before encoding (augmentation; 0 = none)."""
+    def batch(self, idx: torch.Tensor, pose_noise: float = 0.0) -> tuple[tuple[torch.Tensor, torch.Tensor],
+                                                                          dict[str, torch.Tensor]]:
+        """((encoded poses (B, 6·J_c), angles (B, 3·J_c)), maps) of frames ``idx``: the generator's
+        inputs and targets; ``pose_noise``: std (radians) of Gaussian noise added to the angles before
+        encoding (augmentation; 0 = none)."""
         angles = self.pose_angles[idx]
         if pose_noise > 0:
             angles = angles + pose_noise * torch.randn_like(angles)
-        return encode_pose(angles), {k: v[idx] for k, v in self.maps.items()}
+        return (encode_pose(angles), angles), {k: v[idx] for k, v in self.maps.items()}
 
     def __len__(self) -> int:
         return len(self.names)
@@ -163,7 +165,7 @@ def _preview(model: AvhGenerator, data: TrainingData) -> np.ndarray:
     """(3, R, 4R) image: predicted texture | target texture | predicted |d| | target |d| of the first frame."""
     pose, batch = data.batch(torch.tensor([0], device=data.pose_angles.device))
     with torch.no_grad():
-        tex, disp = model(pose)
+        tex, disp = model(*pose)
     scale = model.config.displacement_scale
 
     def mag(d):
@@ -181,7 +183,7 @@ def evaluate_loss(model: AvhGenerator, data: TrainingData, excluded, cfg: TrainC
         for start in range(0, len(data), cfg.batch_size):
             idx = torch.arange(start, min(start + cfg.batch_size, len(data)), device=data.pose_angles.device)
             pose, batch = data.batch(idx)
-            tex, disp = model(pose)
+            tex, disp = model(*pose)
             losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight)
             sums += np.array([float(x) for x in losses]) * len(idx)
     return tuple(float(x) for x in sums / max(len(data), 1))
@@ -269,7 +271,15 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
     val = load(val_names) if val_names else None
     excluded = None if excluded_np is None else torch.from_numpy(excluded_np).to(device)
 
-    model = AvhGenerator(model_config).to(device)
+    model = AvhGenerator(model_config)
+    if model.texel_pose is not None:
+        if body is None:
+            raise InputError(baked_dir / "dataset.json", "texel conditioning needs the body model's skinning "
+                                                         "weights; this dataset has body model 'none'")
+        from uvatar.avh.texel_pose import texel_skin_weights
+
+        model.texel_pose.set_weights(texel_skin_weights(body.template, cond, R))
+    model = model.to(device)
     use_cuda = device.type == "cuda"
     if use_cuda:
         model = model.to(memory_format=torch.channels_last)
@@ -328,7 +338,7 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
             if use_cuda:
                 batch = {k: v.contiguous(memory_format=torch.channels_last) for k, v in batch.items()}
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_cuda):
-                tex, disp = net(pose)
+                tex, disp = net(*pose)
             losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight, total)
             opt.zero_grad(set_to_none=True)
             (losses[0] * ctx.world).backward()  # DDP averages over the world: undo it, the terms are shares

@@ -30,12 +30,16 @@ def _flags() -> dict[str, ConfigFlags]:
     from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES
     from uvatar.avh.eval import EvalConfig
     from uvatar.avh.export import export_avatar
-    from uvatar.avh.model import PRESETS, AvhConfig
+    from uvatar.avh.model import CONDITIONINGS, PRESETS, AvhConfig
     from uvatar.avh.train import TrainConfig
 
     return {
-        "model": ConfigFlags(AvhConfig, fields=("resolution",), rename={"resolution": "texels"}, presets=PRESETS,
-                             help={"resolution": "output resolution"}),
+        "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning"), rename={"resolution": "texels"},
+                             presets=PRESETS, choices={"conditioning": CONDITIONINGS},
+                             help={"resolution": "output resolution",
+                                   "conditioning": "global: the paper's pose latent only; texel: also a UV map of "
+                                                   "the rotations of the joints that skin each texel, at every "
+                                                   "decoder level"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
                                  "pose_noise", "device", "seed", "tensorboard"),
@@ -115,6 +119,9 @@ def register(cli) -> None:
     p.add_argument("--images", default=None, help="write comparison images here")
     p.add_argument("--baked", dest="baked_dir", default=None,
                    help="baked training data (default: the one avatar.json names)")
+    p.add_argument("--also", action="append", default=None, metavar="AVATAR",
+                   help="another avatar folder evaluated beside it on the same poses (e.g. trained with the other "
+                        "--conditioning); repeatable; named by its folder in the JSON's others")
     p.add_argument("--frames", default=None,
                    help="a count N (the first N held-out frames) or frame names, comma separated "
                         "(e.g. 000054,000055, the frames uvatar eval dva reports)")
@@ -190,6 +197,8 @@ def _count_or_names(value: str | None, flag: str) -> tuple[int | None, tuple[str
 
 
 def _eval(args) -> int:
+    from pathlib import Path
+
     from uvatar.avh.eval import evaluate_avatar
     from uvatar.errors import options_as_input_error
     from uvatar.io_utils import check_output_location, write_json
@@ -201,12 +210,16 @@ def _eval(args) -> int:
     with options_as_input_error("uvatar eval avh options"):
         cfg = _flags()["eval"].config(args, max_frames=max_frames, max_cameras=max_cameras, frames=frames,
                                       cameras=cameras)
-    metrics = evaluate_avatar(args.avatar, args.capture, cfg, baked_dir=args.baked_dir, image_dir=args.images)
+    others = {Path(a).resolve().name: a for a in args.also or []}
+    metrics = evaluate_avatar(args.avatar, args.capture, cfg, baked_dir=args.baked_dir, image_dir=args.images,
+                              others=others)
     if args.json:
         write_json(args.json, metrics)
-    rows = [("avh", metrics["avh"])] + list(metrics["baselines"].items())
+    rows = [("avh", metrics["avh"]), *metrics["others"].items(), *metrics["baselines"].items()]
     for name, m in rows:
         geo = f", geometry {m['geometry_mm']:.1f} mm" if m.get("geometry_mm") is not None else ""
+        geo += "".join(f", R² {k} {m[f'{k}_r2']:.3f}" for k in ("texture", "displacement")
+                       if m.get(f"{k}_r2") is not None)
         why = (f" | inside both silhouettes {m['psnr_db_inside_both']:.2f} dB, silhouette IoU {m['silhouette_iou']:.3f}"
                if m.get("silhouette_iou") is not None else "")
         print(f"{name:<13} PSNR {m['psnr_db']:.2f} dB, SSIM {m['ssim']:.3f}{geo}{why}")

@@ -29,7 +29,8 @@ FIT_SOURCES = ("studio", "fit")
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """Sizes of the demo run. ``DEFAULT`` fits in ~15 min on a 2-core CPU, ``QUICK`` in ~3 min."""
+    """Sizes of the demo run. ``DEFAULT`` (256² maps, two conditionings) took 65 min on a 2-core CPU shared with
+    other jobs (docs/results.md; 6 epochs), ``QUICK`` ~3 min alone (14 min under that load)."""
 
     frames: int = 100           # synthetic capture frames in all (takes + held-out poses)
     heldout: int = 8            # held-out frames with poses not in the takes
@@ -37,10 +38,13 @@ class DemoConfig:
     image_size: int = 256
     scan_texture: int = 512
     gt_texels: int = 256
-    texels: int = 128           # bake resolution = the generator preset's output resolution
+    texels: int = 256           # bake resolution = the generator preset's output resolution
     train_frames: int = 80
     val_frames: int = 6
-    preset: str = "cpu-small"
+    preset: str = "cpu-256"
+    # generator conditionings trained (AvhConfig.conditioning); the first is the demo's avatar (OUT/run,
+    # OUT/avatar), each other one gets OUT/run_<c>, OUT/avatar_<c> and is evaluated beside it
+    conditionings: tuple[str, ...] = ("texel", "global")
     epochs: int = 40
     animate_frames: int = 48
     animate_size: int = 256
@@ -50,10 +54,15 @@ class DemoConfig:
     fits: str = "studio"        # "studio": the studio's noisy fits; "fit": made by `uvatar fit --from scans`
 
     def __post_init__(self) -> None:
+        from uvatar.avh.model import CONDITIONINGS
         from uvatar.errors import check_values
 
         check_values([(self.fits in FIT_SOURCES, f"fits must be one of {', '.join(FIT_SOURCES)}, got {self.fits!r}"),
-                      (self.epochs >= 1, f"epochs must be at least 1, got {self.epochs}")])
+                      (self.epochs >= 1, f"epochs must be at least 1, got {self.epochs}"),
+                      (len(self.conditionings) >= 1 and len(set(self.conditionings)) == len(self.conditionings)
+                       and set(self.conditionings) <= set(CONDITIONINGS),
+                       f"conditionings must be distinct values of {', '.join(CONDITIONINGS)}, "
+                       f"got {', '.join(self.conditionings)}")])
 
 
 DEFAULT = DemoConfig()
@@ -75,10 +84,17 @@ def stage_record(out: Path, name: str) -> Path:
     return Path(out) / "stages" / f"{name}.json"
 
 
+def run_dirs(out: Path, cfg: DemoConfig) -> dict[str, tuple[Path, Path]]:
+    """{conditioning: (run folder, avatar folder)}; the first conditioning owns OUT/run and OUT/avatar."""
+    out = Path(out)
+    return {c: (out / "run", out / "avatar") if i == 0 else (out / f"run_{c}", out / f"avatar_{c}")
+            for i, c in enumerate(cfg.conditionings)}
+
+
 def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None]]]:
     """The pipeline as (stage name, function that runs it and writes its outputs)."""
     out = Path(out)
-    cap, baked, run, avatar = out / "capture", out / "baked", out / "run", out / "avatar"
+    cap, baked, avatar = out / "capture", out / "baked", out / "avatar"
 
     def synth() -> None:
         from uvatar.capture.synth.config import preset
@@ -137,13 +153,15 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         from uvatar.avh.model import preset
         from uvatar.avh.train import TrainConfig, train_avh
 
-        train_avh(baked, run, preset(cfg.preset), TrainConfig(epochs=cfg.epochs), resume=True,
-                  preset_name=cfg.preset)
+        for conditioning, (run_dir, _) in run_dirs(out, cfg).items():
+            train_avh(baked, run_dir, preset(cfg.preset, conditioning=conditioning), TrainConfig(epochs=cfg.epochs),
+                      resume=True, preset_name=cfg.preset)
 
     def export() -> None:
         from uvatar.avh.export import export_avatar
 
-        export_avatar(run, avatar)
+        for run_dir, avatar_dir in run_dirs(out, cfg).values():
+            export_avatar(run_dir, avatar_dir)
 
     def animate() -> None:
         from uvatar.avh.animate import AnimateConfig
@@ -155,7 +173,10 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
     def evaluate() -> None:
         from uvatar.avh.eval import EvalConfig, evaluate_avatar
 
-        write_json(out / "eval.json", evaluate_avatar(avatar, cap, EvalConfig(), image_dir=out / "eval_images"))
+        dirs = run_dirs(out, cfg)
+        others = {f"avh_{c}": avatar_dir for c, (_, avatar_dir) in list(dirs.items())[1:]}
+        write_json(out / "eval.json", evaluate_avatar(avatar, cap, EvalConfig(), image_dir=out / "eval_images",
+                                                      others=others))
 
     fit_stage = [("fit", fit)] if cfg.fits == "fit" else []
     return [("synth", synth), *fit_stage, ("bake", bake), ("select", select), ("train", train), ("export", export),
@@ -225,8 +246,14 @@ def collect_metrics(out: Path, cfg: DemoConfig, results: list[StageResult]) -> d
         metrics["fit"]["seconds"] = fit.get("seconds")
     if evaluation:
         metrics["avh"] = evaluation.get("avh")
+        metrics["avh_conditioning"] = cfg.conditionings[0]
+        # every trained conditioning under its name (the first is metrics["avh"], the others eval's "others")
+        metrics["avh_by_conditioning"] = {c: evaluation.get("avh") if i == 0 else (evaluation.get("others") or {}).get(
+            f"avh_{c}") for i, c in enumerate(cfg.conditionings)}
         metrics["baselines"] = evaluation.get("baselines")
         metrics["protocol"] = evaluation.get("protocol")
+        for key in ("nearest_training_distance_deg", "distance_bins", "avatars"):
+            metrics[key] = evaluation.get(key)
     export = _load(out / "avatar" / "avatar.json")
     if export:
         metrics["export"] = {k: export[k] for k in ("onnx_max_abs_diff", "parameters", "preset") if k in export}

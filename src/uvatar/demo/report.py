@@ -9,15 +9,38 @@ from uvatar.render.report import html_report
 # The held-out table's columns (metric key, header); eval.json has every metric.
 HELDOUT_COLUMNS = (("psnr_db", "PSNR (dB)"), ("ssim", "SSIM"), ("psnr_db_full", "PSNR full image (dB)"),
                    ("psnr_db_inside_both", "PSNR inside both silhouettes (dB)"),
-                   ("silhouette_iou", "silhouette IoU"), ("geometry_mm", "geometry (mm)"))
+                   ("silhouette_iou", "silhouette IoU"), ("geometry_mm", "geometry (mm)"),
+                   ("texture_r2", "texture R² (UV)"), ("displacement_r2", "displacement R² (UV)"))
+THREE_DIGITS = ("ssim", "silhouette_iou", "texture_r2", "displacement_r2")
+
+
+def _methods(metrics: dict) -> list[tuple[str, str, dict]]:
+    """(label, key prefix in per-frame entries, summary) per method: each AVH conditioning, then the baselines."""
+    by = metrics.get("avh_by_conditioning")
+    avh = ([(f"AVH, {c} conditioning", "avh" if i == 0 else f"avh_{c}", v) for i, (c, v) in enumerate(by.items()) if v]
+           if by else [("AVH (ours)", "avh", metrics["avh"])] if metrics.get("avh") else [])
+    return avh + [(f"baseline: {name.replace('_', ' ')}", name, values)
+                  for name, values in (metrics.get("baselines") or {}).items()]
 
 
 def _metric_rows(metrics: dict) -> list[dict]:
-    """One row per method with the :data:`HELDOUT_COLUMNS` (six numbers: it fits a laptop screen)."""
-    methods = ([("AVH (ours)", metrics["avh"])] if metrics.get("avh") else []) + [
-        (f"baseline: {name.replace('_', ' ')}", values) for name, values in (metrics.get("baselines") or {}).items()]
-    return [{"method": label, **{header: _rounded(values.get(key), 3 if key in ("ssim", "silhouette_iou") else 2)
-                                 for key, header in HELDOUT_COLUMNS}} for label, values in methods]
+    """One row per method with the :data:`HELDOUT_COLUMNS`."""
+    return [{"method": label, **{header: _rounded(values.get(key), 3 if key in THREE_DIGITS else 2)
+                                 for key, header in HELDOUT_COLUMNS}} for label, _, values in _methods(metrics)]
+
+
+def _bin_rows(metrics: dict) -> list[dict]:
+    """Held-out frames binned by the distance to their nearest training pose: one row per bin and method."""
+    rows = []
+    for b in metrics.get("distance_bins") or []:
+        for label, key, _ in _methods(metrics):
+            rows.append({"bin": f"{b['bin']} ({b['distance_deg_min']:.1f}-{b['distance_deg_max']:.1f} deg, "
+                                f"{len(b['frames'])} frames)", "method": label,
+                         **{header: _rounded(b.get(f"{key}_{k}"), 3 if k in THREE_DIGITS else 2)
+                            for k, header in (("psnr_db_inside_both", "PSNR inside both (dB)"),
+                                              ("geometry_mm", "geometry (mm)"), ("texture_r2", "texture R²"),
+                                              ("displacement_r2", "displacement R²"))}})
+    return rows
 
 
 def why_text(metrics: dict) -> str:
@@ -133,9 +156,11 @@ def write_demo_report(out: Path, metrics: dict) -> Path:
         sections.append({
             "title": "Held-out poses: avatar vs. baselines",
             "text": "Rendered from the capture's cameras in poses that were not trained on (eval.json has "
-                    "every metric). "
+                    "every metric). The second table bins the held-out poses by their distance to the nearest "
+                    "training pose (mean joint angle). "
                     + str(metrics.get("protocol") or "") + " " + why_text(metrics),
-            "table": rows, "images": _images(out / "eval_images")})
+            "tables": [rows] + ([_bin_rows(metrics)] if metrics.get("distance_bins") else []),
+            "images": _images(out / "eval_images")})
     if (out / "animation.mp4").exists():
         sections.append({"title": "Animation in unseen poses", "videos": [(out / "animation.mp4", "AVH")]})
     return html_report(out / "report.html", "uvatar demo", sections,
