@@ -29,8 +29,9 @@ FIT_SOURCES = ("studio", "fit")
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """Sizes of the demo run. ``DEFAULT`` (256² maps, two conditionings) took 65 min on a 2-core CPU shared with
-    other jobs (docs/results.md; 6 epochs), ``QUICK`` ~3 min alone (14 min under that load)."""
+    """Sizes of the demo run. ``DEFAULT``: 128² maps, both conditionings. 256² maps (``texels=256,
+    preset="cpu-256"``) took 65 min on a 2-core CPU shared with other jobs (docs/results.md; 6 epochs),
+    mostly in the bake's colour rounds, so they are not the default. ``QUICK`` ~3 min alone."""
 
     frames: int = 100           # synthetic capture frames in all (takes + held-out poses)
     heldout: int = 8            # held-out frames with poses not in the takes
@@ -38,10 +39,10 @@ class DemoConfig:
     image_size: int = 256
     scan_texture: int = 512
     gt_texels: int = 256
-    texels: int = 256           # bake resolution = the generator preset's output resolution
+    texels: int = 128           # bake resolution = the generator preset's output resolution
     train_frames: int = 80
     val_frames: int = 6
-    preset: str = "cpu-256"
+    preset: str = "cpu-small"
     # generator conditionings trained (AvhConfig.conditioning); the first is the demo's avatar (OUT/run,
     # OUT/avatar), each other one gets OUT/run_<c>, OUT/avatar_<c> and is evaluated beside it
     conditionings: tuple[str, ...] = ("texel", "global")
