@@ -112,7 +112,7 @@ def test_bad_arguments(baked, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "one entry per stage" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert main(["bake", str(cap), str(tmp_path / "o3"), *ARGS, "--registration-normal-smoothing", "-0.01"]) == 1
-    assert "normal_smoothing must be >= 0" in capsys.readouterr().err
+    assert "--registration-normal-smoothing must be >= 0" in capsys.readouterr().err
     assert main(["bake", str(cap), str(tmp_path / "o3"), *ARGS, "--registration-modes", "normal,bogus"]) == 1
     assert "unknown registration stage mode 'bogus'" in capsys.readouterr().err
     for flag, value, words in (("--visibility-rays", "0", "visibility_rays must be >= 1"),

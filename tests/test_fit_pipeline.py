@@ -107,7 +107,7 @@ def test_cli_fit_existing_fits_is_one_line(fit_studio, tmp_path, capsys):
     shutil.copytree(fit_studio[0], root)
     assert main(["fit", str(root), "--from", "images", "--no-progress"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "force=True" in err[0] and "fits" in err[0]
+    assert len(err) == 1 and "--force" in err[0] and "force=True" not in err[0] and "fits" in err[0]
 
 
 def test_views_that_disagree_are_named_left_out_and_fail_strict(fit_studio, tmp_path, capsys):

@@ -6,7 +6,8 @@ import pytest
 import trimesh
 
 from uvatar.errors import InputError
-from uvatar.geometry.raycast import RayCaster, RayCasterConfig, first_hit_reference, make_caster
+from uvatar.geometry.ray_backends import make_caster
+from uvatar.geometry.raycast import RayCaster, RayCasterConfig, first_hit_reference
 
 pytest.importorskip("warp")
 

@@ -4,7 +4,7 @@ The model is :mod:`uvatar.dva.raymarch_ref`'s exactly (the parity tests hold the
 this twin fuses everything after culling into one kernel launch per direction:
 
 1. culling (no gradient): for a pinhole camera's pixels, one thread per primitive walks the pixels of
-   its projected rectangle (:func:`uvatar.dva.raymarch.pinhole_rects`), keeps the rays that cross its
+   its projected rectangle (:func:`uvatar.dva.raymarch_cull.pinhole_rects`), keeps the rays that cross its
    box (exact slab test) with their range of fixed-grid steps, and writes them into per-ray lists
    (a counting pass, a prefix sum, a filling pass); other rays take the torch twin's bounding-sphere
    candidates and a per-pair slab test;
@@ -32,7 +32,7 @@ device, then come from Warp's kernel cache. On the CPU Warp runs a launch on one
 import torch
 from torch.autograd.function import once_differentiable
 
-from uvatar.dva.raymarch import pinhole_rects, sphere_candidates
+from uvatar.dva.raymarch_cull import pinhole_rects, sphere_candidates
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, num_steps, ray_range
 from uvatar.errors import require
 

@@ -6,7 +6,8 @@ Conventions: metres; UV v up with UV-image row 0 at v = 1; numpy or torch where 
 
 from uvatar.geometry.frames import face_normals, normalize, vertex_normals
 from uvatar.geometry.laplacian import cotangent_laplacian, uniform_laplacian
-from uvatar.geometry.raycast import RayCaster, RayCasterConfig, RayHits, make_caster, rays_cast
+from uvatar.geometry.ray_backends import make_caster
+from uvatar.geometry.raycast import RayCaster, RayCasterConfig, RayHits, rays_cast
 from uvatar.geometry.sampling import (
     face_tangents,
     sample_mesh_texture,

@@ -16,10 +16,9 @@ import numpy as np
 
 from uvatar.errors import InputError, require
 
-__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "RAY_BACKENDS", "make_caster", "rays_cast", "first_hit_reference",
+__all__ = ["RayCaster", "RayCasterConfig", "RayHits", "rays_cast", "first_hit_reference",
            "count_hits_reference"]
 
-RAY_BACKENDS = ("auto", "embree", "warp")
 
 _RAYS = {"INTERSECT": 0, "OCCLUDED": 0}   # rays cast by this process, by query kind (bench and stats)
 
@@ -274,23 +273,6 @@ class RayCaster:
             remaining[alive] -= advance
             alive = alive[remaining[alive] > 0]
         return count
-
-
-def make_caster(vertices, faces, config: RayCasterConfig | None = None, device: str = "cpu",
-                backend: str = "auto") -> RayCaster:
-    """The ray caster for ``device``: ``backend`` "auto" is Embree on the CPU (the fastest there) and
-    Warp's mesh BVH on CUDA (:class:`uvatar.geometry.raycast_warp.WarpRayCaster`); "embree" or "warp"
-    force one (Warp also runs on the CPU, single-threaded). Same queries and results either way."""
-    if backend not in RAY_BACKENDS:
-        raise ValueError(f"ray backend must be one of {RAY_BACKENDS}, got {backend!r}")
-    on_cpu = str(device) == "cpu"
-    if backend == "embree" or (backend == "auto" and on_cpu):
-        if not on_cpu:
-            raise InputError("device", f"{device}: Embree runs on the CPU only (use the warp ray backend)")
-        return RayCaster(vertices, faces, config)
-    from uvatar.geometry.raycast_warp import WarpRayCaster
-
-    return WarpRayCaster(vertices, faces, config, device=str(device))
 
 
 def first_hit_reference(vertices, faces, origins, directions, max_distance=np.inf) -> RayHits:

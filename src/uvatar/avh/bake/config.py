@@ -155,7 +155,7 @@ class BakeConfig:
         other stages stay on the CPU. Same maps within float32 round-off.
     ray_backend: "auto" (Embree on the CPU, Warp on CUDA), "embree" or "warp" (Warp also runs on
         the CPU, single-threaded and ~3x slower than Embree: for parity checks); checked by
-        :func:`uvatar.geometry.raycast.make_caster`.
+        :func:`uvatar.geometry.ray_backends.make_caster`.
     scan_cache_mb: scans (with their ray and k-d tree structures) kept in memory per worker process
         between the colour rounds and the bake, so a frame's scan is read and prepared once instead
         of once per round (0 = read every time; results are the same either way).

@@ -117,7 +117,7 @@ class ScanSurface:
 def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:
     """Ray caster on the float32 fast path: no float64 ray preparation or re-intersection of hits
     (float32 hits are ~0.1 um at 1 m); RayHits come back in float32. Embree on the CPU, Warp on CUDA
-    (:func:`uvatar.geometry.raycast.make_caster`)."""
+    (:func:`uvatar.geometry.ray_backends.make_caster`)."""
     return make_caster(vertices, faces, RayCasterConfig(refine=False, precision="float32"), device, backend)
 
 
