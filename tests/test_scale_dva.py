@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +28,11 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 ITERS, MINUTES = 8, 600.0  # bound by steps: the learning-rate clock is the step count
 
 
-def _cfg(flat_lr: bool = False):
+def _cfg(flat_lr: bool = False, marcher: str | None = None):
     cfg = preset("tiny")
     cfg.train.batch = 2
+    if marcher is not None:
+        cfg.raymarch = replace(cfg.raymarch, marcher=marcher)
     if flat_lr:  # a run stopped by a shorter --iters has its own schedule; a flat one is the same
         cfg.train.lr_decay_start = 1.0
     return cfg
@@ -119,17 +122,22 @@ import sys
 from uvatar.dva.data import open_source
 from uvatar.dva.model import preset
 from uvatar.dva.train import train_dva
+from dataclasses import replace
 cfg = preset("tiny")
 cfg.train.batch = 2
+cfg.raymarch = replace(cfg.raymarch, marcher="torch")
 train_dva(open_source(sys.argv[1]), sys.argv[2], cfg, iters=2, minutes=MINUTES, progress=False)
 """.replace("MINUTES", repr(MINUTES))
 
 
 def test_torchrun_two_processes_take_the_steps_of_one(capture, tmp_path):
     """Same global batch, same steps: after 2 steps the weights agree to float noise (Adam's first steps
-    are ~lr·sign(g), so a gradient near 0 turns summation-order noise into ~1e-6 weight noise)."""
+    are ~lr·sign(g), so a gradient near 0 turns summation-order noise into ~1e-6 weight noise).
+    The torch marcher on both sides: the Warp kernel sums payload gradients with float32 atomics, so
+    splitting the rays over two processes changes near-zero gradients' signs (measured up to 5e-5 in a
+    few payload voxels); its parity with the torch marcher is tests/test_dva_raymarch_warp.py's."""
     one = tmp_path / "one"
-    train_dva(open_source(capture), one, _cfg(), iters=2, minutes=MINUTES, progress=False)
+    train_dva(open_source(capture), one, _cfg(marcher="torch"), iters=2, minutes=MINUTES, progress=False)
     script, run = tmp_path / "ddp_dva.py", tmp_path / "ddp"
     script.write_text(textwrap.dedent(TORCHRUN_SCRIPT))
     env = child_env(OMP_NUM_THREADS="1")
