@@ -115,10 +115,10 @@ def test_bad_arguments(baked, tmp_path, capsys):
     assert "--registration-normal-smoothing must be >= 0" in capsys.readouterr().err
     assert main(["bake", str(cap), str(tmp_path / "o3"), *ARGS, "--registration-modes", "normal,bogus"]) == 1
     assert "unknown registration stage mode 'bogus'" in capsys.readouterr().err
-    for flag, value, words in (("--visibility-rays", "0", "visibility_rays must be >= 1"),
-                               ("--polarity-ratio", "0.5", "polarity_ratio must be >= 1"),
-                               ("--distance-clip", "0", "distance_clip must be > 0"),
-                               ("--reject-kappa", "2", "reject_kappa must be in [0, 1]"),
+    for flag, value, words in (("--visibility-rays", "0", "--visibility-rays must be >= 1"),
+                               ("--polarity-ratio", "0.5", "--polarity-ratio must be >= 1"),
+                               ("--distance-clip", "0", "--distance-clip must be > 0"),
+                               ("--reject-kappa", "2", "--reject-kappa must be in [0, 1]"),
                                ("--workers", "0", "--workers: must be at least 1")):
         assert main(["bake", str(cap), str(tmp_path / "o3"), *ARGS, flag, value]) == 1
         assert words in capsys.readouterr().err

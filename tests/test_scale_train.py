@@ -138,6 +138,8 @@ def test_batch_not_divisible_by_processes_is_refused(baked, tmp_path, monkeypatc
 
 KILL_SCRIPT = """
 import sys, time
+import torch
+torch.set_num_threads(int(sys.argv[3]))  # the parent's: float sums in the same order on both sides
 import uvatar.avh.train as t
 from uvatar.avh.model import AvhConfig
 from uvatar.avh.train import TrainConfig
@@ -162,7 +164,7 @@ def test_train_avh_killed_with_kill_9_resumes_to_the_uninterrupted_weights(baked
     script = tmp_path / "kill_train.py"
     script.write_text(textwrap.dedent(KILL_SCRIPT))
     run = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, str(script), str(baked), str(run)], env=child_env(),
+    proc = subprocess.Popen([sys.executable, str(script), str(baked), str(run), str(torch.get_num_threads())], env=child_env(),
                             start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     kill_group_when(proc, lambda: _epochs_done(run) >= 4)
     assert proc.returncode == -signal.SIGKILL
