@@ -92,7 +92,7 @@ def figure(avatar, capture_root, dva_metrics: dict, frame: str, camera: str, out
     shape = np.asarray(fit.shapes, np.float32) if np.size(fit.shapes) else None
     base = rt.posed_vertices(pose, Rh, np.asarray(fit.Th, np.float32).reshape(1, 3),
                              np.array([fit.scale], np.float32), shape)[0]
-    tex, disp = rt.generate(pose)
+    tex, disp = rt.generate(pose, Rh=Rh)
     mesh = rt.mesh(base, tex[0], disp[0], Rh[0], pose=pose[0])
     avh = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture)
     strip = iio.imread(Path(dva_metrics["images"]) / f"{frame}_{camera}.png").astype(np.float32) / 255.0

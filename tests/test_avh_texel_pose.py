@@ -125,3 +125,132 @@ def test_two_step_training_and_export(body, tmp_path, conditioning):
     assert meta["onnx_max_abs_diff"] <= 1e-4 and meta["model_config"]["conditioning"] == conditioning
     session = onnx_session(tmp_path / "avatar" / "model.onnx")
     assert [i.name for i in session.get_inputs()] == ["pose_angles"]  # the runtime's signature is unchanged
+
+
+# --- the studio orientation (AvhConfig.orientation = "studio"): Rh as the last conditioning joint ---
+
+def test_rotmat_matches_roma_and_the_tree_order_puts_parents_first():
+    from uvatar.avh.texel_pose import rotvec_to_rotmat, tree_order
+
+    v = torch.cat([torch.randn(32, 3, dtype=torch.float64), torch.zeros(1, 3, dtype=torch.float64)])
+    assert torch.allclose(rotvec_to_rotmat(v), roma.rotvec_to_rotmat(v), atol=1e-9)
+    assert tree_order([3, 0, 1, -1]) == [3, 0, 1, 2]
+    assert tree_order([1, 0]) is None and tree_order([5]) is None
+
+
+def _studio_setup(body, R=32):
+    from uvatar.avh.model import root_joint
+    from uvatar.avh.texel_pose import conditioning_parents, texel_rest_normals
+
+    t = body.template
+    cond = [*body.conditioning_joints, root_joint(t.joint_parents)]
+    pose_map = TexelPoseMap(len(cond), R, world_normals=True)
+    pose_map.set_weights(texel_skin_weights(t, cond, R), conditioning_parents(t.joint_parents, cond),
+                         texel_rest_normals(t, R))
+    return cond, pose_map
+
+
+def test_world_normals_are_the_posed_bodys_normals_where_one_joint_skins(body):
+    """Rest pose: the rest normals; a yaw of the root turns every normal; a turned joint's rigidly
+    skinned texels carry the posed mesh's own normal (forward kinematics through the chain)."""
+    from uvatar.geometry import rasterize_uv, sample_vertex_attribute
+    from uvatar.geometry.frames import vertex_normals
+
+    R = 32
+    t = body.template
+    cond, pose_map = _studio_setup(body, R)
+    assert pose_map.channels == 9
+    rest = pose_map(torch.zeros(1, 3 * len(cond)))[0, 6:].reshape(3, -1)
+    assert torch.allclose(rest, pose_map.rest_normals, atol=1e-6)
+    angles = torch.zeros(1, 3 * len(cond))
+    angles[0, -3:] = torch.tensor([0.0, np.pi / 2, 0.0])
+    turned = pose_map(angles)[0, 6:].reshape(3, -1)
+    Ry = roma.rotvec_to_rotmat(torch.tensor([0.0, np.pi / 2, 0.0]))
+    assert torch.allclose(turned, Ry @ pose_map.rest_normals, atol=1e-5)
+
+    rng = np.random.default_rng(3)
+    poses = np.zeros((1, body.num_joints, 3), np.float32)
+    for j in body.conditioning_joints:
+        poses[0, j] = rng.normal(0, 0.5, 3)
+    Rh = np.array([[0.2, -1.1, 0.3]], np.float32)
+    posed = body.pose(torch.as_tensor(poses), Rh=torch.as_tensor(Rh))
+    raster = rasterize_uv(t.uvs, t.uv_faces, R)
+    truth = np.asarray(sample_vertex_attribute(raster, t.faces, vertex_normals(posed.vertices[0].numpy(), t.faces)))
+    truth /= np.maximum(np.linalg.norm(truth, axis=-1, keepdims=True), 1e-12)
+    rest_n = np.asarray(sample_vertex_attribute(raster, t.faces, vertex_normals(t.vertices, t.faces)))
+    full = poses.reshape(1, -1).copy()
+    full[0, 3 * cond[-1]:3 * cond[-1] + 3] = Rh[0]
+    angles = torch.as_tensor(full.reshape(1, -1, 3)[:, cond].reshape(1, -1))
+    ours = pose_map(angles)[0, 6:].numpy().transpose(1, 2, 0)
+    rigid = raster.mask & (pose_map.weights.numpy().reshape(len(cond), R, R).max(0) > 0.999)
+    # the same rest normal away from the joints: the UV interpolation of a rigid part's normals
+    rigid &= np.linalg.norm(rest_n, axis=-1) > 0.98
+    assert rigid.sum() > 20
+    cos = (ours[rigid] * truth[rigid]).sum(-1) / np.linalg.norm(ours[rigid], axis=-1)
+    # exact (to float) where the texel's vertex normals are rigid too; a few degrees where a vertex
+    # normal averages in a face that bends with the next joint
+    assert np.median(cos) > 0.99999 and (cos > 0.9999).mean() > 0.75 and cos.min() > 0.99
+
+
+def test_studio_generator_counts_shades_and_exports(body, tmp_path):
+    from uvatar.avh.export import export_onnx, verify_onnx
+
+    cond, pose_map = _studio_setup(body, 16)
+    cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=len(cond), conditioning="texel", orientation="studio")
+    gen = AvhGenerator(cfg)
+    assert count_parameters(gen) == expected_parameter_count(cfg)
+    gen.texel_pose.load_state_dict(pose_map.state_dict())
+    a = torch.randn(2, 3 * len(cond))
+    with torch.no_grad():
+        before, _ = AvhFromAngles(gen.eval())(a)
+        gen.shading[-1].bias.fill_(np.log(0.5))  # a uniform shading of one half halves the texture
+        after, _ = AvhFromAngles(gen)(a)
+    assert torch.allclose(after, 0.5 * before, atol=1e-6)
+    torch.nn.init.normal_(gen.shading[-1].weight, std=0.5)
+    b = a.clone()
+    b[:, -2] += 1.0  # the body turns in the studio: the shading changes
+    with torch.no_grad():
+        assert (AvhFromAngles(gen)(a)[0] - AvhFromAngles(gen)(b)[0]).abs().max() > 1e-4
+    wrapper = AvhFromAngles(gen).eval()
+    export_onnx(wrapper, tmp_path / "m.onnx", 3 * len(cond))
+    assert verify_onnx(wrapper, tmp_path / "m.onnx", 3 * len(cond), batch=3) <= 1e-4
+    with pytest.raises(ValueError, match="orientation"):
+        AvhConfig(4, 16, resolution=16, orientation="world")
+
+
+@pytest.mark.parametrize("conditioning", ["global", "texel"])
+def test_studio_orientation_trains_exports_and_reads_rh(body, tmp_path, conditioning):
+    from uvatar.avh.eval import Baselines
+    from uvatar.avh.runtime import AvatarRuntime
+    from uvatar.avh.train import TrainConfig, load_trained_generator, train_avh
+
+    _, baked = make_toy_capture(tmp_path, body, num_frames=6, heldout=1, resolution=16)
+    train_avh(baked, tmp_path / "run", AvhConfig(4, 16, resolution=16, conditioning=conditioning, orientation="studio"),
+              TrainConfig(epochs=1, batch_size=2, progress=False, tensorboard=False), body=body)
+    gen, info = load_trained_generator(tmp_path / "run")
+    root = 0
+    assert info["conditioning_joints"] == [*body.conditioning_joints, root]
+    assert gen.config.num_pose_joints == len(body.conditioning_joints) + 1
+    if conditioning == "texel":
+        assert gen.texel_pose.parents.tolist()[-1] == -1 and gen.texel_pose.rest_normals.abs().sum() > 0
+        torch.nn.init.normal_(gen.shading[-1].weight, std=0.5)  # one step barely moves it: make Rh visible
+        torch.save({"model": gen.state_dict(), "model_config": gen.config.to_dict()}, tmp_path / "run" / "model.pt")
+    else:
+        with torch.no_grad():
+            gen.texture_decoder.net[-1].weight.normal_(0, 0.5)
+        torch.save({"model": gen.state_dict(), "model_config": gen.config.to_dict()}, tmp_path / "run" / "model.pt")
+    from uvatar.avh.export import export_avatar
+
+    meta = export_avatar(tmp_path / "run", tmp_path / "avatar", body=body)
+    assert meta["orientation"] == "studio" and meta["conditioning_joints"][-1] == root
+    rt = AvatarRuntime(tmp_path / "avatar", body=body)
+    poses = np.zeros((2, body.num_joints * 3), np.float32)
+    Rh = np.array([[0, 0, 0], [0, 2.0, 0]], np.float32)
+    tex, _ = rt.generate(poses, Rh=Rh)
+    assert np.abs(tex[0] - tex[1]).max() > 1e-4  # the same pose facing elsewhere in the studio
+    assert np.array_equal(rt.generate(poses[:1])[0], tex[:1])  # no Rh: facing +Z
+    # retrieval sees what the avatar sees: the nearest training frame in pose and orientation
+    base = Baselines(baked, info["train_frames"], 16, rt.conditioning, orientation_root=root)
+    i = 1
+    query = rt.conditioning_poses(base.frames.poses[i:i + 1], base.frames.Rh[i:i + 1])[0]
+    assert base.nearest(query)[0] == i

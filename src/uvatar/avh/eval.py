@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.avh.data import load_baked_frames, resample_map, rotvec_to_rotmat
+from uvatar.avh.model import with_orientation
 from uvatar.avh.pose_metrics import R2Sums, distance_bins, pose_distance_deg
 from uvatar.avh.poses import heldout_frames
 from uvatar.avh.runtime import AvatarRuntime
@@ -51,7 +52,9 @@ PROTOCOL = ("held-out frames (gt/info.json heldout_frames), not trained on; avat
             "mean = the training frames' mean map; texture at the avatar's resolution against gt/ texture "
             "area-averaged to it, displacement as the clothed surface point per texel against gt/ surface (gt "
             "resolution); nearest_training_distance_deg: mean over conditioning joints of the geodesic angle to "
-            "the nearest training pose; distance_bins: frames split at its median")
+            "the nearest training pose; distance_bins: frames split at its median; an avatar with the studio "
+            "orientation (model_config.orientation = studio) takes the body's Rh as its last conditioning joint, and "
+            "so do the nearest-pose retrieval and the pose distance")
 
 
 @dataclass(frozen=True)
@@ -112,7 +115,8 @@ class Baselines:
     """Mean-texture and nearest-training-pose maps from the baked training frames."""
 
     def __init__(self, baked_dir: str | Path, train_frames: list[str], resolution: int, conditioning,
-                 outlier_threshold: float = 0.05, body=None, displacement_frame: str = "body", shape=None):
+                 outlier_threshold: float = 0.05, body=None, displacement_frame: str = "body", shape=None,
+                 orientation_root: int | None = None):
         self.outlier_threshold = outlier_threshold
         frames = load_baked_frames(baked_dir, train_frames, resolution)
         k = frames.kappa[..., None] * frames.valid[..., None]
@@ -130,7 +134,11 @@ class Baselines:
         self.mean_displacement = (self.displacement.sum(0) / np.maximum(good, 1)).astype(np.float32)
         self.mean_kappa = (frames.kappa * frames.valid).mean(0).astype(np.float32)
         self.frames = frames
-        self.codes = encoded_conditioning(frames.poses, conditioning)
+        # the poses the avatar is conditioned on: a studio-orientation avatar's root slot holds Rh, so the
+        # nearest training pose is then also the nearest in orientation (the same input as the avatar's)
+        self.poses = frames.poses if orientation_root is None else with_orientation(frames.poses, frames.Rh,
+                                                                                     orientation_root)
+        self.codes = encoded_conditioning(self.poses, conditioning)
         self.conditioning = list(conditioning)
 
     def nearest(self, pose: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
@@ -257,7 +265,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     if not (baked_dir / "dataset.json").is_file():
         raise InputError(baked_dir, "baked training data not found (needed for the baselines); pass baked_dir")
     baselines = Baselines(baked_dir, training.get("train_frames") or [], runtime.resolution, runtime.conditioning,
-                          body=runtime.body, displacement_frame=runtime.displacement_frame, shape=runtime.shape)
+                          body=runtime.body, displacement_frame=runtime.displacement_frame, shape=runtime.shape,
+                          orientation_root=runtime.conditioning[-1] if runtime.orientation == "studio" else None)
     try:
         frames = heldout_frames(capture.root)
         split = "heldout"
@@ -290,10 +299,11 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         shape = np.asarray(fit.shapes, np.float32) if np.size(fit.shapes) else None
         base = runtime.posed_vertices(pose[None], Rh[None], np.asarray(fit.Th, np.float32).reshape(1, 3),
                                       np.array([fit.scale], np.float32), shape)[0]
-        nn_index, nn_tex, nn_disp = baselines.nearest(pose)
+        conditioned = runtime.conditioning_poses(pose[None], Rh[None])[0]  # what the avatar and retrieval see
+        nn_index, nn_tex, nn_disp = baselines.nearest(conditioned)
         maps = {}
         for m, rt in runtimes.items():
-            tex, disp = rt.generate(pose[None])
+            tex, disp = rt.generate(pose[None], Rh=Rh[None])
             maps[m] = (tex[0], disp[0])
         maps.update({"mean_texture": (baselines.mean_texture, None), "nearest_pose": (nn_tex, nn_disp)})
         rotations = runtime.skinning_rotations(pose[None])[0]
@@ -303,7 +313,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         cameras = [scaled_camera(c, config.image_size) for c in cameras[: config.max_cameras or None]]
         casters = {m: RayCaster(mesh.vertices, mesh.faces) for m, mesh in meshes.items()}
         gt_caster = RayCaster(scan.vertices, scan.faces)
-        distances = pose_distance_deg(pose[None], baselines.frames.poses, baselines.conditioning)[0]
+        distances = pose_distance_deg(conditioned[None], baselines.poses, baselines.conditioning)[0]
         entry = {"frame": frame, "nearest_training_frame": baselines.frames.names[nn_index],
                  "nearest_training_distance_deg": float(distances.min()),
                  "nearest_pose_baseline_distance_deg": float(distances[nn_index])}

@@ -130,7 +130,12 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
         "format": "uvatar-avh", "version": 1, "model": "model.onnx", "body": "body.npz" if body is not None else None,
         "inputs": {"pose_angles": {"shape": ["batch", num_angles], "dtype": "float32",
                                    "meaning": "local axis-angle (radians) of the conditioning joints, x y z "
-                                              "per joint, in conditioning_joints order"}},
+                                              "per joint, in conditioning_joints order"
+                                              + ("; the last is the root, whose slot holds the body's global "
+                                                 "orientation Rh in the capture's world (orientation 'studio': "
+                                                 "the studio's light is baked in; zero = facing +Z)"
+                                                 if cfg.orientation == "studio" else "")}},
+        "orientation": cfg.orientation,
         "outputs": {"texture": {"shape": ["batch", 3, cfg.resolution, cfg.resolution], "range": [0, 1],
                                 "layout": "BCHW RGB, image row 0 is v = 1"},
                     "displacement": {"shape": ["batch", 3, cfg.resolution, cfg.resolution], "units": "m",

@@ -24,9 +24,18 @@ texel (B, 6, R, R); each decoder adds a 1×1 projection of it (average-pooled to
 resolution) to its features at the cuboid and after every transposed conv. The projections start at
 zero, so training starts from the global model and learns how much local pose to use.
 
+Studio orientation (``orientation="studio"``, beyond the paper): the body's orientation in the
+capture's world (``Rh``) is one more conditioning "joint" (the root, last in ``pose_angles``). A
+studio's lights are fixed in its world, so what it bakes into every frame depends on which way the
+body faces them. The global MLP sees it like any angle; with texel conditioning the texel map also
+carries each texel's posed normal in that world, and a **shading head** (per-texel 1×1 convs over the
+texel map, last layer zero at start) multiplies the texture by ``exp(s)``: texture = albedo-like
+decoder output × shading, the way the light entered the capture. Without it (``"body"``, the paper)
+the generator cannot tell a body lit from the front from one lit from behind.
+
 Maps are BCHW float32; image row 0 is v = 1 (UV v up), the layout of the baked maps. Only
 ONNX-portable ops are used (Linear, Mul, ConvTranspose, Conv, BatchNorm, Relu, Tanh, Sin, Cos;
-texel conditioning adds Sqrt, MatMul, AveragePool).
+texel conditioning adds Sqrt, MatMul, AveragePool; the shading head Exp and Clip).
 """
 
 from __future__ import annotations
@@ -41,6 +50,8 @@ from uvatar.avh.texel_pose import TexelPoseMap, pooled
 
 #: Pose conditioning of the decoders: the paper's global latent only, or also a texel-aligned pose map.
 CONDITIONINGS = ("global", "texel")
+#: What the pose input holds: the local pose only (the paper), or also the body's orientation in the studio.
+ORIENTATIONS = ("body", "studio")
 
 #: Paper Table 1 parameter counts, keyed by preset name.
 PAPER_PARAMETER_COUNTS: dict[str, int] = {
@@ -72,6 +83,10 @@ class AvhConfig:
     conditioning: "global" (the paper: the pose reaches the decoders only through the cuboid) or
         "texel" (also a UV map of the skinning-weighted rotations of the joints that skin each texel,
         fed to every decoder level; :mod:`uvatar.avh.texel_pose`).
+    orientation: "body" (the paper: local joint angles only) or "studio" (the last conditioning
+        joint is the root and carries the body's orientation Rh in the capture's world; with texel
+        conditioning also the texel's world normal and the shading head).
+    shading_hidden: channels of the shading head's two hidden 1×1 convs (texel + studio only).
     """
 
     feature_size: int = 32
@@ -83,6 +98,8 @@ class AvhConfig:
     min_channels: int = 8
     output_bias: bool = False
     conditioning: str = "global"
+    orientation: str = "body"
+    shading_hidden: int = 16
 
     def __post_init__(self):
         ratio = self.resolution / self.feature_size
@@ -93,6 +110,20 @@ class AvhConfig:
             raise ValueError("latent, num_pose_joints and hidden must be positive")
         if self.conditioning not in CONDITIONINGS:
             raise ValueError(f"conditioning must be one of {', '.join(CONDITIONINGS)}, got {self.conditioning!r}")
+        if self.orientation not in ORIENTATIONS:
+            raise ValueError(f"orientation must be one of {', '.join(ORIENTATIONS)}, got {self.orientation!r}")
+
+    @property
+    def shading(self) -> bool:
+        """Whether the generator has the shading head (texel conditioning with the studio orientation)."""
+        return self.conditioning == "texel" and self.orientation == "studio"
+
+    @property
+    def texel_channels(self) -> int:
+        """Channels of the texel pose map (0 without texel conditioning)."""
+        if self.conditioning != "texel":
+            return 0
+        return 9 if self.orientation == "studio" else 6
 
     @property
     def num_levels(self) -> int:
@@ -150,6 +181,28 @@ def select_conditioning_angles(poses: torch.Tensor, conditioning_joints) -> torc
     return poses.reshape(*poses.shape[:-1], -1, 3).index_select(-2, idx).flatten(-2)
 
 
+def root_joint(joint_parents) -> int:
+    """Index of the body's root joint (the one without a parent)."""
+    roots = [j for j, q in enumerate(joint_parents) if int(q) < 0]
+    if len(roots) != 1:
+        raise ValueError(f"the skeleton must have one root joint, found {len(roots)}")
+    return roots[0]
+
+
+def with_orientation(poses, Rh, root: int):
+    """(…, J·3) root-zero local poses and (…, 3) Rh -> a copy with the root slot holding Rh: the pose
+    input of an ``orientation="studio"`` generator (numpy or torch, whichever ``poses`` is)."""
+    if isinstance(poses, torch.Tensor):
+        out = poses.clone()
+        out[..., 3 * root:3 * root + 3] = torch.as_tensor(Rh, dtype=poses.dtype, device=poses.device)
+        return out
+    import numpy as np
+
+    out = np.array(poses, dtype=np.float32, copy=True)
+    out[..., 3 * root:3 * root + 3] = np.asarray(Rh, np.float32)
+    return out
+
+
 def double_conv(channels: int) -> nn.Sequential:
     """(conv3×3 -> BatchNorm -> ReLU) × 2, channels preserved."""
     layers = []
@@ -181,7 +234,7 @@ class MapDecoder(nn.Module):
         self.bias = nn.Parameter(torch.zeros(1, 3, R, R)) if config.output_bias else None
         self.pose_proj = None
         if config.conditioning == "texel":
-            self.pose_proj = nn.ModuleList(nn.Conv2d(TexelPoseMap.channels, c, 1)
+            self.pose_proj = nn.ModuleList(nn.Conv2d(config.texel_channels, c, 1)
                                            for c in [config.latent, *config.level_channels()])
             for conv in self.pose_proj:
                 nn.init.zeros_(conv.weight)
@@ -203,6 +256,17 @@ class MapDecoder(nn.Module):
         return out if self.bias is None else out + self.bias
 
 
+def shading_head(config: AvhConfig) -> nn.Sequential:
+    """Texel pose map (B, 9, R, R) -> log shading (B, 1, R, R): per-texel 1×1 convs (the same function
+    of a texel's world normal and local pose everywhere), the last layer zero so training starts unlit."""
+    h = config.shading_hidden
+    head = nn.Sequential(nn.Conv2d(config.texel_channels, h, 1), nn.ReLU(inplace=True), nn.Conv2d(h, h, 1),
+                         nn.ReLU(inplace=True), nn.Conv2d(h, 1, 1))
+    nn.init.zeros_(head[-1].weight)
+    nn.init.zeros_(head[-1].bias)
+    return head
+
+
 class AvhGenerator(nn.Module):
     """Encoded pose (B, 6·J_c) -> texture (B, 3, R, R) in [0, 1], displacement (B, 3, R, R) metres.
 
@@ -220,8 +284,10 @@ class AvhGenerator(nn.Module):
         self.feature_maps = nn.Parameter(torch.randn(config.latent, f, f) * 0.5)
         self.texture_decoder = MapDecoder(config)
         self.displacement_decoder = MapDecoder(config)
-        self.texel_pose = (TexelPoseMap(config.num_pose_joints, config.resolution)
+        self.texel_pose = (TexelPoseMap(config.num_pose_joints, config.resolution,
+                                        world_normals=config.orientation == "studio")
                            if config.conditioning == "texel" else None)
+        self.shading = shading_head(config) if config.shading else None
 
     def cuboid(self, pose_encoded: torch.Tensor) -> torch.Tensor:
         """(B, 6·J_c) -> feature cuboid (B, latent, f_c, f_c)."""
@@ -241,6 +307,8 @@ class AvhGenerator(nn.Module):
             pose_map = self.texel_pose(pose_angles)
         cub = self.cuboid(pose_encoded)
         texture = (torch.tanh(self.texture_decoder(cub, pose_map)) + 1.0) * 0.5
+        if self.shading is not None:
+            texture = torch.clamp(texture * torch.exp(self.shading(pose_map)), 0.0, 1.0)
         displacement = torch.tanh(self.displacement_decoder(cub, pose_map)) * self.config.displacement_scale
         return texture, displacement
 
@@ -281,8 +349,12 @@ def expected_parameter_count(config: AvhConfig) -> int:
     if config.output_bias:
         dec += 3 * config.resolution ** 2
     if config.conditioning == "texel":
-        dec += sum((TexelPoseMap.channels + 1) * c for c in [config.latent, *config.level_channels()])
-    return n + 2 * dec
+        dec += sum((config.texel_channels + 1) * c for c in [config.latent, *config.level_channels()])
+    shading = 0
+    if config.shading:
+        h = config.shading_hidden
+        shading = (config.texel_channels + 1) * h + (h + 1) * h + h + 1
+    return n + 2 * dec + shading
 
 
 def init_output_bias(model: AvhGenerator, texture_mean: torch.Tensor, displacement_mean: torch.Tensor) -> None:

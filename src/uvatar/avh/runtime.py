@@ -70,6 +70,8 @@ class AvatarRuntime:
             body = load_body_model(name)
         self.body = body
         self.conditioning = [int(j) for j in self.meta["conditioning_joints"]]
+        # "studio": the last conditioning joint is the root and its slot carries the body's Rh
+        self.orientation = (self.meta.get("model_config") or {}).get("orientation", "body")
         self.resolution = int(self.meta["resolution"])
         shapes = (self.meta.get("body_model") or {}).get("shapes")
         self.shape = None if shapes is None else np.asarray(shapes, np.float32)
@@ -110,9 +112,22 @@ class AvatarRuntime:
 
         return np.asarray(sample_texture(image, self.vertex_uv), np.float32)
 
-    def generate(self, poses: np.ndarray, batch_size: int = 8) -> tuple[np.ndarray, np.ndarray]:
-        """(T, J·3) local axis-angles -> texture (T, R, R, 3) in [0, 1], displacement (T, R, R, 3) body frame."""
-        poses = np.asarray(poses, np.float32).reshape(len(poses), -1, 3)
+    def conditioning_poses(self, poses, Rh=None) -> np.ndarray:
+        """(T, J·3) root-zero local poses (+ (T, 3) Rh) -> the poses whose conditioning joints the
+        generator reads: for a studio-orientation avatar the root slot holds Rh (zero, the body facing
+        the studio's +Z, where no Rh is given)."""
+        poses = np.asarray(poses, np.float32).reshape(len(poses), -1)
+        if self.orientation != "studio":
+            return poses
+        from uvatar.avh.model import with_orientation
+
+        Rh = np.zeros((len(poses), 3), np.float32) if Rh is None else np.asarray(Rh, np.float32).reshape(-1, 3)
+        return with_orientation(poses, Rh, self.conditioning[-1])
+
+    def generate(self, poses: np.ndarray, batch_size: int = 8, Rh=None) -> tuple[np.ndarray, np.ndarray]:
+        """(T, J·3) local axis-angles (+ (T, 3) Rh, read by studio-orientation avatars) -> texture
+        (T, R, R, 3) in [0, 1], displacement (T, R, R, 3) body frame."""
+        poses = self.conditioning_poses(poses, Rh).reshape(len(poses), -1, 3)
         angles = poses[:, self.conditioning].reshape(len(poses), -1)
         tex, disp = [], []
         for s in range(0, len(angles), batch_size):
@@ -176,7 +191,7 @@ class AvatarRuntime:
         Rh = np.zeros((T, 3), np.float32) if Rh is None else np.asarray(Rh, np.float32)
         for s in range(0, T, 8):
             sl = slice(s, min(s + 8, T))
-            tex, disp = self.generate(np.asarray(poses)[sl])
+            tex, disp = self.generate(np.asarray(poses)[sl], Rh=Rh[sl])
             base = self.posed_vertices(np.asarray(poses)[sl], Rh[sl], None if Th is None else np.asarray(Th)[sl],
                                        None if scale is None else np.asarray(scale)[sl], shape)
             rot = self.skinning_rotations(np.asarray(poses)[sl]) if self.displacement_frame == "rest" else None

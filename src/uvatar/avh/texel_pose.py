@@ -13,6 +13,19 @@ interpolated to the texel (barycentric), with the weight of every joint that is 
 joint (fingers, toes, eyes) given to its nearest conditioning ancestor, zero outside the UV charts.
 The map is computed inside the network from the same ``pose_angles`` input (a matmul with the
 constant ``W``), so the exported ONNX graph keeps its one input and runtimes need no change.
+
+With the body's orientation in the studio as an input (``AvhConfig.orientation = "studio"``: the
+last conditioning "joint" is the root, whose slot carries ``Rh``), the map gets three more channels,
+the texel's **posed normal in the capture's world**::
+
+    G_j   = G_parent(j) · R(a_j)                    (B, J_c, 3, 3)  world rotation (forward kinematics
+                                                                    over the conditioning joints, root = R(Rh))
+    n     = sum_j W[j, texel] · G_j · n_rest(texel)  (B, 3, R, R)
+
+A studio's lights are fixed in its world, so the shading it bakes into every frame is a function of
+this normal (and of what occludes the texel); the decoders and the shading head of
+:class:`uvatar.avh.model.AvhGenerator` read it. ``n_rest`` is the template's rest-pose vertex normal
+interpolated to the texel (a constant buffer, like ``W``).
 """
 
 from __future__ import annotations
@@ -22,7 +35,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["rotvec_to_rot6d", "conditioning_skin_weights", "texel_skin_weights", "TexelPoseMap"]
+__all__ = ["rotvec_to_rot6d", "rotvec_to_rotmat", "conditioning_skin_weights", "conditioning_parents",
+           "texel_skin_weights", "texel_rest_normals", "TexelPoseMap"]
 
 
 def rotvec_to_rot6d(rotvecs: torch.Tensor) -> torch.Tensor:
@@ -42,6 +56,66 @@ def rotvec_to_rot6d(rotvecs: torch.Tensor) -> torch.Tensor:
     c0 = torch.stack([b * (x * x - theta2), a * z + b * x * y, -a * y + b * x * z], -1)
     c1 = torch.stack([-a * z + b * x * y, b * (y * y - theta2), a * x + b * y * z], -1)
     return torch.cat([c0, c1], -1)
+
+
+def rotvec_to_rotmat(rotvecs: torch.Tensor) -> torch.Tensor:
+    """(…, 3) axis-angle (radians) -> (…, 3, 3) rotation matrices, ``I + rotvec_to_rot6d``'s Rodrigues
+    terms for all three columns (ONNX-portable ops only; rows are the matrix's rows)."""
+    x, y, z = rotvecs.unbind(-1)
+    theta2 = x * x + y * y + z * z
+    theta = torch.sqrt(theta2 + 1e-12)
+    a = torch.sin(theta) / theta
+    half = torch.sin(0.5 * theta)
+    b = 2.0 * half * half / (theta2 + 1e-12)
+    rows = [torch.stack([1.0 + b * (x * x - theta2), -a * z + b * x * y, a * y + b * x * z], -1),
+            torch.stack([a * z + b * x * y, 1.0 + b * (y * y - theta2), -a * x + b * y * z], -1),
+            torch.stack([-a * y + b * x * z, a * x + b * y * z, 1.0 + b * (z * z - theta2)], -1)]
+    return torch.stack(rows, -2)
+
+
+def conditioning_parents(joint_parents, conditioning_joints) -> list[int]:
+    """For each conditioning joint, the position (in ``conditioning_joints``) of its nearest conditioning
+    ancestor, -1 where it has none. The forward kinematics of :class:`TexelPoseMap` walks this tree."""
+    cond = [int(j) for j in conditioning_joints]
+    column = {j: k for k, j in enumerate(cond)}
+    parents = np.asarray(joint_parents, np.int64)
+    out = []
+    for j in cond:
+        a = int(parents[j])
+        while a >= 0 and a not in column:
+            a = int(parents[a])
+        out.append(column[a] if a >= 0 else -1)
+    return out
+
+
+def tree_order(parents: list[int]) -> list[int] | None:
+    """Positions ordered so that every parent comes before its children; None if ``parents`` (positions
+    or -1) is not a tree (out of range, or a cycle)."""
+    n = len(parents)
+    if any(not -1 <= q < n for q in parents):
+        return None
+    order, placed = [], set()
+    while len(order) < n:
+        ready = [k for k in range(n) if k not in placed and (parents[k] < 0 or parents[k] in placed)]
+        if not ready:
+            return None
+        order += ready
+        placed.update(ready)
+    return order
+
+
+def texel_rest_normals(template, resolution: int) -> np.ndarray:
+    """(3, R, R) float32 unit rest-pose normal of the template at each texel centre (row 0 is v = 1),
+    barycentric from the vertex normals, zero outside the UV charts."""
+    from uvatar.geometry import rasterize_uv, sample_vertex_attribute
+    from uvatar.geometry.frames import vertex_normals
+
+    raster = rasterize_uv(template.uvs, template.uv_faces, resolution)
+    n = np.asarray(sample_vertex_attribute(raster, template.faces,
+                                           vertex_normals(template.vertices, template.faces)), np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    n[~raster.mask] = 0.0
+    return np.ascontiguousarray(n.transpose(2, 0, 1).astype(np.float32))
 
 
 def conditioning_skin_weights(skin_weights: np.ndarray, joint_parents, conditioning_joints) -> np.ndarray:
@@ -77,29 +151,67 @@ def texel_skin_weights(template, conditioning_joints, resolution: int) -> np.nda
 
 
 class TexelPoseMap(nn.Module):
-    """Conditioning angles (B, 3·J_c) radians -> texel pose map (B, 6, R, R); ``weights`` (J_c, R, R)
-    is a persistent buffer (zeros until :meth:`set_weights`; saved with the model's state)."""
+    """Conditioning angles (B, 3·J_c) radians -> texel pose map (B, C, R, R): C = 6 (local rotations)
+    or, with ``world_normals``, 9 (also the posed world normal; the last conditioning joint is then the
+    root, carrying Rh). Buffers (saved with the model's state, zeros until :meth:`set_weights`):
+    ``weights`` (J_c, R²), ``parents`` (J_c,) and ``rest_normals`` (3, R²)."""
 
-    channels = 6
-
-    def __init__(self, num_joints: int, resolution: int):
+    def __init__(self, num_joints: int, resolution: int, world_normals: bool = False):
         super().__init__()
         self.register_buffer("weights", torch.zeros(num_joints, resolution * resolution))
         self.resolution = resolution
+        self.world_normals = bool(world_normals)
+        self.channels = 9 if self.world_normals else 6
+        if self.world_normals:
+            self.register_buffer("parents", torch.full((num_joints,), -1, dtype=torch.long))
+            self.register_buffer("rest_normals", torch.zeros(3, resolution * resolution))
 
-    def set_weights(self, weights) -> None:
-        """Fill the buffer from (J_c, R, R) skinning weights (:func:`texel_skin_weights`)."""
+    def set_weights(self, weights, parents=None, rest_normals=None) -> None:
+        """Fill the buffers from (J_c, R, R) skinning weights (:func:`texel_skin_weights`) and, with
+        world normals, the conditioning tree (:func:`conditioning_parents`) and (3, R, R) rest normals
+        (:func:`texel_rest_normals`)."""
+        J, R = self.weights.shape[0], self.resolution
         w = torch.as_tensor(np.asarray(weights, np.float32))
-        if tuple(w.shape) != (self.weights.shape[0], self.resolution, self.resolution):
-            raise ValueError(f"texel weights must be ({self.weights.shape[0]}, {self.resolution}, "
-                             f"{self.resolution}), got {tuple(w.shape)}")
+        if tuple(w.shape) != (J, R, R):
+            raise ValueError(f"texel weights must be ({J}, {R}, {R}), got {tuple(w.shape)}")
         with torch.no_grad():
-            self.weights.copy_(w.reshape(w.shape[0], -1))
+            self.weights.copy_(w.reshape(J, -1))
+        if not self.world_normals:
+            return
+        if parents is None or rest_normals is None:
+            raise ValueError("world normals need the conditioning joints' parents and the rest normals")
+        p = [int(x) for x in parents]
+        if len(p) != J or tree_order(p) is None:
+            raise ValueError(f"parents must be {J} positions in the list or -1, forming a tree, got {p}")
+        n = torch.as_tensor(np.asarray(rest_normals, np.float32))
+        if tuple(n.shape) != (3, R, R):
+            raise ValueError(f"rest normals must be (3, {R}, {R}), got {tuple(n.shape)}")
+        with torch.no_grad():
+            self.parents.copy_(torch.tensor(p, dtype=torch.long))
+            self.rest_normals.copy_(n.reshape(3, -1))
+
+    def world_rotations(self, rotvecs: torch.Tensor) -> torch.Tensor:
+        """(B, J_c, 3) local axis-angles -> (B, J_c, 3, 3) world rotations (forward kinematics over
+        ``parents``; a joint without a conditioning parent is turned by its own rotation alone)."""
+        local = rotvec_to_rotmat(rotvecs)
+        parents = self.parents.tolist()
+        world: dict[int, torch.Tensor] = {}
+        for k in tree_order(parents):
+            p = parents[k]
+            world[k] = local[:, k] if p < 0 else torch.matmul(world[p], local[:, k])
+        return torch.stack([world[k] for k in range(len(parents))], 1)
 
     def forward(self, pose_angles: torch.Tensor) -> torch.Tensor:
-        r6 = rotvec_to_rot6d(pose_angles.reshape(pose_angles.shape[0], -1, 3))      # (B, J_c, 6)
-        m = torch.matmul(r6.transpose(1, 2), self.weights)                           # (B, 6, R²)
-        return m.reshape(pose_angles.shape[0], self.channels, self.resolution, self.resolution)
+        B, R = pose_angles.shape[0], self.resolution
+        rotvecs = pose_angles.reshape(B, -1, 3)
+        r6 = rotvec_to_rot6d(rotvecs)                                                 # (B, J_c, 6)
+        m = torch.matmul(r6.transpose(1, 2), self.weights)                            # (B, 6, R²)
+        if self.world_normals:
+            g = self.world_rotations(rotvecs).reshape(B, -1, 9)                       # (B, J_c, 9)
+            blend = torch.matmul(g.transpose(1, 2), self.weights).reshape(B, 3, 3, -1)  # (B, 3, 3, R²)
+            normal = (blend * self.rest_normals[None, None]).sum(2)                   # (B, 3, R²)
+            m = torch.cat([m, normal], 1)
+        return m.reshape(B, self.channels, R, R)
 
 
 def pooled(pose_map: torch.Tensor, resolution: int) -> torch.Tensor:

@@ -37,7 +37,9 @@ from uvatar.avh.model import (
     count_parameters,
     encode_pose,
     init_output_bias,
+    root_joint,
     select_conditioning_angles,
+    with_orientation,
 )
 from uvatar.distributed import DistContext, all_sum, distributed_context, global_batchnorm, local_share
 from uvatar.errors import InputError, UvatarError, check_values
@@ -100,13 +102,17 @@ class TrainingData:
         return len(self.names)
 
 
-def to_training_data(frames: BakedFrames, conditioning_joints, device: str | torch.device) -> TrainingData:
-    """BakedFrames (numpy, HWC) -> TrainingData (torch, BCHW, on ``device``)."""
+def to_training_data(frames: BakedFrames, conditioning_joints, device: str | torch.device,
+                     orientation_root: int | None = None) -> TrainingData:
+    """BakedFrames (numpy, HWC) -> TrainingData (torch, BCHW, on ``device``). ``orientation_root``: the
+    root joint whose slot carries each frame's Rh (a ``orientation="studio"`` generator), else None."""
     def chw(a):
         t = torch.from_numpy(np.ascontiguousarray(a))
         return (t.permute(0, 3, 1, 2) if t.ndim == 4 else t[:, None]).contiguous().to(device)
 
     poses = torch.from_numpy(frames.poses)
+    if orientation_root is not None:
+        poses = with_orientation(poses, torch.from_numpy(np.asarray(frames.Rh, np.float32)), orientation_root)
     angles = select_conditioning_angles(poses, conditioning_joints)
     maps = {"texture": chw(frames.texture), "displacement": chw(frames.displacement),
             "kappa": chw(frames.kappa), "w": chw(frames.w), "valid": chw(frames.valid.astype(np.float32))}
@@ -247,6 +253,13 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
     train_names, val_names = selection(meta, baked_dir)
     R = model_config.resolution
     cond, excluded_np, joint_names, body = resolve_body(meta, R, body, baked_dir)
+    root = None
+    if model_config.orientation == "studio":  # the root's slot carries Rh: one more conditioning "joint"
+        if body is None:
+            raise InputError(baked_dir / "dataset.json", "orientation 'studio' needs the body model's skeleton; "
+                                                         "this dataset has body model 'none'")
+        root = root_joint(body.template.joint_parents)
+        cond = [*[j for j in cond if j != root], root]
     model_config = replace(model_config, num_pose_joints=len(cond))
     if state is not None:
         cfg = replace(cfg, displacement_frame=state.get("train_config", {}).get("displacement_frame", "body"))
@@ -265,7 +278,8 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
         if max(cond, default=-1) >= frames.poses.shape[1] // 3:
             raise InputError(baked_dir / "dataset.json", f"conditioning joint {max(cond)} is not in the "
                              f"frames' poses ({frames.poses.shape[1] // 3} joints)")
-        return to_training_data(displacements_to_frame(frames, cfg.displacement_frame, body, shapes), cond, device)
+        return to_training_data(displacements_to_frame(frames, cfg.displacement_frame, body, shapes), cond, device,
+                                root)
 
     train = load(train_names, cfg.progress and ctx.is_main)
     val = load(val_names) if val_names else None
@@ -276,9 +290,11 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
         if body is None:
             raise InputError(baked_dir / "dataset.json", "texel conditioning needs the body model's skinning "
                                                          "weights; this dataset has body model 'none'")
-        from uvatar.avh.texel_pose import texel_skin_weights
+        from uvatar.avh.texel_pose import conditioning_parents, texel_rest_normals, texel_skin_weights
 
-        model.texel_pose.set_weights(texel_skin_weights(body.template, cond, R))
+        model.texel_pose.set_weights(texel_skin_weights(body.template, cond, R),
+                                     conditioning_parents(body.template.joint_parents, cond),
+                                     texel_rest_normals(body.template, R))
     model = model.to(device)
     use_cuda = device.type == "cuda"
     if use_cuda:

@@ -30,16 +30,21 @@ def _flags() -> dict[str, ConfigFlags]:
     from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES
     from uvatar.avh.eval import EvalConfig
     from uvatar.avh.export import export_avatar
-    from uvatar.avh.model import CONDITIONINGS, PRESETS, AvhConfig
+    from uvatar.avh.model import CONDITIONINGS, ORIENTATIONS, PRESETS, AvhConfig
     from uvatar.avh.train import TrainConfig
 
     return {
-        "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning"), rename={"resolution": "texels"},
-                             presets=PRESETS, choices={"conditioning": CONDITIONINGS},
+        "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning", "orientation"),
+                             rename={"resolution": "texels"}, presets=PRESETS,
+                             choices={"conditioning": CONDITIONINGS, "orientation": ORIENTATIONS},
                              help={"resolution": "output resolution",
                                    "conditioning": "global: the paper's pose latent only; texel: also a UV map of "
                                                    "the rotations of the joints that skin each texel, at every "
-                                                   "decoder level"}),
+                                                   "decoder level",
+                                   "orientation": "body: the local pose only (the paper); studio: also the body's "
+                                                  "orientation in the capture's world (its lights are baked into "
+                                                  "the texture; with --conditioning texel also each texel's world "
+                                                  "normal and a shading head)"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
                                  "pose_noise", "device", "seed", "tensorboard"),

@@ -46,6 +46,9 @@ class DemoConfig:
     # generator conditionings trained (AvhConfig.conditioning); the first is the demo's avatar (OUT/run,
     # OUT/avatar), each other one gets OUT/run_<c>, OUT/avatar_<c> and is evaluated beside it
     conditionings: tuple[str, ...] = ("texel", "global")
+    # what the generators' pose input holds (AvhConfig.orientation): "studio" adds the body's orientation in
+    # the capture's world, since the synthetic studio's light rig is fixed in it (SynthConfig.light)
+    orientation: str = "studio"
     epochs: int = 40
     animate_frames: int = 48
     animate_size: int = 256
@@ -55,10 +58,12 @@ class DemoConfig:
     fits: str = "studio"        # "studio": the studio's noisy fits; "fit": made by `uvatar fit --from scans`
 
     def __post_init__(self) -> None:
-        from uvatar.avh.model import CONDITIONINGS
+        from uvatar.avh.model import CONDITIONINGS, ORIENTATIONS
         from uvatar.errors import check_values
 
         check_values([(self.fits in FIT_SOURCES, f"fits must be one of {', '.join(FIT_SOURCES)}, got {self.fits!r}"),
+                      (self.orientation in ORIENTATIONS,
+                       f"orientation must be one of {', '.join(ORIENTATIONS)}, got {self.orientation!r}"),
                       (self.epochs >= 1, f"epochs must be at least 1, got {self.epochs}"),
                       (len(self.conditionings) >= 1 and len(set(self.conditionings)) == len(self.conditionings)
                        and set(self.conditionings) <= set(CONDITIONINGS),
@@ -155,8 +160,8 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         from uvatar.avh.train import TrainConfig, train_avh
 
         for conditioning, (run_dir, _) in run_dirs(out, cfg).items():
-            train_avh(baked, run_dir, preset(cfg.preset, conditioning=conditioning), TrainConfig(epochs=cfg.epochs),
-                      resume=True, preset_name=cfg.preset)
+            train_avh(baked, run_dir, preset(cfg.preset, conditioning=conditioning, orientation=cfg.orientation),
+                      TrainConfig(epochs=cfg.epochs), resume=True, preset_name=cfg.preset)
 
     def export() -> None:
         from uvatar.avh.export import export_avatar

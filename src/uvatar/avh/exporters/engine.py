@@ -287,7 +287,10 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
     if n_in is not None and n_in not in (3 * len(cond), 6 * len(cond)):
         raise InputError(avatar_dir / onnx_name, f"input size {n_in} fits neither 3 nor 6 x {len(cond)} joints")
     encoding = {"type": kind, "joints": cond, "angles": "local axis-angle components (x, y, z) in radians",
-                "input": io_names["input"], "size": n_in or 3 * len(cond)}
+                "input": io_names["input"], "size": n_in or 3 * len(cond),
+                # "studio": the last joint is the root, whose slot carries the global orientation Rh (a
+                # root-zero pose, as the viewer's, is the body facing the studio's +Z)
+                "orientation": (meta.get("model_config") or {}).get("orientation", "body")}
     body_meta = meta.get("body_model", {})
     body_name = body_meta.get("name", body_meta) if isinstance(body_meta, dict) else body_meta
     shape = meta.get("shape", body_meta.get("shapes") if isinstance(body_meta, dict) else None)
