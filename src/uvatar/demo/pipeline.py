@@ -253,6 +253,7 @@ def collect_metrics(out: Path, cfg: DemoConfig, results: list[StageResult]) -> d
     if evaluation:
         metrics["avh"] = evaluation.get("avh")
         metrics["avh_conditioning"] = cfg.conditionings[0]
+        metrics["avh_orientation"] = cfg.orientation
         # every trained conditioning under its name (the first is metrics["avh"], the others eval's "others")
         metrics["avh_by_conditioning"] = {c: evaluation.get("avh") if i == 0 else (evaluation.get("others") or {}).get(
             f"avh_{c}") for i, c in enumerate(cfg.conditionings)}

@@ -17,7 +17,9 @@ THREE_DIGITS = ("ssim", "silhouette_iou", "texture_r2", "displacement_r2")
 def _methods(metrics: dict) -> list[tuple[str, str, dict]]:
     """(label, key prefix in per-frame entries, summary) per method: each AVH conditioning, then the baselines."""
     by = metrics.get("avh_by_conditioning")
-    avh = ([(f"AVH, {c} conditioning", "avh" if i == 0 else f"avh_{c}", v) for i, (c, v) in enumerate(by.items()) if v]
+    orientation = {"studio": ", studio orientation"}.get(metrics.get("avh_orientation"), "")
+    avh = ([(f"AVH, {c} conditioning{orientation}", "avh" if i == 0 else f"avh_{c}", v)
+            for i, (c, v) in enumerate(by.items()) if v]
            if by else [("AVH (ours)", "avh", metrics["avh"])] if metrics.get("avh") else [])
     return avh + [(f"baseline: {name.replace('_', ' ')}", name, values)
                   for name, values in (metrics.get("baselines") or {}).items()]
