@@ -24,6 +24,10 @@ def test_quick_demo_runs_every_stage_and_writes_report(tmp_path):
     assert "animation.mp4" in report and "AVH, texel conditioning" in report and "mean texture" in report
     assert set(metrics["avh_by_conditioning"]) == {"texel", "global"} and metrics["distance_bins"]
     assert all(-10 < m["texture_r2"] <= 1 for m in metrics["avh_by_conditioning"].values())
+    # the synthetic studio is lit: both generators see the body's orientation in it (the root's Rh, last)
+    avatar = json.loads((out / "avatar" / "avatar.json").read_text())
+    assert metrics["avh_orientation"] == "studio" and avatar["orientation"] == "studio"
+    assert avatar["conditioning_joints"][-1] == 0 and "studio orientation" in report
     assert (out / "animation.mp4").stat().st_size > 1000
 
     # A second run resumes: every stage is found done and skipped.
@@ -36,6 +40,9 @@ def test_demo_rejects_zero_epochs_before_doing_anything(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--quick", "--out", str(out), "--epochs", "0"]) == 1
     assert "epochs must be at least 1, got 0" in capsys.readouterr().err
+    assert not out.exists()
+    with pytest.raises(SystemExit):  # argparse's choices
+        main(["demo", "--quick", "--out", str(out), "--orientation", "world"])
     assert not out.exists()
 
 

@@ -1,6 +1,6 @@
 """``uvatar demo``: run the whole AVH pipeline on a synthetic capture (see :mod:`uvatar.demo`).
 
-``--seed``, ``--epochs`` and ``--fits`` are generated from :class:`uvatar.demo.DemoConfig`; their
+``--seed``, ``--epochs``, ``--fits`` and ``--orientation`` are generated from :class:`uvatar.demo.DemoConfig`; their
 defaults are those of ``DEFAULT`` or, with ``--quick``, ``QUICK``.
 """
 
@@ -10,11 +10,16 @@ from uvatar.cli.flags import ConfigFlags
 
 
 def _flags() -> ConfigFlags:
+    from uvatar.avh.model import ORIENTATIONS
     from uvatar.demo.pipeline import DEFAULT, FIT_SOURCES, QUICK, DemoConfig
 
-    return ConfigFlags(DemoConfig, fields=("seed", "epochs", "fits"), choices={"fits": FIT_SOURCES},
+    return ConfigFlags(DemoConfig, fields=("seed", "epochs", "fits", "orientation"),
+                       choices={"fits": FIT_SOURCES, "orientation": ORIENTATIONS},
                        presets={"default": DEFAULT, "quick": QUICK}, help={
                            "seed": "random seed of the synthetic capture", "epochs": "training epochs",
+                           "orientation": "what the generators see of the pose: studio adds the body's orientation "
+                                          "in the capture's world (the studio's lights are fixed in it); body is "
+                                          "the paper's local pose only",
                            "fits": "studio: the studio's own noisy fits; fit: the studio's fits are moved out and "
                                    "`uvatar fit --from scans` makes them, the path a real capture takes "
                                    "(needs uvatar[fit])"})
