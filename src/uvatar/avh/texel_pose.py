@@ -35,16 +35,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["rotvec_to_rot6d", "rotvec_to_rotmat", "conditioning_skin_weights", "conditioning_parents",
+__all__ = ["rotation_minus_identity", "rotvec_to_rot6d", "rotvec_to_rotmat", "conditioning_skin_weights", "conditioning_parents",
            "texel_skin_weights", "texel_rest_normals", "TexelPoseMap"]
 
 
-def rotvec_to_rot6d(rotvecs: torch.Tensor) -> torch.Tensor:
-    """(…, 3) axis-angle (radians) -> (…, 6) first two columns of the rotation matrix minus those of I.
+def rotation_minus_identity(rotvecs: torch.Tensor) -> torch.Tensor:
+    """(…, 3) axis-angle (radians) -> (…, 3, 3) ``R − I`` (rows are the matrix's rows).
 
     Rodrigues ``R = I + a K + b K²`` with ``a = sin θ / θ``, ``b = 2 sin²(θ/2) / θ²`` (stable near
-    θ = 0), written with ONNX-portable ops only (no atan2, no branches). Output order: column 0
-    (x, y, z) then column 1 (x, y, z).
+    θ = 0), written with ONNX-portable ops only (no atan2, no branches); ``R − I`` is kept apart from
+    the identity so that small rotations keep their precision. ``K² = v vᵀ − θ² I``.
     """
     x, y, z = rotvecs.unbind(-1)
     theta2 = x * x + y * y + z * z
@@ -52,25 +52,23 @@ def rotvec_to_rot6d(rotvecs: torch.Tensor) -> torch.Tensor:
     a = torch.sin(theta) / theta
     half = torch.sin(0.5 * theta)
     b = 2.0 * half * half / (theta2 + 1e-12)
-    # K² = v vᵀ − θ² I; R − I = a K + b K²
-    c0 = torch.stack([b * (x * x - theta2), a * z + b * x * y, -a * y + b * x * z], -1)
-    c1 = torch.stack([-a * z + b * x * y, b * (y * y - theta2), a * x + b * y * z], -1)
-    return torch.cat([c0, c1], -1)
+    rows = [torch.stack([b * (x * x - theta2), -a * z + b * x * y, a * y + b * x * z], -1),
+            torch.stack([a * z + b * x * y, b * (y * y - theta2), -a * x + b * y * z], -1),
+            torch.stack([-a * y + b * x * z, a * x + b * y * z, b * (z * z - theta2)], -1)]
+    return torch.stack(rows, -2)
+
+
+def rotvec_to_rot6d(rotvecs: torch.Tensor) -> torch.Tensor:
+    """(…, 3) axis-angle (radians) -> (…, 6) first two columns of the rotation matrix minus those of I.
+    Output order: column 0 (x, y, z) then column 1 (x, y, z)."""
+    d = rotation_minus_identity(rotvecs)
+    return torch.cat([d[..., :, 0], d[..., :, 1]], -1)
 
 
 def rotvec_to_rotmat(rotvecs: torch.Tensor) -> torch.Tensor:
-    """(…, 3) axis-angle (radians) -> (…, 3, 3) rotation matrices, ``I + rotvec_to_rot6d``'s Rodrigues
-    terms for all three columns (ONNX-portable ops only; rows are the matrix's rows)."""
-    x, y, z = rotvecs.unbind(-1)
-    theta2 = x * x + y * y + z * z
-    theta = torch.sqrt(theta2 + 1e-12)
-    a = torch.sin(theta) / theta
-    half = torch.sin(0.5 * theta)
-    b = 2.0 * half * half / (theta2 + 1e-12)
-    rows = [torch.stack([1.0 + b * (x * x - theta2), -a * z + b * x * y, a * y + b * x * z], -1),
-            torch.stack([a * z + b * x * y, 1.0 + b * (y * y - theta2), -a * x + b * y * z], -1),
-            torch.stack([-a * y + b * x * z, a * x + b * y * z, 1.0 + b * (z * z - theta2)], -1)]
-    return torch.stack(rows, -2)
+    """(…, 3) axis-angle (radians) -> (…, 3, 3) rotation matrices (ONNX-portable ops only)."""
+    eye = torch.eye(3, dtype=rotvecs.dtype, device=rotvecs.device)
+    return rotation_minus_identity(rotvecs) + eye
 
 
 def conditioning_parents(joint_parents, conditioning_joints) -> list[int]:
