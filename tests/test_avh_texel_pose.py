@@ -254,3 +254,19 @@ def test_studio_orientation_trains_exports_and_reads_rh(body, tmp_path, conditio
     i = 1
     query = rt.conditioning_poses(base.frames.poses[i:i + 1], base.frames.Rh[i:i + 1])[0]
     assert base.nearest(query)[0] == i
+
+
+def test_the_shading_head_learns_at_its_own_rate(body):
+    from uvatar.avh.train import TrainConfig, parameter_groups
+
+    cond, _ = _studio_setup(body, 16)
+    gen = AvhGenerator(AvhConfig(4, 16, resolution=16, num_pose_joints=len(cond), conditioning="texel",
+                                 orientation="studio"))
+    rest, shading = parameter_groups(gen, TrainConfig(lr=1e-3, shading_lr_scale=10.0))
+    assert shading["lr"] == pytest.approx(1e-2) and "lr" not in rest
+    assert {id(p) for p in shading["params"]} == {id(p) for p in gen.shading.parameters()}
+    assert len(rest["params"]) + len(shading["params"]) == len(list(gen.parameters()))
+    paper = AvhGenerator(AvhConfig(4, 16, resolution=16, num_pose_joints=len(cond)))
+    assert len(parameter_groups(paper, TrainConfig())) == 1
+    with pytest.raises(ValueError, match="shading learning-rate scale"):
+        TrainConfig(shading_lr_scale=0)

@@ -47,13 +47,15 @@ def _flags() -> dict[str, ConfigFlags]:
                                                   "normal and a shading head)"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
-                                 "pose_noise", "device", "seed", "tensorboard"),
+                                 "pose_noise", "shading_lr_scale", "device", "seed", "tensorboard"),
             rename={"lr_gamma": "gamma"}, choices={"displacement_frame": DISPLACEMENT_FRAMES}, help={
                 "epochs": "epochs (the paper uses 500)", "batch_size": "frames per batch", "lr": "Adam learning rate",
                 "lr_gamma": "ExponentialLR decay per epoch", "displacement_weight": "weight of the displacement loss",
                 "displacement_frame": "frame the displacement is learned in: rest (unposed by each texel's skinning "
                                       "rotation, generalizes to new poses) or body (as baked; the paper's maps)",
                 "pose_noise": "std (radians) of Gaussian noise added to training pose angles (augmentation)",
+                "shading_lr_scale": "the shading head's learning rate is --lr times this (--orientation studio "
+                                    "with --conditioning texel)",
                 "device": "cpu or cuda (bf16 autocast + channels_last)", "seed": "random seed",
                 "tensorboard": "write TensorBoard logs to OUT/tb"}),
         "animate": ConfigFlags(
