@@ -84,6 +84,8 @@ def distributed_context(device: str | torch.device = "cpu") -> Iterator[DistCont
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     try:
         yield DistContext(dist.get_rank(), dist.get_world_size(), local_rank, device)
+        if owned:  # every rank is done (rank 0 writes the run folder last) before the group goes
+            dist.barrier()
     finally:
         if owned:
             dist.destroy_process_group()
