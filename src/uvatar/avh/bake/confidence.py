@@ -19,18 +19,39 @@ import numpy as np
 from uvatar.geometry import RayCaster, RayCasterConfig, face_normals
 
 __all__ = [
-    "hemisphere_directions", "frames_from_normals", "face_visibility", "face_visibility_reference",
+    "hemisphere_directions", "face_lattice_params", "frames_from_normals", "face_visibility", "face_visibility_reference",
     "vertex_visibility", "distance_score", "normal_match_score", "confidence",
 ]
 
 
-def hemisphere_directions(n: int = 64) -> np.ndarray:
-    """(n, 3) unit directions evenly spread over the +Z hemisphere (Fibonacci lattice, equal area)."""
+def hemisphere_directions(n: int = 64, shift=0.5, turn=0.0) -> np.ndarray:
+    """Unit directions evenly spread over the +Z hemisphere (Fibonacci lattice, equal area).
+
+    (n, 3) for the default scalar ``shift`` (where each of the n equal-area bands is sampled, in
+    [0, 1): 0.5 its middle) and ``turn`` (radians about +Z); arrays shift, turn (B,) give (B, n, 3):
+    one lattice per row, shifted within its bands and turned (:func:`face_lattice_params`).
+    """
     i = np.arange(n, dtype=np.float64)
-    z = 1.0 - (i + 0.5) / n
-    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    shift = np.asarray(shift, dtype=np.float64)[..., None]
+    turn = np.asarray(turn, dtype=np.float64)[..., None]
+    z = 1.0 - (i + shift) / n
+    phi = i * np.pi * (3.0 - np.sqrt(5.0)) + turn
     rho = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    return np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
+    return np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=-1)
+
+
+# R2 low-discrepancy sequence (Roberts 2018): consecutive faces get well-spread (shift, turn) pairs
+_PLASTIC = 1.32471795724474602596
+
+
+def face_lattice_params(face_index) -> tuple[np.ndarray, np.ndarray]:
+    """(shift (K,), turn (K,)) of the stratified visibility lattice of faces ``face_index`` (K,):
+    a deterministic function of the face's index in its mesh (so a face gets the same rays whichever
+    subset is cast), spread over [0, 1) x [0, 2 pi) by the R2 sequence."""
+    f = np.asarray(face_index, dtype=np.float64)
+    shift = np.mod(0.5 + f / _PLASTIC, 1.0)
+    turn = 2.0 * np.pi * np.mod(0.5 + f / _PLASTIC ** 2, 1.0)
+    return shift, turn
 
 
 def frames_from_normals(normals) -> np.ndarray:
@@ -48,19 +69,25 @@ def frames_from_normals(normals) -> np.ndarray:
 
 
 def face_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: int = 64,
-                    offset: float = 1e-4, faces_per_batch: int = 16384, which=None) -> np.ndarray:
+                    offset: float = 1e-4, faces_per_batch: int = 16384, which=None,
+                    stratified: bool = False) -> np.ndarray:
     """Fraction of ``n_rays`` hemisphere rays from each face centroid that escape the mesh.
 
     vertices (V, 3) metres; faces (F, 3). Rays start ``offset`` metres above the centroid along the
     face normal. 1 = fully visible, 0 = every ray hits the mesh again (inside a fold).
     which: (K,) face indices to compute (default: all). Returns (F,), or (K,) for ``which``.
+    stratified: False, every face casts the same Fibonacci lattice (in its own tangent frame); True,
+    each face's lattice is shifted within its equal-area bands and turned about the normal by
+    :func:`face_lattice_params` (a stratified estimate per face whose errors average out over the
+    faces around a vertex: fewer rays per face give the vertex visibility of many more).
     Rays are built in float32 (Embree's precision) and launched as one occlusion batch per
     ``faces_per_batch`` faces.
     """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     caster = caster or RayCaster(v, f, RayCasterConfig(precision="float32"))
-    sel = f if which is None else f[np.asarray(which, dtype=np.int64)]
+    index = np.arange(len(f)) if which is None else np.asarray(which, dtype=np.int64)
+    sel = f[index]
     normals = np.asarray(face_normals(v, sel), dtype=np.float64) if len(sel) else np.zeros((0, 3))
     centroids = (v[sel].mean(axis=1) + offset * normals).astype(np.float32)
     dirs = hemisphere_directions(n_rays).astype(np.float32)
@@ -68,7 +95,11 @@ def face_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: in
     for s in range(0, len(sel), faces_per_batch):
         frames = frames_from_normals(normals[s:s + faces_per_batch]).astype(np.float32)   # (B, 3, 3)
         b = len(frames)
-        d = np.matmul(dirs, frames.transpose(0, 2, 1)).reshape(b * n_rays, 3)            # (B*n, 3)
+        if stratified:
+            local = hemisphere_directions(n_rays, *face_lattice_params(index[s:s + faces_per_batch]))
+            d = np.matmul(local.astype(np.float32), frames.transpose(0, 2, 1)).reshape(b * n_rays, 3)
+        else:
+            d = np.matmul(dirs, frames.transpose(0, 2, 1)).reshape(b * n_rays, 3)        # (B*n, 3)
         o = np.repeat(centroids[s:s + faces_per_batch], n_rays, axis=0)
         blocked = caster.any_hit(o, d).reshape(b, n_rays)
         out[s:s + faces_per_batch] = 1.0 - blocked.mean(axis=1)
@@ -76,17 +107,21 @@ def face_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: in
 
 
 def face_visibility_reference(vertices, faces, caster: RayCaster | None = None, n_rays: int = 64,
-                              offset: float = 1e-4) -> np.ndarray:
+                              offset: float = 1e-4, stratified: bool = False) -> np.ndarray:
     """Plain per-face twin of :func:`face_visibility` (one Embree call per face; tests only)."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     caster = caster or RayCaster(v, f)
-    dirs = hemisphere_directions(n_rays)
     out = np.empty(len(f))
     for i, tri in enumerate(f):
         e = np.cross(v[tri[1]] - v[tri[0]], v[tri[2]] - v[tri[0]])
         n = e / np.linalg.norm(e)
         frame = frames_from_normals(n[None])[0]
+        if stratified:
+            shift, turn = face_lattice_params([i])
+            dirs = hemisphere_directions(n_rays, shift[0], turn[0])
+        else:
+            dirs = hemisphere_directions(n_rays)
         d = dirs @ frame.T
         o = np.repeat((v[tri].mean(0) + offset * n)[None], n_rays, axis=0)
         out[i] = 1.0 - caster.any_hit(o, d).mean()
@@ -94,23 +129,24 @@ def face_visibility_reference(vertices, faces, caster: RayCaster | None = None, 
 
 
 def vertex_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: int = 64,
-                      offset: float = 1e-4, needed=None) -> np.ndarray:
+                      offset: float = 1e-4, needed=None, stratified: bool = False) -> np.ndarray:
     """(V,) face visibility averaged onto the vertices (plain mean over incident faces; 1 if none).
 
     needed: optional (V,) bool or vertex indices; only faces touching a needed vertex are ray cast
-    (exactly the same values there) and the other vertices get NaN.
+    (exactly the same values there) and the other vertices get NaN. stratified: see
+    :func:`face_visibility`.
     """
     f = np.asarray(faces, dtype=np.int64)
     nv = len(vertices)
     if needed is None:
         which = None
-        fv = face_visibility(vertices, f, caster, n_rays, offset)
+        fv = face_visibility(vertices, f, caster, n_rays, offset, stratified=stratified)
         fw = f
     else:
         mask = np.zeros(nv, bool)
         mask[needed] = True
         which = np.flatnonzero(mask[f].any(axis=1))
-        fv = face_visibility(vertices, f, caster, n_rays, offset, which=which)
+        fv = face_visibility(vertices, f, caster, n_rays, offset, which=which, stratified=stratified)
         fw = f[which]
     total = np.bincount(fw.ravel(), weights=np.repeat(fv, 3), minlength=nv)
     count = np.bincount(fw.ravel(), minlength=nv)

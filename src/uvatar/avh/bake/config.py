@@ -135,7 +135,13 @@ class BakeConfig:
     max_match_distance: texel ray hits farther than this (metres) are no match (None: no limit, as in
         the paper; they would get zero confidence from the distance term anyway).
     ray_epsilon: rays start this far (metres) behind their origin so a surface through it is found.
-    visibility_rays: hemisphere rays per face centroid for the visibility terms v and w (paper: 64).
+    visibility_rays: hemisphere rays per face centroid for the visibility terms v and w (paper: 64;
+        default 16 with ``visibility_stratified``: see there).
+    visibility_stratified: each face casts its own shifted and turned lattice
+        (:func:`uvatar.avh.bake.confidence.face_lattice_params`) instead of one shared lattice, so the
+        errors of few rays per face average out over the faces around a vertex. 16 stratified rays
+        keep the vertex visibility of a 110k-face scan within 0.011 on average (0.055 at the 99th
+        percentile) of the paper's 64 shared rays, for a quarter of the rays (docs/scale.md).
     distance_clip: the distance term delta clips at this fraction of the fit's bounding-box diagonal
         (paper: 1/50).
     inpaint_radius: Telea inpainting radius in texels (paper: 3).
@@ -169,7 +175,8 @@ class BakeConfig:
     polarity_ratio: float = 2.0
     max_match_distance: float | None = 0.1
     ray_epsilon: float = 1e-4
-    visibility_rays: int = 64
+    visibility_rays: int = 16
+    visibility_stratified: bool = True
     distance_clip: float = 1 / 50
     inpaint_radius: int = 3
     inpaint_band: int | None = 8

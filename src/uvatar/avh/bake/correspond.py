@@ -115,7 +115,7 @@ def match_texels(points, normals, scan: ScanSurface, polarity_rule: bool = True,
     for sign in (1.0, -1.0):
         d = sign * n
         hits = scan.caster.first_hit(r - epsilon * d, d, max_distance=limit)
-        m = scan.normals_at(hits.face, hits.bary)
+        m = scan.normals_at_hits(hits)
         dist = np.maximum(hits.distance - epsilon, 0.0)
         cand.append((hits, m, dist, (m * n).sum(1) > 0))
     (hp, mp, dp, pp), (hm, mm, dm, pm) = cand

@@ -67,16 +67,18 @@ class BodyLayout:
     def from_template(cls, template, resolution: int) -> BodyLayout:
         return cls.build(template.faces, template.uvs, template.uv_faces, resolution, template.vertices)
 
-    def surface_texels(self, min_visibility: float = 0.02, rays: int = 64) -> np.ndarray | None:
+    def surface_texels(self, min_visibility: float = 0.02, rays: int = 64,
+                       stratified: bool = False) -> np.ndarray | None:
         """(M,) bool valid texels on the body's outer surface: rest-pose hemisphere visibility on the
-        template itself above ``min_visibility`` (cached; None when the rest body is unknown).
-        Interior parts (eyeballs, mouth interior) are False."""
+        template itself above ``min_visibility`` (``rays`` per face, ``stratified``: see
+        :func:`~uvatar.avh.bake.confidence.face_visibility`; cached; None when the rest body is
+        unknown). Interior parts (eyeballs, mouth interior) are False."""
         if self.rest_vertices is None:
             return None
-        key = ("surface", float(min_visibility), int(rays))
+        key = ("surface", float(min_visibility), int(rays), bool(stratified))
         if key not in self._cache:
             caster = fast_caster(self.rest_vertices, self.faces)
-            vis = vertex_visibility(self.rest_vertices, self.faces, caster, rays, 1e-4)
+            vis = vertex_visibility(self.rest_vertices, self.faces, caster, rays, 1e-4, stratified=stratified)
             self._cache[key] = self.at_texels(vis) > min_visibility
         return self._cache[key]
 
@@ -96,13 +98,34 @@ class BodyLayout:
         return self.raster.resolution
 
     def at_texels(self, vertex_values) -> np.ndarray:
-        """Interpolate per-vertex values (V, C) or (V,) at the valid texels -> (M, C) or (M,)."""
+        """Interpolate per-vertex values (V, C) or (V,) at the valid texels -> (M, C) or (M,) float64:
+        one product with the cached sparse (M, V) barycentric matrix (:meth:`interpolation_matrix`;
+        :meth:`at_texels_reference` is its plain twin)."""
+        vals = np.asarray(vertex_values, dtype=np.float64)
+        flat = vals.reshape(len(vals), -1)
+        return np.asarray(self.interpolation_matrix(len(vals)) @ flat).reshape(len(self.texel_flat), *vals.shape[1:])
+
+    def at_texels_reference(self, vertex_values) -> np.ndarray:
+        """Plain twin of :meth:`at_texels`: gather each texel's three corners and weight them."""
         vals = np.asarray(vertex_values, dtype=np.float64)
         corners = vals[self.texel_vertices]                          # (M, 3[, C])
         if vals.ndim == 1:
             return np.einsum("mk,mk->m", corners, self.texel_bary)
         return np.einsum("mkc,mk->mc", corners.reshape(len(corners), 3, -1),
                          self.texel_bary).reshape(len(corners), *vals.shape[1:])
+
+    def interpolation_matrix(self, num_vertices: int | None = None):
+        """(M, V) scipy CSR matrix: row m holds texel m's barycentrics at its triangle's vertices
+        (cached per V; default V: one past the largest vertex index of the faces)."""
+        nv = int(self.faces.max()) + 1 if num_vertices is None else int(num_vertices)
+        key = ("interpolation", nv)
+        if key not in self._cache:
+            import scipy.sparse as sp
+
+            m = len(self.texel_flat)
+            self._cache[key] = sp.csr_matrix(
+                (self.texel_bary.ravel(), self.texel_vertices.ravel(), np.arange(0, 3 * m + 1, 3)), shape=(m, nv))
+        return self._cache[key]
 
     @property
     def texel_vertices(self) -> np.ndarray:
@@ -277,8 +300,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         disp = np.where(hit[:, None], matches.points - s, 0.0)
     with _timed(sec, "visibility_registered", rays, cpu):
         w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
-        w_vertex = vertex_visibility(registered, layout.faces, w_caster,
-                                     config.visibility_rays, eps, needed=layout.texel_vertices.ravel())
+        w_vertex = vertex_visibility(registered, layout.faces, w_caster, config.visibility_rays, eps,
+                                     needed=layout.texel_vertices.ravel(), stratified=config.visibility_stratified)
         w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
     with _timed(sec, "confidence", rays, cpu):
         delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
@@ -288,8 +311,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         # the scan's visibility v only matters where the other factors of kappa are not zero: only the
         # scan faces around those texels' matches are ray cast (the same values there)
         hit_vertices = surface.faces[matches.face[use]]                           # (K, 3)
-        v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster,
-                                     config.visibility_rays, eps, needed=hit_vertices.ravel())
+        v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster, config.visibility_rays, eps,
+                                     needed=hit_vertices.ravel(), stratified=config.visibility_stratified)
         v = np.zeros(len(r))
         v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
         kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
@@ -302,7 +325,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         texture, displacement = both[..., :3], both[..., 3:]
     valid = layout.raster.mask.copy()
     kappa_map = layout.to_map(kappa)
-    surface_texels = layout.surface_texels(config.interior_visibility, config.visibility_rays)
+    surface_texels = layout.surface_texels(config.interior_visibility, config.visibility_rays,
+                                           config.visibility_stratified)
     on_surface = kappa if surface_texels is None else kappa[surface_texels]
     stats = {
         "kappa_mean": float(on_surface.mean()) if len(on_surface) else 0.0,

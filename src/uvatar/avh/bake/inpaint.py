@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["inpaint_telea", "fill_nearest"]
+__all__ = ["inpaint_telea", "inpaint_telea_reference", "fill_nearest"]
 
 
 def fill_nearest(image, fill_mask):
@@ -22,12 +22,18 @@ def fill_nearest(image, fill_mask):
     image (H, W[, C]); fill_mask (H, W) bool (True = unknown). Returns (filled image, distance in
     texels to the nearest known texel (H, W)).
     """
+    img = np.asarray(image)
+    index, dist = _nearest_known(fill_mask)
+    return np.take(img.reshape(index.size, *img.shape[2:]), index, axis=0).reshape(img.shape), dist
+
+
+def _nearest_known(fill_mask):
+    """(flat index (H, W) of each texel's nearest known texel, distance to it in texels (H, W))."""
     from scipy import ndimage
 
-    img = np.asarray(image)
     fill = np.asarray(fill_mask, bool)
     dist, (iy, ix) = ndimage.distance_transform_edt(fill, return_indices=True)
-    return img[iy, ix], dist
+    return iy * fill.shape[1] + ix, dist
 
 
 def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None) -> np.ndarray:
@@ -35,6 +41,8 @@ def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None) ->
 
     radius: Telea neighbourhood radius in texels (paper: 3). band: see the module doc (None = Telea
     everywhere). Known texels are returned unchanged. If no texel is known, the result is zeros.
+    The channels share one nearest-texel fill and one quantization pass; OpenCV's Telea then marches
+    each channel (:func:`inpaint_telea_reference` is the plain per-channel twin).
     """
     import cv2
 
@@ -45,6 +53,44 @@ def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None) ->
     fill = np.asarray(fill_mask, bool)
     if fill.shape != img.shape[:2]:
         raise ValueError(f"fill_mask shape {fill.shape} does not match image {img.shape[:2]}")
+    if not fill.any():
+        out = img.copy()
+    elif fill.all():
+        out = np.zeros_like(img)
+    else:
+        h, w, c = img.shape
+        out = img.copy()
+        march = fill
+        if band is not None:
+            index, dist = _nearest_known(fill)
+            far = np.flatnonzero(dist > band)
+            out.reshape(h * w, c)[far] = img.reshape(h * w, c)[index.ravel()[far]]
+            march = fill.copy()
+            march.ravel()[far] = False
+        marching = np.flatnonzero(march)
+        if len(marching):
+            known = np.take(img.reshape(h * w, c), np.flatnonzero(~fill), axis=0)   # (K, C)
+            lo, hi = known.min(0).astype(np.float64), known.max(0).astype(np.float64)
+            span = np.where(hi > lo, hi - lo, 1.0)
+            planes = np.ascontiguousarray(out.transpose(2, 0, 1))                   # (C, H, W)
+            mask8 = march.view(np.uint8)
+            flat = out.reshape(h * w, c)
+            for k in range(c):
+                q = np.clip(np.rint((planes[k].astype(np.float64) - lo[k]) / span[k] * 65535.0), 0, 65535)
+                filled = cv2.inpaint(q.astype(np.uint16), mask8, int(radius), cv2.INPAINT_TELEA)
+                flat[marching, k] = filled.ravel()[marching].astype(np.float64) / 65535.0 * span[k] + lo[k]
+    return out[..., 0] if squeeze else out
+
+
+def inpaint_telea_reference(image, fill_mask, radius: int = 3, band: int | None = None) -> np.ndarray:
+    """Plain twin of :func:`inpaint_telea`: each channel quantized, marched and mapped back on its own."""
+    import cv2
+
+    img = np.asarray(image, dtype=np.float32)
+    squeeze = img.ndim == 2
+    if squeeze:
+        img = img[..., None]
+    fill = np.asarray(fill_mask, bool)
     if not fill.any():
         out = img.copy()
     elif fill.all():

@@ -60,8 +60,10 @@ def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float
     bary = np.zeros((len(p), 3))
     for sign in (1.0, -1.0):
         d = sign * n
-        hits = surface.caster.first_hit(p - epsilon * d, d, max_distance=max_distance + epsilon)
-        m = surface.normals_at(hits.face, hits.bary)
+        # the -n ray only wins below the +n ray's compatible distance: it need not look farther
+        # (the same hits win; Embree's traversal ends sooner)
+        hits = surface.caster.first_hit(p - epsilon * d, d, max_distance=np.minimum(max_distance + epsilon, best))
+        m = surface.normals_at_hits(hits)
         better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
         best = np.where(better, hits.distance, best)
         face = np.where(better, hits.face, face)

@@ -23,6 +23,8 @@ slope chained with the same LBS Jacobian). :mod:`.refine_together` runs those ro
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from uvatar.avh.bake.config import PoseRefineConfig
@@ -65,10 +67,28 @@ def _rotation_step(step: np.ndarray, max_angle: float) -> np.ndarray:
     return step * np.minimum(1.0, max_angle / np.maximum(angle, 1e-12))
 
 
+_BODY_MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()   # body -> {key: arrays}, see _memo
+
+
+def _memo(body, key, make):
+    """``make()`` once per body model and ``key`` (the refinement's per-body arrays are the same for
+    every frame and round of a bake); the entries go with the body."""
+    per_body = _BODY_MEMO.setdefault(body, {})
+    if key not in per_body:
+        per_body[key] = make()
+    return per_body[key]
+
+
 def refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
     """(N,) int64 the shadow vertices the refinement matches: those the conditioning joints move
     (:func:`untracked_skin_weight` at most ``max_untracked_weight``), evenly thinned to
-    ``max_vertices``. The same for every frame, so per-vertex colours compare across frames."""
+    ``max_vertices``. The same for every frame, so per-vertex colours compare across frames
+    (memoized per body)."""
+    key = ("refine_vertices", config.max_untracked_weight, config.max_vertices)
+    return _memo(body, key, lambda: _refine_vertices(body, config))
+
+
+def _refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
     tracked = untracked_skin_weight(body.template.skin_weights, list(body.conditioning_joints))
     candidates = np.flatnonzero(tracked <= config.max_untracked_weight)
     if config.max_vertices is None or config.max_vertices >= len(candidates):
@@ -158,7 +178,9 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     joints = list(body.conditioning_joints)
     tpl = body.template
     use = refine_vertices(body, config)
-    sub = subtree_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]    # (N, K)
+    key = (config.max_untracked_weight, config.max_vertices)
+    sub = _memo(body, ("subtree",) + key,
+                lambda: subtree_weights(tpl.skin_weights, tpl.joint_parents, joints)[use])    # (N, K)
     rot = body.joint_rotvecs_from_fit(fit).astype(np.float64)
     rh = np.asarray(fit.Rh, np.float64).copy()
     th = np.asarray(fit.Th, np.float64).copy()
@@ -166,7 +188,8 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
     max_angle = np.radians(config.max_step_deg)
     k = len(joints)
-    skin = region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]   # (N, K)
+    skin = _memo(body, ("region",) + key,
+                 lambda: region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use])   # (N, K)
     offsets = np.zeros(skin.shape[1])   # clothing thickness per joint region (metres), estimated jointly
     residuals, matched, colour_residuals = [], [], []
     iterations = config.iterations
@@ -203,17 +226,20 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         jac = np.concatenate([_motion_rows(v[ok], m[ok], sub[ok], centres, centre0), skin[ok]], axis=1)
         res = r[ok]
         w = _huber_weights(res, config.huber)
-        if photo is not None and seen.any():
-            # one row per (vertex, channel): d colour_c = grad_c . dv; no clothing-offset column
-            g = grad[seen].reshape(-1, 3)
-            rows = _motion_rows(np.repeat(v[seen], 3, axis=0), g, np.repeat(sub[seen], 3, axis=0), centres, centre0)
-            jac = np.concatenate([jac, np.concatenate([rows, np.zeros((len(rows), k))], axis=1)])
-            rc = rc.reshape(-1)
-            wc = config.photometric_weight * _huber_weights(rc, config.photometric_huber)
-            res, w = np.concatenate([res, rc]), np.concatenate([w, wc])
         jac_w = jac * np.sqrt(w)[:, None]
         a = jac_w.T @ jac_w                     # X^T X of one buffer: BLAS syrk, half the flops
         g = jac.T @ (w * res)
+        if photo is not None and seen.any():
+            # one row per (vertex, channel): d colour_c = grad_c . dv; no clothing-offset column, so
+            # these rows add to the motion block of the normal equations only
+            gc = grad[seen].reshape(-1, 3)
+            rows = _motion_rows(np.repeat(v[seen], 3, axis=0), gc, np.repeat(sub[seen], 3, axis=0), centres, centre0)
+            rc = rc.reshape(-1)
+            wc = config.photometric_weight * _huber_weights(rc, config.photometric_huber)
+            rows_w = rows * np.sqrt(wc)[:, None]
+            motion = rows.shape[1]
+            a[:motion, :motion] += rows_w.T @ rows_w
+            g[:motion] += rows.T @ (wc * rc)
         # the prior also holds every other unknown where nothing observes it (a round limb's turn
         # with the colour term off, a tube's slide along its axis): no singular steps
         a += np.diag(config.damping * np.diag(a) + config.prior * int(ok.sum()) + 1e-12)

@@ -113,6 +113,16 @@ class ScanSurface:
         out[~ok] = 0.0
         return out
 
+    def normals_at_hits(self, hits) -> np.ndarray:
+        """:meth:`normals_at` of a :class:`~uvatar.geometry.RayHits`, computed only for the rays that
+        hit (the same values; zeros elsewhere)."""
+        idx = np.flatnonzero(hits.hit)
+        out = np.zeros((len(hits.hit), 3))
+        if len(idx) == len(out):
+            return self.normals_at(hits.face, hits.bary)
+        out[idx] = self.normals_at(hits.face[idx], hits.bary[idx])
+        return out
+
 
 def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:
     """Ray caster on the float32 fast path: no float64 ray preparation or re-intersection of hits
@@ -155,7 +165,7 @@ def match_vertices(points, normals, scan: ScanSurface, max_distance: float, cos_
     for sign in (1.0, -1.0):
         d = sign * n
         hits = scan.caster.first_hit(p - epsilon * d, d, max_distance=max_distance + epsilon)
-        m = scan.normals_at(hits.face, hits.bary)
+        m = scan.normals_at_hits(hits)
         dist = np.abs(hits.distance - epsilon)
         ok = hits.hit & ((m * n).sum(1) >= cos_max_angle) & (dist < best)
         best[ok] = dist[ok]
