@@ -12,14 +12,17 @@ reference, then sample the colours for the next round; the bake runs one round p
 ``photometric_radii``), and seconds_per_frame_with_colour_rounds the two together;
 frames_per_hour (one process) from it. progress goes to stderr.
 
-``--reference`` also times, in the same run, what the bake did before issue 27 for the stages that
-changed: the scan's visibility cast for every matched texel's faces (now only where kappa's other
-factors are not zero), and each colour round reading the scan file and preparing it again (now kept
-by the worker, :func:`uvatar.avh.bake.inputs.prepared_scan`); ``reference`` holds those seconds and
-the old total, and ``speedup`` the ratio (the machine may be shared: compare within one run).
-``--device cuda`` runs the ray stages through Warp on the GPU.
+``--reference`` also bakes each frame again, in the same run, with the visibility as it was before
+issue 27's second pass (the paper's 64 rays per face, one shared lattice) from the same fit, and
+reports those stages' seconds and rays (``reference``) and how far kappa moved
+(``visibility_tolerance``: |delta kappa| over the texels, |delta vertex visibility| of the scan, mean,
+99th percentile and max). ``--workers N`` (N > 1) then bakes the frames again on N processes, each a
+frame at a time as ``uvatar bake --workers N`` does (the frame plus its colour rounds), and reports
+the machine's throughput in wall time (``throughput``: seconds per frame and frames per hour with N
+workers; the machine may be shared, ``load_average_1min`` says how much). ``--device cuda`` runs the
+ray stages through Warp on the GPU.
 
-    python bench/bake.py [--quick] [--frames 2] [--texels 1024] [--reference] [--device cpu|cuda]
+    python bench/bake.py [--quick] [--frames 2] [--texels 1024] [--reference] [--workers N] [--device cpu|cuda]
 """
 
 from __future__ import annotations
@@ -28,9 +31,7 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -84,25 +85,119 @@ def _colour_round(model, fit, truth, scan, surface, config) -> tuple[Clock, int]
         return clock, rays_cast() - r0
 
 
-def _reference_seconds(scan, surface, baked_matches, config) -> dict:
-    """Clocks of the pre-issue-27 computations of the changed stages, in this process."""
+def _paper_visibility(model, fit, layout, scan, surface, baked, config) -> dict:
+    """The frame baked again from the fit it was baked with, its visibility as before (the paper's 64
+    rays per face, one shared lattice): those stages' CPU seconds and rays, and how far kappa and the
+    scan's vertex visibility moved."""
+    from dataclasses import replace
+
     from uvatar.avh.bake.confidence import vertex_visibility
-    from uvatar.avh.bake.register import ScanSurface
-    from uvatar.capture import read_mesh, write_mesh
+    from uvatar.avh.bake.frame import bake_fit
     from uvatar.threads import single_threaded
 
-    face, hit = baked_matches
+    paper = replace(config, visibility_rays=64, visibility_stratified=False, refine_pose=False)
+    before, _ = bake_fit(model, fit, layout, scan, paper, surface=surface)
+    valid = layout.raster.mask
+    dk = np.abs(before.kappa[valid].astype(np.float64) - baked.kappa[valid])
     with single_threaded():
-        with Clock() as visibility:
-            vertex_visibility(surface.vertices, surface.faces, surface.caster, config.visibility_rays,
-                              config.ray_epsilon, needed=surface.faces[face[hit]].ravel())
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "scan.obj"
-            write_mesh(path, scan)
-            with Clock() as reload:
-                again = read_mesh(path)
-                ScanSurface.build(again.vertices, again.faces, config.device, config.ray_backend)
-    return {"visibility_scan": visibility, "scan_read_and_prepare_per_round": reload}
+        v64 = vertex_visibility(surface.vertices, surface.faces, surface.caster, 64, config.ray_epsilon)
+        now = vertex_visibility(surface.vertices, surface.faces, surface.caster, config.visibility_rays,
+                                config.ray_epsilon, stratified=config.visibility_stratified)
+    dv = np.abs(now - v64)
+    stages = ("visibility_registered", "visibility_scan")
+    return {"cpu": {k: before.stats["cpu_seconds"][k] for k in stages},
+            "rays": {k: before.stats["rays"][k] for k in stages},
+            "kappa": (float(dk.mean()), float(np.percentile(dk, 99)), float(dk.max())),
+            "kappa_mean": abs(before.kappa_mean - baked.kappa_mean),
+            "vertex_visibility": (float(dv.mean()), float(np.percentile(dv, 99)), float(dv.max()))}
+
+
+def _frames(model, frames, rng):
+    """[(fit to bake, the scan's true fit, scan)] of the bench's frames (drawn from ``rng`` in order)."""
+    from uvatar.capture import BodyFit
+
+    joints = list(model.conditioning_joints)
+    out = []
+    for i in range(frames):
+        pose = np.zeros((model.num_joints, 3), np.float32)
+        pose[joints] = rng.normal(0, 0.1, (len(joints), 3))
+        truth = BodyFit(poses=pose.reshape(-1), Rh=[0.0, 0.3 * i, 0.0])
+        scan = make_scan(model, truth, rng)
+        noise = np.zeros_like(pose)
+        noise[joints] = rng.normal(0, np.radians(1.5), (len(joints), 3))
+        out.append((BodyFit(poses=(pose + noise).reshape(-1), Rh=truth.Rh, Th=truth.Th), truth, scan))
+    return out
+
+
+def _setup(texels: int, device: str):
+    """(body, layout with its per-body caches built, BakeConfig, seconds of the raster, seconds of the
+    per-body caches)."""
+    from uvatar.avh.bake.config import BakeConfig
+    from uvatar.avh.bake.frame import BodyLayout
+    from uvatar.body import load_body_model
+
+    model = load_body_model("anny")
+    t0 = time.perf_counter()
+    layout = BodyLayout.from_template(model.template, texels)
+    raster = time.perf_counter() - t0
+    config = BakeConfig(texels=texels, device=device)
+    t0 = time.perf_counter()
+    layout.normal_smoothing_matrix(config.registration.normal_smoothing)  # once per body, like the raster
+    layout.surface_texels(config.interior_visibility, config.visibility_rays, config.visibility_stratified)
+    layout.interpolation_matrix(len(model.template.vertices))
+    return model, layout, config, raster, time.perf_counter() - t0
+
+
+def _bake_with_rounds(model, layout, config, item, n_rounds: int) -> float:
+    """Bake one frame and run its colour rounds, as a worker of ``uvatar bake`` does; CPU seconds."""
+    from uvatar.avh.bake.frame import bake_fit
+    from uvatar.avh.bake.register import ScanSurface
+
+    fit, truth, scan = item
+    c0 = time.process_time()
+    surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
+    bake_fit(model, fit, layout, scan, config, surface=surface)
+    for _ in range(n_rounds):
+        _colour_round(model, fit, truth, scan, surface, config)
+    return time.process_time() - c0
+
+
+def _worker(rank, texels, device, items, n_rounds, ready, go, results):
+    """One process of the throughput run: set up, say ready, wait for the start, bake its frames."""
+    from uvatar.threads import limit_process_to_one_thread
+
+    limit_process_to_one_thread()
+    model, layout, config, _, _ = _setup(texels, device)
+    ready.put(rank)
+    go.wait()
+    for item in items:
+        results.put((rank, _bake_with_rounds(model, layout, config, item, n_rounds), time.perf_counter()))
+
+
+def _throughput(workers: int, texels: int, device: str, items, n_rounds: int) -> dict:
+    """Wall seconds per frame of ``items`` baked on ``workers`` processes (the frames dealt round-robin),
+    from the moment every worker is set up to the last frame done."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    ready, results, go = ctx.Queue(), ctx.Queue(), ctx.Event()
+    procs = [ctx.Process(target=_worker, args=(r, texels, device, items[r::workers], n_rounds, ready, go, results))
+             for r in range(workers)]
+    for p in procs:
+        p.start()
+    for _ in procs:
+        ready.get()
+    t0 = time.perf_counter()
+    go.set()
+    done = [results.get() for _ in items]
+    for p in procs:
+        p.join()
+    wall = max(t for _, _, t in done) - t0
+    return {"workers": workers, "frames": len(items), "wall_seconds": round(wall, 2),
+            "seconds_per_frame": round(wall / len(items), 3),
+            "frames_per_hour": round(3600.0 * len(items) / wall, 1),
+            "cpu_seconds_per_frame": round(float(np.mean([c for _, c, _ in done])), 3),
+            "load_average_1min": round(os.getloadavg()[0], 2)}
 
 
 def main(argv=None) -> int:
@@ -112,39 +207,21 @@ def main(argv=None) -> int:
     ap.add_argument("--texels", type=int, default=1024)
     ap.add_argument("--device", default="cpu", help="cpu (Embree) or cuda[:N] (the ray stages through Warp)")
     ap.add_argument("--reference", action="store_true",
-                    help="also time the changed stages as they ran before issue 27 (same process)")
+                    help="also bake each frame with the paper's 64-ray visibility (same process): its cost, "
+                         "and how far kappa moved")
+    ap.add_argument("--workers", type=int, default=1,
+                    help="N > 1: also bake the frames on N processes and report the throughput (wall time)")
     args = ap.parse_args(argv)
     texels = 256 if args.quick else args.texels
     frames = 1 if args.quick else args.frames
 
-    from uvatar.avh.bake.config import BakeConfig
-    from uvatar.avh.bake.correspond import match_texels
-    from uvatar.avh.bake.frame import BodyLayout, bake_fit
+    from uvatar.avh.bake.frame import bake_fit
     from uvatar.avh.bake.register import ScanSurface
-    from uvatar.body import load_body_model
-    from uvatar.capture import BodyFit
 
-    model = load_body_model("anny")
-    t0 = time.perf_counter()
-    layout = BodyLayout.from_template(model.template, texels)
-    layout_seconds = time.perf_counter() - t0
-    config = BakeConfig(texels=texels, device=args.device)
-    t0 = time.perf_counter()
-    layout.normal_smoothing_matrix(config.registration.normal_smoothing)  # once per body, like the raster
-    layout.surface_texels(config.interior_visibility, config.visibility_rays)
-    per_body_seconds = time.perf_counter() - t0
-    rng = np.random.default_rng(0)
-    joints = list(model.conditioning_joints)
-    totals, cpu_totals, stages, cpu_stages, rays, kappa, faces, rounds, rounds_r, refs = [], [], {}, {}, {}, [], 0, [], [], []
-    for i in range(frames):
-        pose = np.zeros((model.num_joints, 3), np.float32)
-        pose[joints] = rng.normal(0, 0.1, (len(joints), 3))
-        truth = BodyFit(poses=pose.reshape(-1), Rh=[0.0, 0.3 * i, 0.0])
-        scan = make_scan(model, truth, rng)
-        faces = scan.num_faces
-        noise = np.zeros_like(pose)
-        noise[joints] = rng.normal(0, np.radians(1.5), (len(joints), 3))
-        fit = BodyFit(poses=(pose + noise).reshape(-1), Rh=truth.Rh, Th=truth.Th)
+    model, layout, config, layout_seconds, per_body_seconds = _setup(texels, args.device)
+    items = _frames(model, frames, np.random.default_rng(0))
+    totals, cpu_totals, stages, cpu_stages, rays, kappa, rounds, rounds_r, refs = [], [], {}, {}, {}, [], [], [], []
+    for i, (fit, truth, scan) in enumerate(items):
         with Clock() as clock:
             baked, used = bake_fit(model, fit, layout, scan, config)
         totals.append(clock.wall)
@@ -161,17 +238,7 @@ def main(argv=None) -> int:
         rounds.append(round_clock)
         rounds_r.append(cast)
         if args.reference:
-            from uvatar.avh.bake.frame import shadow_vertices
-            from uvatar.geometry import vertex_normals
-
-            # the texel matches of the baked frame, for the old visibility's face set
-            reg = shadow_vertices(model, used)
-            r = layout.at_texels(reg)
-            n = layout.at_texels(vertex_normals(reg, layout.faces))
-            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-            m = match_texels(r, n, surface, config.polarity_rule, config.polarity_ratio, config.max_match_distance,
-                             config.ray_epsilon)
-            refs.append(_reference_seconds(scan, surface, (m.face, m.hit), config))
+            refs.append(_paper_visibility(model, used, layout, scan, surface, baked, config))
         print(f"frame {i}: {totals[-1]:.2f} s ({cpu_totals[-1]:.2f} s CPU) + colour round {round_clock.wall:.2f} s "
               f"({round_clock.cpu:.2f} s CPU), kappa mean {kappa[-1]:.3f}", file=sys.stderr)
     n_rounds = len(config.pose_refine.photometric_radii)
@@ -193,7 +260,7 @@ def main(argv=None) -> int:
         "frames_per_hour_per_idle_core": round(3600.0 / cpu_with_rounds, 1),
         "device": args.device,
         "texels": texels,
-        "scan_faces": int(faces),
+        "scan_faces": int(items[0][2].num_faces),
         "frames": frames,
         "stages": {k: round(v, 3) for k, v in stage_mean.items()},
         "cpu_stages": {k: round(v, 3) for k, v in cpu_stage.items()} | {"colour_round": round(cpu_round, 3)},
@@ -202,24 +269,27 @@ def main(argv=None) -> int:
         "million_rays_per_cpu_second": {k: round(ray_mean[k] / cpu_stage[k] / 1e6, 2) for k in RAY_STAGES
                                         if ray_mean.get(k) and cpu_stage.get(k)},
         "layout_raster_seconds_once": round(layout_seconds, 3),
-        "normal_smoothing_and_surface_texels_seconds_once": round(per_body_seconds, 3),
+        "per_body_caches_seconds_once": round(per_body_seconds, 3),
         "kappa_mean": round(float(np.mean(kappa)), 3),
         "visibility_rays": config.visibility_rays,
+        "visibility_stratified": config.visibility_stratified,
         "load_average_1min": round(os.getloadavg()[0], 2),   # the machine is shared: read timings with it
     }
     if refs:
-        ref = {k: (float(np.mean([r[k].wall for r in refs])), float(np.mean([r[k].cpu for r in refs])))
-               for k in refs[0]}
-        vis, reload = ref["visibility_scan"], ref["scan_read_and_prepare_per_round"]
-        old = per_frame - stage_mean["visibility_scan"] + vis[0] + n_rounds * (colour_round + reload[0])
-        old_cpu = cpu_frame - cpu_stage["visibility_scan"] + vis[1] + n_rounds * (cpu_round + reload[1])
-        out["reference"] = {"visibility_scan": round(vis[0], 3), "cpu_visibility_scan": round(vis[1], 3),
-                            "scan_read_and_prepare_per_round": round(reload[0], 3),
-                            "cpu_scan_read_and_prepare_per_round": round(reload[1], 3),
-                            "seconds_per_frame_with_colour_rounds": round(old, 3),
+        stages_ref = ("visibility_registered", "visibility_scan")
+        cpu_ref = {k: float(np.mean([r["cpu"][k] for r in refs])) for k in stages_ref}
+        old_cpu = cpu_with_rounds + sum(cpu_ref[k] - cpu_stage[k] for k in stages_ref)
+        worst = lambda key: [round(max(r[key][j] for r in refs), 4) for j in range(3)]  # noqa: E731
+        out["reference"] = {"visibility_rays": 64, "visibility_stratified": False,
+                            "cpu_stages": {k: round(v, 3) for k, v in cpu_ref.items()},
+                            "rays": {k: int(np.mean([r["rays"][k] for r in refs])) for k in stages_ref},
                             "cpu_seconds_per_frame_with_colour_rounds": round(old_cpu, 3)}
-        out["speedup"] = round(old / with_rounds, 3)
-        out["cpu_speedup"] = round(old_cpu / cpu_with_rounds, 3)
+        out["visibility_tolerance"] = {"kappa_abs_mean_p99_max": worst("kappa"),
+                                       "kappa_mean_abs": round(max(r["kappa_mean"] for r in refs), 4),
+                                       "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
+    if args.workers > 1:
+        print(f"throughput: {len(items)} frames on {args.workers} processes", file=sys.stderr)
+        out["throughput"] = _throughput(args.workers, texels, args.device, items, n_rounds)
     print(json.dumps(out))
     return 0
 
