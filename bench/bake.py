@@ -6,10 +6,10 @@ textured with a 1024^2 pattern in the body's UV layout. Prints ONE JSON object t
 seconds_per_frame (mean over the timed frames, excluding the one-off UV raster of the layout and
 the registration's normal-smoothing matrix and the surface-texel mask, built once per body), a
 per-stage breakdown of seconds and of rays cast (``stages``, ``rays``; ``rays_per_second`` of the ray
-stages); colour_round_seconds_per_frame: one round of the cross-frame colour refinement on one frame
-as the bake runs it (:func:`uvatar.avh.bake.refine_together._refine_task`: refine against the
-reference, then sample the colours for the next round; the bake runs one round per
-``photometric_radii``), and seconds_per_frame_with_colour_rounds the two together;
+stages); colour_round_seconds_per_frame: the mean of a frame's rounds of the cross-frame colour
+refinement as the bake runs them (:func:`_colour_rounds`: one round per ``photometric_radii``, each
+refining against its reference from the colours the previous round ended with, then sampling the
+colours for the next), and seconds_per_frame_with_colour_rounds the frame and its rounds together;
 frames_per_hour (one process) from it. progress goes to stderr.
 
 ``--reference`` also bakes each frame again, in the same run, with the visibility as it was before
@@ -66,22 +66,42 @@ def make_scan(model, fit, rng):
     return TexturedMesh(v + offset[:, None] * n, f, uv, uvf, tex)
 
 
-def _colour_round(model, fit, truth, scan, surface, config) -> tuple[Clock, int]:
-    """(Clock, rays) of one colour round on one frame as the bake runs it: refine ``fit`` against
-    colours sampled at ``truth``, then sample the colours at the refined fit for the next round."""
+def _colour_targets(model, truth, scan, surface, config) -> list:
+    """The stand-in of the cross-frame median per colour round: the colours at the scan's true fit,
+    one PhotoTarget per ``photometric_radii``."""
     from uvatar.avh.bake.photometric import PhotoTarget
-    from uvatar.avh.bake.refine import fit_colours, refine_fit
+    from uvatar.avh.bake.refine import fit_colours
+    from uvatar.threads import single_threaded
+
+    out = []
+    with single_threaded():
+        for radius in config.pose_refine.photometric_radii:
+            reference = fit_colours(model, truth, surface, scan, config.pose_refine, radius)
+            out.append(PhotoTarget(np.nan_to_num(reference), np.isfinite(reference).all(1), radius))
+    return out
+
+
+def _colour_rounds(model, fit, targets, scan, surface, config) -> tuple[Clock, int]:
+    """(Clock, rays) of a frame's colour rounds as the bake runs them
+    (:func:`uvatar.avh.bake.refine_together._refine_task`): the colours sampled after the geometric
+    refinement, then per radius a refinement of ``fit`` against its target (:func:`_colour_targets`)
+    that starts from the sample the previous round ended with, followed by the sample at the next
+    radius (none after the last)."""
+    from uvatar.avh.bake.refine import refine_fit, sample_colours
     from uvatar.geometry import rays_cast
     from uvatar.threads import single_threaded
 
-    radius = config.pose_refine.photometric_radii[-1]
+    pr = config.pose_refine
+    radii = [t.radius for t in targets]
     with single_threaded():
-        reference = fit_colours(model, truth, surface, scan, config.pose_refine, radius)
-        target = PhotoTarget(np.nan_to_num(reference), np.isfinite(reference).all(1), radius)
         r0 = rays_cast()
         with Clock() as clock:
-            refined, _ = refine_fit(model, fit, surface, config.pose_refine, photo=target, scan_mesh=scan)
-            fit_colours(model, refined, surface, scan, config.pose_refine, radius)
+            sample = sample_colours(model, fit, surface, scan, pr, radii[0])
+            for i, target in enumerate(targets):
+                fit, _ = refine_fit(model, fit, surface, pr, photo=target, scan_mesh=scan, start_sample=sample,
+                                    final_colour_residual=False)
+                if i + 1 < len(radii):
+                    sample = sample_colours(model, fit, surface, scan, pr, radii[i + 1])
         return clock, rays_cast() - r0
 
 
@@ -148,40 +168,44 @@ def _setup(texels: int, device: str):
     return model, layout, config, raster, time.perf_counter() - t0
 
 
-def _bake_with_rounds(model, layout, config, item, n_rounds: int) -> float:
+def _bake_with_rounds(model, layout, config, item, targets) -> float:
     """Bake one frame and run its colour rounds, as a worker of ``uvatar bake`` does; CPU seconds."""
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.avh.bake.register import ScanSurface
 
-    fit, truth, scan = item
+    fit, _, scan = item
     c0 = time.process_time()
     surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
-    bake_fit(model, fit, layout, scan, config, surface=surface)
-    for _ in range(n_rounds):
-        _colour_round(model, fit, truth, scan, surface, config)
+    _, used = bake_fit(model, fit, layout, scan, config, surface=surface)
+    if targets:
+        _colour_rounds(model, used, targets, scan, surface, config)
     return time.process_time() - c0
 
 
-def _worker(rank, texels, device, items, n_rounds, ready, go, results):
-    """One process of the throughput run: set up, say ready, wait for the start, bake its frames."""
+def _worker(rank, texels, device, items, ready, go, results):
+    """One process of the throughput run: set up (and the colour targets), say ready, wait for the
+    start, bake its frames."""
+    from uvatar.avh.bake.register import ScanSurface
     from uvatar.threads import limit_process_to_one_thread
 
     limit_process_to_one_thread()
     model, layout, config, _, _ = _setup(texels, device)
+    targets = [_colour_targets(model, truth, scan, ScanSurface.build(scan.vertices, scan.faces, device), config)
+               for _, truth, scan in items]
     ready.put(rank)
     go.wait()
-    for item in items:
-        results.put((rank, _bake_with_rounds(model, layout, config, item, n_rounds), time.perf_counter()))
+    for item, target in zip(items, targets, strict=True):
+        results.put((rank, _bake_with_rounds(model, layout, config, item, target), time.perf_counter()))
 
 
-def _throughput(workers: int, texels: int, device: str, items, n_rounds: int) -> dict:
+def _throughput(workers: int, texels: int, device: str, items) -> dict:
     """Wall seconds per frame of ``items`` baked on ``workers`` processes (the frames dealt round-robin),
     from the moment every worker is set up to the last frame done."""
     import multiprocessing as mp
 
     ctx = mp.get_context("spawn")
     ready, results, go = ctx.Queue(), ctx.Queue(), ctx.Event()
-    procs = [ctx.Process(target=_worker, args=(r, texels, device, items[r::workers], n_rounds, ready, go, results))
+    procs = [ctx.Process(target=_worker, args=(r, texels, device, items[r::workers], ready, go, results))
              for r in range(workers)]
     for p in procs:
         p.start()
@@ -234,17 +258,18 @@ def main(argv=None) -> int:
         for k, v in baked.stats["rays"].items():
             rays.setdefault(k, []).append(v)
         surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)  # kept by the worker
-        round_clock, cast = _colour_round(model, fit, truth, scan, surface, config)
+        targets = _colour_targets(model, truth, scan, surface, config)
+        round_clock, cast = _colour_rounds(model, used, targets, scan, surface, config)
         rounds.append(round_clock)
         rounds_r.append(cast)
         if args.reference:
             refs.append(_paper_visibility(model, used, layout, scan, surface, baked, config))
-        print(f"frame {i}: {totals[-1]:.2f} s ({cpu_totals[-1]:.2f} s CPU) + colour round {round_clock.wall:.2f} s "
+        print(f"frame {i}: {totals[-1]:.2f} s ({cpu_totals[-1]:.2f} s CPU) + colour rounds {round_clock.wall:.2f} s "
               f"({round_clock.cpu:.2f} s CPU), kappa mean {kappa[-1]:.3f}", file=sys.stderr)
     n_rounds = len(config.pose_refine.photometric_radii)
     per_frame, cpu_frame = float(np.mean(totals)), float(np.mean(cpu_totals))
-    colour_round = float(np.mean([c.wall for c in rounds]))
-    cpu_round = float(np.mean([c.cpu for c in rounds]))
+    colour_round = float(np.mean([c.wall for c in rounds])) / n_rounds       # the rounds' mean
+    cpu_round = float(np.mean([c.cpu for c in rounds])) / n_rounds
     with_rounds = per_frame + n_rounds * colour_round
     cpu_with_rounds = cpu_frame + n_rounds * cpu_round
     stage_mean = {k: float(np.mean(v)) for k, v in stages.items()}
@@ -264,8 +289,8 @@ def main(argv=None) -> int:
         "frames": frames,
         "stages": {k: round(v, 3) for k, v in stage_mean.items()},
         "cpu_stages": {k: round(v, 3) for k, v in cpu_stage.items()} | {"colour_round": round(cpu_round, 3)},
-        "rays": {**ray_mean, "colour_round": int(np.mean(rounds_r))},
-        "rays_per_frame_with_colour_rounds": int(sum(ray_mean.values()) + n_rounds * np.mean(rounds_r)),
+        "rays": {**ray_mean, "colour_round": int(np.mean(rounds_r) / n_rounds)},
+        "rays_per_frame_with_colour_rounds": int(sum(ray_mean.values()) + np.mean(rounds_r)),
         "million_rays_per_cpu_second": {k: round(ray_mean[k] / cpu_stage[k] / 1e6, 2) for k in RAY_STAGES
                                         if ray_mean.get(k) and cpu_stage.get(k)},
         "layout_raster_seconds_once": round(layout_seconds, 3),
@@ -289,7 +314,7 @@ def main(argv=None) -> int:
                                        "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
     if args.workers > 1:
         print(f"throughput: {len(items)} frames on {args.workers} processes", file=sys.stderr)
-        out["throughput"] = _throughput(args.workers, texels, args.device, items, n_rounds)
+        out["throughput"] = _throughput(args.workers, texels, args.device, items)
     print(json.dumps(out))
     return 0
 

@@ -6,11 +6,13 @@ for ray queries once, for the colour rounds and the bake that follow in the same
 
 from __future__ import annotations
 
-__all__ = ["load_body_and_layout", "adopt_body_and_layout", "start_fit", "prepared_scan", "clear_scan_cache"]
+__all__ = ["load_body_and_layout", "adopt_body_and_layout", "start_fit", "prepared_scan", "clear_scan_cache",
+           "keep_sample", "kept_sample"]
 
 # -- per-process state ----------------------------------------------------------------------------
 _STATE: dict = {}
 _SCANS: dict = {}      # (capture root, frame, device, backend, file stamp) -> (TexturedMesh, ScanSurface, bytes)
+_SAMPLES: dict = {}    # the same keys -> (fit key, PhotoSample): a colour round's closing sample
 _SCAN_RUN: list = [None]   # the run whose scans _SCANS holds
 _MEMORY_RESERVE = 1 << 30  # a scan is kept only while this much memory stays available beside it
 
@@ -67,13 +69,8 @@ def prepared_scan(capture, frame: str, config, run=None):
         clear_scan_cache()
         _SCAN_RUN[0] = run
 
-    path = capture.scan_path(frame)
-    try:
-        st = path.stat()
-        stamp = (st.st_size, st.st_mtime_ns)
-    except OSError:
-        stamp = None     # read_mesh reports the missing file
-    key = (str(capture.root), frame, config.device, config.ray_backend, stamp)
+    key = _scan_key(capture, frame, config)
+    stamp = key[-1]
     hit = _SCANS.get(key)
     if hit is not None:
         return hit[0], hit[1]
@@ -86,6 +83,41 @@ def prepared_scan(capture, frame: str, config, run=None):
     return scan, surface
 
 
+def _scan_key(capture, frame: str, config) -> tuple:
+    """The key of a frame's prepared scan: capture, frame, where its rays run, the file's size and time."""
+    try:
+        st = capture.scan_path(frame).stat()
+        stamp = (st.st_size, st.st_mtime_ns)
+    except OSError:
+        stamp = None     # read_mesh reports the missing file
+    return (str(capture.root), frame, config.device, config.ray_backend, stamp)
+
+
+def _fit_key(fit) -> bytes:
+    """The pose a sample was taken at, exactly (poses, Rh, Th, scale)."""
+    import numpy as np
+
+    return b"".join(np.ascontiguousarray(x, dtype=np.float64).tobytes()
+                    for x in (fit.poses, fit.Rh, fit.Th, [fit.scale]))
+
+
+def keep_sample(capture, frame: str, config, fit, sample) -> None:
+    """Keep a colour round's closing :class:`~uvatar.avh.bake.refine.PhotoSample` of ``frame`` at
+    ``fit`` beside the frame's kept scan (nothing when the scan is not kept: the cache stays bounded
+    by ``scan_cache_mb``); one per frame, the latest."""
+    key = _scan_key(capture, frame, config)
+    if key in _SCANS:
+        _SAMPLES[key] = (_fit_key(fit), sample)
+
+
+def kept_sample(capture, frame: str, config, fit):
+    """The sample :func:`keep_sample` kept for ``frame`` if it was taken at exactly ``fit``, else None."""
+    kept = _SAMPLES.get(_scan_key(capture, frame, config))
+    return kept[1] if kept is not None and kept[0] == _fit_key(fit) else None
+
+
 def clear_scan_cache() -> None:
-    """Drop the scans :func:`prepared_scan` keeps in this process (a bake run in process calls it at its end)."""
+    """Drop the scans :func:`prepared_scan` keeps in this process, and the colour samples kept with
+    them (a bake run in process calls it at its end)."""
     _SCANS.clear()
+    _SAMPLES.clear()

@@ -24,12 +24,13 @@ slope chained with the same LBS Jacobian). :mod:`.refine_together` runs those ro
 from __future__ import annotations
 
 import weakref
+from dataclasses import dataclass
 
 import numpy as np
 
 from uvatar.avh.bake.config import PoseRefineConfig
 
-__all__ = ["PoseRefineConfig", "refine_fit", "refine_vertices", "fit_colours", "subtree_weights", "region_weights",
+__all__ = ["PoseRefineConfig", "PhotoSample", "refine_fit", "refine_vertices", "fit_colours", "sample_colours", "subtree_weights", "region_weights",
            "untracked_skin_weight"]
 
 
@@ -117,17 +118,41 @@ def _shape_tensor(fit, shape):
     return None if shape is None else torch.as_tensor(np.asarray(shape, np.float32))
 
 
-def fit_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None):
-    """(N, 3) blurred scan colour at each refinement vertex (:func:`refine_vertices`) of the body posed
-    by ``fit``; NaN where the stencil missed the scan. The per-frame input of the cross-frame
-    reference (:func:`uvatar.avh.bake.photometric.reference_colours`)."""
+@dataclass
+class PhotoSample:
+    """The blurred scan colours of a frame's refinement vertices at one pose and stencil radius
+    (:func:`uvatar.avh.bake.photometric.surface_colours`): colour (N, 3), gradient (N, 3, 3), ok (N,)
+    bool where every stencil ray found the scan, radius (metres). A colour round ends with one; the
+    next round starts from that pose, so :func:`refine_fit` takes it as its first iteration's colours
+    instead of casting the same rays again."""
+
+    colour: np.ndarray
+    gradient: np.ndarray
+    ok: np.ndarray
+    radius: float
+
+    @property
+    def colours(self) -> np.ndarray:
+        """(N, 3) the colours, NaN where the stencil missed the scan (:func:`fit_colours`)."""
+        return np.where(self.ok[:, None], self.colour, np.nan)
+
+
+def sample_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None) -> PhotoSample:
+    """:class:`PhotoSample` of the body posed by ``fit`` at stencil ``radius``."""
     from uvatar.avh.bake.photometric import surface_colours
 
     use = refine_vertices(body, config)
     v, n, _ = _posed(body, body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale, _shape_tensor(fit, shape))
-    colour, _, ok = surface_colours(surface, scan_mesh, v[use], n[use], radius, config.photometric_max_distance,
-                                    float(np.cos(np.radians(config.max_normal_angle_deg))))
-    return np.where(ok[:, None], colour, np.nan)
+    colour, grad, ok = surface_colours(surface, scan_mesh, v[use], n[use], radius, config.photometric_max_distance,
+                                       float(np.cos(np.radians(config.max_normal_angle_deg))))
+    return PhotoSample(colour, grad, ok, float(radius))
+
+
+def fit_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None):
+    """(N, 3) blurred scan colour at each refinement vertex (:func:`refine_vertices`) of the body posed
+    by ``fit``; NaN where the stencil missed the scan. The per-frame input of the cross-frame
+    reference (:func:`uvatar.avh.bake.photometric.reference_colours`)."""
+    return sample_colours(body, fit, surface, scan_mesh, config, radius, shape).colours
 
 
 def _huber_weights(residuals, scale: float) -> np.ndarray:
@@ -157,7 +182,8 @@ def _motion_rows(points, directions, subtree, centres, centre0):
                            np.cross(points - centre0, directions), directions], axis=1)
 
 
-def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None):
+def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None,
+               start_sample: PhotoSample | None = None, final_colour_residual: bool = True):
     """Refine ``fit`` (BodyFit) toward ``scan`` (:class:`~uvatar.avh.bake.register.ScanSurface`).
 
     photo: a :class:`~uvatar.avh.bake.photometric.PhotoTarget` (reference colours of the refinement
@@ -166,6 +192,11 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     Returns (refined BodyFit, stats: mean |point-to-plane residual| in mm per iteration, matched
     fraction, and with ``photo`` the mean |colour - reference| per iteration). Only the body's
     ``conditioning_joints`` and Rh/Th change; shape and scale stay.
+
+    start_sample: the :class:`PhotoSample` of ``fit`` at ``photo.radius`` if the caller has it (the end
+    of the previous colour round): the first iteration uses it instead of sampling the scan again
+    (the same colours). final_colour_residual: False skips sampling the colours after the last step,
+    which only the stats' last ``colour_residual`` would use (the bake's colour rounds).
     """
     from scipy.spatial.transform import Rotation
 
@@ -213,9 +244,14 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         r = r + skin @ offsets
         residuals.append(float(np.abs(r[ok]).mean() * 1000) if ok.any() else float("nan"))
         matched.append(float(ok.mean()))
+        if photo is not None and it == iterations and not final_colour_residual:
+            break
         if photo is not None:
-            colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
-                                                 config.photometric_max_distance, cos_max)
+            if it == 0 and start_sample is not None and start_sample.radius == photo.radius:
+                colour, grad, seen = start_sample.colour, start_sample.gradient, start_sample.ok.copy()
+            else:
+                colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
+                                                     config.photometric_max_distance, cos_max)
             seen &= photo.known
             rc = (colour - photo.reference)[seen]                                   # (Nc, 3)
             colour_residuals.append(float(np.abs(rc).mean()) if seen.any() else float("nan"))

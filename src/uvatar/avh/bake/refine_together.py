@@ -23,7 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.avh.bake.inputs import adopt_body_and_layout, load_body_and_layout, prepared_scan, start_fit
+from uvatar.avh.bake.inputs import (
+    adopt_body_and_layout,
+    keep_sample,
+    kept_sample,
+    load_body_and_layout,
+    prepared_scan,
+    start_fit,
+)
 from uvatar.avh.bake.photometric import PhotoTarget, reference_colours
 from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
 from uvatar.threads import limit_process_to_one_thread
@@ -91,8 +98,12 @@ def _restore(capture_root, saved: dict, frames) -> dict:
 def _refine_task(shared: dict, item):
     """One frame of one round, item = (frame, fit to start from or None, PhotoTarget or None, stencil
     radius to sample afterwards or None) -> (refined BodyFit, colours (N, 3) at that radius or None).
-    ``shared`` (capture root, config, body and layout) is the same for every round and the bake."""
-    from uvatar.avh.bake.refine import fit_colours, refine_fit
+    ``shared`` (capture root, config, body and layout) is the same for every round and the bake.
+    The colours a round ends with are sampled where the next round starts (same pose, the next
+    round's target radius): a worker keeping the frame's scan keeps that sample with it, and the next
+    round takes it instead of casting the same rays again (:func:`.inputs.kept_sample`). The colours
+    after a round's last step, which only its stats would read, are not sampled."""
+    from uvatar.avh.bake.refine import refine_fit, sample_colours
     from uvatar.capture import Capture
 
     frame, start, target, radius = item
@@ -102,10 +113,15 @@ def _refine_task(shared: dict, item):
     scan, surface = prepared_scan(capture, frame, config, shared.get("run"))   # once for all rounds
     fit, shape = start_fit(capture, frame)
     fit = fit if start is None else start
+    before = None if target is None else kept_sample(capture, frame, config, fit)
     fit, _ = refine_fit(body, fit, surface, config.pose_refine, shape, photo=target,
-                        scan_mesh=scan if target is not None else None)
-    colours = None if radius is None else fit_colours(body, fit, surface, scan, config.pose_refine, radius, shape)
-    return fit, colours
+                        scan_mesh=scan if target is not None else None, start_sample=before,
+                        final_colour_residual=False)
+    if radius is None:
+        return fit, None
+    sample = sample_colours(body, fit, surface, scan, config.pose_refine, radius, shape)
+    keep_sample(capture, frame, config, fit, sample)
+    return fit, sample.colours
 
 
 def refine_frames_together(capture_root, out_root, frames, config, body_name: str,
