@@ -182,6 +182,93 @@ def _motion_rows(points, directions, subtree, centres, centre0):
                            np.cross(points - centre0, directions), directions], axis=1)
 
 
+def _joint_groups(subtree, min_vertices: int = 128):
+    """The refinement vertices grouped by the joints that move them (the nonzero columns of
+    ``subtree`` (N, K); a torso vertex has a few, a finger tip a chain): (group of each vertex (N,),
+    per group its motion columns in the normal equations (3 per joint, then root rotation and
+    translation)). A group of fewer than ``min_vertices`` vertices joins the group whose joints grow
+    least by it (a handful of rows is not worth a product of its own)."""
+    k = subtree.shape[1]
+    patterns, group = np.unique(subtree != 0, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    patterns = list(patterns)
+    sizes = list(np.bincount(group, minlength=len(patterns)))
+    while len(patterns) > 1 and min(sizes) < min_vertices:
+        small = int(np.argmin(sizes))
+        grow = [np.inf if j == small else (patterns[j] | patterns[small]).sum() * (sizes[j] + sizes[small])
+                - patterns[j].sum() * sizes[j] for j in range(len(patterns))]
+        into = int(np.argmin(grow))
+        patterns[into] = patterns[into] | patterns[small]
+        sizes[into] += sizes[small]
+        group[group == small] = into
+        group[group > small] -= 1
+        del patterns[small], sizes[small]
+    tail = np.arange(3 * k, 3 * k + 6)
+    cols = [np.concatenate([(3 * np.flatnonzero(p)[:, None] + np.arange(3)).ravel(), tail]) for p in patterns]
+    return group, cols
+
+
+def _normal_equations(points, subtree, groups, centres, centre0, blocks):
+    """(A, g) of the refinement's Gauss-Newton step, ``A = J^T W J`` and ``g = J^T W r`` over the
+    unknowns (3 per joint, root rotation, translation, then one clothing offset per joint region).
+
+    points (N, 3), subtree (N, K) of the refinement vertices; groups: :func:`_joint_groups` of
+    ``subtree``; blocks: [(vertex of each row (R,), direction (R, 3), weight (R,), residual (R,),
+    clothing-offset columns (R, K) or None)]. Rows are taken a vertex group at a time with only the
+    columns that group's joints move (a quarter of them on anny): the products of
+    :func:`_normal_equations_reference`, without its zeros."""
+    group_of, cols = groups
+    k = subtree.shape[1]
+    motion = 3 * k + 6
+    a = np.zeros((motion + k, motion + k))
+    g = np.zeros(motion + k)
+    cloth = slice(motion, motion + k)
+    for vertex, direction, weight, residual, clothing in blocks:
+        if not len(vertex):
+            continue
+        root = np.sqrt(weight)
+        wr = weight * residual
+        gid = group_of[vertex]
+        order = np.argsort(gid, kind="stable")
+        bounds = np.searchsorted(gid[order], np.arange(len(cols) + 1))
+        for q in np.flatnonzero(np.diff(bounds)):
+            rows = order[bounds[q]:bounds[q + 1]]
+            joints = cols[q][:-6:3] // 3
+            p = points[vertex[rows]]
+            d = direction[rows]
+            arm = np.cross(p[:, None, :] - centres[joints][None], d[:, None, :])    # (n, J, 3)
+            arm *= subtree[vertex[rows]][:, joints, None]
+            jac = np.concatenate([arm.reshape(len(rows), -1), np.cross(p - centre0, d), d], axis=1)
+            jac_w = jac * root[rows, None]
+            c = cols[q]
+            a[np.ix_(c, c)] += jac_w.T @ jac_w
+            g[c] += jac.T @ wr[rows]
+            if clothing is not None:
+                coupling = jac_w.T @ (clothing[rows] * root[rows, None])
+                a[c, cloth] += coupling
+                a[cloth, c] += coupling.T
+        if clothing is not None:
+            cw = clothing * root[:, None]
+            a[cloth, cloth] += cw.T @ cw
+            g[cloth] += clothing.T @ wr
+    return a, g
+
+
+def _normal_equations_reference(points, subtree, centres, centre0, blocks):
+    """Plain twin of :func:`_normal_equations`: every row over every unknown, one dense product."""
+    k = subtree.shape[1]
+    jacs, weights, residuals = [], [], []
+    for vertex, direction, weight, residual, clothing in blocks:
+        rows = _motion_rows(points[vertex], direction, subtree[vertex], centres, centre0)
+        extra = np.zeros((len(vertex), k)) if clothing is None else clothing
+        jacs.append(np.concatenate([rows, extra], axis=1))
+        weights.append(weight)
+        residuals.append(residual)
+    jac, w, r = np.concatenate(jacs), np.concatenate(weights), np.concatenate(residuals)
+    jac_w = jac * np.sqrt(w)[:, None]
+    return jac_w.T @ jac_w, jac.T @ (w * r)
+
+
 def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None,
                start_sample: PhotoSample | None = None, final_colour_residual: bool = True):
     """Refine ``fit`` (BodyFit) toward ``scan`` (:class:`~uvatar.avh.bake.register.ScanSurface`).
@@ -221,6 +308,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     k = len(joints)
     skin = _memo(body, ("region",) + key,
                  lambda: region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use])   # (N, K)
+    groups = _memo(body, ("groups",) + key, lambda: _joint_groups(sub))
     offsets = np.zeros(skin.shape[1])   # clothing thickness per joint region (metres), estimated jointly
     residuals, matched, colour_residuals = [], [], []
     iterations = config.iterations
@@ -259,23 +347,14 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
             break
         centres = tr[joints, :3, 3]                                                  # (K, 3)
         centre0 = v.mean(0)
-        jac = np.concatenate([_motion_rows(v[ok], m[ok], sub[ok], centres, centre0), skin[ok]], axis=1)
         res = r[ok]
-        w = _huber_weights(res, config.huber)
-        jac_w = jac * np.sqrt(w)[:, None]
-        a = jac_w.T @ jac_w                     # X^T X of one buffer: BLAS syrk, half the flops
-        g = jac.T @ (w * res)
+        blocks = [(np.flatnonzero(ok), m[ok], _huber_weights(res, config.huber), res, skin[ok])]
         if photo is not None and seen.any():
-            # one row per (vertex, channel): d colour_c = grad_c . dv; no clothing-offset column, so
-            # these rows add to the motion block of the normal equations only
-            gc = grad[seen].reshape(-1, 3)
-            rows = _motion_rows(np.repeat(v[seen], 3, axis=0), gc, np.repeat(sub[seen], 3, axis=0), centres, centre0)
+            # one row per (vertex, channel): d colour_c = grad_c . dv; no clothing-offset column
             rc = rc.reshape(-1)
             wc = config.photometric_weight * _huber_weights(rc, config.photometric_huber)
-            rows_w = rows * np.sqrt(wc)[:, None]
-            motion = rows.shape[1]
-            a[:motion, :motion] += rows_w.T @ rows_w
-            g[:motion] += rows.T @ (wc * rc)
+            blocks.append((np.repeat(np.flatnonzero(seen), 3), grad[seen].reshape(-1, 3), wc, rc, None))
+        a, g = _normal_equations(v, sub, groups, centres, centre0, blocks)
         # the prior also holds every other unknown where nothing observes it (a round limb's turn
         # with the colour term off, a tube's slide along its axis): no singular steps
         a += np.diag(config.damping * np.diag(a) + config.prior * int(ok.sum()) + 1e-12)
