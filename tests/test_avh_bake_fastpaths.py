@@ -80,6 +80,14 @@ def test_visibility_subset_equals_full_and_reference():
     np.testing.assert_allclose(part[needed], all_vertices[needed])
     rest = np.setdiff1d(np.arange(len(v)), needed)
     assert np.isnan(part[rest]).all()
+    # each face's own lattice: the batched cast equals the per-face twin, and a face casts the same
+    # rays whichever subset it is cast with
+    strat = face_visibility(v, f, n_rays=12, stratified=True)
+    np.testing.assert_allclose(strat, face_visibility_reference(v, f, n_rays=12, stratified=True))
+    np.testing.assert_allclose(face_visibility(v, f, n_rays=12, which=which, faces_per_batch=2, stratified=True),
+                               strat[which])
+    part = vertex_visibility(v, f, n_rays=12, needed=needed, stratified=True)
+    np.testing.assert_allclose(part[needed], vertex_visibility(v, f, n_rays=12, stratified=True)[needed])
 
 
 def test_spd_factorization_solves_the_registration_system():
