@@ -20,7 +20,9 @@ reports those stages' seconds and rays (``reference``) and how far kappa moved
 frame at a time as ``uvatar bake --workers N`` does (the frame plus its colour rounds), and reports
 the machine's throughput in wall time (``throughput``: seconds per frame and frames per hour with N
 workers; the machine may be shared, ``load_average_1min`` says how much). ``--device cuda`` runs the
-ray stages through Warp on the GPU.
+ray stages through Warp on the GPU. ``--warmup 1`` (default) first bakes the first frame once, untimed,
+in each process: the one-off imports and first allocations of a worker (~0.4 s) are paid once per
+process, not per frame (``--warmup 0`` times them into the first frame, as the bench did before).
 
     python bench/bake.py [--quick] [--frames 2] [--texels 1024] [--reference] [--workers N] [--device cpu|cuda]
 """
@@ -182,7 +184,7 @@ def _bake_with_rounds(model, layout, config, item, targets) -> float:
     return time.process_time() - c0
 
 
-def _worker(rank, texels, device, items, ready, go, results):
+def _worker(rank, texels, device, items, warmup, ready, go, results):
     """One process of the throughput run: set up (and the colour targets), say ready, wait for the
     start, bake its frames."""
     from uvatar.avh.bake.register import ScanSurface
@@ -192,20 +194,22 @@ def _worker(rank, texels, device, items, ready, go, results):
     model, layout, config, _, _ = _setup(texels, device)
     targets = [_colour_targets(model, truth, scan, ScanSurface.build(scan.vertices, scan.faces, device), config)
                for _, truth, scan in items]
+    if items and warmup:
+        _bake_with_rounds(model, layout, config, items[0], targets[0])
     ready.put(rank)
     go.wait()
     for item, target in zip(items, targets, strict=True):
         results.put((rank, _bake_with_rounds(model, layout, config, item, target), time.perf_counter()))
 
 
-def _throughput(workers: int, texels: int, device: str, items) -> dict:
+def _throughput(workers: int, texels: int, device: str, items, warmup: int) -> dict:
     """Wall seconds per frame of ``items`` baked on ``workers`` processes (the frames dealt round-robin),
     from the moment every worker is set up to the last frame done."""
     import multiprocessing as mp
 
     ctx = mp.get_context("spawn")
     ready, results, go = ctx.Queue(), ctx.Queue(), ctx.Event()
-    procs = [ctx.Process(target=_worker, args=(r, texels, device, items[r::workers], ready, go, results))
+    procs = [ctx.Process(target=_worker, args=(r, texels, device, items[r::workers], warmup, ready, go, results))
              for r in range(workers)]
     for p in procs:
         p.start()
@@ -233,6 +237,9 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", action="store_true",
                     help="also bake each frame with the paper's 64-ray visibility (same process): its cost, "
                          "and how far kappa moved")
+    ap.add_argument("--warmup", type=int, default=1,
+                    help="untimed bakes of the first frame first (a worker's one-off imports and allocations, "
+                         "paid once per process, not per frame); 0 times the process's first frame too")
     ap.add_argument("--workers", type=int, default=1,
                     help="N > 1: also bake the frames on N processes and report the throughput (wall time)")
     args = ap.parse_args(argv)
@@ -244,6 +251,11 @@ def main(argv=None) -> int:
 
     model, layout, config, layout_seconds, per_body_seconds = _setup(texels, args.device)
     items = _frames(model, frames, np.random.default_rng(0))
+    for _ in range(args.warmup):
+        fit, truth, scan = items[0]
+        _, used = bake_fit(model, fit, layout, scan, config)
+        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
+        _colour_rounds(model, used, _colour_targets(model, truth, scan, surface, config), scan, surface, config)
     totals, cpu_totals, stages, cpu_stages, rays, kappa, rounds, rounds_r, refs = [], [], {}, {}, {}, [], [], [], []
     for i, (fit, truth, scan) in enumerate(items):
         with Clock() as clock:
@@ -287,6 +299,7 @@ def main(argv=None) -> int:
         "texels": texels,
         "scan_faces": int(items[0][2].num_faces),
         "frames": frames,
+        "warmup_frames": args.warmup,
         "stages": {k: round(v, 3) for k, v in stage_mean.items()},
         "cpu_stages": {k: round(v, 3) for k, v in cpu_stage.items()} | {"colour_round": round(cpu_round, 3)},
         "rays": {**ray_mean, "colour_round": int(np.mean(rounds_r) / n_rounds)},
@@ -314,7 +327,7 @@ def main(argv=None) -> int:
                                        "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
     if args.workers > 1:
         print(f"throughput: {len(items)} frames on {args.workers} processes", file=sys.stderr)
-        out["throughput"] = _throughput(args.workers, texels, args.device, items)
+        out["throughput"] = _throughput(args.workers, texels, args.device, items, args.warmup)
     print(json.dumps(out))
     return 0
 

@@ -81,12 +81,14 @@ def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, 
     Returns (colour (N, 3), gradient (N, 3, 3) d colour_c / d point, ok (N,) bool: every stencil ray
     found the scan)."""
     p = np.asarray(points, np.float64)
-    centre, ok = ray_colours(surface, scan, p, normals, max_distance, min_normal_cos)
     offsets = stencil_offsets(normals, radius)
-    ring, ring_ok = ray_colours(surface, scan, (p[None] + offsets).reshape(-1, 3),
-                                np.broadcast_to(normals, offsets.shape).reshape(-1, 3), max_distance, min_normal_cos)
-    ring = ring.reshape(RING_POINTS, len(p), 3)
-    ok = ok & ring_ok.reshape(RING_POINTS, len(p)).all(0)
+    # the centres and the ring in one cast: (1 + RING_POINTS, N) points
+    stencil = np.concatenate([p[None], p[None] + offsets]).reshape(-1, 3)
+    colours, found = ray_colours(surface, scan, stencil, np.tile(np.asarray(normals, np.float64), (RING_POINTS + 1, 1)),
+                                 max_distance, min_normal_cos)
+    colours = colours.reshape(RING_POINTS + 1, len(p), 3)
+    centre, ring = colours[0], colours[1:]
+    ok = found.reshape(RING_POINTS + 1, len(p)).all(0)
     colour = (centre + ring.sum(0)) / (RING_POINTS + 1)
     gradient = np.einsum("jnc,jnd->ncd", ring, offsets) * (2.0 / (RING_POINTS * radius ** 2))
     return colour, gradient, ok
