@@ -194,6 +194,8 @@ def test_registration_config_checks_lengths_and_roundtrip():
 
     again = BakeConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
     assert again == cfg and again.pose_refine == PoseRefineConfig(iterations=2)
+    old = {k: v for k, v in cfg.to_dict().items() if k != "visibility_stratified"} | {"visibility_rays": 64}
+    assert not BakeConfig.from_dict(old).visibility_stratified       # baked before: one shared lattice
     with pytest.raises(ValueError):
         BakeConfig().with_updates(no_such_field=1)
 

@@ -1,8 +1,11 @@
 """Confidence map kappa = v * w * delta * nms (AVH §3.2.4).
 
-- v: visibility of the scan at the match: from each face centroid, ``n_rays`` (64) evenly spread
-  hemisphere directions around the face normal; v_face = fraction of rays that do NOT hit the
-  scan again (self-intersection); averaged to vertices, interpolated at the hit's barycentrics.
+- v: visibility of the scan at the match: from each face centroid, ``n_rays`` evenly spread
+  hemisphere directions around the face normal (the paper: 64, one lattice for every face; the
+  bake: 16, each face its own shifted and turned lattice, ``stratified``, whose errors average out
+  over the faces around a vertex: within 0.011 of the 64-ray vertex visibility on average, 0.055
+  at the 99th percentile, on a 110k-face scan); v_face = fraction of rays that do NOT hit the scan
+  again (self-intersection); averaged to vertices, interpolated at the hit's barycentrics.
 - w: the same visibility on the registered mesh M^R_t, interpolated to texels.
 - delta: inverse normalized match distance, 1 - min(d, clip) / clip with clip = 1/50 of the fit's
   bounding-box diagonal.

@@ -236,10 +236,13 @@ class BakeConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> BakeConfig:
-        """Inverse of :meth:`to_dict` (JSON lists become tuples; unknown keys are ignored)."""
+        """Inverse of :meth:`to_dict` (JSON lists become tuples; unknown keys are ignored; a config
+        written before ``visibility_stratified`` existed cast one shared lattice: False)."""
         nested = {"registration": RegistrationConfig, "pose_refine": PoseRefineConfig}
         known = {f.name for f in fields(cls)}
         top = {k: v for k, v in data.items() if k in known and k not in nested}
+        if "visibility_rays" in top and "visibility_stratified" not in top:
+            top["visibility_stratified"] = False
         for name, sub_cls in nested.items():
             sub_known = {f.name for f in fields(sub_cls)}
             top[name] = sub_cls(**{k: tuple(v) if isinstance(v, list) else v
