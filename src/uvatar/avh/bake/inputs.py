@@ -2,7 +2,8 @@
 process, or adopted from the parent so a worker does not raster it again), and a frame's starting
 fit with the shape to pose it by. Shared by the per-frame bake (:mod:`.pipeline`) and the refinement
 across frames (:mod:`.refine_together`). :func:`prepared_scan` keeps a frame's scan, read and prepared
-for ray queries once, for the colour rounds and the bake that follow in the same process."""
+for ray queries once, for the colour rounds and the bake that follow in the same process;
+:func:`keep_sample` keeps a colour round's closing colour sample beside it for the next round."""
 
 from __future__ import annotations
 
