@@ -176,6 +176,31 @@ def test_texel_interpolation_and_inpainting_match_their_plain_twins(setup, baked
                                       inpaint_telea_reference(image, unknown, 3, band))
     np.testing.assert_array_equal(inpaint_telea(image[..., 4], unknown, 3, 2),
                                   inpaint_telea_reference(image[..., 4], unknown, 3, 2))
+    gutter = layout.island_gutter(2)
+    for band in (None, 8):
+        np.testing.assert_array_equal(inpaint_telea(image, unknown, 3, band, gutter),
+                                      inpaint_telea_reference(image, unknown, 3, band, gutter))
+
+
+def test_inpainting_gutter_changes_no_island_texel_beyond_rounding(setup, baked):
+    """Telea limited to the islands and a gutter of 4 texels (BakeConfig.inpaint_gutter) against the
+    whole band: the island texels keep their values (the march only reaches them from inside), the
+    texels beyond the gutter take their nearest matched value."""
+    from uvatar.avh.bake.inpaint import fill_nearest, inpaint_telea
+
+    _, layout, _, _ = setup
+    image = np.concatenate([baked.texture, baked.displacement], axis=-1).astype(np.float32)
+    unknown = ~baked.matched
+    whole = inpaint_telea(image, unknown, 3, 8)
+    limited = inpaint_telea(image, unknown, 3, 8, layout.island_gutter(4))
+    islands = layout.raster.mask
+    span = image[~unknown].max(0) - image[~unknown].min(0)
+    assert np.abs(limited - whole)[islands].max(0).tolist() <= (2e-3 * span).tolist()
+    beyond = unknown & ~layout.island_gutter(4)
+    assert beyond.any()
+    nearest, _ = fill_nearest(image, unknown)
+    np.testing.assert_array_equal(limited[beyond], nearest[beyond])
+    np.testing.assert_array_equal(limited[~unknown], image[~unknown])
 
 
 def test_grouped_normal_equations_match_the_dense_product():

@@ -20,8 +20,8 @@ def _flags():
 
     bake = ConfigFlags(BakeConfig, fields=(
         "texels", "refine_pose", "register", "polarity_rule", "polarity_ratio", "max_match_distance",
-        "visibility_rays", "visibility_stratified", "distance_clip", "inpaint_radius", "inpaint_band", "reject_kappa", "device", "scan_cache_mb"),
-        rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band"), help={
+        "visibility_rays", "visibility_stratified", "distance_clip", "inpaint_radius", "inpaint_band", "inpaint_gutter", "reject_kappa", "device", "scan_cache_mb"),
+        rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band", "inpaint_gutter"), help={
             "texels": "UV map resolution R",
             "refine_pose": "refine the fit against the scan (articulated); --no-refine-pose keeps the fit as is",
             "register": "pairwise registration; --no-register skips it (ablation)",
@@ -35,6 +35,8 @@ def _flags():
             "distance_clip": "delta clips at this fraction of the fit's bounding-box diagonal",
             "inpaint_radius": "Telea radius in texels",
             "inpaint_band": "Telea only within this many texels of matched ones, nearest fill beyond (0 = everywhere)",
+            "inpaint_gutter": "Telea only inside the UV islands and this many texels around them, nearest fill "
+                              "beyond (0 = no limit)",
             "reject_kappa": "reject frames whose mean confidence is below this",
             "device": "where the ray stages run: cpu (Embree) or cuda[:N] (NVIDIA Warp; pip install "
                       "'uvatar[kernels]')",

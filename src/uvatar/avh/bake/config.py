@@ -148,6 +148,11 @@ class BakeConfig:
     inpaint_band: texels farther than this (in texels) from any matched texel are first filled with
         their nearest matched value, so Telea only marches a band around the islands (speed; None =
         Telea everywhere).
+    inpaint_gutter: Telea marches only inside the UV islands and this many texels around them (a
+        bilinear or mipmapped lookup at an island's border reads a few texels outside it); farther
+        unmatched texels take their nearest matched value (None = no limit). 4 texels leave the island
+        texels' values within rounding of marching the whole band, for about a third of the march
+        (docs/scale.md).
     reject_kappa: frames whose mean kappa over the body's surface texels is below this are rejected
         (paper: 130/255). Surface texels: valid texels whose rest-pose visibility on the body
         template itself exceeds ``interior_visibility``. Interior parts of the template (anny's
@@ -180,6 +185,7 @@ class BakeConfig:
     distance_clip: float = 1 / 50
     inpaint_radius: int = 3
     inpaint_band: int | None = 8
+    inpaint_gutter: int | None = 4
     reject_kappa: float = 130 / 255
     interior_visibility: float = 0.02
     texture_float16: bool = True
@@ -195,6 +201,7 @@ class BakeConfig:
                   (self.polarity_ratio >= 1, "polarity_ratio must be >= 1 (a positive match at most this many times farther)"),
                   (self.distance_clip > 0, "distance_clip must be > 0"),
                   (self.inpaint_radius >= 0, "inpaint_radius must be >= 0"),
+                  (self.inpaint_gutter is None or self.inpaint_gutter >= 0, "inpaint_gutter must be >= 0"),
                   (0.0 <= self.reject_kappa <= 1.0, "reject_kappa must be in [0, 1]"),
                   (0.0 <= self.interior_visibility < 1.0, "interior_visibility must be in [0, 1)"),
                   (self.max_match_distance is None or self.max_match_distance > 0, "max_match_distance must be > 0"),

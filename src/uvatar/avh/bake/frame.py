@@ -114,6 +114,17 @@ class BodyLayout:
         return np.einsum("mkc,mk->mc", corners.reshape(len(corners), 3, -1),
                          self.texel_bary).reshape(len(corners), *vals.shape[1:])
 
+    def island_gutter(self, texels: int | None):
+        """(R, R) bool: the UV islands grown by ``texels`` (cached); None for ``texels`` None (no limit)."""
+        if texels is None:
+            return None
+        key = ("island_gutter", int(texels))
+        if key not in self._cache:
+            from scipy import ndimage
+
+            self._cache[key] = ndimage.binary_dilation(self.raster.mask, np.ones((3, 3), bool), iterations=int(texels))
+        return self._cache[key]
+
     def interpolation_matrix(self, num_vertices: int | None = None):
         """(M, V) scipy CSR matrix: row m holds texel m's barycentrics at its triangle's vertices
         (cached per V; default V: one past the largest vertex index of the faces)."""
@@ -321,7 +332,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         unknown = ~matched_map
         # one call for both maps: the nearest-texel fill (distance transform) is computed once
         both = inpaint_telea(np.concatenate([layout.to_map(colors), layout.to_map(disp)], axis=-1),
-                             unknown, config.inpaint_radius, config.inpaint_band)
+                             unknown, config.inpaint_radius, config.inpaint_band,
+                             layout.island_gutter(config.inpaint_gutter))
         texture, displacement = both[..., :3], both[..., 3:]
     valid = layout.raster.mask.copy()
     kappa_map = layout.to_map(kappa)

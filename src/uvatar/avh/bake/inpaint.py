@@ -36,11 +36,13 @@ def _nearest_known(fill_mask):
     return iy * fill.shape[1] + ix, dist
 
 
-def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None) -> np.ndarray:
+def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None, within=None) -> np.ndarray:
     """Inpaint texels of ``fill_mask`` from the others. image (H, W) or (H, W, C) float; returns float32.
 
     radius: Telea neighbourhood radius in texels (paper: 3). band: see the module doc (None = Telea
-    everywhere). Known texels are returned unchanged. If no texel is known, the result is zeros.
+    everywhere). within: (H, W) bool or None: Telea marches only there (e.g. the UV islands and a
+    gutter of a few texels around them); the other texels of ``fill_mask`` take their nearest known
+    texel's value, as beyond ``band``. Known texels are returned unchanged. If no texel is known, the result is zeros.
     The channels share one nearest-texel fill and one quantization pass; OpenCV's Telea then marches
     each channel (:func:`inpaint_telea_reference` is the plain per-channel twin).
     """
@@ -61,9 +63,9 @@ def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None) ->
         h, w, c = img.shape
         out = img.copy()
         march = fill
-        if band is not None:
+        if band is not None or within is not None:
             index, dist = _nearest_known(fill)
-            far = np.flatnonzero(dist > band)
+            far = _nearest_filled(fill, dist, band, within)
             out.reshape(h * w, c)[far] = img.reshape(h * w, c)[index.ravel()[far]]
             march = fill.copy()
             march.ravel()[far] = False
@@ -72,17 +74,40 @@ def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None) ->
             known = np.take(img.reshape(h * w, c), np.flatnonzero(~fill), axis=0)   # (K, C)
             lo, hi = known.min(0).astype(np.float64), known.max(0).astype(np.float64)
             span = np.where(hi > lo, hi - lo, 1.0)
-            planes = np.ascontiguousarray(out.transpose(2, 0, 1))                   # (C, H, W)
-            mask8 = march.view(np.uint8)
+            # Telea reads a marched texel's neighbours within ``radius`` and their gradients (one
+            # more texel): only texels that near the march are quantized, the rest stay 0 unread
+            read = np.flatnonzero(_grow(march, int(radius) + 2))
             flat = out.reshape(h * w, c)
+            q = np.clip(np.rint((flat[read].astype(np.float64) - lo) / span * 65535.0), 0, 65535).astype(np.uint16)
+            mask8 = march.view(np.uint8)
+            plane = np.zeros(h * w, np.uint16)
             for k in range(c):
-                q = np.clip(np.rint((planes[k].astype(np.float64) - lo[k]) / span[k] * 65535.0), 0, 65535)
-                filled = cv2.inpaint(q.astype(np.uint16), mask8, int(radius), cv2.INPAINT_TELEA)
+                plane[read] = q[:, k]
+                filled = cv2.inpaint(plane.reshape(h, w), mask8, int(radius), cv2.INPAINT_TELEA)
                 flat[marching, k] = filled.ravel()[marching].astype(np.float64) / 65535.0 * span[k] + lo[k]
     return out[..., 0] if squeeze else out
 
 
-def inpaint_telea_reference(image, fill_mask, radius: int = 3, band: int | None = None) -> np.ndarray:
+def _nearest_filled(fill, dist, band, within) -> np.ndarray:
+    """Flat indices of the texels of ``fill`` that take the nearest fill instead of Telea's march."""
+    far = fill & (dist > band) if band is not None else np.zeros_like(fill)
+    if within is not None:
+        within = np.asarray(within, bool)
+        if within.shape != fill.shape:
+            raise ValueError(f"within shape {within.shape} does not match fill_mask {fill.shape}")
+        far |= fill & ~within
+    return np.flatnonzero(far)
+
+
+def _grow(mask, texels: int):
+    """(H, W) bool: ``mask`` grown by ``texels`` in every direction (a square neighbourhood)."""
+    import cv2
+
+    kernel = np.ones((2 * texels + 1, 2 * texels + 1), np.uint8)
+    return cv2.dilate(np.asarray(mask, np.uint8), kernel).astype(bool)
+
+
+def inpaint_telea_reference(image, fill_mask, radius: int = 3, band: int | None = None, within=None) -> np.ndarray:
     """Plain twin of :func:`inpaint_telea`: each channel quantized, marched and mapped back on its own."""
     import cv2
 
@@ -98,9 +123,11 @@ def inpaint_telea_reference(image, fill_mask, radius: int = 3, band: int | None 
     else:
         work = img.copy()
         march = fill
-        if band is not None:
+        if band is not None or within is not None:
             nearest, dist = fill_nearest(img, fill)
-            far = dist > band
+            far = fill & ((dist > band) if band is not None else False)
+            if within is not None:
+                far = far | (fill & ~np.asarray(within, bool))
             work[far] = nearest[far]
             march = fill & ~far
         mask8 = march.astype(np.uint8)

@@ -324,9 +324,9 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         near, idx = scan.tree.query(v, distance_upper_bound=config.max_distance * diag)
         found = np.isfinite(near)
         idx = np.where(found, idx, 0)
-        m = scan.sample_normals[idx]
+        m = np.take(scan.sample_normals, idx, axis=0)
         ok = found & ((m * n).sum(1) >= cos_max)
-        r = ((v - scan.sample_points[idx]) * m).sum(1)
+        r = ((v - np.take(scan.sample_points, idx, axis=0)) * m).sum(1)
         if it == 0 and ok.any():
             offsets = _clothing_offsets(r[ok], skin[ok], config.huber)
         r = r + skin @ offsets

@@ -103,7 +103,8 @@ class ScanSurface:
             self.corner_normals = self.vertex_normals[self.faces]
         ok = face >= 0
         fo = np.where(ok, face, 0)
-        n = np.einsum("kjc,kj->kc", self.corner_normals[fo], np.asarray(bary, np.float64))
+        corners = np.take(self.corner_normals.reshape(-1, 9), fo, axis=0).reshape(-1, 3, 3)   # take: ~5x a fancy index
+        n = np.einsum("kjc,kj->kc", corners, np.asarray(bary, np.float64))
         length = np.sqrt(np.einsum("kc,kc->k", n, n))
         bad = ok & (length < 1e-12)  # opposite normals cancelled: use the (unit) face normal
         if bad.any():
