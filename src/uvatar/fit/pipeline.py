@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.capture.layout import CAPTURE_JSON, Capture
+from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
 from uvatar.io_utils import read_json, write_json
@@ -105,7 +105,7 @@ def resolve_source(capture: Capture, source: str) -> str:
 def existing_fits(capture: Capture) -> list[Path]:
     """The capture's fit files (``fits/*.json`` and ``fits.npz``)."""
     fits = sorted(capture.fits_dir.glob("*.json")) if capture.fits_dir.is_dir() else []
-    npz = capture.root / "fits.npz"
+    npz = capture.person_root / "fits.npz"
     return fits + ([npz] if npz.is_file() else [])
 
 
@@ -144,8 +144,10 @@ def _find_and_choose(capture: Capture, frame: str, choice, detector, stages: Fit
     return people, i, why, names
 
 
-def _choose_subject(capture: Capture, frames: list[str], choice, detector, stages: FitStages) -> tuple:
-    """(seed frame, the chosen :class:`~uvatar.fit.person.Person`, a report dict).
+def _choose_people(capture: Capture, frames: list[str], choice, detector, stages: FitStages) -> list[tuple]:
+    """[(id, seed frame, the chosen :class:`~uvatar.fit.person.Person`, a report dict)]: the subject
+    first (id None), then, for ``all``/``id``, every other person (ids "1", "2", ... by the views that
+    see them over the frames looked at; seeded at their best-seen frame).
 
     Without a frame in the choice, ``SEED_TRIES`` frames (1/8 of the capture apart) are looked at and
     the people found are told apart across them by their build (:func:`~uvatar.fit.person.same_body`);
@@ -164,24 +166,26 @@ def _choose_subject(capture: Capture, frames: list[str], choice, detector, stage
             found.append((seed, *_find_and_choose(capture, seed, choice, detector, stages)))
         except InputError:
             if seed == tries[-1] and not found:
-                if choice.rule != "most-views":
+                if choice.rule not in ("most-views", "all"):
                     raise
                 log.warning("person: nobody seen by two views at frames %s; detecting without a subject",
                             ", ".join(tries))
-                return frames[0], None, {"rule": choice.rule, "frame": None, "people_found": 0, "chosen": None,
-                                         "why": "nobody found", "people": [], "chosen_again_after_cuts": []}
-    if choice.rule == "most-views" and len(found) > 1:
-        clusters = []   # [signature, total views, best (views, frame index, person index)]
-        for f, (_, people, _, _, _) in enumerate(found):
-            for k, p in enumerate(people):
-                sig = body_signature(p.points, p.points_conf)
-                near = [c for c in clusters if same_body(sig, c[0]) < SAME_BODY]
-                if near:
-                    near[0][1] += len(p.members)
-                    near[0][2] = max(near[0][2], (len(p.members), -f, k))
-                else:
-                    clusters.append([sig, len(p.members), (len(p.members), -f, k)])
-        total, (_, f, k) = max(((c[1], c[2]) for c in clusters), key=lambda t: (t[0], t[1]))
+                return [(None, frames[0], None, {"rule": choice.rule, "frame": None, "people_found": 0,
+                                                 "chosen": None, "why": "nobody found", "people": [],
+                                                 "chosen_again_after_cuts": []})]
+    clusters = []   # [signature, total views, best (views, -frame index, person index)]
+    for f, (_, people, _, _, _) in enumerate(found):
+        for k, p in enumerate(people):
+            sig = body_signature(p.points, p.points_conf)
+            near = [c for c in clusters if same_body(sig, c[0]) < SAME_BODY]
+            if near:
+                near[0][1] += len(p.members)
+                near[0][2] = max(near[0][2], (len(p.members), -f, k))
+            else:
+                clusters.append([sig, len(p.members), (len(p.members), -f, k)])
+    clusters.sort(key=lambda c: (c[1], c[2]), reverse=True)
+    if choice.rule in ("most-views", "all", "id") and len(found) > 1:
+        total, (_, f, k) = clusters[0][1], clusters[0][2]
         seed, people, _, _, names = found[-f]
         i, why = k, f"seen by the most cameras over frames {', '.join(t[0] for t in found)} ({total} views)"
     else:
@@ -191,7 +195,31 @@ def _choose_subject(capture: Capture, frames: list[str], choice, detector, stage
                           "position_m": np.round(np.median(p.points[p.points_conf > 0], axis=0), 3).tolist()}
                          for p in people], "chosen_again_after_cuts": []}
     log.info("person: %d found at frame %s; fitting #%d, %s", len(people), seed, i, why)
-    return seed, people[i], report
+    out = [(None, seed, people[i], report)]
+    if not choice.several:
+        return out
+    subject_sig = body_signature(people[i].points, people[i].points_conf)
+    subject = min(clusters, key=lambda c: same_body(c[0], subject_sig))
+    others = [c for c in clusters if c is not subject]
+    report["others"] = []
+    for n, (_, total, (views, f, k)) in enumerate(others, start=1):
+        frame, found_people = found[-f][0], found[-f][1]
+        p = found_people[k]
+        pid = str(n)
+        position = np.round(np.median(p.points[p.points_conf > 0], axis=0), 3).tolist()
+        report["others"].append({"id": pid, "views": total, "frame": frame, "position_m": position})
+        if choice.rule == "all" or choice.person_id == pid:
+            out.append((pid, frame, p, {"rule": choice.rule, "id": pid, "frame": frame, "why":
+                                        f"another person, seen {total} times over frames "
+                                        f"{', '.join(t[0] for t in found)}; seeded at frame {frame} "
+                                        f"({views} cameras)", "position_m": position,
+                                        "chosen_again_after_cuts": []}))
+    log.info("person: %d other(s) found: %s", len(others), ", ".join(o["id"] for o in report["others"]) or "-")
+    if choice.rule == "id" and len(out) == 1:
+        raise InputError("person", f"person {choice.person_id} is not found: {len(others)} other "
+                                   f"{'person' if len(others) == 1 else 'people'} seen by two views "
+                                   f"({', '.join(o['id'] for o in report['others']) or 'none'})")
+    return out
 
 
 def _lost(prior, obs, cut_distance: float) -> bool:
@@ -237,11 +265,12 @@ def _rechoose(capture, frame, detector, stages, signature):
 
 
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
-                progress: bool, choice=None, cut_distance: float = 0.1) -> tuple[dict, dict, dict]:
-    """Per-frame observations, from ``fitting/keypoints`` where a previous run left them; failures;
-    the person report (images: the subject chosen at the seed frame is tracked forward from it, then
-    backward; where the track is lost, at a cut, the person of the subject's build is found again). Views that
-    disagree with the subject are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
+                progress: bool, choice=None, cut_distance: float = 0.1, chosen=None) -> tuple[dict, dict, dict]:
+    """Per-frame observations, from ``fitting/keypoints`` (the person's own) where a previous run left
+    them; failures; the person report (images: the subject chosen at the seed frame, or ``chosen``
+    (seed frame, :class:`~uvatar.fit.person.Person`, report) when given, is tracked forward from it,
+    then backward; where the track is lost, at a cut, the person of the same build is found again).
+    Views that disagree with the person are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
     from tqdm import tqdm
 
     from uvatar.fit.observe import (
@@ -256,9 +285,9 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     observations, failures = {}, {}
     person = None
     start, seed_prior = 0, None
-    if source == "images" and choice is not None:
-        if not all(observation_path(capture.root, f).is_file() for f in frames):
-            seed, seed_prior, person = _choose_subject(capture, frames, choice, detector, stages)
+    if source == "images" and (choice is not None or chosen is not None):
+        if not all(observation_path(capture.person_root, f).is_file() for f in frames):
+            seed, seed_prior, person = chosen or _choose_people(capture, frames, choice, detector, stages)[0][1:]
             start = frames.index(seed)
     order = frames[start:] + frames[:start][::-1]   # forward from the seed, then backward from it
     prior = seed_prior
@@ -266,7 +295,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     for n, frame in enumerate(bar):
         if start and n == len(frames) - start:
             prior = observations.get(frames[start], seed_prior)  # the backward pass starts at the seed
-        path = observation_path(capture.root, frame)
+        path = observation_path(capture.person_root, frame)
         try:
             if path.is_file():
                 obs = load_observation(path)
@@ -307,8 +336,13 @@ def _write_fits(capture: Capture, frames, result, body, config: FitConfig, prove
         write_fit(capture.fit_path(frame), BodyFit(poses=result.poses[t].reshape(-1), Rh=result.Rh[t],
                                                    Th=result.Th[t], shapes=result.shape,
                                                    scale=float(result.scale[t])))
+    shapes = np.asarray(result.shape, np.float64).tolist()
+    if capture.person is not None:  # another person: their shape beside their fits, capture.json is the subject's
+        write_json(capture.person_root / PERSON_JSON, {"body_model": body.name, "shapes": shapes,
+                                                       "provenance": {"fit": provenance}})
+        return
     info = read_json(capture.root / CAPTURE_JSON)
-    info["body_model"] = {"name": body.name, "shapes": np.asarray(result.shape, np.float64).tolist()}
+    info["body_model"] = {"name": body.name, "shapes": shapes}
     info.setdefault("provenance", {})["fit"] = provenance
     write_json(capture.root / CAPTURE_JSON, info)
 
@@ -344,11 +378,16 @@ def _reprojection_stats(observations: dict, frames, body_points: np.ndarray, min
 def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitStages | None = None,
                 progress: bool = True, frames: list[str] | None = None) -> dict:
     """Fit the body model to every frame of the capture at ``root``; returns the summary written to
-    ``fitting/summary.json``. Raises :class:`InputError` when nothing could be fitted."""
+    ``fitting/summary.json``. Raises :class:`InputError` when nothing could be fitted.
+
+    With ``config.person`` ``all`` the subject goes to ``fits/`` as usual and every other person seen
+    by two views to ``people/<id>/`` (their own summary in ``people/<id>/fitting/summary.json``; the
+    returned summary is the subject's, with ``people``: {id: that summary}); with a person id, that
+    person alone (the returned summary is theirs)."""
     from uvatar.body.registry import load_body_model
-    from uvatar.fit.body_fit import BodyFitConfig, fit_body_sequence
-    from uvatar.fit.body_keypoints import BodyKeypoints
+    from uvatar.fit.body_fit import BodyFitConfig
     from uvatar.fit.keypoints import DetectorConfig, load_detector
+    from uvatar.fit.person import parse_person
     from uvatar.fit.triangulate import TriangulateConfig
     from uvatar.fit.views import ScanViewsConfig
 
@@ -362,21 +401,62 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     frames = list(frames or capture.frames)
     if not frames:
         raise InputError(capture.root, "the capture lists no frames")
+    choice = parse_person(config.person)
+    if choice.rule != "id":
+        _refuse_existing(capture, config)
+    source = resolve_source(capture, config.source)
+    if choice.several and source != "images":
+        raise InputError("person", f"{config.person!r} fits several people from the capture's images: it needs "
+                                   f"source 'images', not {source!r}")
+    body = load_body_model(config.model, config.model_dir, device=config.device)
+    detector = load_detector(config.detector, stages.detector)
+    if not choice.several:
+        return _fit_person(capture, frames, source, body, detector, stages, config, progress, choice)
+    t0 = time.perf_counter()
+    chosen = _choose_people(capture, frames, choice, detector, stages)
+    t_choose = time.perf_counter() - t0
+    for pid, *_ in chosen:
+        if pid is not None:
+            _refuse_existing(capture.for_person(pid), config)
+    summaries = {}
+    for pid, seed, prior, report in chosen:
+        if choice.rule == "id" and pid is None:
+            continue  # the subject is only how the other people are told apart
+        if pid is not None:
+            report = {**report, "found_with_the_subject": True}
+        log.info("fitting %s", "the subject" if pid is None else f"person {pid}")
+        summaries[pid] = _fit_person(capture.for_person(pid), frames, source, body, detector, stages, config,
+                                     progress, choice, (seed, prior, report) if prior is not None else None)
+        summaries[pid]["seconds"]["choosing_people"] = t_choose
+    if choice.rule == "id":
+        return summaries[choice.person_id]
+    summary = summaries.pop(None)
+    summary["people"] = summaries
+    write_json(capture.fitting_dir / "summary.json", summary)
+    return summary
+
+
+def _refuse_existing(capture: Capture, config: FitConfig) -> None:
     existing = existing_fits(capture)
     if existing and not config.force:
         raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); force=True replaces them")
-    source = resolve_source(capture, config.source)
-    from uvatar.fit.person import parse_person
 
-    choice = parse_person(config.person)
-    body = load_body_model(config.model, config.model_dir, device=config.device)
-    detector = load_detector(config.detector, stages.detector)
 
+def _fit_person(capture: Capture, frames: list[str], source: str, body, detector, stages: FitStages,
+                config: FitConfig, progress: bool, choice, chosen=None) -> dict:
+    """Detect, fit and write one person: the subject (``capture.person`` None, chosen by ``choice``
+    unless ``chosen`` is given) or another person (``chosen``: their seed frame, Person, report);
+    the scans, when present, are the subject's alone (their distance and photometric terms are not
+    used for anyone else)."""
+    from uvatar.fit.body_fit import fit_body_sequence
+    from uvatar.fit.body_keypoints import BodyKeypoints
+
+    subject = capture.person is None
     t0 = time.perf_counter()
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
-                                                 config.cut_distance)
+                                                 config.cut_distance, chosen)
     t_detect = time.perf_counter() - t0
-    use_scans = config.scan_distance and capture.scans_dir.is_dir()
+    use_scans = subject and config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
              if use_scans and config.photo_size and stages.body.w_photo > 0 else None)
     scans, photo_views = (scan_inputs(capture, frames, config.scan_points, config.seed, photo, failures, progress)
@@ -388,7 +468,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         for reason in failures.values():
             counts[reason] = counts.get(reason, 0) + 1
         why = "; ".join(f"{n} {r}" for r, n in counts.items())
-        raise InputError(capture.root, f"{len(frames)} frames, none usable for fitting: {why}")
+        raise InputError(capture.person_root, f"{len(frames)} frames, none usable for fitting: {why}")
 
     t1 = time.perf_counter()
     observations, relabelled = relabel_left_right(frames, observations, detector.keypoint_names, config.cut_distance)
@@ -415,7 +495,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
                           shape=torch.as_tensor(result.shape, dtype=torch.float32, device=body.device))
         body_points = BodyKeypoints(body)(posed).cpu().numpy()
     summary = {
-        "capture": str(capture.root), "source": source, "frames": len(frames),
+        "capture": str(capture.root), "person_id": capture.person, "source": source, "frames": len(frames),
         "frames_fitted": len(frames), "frames_without_detection": failures,
         "cuts_after": [frames[t] for t in np.flatnonzero(~obs.continuous)],
         "relabelled_left_right": relabelled,
@@ -434,7 +514,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
 
         summary["contact_sheet"] = str(write_overlays(capture, frames, observations, posed, body, source,
                                                       stages, config))
-    write_json(capture.root / "fitting" / "summary.json", summary)
+    write_json(capture.fitting_dir / "summary.json", summary)
     return summary
 
 
