@@ -1,0 +1,127 @@
+"""Several people fitted (``uvatar fit --person all``): depth-ordered masks per person, the people
+layout, and bad input. Known answers on boxes standing in for bodies; a fake segmenter."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from uvatar.errors import InputError
+from uvatar.fit.masks import FAR, MaskConfig, body_depth, nearest_region, person_mask
+from uvatar.render.cameras import look_at_camera
+
+CAM = look_at_camera((0.0, 1.0, 5.0), (0.0, 1.0, 0.0), fov_deg=40.0, width=120, height=120)
+
+
+def _body(x: float, z: float):
+    """A 0.5 x 1.6 x 0.3 m box standing at (x, 0.2 .. 1.8, z): a person for the renderer."""
+    m = trimesh.creation.box(extents=(0.5, 1.6, 0.3))
+    return np.asarray(m.vertices) + [x, 1.0, z], np.asarray(m.faces)
+
+
+class UnionSegmenter:
+    """Every person's pixels (both bodies' silhouettes grown by 2 px: the clothes), as a real
+    segmenter that cannot tell touching people apart."""
+
+    def __init__(self, people: np.ndarray):
+        import cv2
+
+        self.prob = (cv2.dilate(people.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0).astype(np.float32)
+
+    def segment(self, image, roi=None):
+        out = np.zeros_like(self.prob)
+        x0, y0, x1, y1 = (int(v) for v in roi)
+        out[y0:y1 + 1, x0:x1 + 1] = self.prob[y0:y1 + 1, x0:x1 + 1]
+        return out
+
+
+def test_the_subject_mask_excludes_the_person_in_front_and_keeps_its_own_visible_pixels():
+    import cv2
+
+    subject = body_depth(*_body(0.0, 0.0), CAM, 120)      # 5 m away
+    front = body_depth(*_body(0.35, 1.0), CAM, 120)       # 4 m away, covering the subject's right side
+    s, f = subject < FAR, front < FAR
+    assert (s & f).sum() > 200 and (s & ~f).sum() > 300      # overlapping in the view, part of it visible
+    assert np.all(front[s & f] < subject[s & f])              # the depth buffer: the nearest hit
+    image = np.zeros((120, 120, 3), np.float32)
+    seg = UnionSegmenter(s | f)
+    config = MaskConfig(dilate=0.04)                          # 5 px at 120 px
+    r = 5
+    naive = person_mask(image, seg, s, config)
+    assert (naive & f).sum() > 200                            # without the other fit: the front person leaks in
+    mask = person_mask(image, seg, s, config, allowed=nearest_region(subject, [front], r))
+    grown_front = cv2.dilate(f.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (11, 11))) > 0
+    assert not (mask & f).any()                               # not one pixel of the person in front
+    visible = s & ~grown_front
+    assert mask[visible].all()                                # every visible subject pixel away from their edge
+    band = (seg.prob > 0) & ~s & ~f                           # the subject's clothes beyond the fitted body
+    away = band & ~grown_front
+    assert away.any() and mask[away].all()
+    # the person in front keeps every pixel of their own body, where they hide the subject too
+    theirs = person_mask(image, seg, f, config, allowed=nearest_region(front, [subject], r))
+    assert theirs[f].all() and not (theirs & s & ~f & ~grown_front).any()
+
+
+def test_nearest_region_without_others_is_the_grown_body_and_a_body_behind_takes_nothing_in_front():
+    depth = np.full((40, 40), FAR, np.float32)
+    depth[10:30, 10:20] = 3.0
+    alone = nearest_region(depth, [], 2)
+    assert alone[10:30, 8:22].all() and alone[8:32, 10:20].all() and not alone[:, 25:].any()
+    behind = np.full_like(depth, FAR)
+    behind[5:35, 15:35] = 4.0                                 # overlapping, farther: the first keeps its body
+    region = nearest_region(depth, [behind], 2)
+    assert region[10:30, 10:20].all()
+    assert not region[10:30, 20:23].any()                     # the band over the other body is theirs
+    assert region[10:30, 8:10].all()                          # the band where no one else is stays
+
+
+def test_person_ids_and_the_people_layout(tmp_path):
+    from uvatar.capture.layout import Capture, write_capture_info
+    from uvatar.fit.person import parse_person
+
+    assert parse_person("all").rule == "all" and parse_person("all").several
+    choice = parse_person("2")
+    assert choice.rule == "id" and choice.person_id == "2" and choice.several
+    assert not parse_person("most-views").several
+    write_capture_info(tmp_path, ["000000"])
+    (tmp_path / "people" / "2" / "fits").mkdir(parents=True)
+    (tmp_path / "people" / "10" / "fits").mkdir(parents=True)
+    (tmp_path / "people" / "x").mkdir()
+    (tmp_path / "people" / "2" / "person.json").write_text(json.dumps({"body_model": "anny", "shapes": [0.5, 0.25]}))
+    cap = Capture(tmp_path)
+    assert cap.people() == ["2", "10"] and cap.person is None and cap.fits_dir == tmp_path / "fits"
+    other = cap.for_person(2)
+    assert other.fits_dir == tmp_path / "people" / "2" / "fits"
+    assert other.mask_path("c0", "000000") == tmp_path / "people" / "2" / "masks" / "c0" / "000000.png"
+    assert other.fitting_dir == tmp_path / "people" / "2" / "fitting"
+    assert other.body_shapes.tolist() == [0.5, 0.25] and other.frames == ["000000"]
+
+
+@pytest.mark.parametrize("spec, match", [("0", "person id is >= 1"), ("all:3", "expected one of"),
+                                         ("-1", "expected one of"), ("two", "expected one of")])
+def test_bad_person_specs_are_one_line_errors(spec, match):
+    from uvatar.fit.person import parse_person
+
+    with pytest.raises(InputError, match=match) as err:
+        parse_person(spec)
+    assert "\n" not in str(err.value)
+
+
+def test_bad_people_inputs_are_one_line_errors(tmp_path):
+    from uvatar.capture.layout import Capture, write_capture_info
+    from uvatar.capture.types import BodyFit
+    from uvatar.fit.evaluate import bystander_truth
+    from uvatar.fit.pipeline import FitConfig, fit_capture
+
+    write_capture_info(tmp_path, ["000000"])
+    with pytest.raises(InputError, match="person id is a whole number"):
+        Capture(tmp_path, person="abc")
+    with pytest.raises(InputError, match="bystanders.npz.*no bystanders' ground truth"):
+        bystander_truth(Capture(tmp_path, person=1), {"000000": BodyFit(poses=np.zeros(6))})
+    (tmp_path / "scans").mkdir()
+    trimesh.creation.box().export(tmp_path / "scans" / "000000.obj")
+    with pytest.raises(InputError, match="needs source 'images', not 'scans'"):
+        fit_capture(tmp_path, FitConfig(person="all"), progress=False)
