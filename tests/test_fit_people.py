@@ -125,3 +125,77 @@ def test_bad_people_inputs_are_one_line_errors(tmp_path):
     trimesh.creation.box().export(tmp_path / "scans" / "000000.obj")
     with pytest.raises(InputError, match="needs source 'images', not 'scans'"):
         fit_capture(tmp_path, FitConfig(person="all"), progress=False)
+
+
+@pytest.fixture(scope="module")
+def crowd_fitted(tmp_path_factory):
+    """A small studio capture with one bystander (3 frames, 4 cameras, 256^2), fitted with
+    ``person="all"`` and masked: (root, fit summary, mask summary)."""
+    import shutil
+
+    import torch
+
+    from uvatar.capture.synth.config import preset
+    from uvatar.capture.synth.pipeline import synthesize
+    from uvatar.fit.masks import write_capture_masks
+    from uvatar.fit.pipeline import FitConfig, fit_capture
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        root = tmp_path_factory.mktemp("crowd") / "cap"
+        synthesize(root, preset("quick", frames=3, cameras=4, image_size=256, seed=0, preview=False, bystanders=1),
+                   progress=False)
+        shutil.move(root / "masks", root / "masks_true")
+        shutil.rmtree(root / "fits")
+        summary = fit_capture(root, FitConfig(source="images", person="all", overlay_frames=0, photo_size=0),
+                              progress=False)
+        masks = write_capture_masks(root, MaskConfig(), progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    return root, summary, masks
+
+
+def test_person_all_fits_the_subject_and_the_bystander_each_near_their_truth(crowd_fitted):
+    from uvatar.body import load_body_model
+    from uvatar.capture.layout import Capture
+    from uvatar.fit.evaluate import evaluate_fits
+
+    root, summary, _ = crowd_fitted
+    assert list(summary["people"]) == ["1"] and summary["person_id"] is None
+    assert [o["id"] for o in summary["person"]["others"]] == ["1"]
+    body = load_body_model("anny")
+    errors = {}
+    for pid in (None, "1"):
+        cap = Capture(root, pid)
+        assert all(cap.has_fit(f) for f in cap.frames)
+        ev = evaluate_fits(body, cap, {f: cap.load_fit(f) for f in cap.frames}, cap.body_shapes)
+        errors[pid] = ev["mpjpe_mm"]
+        if pid is not None:
+            assert ev["bystander"] == 0 and len(cap.body_shapes) == len(body.shape_names)
+    assert errors[None] < 60 and errors["1"] < 80, errors           # mm, each on their own truth
+    np.testing.assert_allclose(Capture(root).body_shapes, summary["shape"], atol=1e-6)  # capture.json: the subject's
+    assert not np.allclose(Capture(root, 1).body_shapes, summary["shape"], atol=1e-3)   # person.json: theirs
+    assert (root / "people" / "1" / "fitting" / "summary.json").is_file()
+
+
+def test_person_all_masks_per_person_and_the_subject_mask_leaves_the_bystander_out(crowd_fitted):
+    import imageio.v3 as iio
+
+    from uvatar.capture.layout import Capture
+    from uvatar.fit.segment import mask_iou
+
+    root, _, masks = crowd_fitted
+    assert masks["people"] == ["1"] and not masks["failed"] and masks["written"] == 2 * 3 * 4
+    cap = Capture(root)
+    leaked, ious = 0, []
+    for cam in cap.cameras():
+        for frame in cap.frames:
+            mine = cap.load_mask(cam, frame)
+            theirs = cap.for_person(1).load_mask(cam, frame)
+            bystander = iio.imread(root / "gt" / "bystander_masks" / cam / f"{frame}.png") > 127
+            truth = iio.imread(root / "masks_true" / cam / f"{frame}.png") > 127
+            leaked += int((mine & bystander).sum())
+            ious.append(mask_iou(mine, truth))
+            assert not (mine & theirs).any()                  # a pixel is one person's at most
+    assert leaked < 20 and np.mean(ious) > 0.9, (leaked, ious)
