@@ -94,7 +94,8 @@ def _fit(args) -> int:
     if args.eval:
         ev = summary["eval"]
         scan = ev.get("scan_to_body_median_mm")
-        print(f"MPJPE {ev['mpjpe_mm']:.1f} mm over {len(ev.get('per_joint_mpjpe_mm', {}))} body joints, "
+        print(("" if not summary.get("person_id") else f"person {summary['person_id']} (bystander "
+               f"{ev.get('bystander')} of gt/bystanders.npz): ") + f"MPJPE {ev['mpjpe_mm']:.1f} mm over {len(ev.get('per_joint_mpjpe_mm', {}))} body joints, "
               f"angle {ev['angle_error_deg']:.1f} deg, shape {ev.get('shape_error_mm', float('nan')):.1f} mm"
               + (f"; scan-to-body median {scan:.2f} mm" if scan is not None else ""), file=sys.stderr)
         for pid, other in (summary.get("people_eval") or {}).items():
@@ -103,7 +104,8 @@ def _fit(args) -> int:
                   f"shape {other['shape_error_mm']:.1f} mm", file=sys.stderr)
     disagree = summary.get("views_disagree") or {}
     if disagree:
-        print(f"views that disagree with the subject in {len(disagree)} frame(s), left out of the fit: "
+        who = f"person {summary['person_id']}" if summary.get("person_id") else "the subject"
+        print(f"views that disagree with {who} in {len(disagree)} frame(s), left out of the fit: "
               + "; ".join(f"{f} {','.join(cams)}" for f, cams in sorted(disagree.items())), file=sys.stderr)
     if summary.get("person"):
         p = summary["person"]

@@ -32,7 +32,7 @@ import numpy as np
 from uvatar.errors import InputError
 
 __all__ = ["PERSON_RULES", "PersonChoice", "Person", "parse_person", "find_people", "choose_person",
-           "body_signature", "same_body"]
+           "body_signature", "same_body", "same_place"]
 
 # BlazePose keypoint pairs whose 3D distances describe a body's build (shoulders, hips, upper arms,
 # forearms, thighs, shins): the same person keeps them whatever the pose, another person does not
@@ -207,7 +207,7 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
         if any((c, i) in taken for c, i in members.items()):
             continue
         taken.update(members.items())
-        if any(_same_person(p.points, p.points_conf, tri.points, tri.conf) for p in people):
+        if any(same_place(p.points, p.points_conf, tri.points, tri.conf) for p in people):
             continue  # the same person from other views (detections the matching left apart)
         people.append(Person(points=tri.points.astype(np.float64), points_conf=tri.conf.astype(np.float64),
                              members=dict(members), detections={c: dets[c][i] for c, i in members.items()},
@@ -215,7 +215,9 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
     return people
 
 
-def _same_person(a, ca, b, cb) -> bool:
+def same_place(a, ca, b, cb) -> bool:
+    """True when two triangulated keypoint sets (K, 3) metres with confidences (K,) are one person:
+    their shared keypoints (>= 4) lie within ``SAME_PERSON_M`` of each other (median)."""
     both = (ca > 0) & (cb > 0)
     return bool(both.sum() >= 4 and np.median(np.linalg.norm(a[both] - b[both], axis=1)) < SAME_PERSON_M)
 

@@ -248,15 +248,16 @@ def _signature(observations: dict, seed) -> np.ndarray:
         return np.nanmedian(np.stack(sigs), axis=0)
 
 
-def _rechoose(capture, frame, detector, stages, signature):
-    """The subject found again at ``frame`` after the track was lost: the person whose build
-    (:func:`~uvatar.fit.person.body_signature`) is the subject's (``signature``, the median over the
-    frames tracked so far), if one is within ``SAME_BODY``; else None (the frame keeps what the
-    tracking found, and its views are judged as usual)."""
+def _rechoose(capture, frame, detector, stages, signature, avoid=None):
+    """The person found again at ``frame`` after the track was lost: the person whose build
+    (:func:`~uvatar.fit.person.body_signature`) is theirs (``signature``, the median over the
+    frames tracked so far), if one is within ``SAME_BODY`` and is not where ``avoid`` (the subject's
+    observation of that frame, when another person is tracked) is; else None (the frame keeps what
+    the tracking found, and its views are judged as usual)."""
     from uvatar.fit.person import SAME_BODY, body_signature, find_people, same_body
 
     images, cameras = _frame_views(capture, frame, "images", stages)
-    people = find_people(images, cameras, detector, stages.triangulate)
+    people = [p for p in find_people(images, cameras, detector, stages.triangulate) if not _is_at(p, avoid)]
     scored = [(same_body(body_signature(p.points, p.points_conf), signature), -len(p.members), k)
               for k, p in enumerate(people)]
     if not scored or min(scored)[0] > SAME_BODY:
@@ -264,13 +265,25 @@ def _rechoose(capture, frame, detector, stages, signature):
     return people[min(scored)[2]]
 
 
+def _is_at(obs, avoid) -> bool:
+    """True when the observation (or Person) ``obs`` is where ``avoid`` (the subject's observation of
+    the same frame) is: the same person (:func:`~uvatar.fit.person.same_place`)."""
+    from uvatar.fit.person import same_place
+
+    return avoid is not None and same_place(obs.points, obs.points_conf, avoid.points, avoid.points_conf)
+
+
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
-                progress: bool, choice=None, cut_distance: float = 0.1, chosen=None) -> tuple[dict, dict, dict]:
+                progress: bool, choice=None, cut_distance: float = 0.1, chosen=None,
+                avoid: dict | None = None) -> tuple[dict, dict, dict]:
     """Per-frame observations, from ``fitting/keypoints`` (the person's own) where a previous run left
     them; failures; the person report (images: the subject chosen at the seed frame, or ``chosen``
     (seed frame, :class:`~uvatar.fit.person.Person`, report) when given, is tracked forward from it,
     then backward; where the track is lost, at a cut, the person of the same build is found again).
-    Views that disagree with the person are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
+    Views that disagree with the person are rejected (:func:`~uvatar.fit.observe.reject_views`).
+    ``avoid`` ({frame: the subject's observation}, when another person is tracked): where the track
+    lands on the subject, the person is looked for again away from the subject, and a frame where
+    only the subject is found is left to its neighbours (a failure), never fitted to the subject."""
     from tqdm import tqdm
 
     from uvatar.fit.observe import (
@@ -280,6 +293,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
         observe_frame,
         reject_views,
         save_observation,
+        views_on,
     )
 
     observations, failures = {}, {}
@@ -305,8 +319,11 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                 images, cameras = _frame_views(capture, frame, source, stages)
                 use_prior = prior if source == "images" else None
                 obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
-                if person is not None and use_prior is not None and _lost(use_prior, obs, cut_distance):
-                    again = _rechoose(capture, frame, detector, stages, _signature(observations, seed_prior))
+                subject = (avoid or {}).get(frame)
+                if person is not None and use_prior is not None and (_lost(use_prior, obs, cut_distance)
+                                                                     or _is_at(obs, subject)):
+                    again = _rechoose(capture, frame, detector, stages, _signature(observations, seed_prior),
+                                      subject)
                     if again is not None:
                         obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=again)
                         person["chosen_again_after_cuts"].append(frame)
@@ -315,7 +332,13 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             failures[frame] = str(exc)
             log.warning("frame %s: %s", frame, exc)
             continue
+        subject = (avoid or {}).get(frame)
+        if subject is not None:  # views whose detection landed on the subject: not this person
+            obs = reject_views(obs, views_on(obs, subject, stages.triangulate), stages.triangulate)
         obs = reject_views(obs, disagreeing_views(obs, stages.triangulate), stages.triangulate)
+        if _is_at(obs, subject):
+            failures[frame] = "only the subject found where this person was tracked (fitted from the neighbours)"
+            continue
         observations[frame] = obs
         views, seen = len(obs.cameras), obs.num_detected_views
         if (obs.points_conf > 0).sum() < 6:
@@ -411,22 +434,25 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     body = load_body_model(config.model, config.model_dir, device=config.device)
     detector = load_detector(config.detector, stages.detector)
     if not choice.several:
-        return _fit_person(capture, frames, source, body, detector, stages, config, progress, choice)
+        return _fit_person(capture, frames, source, body, detector, stages, config, progress, choice)[0]
     t0 = time.perf_counter()
     chosen = _choose_people(capture, frames, choice, detector, stages)
     t_choose = time.perf_counter() - t0
     for pid, *_ in chosen:
         if pid is not None:
             _refuse_existing(capture.for_person(pid), config)
-    summaries = {}
+    summaries, subject_obs = {}, None
     for pid, seed, prior, report in chosen:
+        picked = (seed, prior, report) if prior is not None else None
         if choice.rule == "id" and pid is None:
-            continue  # the subject is only how the other people are told apart
-        if pid is not None:
-            report = {**report, "found_with_the_subject": True}
+            # the subject's keypoints (saved ones when it was fitted before): where the others are not
+            subject_obs = _detect_all(capture, frames, source, detector, stages, progress, choice,
+                                      config.cut_distance, picked)[0]
+            continue
         log.info("fitting %s", "the subject" if pid is None else f"person {pid}")
-        summaries[pid] = _fit_person(capture.for_person(pid), frames, source, body, detector, stages, config,
-                                     progress, choice, (seed, prior, report) if prior is not None else None)
+        summaries[pid], observations = _fit_person(capture.for_person(pid), frames, source, body, detector, stages,
+                                                   config, progress, choice, picked, subject_obs)
+        subject_obs = observations if pid is None else subject_obs
         summaries[pid]["seconds"]["choosing_people"] = t_choose
     if choice.rule == "id":
         return summaries[choice.person_id]
@@ -443,18 +469,19 @@ def _refuse_existing(capture: Capture, config: FitConfig) -> None:
 
 
 def _fit_person(capture: Capture, frames: list[str], source: str, body, detector, stages: FitStages,
-                config: FitConfig, progress: bool, choice, chosen=None) -> dict:
+                config: FitConfig, progress: bool, choice, chosen=None, avoid=None) -> tuple[dict, dict]:
     """Detect, fit and write one person: the subject (``capture.person`` None, chosen by ``choice``
-    unless ``chosen`` is given) or another person (``chosen``: their seed frame, Person, report);
-    the scans, when present, are the subject's alone (their distance and photometric terms are not
-    used for anyone else)."""
+    unless ``chosen`` is given) or another person (``chosen``: their seed frame, Person, report;
+    ``avoid``: the subject's observations, see :func:`_detect_all`); the scans, when present, are the
+    subject's alone (their distance and photometric terms are not used for anyone else). Returns
+    (summary, the observations {frame: FrameObservation})."""
     from uvatar.fit.body_fit import fit_body_sequence
     from uvatar.fit.body_keypoints import BodyKeypoints
 
     subject = capture.person is None
     t0 = time.perf_counter()
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
-                                                 config.cut_distance, chosen)
+                                                 config.cut_distance, chosen, avoid)
     t_detect = time.perf_counter() - t0
     use_scans = subject and config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
@@ -515,7 +542,7 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
         summary["contact_sheet"] = str(write_overlays(capture, frames, observations, posed, body, source,
                                                       stages, config))
     write_json(capture.fitting_dir / "summary.json", summary)
-    return summary
+    return summary, observations
 
 
 class _fit_progress:
