@@ -1,5 +1,7 @@
 """Score a capture's subject masks against the truth of ``uvatar synth --bystanders N`` and draw the
-contact sheet (photo | mask | bystander pixels) of docs/real.md section 6.
+contact sheet (photo | mask | bystander pixels) of docs/real.md section 6: under each photo, the
+subject's mask (green), the subject's true pixels it misses (blue), the bystander's true pixels
+outside it (red) and inside it (magenta).
 
 The truth: ``TRUE`` (a copy of the synth's own ``masks/``, the subject's visible pixels, taken before
 ``uvatar capture masks --overwrite`` replaced them) and ``gt/bystander_masks/``. Prints ONE JSON
@@ -76,8 +78,10 @@ def sheet(root: Path, true_dir: Path, frames: list[str], path: Path, rows: dict)
             photo = cap.load_image(cam, frame)
             mine = cap.load_mask(cam, frame)
             byst = _read(root / "gt" / "bystander_masks" / cam / f"{frame}.png")
+            truth = _read(true_dir / cam / f"{frame}.png")
             view = 0.35 * photo
             view[mine] = [0.1, 0.8, 0.2]
+            view[truth & ~mine] = [0.2, 0.4, 1.0]
             view[byst & ~mine] = [0.85, 0.1, 0.1]
             view[byst & mine] = [1.0, 0.0, 1.0]
             r = rows[(frame, cam)]

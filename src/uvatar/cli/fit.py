@@ -87,8 +87,10 @@ def _fit(args) -> int:
     failed = summary.get("frames_without_detection") or {}
     rep = (summary.get("reprojection") or {}).get("fitted_body_px") or {}
     if "frames" in summary:
-        print(f"fitted {summary['frames']} frames from {summary['source']} "
-              f"({len(failed)} without a detection, fitted from neighbours/scans); "
+        unseen = ("no fit written: not this person's frames" if summary.get("person_id")
+                  else "fitted from neighbours/scans")
+        print(f"fitted {summary['frames_fitted']} of {summary['frames']} frames from {summary['source']} "
+              f"({len(failed)} without a detection, {unseen}); "
               f"body keypoints reprojected: {rep.get('mean', float('nan')):.1f} px mean; "
               f"contact sheet: {summary.get('contact_sheet', '-')}", file=sys.stderr)
     if args.eval:

@@ -17,7 +17,9 @@ fitted body there (each other body grown by the same ``dilate``, at its nearest 
 sleeve of the person in front just beside their fitted outline still counts as theirs), and in
 their own grown band only where no other body (grown) lies. Each person gets their own masks
 (``masks/`` for the subject, ``people/<id>/masks/``); the detector of ``exclude_others`` is then not
-needed (it still runs where the frame has no other fitted body).
+needed (it still runs where the frame has no other fitted body). Before the segmenter runs, the
+other people's pixels (their grown bodies, where this person may not take them) are painted over:
+a person detector that sees the one in front would otherwise segment them instead.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from uvatar.errors import InputError, UvatarError, check_values
 log = logging.getLogger(__name__)
 
 __all__ = ["MaskConfig", "body_silhouette", "body_depth", "nearest_region", "person_mask", "write_capture_masks",
-           "other_person_region", "FAR"]
+           "other_person_region", "hide_body", "posed_vertices", "FAR"]
 
 FAR = np.float32(1e9)  # depth (metres) of a pixel no body covers
 
@@ -92,6 +94,22 @@ def _disc(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
+def hide_body(images: list, cameras: list, vertices: np.ndarray, faces: np.ndarray, grow: float,
+              render_width: int = 360) -> list[np.ndarray]:
+    """The images (H, W, 3) float32 with the body mesh's silhouette, grown by ``grow`` of the image
+    height, painted in each image's median colour (one per camera)."""
+    import cv2
+
+    out = []
+    for image, cam in zip(images, cameras, strict=True):
+        sil = body_silhouette(vertices, faces, cam, render_width)
+        sil = cv2.dilate(sil.astype(np.uint8), _disc(max(1, int(round(grow * cam.height))))) > 0
+        img = np.array(image, np.float32, copy=True)
+        img[sil] = np.median(img.reshape(-1, img.shape[-1]), axis=0)
+        out.append(img)
+    return out
+
+
 def nearest_region(depth: np.ndarray, others: list[np.ndarray], radius: int) -> np.ndarray:
     """(H, W) bool: the pixels a person may take when other bodies are fitted too. ``depth`` (H, W)
     the person's body depth (:func:`body_depth`), ``others`` the other bodies' depths; each body is
@@ -142,12 +160,18 @@ def dilate_px(config: MaskConfig, height: int) -> int:
 
 
 def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: MaskConfig,
-                detector=None, allowed: np.ndarray | None = None) -> np.ndarray:
+                detector=None, allowed: np.ndarray | None = None, hide: np.ndarray | None = None) -> np.ndarray:
     """(H, W) bool person mask of ``image`` (H, W, 3) float32 [0,1]; ``prior`` (H, W) bool is the
     fitted body's silhouette (None: the segmenter alone); with ``detector`` (and a prior), another
     person's pixels in the grown band are dropped (:func:`other_person_region`); ``allowed`` (H, W)
-    bool: the only pixels the person may take (:func:`nearest_region`, where others are fitted)."""
+    bool: the only pixels the person may take (:func:`nearest_region`, where others are fitted);
+    ``hide`` (H, W) bool: pixels painted over (the image's median colour) before the segmenter runs,
+    e.g. the other people in front, so that it finds this person and not them."""
     import cv2
+
+    if hide is not None and hide.any():
+        image = np.array(image, np.float32, copy=True)
+        image[hide] = np.median(image.reshape(-1, image.shape[-1]), axis=0)
 
     roi = None
     region = None
@@ -182,7 +206,7 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
     return mask
 
 
-def _posed_vertices(body, capture, frame: str) -> np.ndarray:
+def posed_vertices(body, capture, frame: str) -> np.ndarray:
     """(V, 3) the body of ``capture``'s person posed by their fit of ``frame``."""
     import torch
 
@@ -198,8 +222,10 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
                         model_dir: str | None = None) -> dict:
     """Masks for every (camera, frame) image of the capture at ``root``, for the subject and every
     other fitted person (``people/<id>/``, depth-ordered; see the module doc); returns a summary
-    ({"written", "kept", "failed": {image: reason}, "people": ids}). Needs fits unless
+    ({"written", "kept", "failed": {image: reason}, "not_seen": images of another person's frames
+    without a fit, "people": ids}). Needs fits unless
     ``config.use_fit`` is off (then the subject's masks alone, from the segmenter)."""
+    import cv2
     from tqdm import tqdm
 
     from uvatar.body.registry import load_body_model
@@ -226,7 +252,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         from uvatar.fit.keypoints import load_detector
 
         detector = load_detector("mediapipe")
-    summary = {"written": 0, "kept": 0, "failed": {}, "people": [p.person for p in people[1:]]}
+    summary = {"written": 0, "kept": 0, "failed": {}, "not_seen": 0, "people": [p.person for p in people[1:]]}
     posed: dict = {}   # (person index) -> vertices of the current frame
     jobs = [(f, c) for f in frames for c in cameras]
     for frame, cam_name in tqdm(jobs, desc="masks", unit="image", disable=not progress, dynamic_ncols=True):
@@ -238,7 +264,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         if posed.get("frame") != frame:
             posed = {"frame": frame}
             if body is not None:
-                posed.update({k: _posed_vertices(body, p, frame) for k, p in enumerate(people) if p.has_fit(frame)})
+                posed.update({k: posed_vertices(body, p, frame) for k, p in enumerate(people) if p.has_fit(frame)})
         try:
             image_path = capture.image_path(cam_name, frame)
             if not image_path.is_file():
@@ -253,16 +279,24 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
                   for k, v in posed.items() if k != "frame"}
         for k in todo:
             person = people[k]
+            if k and k not in depths:
+                summary["not_seen"] += 1   # another person not detected in this frame: no fit, no mask
+                continue
             try:
-                prior = allowed = None
+                prior = allowed = hide = None
                 others = [d for j, d in depths.items() if j != k]
                 if body is not None:
                     if k not in depths:
                         raise InputError(person.fit_path(frame), "no fit for this frame")
                     prior = depths[k] < FAR
                     if others:
-                        allowed = nearest_region(depths[k], others, dilate_px(config, cam.height))
-                mask = person_mask(image, segmenter, prior, config, None if others else detector, allowed)
+                        r = dilate_px(config, cam.height)
+                        allowed = nearest_region(depths[k], others, r)
+                        near = cv2.dilate(np.logical_or.reduce([d < FAR for d in others]).astype(np.uint8),
+                                          _disc(r)) > 0
+                        hide = near & ~allowed   # the others where they are in front (or beside)
+                mask = person_mask(image, segmenter, prior, config, None if others else detector, allowed,
+                                   hide)
                 write_image(person.masks_dir / cam_name / f"{frame}.png", mask.astype(np.uint8) * 255)
                 summary["written"] += 1
             except UvatarError as exc:

@@ -38,7 +38,7 @@ from uvatar.errors import InputError
 from uvatar.io_utils import read_npz, write_npz
 
 __all__ = ["FrameObservation", "observe_frame", "load_observation", "observation_path", "person_roi",
-           "left_right_swap", "resolve_left_right", "disagreeing_views", "reject_views", "views_on"]
+           "left_right_swap", "resolve_left_right", "disagreeing_views", "reject_views"]
 
 
 @dataclass
@@ -235,17 +235,6 @@ def disagreeing_views(obs: FrameObservation, config=None, min_used_fraction: flo
         frac = _used_fraction(obs.conf, obs.reprojection_px, config.min_conf)
         bad |= {obs.cameras[c].name for c in np.flatnonzero(enough & (frac < min_used_fraction))}
     return tuple(c.name for c in obs.cameras if c.name in bad)
-
-
-def views_on(obs: FrameObservation, other, config=None, min_points: int = 4) -> tuple[str, ...]:
-    """Names of the views whose detection lies on ``other`` (another person's triangulated
-    keypoints, ``points`` (K, 3) and ``points_conf`` (K,), e.g. the subject's when a bystander is
-    tracked): within ``DISAGREE_FRACTION`` of the detection's height (median) of its projection."""
-    from uvatar.fit.triangulate import TriangulateConfig
-
-    config = config or TriangulateConfig()
-    err = _view_errors(obs, obs.conf, other.points, other.points_conf, config.min_conf, min_points)
-    return tuple(c.name for c, e in zip(obs.cameras, err, strict=True) if e <= DISAGREE_FRACTION)
 
 
 def reject_views(obs: FrameObservation, names, config=None) -> FrameObservation:

@@ -109,8 +109,9 @@ def existing_fits(capture: Capture) -> list[Path]:
     return fits + ([npz] if npz.is_file() else [])
 
 
-def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages):
-    """(images, cameras) the detector looks at for one frame."""
+def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages, hide=None):
+    """(images, cameras) the detector looks at for one frame (``hide(frame, images, cameras) ->
+    images``: paints the subject over where another person is detected)."""
     if source == "scans":
         from uvatar.fit.views import render_scan_views, scan_cameras
 
@@ -124,7 +125,7 @@ def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages):
         if not path.is_file():
             raise InputError(path, "image is missing")
         images.append(capture.load_image(cam.name, frame))
-    return images, cameras
+    return (hide(frame, images, cameras) if hide is not None else images), cameras
 
 
 SEED_TRIES = 4  # frames tried (from the first on, 1/8 of the capture apart) until one person is seen by every camera
@@ -248,7 +249,7 @@ def _signature(observations: dict, seed) -> np.ndarray:
         return np.nanmedian(np.stack(sigs), axis=0)
 
 
-def _rechoose(capture, frame, detector, stages, signature, avoid=None):
+def _rechoose(capture, frame, detector, stages, signature, avoid=None, hide=None):
     """The person found again at ``frame`` after the track was lost: the person whose build
     (:func:`~uvatar.fit.person.body_signature`) is theirs (``signature``, the median over the
     frames tracked so far), if one is within ``SAME_BODY`` and is not where ``avoid`` (the subject's
@@ -256,7 +257,7 @@ def _rechoose(capture, frame, detector, stages, signature, avoid=None):
     the tracking found, and its views are judged as usual)."""
     from uvatar.fit.person import SAME_BODY, body_signature, find_people, same_body
 
-    images, cameras = _frame_views(capture, frame, "images", stages)
+    images, cameras = _frame_views(capture, frame, "images", stages, hide)
     people = [p for p in find_people(images, cameras, detector, stages.triangulate) if not _is_at(p, avoid)]
     scored = [(same_body(body_signature(p.points, p.points_conf), signature), -len(p.members), k)
               for k, p in enumerate(people)]
@@ -275,7 +276,7 @@ def _is_at(obs, avoid) -> bool:
 
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
                 progress: bool, choice=None, cut_distance: float = 0.1, chosen=None,
-                avoid: dict | None = None) -> tuple[dict, dict, dict]:
+                avoid: dict | None = None, hide=None) -> tuple[dict, dict, dict]:
     """Per-frame observations, from ``fitting/keypoints`` (the person's own) where a previous run left
     them; failures; the person report (images: the subject chosen at the seed frame, or ``chosen``
     (seed frame, :class:`~uvatar.fit.person.Person`, report) when given, is tracked forward from it,
@@ -283,7 +284,8 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     Views that disagree with the person are rejected (:func:`~uvatar.fit.observe.reject_views`).
     ``avoid`` ({frame: the subject's observation}, when another person is tracked): where the track
     lands on the subject, the person is looked for again away from the subject, and a frame where
-    only the subject is found is left to its neighbours (a failure), never fitted to the subject."""
+    only the subject is found is left to its neighbours (a failure), never fitted to the subject;
+    ``hide``: see :func:`_frame_views` (the detector never sees the subject there)."""
     from tqdm import tqdm
 
     from uvatar.fit.observe import (
@@ -293,7 +295,6 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
         observe_frame,
         reject_views,
         save_observation,
-        views_on,
     )
 
     observations, failures = {}, {}
@@ -316,14 +317,14 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                 if obs.source != source:
                     raise InputError(path, f"keypoints come from {obs.source}, not {source}")
             else:
-                images, cameras = _frame_views(capture, frame, source, stages)
+                images, cameras = _frame_views(capture, frame, source, stages, hide)
                 use_prior = prior if source == "images" else None
                 obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
                 subject = (avoid or {}).get(frame)
                 if person is not None and use_prior is not None and (_lost(use_prior, obs, cut_distance)
                                                                      or _is_at(obs, subject)):
                     again = _rechoose(capture, frame, detector, stages, _signature(observations, seed_prior),
-                                      subject)
+                                      subject, hide)
                     if again is not None:
                         obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=again)
                         person["chosen_again_after_cuts"].append(frame)
@@ -332,11 +333,8 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             failures[frame] = str(exc)
             log.warning("frame %s: %s", frame, exc)
             continue
-        subject = (avoid or {}).get(frame)
-        if subject is not None:  # views whose detection landed on the subject: not this person
-            obs = reject_views(obs, views_on(obs, subject, stages.triangulate), stages.triangulate)
         obs = reject_views(obs, disagreeing_views(obs, stages.triangulate), stages.triangulate)
-        if _is_at(obs, subject):
+        if _is_at(obs, (avoid or {}).get(frame)):
             failures[frame] = "only the subject found where this person was tracked (fitted from the neighbours)"
             continue
         observations[frame] = obs
@@ -352,10 +350,16 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
 
 
 def _write_fits(capture: Capture, frames, result, body, config: FitConfig, provenance: dict) -> None:
+    """The fits, shape and provenance. Another person than the subject gets no fit where they were
+    not detected (``provenance["frames_without_detection"]``): a person walking out of the views is
+    not there, and a body filled in from their neighbouring frames would claim pixels in the masks."""
     from uvatar.capture.fits import write_fit
     from uvatar.capture.types import BodyFit
 
+    unseen = set(provenance["frames_without_detection"]) if capture.person is not None else set()
     for t, frame in enumerate(frames):
+        if frame in unseen:
+            continue
         write_fit(capture.fit_path(frame), BodyFit(poses=result.poses[t].reshape(-1), Rh=result.Rh[t],
                                                    Th=result.Th[t], shapes=result.shape,
                                                    scale=float(result.scale[t])))
@@ -462,6 +466,21 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     return summary
 
 
+def _subject_hider(subject: Capture, body):
+    """``hide(frame, images, cameras) -> images`` for :func:`_frame_views`: the subject's fitted body
+    (``fits/``, written before anyone else is fitted) painted over in each view (its silhouette grown
+    as for its masks), so that the detector, looking for another person, never finds the subject."""
+    from uvatar.fit.masks import MaskConfig, hide_body, posed_vertices
+
+    def hide(frame, images, cameras):
+        if not subject.has_fit(frame):
+            return images
+        return hide_body(images, cameras, posed_vertices(body, subject, frame), body.template.faces,
+                         MaskConfig().dilate)
+
+    return hide
+
+
 def _refuse_existing(capture: Capture, config: FitConfig) -> None:
     existing = existing_fits(capture)
     if existing and not config.force:
@@ -480,8 +499,9 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
 
     subject = capture.person is None
     t0 = time.perf_counter()
+    hide = None if subject else _subject_hider(capture.for_person(None), body)
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
-                                                 config.cut_distance, chosen, avoid)
+                                                 config.cut_distance, chosen, avoid, hide)
     t_detect = time.perf_counter() - t0
     use_scans = subject and config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
@@ -523,7 +543,8 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
         body_points = BodyKeypoints(body)(posed).cpu().numpy()
     summary = {
         "capture": str(capture.root), "person_id": capture.person, "source": source, "frames": len(frames),
-        "frames_fitted": len(frames), "frames_without_detection": failures,
+        "frames_fitted": len(frames) - (len(failures) if capture.person is not None else 0),
+        "frames_without_detection": failures,
         "cuts_after": [frames[t] for t in np.flatnonzero(~obs.continuous)],
         "relabelled_left_right": relabelled,
         "views_disagree": {f: list(o.rejected) for f, o in observations.items() if o.rejected},
