@@ -45,7 +45,8 @@ def score(root: Path, true_dir: Path) -> tuple[dict, dict]:
             row = {"iou": mask_iou(mine, truth), "bystander_px": int((mine & byst).sum()),
                    "visible_px": int(truth.sum())}
             if len(others) == 1:
-                theirs = cap.for_person(others[0]).load_mask(cam, frame)
+                other = cap.for_person(others[0])
+                theirs = other.load_mask(cam, frame) if other.has_fit(frame) else np.zeros_like(mine)
                 row["other_iou"] = mask_iou(theirs, byst) if byst.any() else None
                 row["subject_px_in_other"] = int((theirs & truth).sum())
             rows[(frame, cam)] = row

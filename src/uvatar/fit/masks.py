@@ -166,12 +166,14 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
     person's pixels in the grown band are dropped (:func:`other_person_region`); ``allowed`` (H, W)
     bool: the only pixels the person may take (:func:`nearest_region`, where others are fitted);
     ``hide`` (H, W) bool: pixels painted over (the image's median colour) before the segmenter runs,
-    e.g. the other people in front, so that it finds this person and not them."""
+    e.g. the other people in front, so that it finds this person and not them (where it then finds
+    nobody, e.g. a person mostly hidden, it runs once more on the image as it is)."""
     import cv2
 
+    shown = image
     if hide is not None and hide.any():
-        image = np.array(image, np.float32, copy=True)
-        image[hide] = np.median(image.reshape(-1, image.shape[-1]), axis=0)
+        shown = np.array(image, np.float32, copy=True)
+        shown[hide] = np.median(shown.reshape(-1, shown.shape[-1]), axis=0)
 
     roi = None
     region = None
@@ -185,7 +187,9 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
             region &= allowed
         ys, xs = np.nonzero(region)
         roi = (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max()))
-    prob = segmenter.segment(image, roi=roi)
+    prob = segmenter.segment(shown, roi=roi)
+    if shown is not image and not (prob[region] > config.threshold).any():
+        prob = segmenter.segment(image, roi=roi)  # nobody found with the others painted over: as it is
     mask = prob > config.threshold
     if region is not None:
         mask &= region
