@@ -7,8 +7,8 @@ The truth: ``TRUE`` (a copy of the synth's own ``masks/``, the subject's visible
 ``uvatar capture masks --overwrite`` replaced them) and ``gt/bystander_masks/``. Prints ONE JSON
 object: IoU per image (mean, min, images below 0.9), bystander pixels inside the subject's masks,
 frames failing (any view below 0.9 or with a bystander pixel), the worst images with the subject's
-visible pixel count; and, with ``people/<id>/masks``, the same for the bystander's masks against
-``gt/bystander_masks`` (one bystander).
+visible pixel count; and, with ``people/<id>/masks``, the bystander's masks against
+``gt/bystander_masks`` (one bystander; the frames where they have a fit).
 
     python bench/people_masks.py CAP TRUE [--sheet docs/multi_person_masks.jpg --frames 4,25,47]
 """
@@ -47,7 +47,7 @@ def score(root: Path, true_dir: Path) -> tuple[dict, dict]:
             if len(others) == 1:
                 other = cap.for_person(others[0])
                 theirs = other.load_mask(cam, frame) if other.has_fit(frame) else np.zeros_like(mine)
-                row["other_iou"] = mask_iou(theirs, byst) if byst.any() else None
+                row["other_iou"] = mask_iou(theirs, byst) if byst.any() and other.has_fit(frame) else None
                 row["subject_px_in_other"] = int((theirs & truth).sum())
             rows[(frame, cam)] = row
     iou = np.array([r["iou"] for r in rows.values()])

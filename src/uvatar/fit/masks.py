@@ -154,6 +154,11 @@ def other_person_region(image: np.ndarray, subject: np.ndarray, detector, min_co
     return region if region.any() else None
 
 
+def _box(mask: np.ndarray) -> tuple[float, float, float, float]:
+    ys, xs = np.nonzero(mask)
+    return float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())
+
+
 def dilate_px(config: MaskConfig, height: int) -> int:
     """The silhouette's growth in pixels for an image ``height`` pixels high."""
     return max(1, int(round(config.dilate * height)))
@@ -167,7 +172,8 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
     bool: the only pixels the person may take (:func:`nearest_region`, where others are fitted);
     ``hide`` (H, W) bool: pixels painted over (the image's median colour) before the segmenter runs,
     e.g. the other people in front, so that it finds this person and not them (where it then finds
-    nobody, e.g. a person mostly hidden, it runs once more on the image as it is)."""
+    nobody, e.g. a person mostly hidden, it runs once more on the image as it is, around the whole
+    fitted body)."""
     import cv2
 
     shown = image
@@ -175,21 +181,24 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
         shown = np.array(image, np.float32, copy=True)
         shown[hide] = np.median(shown.reshape(-1, shown.shape[-1]), axis=0)
 
-    roi = None
+    roi = whole_roi = None
     region = None
     if prior is not None:
+        kernel = _disc(dilate_px(config, image.shape[0]))
+        whole_roi = _box(cv2.dilate(prior.astype(np.uint8), kernel) > 0)
         if allowed is not None:
             prior = prior & allowed
         if not prior.any():
             return np.zeros(image.shape[:2], bool)
-        region = cv2.dilate(prior.astype(np.uint8), _disc(dilate_px(config, image.shape[0]))) > 0
+        region = cv2.dilate(prior.astype(np.uint8), kernel) > 0
         if allowed is not None:
             region &= allowed
-        ys, xs = np.nonzero(region)
-        roi = (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max()))
+        roi = _box(region)
     prob = segmenter.segment(shown, roi=roi)
     if shown is not image and not (prob[region] > config.threshold).any():
-        prob = segmenter.segment(image, roi=roi)  # nobody found with the others painted over: as it is
+        # nobody found with the others painted over (a person mostly hidden): the image as it is,
+        # around the whole body (the segmenter may find them only together with the one in front)
+        prob = segmenter.segment(image, roi=whole_roi)
     mask = prob > config.threshold
     if region is not None:
         mask &= region
