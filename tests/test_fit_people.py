@@ -214,3 +214,49 @@ def test_person_all_masks_per_person_and_the_subject_mask_leaves_the_bystander_o
     assert leaked_alone > 300 and leaked <= 0.1 * leaked_alone, (leaked, leaked_alone)
     assert np.mean(ious) > 0.85, ious
     assert len(theirs_iou) >= 4 and np.median(theirs_iou) > 0.85, theirs_iou   # the bystander's own masks
+
+
+class FrontPersonSegmenter:
+    """A person segmenter that finds the most prominent person only: the green one when any green
+    pixel is in the search box (grown by 6 px, as a detector sees beyond its box), else the red one
+    (and nobody when ``blind``)."""
+
+    def __init__(self, blind=False):
+        self.blind, self.rois = blind, []
+
+    def segment(self, image, roi=None):
+        self.rois.append(roi)
+        green = (image[..., 1] > 0.5) & (image[..., 0] < 0.5)
+        red = (image[..., 0] > 0.5) & (image[..., 1] < 0.5)
+        x0, y0, x1, y1 = (int(v) for v in roi)
+        box = np.zeros(green.shape, bool)
+        box[max(y0 - 6, 0):y1 + 7, max(x0 - 6, 0):x1 + 7] = True
+        if self.blind and not (green & box).any():
+            return np.zeros(green.shape, np.float32)
+        return ((green if (green & box).any() else red) & box).astype(np.float32)
+
+
+def test_the_others_are_painted_over_before_the_segmenter_looks_for_the_person():
+    subject = np.full((60, 60), FAR, np.float32)
+    subject[10:50, 10:30] = 5.0
+    front = np.full_like(subject, FAR)
+    front[5:55, 25:45] = 4.0                                   # in front, covering the subject's right side
+    image = np.zeros((60, 60, 3), np.float32)
+    image[subject < FAR] = (1.0, 0.0, 0.0)
+    image[front < FAR] = (0.0, 1.0, 0.0)
+    allowed = nearest_region(subject, [front], 2)
+    hide = (front < FAR) & ~allowed
+    config = MaskConfig(dilate=2 / 60)
+    prior = subject < FAR
+    # the segmenter sees the person in front first: without painting, nothing of the subject is left
+    assert not person_mask(image, FrontPersonSegmenter(), prior, config, allowed=allowed).any()
+    mask = person_mask(image, FrontPersonSegmenter(), prior, config, allowed=allowed, hide=hide)
+    visible = np.zeros_like(prior)
+    visible[10:50, 10:23] = True                                # the subject's pixels 2 px clear of the front one
+    assert mask[visible].all() and not (mask & (front < FAR)).any()
+    # a segmenter that finds nobody once the others are painted over: the image as it is, then the
+    # depth order (here it finds only the one in front, so the subject's mask stays empty, never theirs)
+    seg = FrontPersonSegmenter(blind=True)
+    blind = person_mask(image, seg, prior, config, allowed=allowed, hide=hide)
+    assert not (blind & (front < FAR)).any()
+    assert len(seg.rois) == 2 and seg.rois[1][2] > seg.rois[0][2]    # again, around the whole body
