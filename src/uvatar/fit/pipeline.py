@@ -136,10 +136,10 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     observations, failures = {}, {}
     person = None
     start, seed_prior = 0, None
-    if source == "images" and (choice is not None or chosen is not None):
-        if not all(observation_path(capture.person_root, f).is_file() for f in frames):
-            seed, seed_prior, person = chosen or choose_people(capture, frames, choice, detector, stages)[0][1:]
-            start = frames.index(seed)
+    if source == "images" and (chosen is not None or (
+            choice is not None and not all(observation_path(capture.person_root, f).is_file() for f in frames))):
+        seed, seed_prior, person = chosen or choose_people(capture, frames, choice, detector, stages)[0][1:]
+        start = frames.index(seed)
     order = frames[start:] + frames[:start][::-1]   # forward from the seed, then backward from it
     prior = seed_prior
     bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
