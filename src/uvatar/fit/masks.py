@@ -7,8 +7,8 @@ hair and fit error lie within it), and searched only inside that region's box. A
 the subject can reach into that grown band: with ``exclude_others`` the keypoint detector runs once
 more on the image with the subject's region painted over, and the pixels of the band that lie on
 the other person found there (:func:`other_person_region`: thick strokes along their skeleton) are
-dropped (the subject's own fitted silhouette is kept whole). Written to ``masks/<cam>/<frame>.png`` atomically; existing masks are kept (a
-re-run resumes) unless ``overwrite``.
+dropped (the subject's own fitted silhouette is kept whole). Written to ``masks/<cam>/<frame>.png``
+atomically; existing masks are kept (a re-run resumes) unless ``overwrite``.
 
 Where other people are fitted too (``uvatar fit --person all``: ``people/<id>/fits``), every fitted
 body is rendered with its depth in each view and the masks are ordered by depth
@@ -236,8 +236,8 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     """Masks for every (camera, frame) image of the capture at ``root``, for the subject and every
     other fitted person (``people/<id>/``, depth-ordered; see the module doc); returns a summary
     ({"written", "kept", "failed": {image: reason}, "not_seen": images of another person's frames
-    without a fit, "people": ids}). Needs fits unless
-    ``config.use_fit`` is off (then the subject's masks alone, from the segmenter)."""
+    without a fit, "people": ids}). Needs fits unless ``config.use_fit`` is off (then the subject's
+    masks alone, from the segmenter)."""
     import cv2
     from tqdm import tqdm
 
@@ -266,7 +266,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
 
         detector = load_detector("mediapipe")
     summary = {"written": 0, "kept": 0, "failed": {}, "not_seen": 0, "people": [p.person for p in people[1:]]}
-    posed: dict = {}   # (person index) -> vertices of the current frame
+    posed_frame, posed = None, {}   # {person index: posed vertices} of posed_frame
     jobs = [(f, c) for f in frames for c in cameras]
     for frame, cam_name in tqdm(jobs, desc="masks", unit="image", disable=not progress, dynamic_ncols=True):
         todo = [k for k, p in enumerate(people)
@@ -274,10 +274,10 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         summary["kept"] += len(people) - len(todo)
         if not todo:
             continue
-        if posed.get("frame") != frame:
-            posed = {"frame": frame}
-            if body is not None:
-                posed.update({k: posed_vertices(body, p, frame) for k, p in enumerate(people) if p.has_fit(frame)})
+        if posed_frame != frame:
+            posed_frame = frame
+            posed = {k: posed_vertices(body, p, frame) for k, p in enumerate(people)
+                     if body is not None and p.has_fit(frame)}
         try:
             image_path = capture.image_path(cam_name, frame)
             if not image_path.is_file():
@@ -288,8 +288,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
                 _failed(summary, people[k], cam_name, frame, exc)
             continue
         cam = cameras[cam_name]
-        depths = {k: body_depth(v, body.template.faces, cam, config.render_width)
-                  for k, v in posed.items() if k != "frame"}
+        depths = {k: body_depth(v, body.template.faces, cam, config.render_width) for k, v in posed.items()}
         for k in todo:
             person = people[k]
             if k and k not in depths:
