@@ -184,12 +184,15 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
     roi = whole_roi = None
     region = None
     if prior is not None:
-        kernel = _disc(dilate_px(config, image.shape[0]))
-        whole_roi = _box(cv2.dilate(prior.astype(np.uint8), kernel) > 0)
-        if allowed is not None:
+        grow = dilate_px(config, image.shape[0])
+        if allowed is not None and prior.any():
+            x0, y0, x1, y1 = _box(prior)   # the whole body's grown box
+            h, w = prior.shape
+            whole_roi = (max(x0 - grow, 0.0), max(y0 - grow, 0.0), min(x1 + grow, w - 1.0), min(y1 + grow, h - 1.0))
             prior = prior & allowed
         if not prior.any():
             return np.zeros(image.shape[:2], bool)
+        kernel = _disc(grow)
         region = cv2.dilate(prior.astype(np.uint8), kernel) > 0
         if allowed is not None:
             region &= allowed
