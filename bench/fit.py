@@ -23,7 +23,8 @@ def _timed_source(capture, frames, source, views_cfg, detector, tri_cfg, body, b
     from dataclasses import replace
 
     from uvatar.fit.body_fit import FitObservations, fit_body_sequence
-    from uvatar.fit.pipeline import FitConfig, FitStages, _frame_views
+    from uvatar.fit.people import frame_views
+    from uvatar.fit.pipeline import FitConfig, FitStages
     from uvatar.fit.triangulate import triangulate
     from uvatar.fit.views import scan_photo_views
     from uvatar.geometry.sampling import sample_surface
@@ -35,7 +36,7 @@ def _timed_source(capture, frames, source, views_cfg, detector, tri_cfg, body, b
     views = 0
     for frame in frames:
         t0 = time.perf_counter()
-        images, cameras = _frame_views(capture, frame, source, stages)
+        images, cameras = frame_views(capture, frame, source, stages)
         t1 = time.perf_counter()
         dets = [detector.detect(img) for img in images]
         t2 = time.perf_counter()

@@ -6,6 +6,10 @@
     cameras/intri.yml, cameras/extri.yml           optional, multi-view
     images/<cam>/000000.png, masks/<cam>/000000.png
     gt/                     ground truth (synthetic captures only)
+    people/<id>/            every other person fitted (``uvatar fit --person all``): fits/, masks/<cam>/,
+                            fitting/ and person.json ({"body_model", "shapes", "provenance"}) of that
+                            person; images and cameras are the capture's. ``Capture(root, person=id)``
+                            reads them as it reads the subject's.
 """
 
 from __future__ import annotations
@@ -23,6 +27,18 @@ from uvatar.errors import InputError
 from uvatar.io_utils import read_json, write_json
 
 CAPTURE_JSON = "capture.json"
+PERSON_JSON = "person.json"
+PEOPLE_DIR = "people"
+
+
+def check_person_id(person) -> str | None:
+    """A person id ("1", "2", ...: another person than the subject) as text; None for the subject."""
+    if person is None:
+        return None
+    text = str(person).strip()
+    if not text.isdigit() or int(text) < 1:
+        raise InputError("person", f"a person id is a whole number >= 1 (the subject has none), got {person!r}")
+    return str(int(text))
 
 
 def frame_name(frame) -> str:
@@ -75,16 +91,42 @@ def _first_existing(folder: Path, stem: str, suffixes=IMAGE_SUFFIXES) -> Path:
 
 class Capture:
     """A capture folder, read lazily. ``frames`` come from capture.json (or the scans/fits files).
+    ``person``: another person's id (``people/<id>/``: their fits, masks, fitting and shape; the
+    images, cameras, scans and gt stay the capture's); None: the subject.
 
     >>> cap = Capture("captures/alice")                     # doctest: +SKIP
     >>> mesh, fit = cap.load_scan(cap.frames[0]), cap.load_fit(cap.frames[0])  # doctest: +SKIP
     """
 
-    def __init__(self, root: str | Path):
+    def __init__(self, root: str | Path, person: str | int | None = None):
         self.root = Path(root)
         if not self.root.is_dir():
             raise InputError(self.root, "capture folder does not exist")
         self.info = read_capture_info(self.root)
+        self.person = check_person_id(person)
+
+    # people
+    @property
+    def person_root(self) -> Path:
+        """The folder of this person's fits, masks and fitting/ (the capture's root for the subject)."""
+        return self.root if self.person is None else self.root / PEOPLE_DIR / self.person
+
+    def people(self) -> list[str]:
+        """Ids of the other people fitted (``people/<id>/fits/`` exists), in numeric order."""
+        folder = self.root / PEOPLE_DIR
+        ids = [p.name for p in folder.iterdir() if p.name.isdigit() and (p / "fits").is_dir()] \
+            if folder.is_dir() else []
+        return sorted(ids, key=int)
+
+    def for_person(self, person: str | int | None) -> Capture:
+        """The same capture seen as ``person`` (None: the subject)."""
+        return Capture(self.root, person)
+
+    @cached_property
+    def person_info(self) -> dict:
+        """``people/<id>/person.json`` ({} for the subject or when missing)."""
+        path = self.person_root / PERSON_JSON
+        return read_json(path) if self.person is not None and path.is_file() else {}
 
     # folders
     @property
@@ -93,7 +135,15 @@ class Capture:
 
     @property
     def fits_dir(self) -> Path:
-        return self.root / "fits"
+        return self.person_root / "fits"
+
+    @property
+    def masks_dir(self) -> Path:
+        return self.person_root / "masks"
+
+    @property
+    def fitting_dir(self) -> Path:
+        return self.person_root / "fitting"
 
     @property
     def cameras_dir(self) -> Path:
@@ -109,10 +159,12 @@ class Capture:
 
     @property
     def body_model(self) -> str:
-        return str(self.info["body_model"]["name"])
+        return str(self.person_info.get("body_model") or self.info["body_model"]["name"])
 
     @property
     def body_shapes(self) -> np.ndarray:
+        if self.person is not None:
+            return np.asarray(self.person_info.get("shapes") or [], dtype=np.float32)
         return np.asarray(self.info["body_model"].get("shapes") or [], dtype=np.float32)
 
     @cached_property
@@ -143,7 +195,7 @@ class Capture:
 
     @cached_property
     def _fits_npz(self) -> dict[str, BodyFit] | None:
-        npz = self.root / "fits.npz"
+        npz = self.person_root / "fits.npz"
         return read_fits_npz(npz) if npz.is_file() else None
 
     def has_fit(self, frame: str) -> bool:
@@ -172,7 +224,7 @@ class Capture:
         return _first_existing(self.root / "images" / cam, frame)
 
     def mask_path(self, cam: str, frame: str) -> Path:
-        return _first_existing(self.root / "masks" / cam, frame)
+        return _first_existing(self.masks_dir / cam, frame)
 
     def load_image(self, cam: str, frame: str) -> np.ndarray:
         """(H, W, 3) float32 RGB in [0, 1]."""
@@ -183,4 +235,5 @@ class Capture:
         return load_texture(self.mask_path(cam, frame), what="mask image").max(axis=-1) > 0.5
 
     def __repr__(self) -> str:
-        return f"Capture({str(self.root)!r}, frames={len(self.frames)})"
+        who = f", person={self.person!r}" if self.person is not None else ""
+        return f"Capture({str(self.root)!r}{who}, frames={len(self.frames)})"

@@ -34,7 +34,9 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
                           "device": "torch device of the fit (cpu, cuda)", "force": "replace existing fits",
                           "person": "which person to fit from images when several are in view: most-views "
                                     "(seen by the most cameras), largest, centre, nearest-to:X,Y,Z (metres), "
-                                    "box:CAM:FRAME:X0,Y0,X1,Y1 or point:CAM:FRAME:X,Y (pixels)"})
+                                    "box:CAM:FRAME:X0,Y0,X1,Y1 or point:CAM:FRAME:X,Y (pixels); all: the subject into "
+                                    "fits/ and every other person into people/<ID>/; ID (1, 2, ...): that "
+                                    "other person alone"})
     views = ConfigFlags(ScanViewsConfig, fields=("count",), rename={"count": "views"},
                         help={"count": "virtual cameras per scan for --from scans"})
     return fit, views
@@ -71,34 +73,54 @@ def _fit(args) -> int:
     with options_as_input_error("uvatar fit options"):
         config = fit.config(args)
         stages = FitStages(views=views.config(args))
-    if args.eval and args.force is False and _has_fits(args.capture):
+    if args.eval and args.force is False and _has_fits(args.capture, config.person):
         summary = {"capture": args.capture, "note": "existing fits evaluated, nothing fitted"}
     else:
         summary = fit_capture(args.capture, config, stages, progress=not args.no_progress)
     if args.eval:
-        summary["eval"] = _evaluate(args.capture, args.model, args.model_dir, args.device)
+        who = ([summary["person_id"]] if summary.get("person_id") else
+               [None, *(summary["people"] if "people" in summary else _people(args.capture))])
+        evals = {pid: _evaluate(args.capture, args.model, args.model_dir, args.device, pid) for pid in who}
+        summary["eval"] = evals.pop(who[0])
+        for pid, ev in evals.items():
+            summary.setdefault("people_eval", {})[pid] = ev
     failed = summary.get("frames_without_detection") or {}
     rep = (summary.get("reprojection") or {}).get("fitted_body_px") or {}
     if "frames" in summary:
-        print(f"fitted {summary['frames']} frames from {summary['source']} "
-              f"({len(failed)} without a detection, fitted from neighbours/scans); "
+        unseen = ("no fit written: not this person's frames" if summary.get("person_id")
+                  else "fitted from neighbours/scans")
+        print(f"fitted {summary['frames_fitted']} of {summary['frames']} frames from {summary['source']} "
+              f"({len(failed)} without a detection, {unseen}); "
               f"body keypoints reprojected: {rep.get('mean', float('nan')):.1f} px mean; "
               f"contact sheet: {summary.get('contact_sheet', '-')}", file=sys.stderr)
     if args.eval:
         ev = summary["eval"]
         scan = ev.get("scan_to_body_median_mm")
-        print(f"MPJPE {ev['mpjpe_mm']:.1f} mm over {len(ev.get('per_joint_mpjpe_mm', {}))} body joints, "
+        print(("" if not summary.get("person_id") else f"person {summary['person_id']} (bystander "
+               f"{ev.get('bystander')} of gt/bystanders.npz): ") + f"MPJPE {ev['mpjpe_mm']:.1f} mm over {len(ev.get('per_joint_mpjpe_mm', {}))} body joints, "
               f"angle {ev['angle_error_deg']:.1f} deg, shape {ev.get('shape_error_mm', float('nan')):.1f} mm"
               + (f"; scan-to-body median {scan:.2f} mm" if scan is not None else ""), file=sys.stderr)
+        for pid, other in (summary.get("people_eval") or {}).items():
+            print(f"person {pid} (bystander {other['bystander']} of gt/bystanders.npz): MPJPE "
+                  f"{other['mpjpe_mm']:.1f} mm, angle {other['angle_error_deg']:.1f} deg, "
+                  f"shape {other['shape_error_mm']:.1f} mm", file=sys.stderr)
     disagree = summary.get("views_disagree") or {}
     if disagree:
-        print(f"views that disagree with the subject in {len(disagree)} frame(s), left out of the fit: "
+        who = f"person {summary['person_id']}" if summary.get("person_id") else "the subject"
+        print(f"views that disagree with {who} in {len(disagree)} frame(s), left out of the fit: "
               + "; ".join(f"{f} {','.join(cams)}" for f, cams in sorted(disagree.items())), file=sys.stderr)
     if summary.get("person"):
         p = summary["person"]
-        print(f"person: {p['people_found']} found at frame {p['frame']}; fitted #{p['chosen']}, {p['why']}"
-              if p["chosen"] is not None else "person: nobody seen by two cameras where the subject is chosen",
-              file=sys.stderr)
+        if "people_found" not in p:
+            print(f"person {p['id']}: {p['why']}", file=sys.stderr)
+        else:
+            print(f"person: {p['people_found']} found at frame {p['frame']}; fitted #{p['chosen']}, {p['why']}"
+                  if p["chosen"] is not None else "person: nobody seen by two cameras where the subject is chosen",
+                  file=sys.stderr)
+    for pid, other in (summary.get("people") or {}).items():
+        print(f"person {pid}: fitted into people/{pid}/ ({other['person']['why']}); "
+              f"{len(other['views_disagree'])} frame(s) with views that disagree, cuts after "
+              f"{', '.join(other['cuts_after']) or 'none'}", file=sys.stderr)
     if args.json:
         write_json(args.json, summary)
     else:
@@ -111,19 +133,26 @@ def _fit(args) -> int:
     return 0
 
 
-def _has_fits(root) -> bool:
+def _has_fits(root, person: str) -> bool:
     from uvatar.capture.layout import Capture
     from uvatar.fit.pipeline import existing_fits
 
-    return bool(existing_fits(Capture(root)))
+    person = person.strip() if isinstance(person, str) else ""
+    return bool(existing_fits(Capture(root, person if person.isdigit() and person != "0" else None)))
 
 
-def _evaluate(root, model: str, model_dir, device: str) -> dict:
+def _people(root) -> list[str]:
+    from uvatar.capture.layout import Capture
+
+    return Capture(root).people()
+
+
+def _evaluate(root, model: str, model_dir, device: str, person=None) -> dict:
     from uvatar.body.registry import load_body_model
     from uvatar.capture.layout import Capture
     from uvatar.fit.evaluate import evaluate_fits
 
-    capture = Capture(root)
+    capture = Capture(root, person)
     fits = {f: capture.load_fit(f) for f in capture.frames if capture.has_fit(f)}
     body = load_body_model(model, model_dir, device=device)
     return evaluate_fits(body, capture, fits, capture.body_shapes)

@@ -47,7 +47,10 @@ def _masks(args) -> int:
     with options_as_input_error("uvatar capture masks options"):
         config = _flags().config(args)
     summary = write_capture_masks(args.capture, config, progress=not args.no_progress, model_dir=args.model_dir)
-    print(f"masks: {summary['written']} written, {summary['kept']} kept, {len(summary['failed'])} failed",
+    people = summary.get("people") or []
+    print(f"masks: {summary['written']} written, {summary['kept']} kept, {len(summary['failed'])} failed"
+          + (f" (the subject and {len(people)} other(s): people/{', people/'.join(people)}; "
+             f"{summary['not_seen']} image(s) of frames where another person was not seen)" if people else ""),
           file=sys.stderr)
     for image, reason in list(summary["failed"].items())[:10]:
         print(f"  {image}: {reason}", file=sys.stderr)

@@ -3,7 +3,9 @@
 :func:`evaluate_fits` compares fits (``{frame: BodyFit}``, e.g. from ``uvatar fit`` or the capture's
 own ``fits/``) with the true poses in ``gt/frames/<frame>.npz`` (local axis-angles, Rh, Th) and the
 true shape (:func:`true_body_shape`: ``gt/info.json`` ``body_shapes``, which ``uvatar synth`` writes). The protocol text in
-the returned dict says exactly what is measured.
+the returned dict says exactly what is measured. Another person's fits (``Capture(root, person=id)``,
+``uvatar fit --person all``) are compared with the bystander of ``gt/bystanders.npz`` (``uvatar synth
+--bystanders``) whose root translation is nearest to theirs (mean over the frames).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-__all__ = ["evaluate_fits", "point_surface_distance", "closest_point_on_triangles"]
+__all__ = ["evaluate_fits", "point_surface_distance", "closest_point_on_triangles", "bystander_truth"]
 
 PROTOCOL = (
     "MPJPE: mean Euclidean distance (mm) between fitted and true world positions of the body model's "
@@ -110,6 +112,30 @@ def true_body_shape(body, capture) -> np.ndarray | None:
     return shapes if shapes.size == len(body.shape_names) else None
 
 
+def bystander_truth(capture, fits: dict) -> tuple[int, dict, np.ndarray]:
+    """(bystander index, {frame: true BodyFit}, true shape (S,)) of the bystander in
+    ``gt/bystanders.npz`` nearest to the fits ``{frame: BodyFit}`` (mean root-translation distance)."""
+    from uvatar.capture.types import BodyFit
+    from uvatar.errors import InputError
+    from uvatar.io_utils import read_npz
+
+    path = capture.gt_dir / "bystanders.npz"
+    if not path.is_file():
+        raise InputError(path, "no bystanders' ground truth (a synthetic capture with bystanders > 0)")
+    gt = read_npz(path)
+    count = len([k for k in gt if k.startswith("Th_")])
+    index = {f: i for i, f in enumerate(capture.frames)}
+    frames = [f for f in fits if f in index]
+    if not count or not frames:
+        raise InputError(path, "no bystander or no frame to compare with")
+    fitted = np.stack([np.asarray(fits[f].Th, np.float64).reshape(3) for f in frames])
+    rows = [index[f] for f in frames]
+    b = int(np.argmin([np.linalg.norm(gt[f"Th_{k}"][rows] - fitted, axis=1).mean() for k in range(count)]))
+    truth = {f: BodyFit(poses=gt[f"poses_{b}"][index[f]].reshape(-1), Rh=gt[f"Rh_{b}"][index[f]],
+                        Th=gt[f"Th_{b}"][index[f]]) for f in frames}
+    return b, truth, np.asarray(gt[f"shape_{b}"], np.float32)
+
+
 def evaluate_fits(body, capture, fits: dict, shape, scan_points: int = 20000, batch: int = 8) -> dict:
     """Fits ``{frame: BodyFit}`` of ``capture`` (with ``gt/``) against the truth -> dict (mm, deg).
 
@@ -119,10 +145,15 @@ def evaluate_fits(body, capture, fits: dict, shape, scan_points: int = 20000, ba
     from uvatar.io_utils import read_npz
 
     gt_dir = capture.gt_dir / "frames"
-    frames = [f for f in capture.frames if f in fits and (gt_dir / f"{f}.npz").is_file()]
+    other = None
+    if capture.person is not None:  # another person: the nearest bystander of the synth
+        other, truth, true_shape = bystander_truth(capture, fits)
+        frames = [f for f in capture.frames if f in truth]
+    else:
+        frames = [f for f in capture.frames if f in fits and (gt_dir / f"{f}.npz").is_file()]
+        true_shape = true_body_shape(body, capture)
     if not frames:
         raise InputError(capture.root, "no frame has both a fit and ground truth (gt/frames/*.npz)")
-    true_shape = true_body_shape(body, capture)
     if shape is None and np.asarray(fits[frames[0]].shapes).size == len(body.shape_names):
         shape = fits[frames[0]].shapes
     shape = None if shape is None else np.asarray(shape, np.float32)
@@ -131,8 +162,11 @@ def evaluate_fits(body, capture, fits: dict, shape, scan_points: int = 20000, ba
     mpjpe, angles, scan_d, per_frame = [], [], [], {}
     for start in range(0, len(frames), batch):
         chunk = frames[start:start + batch]
-        gts = [read_npz(gt_dir / f"{f}.npz") for f in chunk]
-        true = [BodyFit(poses=g["pose"], Rh=g["Rh"], Th=g["Th"]) for g in gts]
+        if other is None:
+            gts = [read_npz(gt_dir / f"{f}.npz") for f in chunk]
+            true = [BodyFit(poses=g["pose"], Rh=g["Rh"], Th=g["Th"]) for g in gts]
+        else:
+            true = [truth[f] for f in chunk]
         pt = _pose_batch(body, true, true_shape)
         pf = _pose_batch(body, [fits[f] for f in chunk], shape)
         jt, jf = pt.joints[:, joints].numpy(), pf.joints[:, joints].numpy()
@@ -143,7 +177,7 @@ def evaluate_fits(body, capture, fits: dict, shape, scan_points: int = 20000, ba
         angles.append(ang)
         for i, f in enumerate(chunk):
             row = {"mpjpe_mm": float(err[i].mean()), "angle_deg": float(ang[i].mean())}
-            if capture.has_scan(f):
+            if other is None and capture.has_scan(f):
                 scan = capture.load_scan(f)
                 step = max(1, scan.num_vertices // scan_points)
                 d = point_surface_distance(scan.vertices[::step], pf.vertices[i].numpy(), body.template.faces) * 1000
@@ -152,7 +186,7 @@ def evaluate_fits(body, capture, fits: dict, shape, scan_points: int = 20000, ba
             per_frame[f] = row
     err, ang = np.concatenate(mpjpe), np.concatenate(angles)
     out = {
-        "frames": len(frames),
+        "frames": len(frames), **({"bystander": other} if other is not None else {}),
         "mpjpe_mm": float(err.mean(1).mean()),
         "mpjpe_median_mm": float(np.median(err.mean(1))),
         "mpjpe_max_frame_mm": float(err.mean(1).max()),

@@ -7,8 +7,19 @@ hair and fit error lie within it), and searched only inside that region's box. A
 the subject can reach into that grown band: with ``exclude_others`` the keypoint detector runs once
 more on the image with the subject's region painted over, and the pixels of the band that lie on
 the other person found there (:func:`other_person_region`: thick strokes along their skeleton) are
-dropped (the subject's own fitted silhouette is kept whole). Written to ``masks/<cam>/<frame>.png`` atomically; existing masks are kept (a
-re-run resumes) unless ``overwrite``.
+dropped (the subject's own fitted silhouette is kept whole). Written to ``masks/<cam>/<frame>.png``
+atomically; existing masks are kept (a re-run resumes) unless ``overwrite``.
+
+Where other people are fitted too (``uvatar fit --person all``: ``people/<id>/fits``), every fitted
+body is rendered with its depth in each view and the masks are ordered by depth
+(:func:`nearest_region`): a person keeps a segmented pixel only where their own body is the nearest
+fitted body there (each other body grown by the same ``dilate``, at its nearest depth, so a hand or
+sleeve of the person in front just beside their fitted outline still counts as theirs), and in
+their own grown band only where no other body (grown) lies. Each person gets their own masks
+(``masks/`` for the subject, ``people/<id>/masks/``); the detector of ``exclude_others`` is then not
+needed (it still runs where the frame has no other fitted body). Before the segmenter runs, the
+other people's pixels (their grown bodies, where this person may not take them) are painted over:
+a person detector that sees the one in front would otherwise segment them instead.
 """
 
 from __future__ import annotations
@@ -23,7 +34,10 @@ from uvatar.errors import InputError, UvatarError, check_values
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MaskConfig", "body_silhouette", "person_mask", "write_capture_masks", "other_person_region"]
+__all__ = ["MaskConfig", "body_silhouette", "body_depth", "nearest_region", "person_mask", "write_capture_masks",
+           "other_person_region", "hide_body", "posed_vertices", "FAR"]
+
+FAR = np.float32(1e9)  # depth (metres) of a pixel no body covers
 
 # BlazePose skeleton strokes (index pairs) drawn for another person's region
 _BONES = ((11, 12), (11, 13), (13, 15), (12, 14), (14, 16), (11, 23), (12, 24), (23, 24), (23, 25), (25, 27),
@@ -55,16 +69,62 @@ class MaskConfig:
         ])
 
 
-def body_silhouette(vertices: np.ndarray, faces: np.ndarray, camera, render_width: int) -> np.ndarray:
-    """(H, W) bool: where the body mesh (V, 3) world metres covers ``camera``'s image (rendered
-    ``render_width`` wide by ray casting, then resized to the camera's size)."""
+def body_depth(vertices: np.ndarray, faces: np.ndarray, camera, render_width: int) -> np.ndarray:
+    """(H, W) float32: the camera depth (metres) of the body mesh (V, 3) world metres in ``camera``'s
+    image, :data:`FAR` where it does not cover the pixel (rendered ``render_width`` wide by ray
+    casting, the nearest hit per pixel, then resized to the camera's size)."""
     import cv2
 
     from uvatar.render.mesh_renderer import render_mesh
 
     small = camera.scaled_to_width(min(render_width, camera.width))
-    mask = render_mesh(vertices, faces, small).mask.astype(np.uint8)
-    return cv2.resize(mask, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST) > 0
+    r = render_mesh(vertices, faces, small)
+    depth = np.where(r.mask, r.depth, FAR).astype(np.float32)
+    return cv2.resize(depth, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+
+
+def body_silhouette(vertices: np.ndarray, faces: np.ndarray, camera, render_width: int) -> np.ndarray:
+    """(H, W) bool: where the body mesh covers ``camera``'s image (:func:`body_depth` < :data:`FAR`)."""
+    return body_depth(vertices, faces, camera, render_width) < FAR
+
+
+def _disc(radius: int) -> np.ndarray:
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def hide_body(images: list, cameras: list, vertices: np.ndarray, faces: np.ndarray, grow: float,
+              render_width: int = 360) -> list[np.ndarray]:
+    """The images (H, W, 3) float32 with the body mesh's silhouette, grown by ``grow`` of the image
+    height, painted in each image's median colour (one per camera)."""
+    import cv2
+
+    out = []
+    for image, cam in zip(images, cameras, strict=True):
+        sil = body_silhouette(vertices, faces, cam, render_width)
+        sil = cv2.dilate(sil.astype(np.uint8), _disc(max(1, int(round(grow * cam.height))))) > 0
+        img = np.array(image, np.float32, copy=True)
+        img[sil] = np.median(img.reshape(-1, img.shape[-1]), axis=0)
+        out.append(img)
+    return out
+
+
+def nearest_region(depth: np.ndarray, others: list[np.ndarray], radius: int) -> np.ndarray:
+    """(H, W) bool: the pixels a person may take when other bodies are fitted too. ``depth`` (H, W)
+    the person's body depth (:func:`body_depth`), ``others`` the other bodies' depths; each body is
+    grown by ``radius`` pixels (an other body at the nearest depth within that radius). The person
+    keeps their own body's pixels where no grown other body lies in front, and the pixels of their
+    grown band that no grown other body covers."""
+    import cv2
+
+    core = depth < FAR
+    kernel = _disc(max(1, int(radius)))
+    grown = cv2.dilate(core.astype(np.uint8), kernel) > 0
+    if not others:
+        return grown
+    near = np.minimum.reduce([cv2.erode(np.asarray(d, np.float32), kernel) for d in others])
+    return (core & (depth <= near)) | (grown & ~core & (near >= FAR))
 
 
 def other_person_region(image: np.ndarray, subject: np.ndarray, detector, min_conf: float = 0.5) -> np.ndarray | None:
@@ -94,25 +154,54 @@ def other_person_region(image: np.ndarray, subject: np.ndarray, detector, min_co
     return region if region.any() else None
 
 
+def _box(mask: np.ndarray) -> tuple[float, float, float, float]:
+    ys, xs = np.nonzero(mask)
+    return float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())
+
+
+def dilate_px(config: MaskConfig, height: int) -> int:
+    """The silhouette's growth in pixels for an image ``height`` pixels high."""
+    return max(1, int(round(config.dilate * height)))
+
+
 def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: MaskConfig,
-                detector=None) -> np.ndarray:
+                detector=None, allowed: np.ndarray | None = None, hide: np.ndarray | None = None) -> np.ndarray:
     """(H, W) bool person mask of ``image`` (H, W, 3) float32 [0,1]; ``prior`` (H, W) bool is the
     fitted body's silhouette (None: the segmenter alone); with ``detector`` (and a prior), another
-    person's pixels in the grown band are dropped (:func:`other_person_region`)."""
+    person's pixels in the grown band are dropped (:func:`other_person_region`); ``allowed`` (H, W)
+    bool: the only pixels the person may take (:func:`nearest_region`, where others are fitted);
+    ``hide`` (H, W) bool: pixels painted over (the image's median colour) before the segmenter runs,
+    e.g. the other people in front, so that it finds this person and not them (where it then finds
+    nobody, e.g. a person mostly hidden, it runs once more on the image as it is, around the whole
+    fitted body)."""
     import cv2
 
-    h = image.shape[0]
-    roi = None
+    shown = image
+    if hide is not None and hide.any():
+        shown = np.array(image, np.float32, copy=True)
+        shown[hide] = np.median(shown.reshape(-1, shown.shape[-1]), axis=0)
+
+    roi = whole_roi = None
     region = None
     if prior is not None:
+        grow = dilate_px(config, image.shape[0])
+        if allowed is not None and prior.any():
+            x0, y0, x1, y1 = _box(prior)   # the whole body's grown box
+            h, w = prior.shape
+            whole_roi = (max(x0 - grow, 0.0), max(y0 - grow, 0.0), min(x1 + grow, w - 1.0), min(y1 + grow, h - 1.0))
+            prior = prior & allowed
         if not prior.any():
             return np.zeros(image.shape[:2], bool)
-        r = max(1, int(round(config.dilate * h)))
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        kernel = _disc(grow)
         region = cv2.dilate(prior.astype(np.uint8), kernel) > 0
-        ys, xs = np.nonzero(region)
-        roi = (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max()))
-    prob = segmenter.segment(image, roi=roi)
+        if allowed is not None:
+            region &= allowed
+        roi = _box(region)
+    prob = segmenter.segment(shown, roi=roi)
+    if shown is not image and not (prob[region] > config.threshold).any():
+        # nobody found with the others painted over (a person mostly hidden): the image as it is,
+        # around the whole body (the segmenter may find them only together with the one in front)
+        prob = segmenter.segment(image, roi=whole_roi)
     mask = prob > config.threshold
     if region is not None:
         mask &= region
@@ -133,11 +222,26 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
     return mask
 
 
+def posed_vertices(body, capture, frame: str) -> np.ndarray:
+    """(V, 3) the body of ``capture``'s person posed by their fit of ``frame``."""
+    import torch
+
+    fit = capture.load_fit(frame)
+    shapes = fit.shapes if fit.shapes.size else capture.body_shapes
+    with torch.no_grad():
+        posed = body.pose(body.joint_rotvecs_from_fit(fit), Rh=fit.Rh, Th=fit.Th, scale=[fit.scale],
+                          shape=torch.as_tensor(shapes) if shapes.size else None)
+    return posed.vertices[0].cpu().numpy()
+
+
 def write_capture_masks(root: str | Path, config: MaskConfig | None = None, progress: bool = True,
                         model_dir: str | None = None) -> dict:
-    """Masks for every (camera, frame) image of the capture at ``root``; returns a summary
-    ({"written", "kept", "failed": {image: reason}}). Needs fits unless ``config.use_fit`` is off."""
-    import torch
+    """Masks for every (camera, frame) image of the capture at ``root``, for the subject and every
+    other fitted person (``people/<id>/``, depth-ordered; see the module doc); returns a summary
+    ({"written", "kept", "failed": {image: reason}, "not_seen": images of another person's frames
+    without a fit, "people": ids}). Needs fits unless ``config.use_fit`` is off (then the subject's
+    masks alone, from the segmenter)."""
+    import cv2
     from tqdm import tqdm
 
     from uvatar.body.registry import load_body_model
@@ -156,6 +260,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         if len(missing) == len(frames):
             raise InputError(capture.fits_dir, "no fits: run `uvatar fit` first (or use_fit=False to use the "
                                                "segmenter alone, which also masks bystanders)")
+    people = [capture] + ([capture.for_person(p) for p in capture.people()] if config.use_fit else [])
     body = load_body_model(capture.body_model, model_dir) if config.use_fit else None
     segmenter = load_segmenter(config.segmenter)
     detector = None
@@ -163,36 +268,62 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         from uvatar.fit.keypoints import load_detector
 
         detector = load_detector("mediapipe")
-    summary = {"written": 0, "kept": 0, "failed": {}}
+    summary = {"written": 0, "kept": 0, "failed": {}, "not_seen": 0, "people": [p.person for p in people[1:]]}
+    posed_frame, posed = None, {}   # {person index: posed vertices} of posed_frame
     jobs = [(f, c) for f in frames for c in cameras]
     for frame, cam_name in tqdm(jobs, desc="masks", unit="image", disable=not progress, dynamic_ncols=True):
-        out = capture.root / "masks" / cam_name / f"{frame}.png"
-        if out.is_file() and not config.overwrite:
-            summary["kept"] += 1
+        todo = [k for k, p in enumerate(people)
+                if config.overwrite or not (p.masks_dir / cam_name / f"{frame}.png").is_file()]
+        summary["kept"] += len(people) - len(todo)
+        if not todo:
             continue
+        if posed_frame != frame:
+            posed_frame = frame
+            posed = {k: posed_vertices(body, p, frame) for k, p in enumerate(people)
+                     if body is not None and p.has_fit(frame)}
         try:
             image_path = capture.image_path(cam_name, frame)
             if not image_path.is_file():
                 raise InputError(image_path, "image is missing")
             image = capture.load_image(cam_name, frame)
-            prior = None
-            if body is not None:
-                if not capture.has_fit(frame):
-                    raise InputError(capture.fit_path(frame), "no fit for this frame")
-                fit = capture.load_fit(frame)
-                shapes = fit.shapes if fit.shapes.size else capture.body_shapes
-                with torch.no_grad():
-                    posed = body.pose(body.joint_rotvecs_from_fit(fit), Rh=fit.Rh, Th=fit.Th, scale=[fit.scale],
-                                      shape=torch.as_tensor(shapes) if shapes.size else None)
-                prior = body_silhouette(posed.vertices[0].cpu().numpy(), body.template.faces, cameras[cam_name],
-                                        config.render_width)
-            write_image(out, person_mask(image, segmenter, prior, config, detector).astype(np.uint8) * 255)
-            summary["written"] += 1
         except UvatarError as exc:
-            summary["failed"][f"{cam_name}/{frame}"] = str(exc)
-            log.warning("%s/%s: %s", cam_name, frame, exc)
+            for k in todo:
+                _failed(summary, people[k], cam_name, frame, exc)
+            continue
+        cam = cameras[cam_name]
+        depths = {k: body_depth(v, body.template.faces, cam, config.render_width) for k, v in posed.items()}
+        for k in todo:
+            person = people[k]
+            if k and k not in depths:
+                summary["not_seen"] += 1   # another person not detected in this frame: no fit, no mask
+                continue
+            try:
+                prior = allowed = hide = None
+                others = [d for j, d in depths.items() if j != k]
+                if body is not None:
+                    if k not in depths:
+                        raise InputError(person.fit_path(frame), "no fit for this frame")
+                    prior = depths[k] < FAR
+                    if others:
+                        r = dilate_px(config, cam.height)
+                        allowed = nearest_region(depths[k], others, r)
+                        near = cv2.dilate(np.logical_or.reduce([d < FAR for d in others]).astype(np.uint8),
+                                          _disc(r)) > 0
+                        hide = near & ~allowed   # the others where they are in front (or beside)
+                mask = person_mask(image, segmenter, prior, config, None if others else detector, allowed,
+                                   hide)
+                write_image(person.masks_dir / cam_name / f"{frame}.png", mask.astype(np.uint8) * 255)
+                summary["written"] += 1
+            except UvatarError as exc:
+                _failed(summary, person, cam_name, frame, exc)
     if summary["written"] + summary["kept"] == 0:
         raise InputError(capture.root, f"{len(jobs)} images, no mask written: "
                                        f"{len(summary['failed'])} failed (first: "
                                        f"{next(iter(summary['failed'].values()), '-')})")
     return summary
+
+
+def _failed(summary: dict, person, cam_name: str, frame: str, exc: Exception) -> None:
+    who = "" if person.person is None else f"people/{person.person}/"
+    summary["failed"][f"{who}{cam_name}/{frame}"] = str(exc)
+    log.warning("%s%s/%s: %s", who, cam_name, frame, exc)

@@ -63,7 +63,7 @@ def write_overlays(capture, frames: list[str], observations: dict, posed, body, 
     returns the contact sheet's path."""
     from uvatar.render.contact import contact_sheet
 
-    out_dir = capture.root / "fitting" / "overlays"
+    out_dir = capture.fitting_dir / "overlays"
     picks = [f for f in frames if f in observations]
     if not picks:
         return out_dir
@@ -89,6 +89,6 @@ def write_overlays(capture, frames: list[str], observations: dict, posed, body, 
             sheet_images.append(view)
             labels.append(f"{frame} {cam.name}")
     cols = len(observations[picks[idx[0]]].cameras)
-    path = capture.root / "fitting" / "contact_sheet.png"
+    path = capture.fitting_dir / "contact_sheet.png"
     write_image(path, contact_sheet(sheet_images, cols=min(cols, 8), labels=labels))
     return path

@@ -15,7 +15,10 @@ the detection that reprojects onto it, within ``MATCH_FRACTION`` of that detecti
   optical axis);
 - ``nearest-to:X,Y,Z``: nearest to a world point (metres);
 - ``box:CAM:FRAME:X0,Y0,X1,Y1`` / ``point:CAM:FRAME:X,Y``: the person detected inside that box (or
-  around that point) of camera CAM at frame FRAME (pixels).
+  around that point) of camera CAM at frame FRAME (pixels);
+- ``all``: the subject (as ``most-views``) and every other person seen by two views, each fitted on
+  its own (``people/<id>/``, ids 1, 2, ... by the views that see them);
+- ``ID`` (a whole number >= 1): that other person alone.
 
 The chosen person's 3D keypoints seed the track (:func:`uvatar.fit.observe.observe_frame`'s prior).
 """
@@ -29,7 +32,7 @@ import numpy as np
 from uvatar.errors import InputError
 
 __all__ = ["PERSON_RULES", "PersonChoice", "Person", "parse_person", "find_people", "choose_person",
-           "body_signature", "same_body"]
+           "body_signature", "same_body", "same_place"]
 
 # BlazePose keypoint pairs whose 3D distances describe a body's build (shoulders, hips, upper arms,
 # forearms, thighs, shins): the same person keeps them whatever the pose, another person does not
@@ -37,7 +40,7 @@ _SIGNATURE_BONES = ((11, 12), (23, 24), (11, 13), (12, 14), (13, 15), (14, 16), 
                     (26, 28), (11, 23), (12, 24))
 SAME_BODY = 0.12  # median relative difference of the bone lengths below which two bodies are the same
 
-PERSON_RULES = ("most-views", "largest", "centre", "nearest-to", "box", "point")
+PERSON_RULES = ("most-views", "largest", "centre", "nearest-to", "box", "point", "all", "id")
 MATCH_FRACTION = 0.1    # a view joins a 3D person when its detection lies within this x its box height
 SAME_PERSON_M = 0.3     # two 3D people whose keypoints lie this close (median, metres) are one
 
@@ -45,13 +48,20 @@ SAME_PERSON_M = 0.3     # two 3D people whose keypoints lie this close (median, 
 @dataclass(frozen=True)
 class PersonChoice:
     """rule: one of :data:`PERSON_RULES`; camera, frame: where a box/point was given; box (x0, y0,
-    x1, y1) pixels; target (3,) world metres for ``nearest-to``."""
+    x1, y1) pixels; target (3,) world metres for ``nearest-to``; person_id: the other person's id
+    for ``id``."""
 
     rule: str = "most-views"
     camera: str | None = None
     frame: str | None = None
     box: tuple[float, float, float, float] | None = None
     target: tuple[float, float, float] | None = None
+    person_id: str | None = None
+
+    @property
+    def several(self) -> bool:
+        """True for ``all`` and ``id``: people other than the subject are fitted."""
+        return self.rule in ("all", "id")
 
 
 def _numbers(text: str, count: int, spec: str) -> tuple[float, ...]:
@@ -68,8 +78,12 @@ def parse_person(spec: str) -> PersonChoice:
     """``--person`` text -> :class:`PersonChoice` (one-line :class:`InputError` on a bad spec)."""
     spec = (spec or "most-views").strip()
     rule, _, rest = spec.partition(":")
-    if rule in ("most-views", "largest", "centre", "center") and not rest:
+    if rule in ("most-views", "largest", "centre", "center", "all") and not rest:
         return PersonChoice(rule="centre" if rule == "center" else rule)
+    if rule.isdigit() and not rest:
+        if int(rule) < 1:
+            raise InputError("person", f"{spec!r}: a person id is >= 1 (the subject is fitted without one)")
+        return PersonChoice(rule="id", person_id=str(int(rule)))
     if rule == "nearest-to":
         return PersonChoice(rule=rule, target=_numbers(rest, 3, spec))
     if rule in ("box", "point"):
@@ -86,7 +100,7 @@ def parse_person(spec: str) -> PersonChoice:
         x, y = _numbers(parts[2], 2, spec)
         return PersonChoice(rule=rule, camera=cam, frame=frame, box=(x, y, x, y))
     raise InputError("person", f"{spec!r}: expected one of most-views, largest, centre, nearest-to:X,Y,Z, "
-                     "box:CAM:FRAME:X0,Y0,X1,Y1, point:CAM:FRAME:X,Y")
+                     "box:CAM:FRAME:X0,Y0,X1,Y1, point:CAM:FRAME:X,Y, all, or a person id (1, 2, ...)")
 
 
 @dataclass
@@ -193,7 +207,7 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
         if any((c, i) in taken for c, i in members.items()):
             continue
         taken.update(members.items())
-        if any(_same_person(p.points, p.points_conf, tri.points, tri.conf) for p in people):
+        if any(same_place(p.points, p.points_conf, tri.points, tri.conf) for p in people):
             continue  # the same person from other views (detections the matching left apart)
         people.append(Person(points=tri.points.astype(np.float64), points_conf=tri.conf.astype(np.float64),
                              members=dict(members), detections={c: dets[c][i] for c, i in members.items()},
@@ -201,7 +215,9 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
     return people
 
 
-def _same_person(a, ca, b, cb) -> bool:
+def same_place(a, ca, b, cb) -> bool:
+    """True when two triangulated keypoint sets (K, 3) metres with confidences (K,) are one person:
+    their shared keypoints (>= 4) lie within ``SAME_PERSON_M`` of each other (median)."""
     both = (ca > 0) & (cb > 0)
     return bool(both.sum() >= 4 and np.median(np.linalg.norm(a[both] - b[both], axis=1)) < SAME_PERSON_M)
 
@@ -242,7 +258,7 @@ def choose_person(people: list[Person], choice: PersonChoice, cameras) -> tuple[
     """(index into ``people``, a sentence saying why). Raises :class:`InputError` when nobody fits."""
     if not people:
         raise InputError("person", "no person is seen by two views in the frame the choice is made at")
-    rule = choice.rule
+    rule = "most-views" if choice.several else choice.rule
     if rule == "most-views":
         most = max(len(p.members) for p in people)
         tied = [i for i, p in enumerate(people) if len(p.members) == most]

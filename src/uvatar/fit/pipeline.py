@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.capture.layout import CAPTURE_JSON, Capture
+from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
+from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
 from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
 from uvatar.io_utils import read_json, write_json
 
@@ -105,143 +106,22 @@ def resolve_source(capture: Capture, source: str) -> str:
 def existing_fits(capture: Capture) -> list[Path]:
     """The capture's fit files (``fits/*.json`` and ``fits.npz``)."""
     fits = sorted(capture.fits_dir.glob("*.json")) if capture.fits_dir.is_dir() else []
-    npz = capture.root / "fits.npz"
+    npz = capture.person_root / "fits.npz"
     return fits + ([npz] if npz.is_file() else [])
 
 
-def _frame_views(capture: Capture, frame: str, source: str, stages: FitStages):
-    """(images, cameras) the detector looks at for one frame."""
-    if source == "scans":
-        from uvatar.fit.views import render_scan_views, scan_cameras
-
-        mesh = capture.load_scan(frame)
-        cameras = scan_cameras(mesh.vertices, stages.views)
-        return render_scan_views(mesh, cameras), cameras
-    cameras = list(capture.cameras().values())
-    images = []
-    for cam in cameras:
-        path = capture.image_path(cam.name, frame)
-        if not path.is_file():
-            raise InputError(path, "image is missing")
-        images.append(capture.load_image(cam.name, frame))
-    return images, cameras
-
-
-SEED_TRIES = 4  # frames tried (from the first on, 1/8 of the capture apart) until one person is seen by every camera
-
-
-def _find_and_choose(capture: Capture, frame: str, choice, detector, stages: FitStages):
-    """(people found at ``frame``, index chosen, why, camera names)."""
-    from uvatar.fit.person import choose_person, find_people
-
-    images, cameras = _frame_views(capture, frame, "images", stages)
-    names = [c.name for c in cameras]
-    if choice.camera is not None and choice.camera not in names:
-        raise InputError("person", f"camera {choice.camera!r} is not in cameras/ ({', '.join(names)})")
-    forced = {names.index(choice.camera): choice.box} if choice.rule == "box" else None
-    people = find_people(images, cameras, detector, stages.triangulate, forced=forced)
-    i, why = choose_person(people, choice, cameras)
-    return people, i, why, names
-
-
-def _choose_subject(capture: Capture, frames: list[str], choice, detector, stages: FitStages) -> tuple:
-    """(seed frame, the chosen :class:`~uvatar.fit.person.Person`, a report dict).
-
-    Without a frame in the choice, ``SEED_TRIES`` frames (1/8 of the capture apart) are looked at and
-    the people found are told apart across them by their build (:func:`~uvatar.fit.person.same_body`);
-    for ``most-views`` the person seen by the most cameras over those frames wins (one frame can hide
-    the subject behind a bystander in a view); for the other rules, the rule at the frame where the
-    person it picks is seen by the most cameras. The seed is that person's best-seen frame."""
-    from uvatar.fit.person import SAME_BODY, body_signature, same_body
-
-    if choice.frame is not None and choice.frame not in frames:
-        raise InputError("person", f"frame {choice.frame!r} is not one of the capture's frames being fitted")
-    step = max(1, len(frames) // 8)
-    tries = [choice.frame] if choice.frame is not None else frames[: SEED_TRIES * step: step]
-    found = []   # (frame, people, chosen index, why, names)
-    for seed in tries:
-        try:
-            found.append((seed, *_find_and_choose(capture, seed, choice, detector, stages)))
-        except InputError:
-            if seed == tries[-1] and not found:
-                if choice.rule != "most-views":
-                    raise
-                log.warning("person: nobody seen by two views at frames %s; detecting without a subject",
-                            ", ".join(tries))
-                return frames[0], None, {"rule": choice.rule, "frame": None, "people_found": 0, "chosen": None,
-                                         "why": "nobody found", "people": [], "chosen_again_after_cuts": []}
-    if choice.rule == "most-views" and len(found) > 1:
-        clusters = []   # [signature, total views, best (views, frame index, person index)]
-        for f, (_, people, _, _, _) in enumerate(found):
-            for k, p in enumerate(people):
-                sig = body_signature(p.points, p.points_conf)
-                near = [c for c in clusters if same_body(sig, c[0]) < SAME_BODY]
-                if near:
-                    near[0][1] += len(p.members)
-                    near[0][2] = max(near[0][2], (len(p.members), -f, k))
-                else:
-                    clusters.append([sig, len(p.members), (len(p.members), -f, k)])
-        total, (_, f, k) = max(((c[1], c[2]) for c in clusters), key=lambda t: (t[0], t[1]))
-        seed, people, _, _, names = found[-f]
-        i, why = k, f"seen by the most cameras over frames {', '.join(t[0] for t in found)} ({total} views)"
-    else:
-        seed, people, i, why, names = max(found, key=lambda t: len(t[1][t[2]].members))
-    report = {"rule": choice.rule, "frame": seed, "people_found": len(people), "chosen": i, "why": why,
-              "people": [{"cameras": [names[c] for c in sorted(p.members)],
-                          "position_m": np.round(np.median(p.points[p.points_conf > 0], axis=0), 3).tolist()}
-                         for p in people], "chosen_again_after_cuts": []}
-    log.info("person: %d found at frame %s; fitting #%d, %s", len(people), seed, i, why)
-    return seed, people[i], report
-
-
-def _lost(prior, obs, cut_distance: float) -> bool:
-    """True when ``obs`` does not continue the subject ``prior`` (too few keypoints, or every keypoint
-    jumped at once: a cut to another take, where the subject may be anywhere)."""
-    from uvatar.fit.tracking import continuity
-
-    if (obs.points_conf > 0).sum() < 6:
-        return True
-    pts = np.stack([prior.points, obs.points]).astype(np.float64)
-    conf = np.stack([prior.points_conf, obs.points_conf])
-    return not bool(continuity(pts, conf, cut_distance)[0])
-
-
-def _signature(observations: dict, seed) -> np.ndarray:
-    """(B,) the subject's build so far: the median bone lengths over the frames tracked."""
-    import warnings
-
-    from uvatar.fit.person import body_signature
-
-    sigs = [body_signature(o.points, o.points_conf) for o in observations.values()]
-    if seed is not None:
-        sigs.append(body_signature(seed.points, seed.points_conf))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a bone never seen stays nan
-        return np.nanmedian(np.stack(sigs), axis=0)
-
-
-def _rechoose(capture, frame, detector, stages, signature):
-    """The subject found again at ``frame`` after the track was lost: the person whose build
-    (:func:`~uvatar.fit.person.body_signature`) is the subject's (``signature``, the median over the
-    frames tracked so far), if one is within ``SAME_BODY``; else None (the frame keeps what the
-    tracking found, and its views are judged as usual)."""
-    from uvatar.fit.person import SAME_BODY, body_signature, find_people, same_body
-
-    images, cameras = _frame_views(capture, frame, "images", stages)
-    people = find_people(images, cameras, detector, stages.triangulate)
-    scored = [(same_body(body_signature(p.points, p.points_conf), signature), -len(p.members), k)
-              for k, p in enumerate(people)]
-    if not scored or min(scored)[0] > SAME_BODY:
-        return None
-    return people[min(scored)[2]]
-
-
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
-                progress: bool, choice=None, cut_distance: float = 0.1) -> tuple[dict, dict, dict]:
-    """Per-frame observations, from ``fitting/keypoints`` where a previous run left them; failures;
-    the person report (images: the subject chosen at the seed frame is tracked forward from it, then
-    backward; where the track is lost, at a cut, the person of the subject's build is found again). Views that
-    disagree with the subject are rejected (:func:`~uvatar.fit.observe.reject_views`)."""
+                progress: bool, choice=None, cut_distance: float = 0.1, chosen=None,
+                avoid: dict | None = None, hide=None) -> tuple[dict, dict, dict]:
+    """Per-frame observations, from ``fitting/keypoints`` (the person's own) where a previous run left
+    them; failures; the person report (images: the subject chosen at the seed frame, or ``chosen``
+    (seed frame, :class:`~uvatar.fit.person.Person`, report) when given, is tracked forward from it,
+    then backward; where the track is lost, at a cut, the person of the same build is found again).
+    Views that disagree with the person are rejected (:func:`~uvatar.fit.observe.reject_views`).
+    ``avoid`` ({frame: the subject's observation}, when another person is tracked): where the track
+    lands on the subject, the person is looked for again away from the subject, and a frame where
+    only the subject is found is left to its neighbours (a failure), never fitted to the subject;
+    ``hide``: see :func:`frame_views` (the detector never sees the subject there)."""
     from tqdm import tqdm
 
     from uvatar.fit.observe import (
@@ -256,28 +136,31 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     observations, failures = {}, {}
     person = None
     start, seed_prior = 0, None
-    if source == "images" and choice is not None:
-        if not all(observation_path(capture.root, f).is_file() for f in frames):
-            seed, seed_prior, person = _choose_subject(capture, frames, choice, detector, stages)
-            start = frames.index(seed)
+    if source == "images" and (chosen is not None or (
+            choice is not None and not all(observation_path(capture.person_root, f).is_file() for f in frames))):
+        seed, seed_prior, person = chosen or choose_people(capture, frames, choice, detector, stages)[0][1:]
+        start = frames.index(seed)
     order = frames[start:] + frames[:start][::-1]   # forward from the seed, then backward from it
     prior = seed_prior
     bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
     for n, frame in enumerate(bar):
         if start and n == len(frames) - start:
             prior = observations.get(frames[start], seed_prior)  # the backward pass starts at the seed
-        path = observation_path(capture.root, frame)
+        path = observation_path(capture.person_root, frame)
         try:
             if path.is_file():
                 obs = load_observation(path)
                 if obs.source != source:
                     raise InputError(path, f"keypoints come from {obs.source}, not {source}")
             else:
-                images, cameras = _frame_views(capture, frame, source, stages)
+                images, cameras = frame_views(capture, frame, source, stages, hide)
                 use_prior = prior if source == "images" else None
                 obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
-                if person is not None and use_prior is not None and _lost(use_prior, obs, cut_distance):
-                    again = _rechoose(capture, frame, detector, stages, _signature(observations, seed_prior))
+                subject = (avoid or {}).get(frame)
+                if person is not None and use_prior is not None and (lost(use_prior, obs, cut_distance)
+                                                                     or is_at(obs, subject)):
+                    again = find_again(capture, frame, detector, stages, build_so_far(observations, seed_prior),
+                                      subject, hide)
                     if again is not None:
                         obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=again)
                         person["chosen_again_after_cuts"].append(frame)
@@ -287,6 +170,9 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             log.warning("frame %s: %s", frame, exc)
             continue
         obs = reject_views(obs, disagreeing_views(obs, stages.triangulate), stages.triangulate)
+        if is_at(obs, (avoid or {}).get(frame)):
+            failures[frame] = "only the subject found where this person was tracked (fitted from the neighbours)"
+            continue
         observations[frame] = obs
         views, seen = len(obs.cameras), obs.num_detected_views
         if (obs.points_conf > 0).sum() < 6:
@@ -300,15 +186,26 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
 
 
 def _write_fits(capture: Capture, frames, result, body, config: FitConfig, provenance: dict) -> None:
+    """The fits, shape and provenance. Another person than the subject gets no fit where they were
+    not detected (``provenance["frames_without_detection"]``): a person walking out of the views is
+    not there, and a body filled in from their neighbouring frames would claim pixels in the masks."""
     from uvatar.capture.fits import write_fit
     from uvatar.capture.types import BodyFit
 
+    unseen = set(provenance["frames_without_detection"]) if capture.person is not None else set()
     for t, frame in enumerate(frames):
+        if frame in unseen:
+            continue
         write_fit(capture.fit_path(frame), BodyFit(poses=result.poses[t].reshape(-1), Rh=result.Rh[t],
                                                    Th=result.Th[t], shapes=result.shape,
                                                    scale=float(result.scale[t])))
+    shapes = np.asarray(result.shape, np.float64).tolist()
+    if capture.person is not None:  # another person: their shape beside their fits, capture.json is the subject's
+        write_json(capture.person_root / PERSON_JSON, {"body_model": body.name, "shapes": shapes,
+                                                       "provenance": {"fit": provenance}})
+        return
     info = read_json(capture.root / CAPTURE_JSON)
-    info["body_model"] = {"name": body.name, "shapes": np.asarray(result.shape, np.float64).tolist()}
+    info["body_model"] = {"name": body.name, "shapes": shapes}
     info.setdefault("provenance", {})["fit"] = provenance
     write_json(capture.root / CAPTURE_JSON, info)
 
@@ -344,11 +241,16 @@ def _reprojection_stats(observations: dict, frames, body_points: np.ndarray, min
 def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitStages | None = None,
                 progress: bool = True, frames: list[str] | None = None) -> dict:
     """Fit the body model to every frame of the capture at ``root``; returns the summary written to
-    ``fitting/summary.json``. Raises :class:`InputError` when nothing could be fitted."""
+    ``fitting/summary.json``. Raises :class:`InputError` when nothing could be fitted.
+
+    With ``config.person`` ``all`` the subject goes to ``fits/`` as usual and every other person seen
+    by two views to ``people/<id>/`` (their own summary in ``people/<id>/fitting/summary.json``; the
+    returned summary is the subject's, with ``people``: {id: that summary}); with a person id, that
+    person alone (the returned summary is theirs)."""
     from uvatar.body.registry import load_body_model
-    from uvatar.fit.body_fit import BodyFitConfig, fit_body_sequence
-    from uvatar.fit.body_keypoints import BodyKeypoints
+    from uvatar.fit.body_fit import BodyFitConfig
     from uvatar.fit.keypoints import DetectorConfig, load_detector
+    from uvatar.fit.person import parse_person
     from uvatar.fit.triangulate import TriangulateConfig
     from uvatar.fit.views import ScanViewsConfig
 
@@ -362,21 +264,67 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     frames = list(frames or capture.frames)
     if not frames:
         raise InputError(capture.root, "the capture lists no frames")
+    choice = parse_person(config.person)
+    if choice.rule != "id":
+        _refuse_existing(capture, config)
+    source = resolve_source(capture, config.source)
+    if choice.several and source != "images":
+        raise InputError("person", f"{config.person!r} fits several people from the capture's images: it needs "
+                                   f"source 'images', not {source!r}")
+    body = load_body_model(config.model, config.model_dir, device=config.device)
+    detector = load_detector(config.detector, stages.detector)
+    if not choice.several:
+        return _fit_person(capture, frames, source, body, detector, stages, config, progress, choice)[0]
+    t0 = time.perf_counter()
+    chosen = choose_people(capture, frames, choice, detector, stages)
+    t_choose = time.perf_counter() - t0
+    for pid, *_ in chosen:
+        if pid is not None:
+            _refuse_existing(capture.for_person(pid), config)
+    summaries, subject_obs = {}, None
+    for pid, seed, prior, report in chosen:
+        picked = (seed, prior, report) if prior is not None else None
+        if choice.rule == "id" and pid is None:
+            # the subject's keypoints (saved ones when it was fitted before): where the others are not
+            subject_obs = _detect_all(capture, frames, source, detector, stages, progress, choice,
+                                      config.cut_distance, picked)[0]
+            continue
+        log.info("fitting %s", "the subject" if pid is None else f"person {pid}")
+        summaries[pid], observations = _fit_person(capture.for_person(pid), frames, source, body, detector, stages,
+                                                   config, progress, choice, picked, subject_obs)
+        subject_obs = observations if pid is None else subject_obs
+        summaries[pid]["seconds"]["choosing_people"] = t_choose
+    if choice.rule == "id":
+        return summaries[choice.person_id]
+    summary = summaries.pop(None)
+    summary["people"] = summaries
+    write_json(capture.fitting_dir / "summary.json", summary)
+    return summary
+
+
+def _refuse_existing(capture: Capture, config: FitConfig) -> None:
     existing = existing_fits(capture)
     if existing and not config.force:
         raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); force=True replaces them")
-    source = resolve_source(capture, config.source)
-    from uvatar.fit.person import parse_person
 
-    choice = parse_person(config.person)
-    body = load_body_model(config.model, config.model_dir, device=config.device)
-    detector = load_detector(config.detector, stages.detector)
 
+def _fit_person(capture: Capture, frames: list[str], source: str, body, detector, stages: FitStages,
+                config: FitConfig, progress: bool, choice, chosen=None, avoid=None) -> tuple[dict, dict]:
+    """Detect, fit and write one person: the subject (``capture.person`` None, chosen by ``choice``
+    unless ``chosen`` is given) or another person (``chosen``: their seed frame, Person, report;
+    ``avoid``: the subject's observations, see :func:`_detect_all`); the scans, when present, are the
+    subject's alone (their distance and photometric terms are not used for anyone else). Returns
+    (summary, the observations {frame: FrameObservation})."""
+    from uvatar.fit.body_fit import fit_body_sequence
+    from uvatar.fit.body_keypoints import BodyKeypoints
+
+    subject = capture.person is None
     t0 = time.perf_counter()
+    hide = None if subject else subject_hider(capture.for_person(None), body)
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
-                                                 config.cut_distance)
+                                                 config.cut_distance, chosen, avoid, hide)
     t_detect = time.perf_counter() - t0
-    use_scans = config.scan_distance and capture.scans_dir.is_dir()
+    use_scans = subject and config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
              if use_scans and config.photo_size and stages.body.w_photo > 0 else None)
     scans, photo_views = (scan_inputs(capture, frames, config.scan_points, config.seed, photo, failures, progress)
@@ -388,7 +336,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
         for reason in failures.values():
             counts[reason] = counts.get(reason, 0) + 1
         why = "; ".join(f"{n} {r}" for r, n in counts.items())
-        raise InputError(capture.root, f"{len(frames)} frames, none usable for fitting: {why}")
+        raise InputError(capture.person_root, f"{len(frames)} frames, none usable for fitting: {why}")
 
     t1 = time.perf_counter()
     observations, relabelled = relabel_left_right(frames, observations, detector.keypoint_names, config.cut_distance)
@@ -415,8 +363,9 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
                           shape=torch.as_tensor(result.shape, dtype=torch.float32, device=body.device))
         body_points = BodyKeypoints(body)(posed).cpu().numpy()
     summary = {
-        "capture": str(capture.root), "source": source, "frames": len(frames),
-        "frames_fitted": len(frames), "frames_without_detection": failures,
+        "capture": str(capture.root), "person_id": capture.person, "source": source, "frames": len(frames),
+        "frames_fitted": len(frames) - (len(failures) if capture.person is not None else 0),
+        "frames_without_detection": failures,
         "cuts_after": [frames[t] for t in np.flatnonzero(~obs.continuous)],
         "relabelled_left_right": relabelled,
         "views_disagree": {f: list(o.rejected) for f, o in observations.items() if o.rejected},
@@ -434,8 +383,8 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
 
         summary["contact_sheet"] = str(write_overlays(capture, frames, observations, posed, body, source,
                                                       stages, config))
-    write_json(capture.root / "fitting" / "summary.json", summary)
-    return summary
+    write_json(capture.fitting_dir / "summary.json", summary)
+    return summary, observations
 
 
 class _fit_progress:
