@@ -12,15 +12,12 @@ another person is detected (:func:`frame_views`' ``hide``).
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from uvatar.capture.layout import Capture
 from uvatar.errors import InputError
-
-if TYPE_CHECKING:
-    from uvatar.fit.pipeline import FitStages
+from uvatar.fit.stages import FitStages
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -23,6 +23,7 @@ from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
 from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
+from uvatar.fit.stages import FitStages
 from uvatar.io_utils import read_json, write_json
 
 log = logging.getLogger(__name__)
@@ -77,17 +78,6 @@ class FitConfig:
             (self.overlay_frames >= 0, f"overlay_frames must be >= 0, got {self.overlay_frames}"),
             (self.overlay_width >= 32, f"overlay_width must be at least 32, got {self.overlay_width}"),
         ])
-
-
-@dataclass
-class FitStages:
-    """Configs of the stages (each with its own defaults)."""
-
-    views: object = None        # uvatar.fit.views.ScanViewsConfig
-    detector: object = None     # uvatar.fit.keypoints.DetectorConfig
-    triangulate: object = None  # uvatar.fit.triangulate.TriangulateConfig
-    body: object = None         # uvatar.fit.body_fit.BodyFitConfig
-    timings: dict = field(default_factory=dict)
 
 
 def resolve_source(capture: Capture, source: str) -> str:
