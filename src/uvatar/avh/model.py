@@ -46,6 +46,7 @@ from dataclasses import asdict, dataclass, replace
 import torch
 from torch import nn
 
+from uvatar.avh.lights import LightRig
 from uvatar.avh.texel_pose import TexelPoseMap, pooled
 
 #: Pose conditioning of the decoders: the paper's global latent only, or also a texel-aligned pose map.
@@ -87,6 +88,8 @@ class AvhConfig:
         joint is the root and carries the body's orientation Rh in the capture's world; with texel
         conditioning also the texel's world normal and the shading head).
     shading_hidden: channels of the shading head's two hidden 1×1 convs (texel + studio only).
+    shading_lights: learned lights of the light-rig head (texel + studio only; 0: none, the MLP shading
+        head alone): texture × (per-texel ambient + Σ per-texel share · max(0, n·v_k)), :mod:`uvatar.avh.lights`.
     """
 
     feature_size: int = 32
@@ -100,12 +103,15 @@ class AvhConfig:
     conditioning: str = "global"
     orientation: str = "body"
     shading_hidden: int = 16
+    shading_lights: int = 0
 
     def __post_init__(self):
         ratio = self.resolution / self.feature_size
         if self.feature_size < 1 or self.resolution < self.feature_size or ratio != 2 ** round(math.log2(ratio)):
             raise ValueError(f"resolution {self.resolution} must be feature_size {self.feature_size} "
                              f"times a power of two")
+        if self.shading_lights < 0:
+            raise ValueError(f"shading_lights must be >= 0, got {self.shading_lights}")
         if self.latent < 1 or self.num_pose_joints < 1 or self.hidden < 1:
             raise ValueError("latent, num_pose_joints and hidden must be positive")
         if self.conditioning not in CONDITIONINGS:
@@ -288,6 +294,8 @@ class AvhGenerator(nn.Module):
                                         world_normals=config.orientation == "studio")
                            if config.conditioning == "texel" else None)
         self.shading = shading_head(config) if config.shading else None
+        self.lights = (LightRig(config.shading_lights, config.resolution)
+                       if config.shading and config.shading_lights else None)
 
     def cuboid(self, pose_encoded: torch.Tensor) -> torch.Tensor:
         """(B, 6·J_c) -> feature cuboid (B, latent, f_c, f_c)."""
@@ -308,7 +316,10 @@ class AvhGenerator(nn.Module):
         cub = self.cuboid(pose_encoded)
         texture = (torch.tanh(self.texture_decoder(cub, pose_map)) + 1.0) * 0.5
         if self.shading is not None:
-            texture = torch.clamp(texture * torch.exp(self.shading(pose_map)), 0.0, 1.0)
+            shade = torch.exp(self.shading(pose_map))
+            if self.lights is not None:
+                shade = shade * self.lights(pose_map[:, 6:9])
+            texture = torch.clamp(texture * shade, 0.0, 1.0)
         displacement = torch.tanh(self.displacement_decoder(cub, pose_map)) * self.config.displacement_scale
         return texture, displacement
 
@@ -354,6 +365,8 @@ def expected_parameter_count(config: AvhConfig) -> int:
     if config.shading:
         h = config.shading_hidden
         shading = (config.texel_channels + 1) * h + (h + 1) * h + h + 1
+        if config.shading_lights:
+            shading += 3 * config.shading_lights + (1 + config.shading_lights) * config.resolution ** 2
     return n + 2 * dec + shading
 
 

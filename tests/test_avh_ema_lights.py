@@ -1,0 +1,134 @@
+"""The moving average of the generator's weights (uvatar.avh.ema) and the light-rig shading head
+(uvatar.avh.lights): known answers, the twin, the wiring into the generator, export and training."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from uvatar.avh.ema import WeightAverage, ema_decay_at
+from uvatar.avh.lights import MIN_LIGHT, LightRig
+from uvatar.avh.model import AvhConfig, AvhFromAngles, AvhGenerator, count_parameters, expected_parameter_count
+
+
+def test_ema_equals_the_hand_computed_average():
+    torch.manual_seed(0)
+    model = nn.Sequential(nn.Linear(3, 2), nn.BatchNorm1d(2))
+    avg = WeightAverage(model, decay=0.9)
+    w = model[0].weight.detach().clone()
+    rm = model[1].running_mean.clone()
+    expected_w, expected_rm = w.clone(), rm.clone()
+    x = torch.randn(8, 3)
+    for step in range(30):
+        with torch.no_grad():
+            model[0].weight.add_(0.1 * (step + 1))
+        model.train()(x)  # BatchNorm's running statistics move too
+        d = min(0.9, (1 + step) / (10 + step))
+        assert ema_decay_at(0.9, step) == pytest.approx(d)
+        expected_w = d * expected_w + (1 - d) * model[0].weight.detach()
+        expected_rm = d * expected_rm + (1 - d) * model[1].running_mean
+        avg.update(model)
+    torch.testing.assert_close(avg.model[0].weight, expected_w, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(avg.model[1].running_mean, expected_rm, rtol=1e-6, atol=1e-6)
+    assert int(avg.model[1].num_batches_tracked) == int(model[1].num_batches_tracked) == 30  # copied
+    assert not avg.model.training and not any(p.requires_grad for p in avg.model.parameters())
+    # a round trip through its state
+    other = WeightAverage(model, decay=0.9)
+    other.load_state_dict(avg.state_dict())
+    assert other.steps == 30
+    torch.testing.assert_close(other.model[0].weight, avg.model[0].weight)
+
+
+def test_ema_of_a_constant_model_is_that_model():
+    model = nn.Linear(4, 4)
+    avg = WeightAverage(model, 0.99)
+    for _ in range(5):
+        avg.update(model)
+    assert torch.equal(avg.model.weight, model.weight)
+
+
+@pytest.mark.parametrize("decay", [0.0, 1.0, -0.5])
+def test_ema_bad_decay(decay):
+    with pytest.raises(ValueError, match="ema_decay"):
+        WeightAverage(nn.Linear(1, 1), decay)
+
+
+def test_light_rig_known_answer_and_twin():
+    rig = LightRig(2, 4)
+    with torch.no_grad():
+        rig.directions.copy_(torch.tensor([[0.0, 0.8, 0.0], [0.5, 0.0, 0.0]]).reshape(2, 3, 1, 1))
+        rig.ambient.fill_(0.4)
+        rig.share.fill_(1.0)
+        rig.share[0, 1, 0, 0] = 0.0  # texel (0, 0) never sees light 1 (its own shadow)
+    n = torch.zeros(1, 3, 4, 4)
+    n[0, 1] = 1.0                       # facing up: light 0 only
+    n[0, :, 1, 1] = torch.tensor([0.6, 0.8, 0.0])
+    n[0, :, 2, 2] = torch.tensor([0.0, -1.0, 0.0])  # facing down: ambient only
+    n[0, :, 0, 0] = torch.tensor([1.0, 0.0, 0.0])   # facing light 1, but shadowed
+    with torch.no_grad():
+        out = rig(n)
+    assert out.shape == (1, 1, 4, 4)
+    assert out[0, 0, 3, 3] == pytest.approx(0.4 + 0.8)
+    assert out[0, 0, 1, 1] == pytest.approx(0.4 + 0.8 * 0.8 + 0.5 * 0.6)
+    assert out[0, 0, 2, 2] == pytest.approx(0.4)
+    assert out[0, 0, 0, 0] == pytest.approx(0.4)
+    torch.testing.assert_close(out, rig.reference(n))
+    with torch.no_grad():
+        rig.ambient.fill_(-1.0)
+        assert float(rig(torch.zeros(2, 3, 4, 4)).min()) == pytest.approx(MIN_LIGHT)
+    with pytest.raises(ValueError, match="lights"):
+        LightRig(0, 4)
+
+
+def test_light_rig_starts_unlit_and_twin_on_random_normals():
+    rig = LightRig(3, 8)
+    n = torch.nn.functional.normalize(torch.randn(2, 3, 8, 8), dim=1)
+    out = rig(n)
+    assert (out - 1).abs().max() < 0.05  # a = 1, b = 1, |v| = 0.01 at start
+    with torch.no_grad():
+        rig.directions.normal_()
+        rig.share.uniform_(0, 2)
+    torch.testing.assert_close(rig(n), rig.reference(n))
+
+
+def _studio_generator(lights: int) -> AvhGenerator:
+    cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=3, conditioning="texel", orientation="studio",
+                    shading_lights=lights)
+    gen = AvhGenerator(cfg)
+    R = 16
+    w = np.zeros((3, R, R), np.float32)
+    w[0] = 1.0
+    normals = np.zeros((3, R, R), np.float32)
+    normals[2] = 1.0  # every texel faces +Z at rest
+    gen.texel_pose.set_weights(w, [-1, 0, 1], normals)
+    return gen.eval()
+
+
+def test_generator_with_lights_counts_multiplies_and_exports(tmp_path):
+    from uvatar.avh.export import export_onnx, verify_onnx
+
+    gen = _studio_generator(2)
+    assert count_parameters(gen) == expected_parameter_count(gen.config)
+    assert count_parameters(gen) - count_parameters(_studio_generator(0)) == 3 * 2 + 3 * 16 * 16
+    a = torch.zeros(2, 9)
+    a[1, 1] = np.pi / 2  # the second frame's root (joint 0) turned a quarter about +Y: its normals face +X
+    with torch.no_grad():
+        gen.lights.directions.copy_(torch.tensor([[0.0, 0.0, 0.5], [0.3, 0.0, 0.0]]).reshape(2, 3, 1, 1))
+        gen.lights.ambient.fill_(0.5)
+        plain = _studio_generator(0)
+        plain.load_state_dict({k: v for k, v in gen.state_dict().items() if not k.startswith("lights.")})
+        lit, _ = AvhFromAngles(gen)(a)
+        unlit, _ = AvhFromAngles(plain)(a)
+    torch.testing.assert_close(lit[0], (unlit[0] * 1.0).clamp(0, 1))           # 0.5 + 0.5 · 1
+    torch.testing.assert_close(lit[1], (unlit[1] * 0.8).clamp(0, 1), atol=1e-5, rtol=1e-5)  # 0.5 + 0.3 · 1
+    wrapper = AvhFromAngles(gen).eval()
+    export_onnx(wrapper, tmp_path / "m.onnx", 9)
+    assert verify_onnx(wrapper, tmp_path / "m.onnx", 9, batch=3) <= 1e-4
+    with pytest.raises(ValueError, match="shading_lights"):
+        AvhConfig(4, 16, resolution=16, shading_lights=-1)
+
+
+def test_lights_only_with_the_shading_head():
+    assert AvhGenerator(AvhConfig(4, 16, resolution=16, conditioning="texel", shading_lights=2)).lights is None
