@@ -132,3 +132,84 @@ def test_generator_with_lights_counts_multiplies_and_exports(tmp_path):
 
 def test_lights_only_with_the_shading_head():
     assert AvhGenerator(AvhConfig(4, 16, resolution=16, conditioning="texel", shading_lights=2)).lights is None
+
+
+def _shadow_setup():
+    from uvatar.avh.shadows import BodyShadows
+
+    sh = BodyShadows(2, 2)
+    points = np.zeros((3, 2, 2), np.float32)
+    points[:, 0, 0] = (0, 0.5, -1)   # behind the bone's midpoint, seen from a light at +Z: in its shadow
+    points[:, 0, 1] = (0, 0.5, 1)    # in front of it: lit
+    points[:, 1, 0] = (1, 0.5, -1)   # beside it: lit
+    points[:, 1, 1] = (0, 0, -1)     # behind joint 0: in its shadow
+    sh.set_geometry(np.array([[0, 0, 0], [0, 1, 0]], np.float32), [-1, 0], points)
+    weights = torch.zeros(2, 4)
+    weights[0] = 1.0
+    return sh, weights
+
+
+def test_shadows_known_answer_and_rotation():
+    sh, weights = _shadow_setup()
+    eye = torch.eye(3).expand(1, 2, 3, 3)
+    with torch.no_grad():
+        vis = sh(eye, weights, torch.tensor([[0.0, 0.0, 2.0]]))[0, 0]
+    blocked = 1 / (1 + np.exp(-0.05 / 0.01))  # the ray through a sphere's centre, far in front of the texel
+    assert vis[0, 0] == pytest.approx(1 - blocked, abs=1e-4) and vis[1, 1] == pytest.approx(1 - blocked, abs=1e-4)
+    assert vis[0, 1] > 0.999 and vis[1, 0] > 0.999
+    # the light from -Z instead: the shadows swap sides
+    with torch.no_grad():
+        back = sh(eye, weights, torch.tensor([[0.0, 0.0, -1.0]]))[0, 0]
+    assert back[0, 1] == pytest.approx(1 - blocked, abs=1e-4) and back[0, 0] > 0.999
+    # the whole body (joint 0 is the root) turned half a turn about +Y: the texel behind is now in front
+    turn = torch.tensor([[-1.0, 0, 0], [0, 1, 0], [0, 0, -1]]).expand(1, 2, 3, 3)
+    with torch.no_grad():
+        turned = sh(turn, weights, torch.tensor([[0.0, 0.0, 1.0]]))[0, 0]
+    assert turned[0, 0] > 0.999 and turned[0, 1] == pytest.approx(1 - blocked, abs=1e-4)
+
+
+def test_shadows_twin_on_a_random_skeleton():
+    from uvatar.avh.shadows import BodyShadows
+    from uvatar.avh.texel_pose import rotvec_to_rotmat
+
+    torch.manual_seed(0)
+    sh = BodyShadows(3, 4)
+    sh.set_geometry(np.random.default_rng(0).normal(size=(3, 3)).astype(np.float32) * 0.3, [-1, 0, 1],
+                    np.random.default_rng(1).normal(size=(3, 4, 4)).astype(np.float32) * 0.3)
+    with torch.no_grad():
+        sh.log_radius.normal_(np.log(0.2), 0.3)
+    weights = torch.softmax(torch.randn(3, 16), 0)
+    world = rotvec_to_rotmat(torch.randn(2, 3, 3))
+    dirs = torch.randn(2, 3)
+    with torch.no_grad():
+        torch.testing.assert_close(sh(world, weights, dirs), sh.reference(world, weights, dirs), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="parents"):
+        sh.set_geometry(np.zeros((3, 3)), [1, 2, 0], np.zeros((3, 4, 4)))
+
+
+def test_generator_with_shadows_exports():
+    from uvatar.avh.export import export_onnx, verify_onnx
+    from uvatar.avh.shadows import texel_rest_points  # noqa: F401 - the trainer's source of rest points
+
+    cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=3, conditioning="texel", orientation="studio",
+                    shading_lights=2, shading_shadows=True)
+    gen = AvhGenerator(cfg)
+    assert count_parameters(gen) == expected_parameter_count(cfg)
+    w = np.zeros((3, 16, 16), np.float32)
+    w[0] = 1.0
+    n = np.zeros((3, 16, 16), np.float32)
+    n[2] = 1.0
+    gen.texel_pose.set_weights(w, [-1, 0, 1], n)
+    gen.shadows.set_geometry(np.array([[0, 0, 0], [0, 0.3, 0], [0, 0.6, 0]], np.float32), [-1, 0, 1],
+                             np.random.default_rng(0).normal(size=(3, 16, 16)).astype(np.float32) * 0.2)
+    with torch.no_grad():
+        gen.lights.directions.normal_()
+    wrapper = AvhFromAngles(gen).eval()
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        export_onnx(wrapper, Path(tmp) / "m.onnx", 9)
+        assert verify_onnx(wrapper, Path(tmp) / "m.onnx", 9, batch=3) <= 1e-4
+    with pytest.raises(ValueError, match="shading_shadows"):
+        AvhConfig(4, 16, resolution=16, shading_shadows=True)

@@ -7,12 +7,13 @@ texel) has to learn, from the world normal alone, both the light and what each t
 training frames already holds (the decoders' output bias is the mean *lit* texture). This head has
 the light's shape instead::
 
-    L(texel) = a(texel) + Σ_k b_k(texel) · max(0, n(texel) · v_k)          (B, 1, R, R)
+    L(texel) = a(texel) + Σ_k b_k(texel) · max(0, n(texel) · v_k) [· vis_k(texel)]   (B, 1, R, R)
 
 ``n``: the texel's posed normal in the capture's world (channels 6:9 of the texel pose map,
 :mod:`uvatar.avh.texel_pose`); ``v_k``: K learned light vectors (direction × intensity, shared by all
 texels); ``a``: a per-texel ambient (occlusion) level; ``b_k``: a per-texel share of light k (what
-the body's own shape shadows in every pose). It starts at ``a = 1``, ``b = 1`` and tiny ``v``, so a
+the body's own shape shadows in every pose); ``vis_k``: optionally, whether the other limbs block
+light k in this pose (:mod:`uvatar.avh.shadows`). It starts at ``a = 1``, ``b = 1`` and tiny ``v``, so a
 new generator starts at its output bias, unlit. The texture becomes ``decoder output × L`` (and the
 MLP head's ``exp(s)``): an albedo-like map times the light, as the light entered the capture.
 ONNX ops: Conv (1×1), Relu, Mul, ReduceSum, Add, Clip.
@@ -46,16 +47,20 @@ class LightRig(nn.Module):
         self.ambient = nn.Parameter(torch.ones(1, 1, resolution, resolution))
         self.share = nn.Parameter(torch.ones(1, lights, resolution, resolution))
 
-    def forward(self, normals: torch.Tensor) -> torch.Tensor:
+    def forward(self, normals: torch.Tensor, visibility: torch.Tensor | None = None) -> torch.Tensor:
+        """``visibility``: (B, K, R, R) of each light at each texel (:mod:`uvatar.avh.shadows`), or None."""
         lit = torch.relu(nn.functional.conv2d(normals, self.directions))          # (B, K, R, R)
+        if visibility is not None:
+            lit = lit * visibility
         light = self.ambient + (self.share * lit).sum(1, keepdim=True)
         return torch.clamp(light, min=MIN_LIGHT)
 
-    def reference(self, normals: torch.Tensor) -> torch.Tensor:
+    def reference(self, normals: torch.Tensor, visibility: torch.Tensor | None = None) -> torch.Tensor:
         """The same factor written per light as a plain sum (the twin tests compare against)."""
         v = self.directions.reshape(-1, 3)
         light = self.ambient.expand(normals.shape[0], 1, *normals.shape[-2:]).clone()
         for k in range(v.shape[0]):
             dot = (normals * v[k].reshape(1, 3, 1, 1)).sum(1, keepdim=True)
-            light = light + self.share[:, k:k + 1] * torch.clamp(dot, min=0.0)
+            vis = 1.0 if visibility is None else visibility[:, k:k + 1]
+            light = light + self.share[:, k:k + 1] * torch.clamp(dot, min=0.0) * vis
         return torch.clamp(light, min=MIN_LIGHT)

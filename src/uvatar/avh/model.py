@@ -47,6 +47,7 @@ import torch
 from torch import nn
 
 from uvatar.avh.lights import LightRig
+from uvatar.avh.shadows import BodyShadows
 from uvatar.avh.texel_pose import TexelPoseMap, pooled
 
 #: Pose conditioning of the decoders: the paper's global latent only, or also a texel-aligned pose map.
@@ -90,6 +91,8 @@ class AvhConfig:
     shading_hidden: channels of the shading head's two hidden 1×1 convs (texel + studio only).
     shading_lights: learned lights of the light-rig head (texel + studio only; 0: none, the MLP shading
         head alone): texture × (per-texel ambient + Σ per-texel share · max(0, n·v_k)), :mod:`uvatar.avh.lights`.
+    shading_shadows: with the light rig, each light is also blocked by the posed limbs (soft cast
+        shadows of spheres along the skeleton, :mod:`uvatar.avh.shadows`).
     """
 
     feature_size: int = 32
@@ -104,6 +107,7 @@ class AvhConfig:
     orientation: str = "body"
     shading_hidden: int = 16
     shading_lights: int = 0
+    shading_shadows: bool = False
 
     def __post_init__(self):
         ratio = self.resolution / self.feature_size
@@ -112,6 +116,8 @@ class AvhConfig:
                              f"times a power of two")
         if self.shading_lights < 0:
             raise ValueError(f"shading_lights must be >= 0, got {self.shading_lights}")
+        if self.shading_shadows and not self.shading_lights:
+            raise ValueError("shading_shadows needs shading_lights >= 1 (the lights that cast them)")
         if self.latent < 1 or self.num_pose_joints < 1 or self.hidden < 1:
             raise ValueError("latent, num_pose_joints and hidden must be positive")
         if self.conditioning not in CONDITIONINGS:
@@ -296,6 +302,8 @@ class AvhGenerator(nn.Module):
         self.shading = shading_head(config) if config.shading else None
         self.lights = (LightRig(config.shading_lights, config.resolution)
                        if config.shading and config.shading_lights else None)
+        self.shadows = (BodyShadows(config.num_pose_joints, config.resolution)
+                        if self.lights is not None and config.shading_shadows else None)
 
     def cuboid(self, pose_encoded: torch.Tensor) -> torch.Tensor:
         """(B, 6·J_c) -> feature cuboid (B, latent, f_c, f_c)."""
@@ -318,7 +326,11 @@ class AvhGenerator(nn.Module):
         if self.shading is not None:
             shade = torch.exp(self.shading(pose_map))
             if self.lights is not None:
-                shade = shade * self.lights(pose_map[:, 6:9])
+                vis = None
+                if self.shadows is not None:
+                    world = self.texel_pose.world_rotations(pose_angles.reshape(pose_angles.shape[0], -1, 3))
+                    vis = self.shadows(world, self.texel_pose.weights, self.lights.directions.reshape(-1, 3))
+                shade = shade * self.lights(pose_map[:, 6:9], vis)
             texture = torch.clamp(texture * shade, 0.0, 1.0)
         displacement = torch.tanh(self.displacement_decoder(cub, pose_map)) * self.config.displacement_scale
         return texture, displacement
@@ -367,6 +379,8 @@ def expected_parameter_count(config: AvhConfig) -> int:
         shading = (config.texel_channels + 1) * h + (h + 1) * h + h + 1
         if config.shading_lights:
             shading += 3 * config.shading_lights + (1 + config.shading_lights) * config.resolution ** 2
+            if config.shading_shadows:
+                shading += 2 * config.num_pose_joints
     return n + 2 * dec + shading
 
 

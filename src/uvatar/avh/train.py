@@ -318,6 +318,12 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
         model.texel_pose.set_weights(texel_skin_weights(body.template, cond, R),
                                      conditioning_parents(body.template.joint_parents, cond),
                                      texel_rest_normals(body.template, R))
+        if model.shadows is not None:
+            from uvatar.avh.shadows import texel_rest_points
+
+            model.shadows.set_geometry(np.asarray(body.template.rest_joints, np.float32)[cond],
+                                       conditioning_parents(body.template.joint_parents, cond),
+                                       texel_rest_points(body.template, R))
     model = model.to(device)
     use_cuda = device.type == "cuda"
     if use_cuda:
