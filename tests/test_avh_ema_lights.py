@@ -111,7 +111,7 @@ def test_generator_with_lights_counts_multiplies_and_exports(tmp_path):
 
     gen = _studio_generator(2)
     assert count_parameters(gen) == expected_parameter_count(gen.config)
-    assert count_parameters(gen) - count_parameters(_studio_generator(0)) == 3 * 2 + 3 * 16 * 16
+    assert count_parameters(gen) - count_parameters(_studio_generator(0)) == 3 * 2 + 3 * 16 * 16 + 1
     a = torch.zeros(2, 9)
     a[1, 1] = np.pi / 2  # the second frame's root (joint 0) turned a quarter about +Y: its normals face +X
     with torch.no_grad():
@@ -166,6 +166,16 @@ def test_shadows_known_answer_and_rotation():
     with torch.no_grad():
         turned = sh(turn, weights, torch.tensor([[0.0, 0.0, 1.0]]))[0, 0]
     assert turned[0, 0] > 0.999 and turned[0, 1] == pytest.approx(1 - blocked, abs=1e-4)
+    # the limbs' occlusion of the ambient: a texel facing +Z at (0, 0.5, -1) sees the bone's three spheres
+    # ahead; one facing +Z at (0, 0.5, 1) has them all behind it
+    normals = torch.zeros(1, 3, 2, 2)
+    normals[0, 2] = 1.0
+    with torch.no_grad():
+        ambient = sh(eye, weights, torch.tensor([[0.0, 0.0, 1.0]]), normals)[0, 1]
+    r2 = 0.05 ** 2
+    mid = r2 / (1 + r2)                                # the midpoint sphere, straight ahead at 1 m
+    ends = 2 * r2 / (1.25 + r2) * (1 / np.sqrt(1.25))  # the two joints, at (0, ±0.5, 1) from it
+    assert ambient[0, 0] == pytest.approx(1 - mid - ends, abs=1e-5) and ambient[0, 1] == pytest.approx(1.0)
 
 
 def test_shadows_twin_on_a_random_skeleton():
@@ -181,8 +191,12 @@ def test_shadows_twin_on_a_random_skeleton():
     weights = torch.softmax(torch.randn(3, 16), 0)
     world = rotvec_to_rotmat(torch.randn(2, 3, 3))
     dirs = torch.randn(2, 3)
+    normals = torch.nn.functional.normalize(torch.randn(2, 3, 4, 4), dim=1)
     with torch.no_grad():
         torch.testing.assert_close(sh(world, weights, dirs), sh.reference(world, weights, dirs), rtol=1e-5, atol=1e-5)
+        both = sh(world, weights, dirs, normals)
+        torch.testing.assert_close(both, sh.reference(world, weights, dirs, normals), rtol=1e-5, atol=1e-5)
+    assert both.shape == (2, 3, 4, 4) and both[:, 2].min() < 1 and both.min() >= 0
     with pytest.raises(ValueError, match="parents"):
         sh.set_geometry(np.zeros((3, 3)), [1, 2, 0], np.zeros((3, 4, 4)))
 
@@ -192,7 +206,7 @@ def test_generator_with_shadows_exports():
     from uvatar.avh.shadows import texel_rest_points  # noqa: F401 - the trainer's source of rest points
 
     cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=3, conditioning="texel", orientation="studio",
-                    shading_lights=2, shading_shadows=True)
+                    shading_lights=2, shading_shadows=True, shading_occlusion=True)
     gen = AvhGenerator(cfg)
     assert count_parameters(gen) == expected_parameter_count(cfg)
     w = np.zeros((3, 16, 16), np.float32)
@@ -204,6 +218,7 @@ def test_generator_with_shadows_exports():
                              np.random.default_rng(0).normal(size=(3, 16, 16)).astype(np.float32) * 0.2)
     with torch.no_grad():
         gen.lights.directions.normal_()
+        gen.lights.occlusion.fill_(0.7)
     wrapper = AvhFromAngles(gen).eval()
     import tempfile
     from pathlib import Path
@@ -213,3 +228,5 @@ def test_generator_with_shadows_exports():
         assert verify_onnx(wrapper, Path(tmp) / "m.onnx", 9, batch=3) <= 1e-4
     with pytest.raises(ValueError, match="shading_shadows"):
         AvhConfig(4, 16, resolution=16, shading_shadows=True)
+    with pytest.raises(ValueError, match="shading_occlusion"):
+        AvhConfig(4, 16, resolution=16, shading_lights=1, shading_occlusion=True)

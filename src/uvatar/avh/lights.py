@@ -46,19 +46,29 @@ class LightRig(nn.Module):
         self.directions = nn.Parameter((init_scale * dirs).reshape(lights, 3, 1, 1))
         self.ambient = nn.Parameter(torch.ones(1, 1, resolution, resolution))
         self.share = nn.Parameter(torch.ones(1, lights, resolution, resolution))
+        # how much of the ambient the limbs' occlusion takes away (0 at start; used when the visibility
+        # passed to forward has the ambient channel)
+        self.occlusion = nn.Parameter(torch.zeros(()))
 
     def forward(self, normals: torch.Tensor, visibility: torch.Tensor | None = None) -> torch.Tensor:
-        """``visibility``: (B, K, R, R) of each light at each texel (:mod:`uvatar.avh.shadows`), or None."""
+        """``visibility``: (B, K, R, R) of each light at each texel (:mod:`uvatar.avh.shadows`), or None;
+        (B, K + 1, R, R): also the ambient the limbs leave, the ambient becomes a · (1 + o · (that − 1))."""
         lit = torch.relu(nn.functional.conv2d(normals, self.directions))          # (B, K, R, R)
+        ambient = self.ambient
         if visibility is not None:
-            lit = lit * visibility
-        light = self.ambient + (self.share * lit).sum(1, keepdim=True)
+            K = lit.shape[1]
+            if visibility.shape[1] > K:
+                ambient = ambient * (1.0 + self.occlusion * (visibility[:, K:K + 1] - 1.0))
+            lit = lit * visibility[:, :K]
+        light = ambient + (self.share * lit).sum(1, keepdim=True)
         return torch.clamp(light, min=MIN_LIGHT)
 
     def reference(self, normals: torch.Tensor, visibility: torch.Tensor | None = None) -> torch.Tensor:
         """The same factor written per light as a plain sum (the twin tests compare against)."""
         v = self.directions.reshape(-1, 3)
         light = self.ambient.expand(normals.shape[0], 1, *normals.shape[-2:]).clone()
+        if visibility is not None and visibility.shape[1] > v.shape[0]:
+            light = light * (1.0 + self.occlusion * (visibility[:, -1:] - 1.0))
         for k in range(v.shape[0]):
             dot = (normals * v[k].reshape(1, 3, 1, 1)).sum(1, keepdim=True)
             vis = 1.0 if visibility is None else visibility[:, k:k + 1]

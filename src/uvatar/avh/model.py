@@ -93,6 +93,8 @@ class AvhConfig:
         head alone): texture × (per-texel ambient + Σ per-texel share · max(0, n·v_k)), :mod:`uvatar.avh.lights`.
     shading_shadows: with the light rig, each light is also blocked by the posed limbs (soft cast
         shadows of spheres along the skeleton, :mod:`uvatar.avh.shadows`).
+    shading_occlusion: with the shadows, the rig's ambient is also dimmed by the limbs' occlusion (each
+        sphere's cosine-weighted solid angle seen from the texel).
     """
 
     feature_size: int = 32
@@ -108,6 +110,7 @@ class AvhConfig:
     shading_hidden: int = 16
     shading_lights: int = 0
     shading_shadows: bool = False
+    shading_occlusion: bool = False
 
     def __post_init__(self):
         ratio = self.resolution / self.feature_size
@@ -118,6 +121,8 @@ class AvhConfig:
             raise ValueError(f"shading_lights must be >= 0, got {self.shading_lights}")
         if self.shading_shadows and not self.shading_lights:
             raise ValueError("shading_shadows needs shading_lights >= 1 (the lights that cast them)")
+        if self.shading_occlusion and not self.shading_shadows:
+            raise ValueError("shading_occlusion needs shading_shadows (the limbs that occlude)")
         if self.latent < 1 or self.num_pose_joints < 1 or self.hidden < 1:
             raise ValueError("latent, num_pose_joints and hidden must be positive")
         if self.conditioning not in CONDITIONINGS:
@@ -329,7 +334,8 @@ class AvhGenerator(nn.Module):
                 vis = None
                 if self.shadows is not None:
                     world = self.texel_pose.world_rotations(pose_angles.reshape(pose_angles.shape[0], -1, 3))
-                    vis = self.shadows(world, self.texel_pose.weights, self.lights.directions.reshape(-1, 3))
+                    vis = self.shadows(world, self.texel_pose.weights, self.lights.directions.reshape(-1, 3),
+                                       pose_map[:, 6:9] if self.config.shading_occlusion else None)
                 shade = shade * self.lights(pose_map[:, 6:9], vis)
             texture = torch.clamp(texture * shade, 0.0, 1.0)
         displacement = torch.tanh(self.displacement_decoder(cub, pose_map)) * self.config.displacement_scale
@@ -378,7 +384,7 @@ def expected_parameter_count(config: AvhConfig) -> int:
         h = config.shading_hidden
         shading = (config.texel_channels + 1) * h + (h + 1) * h + h + 1
         if config.shading_lights:
-            shading += 3 * config.shading_lights + (1 + config.shading_lights) * config.resolution ** 2
+            shading += 3 * config.shading_lights + (1 + config.shading_lights) * config.resolution ** 2 + 1
             if config.shading_shadows:
                 shading += 2 * config.num_pose_joints
     return n + 2 * dec + shading

@@ -114,7 +114,11 @@ class BodyShadows(nn.Module):
         radius = torch.exp(self.log_radius)
         return torch.cat([joints, mids], 1), torch.cat([radius[:joints.shape[1]], radius[joints.shape[1]:][children]])
 
-    def forward(self, world: torch.Tensor, weights: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+    def forward(self, world: torch.Tensor, weights: torch.Tensor, directions: torch.Tensor,
+                normals: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, K, R, R) visibility of each light; with ``normals`` (B, 3, R, R) the texels' posed world
+        normals, a last channel: the ambient light the limbs leave, ``1 − Σ_s r_s² / (|w|² + r_s²) ·
+        max(0, n·w) / |w|`` (each sphere's cosine-weighted solid angle, clamped to [0, 1])."""
         B, r = world.shape[0], self.shadow_resolution
         joints, points = self.joints_and_points(world, weights)
         centres, radius = self.spheres(joints)
@@ -126,10 +130,18 @@ class BodyShadows(nn.Module):
         blocked = torch.sigmoid((radius[None, :, None, None] - off) / SHADOW_SOFTNESS) * \
             torch.sigmoid(along / SHADOW_SOFTNESS)
         vis = torch.prod(1.0 - blocked, 1).reshape(B, -1, r, r)
+        if normals is not None:
+            n = self._pooled(normals).reshape(B, 1, 3, -1)
+            dist2 = (w * w).sum(2)                                                          # (B, S, r²)
+            r2 = (radius * radius)[None, :, None]
+            facing = torch.relu((n * w).sum(2)) / torch.sqrt(dist2 + 1e-8)
+            ambient = torch.clamp(1.0 - (r2 / (dist2 + r2) * facing).sum(1), 0.0, 1.0)
+            vis = torch.cat([vis, ambient.reshape(B, 1, r, r)], 1)
         return vis if r == self.resolution else F.interpolate(vis, size=(self.resolution, self.resolution),
                                                                 mode="bilinear", align_corners=False)
 
-    def reference(self, world: torch.Tensor, weights: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+    def reference(self, world: torch.Tensor, weights: torch.Tensor, directions: torch.Tensor,
+                  normals: torch.Tensor | None = None) -> torch.Tensor:
         """The same visibility a light, a sphere and a texel at a time (the twin tests compare against)."""
         joints, points = self.joints_and_points(world, weights)
         centres, radius = self.spheres(joints)
@@ -145,5 +157,15 @@ class BodyShadows(nn.Module):
                         off = (w - along * light).norm()
                         out[b, k, i] *= 1 - torch.sigmoid((radius[s] - off) / SHADOW_SOFTNESS) * torch.sigmoid(
                             along / SHADOW_SOFTNESS)
-        out = out.reshape(B, K, self.shadow_resolution, self.shadow_resolution)
+        if normals is not None:
+            n = self._pooled(normals).reshape(B, 3, -1)
+            amb = torch.ones(B, 1, points.shape[-1])
+            for b in range(B):
+                for i in range(points.shape[-1]):
+                    for s in range(centres.shape[1]):
+                        w = centres[b, s] - points[b, :, i]
+                        d = w.norm()
+                        amb[b, 0, i] -= radius[s] ** 2 / (d * d + radius[s] ** 2) * max(float(n[b, :, i] @ w), 0.0) / d
+            out = torch.cat([out, amb.clamp(0, 1)], 1)
+        out = out.reshape(B, -1, self.shadow_resolution, self.shadow_resolution)
         return F.interpolate(out, size=(self.resolution, self.resolution), mode="bilinear", align_corners=False)

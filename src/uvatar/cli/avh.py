@@ -34,7 +34,8 @@ def _flags() -> dict[str, ConfigFlags]:
     from uvatar.avh.train import TrainConfig
 
     return {
-        "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning", "orientation", "shading_lights"),
+        "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning", "orientation", "shading_lights",
+                                                         "shading_shadows", "shading_occlusion"),
                              rename={"resolution": "texels"}, presets=PRESETS,
                              choices={"conditioning": CONDITIONINGS, "orientation": ORIENTATIONS},
                              help={"resolution": "output resolution",
@@ -46,7 +47,11 @@ def _flags() -> dict[str, ConfigFlags]:
                                                   "the texture; with --conditioning texel also each texel's world "
                                                   "normal and a shading head)",
                                    "shading_lights": "learned lights of the light-rig shading head (--conditioning "
-                                                     "texel --orientation studio; 0: the MLP shading head alone)"}),
+                                                     "texel --orientation studio; 0: the MLP shading head alone)",
+                                   "shading_shadows": "the light rig's lights are also blocked by the posed limbs "
+                                                      "(soft cast shadows; needs --shading-lights)",
+                                   "shading_occlusion": "the light rig's ambient is also dimmed by the posed limbs' "
+                                                        "occlusion (needs --shading-shadows)"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
                                  "pose_noise", "shading_lr_scale", "ema_decay", "device", "seed", "tensorboard"),
