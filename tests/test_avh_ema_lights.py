@@ -10,7 +10,13 @@ from torch import nn
 
 from uvatar.avh.ema import WeightAverage, ema_decay_at
 from uvatar.avh.lights import MIN_LIGHT, LightRig
-from uvatar.avh.model import AvhConfig, AvhFromAngles, AvhGenerator, count_parameters, expected_parameter_count
+from uvatar.avh.model import (
+    AvhConfig,
+    AvhFromAngles,
+    AvhGenerator,
+    count_parameters,
+    expected_parameter_count,
+)
 
 
 def test_ema_equals_the_hand_computed_average():
@@ -230,3 +236,37 @@ def test_generator_with_shadows_exports():
         AvhConfig(4, 16, resolution=16, shading_shadows=True)
     with pytest.raises(ValueError, match="shading_occlusion"):
         AvhConfig(4, 16, resolution=16, shading_lights=1, shading_occlusion=True)
+
+
+def test_training_exports_the_moving_average_and_resumes_it(tmp_path):
+    from tests.fixtures.toy_capture import make_toy_capture
+    from uvatar.avh.export import export_avatar
+    from uvatar.avh.train import TrainConfig, load_trained_generator, train_avh
+    from uvatar.body.toy import ToyTubeBody
+
+    body = ToyTubeBody()
+    _, baked = make_toy_capture(tmp_path, body, num_frames=6, heldout=1, resolution=16)
+    model = AvhConfig(4, 16, resolution=16, conditioning="texel", orientation="studio", shading_lights=2,
+                      shading_shadows=True, shading_occlusion=True)
+    cfg = TrainConfig(epochs=2, batch_size=2, progress=False, tensorboard=False, ema_decay=0.9)
+    train_avh(baked, tmp_path / "run", model, cfg, body=body)
+    ckpt = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    saved = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
+    steps = len(ckpt["history"][0]["step_loss"])  # optimizer steps per epoch
+    assert ckpt["ema"]["steps"] == 2 * steps and saved["ema_decay"] == 0.9
+    for k, v in ckpt["ema"]["model"].items():
+        assert torch.equal(saved["model"][k], v)  # model.pt holds the average, not the last step
+    moved = [k for k, v in ckpt["model"].items() if v.is_floating_point() and not torch.equal(v, saved["model"][k])]
+    assert moved, "the average differs from the last step's weights"
+    gen, _ = load_trained_generator(tmp_path / "run")
+    assert gen.shadows is not None and gen.shadows.rest_points.abs().sum() > 0
+    train_avh(baked, tmp_path / "run", model, replace_epochs(cfg, 3), resume=True, body=body)
+    assert torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["ema"]["steps"] == 3 * steps
+    meta = export_avatar(tmp_path / "run", tmp_path / "avatar", body=body)
+    assert meta["onnx_max_abs_diff"] <= 1e-4
+
+
+def replace_epochs(cfg, epochs):
+    from dataclasses import replace
+
+    return replace(cfg, epochs=epochs)
