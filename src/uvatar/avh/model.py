@@ -31,11 +31,15 @@ body faces them. The global MLP sees it like any angle; with texel conditioning 
 carries each texel's posed normal in that world, and a **shading head** (per-texel 1×1 convs over the
 texel map, last layer zero at start) multiplies the texture by ``exp(s)``: texture = albedo-like
 decoder output × shading, the way the light entered the capture. Without it (``"body"``, the paper)
-the generator cannot tell a body lit from the front from one lit from behind.
+the generator cannot tell a body lit from the front from one lit from behind. ``shading_lights`` adds a
+learned light rig to the shading head (:mod:`uvatar.avh.lights`: per-texel ambient + learned lights ×
+max(0, n·l)), ``shading_shadows`` / ``shading_occlusion`` the posed limbs' cast shadows and occlusion
+for it (:mod:`uvatar.avh.shadows`).
 
 Maps are BCHW float32; image row 0 is v = 1 (UV v up), the layout of the baked maps. Only
 ONNX-portable ops are used (Linear, Mul, ConvTranspose, Conv, BatchNorm, Relu, Tanh, Sin, Cos;
-texel conditioning adds Sqrt, MatMul, AveragePool; the shading head Exp and Clip).
+texel conditioning adds Sqrt, MatMul, AveragePool; the shading head Exp and Clip; the shadows Sigmoid,
+ReduceProd and Resize).
 """
 
 from __future__ import annotations
