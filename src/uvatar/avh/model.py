@@ -31,11 +31,15 @@ body faces them. The global MLP sees it like any angle; with texel conditioning 
 carries each texel's posed normal in that world, and a **shading head** (per-texel 1×1 convs over the
 texel map, last layer zero at start) multiplies the texture by ``exp(s)``: texture = albedo-like
 decoder output × shading, the way the light entered the capture. Without it (``"body"``, the paper)
-the generator cannot tell a body lit from the front from one lit from behind.
+the generator cannot tell a body lit from the front from one lit from behind. ``shading_lights`` adds a
+learned light rig to the shading head (:mod:`uvatar.avh.lights`: per-texel ambient + learned lights ×
+max(0, n·l)), ``shading_shadows`` / ``shading_occlusion`` the posed limbs' cast shadows and occlusion
+for it (:mod:`uvatar.avh.shadows`).
 
 Maps are BCHW float32; image row 0 is v = 1 (UV v up), the layout of the baked maps. Only
 ONNX-portable ops are used (Linear, Mul, ConvTranspose, Conv, BatchNorm, Relu, Tanh, Sin, Cos;
-texel conditioning adds Sqrt, MatMul, AveragePool; the shading head Exp and Clip).
+texel conditioning adds Sqrt, MatMul, AveragePool; the shading head Exp and Clip; the shadows Sigmoid,
+ReduceProd and Resize).
 """
 
 from __future__ import annotations
@@ -46,6 +50,8 @@ from dataclasses import asdict, dataclass, replace
 import torch
 from torch import nn
 
+from uvatar.avh.lights import LightRig
+from uvatar.avh.shadows import BodyShadows
 from uvatar.avh.texel_pose import TexelPoseMap, pooled
 
 #: Pose conditioning of the decoders: the paper's global latent only, or also a texel-aligned pose map.
@@ -87,6 +93,12 @@ class AvhConfig:
         joint is the root and carries the body's orientation Rh in the capture's world; with texel
         conditioning also the texel's world normal and the shading head).
     shading_hidden: channels of the shading head's two hidden 1×1 convs (texel + studio only).
+    shading_lights: learned lights of the light-rig head (texel + studio only; 0: none, the MLP shading
+        head alone): texture × (per-texel ambient + Σ per-texel share · max(0, n·v_k)), :mod:`uvatar.avh.lights`.
+    shading_shadows: with the light rig, each light is also blocked by the posed limbs (soft cast
+        shadows of spheres along the skeleton, :mod:`uvatar.avh.shadows`).
+    shading_occlusion: with the shadows, the rig's ambient is also dimmed by the limbs' occlusion (each
+        sphere's cosine-weighted solid angle seen from the texel).
     """
 
     feature_size: int = 32
@@ -100,12 +112,21 @@ class AvhConfig:
     conditioning: str = "global"
     orientation: str = "body"
     shading_hidden: int = 16
+    shading_lights: int = 0
+    shading_shadows: bool = False
+    shading_occlusion: bool = False
 
     def __post_init__(self):
         ratio = self.resolution / self.feature_size
         if self.feature_size < 1 or self.resolution < self.feature_size or ratio != 2 ** round(math.log2(ratio)):
             raise ValueError(f"resolution {self.resolution} must be feature_size {self.feature_size} "
                              f"times a power of two")
+        if self.shading_lights < 0:
+            raise ValueError(f"shading_lights must be >= 0, got {self.shading_lights}")
+        if self.shading_shadows and not self.shading_lights:
+            raise ValueError("shading_shadows needs shading_lights >= 1 (the lights that cast them)")
+        if self.shading_occlusion and not self.shading_shadows:
+            raise ValueError("shading_occlusion needs shading_shadows (the limbs that occlude)")
         if self.latent < 1 or self.num_pose_joints < 1 or self.hidden < 1:
             raise ValueError("latent, num_pose_joints and hidden must be positive")
         if self.conditioning not in CONDITIONINGS:
@@ -288,6 +309,10 @@ class AvhGenerator(nn.Module):
                                         world_normals=config.orientation == "studio")
                            if config.conditioning == "texel" else None)
         self.shading = shading_head(config) if config.shading else None
+        self.lights = (LightRig(config.shading_lights, config.resolution)
+                       if config.shading and config.shading_lights else None)
+        self.shadows = (BodyShadows(config.num_pose_joints, config.resolution)
+                        if self.lights is not None and config.shading_shadows else None)
 
     def cuboid(self, pose_encoded: torch.Tensor) -> torch.Tensor:
         """(B, 6·J_c) -> feature cuboid (B, latent, f_c, f_c)."""
@@ -308,7 +333,15 @@ class AvhGenerator(nn.Module):
         cub = self.cuboid(pose_encoded)
         texture = (torch.tanh(self.texture_decoder(cub, pose_map)) + 1.0) * 0.5
         if self.shading is not None:
-            texture = torch.clamp(texture * torch.exp(self.shading(pose_map)), 0.0, 1.0)
+            shade = torch.exp(self.shading(pose_map))
+            if self.lights is not None:
+                vis = None
+                if self.shadows is not None:
+                    world = self.texel_pose.world_rotations(pose_angles.reshape(pose_angles.shape[0], -1, 3))
+                    vis = self.shadows(world, self.texel_pose.weights, self.lights.directions.reshape(-1, 3),
+                                       pose_map[:, 6:9] if self.config.shading_occlusion else None)
+                shade = shade * self.lights(pose_map[:, 6:9], vis)
+            texture = torch.clamp(texture * shade, 0.0, 1.0)
         displacement = torch.tanh(self.displacement_decoder(cub, pose_map)) * self.config.displacement_scale
         return texture, displacement
 
@@ -354,6 +387,10 @@ def expected_parameter_count(config: AvhConfig) -> int:
     if config.shading:
         h = config.shading_hidden
         shading = (config.texel_channels + 1) * h + (h + 1) * h + h + 1
+        if config.shading_lights:
+            shading += 3 * config.shading_lights + (1 + config.shading_lights) * config.resolution ** 2 + 1
+            if config.shading_shadows:
+                shading += 2 * config.num_pose_joints
     return n + 2 * dec + shading
 
 

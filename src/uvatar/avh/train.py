@@ -10,7 +10,8 @@ Run folder layout::
     RUN/run.json        model config, train config, baked path, body model + shape, conditioning joints,
                         train/val frames, parameter count
     RUN/checkpoint.pt   latest epoch (model, optimizer, scheduler, history); written atomically each epoch
-    RUN/model.pt        weights of the latest epoch + config (what `uvatar export` reads)
+    RUN/model.pt        weights of the latest epoch (their moving average with ``ema_decay``) + config
+                        (what `uvatar export` reads)
     RUN/history.json    per-epoch losses
     RUN/done.json       summary written when all epochs are done
     RUN/tb/             TensorBoard scalars (loss, lr) and preview images
@@ -30,6 +31,7 @@ import torch
 from uvatar.avh.bake.dataset import read_dataset_info
 from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, selection
 from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES, DISPLACEMENT_SPACES, displacements_to_frame
+from uvatar.avh.ema import WeightAverage
 from uvatar.avh.loss import avh_loss, displacement_mask
 from uvatar.avh.model import (
     AvhConfig,
@@ -55,7 +57,9 @@ class TrainConfig:
     rotation before training; needs a body model, else falls back to "body") or "body" (as baked).
     ``shading_lr_scale``: the shading head's learning rate is ``lr`` times this (a studio-orientation
     texel generator). On the demo's lit studio 10x and 30x let the head learn more of the light (its
-    shading spread 0.05 -> 0.08) but did not lower the held-out error (docs/results.md), so it is 1."""
+    shading spread 0.05 -> 0.08) but did not lower the held-out error (docs/results.md), so it is 1.
+    ``ema_decay``: the validated, saved and exported weights are an exponential moving average of the
+    trained ones with this decay per step (:mod:`uvatar.avh.ema`); 0: the last step's weights."""
 
     epochs: int = 500
     batch_size: int = 8
@@ -69,6 +73,7 @@ class TrainConfig:
     displacement_frame: str = "rest"
     pose_noise: float = 0.0
     shading_lr_scale: float = 1.0
+    ema_decay: float = 0.0
     tensorboard: bool = True
     progress: bool = True
 
@@ -79,6 +84,7 @@ class TrainConfig:
                   (0 < self.lr_gamma <= 1, f"learning-rate decay gamma must be in (0, 1], got {self.lr_gamma}"),
                   (self.displacement_weight >= 0, f"displacement weight must be >= 0, got {self.displacement_weight}"),
                   (self.pose_noise >= 0, f"pose noise must be >= 0, got {self.pose_noise}"),
+                  (0 <= self.ema_decay < 1, f"ema decay must be in [0, 1), got {self.ema_decay}"),
                   (self.shading_lr_scale > 0, f"shading learning-rate scale must be > 0, got {self.shading_lr_scale}"),
                   (self.displacement_frame in DISPLACEMENT_FRAMES,
                    f"displacement frame must be one of {DISPLACEMENT_FRAMES}, got {self.displacement_frame!r}")]
@@ -312,6 +318,12 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
         model.texel_pose.set_weights(texel_skin_weights(body.template, cond, R),
                                      conditioning_parents(body.template.joint_parents, cond),
                                      texel_rest_normals(body.template, R))
+        if model.shadows is not None:
+            from uvatar.avh.shadows import texel_rest_points
+
+            model.shadows.set_geometry(np.asarray(body.template.rest_joints, np.float32)[cond],
+                                       conditioning_parents(body.template.joint_parents, cond),
+                                       texel_rest_points(body.template, R))
     model = model.to(device)
     use_cuda = device.type == "cuda"
     if use_cuda:
@@ -331,6 +343,10 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
         sched.load_state_dict(state["scheduler"])
         history, start_epoch = state["history"], state["epoch"] + 1
         torch.set_rng_state(state["rng"])
+    ema = WeightAverage(model, cfg.ema_decay) if cfg.ema_decay > 0 else None
+    if ema is not None and state is not None and state.get("ema") is not None:
+        ema.load_state_dict(state["ema"])
+    averaged = model if ema is None else ema.model  # what is validated, saved to model.pt and exported
     n_params = count_parameters(model)
     net = model
     if ctx.active:
@@ -376,6 +392,8 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
             opt.zero_grad(set_to_none=True)
             (losses[0] * ctx.world).backward()  # DDP averages over the world: undo it, the terms are shares
             opt.step()
+            if ema is not None:
+                ema.update(model)
             # this rank's shares summed over the ranks: the global batch's losses, and its size
             step = all_sum(torch.stack([x.detach().float() for x in losses] + [torch.tensor(
                 float(len(idx)), device=device)])).cpu().double().numpy()
@@ -393,21 +411,24 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
             continue
         if val is not None:
             entry.update(dict(zip(("val_loss", "val_texture", "val_displacement"),
-                                  evaluate_loss(model, val, excluded, cfg), strict=True)))
+                                  evaluate_loss(averaged, val, excluded, cfg), strict=True)))
         history.append(entry)
         if writer is not None:
             for k, v in entry.items():
                 if k not in ("epoch", "step_loss"):
                     writer.add_scalar(k.replace("val_", "val/") if k.startswith("val_") else f"train/{k}", v, epoch)
             if epoch % max(cfg.preview_every, 1) == 0 or epoch == cfg.epochs - 1:
-                model.eval()
-                writer.add_image("preview/pred_tex|gt_tex|pred_d|gt_d", _preview(model, val or train), epoch)
+                averaged.eval()
+                writer.add_image("preview/pred_tex|gt_tex|pred_d|gt_d", _preview(averaged, val or train), epoch)
             writer.flush()
         model_state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+        averaged_state = {k: v.detach().cpu() for k, v in averaged.state_dict().items()}
         _save(ckpt_path, {"model": model_state, "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                           "epoch": epoch, "history": history, "rng": torch.get_rng_state(),
+                          "ema": None if ema is None else ema.state_dict(),
                           "model_config": model_config.to_dict(), "train_config": asdict(cfg)})
-        _save(run_dir / "model.pt", {"model": model_state, "model_config": model_config.to_dict(), "epoch": epoch})
+        _save(run_dir / "model.pt", {"model": averaged_state, "model_config": model_config.to_dict(), "epoch": epoch,
+                                     "ema_decay": cfg.ema_decay})
         write_json(run_dir / "history.json", history)
     bar.close()
     if writer is not None:

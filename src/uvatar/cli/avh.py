@@ -34,7 +34,8 @@ def _flags() -> dict[str, ConfigFlags]:
     from uvatar.avh.train import TrainConfig
 
     return {
-        "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning", "orientation"),
+        "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning", "orientation", "shading_lights",
+                                                         "shading_shadows", "shading_occlusion"),
                              rename={"resolution": "texels"}, presets=PRESETS,
                              choices={"conditioning": CONDITIONINGS, "orientation": ORIENTATIONS},
                              help={"resolution": "output resolution",
@@ -44,10 +45,16 @@ def _flags() -> dict[str, ConfigFlags]:
                                    "orientation": "body: the local pose only (the paper); studio: also the body's "
                                                   "orientation in the capture's world (its lights are baked into "
                                                   "the texture; with --conditioning texel also each texel's world "
-                                                  "normal and a shading head)"}),
+                                                  "normal and a shading head)",
+                                   "shading_lights": "learned lights of the light-rig shading head (--conditioning "
+                                                     "texel --orientation studio; 0: the MLP shading head alone)",
+                                   "shading_shadows": "the light rig's lights are also blocked by the posed limbs "
+                                                      "(soft cast shadows; needs --shading-lights)",
+                                   "shading_occlusion": "the light rig's ambient is also dimmed by the posed limbs' "
+                                                        "occlusion (needs --shading-shadows)"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
-                                 "pose_noise", "shading_lr_scale", "device", "seed", "tensorboard"),
+                                 "pose_noise", "shading_lr_scale", "ema_decay", "device", "seed", "tensorboard"),
             rename={"lr_gamma": "gamma"}, choices={"displacement_frame": DISPLACEMENT_FRAMES}, help={
                 "epochs": "epochs (the paper uses 500)", "batch_size": "frames per batch", "lr": "Adam learning rate",
                 "lr_gamma": "ExponentialLR decay per epoch", "displacement_weight": "weight of the displacement loss",
@@ -56,6 +63,8 @@ def _flags() -> dict[str, ConfigFlags]:
                 "pose_noise": "std (radians) of Gaussian noise added to training pose angles (augmentation)",
                 "shading_lr_scale": "the shading head's learning rate is --lr times this (--orientation studio "
                                     "with --conditioning texel)",
+                "ema_decay": "validate, save and export a moving average of the weights with this decay per "
+                             "step (0: the last step's weights)",
                 "device": "cpu or cuda (bf16 autocast + channels_last)", "seed": "random seed",
                 "tensorboard": "write TensorBoard logs to OUT/tb"}),
         "animate": ConfigFlags(

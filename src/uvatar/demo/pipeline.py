@@ -49,6 +49,13 @@ class DemoConfig:
     # what the generators' pose input holds (AvhConfig.orientation): "studio" adds the body's orientation in
     # the capture's world, since the synthetic studio's light rig is fixed in it (SynthConfig.light)
     orientation: str = "studio"
+    # the texel + studio generator's light-rig shading head and its cast shadows / occlusion from the posed
+    # limbs (AvhConfig.shading_lights / shading_shadows / shading_occlusion; docs/results.md, issue #24)
+    shading_lights: int = 2
+    shading_shadows: bool = True
+    shading_occlusion: bool = True
+    # the exported weights are their moving average (TrainConfig.ema_decay): lower validation loss
+    ema_decay: float = 0.99
     epochs: int = 40
     animate_frames: int = 48
     animate_size: int = 256
@@ -65,6 +72,10 @@ class DemoConfig:
                       (self.orientation in ORIENTATIONS,
                        f"orientation must be one of {', '.join(ORIENTATIONS)}, got {self.orientation!r}"),
                       (self.epochs >= 1, f"epochs must be at least 1, got {self.epochs}"),
+                      (self.shading_lights >= 0, f"shading_lights must be >= 0, got {self.shading_lights}"),
+                      (not self.shading_shadows or self.shading_lights >= 1, "shading_shadows needs shading_lights >= 1"),
+                      (not self.shading_occlusion or self.shading_shadows, "shading_occlusion needs shading_shadows"),
+                      (0 <= self.ema_decay < 1, f"ema_decay must be in [0, 1), got {self.ema_decay}"),
                       (len(self.conditionings) >= 1 and len(set(self.conditionings)) == len(self.conditionings)
                        and set(self.conditionings) <= set(CONDITIONINGS),
                        f"conditionings must be distinct values of {', '.join(CONDITIONINGS)}, "
@@ -160,8 +171,11 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         from uvatar.avh.train import TrainConfig, train_avh
 
         for conditioning, (run_dir, _) in run_dirs(out, cfg).items():
-            train_avh(baked, run_dir, preset(cfg.preset, conditioning=conditioning, orientation=cfg.orientation),
-                      TrainConfig(epochs=cfg.epochs), resume=True, preset_name=cfg.preset)
+            model = preset(cfg.preset, conditioning=conditioning, orientation=cfg.orientation,
+                           shading_lights=cfg.shading_lights, shading_shadows=cfg.shading_shadows,
+                           shading_occlusion=cfg.shading_occlusion)
+            train_avh(baked, run_dir, model, TrainConfig(epochs=cfg.epochs, ema_decay=cfg.ema_decay), resume=True,
+                      preset_name=cfg.preset)
 
     def export() -> None:
         from uvatar.avh.export import export_avatar
