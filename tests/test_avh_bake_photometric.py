@@ -124,3 +124,31 @@ def test_bake_refines_frames_together_and_keeps_the_reference_for_later_frames(t
         assert z["frames"].tolist()[-1] == "000004"
         np.testing.assert_array_equal(z["reference"], reference)
         np.testing.assert_array_equal(z["poses"][:4], poses)
+
+
+def test_chromaticity_is_unchanged_by_shading_and_its_gradient_is_the_quotient_rule():
+    """A white light's shading s scales r, g, b alike: the chromaticity c / sum(c) stays; its
+    gradient, against central differences of a colour field linear in the position."""
+    from uvatar.avh.bake.photometric import chromaticity
+
+    rng = np.random.default_rng(3)
+    colour = rng.uniform(0.05, 1.0, (5, 3))
+    np.testing.assert_allclose(chromaticity(0.37 * colour), chromaticity(colour), rtol=1e-12)
+    np.testing.assert_allclose(chromaticity(colour).sum(1), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(chromaticity(np.array([[0.2, 0.2, 0.6]])), [[0.2, 0.2, 0.6]])
+    grad = rng.normal(size=(5, 3, 3)) * 0.1          # d colour_c / d x_d of colour(x) = colour + grad @ x
+    _, g = chromaticity(colour, grad)
+    h = 1e-6
+    for d in range(3):
+        step = np.zeros(3)
+        step[d] = h
+        up = chromaticity(colour + grad @ step)
+        down = chromaticity(colour - grad @ step)
+        np.testing.assert_allclose(g[:, :, d], (up - down) / (2 * h), rtol=1e-6, atol=1e-8)
+
+
+def test_photometric_space_is_checked():
+    from uvatar.avh.bake.config import PoseRefineConfig
+
+    with pytest.raises(Exception, match="photometric_space"):
+        PoseRefineConfig(photometric_space="lab")

@@ -63,6 +63,7 @@ RENAMED = {
     ("bake", "refine_iterations"): "PoseRefineConfig.iterations",
     ("bake", "refine_photometric_radii"): "photometric_radii",
     ("bake", "refine_photometric_weight"): "photometric_weight",
+    ("bake", "refine_photometric_space"): "photometric_space",
     ("bake", "registration_stiffness"): "stiffness",
     ("bake", "registration_iterations"): "RegistrationConfig.iterations",
     ("bake", "registration_max_distance"): "RegistrationConfig.max_distance",

@@ -42,13 +42,17 @@ def _flags():
                       "'uvatar[kernels]')",
             "scan_cache_mb": "MB of scans each worker keeps read and prepared between the colour rounds and the "
                              "bake (0 = read every time; same results)"})
-    refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight"),
+    refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight",
+                                                    "photometric_space"),
                          prefix="refine", help={
                              "iterations": "Gauss-Newton steps of the articulated fit refinement (per round)",
                              "photometric_radii": "one colour-consistency round across frames per stencil radius "
                                                   "in metres, coarse to fine (comma-separated)",
                              "photometric_weight": "weight of the colour term against the surface distance "
-                                                   "(0 = geometry only)"})
+                                                   "(0 = geometry only)",
+                             "photometric_space": "colours compared as rgb, or as chromaticity (r, g, b over their "
+                                                  "sum: unchanged by white light and shadow; for lit captures)"},
+                         choices={"photometric_space": ("rgb", "chromaticity")})
     registration = ConfigFlags(
         RegistrationConfig, fields=("stiffness", "iterations", "max_distance", "modes", "normal_smoothing"),
         prefix="registration", help={

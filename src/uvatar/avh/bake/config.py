@@ -84,7 +84,8 @@ class PoseRefineConfig:
     its normal for the scan's colour; photometric_iterations: Gauss-Newton steps per colour round
     (None: ``iterations``); photometric_min_frames: the term runs only when at least this
     many frames are refined together, and a vertex has a reference only where this many frames saw
-    it."""
+    it. photometric_space: "rgb", or "chromaticity" (each colour divided by the sum of its channels,
+    which the shading of white lights does not change: for captures whose light turns with the body)."""
 
     iterations: int = 15
     max_distance: float = 1 / 20
@@ -101,6 +102,7 @@ class PoseRefineConfig:
     photometric_max_distance: float = 0.03
     photometric_iterations: int | None = 8
     photometric_min_frames: int = 3
+    photometric_space: str = "rgb"
 
     def __post_init__(self) -> None:
         check_values([
@@ -118,7 +120,9 @@ class PoseRefineConfig:
             (self.photometric_iterations is None or self.photometric_iterations >= 0,
              f"pose_refine photometric_iterations must be >= 0, got {self.photometric_iterations}"),
             (self.photometric_min_frames >= 2,
-             f"pose_refine photometric_min_frames must be >= 2, got {self.photometric_min_frames}")])
+             f"pose_refine photometric_min_frames must be >= 2, got {self.photometric_min_frames}"),
+            (self.photometric_space in ("rgb", "chromaticity"),
+             f"pose_refine photometric_space must be 'rgb' or 'chromaticity', got {self.photometric_space!r}")])
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,8 @@ import numpy as np
 from uvatar.avh.bake.register import ScanSurface
 from uvatar.geometry import sample_mesh_texture, tangent_basis
 
-__all__ = ["PhotoTarget", "RING_POINTS", "stencil_offsets", "surface_colours", "ray_colours", "reference_colours"]
+__all__ = ["PhotoTarget", "RING_POINTS", "stencil_offsets", "surface_colours", "ray_colours", "reference_colours",
+           "chromaticity"]
 
 RING_POINTS = 8
 
@@ -75,11 +76,12 @@ def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float
 
 
 def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, max_distance: float,
-                    min_normal_cos: float):
+                    min_normal_cos: float, space: str = "rgb"):
     """Blurred colour and its tangent-plane gradient at each point (module doc).
 
-    Returns (colour (N, 3), gradient (N, 3, 3) d colour_c / d point, ok (N,) bool: every stencil ray
-    found the scan)."""
+    space: "rgb", or "chromaticity" (:func:`chromaticity`: the colour divided by the sum of its
+    channels, which a white light's shading does not change). Returns (colour (N, 3), gradient
+    (N, 3, 3) d colour_c / d point, ok (N,) bool: every stencil ray found the scan)."""
     p = np.asarray(points, np.float64)
     offsets = stencil_offsets(normals, radius)
     # the centres and the ring in one cast: (1 + RING_POINTS, N) points
@@ -91,7 +93,24 @@ def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, 
     ok = found.reshape(RING_POINTS + 1, len(p)).all(0)
     colour = (centre + ring.sum(0)) / (RING_POINTS + 1)
     gradient = np.einsum("jnc,jnd->ncd", ring, offsets) * (2.0 / (RING_POINTS * radius ** 2))
+    if space == "chromaticity":
+        colour, gradient = chromaticity(colour, gradient)
+    elif space != "rgb":
+        raise ValueError(f"space must be 'rgb' or 'chromaticity', got {space!r}")
     return colour, gradient, ok
+
+
+def chromaticity(colour, gradient=None, floor: float = 1e-3):
+    """Each colour divided by the sum of its channels (N, 3): a shading factor s (a white light, a
+    shadow) leaves s c / sum(s c) unchanged. With ``gradient`` (N, 3, D) d colour / d x, also returns
+    the chromaticity's: (d c_k - q_k sum_j d c_j) / S for S = sum_j c_j (at least ``floor``)."""
+    c = np.asarray(colour, np.float64)
+    total = np.maximum(c.sum(-1, keepdims=True), floor)
+    q = c / total
+    if gradient is None:
+        return q
+    g = np.asarray(gradient, np.float64)
+    return q, (g - q[..., None] * g.sum(-2, keepdims=True)) / total[..., None]
 
 
 def reference_colours(colours, min_frames: int = 3):

@@ -144,7 +144,8 @@ def sample_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radi
     use = refine_vertices(body, config)
     v, n, _ = _posed(body, body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale, _shape_tensor(fit, shape))
     colour, grad, ok = surface_colours(surface, scan_mesh, v[use], n[use], radius, config.photometric_max_distance,
-                                       float(np.cos(np.radians(config.max_normal_angle_deg))))
+                                       float(np.cos(np.radians(config.max_normal_angle_deg))),
+                                       config.photometric_space)
     return PhotoSample(colour, grad, ok, float(radius))
 
 
@@ -339,7 +340,8 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
                 colour, grad, seen = start_sample.colour, start_sample.gradient, start_sample.ok.copy()
             else:
                 colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
-                                                     config.photometric_max_distance, cos_max)
+                                                     config.photometric_max_distance, cos_max,
+                                                     config.photometric_space)
             seen &= photo.known
             rc = (colour - photo.reference)[seen]                                   # (Nc, 3)
             colour_residuals.append(float(np.abs(rc).mean()) if seen.any() else float("nan"))
