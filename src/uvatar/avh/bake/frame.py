@@ -17,7 +17,7 @@ import numpy as np
 from uvatar.avh.bake.confidence import confidence, distance_score, normal_match_score, vertex_visibility
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.correspond import match_texels
-from uvatar.avh.bake.inpaint import inpaint_telea
+from uvatar.avh.bake.inpaint import grow_mask, inpaint_telea
 from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
 from uvatar.errors import InputError
 from uvatar.geometry import (
@@ -120,9 +120,7 @@ class BodyLayout:
             return None
         key = ("island_gutter", int(texels))
         if key not in self._cache:
-            from scipy import ndimage
-
-            self._cache[key] = ndimage.binary_dilation(self.raster.mask, np.ones((3, 3), bool), iterations=int(texels))
+            self._cache[key] = grow_mask(self.raster.mask, int(texels))
         return self._cache[key]
 
     def interpolation_matrix(self, num_vertices: int | None = None):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["inpaint_telea", "inpaint_telea_reference", "fill_nearest"]
+__all__ = ["inpaint_telea", "inpaint_telea_reference", "fill_nearest", "grow_mask"]
 
 
 def fill_nearest(image, fill_mask):
@@ -76,7 +76,7 @@ def inpaint_telea(image, fill_mask, radius: int = 3, band: int | None = None, wi
             span = np.where(hi > lo, hi - lo, 1.0)
             # Telea reads a marched texel's neighbours within ``radius`` and their gradients (one
             # more texel): only texels that near the march are quantized, the rest stay 0 unread
-            read = np.flatnonzero(_grow(march, int(radius) + 2))
+            read = np.flatnonzero(grow_mask(march, int(radius) + 2))
             flat = out.reshape(h * w, c)
             q = np.clip(np.rint((flat[read].astype(np.float64) - lo) / span * 65535.0), 0, 65535).astype(np.uint16)
             mask8 = march.view(np.uint8)
@@ -99,7 +99,7 @@ def _nearest_filled(fill, dist, band, within) -> np.ndarray:
     return np.flatnonzero(far)
 
 
-def _grow(mask, texels: int):
+def grow_mask(mask, texels: int):
     """(H, W) bool: ``mask`` grown by ``texels`` in every direction (a square neighbourhood)."""
     import cv2
 
@@ -125,9 +125,8 @@ def inpaint_telea_reference(image, fill_mask, radius: int = 3, band: int | None 
         march = fill
         if band is not None or within is not None:
             nearest, dist = fill_nearest(img, fill)
-            far = fill & ((dist > band) if band is not None else False)
-            if within is not None:
-                far = far | (fill & ~np.asarray(within, bool))
+            far = np.zeros(fill.shape, bool)
+            far.ravel()[_nearest_filled(fill, dist, band, within)] = True
             work[far] = nearest[far]
             march = fill & ~far
         mask8 = march.astype(np.uint8)
