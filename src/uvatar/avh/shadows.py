@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from uvatar.avh.texel_pose import tree_order
+from uvatar.avh.texel_pose import pooled, texel_vertex_map, tree_order
 
 #: Softness of a shadow's edge and of the "in front of the texel" test, metres.
 SHADOW_SOFTNESS = 0.01
@@ -41,13 +41,7 @@ SHADOW_RESOLUTION = 32
 def texel_rest_points(template, resolution: int) -> np.ndarray:
     """(3, R, R) float32 rest-pose surface point of the template at each texel centre (row 0 is v = 1),
     barycentric from the vertices, zero outside the UV charts."""
-    from uvatar.geometry import rasterize_uv, sample_vertex_attribute
-
-    raster = rasterize_uv(template.uvs, template.uv_faces, resolution)
-    x = np.asarray(sample_vertex_attribute(raster, template.faces, np.asarray(template.vertices, np.float64)),
-                   np.float64)
-    x[~raster.mask] = 0.0
-    return np.ascontiguousarray(x.transpose(2, 0, 1).astype(np.float32))
+    return texel_vertex_map(template, np.asarray(template.vertices, np.float64), resolution)
 
 
 class BodyShadows(nn.Module):
@@ -80,19 +74,14 @@ class BodyShadows(nn.Module):
             raise ValueError(f"parents must be {J} positions in the list or -1, forming a tree, got {p}")
         with torch.no_grad():
             self.rest_joints.copy_(j)
-            self.rest_points.copy_(self._pooled(x[None])[0].reshape(3, -1))
+            self.rest_points.copy_(pooled(x[None], self.shadow_resolution)[0].reshape(3, -1))
             self.parents.copy_(torch.tensor(p, dtype=torch.long))
-
-    def _pooled(self, maps: torch.Tensor) -> torch.Tensor:
-        """(N, C, R, R) -> (N, C, r, r) at the shadow resolution (average pooling)."""
-        factor = self.resolution // self.shadow_resolution
-        return maps if factor == 1 else F.avg_pool2d(maps, factor)
 
     def joints_and_points(self, world: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(posed joint positions (B, J_c, 3), posed texel points (B, 3, r²) at the shadow resolution).
         ``weights``: (J_c, R²) texel skinning weights at the model's resolution."""
         B, R = world.shape[0], self.resolution
-        weights = self._pooled(weights.reshape(1, -1, R, R)).reshape(weights.shape[0], -1)
+        weights = pooled(weights.reshape(1, -1, R, R), self.shadow_resolution).reshape(weights.shape[0], -1)
         parents = self.parents.tolist()
         rest = self.rest_joints
         posed: dict[int, torch.Tensor] = {}
@@ -131,7 +120,7 @@ class BodyShadows(nn.Module):
             torch.sigmoid(along / SHADOW_SOFTNESS)
         vis = torch.prod(1.0 - blocked, 1).reshape(B, -1, r, r)
         if normals is not None:
-            n = self._pooled(normals).reshape(B, 1, 3, -1)
+            n = pooled(normals, self.shadow_resolution).reshape(B, 1, 3, -1)
             dist2 = (w * w).sum(2)                                                          # (B, S, r²)
             r2 = (radius * radius)[None, :, None]
             facing = torch.relu((n * w).sum(2)) / torch.sqrt(dist2 + 1e-8)
@@ -158,7 +147,7 @@ class BodyShadows(nn.Module):
                         out[b, k, i] *= 1 - torch.sigmoid((radius[s] - off) / SHADOW_SOFTNESS) * torch.sigmoid(
                             along / SHADOW_SOFTNESS)
         if normals is not None:
-            n = self._pooled(normals).reshape(B, 3, -1)
+            n = pooled(normals, self.shadow_resolution).reshape(B, 3, -1)
             amb = torch.ones(B, 1, points.shape[-1])
             for b in range(B):
                 for i in range(points.shape[-1]):

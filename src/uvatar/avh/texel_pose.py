@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 __all__ = ["rotation_minus_identity", "rotvec_to_rot6d", "rotvec_to_rotmat", "conditioning_skin_weights", "conditioning_parents",
-           "texel_skin_weights", "texel_rest_normals", "TexelPoseMap"]
+           "texel_skin_weights", "texel_rest_normals", "texel_vertex_map", "TexelPoseMap"]
 
 
 def rotation_minus_identity(rotvecs: torch.Tensor) -> torch.Tensor:
@@ -102,18 +102,25 @@ def tree_order(parents: list[int]) -> list[int] | None:
     return order
 
 
-def texel_rest_normals(template, resolution: int) -> np.ndarray:
-    """(3, R, R) float32 unit rest-pose normal of the template at each texel centre (row 0 is v = 1),
-    barycentric from the vertex normals, zero outside the UV charts."""
+def texel_vertex_map(template, vertex_values, resolution: int, dtype=np.float32) -> np.ndarray:
+    """(C, R, R) ``dtype``: per-vertex ``vertex_values`` (V, C) of the template at each texel centre
+    (row 0 is v = 1), barycentric from the vertices, zero outside the UV charts."""
     from uvatar.geometry import rasterize_uv, sample_vertex_attribute
-    from uvatar.geometry.frames import vertex_normals
 
     raster = rasterize_uv(template.uvs, template.uv_faces, resolution)
-    n = np.asarray(sample_vertex_attribute(raster, template.faces,
-                                           vertex_normals(template.vertices, template.faces)), np.float64)
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-    n[~raster.mask] = 0.0
-    return np.ascontiguousarray(n.transpose(2, 0, 1).astype(np.float32))
+    x = np.asarray(sample_vertex_attribute(raster, template.faces, vertex_values), np.float64)
+    x[~raster.mask] = 0.0
+    return np.ascontiguousarray(x.transpose(2, 0, 1).astype(dtype))
+
+
+def texel_rest_normals(template, resolution: int) -> np.ndarray:
+    """(3, R, R) float32 unit rest-pose normal of the template at each texel centre (row 0 is v = 1),
+    barycentric from the vertex normals and normalized, zero outside the UV charts."""
+    from uvatar.geometry.frames import vertex_normals
+
+    n = texel_vertex_map(template, vertex_normals(template.vertices, template.faces), resolution, np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=0, keepdims=True), 1e-12)
+    return np.ascontiguousarray(n.astype(np.float32))
 
 
 def conditioning_skin_weights(skin_weights: np.ndarray, joint_parents, conditioning_joints) -> np.ndarray:
@@ -139,13 +146,8 @@ def conditioning_skin_weights(skin_weights: np.ndarray, joint_parents, condition
 def texel_skin_weights(template, conditioning_joints, resolution: int) -> np.ndarray:
     """(J_c, R, R) float32 skinning weight of each conditioning joint at each texel centre (row 0 is
     v = 1), barycentric from the template's vertices, zero outside the UV charts."""
-    from uvatar.geometry import rasterize_uv, sample_vertex_attribute
-
-    raster = rasterize_uv(template.uvs, template.uv_faces, resolution)
     wv = conditioning_skin_weights(template.skin_weights, template.joint_parents, conditioning_joints)
-    w = np.asarray(sample_vertex_attribute(raster, template.faces, wv), np.float32)
-    w[~raster.mask] = 0.0
-    return np.ascontiguousarray(w.transpose(2, 0, 1))
+    return texel_vertex_map(template, wv, resolution)
 
 
 class TexelPoseMap(nn.Module):
