@@ -104,10 +104,16 @@ def hide_body(images: list, cameras: list, vertices: np.ndarray, faces: np.ndarr
     for image, cam in zip(images, cameras, strict=True):
         sil = body_silhouette(vertices, faces, cam, render_width)
         sil = cv2.dilate(sil.astype(np.uint8), _disc(max(1, int(round(grow * cam.height))))) > 0
-        img = np.array(image, np.float32, copy=True)
-        img[sil] = np.median(img.reshape(-1, img.shape[-1]), axis=0)
-        out.append(img)
+        out.append(painted_over(image, sil))
     return out
+
+
+def painted_over(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """A float32 copy of ``image`` (H, W, C) with the pixels of ``mask`` (H, W) bool in the image's
+    median colour (what a person detector or segmenter should not see)."""
+    img = np.array(image, np.float32, copy=True)
+    img[mask] = np.median(img.reshape(-1, img.shape[-1]), axis=0)
+    return img
 
 
 def nearest_region(depth: np.ndarray, others: list[np.ndarray], radius: int) -> np.ndarray:
@@ -133,8 +139,7 @@ def other_person_region(image: np.ndarray, subject: np.ndarray, detector, min_co
     region is the person's skeleton drawn with strokes 1/6 of their height wide, and a head disc."""
     import cv2
 
-    img = np.array(image, np.float32, copy=True)
-    img[subject] = np.median(img.reshape(-1, 3), axis=0)
+    img = painted_over(image, subject)
     det = detector.detect(img)
     ok = det.conf >= min_conf
     if ok.sum() < 6:
@@ -178,8 +183,7 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
 
     shown = image
     if hide is not None and hide.any():
-        shown = np.array(image, np.float32, copy=True)
-        shown[hide] = np.median(shown.reshape(-1, shown.shape[-1]), axis=0)
+        shown = painted_over(image, hide)
 
     roi = whole_roi = None
     region = None
