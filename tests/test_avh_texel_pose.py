@@ -140,14 +140,57 @@ def test_rotmat_matches_roma_and_the_tree_order_puts_parents_first():
 
 def _studio_setup(body, R=32):
     from uvatar.avh.model import root_joint
-    from uvatar.avh.texel_pose import conditioning_parents, texel_rest_normals
+    from uvatar.avh.texel_pose import conditioning_axes, conditioning_parents, texel_rest_normals
 
     t = body.template
-    cond = [*body.conditioning_joints, root_joint(t.joint_parents)]
+    root = root_joint(t.joint_parents)
+    cond = [*body.conditioning_joints, root]
     pose_map = TexelPoseMap(len(cond), R, world_normals=True)
     pose_map.set_weights(texel_skin_weights(t, cond, R), conditioning_parents(t.joint_parents, cond),
-                         texel_rest_normals(t, R))
+                         texel_rest_normals(t, R), conditioning_axes(body, cond, root))
     return cond, pose_map
+
+
+def _tilted_axes_body():
+    """The toy tube whose joints write their rotations in tilted frames (as anny's do), the root's too."""
+    from uvatar.body.toy import ToyTubeConfig
+
+    rng = np.random.default_rng(11)
+    axes = roma.rotvec_to_rotmat(torch.as_tensor(rng.normal(0, 1.0, (6, 3)))).numpy()
+    return ToyTubeBody(config=ToyTubeConfig(joint_axes=tuple(map(tuple, axes.tolist()))))
+
+
+def test_world_normals_are_the_posed_bodys_normals_in_tilted_joint_frames():
+    """A body whose rotations are written in per-joint frames (anny): the texel map's world normals
+    are still the posed mesh's; composed as world rotations they were tens of degrees off."""
+    test_world_normals_are_the_posed_bodys_normals_where_one_joint_skins(_tilted_axes_body())
+
+
+def test_toy_joint_frames_are_the_rest_rotations_and_turn_about_their_own_axes():
+    body = _tilted_axes_body()
+    j = 2   # chest: a rotation about its own first axis turns the world about that axis's world direction
+    rv = torch.zeros(1, body.num_joints, 3)
+    rv[0, j, 0] = 0.7
+    posed = body.pose(torch.zeros(1, body.num_joints, 3))
+    np.testing.assert_allclose(posed.joint_transforms[0, :, :3, :3].numpy(), body.rest_joint_rotations, atol=1e-6)
+    turned = body.pose(rv).joint_transforms[0, 3, :3, 3].numpy() - posed.joint_transforms[0, j, :3, 3].numpy()
+    rest = posed.joint_transforms[0, 3, :3, 3].numpy() - posed.joint_transforms[0, j, :3, 3].numpy()
+    axis = body.rest_joint_rotations[j][:, 0]
+    want = roma.rotvec_to_rotmat(torch.as_tensor(0.7 * axis, dtype=torch.float64)).numpy() @ rest
+    np.testing.assert_allclose(turned, want, atol=1e-5)
+    with pytest.raises(ValueError, match="joint_axes"):
+        from uvatar.body.toy import ToyTubeConfig
+
+        ToyTubeBody(config=ToyTubeConfig(joint_axes=((1.0, 0.0, 0.0),)))
+
+
+def test_a_model_saved_without_axes_loads_with_world_axes():
+    cond_map = TexelPoseMap(3, 8, world_normals=True)
+    state = {k: v for k, v in cond_map.state_dict().items() if k != "axes"}
+    fresh = TexelPoseMap(3, 8, world_normals=True)
+    fresh.axes.mul_(0.0)
+    fresh.load_state_dict(state)
+    assert torch.equal(fresh.axes, torch.eye(3).repeat(3, 1, 1))
 
 
 def test_world_normals_are_the_posed_bodys_normals_where_one_joint_skins(body):

@@ -39,6 +39,9 @@ class ToyTubeConfig:
         joint after the first takes over linearly across a band ``blend * height`` wide centred on it)
         or "gaussian" (weights ~ exp(-((y - y_j - blend_offset) / blend)^2), ``blend`` in metres).
     skinned_joints: joints that get weight, in increasing height (None: all joints).
+    joint_axes: (J, 3, 3) rest-pose world orientation of the axes each joint's rotvec is written in
+        (:attr:`BodyModel.rest_joint_rotations`; columns are the axes), as anny's per-joint frames;
+        None: world axes.
     """
 
     rings: int = 17
@@ -58,6 +61,7 @@ class ToyTubeConfig:
     conditioning_joints: tuple[int, ...] = (1, 2, 3)
     semantic_joints: dict = field(default_factory=lambda: dict(_AVH_SEMANTIC_JOINTS))
     shape_names: tuple[str, ...] = ("height",)
+    joint_axes: tuple | None = None
 
 
 def tube_mesh(rings: int, segments: int, height: float, radius: float, bulge: float = 0.0,
@@ -141,7 +145,11 @@ class ToyTubeBody(BodyModel):
         self.semantic_joints = dict(config.semantic_joints)
         self.conditioning_joints = tuple(config.conditioning_joints)
         self._levels = kinematic_levels(parents)
-        self._set_common_buffers(faces, np.tile(np.eye(3, dtype=np.float32), (J, 1, 1)))
+        axes = (np.tile(np.eye(3, dtype=np.float32), (J, 1, 1)) if config.joint_axes is None
+                else np.asarray(config.joint_axes, np.float32))
+        if axes.shape != (J, 3, 3) or not np.allclose(axes @ axes.transpose(0, 2, 1), np.eye(3), atol=1e-5):
+            raise ValueError(f"joint_axes must be {J} rotation matrices (J, 3, 3), got shape {axes.shape}")
+        self._set_common_buffers(faces, axes)
         offsets = rest_joints - np.where(parents[:, None] >= 0, rest_joints[np.maximum(parents, 0)], 0)
         self.register_buffer("_verts_t", torch.from_numpy(vertices), persistent=False)
         self.register_buffer("_weights_t", torch.from_numpy(self.template.skin_weights), persistent=False)
@@ -156,11 +164,12 @@ class ToyTubeBody(BodyModel):
         B, J = rotvecs.shape[:2]
         scale = 1.0 if shape is None else torch.as_tensor(shape, dtype=rotvecs.dtype).reshape(-1)[0] + 1.0
         joints = self._joints_t.to(rotvecs) * scale
-        F, p = forward_kinematics(self._levels.to(rotvecs.device), roma.rotvec_to_rotmat(rotvecs),
-                                  (self._offsets_t.to(rotvecs) * scale)[None])
+        axes = self._rest_rot_t.to(rotvecs)   # each rotvec's axes: the rotation in world axes is Q R Qᵀ
+        local = axes @ roma.rotvec_to_rotmat(rotvecs) @ axes.transpose(-1, -2)
+        F, p = forward_kinematics(self._levels.to(rotvecs.device), local, (self._offsets_t.to(rotvecs) * scale)[None])
         vertices = skin((self._verts_t.to(rotvecs) * scale)[None], self._weights_t.to(rotvecs),
                         skinning_transforms(F, p, None, joints[None])).contiguous()
         G = torch.eye(4, dtype=rotvecs.dtype, device=rotvecs.device).repeat(B, J, 1, 1)
-        G[..., :3, :3] = F
+        G[..., :3, :3] = F @ axes   # the joint's frame: its axes at rest, turned
         G[..., :3, 3] = p
         return vertices, G
