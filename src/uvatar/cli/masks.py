@@ -14,13 +14,16 @@ def _flags() -> ConfigFlags:
     from uvatar.fit.masks import MaskConfig
 
     return ConfigFlags(MaskConfig, fields=("threshold", "dilate", "render_width", "use_fit", "exclude_others",
-                                                   "overwrite"),
+                                                   "appearance", "appearance_prior", "overwrite"),
                        rename={"use_fit": "fit"}, help={
                            "threshold": "person probability threshold",
                            "dilate": "grow the fitted body's silhouette by this fraction of the image height",
                            "render_width": "width at which the body silhouette is rendered",
                            "exclude_others": "drop another person's pixels next to the fitted one (one more "
                                              "keypoint detection per image)",
+                           "appearance": "where other people are fitted, decide the pixels they contest by "
+                                         "per-person colour models (learned over the whole capture)",
+                           "appearance_prior": "weight (nats) of the depth order against the colours there",
                            "use_fit": "restrict to the fitted person (--no-fit: the segmenter alone, "
                                       "bystanders are masked in)",
                            "overwrite": "replace existing masks"})

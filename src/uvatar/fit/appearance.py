@@ -1,0 +1,169 @@
+"""Per-person colour models that decide the pixels several people contest (``MaskConfig.appearance``).
+
+Where other people are fitted (``uvatar fit --person all``), :mod:`uvatar.fit.masks` first orders the
+segmented pixels by the depth of the fitted bodies; a poor fit of one person then hands their pixels
+to the other, and a person mostly hidden behind another gets nothing. Their clothes usually tell them
+apart, so each person gets one colour model over the whole sequence (:class:`ColourModel`: a smoothed
+RGB histogram of :data:`BINS`\\ :sup:`3` bins), learned from the pixels that are surely theirs
+(:func:`confident_pixels`: segmented, inside their fitted silhouette eroded, where their body is the
+nearest, away from every other body). Each image's pixels are then labelled once for everyone
+(:func:`decide`): a person's score is their colour log-likelihood (averaged over a small window of
+foreground pixels; plaid and print average out) plus ``prior`` nats where the depth order gives them
+the pixel (:func:`uvatar.fit.masks.nearest_region`) and half that inside their own grown body; the
+best score wins. A person who is not fitted in that frame still claims the pixels of their colours
+(then nobody's), so an unfitted bystander no longer enters the subject's band; where colours are
+alike (skin, hair) the depth order decides, as without the models. The foreground is the union of
+everyone's segmented masks and, where the grown bodies of two fitted people meet, the pixels unlike
+the camera's background (:func:`background`: the per-pixel median over a sample of frames), which
+brings back a person the segmenter lost behind someone in front.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["BINS", "ColourModel", "colour_index", "confident_pixels", "background", "decide"]
+
+BINS = 32                  # histogram bins per RGB channel
+MIN_PIXELS = 200           # fewer confident pixels: the person gets no colour model (a flat one)
+SMOOTH_ROUNDS = 6          # rounds of neighbourhood voting (ICM)
+SMOOTH_NATS = 3.0          # nats a label gains when its whole neighbourhood holds it
+SMOOTH_WINDOW = 0.01       # the neighbourhood: a box of 2 x this x the image height + 1 pixels
+ADD_MARGIN = 4.0           # nats by which a pixel only the background model finds must be one person's colour
+BACKGROUND_TOL = 0.1       # a pixel this far (max over RGB, [0, 1]) from the background is foreground
+
+
+def colour_index(image: np.ndarray) -> np.ndarray:
+    """(H, W) int32 histogram bin of every pixel of ``image`` (H, W, 3), float in [0, 1] or uint8."""
+    img = np.asarray(image)
+    q = img if img.dtype == np.uint8 else np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    q = (q[..., :3] // (256 // BINS)).astype(np.int32)
+    return (q[..., 0] * BINS + q[..., 1]) * BINS + q[..., 2]
+
+
+class ColourModel:
+    """One person's colours: counts of :func:`colour_index` bins, added image by image
+    (:meth:`add`), and the smoothed log-probability per bin (:meth:`log_table`)."""
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(BINS ** 3, np.float64)
+
+    def add(self, index: np.ndarray, mask: np.ndarray) -> None:
+        """Count the bins ``index`` (H, W) of the pixels of ``mask`` (H, W) bool."""
+        self.counts += np.bincount(index[mask], minlength=BINS ** 3)
+
+    @property
+    def pixels(self) -> int:
+        return int(self.counts.sum())
+
+    def log_table(self, smooth: float = 0.5, floor: float = 0.05) -> np.ndarray:
+        """(BINS^3,) float32 log-probability of each bin: the counts blurred by ``smooth`` bins, mixed
+        with ``floor`` of a flat distribution (an unseen colour is unlikely, not impossible); flat when
+        the model has fewer than :data:`MIN_PIXELS` pixels."""
+        from scipy.ndimage import gaussian_filter
+
+        flat = np.full(BINS ** 3, 1.0 / BINS ** 3)
+        if self.pixels < MIN_PIXELS:
+            return np.log(flat).astype(np.float32)
+        p = gaussian_filter(self.counts.reshape(BINS, BINS, BINS), smooth, mode="constant").ravel()
+        p = (1.0 - floor) * p / p.sum() + floor * flat
+        return np.log(p).astype(np.float32)
+
+
+def _disc(radius: int) -> np.ndarray:
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def confident_pixels(mask: np.ndarray, depth: np.ndarray, others: list[np.ndarray], allowed: np.ndarray,
+                     radius: int) -> np.ndarray:
+    """(H, W) bool: the pixels surely the person's, to learn their colours from: in their mask (H, W)
+    bool, inside their fitted silhouette (``depth`` < FAR) eroded by ``radius`` // 2 pixels, where the
+    depth order gives them the pixel (``allowed``) and ``radius`` + ``radius`` // 2 pixels away from
+    every other fitted body (``others``: their depths)."""
+    import cv2
+
+    from uvatar.fit.masks import FAR
+
+    margin = max(1, radius // 2)
+    core = cv2.erode((depth < FAR).astype(np.uint8), _disc(margin)) > 0
+    sure = mask & core & allowed
+    if others:
+        near = np.logical_or.reduce([d < FAR for d in others]).astype(np.uint8)
+        sure &= cv2.dilate(near, _disc(radius + margin)) == 0
+    return sure
+
+
+def background(images: list[np.ndarray]) -> np.ndarray | None:
+    """(H, W, 3) uint8: the per-pixel median of one static camera's ``images`` (uint8, a sample of
+    frames; people who move are not in it); None for fewer than 3 images."""
+    if len(images) < 3:
+        return None
+    return np.median(np.stack(images), axis=0).astype(np.uint8)
+
+
+def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: int, prior: float,
+           background_image: np.ndarray | None = None) -> dict:
+    """{person: (H, W) bool mask} for the people fitted in this image, disjoint. ``image`` (H, W, 3)
+    float [0, 1] or uint8; ``depths`` {person: (H, W) body depth} of the people fitted here; ``masks``
+    {person: (H, W) bool} their segmented masks so far (the foreground); ``tables`` {person:
+    :meth:`ColourModel.log_table`} of every person of the capture (a fitted person without one gets a
+    flat one; a person with a table and no depth is not fitted here and only claims their colours);
+    ``radius``: the grown band in pixels; ``prior``: nats the depth order adds (see the module doc);
+    ``background_image`` (H, W, 3) uint8 or None: the camera's background."""
+    import cv2
+
+    from uvatar.fit.masks import FAR, nearest_region
+
+    h, w = image.shape[:2]
+    fitted = list(depths)
+    out = {k: np.zeros((h, w), bool) for k in fitted}
+    if not fitted:
+        return out
+    kernel = _disc(max(1, radius))
+    cores = {k: depths[k] < FAR for k in fitted}
+    grown = {k: cv2.dilate(cores[k].astype(np.uint8), kernel) > 0 for k in fitted}
+    segmented = np.logical_or.reduce([np.asarray(m, bool) for m in masks.values()]) if masks \
+        else np.zeros((h, w), bool)
+    fg = segmented.copy()
+    if background_image is not None and len(fitted) > 1:   # where two grown bodies meet
+        img = image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else np.asarray(image, np.float32)
+        off = np.abs(img[..., :3] - background_image.astype(np.float32) / 255.0).max(axis=-1) > BACKGROUND_TOL
+        fg |= off & (np.sum([grown[k] for k in fitted], axis=0) >= 2)
+    region = np.logical_or.reduce([grown[k] for k in fitted]) & fg
+    if not region.any():
+        return out
+    ys, xs = np.nonzero(region)
+    pad = radius + 2
+    crop = (slice(max(ys.min() - pad, 0), min(ys.max() + pad + 1, h)),
+            slice(max(xs.min() - pad, 0), min(xs.max() + pad + 1, w)))
+    index = colour_index(image[crop])
+    flat = np.full(BINS ** 3, -np.log(BINS ** 3), np.float32)
+    people = fitted + [k for k in tables if k not in depths]
+    colours = np.stack([tables.get(k, flat)[index] for k in people])
+    scores = colours.copy()
+    for i, k in enumerate(fitted):
+        allowed = nearest_region(depths[k][crop], [depths[j][crop] for j in fitted if j != k], radius)
+        scores[i] += prior * allowed + 0.5 * prior * grown[k][crop]
+    # a pixel only the background model calls foreground must be one person's colour, clearly
+    if len(people) > 1:
+        top2 = np.sort(colours, axis=0)[-2:]
+        region[crop] &= segmented[crop] | (top2[1] - top2[0] > ADD_MARGIN)
+    else:
+        region[crop] &= segmented[crop]
+    inside = region[crop]
+    size = 2 * max(1, int(round(SMOOTH_WINDOW * h))) + 1
+    label = np.argmax(scores, axis=0)
+    for _ in range(SMOOTH_ROUNDS):   # each pixel leans to the label its neighbours hold (ICM, Potts)
+        share = np.stack([cv2.blur(((label == i) & inside).astype(np.float32), (size, size))
+                          for i in range(len(people))])
+        label = np.argmax(scores + SMOOTH_NATS * share, axis=0)
+    for i, k in enumerate(fitted):
+        mine = np.zeros((h, w), bool)
+        mine[crop] = (label == i) & inside & grown[k][crop]
+        # keep the parts that touch the person's fitted body (drop specks and stray islands)
+        n, comp = cv2.connectedComponents(mine.astype(np.uint8), connectivity=8)
+        keep = np.unique(comp[mine & cores[k]])
+        out[k] = np.isin(comp, keep[keep != 0]) if n > 1 else mine
+    return out
