@@ -19,7 +19,11 @@ their own grown band only where no other body (grown) lies. Each person gets the
 (``masks/`` for the subject, ``people/<id>/masks/``); the detector of ``exclude_others`` is then not
 needed (it still runs where the frame has no other fitted body). Before the segmenter runs, the
 other people's pixels (their grown bodies, where this person may not take them) are painted over:
-a person detector that sees the one in front would otherwise segment them instead.
+a person detector that sees the one in front would otherwise segment them instead. With
+``appearance`` (the default), these depth-ordered masks are held back until every image is segmented:
+each person's colour model is learned from them over the whole capture, and every image's contested
+pixels are decided again by colour and depth together (:mod:`uvatar.fit.appearance`), then written.
+A capture with the subject alone is masked as before (no colour pass).
 """
 
 from __future__ import annotations
