@@ -380,6 +380,7 @@ class _ColourPass:
     (:meth:`finish`; :mod:`uvatar.fit.appearance`)."""
 
     SAMPLE_FRAMES = 16   # frames per camera whose median is the camera's background
+    DEPTH_CACHE = 512 * 2 ** 20   # bytes of rendered depths kept for the second pass (the rest re-rendered)
 
     def __init__(self, config: MaskConfig, people: list, cameras: dict, frames: list[str]) -> None:
         from uvatar.fit.appearance import ColourModel
@@ -390,6 +391,8 @@ class _ColourPass:
         step = max(1, len(frames) // self.SAMPLE_FRAMES)
         self.sample = set(frames[::step][:self.SAMPLE_FRAMES])
         self.backdrop: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
+        self.depths: dict[tuple[str, str], dict[int, np.ndarray]] = {}
+        self.cached = 0
 
     def learn(self, frame: str, cam_name: str, image: np.ndarray, depths: dict, masks: dict) -> None:
         from uvatar.fit.appearance import colour_index, confident_pixels
@@ -399,6 +402,9 @@ class _ColourPass:
             self.backdrop[cam_name].append(u8)
         if masks:
             self.pending[(frame, cam_name)] = {k: np.packbits(m) for k, m in masks.items()}
+            size = sum(d.nbytes for d in depths.values())
+            if self.cached + size <= self.DEPTH_CACHE:
+                self.depths[(frame, cam_name)], self.cached = depths, self.cached + size
         if len(depths) < len(self.people):
             return   # someone is not fitted in this frame: their pixels may lie in anyone's
         index = colour_index(u8)
@@ -421,8 +427,10 @@ class _ColourPass:
             shape = (cam.height, cam.width)
             masks = {k: np.unpackbits(p, count=shape[0] * shape[1]).reshape(shape).astype(bool)
                      for k, p in packed.items()}
-            posed = poser.frame(frame)
-            depths = {k: body_depth(v, body.template.faces, cam, self.config.render_width) for k, v in posed.items()}
+            depths = self.depths.pop((frame, cam_name), None)
+            if depths is None:
+                depths = {k: body_depth(v, body.template.faces, cam, self.config.render_width)
+                          for k, v in poser.frame(frame).items()}
             for k in depths:   # kept masks (a resumed run) are foreground too
                 path = self.people[k].masks_dir / cam_name / f"{frame}.png"
                 if k not in masks and path.is_file():
