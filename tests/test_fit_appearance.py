@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from uvatar.fit import appearance
-from uvatar.fit.appearance import ColourModel, background, colour_index, confident_pixels, decide
+from uvatar.fit.appearance import Background, ColourModel, colour_index, confident_pixels, decide
 from uvatar.fit.masks import FAR, MaskConfig, nearest_region
 
 RED, GREEN, WHITE = (0.8, 0.1, 0.1), (0.1, 0.7, 0.2), (1.0, 1.0, 1.0)
@@ -80,7 +80,7 @@ def test_a_person_without_enough_confident_pixels_gets_a_flat_model_and_decide_s
     out = decide(img, {0: _depth(subject, 5.0)}, {0: subject}, {}, RADIUS, 1.0)   # nobody has a model
     np.testing.assert_array_equal(out[0], subject)
     assert decide(img, {}, {}, {}, RADIUS, 1.0) == {}                 # nobody fitted: no masks
-    assert background([img, img]) is None                            # too few frames for a median
+    assert Background().image() is None                              # no image seen yet
     with pytest.raises(ValueError, match="appearance_prior must be in"):
         MaskConfig(appearance_prior=-1.0)
 
@@ -108,7 +108,7 @@ def test_the_colours_give_the_contested_band_to_the_person_whose_clothes_they_ar
     masks = _pass1(depths, subject | other)
     assert (masks[0] & other).sum() >= 60 * 3                          # the depth order's mistake
     tables = _tables(img, subject=subject, other=other)
-    out = decide(img, depths, masks, tables, RADIUS, 1.0, background([_image()] * 3))
+    out = decide(img, depths, masks, tables, RADIUS, 1.0, _white())
     assert not (out[0] & other).any() and not (out[1] & subject).any() and not (out[0] & out[1]).any()
     inner = subject & ~_rect((0, 80), (39, 80))                       # all but the column touching green
     assert out[0][inner].all() and not (out[0] & ~subject).any()
@@ -127,12 +127,19 @@ def test_a_subject_mostly_hidden_behind_someone_takes_back_the_pixels_of_their_c
     # the depth order gives the subject only the strip's first columns (the other body grown by 4 px)
     assert not (nearest_region(depths[0], [depths[1]], RADIUS) & visible & _rect((0, 80), (19, 80))).any()
     tables = _tables(img, subject=_rect((10, 70), (0, 80)) & visible, other=other)
-    out = decide(img, depths, masks, tables, RADIUS, 1.0, background([_image()] * 3))
+    out = decide(img, depths, masks, tables, RADIUS, 1.0, _white())
     assert not (out[0] & other).any()
     assert out[0][visible & ~_rect((0, 80), (22, 80))].all()           # the strip, 1 px clear of green
     assert out[0].sum() == (visible & ~_rect((0, 80), (22, 80))).sum()
     # without the background the strip is nobody's foreground: nothing to take back
     assert not decide(img, depths, masks, tables, RADIUS, 1.0)[0].any()
+    # a background never seen where the people stand: there the colours alone (the subject's red is
+    # likelier theirs than the white studio's) bring the strip back
+    unseen = Background()
+    for _ in range(3):
+        unseen.add(_image(), subject | other)
+    assert np.isnan(unseen.image()[subject]).all()
+    np.testing.assert_array_equal(decide(img, depths, masks, tables, RADIUS, 1.0, unseen)[0], out[0])
 
 
 def test_an_unfitted_bystander_inside_the_subjects_band_is_left_out():
@@ -144,7 +151,7 @@ def test_an_unfitted_bystander_inside_the_subjects_band_is_left_out():
     masks = {0: subject | arm}
     learned = _image((_rect((0, 80), (0, 40)), GREEN))                # the bystander in another frame
     tables = {0: _tables(img, subject=subject)[0], 1: _tables(learned, other=_rect((0, 80), (0, 40)))[1]}
-    out = decide(img, depths, masks, tables, RADIUS, 1.0, background([_image()] * 3))
+    out = decide(img, depths, masks, tables, RADIUS, 1.0, _white())
     assert set(out) == {0} and not (out[0] & arm).any()
     assert out[0][subject & ~_rect((19, 31), (39, 80))].all()          # all of the subject, 1 px clear of the arm
     # without the bystander's model the arm stays in (the mask as the depth order gave it)
@@ -152,11 +159,37 @@ def test_an_unfitted_bystander_inside_the_subjects_band_is_left_out():
     np.testing.assert_array_equal(alone[0], subject | arm)
 
 
-def test_background_is_the_per_pixel_median_of_the_frames():
+def test_the_background_is_each_pixels_mean_where_nobody_covers_it():
     person = _rect((10, 70), (15, 40))
-    frames = [(_image() * 255).astype(np.uint8) for _ in range(3)]
-    frames[1][person] = 0                                              # someone passing in one frame
-    bg = background(frames)
-    assert bg.dtype == np.uint8 and bg.shape == (80, 80, 3)
-    np.testing.assert_array_equal(bg, np.median(np.stack(frames), axis=0).astype(np.uint8))
-    assert bg[person].min() > 200                                      # white: the passer-by is gone
+    bg = Background()
+    for k in range(4):
+        img = _image((person, RED)) if k == 1 else _image()           # someone there in one frame
+        img[:, :5] = 0.5                                               # a grey wall
+        bg.add(img, person if k == 1 else np.zeros_like(person))
+    image = bg.image()
+    assert image.shape == (80, 80, 3) and image.dtype == np.float32
+    np.testing.assert_allclose(image[:, :5], 0.5, atol=0.03)
+    white_floor = ~person & ~_rect((0, 80), (0, 5))
+    assert image[white_floor].min() > 0.9 and image[person].min() > 0.9   # white, where the person stood too
+    assert np.isnan(_seen_once()).all()                               # free in 2 images of 3: unknown
+    table = bg.log_table()
+    white, grey, red = (colour_index(np.array([[c]], np.float32))[0, 0] for c in (WHITE, (0.5,) * 3, RED))
+    assert table[white] > table[grey] > table[red]                    # the background's colours
+
+
+def _seen_once() -> np.ndarray:
+    """The pixels of a background seen free in fewer than min_count images: unknown (NaN)."""
+    bg = Background(min_count=3)
+    covered = _rect((0, 80), (0, 40))
+    for _ in range(2):
+        bg.add(_image(), np.zeros_like(covered))
+    bg.add(_image(), covered)
+    return bg.image()[covered]
+
+
+def _white() -> Background:
+    """A white studio's background, seen free of people in 3 images."""
+    bg = Background()
+    for _ in range(3):
+        bg.add(_image(), np.zeros((80, 80), bool))
+    return bg

@@ -289,7 +289,7 @@ def test_the_colour_models_leave_out_more_of_the_bystander_and_a_lone_subject_is
                 leaked += int((mine & bystander).sum())
                 ious.append(mask_iou(mine, truth))
         scores[name] = (leaked, float(np.mean(ious)))
-    # measured: 428 -> 36 bystander pixels, mean IoU 0.896 -> 0.925
+    # measured: 428 -> 41 bystander pixels, mean IoU 0.896 -> 0.942
     assert scores["cap"][0] <= 0.25 * scores["ordered"][0] and scores["cap"][1] > scores["ordered"][1] + 0.01, scores
     alone, lone = Capture(single), Capture(root.parent / "lone")
     for cam in alone.cameras():

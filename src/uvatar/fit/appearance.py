@@ -32,14 +32,16 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BINS", "ColourModel", "colour_index", "confident_pixels", "background", "decide"]
+__all__ = ["BINS", "ColourModel", "colour_index", "confident_pixels", "Background", "decide"]
 
 BINS = 32                  # histogram bins per RGB channel
 MIN_PIXELS = 200           # fewer confident pixels: the person gets no colour model (a flat one)
 SMOOTH_ROUNDS = 6          # rounds of neighbourhood voting (ICM)
 SMOOTH_NATS = 3.0          # nats a label gains when its whole neighbourhood holds it
 SMOOTH_WINDOW = 0.01       # the neighbourhood: a box of 2 x this x the image height + 1 pixels
+AMBIGUOUS = 2.0            # nats: colours whose two likeliest people are closer than this say nothing
 ADD_MARGIN = 4.0           # nats by which a pixel only the background model finds must be one person's colour
+CLEAR_PX = 1               # a person's mask keeps this many pixels clear of another person's label
 BACKGROUND_TOL = 0.1       # a pixel this far (max over RGB, [0, 1]) from the background is foreground
 
 
@@ -105,23 +107,57 @@ def confident_pixels(mask: np.ndarray, depth: np.ndarray, others: list[np.ndarra
     return sure
 
 
-def background(images: list[np.ndarray]) -> np.ndarray | None:
-    """(H, W, 3) uint8: the per-pixel median of one static camera's ``images`` (uint8, a sample of
-    frames; people who move are not in it); None for fewer than 3 images."""
-    if len(images) < 3:
-        return None
-    return np.median(np.stack(images), axis=0).astype(np.uint8)
+class Background:
+    """One static camera's background, from the images' pixels where no person may be (:meth:`add`):
+    :meth:`image` (H, W, 3) float32 in [0, 1], every pixel's mean colour, NaN where fewer than
+    ``min_count`` images saw it free (where people always stand: there the colours alone decide);
+    :meth:`log_table` the colours of all those pixels (a :class:`ColourModel`)."""
+
+    def __init__(self, min_count: int = 3) -> None:
+        self.min_count = min_count
+        self.total: np.ndarray | None = None
+        self.count: np.ndarray | None = None
+        self.colours = ColourModel()
+        self._image: np.ndarray | None = None
+        self._table: np.ndarray | None = None
+
+    def add(self, image: np.ndarray, covered: np.ndarray) -> None:
+        """``image`` (H, W, 3) float [0, 1] or uint8; ``covered`` (H, W) bool: where people may be."""
+        img = image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else np.asarray(image, np.float32)
+        free = ~np.asarray(covered, bool)
+        if self.total is None:
+            self.total = np.zeros(img.shape[:2] + (3,), np.float32)
+            self.count = np.zeros(img.shape[:2], np.int32)
+        self.total[free] += img[free][:, :3]
+        self.count += free
+        self.colours.add(colour_index(img), free)
+        self._image = self._table = None
+
+    def image(self) -> np.ndarray | None:
+        if self.total is None:
+            return None
+        if self._image is None:
+            known = self.count >= self.min_count
+            self._image = np.full(self.total.shape, np.nan, np.float32)
+            self._image[known] = self.total[known] / self.count[known][:, None]
+        return self._image
+
+    def log_table(self) -> np.ndarray:
+        if self._table is None:
+            self._table = self.colours.log_table()
+        return self._table
 
 
 def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: int, prior: float,
-           background_image: np.ndarray | None = None) -> dict:
+           background: Background | None = None) -> dict:
     """{person: (H, W) bool mask} for the people fitted in this image, disjoint. ``image`` (H, W, 3)
     float [0, 1] or uint8; ``depths`` {person: (H, W) body depth} of the people fitted here; ``masks``
     {person: (H, W) bool} their segmented masks so far (the foreground); ``tables`` {person:
     :meth:`ColourModel.log_table`} of every person of the capture (a fitted person without one gets a
     flat one; a person with a table and no depth is not fitted here and only claims their colours);
     ``radius``: the grown band in pixels; ``prior``: nats the depth order adds (see the module doc);
-    ``background_image`` (H, W, 3) uint8 or None: the camera's background."""
+    ``background_image`` (H, W, 3) float32 [0, 1] (NaN: unknown) or None: the camera's background
+    (:meth:`Background.image`)."""
     import cv2
 
     from uvatar.fit.masks import FAR, nearest_region
@@ -138,9 +174,12 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
         else np.zeros((h, w), bool)
     fg = segmented.copy()
     region = np.logical_or.reduce([grown[k] for k in fitted])
-    if background_image is not None and len(fitted) > 1:   # someone the segmenter lost behind another
+    bg = background.image() if background is not None and len(fitted) > 1 else None
+    if bg is not None:   # someone the segmenter lost behind another
         img = image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else np.asarray(image, np.float32)
-        fg |= np.abs(img[..., :3] - background_image.astype(np.float32) / 255.0).max(axis=-1) > BACKGROUND_TOL
+        with np.errstate(invalid="ignore"):
+            fg |= np.abs(img[..., :3] - bg).max(axis=-1) > BACKGROUND_TOL   # NaN: False
+        fg |= np.isnan(bg[..., 0])   # never seen free of people: the colours decide (below)
     region &= fg
     if not region.any():
         return out
@@ -153,13 +192,19 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     people = fitted + [k for k in tables if k not in depths]
     colours = np.stack([tables.get(k, flat)[index] for k in people])
     scores = colours.copy()
+    if len(people) > 1:   # colours alike (skin, hair) say nothing: the depth order decides there
+        top2 = np.sort(colours, axis=0)[-2:]
+        scores = np.where(top2[1] - top2[0] < AMBIGUOUS, 0.0, colours - top2[1]).astype(np.float32)
     for i, k in enumerate(fitted):
         allowed = nearest_region(depths[k][crop], [depths[j][crop] for j in fitted if j != k], radius)
-        scores[i] += prior * allowed + 0.5 * prior * grown[k][crop]
+        bonus = prior * allowed + 0.5 * prior * grown[k][crop]
+        scores[i] += bonus
     # a pixel only the background model calls foreground must be one person's colour, clearly
     if len(people) > 1:
-        top2 = np.sort(colours, axis=0)[-2:]
-        region[crop] &= segmented[crop] | (top2[1] - top2[0] > ADD_MARGIN)
+        sure = top2[1] - top2[0] > ADD_MARGIN
+        if bg is not None:
+            sure &= top2[1] > background.log_table()[index]   # likelier a person's than the background's
+        region[crop] &= segmented[crop] | sure
     else:
         region[crop] &= segmented[crop]
     inside = region[crop]
@@ -175,7 +220,7 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
         # 1 px clear of what the others' colours claim (their specks opened away): where two
         # people touch, the pixel between them is mixed
         theirs = cv2.morphologyEx(((label != i) & inside).astype(np.uint8), cv2.MORPH_OPEN, _disc(1))
-        mine[crop] &= cv2.dilate(theirs, _disc(1)) == 0
+        mine[crop] &= cv2.dilate(theirs, _disc(CLEAR_PX)) == 0
         # keep the parts that touch the person's fitted body (drop specks and stray islands)
         n, comp = cv2.connectedComponents(mine.astype(np.uint8), connectivity=8)
         keep = np.unique(comp[mine & cores[k]])

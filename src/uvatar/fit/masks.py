@@ -379,27 +379,24 @@ class _ColourPass:
     learns from the images (:meth:`learn`), then decided again with the colours and written
     (:meth:`finish`; :mod:`uvatar.fit.appearance`)."""
 
-    SAMPLE_FRAMES = 16   # frames per camera whose median is the camera's background
     DEPTH_CACHE = 512 * 2 ** 20   # bytes of rendered depths kept for the second pass (the rest re-rendered)
 
     def __init__(self, config: MaskConfig, people: list, cameras: dict, frames: list[str]) -> None:
-        from uvatar.fit.appearance import ColourModel
+        from uvatar.fit.appearance import Background, ColourModel
 
         self.config, self.people, self.cameras = config, people, cameras
         self.models = [ColourModel() for _ in people]
         self.pending: dict[tuple[str, str], dict[int, np.ndarray]] = {}
-        step = max(1, len(frames) // self.SAMPLE_FRAMES)
-        self.sample = set(frames[::step][:self.SAMPLE_FRAMES])
-        self.backdrop: dict[str, list[np.ndarray]] = {c: [] for c in cameras}
+        self.backgrounds = {c: Background() for c in cameras}
         self.depths: dict[tuple[str, str], dict[int, np.ndarray]] = {}
         self.cached = 0
 
     def learn(self, frame: str, cam_name: str, image: np.ndarray, depths: dict, masks: dict) -> None:
+        import cv2
+
         from uvatar.fit.appearance import colour_index, confident_pixels
 
         u8 = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        if frame in self.sample:
-            self.backdrop[cam_name].append(u8)
         if masks:
             self.pending[(frame, cam_name)] = {k: np.packbits(m) for k, m in masks.items()}
             size = sum(d.nbytes for d in depths.values())
@@ -409,19 +406,19 @@ class _ColourPass:
             return   # someone is not fitted in this frame: their pixels may lie in anyone's
         index = colour_index(u8)
         radius = dilate_px(self.config, image.shape[0])
+        covered = np.logical_or.reduce([d < FAR for d in depths.values()] + list(masks.values()))
+        self.backgrounds[cam_name].add(u8, cv2.dilate(covered.astype(np.uint8), _disc(2 * radius)) > 0)
         for k, mask in masks.items():
             others = [d for j, d in depths.items() if j != k]
             allowed = nearest_region(depths[k], others, radius)
             self.models[k].add(index, confident_pixels(mask, depths[k], others, allowed, radius))
 
     def finish(self, poser: _Poser, body, capture, summary: dict) -> None:
-        from uvatar.fit.appearance import background, decide
+        from uvatar.fit.appearance import decide
 
         tables = {k: m.log_table() for k, m in enumerate(self.models)}
         summary["colour_pixels"] = {("subject" if p.person is None else p.person): m.pixels
                                     for p, m in zip(self.people, self.models, strict=True)}
-        backdrops = {c: background(v) for c, v in self.backdrop.items()}
-        self.backdrop = {}
         for (frame, cam_name), packed in self.pending.items():
             cam = self.cameras[cam_name]
             shape = (cam.height, cam.width)
@@ -437,7 +434,7 @@ class _ColourPass:
                     masks[k] = self.people[k].load_mask(cam_name, frame)
             image = capture.load_image(cam_name, frame)
             decided = decide(image, depths, masks, tables, dilate_px(self.config, cam.height),
-                             self.config.appearance_prior, backdrops[cam_name])
+                             self.config.appearance_prior, self.backgrounds[cam_name])
             for k in packed:
                 _write_mask(self.people[k], cam_name, frame, decided[k], summary)
 
