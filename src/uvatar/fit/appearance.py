@@ -10,22 +10,26 @@ nearest, away from every other body; images where someone is not fitted teach no
 pixels are then labelled once for everyone (:func:`decide`):
 
 - the foreground is the union of everyone's segmented masks and, in an image with two fitted people
-  or more, the pixels unlike the camera's background (:func:`background`: the per-pixel median of a
-  sample of frames) whose colour is clearly one person's (:data:`ADD_MARGIN` nats over the next):
-  this brings back a person the segmenter lost behind someone in front;
+  or more, the pixels unlike the camera's background (:class:`Background`: each pixel's mean colour
+  over the images where no person may be there; where people always stand, unknown) whose colour is
+  clearly one person's (:data:`ADD_MARGIN` nats over the next, and likelier theirs than the
+  background's colours): this brings back a person the segmenter lost behind someone in front;
 - a person's score is their colour log-likelihood plus ``prior`` nats where the depth order gives
   them the pixel (:func:`uvatar.fit.masks.nearest_region`) and half that inside their own grown body;
-  a person not fitted in this frame has their colours alone (they claim the pixels of their clothes,
-  which then are nobody's: an unfitted bystander no longer enters the subject's band); where the
-  colours are alike (skin, hair) the depth order decides, as without the models;
+  where the two likeliest people's colours are within :data:`AMBIGUOUS` nats (skin, hair, shadow)
+  the colours say nothing and the depth order decides, as without the models (skin is alike, but
+  one person shows more of it than the other: that would otherwise tip every hand). A person not
+  fitted in this frame has their colours alone: they claim the pixels of their clothes, which then
+  are nobody's (an unfitted bystander no longer enters the subject's band);
 - the labels are smoothed by a few rounds of neighbourhood voting (:data:`SMOOTH_ROUNDS` of ICM with
   a Potts term of :data:`SMOOTH_NATS`); a person keeps their label's pixels inside their grown body,
-  1 px clear of another person's, in the parts that touch their fitted silhouette.
+  :data:`CLEAR_PX` clear of another person's, in the parts that touch their fitted silhouette.
 
 Measured on ``uvatar synth --bystanders 1`` (60 frames, 4 cameras, 256^2; docs/real.md section 6):
-the subject's mean IoU 0.930 -> 0.959, images below 0.9 34 -> 20, bystander pixels in the subject's
-masks 3,057 -> 1,024. What is left: the bystander's hands and hair where their fit is off or missing
-(skin and hair are alike), and the subject's pixels that no segmentation found.
+the subject's mean IoU 0.930 -> 0.964, images below 0.9 34 -> 17, bystander pixels in the subject's
+masks 3,057 in 42 images -> 635 in 30. What is left: the bystander's hands on the subject and hair
+where their fit is off or missing (skin and hair are alike), a pixel or two where the two touch, and
+the subject's pixels outside their fitted body grown (fit error) or too dark to tell.
 """
 
 from __future__ import annotations
