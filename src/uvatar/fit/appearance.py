@@ -45,6 +45,7 @@ SMOOTH_NATS = 3.0          # nats a label gains when its whole neighbourhood hol
 SMOOTH_WINDOW = 0.01       # the neighbourhood: a box of 2 x this x the image height + 1 pixels
 AMBIGUOUS = 2.0            # nats: colours whose two likeliest people are closer than this say nothing
 ADD_MARGIN = 4.0           # nats by which a pixel only the background model finds must be one person's colour
+REACH = 2                  # beyond the grown body, up to this many bands: pixels clearly of the person's colours
 CLEAR_PX = 1               # a person's mask keeps this many pixels clear of another person's label
 BACKGROUND_TOL = 0.1       # a pixel this far (max over RGB, [0, 1]) from the background is foreground
 
@@ -177,7 +178,9 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     segmented = np.logical_or.reduce([np.asarray(m, bool) for m in masks.values()]) if masks \
         else np.zeros((h, w), bool)
     fg = segmented.copy()
-    region = np.logical_or.reduce([grown[k] for k in fitted])
+    reach = {k: cv2.dilate(cores[k].astype(np.uint8), _disc(max(1, REACH * radius))) > 0 for k in fitted} \
+        if REACH > 1 else grown
+    region = np.logical_or.reduce([reach[k] for k in fitted])
     bg = background.image() if background is not None and len(fitted) > 1 else None
     if bg is not None:   # someone the segmenter lost behind another
         img = image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else np.asarray(image, np.float32)
@@ -188,7 +191,7 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     if not region.any():
         return out
     ys, xs = np.nonzero(region)
-    pad = radius + 2
+    pad = max(1, REACH) * radius + 2
     crop = (slice(max(ys.min() - pad, 0), min(ys.max() + pad + 1, h)),
             slice(max(xs.min() - pad, 0), min(xs.max() + pad + 1, w)))
     index = colour_index(image[crop])
@@ -221,6 +224,9 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     for i, k in enumerate(fitted):
         mine = np.zeros((h, w), bool)
         mine[crop] = (label == i) & inside & grown[k][crop]
+        if REACH > 1 and len(people) > 1:   # beyond the grown body: their clothes' colour, clearly
+            clear = (colours[i] == top2[1]) & (top2[1] - top2[0] > ADD_MARGIN)
+            mine[crop] |= (label == i) & inside & reach[k][crop] & clear
         # 1 px clear of what the others' colours claim (their specks opened away): where two
         # people touch, the pixel between them is mixed
         theirs = cv2.morphologyEx(((label != i) & inside).astype(np.uint8), cv2.MORPH_OPEN, _disc(1))
