@@ -112,8 +112,11 @@ def test_the_colours_give_the_contested_band_to_the_person_whose_clothes_they_ar
     assert not (out[0] & other).any() and not (out[1] & subject).any() and not (out[0] & out[1]).any()
     inner = subject & ~_rect((0, 80), (39, 80))                       # all but the column touching green
     assert out[0][inner].all() and not (out[0] & ~subject).any()
-    # the other person's mask: their pixels inside their own (misplaced) fitted body grown by 4 px
-    np.testing.assert_array_equal(out[1], other & _rect((0, 80), (44, 80)))
+    # the other person's mask: their pixels inside their own (misplaced) fitted body grown by 4 px,
+    # and beyond it (up to two bands) those clearly of their colours: all of them but the column
+    # touching red (the corners of the contact are nobody's clear label)
+    assert out[1][other & _rect((0, 80), (41, 80))].all() and not (out[1] & ~other).any()
+    assert out[1].sum() >= other.sum() - 60
 
 
 def test_a_subject_mostly_hidden_behind_someone_takes_back_the_pixels_of_their_clothes():
@@ -193,3 +196,20 @@ def _white() -> Background:
     for _ in range(3):
         bg.add(_image(), np.zeros((80, 80), bool))
     return bg
+
+
+def test_a_person_takes_their_clear_colours_up_to_two_bands_beyond_their_fitted_body():
+    # the subject's fit ends at column 39, their red reaches column 51; the band is 4 px: the
+    # segmented mask stops at column 43, the colours take the red up to two bands (column 47)
+    red = _rect((10, 70), (15, 52))
+    img = _image((red, RED))
+    core = _rect((10, 70), (15, 40))
+    depths = {0: _depth(core, 5.0)}
+    masks = {0: red & _rect((0, 80), (0, 44))}
+    learned = _image((_rect((0, 80), (0, 40)), GREEN))                # someone else, known from elsewhere
+    tables = {0: _tables(img, subject=core)[0], 1: _tables(learned, other=_rect((0, 80), (0, 40)))[1]}
+    out = decide(img, depths, masks, tables, RADIUS, 1.0, _white())
+    assert out[0][_rect((12, 68), (15, 47))].all() and not (out[0] & ~red).any()
+    assert not out[0][:, 48:].any()
+    # with nobody else's colours there is nothing to tell clothes from: the mask stays as segmented
+    np.testing.assert_array_equal(decide(img, depths, masks, {0: tables[0]}, RADIUS, 1.0, _white())[0], masks[0])

@@ -9,11 +9,12 @@ histogram of :data:`BINS` ** 3 bins, smoothed), learned from the pixels that are
 nearest, away from every other body; images where someone is not fitted teach nobody). Each image's
 pixels are then labelled once for everyone (:func:`decide`):
 
-- the foreground is the union of everyone's segmented masks and, in an image with two fitted people
-  or more, the pixels unlike the camera's background (:class:`Background`: each pixel's mean colour
+- the foreground is the union of everyone's segmented masks and (with two people or more known)
+  the pixels unlike the camera's background (:class:`Background`: each pixel's mean colour
   over the images where no person may be there; where people always stand, unknown) whose colour is
   clearly one person's (:data:`ADD_MARGIN` nats over the next, and likelier theirs than the
-  background's colours): this brings back a person the segmenter lost behind someone in front;
+  background's colours): this brings back a person the segmenter lost behind someone in front,
+  and a person's clothes up to :data:`REACH` bands beyond their fitted body (a fit off by more);
 - a person's score is their colour log-likelihood plus ``prior`` nats where the depth order gives
   them the pixel (:func:`uvatar.fit.masks.nearest_region`) and half that inside their own grown body;
   where the two likeliest people's colours are within :data:`AMBIGUOUS` nats (skin, hair, shadow)
@@ -26,8 +27,8 @@ pixels are then labelled once for everyone (:func:`decide`):
   :data:`CLEAR_PX` clear of another person's, in the parts that touch their fitted silhouette.
 
 Measured on ``uvatar synth --bystanders 1`` (60 frames, 4 cameras, 256^2; docs/real.md section 6):
-the subject's mean IoU 0.930 -> 0.964, images below 0.9 34 -> 17, bystander pixels in the subject's
-masks 3,057 in 42 images -> 635 in 30. What is left: the bystander's hands on the subject and hair
+the subject's mean IoU 0.930 -> 0.964, images below 0.9 34 -> 14, bystander pixels in the subject's
+masks 3,057 in 42 images -> 618 in 29. What is left: the bystander's hands on the subject and hair
 where their fit is off or missing (skin and hair are alike), a pixel or two where the two touch, and
 the subject's pixels outside their fitted body grown (fit error) or too dark to tell.
 """
@@ -181,7 +182,8 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     reach = {k: cv2.dilate(cores[k].astype(np.uint8), _disc(max(1, REACH * radius))) > 0 for k in fitted} \
         if REACH > 1 else grown
     region = np.logical_or.reduce([reach[k] for k in fitted])
-    bg = background.image() if background is not None and len(fitted) > 1 else None
+    known = len(set(tables) | set(fitted))
+    bg = background.image() if background is not None and known > 1 else None
     if bg is not None:   # someone the segmenter lost behind another
         img = image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else np.asarray(image, np.float32)
         with np.errstate(invalid="ignore"):
