@@ -55,6 +55,10 @@ def _masks(args) -> int:
           + (f" (the subject and {len(people)} other(s): people/{', people/'.join(people)}; "
              f"{summary['not_seen']} image(s) of frames where another person was not seen)" if people else ""),
           file=sys.stderr)
+    if summary.get("colour_pixels"):
+        print("colour models (confident pixels): " + ", ".join(
+            f"{who if who == 'subject' else 'people/' + who} {n:,}" for who, n in summary["colour_pixels"].items()),
+            file=sys.stderr)
     for image, reason in list(summary["failed"].items())[:10]:
         print(f"  {image}: {reason}", file=sys.stderr)
     return 0
