@@ -68,17 +68,24 @@ def test_colour_index_and_the_model_prefer_the_colours_they_learned():
         np.testing.assert_allclose(np.exp(t.astype(np.float64)).sum(), 1.0, rtol=1e-4)   # a distribution
 
 
-def test_a_person_without_enough_confident_pixels_gets_a_flat_model_and_decide_still_works():
+def test_a_person_without_enough_confident_pixels_has_no_model_and_decide_still_works():
     model = ColourModel()
     model.add(np.zeros((4, 4), np.int32), np.zeros((4, 4), bool))   # no confident pixel at all
     assert model.pixels == 0
     np.testing.assert_allclose(model.log_table(), -np.log(appearance.BINS ** 3), rtol=1e-6)
     model.add(np.zeros((8, 8), np.int32), np.ones((8, 8), bool))
     assert model.pixels == 64 < appearance.MIN_PIXELS and np.ptp(model.log_table()) == 0
-    subject = _rect((10, 70), (15, 40))
-    img = _image((subject, RED))
+    subject, other = _rect((10, 70), (15, 40)), _rect((10, 70), (40, 62))
+    img = _image((subject, RED), (other, GREEN))
     out = decide(img, {0: _depth(subject, 5.0)}, {0: subject}, {}, RADIUS, 1.0)   # nobody has a model
     np.testing.assert_array_equal(out[0], subject)
+    # a fitted person without a model: the colours cannot speak for them, the masks stay as given
+    depths = {0: _depth(subject, 5.0), 1: _depth(other, 4.0)}
+    given = {0: subject | other, 1: np.zeros_like(subject)}            # (wrong, on purpose)
+    out = decide(img, depths, given, _tables(img, subject=subject), RADIUS, 1.0, _white())
+    assert set(out) == {0, 1}
+    np.testing.assert_array_equal(out[0], given[0])
+    np.testing.assert_array_equal(out[1], given[1])
     assert decide(img, {}, {}, {}, RADIUS, 1.0) == {}                 # nobody fitted: no masks
     assert Background().image() is None                              # no image seen yet
     with pytest.raises(ValueError, match="appearance_prior must be in"):

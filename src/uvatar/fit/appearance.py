@@ -40,7 +40,7 @@ import numpy as np
 __all__ = ["BINS", "ColourModel", "colour_index", "confident_pixels", "Background", "decide"]
 
 BINS = 32                  # histogram bins per RGB channel
-MIN_PIXELS = 200           # fewer confident pixels: the person gets no colour model (a flat one)
+MIN_PIXELS = 200           # fewer confident pixels: no colour model for the person
 SMOOTH_ROUNDS = 6          # rounds of neighbourhood voting (ICM)
 SMOOTH_NATS = 3.0          # nats a label gains when its whole neighbourhood holds it
 SMOOTH_WINDOW = 0.01       # the neighbourhood: a box of 2 x this x the image height + 1 pixels
@@ -159,8 +159,9 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     """{person: (H, W) bool mask} for the people fitted in this image, disjoint. ``image`` (H, W, 3)
     float [0, 1] or uint8; ``depths`` {person: (H, W) body depth} of the people fitted here; ``masks``
     {person: (H, W) bool} their segmented masks so far (the foreground); ``tables`` {person:
-    :meth:`ColourModel.log_table`} of every person of the capture (a fitted person without one gets a
-    flat one; a person with a table and no depth is not fitted here and only claims their colours);
+    :meth:`ColourModel.log_table`} of every person of the capture with a colour model (a person with a
+    table and no depth is not fitted here and only claims their colours; where a fitted person has
+    none, the colours cannot speak for them: the masks are returned as they are);
     ``radius``: the grown band in pixels; ``prior``: nats the depth order adds (see the module doc);
     ``background_image`` (H, W, 3) float32 [0, 1] (NaN: unknown) or None: the camera's background
     (:meth:`Background.image`)."""
@@ -173,6 +174,8 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     out = {k: np.zeros((h, w), bool) for k in fitted}
     if not fitted:
         return out
+    if any(k not in tables for k in fitted):
+        return {k: np.array(masks[k], bool) if k in masks else out[k] for k in fitted}
     kernel = _disc(max(1, radius))
     cores = {k: depths[k] < FAR for k in fitted}
     grown = {k: cv2.dilate(cores[k].astype(np.uint8), kernel) > 0 for k in fitted}
@@ -197,9 +200,8 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     crop = (slice(max(ys.min() - pad, 0), min(ys.max() + pad + 1, h)),
             slice(max(xs.min() - pad, 0), min(xs.max() + pad + 1, w)))
     index = colour_index(image[crop])
-    flat = np.full(BINS ** 3, -np.log(BINS ** 3), np.float32)
     people = fitted + [k for k in tables if k not in depths]
-    colours = np.stack([tables.get(k, flat)[index] for k in people])
+    colours = np.stack([tables[k][index] for k in people])
     scores = colours.copy()
     if len(people) > 1:   # colours alike (skin, hair) say nothing: the depth order decides there
         top2 = np.sort(colours, axis=0)[-2:]

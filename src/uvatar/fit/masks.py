@@ -414,9 +414,9 @@ class _ColourPass:
             self.models[k].add(index, confident_pixels(mask, depths[k], others, allowed, radius))
 
     def finish(self, poser: _Poser, body, capture, summary: dict) -> None:
-        from uvatar.fit.appearance import decide
+        from uvatar.fit.appearance import MIN_PIXELS, decide
 
-        tables = {k: m.log_table() for k, m in enumerate(self.models)}
+        tables = {k: m.log_table() for k, m in enumerate(self.models) if m.pixels >= MIN_PIXELS}
         summary["colour_pixels"] = {("subject" if p.person is None else p.person): m.pixels
                                     for p, m in zip(self.people, self.models, strict=True)}
         for (frame, cam_name), packed in self.pending.items():
