@@ -283,7 +283,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
 
         detector = load_detector("mediapipe")
     summary = {"written": 0, "kept": 0, "failed": {}, "not_seen": 0, "people": [p.person for p in people[1:]]}
-    colour = _ColourPass(config, people, cameras, frames) if config.appearance and body is not None \
+    colour = _ColourPass(config, people, cameras) if config.appearance and body is not None \
         and len(people) > 1 else None
     poser = _Poser(body, people)
     jobs = [(f, c) for f in frames for c in cameras]
@@ -381,7 +381,7 @@ class _ColourPass:
 
     DEPTH_CACHE = 512 * 2 ** 20   # bytes of rendered depths kept for the second pass (the rest re-rendered)
 
-    def __init__(self, config: MaskConfig, people: list, cameras: dict, frames: list[str]) -> None:
+    def __init__(self, config: MaskConfig, people: list, cameras: dict) -> None:
         from uvatar.fit.appearance import Background, ColourModel
 
         self.config, self.people, self.cameras = config, people, cameras
