@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from uvatar.fit.masks import FAR, _disc, nearest_region
+
 __all__ = ["BINS", "ColourModel", "colour_index", "confident_pixels", "Background", "decide"]
 
 BINS = 32                  # histogram bins per RGB channel
@@ -88,12 +90,6 @@ class ColourModel:
         return np.log(p).astype(np.float32)
 
 
-def _disc(radius: int) -> np.ndarray:
-    import cv2
-
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-
-
 def confident_pixels(mask: np.ndarray, depth: np.ndarray, others: list[np.ndarray], allowed: np.ndarray,
                      radius: int) -> np.ndarray:
     """(H, W) bool: the pixels surely the person's, to learn their colours from: in their mask (H, W)
@@ -101,8 +97,6 @@ def confident_pixels(mask: np.ndarray, depth: np.ndarray, others: list[np.ndarra
     depth order gives them the pixel (``allowed``) and ``radius`` + ``radius`` // 2 pixels away from
     every other fitted body (``others``: their depths)."""
     import cv2
-
-    from uvatar.fit.masks import FAR
 
     margin = max(1, radius // 2)
     core = cv2.erode((depth < FAR).astype(np.uint8), _disc(margin)) > 0
@@ -166,8 +160,6 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     ``background_image`` (H, W, 3) float32 [0, 1] (NaN: unknown) or None: the camera's background
     (:meth:`Background.image`)."""
     import cv2
-
-    from uvatar.fit.masks import FAR, nearest_region
 
     h, w = image.shape[:2]
     fitted = list(depths)
