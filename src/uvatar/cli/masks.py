@@ -14,13 +14,16 @@ def _flags() -> ConfigFlags:
     from uvatar.fit.masks import MaskConfig
 
     return ConfigFlags(MaskConfig, fields=("threshold", "dilate", "render_width", "use_fit", "exclude_others",
-                                                   "overwrite"),
+                                                   "appearance", "appearance_prior", "overwrite"),
                        rename={"use_fit": "fit"}, help={
                            "threshold": "person probability threshold",
                            "dilate": "grow the fitted body's silhouette by this fraction of the image height",
                            "render_width": "width at which the body silhouette is rendered",
                            "exclude_others": "drop another person's pixels next to the fitted one (one more "
                                              "keypoint detection per image)",
+                           "appearance": "where other people are fitted, decide the pixels they contest by "
+                                         "per-person colour models (learned over the whole capture)",
+                           "appearance_prior": "weight (nats) of the depth order against the colours there",
                            "use_fit": "restrict to the fitted person (--no-fit: the segmenter alone, "
                                       "bystanders are masked in)",
                            "overwrite": "replace existing masks"})
@@ -52,6 +55,10 @@ def _masks(args) -> int:
           + (f" (the subject and {len(people)} other(s): people/{', people/'.join(people)}; "
              f"{summary['not_seen']} image(s) of frames where another person was not seen)" if people else ""),
           file=sys.stderr)
+    if summary.get("colour_pixels"):
+        print("colour models (confident pixels): " + ", ".join(
+            f"{who if who == 'subject' else 'people/' + who} {n:,}" for who, n in summary["colour_pixels"].items()),
+            file=sys.stderr)
     for image, reason in list(summary["failed"].items())[:10]:
         print(f"  {image}: {reason}", file=sys.stderr)
     return 0

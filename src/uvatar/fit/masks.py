@@ -19,7 +19,11 @@ their own grown band only where no other body (grown) lies. Each person gets the
 (``masks/`` for the subject, ``people/<id>/masks/``); the detector of ``exclude_others`` is then not
 needed (it still runs where the frame has no other fitted body). Before the segmenter runs, the
 other people's pixels (their grown bodies, where this person may not take them) are painted over:
-a person detector that sees the one in front would otherwise segment them instead.
+a person detector that sees the one in front would otherwise segment them instead. With
+``appearance`` (the default), these depth-ordered masks are held back until every image is segmented:
+each person's colour model is learned from them over the whole capture, and every image's contested
+pixels are decided again by colour and depth together (:mod:`uvatar.fit.appearance`), then written.
+A capture with the subject alone is masked as before (no colour pass).
 """
 
 from __future__ import annotations
@@ -51,7 +55,9 @@ class MaskConfig:
     render_width: the silhouette is rendered this wide (then resized), for speed;
     use_fit: restrict to the fitted body (off: the segmenter alone, which also takes bystanders);
     exclude_others: drop the pixels of another person found next to the subject (one more detection
-    per image; needs use_fit)."""
+    per image; needs use_fit); appearance: where other people are fitted, per-person colour models
+    decide the pixels they contest (:mod:`uvatar.fit.appearance`); appearance_prior: the weight (nats)
+    of the depth order against the colours there."""
 
     segmenter: str = "mediapipe"
     threshold: float = 0.5
@@ -59,6 +65,8 @@ class MaskConfig:
     render_width: int = 360
     use_fit: bool = True
     exclude_others: bool = True
+    appearance: bool = True
+    appearance_prior: float = 1.0
     overwrite: bool = False
 
     def __post_init__(self) -> None:
@@ -66,6 +74,8 @@ class MaskConfig:
             (0.0 < self.threshold < 1.0, f"threshold must be in (0, 1), got {self.threshold}"),
             (0.0 <= self.dilate < 0.5, f"dilate must be in [0, 0.5), got {self.dilate}"),
             (self.render_width >= 32, f"render_width must be at least 32, got {self.render_width}"),
+            (0.0 <= self.appearance_prior < 100.0,
+             f"appearance_prior must be in [0, 100) nats, got {self.appearance_prior}"),
         ])
 
 
@@ -243,15 +253,15 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     """Masks for every (camera, frame) image of the capture at ``root``, for the subject and every
     other fitted person (``people/<id>/``, depth-ordered; see the module doc); returns a summary
     ({"written", "kept", "failed": {image: reason}, "not_seen": images of another person's frames
-    without a fit, "people": ids}). Needs fits unless ``config.use_fit`` is off (then the subject's
-    masks alone, from the segmenter)."""
-    import cv2
+    without a fit, "people": ids, "colour_pixels": {person: confident pixels of their colour model}
+    with ``appearance``}). Needs fits unless ``config.use_fit`` is off (then the subject's masks
+    alone, from the segmenter). With ``appearance`` and other people, the masks are written after
+    every image is segmented (the colour models need them all; held in memory, packed)."""
     from tqdm import tqdm
 
     from uvatar.body.registry import load_body_model
     from uvatar.capture.layout import Capture
     from uvatar.fit.segment import load_segmenter
-    from uvatar.io_utils import write_image
 
     config = config or MaskConfig()
     capture = Capture(root)
@@ -273,7 +283,9 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
 
         detector = load_detector("mediapipe")
     summary = {"written": 0, "kept": 0, "failed": {}, "not_seen": 0, "people": [p.person for p in people[1:]]}
-    posed_frame, posed = None, {}   # {person index: posed vertices} of posed_frame
+    colour = _ColourPass(config, people, cameras) if config.appearance and body is not None \
+        and len(people) > 1 else None
+    poser = _Poser(body, people)
     jobs = [(f, c) for f in frames for c in cameras]
     for frame, cam_name in tqdm(jobs, desc="masks", unit="image", disable=not progress, dynamic_ncols=True):
         todo = [k for k, p in enumerate(people)
@@ -281,21 +293,16 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         summary["kept"] += len(people) - len(todo)
         if not todo:
             continue
-        if posed_frame != frame:
-            posed_frame = frame
-            posed = {k: posed_vertices(body, p, frame) for k, p in enumerate(people)
-                     if body is not None and p.has_fit(frame)}
+        posed = poser.frame(frame)
         try:
-            image_path = capture.image_path(cam_name, frame)
-            if not image_path.is_file():
-                raise InputError(image_path, "image is missing")
-            image = capture.load_image(cam_name, frame)
+            image = _load_image(capture, cam_name, frame)
         except UvatarError as exc:
             for k in todo:
                 _failed(summary, people[k], cam_name, frame, exc)
             continue
         cam = cameras[cam_name]
         depths = {k: body_depth(v, body.template.faces, cam, config.render_width) for k, v in posed.items()}
+        masks = {}
         for k in todo:
             person = people[k]
             if k and k not in depths:
@@ -309,22 +316,127 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
                         raise InputError(person.fit_path(frame), "no fit for this frame")
                     prior = depths[k] < FAR
                     if others:
-                        r = dilate_px(config, cam.height)
-                        allowed = nearest_region(depths[k], others, r)
-                        near = cv2.dilate(np.logical_or.reduce([d < FAR for d in others]).astype(np.uint8),
-                                          _disc(r)) > 0
-                        hide = near & ~allowed   # the others where they are in front (or beside)
-                mask = person_mask(image, segmenter, prior, config, None if others else detector, allowed,
-                                   hide)
-                write_image(person.masks_dir / cam_name / f"{frame}.png", mask.astype(np.uint8) * 255)
-                summary["written"] += 1
+                        allowed, hide = _depth_order(depths, k, dilate_px(config, cam.height))
+                masks[k] = person_mask(image, segmenter, prior, config, None if others else detector, allowed,
+                                       hide)
             except UvatarError as exc:
                 _failed(summary, person, cam_name, frame, exc)
+        if colour is not None:
+            colour.learn(frame, cam_name, image, depths, masks)
+        else:
+            for k, mask in masks.items():
+                _write_mask(people[k], cam_name, frame, mask, summary)
+    if colour is not None:
+        colour.finish(poser, body, capture, summary)
     if summary["written"] + summary["kept"] == 0:
         raise InputError(capture.root, f"{len(jobs)} images, no mask written: "
                                        f"{len(summary['failed'])} failed (first: "
                                        f"{next(iter(summary['failed'].values()), '-')})")
     return summary
+
+
+def _load_image(capture, cam_name: str, frame: str) -> np.ndarray:
+    image_path = capture.image_path(cam_name, frame)
+    if not image_path.is_file():
+        raise InputError(image_path, "image is missing")
+    return capture.load_image(cam_name, frame)
+
+
+def _write_mask(person, cam_name: str, frame: str, mask: np.ndarray, summary: dict) -> None:
+    from uvatar.io_utils import write_image
+
+    write_image(person.masks_dir / cam_name / f"{frame}.png", mask.astype(np.uint8) * 255)
+    summary["written"] += 1
+
+
+def _depth_order(depths: dict, k: int, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """(allowed, hide) of person ``k`` among the fitted bodies ``depths``: :func:`nearest_region`, and
+    the others' grown bodies where ``k`` may not take them (painted over before the segmenter runs)."""
+    import cv2
+
+    others = [d for j, d in depths.items() if j != k]
+    allowed = nearest_region(depths[k], others, radius)
+    near = cv2.dilate(np.logical_or.reduce([d < FAR for d in others]).astype(np.uint8), _disc(radius)) > 0
+    return allowed, near & ~allowed
+
+
+class _Poser:
+    """The posed vertices {person index: (V, 3)} of one frame at a time (the people fitted there)."""
+
+    def __init__(self, body, people: list) -> None:
+        self.body, self.people, self.name, self.posed = body, people, None, {}
+
+    def frame(self, frame: str) -> dict:
+        if self.name != frame:
+            self.name = frame
+            self.posed = {k: posed_vertices(self.body, p, frame) for k, p in enumerate(self.people)
+                          if self.body is not None and p.has_fit(frame)}
+        return self.posed
+
+
+class _ColourPass:
+    """The masks of a capture with other people, held back (packed) while every person's colour model
+    learns from the images (:meth:`learn`), then decided again with the colours and written
+    (:meth:`finish`; :mod:`uvatar.fit.appearance`)."""
+
+    DEPTH_CACHE = 512 * 2 ** 20   # bytes of rendered depths kept for the second pass (the rest re-rendered)
+
+    def __init__(self, config: MaskConfig, people: list, cameras: dict) -> None:
+        from uvatar.fit.appearance import Background, ColourModel
+
+        self.config, self.people, self.cameras = config, people, cameras
+        self.models = [ColourModel() for _ in people]
+        self.pending: dict[tuple[str, str], dict[int, np.ndarray]] = {}
+        self.backgrounds = {c: Background() for c in cameras}
+        self.depths: dict[tuple[str, str], dict[int, np.ndarray]] = {}
+        self.cached = 0
+
+    def learn(self, frame: str, cam_name: str, image: np.ndarray, depths: dict, masks: dict) -> None:
+        import cv2
+
+        from uvatar.fit.appearance import colour_index, confident_pixels
+
+        u8 = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        if masks:
+            self.pending[(frame, cam_name)] = {k: np.packbits(m) for k, m in masks.items()}
+            size = sum(d.nbytes for d in depths.values())
+            if self.cached + size <= self.DEPTH_CACHE:
+                self.depths[(frame, cam_name)], self.cached = depths, self.cached + size
+        if len(depths) < len(self.people):
+            return   # someone is not fitted in this frame: their pixels may lie in anyone's
+        index = colour_index(u8)
+        radius = dilate_px(self.config, image.shape[0])
+        covered = np.logical_or.reduce([d < FAR for d in depths.values()] + list(masks.values()))
+        self.backgrounds[cam_name].add(u8, cv2.dilate(covered.astype(np.uint8), _disc(2 * radius)) > 0)
+        for k, mask in masks.items():
+            others = [d for j, d in depths.items() if j != k]
+            allowed = nearest_region(depths[k], others, radius)
+            self.models[k].add(index, confident_pixels(mask, depths[k], others, allowed, radius))
+
+    def finish(self, poser: _Poser, body, capture, summary: dict) -> None:
+        from uvatar.fit.appearance import MIN_PIXELS, decide
+
+        tables = {k: m.log_table() for k, m in enumerate(self.models) if m.pixels >= MIN_PIXELS}
+        summary["colour_pixels"] = {("subject" if p.person is None else p.person): m.pixels
+                                    for p, m in zip(self.people, self.models, strict=True)}
+        for (frame, cam_name), packed in self.pending.items():
+            cam = self.cameras[cam_name]
+            shape = (cam.height, cam.width)
+            masks = {k: np.unpackbits(p, count=shape[0] * shape[1]).reshape(shape).astype(bool)
+                     for k, p in packed.items()}
+            depths = self.depths.pop((frame, cam_name), None)
+            if depths is None:
+                depths = {k: body_depth(v, body.template.faces, cam, self.config.render_width)
+                          for k, v in poser.frame(frame).items()}
+            for k in depths:   # kept masks (a resumed run) are foreground too
+                path = self.people[k].masks_dir / cam_name / f"{frame}.png"
+                if k not in masks and path.is_file():
+                    masks[k] = self.people[k].load_mask(cam_name, frame)
+            image = capture.load_image(cam_name, frame)
+            decided = decide(image, depths, masks, tables, dilate_px(self.config, cam.height),
+                             self.config.appearance_prior, self.backgrounds[cam_name])
+            for k in packed:
+                _write_mask(self.people[k], cam_name, frame, decided[k], summary)
 
 
 def _failed(summary: dict, person, cam_name: str, frame: str, exc: Exception) -> None:
