@@ -270,3 +270,66 @@ def replace_epochs(cfg, epochs):
     from dataclasses import replace
 
     return replace(cfg, epochs=epochs)
+
+
+def _lit_frames(n=40, R=6, seed=0):
+    """Frames lit by a known rig: random unit normals per frame and texel, a known albedo, ambient 0.4,
+    a key of strength 0.8 and a fill of 0.3 (the calibration's known answer)."""
+    g = torch.Generator().manual_seed(seed)
+    normals = torch.nn.functional.normalize(torch.randn(n, 3, R, R, generator=g), dim=1)
+    albedo = 0.2 + 0.6 * torch.rand(3, R, R, generator=g)
+    key = torch.nn.functional.normalize(torch.tensor([0.5, 0.6, 0.7]), dim=0) * 0.8
+    fill = torch.nn.functional.normalize(torch.tensor([-0.8, 0.3, -0.4]), dim=0) * 0.3
+    light = 0.4 + torch.relu(torch.einsum("nchw,c->nhw", normals, key)) + torch.relu(torch.einsum("nchw,c->nhw", normals, fill))
+    return normals, albedo, albedo[None] * light[:, None], key, fill
+
+
+def test_calibration_finds_a_known_rig():
+    """Texture = albedo · (ambient + Σ max(0, n·v)): the calibrated rig's light factor times the returned
+    albedo gives the frames back, its lights point at the key and the fill (the scale between albedo and
+    light is free, so directions and ratios are checked), and the rig starts where it was fitted."""
+    from uvatar.avh.lights import calibrate_rig
+
+    normals, albedo, texture, key, fill = _lit_frames()
+    rig = LightRig(2, 6)
+    fitted = calibrate_rig(rig, normals, texture, torch.ones(len(texture), 1, 6, 6), steps=1500, lr=2e-2)
+    with torch.no_grad():
+        again = fitted[None] * rig(normals)
+    assert torch.allclose(again, texture, atol=0.01)
+    v = rig.directions.reshape(-1, 3).detach()
+    # each light's strength relative to the ambient (per-texel share times |v|: only the product matters)
+    strength = (rig.share.detach()[0].mean((1, 2)) * v.norm(dim=1)) / rig.ambient.detach().mean()
+    k, f = (0, 1) if strength[0] > strength[1] else (1, 0)
+    assert float(torch.nn.functional.cosine_similarity(v[k], key, dim=0)) > 0.99
+    assert float(torch.nn.functional.cosine_similarity(v[f], fill, dim=0)) > 0.95
+    assert float(strength[k]) == pytest.approx(0.8 / 0.4, rel=0.1)
+    assert float(strength[f]) == pytest.approx(0.3 / 0.4, rel=0.15)
+    assert (rig.ambient >= 0).all() and (rig.share >= 0).all()
+
+
+def test_calibration_bad_shapes():
+    from uvatar.avh.lights import calibrate_rig
+
+    normals, _, texture, _, _ = _lit_frames(n=4)
+    with pytest.raises(ValueError, match="normals and texture"):
+        calibrate_rig(LightRig(2, 6), normals[:3], texture, torch.ones(4, 1, 6, 6), steps=1)
+
+
+def test_training_starts_from_the_calibrated_rig(tmp_path):
+    """With calibrate_lights, the rig's lights move from their tiny spread start before the first step
+    (one epoch at a vanishing learning rate: what is left is the calibration); with 0 they do not."""
+    from tests.fixtures.toy_capture import make_toy_capture
+    from uvatar.avh.train import TrainConfig, train_avh
+    from uvatar.body.toy import ToyTubeBody
+
+    body = ToyTubeBody()
+    _, baked = make_toy_capture(tmp_path, body, num_frames=6, heldout=1, resolution=16)
+    model = AvhConfig(4, 16, resolution=16, conditioning="texel", orientation="studio", shading_lights=2)
+    start = LightRig(2, 16).directions.detach().reshape(-1, 3)
+    for steps, moved in ((50, True), (0, False)):
+        cfg = TrainConfig(epochs=1, batch_size=2, lr=1e-12, progress=False, tensorboard=False, calibrate_lights=steps)
+        train_avh(baked, tmp_path / f"run{steps}", model, cfg, body=body)
+        v = torch.load(tmp_path / f"run{steps}" / "model.pt", weights_only=False)["model"]["lights.directions"]
+        assert (float((v.reshape(-1, 3) - start).abs().max()) > 0.1) is moved
+    with pytest.raises(ValueError, match="calibrate_lights"):
+        TrainConfig(calibrate_lights=-1)

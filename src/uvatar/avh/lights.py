@@ -74,3 +74,46 @@ class LightRig(nn.Module):
             vis = 1.0 if visibility is None else visibility[:, k:k + 1]
             light = light + self.share[:, k:k + 1] * torch.clamp(dot, min=0.0) * vis
         return torch.clamp(light, min=MIN_LIGHT)
+
+
+def calibrate_rig(rig: LightRig, normals: torch.Tensor, texture: torch.Tensor, weight: torch.Tensor,
+                  steps: int = 400, lr: float = 1e-2, start_length: float = 0.5) -> torch.Tensor:
+    """Fit ``rig`` (its light vectors, per-texel ambient and shares) and a per-texel albedo to the
+    training frames before the generator trains: the studio's light is one rig for all frames, so the
+    frames together say where it is, which a few hundred training steps from tiny lights do not find
+    (on the demo's lit studio the rig stayed at a tenth of the key's strength, both lights on the key's
+    side; calibrated, it finds the key and the fill at their true directions and strengths).
+
+    normals: (N, 3, R, R) the texels' posed world normals (the texel pose map's channels 6:9);
+    texture: (N, 3, R, R) the baked textures; weight: (N, 1, R, R) their loss weights (κ · valid).
+    Minimizes Σ weight · (albedo · L(normals) − texture)² / Σ weight by full-batch Adam (``steps`` at
+    ``lr``), the lights starting at the rig's spread directions scaled to ``start_length``; the limbs'
+    shadows are left to training. Writes the fitted rig into ``rig`` (ambient and shares kept ≥ 0)
+    and returns the albedo (3, R, R) in [0, 1], the start of the texture decoder's output bias."""
+    if normals.ndim != 4 or normals.shape[0] != texture.shape[0] or normals.shape[1] != 3 or texture.shape[1] != 3:
+        raise ValueError(f"normals and texture must be (N, 3, R, R) with the same N, got {tuple(normals.shape)} "
+                         f"and {tuple(texture.shape)}")
+    normals, texture, weight = normals.detach().float(), texture.detach().float(), weight.detach().float()
+    albedo = ((weight * texture).sum(0) / weight.sum(0).clamp_min(1e-6)).requires_grad_(True)
+    ambient = torch.ones_like(rig.ambient, requires_grad=True)
+    share = torch.ones_like(rig.share, requires_grad=True)
+    with torch.no_grad():
+        d = rig.directions.reshape(-1, 3)
+        directions = (d / d.norm(dim=1, keepdim=True).clamp_min(1e-12) * start_length).requires_grad_(True)
+    opt = torch.optim.Adam([albedo, ambient, share, directions], lr=lr)
+    total = 3 * weight.sum().clamp_min(1e-6)
+    for _ in range(steps):
+        lit = torch.relu(torch.einsum("nchw,kc->nkhw", normals, directions))
+        light = (ambient + (share * lit).sum(1, keepdim=True)).clamp_min(MIN_LIGHT)
+        loss = (weight * (albedo[None] * light - texture).square()).sum() / total
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            ambient.clamp_(min=0.0)
+            share.clamp_(min=0.0)
+    with torch.no_grad():
+        rig.directions.copy_(directions.reshape(rig.directions.shape))
+        rig.ambient.copy_(ambient)
+        rig.share.copy_(share)
+    return albedo.detach().clamp(0.0, 1.0)

@@ -59,7 +59,10 @@ class TrainConfig:
     texel generator). On the demo's lit studio 10x and 30x let the head learn more of the light (its
     shading spread 0.05 -> 0.08) but did not lower the held-out error (docs/results.md), so it is 1.
     ``ema_decay``: the validated, saved and exported weights are an exponential moving average of the
-    trained ones with this decay per step (:mod:`uvatar.avh.ema`); 0: the last step's weights."""
+    trained ones with this decay per step (:mod:`uvatar.avh.ema`); 0: the last step's weights.
+    ``calibrate_lights``: before the first step, a generator with a light rig gets its lights, per-texel
+    ambient and shares, and its texture bias (an albedo) fitted to all training frames at once, this
+    many full-batch steps (:func:`uvatar.avh.lights.calibrate_rig`; 0: the rig starts unlit, as before)."""
 
     epochs: int = 500
     batch_size: int = 8
@@ -74,6 +77,7 @@ class TrainConfig:
     pose_noise: float = 0.0
     shading_lr_scale: float = 1.0
     ema_decay: float = 0.0
+    calibrate_lights: int = 600
     tensorboard: bool = True
     progress: bool = True
 
@@ -85,6 +89,7 @@ class TrainConfig:
                   (self.displacement_weight >= 0, f"displacement weight must be >= 0, got {self.displacement_weight}"),
                   (self.pose_noise >= 0, f"pose noise must be >= 0, got {self.pose_noise}"),
                   (0 <= self.ema_decay < 1, f"ema decay must be in [0, 1), got {self.ema_decay}"),
+                  (self.calibrate_lights >= 0, f"calibrate_lights must be >= 0 steps, got {self.calibrate_lights}"),
                   (self.shading_lr_scale > 0, f"shading learning-rate scale must be > 0, got {self.shading_lr_scale}"),
                   (self.displacement_frame in DISPLACEMENT_FRAMES,
                    f"displacement frame must be one of {DISPLACEMENT_FRAMES}, got {self.displacement_frame!r}")]
@@ -337,7 +342,16 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
     history: list[dict] = []
     start_epoch = 0
     if state is None:
-        init_output_bias(model, *mean_maps(train, excluded, cfg.outlier_threshold))
+        tex_mean, disp_mean = mean_maps(train, excluded, cfg.outlier_threshold)
+        if model.lights is not None and cfg.calibrate_lights:
+            from uvatar.avh.lights import calibrate_rig
+
+            m = train.maps
+            with torch.no_grad():
+                normals = model.texel_pose(train.pose_angles)[:, 6:9]
+            tex_mean = calibrate_rig(model.lights, normals, m["texture"], m["kappa"] * m["valid"].to(m["kappa"].dtype),
+                                     steps=cfg.calibrate_lights)
+        init_output_bias(model, tex_mean, disp_mean)
     else:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])

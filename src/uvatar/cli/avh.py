@@ -54,7 +54,8 @@ def _flags() -> dict[str, ConfigFlags]:
                                                         "occlusion (needs --shading-shadows)"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
-                                 "pose_noise", "shading_lr_scale", "ema_decay", "device", "seed", "tensorboard"),
+                                 "pose_noise", "shading_lr_scale", "ema_decay", "calibrate_lights", "device", "seed",
+                                 "tensorboard"),
             rename={"lr_gamma": "gamma"}, choices={"displacement_frame": DISPLACEMENT_FRAMES}, help={
                 "epochs": "epochs (the paper uses 500)", "batch_size": "frames per batch", "lr": "Adam learning rate",
                 "lr_gamma": "ExponentialLR decay per epoch", "displacement_weight": "weight of the displacement loss",
@@ -65,6 +66,8 @@ def _flags() -> dict[str, ConfigFlags]:
                                     "with --conditioning texel)",
                 "ema_decay": "validate, save and export a moving average of the weights with this decay per "
                              "step (0: the last step's weights)",
+                "calibrate_lights": "steps fitting the light rig (--shading-lights) and an albedo to all training "
+                                    "frames before training (0: the rig starts unlit)",
                 "device": "cpu or cuda (bf16 autocast + channels_last)", "seed": "random seed",
                 "tensorboard": "write TensorBoard logs to OUT/tb"}),
         "animate": ConfigFlags(
