@@ -318,8 +318,12 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
         if body is None:
             raise InputError(baked_dir / "dataset.json", "texel conditioning needs the body model's skinning "
                                                          "weights; this dataset has body model 'none'")
-        from uvatar.avh.texel_pose import (conditioning_axes, conditioning_parents, texel_rest_normals,
-                                           texel_skin_weights)
+        from uvatar.avh.texel_pose import (
+            conditioning_axes,
+            conditioning_parents,
+            texel_rest_normals,
+            texel_skin_weights,
+        )
 
         model.texel_pose.set_weights(texel_skin_weights(body.template, cond, R),
                                      conditioning_parents(body.template.joint_parents, cond),
