@@ -77,7 +77,8 @@ class LightRig(nn.Module):
 
 
 def calibrate_rig(rig: LightRig, normals: torch.Tensor, texture: torch.Tensor, weight: torch.Tensor,
-                  steps: int = 400, lr: float = 1e-2, start_length: float = 0.5) -> torch.Tensor:
+                  steps: int = 400, lr: float = 1e-2, start_length: float = 0.5, batch: int = 16,
+                  seed: int = 0) -> torch.Tensor:
     """Fit ``rig`` (its light vectors, per-texel ambient and shares) and a per-texel albedo to the
     training frames before the generator trains: the studio's light is one rig for all frames, so the
     frames together say where it is, which a few hundred training steps from tiny lights do not find
@@ -86,9 +87,9 @@ def calibrate_rig(rig: LightRig, normals: torch.Tensor, texture: torch.Tensor, w
 
     normals: (N, 3, R, R) the texels' posed world normals (the texel pose map's channels 6:9);
     texture: (N, 3, R, R) the baked textures; weight: (N, 1, R, R) their loss weights (κ · valid).
-    Minimizes Σ weight · (albedo · L(normals) − texture)² / Σ weight by full-batch Adam (``steps`` at
-    ``lr``), the lights starting at the rig's spread directions scaled to ``start_length``; the limbs'
-    shadows are left to training. Writes the fitted rig into ``rig`` (ambient and shares kept ≥ 0)
+    Minimizes Σ weight · (albedo · L(normals) − texture)² / Σ weight by Adam (``steps`` at ``lr``, each
+    on ``batch`` frames drawn with ``seed``; all frames when there are no more), the lights starting at
+    the rig's spread directions scaled to ``start_length``; the limbs' shadows are left to training. Writes the fitted rig into ``rig`` (ambient and shares kept ≥ 0)
     and returns the albedo (3, R, R) in [0, 1], the start of the texture decoder's output bias."""
     if normals.ndim != 4 or normals.shape[0] != texture.shape[0] or normals.shape[1] != 3 or texture.shape[1] != 3:
         raise ValueError(f"normals and texture must be (N, 3, R, R) with the same N, got {tuple(normals.shape)} "
@@ -101,11 +102,14 @@ def calibrate_rig(rig: LightRig, normals: torch.Tensor, texture: torch.Tensor, w
         d = rig.directions.reshape(-1, 3)
         directions = (d / d.norm(dim=1, keepdim=True).clamp_min(1e-12) * start_length).requires_grad_(True)
     opt = torch.optim.Adam([albedo, ambient, share, directions], lr=lr)
-    total = 3 * weight.sum().clamp_min(1e-6)
+    gen = torch.Generator().manual_seed(seed)
+    n = normals.shape[0]
     for _ in range(steps):
-        lit = torch.relu(torch.einsum("nchw,kc->nkhw", normals, directions))
+        idx = torch.randperm(n, generator=gen)[:batch] if n > batch else torch.arange(n)
+        w = weight[idx]
+        lit = torch.relu(torch.einsum("nchw,kc->nkhw", normals[idx], directions))
         light = (ambient + (share * lit).sum(1, keepdim=True)).clamp_min(MIN_LIGHT)
-        loss = (weight * (albedo[None] * light - texture).square()).sum() / total
+        loss = (w * (albedo[None] * light - texture[idx]).square()).sum() / (3 * w.sum().clamp_min(1e-6))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
