@@ -83,6 +83,8 @@ class DemoConfig:
 
 
 DEFAULT = DemoConfig()
+# 256² maps: the plaid and the creases survive (docs/results.md, issue #24)
+FINE = DemoConfig(texels=256, preset="cpu-256")
 QUICK = DemoConfig(frames=12, heldout=3, cameras=2, image_size=96, scan_texture=256, gt_texels=64,
                    texels=64, train_frames=8, val_frames=2, preset="cpu-tiny", epochs=2,
                    animate_frames=6, animate_size=96, synth_preset="quick")
