@@ -37,7 +37,7 @@ def register(cli) -> None:
     size = p.add_mutually_exclusive_group()
     size.add_argument("--quick", action="store_true", help="smoke run (~3 min on 2 CPU cores); the quick preset")
     size.add_argument("--fine", action="store_true", help="256² maps instead of 128² (the plaid and the creases "
-                                                          "survive; ~FINE_MIN min on 2 CPU cores); the fine preset")
+                                                          "survive; ~12 min on 2 CPU cores); the fine preset")
     _flags().add_to(p)
     p.set_defaults(func=run)
 

@@ -29,9 +29,9 @@ FIT_SOURCES = ("studio", "fit")
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """Sizes of the demo run. ``DEFAULT``: 128² maps, both conditionings. 256² maps (``texels=256,
-    preset="cpu-256"``) took 65 min on a 2-core CPU shared with other jobs (docs/results.md; 6 epochs),
-    mostly in the bake's colour rounds, so they are not the default. ``QUICK`` ~3 min alone."""
+    """Sizes of the demo run. ``DEFAULT``: 128² maps, both conditionings (8.1 min on an idle 2-core CPU).
+    ``FINE`` (``uvatar demo --fine``): 256² maps (``texels=256, preset="cpu-256"``), 12.0 min there, over
+    the 10 minutes a first run should take, so not the default (docs/results.md). ``QUICK`` ~3 min alone."""
 
     frames: int = 100           # synthetic capture frames in all (takes + held-out poses)
     heldout: int = 8            # held-out frames with poses not in the takes
