@@ -53,7 +53,7 @@ TARGETS = {
 }
 
 # Commands whose config flags default to the preset picked at run time (argparse default SUPPRESS; the
-# help lists each preset's value): synth --preset, train avh/dva --preset, demo --quick.
+# help lists each preset's value): synth --preset, train avh/dva --preset, demo --quick / --fine.
 PRESET_COMMANDS = {"synth", "train avh", "train dva", "demo"}
 
 # (command, flag dest) -> field name in the targets ("Target.field" when two targets share a name)
@@ -84,7 +84,7 @@ NOT_CONFIG = {
     ("bake", "overwrite"), ("bake", "json"), ("bake", "eval"), ("bake", "no_progress"),
     ("select", "from_capture"), ("select", "out"), ("select", "json"), ("body info", "json"),
     ("body render", "size"), ("body render", "parts"), ("capture check", "json"),
-    ("capture check", "no_progress"), ("demo", "out"), ("demo", "quick"),
+    ("capture check", "no_progress"), ("demo", "out"), ("demo", "quick"), ("demo", "fine"),
     ("render dva", "motion"), ("render dva", "views"), ("render dva", "camera"), ("render dva", "frames"),
     ("render dva", "size"), ("render dva", "fps"), ("render dva", "device"), ("render dva", "threads"),
     ("render dva", "output"), ("motion info", "json"), ("motion convert", "fits"), ("synth", "preset"),

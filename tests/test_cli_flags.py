@@ -222,6 +222,12 @@ def test_real_commands_round_trip_to_their_config_defaults():
     assert flags["eval"].config(_parse(["eval", "avh", "a", "c"])) == EvalConfig()
     assert view._flags().config(_parse(["view", "a"]), motions=()) == ViewerConfig()
     assert demo._flags().config(_parse(["demo", "--quick"]), base=QUICK) == QUICK
+    from uvatar.demo.pipeline import FINE
+
+    fine = demo._flags().config(_parse(["demo", "--fine", "--epochs", "30"]), base=FINE)
+    assert (fine.texels, fine.preset, fine.epochs) == (256, "cpu-256", 30)
+    with pytest.raises(SystemExit):
+        _parse(["demo", "--quick", "--fine"])
 
 
 def test_documented_spellings_still_parse():
