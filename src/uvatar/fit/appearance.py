@@ -37,7 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from uvatar.fit.masks import FAR, _disc, nearest_region
+from uvatar.fit.depth_order import FAR, nearest_region
+from uvatar.fit.depth_order import disc as _disc
 
 __all__ = ["BINS", "ColourModel", "colour_index", "confident_pixels", "Background", "decide"]
 

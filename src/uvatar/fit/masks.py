@@ -35,13 +35,13 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.errors import InputError, UvatarError, check_values
+from uvatar.fit.depth_order import FAR, body_depth, body_silhouette, nearest_region
+from uvatar.fit.depth_order import disc as _disc
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MaskConfig", "body_silhouette", "body_depth", "nearest_region", "person_mask", "write_capture_masks",
            "other_person_region", "hide_body", "posed_vertices", "FAR"]
-
-FAR = np.float32(1e9)  # depth (metres) of a pixel no body covers
 
 # BlazePose skeleton strokes (index pairs) drawn for another person's region
 _BONES = ((11, 12), (11, 13), (13, 15), (12, 14), (14, 16), (11, 23), (12, 24), (23, 24), (23, 25), (25, 27),
@@ -79,31 +79,6 @@ class MaskConfig:
         ])
 
 
-def body_depth(vertices: np.ndarray, faces: np.ndarray, camera, render_width: int) -> np.ndarray:
-    """(H, W) float32: the camera depth (metres) of the body mesh (V, 3) world metres in ``camera``'s
-    image, :data:`FAR` where it does not cover the pixel (rendered ``render_width`` wide by ray
-    casting, the nearest hit per pixel, then resized to the camera's size)."""
-    import cv2
-
-    from uvatar.render.mesh_renderer import render_mesh
-
-    small = camera.scaled_to_width(min(render_width, camera.width))
-    r = render_mesh(vertices, faces, small)
-    depth = np.where(r.mask, r.depth, FAR).astype(np.float32)
-    return cv2.resize(depth, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
-
-
-def body_silhouette(vertices: np.ndarray, faces: np.ndarray, camera, render_width: int) -> np.ndarray:
-    """(H, W) bool: where the body mesh covers ``camera``'s image (:func:`body_depth` < :data:`FAR`)."""
-    return body_depth(vertices, faces, camera, render_width) < FAR
-
-
-def _disc(radius: int) -> np.ndarray:
-    import cv2
-
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-
-
 def hide_body(images: list, cameras: list, vertices: np.ndarray, faces: np.ndarray, grow: float,
               render_width: int = 360) -> list[np.ndarray]:
     """The images (H, W, 3) float32 with the body mesh's silhouette, grown by ``grow`` of the image
@@ -124,23 +99,6 @@ def painted_over(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     img = np.array(image, np.float32, copy=True)
     img[mask] = np.median(img.reshape(-1, img.shape[-1]), axis=0)
     return img
-
-
-def nearest_region(depth: np.ndarray, others: list[np.ndarray], radius: int) -> np.ndarray:
-    """(H, W) bool: the pixels a person may take when other bodies are fitted too. ``depth`` (H, W)
-    the person's body depth (:func:`body_depth`), ``others`` the other bodies' depths; each body is
-    grown by ``radius`` pixels (an other body at the nearest depth within that radius). The person
-    keeps their own body's pixels where no grown other body lies in front, and the pixels of their
-    grown band that no grown other body covers."""
-    import cv2
-
-    core = depth < FAR
-    kernel = _disc(max(1, int(radius)))
-    grown = cv2.dilate(core.astype(np.uint8), kernel) > 0
-    if not others:
-        return grown
-    near = np.minimum.reduce([cv2.erode(np.asarray(d, np.float32), kernel) for d in others])
-    return (core & (depth <= near)) | (grown & ~core & (near >= FAR))
 
 
 def other_person_region(image: np.ndarray, subject: np.ndarray, detector, min_conf: float = 0.5) -> np.ndarray | None:
