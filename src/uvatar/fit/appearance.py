@@ -16,7 +16,7 @@ pixels are then labelled once for everyone (:func:`decide`):
   background's colours): this brings back a person the segmenter lost behind someone in front,
   and a person's clothes up to :data:`REACH` bands beyond their fitted body (a fit off by more);
 - a person's score is their colour log-likelihood plus ``prior`` nats where the depth order gives
-  them the pixel (:func:`uvatar.fit.masks.nearest_region`) and half that inside their own grown body;
+  them the pixel (:func:`uvatar.fit.depth_order.nearest_region`) and half that inside their own grown body;
   where the two likeliest people's colours are within :data:`AMBIGUOUS` nats (skin, hair, shadow)
   the colours say nothing and the depth order decides, as without the models (skin is alike, but
   one person shows more of it than the other: that would otherwise tip every hand). A person not
