@@ -87,37 +87,35 @@ def calibrate_rig(rig: LightRig, normals: torch.Tensor, texture: torch.Tensor, w
 
     normals: (N, 3, R, R) the texels' posed world normals (the texel pose map's channels 6:9);
     texture: (N, 3, R, R) the baked textures; weight: (N, 1, R, R) their loss weights (κ · valid).
-    Minimizes Σ weight · (albedo · L(normals) − texture)² / Σ weight by Adam (``steps`` at ``lr``, each
-    on ``batch`` frames drawn with ``seed``; all frames when there are no more), the lights starting at
-    the rig's spread directions scaled to ``start_length``; the limbs' shadows are left to training. Writes the fitted rig into ``rig`` (ambient and shares kept ≥ 0)
-    and returns the albedo (3, R, R) in [0, 1], the start of the texture decoder's output bias."""
+    Minimizes Σ weight · (albedo · rig(normals) − texture)² / Σ weight by Adam (``steps`` at ``lr``,
+    each on ``batch`` frames drawn with ``seed``; all frames when there are no more), the rig's own
+    parameters starting at ambient = share = 1 and its spread directions scaled to ``start_length``;
+    the limbs' shadows are left to training. The rig keeps the fitted values (ambient and shares kept
+    ≥ 0); returns the albedo (3, R, R) in [0, 1], the start of the texture decoder's output bias."""
     if normals.ndim != 4 or normals.shape[0] != texture.shape[0] or normals.shape[1] != 3 or texture.shape[1] != 3:
         raise ValueError(f"normals and texture must be (N, 3, R, R) with the same N, got {tuple(normals.shape)} "
                          f"and {tuple(texture.shape)}")
     normals, texture, weight = normals.detach().float(), texture.detach().float(), weight.detach().float()
     albedo = ((weight * texture).sum(0) / weight.sum(0).clamp_min(1e-6)).requires_grad_(True)
-    ambient = torch.ones_like(rig.ambient, requires_grad=True)
-    share = torch.ones_like(rig.share, requires_grad=True)
     with torch.no_grad():
-        d = rig.directions.reshape(-1, 3)
-        directions = (d / d.norm(dim=1, keepdim=True).clamp_min(1e-12) * start_length).requires_grad_(True)
-    opt = torch.optim.Adam([albedo, ambient, share, directions], lr=lr)
+        d = rig.directions
+        d.copy_(d / d.flatten(1).norm(dim=1).clamp_min(1e-12).reshape(-1, 1, 1, 1) * start_length)
+        rig.ambient.fill_(1.0)
+        rig.share.fill_(1.0)
+    params = [albedo, rig.directions, rig.ambient, rig.share]
+    opt = torch.optim.Adam(params, lr=lr)
     gen = torch.Generator().manual_seed(seed)
     n = normals.shape[0]
     for _ in range(steps):
         idx = torch.randperm(n, generator=gen)[:batch] if n > batch else torch.arange(n)
         w = weight[idx]
-        lit = torch.relu(torch.einsum("nchw,kc->nkhw", normals[idx], directions))
-        light = (ambient + (share * lit).sum(1, keepdim=True)).clamp_min(MIN_LIGHT)
-        loss = (w * (albedo[None] * light - texture[idx]).square()).sum() / (3 * w.sum().clamp_min(1e-6))
+        loss = (w * (albedo[None] * rig(normals[idx]) - texture[idx]).square()).sum() / (3 * w.sum().clamp_min(1e-6))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         with torch.no_grad():
-            ambient.clamp_(min=0.0)
-            share.clamp_(min=0.0)
-    with torch.no_grad():
-        rig.directions.copy_(directions.reshape(rig.directions.shape))
-        rig.ambient.copy_(ambient)
-        rig.share.copy_(share)
+            rig.ambient.clamp_(min=0.0)
+            rig.share.clamp_(min=0.0)
+    for p in params[1:]:
+        p.grad = None   # the generator's optimizer starts clean
     return albedo.detach().clamp(0.0, 1.0)

@@ -62,7 +62,7 @@ class TrainConfig:
     trained ones with this decay per step (:mod:`uvatar.avh.ema`); 0: the last step's weights.
     ``calibrate_lights``: before the first step, a generator with a light rig gets its lights, per-texel
     ambient and shares, and its texture bias (an albedo) fitted to all training frames at once, this
-    many full-batch steps (:func:`uvatar.avh.lights.calibrate_rig`; 0: the rig starts unlit, as before)."""
+    many steps of 16 frames (:func:`uvatar.avh.lights.calibrate_rig`; 0: the rig starts unlit, as before)."""
 
     epochs: int = 500
     batch_size: int = 8
