@@ -222,8 +222,8 @@ class TexelPoseMap(nn.Module):
     def world_rotations(self, rotvecs: torch.Tensor) -> torch.Tensor:
         """(B, J_c, 3) local axis-angles -> (B, J_c, 3, 3) world rotations (forward kinematics over
         ``parents``; a joint without a conditioning parent is turned by its own rotation alone), each
-        local rotation first turned into world axes (``axes · R · axesᵀ``)."""
-        local = torch.matmul(torch.matmul(self.axes, rotvec_to_rotmat(rotvecs)), self.axes.transpose(-1, -2))
+        local rotation first turned into world axes (its axis-angle by ``axes``: ``axes · R · axesᵀ``)."""
+        local = rotvec_to_rotmat(torch.matmul(self.axes, rotvecs[..., None])[..., 0])
         parents = self.parents.tolist()
         world: dict[int, torch.Tensor] = {}
         for k in tree_order(parents):

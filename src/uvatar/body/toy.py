@@ -164,12 +164,11 @@ class ToyTubeBody(BodyModel):
         B, J = rotvecs.shape[:2]
         scale = 1.0 if shape is None else torch.as_tensor(shape, dtype=rotvecs.dtype).reshape(-1)[0] + 1.0
         joints = self._joints_t.to(rotvecs) * scale
-        axes = self._rest_rot_t.to(rotvecs)   # each rotvec's axes: the rotation in world axes is Q R Qᵀ
-        local = axes @ roma.rotvec_to_rotmat(rotvecs) @ axes.transpose(-1, -2)
+        local = roma.rotvec_to_rotmat(self.local_to_world_rotvecs(rotvecs))   # each rotvec in its joint's axes
         F, p = forward_kinematics(self._levels.to(rotvecs.device), local, (self._offsets_t.to(rotvecs) * scale)[None])
         vertices = skin((self._verts_t.to(rotvecs) * scale)[None], self._weights_t.to(rotvecs),
                         skinning_transforms(F, p, None, joints[None])).contiguous()
         G = torch.eye(4, dtype=rotvecs.dtype, device=rotvecs.device).repeat(B, J, 1, 1)
-        G[..., :3, :3] = F @ axes   # the joint's frame: its axes at rest, turned
+        G[..., :3, :3] = F @ self._rest_rot_t.to(rotvecs)   # the joint's frame: its axes at rest, turned
         G[..., :3, 3] = p
         return vertices, G
