@@ -10,6 +10,11 @@ from __future__ import annotations
 import torch
 
 
+def texture_weight(maps: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Per-texel texture weight (B, 1, R, R) of baked ``maps`` (kappa, valid): κ · valid."""
+    return maps["kappa"] * maps["valid"].to(maps["kappa"].dtype)
+
+
 def displacement_mask(displacement: torch.Tensor, w: torch.Tensor, valid: torch.Tensor,
                       excluded: torch.Tensor | None = None, outlier_threshold: float = 0.05) -> torch.Tensor:
     """Per-texel displacement weight (B, 1, R, R).
@@ -43,8 +48,7 @@ def avh_loss(pred_texture: torch.Tensor, pred_displacement: torch.Tensor, batch:
     batch: texture (B,3,R,R), displacement (B,3,R,R) metres, kappa (B,1,R,R), w (B,1,R,R), valid (B,1,R,R).
     total = texture + displacement_weight · displacement (the paper uses weight 1).
     """
-    valid = batch["valid"].to(batch["kappa"].dtype)
-    tex = masked_mse(pred_texture, batch["texture"], batch["kappa"] * valid, total=total)
+    tex = masked_mse(pred_texture, batch["texture"], texture_weight(batch), total=total)
     dmask = displacement_mask(batch["displacement"], batch["w"], batch["valid"], excluded, outlier_threshold)
     disp = masked_mse(pred_displacement, batch["displacement"], dmask, total=total)
     return tex + displacement_weight * disp, tex, disp

@@ -32,7 +32,7 @@ from uvatar.avh.bake.dataset import read_dataset_info
 from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, selection
 from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES, DISPLACEMENT_SPACES, displacements_to_frame
 from uvatar.avh.ema import WeightAverage
-from uvatar.avh.loss import avh_loss, displacement_mask
+from uvatar.avh.loss import avh_loss, displacement_mask, texture_weight
 from uvatar.avh.model import (
     AvhConfig,
     AvhGenerator,
@@ -150,7 +150,7 @@ def parameter_groups(model: torch.nn.Module, cfg: TrainConfig) -> list[dict]:
 def mean_maps(data: TrainingData, excluded, outlier_threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Loss-weighted mean texture and displacement (3, R, R) over ``data`` (plain mean where unweighted)."""
     m = data.maps
-    wt = m["kappa"] * m["valid"]
+    wt = texture_weight(m)
     tex = (wt * m["texture"]).sum(0) / wt.sum(0).clamp_min(1e-6)
     tex = torch.where(wt.sum(0) > 1e-6, tex, m["texture"].mean(0))
     wd = displacement_mask(m["displacement"], m["w"], m["valid"], excluded, outlier_threshold)
@@ -353,8 +353,7 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
             m = train.maps
             with torch.no_grad():
                 normals = model.texel_pose(train.pose_angles)[:, 6:9]
-            tex_mean = calibrate_rig(model.lights, normals, m["texture"], m["kappa"] * m["valid"].to(m["kappa"].dtype),
-                                     steps=cfg.calibrate_lights)
+            tex_mean = calibrate_rig(model.lights, normals, m["texture"], texture_weight(m), steps=cfg.calibrate_lights)
         init_output_bias(model, tex_mean, disp_mean)
     else:
         model.load_state_dict(state["model"])
