@@ -45,8 +45,7 @@ def register(cli) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from uvatar.demo import DEFAULT, QUICK, run_demo
-    from uvatar.demo.pipeline import FINE
+    from uvatar.demo import DEFAULT, FINE, QUICK, run_demo
     from uvatar.errors import options_as_input_error
 
     with options_as_input_error("uvatar demo options"):
