@@ -4,7 +4,16 @@
 record ``OUT/stages/<stage>.json`` says so); :mod:`uvatar.demo.report` writes ``OUT/report.html``.
 """
 
-from uvatar.demo.pipeline import DEFAULT, FINE, QUICK, DemoConfig, StageResult, demo_stages, quick_config, run_demo
+from uvatar.demo.pipeline import (
+           DEFAULT,
+           FINE,
+           QUICK,
+           DemoConfig,
+           StageResult,
+           demo_stages,
+           quick_config,
+           run_demo,
+)
 from uvatar.demo.report import write_demo_report
 
 __all__ = ["DEFAULT", "FINE", "QUICK", "DemoConfig", "StageResult", "demo_stages", "quick_config", "run_demo",
