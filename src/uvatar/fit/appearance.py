@@ -131,7 +131,7 @@ class Background:
             self.count = np.zeros(img.shape[:2], np.int32)
         self.total[free] += img[free][:, :3]
         self.count += free
-        self.colours.add(colour_index(img), free)
+        self.colours.add(colour_index(image), free)
         self._image = self._table = None
 
     def image(self) -> np.ndarray | None:
@@ -158,8 +158,8 @@ def decide(image: np.ndarray, depths: dict, masks: dict, tables: dict, radius: i
     table and no depth is not fitted here and only claims their colours; where a fitted person has
     none, the colours cannot speak for them: the masks are returned as they are);
     ``radius``: the grown band in pixels; ``prior``: nats the depth order adds (see the module doc);
-    ``background_image`` (H, W, 3) float32 [0, 1] (NaN: unknown) or None: the camera's background
-    (:meth:`Background.image`)."""
+    ``background``: the camera's :class:`Background` (its image, NaN where unknown, and its colours)
+    or None."""
     import cv2
 
     h, w = image.shape[:2]
