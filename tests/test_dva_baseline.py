@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from uvatar.dva.baseline import mean_colour, mean_colour_render
+from uvatar.dva.baseline import mean_colour, mean_colour_render, projective_texture, textured_body_render
 from uvatar.render.cameras import look_at_camera
 
 
@@ -28,3 +28,36 @@ def test_mean_colour_render_fills_the_body_with_the_colour_over_the_background()
     small = v * 0.05
     rgb, alpha = mean_colour_render(small, f, cam, np.array([0.2, 0.4, 0.6]), np.array([0.0, 0.0, 1.0]))
     assert 0 < alpha.mean() < 0.2 and np.allclose(rgb[0, 0], [0, 0, 1])
+
+
+def test_projective_texture_carries_a_view_to_another_camera():
+    """A plane textured by one camera's photo (left half red, right half blue) is seen by a second,
+    tilted camera with the halves where they are on the plane; texels outside the photo's mask take
+    the nearest seen colour; no view: mid grey."""
+    from types import SimpleNamespace
+
+    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    uvs = (v[:, :2] + 1) / 2
+    template = SimpleNamespace(vertices=v, faces=f, uvs=uvs, uv_faces=f)
+    front = look_at_camera((0, 0, 3), (0, 0, 0), width=64, height=64, fov_deg=50)
+    photo = np.zeros((64, 64, 3), np.float32)
+    photo[:, :32] = (1, 0, 0)
+    photo[:, 32:] = (0, 0, 1)
+    mask = np.ones((64, 64), bool)
+    tex = projective_texture(template, v, [front], [photo], [mask], resolution=32)
+    assert tex.shape == (32, 32, 3)
+    assert np.allclose(tex[16, 4], (1, 0, 0), atol=0.05) and np.allclose(tex[16, 27], (0, 0, 1), atol=0.05)
+    side = look_at_camera((1.5, 0, 2.6), (0, 0, 0), width=64, height=64, fov_deg=50)
+    rgb, alpha = textured_body_render(v, template, side, tex, np.array([0.0, 1.0, 0.0]))
+    from uvatar.render.cameras import project_points
+
+    (left, right), _ = project_points(side, np.array([[-0.5, 0, 0], [0.5, 0, 0]]))
+    assert np.allclose(rgb[int(left[1]), int(left[0])], (1, 0, 0), atol=0.05)
+    assert np.allclose(rgb[int(right[1]), int(right[0])], (0, 0, 1), atol=0.05)
+    assert np.allclose(rgb[0, 0], (0, 1, 0)) and alpha[0, 0] == 0 and alpha[32, 32] == 1
+    half = mask.copy()
+    half[:, 32:] = False  # the blue half is not the person: its texels take the nearest red
+    tex = projective_texture(template, v, [front], [photo], [half], resolution=32)
+    assert np.allclose(tex[16, 27], (1, 0, 0), atol=0.05)
+    assert np.allclose(projective_texture(template, v, [front], [photo], [~mask], resolution=32), 0.5)

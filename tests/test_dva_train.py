@@ -83,6 +83,51 @@ def test_scale_correctives_never_shrink_a_primitive_below_touching_its_neighbour
     assert DvaConfig.from_dict(old).primitives.scale_corrective_bounds == (-2.0, 1.0)
 
 
+def test_motion_prior_pulls_a_runaway_corrective_back():
+    """Past its bound a corrective passes no gradient (tanh saturates, the scale clamp cuts it): the
+    volume prior alone leaves a runaway motion branch where it is (on the real recording it reached raw
+    values in the thousands and the avatar vanished). The motion prior's pull on the raw values brings
+    it back into range. Runs saved before the prior keep it off."""
+    import torch
+
+    from uvatar.dva.decoders import MotionDecoder
+    from uvatar.dva.losses import DvaLoss, LossConfig
+    from uvatar.dva.model import DvaConfig
+    from uvatar.dva.primitives import PrimitiveConfig, apply_correctives
+
+    W, B = 4, 2
+    cfg = PrimitiveConfig()
+    features = torch.randn(B, 8, W, W, generator=torch.Generator().manual_seed(0))
+    rest = torch.full((W * W, 3), 0.01)
+    eye = torch.eye(3).expand(B, W * W, 3, 3)
+    img = torch.zeros(1, 3, 8, 8)
+    ones = torch.ones(1, 8, 8)
+
+    def run(motion_weight):
+        torch.manual_seed(0)
+        motion = MotionDecoder(8, W, 16)
+        with torch.no_grad():
+            motion.tail.bias.fill_(-50.0)  # ran away: every corrective far past its bound
+        opt = torch.optim.Adam(motion.parameters(), lr=2e-2)
+        loss = DvaLoss(LossConfig(motion=motion_weight))
+        for _ in range(300):
+            raw = motion(features)
+            _, _, scales = apply_correctives(torch.zeros(B, W * W, 3), eye, rest, raw, cfg, True)
+            total, terms = loss(img, img, ones, ones, scales, rest, raw)
+            opt.zero_grad()
+            total.backward()
+            opt.step()
+        return raw.detach(), terms
+
+    stuck, terms = run(0.0)
+    assert "motion" not in terms and stuck.max() < -40    # no gradient reaches it: still far out
+    back, terms = run(0.01)
+    assert terms["motion"] > 0 and back.abs().max() < 1.0  # pulled back into the corrective's range
+    old = DvaConfig().to_dict()
+    del old["loss"]["motion"]
+    assert DvaConfig.from_dict(old).loss.motion == 0.0
+
+
 def test_curriculum_switches_to_three_views(capture):
     cfg = preset("tiny")
     trainer = Trainer(open_source(capture), capture.parent / "cur", cfg, progress=False)
@@ -118,14 +163,16 @@ def test_train_resume_and_eval(capture, tmp_path):
     saved = json.loads((tmp_path / "m.json").read_text())
     assert saved["cameras"] == ["cam03"] and saved["frames"] == ["000002"]
     assert "held-out" in r["protocol"] and r["psnr_db"] == r["psnr_db_full"]  # no box on this capture
-    # the scores are those of the comparison image written beside them (gt | prediction | error | baseline)
+    # the scores are those of the comparison image written beside them
+    # (gt | prediction | error | mean-colour baseline | projective-texture baseline)
     from uvatar.io_utils import read_image
     from uvatar.render.metrics import psnr, ssim
 
     sheet = read_image(tmp_path / "m" / "000002_cam03.png")
-    w = sheet.shape[1] // 4
-    gt, pred, base = sheet[:, :w], sheet[:, w:2 * w], sheet[:, 3 * w:]
+    w = sheet.shape[1] // 5
+    gt, pred, base, proj = (sheet[:, i * w:(i + 1) * w] for i in (0, 1, 3, 4))
     assert r["baseline_mean_colour"]["psnr_db_full"] == pytest.approx(psnr(base, gt), abs=0.05)
+    assert r["baseline_projective_texture"]["psnr_db_full"] == pytest.approx(psnr(proj, gt), abs=0.05)
     assert r["psnr_db_full"] == pytest.approx(psnr(pred, gt), abs=0.05)  # 8-bit PNG rounding only
     assert r["ssim_full"] == pytest.approx(ssim(pred, gt), abs=0.005)
 

@@ -9,9 +9,10 @@ for ZJU-MoCap (Neural Body). Two protocols shared with ``uvatar eval avh`` are a
 ``psnr_db_full`` / ``ssim_full`` over the full image, and ``psnr_db_union_mask`` / ``ssim_union_mask``
 inside the union of the predicted mask (alpha > 0.5) and the photo's mask; and
 ``psnr_db_person_mask`` / ``ssim_person_mask`` inside the photo's person mask alone. The same scores
-for the trivial baseline (the fitted body in the driving views' mean person colour,
-:mod:`uvatar.dva.baseline`) are in ``baseline_mean_colour``. Side-by-side comparison images
-(photo | render | 4x |error| | baseline) are written beside the JSON.
+for the two baselines of :mod:`uvatar.dva.baseline` (the fitted body in the driving views' mean person
+colour; the fitted body textured with the driving views' pixels) are in ``baseline_mean_colour`` and
+``baseline_projective_texture``. Side-by-side comparison images (photo | render | 4x |error| | mean
+colour | projective texture) are written beside the JSON.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.dva.baseline import mean_colour, mean_colour_render
+from uvatar.dva.baseline import mean_colour, mean_colour_render, projective_texture, textured_body_render
 from uvatar.dva.dataset import FrameBank
 from uvatar.dva.drive import render_camera
 from uvatar.io_utils import write_image, write_json
@@ -102,11 +103,13 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
     cams = driving + test_cams
     bank = FrameBank(source, body, model.image_raster, model.template, frames, cams, progress)
     img_dir = Path(json_path).with_suffix("") if json_path else None
-    per_image, baseline = [], []
+    per_image, baseline, projective = [], [], []
     drive_idx = list(range(len(driving)))
     for fi, frame in enumerate(bank.frames):
         tex = bank.image_texture(fi, drive_idx).to(device)
         verts, rot = bank.vertices[fi].to(device), bank.rotvecs[fi].to(device)
+        photo_tex = projective_texture(model.template, verts.cpu().numpy(), [bank.cams[d] for d in drive_idx],
+                                       [bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx])
         for ci, cam_name in enumerate(test_cams, start=len(driving)):
             cam = bank.cams[ci]
             gt = bank.images[fi][ci].astype(np.float32) / 255.0
@@ -121,12 +124,16 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
             base, base_alpha = mean_colour_render(verts.cpu().numpy(), model.template.faces, cam, colour,
                                                   bank.backgrounds[ci])
             baseline.append(image_scores(base, gt, base_alpha, bank.masks[fi][ci], box))
+            proj, proj_alpha = textured_body_render(verts.cpu().numpy(), model.template, cam, photo_tex,
+                                                    bank.backgrounds[ci])
+            projective.append(image_scores(proj, gt, proj_alpha, bank.masks[fi][ci], box))
             if images and img_dir is not None:
                 err = np.clip(np.abs(pred - gt) * 4, 0, 1)
-                write_image(img_dir / f"{frame}_{cam_name}.png", np.concatenate([gt, pred, err, base], 1))
+                write_image(img_dir / f"{frame}_{cam_name}.png", np.concatenate([gt, pred, err, base, proj], 1))
     result = {
         **{k: float(np.nanmean([r[k] for r in per_image])) for k in METRIC_KEYS},
         "baseline_mean_colour": {k: float(np.nanmean([r[k] for r in baseline])) for k in METRIC_KEYS},
+        "baseline_projective_texture": {k: float(np.nanmean([r[k] for r in projective])) for k in METRIC_KEYS},
         "protocol": (source.protocol.replace("{driving}", str(len(driving))) + f"; driving views {driving}; "
                      + SHARED_PROTOCOLS),
         "frames": bank.frames, "cameras": test_cams, "driving_cameras": driving, "train_steps": step,

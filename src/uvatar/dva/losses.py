@@ -9,6 +9,10 @@
 * ``mask``: mean absolute error between the accumulated opacity and the foreground mask.
 * ``volume``: MVP volume prior, the mean primitive volume relative to its rest volume (keeps boxes small).
 * ``beta``: Neural Volumes opacity prior ``log(0.1 + a) + log(1.1 - a)`` (pushes opacity to 0 or 1).
+* ``motion``: mean square of the raw motion correctives (before their ``tanh`` and clamp). Past its
+  bound a corrective passes no gradient, so without this pull nothing brings it back: on the real
+  recording (``docs/real.md``, run 9) the motion branch ran away to raw values in the thousands, every
+  primitive sat at its largest offset and smallest size, the opacity went to zero and the avatar vanished.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ class LossConfig:
     mask: float = 0.1
     volume: float = 0.01
     beta: float = 0.01
+    motion: float = 0.01
 
 
 _VGG19 = [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512, 512, 512, "M", 512, 512, 512, 512]
@@ -101,7 +106,8 @@ def beta_prior(alpha: torch.Tensor) -> torch.Tensor:
 
 class DvaLoss(nn.Module):
     """Weighted sum; forward(pred (B,3,H,W) composited, target (B,3,H,W), alpha (B,H,W), mask (B,H,W),
-    scales (B,K,3), rest_scales (K,3)) -> (total, dict of float terms)."""
+    scales (B,K,3), rest_scales (K,3), motion (B,9,W,W) raw correctives or None) -> (total, dict of
+    float terms)."""
 
     def __init__(self, cfg: LossConfig | None = None, vgg: Vgg19Features | None = None):
         super().__init__()
@@ -110,7 +116,7 @@ class DvaLoss(nn.Module):
         log.info("DVA perceptual loss: %s", "VGG-19 features" if vgg is not None
                  else "off (no vgg_weights); using 1 - SSIM instead")
 
-    def forward(self, pred, target, alpha, mask, scales, rest_scales):
+    def forward(self, pred, target, alpha, mask, scales, rest_scales, motion=None):
         c = self.cfg
         terms = {"rgb": F.mse_loss(pred, target)}
         if self.vgg is not None and c.perceptual > 0:
@@ -123,7 +129,9 @@ class DvaLoss(nn.Module):
             terms["volume"] = (scales.prod(-1) / rest_scales.prod(-1)[None]).mean()
         if c.beta > 0:
             terms["beta"] = beta_prior(alpha)
+        if c.motion > 0 and motion is not None:
+            terms["motion"] = motion.square().mean()
         weights = {"rgb": c.rgb, "perceptual": c.perceptual, "ssim": c.ssim, "mask": c.mask,
-                   "volume": c.volume, "beta": c.beta}
+                   "volume": c.volume, "beta": c.beta, "motion": c.motion}
         total = sum(weights[k] * v for k, v in terms.items())
         return total, {k: float(v.detach()) for k, v in terms.items()}

@@ -89,6 +89,9 @@ class DvaConfig:
         prims = d.get("primitives")
         if prims is not None and "min_scale_corrective" not in prims:  # before the option: -2
             d = {**d, "primitives": {**prims, "min_scale_corrective": -2.0}}
+        loss = d.get("loss")
+        if loss is not None and "motion" not in loss:  # before the motion prior: trained without it
+            d = {**d, "loss": {**loss, "motion": 0.0}}
         return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
 
 

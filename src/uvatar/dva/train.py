@@ -233,7 +233,8 @@ class Trainer:
             masks.append(torch.as_tensor(mask[pix[:, 1], pix[:, 0]], dtype=torch.float32,
                                          device=self.device).reshape(P, P))
         total, terms = self.loss(torch.stack(preds), torch.stack(targets), torch.stack(alphas),
-                                 torch.stack(masks), out.scales, self.model.rest_scales)
+                                 torch.stack(masks), out.scales, self.model.rest_scales,
+                                 out.motion if bool(self.model.correctives_on) else None)
         if self.corrections is not None:
             for k, v in self.corrections.prior(fi.to(self.device), torch.tensor(cams, device=self.device)).items():
                 total = total + v
