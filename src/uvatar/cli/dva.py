@@ -39,8 +39,10 @@ def _flags() -> tuple[ConfigFlags, ...]:
                         help={"voxels": "voxels per primitive side S"}),
             ConfigFlags(train_dva, fields=("device", "resume"), help={
                 "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt"}),
-            ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher"),
+            ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher", "refine_pose"),
                         choices={"marcher": MARCHERS}, help={
+                "refine_pose": "steps of test-time pose refinement of each test frame's fit against its "
+                               "driving views (0: the fits as they are)",
                 "driving_views": "training cameras that drive the avatar (evenly spread)",
                 "max_frames": "score at most this many test frames (none: all)", "device": "torch device",
                 **run_marcher}),

@@ -25,6 +25,7 @@ import numpy as np
 from uvatar.dva.baseline import mean_colour, mean_colour_render, projective_texture, textured_body_render
 from uvatar.dva.dataset import FrameBank
 from uvatar.dva.drive import render_camera
+from uvatar.dva.refine import RefineConfig, frame_fit, refine_frame
 from uvatar.io_utils import write_image, write_json
 
 log = logging.getLogger(__name__)
@@ -80,11 +81,13 @@ def _names(wanted, available, source, what: str) -> list[str]:
 def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_frames: int | None = None,
                  max_cameras: int | None = None, device="cpu", images=True, progress=True,
                  frames=None, cameras=None, body_model=None, model_dir=None,
-                 marcher: str | None = None) -> dict:
+                 marcher: str | None = None, refine_pose: int = 0) -> dict:
     """Render and score; returns the metrics dict (also written to ``json_path``): the means of
     :data:`METRIC_KEYS` over frames x cameras, ``protocol``, ``per_image`` and more. ``frames`` /
     ``cameras``: names replacing the source's test frames / cameras (cameras must not drive);
-    ``marcher``: the ray marcher (``RaymarchConfig.marcher``; default: the run's)."""
+    ``marcher``: the ray marcher (``RaymarchConfig.marcher``; default: the run's); ``refine_pose``:
+    steps of test-time pose refinement against the driving views (:mod:`uvatar.dva.refine`; 0: the
+    fits as they are); the baselines are posed with the same refined fit."""
     import torch
 
     from uvatar.dva.data import box_mask
@@ -105,9 +108,16 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
     img_dir = Path(json_path).with_suffix("") if json_path else None
     per_image, baseline, projective = [], [], []
     drive_idx = list(range(len(driving)))
+    refined = {}
     for fi, frame in enumerate(bank.frames):
         tex = bank.image_texture(fi, drive_idx).to(device)
         verts, rot = bank.vertices[fi].to(device), bank.rotvecs[fi].to(device)
+        if refine_pose > 0:
+            rot, verts, refined[frame] = refine_frame(
+                model, body, frame_fit(bank.fits, fi), tex, [bank.cams[d] for d in drive_idx],
+                [bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx],
+                [bank.backgrounds[d] for d in drive_idx], RefineConfig(iters=refine_pose))
+            rot, verts = rot.to(device), verts.to(device)
         photo_tex = projective_texture(model.template, verts.cpu().numpy(), [bank.cams[d] for d in drive_idx],
                                        [bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx])
         for ci, cam_name in enumerate(test_cams, start=len(driving)):
@@ -138,6 +148,7 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
                      + SHARED_PROTOCOLS),
         "frames": bank.frames, "cameras": test_cams, "driving_cameras": driving, "train_steps": step,
         "skipped_frames": bank.skipped, "per_image": per_image,
+        "refine_pose": {"iters": int(refine_pose), "frames": refined} if refine_pose > 0 else None,
         "images": str(img_dir) if (images and img_dir is not None) else None,
     }
     if json_path:
