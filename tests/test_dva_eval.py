@@ -63,6 +63,7 @@ def test_evaluate_dva_reports_both_protocols(tmp_path):
         run = tmp_path / "run"
         train_dva(open_source(cap), run, preset("tiny"), iters=2, progress=False)
         assert main(["eval", "dva", str(run), str(cap), "--json", str(tmp_path / "m.json")]) == 0
+        assert main(["eval", "dva", str(run), str(cap), "--json", str(tmp_path / "m0.json"), "--refine-pose", "0"]) == 0
     finally:
         torch.set_num_threads(n)
     m = json.loads((tmp_path / "m.json").read_text())
@@ -71,6 +72,12 @@ def test_evaluate_dva_reports_both_protocols(tmp_path):
         assert m[key] == pytest.approx(np.mean([r[key] for r in m["per_image"]]))
     assert m["psnr_db"] == m["psnr_db_full"] and m["ssim"] == m["ssim_full"]
     assert "union" in m["protocol"] and "alpha > 0.5" in m["protocol"] and "full-image" in m["protocol"]
+    # by default each test frame's fit is refined against its driving views first; --refine-pose 0: as it is
+    assert m["refine_pose"]["iters"] == 40 and "refined against its driving views (40 steps)" in m["protocol"]
+    assert set(m["refine_pose"]["frames"]) == set(m["frames"])
+    m0 = json.loads((tmp_path / "m0.json").read_text())
+    assert m0["refine_pose"] is None and "the fits as they are" in m0["protocol"]
+    assert "baseline_projective_texture" in m and np.isfinite(m["baseline_projective_texture"]["psnr_db_full"])
 
 
 def test_evaluate_dva_named_frames_and_cameras(tmp_path):

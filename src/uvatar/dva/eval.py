@@ -2,8 +2,9 @@
 
 For each test frame x test camera of the source's protocol (see :mod:`uvatar.dva.data`), the avatar is
 driven by ``driving_views`` training cameras (evenly spread over the run's training cameras) at that
-frame, rendered in the held-out camera over that camera's background colour (median of the pixels
-outside the mask) and compared with the photo: PSNR (dB) and SSIM from :mod:`uvatar.render.metrics`.
+frame (each frame's fit first refined against those views, :mod:`uvatar.dva.refine`, unless
+``refine_pose`` is 0), rendered in the held-out camera over that camera's background colour (median of
+the pixels outside the mask) and compared with the photo: PSNR (dB) and SSIM from :mod:`uvatar.render.metrics`.
 ``psnr_db`` / ``ssim`` keep the source's protocol: the full image, or inside the projected body box
 for ZJU-MoCap (Neural Body). Two protocols shared with ``uvatar eval avh`` are always reported too:
 ``psnr_db_full`` / ``ssim_full`` over the full image, and ``psnr_db_union_mask`` / ``ssim_union_mask``
@@ -81,13 +82,14 @@ def _names(wanted, available, source, what: str) -> list[str]:
 def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_frames: int | None = None,
                  max_cameras: int | None = None, device="cpu", images=True, progress=True,
                  frames=None, cameras=None, body_model=None, model_dir=None,
-                 marcher: str | None = None, refine_pose: int = 0) -> dict:
+                 marcher: str | None = None, refine_pose: int = 40) -> dict:
     """Render and score; returns the metrics dict (also written to ``json_path``): the means of
     :data:`METRIC_KEYS` over frames x cameras, ``protocol``, ``per_image`` and more. ``frames`` /
     ``cameras``: names replacing the source's test frames / cameras (cameras must not drive);
     ``marcher``: the ray marcher (``RaymarchConfig.marcher``; default: the run's); ``refine_pose``:
     steps of test-time pose refinement against the driving views (:mod:`uvatar.dva.refine`; 0: the
-    fits as they are); the baselines are posed with the same refined fit."""
+    fits as they are), as ``uvatar eval avh`` refines its held-out fits against their scans by
+    default; the baselines are posed with the same refined fit."""
     import torch
 
     from uvatar.dva.data import box_mask
@@ -145,7 +147,8 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
         "baseline_mean_colour": {k: float(np.nanmean([r[k] for r in baseline])) for k in METRIC_KEYS},
         "baseline_projective_texture": {k: float(np.nanmean([r[k] for r in projective])) for k in METRIC_KEYS},
         "protocol": (source.protocol.replace("{driving}", str(len(driving))) + f"; driving views {driving}; "
-                     + SHARED_PROTOCOLS),
+                     + (f"each test frame's fit refined against its driving views ({refine_pose} steps); "
+                        if refine_pose > 0 else "the fits as they are; ") + SHARED_PROTOCOLS),
         "frames": bank.frames, "cameras": test_cams, "driving_cameras": driving, "train_steps": step,
         "skipped_frames": bank.skipped, "per_image": per_image,
         "refine_pose": {"iters": int(refine_pose), "frames": refined} if refine_pose > 0 else None,
