@@ -192,3 +192,21 @@ def test_model_forward_render_and_backward(body):
     assert alpha.reshape(16, 16)[8, 8] > 0.5 and alpha.reshape(16, 16)[0, 0] == 0  # tube centre vs corner
     rgb.mean().backward()
     assert model.decoder.appearance.tail.bias.grad.abs().sum() > 0
+
+
+def test_image_encoder_centred_and_old_runs_keep_theirs():
+    """The centred encoder sees 2 x - 1 and ends linear (its output can take either sign and is not
+    squashed); a run saved before the option loads with the leaky last layer it was trained with."""
+    from uvatar.dva.features import FeatureConfig, ImageEncoder
+    from uvatar.dva.model import DvaConfig
+
+    torch.manual_seed(0)
+    enc = ImageEncoder(4, 8)
+    old = ImageEncoder(4, 8, centred=False)
+    old.load_state_dict(enc.state_dict())
+    tex = torch.rand(2, 4, 32, 32)
+    assert torch.allclose(enc(tex), enc.net[:-1](2 * tex - 1)) and torch.allclose(old(tex), old.net(tex))
+    assert FeatureConfig().image_centred
+    d = DvaConfig().to_dict()
+    del d["features"]["image_centred"]
+    assert not DvaConfig.from_dict(d).features.image_centred

@@ -47,3 +47,27 @@ def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path):
     assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
     assert all(p.requires_grad for p in model.parameters())
     assert np.isfinite(summary["joint_rotation_rms_deg"])
+
+
+def test_drive_sequence_refines_each_frame_only_when_asked(tmp_path):
+    """render dva's driving: refine_pose = 0 renders the fits as they are (the same images as before the
+    option); a few steps move the body and so change the render."""
+    from uvatar.dva.drive import drive_sequence
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        cap = write_toy_capture(tmp_path / "cap", frames=2, cameras=4, size=24)
+        train_dva(open_source(cap), tmp_path / "run", preset("tiny"), iters=2, progress=False)
+        model, body, _, _ = load_run(tmp_path / "run")
+        src = open_source(cap)
+        target = src.cameras["cam03"]
+        plain = drive_sequence(model, body, src, ["000000"], ["cam00", "cam01"], target, progress=False)
+        again = drive_sequence(model, body, src, ["000000"], ["cam00", "cam01"], target, progress=False,
+                               refine_pose=0)
+        moved = drive_sequence(model, body, src, ["000000"], ["cam00", "cam01"], target, progress=False,
+                               refine_pose=10)
+    finally:
+        torch.set_num_threads(n)
+    assert len(plain) == len(moved) == 1 and np.array_equal(plain[0], again[0])
+    assert np.abs(moved[0] - plain[0]).max() > 1e-3

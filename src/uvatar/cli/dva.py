@@ -14,9 +14,11 @@ from uvatar.cli.flags import ConfigFlags
 def _flags() -> tuple[ConfigFlags, ...]:
     """(budget, primitives, decoder) flags of ``train dva``, defaults from the preset picked; then the
     ``train_dva`` and ``evaluate_dva`` parameters; then the marcher of ``train dva`` (preset) and of
-    ``render dva`` (``load_run``: default the run's)."""
+    ``render dva`` (``load_run``: default the run's); the corrections of ``train dva``; ``render dva``'s
+    pose refinement."""
     from uvatar.dva.corrections import CorrectionConfig
     from uvatar.dva.decoders import DecoderConfig
+    from uvatar.dva.drive import drive_sequence
     from uvatar.dva.eval import evaluate_dva
     from uvatar.dva.model import BACKGROUNDS, PRESETS, TrainConfig
     from uvatar.dva.primitives import PrimitiveConfig
@@ -50,13 +52,16 @@ def _flags() -> tuple[ConfigFlags, ...]:
             ConfigFlags(load_run, fields=("marcher",), choices={"marcher": MARCHERS}, help=run_marcher),
             ConfigFlags(CorrectionConfig, fields=("pose", "colour"), prefix="correct", help={
                 "pose": "learn per-frame pose and translation offsets of the fits during training",
-                "colour": "learn a per-camera colour gain and bias during training"}))
+                "colour": "learn a per-camera colour gain and bias during training"}),
+            ConfigFlags(drive_sequence, fields=("refine_pose",), help={
+                "refine_pose": "steps of pose refinement of each frame's fit against its driving views before "
+                               "rendering (0: the fits as they are; uvatar eval dva uses 40)"}))
 
 
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections = _flags()
+    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
@@ -86,6 +91,7 @@ def register(cli) -> None:
     p.add_argument("--fps", type=float, default=25.0)
     p.add_argument("--device", default="cpu")
     run_marcher.add_to(p)
+    drive.add_to(p)
     _threads(p)
     p.add_argument("-o", "--output", required=True, help="video path (.mp4 or .gif)")
     _body(p, "body model (default: the run's; must be the run's)")
@@ -146,7 +152,7 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
-    budget, target, primitives, decoder, train, _, marcher, _, corrections = _flags()
+    budget, target, primitives, decoder, train, _, marcher, _, corrections, _ = _flags()
     cfg = preset(args.preset)
     cfg.train = target.config(args, base=cfg.train)
     cfg.raymarch = marcher.config(args, base=cfg.raymarch)
@@ -199,7 +205,7 @@ def _render(args) -> int:
             raise InputError(args.motion, f"camera {args.camera!r} not found (have {sorted(source.cameras)})")
         target = source.cameras[args.camera]
         bg = meta["backgrounds"].get(args.camera, [0.0, 0.0, 0.0])
-    images = drive_sequence(model, body, source, frames, views, target, bg)
+    images = drive_sequence(model, body, source, frames, views, target, bg, **_flags()[9].values(args))
     if not images:
         raise InputError(args.motion, "no frame could be rendered")
     written = write_video(args.output, images, args.fps)

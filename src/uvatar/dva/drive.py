@@ -39,10 +39,11 @@ def driving_texture(model, posed_vertices: np.ndarray, cameras, images, masks=No
 
 
 def drive_sequence(model, body, source, frames, driving_cameras, target_camera, background=(0, 0, 0),
-                   progress=True):
+                   progress=True, refine_pose: int = 0):
     """Render ``target_camera`` (one Camera, or a list with one per frame) for each frame of ``source``
     (fits + driving images). Returns a list of (H, W, 3) float32 images; frames whose data cannot be
-    read are skipped with a warning."""
+    read are skipped with a warning. ``refine_pose`` > 0: each frame's fit is first refined against its
+    driving views for that many steps (:mod:`uvatar.dva.refine`, as ``uvatar eval dva`` does)."""
     import logging
 
     from tqdm import tqdm
@@ -63,6 +64,23 @@ def drive_sequence(model, body, source, frames, driving_cameras, target_camera, 
             log.warning("skipping frame %s: %s", frame, exc)
             continue
         tex = driving_texture(model, verts[0].numpy(), cams, imgs, masks)
-        rgb, _ = render_camera(model, verts[0], rot[0], tex, target, background)
+        rot, verts = rot[0], verts[0]
+        if refine_pose > 0:
+            rot, verts = _refined(model, body, source.fit(frame), tex, cams, imgs, masks, refine_pose)
+        rgb, _ = render_camera(model, verts, rot, tex, target, background)
         out.append(rgb)
     return out
+
+
+def _refined(model, body, fit, tex, cams, images, masks, iters: int):
+    """(joint rotvecs (J, 3), vertices (V, 3)) of ``fit`` refined against the driving views (float
+    images in [0, 1], masks) for ``iters`` steps."""
+    from uvatar.dva.dataset import estimate_background, fit_params
+    from uvatar.dva.refine import RefineConfig, refine_frame
+
+    photos = [(np.clip(np.asarray(i, np.float32), 0, 1) * 255 + 0.5).astype(np.uint8) for i in images]
+    inside = [np.asarray(m) > 0.5 for m in masks]
+    backs = [estimate_background(np.asarray(i, np.float32), m) for i, m in zip(images, inside, strict=True)]
+    rot, verts, _ = refine_frame(model, body, fit_params(body, [fit]), tex, cams, photos, inside, backs,
+                                 RefineConfig(iters=iters))
+    return rot, verts

@@ -27,12 +27,17 @@ import torch.nn as nn
 @dataclass
 class FeatureConfig:
     """pose_channels: output of the 1x1 pose conv. image_scale: unwrap resolution / W (power of 2).
-    image_channels: output of the image encoder. occlusion_eps: slack of the depth test, metres."""
+    image_channels: output of the image encoder. occlusion_eps: slack of the depth test, metres.
+    image_centred: the image encoder sees the texture centred on zero (2 x - 1) and its last layer is
+    linear. Without it (runs saved before the option) its last layer was a leaky ReLU, and on the real
+    recording its output decayed to |f| = 0.008: the avatar rendered the same whatever the driving
+    views showed (``docs/real.md``, runs 11-14)."""
 
     pose_channels: int = 16
     image_scale: int = 4
     image_channels: int = 16
     occlusion_eps: float = 0.01
+    image_centred: bool = True
 
 
 # ----------------------------------------------------------------------------------------------- pose
@@ -137,10 +142,12 @@ def average_views(textures: torch.Tensor, visibility: torch.Tensor) -> torch.Ten
 
 
 class ImageEncoder(nn.Module):
-    """(B, 4, W*scale, W*scale) unwrapped texture -> (B, out, W, W) with log2(scale) stride-2 convs."""
+    """(B, 4, W*scale, W*scale) unwrapped texture -> (B, out, W, W) with log2(scale) stride-2 convs.
+    ``centred``: input 2 x - 1 and a linear last layer (:class:`FeatureConfig` ``image_centred``)."""
 
-    def __init__(self, scale: int, out: int, hidden: int = 16):
+    def __init__(self, scale: int, out: int, hidden: int = 16, centred: bool = True):
         super().__init__()
+        self.centred = bool(centred)
         n = int(round(math.log2(scale)))
         layers, c = [nn.Conv2d(4, hidden, 3, padding=1), nn.LeakyReLU(0.2)], hidden
         for _ in range(n):
@@ -149,6 +156,8 @@ class ImageEncoder(nn.Module):
         self.net = nn.Sequential(*layers)
 
     def forward(self, tex):
+        if self.centred:
+            return self.net[:-1](2.0 * tex - 1.0)
         return self.net(tex)
 
 

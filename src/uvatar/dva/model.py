@@ -89,6 +89,9 @@ class DvaConfig:
         prims = d.get("primitives")
         if prims is not None and "min_scale_corrective" not in prims:  # before the option: -2
             d = {**d, "primitives": {**prims, "min_scale_corrective": -2.0}}
+        feats = d.get("features")
+        if feats is not None and "image_centred" not in feats:  # before the option: leaky last layer
+            d = {**d, "features": {**feats, "image_centred": False}}
         loss = d.get("loss")
         if loss is not None and "motion" not in loss:  # before the motion prior: trained without it
             d = {**d, "loss": {**loss, "motion": 0.0}}
@@ -164,7 +167,7 @@ class DvaModel(nn.Module):
         self.register_buffer("correctives_on", torch.zeros((), dtype=torch.bool))
         f = cfg.features
         self.pose_encoder = PoseEncoder(len(self.joints), f.pose_channels)
-        self.image_encoder = ImageEncoder(f.image_scale, f.image_channels)
+        self.image_encoder = ImageEncoder(f.image_scale, f.image_channels, centred=f.image_centred)
         self.decoder = DvaDecoder(cfg.decoder, W, f.pose_channels, f.image_channels, 1)
 
     def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers) -> DvaOutput:
