@@ -40,7 +40,7 @@ TARGETS = {
     "body render": ["uvatar.body.registry:load_body_model"],
     "capture check": ["uvatar.capture.validate:ValidateConfig"],
     "demo": ["uvatar.demo.pipeline:DemoConfig"],
-    "render dva": ["uvatar.dva.train:load_run"],
+    "render dva": ["uvatar.dva.train:load_run", "uvatar.dva.drive:drive_sequence"],
     "motion info": [],
     "motion convert": ["uvatar.motion.sequences:load_motion", "uvatar.body.registry:load_body_model",
                        "uvatar.motion.retarget:RetargetConfig"],
