@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 
 from tests.fixtures.dva_capture import write_toy_capture
@@ -15,28 +16,36 @@ from uvatar.dva.refine import RefineConfig, frame_fit, refine_frame
 from uvatar.dva.train import load_run, train_dva
 
 
-def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path):
+@pytest.fixture
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _toy_run(tmp_path, size: int):
+    """(model, body, source) of a DVA run trained 2 steps on a 2-frame toy capture of ``size``² views."""
+    cap = write_toy_capture(tmp_path / "cap", frames=2, cameras=4, size=size)
+    train_dva(open_source(cap), tmp_path / "run", preset("tiny"), iters=2, progress=False)
+    model, body, _, _ = load_run(tmp_path / "run")
+    return model, body, open_source(cap)
+
+
+def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, one_thread):
     """The fit of a frame shifted 4 cm along x renders the tube beside the person in the driving views;
     refinement (model frozen) moves the translation back by most of the shift, leaves the model's
     weights as they were, and iters = 0 gives the fit itself."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        cap = write_toy_capture(tmp_path / "cap", frames=2, cameras=4, size=32)
-        train_dva(open_source(cap), tmp_path / "run", preset("tiny"), iters=2, progress=False)
-        model, body, _, _ = load_run(tmp_path / "run")
-        src = open_source(cap)
-        views = ["cam00", "cam01", "cam02"]
-        bank = FrameBank(src, body, model.image_raster, model.template, ["000000"], views, False)
-        fit = frame_fit(bank.fits, 0)
-        shifted = dataclasses.replace(fit, Th=fit.Th + torch.tensor([[0.04, 0.0, 0.0]]))
-        before = {k: v.clone() for k, v in model.state_dict().items()}
-        args = (model, body, shifted, bank.image_texture(0, [0, 1, 2]), bank.cams, bank.images[0], bank.masks[0],
-                list(bank.backgrounds))
-        rot, verts, summary = refine_frame(*args, RefineConfig(iters=60, lr=2e-3, patch=16))
-        rot0, verts0, _ = refine_frame(*args, RefineConfig(iters=0))
-    finally:
-        torch.set_num_threads(n)
+    model, body, src = _toy_run(tmp_path, 32)
+    views = ["cam00", "cam01", "cam02"]
+    bank = FrameBank(src, body, model.image_raster, model.template, ["000000"], views, False)
+    fit = frame_fit(bank.fits, 0)
+    shifted = dataclasses.replace(fit, Th=fit.Th + torch.tensor([[0.04, 0.0, 0.0]]))
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    args = (model, body, shifted, bank.image_texture(0, [0, 1, 2]), bank.cams, bank.images[0], bank.masks[0],
+            list(bank.backgrounds))
+    rot, verts, summary = refine_frame(*args, RefineConfig(iters=60, lr=2e-3, patch=16))
+    rot0, verts0, _ = refine_frame(*args, RefineConfig(iters=0))
     moved = (verts - verts0).mean(0)
     assert -0.05 < float(moved[0]) < -0.025 and abs(float(moved[1])) < 0.01   # the 4 cm undone, to 1 cm
     assert summary["loss_after"] < summary["loss_before"]
@@ -49,25 +58,16 @@ def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path):
     assert np.isfinite(summary["joint_rotation_rms_deg"])
 
 
-def test_drive_sequence_refines_each_frame_only_when_asked(tmp_path):
+def test_drive_sequence_refines_each_frame_only_when_asked(tmp_path, one_thread):
     """render dva's driving: refine_pose = 0 renders the fits as they are (the same images as before the
     option); a few steps move the body and so change the render."""
     from uvatar.dva.drive import drive_sequence
 
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        cap = write_toy_capture(tmp_path / "cap", frames=2, cameras=4, size=24)
-        train_dva(open_source(cap), tmp_path / "run", preset("tiny"), iters=2, progress=False)
-        model, body, _, _ = load_run(tmp_path / "run")
-        src = open_source(cap)
-        target = src.cameras["cam03"]
-        plain = drive_sequence(model, body, src, ["000000"], ["cam00", "cam01"], target, progress=False)
-        again = drive_sequence(model, body, src, ["000000"], ["cam00", "cam01"], target, progress=False,
-                               refine_pose=0)
-        moved = drive_sequence(model, body, src, ["000000"], ["cam00", "cam01"], target, progress=False,
-                               refine_pose=10)
-    finally:
-        torch.set_num_threads(n)
+    model, body, src = _toy_run(tmp_path, 24)
+    target = src.cameras["cam03"]
+    views = ["cam00", "cam01"]
+    plain = drive_sequence(model, body, src, ["000000"], views, target, progress=False)
+    again = drive_sequence(model, body, src, ["000000"], views, target, progress=False, refine_pose=0)
+    moved = drive_sequence(model, body, src, ["000000"], views, target, progress=False, refine_pose=10)
     assert len(plain) == len(moved) == 1 and np.array_equal(plain[0], again[0])
     assert np.abs(moved[0] - plain[0]).max() > 1e-3
