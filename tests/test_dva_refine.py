@@ -34,8 +34,9 @@ def _toy_run(tmp_path, size: int):
 
 def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, one_thread):
     """The fit of a frame shifted 4 cm along x renders the tube beside the person in the driving views;
-    refinement (model frozen) moves the translation back by most of the shift, leaves the model's
-    weights as they were, and iters = 0 gives the fit itself."""
+    refinement (model frozen) moves the translation back by most of the shift and lowers the driving
+    views' loss on the same crops, leaves the model's weights as they were, and iters = 0 gives the
+    fit itself."""
     model, body, src = _toy_run(tmp_path, 32)
     views = ["cam00", "cam01", "cam02"]
     bank = FrameBank(src, body, model.image_raster, model.template, ["000000"], views, False)
@@ -47,7 +48,9 @@ def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, on
     rot, verts, summary = refine_frame(*args, RefineConfig(iters=60, lr=2e-3, patch=16))
     rot0, verts0, _ = refine_frame(*args, RefineConfig(iters=0))
     moved = (verts - verts0).mean(0)
-    assert -0.05 < float(moved[0]) < -0.025 and abs(float(moved[1])) < 0.01   # the 4 cm undone, to 1 cm
+    # the 4 cm across the tube undone to 1 cm, nothing toward the cameras; along the tube's own axis (y)
+    # the driving silhouettes hardly constrain it and a 2-step avatar's ends are soft: not checked
+    assert -0.05 < float(moved[0]) < -0.025 and abs(float(moved[2])) < 0.01
     assert summary["loss_after"] < summary["loss_before"]
     assert summary["translation_rms_mm"] > 10
     from uvatar.dva.dataset import pose_vertices

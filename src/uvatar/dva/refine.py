@@ -54,7 +54,7 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
     image_texture (4, R, R): the frame's driving texture (kept as unwrapped from the fit); cameras /
     images ((H, W, 3) uint8) / masks ((H, W) bool) / backgrounds ((3,)): the driving views.
     Returns (joint rotvecs (J, 3), posed vertices (V, 3), summary dict: the offsets' sizes and the
-    driving views' loss before and after)."""
+    driving views' loss before and after, on one fixed set of crops)."""
     from uvatar.dva.train import patch_pixels, target_pixels
 
     dev = next(model.parameters()).device
@@ -68,34 +68,42 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
     centers = torch.as_tensor(np.stack([cam.center for cam in cameras]), dtype=torch.float32, device=dev)
     tex = image_texture.to(dev)[None].expand(n, -1, -1, -1)
     w = model.cfg.loss
+
+    def views_loss(crops):
+        """(driving views' loss, joint rotvecs (1, J, 3), vertices (1, V, 3)) at the current offsets."""
+        rot, Rh, Th = corr.pose_inputs(fit, frames, True)
+        verts = pose_vertices(body, rot, Rh, Th, fit.scale, fit.shape).to(dev)
+        out = model(verts.expand(n, -1, -1), rot.to(dev).expand(n, -1, -1), tex, centers)
+        loss = 0.0
+        for b, (cam, img, mask, bg, pix) in enumerate(zip(cameras, images, masks, backgrounds, crops, strict=True)):
+            o, d = pixel_rays(cam, pix, dev)
+            rgb, alpha = model.render_rays(out, b, o, d, torch.as_tensor(bg, device=dev), camera=cam, pixels=pix)
+            target = torch.as_tensor(target_pixels(img, mask, pix, bg, "mask"), device=dev)
+            inside = torch.as_tensor(mask[pix[:, 1], pix[:, 0]], dtype=torch.float32, device=dev)
+            loss = loss + (w.rgb * (rgb - target).square().mean() + w.mask * (alpha - inside).abs().mean()) / n
+        return loss, rot, verts
+
+    def crops():
+        return [patch_pixels(mask, cfg.patch, rng) for mask in masks]
+
+    fixed = crops()  # the before / after comparison's
     frozen = [p for p in model.parameters() if p.requires_grad]
     for p in frozen:
         p.requires_grad_(False)
-    history = []
     try:
-        for _ in range(cfg.iters + 1):
-            rot, Rh, Th = corr.pose_inputs(fit, frames, True)
-            verts = pose_vertices(body, rot, Rh, Th, fit.scale, fit.shape).to(dev)
-            out = model(verts.expand(n, -1, -1), rot.to(dev).expand(n, -1, -1), tex, centers)
-            loss = 0.0
-            for b, (cam, img, mask, bg) in enumerate(zip(cameras, images, masks, backgrounds, strict=True)):
-                pix = patch_pixels(mask, cfg.patch, rng)
-                o, d = pixel_rays(cam, pix, dev)
-                rgb, alpha = model.render_rays(out, b, o, d, torch.as_tensor(bg, device=dev), camera=cam,
-                                               pixels=pix)
-                target = torch.as_tensor(target_pixels(img, mask, pix, bg, "mask"), device=dev)
-                inside = torch.as_tensor(mask[pix[:, 1], pix[:, 0]], dtype=torch.float32, device=dev)
-                loss = loss + (w.rgb * (rgb - target).square().mean() + w.mask * (alpha - inside).abs().mean()) / n
-            history.append(float(loss.detach()))
-            if len(history) > cfg.iters:
-                break
+        with torch.no_grad():
+            before = float(views_loss(fixed)[0])
+        for _ in range(cfg.iters):
+            loss, _, _ = views_loss(crops())
             total = loss + sum(corr.prior(frames, frames[:0]).values())
             opt.zero_grad(set_to_none=True)
             total.backward()
             opt.step()
+        with torch.no_grad():
+            after, rot, verts = views_loss(fixed)
     finally:
         for p in frozen:
             p.requires_grad_(True)
     summary = {**{k: v for k, v in corr.summary().items() if k not in ("gains", "biases")},
-               "loss_before": history[0], "loss_after": history[-1]}
+               "loss_before": before, "loss_after": float(after)}
     return rot[0].detach(), verts[0].detach(), summary
