@@ -47,15 +47,21 @@ def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, on
             list(bank.backgrounds))
     rot, verts, summary = refine_frame(*args, RefineConfig(iters=60, lr=2e-3, patch=16))
     rot0, verts0, _ = refine_frame(*args, RefineConfig(iters=0))
+    wild = (model, body, fit) + args[3:]
+    rot_w, verts_w, wild_summary = refine_frame(*wild, RefineConfig(iters=5, lr=0.5, patch=16))
     moved = (verts - verts0).mean(0)
     # the 4 cm across the tube undone to 1 cm, nothing toward the cameras; along the tube's own axis (y)
     # the driving silhouettes hardly constrain it and a 2-step avatar's ends are soft: not checked
     assert -0.05 < float(moved[0]) < -0.025 and abs(float(moved[2])) < 0.01
-    assert summary["loss_after"] < summary["loss_before"]
+    assert summary["loss_after"] < summary["loss_before"] and summary["kept"]
     assert summary["translation_rms_mm"] > 10
     from uvatar.dva.dataset import pose_vertices
     expected = pose_vertices(body, shifted.rotvecs, shifted.Rh, shifted.Th, shifted.scale, shifted.shape)[0]
     assert torch.allclose(verts0, expected, atol=1e-6) and torch.equal(rot0, shifted.rotvecs[0])
+    # steps of half a radian from the true fit make it worse: the fit is returned as it was
+    assert not wild_summary["kept"] and wild_summary["loss_after"] >= wild_summary["loss_before"]
+    exact = pose_vertices(body, fit.rotvecs, fit.Rh, fit.Th, fit.scale, fit.shape)[0]
+    assert torch.allclose(verts_w, exact, atol=1e-6) and torch.equal(rot_w, fit.rotvecs[0])
     assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
     assert all(p.requires_grad for p in model.parameters())
     assert np.isfinite(summary["joint_rotation_rms_deg"])

@@ -53,8 +53,10 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
 
     image_texture (4, R, R): the frame's driving texture (kept as unwrapped from the fit); cameras /
     images ((H, W, 3) uint8) / masks ((H, W) bool) / backgrounds ((3,)): the driving views.
-    Returns (joint rotvecs (J, 3), posed vertices (V, 3), summary dict: the offsets' sizes and the
-    driving views' loss before and after, on one fixed set of crops)."""
+    Returns (joint rotvecs (J, 3), posed vertices (V, 3), summary dict: the offsets' sizes, the
+    driving views' loss before and after on one fixed set of crops, and ``kept``). The refined fit is
+    returned only where it lowers that loss; otherwise the fit as it was (``kept`` False): on the real
+    recording 40 noisy steps raised it more often than not (``docs/real.md``)."""
     from uvatar.dva.train import patch_pixels, target_pixels
 
     dev = next(model.parameters()).device
@@ -92,7 +94,7 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
         p.requires_grad_(False)
     try:
         with torch.no_grad():
-            before = float(views_loss(fixed)[0])
+            before, rot0, verts0 = views_loss(fixed)
         for _ in range(cfg.iters):
             loss, _, _ = views_loss(crops())
             total = loss + sum(corr.prior(frames, frames[:0]).values())
@@ -104,6 +106,9 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
     finally:
         for p in frozen:
             p.requires_grad_(True)
+    kept = float(after) < float(before)
     summary = {**{k: v for k, v in corr.summary().items() if k not in ("gains", "biases")},
-               "loss_before": before, "loss_after": float(after)}
+               "loss_before": float(before), "loss_after": float(after), "kept": kept}
+    if not kept:  # the driving views liked the fit better as it was: keep it
+        return rot0[0].detach(), verts0[0].detach(), summary
     return rot[0].detach(), verts[0].detach(), summary
