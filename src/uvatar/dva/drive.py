@@ -57,7 +57,8 @@ def drive_sequence(model, body, source, frames, driving_cameras, target_camera, 
     targets = target_camera if isinstance(target_camera, list | tuple) else [target_camera] * len(frames)
     for frame, target in tqdm(list(zip(frames, targets, strict=False)), desc="render dva", disable=not progress, unit="frame"):
         try:
-            rot, verts = body_inputs(body, [source.fit(frame)])
+            fit = source.fit(frame)
+            rot, verts = body_inputs(body, [fit])
             imgs = [source.image(c, frame) for c in driving_cameras]
             masks = [source.mask(c, frame) for c in driving_cameras]
         except InputError as exc:
@@ -66,7 +67,7 @@ def drive_sequence(model, body, source, frames, driving_cameras, target_camera, 
         tex = driving_texture(model, verts[0].numpy(), cams, imgs, masks)
         rot, verts = rot[0], verts[0]
         if refine_pose > 0:
-            rot, verts = _refined(model, body, source.fit(frame), tex, cams, imgs, masks, refine_pose)
+            rot, verts = _refined(model, body, fit, tex, cams, imgs, masks, refine_pose)
         rgb, _ = render_camera(model, verts, rot, tex, target, background)
         out.append(rgb)
     return out
@@ -77,8 +78,9 @@ def _refined(model, body, fit, tex, cams, images, masks, iters: int):
     images in [0, 1], masks) for ``iters`` steps."""
     from uvatar.dva.dataset import estimate_background, fit_params
     from uvatar.dva.refine import RefineConfig, refine_frame
+    from uvatar.render.video import to_uint8
 
-    photos = [(np.clip(np.asarray(i, np.float32), 0, 1) * 255 + 0.5).astype(np.uint8) for i in images]
+    photos = [to_uint8(i) for i in images]
     inside = [np.asarray(m) > 0.5 for m in masks]
     backs = [estimate_background(np.asarray(i, np.float32), m) for i, m in zip(images, inside, strict=True)]
     rot, verts, _ = refine_frame(model, body, fit_params(body, [fit]), tex, cams, photos, inside, backs,

@@ -110,18 +110,20 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
     img_dir = Path(json_path).with_suffix("") if json_path else None
     per_image, baseline, projective = [], [], []
     drive_idx = list(range(len(driving)))
+    drive_cams = [bank.cams[d] for d in drive_idx]
     refined = {}
     for fi, frame in enumerate(bank.frames):
         tex = bank.image_texture(fi, drive_idx).to(device)
         verts, rot = bank.vertices[fi].to(device), bank.rotvecs[fi].to(device)
+        photos, masks = [bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx]
         if refine_pose > 0:
             rot, verts, refined[frame] = refine_frame(
-                model, body, frame_fit(bank.fits, fi), tex, [bank.cams[d] for d in drive_idx],
-                [bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx],
+                model, body, frame_fit(bank.fits, fi), tex, drive_cams, photos, masks,
                 [bank.backgrounds[d] for d in drive_idx], RefineConfig(iters=refine_pose))
             rot, verts = rot.to(device), verts.to(device)
-        photo_tex = projective_texture(model.template, verts.cpu().numpy(), [bank.cams[d] for d in drive_idx],
-                                       [bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx])
+        verts_np = verts.cpu().numpy()
+        photo_tex = projective_texture(model.template, verts_np, drive_cams, photos, masks)
+        colour = mean_colour(photos, masks)
         for ci, cam_name in enumerate(test_cams, start=len(driving)):
             cam = bank.cams[ci]
             gt = bank.images[fi][ci].astype(np.float32) / 255.0
@@ -129,15 +131,12 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
                 cam.height, cam.width = gt.shape[:2]
             with torch.no_grad():
                 pred, alpha = render_camera(model, verts, rot, tex, cam, bank.backgrounds[ci])
-            box = box_mask(cam, verts.cpu().numpy(), *gt.shape[:2]) if source.eval_box_mask else None
+            box = box_mask(cam, verts_np, *gt.shape[:2]) if source.eval_box_mask else None
             scores = image_scores(pred, gt, alpha, bank.masks[fi][ci], box)
             per_image.append({"frame": frame, "camera": cam_name, **scores})
-            colour = mean_colour([bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx])
-            base, base_alpha = mean_colour_render(verts.cpu().numpy(), model.template.faces, cam, colour,
-                                                  bank.backgrounds[ci])
+            base, base_alpha = mean_colour_render(verts_np, model.template.faces, cam, colour, bank.backgrounds[ci])
             baseline.append(image_scores(base, gt, base_alpha, bank.masks[fi][ci], box))
-            proj, proj_alpha = textured_body_render(verts.cpu().numpy(), model.template, cam, photo_tex,
-                                                    bank.backgrounds[ci])
+            proj, proj_alpha = textured_body_render(verts_np, model.template, cam, photo_tex, bank.backgrounds[ci])
             projective.append(image_scores(proj, gt, proj_alpha, bank.masks[fi][ci], box))
             if images and img_dir is not None:
                 err = np.clip(np.abs(pred - gt) * 4, 0, 1)
