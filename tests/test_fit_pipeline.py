@@ -138,3 +138,43 @@ def test_views_that_disagree_are_named_left_out_and_fail_strict(fit_studio, tmp_
     assert f"{frame} {cam}" in err and "--strict" in err
     assert main(["capture", "check", str(root), "--no-progress"]) == 0
     assert f"{frame} {cam}" in capsys.readouterr().out
+
+
+def test_refine_cameras_turns_a_miscalibrated_view_back_and_masks_shape_the_fit(fit_studio, tmp_path, capsys):
+    """Camera 01 turned by 1.2 deg (~7 px at 256^2): ``--refine-cameras`` turns it back (the calibration as
+    it was kept in cameras/before_refine/, the saved keypoints through the new one) and ``--masks`` adds
+    the silhouette term (the studio's true masks); without masks/ that flag is one line naming the
+    command to run."""
+    from uvatar.capture import Capture
+    from uvatar.capture.cameras import read_cameras, write_cameras
+    from uvatar.cli.main import main
+    from uvatar.fit.calibration import rotated_camera
+    from uvatar.fit.observe import load_observation
+    from uvatar.fit.pipeline import FitConfig, fit_capture
+
+    root = _copy_without_fits(fit_studio[0], tmp_path / "cap")
+    shutil.rmtree(root / "fitting", ignore_errors=True)
+    true = Capture(root).cameras()
+    name = list(true)[1]
+    wrong = dict(true, **{name: rotated_camera(true[name], [0.012, -0.016, 0.0])})
+    write_cameras(root / "cameras", wrong)
+    (root / "masks").rename(root / "true_masks")               # the studio's true person masks
+    assert main(["fit", str(root), "--from", "images", "--masks", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--masks" in err[0] and "uvatar capture masks" in err[0], err
+    (root / "true_masks").rename(root / "masks")
+
+    def off_deg(cam):
+        return float(np.degrees(np.arccos(np.clip((np.trace(cam.R.T @ true[name].R) - 1) / 2, -1, 1))))
+
+    summary = fit_capture(root, FitConfig(source="images", refine_cameras=True, masks=True, overlay_frames=0,
+                                          scan_distance=False), progress=False)
+    refined = Capture(root).cameras()
+    assert off_deg(refined[name]) < 0.5 * off_deg(wrong[name]), (off_deg(wrong[name]), off_deg(refined[name]))
+    report = summary["cameras_refined"]
+    assert report["reprojection_px_after"] < report["reprojection_px_before"]
+    assert abs(report["leave_one_out_after"][name]["dx_px"]) < abs(report["leave_one_out_before"][name]["dx_px"])
+    np.testing.assert_allclose(read_cameras(root / "cameras" / "before_refine")[name].R, wrong[name].R, atol=1e-9)
+    saved = load_observation(root / "fitting" / "keypoints" / f"{Capture(root).frames[0]}.npz")
+    np.testing.assert_allclose(saved.cameras[1].R, refined[name].R, atol=1e-9)
+    assert "silhouette" in Capture(root).info["provenance"]["fit"]["losses"]

@@ -19,7 +19,7 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
     from uvatar.fit.views import ScanViewsConfig
 
     fit = ConfigFlags(FitConfig, fields=("source", "model", "model_dir", "detector", "scan_distance", "scan_points",
-                                         "photo_size", "overlay_frames", "device", "force", "person"),
+                                         "photo_size", "overlay_frames", "refine_cameras", "masks", "device", "force", "person"),
                       rename={"source": "from"}, choices={"source": FIT_SOURCES, "model": BODY_MODELS}, help={
                           "source": "images: the capture's cameras; scans: renders of each scan from virtual "
                                     "cameras; auto: images when the capture has cameras and images",
@@ -31,6 +31,11 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
                           "photo_size": "pixels of the unshaded scan renders whose colours the texture "
                                         "stage keeps consistent across frames (0: no texture stage)",
                           "overlay_frames": "frames drawn in fitting/contact_sheet.png (0: none)",
+                          "refine_cameras": "first turn each camera by the small rotation that makes the person's "
+                                            "detections agree across views; writes the refined calibration to "
+                                            "cameras/ (the original kept in cameras/before_refine/)",
+                          "masks": "also fit the body's silhouette to the person masks (masks/, from "
+                                   "`uvatar capture masks` after a first fit): inside each mask and out to its outline",
                           "device": "torch device of the fit (cpu, cuda)", "force": "replace existing fits",
                           "person": "which person to fit from images when several are in view: most-views "
                                     "(seen by the most cameras), largest, centre, nearest-to:X,Y,Z (metres), "

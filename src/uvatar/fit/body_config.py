@@ -157,7 +157,9 @@ class BodyFitConfig:
     photo_blur_px: float = 1.0
     w_mask: float = 2.0
     mask_sigma: float = 0.05
-    mask_vertices: int = 800
+    mask_vertices: int = 2000
+    mask_outline: float = 1.0
+    mask_outline_points: int = 200
     w_pose_prior: float = 2e-4
     w_smooth: float = 0.5
     smooth_sigma: float = 0.03
@@ -178,13 +180,14 @@ class BodyFitConfig:
                                           "photo_blur_px >= 0"),
             (len(self.iterations) == 4 and min(self.iterations) >= 0, "iterations: four counts >= 0"),
             (min(self.lr_rotation, self.lr_translation, self.lr_shape) > 0, "learning rates must be > 0"),
-            (min(weights) >= 0, "loss weights must be >= 0"),
+            (min(weights) >= 0 and self.mask_outline >= 0, "loss weights must be >= 0"),
             (min(self.keypoint_sigma, self.keypoint_sigma_coarse, self.smooth_sigma, self.keypoint2d_sigma_px, self.scan_sigma, self.mask_sigma) > 0,
              "robust scales (sigmas) must be > 0"),
             (self.scan_inside_tolerance >= 0 and 0 <= self.scan_inside_weight <= 1,
              "scan_inside_tolerance >= 0 and scan_inside_weight in [0, 1]"),
             (self.scan_max_distance > 0, "scan_max_distance must be > 0"),
-            (min(self.scan_body_vertices, self.scan_samples, self.mask_vertices, self.refresh_every) >= 1,
+            (min(self.scan_body_vertices, self.scan_samples, self.mask_vertices, self.mask_outline_points,
+                 self.refresh_every) >= 1,
              "vertex/sample counts and refresh_every must be >= 1"),
             (0 < self.max_untracked_weight <= 1, "max_untracked_weight must be in (0, 1]"),
             (self.stiff_prior >= 0, f"stiff_prior must be >= 0, got {self.stiff_prior}"),

@@ -133,38 +133,65 @@ class ScanTerm:
 
 
 class MaskTerm:
-    """Silhouette: projected body vertices should fall inside each camera's person mask.
+    """Silhouette, both ways: the projected body must fall inside each camera's person mask, and
+    reach the mask's outline.
 
-    masks: per frame, per camera (H, W) bool or None. Stores the Euclidean distance transform of the
-    mask's outside (pixels; 0 inside), sampled with ``grid_sample`` at projected vertices, turned
-    into metres at the vertex depth."""
+    masks: per frame, per camera (H, W) bool or None. *Inside*: the Euclidean distance transform of
+    the mask's outside (pixels; 0 inside), sampled with ``grid_sample`` at the projected vertices.
+    *Outline*: ``outline_points`` pixels spread along each mask's outline, each to its nearest
+    projected vertex (found without gradient, then measured with it); a body that sits inside the
+    mask but short of one side of it is pulled out to that side, which the inside half alone never
+    asks. Both in pixels, turned into metres at the vertex depth, Geman-McClure with ``sigma``.
+    ``outline_weight`` scales the outline half (0: inside only)."""
 
-    def __init__(self, masks, cams, body_vertices: np.ndarray, device, dtype=torch.float32):
-        from scipy.ndimage import distance_transform_edt
+    def __init__(self, masks, cams, body_vertices: np.ndarray, device, dtype=torch.float32,
+                 outline_points: int = 200, seed: int = 0):
+        from scipy.ndimage import binary_erosion, distance_transform_edt
 
         T, C = len(masks), cams.K.shape[0]
         shapes = [m.shape for frame in masks for m in frame if m is not None]
         H, W = shapes[0]
         dt = np.zeros((T, C, H, W), np.float32)
         valid = np.zeros((T, C), np.float32)
+        outline = np.zeros((T, C, outline_points, 2), np.float32)
+        rng = np.random.default_rng(seed)
         for t, frame in enumerate(masks):
             for c, m in enumerate(frame):
                 if m is not None and m.shape == (H, W) and m.any():
-                    dt[t, c] = distance_transform_edt(~m.astype(bool))
+                    m = m.astype(bool)
+                    dt[t, c] = distance_transform_edt(~m)
                     valid[t, c] = 1.0
+                    ys, xs = np.nonzero(m & ~binary_erosion(m))
+                    pick = rng.choice(len(xs), outline_points, replace=len(xs) < outline_points)
+                    outline[t, c] = np.stack([xs[pick], ys[pick]], 1)
         self.dt = torch.as_tensor(dt, device=device, dtype=dtype).reshape(T * C, 1, H, W)
         self.valid = torch.as_tensor(valid, device=device, dtype=dtype)
+        self.outline = torch.as_tensor(outline, device=device, dtype=dtype)
         self.size = (W, H)
         self.cams = cams
         self.body_vertices = torch.as_tensor(body_vertices, device=device)
 
-    def __call__(self, vertices, sigma: float):
+    def __call__(self, vertices, sigma: float, outline_weight: float = 1.0):
         from uvatar.fit.projection import project_cameras, sample_views
 
         px, z = project_cameras(vertices[:, self.body_vertices], self.cams)   # (T, C, N, 2)
         d = sample_views(self.dt, px, self.size)[..., 0]                      # (T, C, N) pixels
         f = self.cams.K[:, 0, 0].reshape(1, -1, 1)
-        cost = gmof(d * z.detach().clamp_min(0.1) / f, sigma)
+        metres = z.detach().clamp_min(0.1) / f                                # (T, C, N) metres per pixel
+        inside = _normalized(gmof(d * metres, sigma), self.valid[..., None].expand_as(d))
+        if outline_weight <= 0:
+            return inside
+        return inside + outline_weight * self._outline(px, metres, sigma)
+
+    def _outline(self, px, metres, sigma: float):
+        """(T,) Geman-McClure of each outline point's distance to its nearest projected vertex."""
+        T, C, B = self.outline.shape[:3]
+        with torch.no_grad():
+            nearest = torch.cat([torch.cdist(self.outline[t:t + 8], px[t:t + 8]).argmin(-1)
+                                 for t in range(0, T, 8)])                    # (T, C, B)
+        hit = torch.gather(px, 2, nearest[..., None].expand(T, C, B, 2))
+        scale = torch.gather(metres, 2, nearest)
+        cost = gmof((hit - self.outline).norm(dim=-1) * scale, sigma)
         return _normalized(cost, self.valid[..., None].expand_as(cost))
 
 

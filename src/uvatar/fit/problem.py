@@ -116,7 +116,8 @@ class FitProblem:
         self.skinner = SubsetSkinner(body, self.ids)
         self.scan = L.ScanTerm(obs.scans, np.searchsorted(self.ids, scan_ids), cfg.scan_samples,
                                cfg.scan_max_distance, dev) if has_scan else None
-        self.mask = L.MaskTerm(obs.masks, self.cams, np.searchsorted(self.ids, mask_ids), dev) if has_mask else None
+        self.mask = (L.MaskTerm(obs.masks, self.cams, np.searchsorted(self.ids, mask_ids), dev,
+                                outline_points=cfg.mask_outline_points) if has_mask else None)
         self.photo = PhotoTerm(obs.photo, np.searchsorted(self.ids, photo_ids), dev, cfg.photo_clothing,
                                cfg.photo_blur_px) if has_photo else None
         self._rest = None
@@ -226,7 +227,7 @@ class FitProblem:
                 out["scan"] = cfg.w_scan * self.scan(posed.vertices, posed.normals, cfg.scan_sigma,
                                                      cfg.scan_inside_tolerance, cfg.scan_inside_weight)
             if self.mask is not None and cfg.w_mask > 0:
-                out["mask"] = cfg.w_mask * self.mask(posed.vertices, cfg.mask_sigma)
+                out["mask"] = cfg.w_mask * self.mask(posed.vertices, cfg.mask_sigma, cfg.mask_outline)
             if self.photo is not None and stage >= 4:
                 out["photo"] = cfg.w_photo * self.photo(posed.vertices, cfg.photo_sigma)
         if cfg.fit_shape and stage >= cfg.shape_from_stage and with_shape:
