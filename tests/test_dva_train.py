@@ -126,6 +126,30 @@ def test_motion_prior_pulls_a_runaway_corrective_back():
     old = DvaConfig().to_dict()
     del old["loss"]["motion"]
     assert DvaConfig.from_dict(old).loss.motion == 0.0
+    del old["loss"]["colour_tv"]                            # and before the colour smoothness: off too
+    assert DvaConfig.from_dict(old).loss.colour_tv == 0.0 < DvaConfig().loss.colour_tv
+
+
+def test_colour_total_variation_counts_seams_between_primitives():
+    """One primitive of a 2x2 grid (S = 2) unlike the rest: its seam with its two neighbours is the whole
+    variation, 1/6 across each texel axis of the slab and none in depth; a flat payload has none. The
+    term joins the loss only with its weight."""
+    import torch
+
+    from uvatar.dva.losses import DvaLoss, LossConfig, slab_total_variation
+
+    colour = torch.zeros(1, 4, 3, 2, 2, 2)
+    assert float(slab_total_variation(colour)) == 0.0
+    colour[:, 2] = 1.0
+    assert float(slab_total_variation(colour)) == pytest.approx(1 / 3)
+    img, ones = torch.zeros(1, 3, 8, 8), torch.ones(1, 8, 8)
+    scales = rest = torch.full((1, 4, 3), 0.01)
+    _, off = DvaLoss(LossConfig(colour_tv=0.0))(img, img, ones, ones, scales, rest[0], None, colour)
+    total, on = DvaLoss(LossConfig(colour_tv=0.5))(img, img, ones, ones, scales, rest[0], None, colour)
+    assert "colour_tv" not in off and on["colour_tv"] == pytest.approx(1 / 3)
+    colour.requires_grad_(True)
+    DvaLoss(LossConfig(colour_tv=0.5))(img, img, ones, ones, scales, rest[0], None, colour)[0].backward()
+    assert colour.grad[0, 2].abs().sum() > 0                 # the odd primitive is pulled toward the rest
 
 
 def test_curriculum_switches_to_three_views(capture):

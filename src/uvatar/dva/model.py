@@ -95,6 +95,9 @@ class DvaConfig:
         loss = d.get("loss")
         if loss is not None and "motion" not in loss:  # before the motion prior: trained without it
             d = {**d, "loss": {**loss, "motion": 0.0}}
+            loss = d["loss"]
+        if loss is not None and "colour_tv" not in loss:  # before the colour smoothness: trained without it
+            d = {**d, "loss": {**loss, "colour_tv": 0.0}}
         return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
 
 
