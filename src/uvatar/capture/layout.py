@@ -220,6 +220,14 @@ class Capture:
         """{name: Camera} from cameras/intri.yml + extri.yml ({} when the capture has none)."""
         return dict(self._cameras)
 
+    def replace_cameras(self, cameras: dict[str, Camera]) -> None:
+        """Write ``cameras`` as the capture's calibration (cameras/intri.yml + extri.yml, atomically)
+        and read them from now on."""
+        from uvatar.capture.cameras import write_cameras
+
+        write_cameras(self.cameras_dir, cameras)
+        self.__dict__.pop("_cameras", None)
+
     def image_path(self, cam: str, frame: str) -> Path:
         return _first_existing(self.root / "images" / cam, frame)
 

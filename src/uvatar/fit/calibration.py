@@ -63,9 +63,9 @@ class CameraRefineConfig:
 def rotated_camera(camera: Camera, omega) -> Camera:
     """``camera`` turned about its own centre by the rotation vector ``omega`` (3,) radians, applied
     in the camera's frame: ``R' = exp(omega) R``, ``T' = exp(omega) T`` (the centre stays)."""
-    from uvatar.avh.data import rotvec_to_rotmat
+    import roma
 
-    turn = rotvec_to_rotmat(np.asarray(omega, np.float64).reshape(3))
+    turn = roma.rotvec_to_rotmat(torch.as_tensor(np.asarray(omega, np.float64).reshape(3))).numpy()
     return replace(camera, R=turn @ camera.R, T=turn @ camera.T)
 
 
@@ -196,7 +196,6 @@ def refine_capture_cameras(capture, observations: dict, frames, config: CameraRe
     and after). Raises :class:`~uvatar.errors.InputError` naming ``cameras/`` when it cannot."""
     import shutil
 
-    from uvatar.capture.cameras import write_cameras
     from uvatar.errors import InputError
     from uvatar.fit.observe import observation_path, save_observation
     from uvatar.fit.triangulate import triangulate
@@ -224,8 +223,7 @@ def refine_capture_cameras(capture, observations: dict, frames, config: CameraRe
             shutil.copy2(f, tmp / f.name)
         tmp.rename(backup)
     by_name = {c.name: c for c in refined}
-    write_cameras(capture.cameras_dir, {n: by_name.get(n, c) for n, c in capture.cameras().items()})
-    capture.__dict__.pop("_cameras", None)
+    capture.replace_cameras({n: by_name.get(n, c) for n, c in capture.cameras().items()})
     out = dict(observations)
     for f in used:
         obs = observations[f]
