@@ -59,3 +59,19 @@ def test_frames_without_a_mask_cost_nothing():
     term = MaskTerm([[MASK], [None]], camera_tensors([CAM]), np.arange(25 * 25), "cpu", outline_points=64)
     cost = term(torch.cat([_square(0.15), _square(0.15)]), 0.05)
     assert cost.shape == (2,) and float(cost[0]) > 1e-3 and float(cost[1]) == 0.0
+
+
+def test_cameras_of_different_sizes_all_count():
+    """A real rig mixes sizes (Pose2Sim's cameras decode 1080 and 1088 wide): every camera's mask counts,
+    in its own pixel coordinates."""
+    from dataclasses import replace
+
+    wide = replace(CAM, name="wide", width=80)
+    mask_wide = np.zeros((64, 80), bool)
+    mask_wide[16:48, 16:48] = True                           # the same square: the same world extent
+    term = MaskTerm([[MASK, mask_wide]], camera_tensors([CAM, wide]), np.arange(25 * 25), "cpu", outline_points=64)
+    assert term.valid.tolist() == [[1.0, 1.0]]
+    assert float(term(_square(0.31), 0.05)) < 3e-4          # fills both masks
+    only_wide = MaskTerm([[None, mask_wide]], camera_tensors([CAM, wide]), np.arange(25 * 25), "cpu",
+                         outline_points=64)
+    assert float(only_wide(_square(0.15), 0.05)) > 1e-3      # the wider camera alone still pulls

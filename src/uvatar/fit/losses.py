@@ -136,7 +136,8 @@ class MaskTerm:
     """Silhouette, both ways: the projected body must fall inside each camera's person mask, and
     reach the mask's outline.
 
-    masks: per frame, per camera (H, W) bool or None. *Inside*: the Euclidean distance transform of
+    masks: per frame, per camera (H, W) bool or None (cameras of different sizes are padded to the
+    largest, top-left aligned, so pixel coordinates stay each camera's own). *Inside*: the Euclidean distance transform of
     the mask's outside (pixels; 0 inside), sampled with ``grid_sample`` at the projected vertices.
     *Outline*: ``outline_points`` pixels spread along each mask's outline, each to its nearest
     projected vertex (found without gradient, then measured with it); a body that sits inside the
@@ -149,16 +150,16 @@ class MaskTerm:
         from scipy.ndimage import binary_erosion, distance_transform_edt
 
         T, C = len(masks), cams.K.shape[0]
-        shapes = [m.shape for frame in masks for m in frame if m is not None]
-        H, W = shapes[0]
+        shapes = np.array([m.shape for frame in masks for m in frame if m is not None])
+        H, W = shapes.max(0)
         dt = np.zeros((T, C, H, W), np.float32)
         valid = np.zeros((T, C), np.float32)
         outline = np.zeros((T, C, outline_points, 2), np.float32)
         rng = np.random.default_rng(seed)
         for t, frame in enumerate(masks):
             for c, m in enumerate(frame):
-                if m is not None and m.shape == (H, W) and m.any():
-                    m = m.astype(bool)
+                if m is not None and m.any():
+                    m = np.pad(m.astype(bool), ((0, H - m.shape[0]), (0, W - m.shape[1])))
                     dt[t, c] = distance_transform_edt(~m)
                     valid[t, c] = 1.0
                     ys, xs = np.nonzero(m & ~binary_erosion(m))
