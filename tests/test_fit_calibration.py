@@ -58,6 +58,10 @@ def test_refinement_undoes_a_known_miscalibration():
     assert report["reprojection_px_before"] > 3 and report["reprojection_px_after"] < 0.05
     assert report["cameras"]["01"]["turn_deg"] == pytest.approx(np.degrees(np.linalg.norm(TURNS[1])), abs=0.01)
     assert report["cameras"]["00"]["turn_deg"] < 0.01 and report["observations"] == conf.size
+    per = report["cameras"]                                                    # the turned views carried the error
+    assert min(per["01"]["reprojection_px_before"], per["03"]["reprojection_px_before"]) > \
+        max(per[n]["reprojection_px_before"] for n in per if n not in ("01", "03"))
+    assert max(v["reprojection_px_after"] for v in per.values()) < 0.05
     # the default prior (which keeps real turns from chasing the detector) shrinks them, but not by half
     shrunk, report = refine_camera_rotations(wrong, xy, conf, tri.points, tri.conf)
     for c in TURNS:

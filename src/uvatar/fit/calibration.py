@@ -123,8 +123,10 @@ def refine_camera_rotations(cameras: list[Camera], xy: np.ndarray, conf: np.ndar
         px, _ = _project(pts, K, turn @ R0, (turn @ T0[..., None])[..., 0], dist)
         return (px - obs).norm(dim=-1)                                         # (C, F, K)
 
-    def mean_error(r):
-        return float((r * weight).sum() / weight.sum())
+    def mean_error(r, camera=None):
+        w = weight if camera is None else weight[camera]
+        r = r if camera is None else r[camera]
+        return float((r * w).sum() / w.sum()) if w.sum() > 0 else None
 
     with torch.no_grad():
         before = residual()
@@ -149,9 +151,8 @@ def refine_camera_rotations(cameras: list[Camera], xy: np.ndarray, conf: np.ndar
                          f"{cfg.max_degrees} deg: its calibration looks broken, not a few pixels off")
     refined = [rotated_camera(c, w) for c, w in zip(cameras, omega_np, strict=True)]
     report = {"cameras": {c.name: {"turn_deg": float(d), "shift_px": float(c.K[0, 0] * np.linalg.norm(w[:2])),
-                                   "reprojection_px_before": mean_error(before[i:i + 1] * 1.0)
-                                   if weight[i].sum() > 0 else None,
-                                   "reprojection_px_after": mean_error(after[i:i + 1]) if weight[i].sum() > 0 else None}
+                                   "reprojection_px_before": mean_error(before, i),
+                                   "reprojection_px_after": mean_error(after, i)}
                           for i, (c, d, w) in enumerate(zip(cameras, degrees, omega_np, strict=True))},
               "reprojection_px_before": mean_error(before), "reprojection_px_after": mean_error(after),
               "observations": int(seen.sum()), "frames": int(xy.shape[0])}
