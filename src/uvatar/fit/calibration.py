@@ -226,8 +226,9 @@ def refine_capture_cameras(capture, observations: dict, frames, config: CameraRe
     by_name = {c.name: c for c in refined}
     capture.replace_cameras({n: by_name.get(n, c) for n, c in capture.cameras().items()})
     out = dict(observations)
-    for f in used:
-        obs = observations[f]
+    for f, obs in observations.items():   # every frame's, the failed ones too: all go on through these cameras
+        if [c.name for c in obs.cameras] != names:
+            continue
         tri = triangulate(obs.xy, obs.conf, refined, triangulate_config)
         out[f] = replace(obs, cameras=list(refined), points=tri.points.astype(np.float32),
                          points_conf=tri.conf.astype(np.float32), reprojection_px=tri.reprojection_px.astype(np.float32))
