@@ -69,19 +69,6 @@ def rotated_camera(camera: Camera, omega) -> Camera:
     return replace(camera, R=turn @ camera.R, T=turn @ camera.T)
 
 
-def _project(points, K, R, T, dist):
-    """points (F, P, 3) -> pixels (C, F, P, 2) and depth (C, F, P) through C cameras (torch)."""
-    from uvatar.geometry.camera import distort
-
-    cam = torch.einsum("cij,fpj->cfpi", R, points) + T[:, None, None]
-    z = cam[..., 2]
-    xy = cam[..., :2] / z.clamp_min(1e-3)[..., None]
-    xy = torch.stack([distort(xy[c], d) for c, d in enumerate(dist)])
-    u = K[:, 0, 0, None, None] * xy[..., 0] + K[:, 0, 1, None, None] * xy[..., 1] + K[:, 0, 2, None, None]
-    v = K[:, 1, 1, None, None] * xy[..., 1] + K[:, 1, 2, None, None]
-    return torch.stack([u, v], -1), z
-
-
 def refine_camera_rotations(cameras: list[Camera], xy: np.ndarray, conf: np.ndarray, points: np.ndarray,
                             points_conf: np.ndarray, config: CameraRefineConfig | None = None,
                             progress=None) -> tuple[list[Camera], dict]:
@@ -104,28 +91,29 @@ def refine_camera_rotations(cameras: list[Camera], xy: np.ndarray, conf: np.ndar
         raise ValueError(f"refining the cameras needs 3 or more cameras, got {C}")
     if (seen.sum(1) >= 2).sum() == 0:
         raise ValueError("refining the cameras needs keypoints seen by two cameras; none are")
+    from uvatar.fit.projection import CameraTensors, camera_tensors, project_cameras
+
     t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
-    K = t(np.stack([c.K for c in cameras]))
-    R0, T0 = t(np.stack([c.R for c in cameras])), t(np.stack([c.T for c in cameras]))
-    dist = [np.asarray(c.dist, np.float64).reshape(-1)[:5] for c in cameras]
-    obs = t(xy).permute(1, 0, 2, 3)                                            # (C, F, K, 2)
-    weight = t(seen.astype(np.float64)).permute(1, 0, 2)                       # (C, F, K)
+    cams = camera_tensors(cameras, dtype=torch.float64)
+    obs = t(xy)                                                                # (F, C, K, 2)
+    weight = t(seen.astype(np.float64))                                        # (F, C, K)
     omega = torch.zeros(C, 3, dtype=torch.float64, requires_grad=True)
     depth = float(np.median(np.linalg.norm(points[points_conf > 0][:, None] - np.stack([c.center for c in cameras]),
                                            axis=-1)))
     pts = t(points).requires_grad_(True)
-    focal = K[:, 0, 0]
+    focal = cams.K[:, 0, 0]
     opt = torch.optim.Adam([{"params": [omega], "lr": cfg.lr}, {"params": [pts], "lr": cfg.lr * depth}])
     decay = torch.optim.lr_scheduler.CosineAnnealingLR(opt, cfg.iterations, eta_min=cfg.lr * 1e-3)  # Adam's steps settle
 
     def residual():
         turn = roma.rotvec_to_rotmat(omega)
-        px, _ = _project(pts, K, turn @ R0, (turn @ T0[..., None])[..., 0], dist)
-        return (px - obs).norm(dim=-1)                                         # (C, F, K)
+        turned = CameraTensors(cams.K, turn @ cams.R, (turn @ cams.T[..., None])[..., 0], cams.dist)
+        px, _ = project_cameras(pts, turned)                                   # (F, C, K, 2)
+        return (px - obs).norm(dim=-1)                                         # (F, C, K)
 
     def mean_error(r, camera=None):
-        w = weight if camera is None else weight[camera]
-        r = r if camera is None else r[camera]
+        w = weight if camera is None else weight[:, camera]
+        r = r if camera is None else r[:, camera]
         return float((r * w).sum() / w.sum()) if w.sum() > 0 else None
 
     with torch.no_grad():

@@ -192,8 +192,6 @@ def _person_masks(capture: Capture, frames, cameras, failures: dict) -> list:
     missing or unreadable, or the frame failed)."""
     if cameras is None:
         raise InputError(capture.root, "masks=True needs a fit from images (calibrated cameras)")
-    if not capture.masks_dir.is_dir():
-        raise InputError(capture.masks_dir, "masks=True needs person masks: run `uvatar capture masks` first")
     out = []
     for frame in frames:
         row = []
