@@ -171,6 +171,17 @@ def test_curriculum_switches_to_three_views(capture):
         assert float(tex[0, 3].max()) <= 1.0
 
 
+@pytest.mark.gpu
+def test_train_and_resume_on_cuda(capture, tmp_path):
+    """A run trained on CUDA resumes there (its checkpoint loads onto the GPU, the RNG state back to
+    the CPU where torch keeps it) and goes on step for step."""
+    src = open_source(capture)
+    s = train_dva(src, tmp_path / "run", preset("tiny"), iters=2, device="cuda", progress=False)
+    assert s["steps"] == 2
+    s = train_dva(src, tmp_path / "run", preset("tiny"), iters=3, device="cuda", resume=True, progress=False)
+    assert s["steps"] == 3 and np.isfinite(s["last"]["total"])
+
+
 def test_train_resume_and_eval(capture, tmp_path):
     from uvatar.dva.eval import evaluate_dva
 

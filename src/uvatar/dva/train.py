@@ -185,7 +185,7 @@ class Trainer:
             clock = state.get("clock") or {}
             if "rng" in clock:
                 self.rng.setstate(_tupled(clock["rng"]))
-                torch.set_rng_state(clock["torch_rng"])
+                torch.set_rng_state(clock["torch_rng"].cpu())  # map_location moved it to the device
                 self.seconds = float(clock["seconds"])
             else:  # a checkpoint from before the clock was saved: continues, but not step for step
                 log.warning("%s has no sampling RNG state: the resumed steps differ from an uninterrupted run", ckpt)
