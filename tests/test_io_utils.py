@@ -50,6 +50,40 @@ def test_error_messages_are_one_line():
     assert str(err) == "fits/000001.json: Rh has shape (2,), expected (3,)"
     with pytest.raises(MissingDependencyError, match=r"pip install 'uvatar\[nope\]'"):
         require("definitely_not_a_module_xyz", "nope", "testing")
+    with pytest.raises(MissingDependencyError, match=r"own dependencies: pip install definitely-not-xyz$"):
+        require("definitely_not_xyz", None, "testing")
+
+
+def test_every_require_names_an_extra_that_exists_or_a_core_dependency():
+    """The install line a missing package prints works: its extra is in pyproject's optional
+    dependencies and holds that package, or the package is a core dependency (extra None)."""
+    import ast
+    import re
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+
+    def names(reqs):
+        return {re.split(r"[<>=!~; \[]", r, maxsplit=1)[0].lower().replace("_", "-") for r in reqs}
+
+    dist = {"embreex": "embreex", "warp": "warp-lang", "playwright": "playwright", "mediapipe": "mediapipe",
+            "ray": "ray", "smplx": "smplx", "ufbx": "ufbx", "pygltflib": "pygltflib", "anny": "anny",
+            "xatlas": "xatlas", "fast_simplification": "fast-simplification"}
+    calls = []
+    for path in (root / "src" / "uvatar").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "require" and len(node.args) >= 2:
+                module, extra = (ast.literal_eval(a) for a in node.args[:2])
+                calls.append((path.name, module.split(".")[0], extra))
+    assert len(calls) >= 10
+    for where, module, extra in calls:
+        package = dist[module]
+        if extra is None:
+            assert package in names(project["dependencies"]), (where, module)
+        else:
+            assert package in names(project["optional-dependencies"].get(extra, [])), (where, module, extra)
 
 
 def test_read_json_and_npz_errors_name_the_file(tmp_path):

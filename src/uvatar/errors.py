@@ -29,14 +29,18 @@ class InputError(UvatarError):
 
 
 class MissingDependencyError(UvatarError):
-    """An optional dependency is not installed; the message names the extra to install."""
+    """A dependency is not installed; the message names the extra to install (an optional one), or
+    the package itself (``extra=None``: one of uvatar's own dependencies, missing from a broken or
+    hand-made environment)."""
 
-    def __init__(self, package: str, extra: str, purpose: str = ""):
+    def __init__(self, package: str, extra: str | None, purpose: str = ""):
         what = f" (needed for {purpose})" if purpose else ""
-        super().__init__(
-            f"the optional package '{package}' is not installed{what}; "
-            f"install it with: pip install 'uvatar[{extra}]'"
-        )
+        if extra is None:
+            super().__init__(f"the package '{package}' is not installed{what}; it is one of uvatar's own "
+                             f"dependencies: pip install {package.replace('_', '-')}")
+        else:
+            super().__init__(f"the optional package '{package}' is not installed{what}; "
+                             f"install it with: pip install 'uvatar[{extra}]'")
 
 
 def one_line(exc: BaseException) -> str:
@@ -46,8 +50,9 @@ def one_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def require(module: str, extra: str, purpose: str = ""):
-    """Import an optional module lazily, or raise :class:`MissingDependencyError` naming the extra."""
+def require(module: str, extra: str | None, purpose: str = ""):
+    """Import a module lazily, or raise :class:`MissingDependencyError` naming the extra that brings it
+    (``None`` for one of uvatar's own dependencies)."""
     import importlib
 
     try:

@@ -36,7 +36,7 @@ def _unsupported(what: str) -> UvatarError:
 
 def load_anny(device: str | torch.device = "cpu"):
     """The default anny model (float64, on ``device``), or a clear error for an unsupported anny."""
-    anny = require("anny", "anny", "the anny body model")
+    anny = require("anny", None, "the anny body model")
     try:
         model = anny.Anny(rig="anny", topology="anny", pose_parameterization="local-ref",
                           skinning_method="lbs")

@@ -148,8 +148,8 @@ class RayCaster:
         self.extent = float(np.linalg.norm(hi - lo) + np.abs(np.stack([lo, hi])).max())
         if not build:
             return
-        rtcore_scene = require("embreex.rtcore_scene", "embree", "ray casting")
-        mesh_construction = require("embreex.mesh_construction", "embree", "ray casting")
+        rtcore_scene = require("embreex.rtcore_scene", None, "ray casting")
+        mesh_construction = require("embreex.mesh_construction", None, "ray casting")
         self._scene = rtcore_scene.EmbreeScene()
         self._mesh = mesh_construction.TriangleMesh(
             self._scene,

@@ -77,7 +77,7 @@ def fine_mesh(template, levels: int = 2) -> FineMesh:
 
 def _atlas(positions: np.ndarray, faces: np.ndarray, resolution: int, chart_area: float):
     """xatlas: (uvs (U, 2) float32 v up, uv_faces (F, 3), faces (F, 3) into positions)."""
-    xatlas = require("xatlas", "synth", "scan UV atlases")
+    xatlas = require("xatlas", None, "scan UV atlases")
     atlas = xatlas.Atlas()
     atlas.add_mesh(np.ascontiguousarray(positions, dtype=np.float32), np.ascontiguousarray(faces, dtype=np.uint32))
     chart = xatlas.ChartOptions()
@@ -101,7 +101,7 @@ def build_topology(fine: FineMesh, rest_offset: np.ndarray, rest_normals: np.nda
     rest_offset (Vf,) metres and rest_normals (Vf, 3) clothe the fine mesh; a sub-millimetre jitter
     drawn from ``rng`` makes each segment's decimation differ.
     """
-    fs = require("fast_simplification", "synth", "scan decimation")
+    fs = require("fast_simplification", None, "scan decimation")
     from scipy.spatial import cKDTree
 
     clothed = fine.vertices + rest_offset[:, None] * rest_normals
