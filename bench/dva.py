@@ -126,6 +126,7 @@ def main(argv=None) -> int:
                 print(json.dumps(row), file=sys.stderr)
     print(json.dumps({"bench": "dva_raymarch", "device": str(device), "torch": torch.__version__,
                       "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine(),
+                      "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
                       "step_m": args.step, "repeats": args.repeats, "results": results}))
     return 0
 

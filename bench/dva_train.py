@@ -8,12 +8,19 @@ takes ``--warmup`` steps, then ``--steps`` timed ones with the correctives on (a
 real run). Both marchers alternate per (W, S), so load from other jobs hits both alike. Prints one JSON
 object (ms per step: median of the timed steps); progress goes to stderr. ``--grids`` / ``--voxels``
 pick the sizes (default W = 16, 24, 32 x S = 8, 16).
+
+``--device cuda`` times on a GPU (each time taken after a device synchronise) and adds the peak GPU
+memory; ``--render 512,1024`` also times a whole-frame render (decoders + marcher, every pixel a ray)
+of the trained model at those sizes, as frames per second; ``--capture`` uses an existing capture
+instead of writing the toy one (whose ray casting needs Embree). ``--preset paper --grids 64 --voxels
+16`` is the paper's scale.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import platform
 import statistics
 import sys
 import tempfile
@@ -25,8 +32,34 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def render_fps(trainer, size: int, device: str, repeats: int = 5) -> float:
+    """Whole frames per second at ``size`` x ``size``: the model's decoders and the marcher, every pixel
+    a ray, for bank frame 0 seen from its first camera, rescaled to a ``size`` square (the best of ``repeats``)."""
+    from uvatar.dva.drive import render_camera
+
+    cam = trainer.bank.cams[0].scaled(size, size)
+    verts, rots = trainer._posed(torch.tensor([0]), False)
+    tex = trainer.bank.image_texture(0, list(range(len(trainer.bank.cameras))))
+    best = float("inf")
+    for _ in range(repeats + 1):  # the first is a warm-up (kernel compilation, allocations)
+        _sync(device)
+        t = time.perf_counter()
+        render_camera(trainer.model.eval(), verts[0], rots[0], tex, cam)
+        _sync(device)
+        best = min(best, time.perf_counter() - t)
+    trainer.model.train()
+    return 1.0 / best
+
+
 def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int, steps: int,
-            preset: str) -> float:
+            preset: str, device: str = "cpu", render_sizes=()) -> dict:
+    """{"step_ms": median ms per training step, "fps_<size>": whole-frame renders per second, and on a
+    GPU "peak_gpu_gib": the most GPU memory the steps held}."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -36,15 +69,27 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     cfg.decoder.voxels = S
     cfg.raymarch.marcher = marcher
     cfg.train.warmup_iters = 0
-    trainer = Trainer(open_source(capture), out, cfg, progress=False)
+    trainer = Trainer(open_source(capture), out, cfg, progress=False, device=device)
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
     for _ in range(warmup):
         trainer.train_step()
     times = []
     for _ in range(steps):
+        _sync(device)
         t = time.perf_counter()
         trainer.train_step()
+        _sync(device)
         times.append(time.perf_counter() - t)
-    return 1000 * statistics.median(times)
+    row = {"step_ms": round(1000 * statistics.median(times), 1)}
+    if device.startswith("cuda"):
+        row["peak_gpu_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
+    for size in render_sizes:
+        try:
+            row[f"fps_{size}"] = round(render_fps(trainer, size, device), 2)
+        except torch.cuda.OutOfMemoryError:
+            row[f"fps_{size}"] = "out of GPU memory"
+    return row
 
 
 def main(argv=None) -> int:
@@ -56,6 +101,9 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (train dva's default)")
+    ap.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    ap.add_argument("--render", default="", help="whole-frame render sizes to time, comma separated (e.g. 512,1024)")
+    ap.add_argument("--capture", default=None, help="an existing capture (default: the toy one, 160 px)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
@@ -63,16 +111,20 @@ def main(argv=None) -> int:
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        capture = write_toy_capture(Path(tmp) / "cap", frames=4, cameras=4, size=160)
+        capture = Path(args.capture) if args.capture else \
+            write_toy_capture(Path(tmp) / "cap", frames=4, cameras=4, size=160)
+        sizes = [int(v) for v in args.render.split(",") if v.strip()]
         for W in (int(v) for v in args.grids.split(",")):
             for S in (int(v) for v in args.voxels.split(",")):
                 row = {"K": W * W, "W": W, "S": S}
                 for m in args.marchers.split(","):
-                    row[f"{m}_step_ms"] = round(step_ms(capture, Path(tmp) / f"{m}{W}_{S}", W, S, m, args.warmup,
-                                                        args.steps, args.preset), 1)
+                    got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}", W, S, m, args.warmup, args.steps,
+                                  args.preset, args.device, sizes)
+                    row.update({f"{m}_{k}": v for k, v in got.items()})
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr)
-    print(json.dumps({"bench": "dva_train_step", "preset": args.preset, "threads": args.threads,
+    device = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or "cpu"
+    print(json.dumps({"bench": "dva_train_step", "preset": args.preset, "device": device, "threads": args.threads,
                       "steps": args.steps, "results": rows}))
     return 0
 

@@ -122,16 +122,22 @@ def test_marcher_choice():
 
 
 @pytest.mark.gpu
-def test_cuda_parity_with_cpu():
-    """The same kernels on CUDA: values and gradients as on the CPU (float32, pinhole culling)."""
-    cam, pix, o, d = pinhole_scene(n=16, dtype=torch.float32)
-    scene = random_scene(K=9, S=4, seed=2, dtype=torch.float32)
-    w = weights_for(o.shape[0], torch.float32)
-    cpu = run(raymarch, scene, o, d, WARP, w, camera=cam, pixels=pix)
-    gpu = run(raymarch, [t.cuda() for t in scene], o.cuda(), d.cuda(), WARP, w.cuda(), camera=cam, pixels=pix)
-    assert torch.allclose(gpu[0].cpu(), cpu[0], atol=1e-5) and torch.allclose(gpu[1].cpu(), cpu[1], atol=1e-5)
-    for name, gg, gc in zip(NAMES, gpu[2], cpu[2], strict=True):
-        assert (gg.cpu() - gc).norm() <= 1e-4 * gc.norm(), name
+@pytest.mark.parametrize("dtype,K,S,n,tol", [(torch.float32, 9, 4, 16, 1e-4), (torch.float64, 64, 8, 48, 1e-9),
+                                             (torch.float32, 64, 8, 48, 5e-3)])
+def test_cuda_parity_with_torch_twin(dtype, K, S, n, tol):
+    """The same kernels on CUDA: values and gradients as the torch twin's on CUDA, with pinhole culling;
+    the dense scene launches many blocks and is exact in float64 (in float32 its gradients differ by
+    rounding: ~1e-3 relative on the CPU too). Needs no CPU backend of Warp."""
+    cam, pix, o, d = pinhole_scene(n=n, dtype=dtype)
+    scene = [t.cuda() for t in random_scene(K=K, S=S, seed=2, dtype=dtype)]
+    w = weights_for(o.shape[0], dtype).cuda()
+    got = run(raymarch, scene, o.cuda(), d.cuda(), WARP, w, camera=cam, pixels=pix)
+    ref = run(raymarch, scene, o.cuda(), d.cuda(), REF, w, camera=cam, pixels=pix)
+    assert got[0].is_cuda and (ref[1] > 0.05).sum() > 10
+    assert torch.allclose(got[0], ref[0], atol=1e-5) and torch.allclose(got[1], ref[1], atol=1e-5)
+    for name, gg, gr in zip(NAMES, got[2], ref[2], strict=True):
+        assert gr.norm() > 0, name
+        assert (gg - gr).norm() <= tol * gr.norm(), (name, float((gg - gr).norm() / gr.norm()))
 
 
 def test_cli_marcher_flags(tmp_path):
