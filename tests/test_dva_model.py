@@ -8,7 +8,14 @@ import torch
 
 from tests.fixtures.dva_capture import toy_cameras
 from uvatar.dva.decoders import DecoderConfig, DvaDecoder, payload_to_slab, slab_to_payload
-from uvatar.dva.features import average_views, pose_feature_maps, unwrap_views, view_feature_map
+from uvatar.dva.features import (
+    average_views,
+    pose_feature_maps,
+    texture_at_voxels,
+    unwrap_views,
+    view_feature_map,
+    voxel_uv_grid,
+)
 from uvatar.dva.losses import DvaLoss, Vgg19Features, beta_prior, ssim_torch
 from uvatar.dva.model import DvaModel, pixel_rays, preset
 from uvatar.dva.primitives import (
@@ -140,13 +147,86 @@ def test_slab_payload_round_trip():
 def test_decoder_shapes_and_ranges():
     dec = DvaDecoder(DecoderConfig(voxels=4, hidden=8, min_channels=4), grid=4, pose_channels=3,
                      image_channels=5)
-    motion, rgb, density = dec(torch.randn(2, 3, 4, 4), torch.randn(2, 5, 4, 4), torch.randn(2, 1, 4, 4))
+    motion, rgb, density, own = dec(torch.randn(2, 3, 4, 4), torch.randn(2, 5, 4, 4), torch.randn(2, 1, 4, 4))
+    assert torch.equal(own, rgb)  # no colour skip: the decoder's own colour is the payload's
     assert motion.shape == (2, 9, 4, 4) and torch.all(motion == 0)  # zero-initialised correctives
     assert rgb.shape == (2, 16, 3, 4, 4, 4) and density.shape == (2, 16, 1, 4, 4, 4)
     assert rgb.min() >= 0 and rgb.max() <= 1 and density.min() >= 0
     assert dec.opacity.head.bias.shape == (1, 8, 4, 4)  # untied: one bias per channel and texel
     with pytest.raises(ValueError):
         DvaDecoder(DecoderConfig(voxels=6), 4, 3, 5)
+
+
+def test_voxel_uv_grid_follows_the_primitive_axes(body):
+    """Each voxel column's UV lands, on the rest surface, where the marcher puts that voxel: the
+    primitive's centre plus its local x (tangent) and y (bitangent) offsets. A grid flipped in y
+    within each primitive would miss by about a primitive's size."""
+    import torch.nn.functional as F
+
+    from uvatar.geometry import rasterize_uv, texel_positions
+
+    W, S, tpl = 12, 4, body.template
+    cfg = PrimitiveConfig(grid=W)
+    grid = build_uv_grid(tpl, cfg)
+    verts = torch.as_tensor(np.asarray(tpl.vertices, np.float32))[None]
+    pos, rot = articulated_frames(grid, tpl, verts)
+    uv = torch.as_tensor(voxel_uv_grid(grid.raster, tpl, S, cfg.scale_factor))
+    assert uv.shape == (W * S, W * S, 2)
+    hi = rasterize_uv(tpl.uvs, tpl.uv_faces, 256)  # the surface point at any UV: a fine position map
+    surf = torch.as_tensor(texel_positions(hi, tpl.faces, verts[0].numpy()), dtype=torch.float32)
+    seen = torch.as_tensor(hi.mask, dtype=torch.float32)[..., None]
+    tex = torch.cat([surf * seen, seen], -1).permute(2, 0, 1)[None]
+    g = torch.stack([2 * uv[..., 0] - 1, 1 - 2 * uv[..., 1]], -1)[None]
+    look = F.grid_sample(tex, g, align_corners=False)[0]
+    inside = look[3] > 0.999
+    at_uv = (look[:3] / look[3:].clamp(min=1e-6)).permute(1, 2, 0)  # (W*S, W*S, 3)
+    local = torch.as_tensor((2 * np.arange(S) + 1.0) / S - 1.0, dtype=torch.float32)
+    scales = torch.as_tensor(grid.rest_scales).reshape(W, 1, W, 1, 3)
+    axes = rot[0].reshape(W, 1, W, 1, 3, 3)
+    for flip, ok in ((1.0, True), (-1.0, False)):
+        placed = (pos[0].reshape(W, 1, W, 1, 3) + axes[..., 0] * (local[None, None, None, :, None] * scales[..., :1])
+                  + axes[..., 1] * (flip * local[None, :, None, None, None] * scales[..., 1:2]))
+        miss = (placed.reshape(W * S, W * S, 3) - at_uv).norm(dim=-1)[inside]
+        size = scales[..., :2].mean(-1).expand(W, S, W, S).reshape(W * S, W * S)[inside]
+        assert inside.sum() > 0.5 * inside.numel()
+        assert (float((miss / size).median()) < 0.1) == ok, (flip, float((miss / size).median()))
+
+
+def test_texture_at_voxels_known_answer():
+    """A texture whose colour is its own UV gives back the UV where it was seen (bilinear is exact on a
+    linear ramp); unseen texels neither darken their seen neighbours nor count in the weight."""
+    R = 16
+    u = (torch.arange(R) + 0.5) / R
+    tex = torch.zeros(1, 4, R, R)
+    tex[0, 0] = u[None, :].expand(R, R)
+    tex[0, 1] = (1 - u)[:, None].expand(R, R)  # row 0 is v = 1
+    tex[0, 3, :, : R // 2] = 1.0 / 3.0  # seen by one of three views, left half only
+    tex[0, :3, :, R // 2:] = 0.0  # the unseen half is black, as average_views leaves it
+    uv = torch.tensor([[[0.2, 0.3], [0.45, 0.7], [0.5, 0.5], [0.9, 0.5]]])  # (1, 4, 2)
+    colour, weight = texture_at_voxels(tex, uv)
+    assert colour.shape == (1, 3, 1, 4) and weight.shape == (1, 1, 1, 4)
+    assert torch.allclose(colour[0, :2, 0, :2].T, uv[0, :2], atol=1e-6)
+    assert torch.allclose(weight[0, 0, 0], torch.tensor([1.0, 1.0, 0.5, 0.0]))
+    assert float(colour[0, 0, 0, 2]) == pytest.approx((R // 2 - 0.5) / R, abs=1e-6)  # the seen neighbour's
+
+
+def test_decoder_colour_skip_starts_at_the_photo():
+    """With the decoder's own logits at zero, a texel a view saw takes the photo's colour at every
+    depth, an unseen one the decoder's (0.5); the decoder's own colour is reported apart."""
+    dec = DvaDecoder(DecoderConfig(voxels=2, hidden=4, min_channels=2, shadow=False), grid=2, pose_channels=1,
+                     image_channels=1, colour_skip=True)
+    torch.nn.init.zeros_(dec.appearance.tail.conv.weight)
+    colour = torch.rand(1, 3, 4, 4) * 0.9 + 0.05
+    weight = torch.zeros(1, 1, 4, 4)
+    weight[..., :2] = 1.0
+    _, rgb, _, own = dec(torch.randn(1, 1, 2, 2), torch.randn(1, 1, 2, 2), torch.randn(1, 1, 2, 2),
+                         (colour, weight))
+    slab = payload_to_slab(rgb, 2)  # (1, 3 * S, 4, 4), channel c * S + z
+    for z in range(2):
+        assert torch.allclose(slab[0, z::2][:, :, :2], colour[0, :, :, :2], atol=1e-6)
+        assert torch.allclose(slab[0, z::2][:, :, 2:], torch.full((3, 4, 2), 0.5))
+    assert torch.allclose(own, torch.full_like(own, 0.5))
+    assert dec.skip_gain is not None and float(dec.skip_gain.detach()) == 1.0
 
 
 def test_losses():
@@ -210,3 +290,5 @@ def test_image_encoder_centred_and_old_runs_keep_theirs():
     d = DvaConfig().to_dict()
     del d["features"]["image_centred"]
     assert not DvaConfig.from_dict(d).features.image_centred
+    del d["features"]["colour_skip"]  # and a run from before the colour skip has none
+    assert DvaConfig().features.colour_skip and not DvaConfig.from_dict(d).features.colour_skip

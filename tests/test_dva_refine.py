@@ -24,20 +24,23 @@ def one_thread():
     torch.set_num_threads(n)
 
 
-def _toy_run(tmp_path, size: int):
+def _toy_run(tmp_path, size: int, colour_skip: bool = True):
     """(model, body, source) of a DVA run trained 2 steps on a 2-frame toy capture of ``size``² views."""
     cap = write_toy_capture(tmp_path / "cap", frames=2, cameras=4, size=size)
-    train_dva(open_source(cap), tmp_path / "run", preset("tiny"), iters=2, progress=False)
+    cfg = preset("tiny")
+    cfg.features.colour_skip = colour_skip
+    train_dva(open_source(cap), tmp_path / "run", cfg, iters=2, progress=False)
     model, body, _, _ = load_run(tmp_path / "run")
     return model, body, open_source(cap)
 
 
-def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, one_thread):
+@pytest.mark.parametrize("colour_skip,undone", [(False, 0.025), (True, 0.02)])
+def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, one_thread, colour_skip, undone):
     """The fit of a frame shifted 4 cm along x renders the tube beside the person in the driving views;
-    refinement (model frozen) moves the translation back by most of the shift and lowers the driving
-    views' loss on the same crops, leaves the model's weights as they were, and iters = 0 gives the
-    fit itself."""
-    model, body, src = _toy_run(tmp_path, 32)
+    refinement (model frozen) moves the translation back by most of the shift (with the colour skip,
+    whose colours ride on the body wherever it goes, a little less) and lowers the driving views' loss
+    on the same crops, leaves the model's weights as they were, and iters = 0 gives the fit itself."""
+    model, body, src = _toy_run(tmp_path, 32, colour_skip)
     views = ["cam00", "cam01", "cam02"]
     bank = FrameBank(src, body, model.image_raster, model.template, ["000000"], views, False)
     fit = frame_fit(bank.fits, 0)
@@ -52,7 +55,7 @@ def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, on
     moved = (verts - verts0).mean(0)
     # the 4 cm across the tube undone to 1 cm, nothing toward the cameras; along the tube's own axis (y)
     # the driving silhouettes hardly constrain it and a 2-step avatar's ends are soft: not checked
-    assert -0.05 < float(moved[0]) < -0.025 and abs(float(moved[2])) < 0.01
+    assert -0.05 < float(moved[0]) < -undone and abs(float(moved[2])) < 0.01
     assert summary["loss_after"] < summary["loss_before"] and summary["kept"]
     assert summary["translation_rms_mm"] > 10
     from uvatar.dva.dataset import pose_vertices

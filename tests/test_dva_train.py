@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from tests.fixtures.dva_capture import write_toy_capture
 from uvatar.dva.data import open_source
@@ -213,13 +214,42 @@ def test_train_resume_and_eval(capture, tmp_path):
 
 
 def test_training_reduces_the_loss(capture, tmp_path):
-    """A few dozen steps on one frame fit the photo better than the first steps."""
+    """A few dozen steps on one frame fit the photo better than the first steps (without the colour
+    skip, which starts at the photos' colours: see the next test)."""
     cfg = preset("tiny")
     cfg.train.warmup_iters = 1000
+    cfg.features.colour_skip = False
     trainer = Trainer(open_source(capture), tmp_path / "fit", cfg, progress=False)
     trainer.bank.frames = trainer.bank.frames[:1]
     losses = [trainer.train_step()["rgb"] for _ in range(30)]
     assert np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5])
+
+
+def test_colour_skip_starts_near_the_photo(capture, tmp_path):
+    """The same first step scores closer to the photo with the colour skip than without: a seen texel
+    starts at the driving views' colour."""
+    first = {}
+    for skip in (False, True):
+        cfg = preset("tiny")
+        cfg.features.colour_skip = skip
+        trainer = Trainer(open_source(capture), tmp_path / f"skip{skip}", cfg, progress=False)
+        first[skip] = np.mean([trainer.train_step()["rgb"] for _ in range(3)])
+    assert first[True] < 0.85 * first[False]
+
+
+def test_hide_target_view_leaves_the_scored_camera_out(capture, tmp_path):
+    """hide_target_view: every sample's image input comes from the other training cameras; off, the
+    target's own view drives it too (3 training cameras, driving_views 3)."""
+    for hide in (True, False):
+        cfg = preset("tiny")
+        cfg.train.hide_target_view, cfg.train.batch, cfg.train.all_views_iters = hide, 6, 0
+        trainer = Trainer(open_source(capture), tmp_path / f"hide{hide}", cfg, progress=False)
+        seen = []
+        trainer.bank.image_texture = lambda fi, views: seen.append(list(views)) or torch.zeros(4, 1, 1)
+        _, cams, _, _ = trainer.sample()
+        assert len(seen) == 6
+        for c, views in zip(cams, seen, strict=True):
+            assert (c not in views) == hide and len(views) == (2 if hide else 3)
 
 
 def test_load_run_errors(tmp_path):

@@ -6,7 +6,11 @@ Branches, all spatially aligned with the W x W primitive grid:
 * opacity (F_theta, F_I)       -> slab (B, S, W*S, W*S) -> density payload (B, K, 1, S, S, S), 1/m;
 * appearance (F_theta, F_I, F_v) -> slab (B, 3S, W*S, W*S) -> RGB payload (B, K, 3, S, S, S) in [0, 1];
 * shadow  (F_theta)            -> slab (B, S, W*S, W*S) in (0, 1), multiplying the RGB (shared over
-  colour channels, per voxel), for long-range pose-dependent shading.
+  colour channels, per voxel), for long-range pose-dependent shading;
+* colour skip (optional): the driving views' colour at every voxel column, ``c`` (B, 3, W*S, W*S) with
+  weight ``w`` (how much of it a view saw), enters the appearance logits as ``gain * w * logit(c)``
+  (the same for every depth z; ``gain`` learned, 1 at first), so a seen texel starts at the photo's
+  colour and the decoder learns what differs (view, light, what no view saw).
 
 Slab layout: channel ``c * S + z``, row ``wy * S + y``, column ``wx * S + x`` is voxel (z, y, x) of
 channel c of primitive ``k = wy * W + wx`` (UV row 0 is v = 1).
@@ -113,8 +117,9 @@ class DvaDecoder(nn.Module):
     rgb (B, K, 3, S, S, S) in [0, 1], density (B, K, 1, S, S, S) >= 0 (1/m)."""
 
     def __init__(self, cfg: DecoderConfig, grid: int, pose_channels: int, image_channels: int,
-                 view_channels: int = 1):
+                 view_channels: int = 1, colour_skip: bool = False):
         super().__init__()
+        self.skip_gain = nn.Parameter(torch.ones(())) if colour_skip else None
         self.cfg, self.grid = cfg, grid
         S, h, m = cfg.voxels, cfg.hidden, cfg.min_channels
         c_pi = pose_channels + image_channels
@@ -123,14 +128,24 @@ class DvaDecoder(nn.Module):
         self.appearance = SlabDecoder(c_pi + view_channels, 3 * S, grid, S, h, m)
         self.shadow = SlabDecoder(pose_channels, S, grid, S, max(m, h // 2), m) if cfg.shadow else None
 
-    def forward(self, f_pose, f_image, f_view):
+    def forward(self, f_pose, f_image, f_view, skip=None):
+        """skip: None, or (colour (B, 3, W*S, W*S) in [0, 1], weight (B, 1, W*S, W*S)) for the colour
+        skip. Returns motion, rgb, density and the decoder's own rgb (without the skip, for the colour
+        smoothness prior; ``rgb`` itself when there is no skip)."""
         S = self.cfg.voxels
         f_pi = torch.cat([f_pose, f_image], 1)
         motion = self.motion(f_pi)
         density = F.softplus(self.opacity(f_pi)) * self.cfg.density_scale
-        rgb = torch.sigmoid(self.appearance(torch.cat([f_pi, f_view], 1)))
-        rgb = slab_to_payload(rgb, 3, S)
-        if self.shadow is not None:
-            shade = torch.sigmoid(self.shadow(f_pose) + 3.0)
-            rgb = rgb * slab_to_payload(shade, 1, S)
-        return motion, rgb, slab_to_payload(density, 1, S)
+        logits = self.appearance(torch.cat([f_pi, f_view], 1))
+        shade = None if self.shadow is None else slab_to_payload(torch.sigmoid(self.shadow(f_pose) + 3.0), 1, S)
+        own = slab_to_payload(torch.sigmoid(logits), 3, S)
+        own = own if shade is None else own * shade
+        if skip is None or self.skip_gain is None:
+            return motion, own, slab_to_payload(density, 1, S), own
+        colour, weight = skip
+        B, _, H, _ = logits.shape
+        photo = torch.logit(colour.clamp(0.02, 0.98)) * weight * self.skip_gain  # (B, 3, H, H)
+        logits = logits.reshape(B, 3, S, H, H) + photo[:, :, None]
+        rgb = slab_to_payload(torch.sigmoid(logits.reshape(B, 3 * S, H, H)), 3, S)
+        rgb = rgb if shade is None else rgb * shade
+        return motion, rgb, slab_to_payload(density, 1, S), own

@@ -7,7 +7,8 @@
   and the foreground mask, and is not occluded (Embree ray from the camera centre, via
   :class:`uvatar.geometry.RayCaster`). Views are averaged where visible; channel 3 is the fraction of
   views that saw the texel. A strided conv encoder takes (4, R_img, R_img) to (C, W, W)
-  (:class:`ImageEncoder`).
+  (:class:`ImageEncoder`). With ``colour_skip`` the same texture is also looked up at every voxel
+  column (:func:`texture_at_voxels`) and added to the appearance logits (:class:`uvatar.dva.decoders.DvaDecoder`).
 * View ``F_v``: the unit direction from the texel's surface point to the camera dotted with its
   triangle's normal -> (1, W, W) (:func:`view_feature_map`).
 
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 
 @dataclass
@@ -31,13 +33,19 @@ class FeatureConfig:
     image_centred: the image encoder sees the texture centred on zero (2 x - 1) and its last layer is
     linear. Without it (runs saved before the option) its last layer was a leaky ReLU, and on the real
     recording its output decayed to |f| = 0.008: the avatar rendered the same whatever the driving
-    views showed (``docs/real.md``, runs 11-14)."""
+    views showed (``docs/real.md``, runs 11-14).
+    colour_skip: the driving views' unwrapped colour, looked up at every voxel column of every
+    primitive (:func:`voxel_uv_grid`, :func:`texture_at_voxels`), is added to the appearance decoder's
+    logits where a driving view saw it, with a learned gain: the encoder's W x W features cannot carry
+    detail finer than a primitive, this path carries it at the texture's resolution (runs saved before
+    the option have none)."""
 
     pose_channels: int = 16
     image_scale: int = 4
     image_channels: int = 16
     occlusion_eps: float = 0.01
     image_centred: bool = True
+    colour_skip: bool = True
 
 
 # ----------------------------------------------------------------------------------------------- pose
@@ -159,6 +167,38 @@ class ImageEncoder(nn.Module):
         if self.centred:
             return self.net[:-1](2.0 * tex - 1.0)
         return self.net(tex)
+
+
+def voxel_uv_grid(raster, template, voxels: int, scale_factor: float) -> np.ndarray:
+    """(W*S, W*S, 2) float32 UV of every voxel column in the payload slab layout of
+    :mod:`uvatar.dva.decoders` (row ``wy * S + y``, column ``wx * S + x``: voxel (y, x) of primitive
+    ``wy * W + wx``): the primitive's texel UV plus the voxel's offset along its local axes (x along
+    +u, y along +v; a box of half-extent ``scale_factor / (2 W)`` in UV, as
+    :func:`uvatar.dva.primitives.build_uv_grid` sizes it in metres)."""
+    W, S = raster.resolution, int(voxels)
+    uvs = np.asarray(template.uvs, np.float64)
+    corners = uvs[np.asarray(template.uv_faces)[np.clip(raster.face_index, 0, None)]]  # (W, W, 3, 2)
+    centre = (np.asarray(raster.bary, np.float64)[..., None] * corners).sum(-2)  # (W, W, 2)
+    local = (2.0 * np.arange(S) + 1.0) / S - 1.0  # voxel centres in [-1, 1]
+    half = 0.5 * scale_factor / W
+    u = centre[:, None, :, None, 0] + half * local[None, None, None, :]  # (wy, 1, wx, x)
+    v = centre[:, None, :, None, 1] + half * local[None, :, None, None]  # (wy, y, 1, 1)
+    u, v = np.broadcast_to(u, (W, S, W, S)), np.broadcast_to(v, (W, S, W, S))
+    return np.stack([u, v], -1).reshape(W * S, W * S, 2).astype(np.float32)
+
+
+def texture_at_voxels(image_texture: torch.Tensor, uv: torch.Tensor):
+    """image_texture (B, 4, R, R) (:func:`average_views`: colour + fraction of views that saw the texel;
+    row 0 is v = 1), uv (H, W, 2) -> colour (B, 3, H, W) and weight (B, 1, H, W) in [0, 1]: the
+    bilinear colour of the seen texels alone (unseen ones are black in the texture and must not darken
+    their neighbours) and how much of the lookup fell on seen texels."""
+    seen = (image_texture[:, 3:4] > 0).to(image_texture.dtype)
+    both = torch.cat([image_texture[:, :3] * seen, seen], 1)
+    grid = torch.stack([2.0 * uv[..., 0] - 1.0, 1.0 - 2.0 * uv[..., 1]], -1)
+    grid = grid[None].expand(image_texture.shape[0], *grid.shape).to(image_texture.dtype)
+    out = F.grid_sample(both, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    weight = out[:, 3:4]
+    return out[:, :3] / weight.clamp(min=1e-6), weight
 
 
 # ----------------------------------------------------------------------------------------------- view

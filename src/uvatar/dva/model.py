@@ -22,7 +22,9 @@ from uvatar.dva.features import (
     PoseEncoder,
     pose_feature_maps,
     texel_skin_weights,
+    texture_at_voxels,
     view_feature_map,
+    voxel_uv_grid,
 )
 from uvatar.dva.losses import LossConfig
 from uvatar.dva.primitives import PrimitiveConfig, apply_correctives, articulated_frames, build_uv_grid
@@ -43,7 +45,10 @@ class TrainConfig:
     is further along). background: what the render is compared with outside the person's mask: "mask"
     replaces the photo there by the camera's background colour (the colour the render is composited
     over), so a cluttered real room is not something the primitives must learn (as Neural Body trains
-    on masked photos); "photo" compares with the raw photo (a studio's clean backdrop)."""
+    on masked photos); "photo" compares with the raw photo (a studio's clean backdrop).
+    hide_target_view: the image input of a sample leaves out the camera it is scored in, as at test
+    time, where the held-out camera never drives (with 3 training cameras and ``driving_views`` 3 the
+    target's own photo is otherwise always in its input, and the colour skip learns to copy it)."""
 
     lr: float = 2e-3
     lr_decay_start: float = 0.6
@@ -57,6 +62,7 @@ class TrainConfig:
     iters: int = 100_000
     minutes: float = 18.0
     background: str = "mask"
+    hide_target_view: bool = False
 
     def __post_init__(self) -> None:
         check_values([(self.background in BACKGROUNDS,
@@ -92,6 +98,9 @@ class DvaConfig:
         feats = d.get("features")
         if feats is not None and "image_centred" not in feats:  # before the option: leaky last layer
             d = {**d, "features": {**feats, "image_centred": False}}
+            feats = d["features"]
+        if feats is not None and "colour_skip" not in feats:  # before the colour skip: trained without it
+            d = {**d, "features": {**feats, "colour_skip": False}}
         loss = d.get("loss")
         if loss is not None and "motion" not in loss:  # before the motion prior: trained without it
             d = {**d, "loss": {**loss, "motion": 0.0}}
@@ -138,13 +147,16 @@ def preset(name: str) -> DvaConfig:
 @dataclass
 class DvaOutput:
     """Decoded primitives for a batch: positions (B,K,3), rotations (B,K,3,3), scales (B,K,3),
-    payload (B,K,4,S,S,S) (RGB + density), motion (B,9,W,W) raw correctives."""
+    payload (B,K,4,S,S,S) (RGB + density), motion (B,9,W,W) raw correctives, learned_rgb
+    (B,K,3,S,S,S): the decoder's own colour, before the colour skip adds the photos' (the payload's
+    RGB when there is none)."""
 
     positions: torch.Tensor
     rotations: torch.Tensor
     scales: torch.Tensor
     payload: torch.Tensor
     motion: torch.Tensor
+    learned_rgb: torch.Tensor
 
     def primitives(self, b: int) -> Primitives:
         return Primitives(self.positions[b], self.rotations[b], self.scales[b], self.payload[b])
@@ -171,17 +183,21 @@ class DvaModel(nn.Module):
         f = cfg.features
         self.pose_encoder = PoseEncoder(len(self.joints), f.pose_channels)
         self.image_encoder = ImageEncoder(f.image_scale, f.image_channels, centred=f.image_centred)
-        self.decoder = DvaDecoder(cfg.decoder, W, f.pose_channels, f.image_channels, 1)
+        self.decoder = DvaDecoder(cfg.decoder, W, f.pose_channels, f.image_channels, 1, f.colour_skip)
+        if f.colour_skip:
+            self.register_buffer("voxel_uv", torch.as_tensor(voxel_uv_grid(
+                self.grid.raster, template, cfg.decoder.voxels, cfg.primitives.scale_factor)), persistent=False)
 
     def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers) -> DvaOutput:
         f_pose = self.pose_encoder(pose_feature_maps(joint_rotvecs, self.texel_weights, self.joints))
         f_img = self.image_encoder(image_texture)
         f_view = view_feature_map(self.grid.raster, self.template, posed_vertices, camera_centers)
-        motion, rgb, density = self.decoder(f_pose, f_img, f_view)
+        skip = texture_at_voxels(image_texture, self.voxel_uv) if self.cfg.features.colour_skip else None
+        motion, rgb, density, learned = self.decoder(f_pose, f_img, f_view, skip)
         pos, rot = articulated_frames(self.grid, self.template, posed_vertices)
         pos, rot, scl = apply_correctives(pos, rot, self.rest_scales, motion, self.cfg.primitives,
                                           bool(self.correctives_on))
-        return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion)
+        return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion, learned)
 
     def render_rays(self, out: DvaOutput, b: int, origins, directions, background=None, camera=None,
                     pixels=None):

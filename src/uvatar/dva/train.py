@@ -202,6 +202,8 @@ class Trainer:
             views = [list(range(n_cam))] * t.batch
         else:
             views = [self.rng.sample(range(n_cam), min(t.driving_views, n_cam)) for _ in range(t.batch)]
+        if t.hide_target_view and n_cam > 1:
+            views = [[v for v in vs if v != c] or [(c + 1) % n_cam] for vs, c in zip(views, cams, strict=True)]
         pixels = [patch_pixels(self.bank.masks[f][c], t.patch, self.rng) for f, c in zip(frames, cams, strict=True)]
         mine = slice(self.ctx.rank, None, self.ctx.world)
         frames, cams, views, pixels = frames[mine], cams[mine], views[mine], pixels[mine]
@@ -234,7 +236,7 @@ class Trainer:
                                          device=self.device).reshape(P, P))
         total, terms = self.loss(torch.stack(preds), torch.stack(targets), torch.stack(alphas),
                                  torch.stack(masks), out.scales, self.model.rest_scales,
-                                 out.motion if bool(self.model.correctives_on) else None, out.payload[:, :, :3])
+                                 out.motion if bool(self.model.correctives_on) else None, out.learned_rgb)
         if self.corrections is not None:
             for k, v in self.corrections.prior(fi.to(self.device), torch.tensor(cams, device=self.device)).items():
                 total = total + v
