@@ -27,7 +27,7 @@ TARGETS = {
     "train avh": ["uvatar.avh.train:TrainConfig", "uvatar.avh.model:AvhConfig"],
     "train dva": ["uvatar.dva.train:train_dva", "uvatar.dva.model:TrainConfig", "uvatar.dva.primitives:PrimitiveConfig",
                   "uvatar.dva.decoders:DecoderConfig", "uvatar.dva.raymarch_ref:RaymarchConfig",
-                  "uvatar.dva.corrections:CorrectionConfig"],
+                  "uvatar.dva.corrections:CorrectionConfig", "uvatar.dva.features:FeatureConfig"],
     "presets": [],
     "export": ["uvatar.avh.export:export_avatar"],
     "animate": ["uvatar.avh.animate:AnimateConfig", "uvatar.avh.animate:animate"],

@@ -15,11 +15,12 @@ def _flags() -> tuple[ConfigFlags, ...]:
     """(budget, primitives, decoder) flags of ``train dva``, defaults from the preset picked; then the
     ``train_dva`` and ``evaluate_dva`` parameters; then the marcher of ``train dva`` (preset) and of
     ``render dva`` (``load_run``: default the run's); the corrections of ``train dva``; ``render dva``'s
-    pose refinement."""
+    pose refinement; the colour skip of ``train dva``."""
     from uvatar.dva.corrections import CorrectionConfig
     from uvatar.dva.decoders import DecoderConfig
     from uvatar.dva.drive import drive_sequence
     from uvatar.dva.eval import evaluate_dva
+    from uvatar.dva.features import FeatureConfig
     from uvatar.dva.model import BACKGROUNDS, PRESETS, TrainConfig
     from uvatar.dva.primitives import PrimitiveConfig
     from uvatar.dva.raymarch_ref import MARCHERS, RaymarchConfig
@@ -30,11 +31,13 @@ def _flags() -> tuple[ConfigFlags, ...]:
 
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
-            ConfigFlags(TrainConfig, fields=("background",), choices={"background": BACKGROUNDS},
+            ConfigFlags(TrainConfig, fields=("background", "hide_target_view"), choices={"background": BACKGROUNDS},
                         presets={k: c.train for k, c in PRESETS.items()},
                         help={"background": "what the render is compared with outside the person's mask: "
                                             "mask (the camera's background colour; real rooms) or photo "
-                                            "(the raw photo; a clean studio backdrop)"}),
+                                            "(the raw photo; a clean studio backdrop)",
+                              "hide_target_view": "leave the camera a sample is scored in out of its image "
+                                                  "input, as at test time"}),
             ConfigFlags(PrimitiveConfig, fields=("grid",), presets={k: c.primitives for k, c in PRESETS.items()},
                         help={"grid": "primitives per UV side W (K = W*W)"}),
             ConfigFlags(DecoderConfig, fields=("voxels",), presets={k: c.decoder for k, c in PRESETS.items()},
@@ -55,13 +58,16 @@ def _flags() -> tuple[ConfigFlags, ...]:
                 "colour": "learn a per-camera colour gain and bias during training"}),
             ConfigFlags(drive_sequence, fields=("refine_pose",), help={
                 "refine_pose": "steps of pose refinement of each frame's fit against its driving views before "
-                               "rendering (0: the fits as they are; uvatar eval dva uses 40)"}))
+                               "rendering (0: the fits as they are; uvatar eval dva uses 40)"}),
+            ConfigFlags(FeatureConfig, fields=("colour_skip",), presets={k: c.features for k, c in PRESETS.items()},
+                        help={"colour_skip": "add the driving views' colour at every voxel to the appearance "
+                                             "decoder's output (detail finer than a primitive)"}))
 
 
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive = _flags()
+    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive, features = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
@@ -78,6 +84,7 @@ def register(cli) -> None:
     _body(p, "body model (default: the capture's: capture.json's, smpl for EasyMocap / ZJU-MoCap)")
     primitives.add_to(p)
     decoder.add_to(p)
+    features.add_to(p)
     corrections.add_to(p)
     p.set_defaults(func=_train)
 
@@ -152,12 +159,13 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
-    budget, target, primitives, decoder, train, _, marcher, _, corrections, _ = _flags()
+    budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features = _flags()
     cfg = preset(args.preset)
     cfg.train = target.config(args, base=cfg.train)
     cfg.raymarch = marcher.config(args, base=cfg.raymarch)
     cfg.primitives = primitives.config(args, base=cfg.primitives)
     cfg.decoder = decoder.config(args, base=cfg.decoder)
+    cfg.features = features.config(args, base=cfg.features)
     cfg.corrections = corrections.config(args, base=cfg.corrections)
     given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
