@@ -229,6 +229,24 @@ def test_decoder_colour_skip_starts_at_the_photo():
     assert dec.skip_gain is not None and float(dec.skip_gain.detach()) == 1.0
 
 
+def test_decoder_without_depth_colour_paints_columns():
+    """depth_colour off: one colour (and shadow) per voxel column, the same at every depth, while the
+    density still varies with depth; a run saved before the option keeps colour in every voxel."""
+    from uvatar.dva.model import DvaConfig
+
+    torch.manual_seed(0)
+    dec = DvaDecoder(DecoderConfig(voxels=4, hidden=8, min_channels=4, depth_colour=False), grid=3,
+                     pose_channels=2, image_channels=2, colour_skip=True)
+    skip = (torch.rand(2, 3, 12, 12), torch.rand(2, 1, 12, 12))
+    _, rgb, density, own = dec(torch.randn(2, 2, 3, 3), torch.randn(2, 2, 3, 3), torch.randn(2, 1, 3, 3), skip)
+    assert rgb.shape == (2, 9, 3, 4, 4, 4) and dec.appearance.tail.conv.out_channels == 3
+    assert torch.equal(rgb, rgb[:, :, :, :1].expand_as(rgb)) and torch.equal(own, own[:, :, :, :1].expand_as(own))
+    assert not torch.equal(density, density[:, :, :, :1].expand_as(density))
+    d = DvaConfig().to_dict()
+    del d["decoder"]["depth_colour"]
+    assert DvaConfig.from_dict(d).decoder.depth_colour
+
+
 def test_losses():
     a = torch.rand(1, 3, 16, 16)
     assert float(ssim_torch(a, a)) == pytest.approx(1.0, abs=1e-5)

@@ -40,8 +40,10 @@ def _flags() -> tuple[ConfigFlags, ...]:
                                                   "input, as at test time"}),
             ConfigFlags(PrimitiveConfig, fields=("grid",), presets={k: c.primitives for k, c in PRESETS.items()},
                         help={"grid": "primitives per UV side W (K = W*W)"}),
-            ConfigFlags(DecoderConfig, fields=("voxels",), presets={k: c.decoder for k, c in PRESETS.items()},
-                        help={"voxels": "voxels per primitive side S"}),
+            ConfigFlags(DecoderConfig, fields=("voxels", "depth_colour"), presets={k: c.decoder for k, c in PRESETS.items()},
+                        help={"voxels": "voxels per primitive side S",
+                              "depth_colour": "colour varies along each primitive's depth too (off: one colour "
+                                              "per voxel column)"}),
             ConfigFlags(train_dva, fields=("device", "resume"), help={
                 "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt"}),
             ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher", "refine_pose"),

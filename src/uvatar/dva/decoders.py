@@ -30,13 +30,16 @@ import torch.nn.functional as F
 class DecoderConfig:
     """voxels: S per primitive side (power of 2). hidden / min_channels: widths of the slab decoders
     (halved per upsampling, not below min). density_scale: opacity density of a unit activation, 1/m.
-    shadow: use the shadow branch."""
+    shadow: use the shadow branch. depth_colour: colour and shadow vary along each primitive's depth
+    (its normal axis) as well; without, one colour per voxel column, the same at every depth, as on a
+    surface (a view from an unseen angle then cannot reach colours no training view constrained)."""
 
     voxels: int = 8
     hidden: int = 32
     min_channels: int = 8
     density_scale: float = 40.0
     shadow: bool = True
+    depth_colour: bool = True
 
 
 class UntiedConv(nn.Module):
@@ -125,8 +128,18 @@ class DvaDecoder(nn.Module):
         c_pi = pose_channels + image_channels
         self.motion = MotionDecoder(c_pi, grid, h)
         self.opacity = SlabDecoder(c_pi, S, grid, S, h, m)
-        self.appearance = SlabDecoder(c_pi + view_channels, 3 * S, grid, S, h, m)
-        self.shadow = SlabDecoder(pose_channels, S, grid, S, max(m, h // 2), m) if cfg.shadow else None
+        layers = S if cfg.depth_colour else 1  # colour / shadow values per voxel column
+        self.appearance = SlabDecoder(c_pi + view_channels, 3 * layers, grid, S, h, m)
+        self.shadow = SlabDecoder(pose_channels, layers, grid, S, max(m, h // 2), m) if cfg.shadow else None
+
+    def _deep(self, slab, channels: int):
+        """(B, C * L, H, H) with L layers per column -> (B, C * S, H, H): as it is with depth_colour,
+        else each column's one value repeated over the S depths."""
+        if self.cfg.depth_colour:
+            return slab
+        B, _, H, _ = slab.shape
+        S = self.cfg.voxels
+        return slab.reshape(B, channels, 1, H, H).expand(B, channels, S, H, H).reshape(B, channels * S, H, H)
 
     def forward(self, f_pose, f_image, f_view, skip=None):
         """skip: None, or (colour (B, 3, W*S, W*S) in [0, 1], weight (B, 1, W*S, W*S)) for the colour
@@ -136,8 +149,9 @@ class DvaDecoder(nn.Module):
         f_pi = torch.cat([f_pose, f_image], 1)
         motion = self.motion(f_pi)
         density = F.softplus(self.opacity(f_pi)) * self.cfg.density_scale
-        logits = self.appearance(torch.cat([f_pi, f_view], 1))
-        shade = None if self.shadow is None else slab_to_payload(torch.sigmoid(self.shadow(f_pose) + 3.0), 1, S)
+        logits = self._deep(self.appearance(torch.cat([f_pi, f_view], 1)), 3)
+        shade = None if self.shadow is None else \
+            slab_to_payload(torch.sigmoid(self._deep(self.shadow(f_pose), 1) + 3.0), 1, S)
         own = slab_to_payload(torch.sigmoid(logits), 3, S)
         own = own if shade is None else own * shade
         if skip is None or self.skip_gain is None:

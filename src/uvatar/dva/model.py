@@ -107,6 +107,9 @@ class DvaConfig:
             loss = d["loss"]
         if loss is not None and "colour_tv" not in loss:  # before the colour smoothness: trained without it
             d = {**d, "loss": {**loss, "colour_tv": 0.0}}
+        dec = d.get("decoder")
+        if dec is not None and "depth_colour" not in dec:  # before the option: colour in every voxel
+            d = {**d, "decoder": {**dec, "depth_colour": True}}
         return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
 
 
