@@ -308,5 +308,7 @@ def test_image_encoder_centred_and_old_runs_keep_theirs():
     d = DvaConfig().to_dict()
     del d["features"]["image_centred"]
     assert not DvaConfig.from_dict(d).features.image_centred
+    d["features"]["colour_skip"] = True
+    assert DvaConfig.from_dict(d).features.colour_skip  # an option a run can be trained with (off by default)
     del d["features"]["colour_skip"]  # and a run from before the colour skip has none
-    assert DvaConfig().features.colour_skip and not DvaConfig.from_dict(d).features.colour_skip
+    assert not DvaConfig.from_dict(d).features.colour_skip

@@ -39,7 +39,7 @@ class DecoderConfig:
     min_channels: int = 8
     density_scale: float = 40.0
     shadow: bool = True
-    depth_colour: bool = True
+    depth_colour: bool = False
 
 
 class UntiedConv(nn.Module):

@@ -45,7 +45,7 @@ class FeatureConfig:
     image_channels: int = 16
     occlusion_eps: float = 0.01
     image_centred: bool = True
-    colour_skip: bool = True
+    colour_skip: bool = False
 
 
 # ----------------------------------------------------------------------------------------------- pose
