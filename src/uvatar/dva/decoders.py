@@ -4,9 +4,11 @@ Branches, all spatially aligned with the W x W primitive grid:
 
 * motion  (F_theta, F_I)       -> (B, 9, W, W) correctives (dt, drot, ds), last layer zero-initialised;
 * opacity (F_theta, F_I)       -> slab (B, S, W*S, W*S) -> density payload (B, K, 1, S, S, S), 1/m;
-* appearance (F_theta, F_I, F_v) -> slab (B, 3S, W*S, W*S) -> RGB payload (B, K, 3, S, S, S) in [0, 1];
-* shadow  (F_theta)            -> slab (B, S, W*S, W*S) in (0, 1), multiplying the RGB (shared over
-  colour channels, per voxel), for long-range pose-dependent shading;
+* appearance (F_theta, F_I, F_v) -> slab (B, 3S, W*S, W*S) -> RGB payload (B, K, 3, S, S, S) in [0, 1]
+  (``depth_colour`` off, the default: slab (B, 3, W*S, W*S), one colour per voxel column repeated over
+  the S depths);
+* shadow  (F_theta)            -> slab (B, S, W*S, W*S) (or (B, 1, ...), as the colour) in (0, 1),
+  multiplying the RGB (shared over colour channels), for long-range pose-dependent shading;
 * colour skip (optional): the driving views' colour at every voxel column, ``c`` (B, 3, W*S, W*S) with
   weight ``w`` (how much of it a view saw), enters the appearance logits as ``gain * w * logit(c)``
   (the same for every depth z; ``gain`` learned, 1 at first), so a seen texel starts at the photo's
