@@ -175,10 +175,10 @@ def voxel_uv_grid(raster, template, voxels: int, scale_factor: float) -> np.ndar
     ``wy * W + wx``): the primitive's texel UV plus the voxel's offset along its local axes (x along
     +u, y along +v; a box of half-extent ``scale_factor / (2 W)`` in UV, as
     :func:`uvatar.dva.primitives.build_uv_grid` sizes it in metres)."""
+    from uvatar.geometry import sample_vertex_attribute
+
     W, S = raster.resolution, int(voxels)
-    uvs = np.asarray(template.uvs, np.float64)
-    corners = uvs[np.asarray(template.uv_faces)[np.clip(raster.face_index, 0, None)]]  # (W, W, 3, 2)
-    centre = (np.asarray(raster.bary, np.float64)[..., None] * corners).sum(-2)  # (W, W, 2)
+    centre = sample_vertex_attribute(raster, template.uv_faces, np.asarray(template.uvs, np.float64))  # (W, W, 2)
     local = (2.0 * np.arange(S) + 1.0) / S - 1.0  # voxel centres in [-1, 1]
     half = 0.5 * scale_factor / W
     u = centre[:, None, :, None, 0] + half * local[None, None, None, :]  # (wy, 1, wx, x)
