@@ -43,7 +43,7 @@ def render_fps(trainer, size: int, device: str, repeats: int = 5) -> float:
     from uvatar.dva.drive import render_camera
 
     cam = trainer.bank.cams[0].scaled(size, size)
-    verts, rots = trainer._posed(torch.tensor([0]), False)
+    verts, rots = trainer.bank.vertices[:1].to(trainer.device), trainer.bank.rotvecs[:1].to(trainer.device)
     tex = trainer.bank.image_texture(0, list(range(len(trainer.bank.cameras))))
     best = float("inf")
     for _ in range(repeats + 1):  # the first is a warm-up (kernel compilation, allocations)
