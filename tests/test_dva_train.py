@@ -245,7 +245,7 @@ def test_hide_target_view_leaves_the_scored_camera_out(capture, tmp_path):
         cfg.train.hide_target_view, cfg.train.batch, cfg.train.all_views_iters = hide, 6, 0
         trainer = Trainer(open_source(capture), tmp_path / f"hide{hide}", cfg, progress=False)
         seen = []
-        trainer.bank.image_texture = lambda fi, views: seen.append(list(views)) or torch.zeros(4, 1, 1)
+        trainer.bank.image_texture = lambda fi, views, seen=seen: seen.append(list(views)) or torch.zeros(4, 1, 1)
         _, cams, _, _ = trainer.sample()
         assert len(seen) == 6
         for c, views in zip(cams, seen, strict=True):
