@@ -178,3 +178,32 @@ def test_refine_cameras_turns_a_miscalibrated_view_back_and_masks_shape_the_fit(
     saved = load_observation(root / "fitting" / "keypoints" / f"{Capture(root).frames[0]}.npz")
     np.testing.assert_allclose(saved.cameras[1].R, refined[name].R, atol=1e-9)
     assert "silhouette" in Capture(root).info["provenance"]["fit"]["losses"]
+
+
+def test_mask_cameras_reads_only_the_named_cameras_masks(fit_studio, tmp_path, capsys):
+    """``--mask-cameras`` keeps a held-out camera's masks out of the silhouette term; bad names and a
+    missing ``--masks`` are one line in the command's flags."""
+    from uvatar.capture import Capture
+    from uvatar.cli.main import main
+    from uvatar.fit.pipeline import FitConfig, _person_masks, mask_camera_names
+
+    root = tmp_path / "cap"
+    shutil.copytree(fit_studio[0], root)
+    cap = Capture(root)
+    cams = list(cap.cameras().values())
+    keep = [c.name for c in cams[:-1]]
+    config = FitConfig(masks=True, mask_cameras=" , ".join(keep))
+    assert mask_camera_names(config) == keep
+    frames = cap.frames[:2]
+    every = _person_masks(cap, frames, cams, {})
+    only = _person_masks(cap, frames, cams, {}, mask_camera_names(config))
+    for row_all, row_only in zip(every, only, strict=True):
+        assert row_only[-1] is None and row_all[-1] is not None          # the held-out camera: none
+        for a, b in zip(row_all[:-1], row_only[:-1], strict=True):
+            np.testing.assert_array_equal(a, b)                          # the others: unchanged
+
+    for args, words in ((["--masks", "--mask-cameras", "nocam"], ("--mask-cameras", "nocam", cams[0].name)),
+                        (["--mask-cameras", keep[0]], ("--mask-cameras", "--masks"))):
+        assert main(["fit", str(root), "--from", "images", "--force", "--no-progress", *args]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and all(w in err[0] for w in words) and "=True" not in err[0], err

@@ -19,7 +19,7 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
     from uvatar.fit.views import ScanViewsConfig
 
     fit = ConfigFlags(FitConfig, fields=("source", "model", "model_dir", "detector", "scan_distance", "scan_points",
-                                         "photo_size", "overlay_frames", "refine_cameras", "masks", "device", "force", "person"),
+                                         "photo_size", "overlay_frames", "refine_cameras", "masks", "mask_cameras", "device", "force", "person"),
                       rename={"source": "from"}, choices={"source": FIT_SOURCES, "model": BODY_MODELS}, help={
                           "source": "images: the capture's cameras; scans: renders of each scan from virtual "
                                     "cameras; auto: images when the capture has cameras and images",
@@ -36,6 +36,8 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
                                             "cameras/ (the original kept in cameras/before_refine/)",
                           "masks": "also fit the body's silhouette to the person masks (masks/, from "
                                    "`uvatar capture masks` after a first fit): inside each mask and out to its outline",
+                          "mask_cameras": "comma-separated cameras whose masks --masks reads (default: all); "
+                                          "leave out a camera you hold out for scoring",
                           "device": "torch device of the fit (cpu, cuda)", "force": "replace existing fits",
                           "person": "which person to fit from images when several are in view: most-views "
                                     "(seen by the most cameras), largest, centre, nearest-to:X,Y,Z (metres), "

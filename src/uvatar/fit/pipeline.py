@@ -59,6 +59,9 @@ class FitConfig:
         (:class:`~uvatar.fit.losses.MaskTerm`). Keypoints place a body only to the detector's few
         pixels; on the real 4-camera recording the keypoint fit's silhouette IoU is 0.74-0.83 per
         camera (``docs/real.md``).
+    mask_cameras: comma-separated names of the cameras whose masks the silhouette term reads (empty:
+        every camera). Leave a camera out to keep it held out: a fit to its masks would be tuned to the
+        very outline a score on that camera measures.
     force: replace existing fits.
     person: which person to fit from images when several are in view (:mod:`uvatar.fit.person`):
         most-views, largest, centre, nearest-to:X,Y,Z, box:CAM:FRAME:X0,Y0,X1,Y1 or point:CAM:FRAME:X,Y.
@@ -76,6 +79,7 @@ class FitConfig:
     overlay_width: int = 256
     refine_cameras: bool = False
     masks: bool = False
+    mask_cameras: str = ""
     force: bool = False
     device: str = "cpu"
     seed: int = 0
@@ -187,15 +191,23 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     return {f: observations[f] for f in frames if f in observations}, failures, person
 
 
-def _person_masks(capture: Capture, frames, cameras, failures: dict) -> list:
+def mask_camera_names(config: FitConfig) -> list[str]:
+    """The cameras named by ``config.mask_cameras`` (empty: every camera)."""
+    return [c.strip() for c in config.mask_cameras.split(",") if c.strip()]
+
+
+def _person_masks(capture: Capture, frames, cameras, failures: dict, only: list[str] | None = None) -> list:
     """Per frame, per camera (H, W) bool person masks for the silhouette term (None where a mask is
-    missing or unreadable, or the frame failed)."""
+    missing or unreadable, or the frame failed, or the camera is not in ``only`` when that is given)."""
     if cameras is None:
         raise InputError(capture.root, "masks=True needs a fit from images (calibrated cameras)")
     out = []
     for frame in frames:
         row = []
         for cam in cameras:
+            if only and cam.name not in only:
+                row.append(None)
+                continue
             path = capture.mask_path(cam.name, frame)
             try:
                 row.append(capture.load_mask(cam.name, frame) if frame not in failures and path.is_file() else None)
@@ -299,6 +311,14 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
                                               "the capture's images: fit it alone, from images")
     if config.masks and not capture.masks_dir.is_dir():
         raise InputError(capture.masks_dir, "masks=True needs person masks: run `uvatar capture masks` first")
+    if config.mask_cameras:
+        if not config.masks:
+            raise InputError(capture.root, "mask_cameras names the cameras whose masks masks=True reads: "
+                                           "set masks=True too")
+        unknown = sorted(set(mask_camera_names(config)) - set(capture.cameras()))
+        if unknown:
+            raise InputError(capture.cameras_dir, f"mask_cameras: no camera {', '.join(unknown)} in the capture "
+                                                  f"(it has {', '.join(capture.cameras())})")
     body = load_body_model(config.model, config.model_dir, device=config.device)
     detector = load_detector(config.detector, stages.detector)
     if not choice.several:
@@ -376,7 +396,7 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
                              failures)
     obs.photo = photo_views
     if config.masks:
-        obs.masks = _person_masks(capture, frames, obs.cameras, failures)
+        obs.masks = _person_masks(capture, frames, obs.cameras, failures, mask_camera_names(config))
     with _fit_progress(progress) as callback:
         result = fit_body_sequence(body, obs, stages.body, progress=callback)
     t_fit = time.perf_counter() - t1
