@@ -153,6 +153,46 @@ def test_colour_total_variation_counts_seams_between_primitives():
     assert colour.grad[0, 2].abs().sum() > 0                 # the odd primitive is pulled toward the rest
 
 
+def test_column_spread_known_answers_gradcheck_and_weight():
+    """The shell prior: an empty column 0; one opaque voxel 1/(3S) wherever it lies; two opaque voxels,
+    the outer one hiding the other, the same; opacity spread over the depth more, and the more the
+    deeper. float64 gradcheck; the term joins the loss only with its weight and a density."""
+    import torch
+
+    from uvatar.dva.losses import DvaLoss, LossConfig, column_spread
+
+    S = 4
+    scales = torch.full((1, 1, 3), 0.02, dtype=torch.float64)
+    dens = torch.zeros(1, 1, S, S, S, dtype=torch.float64)
+    assert float(column_spread(dens, scales)) == 0.0
+    one = 1 / (3 * S)
+    for z in (0, S - 1):
+        d = dens.clone()
+        d[:, :, z] = 1e6                                     # opaque: 1 - exp(-1e6 * 0.01) = 1
+        assert float(column_spread(d, scales)) == pytest.approx(one)
+    d = dens.clone()
+    d[:, :, S - 1] = d[:, :, 0] = 1e6                        # the inner voxel is hidden by the outer
+    assert float(column_spread(d, scales)) == pytest.approx(one)
+    fog = torch.full_like(dens, 40.0)                         # opacity 1 - exp(-0.4) = 0.33 per voxel
+    thick = torch.full_like(dens, 40.0)
+    thick[:, :, S - 1] = 200.0                               # the same fog with most of it at the top
+    assert float(column_spread(thick, scales)) < float(column_spread(fog, scales))
+    assert float(column_spread(fog, scales)) > 2 * one
+    torch.manual_seed(0)
+    d = (torch.rand(1, 2, S, 2, 2, dtype=torch.float64) * 80).requires_grad_(True)
+    sc = (torch.rand(1, 2, 3, dtype=torch.float64) * 0.02 + 0.01).requires_grad_(True)
+    assert torch.autograd.gradcheck(column_spread, (d, sc))
+
+    img, ones = torch.zeros(1, 3, 8, 8), torch.ones(1, 8, 8)
+    rest = torch.full((1, 3), 0.02)
+    args = (img, img, ones, ones, scales.float(), rest, None, None)
+    assert "shell" not in DvaLoss(LossConfig(shell=0.0))(*args, fog.float())[1]
+    assert "shell" not in DvaLoss(LossConfig(shell=0.1))(*args)[1]
+    total, terms = DvaLoss(LossConfig(shell=0.1, rgb=0, ssim=0, mask=0, volume=0, beta=0))(*args, fog.float())
+    assert terms["shell"] == pytest.approx(float(column_spread(fog, scales)), rel=1e-5)
+    assert float(total) == pytest.approx(0.1 * terms["shell"], rel=1e-5)
+
+
 def test_curriculum_switches_to_three_views(capture):
     cfg = preset("tiny")
     trainer = Trainer(open_source(capture), capture.parent / "cur", cfg, progress=False)

@@ -236,7 +236,8 @@ class Trainer:
                                          device=self.device).reshape(P, P))
         total, terms = self.loss(torch.stack(preds), torch.stack(targets), torch.stack(alphas),
                                  torch.stack(masks), out.scales, self.model.rest_scales,
-                                 out.motion if bool(self.model.correctives_on) else None, out.learned_rgb)
+                                 out.motion if bool(self.model.correctives_on) else None, out.learned_rgb,
+                                 out.payload[:, :, 3])
         if self.corrections is not None:
             for k, v in self.corrections.prior(fi.to(self.device), torch.tensor(cams, device=self.device)).items():
                 total = total + v
