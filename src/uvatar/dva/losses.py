@@ -137,7 +137,7 @@ def column_spread(density: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     ``w_z = o_z * prod_{z' > z} (1 - o_z')``; at depth ``u_z = (S - z - 1/2) / S`` (in box thicknesses)
     the distortion is ``sum_ij w_i w_j |u_i - u_j| + sum_i w_i^2 / (3 S)``: 0 for an empty column,
     ``1 / (3 S)`` for one opaque voxel, more the deeper the opacity is spread."""
-    B, K, S = density.shape[:3]
+    S = density.shape[2]
     depth = (2.0 * scales[..., 2] / S)[:, :, None, None, None]
     opacity = (1.0 - torch.exp(-density.clamp(min=0.0) * depth)).flip(2)          # outermost first
     clear = torch.cumprod(torch.cat([torch.ones_like(opacity[:, :, :1]), 1.0 - opacity[:, :, :-1]], 2), 2)

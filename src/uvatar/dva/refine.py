@@ -6,9 +6,9 @@ about 8 px on the Pose2Sim recording) moves the render off the person in every o
 driving photos say where the person is: this module fits the same offsets that training learns per
 frame (:class:`~uvatar.dva.corrections.TrainingCorrections`: a rotation of each conditioning joint, a
 global rotation and a translation, under quadratic priors) to the driving views alone, the
-avatar frozen, by rendering pixel crops of each driving view and comparing them with the photo (inside
-the person's mask; the camera's background colour outside it) and the opacity with the mask, as
-training does. The held-out camera is never looked at.
+avatar frozen, by rendering a strided grid of each driving view's pixels (``RefineConfig.stride``; or
+random crops) and comparing them with the photo (inside the person's mask; the camera's background
+colour outside it) and the opacity with the mask, as training does. The held-out camera is never looked at.
 """
 
 from __future__ import annotations
@@ -73,8 +73,8 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
     image_texture (4, R, R): the frame's driving texture (kept as unwrapped from the fit); cameras /
     images ((H, W, 3) uint8) / masks ((H, W) bool) / backgrounds ((3,)): the driving views.
     Returns (joint rotvecs (J, 3), posed vertices (V, 3), summary dict: the offsets' sizes, the
-    driving views' loss before and after on one fixed set of crops, and ``kept``). The refined fit is
-    returned only where it lowers that loss; otherwise the fit as it was (``kept`` False): on the real
+    driving views' loss before and after on one fixed set of pixels (the grid, or one set of crops),
+    and ``kept``). The refined fit is returned only where it lowers that loss; otherwise the fit as it was (``kept`` False): on the real
     recording 40 noisy steps raised it more often than not (``docs/real.md``)."""
     from uvatar.dva.train import patch_pixels, target_pixels
 
