@@ -63,7 +63,8 @@ def test_evaluate_dva_reports_both_protocols(tmp_path):
         run = tmp_path / "run"
         train_dva(open_source(cap), run, preset("tiny"), iters=2, progress=False)
         assert main(["eval", "dva", str(run), str(cap), "--json", str(tmp_path / "m.json")]) == 0
-        assert main(["eval", "dva", str(run), str(cap), "--json", str(tmp_path / "m0.json"), "--refine-pose", "0"]) == 0
+        assert main(["eval", "dva", str(run), str(cap), "--json", str(tmp_path / "m0.json"), "--refine-pose", "0",
+                     "--refine-residual", "0"]) == 0
     finally:
         torch.set_num_threads(n)
     m = json.loads((tmp_path / "m.json").read_text())
@@ -77,6 +78,11 @@ def test_evaluate_dva_reports_both_protocols(tmp_path):
     assert set(m["refine_pose"]["frames"]) == set(m["frames"])
     m0 = json.loads((tmp_path / "m0.json").read_text())
     assert m0["refine_pose"] is None and "the fits as they are" in m0["protocol"]
+    # and then a residual of the decoded primitives is fitted to the driving views; --refine-residual 0: none
+    assert m["refine_residual"]["iters"] == 60 and "residual of the decoded primitives fitted" in m["protocol"]
+    assert set(m["refine_residual"]["frames"]) == set(m["frames"])
+    assert all({"loss_before", "loss_after", "kept"} <= set(v) for v in m["refine_residual"]["frames"].values())
+    assert m0["refine_residual"] is None and "residual" not in m0["protocol"]
     assert "baseline_projective_texture" in m and np.isfinite(m["baseline_projective_texture"]["psnr_db_full"])
 
 

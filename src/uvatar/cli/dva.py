@@ -46,10 +46,14 @@ def _flags() -> tuple[ConfigFlags, ...]:
                                               "per voxel column)"}),
             ConfigFlags(train_dva, fields=("device", "resume"), help={
                 "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt"}),
-            ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher", "refine_pose"),
+            ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher", "refine_pose",
+                                                      "refine_residual"),
                         choices={"marcher": MARCHERS}, help={
                 "refine_pose": "steps of test-time pose refinement of each test frame's fit against its "
                                "driving views (0: the fits as they are)",
+                "refine_residual": "steps of a test-time residual of each test frame's decoded primitives "
+                                   "(colour in UV, each primitive's position and size) fitted to its driving "
+                                   "views after the pose (0: none)",
                 "driving_views": "training cameras that drive the avatar (evenly spread)",
                 "max_frames": "score at most this many test frames (none: all)", "device": "torch device",
                 **run_marcher}),
@@ -58,9 +62,11 @@ def _flags() -> tuple[ConfigFlags, ...]:
             ConfigFlags(CorrectionConfig, fields=("pose", "colour"), prefix="correct", help={
                 "pose": "learn per-frame pose and translation offsets of the fits during training",
                 "colour": "learn a per-camera colour gain and bias during training"}),
-            ConfigFlags(drive_sequence, fields=("refine_pose",), help={
+            ConfigFlags(drive_sequence, fields=("refine_pose", "refine_residual"), help={
                 "refine_pose": "steps of pose refinement of each frame's fit against its driving views before "
-                               "rendering (0: the fits as they are; uvatar eval dva uses 40)"}),
+                               "rendering (0: the fits as they are; uvatar eval dva uses 40)",
+                "refine_residual": "steps of a residual of each frame's decoded primitives fitted to its "
+                                   "driving views after the pose (0: none; uvatar eval dva uses 60)"}),
             ConfigFlags(FeatureConfig, fields=("colour_skip",), presets={k: c.features for k, c in PRESETS.items()},
                         help={"colour_skip": "add the driving views' colour at every voxel to the appearance "
                                              "decoder's output (detail finer than a primitive)"}))

@@ -16,13 +16,17 @@ from uvatar.dva.model import pixel_rays
 
 
 @torch.no_grad()
-def render_camera(model, posed_vertices, joint_rotvecs, image_texture, camera, background=(0.0, 0.0, 0.0)):
-    """One frame, one camera. posed_vertices (V,3), joint_rotvecs (J,3), image_texture (4,R,R) torch.
+def render_camera(model, posed_vertices, joint_rotvecs, image_texture, camera, background=(0.0, 0.0, 0.0),
+                  residual=None):
+    """One frame, one camera. posed_vertices (V,3), joint_rotvecs (J,3), image_texture (4,R,R) torch;
+    residual: the frame's :class:`~uvatar.dva.residual.FrameResidual` fitted to its driving views, or None.
 
     Returns rgb (H, W, 3) float32 numpy composited over ``background``, alpha (H, W)."""
     dev = posed_vertices.device
     center = torch.as_tensor(camera.center, dtype=torch.float32, device=dev)[None]
     out = model(posed_vertices[None], joint_rotvecs[None], image_texture[None].to(dev), center)
+    if residual is not None:
+        out = residual(out)
     H, W = camera.height, camera.width
     yy, xx = np.mgrid[:H, :W]
     pix = np.stack([xx.ravel(), yy.ravel()], 1)
@@ -39,11 +43,13 @@ def driving_texture(model, posed_vertices: np.ndarray, cameras, images, masks=No
 
 
 def drive_sequence(model, body, source, frames, driving_cameras, target_camera, background=(0, 0, 0),
-                   progress=True, refine_pose: int = 0):
+                   progress=True, refine_pose: int = 0, refine_residual: int = 0):
     """Render ``target_camera`` (one Camera, or a list with one per frame) for each frame of ``source``
     (fits + driving images). Returns a list of (H, W, 3) float32 images; frames whose data cannot be
     read are skipped with a warning. ``refine_pose`` > 0: each frame's fit is first refined against its
-    driving views for that many steps (:mod:`uvatar.dva.refine`, as ``uvatar eval dva`` does)."""
+    driving views for that many steps (:mod:`uvatar.dva.refine`, as ``uvatar eval dva`` does);
+    ``refine_residual`` > 0: then a residual of its decoded primitives is fitted to them
+    (:mod:`uvatar.dva.residual`)."""
     import logging
 
     from tqdm import tqdm
@@ -66,23 +72,35 @@ def drive_sequence(model, body, source, frames, driving_cameras, target_camera, 
             continue
         tex = driving_texture(model, verts[0].numpy(), cams, imgs, masks)
         rot, verts = rot[0], verts[0]
+        views = _driving_views(imgs, masks) if (refine_pose > 0 or refine_residual > 0) else None
         if refine_pose > 0:
-            rot, verts = _refined(model, body, fit, tex, cams, imgs, masks, refine_pose)
-        rgb, _ = render_camera(model, verts, rot, tex, target, background)
+            rot, verts = _refined(model, body, fit, tex, cams, views, refine_pose)
+        residual = None
+        if refine_residual > 0:
+            from uvatar.dva.residual import ResidualConfig, fit_residual
+
+            residual, _ = fit_residual(model, verts, rot, tex, cams, *views, ResidualConfig(iters=refine_residual))
+        rgb, _ = render_camera(model, verts, rot, tex, target, background, residual)
         out.append(rgb)
     return out
 
 
-def _refined(model, body, fit, tex, cams, images, masks, iters: int):
-    """(joint rotvecs (J, 3), vertices (V, 3)) of ``fit`` refined against the driving views (float
-    images in [0, 1], masks) for ``iters`` steps."""
-    from uvatar.dva.dataset import estimate_background, fit_params
-    from uvatar.dva.refine import RefineConfig, refine_frame
+def _driving_views(images, masks):
+    """(photos (H, W, 3) uint8, masks (H, W) bool, background colours (3,)) of the driving views from
+    float images in [0, 1] and masks, as the refinements take them."""
+    from uvatar.dva.dataset import estimate_background
     from uvatar.render.video import to_uint8
 
-    photos = [to_uint8(i) for i in images]
     inside = [np.asarray(m) > 0.5 for m in masks]
     backs = [estimate_background(np.asarray(i, np.float32), m) for i, m in zip(images, inside, strict=True)]
-    rot, verts, _ = refine_frame(model, body, fit_params(body, [fit]), tex, cams, photos, inside, backs,
-                                 RefineConfig(iters=iters))
+    return [to_uint8(i) for i in images], inside, backs
+
+
+def _refined(model, body, fit, tex, cams, views, iters: int):
+    """(joint rotvecs (J, 3), vertices (V, 3)) of ``fit`` refined against the driving views
+    (:func:`_driving_views`) for ``iters`` steps."""
+    from uvatar.dva.dataset import fit_params
+    from uvatar.dva.refine import RefineConfig, refine_frame
+
+    rot, verts, _ = refine_frame(model, body, fit_params(body, [fit]), tex, cams, *views, RefineConfig(iters=iters))
     return rot, verts

@@ -3,7 +3,8 @@
 For each test frame x test camera of the source's protocol (see :mod:`uvatar.dva.data`), the avatar is
 driven by ``driving_views`` training cameras (evenly spread over the run's training cameras) at that
 frame (each frame's fit first refined against those views, :mod:`uvatar.dva.refine`, unless
-``refine_pose`` is 0), rendered in the held-out camera over that camera's background colour (median of
+``refine_pose`` is 0, then a residual of its decoded primitives fitted to them, :mod:`uvatar.dva.residual`,
+unless ``refine_residual`` is 0), rendered in the held-out camera over that camera's background colour (median of
 the pixels outside the mask) and compared with the photo: PSNR (dB) and SSIM from :mod:`uvatar.render.metrics`.
 ``psnr_db`` / ``ssim`` keep the source's protocol: the full image, or inside the projected body box
 for ZJU-MoCap (Neural Body). Two protocols shared with ``uvatar eval avh`` are always reported too:
@@ -27,6 +28,7 @@ from uvatar.dva.baseline import mean_colour, mean_colour_render, projective_text
 from uvatar.dva.dataset import FrameBank
 from uvatar.dva.drive import render_camera
 from uvatar.dva.refine import RefineConfig, frame_fit, refine_frame
+from uvatar.dva.residual import ResidualConfig, fit_residual
 from uvatar.io_utils import write_image, write_json
 
 log = logging.getLogger(__name__)
@@ -82,14 +84,16 @@ def _names(wanted, available, source, what: str) -> list[str]:
 def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_frames: int | None = None,
                  max_cameras: int | None = None, device="cpu", images=True, progress=True,
                  frames=None, cameras=None, body_model=None, model_dir=None,
-                 marcher: str | None = None, refine_pose: int = 40) -> dict:
+                 marcher: str | None = None, refine_pose: int = 40, refine_residual: int = 60) -> dict:
     """Render and score; returns the metrics dict (also written to ``json_path``): the means of
     :data:`METRIC_KEYS` over frames x cameras, ``protocol``, ``per_image`` and more. ``frames`` /
     ``cameras``: names replacing the source's test frames / cameras (cameras must not drive);
     ``marcher``: the ray marcher (``RaymarchConfig.marcher``; default: the run's); ``refine_pose``:
     steps of test-time pose refinement against the driving views (:mod:`uvatar.dva.refine`; 0: the
     fits as they are), as ``uvatar eval avh`` refines its held-out fits against their scans by
-    default; the baselines are posed with the same refined fit."""
+    default; the baselines are posed with the same refined fit. ``refine_residual``: steps of the
+    test-time residual of the decoded primitives (colour in UV, each primitive's position and size)
+    fitted to the driving views after the pose (:mod:`uvatar.dva.residual`; 0: none)."""
     import torch
 
     from uvatar.dva.data import box_mask
@@ -111,7 +115,7 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
     per_image, baseline, projective = [], [], []
     drive_idx = list(range(len(driving)))
     drive_cams = [bank.cams[d] for d in drive_idx]
-    refined = {}
+    refined, residuals = {}, {}
     for fi, frame in enumerate(bank.frames):
         tex = bank.image_texture(fi, drive_idx).to(device)
         verts, rot = bank.vertices[fi].to(device), bank.rotvecs[fi].to(device)
@@ -121,6 +125,9 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
                 model, body, frame_fit(bank.fits, fi), tex, drive_cams, photos, masks,
                 [bank.backgrounds[d] for d in drive_idx], RefineConfig(iters=refine_pose))
             rot, verts = rot.to(device), verts.to(device)
+        residual, residuals[frame] = fit_residual(
+            model, verts, rot, tex, drive_cams, photos, masks, [bank.backgrounds[d] for d in drive_idx],
+            ResidualConfig(iters=refine_residual))
         verts_np = verts.cpu().numpy()
         photo_tex = projective_texture(model.template, verts_np, drive_cams, photos, masks)
         colour = mean_colour(photos, masks)
@@ -130,7 +137,7 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
             if (cam.height, cam.width) != gt.shape[:2]:
                 cam.height, cam.width = gt.shape[:2]
             with torch.no_grad():
-                pred, alpha = render_camera(model, verts, rot, tex, cam, bank.backgrounds[ci])
+                pred, alpha = render_camera(model, verts, rot, tex, cam, bank.backgrounds[ci], residual)
             box = box_mask(cam, verts_np, *gt.shape[:2]) if source.eval_box_mask else None
             scores = image_scores(pred, gt, alpha, bank.masks[fi][ci], box)
             per_image.append({"frame": frame, "camera": cam_name, **scores})
@@ -147,10 +154,13 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
         "baseline_projective_texture": {k: float(np.nanmean([r[k] for r in projective])) for k in METRIC_KEYS},
         "protocol": (source.protocol.replace("{driving}", str(len(driving))) + f"; driving views {driving}; "
                      + (f"each test frame's fit refined against its driving views ({refine_pose} steps); "
-                        if refine_pose > 0 else "the fits as they are; ") + SHARED_PROTOCOLS),
+                        if refine_pose > 0 else "the fits as they are; ")
+                     + (f"a residual of the decoded primitives fitted to the driving views ({refine_residual} "
+                        "steps); " if refine_residual > 0 else "") + SHARED_PROTOCOLS),
         "frames": bank.frames, "cameras": test_cams, "driving_cameras": driving, "train_steps": step,
         "skipped_frames": bank.skipped, "per_image": per_image,
         "refine_pose": {"iters": int(refine_pose), "frames": refined} if refine_pose > 0 else None,
+        "refine_residual": {"iters": int(refine_residual), "frames": residuals} if refine_residual > 0 else None,
         "images": str(img_dir) if (images and img_dir is not None) else None,
     }
     if json_path:
