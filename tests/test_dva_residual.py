@@ -173,3 +173,18 @@ def test_the_prior_on_one_primitive_s_log_scale():
         res.log_scale[0] = 1.0
         expected = 0.5 / (W * W) + 0.25 * 2 / ((W - 1) * W)
         assert float(res.prior(cfg)) == pytest.approx(expected, rel=1e-6)
+
+
+def test_drive_sequence_fits_a_residual_only_when_asked(tmp_path, one_thread):
+    """render dva's driving: refine_residual = 0 renders as before the option; a few steps change it."""
+    from uvatar.dva.drive import drive_sequence
+
+    cap = write_toy_capture(tmp_path / "cap", frames=1, cameras=4, size=24)
+    train_dva(open_source(cap), tmp_path / "run", preset("tiny"), iters=2, progress=False)
+    model, body, _, _ = load_run(tmp_path / "run")
+    src = open_source(cap)
+    args = (model, body, src, ["000000"], ["cam00", "cam01"], src.cameras["cam03"])
+    plain = drive_sequence(*args, progress=False)
+    again = drive_sequence(*args, progress=False, refine_residual=0)
+    fitted = drive_sequence(*args, progress=False, refine_residual=10)
+    assert np.array_equal(plain[0], again[0]) and np.abs(fitted[0] - plain[0]).max() > 1e-3

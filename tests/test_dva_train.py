@@ -311,7 +311,8 @@ def test_cli_train_render_eval(capture, tmp_path):
     assert out.is_file()
     refined = tmp_path / "drive_refined.gif"
     assert main(["render", "dva", str(run), "--motion", str(capture), "--views", "cam00,cam02",
-                 "--camera", "cam03", "--frames", "0:2", "--refine-pose", "3", "-o", str(refined)]) == 0
+                 "--camera", "cam03", "--frames", "0:2", "--refine-pose", "3", "--refine-residual", "2",
+                 "-o", str(refined)]) == 0
     assert refined.is_file()
     assert main(["eval", "dva", str(run), str(capture), "--json", str(tmp_path / "m.json")]) == 0
     assert "psnr_db" in json.loads((tmp_path / "m.json").read_text())
