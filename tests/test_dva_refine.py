@@ -15,13 +15,7 @@ from uvatar.dva.model import preset
 from uvatar.dva.refine import RefineConfig, frame_fit, grid_pixels, refine_frame
 from uvatar.dva.train import load_run, train_dva
 
-
-@pytest.fixture
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _toy_run(tmp_path, size: int, colour_skip: bool = True):
@@ -35,7 +29,7 @@ def _toy_run(tmp_path, size: int, colour_skip: bool = True):
 
 
 @pytest.mark.parametrize("colour_skip,undone", [(False, 0.025), (True, 0.02)])
-def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, one_thread, colour_skip, undone):
+def test_refinement_moves_a_shifted_fit_back_onto_the_driving_views(tmp_path, colour_skip, undone):
     """The fit of a frame shifted 4 cm along x renders the tube beside the person in the driving views;
     refinement (model frozen) moves the translation back by most of the shift (with the colour skip,
     whose colours ride on the body wherever it goes, a little less) and lowers the driving views' loss
@@ -86,7 +80,7 @@ def test_grid_pixels_cover_the_person_box_every_stride():
     assert len(grid_pixels(np.zeros((6, 8), bool), 2)) == 3 * 4
 
 
-def test_grid_refinement_moves_the_shifted_fit_back_and_is_the_default(tmp_path, one_thread):
+def test_grid_refinement_moves_the_shifted_fit_back_and_is_the_default(tmp_path):
     """On the strided grid (the default) every step sees the same pixels of every driving view: the
     translation moves back across the tube (by about the shift; a 2-step toy avatar's optimum is soft),
     not toward the cameras, the loss on that grid falls, and two runs agree exactly."""
@@ -107,7 +101,7 @@ def test_grid_refinement_moves_the_shifted_fit_back_and_is_the_default(tmp_path,
     assert torch.equal(verts, verts_again) and torch.equal(rot, rot_again)
 
 
-def test_drive_sequence_refines_each_frame_only_when_asked(tmp_path, one_thread):
+def test_drive_sequence_refines_each_frame_only_when_asked(tmp_path):
     """render dva's driving: refine_pose = 0 renders the fits as they are (the same images as before the
     option); a few steps move the body and so change the render."""
     from uvatar.dva.drive import drive_sequence

@@ -15,17 +15,11 @@ from uvatar.dva.model import preset
 from uvatar.dva.residual import FrameResidual, ResidualConfig, fit_residual
 from uvatar.dva.train import load_run, train_dva
 
-
-@pytest.fixture
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture
-def toy(tmp_path, one_thread):
+def toy(tmp_path):
     """(model, body, bank of frame 0 in cam00-03) of a DVA run trained 2 steps on a 4-camera toy capture."""
     cap = write_toy_capture(tmp_path / "cap", frames=2, cameras=4, size=32)
     train_dva(open_source(cap), tmp_path / "run", preset("tiny"), iters=2, progress=False)
@@ -175,7 +169,7 @@ def test_the_prior_on_one_primitive_s_log_scale():
         assert float(res.prior(cfg)) == pytest.approx(expected, rel=1e-6)
 
 
-def test_drive_sequence_fits_a_residual_only_when_asked(tmp_path, one_thread):
+def test_drive_sequence_fits_a_residual_only_when_asked(tmp_path):
     """render dva's driving: refine_residual = 0 renders as before the option; a few steps change it."""
     from uvatar.dva.drive import drive_sequence
 
