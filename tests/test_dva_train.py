@@ -401,3 +401,14 @@ def test_run_refuses_another_body_model(capture, tmp_path):
         load_run(tmp_path / "run", body_model="anny")
     model, body, meta, _ = load_run(tmp_path / "run", body_model="toy")
     assert meta["body_model"] == "toy" and meta["model_dir"] is None
+
+
+def test_cli_train_flags_reach_the_saved_config(capture, tmp_path):
+    """--grid, --voxels and --loss-ssim land in the run's saved config (run.json)."""
+    from uvatar.cli.main import main
+
+    run = tmp_path / "run"
+    assert main(["train", "dva", str(capture), str(run), "--preset", "tiny", "--iters", "1", "--grid", "6",
+                 "--voxels", "2", "--loss-ssim", "0.4"]) == 0
+    cfg = json.loads((run / "run.json").read_text())["config"]
+    assert cfg["primitives"]["grid"] == 6 and cfg["decoder"]["voxels"] == 2 and cfg["loss"]["ssim"] == 0.4

@@ -15,12 +15,13 @@ def _flags() -> tuple[ConfigFlags, ...]:
     """(budget, primitives, decoder) flags of ``train dva``, defaults from the preset picked; then the
     ``train_dva`` and ``evaluate_dva`` parameters; then the marcher of ``train dva`` (preset) and of
     ``render dva`` (``load_run``: default the run's); the corrections of ``train dva``; ``render dva``'s
-    pose refinement; the colour skip of ``train dva``."""
+    pose refinement; the colour skip and the SSIM loss weight of ``train dva``."""
     from uvatar.dva.corrections import CorrectionConfig
     from uvatar.dva.decoders import DecoderConfig
     from uvatar.dva.drive import drive_sequence
     from uvatar.dva.eval import evaluate_dva
     from uvatar.dva.features import FeatureConfig
+    from uvatar.dva.losses import LossConfig
     from uvatar.dva.model import BACKGROUNDS, PRESETS, TrainConfig
     from uvatar.dva.primitives import PrimitiveConfig
     from uvatar.dva.raymarch_ref import MARCHERS, RaymarchConfig
@@ -69,13 +70,16 @@ def _flags() -> tuple[ConfigFlags, ...]:
                                    "driving views after the pose (0: none; uvatar eval dva uses 60)"}),
             ConfigFlags(FeatureConfig, fields=("colour_skip",), presets={k: c.features for k, c in PRESETS.items()},
                         help={"colour_skip": "add the driving views' colour at every voxel to the appearance "
-                                             "decoder's output (detail finer than a primitive)"}))
+                                             "decoder's output (detail finer than a primitive)"}),
+            ConfigFlags(LossConfig, fields=("ssim",), prefix="loss", presets={k: c.loss for k, c in PRESETS.items()},
+                        help={"ssim": "weight of the 1 - SSIM term of the image loss (when no --vgg-weights)"}))
 
 
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive, features = _flags()
+    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive, features, losses = \
+        _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
@@ -94,6 +98,7 @@ def register(cli) -> None:
     decoder.add_to(p)
     features.add_to(p)
     corrections.add_to(p)
+    losses.add_to(p)
     p.set_defaults(func=_train)
 
     p = cli.command("render dva", help="drive a DVA avatar with a pose sequence + 2-3 driving views")
@@ -167,7 +172,7 @@ def _train(args) -> int:
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
 
-    budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features = _flags()
+    budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features, losses = _flags()
     cfg = preset(args.preset)
     cfg.train = target.config(args, base=cfg.train)
     cfg.raymarch = marcher.config(args, base=cfg.raymarch)
@@ -175,6 +180,7 @@ def _train(args) -> int:
     cfg.decoder = decoder.config(args, base=cfg.decoder)
     cfg.features = features.config(args, base=cfg.features)
     cfg.corrections = corrections.config(args, base=cfg.corrections)
+    cfg.loss = losses.config(args, base=cfg.loss)
     given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
                         minutes=given.get("minutes"), vgg_weights=args.vgg_weights, body_model=args.model,
