@@ -325,7 +325,8 @@ def test_cli_train_bad_values_are_one_line_errors(capture, tmp_path, capsys):
 
     run = tmp_path / "run"
     for flag, value, words in (("--iters", "0", "--iters: must be at least 1"), ("--grid", "0", "--grid: must be"),
-                               ("--voxels", "-3", "--voxels: must be"), ("--minutes", "0", "--minutes: must be > 0")):
+                               ("--voxels", "-3", "--voxels: must be"), ("--minutes", "0", "--minutes: must be > 0"),
+                               ("--loss-ssim", "-1", "ssim loss weight must be >= 0")):
         assert main(["train", "dva", str(capture), str(run), "--preset", "tiny", flag, value]) == 1
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err

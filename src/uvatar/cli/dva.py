@@ -171,16 +171,18 @@ def _train(args) -> int:
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
+    from uvatar.errors import options_as_input_error
 
     budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features, losses = _flags()
     cfg = preset(args.preset)
-    cfg.train = target.config(args, base=cfg.train)
-    cfg.raymarch = marcher.config(args, base=cfg.raymarch)
-    cfg.primitives = primitives.config(args, base=cfg.primitives)
-    cfg.decoder = decoder.config(args, base=cfg.decoder)
-    cfg.features = features.config(args, base=cfg.features)
-    cfg.corrections = corrections.config(args, base=cfg.corrections)
-    cfg.loss = losses.config(args, base=cfg.loss)
+    with options_as_input_error("train dva"):
+        cfg.train = target.config(args, base=cfg.train)
+        cfg.raymarch = marcher.config(args, base=cfg.raymarch)
+        cfg.primitives = primitives.config(args, base=cfg.primitives)
+        cfg.decoder = decoder.config(args, base=cfg.decoder)
+        cfg.features = features.config(args, base=cfg.features)
+        cfg.corrections = corrections.config(args, base=cfg.corrections)
+        cfg.loss = losses.config(args, base=cfg.loss)
     given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
                         minutes=given.get("minutes"), vgg_weights=args.vgg_weights, body_model=args.model,

@@ -36,7 +36,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from uvatar.errors import InputError
+from uvatar.errors import InputError, check_values
 from uvatar.render.metrics import ssim_torch  # the one SSIM (render/metrics.py)
 
 log = logging.getLogger(__name__)
@@ -53,6 +53,12 @@ class LossConfig:
     motion: float = 0.01
     colour_tv: float = 0.1
     shell: float = 0.0
+
+    def __post_init__(self) -> None:
+        import dataclasses
+
+        check_values([(getattr(self, f.name) >= 0, f"{f.name} loss weight must be >= 0, got {getattr(self, f.name)}")
+                      for f in dataclasses.fields(self)])
 
 
 _VGG19 = [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512, 512, 512, "M", 512, 512, 512, 512]
