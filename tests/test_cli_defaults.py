@@ -27,7 +27,8 @@ TARGETS = {
     "train avh": ["uvatar.avh.train:TrainConfig", "uvatar.avh.model:AvhConfig"],
     "train dva": ["uvatar.dva.train:train_dva", "uvatar.dva.model:TrainConfig", "uvatar.dva.primitives:PrimitiveConfig",
                   "uvatar.dva.decoders:DecoderConfig", "uvatar.dva.raymarch_ref:RaymarchConfig",
-                  "uvatar.dva.corrections:CorrectionConfig", "uvatar.dva.features:FeatureConfig"],
+                  "uvatar.dva.corrections:CorrectionConfig", "uvatar.dva.features:FeatureConfig",
+                  "uvatar.dva.losses:LossConfig"],
     "presets": [],
     "export": ["uvatar.avh.export:export_avatar"],
     "animate": ["uvatar.avh.animate:AnimateConfig", "uvatar.avh.animate:animate"],
@@ -60,6 +61,7 @@ PRESET_COMMANDS = {"synth", "train avh", "train dva", "demo"}
 RENAMED = {
     ("train dva", "correct_pose"): "CorrectionConfig.pose",
     ("train dva", "correct_colour"): "CorrectionConfig.colour",
+    ("train dva", "loss_ssim"): "LossConfig.ssim",
     ("bake", "refine_iterations"): "PoseRefineConfig.iterations",
     ("bake", "refine_photometric_radii"): "photometric_radii",
     ("bake", "refine_photometric_weight"): "photometric_weight",
