@@ -115,6 +115,7 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
     per_image, baseline, projective = [], [], []
     drive_idx = list(range(len(driving)))
     drive_cams = [bank.cams[d] for d in drive_idx]
+    drive_backs = [bank.backgrounds[d] for d in drive_idx]
     refined, residuals = {}, {}
     for fi, frame in enumerate(bank.frames):
         tex = bank.image_texture(fi, drive_idx).to(device)
@@ -122,12 +123,11 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
         photos, masks = [bank.images[fi][d] for d in drive_idx], [bank.masks[fi][d] for d in drive_idx]
         if refine_pose > 0:
             rot, verts, refined[frame] = refine_frame(
-                model, body, frame_fit(bank.fits, fi), tex, drive_cams, photos, masks,
-                [bank.backgrounds[d] for d in drive_idx], RefineConfig(iters=refine_pose))
+                model, body, frame_fit(bank.fits, fi), tex, drive_cams, photos, masks, drive_backs,
+                RefineConfig(iters=refine_pose))
             rot, verts = rot.to(device), verts.to(device)
         residual, residuals[frame] = fit_residual(
-            model, verts, rot, tex, drive_cams, photos, masks, [bank.backgrounds[d] for d in drive_idx],
-            ResidualConfig(iters=refine_residual))
+            model, verts, rot, tex, drive_cams, photos, masks, drive_backs, ResidualConfig(iters=refine_residual))
         verts_np = verts.cpu().numpy()
         photo_tex = projective_texture(model.template, verts_np, drive_cams, photos, masks)
         colour = mean_colour(photos, masks)

@@ -187,6 +187,12 @@ def voxel_uv_grid(raster, template, voxels: int, scale_factor: float) -> np.ndar
     return np.stack([u, v], -1).reshape(W * S, W * S, 2).astype(np.float32)
 
 
+def uv_sample_grid(uv: torch.Tensor) -> torch.Tensor:
+    """UV (..., 2) in [0, 1] -> ``F.grid_sample`` coordinates (..., 2) in [-1, 1] for a texture whose
+    row 0 is v = 1."""
+    return torch.stack([2.0 * uv[..., 0] - 1.0, 1.0 - 2.0 * uv[..., 1]], -1)
+
+
 def texture_at_voxels(image_texture: torch.Tensor, uv: torch.Tensor):
     """image_texture (B, 4, R, R) (:func:`average_views`: colour + fraction of views that saw the texel;
     row 0 is v = 1), uv (H, W, 2) -> colour (B, 3, H, W) and weight (B, 1, H, W) in [0, 1]: the
@@ -194,7 +200,7 @@ def texture_at_voxels(image_texture: torch.Tensor, uv: torch.Tensor):
     their neighbours) and how much of the lookup fell on seen texels."""
     seen = (image_texture[:, 3:4] > 0).to(image_texture.dtype)
     both = torch.cat([image_texture[:, :3] * seen, seen], 1)
-    grid = torch.stack([2.0 * uv[..., 0] - 1.0, 1.0 - 2.0 * uv[..., 1]], -1)
+    grid = uv_sample_grid(uv)
     grid = grid[None].expand(image_texture.shape[0], *grid.shape).to(image_texture.dtype)
     out = F.grid_sample(both, grid, mode="bilinear", padding_mode="border", align_corners=False)
     weight = out[:, 3:4]

@@ -29,7 +29,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -55,10 +55,8 @@ class LossConfig:
     shell: float = 0.0
 
     def __post_init__(self) -> None:
-        import dataclasses
-
         check_values([(getattr(self, f.name) >= 0, f"{f.name} loss weight must be >= 0, got {getattr(self, f.name)}")
-                      for f in dataclasses.fields(self)])
+                      for f in fields(self)])
 
 
 _VGG19 = [64, 64, "M", 128, 128, "M", 256, 256, 256, 256, "M", 512, 512, 512, 512, "M", 512, 512, 512, 512]

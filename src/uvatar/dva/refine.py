@@ -59,6 +59,33 @@ def grid_pixels(mask: np.ndarray, stride: int) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], 1)
 
 
+def driving_views(cameras, images, masks, backgrounds, pixels, device) -> list[tuple]:
+    """Per driving view, what its loss compares at ``pixels`` ((N, 2) integer (x, y) per view): (camera,
+    pixels, ray origins (N, 3), directions (N, 3), background (3,), target colour (N, 3): the photo
+    inside the person's mask and the background colour outside it, inside (N,): the mask as 0 / 1)."""
+    from uvatar.dva.train import target_pixels
+
+    views = []
+    for cam, img, mask, bg, pix in zip(cameras, images, masks, backgrounds, pixels, strict=True):
+        o, d = pixel_rays(cam, pix, device)
+        views.append((cam, pix, o, d, torch.as_tensor(np.asarray(bg, np.float32), device=device),
+                      torch.as_tensor(target_pixels(img, mask, pix, bg, "mask"), device=device),
+                      torch.as_tensor(mask[pix[:, 1], pix[:, 0]], dtype=torch.float32, device=device)))
+    return views
+
+
+def driving_views_loss(model, out, views) -> torch.Tensor:
+    """Training's image loss over the driving views (:func:`driving_views`; sample ``b`` of ``out`` is
+    view ``b``): the mean over views of ``rgb`` x the squared colour error plus ``mask`` x the opacity's
+    absolute error against the mask (the weights of ``model.cfg.loss``)."""
+    w = model.cfg.loss
+    loss = 0.0
+    for b, (cam, pix, o, d, bg, target, inside) in enumerate(views):
+        rgb, alpha = model.render_rays(out, b, o, d, bg, camera=cam, pixels=pix)
+        loss = loss + w.rgb * (rgb - target).square().mean() + w.mask * (alpha - inside).abs().mean()
+    return loss / len(views)
+
+
 def frame_fit(fits: FitParams, i: int) -> FitParams:
     """The fit of frame ``i`` of a bank's :class:`FitParams` as a bank of one."""
     def one(x):
@@ -76,7 +103,7 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
     driving views' loss before and after on one fixed set of pixels (the grid, or one set of crops),
     and ``kept``). The refined fit is returned only where it lowers that loss; otherwise the fit as it was (``kept`` False): on the real
     recording 40 noisy steps raised it more often than not (``docs/real.md``)."""
-    from uvatar.dva.train import patch_pixels, target_pixels
+    from uvatar.dva.train import patch_pixels
 
     dev = next(model.parameters()).device
     c = CorrectionConfig(pose=True, colour=False, pose_weight=cfg.pose_weight,
@@ -88,26 +115,21 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
     n = len(cameras)
     centers = torch.as_tensor(np.stack([cam.center for cam in cameras]), dtype=torch.float32, device=dev)
     tex = image_texture.to(dev)[None].expand(n, -1, -1, -1)
-    w = model.cfg.loss
 
-    def views_loss(crops):
+    def views_loss(views):
         """(driving views' loss, joint rotvecs (1, J, 3), vertices (1, V, 3)) at the current offsets."""
         rot, Rh, Th = corr.pose_inputs(fit, frames, True)
         verts = pose_vertices(body, rot, Rh, Th, fit.scale, fit.shape).to(dev)
         out = model(verts.expand(n, -1, -1), rot.to(dev).expand(n, -1, -1), tex, centers)
-        loss = 0.0
-        for b, (cam, img, mask, bg, pix) in enumerate(zip(cameras, images, masks, backgrounds, crops, strict=True)):
-            o, d = pixel_rays(cam, pix, dev)
-            rgb, alpha = model.render_rays(out, b, o, d, torch.as_tensor(bg, device=dev), camera=cam, pixels=pix)
-            target = torch.as_tensor(target_pixels(img, mask, pix, bg, "mask"), device=dev)
-            inside = torch.as_tensor(mask[pix[:, 1], pix[:, 0]], dtype=torch.float32, device=dev)
-            loss = loss + (w.rgb * (rgb - target).square().mean() + w.mask * (alpha - inside).abs().mean()) / n
-        return loss, rot, verts
+        return driving_views_loss(model, out, views), rot, verts
 
-    grid = [grid_pixels(mask, cfg.stride) for mask in masks] if cfg.stride > 0 else None
+    def at(pixels):
+        return driving_views(cameras, images, masks, backgrounds, pixels, dev)
+
+    grid = at([grid_pixels(mask, cfg.stride) for mask in masks]) if cfg.stride > 0 else None
 
     def crops():
-        return grid if grid is not None else [patch_pixels(mask, cfg.patch, rng) for mask in masks]
+        return grid if grid is not None else at([patch_pixels(mask, cfg.patch, rng) for mask in masks])
 
     fixed = crops()  # the before / after comparison's
     frozen = [p for p in model.parameters() if p.requires_grad]

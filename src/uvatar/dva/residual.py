@@ -59,8 +59,9 @@ class FrameResidual(nn.Module):
         super().__init__()
         self.grid = int(grid)
         K = self.grid * self.grid
-        uv = torch.as_tensor(voxel_uv, dtype=torch.float32)
-        self.register_buffer("sample_grid", torch.stack([2 * uv[..., 0] - 1, 1 - 2 * uv[..., 1]], -1)[None])
+        from uvatar.dva.features import uv_sample_grid
+
+        self.register_buffer("sample_grid", uv_sample_grid(torch.as_tensor(voxel_uv, dtype=torch.float32))[None])
         self.colour = nn.Parameter(torch.zeros(1, 3, uv_resolution, uv_resolution))
         self.translation = nn.Parameter(torch.zeros(K, 3))
         self.log_scale = nn.Parameter(torch.zeros(K, 3))
@@ -112,9 +113,7 @@ def fit_residual(model, posed_vertices, joint_rotvecs, image_texture, cameras, i
     ((3,)): the driving views. Returns (the residual, or None where it did not lower the driving views'
     loss or ``cfg.iters`` is 0; summary dict with that loss before and after and ``kept``)."""
     from uvatar.dva.features import voxel_uv_grid
-    from uvatar.dva.model import pixel_rays
-    from uvatar.dva.refine import grid_pixels
-    from uvatar.dva.train import target_pixels
+    from uvatar.dva.refine import driving_views, driving_views_loss, grid_pixels
 
     if cfg.iters <= 0:
         return None, {"kept": False}
@@ -124,32 +123,13 @@ def fit_residual(model, posed_vertices, joint_rotvecs, image_texture, cameras, i
     uv = voxel_uv_grid(model.grid.raster, model.template, S, model.cfg.primitives.scale_factor)
     residual = FrameResidual(torch.as_tensor(uv), model.grid.size, cfg.uv_resolution).to(dev)
     centers = torch.as_tensor(np.stack([cam.center for cam in cameras]), dtype=torch.float32, device=dev)
-    frozen = [p for p in model.parameters() if p.requires_grad]
-    for p in frozen:
-        p.requires_grad_(False)
-    try:
-        with torch.no_grad():
-            out = model(posed_vertices.to(dev)[None].expand(n, -1, -1), joint_rotvecs.to(dev)[None].expand(n, -1, -1),
-                        image_texture.to(dev)[None].expand(n, -1, -1, -1), centers)
-    finally:
-        for p in frozen:
-            p.requires_grad_(True)
-    views = []
-    for cam, img, mask, bg in zip(cameras, images, masks, backgrounds, strict=True):
-        pix = grid_pixels(mask, cfg.stride)
-        o, d = pixel_rays(cam, pix, dev)
-        views.append((cam, pix, o, d, torch.as_tensor(np.asarray(bg, np.float32), device=dev),
-                      torch.as_tensor(target_pixels(img, mask, pix, bg, "mask"), device=dev),
-                      torch.as_tensor(mask[pix[:, 1], pix[:, 0]], dtype=torch.float32, device=dev)))
-    w = model.cfg.loss
+    with torch.no_grad():  # decoded once: the avatar stays as it is, only the residual learns
+        out = model(posed_vertices.to(dev)[None].expand(n, -1, -1), joint_rotvecs.to(dev)[None].expand(n, -1, -1),
+                    image_texture.to(dev)[None].expand(n, -1, -1, -1), centers)
+    views = driving_views(cameras, images, masks, backgrounds, [grid_pixels(m, cfg.stride) for m in masks], dev)
 
     def views_loss():
-        changed = residual(out)
-        loss = 0.0
-        for b, (cam, pix, o, d, bg, target, inside) in enumerate(views):
-            rgb, alpha = model.render_rays(changed, b, o, d, bg, camera=cam, pixels=pix)
-            loss = loss + (w.rgb * (rgb - target).square().mean() + w.mask * (alpha - inside).abs().mean()) / n
-        return loss
+        return driving_views_loss(model, residual(out), views)
 
     groups = [{"params": [residual.colour], "lr": cfg.lr_colour},
               {"params": [residual.translation], "lr": cfg.lr_position},
