@@ -11,7 +11,7 @@ import torch
 
 from tests.fixtures.dva_capture import write_toy_capture
 from uvatar.dva.data import open_source
-from uvatar.dva.eval import METRIC_KEYS, image_scores
+from uvatar.dva.eval import EDGE_KEYS, METRIC_KEYS, image_scores
 from uvatar.dva.model import preset
 from uvatar.dva.train import train_dva
 
@@ -71,6 +71,10 @@ def test_evaluate_dva_reports_both_protocols(tmp_path):
     for key in METRIC_KEYS:
         assert np.isfinite(m[key]) and all(key in r for r in m["per_image"])
         assert m[key] == pytest.approx(np.mean([r[key] for r in m["per_image"]]))
+    for key in EDGE_KEYS:  # the person-mask scores split at the outline, for the baselines too
+        assert all(key in r for r in m["per_image"]) and key in m["baseline_mean_colour"]
+        finite = [r[key] for r in m["per_image"] if np.isfinite(r[key])]  # the toy's masks may have no interior
+        assert m[key] == pytest.approx(np.mean(finite)) if finite else np.isnan(m[key])
     assert m["psnr_db"] == m["psnr_db_full"] and m["ssim"] == m["ssim_full"]
     assert "union" in m["protocol"] and "alpha > 0.5" in m["protocol"] and "full-image" in m["protocol"]
     # by default each test frame's fit is refined against its driving views first; --refine-pose 0: as it is
@@ -103,3 +107,25 @@ def test_evaluate_dva_named_frames_and_cameras(tmp_path):
             evaluate_dva(run, src, None, cameras=["nope"], progress=False)
     finally:
         torch.set_num_threads(n)
+
+
+def test_edge_scores_split_the_person_mask_at_its_outline():
+    from uvatar.dva.eval import edge_scores
+
+    gt = np.random.default_rng(0).uniform(0, 1, (40, 40, 3))
+    mask = np.zeros((40, 40), bool)
+    mask[8:32, 8:32] = True  # 24 px square: a 6 px edge band around a 12 x 12 interior
+    alpha = np.where(mask, 1.0, 0.0)
+    alpha[mask & ~np.pad(np.ones((12, 12), bool), 14)] = 0.25  # the band half transparent
+    s = edge_scores(gt, gt, alpha, mask)
+    assert s["ssim_person_edge"] == pytest.approx(1) and s["ssim_person_interior"] == pytest.approx(1)
+    assert s["opacity_person_edge"] == pytest.approx(0.25) and s["opacity_person_interior"] == pytest.approx(1)
+    worse = gt.copy()
+    worse[mask] = 1 - worse[mask]  # the person's colours inverted: structure anti-correlated everywhere inside
+    w = edge_scores(worse, gt, alpha, mask)
+    assert w["ssim_person_edge"] < 0.5 and w["ssim_person_interior"] < 0
+    thin = np.zeros((40, 40), bool)
+    thin[10:30, 18:22] = True  # 4 px wide: all edge, no interior
+    t = edge_scores(gt, gt, alpha, thin)
+    assert np.isnan(t["ssim_person_interior"]) and np.isnan(t["opacity_person_interior"])
+    assert t["ssim_person_edge"] == pytest.approx(1)

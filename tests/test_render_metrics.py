@@ -118,3 +118,17 @@ def test_one_ssim_owner_serves_the_metric_and_the_dva_loss():
         c1, c2 = 0.01**2, 0.03**2
         ref = ((2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a**2 + mu_b**2 + c1) * (va + vb + c2))).mean(-1)
         np.testing.assert_allclose(ssim_map(a, b), ref, atol=1e-12)
+
+
+def test_mask_edge_band_known_answers():
+    from uvatar.render.metrics import mask_edge_band
+
+    m = np.zeros((20, 20), bool)
+    m[2:18, 2:18] = True  # a 16 x 16 square
+    edge, interior = mask_edge_band(m, 3)
+    assert interior.sum() == 10 * 10 and interior[5:15, 5:15].all()  # 3 rings of the square are its edge
+    assert edge.sum() == 16 * 16 - 100 and not (edge & interior).any() and ((edge | interior) == m).all()
+    full = np.ones((10, 10), bool)  # the image border counts as outside
+    assert mask_edge_band(full, 2)[1].sum() == 6 * 6
+    assert mask_edge_band(m)[1].sum() == 4 * 4  # default: SSIM_BORDER + 1 = 6 px
+    assert not any(p.any() for p in mask_edge_band(np.zeros((5, 5), bool)))

@@ -250,4 +250,7 @@ def _eval(args) -> int:
                      cameras=_split(args.cameras), body_model=args.model, model_dir=args.model_dir,
                      **_flags()[5].values(args))
     print(f"psnr {r['psnr_db']:.2f} dB, ssim {r['ssim']:.4f} over {len(r['per_image'])} images -> {args.json}")
+    print(f"in the person's mask: psnr {r['psnr_db_person_mask']:.2f} dB, ssim {r['ssim_person_mask']:.4f} "
+          f"(along its outline {r['ssim_person_edge']:.4f}, opacity {r['opacity_person_edge']:.3f}; "
+          f"inside {r['ssim_person_interior']:.4f}, opacity {r['opacity_person_interior']:.3f})")
     return 0

@@ -10,7 +10,9 @@ the pixels outside the mask) and compared with the photo: PSNR (dB) and SSIM fro
 for ZJU-MoCap (Neural Body). Two protocols shared with ``uvatar eval avh`` are always reported too:
 ``psnr_db_full`` / ``ssim_full`` over the full image, and ``psnr_db_union_mask`` / ``ssim_union_mask``
 inside the union of the predicted mask (alpha > 0.5) and the photo's mask; and
-``psnr_db_person_mask`` / ``ssim_person_mask`` inside the photo's person mask alone. The same scores
+``psnr_db_person_mask`` / ``ssim_person_mask`` inside the photo's person mask alone, that SSIM split at the
+outline (``ssim_person_edge`` / ``ssim_person_interior``) with the render's mean opacity in each part
+(``opacity_person_edge`` / ``opacity_person_interior``, :func:`edge_scores`). The same scores
 for the two baselines of :mod:`uvatar.dva.baseline` (the fitted body in the driving views' mean person
 colour; the fitted body textured with the driving views' pixels) are in ``baseline_mean_colour`` and
 ``baseline_projective_texture``. Side-by-side comparison images (photo | render | 4x |error| | mean
@@ -20,6 +22,7 @@ colour | projective texture) are written beside the JSON.
 from __future__ import annotations
 
 import logging
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +47,8 @@ def spread(items, n):
 
 METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_full", "ssim_full", "psnr_db_union_mask", "ssim_union_mask",
                "psnr_db_person_mask", "ssim_person_mask")
+#: the person mask's scores split at its outline (:func:`edge_scores`)
+EDGE_KEYS = ("ssim_person_edge", "ssim_person_interior", "opacity_person_edge", "opacity_person_interior")
 SHARED_PROTOCOLS = ("also reported for comparison with uvatar eval avh: full-image PSNR/SSIM (psnr_db_full, "
                     "ssim_full) and PSNR/SSIM inside the union of the predicted mask (alpha > 0.5) and the "
                     "photo's mask (psnr_db_union_mask, ssim_union_mask)")
@@ -69,7 +74,38 @@ def image_scores(pred, gt, alpha, gt_mask, box=None) -> dict:
     main = (full_p, full_s) if box is None else (psnr(pred, gt, box), ssim(pred, gt, box))
     return {"psnr_db": main[0], "ssim": main[1], "psnr_db_full": full_p, "ssim_full": full_s,
             "psnr_db_union_mask": union_p, "ssim_union_mask": union_s,
-            "psnr_db_person_mask": person_p, "ssim_person_mask": person_s}
+            "psnr_db_person_mask": person_p, "ssim_person_mask": person_s,
+            **edge_scores(pred, gt, alpha, person)}
+
+
+def edge_scores(pred, gt, alpha, gt_mask) -> dict:
+    """Where the person-mask scores are lost: SSIM and mean opacity (alpha) in the mask's edge band
+    (the pixels whose SSIM window sees past the photo's outline, :func:`uvatar.render.metrics.mask_edge_band`)
+    and in the rest of the mask, its interior (NaN where a part is empty). A volume that is half
+    transparent along the outline blends the background into the person there (``docs/real.md``)."""
+    from uvatar.render.metrics import SSIM_BORDER, mask_edge_band, ssim_map
+
+    edge, interior = mask_edge_band(gt_mask)
+    r = SSIM_BORDER  # as in ssim(): windows that leave the image do not count
+    if min(edge.shape) > 2 * r:
+        frame = np.ones_like(edge)
+        frame[r:-r, r:-r] = False
+        edge, interior = edge & ~frame, interior & ~frame
+    smap = ssim_map(pred, gt)
+    alpha = np.asarray(alpha, np.float64)
+
+    def mean(x, part):
+        return float(x[part].mean()) if part.any() else float("nan")
+
+    return {"ssim_person_edge": mean(smap, edge), "ssim_person_interior": mean(smap, interior),
+            "opacity_person_edge": mean(alpha, edge), "opacity_person_interior": mean(alpha, interior)}
+
+
+def _means(rows) -> dict:
+    """The mean of each of :data:`METRIC_KEYS` and :data:`EDGE_KEYS` over images (NaNs left out)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a key NaN in every image stays NaN
+        return {k: float(np.nanmean([r[k] for r in rows])) for k in METRIC_KEYS + EDGE_KEYS}
 
 
 def _names(wanted, available, source, what: str) -> list[str]:
@@ -149,9 +185,9 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
                 err = np.clip(np.abs(pred - gt) * 4, 0, 1)
                 write_image(img_dir / f"{frame}_{cam_name}.png", np.concatenate([gt, pred, err, base, proj], 1))
     result = {
-        **{k: float(np.nanmean([r[k] for r in per_image])) for k in METRIC_KEYS},
-        "baseline_mean_colour": {k: float(np.nanmean([r[k] for r in baseline])) for k in METRIC_KEYS},
-        "baseline_projective_texture": {k: float(np.nanmean([r[k] for r in projective])) for k in METRIC_KEYS},
+        **_means(per_image),
+        "baseline_mean_colour": _means(baseline),
+        "baseline_projective_texture": _means(projective),
         "protocol": (source.protocol.replace("{driving}", str(len(driving))) + f"; driving views {driving}; "
                      + (f"each test frame's fit refined against its driving views ({refine_pose} steps); "
                         if refine_pose > 0 else "the fits as they are; ")

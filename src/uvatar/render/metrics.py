@@ -11,7 +11,7 @@ import numpy as np
 
 from uvatar.errors import InputError
 
-__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_torch", "ssim_torch", "mse", "SSIM_BORDER"]
+__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_torch", "ssim_torch", "mse", "SSIM_BORDER", "mask_edge_band"]
 
 #: pixels at each edge whose 11-tap SSIM window (sigma 1.5, truncated at 3.5 sigma) leaves the image
 SSIM_BORDER = 5
@@ -133,3 +133,16 @@ def ssim(a, b, mask=None, data_range: float = 1.0) -> float:
     if m.sum() <= 0:
         raise InputError("mask", "is empty (inside the SSIM border)" if mask is not None else "is empty")
     return float((s * m).sum() / m.sum())
+
+
+def mask_edge_band(mask, width_px: float = SSIM_BORDER + 1):
+    """Split a (H, W) bool mask into (edge, interior) bool masks: ``edge`` holds the mask's pixels
+    within ``width_px`` (Euclidean, pixel centres) of a pixel outside it, the image border counting as
+    outside; ``interior`` the rest. The default width is the reach of the SSIM window plus one pixel,
+    so ``edge`` holds exactly the pixels whose SSIM window sees past the outline."""
+    from scipy.ndimage import distance_transform_edt
+
+    mask = np.asarray(mask, bool)
+    inside = distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]  # distance to the nearest outside pixel
+    edge = mask & (inside <= width_px)
+    return edge, mask & ~edge
