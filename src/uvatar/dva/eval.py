@@ -80,7 +80,7 @@ def image_scores(pred, gt, alpha, gt_mask, box=None) -> dict:
 
 def edge_scores(pred, gt, alpha, gt_mask) -> dict:
     """Where the person-mask scores are lost: SSIM and mean opacity (alpha) in the mask's edge band
-    (the pixels whose SSIM window sees past the photo's outline, :func:`uvatar.render.metrics.mask_edge_band`)
+    (about the pixels whose SSIM window reaches past the photo's outline, :func:`uvatar.render.metrics.mask_edge_band`)
     and in the rest of the mask, its interior (NaN where a part is empty). A volume that is half
     transparent along the outline blends the background into the person there (``docs/real.md``)."""
     from uvatar.render.metrics import SSIM_BORDER, mask_edge_band, ssim_map

@@ -138,8 +138,8 @@ def ssim(a, b, mask=None, data_range: float = 1.0) -> float:
 def mask_edge_band(mask, width_px: float = SSIM_BORDER + 1):
     """Split a (H, W) bool mask into (edge, interior) bool masks: ``edge`` holds the mask's pixels
     within ``width_px`` (Euclidean, pixel centres) of a pixel outside it, the image border counting as
-    outside; ``interior`` the rest. The default width is the reach of the SSIM window plus one pixel,
-    so ``edge`` holds exactly the pixels whose SSIM window sees past the outline."""
+    outside; ``interior`` the rest. The default width is the SSIM window's half-width plus one pixel,
+    so ``edge`` holds about the pixels whose 11-pixel window reaches past the outline."""
     from scipy.ndimage import distance_transform_edt
 
     mask = np.asarray(mask, bool)
