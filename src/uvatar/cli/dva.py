@@ -71,8 +71,11 @@ def _flags() -> tuple[ConfigFlags, ...]:
             ConfigFlags(FeatureConfig, fields=("colour_skip",), presets={k: c.features for k, c in PRESETS.items()},
                         help={"colour_skip": "add the driving views' colour at every voxel to the appearance "
                                              "decoder's output (detail finer than a primitive)"}),
-            ConfigFlags(LossConfig, fields=("ssim",), prefix="loss", presets={k: c.loss for k, c in PRESETS.items()},
-                        help={"ssim": "weight of the 1 - SSIM term of the image loss (when no --vgg-weights)"}))
+            ConfigFlags(LossConfig, fields=("ssim", "colour_tv"), prefix="loss",
+                        presets={k: c.loss for k, c in PRESETS.items()},
+                        help={"ssim": "weight of the 1 - SSIM term of the image loss (when no --vgg-weights)",
+                              "colour_tv": "weight of the total variation of the decoded colour across voxels "
+                                           "and neighbouring primitives (hides seams between boxes)"}))
 
 
 def register(cli) -> None:
