@@ -111,21 +111,22 @@ def test_evaluate_dva_named_frames_and_cameras(tmp_path):
 
 def test_edge_scores_split_the_person_mask_at_its_outline():
     from uvatar.dva.eval import edge_scores
+    from uvatar.render.metrics import ssim_map
 
     gt = np.random.default_rng(0).uniform(0, 1, (40, 40, 3))
     mask = np.zeros((40, 40), bool)
     mask[8:32, 8:32] = True  # 24 px square: a 6 px edge band around a 12 x 12 interior
     alpha = np.where(mask, 1.0, 0.0)
     alpha[mask & ~np.pad(np.ones((12, 12), bool), 14)] = 0.25  # the band half transparent
-    s = edge_scores(gt, gt, alpha, mask)
+    s = edge_scores(ssim_map(gt, gt), alpha, mask)
     assert s["ssim_person_edge"] == pytest.approx(1) and s["ssim_person_interior"] == pytest.approx(1)
     assert s["opacity_person_edge"] == pytest.approx(0.25) and s["opacity_person_interior"] == pytest.approx(1)
     worse = gt.copy()
     worse[mask] = 1 - worse[mask]  # the person's colours inverted: structure anti-correlated everywhere inside
-    w = edge_scores(worse, gt, alpha, mask)
+    w = edge_scores(ssim_map(worse, gt), alpha, mask)
     assert w["ssim_person_edge"] < 0.5 and w["ssim_person_interior"] < 0
     thin = np.zeros((40, 40), bool)
     thin[10:30, 18:22] = True  # 4 px wide: all edge, no interior
-    t = edge_scores(gt, gt, alpha, thin)
+    t = edge_scores(ssim_map(gt, gt), alpha, thin)
     assert np.isnan(t["ssim_person_interior"]) and np.isnan(t["opacity_person_interior"])
     assert t["ssim_person_edge"] == pytest.approx(1)

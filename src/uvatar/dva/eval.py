@@ -57,41 +57,40 @@ SHARED_PROTOCOLS = ("also reported for comparison with uvatar eval avh: full-ima
 def image_scores(pred, gt, alpha, gt_mask, box=None) -> dict:
     """Scores of one render (H, W, 3) in [0, 1] against the photo: the source protocol (``box``: a
     (H, W) bool mask, or None for the full image), the full image, the union of alpha > 0.5 and
-    ``gt_mask`` (NaN when that union is empty) and the photo's person mask ``gt_mask`` alone."""
-    from uvatar.render.metrics import psnr, ssim
+    ``gt_mask`` (NaN when that union is empty) and the photo's person mask ``gt_mask`` alone. One SSIM
+    map serves every mask."""
+    from uvatar.render.metrics import psnr, ssim_map, ssim_of_map
 
-    full_p, full_s = psnr(pred, gt), ssim(pred, gt)
+    smap = ssim_map(pred, gt)
+    full_p, full_s = psnr(pred, gt), ssim_of_map(smap)
     union = (np.asarray(alpha) > 0.5) | np.asarray(gt_mask, bool)
     if union.any():
-        union_p, union_s = psnr(pred, gt, union), ssim(pred, gt, union)
+        union_p, union_s = psnr(pred, gt, union), ssim_of_map(smap, union)
     else:
         union_p = union_s = float("nan")
     person = np.asarray(gt_mask, bool)
     if person.any():
-        person_p, person_s = psnr(pred, gt, person), ssim(pred, gt, person)
+        person_p, person_s = psnr(pred, gt, person), ssim_of_map(smap, person)
     else:
         person_p = person_s = float("nan")
-    main = (full_p, full_s) if box is None else (psnr(pred, gt, box), ssim(pred, gt, box))
+    main = (full_p, full_s) if box is None else (psnr(pred, gt, box), ssim_of_map(smap, box))
     return {"psnr_db": main[0], "ssim": main[1], "psnr_db_full": full_p, "ssim_full": full_s,
             "psnr_db_union_mask": union_p, "ssim_union_mask": union_s,
             "psnr_db_person_mask": person_p, "ssim_person_mask": person_s,
-            **edge_scores(pred, gt, alpha, person)}
+            **edge_scores(smap, alpha, person)}
 
 
-def edge_scores(pred, gt, alpha, gt_mask) -> dict:
-    """Where the person-mask scores are lost: SSIM and mean opacity (alpha) in the mask's edge band
-    (about the pixels whose SSIM window reaches past the photo's outline, :func:`uvatar.render.metrics.mask_edge_band`)
-    and in the rest of the mask, its interior (NaN where a part is empty). A volume that is half
-    transparent along the outline blends the background into the person there (``docs/real.md``)."""
-    from uvatar.render.metrics import SSIM_BORDER, mask_edge_band, ssim_map
+def edge_scores(smap, alpha, gt_mask) -> dict:
+    """Where the person-mask scores are lost: the mean of the render's SSIM map ``smap`` (H, W)
+    (:func:`uvatar.render.metrics.ssim_map`) and its mean opacity ``alpha`` (H, W) in the mask's edge
+    band (about the pixels whose SSIM window reaches past the photo's outline,
+    :func:`uvatar.render.metrics.mask_edge_band`) and in the rest of the mask, its interior (NaN where a
+    part is empty). Windows that leave the image do not count, as in :func:`~uvatar.render.metrics.ssim`.
+    A volume that is half transparent along the outline blends the background into the person there
+    (``docs/real.md``)."""
+    from uvatar.render.metrics import mask_edge_band, ssim_windows_inside
 
-    edge, interior = mask_edge_band(gt_mask)
-    r = SSIM_BORDER  # as in ssim(): windows that leave the image do not count
-    if min(edge.shape) > 2 * r:
-        frame = np.ones_like(edge)
-        frame[r:-r, r:-r] = False
-        edge, interior = edge & ~frame, interior & ~frame
-    smap = ssim_map(pred, gt)
+    edge, interior = (part & ssim_windows_inside(np.shape(smap)) for part in mask_edge_band(gt_mask))
     alpha = np.asarray(alpha, np.float64)
 
     def mean(x, part):

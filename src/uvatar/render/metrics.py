@@ -11,7 +11,8 @@ import numpy as np
 
 from uvatar.errors import InputError
 
-__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_torch", "ssim_torch", "mse", "SSIM_BORDER", "mask_edge_band"]
+__all__ = ["psnr", "ssim", "ssim_map", "ssim_map_torch", "ssim_torch", "mse", "SSIM_BORDER", "mask_edge_band",
+           "ssim_of_map", "ssim_windows_inside"]
 
 #: pixels at each edge whose 11-tap SSIM window (sigma 1.5, truncated at 3.5 sigma) leaves the image
 SSIM_BORDER = 5
@@ -122,16 +123,37 @@ def ssim(a, b, mask=None, data_range: float = 1.0) -> float:
     sigma=1.5, use_sample_covariance=False)`` and :func:`uvatar.dva.losses.ssim_torch`): only windows
     that lie inside the image count, i.e. the map without its :data:`SSIM_BORDER`-pixel frame (an image
     too small to have such windows is averaged whole)."""
-    _, _, m = _prep(a, b, mask)
-    s = ssim_map(a, b, data_range)
+    _prep(a, b, mask)
+    return ssim_of_map(ssim_map(a, b, data_range), mask)
+
+
+def _windows_inside(x):
+    """``x`` (H, W, ...) without its :data:`SSIM_BORDER`-pixel frame (whole when the image is too small
+    to have windows inside it): the one statement of :func:`ssim`'s border convention."""
     r = SSIM_BORDER
-    if min(s.shape) > 2 * r:
-        s = s[r:-r, r:-r]
-        m = None if m is None else m[r:-r, r:-r]
-    if m is None:
+    return x[r:-r, r:-r] if min(x.shape[:2]) > 2 * r else x
+
+
+def ssim_windows_inside(shape) -> np.ndarray:
+    """(H, W) bool: the pixels whose SSIM window lies inside an image of ``shape`` (H, W) (all of them
+    for an image too small to have such windows)."""
+    keep = np.zeros(shape[:2], bool)
+    _windows_inside(keep)[...] = True
+    return keep
+
+
+def ssim_of_map(smap, mask=None) -> float:
+    """Mean of an :func:`ssim_map` (H, W) over the image or the mask, with :func:`ssim`'s border
+    convention: several masks scored from one map."""
+    s = _windows_inside(np.asarray(smap, np.float64))
+    if mask is None:
         return float(s.mean())
+    m = _to_numpy(mask)
+    if m.shape != np.shape(smap):
+        raise InputError("mask", f"shape {m.shape} does not match image {np.shape(smap)}")
+    m = _windows_inside(m)
     if m.sum() <= 0:
-        raise InputError("mask", "is empty (inside the SSIM border)" if mask is not None else "is empty")
+        raise InputError("mask", "is empty (inside the SSIM border)")
     return float((s * m).sum() / m.sum())
 
 
