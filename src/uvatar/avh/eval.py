@@ -170,15 +170,17 @@ def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask) -> dict:
     Two diagnostics split the union error into its causes: ``psnr_db_inside_both`` (appearance: PSNR
     where both masks cover the pixel) and ``silhouette_iou`` (shape: |A ∩ B| / |A ∪ B| of the masks).
     """
-    from uvatar.render import psnr, ssim
+    from uvatar.render import psnr
+    from uvatar.render.metrics import ssim_map, ssim_of_map
 
-    full = {"psnr_db_full": psnr(pred_rgb, gt_rgb), "ssim_full": ssim(pred_rgb, gt_rgb)}
+    smap = ssim_map(pred_rgb, gt_rgb)  # one map for both masks
+    full = {"psnr_db_full": psnr(pred_rgb, gt_rgb), "ssim_full": ssim_of_map(smap)}
     pm, gm = np.asarray(pred_mask, bool), np.asarray(gt_mask, bool)
     union, both = pm | gm, pm & gm
     if not union.any():
         p = s = float("nan")
     else:
-        p, s = psnr(pred_rgb, gt_rgb, union), ssim(pred_rgb, gt_rgb, union)
+        p, s = psnr(pred_rgb, gt_rgb, union), ssim_of_map(smap, union)
     inside = psnr(pred_rgb, gt_rgb, both) if both.any() else float("nan")
     iou = float(both.sum() / union.sum()) if union.any() else float("nan")
     return {"psnr_db": p, "ssim": s, "psnr_db_union_mask": p, "ssim_union_mask": s, **full,
