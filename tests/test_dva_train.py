@@ -405,12 +405,16 @@ def test_run_refuses_another_body_model(capture, tmp_path):
 
 
 def test_cli_train_flags_reach_the_saved_config(capture, tmp_path):
-    """--grid, --voxels, --loss-ssim and --loss-colour-tv land in the run's saved config (run.json)."""
+    """--grid, --voxels, --batch, --patch, --loss-ssim and --loss-colour-tv land in the run's saved config
+    (run.json), and --seed in its summary."""
     from uvatar.cli.main import main
 
     run = tmp_path / "run"
     assert main(["train", "dva", str(capture), str(run), "--preset", "tiny", "--iters", "1", "--grid", "6",
-                 "--voxels", "2", "--loss-ssim", "0.4", "--loss-colour-tv", "0.3"]) == 0
-    cfg = json.loads((run / "run.json").read_text())["config"]
+                 "--voxels", "2", "--loss-ssim", "0.4", "--loss-colour-tv", "0.3", "--batch", "2", "--patch", "12",
+                 "--seed", "7"]) == 0
+    saved = json.loads((run / "run.json").read_text())
+    cfg = saved["config"]
+    assert cfg["train"]["batch"] == 2 and cfg["train"]["patch"] == 12 and saved["summary"]["seed"] == 7
     assert cfg["primitives"]["grid"] == 6 and cfg["decoder"]["voxels"] == 2 and cfg["loss"]["ssim"] == 0.4
     assert cfg["loss"]["colour_tv"] == 0.3

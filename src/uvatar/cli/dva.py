@@ -32,9 +32,12 @@ def _flags() -> tuple[ConfigFlags, ...]:
 
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
-            ConfigFlags(TrainConfig, fields=("background", "hide_target_view"), choices={"background": BACKGROUNDS},
-                        presets={k: c.train for k, c in PRESETS.items()},
-                        help={"background": "what the render is compared with outside the person's mask: "
+            ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view"),
+                        choices={"background": BACKGROUNDS}, presets={k: c.train for k, c in PRESETS.items()},
+                        help={"batch": "(frame, camera) samples per step",
+                              "patch": "side of the square pixel crop rendered per sample, pixels (the decoders "
+                                       "run once per sample, so a larger crop is nearly free)",
+                              "background": "what the render is compared with outside the person's mask: "
                                             "mask (the camera's background colour; real rooms) or photo "
                                             "(the raw photo; a clean studio backdrop)",
                               "hide_target_view": "leave the camera a sample is scored in out of its image "
@@ -45,8 +48,9 @@ def _flags() -> tuple[ConfigFlags, ...]:
                         help={"voxels": "voxels per primitive side S",
                               "depth_colour": "colour varies along each primitive's depth too (off: one colour "
                                               "per voxel column)"}),
-            ConfigFlags(train_dva, fields=("device", "resume"), help={
-                "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt"}),
+            ConfigFlags(train_dva, fields=("device", "resume", "seed"), help={
+                "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt",
+                "seed": "seed of the weights' initialisation and of the sampling of frames, cameras and crops"}),
             ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher", "refine_pose",
                                                       "refine_residual"),
                         choices={"marcher": MARCHERS}, help={

@@ -174,7 +174,8 @@ class Trainer:
                      "source": str(getattr(source, "root", "")), "train_cameras": list(source.train_cameras),
                      "train_frames": list(self.bank.frames), "skipped_frames": self.bank.skipped,
                      "backgrounds": {c: self.bank.backgrounds[i].tolist() for i, c in enumerate(self.bank.cameras)},
-                     "perceptual": "vgg19" if vgg else "ssim", "protocol": source.protocol}
+                     "perceptual": "vgg19" if vgg else "ssim", "protocol": source.protocol,
+                     "seed": int(state["meta"].get("seed", seed)) if state is not None else int(seed)}
         if state is not None:
             self.model.load_state_dict(state["model"])
             if self.corrections is not None and state.get("corrections"):
@@ -354,21 +355,22 @@ class Trainer:
         summary = {"steps": self.step, "seconds": round(time.time() - start, 1), "last": last,
                    "frames": len(self.bank), "skipped_frames": self.bank.skipped,
                    "corrections": self.corrections.summary() if self.corrections is not None else None, **{
-                       k: self.meta[k] for k in ("train_cameras", "perceptual", "body_model")}}
+                       k: self.meta[k] for k in ("train_cameras", "perceptual", "body_model", "seed")}}
         if self.ctx.is_main:
             write_json(self.out / "run.json", {"config": self.cfg.to_dict(), "summary": summary})
         return summary
 
 
 def train_dva(source, out_dir, cfg: DvaConfig, iters=None, minutes=None, device="cpu", resume=False,
-              body=None, vgg_weights=None, progress=True, body_model=None, model_dir=None) -> dict:
+              body=None, vgg_weights=None, progress=True, body_model=None, model_dir=None, seed: int = 0) -> dict:
     """Train (or resume) a DVA run in ``out_dir``; returns a summary dict (also in run.json).
     ``body_model`` ("anny", "smpl", "smplx"; default: the source's) and ``model_dir`` (SMPL files)
     pick the body model on any layout. Under torchrun the processes share each global batch (see the
-    module docstring)."""
+    module docstring). ``seed``: initial weights and the sampling of frames, cameras and crops (a
+    resumed run continues its checkpoint's sampling state)."""
     with distributed_context(device) as ctx:
         trainer = Trainer(source, out_dir, cfg, body=body, device=ctx.device, vgg_weights=vgg_weights,
-                          resume=resume, progress=progress, body_model=body_model, model_dir=model_dir, ctx=ctx)
+                          resume=resume, seed=seed, progress=progress, body_model=body_model, model_dir=model_dir, ctx=ctx)
         return trainer.run(iters, minutes)
 
 
