@@ -198,7 +198,7 @@ def test_curriculum_switches_to_three_views(capture):
     trainer = Trainer(open_source(capture), capture.parent / "cur", cfg, progress=False)
     assert trainer.bank.textures.shape[1] == 3  # three training cameras
     trainer.step = 0
-    _, _, tex, _ = trainer.sample()
+    _, _, tex, _, _ = trainer.sample()
     full = trainer.bank.image_texture(0, [0, 1, 2])
     assert tex.shape == (1,) + tuple(full.shape)
     lr = cfg.train.lr
@@ -208,7 +208,7 @@ def test_curriculum_switches_to_three_views(capture):
     trainer.cfg.train.driving_views = 2
     trainer.step = cfg.train.all_views_iters
     for _ in range(5):
-        _, _, tex, _ = trainer.sample()
+        _, _, tex, _, _ = trainer.sample()
         assert float(tex[0, 3].max()) <= 1.0
 
 
@@ -286,10 +286,35 @@ def test_hide_target_view_leaves_the_scored_camera_out(capture, tmp_path):
         trainer = Trainer(open_source(capture), tmp_path / f"hide{hide}", cfg, progress=False)
         seen = []
         trainer.bank.image_texture = lambda fi, views, seen=seen: seen.append(list(views)) or torch.zeros(4, 1, 1)
-        _, cams, _, _ = trainer.sample()
+        _, cams, _, _, _ = trainer.sample()
         assert len(seen) == 6
         for c, views in zip(cams, seen, strict=True):
             assert (c not in views) == hide and len(views) == (2 if hide else 3)
+
+
+def test_random_background_draws_a_colour_per_sample_and_trains_against_it(capture, tmp_path):
+    """background "random": each sample of each step gets its own colour in [0, 1]^3, drawn from the
+    run's sampling RNG (the same seed draws the same colours); the target is that colour outside the
+    mask, and a step trains. "mask" hands every sample its camera's background."""
+    cfg = preset("tiny")
+    cfg.train.background, cfg.train.batch = "random", 4
+    runs = [Trainer(open_source(capture), tmp_path / f"r{i}", cfg, progress=False) for i in range(2)]
+    draws = [[bg for _ in range(3) for bg in t.sample()[4]] for t in runs]
+    colours = np.stack(draws[0])
+    assert colours.shape == (12, 3) and colours.min() >= 0.0 and colours.max() <= 1.0
+    assert len({tuple(c) for c in colours.round(6)}) == 12      # a new colour every sample and step
+    np.testing.assert_array_equal(colours, np.stack(draws[1]))   # the seed's colours
+    terms = runs[0].train_step()
+    assert np.isfinite(terms["total"])
+    cfg = preset("tiny")
+    trainer = Trainer(open_source(capture), tmp_path / "mask", cfg, progress=False)
+    _, cams, _, _, backgrounds = trainer.sample()
+    for c, bg in zip(cams, backgrounds, strict=True):
+        np.testing.assert_array_equal(bg, trainer.bank.backgrounds[c])
+    image = np.zeros((2, 2, 3), np.uint8)
+    mask = np.array([[True, False], [False, False]])
+    got = target_pixels(image, mask, np.array([[0, 0], [1, 1]]), colours[0], "random")
+    np.testing.assert_allclose(got, [[0, 0, 0], colours[0]])
 
 
 def test_load_run_errors(tmp_path):

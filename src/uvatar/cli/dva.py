@@ -38,8 +38,9 @@ def _flags() -> tuple[ConfigFlags, ...]:
                               "patch": "side of the square pixel crop rendered per sample, pixels (the decoders "
                                        "run once per sample, so a larger crop is nearly free)",
                               "background": "what the render is compared with outside the person's mask: "
-                                            "mask (the camera's background colour; real rooms) or photo "
-                                            "(the raw photo; a clean studio backdrop)",
+                                            "mask (the camera's background colour; real rooms), random (a "
+                                            "new random colour per sample and step: the opacity must match "
+                                            "the mask) or photo (the raw photo; a clean studio backdrop)",
                               "hide_target_view": "leave the camera a sample is scored in out of its image "
                                                   "input, as at test time"}),
             ConfigFlags(PrimitiveConfig, fields=("grid",), presets={k: c.primitives for k, c in PRESETS.items()},

@@ -32,7 +32,7 @@ from uvatar.dva.raymarch import raymarch
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig
 from uvatar.errors import check_values
 
-BACKGROUNDS = ("mask", "photo")
+BACKGROUNDS = ("mask", "photo", "random")
 
 
 @dataclass
@@ -45,7 +45,10 @@ class TrainConfig:
     is further along). background: what the render is compared with outside the person's mask: "mask"
     replaces the photo there by the camera's background colour (the colour the render is composited
     over), so a cluttered real room is not something the primitives must learn (as Neural Body trains
-    on masked photos); "photo" compares with the raw photo (a studio's clean backdrop).
+    on masked photos); "photo" compares with the raw photo (a studio's clean backdrop); "random" is
+    "mask" with a new uniformly random colour per sample and step in place of the camera's, so a
+    half-transparent render can never pass for the person's colour blended with a known backdrop
+    (the opacity must match the mask; a common NeRF / Gaussian-avatar practice).
     hide_target_view: the image input of a sample leaves out the camera it is scored in, as at test
     time, where the held-out camera never drives (with 3 training cameras and ``driving_views`` 3 the
     target's own photo is otherwise always in its input, and the colour skip learns to copy it)."""

@@ -57,11 +57,11 @@ def target_pixels(image: np.ndarray, mask: np.ndarray, pixels: np.ndarray, backg
                   mode: str = "mask") -> np.ndarray:
     """(N, 3) float32 in [0, 1]: what the render at ``pixels`` (N, 2) integer (x, y) is compared with.
     image (H, W, 3) uint8, mask (H, W) bool, background (3,) the colour the render is composited over;
-    mode "mask" (:class:`~uvatar.dva.model.TrainConfig` ``background``) puts that colour wherever the
-    mask is off, "photo" keeps the photo."""
+    mode "mask" or "random" (:class:`~uvatar.dva.model.TrainConfig` ``background``) puts that colour
+    wherever the mask is off, "photo" keeps the photo."""
     x, y = pixels[:, 0], pixels[:, 1]
     out = image[y, x].astype(np.float32) / 255.0
-    if mode == "mask":
+    if mode in ("mask", "random"):
         out = np.where(mask[y, x][:, None], out, np.asarray(background, np.float32)[None])
     return out
 
@@ -193,8 +193,9 @@ class Trainer:
 
     def sample(self):
         """This process's share of one global batch: (frame indices, camera indices, image textures
-        (b,4,R,R), pixel crops [(P*P, 2)]). Every process draws the whole global batch (same RNG
-        stream) and keeps samples ``rank::world``; one process keeps them all."""
+        (b,4,R,R), pixel crops [(P*P, 2)], backgrounds [(3,)] the colour each render is composited over).
+        Every process draws the whole global batch (same RNG stream) and keeps samples ``rank::world``;
+        one process keeps them all."""
         t = self.cfg.train
         n_cam = len(self.bank.cameras)
         frames = [self.rng.randrange(len(self.bank)) for _ in range(t.batch)]
@@ -206,30 +207,35 @@ class Trainer:
         if t.hide_target_view and n_cam > 1:
             views = [[v for v in vs if v != c] or [(c + 1) % n_cam] for vs, c in zip(views, cams, strict=True)]
         pixels = [patch_pixels(self.bank.masks[f][c], t.patch, self.rng) for f, c in zip(frames, cams, strict=True)]
+        if t.background == "random":
+            backgrounds = [np.array([self.rng.random() for _ in range(3)], np.float32) for _ in frames]
+        else:
+            backgrounds = [self.bank.backgrounds[c] for c in cams]
         mine = slice(self.ctx.rank, None, self.ctx.world)
-        frames, cams, views, pixels = frames[mine], cams[mine], views[mine], pixels[mine]
+        frames, cams, views, pixels, backgrounds = (frames[mine], cams[mine], views[mine], pixels[mine],
+                                                    backgrounds[mine])
         tex = torch.stack([self.bank.image_texture(f, v) for f, v in zip(frames, views, strict=False)])
-        return frames, cams, tex.to(self.device), pixels
+        return frames, cams, tex.to(self.device), pixels, backgrounds
 
     def train_step(self) -> dict:
         t = self.cfg.train
         self.model.correctives_on.fill_(self.step >= t.warmup_iters)
-        frames, cams, tex, pixels = self.sample()
+        frames, cams, tex, pixels, backgrounds = self.sample()
         fi = torch.tensor(frames)
         centers = torch.as_tensor(np.stack([self.bank.cams[c].center for c in cams]), dtype=torch.float32)
         vertices, rotvecs = self._posed(fi, self.step >= t.warmup_iters)
         out = self.model(vertices, rotvecs, tex, centers.to(self.device))
         preds, targets, alphas, masks = [], [], [], []
-        for b, (f, c, pix) in enumerate(zip(frames, cams, pixels, strict=True)):
+        for b, (f, c, pix, bg_colour) in enumerate(zip(frames, cams, pixels, backgrounds, strict=True)):
             mask = self.bank.masks[f][c]
             o, d = pixel_rays(self.bank.cams[c], pix, self.device)
-            bg = torch.as_tensor(self.bank.backgrounds[c], device=self.device)
+            bg = torch.as_tensor(bg_colour, device=self.device)
             rgb, alpha = self.model.render_rays(out, b, o, d, None, camera=self.bank.cams[c], pixels=pix)
             if self.corrections is not None:
                 rgb = self.corrections.colour(rgb, alpha, c)
             rgb = rgb + (1.0 - alpha)[:, None] * bg
             P = int(round(np.sqrt(pix.shape[0])))
-            img = target_pixels(self.bank.images[f][c], mask, pix, self.bank.backgrounds[c], t.background)
+            img = target_pixels(self.bank.images[f][c], mask, pix, bg_colour, t.background)
             preds.append(rgb.T.reshape(3, P, P))
             targets.append(torch.as_tensor(img, device=self.device).T.reshape(3, P, P))
             alphas.append(alpha.reshape(P, P))
