@@ -56,8 +56,8 @@ def test_scale_correctives_never_shrink_a_primitive_below_touching_its_neighbour
     """Under a push of constant sign (the volume prior alone; on a real capture the image losses did
     the same) Adam drives every scale corrective to its lower bound within tens of steps, where the
     clamp takes the gradient. The bound is -log(scale_factor): the boxes still touch (their
-    half-extents are the rest half-spacing), so the body stays covered. Runs saved before the option
-    keep -2."""
+    half-extents are the rest half-spacing), so the body stays covered; with 0 they keep their rest size
+    and overlap. Runs saved before the option keep -2."""
     import torch
 
     from uvatar.dva.decoders import MotionDecoder
@@ -65,20 +65,27 @@ def test_scale_correctives_never_shrink_a_primitive_below_touching_its_neighbour
     from uvatar.dva.primitives import PrimitiveConfig, apply_correctives
 
     W, B = 4, 2
+    features = torch.randn(B, 8, W, W, generator=torch.Generator().manual_seed(0))
+
+    def pushed(cfg):
+        rest = torch.full((W * W, 3), 0.01 * cfg.scale_factor)
+        torch.manual_seed(0)
+        motion = MotionDecoder(8, W, 16)
+        opt = torch.optim.Adam(motion.parameters(), lr=2e-3)
+        for _ in range(100):
+            _, _, scales = apply_correctives(torch.zeros(B, W * W, 3), torch.eye(3).expand(B, W * W, 3, 3), rest,
+                                             motion(features), cfg, True)
+            opt.zero_grad()
+            (0.01 * (scales.prod(-1) / rest.prod(-1)).mean()).backward()
+            opt.step()
+        return scales
+
     cfg = PrimitiveConfig()
     assert cfg.scale_corrective_bounds == (pytest.approx(-np.log(cfg.scale_factor)), 1.0)
-    features = torch.randn(B, 8, W, W, generator=torch.Generator().manual_seed(0))
-    rest = torch.full((W * W, 3), 0.01 * cfg.scale_factor)
-    torch.manual_seed(0)
-    motion = MotionDecoder(8, W, 16)
-    opt = torch.optim.Adam(motion.parameters(), lr=2e-3)
-    for _ in range(100):
-        _, _, scales = apply_correctives(torch.zeros(B, W * W, 3), torch.eye(3).expand(B, W * W, 3, 3), rest,
-                                         motion(features), cfg, True)
-        opt.zero_grad()
-        (0.01 * (scales.prod(-1) / rest.prod(-1)).mean()).backward()
-        opt.step()
+    scales = pushed(cfg)
     assert torch.allclose(scales, torch.full_like(scales, 0.01), rtol=1e-5)   # exactly touching
+    scales = pushed(PrimitiveConfig(min_scale_corrective=0.0))                # 0: never below the rest size,
+    assert torch.allclose(scales, torch.full_like(scales, 0.015), rtol=1e-5)  # half a spacing of overlap
     old = preset("tiny").to_dict()
     del old["primitives"]["min_scale_corrective"]
     assert DvaConfig.from_dict(old).primitives.scale_corrective_bounds == (-2.0, 1.0)
@@ -430,16 +437,17 @@ def test_run_refuses_another_body_model(capture, tmp_path):
 
 
 def test_cli_train_flags_reach_the_saved_config(capture, tmp_path):
-    """--grid, --voxels, --batch, --patch, --loss-ssim and --loss-colour-tv land in the run's saved config
-    (run.json), and --seed in its summary."""
+    """--grid, --voxels, --batch, --patch, --min-scale-corrective, --loss-ssim and --loss-colour-tv land
+    in the run's saved config (run.json), and --seed in its summary."""
     from uvatar.cli.main import main
 
     run = tmp_path / "run"
     assert main(["train", "dva", str(capture), str(run), "--preset", "tiny", "--iters", "1", "--grid", "6",
                  "--voxels", "2", "--loss-ssim", "0.4", "--loss-colour-tv", "0.3", "--batch", "2", "--patch", "12",
-                 "--seed", "7"]) == 0
+                 "--seed", "7", "--min-scale-corrective", "0"]) == 0
     saved = json.loads((run / "run.json").read_text())
     cfg = saved["config"]
     assert cfg["train"]["batch"] == 2 and cfg["train"]["patch"] == 12 and saved["summary"]["seed"] == 7
+    assert cfg["primitives"]["min_scale_corrective"] == 0.0
     assert cfg["primitives"]["grid"] == 6 and cfg["decoder"]["voxels"] == 2 and cfg["loss"]["ssim"] == 0.4
     assert cfg["loss"]["colour_tv"] == 0.3

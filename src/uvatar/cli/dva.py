@@ -43,8 +43,13 @@ def _flags() -> tuple[ConfigFlags, ...]:
                                             "the mask) or photo (the raw photo; a clean studio backdrop)",
                               "hide_target_view": "leave the camera a sample is scored in out of its image "
                                                   "input, as at test time"}),
-            ConfigFlags(PrimitiveConfig, fields=("grid",), presets={k: c.primitives for k, c in PRESETS.items()},
-                        help={"grid": "primitives per UV side W (K = W*W)"}),
+            ConfigFlags(PrimitiveConfig, fields=("grid", "min_scale_corrective"),
+                        presets={k: c.primitives for k, c in PRESETS.items()},
+                        help={"grid": "primitives per UV side W (K = W*W)",
+                              "min_scale_corrective": "lower bound of each primitive's learned log scale: 0 "
+                                                      "keeps every box at least its rest size, which overlaps "
+                                                      "its neighbours (no seams between boxes); none: "
+                                                      "-log(scale_factor), boxes may shrink until they just touch"}),
             ConfigFlags(DecoderConfig, fields=("voxels", "depth_colour"), presets={k: c.decoder for k, c in PRESETS.items()},
                         help={"voxels": "voxels per primitive side S",
                               "depth_colour": "colour varies along each primitive's depth too (off: one colour "
@@ -93,7 +98,7 @@ def register(cli) -> None:
     p.add_argument("capture", help="multi-view capture folder")
     p.add_argument("out", help="run folder (checkpoint.pt, run.json, tb/)")
     p.add_argument("--preset", default="cpu", choices=tuple(PRESETS),
-                   help="config preset: cpu (K=576, S=8, 18 min), paper (K=4096, S=16), tiny (tests)")
+                   help="config preset: cpu (K=2304, S=4, 18 min), paper (K=4096, S=16), tiny (tests)")
     budget.add_to(p)
     target.add_to(p)
     train.add_to(p)

@@ -116,15 +116,20 @@ class DvaConfig:
         return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
 
 
-def _preset(grid, voxels, hidden, step, pose_ch=16, img_ch=16, **train) -> DvaConfig:
+def _preset(grid, voxels, hidden, step, pose_ch=16, img_ch=16, loss=None, min_scale_corrective=None,
+            **train) -> DvaConfig:
+    """A :class:`DvaConfig` of the given sizes; ``loss``: LossConfig fields replacing its defaults;
+    ``min_scale_corrective``: PrimitiveConfig's; ``train``: TrainConfig fields."""
     cfg = DvaConfig()
     cfg.primitives.grid = grid
+    cfg.primitives.min_scale_corrective = min_scale_corrective
     cfg.decoder.voxels = voxels
     cfg.decoder.hidden = hidden
     cfg.raymarch.step = step
     cfg.features.pose_channels = pose_ch
     cfg.features.image_channels = img_ch
     cfg.train = dataclasses.replace(cfg.train, **train)
+    cfg.loss = dataclasses.replace(cfg.loss, **(loss or {}))
     return cfg
 
 
@@ -132,10 +137,12 @@ PRESETS = {
     # the paper: K = 4096 primitives of 16^3 voxels (GPU territory)
     "paper": _preset(64, 16, 256, 0.005, 64, 64, batch=4, patch=128, lr=5e-4, warmup_iters=2000,
                      all_views_iters=1000, minutes=24 * 60.0),
-    # a 2-core CPU in ~20 minutes: K = 576 primitives of 8^3 voxels, the largest grid whose training
-    # step with the fused marcher takes no longer than K = 256's with the torch marcher
-    # (bench/dva_train.py, docs/results.md "DVA marcher kernel"); runs saved before kept K = 256
-    "cpu": _preset(24, 8, 32, 0.012),
+    # a 2-core CPU in ~20 minutes: K = 2304 primitives of 4^3 voxels, the SSIM term at 0.4, the colour
+    # smoothness at 0.3 and boxes never smaller than their rest size (no seams), the best of runs 35-51
+    # on the real recording (docs/real.md); the voxel slab is 192^2 texels as at K = 576 of 8^3 (the
+    # preset from the fused marcher until 2026-11-26, the largest grid of 8^3 whose step took no longer
+    # than K = 256's with the torch marcher), so a step costs the same
+    "cpu": _preset(48, 4, 32, 0.012, loss={"ssim": 0.4, "colour_tv": 0.3}, min_scale_corrective=0.0),
     # unit tests and smoke runs
     "tiny": _preset(8, 4, 8, 0.03, 4, 4, batch=1, patch=16, warmup_iters=2, all_views_iters=3,
                     checkpoint_every=2, minutes=1.0),
