@@ -15,7 +15,10 @@ Correctives from the motion branch, 9 values per primitive (switched on after a 
 the body's surface stays covered (with the earlier ``lo = -2`` every scale corrective of a real
 capture ran to its bound within tens of steps of the warm-up's end, since every loss asks for
 smaller boxes there and Adam steps do not shrink with the gradient; the clamp then took the gradient
-and the avatar vanished: ``docs/real.md`` §4).
+and the avatar vanished: ``docs/real.md`` §4). At that bound the volume prior holds the boxes just
+touching, and the marcher's border fade leaves a strip of thin density between neighbours: seams a new
+view sees through. ``min_scale_corrective = 0`` (the ``cpu`` preset) keeps every box at least its rest
+size, overlapping its neighbours by ``scale_factor`` (``docs/real.md`` runs 46-51).
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ class PrimitiveConfig:
     > 1 overlap). min_scale / max_scale: clamp on the initial half-extent, metres.
     max_translation (m) / max_rotation (rad): size of a unit corrective. min_scale_corrective: lower
     bound of the log scale corrective (None: ``-log(scale_factor)``, the size at which neighbouring
-    primitives touch; runs saved before the option used -2)."""
+    primitives touch; 0: never below the rest size, so neighbours keep their overlap; runs saved before
+    the option used -2)."""
 
     grid: int = 16
     scale_factor: float = 1.5
