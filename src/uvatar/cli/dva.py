@@ -35,8 +35,7 @@ def _flags() -> tuple[ConfigFlags, ...]:
             ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view"),
                         choices={"background": BACKGROUNDS}, presets={k: c.train for k, c in PRESETS.items()},
                         help={"batch": "(frame, camera) samples per step",
-                              "patch": "side of the square pixel crop rendered per sample, pixels (the decoders "
-                                       "run once per sample, so a larger crop is nearly free)",
+                              "patch": "side of the square pixel crop rendered per sample, pixels",
                               "background": "what the render is compared with outside the person's mask: "
                                             "mask (the camera's background colour; real rooms), random (a "
                                             "new random colour per sample and step: the opacity must match "
