@@ -116,13 +116,11 @@ class DvaConfig:
         return cls(**{k: kinds[k](**v) for k, v in d.items() if k in kinds})
 
 
-def _preset(grid, voxels, hidden, step, pose_ch=16, img_ch=16, loss=None, min_scale_corrective=None,
-            **train) -> DvaConfig:
-    """A :class:`DvaConfig` of the given sizes; ``loss``: LossConfig fields replacing its defaults;
-    ``min_scale_corrective``: PrimitiveConfig's; ``train``: TrainConfig fields."""
+def _preset(grid, voxels, hidden, step, pose_ch=16, img_ch=16, primitives=None, loss=None, **train) -> DvaConfig:
+    """A :class:`DvaConfig` of the given sizes; ``primitives`` / ``loss``: PrimitiveConfig / LossConfig
+    fields replacing their defaults; ``train``: TrainConfig fields."""
     cfg = DvaConfig()
-    cfg.primitives.grid = grid
-    cfg.primitives.min_scale_corrective = min_scale_corrective
+    cfg.primitives = dataclasses.replace(cfg.primitives, grid=grid, **(primitives or {}))
     cfg.decoder.voxels = voxels
     cfg.decoder.hidden = hidden
     cfg.raymarch.step = step
@@ -142,7 +140,8 @@ PRESETS = {
     # on the real recording (docs/real.md); the voxel slab is 192^2 texels as at K = 576 of 8^3 (the
     # preset from the fused marcher until 2026-11-26, the largest grid of 8^3 whose step took no longer
     # than K = 256's with the torch marcher), so a step costs the same
-    "cpu": _preset(48, 4, 32, 0.012, loss={"ssim": 0.4, "colour_tv": 0.3}, min_scale_corrective=0.0),
+    "cpu": _preset(48, 4, 32, 0.012, primitives={"min_scale_corrective": 0.0},
+                   loss={"ssim": 0.4, "colour_tv": 0.3}),
     # unit tests and smoke runs
     "tiny": _preset(8, 4, 8, 0.03, 4, 4, batch=1, patch=16, warmup_iters=2, all_views_iters=3,
                     checkpoint_every=2, minutes=1.0),
