@@ -12,7 +12,7 @@ phase_start=$SECONDS
 phase() { echo "[test.sh] $1: $((SECONDS - phase_start)) s" >&2; phase_start=$SECONDS; }
 
 python -m pip install --quiet torch==2.13.0
-python -m pip install --quiet -e ".[test,fit,cluster,kernels,formats]"   # fit: the real BlazePose detector; cluster: Ray; kernels: Warp; formats: FBX/glTF motions
+python -m pip install --quiet -e ".[test,fit,cluster,kernels,formats,volumetric]"   # fit: the real BlazePose detector; cluster: Ray; kernels: Warp; formats: FBX/glTF motions; volumetric: Draco/KTX2
 phase "install"
 
 if command -v apt-get >/dev/null 2>&1 && ! command -v chromium >/dev/null 2>&1; then

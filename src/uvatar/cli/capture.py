@@ -52,12 +52,18 @@ def _import_flags() -> ConfigFlags:
 
 
 def _register_import(cli) -> None:
-    p = cli.command("capture import", help="make a capture folder from videos (or image folders) + a calibration",
+    p = cli.command("capture import", help="make a capture folder from videos + a calibration, or from a "
+                                           "volumetric video (mesh sequence)",
                     description="Import a multi-view recording: SRC holds one video per camera (SRC/videos/*.mp4 "
                                 "or SRC/*.mp4) or one image folder per camera (SRC/images/<cam>/), and a "
                                 "calibration (EasyMocap intri.yml/extri.yml, Qualisys .qca[.txt], Pose2Sim or "
                                 "OpenCV-style .toml/.json). Writes OUT/capture.json, OUT/cameras/ (+Y up, metres) "
-                                "and OUT/images/<cam>/. Resumes an interrupted import.")
+                                "and OUT/images/<cam>/. Or import a volumetric video: a UVOL 2 folder "
+                                "(geometry_*/NNNNN.drc Draco meshes, texture_*/ KTX2 array textures or per-frame "
+                                "images, a manifest when there is one) or a folder of per-frame .obj/.ply/.glb/.drc "
+                                "meshes with their textures; writes OUT/scans/<frame>.ply + .png in metres, +Y up "
+                                "(--units/--up where the files do not say; --fps where no manifest does; needs "
+                                "pip install 'uvatar[volumetric]' for Draco/KTX2). Resumes an interrupted import.")
     p.add_argument("src", help="recording folder")
     p.add_argument("out", help="output capture folder")
     p.add_argument("--calibration", default=None, help="calibration file or folder (default: found in SRC)")
@@ -72,9 +78,14 @@ def _import(args) -> int:
     from uvatar.capture.importers.pipeline import import_capture
     from uvatar.errors import options_as_input_error
 
+    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence, is_mesh_sequence
+
     with options_as_input_error("uvatar capture import options"):
         cfg = _import_flags().config(args)
-    summary = import_capture(args.src, args.out, cfg, calibration=args.calibration, progress=not args.no_progress)
+    if is_mesh_sequence(args.src) and args.calibration is None:
+        summary = import_mesh_sequence(args.src, args.out, cfg, progress=not args.no_progress)
+    else:
+        summary = import_capture(args.src, args.out, cfg, calibration=args.calibration, progress=not args.no_progress)
     print(json.dumps(summary, indent=2))
     return 0
 

@@ -279,7 +279,7 @@ def find_calibration(folder: Path) -> Path | None:
     return None
 
 
-def _up_rotation(up: str) -> np.ndarray:
+def up_rotation(up: str) -> np.ndarray:
     """Rotation W (3, 3) taking the source world (whose up axis is ``up``) to uvatar's +Y up."""
     axis = {"x": 0, "y": 1, "z": 2}[up[1]]
     u = np.zeros(3)
@@ -301,7 +301,7 @@ def to_uvatar_world(calib: Calibration, up: str | None = None, units: str | None
     ``X_uvatar = S @ X_source`` (homogeneous; source points in the source's units).
 
     ``X_cam = R X_s + T`` with ``X_u = s W X_s`` gives ``R' = R Wᵀ``, ``T' = s T`` (s: metres per
-    source unit, W: :func:`_up_rotation`). ``up`` / ``units`` override the calibration's own.
+    source unit, W: :func:`up_rotation`). ``up`` / ``units`` override the calibration's own.
     """
     up = up or calib.up
     units = units or calib.units
@@ -309,7 +309,7 @@ def to_uvatar_world(calib: Calibration, up: str | None = None, units: str | None
         raise InputError("up", f"must be one of {', '.join(UP_AXES)}, got {up!r}")
     if units not in UNIT_SCALE:
         raise InputError("units", f"must be one of {', '.join(UNIT_SCALE)}, got {units!r}")
-    W, s = _up_rotation(up), UNIT_SCALE[units]
+    W, s = up_rotation(up), UNIT_SCALE[units]
     out = {name: Camera(name=cam.name, K=cam.K, R=cam.R @ W.T, T=cam.T * s, width=cam.width,
                         height=cam.height, dist=cam.dist) for name, cam in calib.cameras.items()}
     S = np.eye(4)
