@@ -247,3 +247,39 @@ def test_evaluate_uv_r2_distances_and_a_second_avatar(setup):
     assert sorted(sum((b["frames"] for b in m["distance_bins"]), [])) == sorted(m["frames"])
     assert m["avatars"]["twin"]["conditioning"] == "global"
     json.dumps(m)
+
+
+def _scans_only(cap, dst):
+    """The toy capture as a real take comes: scans, fits and capture.json; no gt/, cameras or images."""
+    import shutil
+
+    shutil.copytree(cap, dst, ignore=shutil.ignore_patterns("gt", "cameras", "images", "masks"))
+    return dst
+
+
+def test_evaluate_a_scan_only_take_by_region_both_ways_and_against_its_own_bake(setup, tmp_path):
+    from uvatar.body.masks import REGION_NAMES
+
+    root, body, cap, baked = setup
+    take = _scans_only(cap, tmp_path / "take")
+    train = json.loads((baked / "dataset.json").read_text())["selection"]["train"]
+    frames = ("000004", train[0])  # a held-out frame and a training frame
+    m = evaluate_avatar(root / "avatar", take, EvalConfig(progress=False, frames=frames, orbit_views=2, orbit_size=48,
+                                                          pose_source="fit"), body=body)
+    assert "2 virtual cameras" in m["protocol"] and "48x48 px" in m["protocol"] and m["cameras"] == 2
+    assert m["own_bake_frames"] == list(frames)
+    for res in (m["avh"], *m["baselines"].values()):
+        g = res["scan_geometry"]
+        assert g["avatar_to_scan_mm"] >= 0 and g["scan_to_avatar_mm"] >= 0
+        assert res["geometry_mm"] == pytest.approx(0.5 * (g["avatar_to_scan_mm"] + g["scan_to_avatar_mm"]))
+        assert res["regions"] and set(res["regions"]) <= set(REGION_NAMES)  # the toy tube has no torso joint
+        for values in res["regions"].values():
+            assert {"psnr_db", "ssim", "psnr_db_inside_both", "chamfer_mm", "texture_r2_own_bake"} <= set(values)
+    # known answer: on its own training frame, the nearest training pose is that frame: its maps are the
+    # frame's own bake, so its texture R² against the own bake is 1 on that frame
+    [entry] = [e for e in m["per_frame"] if e["frame"] == train[0]]
+    assert entry["nearest_training_frame"] == train[0]
+    assert entry["nearest_pose_texture_r2_own_bake"] == pytest.approx(1.0, abs=1e-6)
+    assert m["baselines"]["mean_texture"]["texture_r2_own_bake"] < 1.0
+    json.dumps(m)
+

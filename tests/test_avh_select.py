@@ -122,3 +122,28 @@ def test_select_cli_on_baked_dataset_and_capture(tmp_path):
     assert len(chosen) == 4 and names[1] not in chosen and names[2] not in chosen
     assert all(len(c["candidates"]) >= 1 for c in sel["clusters"])
     assert main(["select", str(tmp_path / "missing")]) == 1
+
+
+def test_frames_in_range_is_half_open_on_take_numbers():
+    from uvatar.capture.layout import frames_in_range, is_frame_range
+    from uvatar.errors import InputError
+
+    frames = [f"{i:06d}" for i in range(0, 150, 1)]
+    assert frames_in_range(frames, "0:120") == frames[:120]
+    assert frames_in_range(frames, "120:") == frames[120:] and frames_in_range(frames, ":3") == frames[:3]
+    assert is_frame_range("120:150") and not is_frame_range("000120") and not is_frame_range("1,2")
+    with pytest.raises(InputError, match=r"--frames: no frame in 200:300 \(the capture's frames are 0..149\)"):
+        frames_in_range(frames, "200:300")
+    with pytest.raises(InputError, match="is empty"):
+        frames_in_range(frames, "5:5")
+
+
+def test_select_from_baked_only_inside_the_range(tmp_path):
+    from tests.fixtures.fake_baked import make_fake_baked_dataset
+    from uvatar.avh.bake.select import select_from_baked
+
+    root = make_fake_baked_dataset(tmp_path / "baked", num_frames=10)
+    sel = select_from_baked(root, SelectConfig(n_train=3, n_val=1), frame_range="2:6")
+    assert set(sel.train + sel.val) <= {"000002", "000003", "000004", "000005"} and len(sel.train) == 3
+    info = json.loads((root / "dataset.json").read_text())
+    assert info["selection_info"]["frame_range"] == "2:6" and info["selection"]["train"] == sel.train

@@ -88,3 +88,23 @@ def test_cli_body_render(tmp_path):
     assert main(["body", "render", str(out), "--size", "48", "--parts"]) == 0
     img = iio.imread(out)
     assert img.ndim == 3 and img.shape[0] >= 48 and (img < 250).any()
+
+
+def test_regions_follow_the_skinning_and_cover_the_charts():
+    from uvatar.body import load_body_model
+    from uvatar.body.masks import REGION_NAMES, part_masks, region_label_map, region_vertex_labels
+    from uvatar.geometry import rasterize_uv
+
+    body = load_body_model("anny")
+    labels = region_vertex_labels(body)
+    t = body.template
+    assert labels.shape == (len(t.vertices),) and set(np.unique(labels)) == set(range(len(REGION_NAMES)))
+    w = np.asarray(t.skin_weights)
+    for joint, region in (("l_wrist", "hands"), ("r_knee", "legs"), ("l_elbow", "arms"), ("spine2", "torso")):
+        j = body.semantic_joints[joint]
+        own = w[:, j] > 0.9 * w[:, j].max()  # the vertices this joint moves most
+        assert own.any() and (labels[own] == REGION_NAMES.index(region)).all(), joint
+    lmap = region_label_map(body, 128)
+    assert ((lmap >= 0) == rasterize_uv(t.uvs, t.uv_faces, 128).mask).all()
+    face = part_masks(body, 128)["face"]  # the face region is the face part mask, up to texels on its border
+    assert (lmap[face] == REGION_NAMES.index("face")).mean() > 0.9

@@ -31,6 +31,18 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.avh.data import load_baked_frames, resample_map, rotvec_to_rotmat
+from uvatar.avh.eval_scan import (
+    OWN_BAKE_PROTOCOL,
+    SCAN_PROTOCOL,
+    RegionLabels,
+    baked_frame_names,
+    geometry_summary,
+    own_bake_r2,
+    pixel_regions,
+    pool_regions,
+    region_image_metrics,
+    scan_geometry_mm,
+)
 from uvatar.avh.model import with_orientation
 from uvatar.avh.pose_metrics import R2Sums, distance_bins, pose_distance_deg
 from uvatar.avh.poses import heldout_frames
@@ -76,13 +88,28 @@ class EvalConfig:
     sheets_per_camera: bool = False
     pose_source: str = "refined"   # "refined": the fit refined against the frame's scan, as bake does for
                                    # training frames; "fit": the capture's fit as is (pose error included)
+    orbit_views: int = 4           # virtual cameras around the person when the capture has none (scans only)
+    orbit_size: int = 512          # their image size (pixels, square)
 
     def __post_init__(self) -> None:
         check_values([
             (self.image_size is None or self.image_size >= 16,
              f"image_size must be at least 16 pixels, got {self.image_size}"),
             (self.pose_source in POSE_PROTOCOL, f"pose_source must be one of {', '.join(POSE_PROTOCOL)}, "
-                                                f"got {self.pose_source!r}")])
+                                                f"got {self.pose_source!r}"),
+            (1 <= self.orbit_views <= 64, f"orbit_views must be in 1..64, got {self.orbit_views}"),
+            (16 <= self.orbit_size <= 4096, f"orbit_size must be in 16..4096 pixels, got {self.orbit_size}")])
+
+
+ORBIT_DISTANCE_M = 3.0    # virtual cameras' distance to the scan's centre (40° field of view)
+ORBIT_ELEVATION_DEG = 10.0
+
+
+def orbit_protocol(config: EvalConfig) -> str:
+    return (f"; cameras: the capture has none, so {config.orbit_views} virtual cameras evenly spaced in azimuth "
+            f"around the +Y axis through each frame's scan centre (azimuth 0 on +Z), {ORBIT_DISTANCE_M:g} m away, "
+            f"{ORBIT_ELEVATION_DEG:g} deg above, 40 deg field of view, {config.orbit_size}x{config.orbit_size} px, "
+            "white background, the real textured scan and each method rendered from the same cameras")
 
 
 POSE_PROTOCOL = {
@@ -288,6 +315,11 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     geometry = {m: [] for m in methods}
     r2 = {"texture": R2Sums(), "displacement": R2Sums()}
     per_frame, sheets = [], []
+    regions = RegionLabels(runtime)
+    region_views = {m: [] for m in methods}
+    scan_geometry = {m: [] for m in methods}
+    own_frames = set(baked_frame_names(baked_dir)) & set(frames)  # eval frames baked on their own too
+    own_r2 = regions.own_bake_r2(runtime, baselines) if own_frames else None
     for frame in tqdm(frames, desc="eval avh", disable=not config.progress):
         try:
             fit, scan = capture.load_fit(frame), capture.load_scan(frame)
@@ -311,7 +343,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         rotations = runtime.skinning_rotations(pose[None])[0]
         meshes = {m: runtimes.get(m, runtime).mesh(base, t, d, Rh, rotations=rotations) for m, (t, d) in maps.items()}
         cameras = list(cams.values()) if cams else orbit_cameras(
-            0.5 * (scan.vertices.min(0) + scan.vertices.max(0)), 3.0, 4, 10.0, width=256, height=256)
+            0.5 * (scan.vertices.min(0) + scan.vertices.max(0)), ORBIT_DISTANCE_M, config.orbit_views,
+            ORBIT_ELEVATION_DEG, width=config.orbit_size, height=config.orbit_size)
         cameras = [scaled_camera(c, config.image_size) for c in cameras[: config.max_cameras or None]]
         casters = {m: RayCaster(mesh.vertices, mesh.faces) for m, mesh in meshes.items()}
         gt_caster = RayCaster(scan.vertices, scan.faces)
@@ -327,6 +360,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
                 r = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture,
                                 raycaster=casters[m])
                 results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask))
+                pix = pixel_regions(casters[m], cam, regions.face_labels(mesh), r.mask | gt.mask)
+                region_views[m].append(region_image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, pix))
                 row.append(r.rgb)
                 masks.append(r.mask)
                 labels.append(f"{SHORT_NAMES.get(m, m.replace('_', ' '))} {results[m][-1]['psnr_db']:.1f} dB")
@@ -345,6 +380,13 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
                 geometry[m].append(err)
                 entry[f"{m}_geometry_mm"] = float(err.mean()) if len(err) else None
             entry.update(_uv_r2(runtime, baselines, maps, base, Rh, rotations, gt_maps, mask, r2))
+        else:  # a real take: the scan is the only truth for the geometry
+            for m, mesh in meshes.items():
+                part = scan_geometry_mm(mesh.vertices, mesh.faces, regions.face_labels(mesh), scan.vertices, scan.faces)
+                scan_geometry[m].append(part)
+                entry[f"{m}_chamfer_mm"] = float(0.5 * (part["avatar_to_scan"].mean() + part["scan_to_avatar"].mean()))
+        if own_r2 is not None and frame in own_frames:
+            entry.update(own_bake_r2(own_r2, baked_dir, frame, runtime, baselines, maps))
         for m in methods:
             n = len(cameras)
             for key in ("psnr_db", "psnr_db_inside_both"):
@@ -356,8 +398,23 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     for kind, sums in r2.items():
         for m, value in sums.r2().items():
             summary[m][f"{kind}_r2"] = value
+    own = own_r2.summary() if own_r2 is not None and own_r2.frames else {}
+    for m in methods:
+        if scan_geometry[m]:
+            summary[m]["scan_geometry"] = geometry_summary(scan_geometry[m])
+            summary[m]["geometry_mm"] = summary[m]["scan_geometry"]["chamfer_mm"]
+        if m in own:
+            summary[m].update({k: v for k, v in own[m].items() if k != "regions"})
+        summary[m]["regions"] = _merge_regions(pool_regions(region_views[m]),
+                                                   summary[m].get("scan_geometry", {}).get("regions", {}),
+                                                   own.get(m, {}).get("regions", {}))
     conditioning = {m: rt.meta.get("model_config", {}).get("conditioning", "global") for m, rt in runtimes.items()}
-    out = {"protocol": PROTOCOL + POSE_PROTOCOL[config.pose_source], "pose_source": config.pose_source,
+    protocol = PROTOCOL + POSE_PROTOCOL[config.pose_source] + ("" if cams else orbit_protocol(config))
+    if any(scan_geometry.values()):
+        protocol += SCAN_PROTOCOL
+    if own_r2 is not None and own_r2.frames:
+        protocol += OWN_BAKE_PROTOCOL
+    out = {"protocol": protocol, "pose_source": config.pose_source, "own_bake_frames": own_r2.frames if own_r2 else [],
            "split": split, "frames": [e["frame"] for e in per_frame],
            "cameras": len(cameras), "camera_names": camera_names, "avatar": str(avatar_dir), "capture": str(capture_root),
            "avh": summary["avh"], "others": {m: summary[m] for m in runtimes if m != "avh"},
@@ -368,6 +425,14 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
            "per_frame": per_frame, "config": asdict(config)}
     if image_dir is not None:
         out["images"] = write_comparison_images(image_dir, sheets)
+    return out
+
+
+def _merge_regions(*parts: dict) -> dict:
+    out: dict = {}
+    for part in parts:
+        for region, values in part.items():
+            out.setdefault(region, {}).update(values)
     return out
 
 

@@ -46,6 +46,32 @@ def frame_name(frame) -> str:
     return f"{frame:06d}" if isinstance(frame, int) else str(frame)
 
 
+def is_frame_range(spec) -> bool:
+    """True for a half-open range of take frame numbers such as ``"0:120"``, ``"120:"`` or ``":30"``."""
+    import re
+
+    return isinstance(spec, str) and re.fullmatch(r"\s*\d*\s*:\s*\d*\s*", spec) is not None
+
+
+def frames_in_range(frames, spec: str, flag: str = "--frames") -> list[str]:
+    """The frame names whose take number (the name read as an integer: ``000120`` is 120) lies in the
+    half-open range ``spec`` = ``"A:B"`` (as in Python; A or B may be left out), in capture order.
+
+    InputError naming ``flag`` when the range is malformed or holds none of ``frames``."""
+    if not is_frame_range(spec):
+        raise InputError(flag, f"expected a range of frame numbers A:B (half-open, e.g. 0:120), got {spec!r}")
+    lo, hi = (part.strip() for part in spec.split(":"))
+    start, stop = int(lo) if lo else 0, int(hi) if hi else None
+    if stop is not None and stop <= start:
+        raise InputError(flag, f"the range {spec} is empty (B must be greater than A)")
+    numbered = [(f, int(f)) for f in map(str, frames) if f.isdigit()]
+    chosen = [f for f, n in numbered if n >= start and (stop is None or n < stop)]
+    if not chosen:
+        have = f"{numbered[0][1]}..{numbered[-1][1]}" if numbered else "none numbered"
+        raise InputError(flag, f"no frame in {spec} (the capture's frames are {have})")
+    return chosen
+
+
 def write_capture_info(root: str | Path, frames: list[str], fps: float = 25.0, body_model: str = "anny",
                        shapes=None, provenance: dict | None = None, **extra) -> dict:
     """Write ``root/capture.json`` atomically and return the dict written."""

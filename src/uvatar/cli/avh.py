@@ -84,12 +84,14 @@ def _flags() -> dict[str, ConfigFlags]:
         "animate_call": ConfigFlags(animate, fields=("mesh_dir", "device"), rename={"mesh_dir": "obj_dir"}, help={
             "mesh_dir": "also write one mesh per frame here", "device": "onnxruntime device (cpu or cuda)"}),
         "eval": ConfigFlags(
-            EvalConfig, fields=("pose_source", "sheets_per_camera", "image_size"),
+            EvalConfig, fields=("pose_source", "sheets_per_camera", "image_size", "orbit_views", "orbit_size"),
             rename={"sheets_per_camera": "sheet_per_camera"}, choices={"pose_source": ("refined", "fit")}, help={
                 "pose_source": "held-out poses: the capture's fit refined against the frame's scan as bake does for "
                                "training frames (measures the avatar), or the fit as is (includes fit noise)",
                 "sheets_per_camera": "one comparison image per frame x camera (default: per frame, first camera)",
-                "image_size": "render width (none: the cameras')"}),
+                "image_size": "render width (none: the cameras')",
+                "orbit_views": "virtual cameras around the person for a capture without cameras (scans only)",
+                "orbit_size": "their image size in pixels"}),
     }
 
 
@@ -133,7 +135,9 @@ def register(cli) -> None:
 
     p = cli.command("eval avh", help="evaluate an avatar on a capture's held-out poses vs two baselines")
     p.add_argument("avatar", help="avatar folder (uvatar export)")
-    p.add_argument("capture", help="capture folder with gt/ (synthetic)")
+    p.add_argument("capture", help="capture folder: with gt/ (synthetic) or scans only (a real take: the textured "
+                                   "scans are the truth; the eval frames' own baked maps, where the baked data "
+                                   "holds them, score the pose-dependent part)")
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument("--images", default=None, help="write comparison images here")
     p.add_argument("--baked", dest="baked_dir", default=None,
@@ -142,8 +146,9 @@ def register(cli) -> None:
                    help="another avatar folder evaluated beside it on the same poses (e.g. trained with the other "
                         "--conditioning); repeatable; named by its folder in the JSON's others")
     p.add_argument("--frames", default=None,
-                   help="a count N (the first N held-out frames) or frame names, comma separated "
-                        "(e.g. 000054,000055, the frames uvatar eval dva reports)")
+                   help="a count N (the first N held-out frames), frame names, comma separated "
+                        "(e.g. 000054,000055, the frames uvatar eval dva reports), or a half-open range of take "
+                        "frame numbers A:B (e.g. 120:150: the frames `uvatar select --frames 0:120` never chose)")
     p.add_argument("--cameras", default=None,
                    help="a count N (the first N cameras) or camera names, comma separated (e.g. 03,07)")
     flags["eval"].add_to(p)
@@ -224,7 +229,12 @@ def _eval(args) -> int:
 
     if args.json:
         check_output_location(args.json)  # before minutes of rendering
-    max_frames, frames = _count_or_names(args.frames, "--frames")
+    from uvatar.capture.layout import Capture, frames_in_range, is_frame_range
+
+    if args.frames and is_frame_range(args.frames):
+        max_frames, frames = None, tuple(frames_in_range(Capture(args.capture).frames, args.frames))
+    else:
+        max_frames, frames = _count_or_names(args.frames, "--frames")
     max_cameras, cameras = _count_or_names(args.cameras, "--cameras")
     with options_as_input_error("uvatar eval avh options"):
         cfg = _flags()["eval"].config(args, max_frames=max_frames, max_cameras=max_cameras, frames=frames,

@@ -77,7 +77,8 @@ def register(cli) -> None:
     p.add_argument("capture", help="capture folder (capture.json, scans/, fits/)")
     p.add_argument("out", help="output folder (dataset.json, frames/, rejected/, preview/)")
     p.add_argument("--workers", type=int, default=1, help="processes baking frames in parallel")
-    p.add_argument("--frames", default=None, help="comma-separated frame names (default: all)")
+    p.add_argument("--frames", default=None,
+                   help="comma-separated frame names, or a half-open range of take frame numbers A:B (default: all)")
     p.add_argument("--frames-from", default=None, metavar="SELECTION_JSON",
                    help="bake the frames of `uvatar select CAPTURE --from-capture`, replacing rejected ones")
     p.add_argument("--overwrite", action="store_true", help="bake frames again even when already on disk")
@@ -98,6 +99,9 @@ def register(cli) -> None:
     s.add_argument("--from-capture", action="store_true",
                    help="select from the capture's fits before baking (writes a file for bake --frames-from)")
     s.add_argument("-o", "--out", default=None, help="selection file for --from-capture (default CAPTURE/selection.json)")
+    s.add_argument("--frames", default=None, metavar="A:B",
+                   help="choose only among frames whose take number lies in this half-open range (e.g. 0:120 "
+                        "keeps 120:150 unseen for `uvatar eval --frames 120:150`)")
     s.add_argument("--json", action="store_true", help="print the selection as JSON")
     s.set_defaults(func=_select)
 
@@ -128,7 +132,12 @@ def _bake(args) -> int:
 
         info = read_dataset_info(args.out)
     else:
-        frames = [f.strip() for f in args.frames.split(",")] if args.frames else None
+        from uvatar.capture.layout import Capture, frames_in_range, is_frame_range
+
+        if args.frames and is_frame_range(args.frames):
+            frames = frames_in_range(Capture(args.capture).frames, args.frames)
+        else:
+            frames = [f.strip() for f in args.frames.split(",")] if args.frames else None
         requested = list(bake_capture(args.capture, args.out, cfg, frames, args.workers, progress, args.overwrite,
                                       executor))
         from uvatar.avh.bake.dataset import read_dataset_info
@@ -174,10 +183,10 @@ def _select(args) -> int:
     with options_as_input_error("uvatar select options"):
         cfg = _flags()[3].config(args)
     if args.from_capture:
-        sel, out = select_from_capture(args.path, args.out, cfg)
+        sel, out = select_from_capture(args.path, args.out, cfg, frame_range=args.frames)
         where = str(out)
     else:
-        sel = select_from_baked(args.path, cfg)
+        sel = select_from_baked(args.path, cfg, frame_range=args.frames)
         where = f"{args.path}/dataset.json"
     print(f"selected {len(sel.train)} training and {len(sel.val)} validation frames -> {where}", file=sys.stderr)
     if args.json:

@@ -308,11 +308,12 @@ def sample_texture(image, uv):
     return out
 
 
-def sample_surface(vertices, faces, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def sample_surface(vertices, faces, count: int, seed: int = 0, with_faces: bool = False):
     """``count`` points spread uniformly by area over a triangle mesh, with their face normals.
 
-    vertices (V, 3), faces (F, 3) -> points (count, 3) float32, unit normals (count, 3) float32.
-    Deterministic for a given ``seed``. Degenerate (zero-area) meshes give an InputError."""
+    vertices (V, 3), faces (F, 3) -> points (count, 3) float32, unit normals (count, 3) float32, and
+    with ``with_faces`` the face index (count,) of each point. Deterministic for a given ``seed``.
+    Degenerate (zero-area) meshes give an InputError."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     tri = v[f]
@@ -327,4 +328,6 @@ def sample_surface(vertices, faces, count: int, seed: int = 0) -> tuple[np.ndarr
     bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
     points = (tri[face] * bary[:, :, None]).sum(1)
     normals = cross[face] / np.maximum(area[face], 1e-30)[:, None]
+    if with_faces:
+        return points.astype(np.float32), normals.astype(np.float32), face
     return points.astype(np.float32), normals.astype(np.float32)

@@ -115,8 +115,9 @@ def select_frames(frames, poses, joints, config: SelectConfig | None = None, exc
     return Selection(train, val, clusters)
 
 
-def select_from_baked(baked_root, config: SelectConfig | None = None) -> Selection:
-    """Select among the accepted frames of a baked dataset; writes ``dataset.json["selection"]``."""
+def select_from_baked(baked_root, config: SelectConfig | None = None, frame_range: str | None = None) -> Selection:
+    """Select among the accepted frames of a baked dataset; writes ``dataset.json["selection"]``.
+    ``frame_range``: only frames whose take number lies in this half-open range ("0:120")."""
     from uvatar.avh.bake.dataset import frame_path, load_baked_frame, read_dataset_info, write_dataset_info
 
     root = Path(baked_root)
@@ -124,6 +125,10 @@ def select_from_baked(baked_root, config: SelectConfig | None = None) -> Selecti
     frames = [f for f in info.get("frames_baked", []) if frame_path(root, f).is_file()]
     if not frames:
         raise InputError(root / "frames", "no accepted baked frames to select from")
+    if frame_range:
+        from uvatar.capture.layout import frames_in_range
+
+        frames = frames_in_range(frames, frame_range)
     poses = [load_baked_frame(frame_path(root, f), ["pose"])["pose"].astype(np.float64) for f in frames]
     joints = info.get("conditioning_joints")
     if joints is None:
@@ -132,16 +137,18 @@ def select_from_baked(baked_root, config: SelectConfig | None = None) -> Selecti
         joints = load_body_model(info.get("body_model", {}).get("name", "anny")).conditioning_joints
     sel = select_frames(frames, np.stack(poses), joints, config, exclude=info.get("heldout_frames", []))
     info["selection"] = {"train": sel.train, "val": sel.val}
-    info["selection_info"] = {"source": "baked", "clusters": len(sel.clusters),
+    info["selection_info"] = {"source": "baked", "clusters": len(sel.clusters), "frame_range": frame_range,
                               "config": vars(config or SelectConfig())}
     write_dataset_info(root, info)
     return sel
 
 
-def select_from_capture(capture_root, out_path=None, config: SelectConfig | None = None) -> tuple[Selection, Path]:
+def select_from_capture(capture_root, out_path=None, config: SelectConfig | None = None,
+                        frame_range: str | None = None) -> tuple[Selection, Path]:
     """Select before baking from a capture's fits; writes a selection file for ``bake --frames-from``.
 
     Frames whose fit cannot be read are skipped (logged). Default output: CAPTURE/selection.json.
+    ``frame_range``: only frames whose take number lies in this half-open range ("0:120").
     """
     from uvatar.avh.bake.pipeline import heldout_frames
     from uvatar.body import load_body_model
@@ -150,7 +157,12 @@ def select_from_capture(capture_root, out_path=None, config: SelectConfig | None
     capture = Capture(capture_root)
     body = load_body_model(capture.body_model)
     frames, poses = [], []
-    for f in capture.frames:
+    candidates = capture.frames
+    if frame_range:
+        from uvatar.capture.layout import frames_in_range
+
+        candidates = frames_in_range(candidates, frame_range)
+    for f in candidates:
         try:
             pose = capture.load_fit(f).poses
         except Exception as exc:  # noqa: BLE001 - a bad fit only removes its frame
@@ -166,6 +178,6 @@ def select_from_capture(capture_root, out_path=None, config: SelectConfig | None
     sel = select_frames(frames, np.stack(poses), body.conditioning_joints, config,
                         exclude=heldout_frames(capture.root))
     out = Path(out_path) if out_path else capture.root / "selection.json"
-    write_json(out, {"capture": str(capture.root.resolve()), **sel.to_dict(),
+    write_json(out, {"capture": str(capture.root.resolve()), **sel.to_dict(), "frame_range": frame_range,
                      "config": vars(config or SelectConfig())})
     return sel, out
