@@ -281,5 +281,8 @@ def test_evaluate_a_scan_only_take_by_region_both_ways_and_against_its_own_bake(
     assert entry["nearest_training_frame"] == train[0]
     assert entry["nearest_pose_texture_r2_own_bake"] == pytest.approx(1.0, abs=1e-6)
     assert m["baselines"]["mean_texture"]["texture_r2_own_bake"] < 1.0
+    # the frame's own bake, rendered like the avatar: on the training frame it is the nearest pose itself
+    assert entry["own_bake_psnr_db"] == pytest.approx(entry["nearest_pose_psnr_db"])
+    assert "own_bake" in m["upper_bound"] and "own_bake_texture_r2_own_bake" not in entry
     json.dumps(m)
 

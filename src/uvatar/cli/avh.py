@@ -244,7 +244,8 @@ def _eval(args) -> int:
                               others=others)
     if args.json:
         write_json(args.json, metrics)
-    rows = [("avh", metrics["avh"]), *metrics["others"].items(), *metrics["baselines"].items()]
+    rows = [("avh", metrics["avh"]), *metrics["others"].items(), *metrics["baselines"].items(),
+            *metrics.get("upper_bound", {}).items()]
     for name, m in rows:
         geo = f", geometry {m['geometry_mm']:.1f} mm" if m.get("geometry_mm") is not None else ""
         geo += "".join(f", R² {k} {m[f'{k}_r2']:.3f}" for k in ("texture", "displacement")
