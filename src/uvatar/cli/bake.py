@@ -89,6 +89,10 @@ def register(cli) -> None:
     p.add_argument("--ablation-frames", type=int, default=None,
                    help="frames re-baked without registration / polarity for --eval (0 = no ablation; "
                         "default: the evaluation config's)")
+    p.add_argument("--report", default=None, metavar="R.json",
+                   help="write what the bake tells without ground truth (per frame: mean kappa, share of texels "
+                        "with a confident colour, matched and inpainted; rejected frames and why) and, beside it, "
+                        "R_rejected.png with the rejected frames' previews")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_executor_flags(p)
     p.set_defaults(func=_bake)
@@ -171,6 +175,19 @@ def _bake(args) -> int:
         err = metrics["correspondence_error_mm"]
         print(f"correspondence error (kappa > 0.5): median {err['median']} mm, p90 {err['p90']} mm; "
               f"texture PSNR {metrics['texture_psnr_db']} dB", file=sys.stderr)
+    if args.report:
+        from pathlib import Path
+
+        from uvatar.avh.bake.report import bake_report, rejected_sheet
+
+        report = bake_report(args.out)
+        report["rejected_sheet"] = rejected_sheet(report, Path(args.report).with_name(
+            Path(args.report).stem + "_rejected.png"))
+        write_json(args.report, report)
+        pooled = report["accepted_mean"]
+        print(f"report: {report['frames_baked']} frames, confident colour on "
+              f"{100 * pooled.get('confident_share', 0):.1f}% of the body's texels (kappa > 0.5), "
+              f"{report['frames_rejected']} rejected -> {args.report}", file=sys.stderr)
     if args.json:
         write_json(args.json, summary)
     return 0
