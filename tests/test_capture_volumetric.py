@@ -4,7 +4,6 @@ answer), resume, and each bad-input case with its one line naming the file."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np

@@ -174,7 +174,7 @@ def test_missing_keypoints_are_ignored(anny, keypoints):
 
 def test_fit_recovers_known_pose_and_shape(anny, keypoints):
     """Own keypoints plus the body's own surface as the scan: pose and shape come back."""
-    from uvatar.fit.evaluate import point_surface_distance
+    from uvatar.geometry.distance import point_surface_distance
 
     pose, Rh, Th = _pose(anny, 2, 4, std=0.15)
     posed = _posed(anny, pose, Rh, Th, SHAPE)

@@ -8,7 +8,8 @@ import torch
 
 from uvatar.body import load_body_model
 from uvatar.capture.types import BodyFit
-from uvatar.fit.evaluate import closest_point_on_triangles, evaluate_fits, point_surface_distance
+from uvatar.fit.evaluate import evaluate_fits
+from uvatar.geometry.distance import closest_point_on_triangles, point_surface_distance
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -94,7 +94,7 @@ def scan_geometry_mm(avatar_vertices, avatar_faces, face_labels, scan_vertices, 
     ``{"avatar_to_scan": (N,), "scan_to_avatar": (N,), "avatar_regions": (N,), "scan_regions": (N,)}``."""
     from scipy.spatial import cKDTree
 
-    from uvatar.fit.evaluate import point_surface_distance
+    from uvatar.geometry.distance import point_surface_distance
     from uvatar.geometry.sampling import sample_surface
 
     a_pts, _, a_face = sample_surface(avatar_vertices, avatar_faces, points, seed=seed, with_faces=True)

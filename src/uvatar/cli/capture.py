@@ -75,10 +75,9 @@ def _register_import(cli) -> None:
 def _import(args) -> int:
     import json
 
+    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence, is_mesh_sequence
     from uvatar.capture.importers.pipeline import import_capture
     from uvatar.errors import options_as_input_error
-
-    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence, is_mesh_sequence
 
     with options_as_input_error("uvatar capture import options"):
         cfg = _import_flags().config(args)

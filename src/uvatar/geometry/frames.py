@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["face_normals", "vertex_normals", "vertex_face_adjacency", "normalize", "is_torch"]
+__all__ = ["face_normals", "vertex_normals", "vertex_face_adjacency", "normalize", "is_torch", "frames_from_normals"]
 
 _EPS = 1e-12
 
@@ -116,3 +116,17 @@ def vertex_normals(vertices, faces, adjacency=None):
             out[b, :, c] = sum(np.bincount(faces[:, k], weights=cross2[b, :, c], minlength=nv)
                                for k in range(3))
     return normalize(out.reshape(*lead, nv, 3)).astype(np.result_type(vertices.dtype, np.float32))
+
+
+def frames_from_normals(normals) -> np.ndarray:
+    """(N, 3, 3) orthonormal frames with columns (t, b, n) for unit normals n (N, 3).
+
+    Branchless construction of Duff et al. 2017 ("Building an orthonormal basis, revisited").
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    return np.stack([t, bt, n], axis=2)

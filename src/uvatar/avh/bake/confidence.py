@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from uvatar.geometry import RayCaster, RayCasterConfig, face_normals
+from uvatar.geometry.frames import frames_from_normals  # re-exported: the bake's callers import it here
 
 __all__ = [
     "hemisphere_directions", "face_lattice_params", "frames_from_normals", "face_visibility", "face_visibility_reference",
@@ -55,20 +56,6 @@ def face_lattice_params(face_index) -> tuple[np.ndarray, np.ndarray]:
     shift = np.mod(0.5 + f / _PLASTIC, 1.0)
     turn = 2.0 * np.pi * np.mod(0.5 + f / _PLASTIC ** 2, 1.0)
     return shift, turn
-
-
-def frames_from_normals(normals) -> np.ndarray:
-    """(N, 3, 3) orthonormal frames with columns (t, b, n) for unit normals n (N, 3).
-
-    Branchless construction of Duff et al. 2017 ("Building an orthonormal basis, revisited").
-    """
-    n = np.asarray(normals, dtype=np.float64)
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
-    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
-    return np.stack([t, bt, n], axis=2)
 
 
 def face_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: int = 64,

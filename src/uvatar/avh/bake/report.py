@@ -15,7 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.avh.bake.dataset import frame_path, load_baked_frame, preview_path, read_dataset_info, rejected_path
+from uvatar.avh.bake.dataset import (
+    frame_path,
+    load_baked_frame,
+    preview_path,
+    read_dataset_info,
+    rejected_path,
+)
 from uvatar.errors import InputError
 
 

@@ -93,7 +93,7 @@ def cosine_directions(n: int) -> np.ndarray:
 def cone_directions(direction, n: int, radius_deg: float) -> np.ndarray:
     """(n, 3) unit directions spread evenly over a cone of ``radius_deg`` around ``direction`` (3,)
     (n = 1: the direction itself)."""
-    from uvatar.avh.bake.confidence import frames_from_normals
+    from uvatar.geometry.frames import frames_from_normals
 
     d = _unit(direction)
     if n == 1 or radius_deg <= 0:
@@ -144,7 +144,7 @@ def ambient_occlusion(occ: Occluder, points, normals, cfg: LightConfig, chunk: i
     normals (N, 3): the fraction of ``cfg.ao_rays`` hemisphere rays that meet no surface of ``occ``
     within ``cfg.ao_distance``. The ray pattern is turned about each normal by a fixed angle drawn
     from the point's index (deterministic)."""
-    from uvatar.avh.bake.confidence import frames_from_normals
+    from uvatar.geometry.frames import frames_from_normals
 
     p = np.asarray(points, dtype=np.float64)
     nrm = _unit(normals)
