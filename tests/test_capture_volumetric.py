@@ -131,7 +131,7 @@ def test_plain_folders_of_obj_glb_and_drc(tmp_path):
     assert summary["problems"][0].startswith(str(drc / "001.drc")) and "no texture" in summary["problems"][0]
 
 
-def test_up_and_units_flags_and_detection(tmp_path):
+def test_up_and_units_flags_and_detection(tmp_path, capsys):
     src = tmp_path / "zup"
     src.mkdir()
     mesh = person_mesh(0)
@@ -139,8 +139,10 @@ def test_up_and_units_flags_and_detection(tmp_path):
     write_drc(src / "0.drc", mesh)
     import imageio.v3 as iio
     iio.imwrite(src / "0.png", texture_image())
-    with pytest.raises(InputError, match="tallest along z, not y: give --up"):
+    with pytest.raises(InputError, match=r"tallest along z, not y: give up \(\+z, or -z"):
         import_mesh_sequence(src, tmp_path / "cap", progress=False)
+    assert main(["capture", "import", str(src), str(tmp_path / "cli"), "--no-progress"]) == 1  # in flag terms:
+    assert "give --up (+z, or -z if the head points to -z)" in capsys.readouterr().err
     summary = import_mesh_sequence(src, tmp_path / "cap", ImportConfig(up="+z", units="mm"), progress=False)
     scan = Capture(tmp_path / "cap").load_scan("000000")
     np.testing.assert_allclose(np.ptp(scan.vertices, 0)[1], 1.7, atol=1e-3) and summary["up"] == "+z"

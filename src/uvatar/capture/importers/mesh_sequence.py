@@ -295,7 +295,7 @@ def detect_units(height: float, path: Path) -> str:
         if PERSON_HEIGHT_M[0] <= height * scale <= PERSON_HEIGHT_M[1]:
             return units
     raise InputError(path, f"the mesh is {height:g} units tall, which is no person's height in m, cm or mm; "
-                           "give --units")
+                           "give units")
 
 
 def world_from_source(mesh: TexturedMesh, path: Path, units: str, up: str) -> tuple[np.ndarray, str, str, list[str]]:
@@ -310,8 +310,8 @@ def world_from_source(mesh: TexturedMesh, path: Path, units: str, up: str) -> tu
         up = "+y"
         tallest = "xyz"[int(np.argmax(extent))]
         if tallest != "y":
-            raise InputError(path, f"the mesh is tallest along {tallest}, not y: give --up +{tallest} (or --up=-"
-                                   f"{tallest} if the head points to -{tallest})")
+            raise InputError(path, f"the mesh is tallest along {tallest}, not y: give up (+{tallest}, or -{tallest} "
+                                   f"if the head points to -{tallest})")
         notes.append("up axis not stated by the files: +y (the mesh is tallest along y)")
     axis = {"x": 0, "y": 1, "z": 2}[up[1]]
     if not units:
