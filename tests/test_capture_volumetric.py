@@ -36,7 +36,8 @@ def test_draco_round_trip_welds_seams_and_flips_v(tmp_path):
 def test_ktx2_round_trip_keeps_rows_and_size(tmp_path):
     image = texture_image()
     write_ktx2(tmp_path / "t.ktx2", image)
-    assert ktx2_info(tmp_path / "t.ktx2") == {"width": TEX, "height": TEX, "layers": 1, "codec": "ETC1S"}
+    assert ktx2_info(tmp_path / "t.ktx2") == {"width": TEX, "height": TEX, "layers": 1, "codec": "ETC1S",
+                                              "animation": False}
     back = read_ktx2_layer(tmp_path / "t.ktx2", 0)
     assert back.shape == (TEX, TEX, 3)
     assert back[: TEX // 2].mean() > 250 and back[TEX // 2:].mean() < 5  # row 0 stays the top
@@ -165,8 +166,13 @@ def test_cli_nothing_imported_is_one_line_and_exit_1(tmp_path, capsys):
 
 
 @pytest.mark.skipif(not SHARED.is_dir(), reason="the shared volumetric video is not on this machine")
-def test_shared_liam_take_lists_150_frames_of_5_layer_arrays():
+def test_shared_liam_take_lists_150_frames_of_5_layer_animations():
     seq = find_mesh_sequence(SHARED)
     assert len(seq.frames) == 150 and not seq.problems
-    assert seq.frames[7].texture == (SHARED / "texture_ktx2" / "00001.ktx2", 2)
-    assert ktx2_info(seq.frames[7].texture[0])["width"] == 1024
+    info = ktx2_info(SHARED / "texture_ktx2" / "00001.ktx2")
+    assert info["width"] == 1024 and info["layers"] == 5 and info["animation"]
+    # P-frames (layers 1-4) cannot be decoded alone: frames 5-9 take file 1's I-frame, said in a note
+    assert seq.frames[7].texture == (SHARED / "texture_ktx2" / "00001.ktx2", 0)
+    assert "KTXanimData" in seq.notes[0]
+    with pytest.raises(InputError, match="layer 2 is a P-frame of a KTX2 animation"):
+        read_ktx2_layer(SHARED / "texture_ktx2" / "00001.ktx2", 2)

@@ -2,8 +2,14 @@
 Basis Universal transcoder (the ``volumetric`` extra). libktx's ``pyktx`` would need a system libktx.
 
 Volumetric players (UVOL 2) pack several frames into one KTX2 **array texture**: frame ``i`` is file
-``i // n``, layer ``i % n``. :func:`ktx2_info` reads the header (size, layers) and
-:func:`read_ktx2_layer` decodes one layer to RGB. KTX2's default orientation is ``rd`` (row 0 is
+``i // n``, layer ``i % n``. :func:`ktx2_info` reads the header (size, layers, and whether the file is
+an ETC1S *animation*: a ``KTXanimData`` key) and :func:`read_ktx2_layer` decodes one layer to RGB.
+
+In an animation, layer 0 is an I-frame and every later layer a P-frame coded against the layer before
+it: decoding layer k needs the transcoder's state after layers 0..k-1. alktx2 starts a new transcoder
+per call, so only layer 0 of an animation decodes exactly (later layers come out as noise);
+:func:`read_ktx2_layer` refuses them (``animation_layers_exact`` says so) and the importer gives those
+frames the I-frame's texture, which holds for UVOL's groups: the frames of a file share one UV atlas. KTX2's default orientation is ``rd`` (row 0 is
 the top of the image), which is also uvatar's texture layout (row 0 is v = 1), so rows are kept.
 """
 
@@ -42,7 +48,17 @@ def ktx2_info(path: str | Path) -> dict:
     except Exception as exc:
         raise InputError(path, f"KTX2 texture is truncated or corrupt ({exc})") from None
     return {"width": int(info["width"]), "height": int(info["height"]), "layers": max(1, int(info["layers"])),
-            "codec": str(info.get("basis_tex_format_name", ""))}
+            "codec": str(info.get("basis_tex_format_name", "")), "animation": _is_animation(data)}
+
+
+def _is_animation(data: bytes) -> bool:
+    """True when the key/value data holds ``KTXanimData`` (layers are frames of a video: P-frames)."""
+    import struct
+
+    if len(data) < 64:
+        return False
+    offset, length = struct.unpack("<II", data[56:64])
+    return b"KTXanimData\x00" in data[offset:offset + length]
 
 
 def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
@@ -53,6 +69,9 @@ def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
 
     path = Path(path)
     data = _bytes(path)
+    if layer > 0 and _is_animation(data):
+        raise InputError(path, f"layer {layer} is a P-frame of a KTX2 animation (KTXanimData), which the transcoder "
+                               "decodes only after the layers before it; alktx2 decodes one layer alone")
     try:  # TGA: the transcoder's uncompressed output (PNG would cost 4x the time in zlib)
         tga, _ = _alktx2().decode_ktx2_to_bytes(data, format="tga", layer=int(layer))
         with PIL.Image.open(io.BytesIO(tga)) as im:  # PIL applies the TGA origin flag

@@ -68,6 +68,7 @@ class MeshSequence:
     up: str = ""
     manifest: Path | None = None
     problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
 
 def is_mesh_sequence(src: str | Path) -> bool:
@@ -191,6 +192,7 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
     texture = _template_folder(src, manifest.get("texture_path"), manifest.get("texture_target"), "texture") \
         or _pick(texture_dirs, (".ktx2",) + IMAGE_SUFFIXES)
     problems: list[str] = []
+    notes: list[str] = []
     frames = {i: FrameSource(i, p) for i, p in meshes.items()}
     if texture is None:
         problems.append(f"{src}: no texture_*/ folder: frames take their meshes' own textures")
@@ -198,7 +200,11 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
         ktx = _files_by_frame(texture, (".ktx2",))
         if ktx:
             first = ktx[min(ktx)]
-            per_file = manifest.get("frames_per_file") or ktx2_info(first)["layers"]
+            first_info = ktx2_info(first)
+            per_file = manifest.get("frames_per_file") or first_info["layers"]
+            if first_info["animation"] and per_file > 1:
+                notes.append(f"{texture}: KTX2 animations (KTXanimData): only each file's layer 0 (I-frame) decodes "
+                                f"exactly; its other {per_file - 1} frames take that texture (they share its UV atlas)")
             layers: dict[Path, int] = {}
             for i, source in frames.items():
                 path = ktx.get(i // per_file)
@@ -218,7 +224,7 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
                                         f"file: frame {i} (layer {i % per_file}) has no texture")
                     source.texture = ()
                     continue
-                source.texture = (path, i % per_file)
+                source.texture = (path, 0 if first_info["animation"] else i % per_file)
             covered = max(ktx) * per_file + per_file
             if covered < max(frames) + 1 or len(ktx) * per_file < len(frames) - per_file + 1:
                 problems.append(f"{texture}: {len(ktx)} KTX2 files x {per_file} frames for {len(frames)} meshes in "
@@ -241,7 +247,8 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
     fps = manifest.get("fps") or manifest.get("texture_fps") or 0.0
     glb = all(p.suffix.lower() == ".glb" for p in meshes.values())  # glTF says: metres, +Y up
     units, up = ("m", "+y") if glb else ("", "")
-    return MeshSequence(frames, "uvol2", fps=fps, units=units, up=up, manifest=manifest_path, problems=problems)
+    return MeshSequence(frames, "uvol2", fps=fps, units=units, up=up, manifest=manifest_path, problems=problems,
+                        notes=notes)
 
 
 def _plain_folder(src: Path) -> MeshSequence:
@@ -352,7 +359,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
         if p.is_file():
             p.unlink(missing_ok=True)
     S = units = up = None
-    notes: list[str] = []
+    notes: list[str] = list(seq.notes)
     imported, skipped, written = [], [], 0
     bar = tqdm(wanted, desc="import", unit="frame", disable=not progress or None)
     for i in bar:
@@ -369,8 +376,9 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             log.warning("%s", exc)
             continue
         if S is None:  # decided once, on the first frame that reads: not a per-frame problem
-            S, units, up, notes = world_from_source(mesh, seq.frames[i].mesh, cfg.units or seq.units,
-                                                    cfg.up or seq.up)
+            S, units, up, axis_notes = world_from_source(mesh, seq.frames[i].mesh, cfg.units or seq.units,
+                                                         cfg.up or seq.up)
+            notes += axis_notes
         if not done:
             mesh.vertices = mesh.vertices @ S[:3, :3].T.astype(np.float32) + S[:3, 3].astype(np.float32)
             write_mesh(target, mesh)
