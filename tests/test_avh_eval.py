@@ -286,3 +286,23 @@ def test_evaluate_a_scan_only_take_by_region_both_ways_and_against_its_own_bake(
     assert "own_bake" in m["upper_bound"] and "own_bake_texture_r2_own_bake" not in entry
     json.dumps(m)
 
+
+
+def test_evaluate_reports_the_bake_ceiling_and_r2_against_the_own_bake(setup):
+    root, body, cap, baked = setup
+    m = evaluate_avatar(root / "avatar", cap, EvalConfig(progress=False, image_size=32, max_cameras=1,
+                                                         pose_source="fit"), body=body)
+    ceiling = m["bake_ceiling"]
+    assert ceiling["frames"] == m["frames"]  # the toy bake holds the held-out frames too
+    # the toy's bake is exact (its maps are the truth at the same texels): the ceiling is 1
+    assert ceiling["texture_r2"] == pytest.approx(1.0, abs=1e-6)
+    assert ceiling["displacement_r2"] == pytest.approx(1.0, abs=1e-6)
+    # on the same frames the methods score as in the main table (every held-out frame has a bake)
+    for key in ("texture_r2", "displacement_r2"):
+        assert ceiling["methods_same_frames"]["avh"][key] == pytest.approx(m["avh"][key])
+    # against an exact bake, the R² without gt is the R² against gt (texture at the same texels)
+    assert m["avh"]["texture_r2_vs_bake"] == pytest.approx(m["avh"]["texture_r2"], abs=1e-6)
+    assert m["baselines"]["mean_texture"]["texture_r2_vs_bake"] == pytest.approx(0.0, abs=1e-9)
+    assert np.isfinite(m["avh"]["displacement_r2_vs_bake"])
+    assert all("avh_displacement_r2_vs_bake" in e and "own_bake_displacement_r2" in e for e in m["per_frame"])
+    json.dumps(m)

@@ -88,7 +88,8 @@ def test_from_angles_matches_generator():
 
 
 @pytest.mark.parametrize("bad", [dict(feature_size=8, resolution=24), dict(feature_size=16, resolution=8),
-                                 dict(latent=0)])
+                                 dict(latent=0), dict(displacement_residual_scale=-0.001),
+                                 dict(displacement_residual_scale=0.06)])
 def test_bad_config_raises(bad):
     with pytest.raises(ValueError):
         AvhConfig(**bad)
@@ -115,3 +116,22 @@ def test_output_bias_starts_at_the_mean_maps():
     assert torch.allclose(disp, disp_mean.expand(4, -1, -1, -1), atol=1e-6)
     assert count_parameters(model) == expected_parameter_count(cfg)
     assert not any(PRESETS[n].output_bias for n in PAPER_PARAMETER_COUNTS)  # Table 1 rows: the paper's model
+
+
+def test_displacement_residual_scale_multiplies_the_decoder_output_before_the_bias():
+    from uvatar.avh.model import init_output_bias
+
+    plain = AvhConfig(4, 16, resolution=16, num_pose_joints=2, output_bias=True)
+    scaled = AvhConfig(4, 16, resolution=16, num_pose_joints=2, output_bias=True, displacement_residual_scale=0.005)
+    assert AvhConfig(**{k: v for k, v in plain.to_dict().items() if k != "displacement_residual_scale"}) == plain
+    a, b = AvhGenerator(plain).eval(), AvhGenerator(scaled).eval()
+    init_output_bias(a, torch.full((3, 16, 16), 0.5), torch.zeros(3, 16, 16))
+    with torch.no_grad():
+        torch.nn.init.normal_(a.displacement_decoder.net[-1].weight, std=0.01)
+    b.load_state_dict(a.state_dict())  # the same parameters: the option adds none
+    assert count_parameters(b) == expected_parameter_count(scaled) == count_parameters(a)
+    pose = encode_pose(torch.randn(2, 6))
+    raw = torch.atanh(a(pose)[1] / plain.displacement_scale)     # the decoder's output, bias 0
+    expect = torch.tanh(raw * (0.005 / 0.05)) * scaled.displacement_scale
+    assert torch.allclose(b(pose)[1], expect, atol=1e-7)
+    assert torch.equal(a(pose)[0], b(pose)[0])  # the texture is untouched

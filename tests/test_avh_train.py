@@ -149,3 +149,29 @@ def test_train_on_cuda_bf16_channels_last(baked, tmp_path):
     assert np.isfinite(summary["final"]["loss"])
     model, _ = load_trained_generator(tmp_path / "run")
     assert next(model.parameters()).device.type == "cpu"
+
+
+def test_fit_displacement_gain_finds_the_shrinkage_of_the_targets():
+    from uvatar.avh.model import AvhGenerator, encode_pose, init_output_bias
+    from uvatar.avh.train import TrainingData, fit_displacement_gain, scale_displacement_residual
+
+    torch.manual_seed(0)
+    cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=2, output_bias=True)
+    model = AvhGenerator(cfg).eval()
+    init_output_bias(model, torch.full((3, 16, 16), 0.5), (torch.rand(3, 16, 16) - 0.5) * 0.02)
+    with torch.no_grad():
+        torch.nn.init.normal_(model.displacement_decoder.net[-1].weight, std=0.05)
+    angles = torch.randn(6, 6)
+    half = AvhGenerator(cfg).eval()
+    half.load_state_dict(model.state_dict())
+    scale_displacement_residual(half, 0.35)
+    with torch.no_grad():
+        texture, displacement = half(encode_pose(angles))
+    ones = torch.ones(6, 1, 16, 16)
+    data = TrainingData([str(i) for i in range(6)], angles, {"texture": texture, "displacement": displacement,
+                                                           "kappa": ones, "w": ones, "valid": ones})
+    gain, losses = fit_displacement_gain(model, data, None, TrainConfig(), steps=20)
+    assert gain == pytest.approx(0.35) and losses[7] == pytest.approx(0.0, abs=1e-12)
+    assert losses[0] > losses[7] and losses[20] > losses[7]  # the mean map alone and the full residual are worse
+    # the model itself is left as it was
+    assert torch.allclose(model.displacement_decoder.net[-1].weight * 0.35, half.displacement_decoder.net[-1].weight)

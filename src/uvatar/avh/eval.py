@@ -19,7 +19,10 @@ More avatars (``others``, e.g. the other generator conditioning) are evaluated i
 
 The pose-dependent part (:mod:`uvatar.avh.pose_metrics`): per method, R² of its texture and
 displacement maps against the studio's true maps over confident texels, and every metric binned
-by the held-out pose's distance to its nearest training pose.
+by the held-out pose's distance to its nearest training pose. Frames the bake also processed (not
+trained on) give two more (:mod:`uvatar.avh.own_bake`): ``bake_ceiling``, the own bake's R² against
+the truth (how much of the pose-dependent variance survives the bake), and each method's
+``<kind>_r2_vs_bake``, its R² against the frame's own baked maps (no ground truth needed).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from uvatar.avh.eval_scan import (
     scan_geometry_mm,
 )
 from uvatar.avh.model import with_orientation
+from uvatar.avh.own_bake import OwnBakes, clean_displacements, r2_against_own_bake
 from uvatar.avh.pose_metrics import R2Sums, distance_bins, pose_distance_deg
 from uvatar.avh.poses import heldout_frames
 from uvatar.avh.runtime import AvatarRuntime
@@ -66,7 +70,11 @@ PROTOCOL = ("held-out frames (gt/info.json heldout_frames), not trained on; avat
             "resolution); nearest_training_distance_deg: mean over conditioning joints of the geodesic angle to "
             "the nearest training pose; distance_bins: frames split at its median; an avatar with the studio "
             "orientation (model_config.orientation = studio) takes the body's Rh as its last conditioning joint, and "
-            "so do the nearest-pose retrieval and the pose distance")
+            "so do the nearest-pose retrieval and the pose distance; bake_ceiling: each held-out frame's own bake "
+            "(BAKED/frames/<f>, not trained on) scored against gt like a method, the part of the true pose-dependent "
+            "variance that survives the bake, beside every method's R² on the same frames; <kind>_r2_vs_bake: each "
+            "method against the frame's own baked maps instead of gt (the measure without gt), same reference, over "
+            "the texels where the own bake is confident (kappa > 0.5 for texture; valid, inlier, w > 0 for displacement)")
 
 
 @dataclass(frozen=True)
@@ -151,13 +159,8 @@ class Baselines:
         plain = frames.texture.mean(0)
         self.mean_texture = np.where(ksum > 1e-6, (k * frames.texture).sum(0) / np.maximum(ksum, 1e-6), plain)
         # cleaned as training sees it: zero outside the UV charts and where any axis exceeds the threshold
-        bad = ~frames.valid | (np.abs(frames.displacement).max(-1) > outlier_threshold)
-        if displacement_frame == "rest":
-            from uvatar.avh.displacement_frame import displacements_to_frame
-
-            frames = displacements_to_frame(frames, "rest", body, shape)
-        self.displacement = np.where(bad[..., None], 0.0, frames.displacement).astype(np.float32)
-        good = (~bad).sum(0)[..., None]
+        self.displacement, kept = clean_displacements(frames, outlier_threshold, displacement_frame, body, shape)
+        good = kept.sum(0)[..., None]
         self.mean_displacement = (self.displacement.sum(0) / np.maximum(good, 1)).astype(np.float32)
         self.mean_kappa = (frames.kappa * frames.valid).mean(0).astype(np.float32)
         self.frames = frames
@@ -314,6 +317,10 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     results = {m: [] for m in methods}
     geometry = {m: [] for m in methods}
     r2 = {"texture": R2Sums(), "displacement": R2Sums()}
+    own_bakes = OwnBakes(baked_dir, runtime.resolution, runtime.displacement_frame, runtime.body, runtime.shape,
+                         baselines.outlier_threshold)
+    r2_ceiling = {"texture": R2Sums(), "displacement": R2Sums()}  # frames with an own bake, own bake included
+    r2_vs_bake = {"texture": R2Sums(), "displacement": R2Sums()}
     per_frame, sheets = [], []
     regions = RegionLabels(runtime)
     region_views = {m: [] for m in methods}
@@ -395,6 +402,10 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
                 entry[f"{m}_chamfer_mm"] = float(0.5 * (part["avatar_to_scan"].mean() + part["scan_to_avatar"].mean()))
         if own is not None:
             entry.update(entry_r2)
+        own_ceiling = own_bakes.get(frame) if gt_npz.is_file() else None
+        if own_ceiling is not None:
+            entry.update(_own_bake_r2(runtime, baselines, {m: v for m, v in maps.items() if m != "own_bake"},
+                                      own_ceiling, base, Rh, rotations, (gt_maps, mask), r2_ceiling, r2_vs_bake))
         for m in maps:
             n = len(cameras)
             for key in ("psnr_db", "psnr_db_inside_both"):
@@ -414,8 +425,11 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         if m in own:
             summary[m].update({k: v for k, v in own[m].items() if k != "regions"})
         summary[m]["regions"] = _merge_regions(pool_regions(region_views[m]),
-                                                   summary[m].get("scan_geometry", {}).get("regions", {}),
-                                                   own.get(m, {}).get("regions", {}))
+                                               summary[m].get("scan_geometry", {}).get("regions", {}),
+                                               own.get(m, {}).get("regions", {}))
+    for kind, sums in r2_vs_bake.items():
+        for m, value in sums.r2().items():
+            summary[m][f"{kind}_r2_vs_bake"] = value
     conditioning = {m: rt.meta.get("model_config", {}).get("conditioning", "global") for m, rt in runtimes.items()}
     protocol = PROTOCOL + POSE_PROTOCOL[config.pose_source] + ("" if cams else orbit_protocol(config))
     if any(scan_geometry.values()):
@@ -431,6 +445,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
            "upper_bound": {"own_bake": summary["own_bake"]} if own_frames else {},
            "nearest_training_distance_deg": {e["frame"]: e["nearest_training_distance_deg"] for e in per_frame},
            "distance_bins": distance_bins(per_frame, methods),
+           "bake_ceiling": bake_ceiling(per_frame, r2_ceiling),
            "per_frame": per_frame, "config": asdict(config)}
     if image_dir is not None:
         out["images"] = write_comparison_images(image_dir, sheets)
@@ -465,6 +480,43 @@ def _uv_r2(runtime: AvatarRuntime, baselines: Baselines, maps: dict, base, Rh, r
     preds = {m: predicted_surface(runtime, base, d, Rh, G, rotations)[0] for m, (_, d) in maps.items()}
     frame_r2 = sums["displacement"].add(preds, mean_pos, gt_maps["surface"], confident)
     out.update({f"{m}_displacement_r2": v for m, v in frame_r2.items()})
+    return out
+
+
+def _own_bake_r2(runtime: AvatarRuntime, baselines: Baselines, maps: dict, own, base, Rh, rotations,
+                 gt: tuple[dict, np.ndarray] | None, ceiling: dict[str, R2Sums], vs_bake: dict[str, R2Sums]) -> dict:
+    """Add a frame that has its own bake to the ceiling sums (its own bake scored against ``gt`` (maps,
+    mask) like a method, beside the methods on the same frames; skipped without gt) and to the sums
+    against the own bake (:mod:`uvatar.avh.own_bake`); returns the frame's ``own_bake_<kind>_r2`` and
+    ``<method>_<kind>_r2_vs_bake``."""
+    out = {}
+    if gt is not None:
+        frame = _uv_r2(runtime, baselines, {**maps, "own_bake": (own.texture, own.displacement)}, base, Rh,
+                       rotations, gt[0], gt[1], ceiling)
+        out.update({k: v for k, v in frame.items() if k.startswith("own_bake_")})
+    R = runtime.resolution
+
+    def surface(d):
+        return predicted_surface(runtime, base, d, Rh, R, rotations)[0]
+
+    covered = predicted_surface(runtime, base, None, Rh, R)[1]
+    confident = (baselines.mean_kappa > 0.5) & ~runtime.fingers_toes_mask() & covered
+    out.update(r2_against_own_bake(maps, own, baselines.mean_texture, baselines.mean_displacement, confident,
+                                   surface, vs_bake))
+    return out
+
+
+def bake_ceiling(per_frame: list[dict], sums: dict[str, R2Sums]) -> dict:
+    """The ceiling of the pose-dependent R² (:mod:`uvatar.avh.own_bake`): the frames scored, the own
+    bakes' ``texture_r2`` / ``displacement_r2`` against gt, and every method's on the same frames."""
+    frames = [e["frame"] for e in per_frame if e.get("own_bake_displacement_r2") is not None]
+    out = {"frames": frames, "texture_r2": None, "displacement_r2": None, "methods_same_frames": {}}
+    for kind, s in sums.items():
+        for m, value in s.r2().items():
+            if m == "own_bake":
+                out[f"{kind}_r2"] = value
+            else:
+                out["methods_same_frames"].setdefault(m, {})[f"{kind}_r2"] = value
     return out
 
 

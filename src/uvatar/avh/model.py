@@ -80,6 +80,11 @@ class AvhConfig:
     num_pose_joints: J_c, number of conditioning joints (input is 3·J_c angles; 23 for SMPL).
     hidden: hidden units of the pose MLP (paper: 256).
     displacement_scale: metres; displacement = tanh(·) × scale.
+    displacement_residual_scale: metres of displacement per unit of the displacement decoder's output
+        (before its output bias and the tanh; where the tanh is near linear): the decoder's output is
+        multiplied by ``displacement_residual_scale / displacement_scale``. 0: by 1 (the paper's). The
+        pose-dependent residual of a garment is millimetres, 1/20 of the ±5 cm range, so at gain 1
+        every optimizer step of the last layer moves it by about the size of the signal.
     min_channels: floor on decoder channels at deep levels.
     output_bias: add a learned per-texel bias map (3, R, R) to each decoder's output (before the
         activation), initialized from the training data's mean maps by :func:`init_output_bias`; the
@@ -107,6 +112,7 @@ class AvhConfig:
     num_pose_joints: int = 23
     hidden: int = 256
     displacement_scale: float = 0.05
+    displacement_residual_scale: float = 0.0
     min_channels: int = 8
     output_bias: bool = False
     conditioning: str = "global"
@@ -127,6 +133,9 @@ class AvhConfig:
             raise ValueError("shading_shadows needs shading_lights >= 1 (the lights that cast them)")
         if self.shading_occlusion and not self.shading_shadows:
             raise ValueError("shading_occlusion needs shading_shadows (the limbs that occlude)")
+        if not 0.0 <= self.displacement_residual_scale <= self.displacement_scale:
+            raise ValueError(f"displacement_residual_scale must be in [0, displacement_scale "
+                             f"{self.displacement_scale}], got {self.displacement_residual_scale}")
         if self.latent < 1 or self.num_pose_joints < 1 or self.hidden < 1:
             raise ValueError("latent, num_pose_joints and hidden must be positive")
         if self.conditioning not in CONDITIONINGS:
@@ -239,8 +248,9 @@ class MapDecoder(nn.Module):
     With texel conditioning, ``pose_proj[k]`` (1×1 conv, zero at start) adds the texel pose map
     pooled to the level's resolution: at the cuboid (k = 0) and after the k-th transposed conv."""
 
-    def __init__(self, config: AvhConfig):
+    def __init__(self, config: AvhConfig, gain: float = 1.0):
         super().__init__()
+        self.gain = float(gain)  # the network's output is multiplied by it before the bias
         layers: list[nn.Module] = []
         c_in = config.latent
         for c_out in config.level_channels():
@@ -274,6 +284,8 @@ class MapDecoder(nn.Module):
                     x = x + self.pose_proj[k](pooled(pose_map, self.level_resolutions[k]))
                     k += 1
             out = x
+        if self.gain != 1.0:
+            out = out * self.gain
         return out if self.bias is None else out + self.bias
 
 
@@ -304,7 +316,8 @@ class AvhGenerator(nn.Module):
         f = config.feature_size
         self.feature_maps = nn.Parameter(torch.randn(config.latent, f, f) * 0.5)
         self.texture_decoder = MapDecoder(config)
-        self.displacement_decoder = MapDecoder(config)
+        residual = config.displacement_residual_scale
+        self.displacement_decoder = MapDecoder(config, residual / config.displacement_scale if residual else 1.0)
         self.texel_pose = (TexelPoseMap(config.num_pose_joints, config.resolution,
                                         world_normals=config.orientation == "studio")
                            if config.conditioning == "texel" else None)

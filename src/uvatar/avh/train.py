@@ -62,7 +62,10 @@ class TrainConfig:
     trained ones with this decay per step (:mod:`uvatar.avh.ema`); 0: the last step's weights.
     ``calibrate_lights``: before the first step, a generator with a light rig gets its lights, per-texel
     ambient and shares, and its texture bias (an albedo) fitted to all training frames at once, this
-    many steps of 16 frames (:func:`uvatar.avh.lights.calibrate_rig`; 0: the rig starts unlit, as before)."""
+    many steps of 16 frames (:func:`uvatar.avh.lights.calibrate_rig`; 0: the rig starts unlit, as before).
+    ``fit_displacement_gain``: after the last epoch, the saved weights' pose-dependent displacement is
+    scaled by the gain in [0, 1] with the lowest validation displacement loss
+    (:func:`fit_displacement_gain`; needs validation frames; the checkpoint keeps the trained weights)."""
 
     epochs: int = 500
     batch_size: int = 8
@@ -78,6 +81,7 @@ class TrainConfig:
     shading_lr_scale: float = 1.0
     ema_decay: float = 0.0
     calibrate_lights: int = 600
+    fit_displacement_gain: bool = False
     tensorboard: bool = True
     progress: bool = True
 
@@ -221,6 +225,34 @@ def evaluate_loss(model: AvhGenerator, data: TrainingData, excluded, cfg: TrainC
             losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight)
             sums += np.array([float(x) for x in losses]) * len(idx)
     return tuple(float(x) for x in sums / max(len(data), 1))
+
+
+def scale_displacement_residual(model: AvhGenerator, gain: float) -> None:
+    """Multiply the displacement decoder's pose-dependent output (its last layer; the per-texel output
+    bias, the training mean, is kept) by ``gain``, in place."""
+    final = model.displacement_decoder.net[-1]
+    with torch.no_grad():
+        final.weight.mul_(gain)
+        final.bias.mul_(gain)
+
+
+def fit_displacement_gain(model: AvhGenerator, data: TrainingData, excluded, cfg: TrainConfig,
+                          steps: int = 20) -> tuple[float, list[float]]:
+    """(gain, displacement loss per gain): the gain in [0, 1] (``steps`` + 1 values) of the
+    displacement decoder's pose-dependent output (:func:`scale_displacement_residual`) with the lowest
+    displacement loss on ``data`` (the validation frames). Gain 0 is the per-texel mean map alone,
+    1 the generator as trained: where the baked displacements vary with more than the pose (noise,
+    the fingers' articulation), the generator's residual fitted to the training frames is only partly
+    right on other frames, and the loss-optimal shrinkage keeps the part that is. ``model`` is left
+    as it was."""
+    import copy
+
+    losses = []
+    for k in range(steps + 1):
+        trial = copy.deepcopy(model)
+        scale_displacement_residual(trial, k / steps)
+        losses.append(evaluate_loss(trial, data, excluded, cfg)[2])
+    return float(np.argmin(losses)) / steps, losses
 
 
 def train_avh(baked_dir: str | Path, run_dir: str | Path, model_config: AvhConfig,
@@ -458,6 +490,13 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
     summary = {"run": str(run_dir), "epochs": len(history), "parameters": n_params, "seconds": seconds,
                "samples_per_second": samples / seconds if seconds > 0 else None, "final": history[-1],
                "processes": ctx.world}
+    if cfg.fit_displacement_gain and val is not None and ctx.is_main:
+        gain, losses = fit_displacement_gain(averaged, val, excluded, cfg)
+        scale_displacement_residual(averaged, gain)  # model.pt only: the checkpoint keeps the trained weights
+        _save(run_dir / "model.pt", {"model": {k: v.detach().cpu() for k, v in averaged.state_dict().items()},
+                                     "model_config": model_config.to_dict(), "epoch": len(history) - 1,
+                                     "ema_decay": cfg.ema_decay, "displacement_gain": gain})
+        summary.update(displacement_gain=gain, displacement_gain_val_losses=losses)
     if ctx.is_main:
         write_json(run_dir / "done.json", summary)
     return summary

@@ -275,7 +275,7 @@ def collect_metrics(out: Path, cfg: DemoConfig, results: list[StageResult]) -> d
             f"avh_{c}") for i, c in enumerate(cfg.conditionings)}
         metrics["baselines"] = evaluation.get("baselines")
         metrics["protocol"] = evaluation.get("protocol")
-        for key in ("nearest_training_distance_deg", "distance_bins", "avatars"):
+        for key in ("nearest_training_distance_deg", "distance_bins", "avatars", "bake_ceiling"):
             metrics[key] = evaluation.get(key)
     export = _load(out / "avatar" / "avatar.json")
     if export:
