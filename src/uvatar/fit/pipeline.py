@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar import stage_record
 from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.calibration import refine_capture_cameras
@@ -300,12 +301,10 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     if not frames:
         raise InputError(capture.root, "the capture lists no frames")
     choice = parse_person(config.person)
-    if choice.rule != "id":
-        _refuse_existing(capture, config)
     source = resolve_source(capture, config.source)
-    if choice.several and source != "images":
-        raise InputError("person", f"{config.person!r} fits several people from the capture's images: it needs "
-                                   f"source 'images', not {source!r}")
+    check_person_choice(capture, frames, choice, config.person, source)
+    if choice.rule != "id":
+        _refuse_existing(capture, config, stages, source)
     if config.refine_cameras and (source != "images" or choice.several or choice.rule == "id"):
         raise InputError(capture.cameras_dir, "refine_cameras=True refines the cameras against one subject seen in "
                                               "the capture's images: fit it alone, from images")
@@ -328,7 +327,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     t_choose = time.perf_counter() - t0
     for pid, *_ in chosen:
         if pid is not None:
-            _refuse_existing(capture.for_person(pid), config)
+            _refuse_existing(capture.for_person(pid), config, stages, source)
     summaries, subject_obs = {}, None
     for pid, seed, prior, report in chosen:
         picked = (seed, prior, report) if prior is not None else None
@@ -350,10 +349,73 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     return summary
 
 
-def _refuse_existing(capture: Capture, config: FitConfig) -> None:
+def _refuse_existing(capture: Capture, config: FitConfig, stages: FitStages, source: str) -> None:
+    """Before any work: refuse fits made with other settings (their stage record names the first
+    difference), or fits with no record, unless ``force``; fits made with these settings resume (or,
+    complete, are kept: :func:`_fit_person`)."""
     existing = existing_fits(capture)
-    if existing and not config.force:
+    if not existing or config.force:
+        return
+    if stage_record.read_record(capture.fitting_dir) is None:
         raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); force=True replaces them")
+    stage_record.begin(capture.fitting_dir, "fit", fit_record_config(config, stages, source), dry_run=True,
+                       redo_hint="force=True fits again")
+
+
+# FitConfig fields that do not change the fits: where the fit runs, replacing, and the contact sheet
+_FIT_VOLATILE = ("force", "device", "overlay_frames", "overlay_width")
+
+
+def fit_record_config(config: FitConfig, stages: FitStages, source: str) -> dict:
+    """The settings a fit's stage record keeps: ``uvatar fit``'s flags (``source`` resolved from
+    ``auto``; ``count``: the scan views of ``--views``) and the stages' configs."""
+    return stage_record.config_values(
+        config, drop=_FIT_VOLATILE, source=source, count=stages.views.count if source == "scans" else None,
+        stages={name: asdict(getattr(stages, name)) for name in ("detector", "triangulate", "body")})
+
+
+def _keypoint_record(capture: Capture, config: FitConfig, stages: FitStages, source: str, detector) -> tuple[dict, dict]:
+    """(settings, inputs) that the keypoints of ``fitting/keypoints`` depend on: the detector and the
+    triangulation, with images the person followed (``--person``), their cut distance and the images,
+    with scans the virtual views and the scans (the person does not change what a scan's views show)."""
+    settings = {"source": source, "detector": config.detector, "detector_version": str(detector.version),
+                "stages": {"detector": asdict(stages.detector), "triangulate": asdict(stages.triangulate)}}
+    if source == "images":
+        settings.update(person=config.person, cut_distance=config.cut_distance, person_id=capture.person)
+        inputs = stage_record.file_identities(capture.root / "images")
+    else:
+        settings.update(count=stages.views.count, views=asdict(stages.views))
+        inputs = stage_record.file_identities(capture.scans_dir)
+    return stage_record.config_values(**settings), inputs
+
+
+def check_person_choice(capture: Capture, frames: list[str], choice, spec: str, source: str) -> None:
+    """Before any work, check ``--person`` against the capture: not empty; a rule that picks among the
+    people of the images needs the images; a box or point names a camera of the capture, one of the
+    frames being fitted (listed when not), and lies inside that camera's image."""
+    if not str(spec).strip():
+        raise InputError("person", "is empty: give most-views, largest, centre, nearest-to:X,Y,Z, "
+                                   "box:CAM:FRAME:X0,Y0,X1,Y1, point:CAM:FRAME:X,Y, all, or a person id")
+    if source != "images" and (choice.several or choice.rule != "most-views"):
+        raise InputError("person", f"person={spec.strip()!r} picks among the people in the capture's images: it "
+                                   f"needs source='images' (this run: source={source!r})")
+    if choice.rule not in ("box", "point"):
+        return
+    cameras = capture.cameras()
+    if choice.camera not in cameras:
+        raise InputError("person", f"{spec!r}: the capture has no camera {choice.camera!r} (it has "
+                                   f"{', '.join(sorted(cameras))})")
+    if choice.frame not in frames:
+        shown = ", ".join(frames[:3]) + (f", ..., {frames[-1]}" if len(frames) > 3 else "")
+        raise InputError("person", f"{spec!r}: no frame {choice.frame!r} among the {len(frames)} frames being "
+                                   f"fitted ({shown})")
+    cam = cameras[choice.camera]
+    if cam.width and cam.height:
+        x0, y0, x1, y1 = choice.box
+        if x1 < 0 or y1 < 0 or x0 >= cam.width or y0 >= cam.height or (
+                choice.rule == "point" and not (0 <= x0 < cam.width and 0 <= y0 < cam.height)):
+            raise InputError("person", f"{spec!r}: lies outside camera {choice.camera}'s {cam.width}x{cam.height} "
+                                       "image (pixels: x right, y down from the top-left corner)")
 
 
 def _fit_person(capture: Capture, frames: list[str], source: str, body, detector, stages: FitStages,
@@ -369,8 +431,23 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
     subject = capture.person is None
     t0 = time.perf_counter()
     hide = None if subject else subject_hider(capture.for_person(None), body)
+    fit_state = stage_record.begin(capture.fitting_dir, "fit", fit_record_config(config, stages, source),
+                                   on_change="redo" if config.force else "refuse", skip_complete=not config.force,
+                                   redo_hint="force=True fits again")
+    keypoints_dir = capture.person_root / "fitting" / "keypoints"
+    kp_settings, kp_inputs = _keypoint_record(capture, config, stages, source, detector)
+    if stage_record.begin(keypoints_dir, "keypoints", kp_settings, kp_inputs, total=len(frames),
+                          on_change="redo").status == "redo":
+        for stale in keypoints_dir.glob("*.npz"):   # detected for another person, detector or images
+            stale.unlink()
+    if fit_state.status == "complete":   # fitted before with these settings (a --person all rerun)
+        log.info("%s: fitted before with these settings; kept", capture.fitting_dir)
+        summary = read_json(capture.fitting_dir / "summary.json")
+        return summary, _detect_all(capture, frames, source, detector, stages, False, choice, config.cut_distance,
+                                    chosen, avoid, hide)[0]
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
                                                  config.cut_distance, chosen, avoid, hide)
+    stage_record.finish(keypoints_dir)
     t_detect = time.perf_counter() - t0
     use_scans = subject and config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
@@ -438,6 +515,7 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
         summary["contact_sheet"] = str(write_overlays(capture, frames, observations, posed, body, source,
                                                       stages, config))
     write_json(capture.fitting_dir / "summary.json", summary)
+    stage_record.finish(capture.fitting_dir)
     return summary, observations
 
 
