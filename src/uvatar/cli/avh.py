@@ -55,7 +55,7 @@ def _flags() -> dict[str, ConfigFlags]:
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
                                  "pose_noise", "shading_lr_scale", "ema_decay", "calibrate_lights", "device", "seed",
-                                 "tensorboard"),
+                                 "tensorboard", "progress"),
             rename={"lr_gamma": "gamma"}, choices={"displacement_frame": DISPLACEMENT_FRAMES}, help={
                 "epochs": "epochs (the paper uses 500)", "batch_size": "frames per batch", "lr": "Adam learning rate",
                 "lr_gamma": "ExponentialLR decay per epoch", "displacement_weight": "weight of the displacement loss",
@@ -69,7 +69,7 @@ def _flags() -> dict[str, ConfigFlags]:
                 "calibrate_lights": "steps fitting the light rig (--shading-lights) and an albedo to all training "
                                     "frames before training (0: the rig starts unlit)",
                 "device": "cpu or cuda (bf16 autocast + channels_last)", "seed": "random seed",
-                "tensorboard": "write TensorBoard logs to OUT/tb"}),
+                "tensorboard": "write TensorBoard logs to OUT/tb", "progress": "progress bars (--no-progress: none)"}),
         "animate": ConfigFlags(
             AnimateConfig, fields=("camera", "camera_name", "size", "max_frames", "stride", "fps", "mesh_format",
                                    "shading", "levels"),

@@ -213,6 +213,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     unknown = sorted(set(frames) - set(capture.frames))
     if unknown:
         raise InputError(capture.root / "capture.json", f"has no frame(s) {', '.join(unknown[:5])}")
+    _begin_record(out, capture, config, frames, overwrite, dry_run=True)   # a changed flag: refused before work
     body_name = capture.body_model
     try:
         load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
@@ -225,10 +226,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
             results[f] = done
             restore_preview(out, f)
     todo = [f for f in frames if overwrite or f not in results or results[f].status == "broken"]
-    stage_record.begin(out, "bake", bake_record_config(config),
-                       stage_record.file_identities(capture.root / "capture.json", capture.fits_dir, capture.scans_dir),
-                       total=len(frames), on_change="redo" if overwrite else "refuse",
-                       redo_hint="overwrite=True bakes every frame again")
+    _begin_record(out, capture, config, frames, overwrite)
 
     def finish(result: FrameResult) -> None:
         results[result.frame] = result
@@ -259,6 +257,16 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
 # settings that do not change a baked frame: where the rays run (same maps within round-off), the scan
 # cache, and the rejection threshold (frames on disk are re-classified against it on every run)
 _BAKE_VOLATILE = ("device", "ray_backend", "scan_cache_mb", "reject_kappa")
+
+
+def _begin_record(out: Path, capture, config: BakeConfig, frames: list[str], overwrite: bool,
+                  dry_run: bool = False) -> None:
+    """The bake's stage record: its settings and the capture files it reads (a changed one is refused,
+    or with ``overwrite`` the bake starts over)."""
+    stage_record.begin(out, "bake", bake_record_config(config),
+                       stage_record.file_identities(capture.root / "capture.json", capture.fits_dir, capture.scans_dir),
+                       total=len(frames), on_change="redo" if overwrite else "refuse", dry_run=dry_run,
+                       redo_hint="overwrite=True bakes every frame again")
 
 
 def bake_record_config(config: BakeConfig) -> dict:
