@@ -53,8 +53,9 @@ def _flags() -> tuple[ConfigFlags, ...]:
                         help={"voxels": "voxels per primitive side S",
                               "depth_colour": "colour varies along each primitive's depth too (off: one colour "
                                               "per voxel column)"}),
-            ConfigFlags(train_dva, fields=("device", "resume", "seed"), help={
+            ConfigFlags(train_dva, fields=("device", "resume", "seed", "progress"), help={
                 "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt",
+                "progress": "progress bar (--no-progress: none)",
                 "seed": "seed of the weights' initialisation and of the sampling of frames, cameras and crops"}),
             ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher", "refine_pose",
                                                       "refine_residual"),
@@ -185,6 +186,11 @@ def _train(args) -> int:
     from uvatar.dva.train import train_dva
     from uvatar.errors import options_as_input_error
 
+    from pathlib import Path
+
+    from uvatar.stage_record import require_complete
+
+    require_complete(Path(args.capture) / "fitting", "fit", f"uvatar fit {args.capture}", check_inputs=False)
     budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features, losses = _flags()
     cfg = preset(args.preset)
     with options_as_input_error("train dva"):

@@ -397,7 +397,7 @@ def check_person_choice(capture: Capture, frames: list[str], choice, spec: str, 
         raise InputError("person", "is empty: give most-views, largest, centre, nearest-to:X,Y,Z, "
                                    "box:CAM:FRAME:X0,Y0,X1,Y1, point:CAM:FRAME:X,Y, all, or a person id")
     if source != "images" and (choice.several or choice.rule != "most-views"):
-        raise InputError("person", f"person={spec.strip()!r} picks among the people in the capture's images: it "
+        raise InputError(capture.root, f"person={spec.strip()!r} picks among the people in the capture's images: it "
                                    f"needs source='images' (this run: source={source!r})")
     if choice.rule not in ("box", "point"):
         return

@@ -205,6 +205,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
         raise InputError(capture.scans_dir, "does not exist: AVH bakes one textured scan per frame (a "
                          "volumetric-video capture); a capture of camera images alone drives DVA "
                          "(uvatar train dva)")
+    stage_record.require_complete(capture.fitting_dir, "fit", f"uvatar fit {capture.root}", check_inputs=False)
     out = Path(out_root)
     out.mkdir(parents=True, exist_ok=True)
     sweep_partial_writes(out)  # temp files of writes a kill cut short (frames/.000000.*.npz, ...)
