@@ -115,15 +115,13 @@ def read_dataset_info(root, required: bool = False) -> dict:
     InputError for bad JSON, and (``required``: a reader downstream of the bake) for a bake that is
     incomplete or whose capture changed since (its stage record, :mod:`uvatar.stage_record`)."""
     path = Path(root) / DATASET_JSON
-    if not path.is_file():
-        if required:
-            raise InputError(path, "not found; is this a `uvatar bake` output folder?")
-        return {}
-    info = read_json(path)
+    info = read_json(path) if path.is_file() else {}
     if required:  # a reader downstream of the bake: never a half-made or stale one
         from uvatar.stage_record import require_complete
 
         require_complete(root, "bake", f"uvatar bake {info.get('capture', 'CAPTURE')} {root}", unit="frames")
+        if not path.is_file():
+            raise InputError(path, "not found; is this a `uvatar bake` output folder?")
     return info
 
 
