@@ -181,13 +181,12 @@ def _check_train_args(args) -> None:
 def _train(args) -> int:
     _check_train_args(args)
     _set_threads(args)
+    from pathlib import Path
+
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
     from uvatar.errors import options_as_input_error
-
-    from pathlib import Path
-
     from uvatar.stage_record import require_complete
 
     require_complete(Path(args.capture) / "fitting", "fit", f"uvatar fit {args.capture}", check_inputs=False)

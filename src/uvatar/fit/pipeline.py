@@ -24,6 +24,7 @@ from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.calibration import refine_capture_cameras
 from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
+from uvatar.fit.records import check_person_choice, fit_inputs, fit_record_config, keypoint_record_config
 from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
 from uvatar.fit.stages import FitStages
 from uvatar.io_utils import read_json, write_json
@@ -358,64 +359,8 @@ def _refuse_existing(capture: Capture, config: FitConfig, stages: FitStages, sou
         return
     if stage_record.read_record(capture.fitting_dir) is None:
         raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); force=True replaces them")
-    stage_record.begin(capture.fitting_dir, "fit", fit_record_config(config, stages, source), dry_run=True,
-                       redo_hint="force=True fits again")
-
-
-# FitConfig fields that do not change the fits: where the fit runs, replacing, and the contact sheet
-_FIT_VOLATILE = ("force", "device", "overlay_frames", "overlay_width")
-
-
-def fit_record_config(config: FitConfig, stages: FitStages, source: str) -> dict:
-    """The settings a fit's stage record keeps: ``uvatar fit``'s flags (``source`` resolved from
-    ``auto``; ``count``: the scan views of ``--views``) and the stages' configs."""
-    return stage_record.config_values(
-        config, drop=_FIT_VOLATILE, source=source, count=stages.views.count if source == "scans" else None,
-        stages={name: asdict(getattr(stages, name)) for name in ("detector", "triangulate", "body")})
-
-
-def _keypoint_record(capture: Capture, config: FitConfig, stages: FitStages, source: str, detector) -> tuple[dict, dict]:
-    """(settings, inputs) that the keypoints of ``fitting/keypoints`` depend on: the detector and the
-    triangulation, with images the person followed (``--person``), their cut distance and the images,
-    with scans the virtual views and the scans (the person does not change what a scan's views show)."""
-    settings = {"source": source, "detector": config.detector, "detector_version": str(detector.version),
-                "stages": {"detector": asdict(stages.detector), "triangulate": asdict(stages.triangulate)}}
-    if source == "images":
-        settings.update(person=config.person, cut_distance=config.cut_distance, person_id=capture.person)
-        inputs = stage_record.file_identities(capture.root / "images")
-    else:
-        settings.update(count=stages.views.count, views=asdict(stages.views))
-        inputs = stage_record.file_identities(capture.scans_dir)
-    return stage_record.config_values(**settings), inputs
-
-
-def check_person_choice(capture: Capture, frames: list[str], choice, spec: str, source: str) -> None:
-    """Before any work, check ``--person`` against the capture: not empty; a rule that picks among the
-    people of the images needs the images; a box or point names a camera of the capture, one of the
-    frames being fitted (listed when not), and lies inside that camera's image."""
-    if not str(spec).strip():
-        raise InputError("person", "is empty: give most-views, largest, centre, nearest-to:X,Y,Z, "
-                                   "box:CAM:FRAME:X0,Y0,X1,Y1, point:CAM:FRAME:X,Y, all, or a person id")
-    if source != "images" and (choice.several or choice.rule != "most-views"):
-        raise InputError(capture.root, f"person={spec.strip()!r} picks among the people in the capture's images: it "
-                                   f"needs source='images' (this run: source={source!r})")
-    if choice.rule not in ("box", "point"):
-        return
-    cameras = capture.cameras()
-    if choice.camera not in cameras:
-        raise InputError("person", f"{spec!r}: the capture has no camera {choice.camera!r} (it has "
-                                   f"{', '.join(sorted(cameras))})")
-    if choice.frame not in frames:
-        shown = ", ".join(frames[:3]) + (f", ..., {frames[-1]}" if len(frames) > 3 else "")
-        raise InputError("person", f"{spec!r}: no frame {choice.frame!r} among the {len(frames)} frames being "
-                                   f"fitted ({shown})")
-    cam = cameras[choice.camera]
-    if cam.width and cam.height:
-        x0, y0, x1, y1 = choice.box
-        if x1 < 0 or y1 < 0 or x0 >= cam.width or y0 >= cam.height or (
-                choice.rule == "point" and not (0 <= x0 < cam.width and 0 <= y0 < cam.height)):
-            raise InputError("person", f"{spec!r}: lies outside camera {choice.camera}'s {cam.width}x{cam.height} "
-                                       "image (pixels: x right, y down from the top-left corner)")
+    stage_record.begin(capture.fitting_dir, "fit", fit_record_config(config, stages, source),
+                       fit_inputs(capture, source), dry_run=True, redo_hint="force=True fits again")
 
 
 def _fit_person(capture: Capture, frames: list[str], source: str, body, detector, stages: FitStages,
@@ -432,19 +377,18 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
     t0 = time.perf_counter()
     hide = None if subject else subject_hider(capture.for_person(None), body)
     fit_state = stage_record.begin(capture.fitting_dir, "fit", fit_record_config(config, stages, source),
-                                   on_change="redo" if config.force else "refuse", skip_complete=not config.force,
-                                   redo_hint="force=True fits again")
-    keypoints_dir = capture.person_root / "fitting" / "keypoints"
-    kp_settings, kp_inputs = _keypoint_record(capture, config, stages, source, detector)
-    if stage_record.begin(keypoints_dir, "keypoints", kp_settings, kp_inputs, total=len(frames),
-                          on_change="redo").status == "redo":
-        for stale in keypoints_dir.glob("*.npz"):   # detected for another person, detector or images
-            stale.unlink()
-    if fit_state.status == "complete":   # fitted before with these settings (a --person all rerun)
+                                   fit_inputs(capture, source), on_change="redo" if config.force else "refuse",
+                                   skip_complete=not config.force, redo_hint="force=True fits again")
+    if fit_state.status == "complete":   # fitted before with these settings and inputs (a --person all rerun)
         log.info("%s: fitted before with these settings; kept", capture.fitting_dir)
         summary = read_json(capture.fitting_dir / "summary.json")
         return summary, _detect_all(capture, frames, source, detector, stages, False, choice, config.cut_distance,
                                     chosen, avoid, hide)[0]
+    keypoints_dir = capture.person_root / "fitting" / "keypoints"
+    if stage_record.begin(keypoints_dir, "keypoints", keypoint_record_config(capture, config, stages, source, detector),
+                          fit_inputs(capture, source), total=len(frames), on_change="redo").status == "redo":
+        for stale in keypoints_dir.glob("*.npz"):   # detected for another person, detector or images
+            stale.unlink()
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
                                                  config.cut_distance, chosen, avoid, hide)
     stage_record.finish(keypoints_dir)
