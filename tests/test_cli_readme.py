@@ -102,7 +102,8 @@ def test_the_readme_demo_timing_is_the_helps():
     assert f"`uvatar demo --quick` is a\n~{minutes}-minute smoke run" in README.read_text()
 
 
-LONG_COMMANDS = ("bake", "fit", "synth", "train avh", "train dva", "capture import", "capture masks", "demo")
+LONG_COMMANDS = ("bake", "fit", "synth", "train avh", "train dva", "capture import", "capture masks", "demo",
+                 "eval avh", "eval dva", "render dva", "animate")
 
 
 @pytest.mark.parametrize("command", LONG_COMMANDS)

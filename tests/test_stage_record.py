@@ -169,3 +169,31 @@ def test_a_half_made_bake_is_refused_by_select_and_train_until_the_bake_finishes
     assert main(["bake", str(cap), str(out), *BAKE]) == 0                       # finishes the bake
     assert json.loads((out / "stage.json").read_text())["complete"] is True
     assert main(["select", str(out), "-n", "1", "--val", "0"]) == 0
+
+
+# -- training runs ------------------------------------------------------------------------------------------
+
+def test_resuming_a_training_run_with_other_settings_is_refused_naming_the_flag(tmp_path, capsys, monkeypatch):
+    import uvatar.body
+    from tests.fixtures.toy_capture import make_toy_capture
+    from uvatar.body.toy import ToyTubeBody
+    from uvatar.cli.main import main
+
+    body = ToyTubeBody()
+    _, baked = make_toy_capture(tmp_path / "toy", body, num_frames=3, heldout=1, resolution=16, image_size=16)
+    assert main(["train", "avh", str(baked), str(tmp_path / "r0"), "--no-progress"]) == 1   # one line, no traceback
+    assert _err(capsys) == [f"uvatar: error: {baked / 'dataset.json'}: unknown body model 'toy'; choose one of "
+                            "anny, smpl, smplx"]
+    monkeypatch.setattr(uvatar.body, "load_body_model", lambda name, **kw: body)
+    run = tmp_path / "run"
+    train = ["train", "avh", str(baked), str(run), "--preset", "cpu-tiny", "--texels", "16", "--epochs", "1",
+             "--no-tensorboard", "--no-progress", "--calibrate-lights", "0"]
+    assert main(train) == 0
+    record = json.loads((run / "stage.json").read_text())
+    assert record["stage"] == "train avh" and record["complete"] is True and record["config"]["lr"] > 0
+    capsys.readouterr()
+    assert main([*train, "--resume", "--lr", "0.5"]) == 1     # a resume with another learning rate
+    err = _err(capsys)
+    assert len(err) == 1 and "(this run: --lr 0.5)" in err[0] and "pick a new run folder" in err[0], err
+    assert main([*train, "--resume", "--epochs", "2"]) == 0   # a longer budget is what a resume is for
+    assert json.loads((run / "stage.json").read_text())["complete"] is True

@@ -35,7 +35,7 @@ from uvatar.io_utils import write_json
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RECORD_NAME", "StageState", "begin", "config_values", "file_identities", "finish", "mark_progress",
+__all__ = ["RECORD_NAME", "StageState", "begin", "begin_run", "config_values", "file_identities", "finish", "mark_progress",
            "read_record", "require_complete"]
 
 RECORD_NAME = "stage.json"
@@ -267,3 +267,17 @@ def require_complete(folder: str | Path, stage: str, command_hint: str, unit: st
             raise InputError(folder, f"`{stage}` is stale: {changed} since it was made; run `{command_hint}` "
                                      "again to redo it")
     return record
+
+
+def begin_run(folder: str | Path, stage: str, config: dict, resume: bool,
+              checkpoint: str = "checkpoint.pt") -> StageState | None:
+    """A training run's record (``stage`` "train avh" / "train dva"): resuming a checkpoint with other
+    settings than it was trained with is refused in one line naming the first difference; a run folder
+    without a checkpoint yet (killed before its first) starts over with the new settings. A folder that
+    holds a checkpoint while ``resume`` is off is left untouched (the trainer itself refuses it)."""
+    folder = Path(folder)
+    has_checkpoint = (folder / checkpoint).is_file()
+    if has_checkpoint and not resume:
+        return None
+    return begin(folder, stage, config, on_change="refuse" if has_checkpoint else "redo",
+                 redo_hint="pick a new run folder")
