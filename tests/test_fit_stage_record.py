@@ -86,6 +86,10 @@ def test_a_changed_person_is_refused_then_refitted_from_new_keypoints_and_a_half
                  "--no-progress"]) == 1
     err = _err(capsys)
     assert len(err) == 1 and hint in err[0], err
+    for argv in (["capture", "masks", str(root), "--no-progress"], ["select", str(root), "--from-capture"]):
+        assert main(argv) == 1
+        err = _err(capsys)
+        assert len(err) == 1 and hint in err[0], (argv, err)
     # the same command again resumes it (no --force needed for its own half-made fits) and closes the record
     stamps = [p.stat().st_mtime_ns for p in keypoints]
     assert main(["fit", str(root), *FAST, str(summary), "--person", "largest"]) == 0
@@ -95,3 +99,32 @@ def test_a_changed_person_is_refused_then_refitted_from_new_keypoints_and_a_half
     fit_stamp = (root / "fits" / "000000.json").stat().st_mtime_ns
     assert main(["fit", str(root), *FAST, str(summary), "--person", "largest"]) == 0
     assert (root / "fits" / "000000.json").stat().st_mtime_ns == fit_stamp
+
+
+def test_person_all_resumes_per_person(tmp_path):
+    """``--person all`` killed after the subject's fit: the rerun keeps the subject's fits (their record is
+    complete, made with these settings) and fits the other person; without records it refused, and
+    ``--force`` would have refitted the subject."""
+    from uvatar.capture.synth.config import preset
+    from uvatar.capture.synth.pipeline import synthesize
+    from uvatar.fit.pipeline import FitConfig, fit_capture
+
+    root = tmp_path / "cap"
+    synthesize(root, preset("quick", frames=2, cameras=4, image_size=256, seed=0, preview=False, bystanders=1),
+               progress=False)
+    shutil.rmtree(root / "fits")
+    config = FitConfig(source="images", person="all", overlay_frames=0, photo_size=0, scan_distance=False)
+    summary = fit_capture(root, config, progress=False)
+    assert list(summary["people"]) == ["1"]
+    subject_fit = root / "fits" / "000000.json"
+    stamp = subject_fit.stat().st_mtime_ns
+    # what a kill while person 1 was being fitted leaves: their record open, their fits not all written
+    record_path = root / "people" / "1" / "fitting" / "stage.json"
+    record = json.loads(record_path.read_text())
+    record["complete"] = False
+    record_path.write_text(json.dumps(record))
+    (root / "people" / "1" / "fits" / "000001.json").unlink(missing_ok=True)
+    again = fit_capture(root, config, progress=False)
+    assert subject_fit.stat().st_mtime_ns == stamp                      # the subject is kept, not refitted
+    assert list(again["people"]) == ["1"] and json.loads(record_path.read_text())["complete"] is True
+    assert (root / "people" / "1" / "fits" / "000000.json").is_file()
