@@ -109,3 +109,40 @@ def test_bad_flags_end_in_one_line_never_a_traceback(name, tmp_path, no_work):
                                                         or " error: " in lines[-1])):
             failures.append(f"uvatar {name} {flag}={value!r}: exit {code} without an error line: {lines[-3:]}")
     assert not failures, "\n".join(failures)
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["train", "dva", "{tmp}/cap", "{tmp}/run", "--device", "bogus"],
+     "--device: 'bogus' is not a device: use cpu, or cuda / cuda:N for a GPU"),
+    (["train", "avh", "{tmp}/baked", "{tmp}/run", "--shading-lights", "2"],
+     "--shading-lights 2 adds lights to the shading head, which only --conditioning texel with --orientation "
+     "studio has (this run: --conditioning global, --orientation body)"),
+    (["train", "avh", "{tmp}/baked", "{tmp}/run", "--shading-lights", "100000", "--conditioning", "texel",
+      "--orientation", "studio"], "--shading-lights must be in [0, 64], got 100000"),
+    (["fit", "{tmp}/cap", "--views", "0"], "--views must be >= 1, got 0"),
+    (["synth", "{tmp}/run", "--bystanders", "-1"], "--bystanders must not be negative"),
+])
+def test_flags_are_checked_before_any_work_in_flag_terms(argv, said, tmp_path, capsys):
+    assert main([a.format(tmp=tmp_path) for a in argv]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and said in err[0], err
+    assert not (tmp_path / "run").exists()            # no output folder left behind
+
+
+def test_cuda_without_cuda_is_one_line_and_leaves_no_folder(tmp_path, capsys, monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for argv in (["train", "dva", str(tmp_path / "cap"), str(tmp_path / "run"), "--device", "cuda"],
+                 ["train", "dva", str(tmp_path / "cap"), str(tmp_path / "run"), "--device", "cuda", "--marcher", "warp"],
+                 ["eval", "dva", str(tmp_path / "run"), str(tmp_path / "cap"), "--json", str(tmp_path / "m.json"),
+                  "--device", "cuda"],
+                 ["render", "dva", str(tmp_path / "run"), "--motion", str(tmp_path / "cap"), "--views", "0,1",
+                  "-o", str(tmp_path / "o.mp4"), "--device", "cuda"],
+                 ["train", "avh", str(tmp_path / "baked"), str(tmp_path / "run"), "--device", "cuda"],
+                 ["bake", str(tmp_path / "cap"), str(tmp_path / "run"), "--device", "cuda:1"]):
+        assert main(argv) == 1
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(err) == 1 and err[0].startswith("uvatar: error: --device: cuda") and "no CUDA" in err[0] \
+            and "--device cpu" in err[0], (argv, err)
+        assert not (tmp_path / "run").exists()

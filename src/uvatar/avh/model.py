@@ -127,10 +127,6 @@ class AvhConfig:
                              f"times a power of two")
         if not 0 <= self.shading_lights <= MAX_SHADING_LIGHTS:
             raise ValueError(f"shading_lights must be in [0, {MAX_SHADING_LIGHTS}], got {self.shading_lights}")
-        if self.shading_lights and not (self.conditioning == "texel" and self.orientation == "studio"):
-            raise ValueError(f"shading_lights={self.shading_lights} adds lights to the shading head, which only "
-                             f"conditioning='texel' with orientation='studio' has (this run: "
-                             f"conditioning={self.conditioning!r}, orientation={self.orientation!r})")
         if self.shading_shadows and not self.shading_lights:
             raise ValueError("shading_shadows needs shading_lights >= 1 (the lights that cast them)")
         if self.shading_occlusion and not self.shading_shadows:
@@ -141,6 +137,15 @@ class AvhConfig:
             raise ValueError(f"conditioning must be one of {', '.join(CONDITIONINGS)}, got {self.conditioning!r}")
         if self.orientation not in ORIENTATIONS:
             raise ValueError(f"orientation must be one of {', '.join(ORIENTATIONS)}, got {self.orientation!r}")
+
+    def check_lights_used(self) -> None:
+        """Raise ValueError when lights are asked for that this generator would ignore (a light rig
+        without the shading head, which only texel conditioning with the studio orientation has). A
+        check for a new training run: a run saved before it was made loads as it is."""
+        if self.shading_lights and not self.shading:
+            raise ValueError(f"shading_lights={self.shading_lights} adds lights to the shading head, which only "
+                             f"conditioning='texel' with orientation='studio' has (this run: "
+                             f"conditioning={self.conditioning!r}, orientation={self.orientation!r})")
 
     @property
     def shading(self) -> bool:

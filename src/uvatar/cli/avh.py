@@ -159,6 +159,7 @@ def _train(args) -> int:
     flags = _flags()
     with options_as_input_error("uvatar train avh options"):
         cfg = flags["model"].config(args, base=preset(args.preset))
+        cfg.check_lights_used()
         tcfg = flags["train"].config(args)
     from uvatar import stage_record
     from uvatar.distributed import is_main_process

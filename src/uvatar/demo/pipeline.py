@@ -174,11 +174,14 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         from uvatar.avh.train import TrainConfig, train_avh
 
         for conditioning, (run_dir, _) in run_dirs(out, cfg).items():
+            # the light rig belongs to the shading head, which only texel + studio has (the global
+            # generator trains without it, as it always did: AvhConfig refuses lights it would ignore)
+            lit = conditioning == "texel" and cfg.orientation == "studio"
             model = preset(cfg.preset, conditioning=conditioning, orientation=cfg.orientation,
-                           shading_lights=cfg.shading_lights, shading_shadows=cfg.shading_shadows,
-                           shading_occlusion=cfg.shading_occlusion)
-            train_avh(baked, run_dir, model, TrainConfig(epochs=cfg.epochs, ema_decay=cfg.ema_decay, progress=cfg.progress), resume=True,
-                      preset_name=cfg.preset)
+                           shading_lights=cfg.shading_lights if lit else 0,
+                           shading_shadows=cfg.shading_shadows and lit, shading_occlusion=cfg.shading_occlusion and lit)
+            train_avh(baked, run_dir, model, TrainConfig(epochs=cfg.epochs, ema_decay=cfg.ema_decay,
+                                                         progress=cfg.progress), resume=True, preset_name=cfg.preset)
 
     def export() -> None:
         from uvatar.avh.export import export_avatar
