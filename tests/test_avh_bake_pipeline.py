@@ -105,7 +105,7 @@ def test_bad_arguments(baked, tmp_path, capsys):
     assert "scans" in err and "uvatar train dva" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o0").exists()
     assert main(["bake", str(cap), str(out), "--texels", "32", "--no-progress"]) == 1
-    assert "64 texels" in capsys.readouterr().err
+    assert "made with --texels 64 (this run: --texels 32)" in capsys.readouterr().err
     assert main(["bake", str(cap), str(tmp_path / "o2"), *ARGS, "--frames", "999999"]) == 1
     assert "999999" in capsys.readouterr().err
     assert main(["bake", str(cap), str(tmp_path / "o3"), *ARGS, "--registration-stiffness", "1"]) == 1

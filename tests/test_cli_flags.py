@@ -133,9 +133,9 @@ def test_a_bad_value_is_argparse_one_line_error(argv, words, capsys):
 
 def test_out_of_bounds_value_is_the_config_own_error():
     p, flags = _parser()
-    with pytest.raises(ValueError, match=r"^ratio must be >= 1, got 0.5 \(--ratio 0.5, --no-register\)$"):
+    with pytest.raises(ValueError, match=r"^--ratio must be >= 1, got 0.5 \(--ratio 0.5, --no-register\)$"):
         flags.config(p.parse_args(["--ratio", "0.5", "--no-register", "--name", "anny"]))
-    with pytest.raises(ValueError, match=r"^ratio must be >= 1, got 0.5$"):  # nothing given: nothing to name
+    with pytest.raises(ValueError, match=r"^--ratio must be >= 1, got 0.5$"):  # nothing given: nothing to append
         flags.config(p.parse_args([]), ratio=0.5)
 
 

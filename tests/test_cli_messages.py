@@ -39,7 +39,8 @@ def captures(tmp_path_factory):
 @pytest.mark.parametrize("argv, flag_words", [
     (["fit", "{root}/cams"], "--force replaces them"),
     (["capture", "masks", "{root}/no_fits"], "(or --no-fit to use the segmenter alone"),
-    (["bake", "{root}/toy/capture", "{root}/bake_out", "--texels", "16"], "use another output folder or --overwrite"),
+    (["bake", "{root}/toy/capture", "{root}/bake_out", "--texels", "16"],
+     "made with --texels 32 (this run: --texels 16); rerun with the same settings to resume it, or --overwrite"),
     (["train", "avh", "{root}/toy/baked", "{root}/run"], "--resume continues it"),
     (["train", "dva", "{root}/cams", "{root}/run"], "--resume continues it"),
     (["body", "info", "--model", "smpl"], "pass --model-dir or set UVATAR_SMPL_DIR"),
@@ -53,6 +54,7 @@ def test_library_messages_name_the_commands_flags(captures, capsys, monkeypatch,
 
     monkeypatch.delenv("UVATAR_SMPL_DIR", raising=False)
     write_json(captures / "bake_out" / "dataset.json", {"texels": 32})  # another bake's resolution
+    write_json(captures / "bake_out" / "stage.json", {"stage": "bake", "config": {"texels": 32}, "complete": True})
     (captures / "run").mkdir(exist_ok=True)
     (captures / "run" / "checkpoint.pt").write_bytes(b"x")
     (captures / "legless.bvh").write_text("HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 3 Xposition Yposition "

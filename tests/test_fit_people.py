@@ -123,7 +123,7 @@ def test_bad_people_inputs_are_one_line_errors(tmp_path):
         bystander_truth(Capture(tmp_path, person=1), {"000000": BodyFit(poses=np.zeros(6))})
     (tmp_path / "scans").mkdir()
     trimesh.creation.box().export(tmp_path / "scans" / "000000.obj")
-    with pytest.raises(InputError, match="needs source 'images', not 'scans'"):
+    with pytest.raises(InputError, match=r"needs source='images' \(this run: source='scans'\)"):
         fit_capture(tmp_path, FitConfig(person="all"), progress=False)
 
 

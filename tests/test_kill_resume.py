@@ -54,15 +54,25 @@ def test_synth_killed_mid_run_resumes_to_identical_files(whole, tmp_path):
         assert assert_same_bytes(whole / "cap", cap, pattern) >= 1, pattern
 
 
-def test_bake_killed_mid_run_resumes_to_identical_arrays(whole, tmp_path):
+def test_bake_killed_mid_run_resumes_to_identical_arrays(whole, tmp_path, capsys):
+    from uvatar.cli.main import main
+
     shutil.copytree(whole / "cap", tmp_path / "cap")
     baked = tmp_path / "baked"
     run_killed(["-m", "uvatar", "bake", "cap", "baked", *BAKE], tmp_path, lambda: count(baked / "frames", "*.npz") >= 1)
     assert count(baked / "frames", "*.npz") < 4, "the kill came after the last frame"
+    # the half-made bake is refused downstream until it is finished
+    for argv in (["select", str(baked), "-n", "1", "--val", "0"],
+                 ["train", "avh", str(baked), str(tmp_path / "run"), "--epochs", "1", "--no-progress"]):
+        assert main(argv) == 1
+        err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("uvatar: error:")]
+        assert len(err) == 1 and "`bake` incomplete: " in err[0] and " of 4 frames; run `uvatar bake " in err[0] \
+            and "again to finish" in err[0], err
     _plant_partial_write(baked / "frames" / ".000002.abcd1234.npz")
     (baked / "preview" / "000000.png").unlink()  # as a bake older than the preview-first order could leave it
     run(["-m", "uvatar", "bake", "cap", "baked", *BAKE], tmp_path)
     assert find_partial_writes(baked) == []
+    assert json.loads((baked / "stage.json").read_text())["complete"] is True
     assert assert_same_npz(whole / "baked", baked) == 5   # 4 frames and the refined fits (photo_reference.npz)
     assert assert_same_bytes(whole / "baked", baked, "preview/00000[123].png") == 3
     import imageio.v3 as iio  # the restored preview is drawn from the stored (float16) maps: within 1 level

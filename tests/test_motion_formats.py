@@ -123,8 +123,8 @@ def _bad_files(tmp_path, clip):
 
 
 @pytest.mark.parametrize("name, words", [
-    ("truncated.glb", "not a readable glTF/GLB"), ("truncated.fbx", "not a readable FBX"),
-    ("text.fbx", "not a readable FBX"), ("empty.gltf", "not a readable glTF/GLB"),
+    ("truncated.glb", "truncated GLB: its header says"), ("truncated.fbx", "not a readable FBX"),
+    ("text.fbx", "not a readable FBX"), ("empty.gltf", "empty file (0 bytes)"),
     ("static.glb", "no skin and no animation"), ("pose.glb", "no animation"),
     ("unknown_rig.glb", "no joint maps to pelvis"), ("unknown_rig.fbx", "no joint maps to pelvis"),
 ])

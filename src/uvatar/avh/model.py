@@ -54,6 +54,10 @@ from uvatar.avh.lights import LightRig
 from uvatar.avh.shadows import BodyShadows
 from uvatar.avh.texel_pose import TexelPoseMap, pooled
 
+#: Most lights of the light-rig shading head (each is a learned direction and colour; a rig of a few
+#: already spans a studio's lighting, and the head's cost grows with every light).
+MAX_SHADING_LIGHTS = 64
+
 #: Pose conditioning of the decoders: the paper's global latent only, or also a texel-aligned pose map.
 CONDITIONINGS = ("global", "texel")
 #: What the pose input holds: the local pose only (the paper), or also the body's orientation in the studio.
@@ -127,8 +131,8 @@ class AvhConfig:
         if self.feature_size < 1 or self.resolution < self.feature_size or ratio != 2 ** round(math.log2(ratio)):
             raise ValueError(f"resolution {self.resolution} must be feature_size {self.feature_size} "
                              f"times a power of two")
-        if self.shading_lights < 0:
-            raise ValueError(f"shading_lights must be >= 0, got {self.shading_lights}")
+        if not 0 <= self.shading_lights <= MAX_SHADING_LIGHTS:
+            raise ValueError(f"shading_lights must be in [0, {MAX_SHADING_LIGHTS}], got {self.shading_lights}")
         if self.shading_shadows and not self.shading_lights:
             raise ValueError("shading_shadows needs shading_lights >= 1 (the lights that cast them)")
         if self.shading_occlusion and not self.shading_shadows:
@@ -142,6 +146,15 @@ class AvhConfig:
             raise ValueError(f"conditioning must be one of {', '.join(CONDITIONINGS)}, got {self.conditioning!r}")
         if self.orientation not in ORIENTATIONS:
             raise ValueError(f"orientation must be one of {', '.join(ORIENTATIONS)}, got {self.orientation!r}")
+
+    def check_lights_used(self) -> None:
+        """Raise ValueError when lights are asked for that this generator would ignore (a light rig
+        without the shading head, which only texel conditioning with the studio orientation has). A
+        check for a new training run: a run saved before it was made loads as it is."""
+        if self.shading_lights and not self.shading:
+            raise ValueError(f"shading_lights={self.shading_lights} adds lights to the shading head, which only "
+                             f"conditioning='texel' with orientation='studio' has (this run: "
+                             f"conditioning={self.conditioning!r}, orientation={self.orientation!r})")
 
     @property
     def shading(self) -> bool:

@@ -172,7 +172,10 @@ def resolve_body(meta: dict, resolution: int, body=None, baked_dir: Path | None 
     if body is None and name != "none":
         from uvatar.body import load_body_model
 
-        body = load_body_model(name)
+        try:
+            body = load_body_model(name)
+        except ValueError as exc:  # a name no backend has: the dataset's, not a traceback
+            raise InputError(Path(baked_dir or ".") / "dataset.json", str(exc)) from None
     if body is None:
         if "conditioning_joints" not in meta:
             raise InputError(Path(baked_dir or ".") / "dataset.json",

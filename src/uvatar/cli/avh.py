@@ -55,7 +55,7 @@ def _flags() -> dict[str, ConfigFlags]:
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
                                  "pose_noise", "shading_lr_scale", "ema_decay", "calibrate_lights", "device", "seed",
-                                 "tensorboard"),
+                                 "tensorboard", "progress"),
             rename={"lr_gamma": "gamma"}, choices={"displacement_frame": DISPLACEMENT_FRAMES}, help={
                 "epochs": "epochs (the paper uses 500)", "batch_size": "frames per batch", "lr": "Adam learning rate",
                 "lr_gamma": "ExponentialLR decay per epoch", "displacement_weight": "weight of the displacement loss",
@@ -69,29 +69,31 @@ def _flags() -> dict[str, ConfigFlags]:
                 "calibrate_lights": "steps fitting the light rig (--shading-lights) and an albedo to all training "
                                     "frames before training (0: the rig starts unlit)",
                 "device": "cpu or cuda (bf16 autocast + channels_last)", "seed": "random seed",
-                "tensorboard": "write TensorBoard logs to OUT/tb"}),
+                "tensorboard": "write TensorBoard logs to OUT/tb", "progress": "progress bars (--no-progress: none)"}),
         "animate": ConfigFlags(
             AnimateConfig, fields=("camera", "camera_name", "size", "max_frames", "stride", "fps", "mesh_format",
-                                   "shading", "levels"),
+                                   "shading", "levels", "progress"),
             rename={"max_frames": "frames"}, choices={"mesh_format": ("obj", "glb")}, help={
                 "camera": "orbit, front, back, left, right, or a cameras folder",
                 "camera_name": "camera of the cameras folder (none: the first)", "size": "image side (pixels)",
                 "max_frames": "render at most this many frames (none: all)", "stride": "use every n-th motion frame",
                 "fps": "video fps (none: the motion's)", "mesh_format": "format of the --obj-dir meshes",
-                "shading": "add headlight shading", "levels": "subdivision levels"}),
+                "shading": "add headlight shading", "levels": "subdivision levels",
+                "progress": "progress bar (--no-progress: none)"}),
         "export": ConfigFlags(export_avatar, fields=("opset", "tolerance"), help={
             "opset": "ONNX opset", "tolerance": "max ONNX vs PyTorch abs difference"}),
         "animate_call": ConfigFlags(animate, fields=("mesh_dir", "device"), rename={"mesh_dir": "obj_dir"}, help={
             "mesh_dir": "also write one mesh per frame here", "device": "onnxruntime device (cpu or cuda)"}),
         "eval": ConfigFlags(
-            EvalConfig, fields=("pose_source", "sheets_per_camera", "image_size", "orbit_views", "orbit_size"),
+            EvalConfig, fields=("pose_source", "sheets_per_camera", "image_size", "orbit_views", "orbit_size",
+                                "progress"),
             rename={"sheets_per_camera": "sheet_per_camera"}, choices={"pose_source": ("refined", "fit")}, help={
                 "pose_source": "held-out poses: the capture's fit refined against the frame's scan as bake does for "
                                "training frames (measures the avatar), or the fit as is (includes fit noise)",
                 "sheets_per_camera": "one comparison image per frame x camera (default: per frame, first camera)",
                 "image_size": "render width (none: the cameras')",
                 "orbit_views": "virtual cameras around the person for a capture without cameras (scans only)",
-                "orbit_size": "their image size in pixels"}),
+                "orbit_size": "their image size in pixels", "progress": "progress bar (--no-progress: none)"}),
     }
 
 
@@ -163,10 +165,19 @@ def _train(args) -> int:
     flags = _flags()
     with options_as_input_error("uvatar train avh options"):
         cfg = flags["model"].config(args, base=preset(args.preset))
+        cfg.check_lights_used()
         tcfg = flags["train"].config(args)
-    summary = train_avh(args.baked, args.out, cfg, tcfg, resume=args.resume, preset_name=args.preset)
+    from uvatar import stage_record
     from uvatar.distributed import is_main_process
 
+    # what the generator learns from (the budget, where it runs and what it logs can change on a resume)
+    settings = stage_record.config_values(cfg, tcfg, preset=args.preset,
+                                          drop=("epochs", "device", "progress", "tensorboard"))
+    if is_main_process():
+        stage_record.begin_run(args.out, "train avh", settings, args.resume)
+    summary = train_avh(args.baked, args.out, cfg, tcfg, resume=args.resume, preset_name=args.preset)
+    if is_main_process():
+        stage_record.finish(args.out)
     final = summary["final"]
     if is_main_process():
         print(f"trained {summary['epochs']} epochs: loss {final['loss']:.3e}"

@@ -200,6 +200,11 @@ def _select(args) -> int:
     with options_as_input_error("uvatar select options"):
         cfg = _flags()[3].config(args)
     if args.from_capture:
+        from pathlib import Path
+
+        from uvatar.stage_record import require_complete
+
+        require_complete(Path(args.path) / "fitting", "fit", f"uvatar fit {args.path}", check_inputs=False)
         sel, out = select_from_capture(args.path, args.out, cfg, frame_range=args.frames)
         where = str(out)
     else:

@@ -13,10 +13,11 @@ def _flags() -> ConfigFlags:
     from uvatar.avh.model import ORIENTATIONS
     from uvatar.demo.pipeline import DEFAULT, FINE, FIT_SOURCES, QUICK, DemoConfig
 
-    return ConfigFlags(DemoConfig, fields=("seed", "epochs", "fits", "orientation"),
+    return ConfigFlags(DemoConfig, fields=("seed", "epochs", "fits", "orientation", "progress"),
                        choices={"fits": FIT_SOURCES, "orientation": ORIENTATIONS},
                        presets={"default": DEFAULT, "quick": QUICK, "fine": FINE}, help={
                            "seed": "random seed of the synthetic capture", "epochs": "training epochs",
+                           "progress": "progress bars (--no-progress: none)",
                            "orientation": "what the generators see of the pose: studio adds the body's orientation "
                                           "in the capture's world (the studio's lights are fixed in it); body is "
                                           "the paper's local pose only",

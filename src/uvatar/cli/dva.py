@@ -53,11 +53,12 @@ def _flags() -> tuple[ConfigFlags, ...]:
                         help={"voxels": "voxels per primitive side S",
                               "depth_colour": "colour varies along each primitive's depth too (off: one colour "
                                               "per voxel column)"}),
-            ConfigFlags(train_dva, fields=("device", "resume", "seed"), help={
+            ConfigFlags(train_dva, fields=("device", "resume", "seed", "progress"), help={
                 "device": "torch device (cpu, cuda)", "resume": "continue from OUT/checkpoint.pt",
+                "progress": "progress bar (--no-progress: none)",
                 "seed": "seed of the weights' initialisation and of the sampling of frames, cameras and crops"}),
             ConfigFlags(evaluate_dva, fields=("driving_views", "max_frames", "device", "marcher", "refine_pose",
-                                                      "refine_residual"),
+                                                      "refine_residual", "progress"),
                         choices={"marcher": MARCHERS}, help={
                 "refine_pose": "steps of test-time pose refinement of each test frame's fit against its "
                                "driving views (0: the fits as they are)",
@@ -66,13 +67,15 @@ def _flags() -> tuple[ConfigFlags, ...]:
                                    "views after the pose (0: none)",
                 "driving_views": "training cameras that drive the avatar (evenly spread)",
                 "max_frames": "score at most this many test frames (none: all)", "device": "torch device",
+                "progress": "progress bar (--no-progress: none)",
                 **run_marcher}),
             ConfigFlags(RaymarchConfig, fields=("marcher",), presets={k: c.raymarch for k, c in PRESETS.items()}),
             ConfigFlags(load_run, fields=("marcher",), choices={"marcher": MARCHERS}, help=run_marcher),
             ConfigFlags(CorrectionConfig, fields=("pose", "colour"), prefix="correct", help={
                 "pose": "learn per-frame pose and translation offsets of the fits during training",
                 "colour": "learn a per-camera colour gain and bias during training"}),
-            ConfigFlags(drive_sequence, fields=("refine_pose", "refine_residual"), help={
+            ConfigFlags(drive_sequence, fields=("refine_pose", "refine_residual", "progress"), help={
+                "progress": "progress bar (--no-progress: none)",
                 "refine_pose": "steps of pose refinement of each frame's fit against its driving views before "
                                "rendering (0: the fits as they are; uvatar eval dva uses 40)",
                 "refine_residual": "steps of a residual of each frame's decoded primitives fitted to its "
@@ -180,11 +183,15 @@ def _check_train_args(args) -> None:
 def _train(args) -> int:
     _check_train_args(args)
     _set_threads(args)
+    from pathlib import Path
+
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset
     from uvatar.dva.train import train_dva
     from uvatar.errors import options_as_input_error
+    from uvatar.stage_record import require_complete
 
+    require_complete(Path(args.capture) / "fitting", "fit", f"uvatar fit {args.capture}", check_inputs=False)
     budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features, losses = _flags()
     cfg = preset(args.preset)
     with options_as_input_error("train dva"):
@@ -196,12 +203,21 @@ def _train(args) -> int:
         cfg.corrections = corrections.config(args, base=cfg.corrections)
         cfg.loss = losses.config(args, base=cfg.loss)
     given = budget.values(args)  # passed on their own: a resumed run keeps its checkpoint's config
+    from uvatar import stage_record
+    from uvatar.distributed import is_main_process
+
+    # what the avatar learns from; the budget, the marcher (how to render) and the device can change on a resume
+    nested = {name: "" for name in ("train", "primitives", "decoder", "features", "raymarch")}
+    settings = stage_record.config_values(cfg, prefixes={**nested, "corrections": "correct", "loss": "loss"},
+                                          drop=("minutes", "iters", "marcher"), seed=args.seed, model=args.model,
+                                          vgg_weights=args.vgg_weights)
+    if is_main_process():
+        stage_record.begin_run(args.out, "train dva", settings, args.resume)
     summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
                         minutes=given.get("minutes"), vgg_weights=args.vgg_weights, body_model=args.model,
                         model_dir=args.model_dir, **train.values(args))
-    from uvatar.distributed import is_main_process
-
     if is_main_process():
+        stage_record.finish(args.out)
         print(f"trained {summary['steps']} steps in {summary['seconds']} s -> {args.out}")
     return 0
 

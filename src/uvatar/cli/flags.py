@@ -224,7 +224,16 @@ class ConfigFlags:
         except ValueError as exc:  # the config names its field; say which flags the user changed
             start = base if base is not None else self.cls()
             changed = [self.spelled(k, v) for k, v in given.items() if v != getattr(start, k)]
-            raise ValueError(f"{exc} ({', '.join(changed)})" if changed else str(exc)) from None
+            text = self._field_as_flag(str(exc))
+            raise ValueError(f"{text} ({', '.join(changed)})" if changed else text) from None
+
+    def _field_as_flag(self, message: str) -> str:
+        """A config message that starts with one of this command's fields (``count must be >= 1``) starting
+        with its flag instead (``--views must be >= 1``)."""
+        head = re.match(r"([a-z][a-z0-9_]*)\b(?![=(])", message)
+        if head and head.group(1) in {f.name for f in self._fields()}:
+            return self.flag(head.group(1)) + message[head.end():]
+        return message
 
     def spelled(self, name: str, value) -> str:
         """How the flag of field ``name`` is written for ``value`` (``--texels 0``, ``--no-register``)."""
@@ -254,6 +263,7 @@ def config_from_args(config: type | ConfigFlags, args: argparse.Namespace, base=
 # -- library messages in the terms of a command's flags ------------------------------------------------
 _ASSIGNED = re.compile(r"(?<![\w./-])([a-z][a-z0-9_]*)=(True|False|None|'[^']*'|[-\w.]+)")
 _VERB = re.compile(r"\b(pass|give|use) ([a-z][a-z0-9_]*)(?![\w/.=-])")
+_HEAD = re.compile(r"([a-z][a-z0-9_]*): ")
 _SNAKE = re.compile(r"(?<![\w./$-])([a-z][a-z0-9]*(?:_[a-z0-9]+)+)(?![\w/.=-])")
 
 
@@ -315,4 +325,7 @@ def in_flag_terms(message: str, parser: argparse.ArgumentParser, command: str, a
     def verb(m: re.Match) -> str:  # snake_case names are left to _SNAKE
         return m.group(0) if "_" in m.group(2) else f"{m.group(1)} {spell(m.group(2))}"
 
+    head = _HEAD.match(message)  # "person: 'x': ..." (the library names the setting where a path would be)
+    if head and head.group(1) in flags and not head.group(1).startswith("-"):
+        message = _spell_flag(flags[head.group(1)], None) + message[head.end(1):]
     return _SNAKE.sub(lambda m: spell(m.group(1)), _VERB.sub(verb, _ASSIGNED.sub(assigned, message)))

@@ -130,6 +130,15 @@ def _in_flags(message: str, cli: Cli, args) -> str:
     return in_flag_terms(message, cli.commands[name], f"uvatar {name}", cli.commands.values())
 
 
+def _check_flags(args) -> None:
+    """Checks of flags that every command shares, before any work: a ``--device`` this machine has."""
+    device = getattr(args, "device", None)
+    if isinstance(device, str) and device.strip() != "cpu":
+        from uvatar.devices import check_device
+
+        check_device(device)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     cli = build_cli()
@@ -140,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         cli.parser.print_help()
         return 2
     try:
+        _check_flags(args)
         code = args.func(args)
     except BrokenPipeError:  # output piped into `head` and closed early
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

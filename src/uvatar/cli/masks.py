@@ -49,6 +49,7 @@ def _masks(args) -> int:
 
     with options_as_input_error("uvatar capture masks options"):
         config = _flags().config(args)
+    _require_fits(args.capture)
     summary = write_capture_masks(args.capture, config, progress=not args.no_progress, model_dir=args.model_dir)
     people = summary.get("people") or []
     print(f"masks: {summary['written']} written, {summary['kept']} kept, {len(summary['failed'])} failed"
@@ -62,3 +63,15 @@ def _masks(args) -> int:
     for image, reason in list(summary["failed"].items())[:10]:
         print(f"  {image}: {reason}", file=sys.stderr)
     return 0
+
+
+def _require_fits(capture) -> None:
+    """The masks are cut out of the fitted bodies: refuse fits that ``uvatar fit`` left half made (the
+    subject's and every other person's)."""
+    from pathlib import Path
+
+    from uvatar.stage_record import require_complete
+
+    root = Path(capture)
+    for fitting in [root / "fitting", *sorted(root.glob("people/*/fitting"))]:
+        require_complete(fitting, "fit", f"uvatar fit {root}", check_inputs=False)

@@ -63,6 +63,7 @@ class DemoConfig:
     workers: int = 2
     synth_preset: str = "default"  # "quick": small scans (6k-12k faces), short topology segments
     fits: str = "studio"        # "studio": the studio's noisy fits; "fit": made by `uvatar fit --from scans`
+    progress: bool = True       # progress bars of the stages
 
     def __post_init__(self) -> None:
         from uvatar.avh.model import CONDITIONINGS, ORIENTATIONS
@@ -122,7 +123,7 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         summary = synthesize(cap, preset(cfg.synth_preset, frames=cfg.frames, heldout=cfg.heldout,
                                          cameras=cfg.cameras, image_size=cfg.image_size,
                                          scan_texture=cfg.scan_texture, gt_texels=cfg.gt_texels, seed=cfg.seed,
-                                         workers=cfg.workers), progress=True)
+                                         workers=cfg.workers), progress=cfg.progress)
         if summary["failed"]:
             raise UvatarError(f"{cap}: synth failed on frame(s) {', '.join(sorted(summary['failed']))[:200]}")
 
@@ -137,7 +138,7 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         studio = out / "studio_fits"
         if (cap / "fits").is_dir() and not studio.exists():  # the studio's fits leave the capture once
             shutil.move(str(cap / "fits"), str(studio))
-        summary = fit_capture(cap, FitConfig(source="scans", force=True), progress=True)
+        summary = fit_capture(cap, FitConfig(source="scans", force=True), progress=cfg.progress)
         capture = Capture(cap)
         body = load_body_model(capture.body_model)
         fits = {f: capture.load_fit(f) for f in capture.frames}
@@ -155,7 +156,7 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         from uvatar.avh.bake.evaluate import EvalConfig, evaluate_bake
         from uvatar.avh.bake.pipeline import bake_capture
 
-        bake_capture(cap, baked, BakeConfig().with_updates(texels=cfg.texels), None, cfg.workers, True)
+        bake_capture(cap, baked, BakeConfig().with_updates(texels=cfg.texels), None, cfg.workers, cfg.progress)
         info = read_dataset_info(baked)
         if not info.get("frames_baked"):
             raise UvatarError(f"{baked}: no frame was baked (rejected: {len(info.get('rejected', {}))})")
@@ -173,11 +174,14 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         from uvatar.avh.train import TrainConfig, train_avh
 
         for conditioning, (run_dir, _) in run_dirs(out, cfg).items():
+            # the light rig belongs to the shading head, which only texel + studio has (the global
+            # generator trains without it, as it always did: AvhConfig refuses lights it would ignore)
+            lit = conditioning == "texel" and cfg.orientation == "studio"
             model = preset(cfg.preset, conditioning=conditioning, orientation=cfg.orientation,
-                           shading_lights=cfg.shading_lights, shading_shadows=cfg.shading_shadows,
-                           shading_occlusion=cfg.shading_occlusion)
-            train_avh(baked, run_dir, model, TrainConfig(epochs=cfg.epochs, ema_decay=cfg.ema_decay), resume=True,
-                      preset_name=cfg.preset)
+                           shading_lights=cfg.shading_lights if lit else 0,
+                           shading_shadows=cfg.shading_shadows and lit, shading_occlusion=cfg.shading_occlusion and lit)
+            train_avh(baked, run_dir, model, TrainConfig(epochs=cfg.epochs, ema_decay=cfg.ema_decay,
+                                                         progress=cfg.progress), resume=True, preset_name=cfg.preset)
 
     def export() -> None:
         from uvatar.avh.export import export_avatar

@@ -19,10 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar import stage_record
 from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.calibration import refine_capture_cameras
 from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
+from uvatar.fit.records import check_person_choice, fit_inputs, fit_record_config, keypoint_record_config
 from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
 from uvatar.fit.stages import FitStages
 from uvatar.io_utils import read_json, write_json
@@ -300,12 +302,10 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     if not frames:
         raise InputError(capture.root, "the capture lists no frames")
     choice = parse_person(config.person)
-    if choice.rule != "id":
-        _refuse_existing(capture, config)
     source = resolve_source(capture, config.source)
-    if choice.several and source != "images":
-        raise InputError("person", f"{config.person!r} fits several people from the capture's images: it needs "
-                                   f"source 'images', not {source!r}")
+    check_person_choice(capture, frames, choice, config.person, source)
+    if choice.rule != "id":
+        _refuse_existing(capture, config, stages, source)
     if config.refine_cameras and (source != "images" or choice.several or choice.rule == "id"):
         raise InputError(capture.cameras_dir, "refine_cameras=True refines the cameras against one subject seen in "
                                               "the capture's images: fit it alone, from images")
@@ -328,7 +328,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     t_choose = time.perf_counter() - t0
     for pid, *_ in chosen:
         if pid is not None:
-            _refuse_existing(capture.for_person(pid), config)
+            _refuse_existing(capture.for_person(pid), config, stages, source)
     summaries, subject_obs = {}, None
     for pid, seed, prior, report in chosen:
         picked = (seed, prior, report) if prior is not None else None
@@ -350,10 +350,17 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     return summary
 
 
-def _refuse_existing(capture: Capture, config: FitConfig) -> None:
+def _refuse_existing(capture: Capture, config: FitConfig, stages: FitStages, source: str) -> None:
+    """Before any work: refuse fits made with other settings (their stage record names the first
+    difference), or fits with no record, unless ``force``; fits made with these settings resume (or,
+    complete, are kept: :func:`_fit_person`)."""
     existing = existing_fits(capture)
-    if existing and not config.force:
+    if not existing or config.force:
+        return
+    if stage_record.read_record(capture.fitting_dir) is None:
         raise InputError(capture.fits_dir, f"already holds {len(existing)} fit file(s); force=True replaces them")
+    stage_record.begin(capture.fitting_dir, "fit", fit_record_config(config, stages, source),
+                       fit_inputs(capture, source), dry_run=True, redo_hint="force=True fits again")
 
 
 def _fit_person(capture: Capture, frames: list[str], source: str, body, detector, stages: FitStages,
@@ -369,8 +376,22 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
     subject = capture.person is None
     t0 = time.perf_counter()
     hide = None if subject else subject_hider(capture.for_person(None), body)
+    fit_state = stage_record.begin(capture.fitting_dir, "fit", fit_record_config(config, stages, source),
+                                   fit_inputs(capture, source), on_change="redo" if config.force else "refuse",
+                                   skip_complete=not config.force, redo_hint="force=True fits again")
+    if fit_state.status == "complete":   # fitted before with these settings and inputs (a --person all rerun)
+        log.info("%s: fitted before with these settings; kept", capture.fitting_dir)
+        summary = read_json(capture.fitting_dir / "summary.json")
+        return summary, _detect_all(capture, frames, source, detector, stages, False, choice, config.cut_distance,
+                                    chosen, avoid, hide)[0]
+    keypoints_dir = capture.person_root / "fitting" / "keypoints"
+    if stage_record.begin(keypoints_dir, "keypoints", keypoint_record_config(capture, config, stages, source, detector),
+                          fit_inputs(capture, source), total=len(frames), on_change="redo").status == "redo":
+        for stale in keypoints_dir.glob("*.npz"):   # detected for another person, detector or images
+            stale.unlink()
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
                                                  config.cut_distance, chosen, avoid, hide)
+    stage_record.finish(keypoints_dir)
     t_detect = time.perf_counter() - t0
     use_scans = subject and config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
@@ -438,6 +459,7 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
         summary["contact_sheet"] = str(write_overlays(capture, frames, observations, posed, body, source,
                                                       stages, config))
     write_json(capture.fitting_dir / "summary.json", summary)
+    stage_record.finish(capture.fitting_dir)
     return summary, observations
 
 

@@ -26,8 +26,37 @@ _DTYPES = {5120: (np.int8, 127.0), 5121: (np.uint8, 255.0), 5122: (np.int16, 327
 MAX_FRAMES = 200_000
 
 
+def _check_container(path: Path) -> None:
+    """One-line reasons for files that are no glTF at all, before pygltflib's own errors: an empty
+    file, a GLB without the ``glTF`` magic, a GLB shorter than its header says, a ``.gltf`` that is
+    not JSON."""
+    import json
+    import struct
+
+    size = path.stat().st_size
+    if size == 0:
+        raise InputError(path, "empty file (0 bytes): not a glTF/GLB motion")
+    with open(path, "rb") as fh:
+        head = fh.read(12)
+    if head[:4] == b"glTF":
+        if size < 12:
+            raise InputError(path, f"truncated GLB: {size} bytes, shorter than its 12-byte header")
+        declared = struct.unpack("<I", head[8:12])[0]
+        if declared > size:
+            raise InputError(path, f"truncated GLB: its header says {declared} bytes, the file has {size}")
+        return
+    if path.suffix.lower() == ".glb" and not head.lstrip()[:1] == b"{":
+        raise InputError(path, f"not a GLB file: it starts with {head[:8]!r}, not the 'glTF' magic")
+    try:
+        json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"not a glTF file: neither the binary GLB form nor JSON ({str(exc).split(':')[0]})") \
+            from None
+
+
 def _load(path: Path):
     g = require("pygltflib", "formats", "reading glTF motions")
+    _check_container(path)
     try:
         gltf = g.GLTF2().load(str(path))
         if gltf is None:
@@ -35,7 +64,9 @@ def _load(path: Path):
         gltf.convert_buffers(g.BufferFormat.BINARYBLOB)  # data URIs and .bin files → one blob
         blob = gltf.binary_blob() or b""
     except Exception as exc:  # noqa: BLE001 - pygltflib raises json, struct, key and OS errors
-        raise InputError(path, f"not a readable glTF/GLB file ({type(exc).__name__})") from None
+        from uvatar.errors import one_line
+
+        raise InputError(path, f"not a readable glTF/GLB file ({type(exc).__name__}: {one_line(exc)[:120]})") from None
     return gltf, blob
 
 

@@ -69,6 +69,8 @@ RIGS = (
          "upperleg01": "hip", "lowerleg01": "knee", "foot": "ankle", "toe31": "toe"}),
 )
 RIG_NAMES = tuple(r.name for r in RIGS)
+#: Distinct semantic joints (the pelvis among them) a skeleton's names must match for it to be called a rig.
+MIN_RIG_JOINTS = 8
 
 _NAMESPACE = re.compile(r"^.*[:|]")
 _BIPED = re.compile(r"^bip0*1[\s_]*", re.IGNORECASE)
@@ -178,7 +180,10 @@ def match_rig(names, parents, user_map: dict | None = None, target_names=None) -
     scored = [(len(_rig_candidates(r, names, sides)), -k, r) for k, r in enumerate(RIGS)]
     best = max(scored, key=lambda x: x[:2])[2]
     candidates = _rig_candidates(best, names, sides)
-    rig_name = best.name if candidates else "unknown"
+    # a rig is named only for a body: a few joints that happen to share a rig's names ("root", "head")
+    # are no MakeHuman skeleton
+    human = len(set(candidates.values())) >= MIN_RIG_JOINTS and "pelvis" in candidates.values()
+    rig_name = best.name if candidates and human else "unknown"
     fill = [_rig_candidates(r, names, sides) for r in RIGS if r is not best]
     user: dict[str, str | None] = {}
     if user_map:

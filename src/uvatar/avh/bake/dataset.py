@@ -112,13 +112,17 @@ def read_frame_scalar(path, key: str) -> float:
 
 def read_dataset_info(root, required: bool = False) -> dict:
     """``BAKED/dataset.json`` as a dict; when absent: {} or, if ``required``, InputError. Raises
-    InputError for bad JSON."""
+    InputError for bad JSON, and (``required``: a reader downstream of the bake) for a bake that is
+    incomplete or whose capture changed since (its stage record, :mod:`uvatar.stage_record`)."""
     path = Path(root) / DATASET_JSON
-    if not path.is_file():
-        if required:
+    info = read_json(path) if path.is_file() else {}
+    if required:  # a reader downstream of the bake: never a half-made or stale one
+        from uvatar.stage_record import require_complete
+
+        require_complete(root, "bake", f"uvatar bake {info.get('capture', 'CAPTURE')} {root}", unit="frames")
+        if not path.is_file():
             raise InputError(path, "not found; is this a `uvatar bake` output folder?")
-        return {}
-    return read_json(path)
+    return info
 
 
 def write_dataset_info(root, info: dict) -> None:

@@ -18,6 +18,7 @@ import uuid
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from uvatar import stage_record
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.dataset import (
     frame_path,
@@ -204,17 +205,16 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
         raise InputError(capture.scans_dir, "does not exist: AVH bakes one textured scan per frame (a "
                          "volumetric-video capture); a capture of camera images alone drives DVA "
                          "(uvatar train dva)")
+    stage_record.require_complete(capture.fitting_dir, "fit", f"uvatar fit {capture.root}", check_inputs=False)
     out = Path(out_root)
     out.mkdir(parents=True, exist_ok=True)
     sweep_partial_writes(out)  # temp files of writes a kill cut short (frames/.000000.*.npz, ...)
     previous = read_dataset_info(out)
-    if previous.get("texels") not in (None, config.texels) and not overwrite:
-        raise InputError(out / "dataset.json", f"holds a bake at {previous['texels']} texels, not "
-                         f"{config.texels}; use another output folder or overwrite=True")
     frames = [frame_name(f) for f in (capture.frames if frames is None else frames)]
     unknown = sorted(set(frames) - set(capture.frames))
     if unknown:
         raise InputError(capture.root / "capture.json", f"has no frame(s) {', '.join(unknown[:5])}")
+    _begin_record(out, capture, config, frames, overwrite, dry_run=True)   # a changed flag: refused before work
     body_name = capture.body_model
     try:
         load_body_and_layout(body_name, config.texels)  # fail early on a bad body model
@@ -227,12 +227,14 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
             results[f] = done
             restore_preview(out, f)
     todo = [f for f in frames if overwrite or f not in results or results[f].status == "broken"]
+    _begin_record(out, capture, config, frames, overwrite)
 
     def finish(result: FrameResult) -> None:
         results[result.frame] = result
         if result.status != "baked":
             log.warning("frame %s %s: %s", result.frame, result.status, result.reason)
         _write_info(out, capture, body_name, config, results)
+        stage_record.mark_progress(out, sum(f in results for f in frames))
 
     shared = {"capture_root": str(capture.root), "out_root": str(out), "config": config, "body_name": body_name,
               "body_layout": load_body_and_layout(body_name, config.texels), "run": uuid.uuid4().hex}
@@ -249,7 +251,28 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
         finally:
             clear_scan_cache()   # the scans a bake in this process kept (pool workers end with the block)
     _write_info(out, capture, body_name, config, results)
+    stage_record.finish(out, sum(f in results for f in frames))
     return {f: results[f] for f in frames}
+
+
+# settings that do not change a baked frame: where the rays run (same maps within round-off), the scan
+# cache, and the rejection threshold (frames on disk are re-classified against it on every run)
+_BAKE_VOLATILE = ("device", "ray_backend", "scan_cache_mb", "reject_kappa")
+
+
+def _begin_record(out: Path, capture, config: BakeConfig, frames: list[str], overwrite: bool,
+                  dry_run: bool = False) -> None:
+    """The bake's stage record: its settings and the capture files it reads (a changed one is refused,
+    or with ``overwrite`` the bake starts over)."""
+    stage_record.begin(out, "bake", bake_record_config(config),
+                       stage_record.file_identities(capture.root / "capture.json", capture.fits_dir, capture.scans_dir),
+                       total=len(frames), on_change="redo" if overwrite else "refuse", dry_run=dry_run,
+                       redo_hint="overwrite=True bakes every frame again")
+
+
+def bake_record_config(config: BakeConfig) -> dict:
+    """The settings of a bake its stage record keeps (named as ``uvatar bake``'s flags' fields)."""
+    return stage_record.config_values(config, prefixes={"pose_refine": "refine"}, drop=_BAKE_VOLATILE)
 
 
 def outcome_line(frames: list[str], baked: list[str], reasons: dict[str, str], reject_kappa: float) -> str:
