@@ -11,8 +11,9 @@ person in one frame and stayed there). :class:`SubjectTracker` judges every fram
   since the subject was last seen, plus :data:`SLACK_M` (triangulation noise).
 - **Everyone near**: the other people are found (:func:`uvatar.fit.person.find_people`, every
   :data:`SURVEY_EVERY` frames, and every frame while someone is within :data:`NEAR_M` of the
-  subject or the observation is doubtful) and tracked as identities of their own, with the same gate.
-  A person better explained by another identity's track is not the subject.
+  subject or the observation is doubtful) and tracked as identities of their own, with the same gate
+  (a new one only where it is seen beside the subject: while the subject is held, a newcomer may be
+  the subject itself). A person better explained by another identity's track is not the subject.
 - **Appearance**: every identity has a colour model: an RGB histogram (:data:`HIST_BINS`^3 bins) of
   the pixels inside its torso (shoulders and hips) in every view, over the frames it was seen alone
   (:func:`torso_histograms`). Where the positions do not decide, the colours may.
@@ -258,7 +259,7 @@ class SubjectTracker:
             best = min(live, key=lambda o: o.score(t, c.centre, self.step_m), default=None)
             if best is not None and best.score(t, c.centre, self.step_m) <= 1:
                 best.update(t, c.centre, c.hists)
-            else:
+            elif chosen is not None:   # someone new, seen beside the subject (while it is held: maybe the subject)
                 self.others.append(Identity(position=np.asarray(c.centre, np.float64), frame=t))
                 self.others[-1].update(t, c.centre, c.hists)
                 self.others_seen += 1
