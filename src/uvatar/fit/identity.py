@@ -15,8 +15,8 @@ person in one frame and stayed there). :class:`SubjectTracker` judges every fram
   (a new one only where it is seen beside the subject: while the subject is held, a newcomer may be
   the subject itself). A person better explained by another identity's track is not the subject.
 - **Appearance**: every identity has a colour model: an RGB histogram (:data:`HIST_BINS`^3 bins) of
-  the pixels inside its torso (shoulders and hips) in every view, over the frames it was seen alone
-  (:func:`torso_histograms`). Where the positions do not decide, the colours may.
+  the pixels inside its torso (shoulders and hips) in every view where nobody else overlaps it
+  (:func:`torso_histograms`, :meth:`Candidate.clean_hists`). Where the positions do not decide, the colours may.
 - **Held, never guessed**: where no person is the subject (hidden, out of view) the frame is
   ``lost``; where two people could be the subject and neither position nor colours tell them apart,
   ``ambiguous``. Those frames are left out of the fit (no keypoints, no fit written), the track
@@ -29,9 +29,12 @@ handled by the caller (the person of the subject's build is found again) and res
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 __all__ = ["SLACK_M", "NEAR_M", "SURVEY_EVERY", "HIST_BINS", "body_centre", "torso_histograms", "hist_distance",
            "Identity", "Candidate", "SubjectTracker", "frame_ranges", "person_observation", "track_frame",
@@ -99,7 +102,7 @@ def hist_distance(hists: list, model: np.ndarray | None) -> float:
 @dataclass
 class Identity:
     """One person's track: position (3,) metres and velocity (3,) m/frame at ``frame`` (index into
-    the fitted frames), and colour counts (summed histograms of the frames seen alone)."""
+    the fitted frames), and colour counts (summed histograms of the views where nobody overlapped it)."""
 
     position: np.ndarray
     frame: int
@@ -143,15 +146,37 @@ class Candidate:
     centre: np.ndarray
     hists: list
     person: object = None
+    boxes: list = field(default_factory=list)    # per view: (x0, y0, x1, y1) of the confident keypoints, or None
+    torsos: list = field(default_factory=list)   # per view: the same box of the torso keypoints, or None
 
     @classmethod
-    def of(cls, images, points, points_conf, xy, conf, person=None) -> Candidate | None:
+    def of(cls, images, points, points_conf, xy, conf, person=None, min_conf: float = 0.3) -> Candidate | None:
         """From triangulated keypoints (K, 3), (K,) and their detections (C, K, 2), (C, K); None
         with too few keypoints (:func:`body_centre`)."""
         centre = body_centre(points, points_conf)
         if centre is None:
             return None
-        return cls(centre=centre, hists=torso_histograms(images, np.asarray(xy), np.asarray(conf)), person=person)
+        xy, conf = np.asarray(xy), np.asarray(conf)
+
+        def box(c, keys):
+            ok = keys[conf[c, keys] >= min_conf]
+            if len(ok) < 3:
+                return None
+            lo, hi = xy[c, ok].min(0), xy[c, ok].max(0)
+            return (*lo, *hi)
+
+        every, torso = np.arange(conf.shape[1]), np.array([k for k in _TORSO if k < conf.shape[1]])
+        return cls(centre=centre, hists=torso_histograms(images, xy, conf), person=person,
+                   boxes=[box(c, every) for c in range(len(conf))], torsos=[box(c, torso) for c in range(len(conf))])
+
+    def clean_hists(self, others: list[Candidate]) -> list:
+        """The histograms of the views where no other person's box overlaps this person's torso."""
+        def overlap(a, b):
+            return a is not None and b is not None and a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+        return [None if h is None or any(overlap(self.torsos[c] if c < len(self.torsos) else None,
+                                                 o.boxes[c] if c < len(o.boxes) else None) for o in others) else h
+                for c, h in enumerate(self.hists)]
 
 
 class SubjectTracker:
@@ -176,8 +201,8 @@ class SubjectTracker:
             self.subject.update(t, centre, hists)
         self.others, self.last_survey, self.held = [], None, False
 
-    def accept(self, t: int, cand: Candidate, alone: bool) -> None:
-        self.subject.update(t, cand.centre, cand.hists if alone else None)
+    def accept(self, t: int, cand: Candidate, hists: list | None) -> None:
+        self.subject.update(t, cand.centre, hists)
 
     def needs_survey(self, t: int, primary: Candidate | None) -> bool:
         """True when the other people must be looked for at frame ``t``."""
@@ -207,7 +232,7 @@ class SubjectTracker:
         if people is None:
             ok = primary is not None and self.subject.score(t, primary.centre, self.step_m) <= 1 \
                 and self._claimed(t, primary.centre) > 1
-            return self._finish(t, "tracked" if ok else "lost", primary if ok else None, [], alone=ok)
+            return self._finish(t, "tracked" if ok else "lost", primary if ok else None, [], [])
         cands = list(people)
         if primary is not None and not any(np.linalg.norm(p.centre - primary.centre) < SLACK_M for p in cands):
             cands.append(primary)
@@ -234,13 +259,14 @@ class SubjectTracker:
                     status, chosen = "tracked", cands[best]
                 else:
                     status = "ambiguous"
+        log.debug("frame %d: %s; subject scores %s, other-track scores %s", t, status, np.round(s, 2).tolist(),
+                  np.round(o, 2).tolist())
         if chosen is not None and primary is not None and np.linalg.norm(chosen.centre - primary.centre) < SLACK_M:
             chosen = primary
         # the other people (a second grouping of the subject's own detections lies within 2 x SLACK_M)
         near = [c for c in cands if c is not chosen and (chosen is None or
                                                          np.linalg.norm(c.centre - chosen.centre) >= 2 * SLACK_M)]
-        alone = chosen is not None and all(np.linalg.norm(c.centre - chosen.centre) > NEAR_M for c in near)
-        return self._finish(t, status, chosen, near, alone)
+        return self._finish(t, status, chosen, near, [c for c in cands if c is not chosen])
 
     def _nearest_other(self, t: int, cand: Candidate) -> Identity | None:
         live = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
@@ -253,21 +279,26 @@ class SubjectTracker:
         d_s, d_o = hist_distance(cand.hists, self.subject.model), hist_distance(cand.hists, other.model)
         return bool(np.isfinite(d_s) and np.isfinite(d_o) and d_o - d_s > COLOUR_MARGIN)
 
-    def _finish(self, t: int, status: str, chosen: Candidate | None, others: list[Candidate], alone: bool):
+    def _finish(self, t: int, status: str, chosen: Candidate | None, others: list[Candidate],
+                seen: list[Candidate]):
+        """Update the tracks: ``others`` the people not the subject, ``seen`` everyone in view but the
+        subject (their boxes keep the colour models clean: a view where someone overlaps a person's
+        torso teaches nothing)."""
         for c in others:   # the other people's tracks: nearest inside its gate, else a new one
+            hists = c.clean_hists([o for o in seen + ([chosen] if chosen is not None else []) if o is not c])
             live = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES and o.frame != t]
             best = min(live, key=lambda o: o.score(t, c.centre, self.step_m), default=None)
             if best is not None and best.score(t, c.centre, self.step_m) <= 1:
-                best.update(t, c.centre, c.hists)
+                best.update(t, c.centre, hists)
             elif chosen is not None:   # someone new, seen beside the subject (while it is held: maybe the subject)
                 self.others.append(Identity(position=np.asarray(c.centre, np.float64), frame=t))
-                self.others[-1].update(t, c.centre, c.hists)
+                self.others[-1].update(t, c.centre, hists)
                 self.others_seen += 1
         self.others = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
         if chosen is not None:
             if self.held:
                 status = "reassociated"
-            self.accept(t, chosen, alone)
+            self.accept(t, chosen, chosen.clean_hists(seen))
         self.held = chosen is None
         return status, chosen
 
@@ -318,7 +349,8 @@ def track_frame(tracker: SubjectTracker, t: int, obs, images, cameras, detector,
     """(the subject's observation at frame index ``t`` or None where it is held, status): ``obs`` (the
     crop observation of :func:`~uvatar.fit.observe.observe_frame`) judged by ``tracker``; everyone
     in view is found (:func:`~uvatar.fit.person.find_people`) when the tracker asks; a person other
-    than ``obs`` taken as the subject is observed again from its own keypoints."""
+    than ``obs`` taken as the subject is observed again from its own keypoints. Status "nobody"
+    (``obs`` returned as it is): nobody at all in view, a missed detection, not a question of identity."""
     from uvatar.fit.observe import observe_frame
     from uvatar.fit.person import find_people
 
@@ -333,6 +365,9 @@ def track_frame(tracker: SubjectTracker, t: int, obs, images, cameras, detector,
             if cand is not None:
                 people.append(cand)
     status, chosen = tracker.judge(t, primary, people)
+    if chosen is None and primary is None and people == []:
+        tracker.held = False   # nobody in view: nobody to confuse the subject with (a plain missed detection)
+        return obs, "nobody"
     if chosen is None or chosen is primary:
         return (obs if chosen is not None else None), status
     again = observe_frame(images, cameras, detector, triangulate_config, source, prior=chosen.person)

@@ -197,7 +197,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                             tracker.start(t, body_centre(obs.points, obs.points_conf))
                 if tracker is not None:
                     obs, status = track_frame(tracker, t, obs, images, cameras, detector, stages.triangulate, source)
-                    if status != "tracked":
+                    if status not in ("tracked", "nobody"):
                         person["identity"][status].append(frame)
                     if obs is None:
                         held[frame] = status
