@@ -82,16 +82,22 @@ def test_two_people_in_the_gate_alike_are_ambiguous_colours_decide_when_they_dif
     assert status == "tracked" and chosen.centre[0] == pytest.approx(-0.06)
 
 
-def test_a_person_beyond_what_a_person_can_run_is_not_the_subject():
+def test_a_person_beyond_what_a_person_can_run_is_not_the_subject_where_someone_else_was_seen():
     tracker = SubjectTracker(STEP)
     tracker.start(0, np.array([0.0, 1.0, 0.0]))
-    status, chosen = tracker.judge(1, _cand(0.5), [_cand(0.5)])   # 0.5 m in 40 ms: 12.5 m/s
+    status, _ = tracker.judge(0, _cand(0.0), [_cand(0.0), _cand(3.0)])   # someone else, far away
+    assert status == "tracked" and tracker.others_seen == 1
+    status, chosen = tracker.judge(1, _cand(0.5), [_cand(0.5), _cand(3.0)])   # 0.5 m in 40 ms: 12.5 m/s
     assert status == "lost" and chosen is None
-    # lost for 4 frames: the gate has grown to 0.15 + 4 x 0.12 m, nobody else explains it: re-associated
+    # lost for 4 frames: the gate has grown to 0.15 + 4 x 0.12 m, no other track explains it: re-associated
     for t in (2, 3):
-        tracker.judge(t, None, [])
-    status, chosen = tracker.judge(4, _cand(0.5), [_cand(0.5)])
-    assert status == "reassociated" and chosen is not None
+        tracker.judge(t, None, [_cand(3.0)])
+    status, chosen = tracker.judge(4, _cand(0.5), [_cand(0.5), _cand(3.0)])
+    assert status == "reassociated" and chosen.centre[0] == pytest.approx(0.5)
+    # with nobody else ever seen, one person in view is the subject, wherever it went (a cut)
+    alone = SubjectTracker(STEP)
+    alone.start(0, np.array([0.0, 1.0, 0.0]))
+    assert alone.judge(1, _cand(0.9), [_cand(0.9)])[0] == "tracked"
 
 
 def test_frame_ranges():

@@ -14,6 +14,10 @@ person in one frame and stayed there). :class:`SubjectTracker` judges every fram
   subject or the observation is doubtful) and tracked as identities of their own, with the same gate
   (a new one only where it is seen beside the subject: while the subject is held, a newcomer may be
   the subject itself). A person better explained by another identity's track is not the subject.
+- **Build**: a crop that holds two people can give a skeleton made of both (the detector took one
+  person in some views and the other in the rest); its bones are stretched between them, so an
+  observation whose bone lengths lie more than :data:`MIX_BUILD` from the subject's build so far
+  (:func:`~uvatar.fit.person.same_body`) is not the subject.
 - **Appearance**: every identity has a colour model: an RGB histogram (:data:`HIST_BINS`^3 bins) of
   the pixels inside its torso (shoulders and hips) in every view where nobody else overlaps it
   (:func:`torso_histograms`, :meth:`Candidate.clean_hists`). Where the positions do not decide, the colours may.
@@ -48,6 +52,8 @@ DECISIVE = 0.5        # a gate-relative distance this share of the next one deci
 HIST_BINS = 8         # colour histogram bins per RGB channel
 MIN_HIST_PIXELS = 30  # fewer torso pixels in a view: no histogram there
 COLOUR_MARGIN = 0.15  # Hellinger distances this far apart tell two people apart by colour
+MIX_BUILD = 0.2       # bone lengths this far (median relative) from the subject's: not the subject (a mix)
+BUILD_FRAMES = 25     # the subject's build: the median over this many last frames
 _TORSO = (11, 12, 24, 23)   # BlazePose shoulders and hips, in polygon order
 
 
@@ -108,6 +114,29 @@ class Identity:
     frame: int
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     colours: np.ndarray | None = None
+    builds: list = field(default_factory=list)   # the last signatures (bone lengths) seen
+
+    @property
+    def build(self) -> np.ndarray | None:
+        """(B,) the median of the signatures seen (nan where a bone never was), or None."""
+        import warnings
+
+        if not self.builds:
+            return None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmedian(np.stack(self.builds[-BUILD_FRAMES:]), axis=0)
+
+    def unlike(self, signature) -> bool:
+        """True when ``signature`` is clearly not this person's build (a mix of two people's
+        keypoints stretches bones between them): median relative bone difference over ``MIX_BUILD``."""
+        from uvatar.fit.person import same_body
+
+        build = self.build
+        if build is None or signature is None or len(self.builds) < 3:
+            return False
+        d = same_body(signature, build)
+        return bool(np.isfinite(d) and d > MIX_BUILD)
 
     def predict(self, t: int) -> np.ndarray:
         """(3,) where the person is expected at frame ``t`` (the velocity held for at most 5 frames)."""
@@ -146,6 +175,7 @@ class Candidate:
     centre: np.ndarray
     hists: list
     person: object = None
+    signature: np.ndarray | None = None        # (B,) bone lengths (:func:`~uvatar.fit.person.body_signature`)
     boxes: list = field(default_factory=list)    # per view: (x0, y0, x1, y1) of the confident keypoints, or None
     torsos: list = field(default_factory=list)   # per view: the same box of the torso keypoints, or None
 
@@ -165,8 +195,12 @@ class Candidate:
             lo, hi = xy[c, ok].min(0), xy[c, ok].max(0)
             return (*lo, *hi)
 
+        from uvatar.fit.person import body_signature
+
         every, torso = np.arange(conf.shape[1]), np.array([k for k in _TORSO if k < conf.shape[1]])
-        return cls(centre=centre, hists=torso_histograms(images, xy, conf), person=person,
+        signature = body_signature(np.asarray(points, np.float64), np.asarray(points_conf)) \
+            if len(points_conf) > max(_TORSO) else None
+        return cls(centre=centre, hists=torso_histograms(images, xy, conf), person=person, signature=signature,
                    boxes=[box(c, every) for c in range(len(conf))], torsos=[box(c, torso) for c in range(len(conf))])
 
     def clean_hists(self, others: list[Candidate]) -> list:
@@ -195,20 +229,24 @@ class SubjectTracker:
 
     def start(self, t: int, centre: np.ndarray, hists: list | None = None) -> None:
         """(Re)start the track at frame ``t`` (the seed frame, a pass's start, a cut)."""
-        colours = self.subject.colours if self.subject is not None else None   # the same clothes
-        self.subject = Identity(position=np.asarray(centre, np.float64), frame=t, colours=colours)
+        colours = self.subject.colours if self.subject is not None else None   # the same clothes ...
+        builds = self.subject.builds if self.subject is not None else []         # ... and the same build
+        self.subject = Identity(position=np.asarray(centre, np.float64), frame=t, colours=colours, builds=builds)
         if hists:
             self.subject.update(t, centre, hists)
         self.others, self.last_survey, self.held = [], None, False
 
     def accept(self, t: int, cand: Candidate, hists: list | None) -> None:
         self.subject.update(t, cand.centre, hists)
+        if cand.signature is not None:
+            self.subject.builds.append(cand.signature)
 
     def needs_survey(self, t: int, primary: Candidate | None) -> bool:
         """True when the other people must be looked for at frame ``t``."""
         if self.last_survey is None or abs(t - self.last_survey) >= SURVEY_EVERY or self.held:
             return True
-        if primary is None or self.subject.score(t, primary.centre, self.step_m) > 1:
+        if primary is None or self.subject.score(t, primary.centre, self.step_m) > 1 \
+                or self.subject.unlike(primary.signature):
             return True
         if self._claimed(t, primary.centre) <= 1:
             return True
@@ -231,16 +269,25 @@ class SubjectTracker:
             self.surveys += 1
         if people is None:
             ok = primary is not None and self.subject.score(t, primary.centre, self.step_m) <= 1 \
-                and self._claimed(t, primary.centre) > 1
+                and self._claimed(t, primary.centre) > 1 and not self.subject.unlike(primary.signature)
             return self._finish(t, "tracked" if ok else "lost", primary if ok else None, [], [])
+        crop = primary
         cands = list(people)
-        if primary is not None and not any(np.linalg.norm(p.centre - primary.centre) < SLACK_M for p in cands):
+        if primary is not None and not cands:
             cands.append(primary)
+        # else a crop observation that is none of the people found is a mix of two people (the detector
+        # took one person in some views and the other in the rest): the people found decide
+        if not any(c is primary for c in cands) and primary is not None:
+            same = [p for p in cands if np.linalg.norm(p.centre - primary.centre) < SLACK_M]
+            primary = same[0] if same else None
         s = np.array([self.subject.score(t, c.centre, self.step_m) for c in cands])
         o = np.array([self._claimed(t, c.centre) for c in cands])
-        inside = [i for i in np.argsort(s) if s[i] <= 1 and not o[i] <= DECISIVE * s[i]]
+        inside = [i for i in np.argsort(s) if s[i] <= 1 and not o[i] <= DECISIVE * s[i]
+                  and not self.subject.unlike(cands[i].signature)]
         status, chosen = "lost", None
-        if len(inside) == 1:
+        if not inside and len(cands) == 1 and not self.others_seen and not self.others:
+            status, chosen = "tracked", cands[0]   # one person in view, nobody else ever seen: a cut or a jump
+        elif len(inside) == 1:
             i = inside[0]
             if o[i] > 1 or s[i] <= DECISIVE * o[i] or self._colour_says(cands[i], self._nearest_other(t, cands[i])):
                 status, chosen = "tracked", cands[i]
@@ -261,8 +308,8 @@ class SubjectTracker:
                     status = "ambiguous"
         log.debug("frame %d: %s; subject scores %s, other-track scores %s", t, status, np.round(s, 2).tolist(),
                   np.round(o, 2).tolist())
-        if chosen is not None and primary is not None and np.linalg.norm(chosen.centre - primary.centre) < SLACK_M:
-            chosen = primary
+        if chosen is not None and crop is not None and np.linalg.norm(chosen.centre - crop.centre) < SLACK_M:
+            chosen = crop
         # the other people (a second grouping of the subject's own detections lies within 2 x SLACK_M)
         near = [c for c in cands if c is not chosen and (chosen is None or
                                                          np.linalg.norm(c.centre - chosen.centre) >= 2 * SLACK_M)]
@@ -372,7 +419,7 @@ def track_frame(tracker: SubjectTracker, t: int, obs, images, cameras, detector,
         return (obs if chosen is not None else None), status
     again = observe_frame(images, cameras, detector, triangulate_config, source, prior=chosen.person)
     centre = body_centre(again.points, again.points_conf)
-    if centre is not None and np.linalg.norm(centre - chosen.centre) < 2 * SLACK_M:
+    if centre is not None and np.linalg.norm(centre - chosen.centre) < SLACK_M:
         return again, status
     return person_observation(chosen.person, images, cameras, detector, triangulate_config, source), status
 

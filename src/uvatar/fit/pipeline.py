@@ -185,8 +185,8 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                 obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
                 subject = (avoid or {}).get(frame)
                 cut = use_prior is not None and lost(use_prior, obs, cut_distance)
-                if tracker is not None:
-                    cut = cut and images_changed(use_prior, obs)
+                if tracker is not None:   # with other people seen, only the tracker re-finds the subject
+                    cut = cut and images_changed(use_prior, obs) and not tracker.others_seen
                 if person is not None and use_prior is not None and (cut or is_at(obs, subject)):
                     again = find_again(capture, frame, detector, stages, build_so_far(observations, seed_prior),
                                       subject, hide)
