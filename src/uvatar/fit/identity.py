@@ -282,8 +282,9 @@ class SubjectTracker:
             primary = same[0] if same else None
         s = np.array([self.subject.score(t, c.centre, self.step_m) for c in cands])
         o = np.array([self._claimed(t, c.centre) for c in cands])
+        # after a hold, the gate has grown: a person another track's gate holds is not taken back
         inside = [i for i in np.argsort(s) if s[i] <= 1 and not o[i] <= DECISIVE * s[i]
-                  and not self.subject.unlike(cands[i].signature)]
+                  and not self.subject.unlike(cands[i].signature) and not (self.held and o[i] <= 1)]
         status, chosen = "lost", None
         if not inside and len(cands) == 1 and not self.others_seen and not self.others:
             status, chosen = "tracked", cands[0]   # one person in view, nobody else ever seen: a cut or a jump
