@@ -201,15 +201,29 @@ class DvaModel(nn.Module):
                 self.grid.raster, template, cfg.decoder.voxels, cfg.primitives.scale_factor)), persistent=False)
 
     def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers) -> DvaOutput:
+        f_pose, f_img, f_view, skip = self.features(posed_vertices, joint_rotvecs, image_texture, camera_centers)
+        motion, rgb, density, learned = self.decoder(f_pose, f_img, f_view, skip)
+        pos, rot, scl = self.place(posed_vertices, motion, bool(self.correctives_on))
+        return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion, learned)
+
+    def features(self, posed_vertices, joint_rotvecs, image_texture, camera_centers):
+        """The decoders' inputs: pose (B, Cp, W, W), image (B, Ci, W, W) and view (B, 1, W, W) features
+        and the colour skip ((colour, weight) at the voxel columns, or None)."""
         f_pose = self.pose_encoder(pose_feature_maps(joint_rotvecs, self.texel_weights, self.joints))
         f_img = self.image_encoder(image_texture)
-        f_view = view_feature_map(self.grid.raster, self.template, posed_vertices, camera_centers)
+        f_view = self.view_features(posed_vertices, camera_centers)
         skip = texture_at_voxels(image_texture, self.voxel_uv) if self.cfg.features.colour_skip else None
-        motion, rgb, density, learned = self.decoder(f_pose, f_img, f_view, skip)
+        return f_pose, f_img, f_view, skip
+
+    def view_features(self, posed_vertices, camera_centers):
+        """(B, 1, W, W) view feature map (:func:`~uvatar.dva.features.view_feature_map`)."""
+        return view_feature_map(self.grid.raster, self.template, posed_vertices, camera_centers)
+
+    def place(self, posed_vertices, motion, correctives: bool):
+        """Primitive positions (B, K, 3), rotations (B, K, 3, 3), scales (B, K, 3) of the posed body,
+        with the decoded ``motion`` (B, 9, W, W) correctives applied when ``correctives``."""
         pos, rot = articulated_frames(self.grid, self.template, posed_vertices)
-        pos, rot, scl = apply_correctives(pos, rot, self.rest_scales, motion, self.cfg.primitives,
-                                          bool(self.correctives_on))
-        return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion, learned)
+        return apply_correctives(pos, rot, self.rest_scales, motion, self.cfg.primitives, correctives)
 
     def render_rays(self, out: DvaOutput, b: int, origins, directions, background=None, camera=None,
                     pixels=None):
