@@ -144,3 +144,20 @@ def test_cuda_bf16_decode_has_no_host_sync_and_matches(body):
     assert out.payload.dtype == torch.float32
     rgb, _ = fast.render(verts, rot, tex, cam)
     assert psnr(rgb.cpu().numpy(), ref) >= BF16_MIN_PSNR
+
+
+def test_bf16_training_forward_is_close_and_differentiable(body):
+    """TrainConfig precision "bf16": the model's own forward under autocast, fp32 out, gradients to every
+    decoder weight."""
+    model = _model(body).train()
+    verts, rot, tex = _inputs(body)
+    centre = torch.tensor([[0.3, 0.6, 2.4]])
+    with torch.no_grad():
+        ref = model(verts[None], rot[None], tex[None], centre)
+    out = model(verts[None], rot[None], tex[None], centre, "bf16")
+    assert out.payload.dtype == torch.float32 and out.positions.dtype == torch.float32
+    torch.testing.assert_close(out.positions, ref.positions, rtol=0, atol=1e-3)  # geometry: fp32 math
+    rel = (out.payload - ref.payload).abs().max() / ref.payload.abs().max()
+    assert 0 < rel < 2e-2
+    out.payload.sum().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.decoder.opacity.parameters())

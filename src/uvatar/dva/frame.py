@@ -25,12 +25,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from uvatar.dva.features import pose_feature_maps, texture_at_voxels
-from uvatar.dva.model import DvaOutput, pixel_rays
+from uvatar.dva.model import PRECISIONS, DvaOutput, pixel_rays
 from uvatar.dva.raymarch import raymarch
 from uvatar.errors import check_values
-
-PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 @dataclass
@@ -92,10 +89,8 @@ class FrameRenderer:
     @torch.no_grad()
     def decode(self, posed_vertices, joint_rotvecs, image_texture, camera_centers) -> DvaOutput:
         m = self.model
-        pose_maps = pose_feature_maps(joint_rotvecs, m.texel_weights, m.joints)
-        f_view = m.view_features(posed_vertices, camera_centers)
-        skip = texture_at_voxels(image_texture, m.voxel_uv) if m.cfg.features.colour_skip else (None, None)
-        motion, payload = self._decode(pose_maps, image_texture, f_view, *skip)
+        pose_maps, f_view, skip = m.inputs(posed_vertices, joint_rotvecs, image_texture, camera_centers)
+        motion, payload = self._decode(pose_maps, image_texture, f_view, *(skip or (None, None)))
         pos, rot, scl = m.place(posed_vertices, motion, self.correctives)
         return DvaOutput(pos, rot, scl, payload, motion, payload[:, :, :3])
 

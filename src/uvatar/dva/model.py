@@ -33,6 +33,8 @@ from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig
 from uvatar.errors import check_values
 
 BACKGROUNDS = ("mask", "photo", "random")
+#: autocast types of the encoders and decoders (:class:`TrainConfig` ``precision``, :mod:`uvatar.dva.frame`)
+PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 @dataclass
@@ -49,6 +51,8 @@ class TrainConfig:
     "mask" with a new uniformly random colour per sample and step in place of the camera's, so a
     half-transparent render can never pass for the person's colour blended with a known backdrop
     (the opacity must match the mask; a common NeRF / Gaussian-avatar practice).
+    precision: autocast type of the encoders and decoders in a step ("fp32", "bf16", "fp16"; the
+    geometry, the marcher and the loss stay fp32): "bf16" on a GPU halves the decoders' slabs.
     hide_target_view: the image input of a sample leaves out the camera it is scored in, as at test
     time, where the held-out camera never drives (with 3 training cameras and ``driving_views`` 3 the
     target's own photo is otherwise always in its input, and the colour skip learns to copy it)."""
@@ -66,10 +70,13 @@ class TrainConfig:
     minutes: float = 18.0
     background: str = "mask"
     hide_target_view: bool = False
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
         check_values([(self.background in BACKGROUNDS,
-                       f"background must be one of {BACKGROUNDS}, got {self.background!r}")])
+                       f"background must be one of {BACKGROUNDS}, got {self.background!r}"),
+                      (self.precision in PRECISIONS,
+                       f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")])
 
 
 @dataclass
@@ -200,20 +207,27 @@ class DvaModel(nn.Module):
             self.register_buffer("voxel_uv", torch.as_tensor(voxel_uv_grid(
                 self.grid.raster, template, cfg.decoder.voxels, cfg.primitives.scale_factor)), persistent=False)
 
-    def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers) -> DvaOutput:
-        f_pose, f_img, f_view, skip = self.features(posed_vertices, joint_rotvecs, image_texture, camera_centers)
-        motion, rgb, density, learned = self.decoder(f_pose, f_img, f_view, skip)
+    def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers,
+                precision: str = "fp32") -> DvaOutput:
+        """``precision`` ("fp32", "bf16", "fp16"): the encoders and decoders run under autocast in that
+        type; the geometry stays fp32 and the outputs are fp32."""
+        pose_maps, f_view, skip = self.inputs(posed_vertices, joint_rotvecs, image_texture, camera_centers)
+        dtype = PRECISIONS[precision]
+        with torch.autocast(posed_vertices.device.type, dtype=dtype, enabled=dtype != torch.float32):
+            f_pose, f_img = self.pose_encoder(pose_maps), self.image_encoder(image_texture)
+            decoded = self.decoder(f_pose, f_img, f_view, skip)
+        motion, rgb, density, learned = (t.float() for t in decoded)
         pos, rot, scl = self.place(posed_vertices, motion, bool(self.correctives_on))
         return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion, learned)
 
-    def features(self, posed_vertices, joint_rotvecs, image_texture, camera_centers):
-        """The decoders' inputs: pose (B, Cp, W, W), image (B, Ci, W, W) and view (B, 1, W, W) features
-        and the colour skip ((colour, weight) at the voxel columns, or None)."""
-        f_pose = self.pose_encoder(pose_feature_maps(joint_rotvecs, self.texel_weights, self.joints))
-        f_img = self.image_encoder(image_texture)
+    def inputs(self, posed_vertices, joint_rotvecs, image_texture, camera_centers):
+        """What the encoders and decoders take besides the image texture, all fp32: the masked pose
+        maps (B, 3 Jc, W, W), the view features (B, 1, W, W) and the colour skip ((colour, weight) at the
+        voxel columns, or None)."""
+        pose_maps = pose_feature_maps(joint_rotvecs, self.texel_weights, self.joints)
         f_view = self.view_features(posed_vertices, camera_centers)
         skip = texture_at_voxels(image_texture, self.voxel_uv) if self.cfg.features.colour_skip else None
-        return f_pose, f_img, f_view, skip
+        return pose_maps, f_view, skip
 
     def view_features(self, posed_vertices, camera_centers):
         """(B, 1, W, W) view feature map (:func:`~uvatar.dva.features.view_feature_map`)."""
