@@ -110,7 +110,8 @@ def frame_rows(trainer, sizes, paths, repeats: int, device: str) -> list[dict]:
                     row[f"{path}_first_s"] = round(time.perf_counter() - t, 1)
                 row[f"{path}_ms"], (rgb, _) = median_ms(lambda f=fast: f.render(verts, rots, tex, cam), repeats, device)
                 row[f"{path}_fps"] = round(1000 / row[f"{path}_ms"], 1)
-                row[f"{path}_psnr_vs_ref"] = round(psnr(rgb.float().cpu().numpy(), ref), 2)
+                db = psnr(rgb.float().cpu().numpy(), ref)
+                row[f"{path}_psnr_vs_ref"] = round(db, 2) if np.isfinite(db) else "identical"
         except torch.cuda.OutOfMemoryError:
             row["error"] = "out of GPU memory"
             torch.cuda.empty_cache()

@@ -25,9 +25,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from uvatar.dva.model import PRECISIONS, DvaOutput, pixel_rays
+from uvatar.dva.model import DvaOutput, pixel_rays
 from uvatar.dva.raymarch import raymarch
 from uvatar.errors import check_values
+from uvatar.precision import PRECISIONS, precision_check
 
 
 @dataclass
@@ -42,8 +43,7 @@ class FrameConfig:
     channels_last: bool = False
 
     def __post_init__(self) -> None:
-        check_values([(self.precision in PRECISIONS,
-                       f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")])
+        check_values([precision_check(self.precision)])
 
 
 class _Decode(nn.Module):

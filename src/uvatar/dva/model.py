@@ -31,10 +31,9 @@ from uvatar.dva.primitives import PrimitiveConfig, apply_correctives, articulate
 from uvatar.dva.raymarch import raymarch
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig
 from uvatar.errors import check_values
+from uvatar.precision import PRECISIONS, precision_check
 
 BACKGROUNDS = ("mask", "photo", "random")
-#: autocast types of the encoders and decoders (:class:`TrainConfig` ``precision``, :mod:`uvatar.dva.frame`)
-PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 @dataclass
@@ -75,8 +74,7 @@ class TrainConfig:
     def __post_init__(self) -> None:
         check_values([(self.background in BACKGROUNDS,
                        f"background must be one of {BACKGROUNDS}, got {self.background!r}"),
-                      (self.precision in PRECISIONS,
-                       f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")])
+                      precision_check(self.precision)])
 
 
 @dataclass
