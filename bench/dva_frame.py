@@ -10,7 +10,8 @@ last camera rescaled to each ``--sizes`` square, every pixel a ray:
   Embree on the CPU);
 * per path (``--paths``, e.g. ``fp32,bf16,bf16+compile``; "ref" is always timed first): the median ms of
   decoding (encoders, decoders, placement) + rendering (the marcher) one frame, and the PSNR of its
-  image against the reference's (the fp32 eager path: ``DvaModel.forward`` + ``render_camera``).
+  image against the reference's (the fp32 eager path: ``DvaModel.forward`` + ``render_camera``);
+  ``<path>_decode_ms`` is the decoding alone (the rest of a frame is the marcher).
   ``+compile`` adds ``torch.compile`` (its compile time is reported), ``+cl`` channels_last, ``+cg``
   compile mode "reduce-overhead" (CUDA graphs).
 
@@ -110,6 +111,9 @@ def frame_rows(trainer, sizes, paths, repeats: int, device: str) -> list[dict]:
                     row[f"{path}_first_s"] = round(time.perf_counter() - t, 1)
                 row[f"{path}_ms"], (rgb, _) = median_ms(lambda f=fast: f.render(verts, rots, tex, cam), repeats, device)
                 row[f"{path}_fps"] = round(1000 / row[f"{path}_ms"], 1)
+                centre = torch.as_tensor(cam.center, dtype=torch.float32, device=device)[None]
+                row[f"{path}_decode_ms"], _ = median_ms(lambda f=fast: f.decode(verts[None], rots[None], tex[None], centre),
+                                                        repeats, device)
                 db = psnr(rgb.float().cpu().numpy(), ref)
                 row[f"{path}_psnr_vs_ref"] = round(db, 2) if np.isfinite(db) else "identical"
         except torch.cuda.OutOfMemoryError:
@@ -128,9 +132,9 @@ def main(argv=None) -> int:
     ap.add_argument("--grid", type=int, default=None, help="W (K = W^2), replacing the preset's")
     ap.add_argument("--voxels", type=int, default=None, help="S, replacing the preset's")
     ap.add_argument("--marcher", default="auto")
-    ap.add_argument("--sizes", default=None, help="render sides (default 256 on a CPU, 512,1024 on CUDA)")
+    ap.add_argument("--sizes", default=None, help="render sides (default 256 on a CPU, 1024 on CUDA)")
     ap.add_argument("--paths", default=None,
-                    help="fast paths (default fp32,bf16,fp16 on a CPU; fp32,bf16,bf16+cl,bf16+compile+cl,fp16+compile+cl on CUDA)")
+                    help="fast paths (default fp32,bf16,fp16 on a CPU; fp32,bf16,bf16+cl,bf16+compile+cl,bf16+cg+cl on CUDA)")
     ap.add_argument("--train", default="fp32,bf16", help="training step precisions to time ('' for none)")
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--steps", type=int, default=5)
@@ -155,8 +159,8 @@ def main(argv=None) -> int:
     cfg.decoder.voxels = args.voxels or cfg.decoder.voxels
     cfg.raymarch.marcher = args.marcher
     cfg.train.warmup_iters = 0  # correctives on, as after a real run's warm-up
-    sizes = [int(v) for v in (args.sizes or ("512,1024" if cuda else "256")).split(",") if v.strip()]
-    paths = [p for p in (args.paths or ("fp32,bf16,bf16+cl,bf16+compile+cl,fp16+compile+cl" if cuda
+    sizes = [int(v) for v in (args.sizes or ("1024" if cuda else "256")).split(",") if v.strip()]
+    paths = [p for p in (args.paths or ("fp32,bf16,bf16+cl,bf16+compile+cl,bf16+cg+cl" if cuda
                                         else "fp32,bf16,fp16")).split(",") if p.strip()]
     with tempfile.TemporaryDirectory() as tmp:
         capture = Path(args.capture) if args.capture else \
