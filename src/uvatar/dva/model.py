@@ -197,6 +197,7 @@ class DvaModel(nn.Module):
             texel_skin_weights(self.grid.raster, template, self.joints)))
         self.register_buffer("rest_scales", torch.as_tensor(self.grid.rest_scales))
         self.register_buffer("correctives_on", torch.zeros((), dtype=torch.bool))
+        self.register_buffer("joint_index", torch.tensor(self.joints, dtype=torch.long), persistent=False)
         f = cfg.features
         self.pose_encoder = PoseEncoder(len(self.joints), f.pose_channels)
         self.image_encoder = ImageEncoder(f.image_scale, f.image_channels, centred=f.image_centred)
@@ -222,7 +223,7 @@ class DvaModel(nn.Module):
         """What the encoders and decoders take besides the image texture, all fp32: the masked pose
         maps (B, 3 Jc, W, W), the view features (B, 1, W, W) and the colour skip ((colour, weight) at the
         voxel columns, or None)."""
-        pose_maps = pose_feature_maps(joint_rotvecs, self.texel_weights, self.joints)
+        pose_maps = pose_feature_maps(joint_rotvecs, self.texel_weights, self.joint_index)
         f_view = self.view_features(posed_vertices, camera_centers)
         skip = texture_at_voxels(image_texture, self.voxel_uv) if self.cfg.features.colour_skip else None
         return pose_maps, f_view, skip
