@@ -26,14 +26,16 @@ def _flags() -> tuple[ConfigFlags, ...]:
     from uvatar.dva.primitives import PrimitiveConfig
     from uvatar.dva.raymarch_ref import MARCHERS, RaymarchConfig
     from uvatar.dva.train import load_run, train_dva
+    from uvatar.precision import PRECISIONS
 
     marcher_help = next(f for f in dataclasses.fields(RaymarchConfig) if f.name == "marcher").metadata["help"]
     run_marcher = {"marcher": marcher_help + "; default: the run's"}
 
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
-            ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view"),
-                        choices={"background": BACKGROUNDS}, presets={k: c.train for k, c in PRESETS.items()},
+            ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view", "precision"),
+                        choices={"background": BACKGROUNDS, "precision": tuple(PRECISIONS)},
+                        presets={k: c.train for k, c in PRESETS.items()},
                         help={"batch": "(frame, camera) samples per step",
                               "patch": "side of the square pixel crop rendered per sample, pixels",
                               "background": "what the render is compared with outside the person's mask: "
@@ -41,7 +43,9 @@ def _flags() -> tuple[ConfigFlags, ...]:
                                             "new random colour per sample and step: the opacity must match "
                                             "the mask) or photo (the raw photo; a clean studio backdrop)",
                               "hide_target_view": "leave the camera a sample is scored in out of its image "
-                                                  "input, as at test time"}),
+                                                  "input, as at test time",
+                              "precision": "type of the encoders and decoders in a step (autocast; bf16 on a "
+                                           "GPU halves their slabs); geometry, marcher and loss stay fp32"}),
             ConfigFlags(PrimitiveConfig, fields=("grid", "min_scale_corrective"),
                         presets={k: c.primitives for k, c in PRESETS.items()},
                         help={"grid": "primitives per UV side W (K = W*W)",
