@@ -85,18 +85,19 @@ def test_colour_skip_decodes_the_same(body):
     torch.testing.assert_close(fast.payload, ref.payload, rtol=1e-5, atol=1e-5)
 
 
-def _frames(body, precision, compile_=False):
+def _frames(body, precision, compile_=False, channels_last=False):
     model = _model(body)
     verts, rot, tex = _inputs(body)
     cam = toy_cameras(4, 40)["cam01"]
     ref, _ = render_camera(model, verts, rot, tex, cam, (0.2, 0.3, 0.4))
-    fast = FrameRenderer(model, FrameConfig(precision=precision, compile=compile_))
+    fast = FrameRenderer(model, FrameConfig(precision=precision, compile=compile_, channels_last=channels_last))
     rgb, alpha = fast.render(verts, rot, tex, cam, (0.2, 0.3, 0.4))
     return ref, rgb.numpy(), alpha.numpy()
 
 
-def test_fp32_frame_is_the_reference_image(body):
-    ref, rgb, alpha = _frames(body, "fp32")
+@pytest.mark.parametrize("channels_last", [False, True], ids=["nchw", "channels_last"])
+def test_fp32_frame_is_the_reference_image(body, channels_last):
+    ref, rgb, alpha = _frames(body, "fp32", channels_last=channels_last)
     np.testing.assert_allclose(rgb, ref, atol=1e-5)
     assert 0.05 < (alpha > 0.5).mean() < 0.95  # the tube covers part of the frame
 
