@@ -7,7 +7,8 @@ default fp32 and bf16; median ms). Then frame 0 is driven from cameras 0 and 1 a
 last camera rescaled to each ``--sizes`` square, every pixel a ray:
 
 * ``unwrap_ms``: the two driving views unwrapped into UV (:func:`uvatar.dva.drive.driving_texture`,
-  Embree on the CPU);
+  Embree on the CPU); ``unwrap_device_ms``: its device twin (:mod:`uvatar.dva.unwrap_device`, torch +
+  Warp, images already on the device) and the fraction of texels where the two agree to 1e-4;
 * per path (``--paths``, e.g. ``fp32,bf16,bf16+compile``; "ref" is always timed first): the median ms of
   decoding (encoders, decoders, placement) + rendering (the marcher) one frame, and the PSNR of its
   image against the reference's (the fp32 eager path: ``DvaModel.forward`` + ``render_camera``);
@@ -95,10 +96,21 @@ def frame_rows(trainer, sizes, paths, repeats: int, device: str) -> list[dict]:
                           [bank.images[0][c].astype(np.float32) / 255.0 for c in views],
                           [bank.masks[0][c] for c in views]).to(device)
     unwrap_ms = round(1000 * (time.perf_counter() - t), 2)
+    try:  # the device twin (torch + Warp): the images on the device, nothing back on the host
+        from uvatar.dva.unwrap_device import driving_texture_device
+
+        imgs = [torch.as_tensor(bank.images[0][c], device=device).float() / 255.0 for c in views]
+        masks = [torch.as_tensor(bank.masks[0][c], device=device) for c in views]
+        unwrap_device_ms, tex_device = median_ms(lambda: driving_texture_device(
+            model, verts, [bank.cams[c] for c in views], imgs, masks), 3, device)
+        unwrap_device_agree = round(float(((tex_device - tex).abs().amax(0) <= 1e-4).float().mean()), 4)
+    except ImportError as exc:  # no Warp
+        unwrap_device_ms, unwrap_device_agree = f"unavailable: {exc}", None
     rows = []
     for size in sizes:
         cam = bank.cams[-1].scaled(size, size)
-        row = {"resolution": size, "unwrap_ms": unwrap_ms}
+        row = {"resolution": size, "unwrap_ms": unwrap_ms, "unwrap_device_ms": unwrap_device_ms,
+               "unwrap_device_texels_agreeing": unwrap_device_agree}
         try:
             row["ref_ms"], (ref, alpha) = median_ms(lambda: render_camera(model, verts, rots, tex, cam), repeats, device)
             row["coverage"] = round(float((alpha > 0.5).mean()), 3)

@@ -41,7 +41,7 @@ step avh_fast 150 python bench/avh.py --device cuda --presets fc32-l1024 --resol
 # 3. the CUDA parity tests (fast paths against their fp32 twins; compiled against eager)
 t0=$SECONDS
 timeout --kill-after=10 120 python -m pytest -q -m gpu -x -p no:cacheprovider \
-  tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_raymarch_warp.py > "$OUT/pytest_gpu.txt" 2>&1
+  tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py > "$OUT/pytest_gpu.txt" 2>&1
 echo "pytest_gpu rc=$? took=$((SECONDS - t0))s" | tee -a "$OUT/status.txt"
 # 4. compiled against eager (torch.compile on the machine's CPU cores; ~130 s on 2 cores)
 t0=$SECONDS
