@@ -12,7 +12,9 @@ last camera rescaled to each ``--sizes`` square, every pixel a ray:
 * per path (``--paths``, e.g. ``fp32,bf16,bf16+compile``; "ref" is always timed first): the median ms of
   decoding (encoders, decoders, placement) + rendering (the marcher) one frame, and the PSNR of its
   image against the reference's (the fp32 eager path: ``DvaModel.forward`` + ``render_camera``);
-  ``<path>_decode_ms`` is the decoding alone (the rest of a frame is the marcher).
+  ``<path>_decode_ms`` is the decoding alone (the rest of a frame is the marcher);
+  ``<path>_drive_render_ms`` the whole telepresence frame: the driving views unwrapped on the device,
+  decoded and rendered (:meth:`uvatar.dva.frame.FrameRenderer.drive`).
   ``+compile`` adds ``torch.compile`` (its compile time is reported), ``+cl`` channels_last, ``+cg``
   compile mode "reduce-overhead" (CUDA graphs).
 
@@ -123,6 +125,9 @@ def frame_rows(trainer, sizes, paths, repeats: int, device: str) -> list[dict]:
                     row[f"{path}_first_s"] = round(time.perf_counter() - t, 1)
                 row[f"{path}_ms"], (rgb, _) = median_ms(lambda f=fast: f.render(verts, rots, tex, cam), repeats, device)
                 row[f"{path}_fps"] = round(1000 / row[f"{path}_ms"], 1)
+                if unwrap_device_agree is not None:  # the whole frame: views unwrapped on the device too
+                    row[f"{path}_drive_render_ms"], _ = median_ms(lambda f=fast: f.drive(
+                        verts, rots, [bank.cams[c] for c in views], imgs, masks, cam), repeats, device)
                 centre = torch.as_tensor(cam.center, dtype=torch.float32, device=device)[None]
                 row[f"{path}_decode_ms"], _ = median_ms(lambda f=fast: f.decode(verts[None], rots[None], tex[None], centre),
                                                         repeats, device)

@@ -72,3 +72,17 @@ def test_cuda_unwrap_matches_the_reference(views):
     assert got.device.type == "cuda"
     close = (got.cpu() - ref).abs().amax(0) <= 1e-4
     assert close.float().mean() >= 1 - MAX_FLIPPED
+
+
+def test_frame_driven_from_the_views_is_the_reference_frame(views):
+    """FrameRenderer.drive (device unwrap + fast fp32 frame) against driving_texture + render_camera."""
+    from uvatar.dva.drive import render_camera
+    from uvatar.dva.frame import FrameRenderer
+
+    model, verts, cams, images, masks = views
+    rot = torch.zeros(2, 3)
+    target = cams[0].scaled(32, 32)
+    ref, _ = render_camera(model.eval(), verts, rot, driving_texture(model, verts.numpy(), cams, images, masks), target)
+    rgb, _ = FrameRenderer(model).drive(verts, rot, cams, [torch.as_tensor(i) for i in images],
+                                        [torch.as_tensor(m) for m in masks], target)
+    np.testing.assert_allclose(rgb.numpy(), ref, atol=1e-3)

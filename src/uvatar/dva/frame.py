@@ -106,6 +106,16 @@ class FrameRenderer:
         return self._rays
 
     @torch.no_grad()
+    def drive(self, posed_vertices, joint_rotvecs, cameras, images, masks, camera, background=(0.0, 0.0, 0.0)):
+        """A telepresence frame: driving views (cameras, images (H, W, 3) and masks (H, W), torch on the
+        device) + the frame's pose -> ``camera``'s rgb (H, W, 3), alpha (H, W). The views are unwrapped on
+        the device (:func:`uvatar.dva.unwrap_device.driving_texture_device`, Warp), then :meth:`render`."""
+        from uvatar.dva.unwrap_device import driving_texture_device
+
+        tex = driving_texture_device(self.model, posed_vertices, cameras, images, masks)
+        return self.render(posed_vertices, joint_rotvecs, tex, camera, background)
+
+    @torch.no_grad()
     def render(self, posed_vertices, joint_rotvecs, image_texture, camera, background=(0.0, 0.0, 0.0)):
         dev = posed_vertices.device
         center = torch.as_tensor(camera.center, dtype=torch.float32, device=dev)[None]
