@@ -10,29 +10,16 @@ texture and displacement maps (B, 3, R, R). The (sin, cos) encoding is computed 
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
-
 import torch
 from torch import nn
 
 from uvatar.avh.model import AvhGenerator, encode_pose
-from uvatar.errors import check_values
-from uvatar.precision import PRECISIONS, precision_check
+from uvatar.precision import FastPathConfig
 
 
-@dataclass(frozen=True)
-class InferenceConfig:
-    """precision: the generator's weights and activations ("fp32", "bf16", "fp16"). compile:
-    ``torch.compile`` it; compile_mode: its mode ("default", "reduce-overhead": CUDA graphs,
-    "max-autotune"). channels_last: NHWC activations (tensor cores on a GPU)."""
-
-    precision: str = "fp32"
-    compile: bool = False
-    compile_mode: str = "default"
-    channels_last: bool = False
-
-    def __post_init__(self) -> None:
-        check_values([precision_check(self.precision)])
+class InferenceConfig(FastPathConfig):
+    """The fast generator's path (:class:`~uvatar.precision.FastPathConfig`): precision of its weights
+    and activations, compile, compile_mode, channels_last."""
 
 
 class _Cast(nn.Module):
@@ -53,12 +40,8 @@ class FastGenerator:
 
     def __init__(self, generator: AvhGenerator, cfg: InferenceConfig | None = None):
         self.cfg = cfg or InferenceConfig()
-        dtype = PRECISIONS[self.cfg.precision]
-        gen = copy.deepcopy(generator).eval().to(dtype)
-        if self.cfg.channels_last:
-            gen = gen.to(memory_format=torch.channels_last)
-        model = _Cast(gen, dtype)
-        self._run = torch.compile(model, mode=self.cfg.compile_mode, dynamic=False) if self.cfg.compile else model
+        dtype = self.cfg.dtype
+        self._run = self.cfg.prepare(_Cast(copy.deepcopy(generator).eval().to(dtype), dtype))
 
     @torch.no_grad()
     def __call__(self, pose_angles: torch.Tensor):

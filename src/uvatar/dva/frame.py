@@ -19,31 +19,18 @@ count (:mod:`uvatar.dva.raymarch_warp`), two small syncs per frame.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 from torch import nn
 
 from uvatar.dva.model import DvaOutput, pixel_rays
 from uvatar.dva.raymarch import raymarch
-from uvatar.errors import check_values
-from uvatar.precision import PRECISIONS, precision_check
+from uvatar.precision import FastPathConfig
 
 
-@dataclass
-class FrameConfig:
-    """precision: "fp32" (the reference's numbers), "bf16" or "fp16" for the encoders and decoders.
-    compile: ``torch.compile`` the encoders + decoders. compile_mode: its ``mode`` ("default",
-    "reduce-overhead": CUDA graphs, "max-autotune"). channels_last: NHWC convolution inputs."""
-
-    precision: str = "fp32"
-    compile: bool = False
-    compile_mode: str = "default"
-    channels_last: bool = False
-
-    def __post_init__(self) -> None:
-        check_values([precision_check(self.precision)])
+class FrameConfig(FastPathConfig):
+    """The fast frame's path (:class:`~uvatar.precision.FastPathConfig`): precision of the encoders
+    and decoders, compile, compile_mode, channels_last."""
 
 
 class _Decode(nn.Module):
@@ -80,10 +67,7 @@ class FrameRenderer:
     def __init__(self, model, cfg: FrameConfig | None = None):
         self.model, self.cfg = model.eval(), cfg or FrameConfig()
         self.correctives = bool(model.correctives_on)
-        decode = _Decode(model, PRECISIONS[self.cfg.precision], self.cfg.channels_last)
-        if self.cfg.channels_last:
-            decode = decode.to(memory_format=torch.channels_last)
-        self._decode = torch.compile(decode, mode=self.cfg.compile_mode, dynamic=False) if self.cfg.compile else decode
+        self._decode = self.cfg.prepare(_Decode(model, self.cfg.dtype, self.cfg.channels_last))
         self._camera, self._rays = None, None
 
     @torch.no_grad()
