@@ -133,6 +133,7 @@ def frame_rows(trainer, sizes, paths, repeats: int, device: str) -> list[dict]:
                                                         repeats, device)
                 db = psnr(rgb.float().cpu().numpy(), ref)
                 row[f"{path}_psnr_vs_ref"] = round(db, 2) if np.isfinite(db) else "identical"
+                log(f"[dva_frame] {size}² {path}: {json.dumps({k: v for k, v in row.items() if k.startswith(path)})}")
         except torch.cuda.OutOfMemoryError:
             row["error"] = "out of GPU memory"
             torch.cuda.empty_cache()
