@@ -26,9 +26,13 @@ MAX_FLIPPED = 0.01
 
 
 @pytest.fixture(scope="module")
-def views(tmp_path_factory):
-    source = open_source(write_toy_capture(tmp_path_factory.mktemp("cap") / "cap", frames=1, cameras=3, size=64))
-    body = ToyBody()
+def capture(tmp_path_factory):
+    return open_source(write_toy_capture(tmp_path_factory.mktemp("cap") / "cap", frames=2, cameras=3, size=64)), ToyBody()
+
+
+@pytest.fixture(scope="module")
+def views(capture):
+    source, body = capture
     cams = [source.cameras[c] for c in sorted(source.cameras)][:2]
     frame = source.frames[0]
     _, verts = body_inputs(body, [source.fit(frame)])
@@ -86,3 +90,23 @@ def test_frame_driven_from_the_views_is_the_reference_frame(views):
     rgb, _ = FrameRenderer(model).drive(verts, rot, cams, [torch.as_tensor(i) for i in images],
                                         [torch.as_tensor(m) for m in masks], target)
     np.testing.assert_allclose(rgb.numpy(), ref, atol=1e-3)
+
+
+def test_drive_sequence_renders_through_the_fast_path(capture, views):
+    """``uvatar render dva --precision bf16``: drive_sequence with a FrameConfig, close to the reference."""
+    from uvatar.dva.drive import drive_sequence
+    from uvatar.dva.frame import FrameConfig
+    from uvatar.render.metrics import psnr
+
+    source, body = capture
+    model, _, cams, _, _ = views
+    with torch.no_grad():  # a model whose every branch shapes the frame
+        for p in model.parameters():
+            p.add_(0.1 * torch.randn(p.shape, generator=torch.Generator().manual_seed(p.numel())))
+    names = sorted(source.cameras)
+    target = source.cameras[names[-1]]
+    ref = drive_sequence(model, body, source, source.frames, names[:2], target, progress=False)
+    fast = drive_sequence(model, body, source, source.frames, names[:2], target, progress=False,
+                          frame=FrameConfig(precision="bf16"))
+    assert len(fast) == len(ref) == 2
+    assert all(not np.array_equal(a, b) and psnr(a, b) >= 50.0 for a, b in zip(fast, ref, strict=True))

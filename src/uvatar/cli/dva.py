@@ -21,6 +21,7 @@ def _flags() -> tuple[ConfigFlags, ...]:
     from uvatar.dva.drive import drive_sequence
     from uvatar.dva.eval import evaluate_dva
     from uvatar.dva.features import FeatureConfig
+    from uvatar.dva.frame import FrameConfig
     from uvatar.dva.losses import LossConfig
     from uvatar.dva.model import BACKGROUNDS, PRESETS, TrainConfig
     from uvatar.dva.primitives import PrimitiveConfig
@@ -88,14 +89,18 @@ def _flags() -> tuple[ConfigFlags, ...]:
                         presets={k: c.loss for k, c in PRESETS.items()},
                         help={"ssim": "weight of the 1 - SSIM term of the image loss (when no --vgg-weights)",
                               "colour_tv": "weight of the total variation of the decoded colour across voxels "
-                                           "and neighbouring primitives (hides seams between boxes)"}))
+                                           "and neighbouring primitives (hides seams between boxes)"}),
+            ConfigFlags(FrameConfig, fields=("precision", "compile"), choices={"precision": tuple(PRECISIONS)},
+                        help={"precision": "type of the encoders and decoders when rendering (bf16 / fp16: the "
+                                           "fast path, uvatar.dva.frame; fp32 without --compile: the reference)",
+                              "compile": "torch.compile the encoders and decoders (minutes on a small CPU)"}))
 
 
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive, features, losses = \
-        _flags()
+    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive, features, losses, \
+        frame = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
@@ -128,6 +133,7 @@ def register(cli) -> None:
     p.add_argument("--device", default="cpu")
     run_marcher.add_to(p)
     drive.add_to(p)
+    frame.add_to(p)
     _threads(p)
     p.add_argument("-o", "--output", required=True, help="video path (.mp4 or .gif)")
     _body(p, "body model (default: the run's; must be the run's)")
@@ -189,7 +195,7 @@ def _train(args) -> int:
     from uvatar.dva.train import train_dva
     from uvatar.errors import options_as_input_error
 
-    budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features, losses = _flags()
+    budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features, losses, _ = _flags()
     cfg = preset(args.preset)
     with options_as_input_error("train dva"):
         cfg.train = target.config(args, base=cfg.train)
@@ -245,7 +251,13 @@ def _render(args) -> int:
             raise InputError(args.motion, f"camera {args.camera!r} not found (have {sorted(source.cameras)})")
         target = source.cameras[args.camera]
         bg = meta["backgrounds"].get(args.camera, [0.0, 0.0, 0.0])
-    images = drive_sequence(model, body, source, frames, views, target, bg, **_flags()[9].values(args))
+    from uvatar.dva.frame import FrameConfig
+    from uvatar.errors import options_as_input_error
+
+    with options_as_input_error("render dva"):
+        fast = _flags()[12].config(args)
+    images = drive_sequence(model, body, source, frames, views, target, bg, **_flags()[9].values(args),
+                            frame=None if fast == FrameConfig() else fast)
     if not images:
         raise InputError(args.motion, "no frame could be rendered")
     written = write_video(args.output, images, args.fps)
