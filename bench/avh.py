@@ -8,6 +8,11 @@ eager_fps / compile_fps / onnxruntime_fps (batch 1, fp32, eval mode; fps = gener
 per second, i.e. texture + displacement maps per second). ``--device cuda`` also runs the paper's
 (f_c 32, latent 1024) preset at 1024², to set beside its 49 fps on an A100. ``--quick``: the tiny
 preset at 64² and 128², no torch.compile (it takes minutes to compile on a 2-core CPU).
+
+``--fast bf16,fp16`` also times :class:`uvatar.avh.inference.FastGenerator` in those precisions (eager,
+and compiled unless ``--no-compile``; on CUDA compiled with CUDA graphs and channels_last): fps at batch
+1, maps per second at ``--batch`` (8), and the texture PSNR / largest displacement error against the
+fp32 eager reference on the same poses. ``--no-train`` leaves out the training row (slow at 1024² on a CPU).
 """
 
 from __future__ import annotations
@@ -109,6 +114,43 @@ def bench_inference(cfg, device, iters, compile_model: bool, onnx: bool) -> dict
     return out
 
 
+def bench_fast(cfg, device, iters, compile_model: bool, precisions, batch: int) -> dict:
+    """The fast generator per precision (and compiled): fps at batch 1, maps/s at ``batch``, and its
+    maps against the fp32 eager reference."""
+    from uvatar.avh.inference import FastGenerator, InferenceConfig
+    from uvatar.render.metrics import psnr
+
+    cuda = device.type == "cuda"
+    gen = AvhGenerator(cfg).to(device).eval()
+    g = torch.Generator().manual_seed(0)
+    x1 = torch.randn(1, 3 * cfg.num_pose_joints, generator=g).to(device)
+    xb = torch.randn(batch, 3 * cfg.num_pose_joints, generator=g).to(device)
+    with torch.no_grad():
+        ref_tex, ref_disp = AvhFromAngles(gen)(xb)
+        out = {f"fp32_batch{batch}_maps_per_s": batch / timed(lambda: AvhFromAngles(gen)(xb), iters, device)}
+    for p in precisions:
+        for comp in ([False, True] if compile_model else [False]):
+            key = p + ("_compile" if comp else "")
+            try:
+                t0 = time.perf_counter()
+                fast = FastGenerator(gen, InferenceConfig(precision=p, compile=comp, channels_last=cuda,
+                                                          compile_mode="reduce-overhead" if cuda and comp else "default"))
+                tex, disp = (t.clone() for t in fast(xb))
+                fast(x1)
+                sync(device)
+                if comp:
+                    out[f"{key}_compile_seconds"] = time.perf_counter() - t0
+                out[f"{key}_fps"] = 1.0 / timed(lambda f=fast: f(x1), 3 * iters, device, warmup=3)
+                out[f"{key}_batch{batch}_maps_per_s"] = batch / timed(lambda f=fast: f(xb), iters, device)
+                R = cfg.resolution
+                out[f"{key}_texture_psnr"] = psnr(tex.reshape(-1, R).cpu().numpy(), ref_tex.reshape(-1, R).cpu().numpy())
+                out[f"{key}_displacement_max_err_m"] = float((disp - ref_disp).abs().max())
+            except Exception as exc:  # noqa: BLE001 - report, do not abort the benchmark
+                out[f"{key}_error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+            log(f"[bench avh]   {key}: {json.dumps({k: v for k, v in out.items() if k.startswith(key)})}")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true")
@@ -117,6 +159,10 @@ def main(argv=None) -> int:
     ap.add_argument("--resolutions", default=None, help="comma-separated output resolutions")
     ap.add_argument("--iters", type=int, default=None)
     ap.add_argument("--no-compile", action="store_true")
+    ap.add_argument("--no-train", action="store_true", help="leave out the training row")
+    ap.add_argument("--no-onnx", action="store_true", help="leave out onnxruntime")
+    ap.add_argument("--fast", default="", help="FastGenerator precisions to time, e.g. bf16,fp16")
+    ap.add_argument("--batch", type=int, default=8, help="batch of the throughput rows")
     args = ap.parse_args(argv)
     device = torch.device(args.device)
     cuda = device.type == "cuda"
@@ -142,8 +188,11 @@ def main(argv=None) -> int:
         row = {"preset": name, "feature_size": cfg.feature_size, "latent": cfg.latent, "resolution": res,
                "parameters": count_parameters(AvhGenerator(cfg))}
         try:
-            row["train_samples_per_s"] = bench_train(cfg, device, iters)
-            row.update(bench_inference(cfg, device, iters, compile_model, onnx=True))
+            if not args.no_train:
+                row["train_samples_per_s"] = bench_train(cfg, device, iters)
+            row.update(bench_inference(cfg, device, iters, compile_model, onnx=not args.no_onnx))
+            if args.fast:
+                row.update(bench_fast(cfg, device, iters, compile_model, args.fast.split(","), args.batch))
         except RuntimeError as exc:  # e.g. out of memory: report and go on
             row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
             if cuda:

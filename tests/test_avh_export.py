@@ -67,3 +67,22 @@ def test_read_avatar_bad_inputs(tmp_path, avatar):
         read_avatar(tmp_path)
     with pytest.raises(InputError):
         onnx_session(tmp_path / "avatar.json")
+
+
+def test_export_writes_an_fp16_graph_that_matches_pytorch(avatar):
+    """model_fp16.onnx: float16 weights, float32 inputs and outputs, within FP16_TOLERANCE of PyTorch."""
+    import onnx
+
+    from uvatar.avh.export import FP16_NAME, FP16_TOLERANCE, onnx_differences
+
+    meta = read_avatar(avatar / "avatar")
+    assert meta["model_fp16"] == FP16_NAME
+    graph = onnx.load(str(avatar / "avatar" / FP16_NAME)).graph
+    kinds = {init.data_type for init in graph.initializer if len(init.dims) >= 2}
+    assert kinds == {onnx.TensorProto.FLOAT16}  # every weight matrix / kernel is half
+    assert all(v.type.tensor_type.elem_type == onnx.TensorProto.FLOAT for v in [*graph.input, *graph.output])
+    generator, _ = load_trained_generator(avatar / "run")
+    wrapper = AvhFromAngles(generator).eval()
+    diff = onnx_differences(wrapper, avatar / "avatar" / FP16_NAME, 12, batch=3, seed=5)
+    assert all(0 < diff[k] <= FP16_TOLERANCE[k] for k in diff), diff  # > 0: it really ran in half
+    assert meta["verification_fp16"]["max_abs_diff"]["texture"] <= FP16_TOLERANCE["texture"]

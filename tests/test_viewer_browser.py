@@ -56,6 +56,8 @@ def test_page_loads_the_avatar(page, avatar):
     stats = page.evaluate("window.uvatar.stats")
     assert stats["backend"] in ("wasm", "webgpu") and stats["inferences"] >= 1 and stats["inferenceMs"] > 0
     assert "inference" in page.locator("#stats").inner_text()
+    if stats["backend"] == "wasm":  # Chromium without --enable-unsafe-webgpu: no adapter, and the page says so
+        assert "WebGPU" in stats["backendNote"] and stats["backendNote"] in page.locator("#stats").inner_text()
 
 
 def test_canvas_is_not_blank(page):

@@ -1,4 +1,5 @@
-// onnxruntime-web wrapper: pose -> (texture, displacement) maps. WebGPU where available, else wasm.
+// onnxruntime-web wrapper: pose -> (texture, displacement) maps. WebGPU where the browser gives an
+// adapter (fp16 weights where it takes them), else wasm; the page says which and why.
 import { poseToModelInput } from './pose.js';
 
 export async function loadOrt() {
@@ -12,31 +13,64 @@ export async function loadOrt() {
   return ort;
 }
 
-async function webgpuAvailable() {
+/** The WebGPU adapter, or a sentence saying why there is none (no navigator.gpu: not Chromium with
+ * WebGPU, or not a secure context; requestAdapter gave null: no usable GPU, nor SwiftShader). */
+async function webgpuAdapter() {
+  if (!navigator.gpu) return { adapter: null, why: 'no WebGPU in this browser' };
   try {
-    return !!(navigator.gpu && (await navigator.gpu.requestAdapter()));
+    const adapter = await navigator.gpu.requestAdapter();
+    return adapter ? { adapter, why: null } : { adapter: null, why: 'no WebGPU adapter' };
   } catch (e) {
-    return false;
+    return { adapter: null, why: `WebGPU adapter request failed: ${e.message || e}` };
   }
 }
 
+async function fetchBytes(url) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
+  return new Uint8Array(await response.arrayBuffer());
+}
+
 export class Generator {
-  static async create(ort, modelUrl, manifest, preferred = 'auto') {
+  /** preferred: 'auto' (WebGPU when an adapter exists, else wasm), 'webgpu' or 'wasm'. precision:
+   * 'auto' (the fp16 graph, manifest generator.file_fp16, on WebGPU when the adapter has shader-f16),
+   * 'fp16' or 'fp32'. Sets backend ('webgpu' | 'wasm'), precision ('fp16' | 'fp32'), adapter
+   * ('vendor architecture' of the WebGPU adapter) and note (why not WebGPU / not fp16, or ''). */
+  static async create(ort, avatarUrl, manifest, preferred = 'auto', precision = 'auto') {
     const gen = new Generator();
     gen.ort = ort;
     gen.manifest = manifest;
-    const wantGpu = preferred === 'webgpu' || (preferred === 'auto' && (await webgpuAvailable()));
-    const response = await fetch(modelUrl);
-    if (!response.ok) throw new Error(`${modelUrl}: HTTP ${response.status}`);
-    const bytes = new Uint8Array(await response.arrayBuffer());
+    const notes = [];
+    const { adapter, why } = preferred === 'wasm' ? { adapter: null, why: 'wasm asked for (?ep=wasm)' } : await webgpuAdapter();
+    if (!adapter && why) notes.push(why);
+    const info = adapter && (adapter.info || {});
+    gen.adapter = info ? `${info.vendor || ''} ${info.architecture || ''}`.trim() || 'unknown' : null;
+    const fp16File = manifest.generator.file_fp16;
+    const fp16Ok = !!(adapter && adapter.features && adapter.features.has('shader-f16'));
+    const tries = [];
+    // fp16 on WebGPU only with shader-f16: on SwiftShader (none) onnxruntime-web 1.23 still takes the
+    // fp16 graph and returns wrong maps (texture off by 0.8, tests/test_viewer_webgpu.py)
+    if (adapter) {
+      if (fp16File && precision !== 'fp32' && fp16Ok) tries.push(['webgpu', 'fp16']);
+      else if (fp16File && precision === 'auto') notes.push('adapter without shader-f16: fp32 weights');
+      else if (fp16File && precision === 'fp16') notes.push('adapter without shader-f16: fp16 on wasm');
+      if (precision !== 'fp16') tries.push(['webgpu', 'fp32']);
+    }
+    tries.push(['wasm', precision === 'fp16' && fp16File ? 'fp16' : 'fp32']);
+    const bytes = {};
     let lastError = null;
-    for (const ep of wantGpu ? ['webgpu', 'wasm'] : ['wasm']) {
+    for (const [ep, prec] of tries) {
+      const file = prec === 'fp16' ? fp16File : manifest.generator.file;
       try {
-        gen.session = await ort.InferenceSession.create(bytes, { executionProviders: [ep], graphOptimizationLevel: 'all' });
+        bytes[file] = bytes[file] || (await fetchBytes(avatarUrl + file));
+        gen.session = await ort.InferenceSession.create(bytes[file], { executionProviders: [ep], graphOptimizationLevel: 'all' });
         gen.backend = ep;
+        gen.precision = prec;
+        gen.note = notes.join('; ');
         return gen;
       } catch (e) {
         lastError = e;
+        notes.push(`${ep} ${prec} failed: ${String(e.message || e).split('\n')[0].slice(0, 120)}`);
       }
     }
     throw lastError;

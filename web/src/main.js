@@ -10,7 +10,7 @@ import { buildUi } from './ui.js';
 
 const params = new URLSearchParams(location.search);
 const AVATAR = params.get('avatar') || 'avatar/';
-const api = (window.uvatar = { ready: false, error: null, stats: { inferenceMs: null, fps: 0, backend: null, inferences: 0 } });
+const api = (window.uvatar = { ready: false, error: null, stats: { inferenceMs: null, fps: 0, backend: null, precision: null, adapter: null, backendNote: '', inferences: 0 } });
 
 function fail(err) {
   console.error(err);
@@ -82,8 +82,9 @@ async function main() {
   const controls = new OrbitControls(camera, canvas);
 
   const [ort, gltf] = await Promise.all([loadOrt(), new GLTFLoader().loadAsync(AVATAR + manifest.glb)]);
-  const generator = await Generator.create(ort, AVATAR + manifest.generator.file, manifest, params.get('ep') || 'auto');
-  api.stats.backend = generator.backend;
+  const generator = await Generator.create(ort, AVATAR, manifest, params.get('ep') || 'auto', params.get('precision') || 'auto');
+  Object.assign(api.stats, { backend: generator.backend, precision: generator.precision, adapter: generator.adapter,
+                             backendNote: generator.note });
 
   let mesh = null;
   gltf.scene.traverse((o) => { if (o.isSkinnedMesh && !mesh) mesh = o; });
@@ -308,7 +309,7 @@ async function main() {
         times.push((await generator.run(p)).ms);
       }
       times.sort((a, b) => a - b);
-      return { mean_ms: times.reduce((a, b) => a + b, 0) / n, median_ms: times[n >> 1], min_ms: times[0], n, backend: generator.backend };
+      return { mean_ms: times.reduce((a, b) => a + b, 0) / n, median_ms: times[n >> 1], min_ms: times[0], n, backend: generator.backend, precision: generator.precision };
     },
   });
 

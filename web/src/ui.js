@@ -97,7 +97,9 @@ export function buildUi({ manifest, pose, motions, onPose, onPlay, onStop, onMot
     },
     showStats(s) {
       const ms = s.inferenceMs == null ? '–' : s.inferenceMs.toFixed(1);
-      stats.textContent = `inference ${ms} ms · ${s.fps.toFixed(0)} fps · ${s.backend} · ${manifest.texels}²`;
+      const where = s.backend === 'webgpu' ? `WebGPU ${s.precision} (${s.adapter})` : `wasm ${s.precision}`;
+      const why = s.backendNote ? ` (${s.backendNote})` : '';
+      stats.textContent = `inference ${ms} ms · ${s.fps.toFixed(0)} fps · ${where}${why} · ${manifest.texels}²`;
     },
   };
 }

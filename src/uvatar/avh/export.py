@@ -9,6 +9,9 @@ Output folder layout (names are stable; the viewer bundle builds on them)::
                       output "texture"      (B, 3, R, R) in [0, 1];  row 0 is v = 1 (UV v up)
                       output "displacement" (B, 3, R, R) metres, rest or body frame (avatar.json
                              "displacement_frame" / "displacement_space")
+    OUT/model_fp16.onnx  the same graph with float16 weights and activations, float32 inputs and
+                      outputs (WebGPU in the viewer; half the download); checked against PyTorch to
+                      FP16_TOLERANCE (avatar.json "verification_fp16")
     OUT/avatar.json   metadata: joint names and order, conditioning joints, encoding, texel resolution,
                       displacement scale and space, body model name and shape, training provenance,
                       ONNX-vs-PyTorch verification (max abs diff, must be <= 1e-4)
@@ -42,6 +45,10 @@ log = logging.getLogger(__name__)
 
 ONNX_OPSET = 17
 PARITY_TOLERANCE = 1e-4
+#: model_fp16.onnx against PyTorch (fp32), max abs difference per output: texture in [0, 1] (fp16 keeps
+#: 11 bits: 1/2048 of a value near 1, grown through the decoder's layers), displacement in metres
+FP16_TOLERANCE = {"texture": 2e-2, "displacement": 2e-3}
+FP16_NAME = "model_fp16.onnx"
 
 
 def export_onnx(model: torch.nn.Module, path: str | Path, num_angles: int, opset: int = ONNX_OPSET) -> None:
@@ -54,6 +61,18 @@ def export_onnx(model: torch.nn.Module, path: str | Path, num_angles: int, opset
             dynamic_axes={"pose_angles": {0: "batch"}, "texture": {0: "batch"}, "displacement": {0: "batch"}},
             opset_version=opset, dynamo=False,
         )
+
+
+def convert_to_fp16(src: str | Path, dst: str | Path) -> None:
+    """Write ``src`` (an fp32 ONNX graph) to ``dst`` with fp16 weights and activations; its inputs and
+    outputs stay float32 (a Cast at each end), so a runtime feeds and reads it as it does the fp32
+    graph. Uses onnxruntime's converter (``onnxruntime.transformers.float16``)."""
+    import onnx
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    model = convert_float_to_float16(onnx.load(str(src)), keep_io_types=True)
+    with atomic_path(dst, suffix=".onnx") as tmp:
+        onnx.save(model, str(tmp))
 
 
 def onnx_session(path: str | Path, device: str = "cpu"):
@@ -71,12 +90,20 @@ def onnx_session(path: str | Path, device: str = "cpu"):
 
 def verify_onnx(model: torch.nn.Module, path: str | Path, num_angles: int, batch: int = 4, seed: int = 0) -> float:
     """Max abs difference between ONNX Runtime and PyTorch outputs on random poses in [-π, π]."""
+    return max(onnx_differences(model, path, num_angles, batch, seed).values())
+
+
+def onnx_differences(model: torch.nn.Module, path: str | Path, num_angles: int, batch: int = 4,
+                     seed: int = 0) -> dict[str, float]:
+    """{"texture": max abs difference, "displacement": ...} between ONNX Runtime and PyTorch on random
+    poses in [-π, π]."""
     g = torch.Generator().manual_seed(seed)
     angles = (torch.rand(batch, num_angles, generator=g) * 2 - 1) * np.pi
     with torch.no_grad():
         ref = [t.numpy() for t in model(angles)]
-    out = onnx_session(path).run(["texture", "displacement"], {"pose_angles": angles.numpy()})
-    return float(max(np.abs(a - b).max() for a, b in zip(out, ref, strict=True)))
+    names = ["texture", "displacement"]
+    out = onnx_session(path).run(names, {"pose_angles": angles.numpy()})
+    return {n: float(np.abs(a.astype(np.float32) - b).max()) for n, a, b in zip(names, out, ref, strict=True)}
 
 
 def _body_arrays(body, shapes, resolution: int) -> dict[str, np.ndarray]:
@@ -109,6 +136,12 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
     log.info("ONNX parity: max abs diff %.2e", diff)
     if not diff <= tolerance:
         raise UvatarError(f"{out_dir / 'model.onnx'}: ONNX Runtime differs from PyTorch by {diff:.2e} > {tolerance}")
+    convert_to_fp16(out_dir / "model.onnx", out_dir / FP16_NAME)
+    diff16 = onnx_differences(wrapper, out_dir / FP16_NAME, num_angles)
+    log.info("fp16 ONNX parity: texture %.2e, displacement %.2e m", diff16["texture"], diff16["displacement"])
+    if not all(diff16[k] <= FP16_TOLERANCE[k] for k in FP16_TOLERANCE):
+        raise UvatarError(f"{out_dir / FP16_NAME}: ONNX Runtime (fp16) differs from PyTorch by {diff16} "
+                          f"(tolerance {FP16_TOLERANCE})")
 
     body_info = info.get("body_model") or {"name": "none", "shapes": None}
     if body is None and body_info.get("name", "none") != "none":
@@ -150,6 +183,9 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
         "pose_convention": "EasyMocap: V = R(Rh) @ LBS(poses with zero root, shape) * scale + Th",
         "model_config": cfg.to_dict(), "parameters": count_parameters(generator), "preset": info.get("preset"),
         "onnx_max_abs_diff": diff,
+        "model_fp16": FP16_NAME,
+        "verification_fp16": {"max_abs_diff": diff16, "tolerance": FP16_TOLERANCE,
+                              "io": "float32 inputs and outputs, float16 inside"},
         "training": {"run": str(Path(run_dir).resolve()), "baked": info.get("baked"),
                      "train_frames": info.get("train_frames", []), "val_frames": info.get("val_frames", [])},
         "verification": {"max_abs_diff": diff, "tolerance": tolerance, "opset": opset,

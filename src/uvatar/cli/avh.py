@@ -117,7 +117,8 @@ def register(cli) -> None:
 
     p = cli.command("export", help="export a trained AVH run: ONNX + body template + avatar.json",
                     epilog="OUT/model.onnx: input pose_angles (B, 3*J_c) radians -> texture, displacement "
-                           "(B, 3, R, R);\nOUT/avatar.json: metadata; OUT/body.npz: body template. "
+                           "(B, 3, R, R);\nOUT/model_fp16.onnx: the same in float16 (float32 input and outputs);\n"
+                           "OUT/avatar.json: metadata; OUT/body.npz: body template. "
                            "See uvatar.avh.export.")
     p.add_argument("run", help="training run folder (uvatar train avh)")
     p.add_argument("out", help="avatar folder to write")
@@ -200,7 +201,9 @@ def _export(args) -> int:
 
     meta = export_avatar(args.run, args.out, **_flags()["export"].values(args))
     print(f"exported {meta['parameters']:,} parameters to {args.out} "
-          f"(ONNX max abs diff vs PyTorch {meta['onnx_max_abs_diff']:.2e})")
+          f"(ONNX max abs diff vs PyTorch {meta['onnx_max_abs_diff']:.2e}; fp16: texture "
+          f"{meta['verification_fp16']['max_abs_diff']['texture']:.2e}, displacement "
+          f"{meta['verification_fp16']['max_abs_diff']['displacement']:.2e} m)")
     return 0
 
 

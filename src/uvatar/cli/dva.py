@@ -21,19 +21,22 @@ def _flags() -> tuple[ConfigFlags, ...]:
     from uvatar.dva.drive import drive_sequence
     from uvatar.dva.eval import evaluate_dva
     from uvatar.dva.features import FeatureConfig
+    from uvatar.dva.frame import FrameConfig
     from uvatar.dva.losses import LossConfig
     from uvatar.dva.model import BACKGROUNDS, PRESETS, TrainConfig
     from uvatar.dva.primitives import PrimitiveConfig
     from uvatar.dva.raymarch_ref import MARCHERS, RaymarchConfig
     from uvatar.dva.train import load_run, train_dva
+    from uvatar.precision import PRECISIONS
 
     marcher_help = next(f for f in dataclasses.fields(RaymarchConfig) if f.name == "marcher").metadata["help"]
     run_marcher = {"marcher": marcher_help + "; default: the run's"}
 
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
-            ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view"),
-                        choices={"background": BACKGROUNDS}, presets={k: c.train for k, c in PRESETS.items()},
+            ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view", "precision"),
+                        choices={"background": BACKGROUNDS, "precision": tuple(PRECISIONS)},
+                        presets={k: c.train for k, c in PRESETS.items()},
                         help={"batch": "(frame, camera) samples per step",
                               "patch": "side of the square pixel crop rendered per sample, pixels",
                               "background": "what the render is compared with outside the person's mask: "
@@ -41,7 +44,9 @@ def _flags() -> tuple[ConfigFlags, ...]:
                                             "new random colour per sample and step: the opacity must match "
                                             "the mask) or photo (the raw photo; a clean studio backdrop)",
                               "hide_target_view": "leave the camera a sample is scored in out of its image "
-                                                  "input, as at test time"}),
+                                                  "input, as at test time",
+                              "precision": "type of the encoders and decoders in a step (autocast; bf16 on a "
+                                           "GPU halves their slabs); geometry, marcher and loss stay fp32"}),
             ConfigFlags(PrimitiveConfig, fields=("grid", "min_scale_corrective"),
                         presets={k: c.primitives for k, c in PRESETS.items()},
                         help={"grid": "primitives per UV side W (K = W*W)",
@@ -87,14 +92,18 @@ def _flags() -> tuple[ConfigFlags, ...]:
                         presets={k: c.loss for k, c in PRESETS.items()},
                         help={"ssim": "weight of the 1 - SSIM term of the image loss (when no --vgg-weights)",
                               "colour_tv": "weight of the total variation of the decoded colour across voxels "
-                                           "and neighbouring primitives (hides seams between boxes)"}))
+                                           "and neighbouring primitives (hides seams between boxes)"}),
+            ConfigFlags(FrameConfig, fields=("precision", "compile"), choices={"precision": tuple(PRECISIONS)},
+                        help={"precision": "type of the encoders and decoders when rendering (bf16 / fp16: the "
+                                           "fast path, uvatar.dva.frame; fp32 without --compile: the reference)",
+                              "compile": "torch.compile the encoders and decoders (minutes on a small CPU)"}))
 
 
 def register(cli) -> None:
     from uvatar.dva.model import PRESETS
 
-    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive, features, losses = \
-        _flags()
+    budget, target, primitives, decoder, train, evaluate, marcher, run_marcher, corrections, drive, features, losses, \
+        frame = _flags()
     p = cli.command("train dva", help="train a drivable volumetric avatar on a multi-view capture "
                                       "(uvatar capture, EasyMocap or ZJU-MoCap folder)")
     p.add_argument("capture", help="multi-view capture folder")
@@ -127,6 +136,7 @@ def register(cli) -> None:
     p.add_argument("--device", default="cpu")
     run_marcher.add_to(p)
     drive.add_to(p)
+    frame.add_to(p)
     _threads(p)
     p.add_argument("-o", "--output", required=True, help="video path (.mp4 or .gif)")
     _body(p, "body model (default: the run's; must be the run's)")
@@ -192,7 +202,7 @@ def _train(args) -> int:
     from uvatar.stage_record import require_complete
 
     require_complete(Path(args.capture) / "fitting", "fit", f"uvatar fit {args.capture}", check_inputs=False)
-    budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features, losses = _flags()
+    budget, target, primitives, decoder, train, _, marcher, _, corrections, _, features, losses, _ = _flags()
     cfg = preset(args.preset)
     with options_as_input_error("train dva"):
         cfg.train = target.config(args, base=cfg.train)
@@ -257,7 +267,13 @@ def _render(args) -> int:
             raise InputError(args.motion, f"camera {args.camera!r} not found (have {sorted(source.cameras)})")
         target = source.cameras[args.camera]
         bg = meta["backgrounds"].get(args.camera, [0.0, 0.0, 0.0])
-    images = drive_sequence(model, body, source, frames, views, target, bg, **_flags()[9].values(args))
+    from uvatar.dva.frame import FrameConfig
+    from uvatar.errors import options_as_input_error
+
+    with options_as_input_error("render dva"):
+        fast = _flags()[12].config(args)
+    images = drive_sequence(model, body, source, frames, views, target, bg, **_flags()[9].values(args),
+                            frame=None if fast == FrameConfig() else fast)
     if not images:
         raise InputError(args.motion, "no frame could be rendered")
     written = write_video(args.output, images, args.fps)

@@ -165,3 +165,35 @@ class DvaDecoder(nn.Module):
         rgb = slab_to_payload(torch.sigmoid(logits.reshape(B, 3 * S, H, H)), 3, S)
         rgb = rgb if shade is None else rgb * shade
         return motion, rgb, slab_to_payload(density, 1, S), own
+
+    def payload(self, f_pose, f_image, f_view, skip=None, dtype=torch.float32):
+        """Inference twin of :meth:`forward`: motion (B, 9, W, W) and the marcher's payload
+        (B, K, 4, S, S, S) ``dtype`` (RGB in [0, 1] * shadow, density 1/m) made in one write.
+
+        The same math with less memory: colour, shadow and the colour skip stay at their L layers per
+        voxel column (L = 1 without ``depth_colour``) until the one copy into the payload, which also
+        casts (the slabs may be bf16 / fp16 under autocast; the marcher reads ``dtype``). Neither the
+        S-fold expanded slabs of :meth:`forward` nor its ``torch.cat`` are made, and there is no host sync."""
+        S = self.cfg.voxels
+        L = S if self.cfg.depth_colour else 1
+        f_pi = torch.cat([f_pose, f_image], 1)
+        motion = self.motion(f_pi)
+        density = F.softplus(self.opacity(f_pi)) * self.cfg.density_scale  # (B, S, H, H)
+        logits = self.appearance(torch.cat([f_pi, f_view], 1))  # (B, 3 L, H, H)
+        B, _, H, _ = logits.shape
+        logits = logits.reshape(B, 3, L, H, H)
+        if skip is not None and self.skip_gain is not None:
+            colour, weight = skip
+            logits = logits + (torch.logit(colour.clamp(0.02, 0.98)) * weight * self.skip_gain)[:, :, None]
+        rgb = torch.sigmoid(logits)
+        if self.shadow is not None:
+            rgb = rgb * torch.sigmoid(self.shadow(f_pose) + 3.0).reshape(B, 1, L, H, H)
+        W = H // S
+        out = torch.empty(B, W, W, 4, S, S, S, dtype=dtype, device=logits.device)  # b, wy, wx, c, z, y, x
+
+        def voxels(slab, channels, layers):  # (B, C, layers, H, H) -> (B, W, W, C, layers, S, S)
+            return slab.reshape(B, channels, layers, W, S, W, S).permute(0, 3, 5, 1, 2, 4, 6)
+
+        out[:, :, :, :3].copy_(voxels(rgb, 3, L).expand(B, W, W, 3, S, S, S))
+        out[:, :, :, 3:].copy_(voxels(density.reshape(B, 1, S, H, H), 1, S))
+        return motion, out.reshape(B, W * W, 4, S, S, S)

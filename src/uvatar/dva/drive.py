@@ -43,13 +43,15 @@ def driving_texture(model, posed_vertices: np.ndarray, cameras, images, masks=No
 
 
 def drive_sequence(model, body, source, frames, driving_cameras, target_camera, background=(0, 0, 0),
-                   progress=True, refine_pose: int = 0, refine_residual: int = 0):
+                   progress=True, refine_pose: int = 0, refine_residual: int = 0, frame=None):
     """Render ``target_camera`` (one Camera, or a list with one per frame) for each frame of ``source``
     (fits + driving images). Returns a list of (H, W, 3) float32 images; frames whose data cannot be
     read are skipped with a warning. ``refine_pose`` > 0: each frame's fit is first refined against its
     driving views for that many steps (:mod:`uvatar.dva.refine`, as ``uvatar eval dva`` does);
     ``refine_residual`` > 0: then a residual of its decoded primitives is fitted to them
-    (:mod:`uvatar.dva.residual`)."""
+    (:mod:`uvatar.dva.residual`). ``frame``: a :class:`~uvatar.dva.frame.FrameConfig` renders through the
+    fast path (:class:`~uvatar.dva.frame.FrameRenderer`: bf16 / fp16 decoders, compiled) where no
+    residual is fitted; None: the fp32 reference (:func:`render_camera`)."""
     import logging
 
     from tqdm import tqdm
@@ -60,6 +62,11 @@ def drive_sequence(model, body, source, frames, driving_cameras, target_camera, 
     out = []
     cams = [source.cameras[c] for c in driving_cameras]
     frames = list(frames)
+    renderer = None
+    if frame is not None:
+        from uvatar.dva.frame import FrameRenderer
+
+        renderer = FrameRenderer(model, frame)
     targets = target_camera if isinstance(target_camera, list | tuple) else [target_camera] * len(frames)
     for frame, target in tqdm(list(zip(frames, targets, strict=False)), desc="render dva", disable=not progress, unit="frame"):
         try:
@@ -80,7 +87,10 @@ def drive_sequence(model, body, source, frames, driving_cameras, target_camera, 
             from uvatar.dva.residual import ResidualConfig, fit_residual
 
             residual, _ = fit_residual(model, verts, rot, tex, cams, *views, ResidualConfig(iters=refine_residual))
-        rgb, _ = render_camera(model, verts, rot, tex, target, background, residual)
+        if renderer is not None and residual is None:
+            rgb = renderer.render(verts, rot, tex, target, background)[0].cpu().numpy()
+        else:
+            rgb, _ = render_camera(model, verts, rot, tex, target, background, residual)
         out.append(rgb)
     return out
 

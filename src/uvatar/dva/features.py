@@ -58,8 +58,9 @@ def texel_skin_weights(raster, template, joints) -> np.ndarray:
 
 
 def pose_feature_maps(joint_rotvecs: torch.Tensor, texel_weights: torch.Tensor, joints) -> torch.Tensor:
-    """joint_rotvecs (B, J, 3) local axis-angles; texel_weights (Jc, W, W) -> (B, 3*Jc, W, W)."""
-    rv = joint_rotvecs[:, list(joints)]  # (B, Jc, 3)
+    """joint_rotvecs (B, J, 3) local axis-angles; texel_weights (Jc, W, W); joints: the Jc conditioning
+    joints (a sequence, or a long tensor on the device: no host-to-device copy) -> (B, 3*Jc, W, W)."""
+    rv = joint_rotvecs[:, joints if isinstance(joints, torch.Tensor) else list(joints)]  # (B, Jc, 3)
     maps = rv[..., None, None] * texel_weights[None, :, None]  # (B, Jc, 3, W, W)
     return maps.flatten(1, 2)
 

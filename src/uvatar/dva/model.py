@@ -31,6 +31,7 @@ from uvatar.dva.primitives import PrimitiveConfig, apply_correctives, articulate
 from uvatar.dva.raymarch import raymarch
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig
 from uvatar.errors import check_values
+from uvatar.precision import PRECISIONS, precision_check
 
 BACKGROUNDS = ("mask", "photo", "random")
 
@@ -49,6 +50,8 @@ class TrainConfig:
     "mask" with a new uniformly random colour per sample and step in place of the camera's, so a
     half-transparent render can never pass for the person's colour blended with a known backdrop
     (the opacity must match the mask; a common NeRF / Gaussian-avatar practice).
+    precision: autocast type of the encoders and decoders in a step ("fp32", "bf16", "fp16"; the
+    geometry, the marcher and the loss stay fp32): "bf16" on a GPU halves the decoders' slabs.
     hide_target_view: the image input of a sample leaves out the camera it is scored in, as at test
     time, where the held-out camera never drives (with 3 training cameras and ``driving_views`` 3 the
     target's own photo is otherwise always in its input, and the colour skip learns to copy it)."""
@@ -66,10 +69,12 @@ class TrainConfig:
     minutes: float = 18.0
     background: str = "mask"
     hide_target_view: bool = False
+    precision: str = "fp32"
 
     def __post_init__(self) -> None:
         check_values([(self.background in BACKGROUNDS,
-                       f"background must be one of {BACKGROUNDS}, got {self.background!r}")])
+                       f"background must be one of {BACKGROUNDS}, got {self.background!r}"),
+                      precision_check(self.precision)])
 
 
 @dataclass
@@ -192,6 +197,7 @@ class DvaModel(nn.Module):
             texel_skin_weights(self.grid.raster, template, self.joints)))
         self.register_buffer("rest_scales", torch.as_tensor(self.grid.rest_scales))
         self.register_buffer("correctives_on", torch.zeros((), dtype=torch.bool))
+        self.register_buffer("joint_index", torch.tensor(self.joints, dtype=torch.long), persistent=False)
         f = cfg.features
         self.pose_encoder = PoseEncoder(len(self.joints), f.pose_channels)
         self.image_encoder = ImageEncoder(f.image_scale, f.image_channels, centred=f.image_centred)
@@ -200,16 +206,37 @@ class DvaModel(nn.Module):
             self.register_buffer("voxel_uv", torch.as_tensor(voxel_uv_grid(
                 self.grid.raster, template, cfg.decoder.voxels, cfg.primitives.scale_factor)), persistent=False)
 
-    def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers) -> DvaOutput:
-        f_pose = self.pose_encoder(pose_feature_maps(joint_rotvecs, self.texel_weights, self.joints))
-        f_img = self.image_encoder(image_texture)
-        f_view = view_feature_map(self.grid.raster, self.template, posed_vertices, camera_centers)
-        skip = texture_at_voxels(image_texture, self.voxel_uv) if self.cfg.features.colour_skip else None
-        motion, rgb, density, learned = self.decoder(f_pose, f_img, f_view, skip)
-        pos, rot = articulated_frames(self.grid, self.template, posed_vertices)
-        pos, rot, scl = apply_correctives(pos, rot, self.rest_scales, motion, self.cfg.primitives,
-                                          bool(self.correctives_on))
+    def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers,
+                precision: str = "fp32") -> DvaOutput:
+        """``precision`` ("fp32", "bf16", "fp16"): the encoders and decoders run under autocast in that
+        type; the geometry stays fp32 and the outputs are fp32."""
+        pose_maps, f_view, skip = self.inputs(posed_vertices, joint_rotvecs, image_texture, camera_centers)
+        dtype = PRECISIONS[precision]
+        with torch.autocast(posed_vertices.device.type, dtype=dtype, enabled=dtype != torch.float32):
+            f_pose, f_img = self.pose_encoder(pose_maps), self.image_encoder(image_texture)
+            decoded = self.decoder(f_pose, f_img, f_view, skip)
+        motion, rgb, density, learned = (t.float() for t in decoded)
+        pos, rot, scl = self.place(posed_vertices, motion, bool(self.correctives_on))
         return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion, learned)
+
+    def inputs(self, posed_vertices, joint_rotvecs, image_texture, camera_centers):
+        """What the encoders and decoders take besides the image texture, all fp32: the masked pose
+        maps (B, 3 Jc, W, W), the view features (B, 1, W, W) and the colour skip ((colour, weight) at the
+        voxel columns, or None)."""
+        pose_maps = pose_feature_maps(joint_rotvecs, self.texel_weights, self.joint_index)
+        f_view = self.view_features(posed_vertices, camera_centers)
+        skip = texture_at_voxels(image_texture, self.voxel_uv) if self.cfg.features.colour_skip else None
+        return pose_maps, f_view, skip
+
+    def view_features(self, posed_vertices, camera_centers):
+        """(B, 1, W, W) view feature map (:func:`~uvatar.dva.features.view_feature_map`)."""
+        return view_feature_map(self.grid.raster, self.template, posed_vertices, camera_centers)
+
+    def place(self, posed_vertices, motion, correctives: bool):
+        """Primitive positions (B, K, 3), rotations (B, K, 3, 3), scales (B, K, 3) of the posed body,
+        with the decoded ``motion`` (B, 9, W, W) correctives applied when ``correctives``."""
+        pos, rot = articulated_frames(self.grid, self.template, posed_vertices)
+        return apply_correctives(pos, rot, self.rest_scales, motion, self.cfg.primitives, correctives)
 
     def render_rays(self, out: DvaOutput, b: int, origins, directions, background=None, camera=None,
                     pixels=None):

@@ -224,7 +224,7 @@ class Trainer:
         fi = torch.tensor(frames)
         centers = torch.as_tensor(np.stack([self.bank.cams[c].center for c in cams]), dtype=torch.float32)
         vertices, rotvecs = self._posed(fi, self.step >= t.warmup_iters)
-        out = self.model(vertices, rotvecs, tex, centers.to(self.device))
+        out = self.model(vertices, rotvecs, tex, centers.to(self.device), t.precision)
         preds, targets, alphas, masks = [], [], [], []
         for b, (f, c, pix, bg_colour) in enumerate(zip(frames, cams, pixels, backgrounds, strict=True)):
             mask = self.bank.masks[f][c]

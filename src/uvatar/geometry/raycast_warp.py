@@ -22,7 +22,7 @@ import numpy as np
 from uvatar.errors import require
 from uvatar.geometry.raycast import RayCaster, RayCasterConfig
 
-__all__ = ["WarpRayCaster", "warp_device"]
+__all__ = ["WarpRayCaster", "warp_device", "any_hit_torch"]
 
 
 def _warp():
@@ -115,3 +115,30 @@ class WarpRayCaster(RayCaster):
         if n:
             wp.launch(first_hit_kernel, dim=n, inputs=[self._mesh.id, o, d, f, prim, u, v, t], device=dev)
         return prim.numpy(), u.numpy(), v.numpy(), t.numpy()
+
+
+def any_hit_torch(vertices, faces, origins, directions, max_distance):
+    """Occlusion on the tensors' own device, nothing copied to the host: vertices (V, 3) torch float32
+    (a posed mesh; its BVH is built here), faces (F, 3) int (numpy or torch), origins / directions
+    (N, 3), max_distance (N,) -> (N,) bool torch, True where the ray meets a triangle before
+    ``max_distance``. The torch-in, torch-out twin of :meth:`WarpRayCaster.any_hit` (its kernel)."""
+    import torch
+
+    wp = _warp()
+    _, any_hit_kernel = _kernels()
+    dev = vertices.device
+    n = origins.shape[0]
+    out = torch.empty(n, dtype=torch.int32, device=dev)
+    if n == 0:
+        return out.bool()
+    f32 = torch.float32
+    points = wp.from_torch(vertices.detach().to(f32).contiguous(), dtype=wp.vec3)
+    idx = faces if isinstance(faces, torch.Tensor) else torch.as_tensor(np.asarray(faces).reshape(-1))
+    indices = wp.from_torch(idx.to(device=dev, dtype=torch.int32).reshape(-1).contiguous(), dtype=wp.int32)
+    mesh = wp.Mesh(points=points, indices=indices)
+    o = wp.from_torch(origins.detach().to(f32).contiguous(), dtype=wp.vec3)
+    d = wp.from_torch(directions.detach().to(f32).contiguous(), dtype=wp.vec3)
+    far = wp.from_torch(max_distance.detach().to(f32).contiguous())
+    wp.launch(any_hit_kernel, dim=n, inputs=[mesh.id, o, d, far, wp.from_torch(out)],
+              device=wp.device_from_torch(dev))
+    return out >= 0

@@ -197,8 +197,9 @@ def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, norma
         b = bitangent[..., fidx, :]
         t = t - (t * n).sum(-1, keepdim=True) * n
         small = torch.linalg.norm(t, dim=-1, keepdim=True) < 1e-12
-        if bool(small.any()):  # tangent parallel to the normal: any perpendicular direction
-            t = torch.where(small, torch.linalg.cross(n, _any_perpendicular(n), dim=-1), t)
+        # tangent parallel to the normal: any perpendicular direction (no `if small.any()`: that reads
+        # the GPU back, a host sync inside a DVA frame)
+        t = torch.where(small, torch.linalg.cross(n, _any_perpendicular(n), dim=-1), t)
         t = normalize(t)
         bt = torch.linalg.cross(n, t, dim=-1)
         if follow_mirroring:

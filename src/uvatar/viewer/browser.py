@@ -29,6 +29,10 @@ CHROMIUM_ARGS = [
     "--disable-gpu-watchdog",
 ]
 
+#: WebGPU in headless Chromium: an adapter (SwiftShader's where there is no GPU) on a page from
+#: http://127.0.0.1 or localhost (WebGPU exists only in a secure context)
+WEBGPU_ARGS = ["--enable-unsafe-webgpu"]
+
 #: Default limit (seconds) for one call into the page (an inference, an idle wait).
 PAGE_CALL_TIMEOUT_S = 60.0
 
@@ -54,14 +58,17 @@ def missing_browser_reason() -> str | None:
 
 
 @contextlib.contextmanager
-def viewer_page(url: str, width: int = 960, height: int = 720, timeout_s: float = 120.0) -> Iterator:
-    """Open ``url`` in headless Chromium, wait until ``window.uvatar.ready``; yield the Playwright page."""
+def viewer_page(url: str, width: int = 960, height: int = 720, timeout_s: float = 120.0,
+                webgpu: bool = False) -> Iterator:
+    """Open ``url`` in headless Chromium, wait until ``window.uvatar.ready``; yield the Playwright page.
+    ``webgpu``: Chromium offers WebGPU (:data:`WEBGPU_ARGS`); without, the viewer finds no adapter."""
     reason = missing_browser_reason()
     if reason:
         raise UvatarError(f"cannot start the headless browser: {reason}")
     sync_api = require("playwright.sync_api", "browser", "headless viewer screenshots and tests")
     with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=find_chromium(), args=CHROMIUM_ARGS, headless=True)
+        args = CHROMIUM_ARGS + (WEBGPU_ARGS if webgpu else [])
+        browser = pw.chromium.launch(executable_path=find_chromium(), args=args, headless=True)
         try:
             page = browser.new_page(viewport={"width": width, "height": height})
             logs: list[str] = []

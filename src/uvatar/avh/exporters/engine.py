@@ -339,7 +339,9 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
         "glb": config.glb_name,
         "generator": {"file": onnx_name, "input": io_names["input"], "input_size": encoding["size"],
                       "texture_output": io_names["texture"], "displacement_output": io_names["displacement"],
-                      "layout": "NCHW float32, image row 0 is v = 1; texture in [0, 1] (sRGB)"},
+                      "layout": "NCHW float32, image row 0 is v = 1; texture in [0, 1] (sRGB)",
+                      **({"file_fp16": meta["model_fp16"]} if isinstance(meta.get("model_fp16"), str)
+                         and (avatar_dir / meta["model_fp16"]).is_file() else {})},
         "body_model": str(body_name), "shape": shape,
         "joint_names": joint_names, "joint_parents": [int(p) for p in body.joint_parents],
         "semantic_joints": {k: int(v) for k, v in (semantic_joints or {}).items()},

@@ -1,0 +1,203 @@
+"""A DVA telepresence frame: two driving views + the frame's pose -> a novel view, per path.
+
+A toy capture (:mod:`tests.fixtures.dva_capture`, 160 px views, 4 cameras x 4 frames) is written to a
+temp folder (or ``--capture``); a ``Trainer`` with ``--preset`` (default: "cpu" on a CPU, "paper" on
+CUDA) trains ``--warmup`` steps, then ``--steps`` timed steps per training precision (``--train``,
+default fp32 and bf16; median ms). Then frame 0 is driven from cameras 0 and 1 and rendered from the
+last camera rescaled to each ``--sizes`` square, every pixel a ray:
+
+* ``unwrap_ms``: the two driving views unwrapped into UV (:func:`uvatar.dva.drive.driving_texture`,
+  Embree on the CPU); ``unwrap_device_ms``: its device twin (:mod:`uvatar.dva.unwrap_device`, torch +
+  Warp, images already on the device) and the fraction of texels where the two agree to 1e-4;
+* per path (``--paths``, e.g. ``fp32,bf16,bf16+compile``; "ref" is always timed first): the median ms of
+  decoding (encoders, decoders, placement) + rendering (the marcher) one frame, and the PSNR of its
+  image against the reference's (the fp32 eager path: ``DvaModel.forward`` + ``render_camera``);
+  ``<path>_decode_ms`` is the decoding alone (the rest of a frame is the marcher);
+  ``<path>_drive_render_ms`` the whole telepresence frame: the driving views unwrapped on the device,
+  decoded and rendered (:meth:`uvatar.dva.frame.FrameRenderer.drive`).
+  ``+compile`` adds ``torch.compile`` (its compile time is reported), ``+cl`` channels_last, ``+cg``
+  compile mode "reduce-overhead" (CUDA graphs).
+
+Each time is taken after a device synchronise. Prints one JSON object; progress on stderr. The model is
+the briefly trained one (its frame is not blank); the PSNRs compare paths, not the avatar's quality.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def median_ms(fn, repeats: int, device: str) -> tuple[float, object]:
+    """(median ms of ``repeats`` calls of ``fn`` after one warm-up, the last result)."""
+    out = fn()
+    times = []
+    for _ in range(repeats):
+        sync(device)
+        t = time.perf_counter()
+        out = fn()
+        sync(device)
+        times.append(time.perf_counter() - t)
+    return round(1000 * statistics.median(times), 2), out
+
+
+def frame_config(path: str):
+    """"bf16+compile+cl" -> FrameConfig(precision="bf16", compile=True, channels_last=True)."""
+    from uvatar.dva.frame import FrameConfig
+
+    parts = path.split("+")
+    return FrameConfig(precision=parts[0], compile="compile" in parts or "cg" in parts,
+                       compile_mode="reduce-overhead" if "cg" in parts else "default", channels_last="cl" in parts)
+
+
+def train_rows(trainer, precisions, steps: int, device: str) -> dict:
+    rows = {}
+    for p in precisions:
+        trainer.cfg.train.precision = p
+        if device.startswith("cuda"):
+            torch.cuda.reset_peak_memory_stats()
+        ms, _ = median_ms(trainer.train_step, steps, device)
+        rows[f"train_{p}_step_ms"] = ms
+        if device.startswith("cuda"):
+            rows[f"train_{p}_peak_gpu_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
+        log(f"[dva_frame] train {p}: {ms} ms")
+    trainer.cfg.train.precision = "fp32"
+    return rows
+
+
+def frame_rows(trainer, sizes, paths, repeats: int, device: str) -> list[dict]:
+    from uvatar.dva.drive import driving_texture, render_camera
+    from uvatar.dva.frame import FrameRenderer
+    from uvatar.render.metrics import psnr
+
+    bank, model = trainer.bank, trainer.model.eval()
+    verts, rots = bank.vertices[0].to(device), bank.rotvecs[0].to(device)
+    views = [0, 1]
+    t = time.perf_counter()
+    tex = driving_texture(model, bank.vertices[0].numpy(), [bank.cams[c] for c in views],
+                          [bank.images[0][c].astype(np.float32) / 255.0 for c in views],
+                          [bank.masks[0][c] for c in views]).to(device)
+    unwrap_ms = round(1000 * (time.perf_counter() - t), 2)
+    try:  # the device twin (torch + Warp): the images on the device, nothing back on the host
+        from uvatar.dva.unwrap_device import driving_texture_device
+
+        imgs = [torch.as_tensor(bank.images[0][c], device=device).float() / 255.0 for c in views]
+        masks = [torch.as_tensor(bank.masks[0][c], device=device) for c in views]
+        unwrap_device_ms, tex_device = median_ms(lambda: driving_texture_device(
+            model, verts, [bank.cams[c] for c in views], imgs, masks), 3, device)
+        unwrap_device_agree = round(float(((tex_device - tex).abs().amax(0) <= 1e-4).float().mean()), 4)
+    except ImportError as exc:  # no Warp
+        unwrap_device_ms, unwrap_device_agree = f"unavailable: {exc}", None
+    rows = []
+    for size in sizes:
+        cam = bank.cams[-1].scaled(size, size)
+        row = {"resolution": size, "unwrap_ms": unwrap_ms, "unwrap_device_ms": unwrap_device_ms,
+               "unwrap_device_texels_agreeing": unwrap_device_agree}
+        try:
+            row["ref_ms"], (ref, alpha) = median_ms(lambda: render_camera(model, verts, rots, tex, cam), repeats, device)
+            row["coverage"] = round(float((alpha > 0.5).mean()), 3)
+            for path in paths:
+                t = time.perf_counter()
+                fast = FrameRenderer(model, frame_config(path))
+                rgb, _ = fast.render(verts, rots, tex, cam)
+                sync(device)
+                if "compile" in path or "cg" in path:
+                    row[f"{path}_first_s"] = round(time.perf_counter() - t, 1)
+                row[f"{path}_ms"], (rgb, _) = median_ms(lambda f=fast: f.render(verts, rots, tex, cam), repeats, device)
+                row[f"{path}_fps"] = round(1000 / row[f"{path}_ms"], 1)
+                if unwrap_device_agree is not None:  # the whole frame: views unwrapped on the device too
+                    row[f"{path}_drive_render_ms"], _ = median_ms(lambda f=fast: f.drive(
+                        verts, rots, [bank.cams[c] for c in views], imgs, masks, cam), repeats, device)
+                centre = torch.as_tensor(cam.center, dtype=torch.float32, device=device)[None]
+                row[f"{path}_decode_ms"], _ = median_ms(lambda f=fast: f.decode(verts[None], rots[None], tex[None], centre),
+                                                        repeats, device)
+                db = psnr(rgb.float().cpu().numpy(), ref)
+                row[f"{path}_psnr_vs_ref"] = round(db, 2) if np.isfinite(db) else "identical"
+                log(f"[dva_frame] {size}² {path}: {json.dumps({k: v for k, v in row.items() if k.startswith(path)})}")
+        except torch.cuda.OutOfMemoryError:
+            row["error"] = "out of GPU memory"
+            torch.cuda.empty_cache()
+        log(f"[dva_frame] {json.dumps(row)}")
+        rows.append(row)
+    model.train()
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--preset", default=None, help="DVA preset (default: cpu on a CPU, paper on CUDA)")
+    ap.add_argument("--grid", type=int, default=None, help="W (K = W^2), replacing the preset's")
+    ap.add_argument("--voxels", type=int, default=None, help="S, replacing the preset's")
+    ap.add_argument("--marcher", default="auto")
+    ap.add_argument("--sizes", default=None, help="render sides (default 256 on a CPU, 1024 on CUDA)")
+    ap.add_argument("--paths", default=None,
+                    help="fast paths (default fp32,bf16,fp16 on a CPU; fp32,bf16,bf16+cl,bf16+compile+cl,bf16+cg+cl on CUDA)")
+    ap.add_argument("--train", default="fp32,bf16", help="training step precisions to time ('' for none)")
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--capture", default=None, help="an existing capture (default: the toy one, 160 px)")
+    args = ap.parse_args(argv)
+    cuda = args.device.startswith("cuda")
+    if cuda and not torch.cuda.is_available():
+        print(json.dumps({"error": "CUDA requested but not available"}))
+        return 1
+    torch.set_num_threads(args.threads)
+    sys.path.insert(0, str(ROOT))
+    from tests.fixtures.dva_capture import write_toy_capture
+    from uvatar.dva.data import open_source
+    from uvatar.dva.model import preset
+    from uvatar.dva.train import Trainer
+
+    name = args.preset or ("paper" if cuda else "cpu")
+    cfg = preset(name)
+    cfg.primitives.grid = args.grid or cfg.primitives.grid
+    cfg.decoder.voxels = args.voxels or cfg.decoder.voxels
+    cfg.raymarch.marcher = args.marcher
+    cfg.train.warmup_iters = 0  # correctives on, as after a real run's warm-up
+    sizes = [int(v) for v in (args.sizes or ("1024" if cuda else "256")).split(",") if v.strip()]
+    paths = [p for p in (args.paths or ("fp32,bf16,bf16+cl,bf16+compile+cl,bf16+cg+cl" if cuda
+                                        else "fp32,bf16,fp16")).split(",") if p.strip()]
+    with tempfile.TemporaryDirectory() as tmp:
+        capture = Path(args.capture) if args.capture else \
+            write_toy_capture(Path(tmp) / "cap", frames=4, cameras=4, size=160)
+        trainer = Trainer(open_source(capture), Path(tmp) / "run", cfg, progress=False, device=args.device)
+        for _ in range(args.warmup):
+            trainer.train_step()
+        train = train_rows(trainer, [p for p in args.train.split(",") if p.strip()], args.steps, args.device)
+        rows = frame_rows(trainer, sizes, paths, args.repeats, args.device)
+    from uvatar.dva.raymarch import resolve_marcher
+
+    print(json.dumps({
+        "bench": "dva_frame", "preset": name, "K": cfg.primitives.grid ** 2, "S": cfg.decoder.voxels,
+        "marcher": resolve_marcher(args.marcher), "device": args.device,
+        "device_name": torch.cuda.get_device_name() if cuda else platform.processor() or platform.machine(),
+        "torch": torch.__version__, "threads": torch.get_num_threads(), "driving_views": 2,
+        "steps": args.steps, "repeats": args.repeats, "train": train, "frames": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

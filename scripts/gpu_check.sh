@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# The GPU figures of issue 39 in one call on a lent GPU (the device tool), most important first:
+#   run(command="bash scripts/gpu_check.sh", timeout_s=600)          # all parts, within $BUDGET s (560)
+#   run(command="bash scripts/gpu_check.sh avh tests", timeout_s=300) # some parts: dva avh tests compile bake
+# Writes into $OUT (the device tool's output folder; ./gpu_out elsewhere): env.txt (card, versions,
+# which packages import), <part>.json (a bench's stdout) with <part>.log (its stderr, one line per
+# finished row, so a cut run still tells), pytest_*.txt, and status.txt (each part's exit code; 124 =
+# it ran past its time). Each part gets the smaller of its own limit and what is left of $BUDGET.
+# A bare device machine lacks uvatar's compiled dependencies: carry Warp (the fused marcher, the device
+# unwrap), embreex (the toy capture, the reference unwrap) and anny (the bake) as docs/DESIGN notes say;
+# env.txt lists what imports. Without Warp the marcher falls back to its torch twin (JSON "marcher").
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-$PWD/gpu_out}
+mkdir -p "$OUT"
+export PYTHONPATH=$PWD/src:$PWD UVATAR_COMPILE_TESTS=1 PYTHONUNBUFFERED=1
+DEADLINE=$((SECONDS + ${BUDGET:-560}))
+PARTS=${*:-dva avh tests compile bake}
+
+limit() {  # limit SECONDS: the smaller of SECONDS and what is left of the budget
+  local left=$((DEADLINE - SECONDS))
+  echo $(( $1 < left ? $1 : left ))
+}
+run_part() {  # run_part NAME SECONDS OUTFILE COMMAND...
+  local name=$1 want=$2 out=$3; shift 3
+  local t0=$SECONDS s
+  s=$(limit "$want")
+  if [ "$s" -le 5 ]; then echo "$name skipped: no time left" | tee -a "$OUT/status.txt"; return; fi
+  timeout --kill-after=10 "$s" "$@" > "$out" 2> "$OUT/$name.log"
+  echo "$name rc=$? limit=${s}s took=$((SECONDS - t0))s" | tee -a "$OUT/status.txt"
+}
+
+{
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || echo "no nvidia-smi"
+  python - <<'EOF'
+import importlib.util, torch
+print("torch", torch.__version__, "cuda", torch.version.cuda, "available", torch.cuda.is_available())
+for m in ("warp", "embreex", "anny", "onnxruntime", "roma", "trimesh", "scipy", "cv2"):
+    print(m, "yes" if importlib.util.find_spec(m) else "MISSING")
+EOF
+} > "$OUT/env.txt" 2>&1
+cat "$OUT/env.txt"
+
+for part in $PARTS; do
+  case $part in
+    dva)  # the DVA frame at 1024², paper preset (K = 4096, S = 16): training steps fp32 / bf16, then per
+          # path drive + render with its PSNR against the fp32 reference (<= 16 ms at >= 40 dB; step <= 80 ms)
+      run_part dva 300 "$OUT/dva_frame.json" python bench/dva_frame.py --device cuda --warmup 3 --steps 10 --repeats 10 ;;
+    avh)  # the AVH generator, paper preset at 1024²: batch 1 fps, batch-8 maps/s, bf16 / fp16, eager and
+          # compiled with CUDA graphs (>= 500 fps)
+      run_part avh 110 "$OUT/avh_fast.json" python bench/avh.py --device cuda --presets fc32-l1024 \
+        --resolutions 1024 --no-train --no-onnx --fast bf16,fp16 --iters 30 ;;
+    tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher
+      run_part tests 80 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -x -p no:cacheprovider \
+        tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py ;;
+    compile)  # compiled against eager (torch.compile on the machine's CPU cores; ~130 s on 2 cores)
+      run_part compile 90 "$OUT/pytest_compile.txt" python -m pytest -q -x -p no:cacheprovider -k compiled \
+        tests/test_dva_frame.py tests/test_avh_inference.py ;;
+    bake)  # the bake on CUDA (needs anny and Warp)
+      if python -c "import anny, warp" 2>/dev/null; then
+        run_part bake 120 "$OUT/bake.json" python bench/bake.py --device cuda --frames 2
+      else
+        echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
+      fi ;;
+    *) echo "unknown part $part (dva avh tests compile bake)" | tee -a "$OUT/status.txt" ;;
+  esac
+done
+tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null
