@@ -41,7 +41,7 @@ TARGETS = {
     "body render": ["uvatar.body.registry:load_body_model"],
     "capture check": ["uvatar.capture.validate:ValidateConfig"],
     "demo": ["uvatar.demo.pipeline:DemoConfig"],
-    "render dva": ["uvatar.dva.train:load_run", "uvatar.dva.drive:drive_sequence"],
+    "render dva": ["uvatar.dva.train:load_run", "uvatar.dva.drive:drive_sequence", "uvatar.dva.frame:FrameConfig"],
     "motion info": [],
     "motion convert": ["uvatar.motion.sequences:load_motion", "uvatar.body.registry:load_body_model",
                        "uvatar.motion.retarget:RetargetConfig"],
