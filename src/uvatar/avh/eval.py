@@ -304,7 +304,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         split = "heldout"
     except InputError:
         frames, split = list(capture.frames), "all capture frames (no gt/info.json heldout_frames)"
-        log.warning("no held-out frames listed; evaluating on every capture frame")
+        if not config.frames:
+            log.warning("no held-out frames listed; evaluating on every capture frame")
     if config.frames:
         frames, split = select_names(config.frames, capture.frames, capture.root, "frame"), "frames given"
     frames = frames[: config.max_frames] if config.max_frames else frames
