@@ -10,6 +10,7 @@ texture and displacement maps (B, 3, R, R). The (sin, cos) encoding is computed 
 from __future__ import annotations
 
 import copy
+
 import torch
 from torch import nn
 

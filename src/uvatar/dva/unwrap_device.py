@@ -39,7 +39,7 @@ def unwrap_views_device(raster, template, posed_vertices: torch.Tensor, cameras,
     to_cam = centres[:, None] - pts[None]
     dist = to_cam.norm(dim=-1)
     texs, vis = [], []
-    for k, cam in enumerate(cameras):
+    for k in range(len(cameras)):
         img = torch.as_tensor(images[k], dtype=f32, device=dev)
         H, W = img.shape[:2]
         x, y = pix[k, :, 0], pix[k, :, 1]

@@ -16,8 +16,7 @@ from uvatar import stage_record
 from uvatar.capture.layout import Capture
 from uvatar.errors import InputError
 
-if TYPE_CHECKING:
-    from uvatar.fit.pipeline import FitConfig
+if TYPE_CHECKING:  # annotations only
     from uvatar.fit.stages import FitStages
 
 __all__ = ["check_person_choice", "fit_inputs", "fit_record_config", "keypoint_record_config"]
@@ -27,8 +26,8 @@ __all__ = ["check_person_choice", "fit_inputs", "fit_record_config", "keypoint_r
 _FIT_VOLATILE = ("force", "device", "overlay_frames", "overlay_width")
 
 
-def fit_record_config(config: FitConfig, stages: FitStages, source: str) -> dict:
-    """The settings a fit's stage record keeps: ``uvatar fit``'s flags (``source`` resolved from
+def fit_record_config(config, stages: FitStages, source: str) -> dict:
+    """The settings a fit's stage record keeps (``config``: the fit's ``FitConfig``): ``uvatar fit``'s flags (``source`` resolved from
     ``auto``; ``count``: the scan views of ``--views``) and the stages' configs."""
     return stage_record.config_values(
         config, drop=_FIT_VOLATILE, source=source, count=stages.views.count if source == "scans" else None,
@@ -40,7 +39,7 @@ def fit_inputs(capture: Capture, source: str) -> dict:
     return stage_record.file_identities(capture.root / "images" if source == "images" else capture.scans_dir)
 
 
-def keypoint_record_config(capture: Capture, config: FitConfig, stages: FitStages, source: str, detector) -> dict:
+def keypoint_record_config(capture: Capture, config, stages: FitStages, source: str, detector) -> dict:
     """The settings that the keypoints of ``fitting/keypoints`` depend on: the detector and the
     triangulation, with images the person followed (``--person``) and their cut distance, with scans
     the virtual views (the person does not change what a scan's views show)."""
