@@ -35,7 +35,10 @@ def _weights(run: Path) -> dict:
     return torch.load(run / "model.pt", weights_only=False)["model"]
 
 
-def _assert_weights_close(a: Path, b: Path, rtol: float = 1e-4, atol: float = 1e-6) -> None:
+def _assert_weights_close(a: Path, b: Path, rtol: float = 1e-4, atol: float = 5e-5) -> None:
+    """atol: gloo's all-reduce sums the two halves' gradients in another order than one process sums the
+    batch; Adam divides each step by the gradient's running RMS, so on weights whose gradient is near zero
+    that float32 rounding grows to ~1e-5 after 20 steps (measured 8e-6 on this CPU; weights ~0.2)."""
     wa, wb = _weights(a), _weights(b)
     assert wa.keys() == wb.keys()
     for k in wa:
