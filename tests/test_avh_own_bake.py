@@ -38,7 +38,7 @@ def test_r2_against_own_bake_known_answers_and_masks():
     kappa[0, 0], kept[1, 1] = 0.2, False
     # a texel the own bake is not confident about does not count, whatever its value
     own_t[0, 0], own_d[1, 1] = 50.0, 50.0
-    own = OwnBake(texture=own_t, displacement=own_d, kappa=kappa, kept=kept)
+    own = OwnBake(texture=own_t, displacement=own_d, kappa=kappa, kept=kept, valid=np.ones_like(kept))
     base = rng.normal(size=(R, R, 3))
 
     def surface(d):  # the posed body's texel points plus the displacement, as the runtime re-poses it

@@ -40,7 +40,6 @@ from uvatar.avh.eval_scan import (
     RegionLabels,
     baked_frame_names,
     geometry_summary,
-    load_own_maps,
     pixel_regions,
     pool_regions,
     region_image_metrics,
@@ -352,10 +351,10 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
             tex, disp = rt.generate(pose[None], Rh=Rh[None])
             maps[m] = (tex[0], disp[0])
         maps.update({"mean_texture": (baselines.mean_texture, None), "nearest_pose": (nn_tex, nn_disp)})
-        own = load_own_maps(baked_dir, frame, runtime, baselines.outlier_threshold) if frame in own_frames else None
+        own = own_bakes.get(frame) if frame in own_frames else None
         if own is not None:
-            entry_r2 = own_r2.add(frame, dict(maps), *own)
-            maps["own_bake"] = own[:2]
+            entry_r2 = own_r2.add(frame, dict(maps), own.texture, own.displacement, own.kappa, own.valid)
+            maps["own_bake"] = (own.texture, own.displacement)
         rotations = runtime.skinning_rotations(pose[None])[0]
         meshes = {m: runtimes.get(m, runtime).mesh(base, t, d, Rh, rotations=rotations) for m, (t, d) in maps.items()}
         cameras = list(cams.values()) if cams else orbit_cameras(
@@ -403,7 +402,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
                 entry[f"{m}_chamfer_mm"] = float(0.5 * (part["avatar_to_scan"].mean() + part["scan_to_avatar"].mean()))
         if own is not None:
             entry.update(entry_r2)
-        own_ceiling = own_bakes.get(frame) if gt_npz.is_file() else None
+        own_ceiling = (own if own is not None else own_bakes.get(frame)) if gt_npz.is_file() else None
         if own_ceiling is not None:
             entry.update(_own_bake_r2(runtime, baselines, {m: v for m, v in maps.items() if m != "own_bake"},
                                       own_ceiling, base, Rh, rotations, (gt_maps, mask), r2_ceiling, r2_vs_bake))

@@ -212,18 +212,3 @@ def baked_frame_names(baked_dir) -> list[str]:
     if "frames_baked" in info:
         return list(info["frames_baked"])
     return sorted(p.stem for p in (Path(baked_dir) / "frames").glob("*.npz"))
-
-
-def load_own_maps(baked_dir, frame: str, runtime, outlier_threshold: float) -> tuple[np.ndarray, ...]:
-    """A frame's own baked maps at the avatar's resolution: (texture, displacement in the avatar's frame
-    and cleaned as training cleans it, kappa, valid)."""
-    from uvatar.avh.data import load_baked_frames
-
-    own = load_baked_frames(baked_dir, [frame], runtime.resolution)
-    bad = ~own.valid | (np.abs(own.displacement).max(-1) > outlier_threshold)
-    if runtime.displacement_frame == "rest":
-        from uvatar.avh.displacement_frame import displacements_to_frame
-
-        own = displacements_to_frame(own, "rest", runtime.body, runtime.shape)
-    displacement = np.where(bad[..., None], 0.0, own.displacement)[0].astype(np.float32)
-    return own.texture[0], displacement, own.kappa[0], own.valid[0]

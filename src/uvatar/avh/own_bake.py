@@ -47,12 +47,13 @@ def clean_displacements(frames: BakedFrames, outlier_threshold: float, displacem
 class OwnBake:
     """One frame's baked maps at the avatar's resolution R: texture (R, R, 3), displacement (R, R, 3)
     metres in the avatar's frame (cleaned), kappa (R, R) texture confidence, kept (R, R) bool texels
-    whose displacement training would use (valid, inlier, w > 0)."""
+    whose displacement training would use (valid, inlier, w > 0), valid (R, R) bool texels on the body."""
 
     texture: np.ndarray
     displacement: np.ndarray
     kappa: np.ndarray
     kept: np.ndarray
+    valid: np.ndarray
 
 
 class OwnBakes:
@@ -80,7 +81,7 @@ class OwnBakes:
         disp, kept = clean_displacements(frames, self.outlier_threshold, self.displacement_frame, self.body,
                                          self.shape)
         return OwnBake(texture=frames.texture[0], displacement=disp[0], kappa=frames.kappa[0],
-                       kept=kept[0] & (frames.w[0] > 0))
+                       kept=kept[0] & (frames.w[0] > 0), valid=frames.valid[0])
 
 
 def r2_against_own_bake(maps: dict[str, tuple[np.ndarray, np.ndarray | None]], own: OwnBake,
