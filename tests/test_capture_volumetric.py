@@ -154,6 +154,9 @@ def test_resume_keeps_written_frames(tmp_path):
     import_mesh_sequence(src, tmp_path / "cap", progress=False)
     again = import_mesh_sequence(src, tmp_path / "cap", progress=False)
     assert again["scans_written"] == 0 and again["scans_kept"] == 3
+    # scans made in other units are never kept: the rerun is refused, naming the setting
+    with pytest.raises(InputError, match=r"units=.* \(this run: units='cm'\)"):
+        import_mesh_sequence(src, tmp_path / "cap", ImportConfig(units="cm"), progress=False)
 
 
 def test_cli_nothing_imported_is_one_line_and_exit_1(tmp_path, capsys):

@@ -355,6 +355,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
         log.warning(line)
     scans = out / "scans"
     scans.mkdir(parents=True, exist_ok=True)
+    from uvatar import stage_record
     for p in scans.glob(".*"):
         if p.is_file():
             p.unlink(missing_ok=True)
@@ -379,6 +380,11 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             S, units, up, axis_notes = world_from_source(mesh, seq.frames[i].mesh, cfg.units or seq.units,
                                                          cfg.up or seq.up)
             notes += axis_notes
+            # what the scans on disk are made with (recorded once the first frame reads, before any write):
+            # a resume with other units / up / source is refused; the frame range may grow
+            stage_record.begin(scans, "capture import", {"source": str(src.resolve()), "units": cfg.units,
+                                                         "up": cfg.up}, total=len(wanted),
+                               redo_hint="another output folder starts over")
         if not done:
             mesh.vertices = mesh.vertices @ S[:3, :3].T.astype(np.float32) + S[:3, 3].astype(np.float32)
             write_mesh(target, mesh)
@@ -398,6 +404,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
                   "config": asdict(cfg)}
     write_capture_info(out, [frame_name(i) for i in imported], fps=fps, body_model=cfg.body_model,
                        provenance=provenance)
+    stage_record.finish(scans, len(imported))
     return {"capture": str(out), "layout": seq.layout, "frames": len(imported), "skipped": len(skipped),
             "scans_written": written, "scans_kept": len(imported) - written, "fps": fps, "units": units, "up": up,
             "problems": problems, "notes": notes, "seconds": round(time.perf_counter() - t0, 1)}
