@@ -15,14 +15,27 @@ export async function loadOrt() {
 
 /** The WebGPU adapter, or a sentence saying why there is none (no navigator.gpu: not Chromium with
  * WebGPU, or not a secure context; requestAdapter gave null: no usable GPU, nor SwiftShader). */
-async function webgpuAdapter() {
+async function webgpuAdapter(timeoutMs = self.UVATAR_ADAPTER_TIMEOUT_MS || ADAPTER_TIMEOUT_MS) {
   if (!navigator.gpu) return { adapter: null, why: 'no WebGPU in this browser' };
   try {
-    const adapter = await navigator.gpu.requestAdapter();
+    const adapter = await withTimeout(navigator.gpu.requestAdapter(), timeoutMs, 'WebGPU adapter request');
     return adapter ? { adapter, why: null } : { adapter: null, why: 'no WebGPU adapter' };
   } catch (e) {
     return { adapter: null, why: `WebGPU adapter request failed: ${e.message || e}` };
   }
+}
+
+/** A browser's GPU process can stall (a busy or lost device, a software adapter under load): the
+ * adapter request and a WebGPU session get this long before the viewer falls back to wasm and says so
+ * (a page may set window.UVATAR_ADAPTER_TIMEOUT_MS first, as the tests do). */
+const ADAPTER_TIMEOUT_MS = 20000;
+const WEBGPU_SESSION_TIMEOUT_MS = 60000;
+
+/** `promise`, or a rejection naming `what` after `ms` milliseconds. */
+function withTimeout(promise, ms, what) {
+  let timer;
+  const expired = new Promise((_, reject) => { timer = setTimeout(() => reject(new Error(`${what} timed out after ${ms / 1000} s`)), ms); });
+  return Promise.race([promise, expired]).finally(() => clearTimeout(timer));
 }
 
 async function fetchBytes(url) {
@@ -63,7 +76,8 @@ export class Generator {
       const file = prec === 'fp16' ? fp16File : manifest.generator.file;
       try {
         bytes[file] = bytes[file] || (await fetchBytes(avatarUrl + file));
-        gen.session = await ort.InferenceSession.create(bytes[file], { executionProviders: [ep], graphOptimizationLevel: 'all' });
+        const created = ort.InferenceSession.create(bytes[file], { executionProviders: [ep], graphOptimizationLevel: 'all' });
+        gen.session = ep === 'webgpu' ? await withTimeout(created, WEBGPU_SESSION_TIMEOUT_MS, 'WebGPU session') : await created;
         gen.backend = ep;
         gen.precision = prec;
         gen.note = notes.join('; ');
