@@ -1,39 +1,63 @@
 """Distances from points to triangle meshes (exact per candidate triangle, vectorized).
 
-The one home of this math: the fit's scan-distance metrics and the AVH eval's two-way scan distance
-call it.
+The one home of this math: the fit's scan-distance metrics, the AVH eval's two-way scan distance and
+the importer's texture transfer between a volumetric video's frames call it.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["closest_point_on_triangles", "point_surface_distance"]
+__all__ = ["closest_point_on_triangles", "closest_points_on_mesh", "closest_points_on_triangles",
+           "point_surface_distance"]
+
+
+def closest_points_on_triangles(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest point of triangle ``tri[i]`` (N, 3, 3) to point ``p[i]`` (N, 3), exact and vectorized
+    (Ericson, *Real-Time Collision Detection* §5.1.5: the Voronoi region of a vertex, an edge or the
+    face). Returns (barycentrics (N, 3) of the closest point on its triangle, distance (N,))."""
+    p = np.asarray(p, np.float64)
+    tri = np.asarray(tri, np.float64)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, ac = b - a, c - a
+    dot = lambda x, y: (x * y).sum(1)  # noqa: E731
+    ap, bp, cp = p - a, p - b, p - c
+    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    safe = lambda x: np.where(np.abs(x) > 1e-30, x, 1e-30)  # noqa: E731
+    denom = safe(va + vb + vc)
+    bary = np.stack([1 - (vb + vc) / denom, vb / denom, vc / denom], 1)   # inside the face
+    # the Voronoi regions in Ericson's order of tests; assigned last to first so the first test wins
+    t_bc = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
+    t_ac = d2 / safe(d2 - d6)
+    t_ab = d1 / safe(d1 - d3)
+    zero = np.zeros_like(d1)
+    regions = [
+        (d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+        (d6 >= 0) & (d5 <= d6), (vb <= 0) & (d2 >= 0) & (d6 <= 0), (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+    ]
+    values = [
+        np.stack([zero + 1, zero, zero], 1), np.stack([zero, zero + 1, zero], 1),
+        np.stack([1 - t_ab, t_ab, zero], 1), np.stack([zero, zero, zero + 1], 1),
+        np.stack([1 - t_ac, zero, t_ac], 1), np.stack([zero, 1 - t_bc, t_bc], 1),
+    ]
+    for region, value in zip(reversed(regions), reversed(values), strict=True):
+        bary = np.where(region[:, None], value, bary)
+    closest = np.einsum("nk,nkc->nc", bary, tri)
+    return bary, np.linalg.norm(closest - p, axis=1)
 
 
 def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """Distance (N,) from points p (N, 3) to triangles tri (N, 3, 3) (exact, vectorized)."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    n = np.cross(b - a, c - a)
-    nn = np.maximum((n * n).sum(1), 1e-30)
-    # barycentrics of the projection onto the plane
-    w = p - a
-    u2 = (np.cross(w, c - a) * n).sum(1) / nn        # weight of b
-    u3 = (np.cross(b - a, w) * n).sum(1) / nn        # weight of c
-    inside = (u2 >= 0) & (u3 >= 0) & (u2 + u3 <= 1)
-    best = np.where(inside, np.abs((w * n).sum(1)) / np.sqrt(nn), np.inf)
-    for s, e in ((a, b), (b, c), (c, a)):   # three edges (a loop over edges, not points)
-        d = e - s
-        t = np.clip(((p - s) * d).sum(1) / np.maximum((d * d).sum(1), 1e-30), 0.0, 1.0)
-        best = np.minimum(best, np.linalg.norm(s + t[:, None] * d - p, axis=1))
-    return best
+    return closest_points_on_triangles(p, tri)[1]
 
 
-def point_surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                           samples: int = 3) -> np.ndarray:
-    """Distance (N,) from points (N, 3) to the triangle mesh (vertices, faces): the candidate
-    triangles are those of the nearest of ``samples`` x ``samples`` barycentric samples per face and
-    of the nearest vertex's faces; the distance to each candidate is exact."""
+def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                           samples: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest surface point of the triangle mesh (vertices, faces) to each of ``points`` (N, 3):
+    (face (N,) int64, barycentrics (N, 3) in that face, distance (N,)). The candidate triangles are
+    those of the 4 nearest of ``samples`` x ``samples`` barycentric samples per face and of the
+    vertices (a vertex stands for one of its faces); the point on each candidate is exact."""
     from scipy.spatial import cKDTree
 
     v = np.asarray(vertices, np.float64)
@@ -50,9 +74,23 @@ def point_surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.n
     face_of[len(f) * len(bary) + f[:, 0]] = np.arange(len(f))
     face_of[len(f) * len(bary) + f[:, 1]] = np.arange(len(f))
     face_of[len(f) * len(bary) + f[:, 2]] = np.arange(len(f))
-    _, idx = cKDTree(pts).query(np.asarray(points, np.float64), k=4)
-    p = np.asarray(points, np.float64)
-    d = np.full(len(p), np.inf)
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    _, idx = cKDTree(pts).query(p, k=4)
+    best_face = np.zeros(len(p), np.int64)
+    best_bary = np.zeros((len(p), 3))
+    best = np.full(len(p), np.inf)
     for k in range(idx.shape[1]):   # 4 candidates (a loop over candidates, not points)
-        d = np.minimum(d, closest_point_on_triangles(p, v[f[face_of[idx[:, k]]]]))
-    return d
+        face = face_of[idx[:, k]]
+        b, d = closest_points_on_triangles(p, v[f[face]])
+        better = d < best
+        best = np.where(better, d, best)
+        best_face = np.where(better, face, best_face)
+        best_bary = np.where(better[:, None], b, best_bary)
+    return best_face, best_bary, best
+
+
+def point_surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                           samples: int = 3) -> np.ndarray:
+    """Distance (N,) from points (N, 3) to the triangle mesh (vertices, faces)
+    (:func:`closest_points_on_mesh`)."""
+    return closest_points_on_mesh(points, vertices, faces, samples)[2]
