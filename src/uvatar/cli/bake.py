@@ -20,7 +20,8 @@ def _flags():
 
     bake = ConfigFlags(BakeConfig, fields=(
         "texels", "refine_pose", "register", "polarity_rule", "polarity_ratio", "max_match_distance",
-        "visibility_rays", "visibility_stratified", "distance_clip", "inpaint_radius", "inpaint_band", "inpaint_gutter", "reject_kappa", "device", "scan_cache_mb"),
+        "visibility_rays", "visibility_stratified", "distance_clip", "inpaint_radius", "inpaint_band", "inpaint_gutter", "reject_kappa",
+        "reject_colour_ratio", "device", "scan_cache_mb"),
         rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band", "inpaint_gutter"), help={
             "texels": "UV map resolution R",
             "refine_pose": "refine the fit against the scan (articulated); --no-refine-pose keeps the fit as is",
@@ -38,6 +39,9 @@ def _flags():
             "inpaint_gutter": "Telea only inside the UV islands and this many texels around them, nearest fill "
                               "beyond (0 = no limit)",
             "reject_kappa": "reject frames whose mean confidence is below this",
+            "reject_colour_ratio": "reject frames whose scan colours disagree with the other frames' by more "
+                                   "than this many times the frames' median disagreement (a texture that is "
+                                   "not its mesh's, a fit off the scan; 0 = off)",
             "device": "where the ray stages run: cpu (Embree) or cuda[:N] (NVIDIA Warp; pip install "
                       "'uvatar[kernels]')",
             "scan_cache_mb": "MB of scans each worker keeps read and prepared between the colour rounds and the "

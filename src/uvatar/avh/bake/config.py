@@ -162,6 +162,12 @@ class BakeConfig:
         template itself exceeds ``interior_visibility``. Interior parts of the template (anny's
         eyeballs and mouth interior, 4.1 % of its texels) are never visible in any scan, so their
         kappa is always 0; SMPL's layout, for which the paper chose 130/255, has none.
+    reject_colour_ratio: frames whose scan colours at the body's refinement points disagree with the
+        median over the bake's frames (median |colour - reference|, from the colour rounds of
+        ``pose_refine``) by more than this many times the frames' median disagreement are rejected
+        unbaked: a texture that does not belong to its mesh (a volumetric video frame decoded wrong)
+        or a fit on the wrong part of the scan. Not in the paper, whose κ alone passes such a frame
+        (κ measures where the scan is, not what colour it has). 0 = off; needs the colour rounds.
     interior_visibility: rest-pose visibility below which a texel counts as interior (the split is
         sharp: 4.07 % of anny's texels below 0.02, 4.12 % below 0.1).
     texture_float16: store the texture as float16 (half the disk space).
@@ -191,6 +197,7 @@ class BakeConfig:
     inpaint_band: int | None = 8
     inpaint_gutter: int | None = 4
     reject_kappa: float = 130 / 255
+    reject_colour_ratio: float = 4.0
     interior_visibility: float = 0.02
     texture_float16: bool = True
     device: str = "cpu"
@@ -207,6 +214,8 @@ class BakeConfig:
                   (self.inpaint_radius >= 0, "inpaint_radius must be >= 0"),
                   (self.inpaint_gutter is None or self.inpaint_gutter >= 0, "inpaint_gutter must be >= 0"),
                   (0.0 <= self.reject_kappa <= 1.0, "reject_kappa must be in [0, 1]"),
+                  (self.reject_colour_ratio == 0 or self.reject_colour_ratio >= 1,
+                   "reject_colour_ratio must be 0 (off) or >= 1"),
                   (0.0 <= self.interior_visibility < 1.0, "interior_visibility must be in [0, 1)"),
                   (self.max_match_distance is None or self.max_match_distance > 0, "max_match_distance must be > 0"),
                   (self.ray_epsilon >= 0, "ray_epsilon must be >= 0"),

@@ -36,7 +36,7 @@ from uvatar.avh.bake.inputs import (
     prepared_scan,
     start_fit,
 )
-from uvatar.avh.bake.refine_together import refine_frames_together
+from uvatar.avh.bake.refine_together import colour_outliers, load_disagreement, refine_frames_together
 from uvatar.capture.layout import frame_name
 from uvatar.errors import InputError, one_line
 from uvatar.io_utils import sweep_partial_writes
@@ -77,10 +77,12 @@ def heldout_frames(capture_root) -> list[str]:
 
 
 def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, refined=None,
-              run=None) -> FrameResult:
+              run=None, colour_reason: str | None = None) -> FrameResult:
     """Bake one frame in a worker. Every failure becomes a "broken" result with a one-line reason.
     refined: the frame's fit already refined across frames (:mod:`.refine_together`), baked as is;
-    run: the bake's token for the scans kept from the colour rounds (:func:`.inputs.prepared_scan`)."""
+    run: the bake's token for the scans kept from the colour rounds (:func:`.inputs.prepared_scan`);
+    colour_reason: the frame is a colour outlier (:func:`.refine_together.colour_outliers`): baked
+    into ``rejected/`` with this reason, so its preview shows what went wrong."""
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.capture import Capture
 
@@ -96,14 +98,13 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, 
         baked, fit = bake_fit(body, fit, layout, scan, config, shape, scan_path=str(scan_path), surface=surface)
     except Exception as exc:  # noqa: BLE001 - a broken frame is reported, never fatal
         return FrameResult(frame, "broken", f"broken input: {one_line(exc)}", seconds=time.perf_counter() - t0)
-    rejected = baked.kappa_mean < config.reject_kappa
-    write_baked_frame(out_root, frame, baked, fit, rejected=rejected, float16=config.texture_float16)
-    stale = frame_path(out_root, frame) if rejected else rejected_path(out_root, frame)
+    reason = _reject_reason(baked.kappa_mean, config, colour_reason)
+    write_baked_frame(out_root, frame, baked, fit, rejected=reason is not None, float16=config.texture_float16)
+    stale = frame_path(out_root, frame) if reason else rejected_path(out_root, frame)
     stale.unlink(missing_ok=True)
     stats = {k: v for k, v in baked.stats.items() if k != "registration"}
-    return FrameResult(frame, "rejected" if rejected else "baked",
-                       _reject_reason(baked.kappa_mean, config) if rejected else None,
-                       baked.kappa_mean, time.perf_counter() - t0, stats)
+    return FrameResult(frame, "rejected" if reason else "baked", reason, baked.kappa_mean,
+                       time.perf_counter() - t0, stats)
 
 
 def _bake_task(shared: dict, item) -> FrameResult:
@@ -113,7 +114,8 @@ def _bake_task(shared: dict, item) -> FrameResult:
     frame, refined = item
     config = shared["config"]
     adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
-    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, refined, shared.get("run"))
+    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, refined, shared.get("run"),
+                       shared.get("colour_outliers", {}).get(frame))
     result.stats["worker_peak_rss_mb"] = _peak_rss_mb()
     return result
 
@@ -125,13 +127,18 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _reject_reason(kappa_mean: float, config: BakeConfig) -> str:
-    return (f"mean confidence {kappa_mean:.3f} ({kappa_mean * 255:.0f}/255) below "
-            f"{config.reject_kappa:.3f} ({config.reject_kappa * 255:.0f}/255)")
+def _reject_reason(kappa_mean: float, config: BakeConfig, colour_reason: str | None = None) -> str | None:
+    """Why a baked frame is rejected (κ first, then colour), or None when it is kept."""
+    if kappa_mean < config.reject_kappa:
+        return (f"mean confidence {kappa_mean:.3f} ({kappa_mean * 255:.0f}/255) below "
+                f"{config.reject_kappa:.3f} ({config.reject_kappa * 255:.0f}/255)")
+    return colour_reason
 
 
-def _existing_result(out_root: Path, frame: str, config: BakeConfig) -> FrameResult | None:
-    """A frame already baked on disk, re-classified against the current threshold (files moved)."""
+def _existing_result(out_root: Path, frame: str, config: BakeConfig,
+                     colour_reason: str | None = None) -> FrameResult | None:
+    """A frame already baked on disk, re-classified against the current threshold and colour check
+    (files moved)."""
     for path in (frame_path(out_root, frame), rejected_path(out_root, frame)):
         if not path.is_file():
             continue
@@ -139,13 +146,12 @@ def _existing_result(out_root: Path, frame: str, config: BakeConfig) -> FrameRes
             kappa_mean = read_frame_scalar(path, "kappa_mean")
         except Exception:  # noqa: BLE001 - unreadable leftovers are baked again
             return None
-        rejected = kappa_mean < config.reject_kappa
-        want = rejected_path(out_root, frame) if rejected else frame_path(out_root, frame)
+        reason = _reject_reason(kappa_mean, config, colour_reason)
+        want = rejected_path(out_root, frame) if reason else frame_path(out_root, frame)
         if want != path:
             want.parent.mkdir(parents=True, exist_ok=True)
             os.replace(path, want)
-        return FrameResult(frame, "rejected" if rejected else "baked",
-                           _reject_reason(kappa_mean, config) if rejected else None, kappa_mean)
+        return FrameResult(frame, "rejected" if reason else "baked", reason, kappa_mean)
     return None
 
 
@@ -243,6 +249,16 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
         try:
             refined = refine_frames_together(capture.root, out, todo, config, body_name, executor, progress,
                                              rebuild_reference=overwrite, shared=shared)
+            # frames whose colours disagree with the others' are rejected (baked into rejected/ for the
+            # picture); those already on disk are re-classified, as for a changed --reject-kappa
+            outliers = colour_outliers({f: d for f, d in load_disagreement(out).items() if f in capture.frames},
+                                       config.reject_colour_ratio, config.pose_refine.photometric_min_frames)
+            shared["colour_outliers"] = outliers
+            for f, r in list(results.items()):
+                if r.status in ("baked", "rejected") and f not in todo:
+                    again = _existing_result(out, f, config, outliers.get(f))
+                    if again is not None and again.status != r.status:
+                        finish(again)
             items = [(f, refined.get(f)) for f in todo]
             for (frame, _), result in run_tasks(_bake_task, items, shared, executor, desc="bake",
                                                 progress=progress, initializer=limit_process_to_one_thread):
@@ -257,7 +273,7 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
 
 # settings that do not change a baked frame: where the rays run (same maps within round-off), the scan
 # cache, and the rejection threshold (frames on disk are re-classified against it on every run)
-_BAKE_VOLATILE = ("device", "ray_backend", "scan_cache_mb", "reject_kappa")
+_BAKE_VOLATILE = ("device", "ray_backend", "scan_cache_mb", "reject_kappa", "reject_colour_ratio")
 
 
 def _begin_record(out: Path, capture, config: BakeConfig, frames: list[str], overwrite: bool,
@@ -289,6 +305,8 @@ def outcome_line(frames: list[str], baked: list[str], reasons: dict[str, str], r
             causes["not baked"] += 1
         elif reasons[f].startswith("mean confidence"):
             causes[f"rejected (mean kappa < {reject_kappa * 255:.0f}/255)"] += 1
+        elif reasons[f].startswith("colours disagree"):
+            causes["rejected (colours disagree with the other frames')"] += 1
         else:
             causes[reasons[f].split(":")[0]] += 1  # "broken input", "worker failed"
     order = sorted(causes, key=lambda c: (c != "baked", -causes[c], c))

@@ -37,7 +37,8 @@ from uvatar.threads import limit_process_to_one_thread
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REFERENCE_FILE", "refine_frames_together", "load_reference"]
+__all__ = ["REFERENCE_FILE", "colour_disagreement", "colour_outliers", "load_disagreement", "load_reference",
+           "refine_frames_together"]
 
 REFERENCE_FILE = "photo_reference.npz"
 
@@ -65,16 +66,54 @@ def load_reference(out_root, vertices: int):
     return (target, fits) if len(target.reference) == vertices else None
 
 
-def _save_reference(out_root, target: PhotoTarget, rows: dict) -> None:
+def load_disagreement(out_root) -> dict[str, float]:
+    """{frame: colour disagreement with the reference} saved with the reference (:func:`colour_disagreement`;
+    frames refined without a colour sample are absent); {} when there is no reference file."""
+    path = Path(out_root) / REFERENCE_FILE
+    try:
+        with np.load(path) as z:
+            if "disagreement" not in z:
+                return {}
+            return {str(f): float(d) for f, d in zip(z["frames"], z["disagreement"], strict=True) if np.isfinite(d)}
+    except Exception:  # noqa: BLE001 - absent or damaged: no colour check
+        return {}
+
+
+def colour_disagreement(colours: np.ndarray, target: PhotoTarget) -> float:
+    """Median over the reference's known points that a frame saw of mean |colour - reference| (RGB in
+    [0, 1]); NaN when it saw none. colours (N, 3) with NaN where unseen."""
+    c = np.asarray(colours, np.float64)
+    seen = target.known & np.isfinite(c).all(-1)
+    if not seen.any():
+        return float("nan")
+    return float(np.median(np.abs(c[seen] - target.reference[seen]).mean(-1)))
+
+
+def colour_outliers(disagreement: dict[str, float], ratio: float, min_frames: int = 3) -> dict[str, str]:
+    """{frame: reason} of the frames whose disagreement exceeds ``ratio`` times the median over all
+    frames (``BakeConfig.reject_colour_ratio``; 0 = none; fewer than ``min_frames`` frames: none)."""
+    if not ratio or len(disagreement) < min_frames:
+        return {}
+    typical = float(np.median(list(disagreement.values())))
+    limit = ratio * max(typical, 1e-3)
+    return {f: (f"colours disagree with the other frames' (median |colour - reference| {d:.3f}, more than "
+                f"{ratio:g} x the frames' median {typical:.3f}): its texture does not belong to its mesh, or "
+                "the fit sits on the wrong part of the scan")
+            for f, d in sorted(disagreement.items()) if d > limit}
+
+
+def _save_reference(out_root, target: PhotoTarget, rows: dict, disagreement: dict | None = None) -> None:
     """The reference and every refined fit so far, {frame: :func:`_row`} (a resumed bake bakes
-    exactly these)."""
+    exactly these), with each frame's colour disagreement (NaN where not measured)."""
     from uvatar.io_utils import write_npz
 
     names = sorted(rows)
     poses, rh, th, scale = zip(*(rows[f] for f in names), strict=True)
+    disagreement = disagreement or {}
     write_npz(Path(out_root) / REFERENCE_FILE, reference=target.reference.astype(np.float32), known=target.known,
               radius=np.float64(target.radius), frames=np.array(names), poses=np.stack(poses), Rh=np.stack(rh),
-              Th=np.stack(th), scale=np.array(scale))
+              Th=np.stack(th), scale=np.array(scale),
+              disagreement=np.array([disagreement.get(f, np.nan) for f in names], np.float64))
 
 
 def _restore(capture_root, saved: dict, frames) -> dict:
@@ -155,18 +194,21 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
         frames = [f for f in frames if f not in done]
         if not frames:
             return done
-        # the new frames: refined alone, then against the saved reference, once per radius
-        rounds = [(None, None)] + [(target, None)] * len(radii)
+        # the new frames: refined alone, then against the saved reference, once per radius; the last
+        # round samples their colours at the reference's radius for the colour check
+        rounds = [(None, None)] + [(target, None)] * (len(radii) - 1) + [(target, target.radius)]
     else:
         # (target to refine against, stencil radius to sample afterwards) per round
         rounds = [(None, radii[0])] + [("median", r) for r in radii[1:]] + [("median", None)]
     colours: dict = {}
+    disagreement: dict = {}
     last_radius = radii[0]
     for i, (target, radius) in enumerate(rounds):
         if target == "median":
             stacked = np.stack([colours[f] for f in frames if f in colours])
             reference, known = reference_colours(stacked, pr.photometric_min_frames)
             target = PhotoTarget(reference, known, last_radius)
+            disagreement = {f: colour_disagreement(c, target) for f, c in colours.items()}
         colours = {}
         desc = "refine poses" if i == 0 else f"colour round {i}/{len(rounds) - 1}"
         items = [(f, fits.get(f), target, radius) for f in frames]
@@ -188,8 +230,10 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
     refined = dict(fits)
     rows = {f: _row(fit) for f, fit in refined.items()}
     if saved is None:
-        _save_reference(out_root, target, rows)
+        _save_reference(out_root, target, rows, disagreement)
     else:
-        _save_reference(out_root, saved[0], {**saved[1], **rows})
+        disagreement = {**load_disagreement(out_root),
+                        **{f: colour_disagreement(c, saved[0]) for f, c in colours.items()}}
+        _save_reference(out_root, saved[0], {**saved[1], **rows}, disagreement)
         refined.update(done)
     return refined
