@@ -123,3 +123,52 @@ def test_export_redoes_on_a_changed_flag_and_a_half_made_export_is_refused(baked
     # the folder of another stage is never written over by an export
     line = _one_line(capsys, main(["export", str(run_dir), str(run_dir)]))
     assert "holds the output of `train avh`, not of `export`: use another folder" in line
+
+
+def test_capture_masks_refuses_another_flag_redoes_with_overwrite_and_half_made_masks_are_refused(tmp_path, capsys,
+                                                                                                 monkeypatch):
+    """masks/stage.json: a rerun with another --dilate is refused in one line naming the flag (the masks on
+    disk would be kept as they are), --overwrite writes every mask again with it; masks left half made (the
+    run stopped after its first mask) are refused by `fit --masks` and `train dva` until a rerun finishes them."""
+    pytest.importorskip("mediapipe")
+    from uvatar.cli.main import main
+    from uvatar.fit import masks as masks_module
+
+    cap = tmp_path / "cap"
+    assert main(["synth", str(cap), "--preset", "quick", "--frames", "2", "--heldout", "0", "--cameras", "2",
+                 "--image-size", "64", "--scan-texture", "64", "--gt-texels", "16", "--no-preview",
+                 "--no-progress"]) == 0
+    (cap / "masks").rename(tmp_path / "masks_true")  # the studio's own masks, out of the way
+    capsys.readouterr()
+    assert main(["capture", "masks", str(cap), "--no-progress"]) == 0
+    record = json.loads((cap / "masks" / "stage.json").read_text())
+    assert record["complete"] and record["total"] == 4 and record["config"]["dilate"] == 0.04
+    assert len(record["inputs"]) == 2  # the two fits the masks are cut from
+    made = _mtimes(cap / "masks")
+    assert len(made) == 4
+    capsys.readouterr()
+    line = _one_line(capsys, main(["capture", "masks", str(cap), "--dilate", "0.1", "--no-progress"]))
+    assert "made with --dilate 0.04 (this run: --dilate 0.1)" in line and "--overwrite writes every mask again" in line
+    assert _mtimes(cap / "masks") == made
+    assert main(["capture", "masks", str(cap), "--dilate", "0.1", "--overwrite", "--no-progress"]) == 0
+    assert all(t != made[p] for p, t in _mtimes(cap / "masks").items())  # every mask written again
+    assert json.loads((cap / "masks" / "stage.json").read_text())["config"]["dilate"] == 0.1
+
+    # a run that stops after its first mask (as a kill would leave it: the record is written before any mask)
+    real_write = masks_module._write_mask
+
+    def one_then_stop(person, cam_name, frame, mask, summary):
+        real_write(person, cam_name, frame, mask, summary)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(masks_module, "_write_mask", one_then_stop)
+    assert main(["capture", "masks", str(cap), "--overwrite", "--no-progress"]) == 130
+    monkeypatch.setattr(masks_module, "_write_mask", real_write)
+    capsys.readouterr()
+    for argv in (["fit", str(cap), "--masks", "--force", "--no-progress"],
+                 ["train", "dva", str(cap), str(tmp_path / "run"), "--preset", "tiny", "--no-progress"]):
+        line = _one_line(capsys, main(argv))
+        assert f"`capture masks` incomplete: 0 of 4 masks; run `uvatar capture masks {cap}` again to finish" in line
+    assert not (tmp_path / "run").exists()
+    assert main(["capture", "masks", str(cap), "--overwrite", "--no-progress"]) == 0
+    assert json.loads((cap / "masks" / "stage.json").read_text())["complete"]
