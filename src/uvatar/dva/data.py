@@ -94,7 +94,6 @@ class CaptureSource(MultiViewSource):
 
     def __init__(self, root):
         from uvatar.capture import Capture
-
         from uvatar.fit.masks import require_masks
 
         self.cap = Capture(root)
