@@ -147,3 +147,68 @@ def test_select_from_baked_only_inside_the_range(tmp_path):
     assert set(sel.train + sel.val) <= {"000002", "000003", "000004", "000005"} and len(sel.train) == 3
     info = json.loads((root / "dataset.json").read_text())
     assert info["selection_info"]["frame_range"] == "2:6" and info["selection"]["train"] == sel.train
+
+
+def test_a_selection_made_before_its_inputs_changed_is_refused(tmp_path, capsys, monkeypatch):
+    """A selection records the files it chose by: train avh refuses a dataset.json selection whose baked
+    frames were rebaked or added since, and bake --frames-from refuses a selection.json whose fits were
+    refitted since, in one line naming the file and the command that makes it again."""
+    import os
+
+    from test_avh_bake_helpers import body
+
+    from uvatar.avh.bake import pipeline
+    from uvatar.avh.data import selection
+    from uvatar.capture import BodyFit, write_capture_info, write_fit
+    from uvatar.cli.main import main
+    from uvatar.errors import InputError
+    from uvatar.io_utils import write_json, write_npz
+
+    model = body()
+    names, small, _ = clustered_poses(n_clusters=3, per_cluster=3, joints=len(model.conditioning_joints))
+    poses = np.zeros((len(names), model.num_joints, 3), np.float32)
+    poses[:, list(model.conditioning_joints)] = small.reshape(len(names), -1, 3)
+    baked = tmp_path / "baked"
+    for name, pose in zip(names[:-1], poses, strict=False):
+        write_npz(baked / "frames" / f"{name}.npz", pose=pose.reshape(-1))
+    write_json(baked / "dataset.json", {"texels": 8, "frames_baked": names[:-1], "heldout_frames": [],
+                                        "conditioning_joints": list(model.conditioning_joints)})
+    assert main(["select", str(baked), "-n", "2", "--val", "1"]) == 0
+    meta = json.loads((baked / "dataset.json").read_text())
+    assert len(meta["selection_info"]["inputs"]) == len(names) - 1
+    train, val = selection(meta, baked)
+    assert len(train) == 2 and len(val) == 1
+    # a bake that grew by one frame since
+    write_npz(baked / "frames" / f"{names[-1]}.npz", pose=poses[-1].reshape(-1))
+    with pytest.raises(InputError, match=rf"dataset.json: the selection is stale: .*{names[-1]}.npz is new since it "
+                                         rf"was made; run `uvatar select {baked}` again"):
+        selection(meta, baked)
+    capsys.readouterr()
+    assert main(["train", "avh", str(baked), str(tmp_path / "run"), "--preset", "cpu-tiny", "--epochs", "1",
+                 "--no-progress"]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("uvatar: error:")]
+    assert len(err) == 1 and "the selection is stale" in err[0], err
+    # a frame baked again (another mtime): stale too; selecting again makes it current
+    assert main(["select", str(baked), "-n", "2", "--val", "1"]) == 0
+    meta = json.loads((baked / "dataset.json").read_text())
+    assert selection(meta, baked)
+    st = (baked / "frames" / f"{names[0]}.npz").stat()
+    os.utime(baked / "frames" / f"{names[0]}.npz", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    with pytest.raises(InputError, match=rf"{names[0]}.npz changed since it was made"):
+        selection(meta, baked)
+
+    # selection.json from a capture's fits; a fit redone afterwards
+    cap = tmp_path / "cap"
+    for name, pose in zip(names, poses, strict=True):
+        write_fit(cap / "fits" / f"{name}.json", BodyFit(poses=pose.reshape(-1)))
+    write_capture_info(cap, names)
+    sel_path = tmp_path / "s.json"
+    assert main(["select", str(cap), "--from-capture", "-n", "2", "--val", "1", "-o", str(sel_path)]) == 0
+    assert len(json.loads(sel_path.read_text())["inputs"]) == len(names)
+    monkeypatch.setattr(pipeline, "bake_capture", lambda *a, **k: pytest.fail("baked from a stale selection"))
+    write_fit(cap / "fits" / f"{names[1]}.json", BodyFit(poses=poses[0].reshape(-1)))
+    capsys.readouterr()
+    assert main(["bake", str(cap), str(tmp_path / "b2"), "--frames-from", str(sel_path), "--no-progress"]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("uvatar: error:")]
+    assert len(err) == 1 and f"{sel_path}: the selection is stale: " in err[0] and f"{names[1]}.json changed" \
+        in err[0] and f"run `uvatar select {cap} --from-capture` again" in err[0], err

@@ -209,7 +209,7 @@ def test_video_import_range_stride_resume(tmp_path):
     again = import_capture(tmp_path / "rec", out, cfg, progress=False)
     assert again["images_written"] == 1 and again["images_kept"] == 5
     assert not list((out / "images" / "cam02").glob(".*"))
-    with pytest.raises(InputError, match=r"holds images imported with other options \(resize 1.0 -> 0.5\)"):
+    with pytest.raises(InputError, match=r"made with resize=1.0 \(this run: resize=0.5\)"):
         import_capture(tmp_path / "rec", out, ImportConfig(start=2, end=7, stride=2, resize=0.5), progress=False)
 
 
@@ -289,3 +289,51 @@ def test_shared_recording_import(tmp_path):
     prov = cap.info["provenance"]
     assert prov["calibration_format"] == "qualisys" and prov["source_up"] == "+z"
     assert sum("cropped" in n for n in prov["notes"]) == 2
+
+
+def test_cli_import_stage_record_refuses_other_options_and_a_half_made_import(tmp_path, capsys, monkeypatch):
+    """images/stage.json: a rerun with another --image-format is refused in one line naming the flag,
+    before any image is written; a longer --end resumes (only the new frames are written); an import
+    that stopped half way is refused by the capture's readers until a rerun finishes it."""
+    from uvatar.capture.importers import pipeline
+    from uvatar.cli.main import main
+
+    make_recording(tmp_path / "rec", frames=6)
+    rec, out = str(tmp_path / "rec"), tmp_path / "cap"
+    assert main(["capture", "import", rec, str(out), "--end", "2", "--no-progress"]) == 0
+    capsys.readouterr()
+    record = json.loads((out / "images" / "stage.json").read_text())
+    assert record["complete"] and record["done"] == record["total"] == 4
+    assert record["config"]["image_format"] == "jpg" and record["inputs"]  # the two videos, by size + mtime
+    before = {p: p.stat().st_mtime_ns for p in (out / "images").rglob("*.jpg")}
+    assert main(["capture", "import", rec, str(out), "--end", "2", "--image-format", "png", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "made with --image-format jpg (this run: --image-format png)" in err, err
+    assert "image_format" not in err and not list((out / "images").rglob("*.png"))
+    assert {p: p.stat().st_mtime_ns for p in (out / "images").rglob("*.jpg")} == before
+
+    # a rerun for frames 0..3 stops after one new image (a source that fails, as a kill would)
+    real_write, calls = pipeline._write, []
+
+    def failing_write(path, image, cfg):
+        if calls:
+            raise OSError(28, "No space left on device", str(path))
+        calls.append(path)
+        real_write(path, image, cfg)
+
+    monkeypatch.setattr(pipeline, "_write", failing_write)
+    assert main(["capture", "import", rec, str(out), "--end", "4", "--no-progress"]) == 1
+    capsys.readouterr()
+    with pytest.raises(InputError, match=r"`capture import` incomplete: \d of 8 images; run `uvatar capture import "
+                                         r"SRC .*` again to finish"):
+        Capture(out)
+    assert main(["capture", "check", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "`capture import` incomplete" in err
+    monkeypatch.setattr(pipeline, "_write", real_write)
+    assert main(["capture", "import", rec, str(out), "--end", "4", "--no-progress"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["images_kept"] == 5 and summary["images_written"] == 3  # the old 4 + the 1 made before
+    assert {p: p.stat().st_mtime_ns for p in before} == before  # the first frames were never rewritten
+    assert Capture(out).frames == ["000000", "000001", "000002", "000003"]
+    assert json.loads((out / "images" / "stage.json").read_text())["complete"]

@@ -270,3 +270,23 @@ def test_library_errors_name_parameters_not_cli_flags():
                     if isinstance(sub, ast.Constant) and isinstance(sub.value, str) and flag.search(sub.value):
                         found.append(f"{path.relative_to(root)}:{sub.lineno}: {sub.value!r}")
     assert not found, "\n".join(found)
+
+
+def test_an_optional_choice_lists_none_as_the_flag_spells_it(capsys):
+    """``X | None`` with choices (``--marcher {auto,torch,warp,none}``): the usage, the help and an
+    invalid-choice message say ``none``, never Python's ``None``; ``none`` parses to None."""
+
+    @dataclass
+    class Marching:
+        marcher: Literal["auto", "warp"] | None = None
+
+    p = argparse.ArgumentParser(prog="uvatar toy")
+    flags = add_config_flags(p, Marching)
+    assert flags.config(p.parse_args(["--marcher", "none"])) == Marching(None)
+    assert flags.config(p.parse_args(["--marcher", "warp"])) == Marching("warp")
+    assert "{auto,warp,none}" in p.format_help() and "None}" not in p.format_help()
+    with pytest.raises(SystemExit):
+        p.parse_args(["--marcher", "bogus"])
+    err = capsys.readouterr().err
+    assert "invalid choice: 'bogus' (choose from 'auto', 'warp', 'none')" in err, err
+

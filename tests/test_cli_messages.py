@@ -38,6 +38,8 @@ def captures(tmp_path_factory):
 
 @pytest.mark.parametrize("argv, flag_words", [
     (["fit", "{root}/cams"], "--force replaces them"),
+    (["fit", "{root}/cams", "--from", "scans", "--force"],
+     "--from scans needs textured scans in scans/ (a capture of images alone: --from images)"),
     (["capture", "masks", "{root}/no_fits"], "(or --no-fit to use the segmenter alone"),
     (["bake", "{root}/toy/capture", "{root}/bake_out", "--texels", "16"],
      "made with --texels 32 (this run: --texels 16); rerun with the same settings to resume it, or --overwrite"),

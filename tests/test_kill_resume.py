@@ -6,6 +6,7 @@ is opened in headless Chromium: every image loads and the video has a duration."
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -41,10 +42,18 @@ def whole(tmp_path_factory):
     return root
 
 
-def test_synth_killed_mid_run_resumes_to_identical_files(whole, tmp_path):
+def test_synth_killed_mid_run_resumes_to_identical_files(whole, tmp_path, capsys):
+    from uvatar.cli.main import main
+
     cap = tmp_path / "cap"
     run_killed([*SYNTH[:3], "cap", *SYNTH[3:]], tmp_path, lambda: count(cap / "gt" / "frames", "*.npz") >= 1)
     assert count(cap / "gt" / "frames", "*.npz") < 4, "the kill came after the last frame"
+    # the half-made capture (capture.json already lists all 4 frames) is refused downstream, in one line
+    assert main(["bake", str(cap), str(tmp_path / "baked"), *BAKE]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert re.search(r"`synth` incomplete: [0-3] of 4 frames; run `uvatar synth .*cap` again to finish", err), err
+    assert not (tmp_path / "baked").exists()
     _plant_partial_write(cap / "gt" / "frames" / ".000003.k3j_x9a2.npz")
     _plant_partial_write(cap / "scans" / ".000002.q8w2e0r1.png")
     run([*SYNTH[:3], "cap", *SYNTH[3:]], tmp_path)

@@ -114,6 +114,8 @@ def _bad_files(tmp_path, clip):
     data = (tmp_path / "good.fbx").read_bytes()
     (tmp_path / "truncated.fbx").write_bytes(data[: len(data) // 3])
     (tmp_path / "text.fbx").write_text("hello")
+    (tmp_path / "text.glb").write_text("this is not a glb")
+    (tmp_path / "binary.glb").write_bytes(bytes([0, 1, 2, 255, 7, 8, 9, 10, 11, 12, 13, 14]))
     (tmp_path / "empty.gltf").write_text("")
     write_gltf_motion(tmp_path / "static.glb", **arrays, skin=False, animation=False)
     write_gltf_motion(tmp_path / "pose.glb", **arrays, animation=False)
@@ -125,6 +127,8 @@ def _bad_files(tmp_path, clip):
 @pytest.mark.parametrize("name, words", [
     ("truncated.glb", "truncated GLB: its header says"), ("truncated.fbx", "not a readable FBX"),
     ("text.fbx", "not a readable FBX"), ("empty.gltf", "empty file (0 bytes)"),
+    ("text.glb", "not a GLB file: it starts with 'this is ', not with the bytes 'glTF'"),
+    ("binary.glb", "not a GLB file: it starts with 00 01 02 ff 07 08 09 0a, not with the bytes 'glTF'"),
     ("static.glb", "no skin and no animation"), ("pose.glb", "no animation"),
     ("unknown_rig.glb", "no joint maps to pelvis"), ("unknown_rig.fbx", "no joint maps to pelvis"),
 ])

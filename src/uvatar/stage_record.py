@@ -35,8 +35,8 @@ from uvatar.io_utils import write_json
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RECORD_NAME", "StageState", "begin", "begin_run", "config_values", "file_identities", "finish", "mark_progress",
-           "read_record", "require_complete"]
+__all__ = ["RECORD_NAME", "StageState", "begin", "begin_run", "config_values", "file_identities", "finish",
+           "mark_progress", "read_record", "require_complete", "require_inputs_unchanged"]
 
 RECORD_NAME = "stage.json"
 
@@ -165,6 +165,21 @@ def _input_change(before: Mapping[str, list], now: Mapping[str, list] | None) ->
             if path not in before:
                 return f"{path} is new"
     return None
+
+
+def require_inputs_unchanged(recorded, where, command_hint: str, now: Mapping[str, list] | None = None,
+                             what: str = "output") -> None:
+    """Refuse, in one line, an output that is one file (a selection) and keeps the identities of its
+    inputs (:func:`file_identities`) inside it rather than in a folder's record, when one of them
+    changed since it was made ("the selection is stale: /x/frames/000001.npz changed since it was made;
+    run `uvatar select X` again"). ``now``: the inputs as they are (then a new one counts too; None:
+    the recorded files are read again). ``recorded`` not a mapping (made before inputs were recorded):
+    taken as it is."""
+    if not isinstance(recorded, Mapping) or not recorded:
+        return
+    changed = _input_change(recorded, now)
+    if changed is not None:
+        raise InputError(where, f"the {what} is stale: {changed} since it was made; run `{command_hint}` again")
 
 
 @dataclass

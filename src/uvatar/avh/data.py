@@ -51,7 +51,15 @@ class BakedFrames:
 
 
 def selection(meta: dict, baked_dir: str | Path) -> tuple[list[str], list[str]]:
-    """(train, val) frame names from ``dataset.json["selection"]``; without one, every baked frame trains."""
+    """(train, val) frame names from ``dataset.json["selection"]``; without one, every baked frame trains.
+    A selection made by ``uvatar select`` among baked frames that changed since (a bake redone or
+    grown) is refused in one line."""
+    info = meta.get("selection_info")
+    if isinstance(info, dict) and info.get("source") == "baked":
+        from uvatar.stage_record import file_identities, require_inputs_unchanged
+
+        require_inputs_unchanged(info.get("inputs"), Path(baked_dir) / "dataset.json", f"uvatar select {baked_dir}",
+                                 file_identities(Path(baked_dir) / "frames"), what="selection")
     sel = meta.get("selection")
     if isinstance(sel, dict) and sel.get("train"):
         return [str(f) for f in sel["train"]], [str(f) for f in sel.get("val", [])]

@@ -125,12 +125,19 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
     ``body``: a BodyModel to take the template from (default: load the run's body model by name;
     skipped for body model "none"). Raises UvatarError when ONNX parity exceeds ``tolerance``.
     """
+    from uvatar import stage_record
+
     out_dir = Path(out_dir)
     generator, info = load_trained_generator(run_dir)
     cfg = generator.config
     wrapper = AvhFromAngles(generator).eval()
     num_angles = 3 * cfg.num_pose_joints
-    out_dir.mkdir(parents=True, exist_ok=True)
+    # every file is written again by each run: a changed setting or run is simply redone; the record
+    # marks the folder half made until the last file is written (readers refuse it until then)
+    stage_record.begin(out_dir, "export", {"run": str(Path(run_dir).resolve()), "opset": opset,
+                                           "tolerance": tolerance},
+                       stage_record.file_identities(Path(run_dir) / "run.json", Path(run_dir) / "model.pt"),
+                       on_change="redo")
     export_onnx(wrapper, out_dir / "model.onnx", num_angles, opset)
     diff = verify_onnx(wrapper, out_dir / "model.onnx", num_angles)
     log.info("ONNX parity: max abs diff %.2e", diff)
@@ -196,6 +203,7 @@ def export_avatar(run_dir: str | Path, out_dir: str | Path, body=None, opset: in
         from uvatar.avh.exporters.engine import write_engine_bundle
 
         write_engine_bundle(out_dir, body_model=body, fingers_toes_mask=fingers_toes)
+    stage_record.finish(out_dir)
     return meta
 
 
@@ -216,7 +224,11 @@ def read_fingers_toes_mask(avatar_dir: str | Path) -> np.ndarray | None:
 
 
 def read_avatar(avatar_dir: str | Path) -> dict:
-    """Read and check ``AVATAR/avatar.json`` (written by :func:`export_avatar`)."""
+    """Read and check ``AVATAR/avatar.json`` (written by :func:`export_avatar`); an export its stage
+    record marks half made (killed or failed before its last file) is refused."""
+    from uvatar.stage_record import require_complete
+
+    require_complete(avatar_dir, "export", f"uvatar export RUN {avatar_dir}", check_inputs=False)
     path = Path(avatar_dir) / "avatar.json"
     meta = read_json(path, "not found; is this a `uvatar export` folder?")
     for key in ("model", "conditioning_joints", "resolution", "displacement_scale"):

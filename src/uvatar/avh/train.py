@@ -506,11 +506,16 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
 
 
 def load_trained_generator(run_dir: str | Path) -> tuple[AvhGenerator, dict]:
-    """(generator in eval mode on CPU, run.json dict) from a training run folder."""
+    """(generator in eval mode on CPU, run.json dict) from a training run folder; InputError for a run
+    its stage record (:mod:`uvatar.stage_record`) marks unfinished."""
     run_dir = Path(run_dir)
     info_path, weights = run_dir / "run.json", run_dir / "model.pt"
     if not info_path.is_file() or not weights.is_file():
         raise InputError(run_dir, "not a training run (needs run.json and model.pt from `uvatar train avh`)")
+    from uvatar.stage_record import require_complete
+
+    # model.pt is written every epoch: a run killed (or failed) before its last is refused, not exported
+    require_complete(run_dir, "train avh", f"uvatar train avh BAKED {run_dir} --resume", check_inputs=False)
     info = read_json(info_path)
     state = _load_checkpoint(weights)
     model = AvhGenerator(AvhConfig(**state["model_config"]))

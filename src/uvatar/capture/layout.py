@@ -82,6 +82,20 @@ def write_capture_info(root: str | Path, frames: list[str], fps: float = 25.0, b
     return info
 
 
+def require_made(root: str | Path) -> None:
+    """Refuse, in one line, a capture its maker left half made: ``uvatar synth`` (record in the
+    capture's folder) or ``uvatar capture import`` (records in ``images/`` and ``scans/``) killed or
+    failed before its last frame (:func:`uvatar.stage_record.require_complete`). A capture without
+    records (made by hand, or before records existed) is taken as it is."""
+    from uvatar.stage_record import require_complete
+
+    root = Path(root)
+    require_complete(root, "synth", f"uvatar synth {root}", unit="frames", check_inputs=False)
+    for part, unit in (("images", "images"), ("scans", "frames")):
+        require_complete(root / part, "capture import", f"uvatar capture import SRC {root}", unit=unit,
+                         check_inputs=False)
+
+
 def read_capture_info(root: str | Path) -> dict:
     """Read and minimally check ``capture.json`` (errors name the file)."""
     path = Path(root) / CAPTURE_JSON
@@ -129,6 +143,7 @@ class Capture:
         if not self.root.is_dir():
             raise InputError(self.root, "capture folder does not exist")
         self.info = read_capture_info(self.root)
+        require_made(self.root)
         self.person = check_person_id(person)
 
     # people

@@ -135,7 +135,7 @@ def _bake(args) -> int:
         except (OSError, ValueError) as exc:
             raise InputError(args.frames_from, f"cannot read selection ({exc})") from None
         summary["selection"] = bake_selection(args.capture, args.out, selection, cfg, args.workers, progress,
-                                              args.overwrite, executor)
+                                              args.overwrite, executor, source=args.frames_from)
         from uvatar.avh.bake.dataset import read_dataset_info
 
         info = read_dataset_info(args.out)

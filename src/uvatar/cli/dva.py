@@ -221,9 +221,10 @@ def _train(args) -> int:
     settings = stage_record.config_values(cfg, prefixes={**nested, "corrections": "correct", "loss": "loss"},
                                           drop=("minutes", "iters", "marcher"), seed=args.seed, model=args.model,
                                           vgg_weights=args.vgg_weights)
+    source = open_source(args.capture)  # a capture it cannot read (half-made masks...) leaves no run folder
     if is_main_process():
         stage_record.begin_run(args.out, "train dva", settings, args.resume)
-    summary = train_dva(open_source(args.capture), args.out, cfg, iters=given.get("iters"),
+    summary = train_dva(source, args.out, cfg, iters=given.get("iters"),
                         minutes=given.get("minutes"), vgg_weights=args.vgg_weights, body_model=args.model,
                         model_dir=args.model_dir, **train.values(args))
     if is_main_process():

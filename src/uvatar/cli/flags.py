@@ -55,6 +55,20 @@ def _named(fn: Callable, name: str) -> Callable:
     return fn
 
 
+class _ChoicesWithNone(tuple):
+    """argparse choices that hold None (an optional field): checked as they are, but listed (in the
+    usage line, the help and "invalid choice" messages) as the word the flag takes, ``none``, not as
+    Python's None.
+
+    >>> c = _ChoicesWithNone(("auto", "warp", None))
+    >>> None in c, list(c)
+    (True, ['auto', 'warp', 'none'])
+    """
+
+    def __iter__(self):
+        return ("none" if c is None else c for c in tuple.__iter__(self))
+
+
 def flag_parser(tp, choices: tuple | None = None, zero_is_none: bool = False) -> tuple[Callable | None, tuple | None]:
     """(argparse ``type`` callable, argparse ``choices``) for a field annotation ``tp``.
 
@@ -81,7 +95,8 @@ def flag_parser(tp, choices: tuple | None = None, zero_is_none: bool = False) ->
             value = inner(text)
             return None if zero_is_none and value == 0 else value
 
-        return _named(parse_optional, f"{_SCALARS[inner]} or none"), None if choices is None else (*choices, None)
+        return _named(parse_optional, f"{_SCALARS[inner]} or none"), None if choices is None else \
+            _ChoicesWithNone((*choices, None))
     if typing.get_origin(inner) is tuple and not optional:
         args = typing.get_args(inner)
         variable = len(args) == 2 and args[1] is Ellipsis

@@ -94,9 +94,11 @@ class CaptureSource(MultiViewSource):
 
     def __init__(self, root):
         from uvatar.capture import Capture
+        from uvatar.fit.masks import require_masks
 
         self.cap = Capture(root)
         self.root = self.cap.root
+        require_masks(self.root)  # never half-made masks (`uvatar capture masks` killed)
         self.cameras = self.cap.cameras()
         if not self.cameras:
             raise InputError(self.cap.cameras_dir / "intri.yml", "DVA needs a multi-view capture (no cameras)")

@@ -240,11 +240,12 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         from uvatar.fit.keypoints import load_detector
 
         detector = load_detector("mediapipe")
+    jobs = [(f, c) for f in frames for c in cameras]
+    _begin_record(capture, people, config, len(jobs) * len(people))
     summary = {"written": 0, "kept": 0, "failed": {}, "not_seen": 0, "people": [p.person for p in people[1:]]}
     colour = _ColourPass(config, people, cameras) if config.appearance and body is not None \
         and len(people) > 1 else None
     poser = _Poser(body, people)
-    jobs = [(f, c) for f in frames for c in cameras]
     for frame, cam_name in tqdm(jobs, desc="masks", unit="image", disable=not progress, dynamic_ncols=True):
         todo = [k for k, p in enumerate(people)
                 if config.overwrite or not (p.masks_dir / cam_name / f"{frame}.png").is_file()]
@@ -290,7 +291,36 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         raise InputError(capture.root, f"{len(jobs)} images, no mask written: "
                                        f"{len(summary['failed'])} failed (first: "
                                        f"{next(iter(summary['failed'].values()), '-')})")
+    from uvatar import stage_record
+
+    # every image was looked at: those that failed are reported (a property of the image, not a half-made run)
+    stage_record.finish(capture.masks_dir)
     return summary
+
+
+def _begin_record(capture, people: list, config: MaskConfig, total: int) -> None:
+    """The stage record of ``masks/`` (:mod:`uvatar.stage_record`), before any mask is written: the
+    settings (every MaskConfig field but ``overwrite``) and the fits the masks are cut from (the
+    subject's and every other person's). A rerun with other settings, or after a fit was redone, is
+    refused in one line (the masks on disk would be kept) unless ``overwrite``, which writes every mask
+    again; until the last image the record says the masks are half made, and ``uvatar fit --masks`` and
+    ``uvatar train dva`` refuse them (:func:`require_masks`)."""
+    from uvatar import stage_record
+
+    fits = [p.fits_dir for p in people] if config.use_fit else []
+    stage_record.begin(capture.masks_dir, "capture masks", stage_record.config_values(config, drop=("overwrite",)),
+                       stage_record.file_identities(*fits), total=total,
+                       on_change="redo" if config.overwrite else "refuse",
+                       redo_hint="overwrite=True writes every mask again")
+
+
+def require_masks(root) -> None:
+    """Refuse, in one line, masks that ``uvatar capture masks`` left half made (killed before its last
+    image); masks without a record (a synthetic capture's, or made before records) are taken as they are."""
+    from uvatar.stage_record import require_complete
+
+    require_complete(Path(root) / "masks", "capture masks", f"uvatar capture masks {root}", unit="masks",
+                     check_inputs=False)
 
 
 def _load_image(capture, cam_name: str, frame: str) -> np.ndarray:

@@ -105,9 +105,11 @@ def resolve_source(capture: Capture, source: str) -> str:
     if source == "auto":
         source = "images" if has_images else "scans"
     if source == "images" and not has_images:
-        raise InputError(capture.root, "source 'images' needs cameras/intri.yml, cameras/extri.yml and images/")
+        raise InputError(capture.root, "source='images' needs cameras/intri.yml, cameras/extri.yml and images/ "
+                                         "(a capture of scans alone: source='scans')")
     if source == "scans" and not has_scans:
-        raise InputError(capture.scans_dir, "source 'scans' needs textured scans in scans/")
+        raise InputError(capture.scans_dir, "source='scans' needs textured scans in scans/ (a capture of images "
+                                              "alone: source='images')")
     return source
 
 
@@ -311,6 +313,10 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
                                               "the capture's images: fit it alone, from images")
     if config.masks and not capture.masks_dir.is_dir():
         raise InputError(capture.masks_dir, "masks=True needs person masks: run `uvatar capture masks` first")
+    if config.masks:
+        from uvatar.fit.masks import require_masks
+
+        require_masks(capture.root)
     if config.mask_cameras:
         if not config.masks:
             raise InputError(capture.root, "mask_cameras names the cameras whose masks masks=True reads: "

@@ -46,7 +46,9 @@ def _check_container(path: Path) -> None:
             raise InputError(path, f"truncated GLB: its header says {declared} bytes, the file has {size}")
         return
     if path.suffix.lower() == ".glb" and not head.lstrip()[:1] == b"{":
-        raise InputError(path, f"not a GLB file: it starts with {head[:8]!r}, not the 'glTF' magic")
+        start = head[:8].decode("latin-1")
+        shown = repr(start) if start.isprintable() else " ".join(f"{b:02x}" for b in head[:8])
+        raise InputError(path, f"not a GLB file: it starts with {shown}, not with the bytes 'glTF'")
     try:
         json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, UnicodeDecodeError) as exc:

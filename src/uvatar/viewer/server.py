@@ -55,11 +55,15 @@ class ViewerConfig:
 
 
 def check_avatar_dir(avatar_dir: str | Path) -> Path:
-    """Raise InputError unless ``avatar_dir`` holds a viewer bundle (manifest.json + its files)."""
+    """Raise InputError unless ``avatar_dir`` holds a viewer bundle (manifest.json + its files) from an
+    export its stage record does not mark half made."""
     avatar_dir = Path(avatar_dir)
     manifest_path = avatar_dir / "manifest.json"
     if not avatar_dir.is_dir():
         raise InputError(avatar_dir, "not a folder; expected a `uvatar export` output")
+    from uvatar.stage_record import require_complete
+
+    require_complete(avatar_dir, "export", f"uvatar export RUN {avatar_dir}", check_inputs=False)
     if not manifest_path.is_file():
         raise InputError(manifest_path, "missing; re-run `uvatar export` (it writes the engine bundle)")
     manifest = read_json(manifest_path)

@@ -321,16 +321,19 @@ def previous_results(info: dict) -> dict[str, FrameResult]:
 
 def bake_selection(capture_root, out_root, selection: dict, config: BakeConfig | None = None,
                    workers: int = 1, progress: bool = True, overwrite: bool = False,
-                   executor: ExecutorConfig | None = None) -> dict:
+                   executor: ExecutorConfig | None = None, source="selection") -> dict:
     """Bake the frames of a pre-bake selection; replace each rejected/broken one by the next candidate.
 
     selection: {"clusters": [{"split": "train"|"val", "candidates": [frames, nearest first]}], ...}
     as written by :func:`uvatar.avh.bake.select.select_from_capture`. Writes ``dataset.json["selection"]``
     = {"train": [...], "val": [...]} and returns it (with ``replaced`` {old: new} and ``unfilled``).
+    A selection whose fits changed since it was made is refused (``source``: its name in the message).
     """
     clusters = selection.get("clusters")
     if not clusters:
-        raise InputError("selection", "has no 'clusters' (make it with select_from_capture)")
+        raise InputError(source, "has no 'clusters' (make it with select_from_capture)")
+    stage_record.require_inputs_unchanged(selection.get("inputs"), source, f"uvatar select {capture_root} --from-capture",
+                                          stage_record.file_identities(Path(capture_root) / "fits"), what="selection")
     config = config or BakeConfig()
     heldout = set(heldout_frames(capture_root))
     cursor = [0] * len(clusters)

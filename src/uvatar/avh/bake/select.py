@@ -136,9 +136,12 @@ def select_from_baked(baked_root, config: SelectConfig | None = None, frame_rang
 
         joints = load_body_model(info.get("body_model", {}).get("name", "anny")).conditioning_joints
     sel = select_frames(frames, np.stack(poses), joints, config, exclude=info.get("heldout_frames", []))
+    from uvatar.stage_record import file_identities
+
     info["selection"] = {"train": sel.train, "val": sel.val}
+    # the baked frames it chose among: a bake redone or grown since makes it stale (train avh refuses it)
     info["selection_info"] = {"source": "baked", "clusters": len(sel.clusters), "frame_range": frame_range,
-                              "config": vars(config or SelectConfig())}
+                              "config": vars(config or SelectConfig()), "inputs": file_identities(root / "frames")}
     write_dataset_info(root, info)
     return sel
 
@@ -177,7 +180,11 @@ def select_from_capture(capture_root, out_path=None, config: SelectConfig | None
         raise InputError(capture.root / "fits", "no readable fits to select from")
     sel = select_frames(frames, np.stack(poses), body.conditioning_joints, config,
                         exclude=heldout_frames(capture.root))
+    from uvatar.stage_record import file_identities
+
     out = Path(out_path) if out_path else capture.root / "selection.json"
+    # the fits it chose by ("inputs"): a fit redone since makes it stale (bake --frames-from refuses it)
     write_json(out, {"capture": str(capture.root.resolve()), **sel.to_dict(), "frame_range": frame_range,
-                     "config": vars(config or SelectConfig())})
+                     "config": vars(config or SelectConfig()), "inputs": file_identities(capture.fits_dir)})
     return sel, out
+

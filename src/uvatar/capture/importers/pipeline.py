@@ -5,7 +5,9 @@ images are not undistorted), ``images/<cam>/<frame>.jpg`` (or .png) and, last, `
 (body model anny by default, no shapes yet: ``uvatar fit`` adds them). Frame names are the source
 frame indices (``000010`` is the video's 11th frame) so masks and fits line up with the source.
 Resumable: images already written are kept; every write is atomic; ``capture.json`` is written
-last and marks the import done.
+last. ``images/stage.json`` (:mod:`uvatar.stage_record`) records the source and the image options
+the images were written with (a resume with others is refused naming the flag) and marks the import
+complete; :class:`uvatar.capture.Capture` refuses a half-made one.
 """
 
 from __future__ import annotations
@@ -127,23 +129,22 @@ def _sweep_temp(folder: Path) -> None:
                 p.unlink(missing_ok=True)
 
 
-IMAGE_OPTIONS = ".import-images.json"  # what the images on disk were written with (resume guard)
+def _begin_images(out: Path, src: Path, sources: dict[str, FrameSource], cfg: ImportConfig, total: int) -> None:
+    """The stage record of ``out/images`` (:mod:`uvatar.stage_record`), before the first image is
+    written: a resume into images written from another source or with another resize / format /
+    quality is refused in one line naming the setting (they would be kept and mix with the new ones),
+    as is one whose source videos changed since. The frame range, cameras, up axis, units and frame
+    rate may change: an image is its source frame's whatever the range, and the cameras and
+    capture.json are written again by every run."""
+    from uvatar import stage_record
 
-
-def _check_image_options(out: Path, cfg: ImportConfig) -> None:
-    """Refuse to resume into images written with another resize / format / quality (they would be
-    kept and mix with the new ones); record the options before the first image is written."""
-    from uvatar.io_utils import read_json, write_json
-
-    want = {"resize": cfg.resize, "image_format": cfg.image_format, "jpeg_quality": cfg.jpeg_quality}
-    path = out / IMAGE_OPTIONS
-    if path.is_file():
-        have = read_json(path)
-        if have != want:
-            changed = ", ".join(f"{k} {have.get(k)!r} -> {v!r}" for k, v in want.items() if have.get(k) != v)
-            raise InputError(out, f"holds images imported with other options ({changed}); use another folder")
-    else:
-        write_json(path, want)
+    images = out / "images"
+    (out / ".import-images.json").unlink(missing_ok=True)  # the resume guard this record replaced
+    config = {"source": str(src.resolve()), "resize": cfg.resize, "image_format": cfg.image_format,
+              "jpeg_quality": cfg.jpeg_quality}
+    stage_record.begin(images, "capture import", config,
+                       stage_record.file_identities(*(s.path for s in sources.values())), total=total,
+                       redo_hint="another output folder starts over")
 
 
 def _frame_indices(sources: dict[str, FrameSource], cfg: ImportConfig) -> list[int]:
@@ -188,6 +189,7 @@ def _import(src: Path, out: Path, cfg: ImportConfig, calib, calib_path: Path, so
             progress: bool, t0: float) -> dict:
     from tqdm import tqdm
 
+    from uvatar import stage_record
     from uvatar.capture.cameras import write_cameras
     from uvatar.capture.layout import write_capture_info
 
@@ -220,7 +222,7 @@ def _import(src: Path, out: Path, cfg: ImportConfig, calib, calib_path: Path, so
         log.warning(note)
     frames = _frame_indices({s: sources[s] for s in cameras}, cfg)
     out.mkdir(parents=True, exist_ok=True)
-    _check_image_options(out, cfg)
+    _begin_images(out, src, {s: sources[s] for s in cameras}, cfg, len(frames) * len(cameras))
     write_cameras(out / "cameras", cameras)
     ext = "." + cfg.image_format
     todo = {}
@@ -241,6 +243,7 @@ def _import(src: Path, out: Path, cfg: ImportConfig, calib, calib_path: Path, so
         short = [i for i in todo[name] if i not in got]
         if short:
             raise InputError(sources[name].path, f"ended before frame {short[0]} ({len(short)} frames missing)")
+        stage_record.mark_progress(out / "images", sum(len(frames) - len(todo[c]) for c in cameras) + written)
     bar.close()
     fps = cfg.fps or next((s.fps for s in sources.values() if s.fps), 0.0) or 25.0
     provenance = {"tool": "uvatar capture import", "source": str(src.resolve()), "calibration": str(calib_path),
@@ -250,6 +253,7 @@ def _import(src: Path, out: Path, cfg: ImportConfig, calib, calib_path: Path, so
                   "config": asdict(cfg)}
     write_capture_info(out, [frame_name(i) for i in frames], fps=fps / cfg.stride, body_model=cfg.body_model,
                        provenance=provenance)
+    stage_record.finish(out / "images")
     return {"capture": str(out), "frames": len(frames), "cameras": list(cameras), "images_written": written,
             "images_kept": len(frames) * len(cameras) - written, "notes": notes,
             "seconds": round(time.perf_counter() - t0, 1)}

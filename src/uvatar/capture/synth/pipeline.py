@@ -5,6 +5,12 @@ frame), topologies from (seed, segment)), so frames can be made in any order by 
 processes and a crashed run resumes: topologies and frames already on disk are skipped (a frame is
 done when its ``gt/frames/<frame>.npz`` exists; it is written last, atomically). A frame that
 fails is reported and skipped.
+
+``OUT/stage.json`` (:mod:`uvatar.stage_record`) records the settings the frames on disk were made
+with: a rerun with other settings (another ``--seed``, ``--frames``, ``--image-size`` ...) is refused
+in one line naming the first one that differs (its frames would mix with the old ones); the capture is
+marked complete once every frame is made, and a reader downstream (:class:`uvatar.capture.Capture`)
+refuses a half-made one.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ from uvatar.io_utils import sweep_partial_writes
 from uvatar.parallel import ExecutorConfig, clear_worker_cache
 from uvatar.resources import check_memory
 
-__all__ = ["make_plan", "synthesize"]
+__all__ = ["make_plan", "synth_record_config", "synthesize"]
 
 log = logging.getLogger(__name__)
 
@@ -156,8 +162,9 @@ def _synth_task(shared: dict, task: tuple[str, int]):
     return (_topology_task if kind == "topology" else _frame_task)(_studio(shared), index)
 
 
-def _run_phase(shared, kind, indices, executor, progress) -> list:
-    """Run one phase's tasks; those whose worker failed (not the frame itself) run again in this process."""
+def _run_phase(shared, kind, indices, executor, progress, made=None) -> list:
+    """Run one phase's tasks; those whose worker failed (not the frame itself) run again in this process.
+    ``made``: called with each result that is not a failure (progress in the stage record)."""
     from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
 
     desc, unit = ("frames", "frame") if kind == "frame" else ("scan topologies", "topology")
@@ -168,6 +175,8 @@ def _run_phase(shared, kind, indices, executor, progress) -> list:
             lost.append(index)
         else:
             results.append(result)
+            if made is not None and "error" not in result:
+                made(result)
     if lost:
         log.warning("%d %s task(s) lost their worker (%s); running them in this process", len(lost), kind,
                     executor.kind)
@@ -180,22 +189,33 @@ def _run_phase(shared, kind, indices, executor, progress) -> list:
     return results
 
 
+def synth_record_config(cfg: SynthConfig) -> dict:
+    """What shapes a synthetic capture (its stage record's settings): every field of ``cfg``, nested ones
+    included, but the worker count and the preview (how it runs, an extra picture)."""
+    from uvatar.stage_record import config_values
+
+    return config_values(cfg, drop=("workers", "preview"))
+
+
 def synthesize(out: str | Path, config: SynthConfig | None = None, progress: bool = True,
                executor: ExecutorConfig | None = None) -> dict:
     """Make (or resume) a synthetic capture in ``out``; returns a summary dict
     (frames, made, skipped, failed, topologies, broken_frames, heldout_frames).
 
-    executor: where topologies and frames run (default: a local pool of ``config.workers`` processes)."""
+    executor: where topologies and frames run (default: a local pool of ``config.workers`` processes).
+    Raises InputError, before any work, when ``out`` holds frames made with other settings."""
     import uuid
 
     import torch
 
+    from uvatar import stage_record
     from uvatar.body import load_body_model
     from uvatar.capture.synth.gt import gt_frame_path
 
     cfg = config or SynthConfig()
     root = Path(out)
-    root.mkdir(parents=True, exist_ok=True)
+    state = stage_record.begin(root, "synth", synth_record_config(cfg), total=int(cfg.frames), skip_complete=True,
+                               redo_hint="another output folder starts over")
     sweep_partial_writes(root)  # temp files of writes a kill cut short (scans/.000001.*.png, ...)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # identical float results in every process (byte-identical outputs)
@@ -204,7 +224,8 @@ def synthesize(out: str | Path, config: SynthConfig | None = None, progress: boo
         # the plan holds a few (frames, joints, 3) float64 arrays (true motion, fits, takes)
         check_memory(8 * 3 * 8 * body.num_joints * cfg.frames, "frames", f"planning {cfg.frames} frames")
         plan = make_plan(body, cfg)
-        _write_meta(root, cfg, plan)
+        if state.status != "complete":  # a complete capture is left as it is (`uvatar fit` adds to capture.json)
+            _write_meta(root, cfg, plan)
         topo_todo = [s for s in range(len(plan["segments"]))
                      if not (root / "gt" / "topologies" / f"{s:03d}.npz").is_file()]
         frame_todo = [i for i, name in enumerate(plan["frames"]) if not gt_frame_path(root, name).is_file()]
@@ -215,15 +236,26 @@ def synthesize(out: str | Path, config: SynthConfig | None = None, progress: boo
         results = []
         if frame_todo:
             _run_phase(shared, "topology", topo_todo, executor, progress)
-            results = _run_phase(shared, "frame", frame_todo, executor, progress)
+            done = [len(plan["frames"]) - len(frame_todo)]
+
+            def made(_result) -> None:
+                done[0] += 1
+                stage_record.mark_progress(root, done[0])
+
+            results = _run_phase(shared, "frame", frame_todo, executor, progress, made)
         failed = {r["frame"]: r["error"] for r in results if "error" in r}
-        if cfg.preview:
+        if cfg.preview and (state.status != "complete" or not (root / "preview.png").is_file()):
             from uvatar.capture.synth.preview import write_preview
 
             write_preview(root, plan, cfg)
     finally:
         torch.set_num_threads(threads)
         clear_worker_cache()
+    made = len(plan["frames"]) - len(failed)
+    if failed:  # a rerun makes the failed frames again; until then the capture is half made
+        stage_record.mark_progress(root, made)
+    else:
+        stage_record.finish(root, made)
     return {"root": str(root), "frames": len(plan["frames"]), "made": len(frame_todo) - len(failed),
             "skipped": len(plan["frames"]) - len(frame_todo), "failed": failed,
             "topologies": len(plan["segments"]), "broken_frames": sorted(plan["broken"]),
