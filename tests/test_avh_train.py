@@ -175,3 +175,123 @@ def test_fit_displacement_gain_finds_the_shrinkage_of_the_targets():
     assert losses[0] > losses[7] and losses[20] > losses[7]  # the mean map alone and the full residual are worse
     # the model itself is left as it was
     assert torch.allclose(model.displacement_decoder.net[-1].weight * 0.35, half.displacement_decoder.net[-1].weight)
+
+
+def test_uniform_displacement_weighting_counts_every_kept_texel_once():
+    d = torch.zeros(1, 3, 2, 2)
+    d[0, 1, 0, 0] = -0.06          # outlier
+    w = torch.tensor([[[[1.0, 0.3], [0.0, 0.5]]]])
+    m = displacement_mask(d, w, torch.ones(1, 1, 2, 2), None, 0.05, "uniform")
+    assert m[0, 0].tolist() == [[0.0, 1.0], [0.0, 1.0]]
+    with pytest.raises(ValueError, match="weighting"):
+        displacement_mask(d, w, torch.ones(1, 1, 2, 2), None, 0.05, "kappa")
+    with pytest.raises(ValueError, match="displacement weighting"):
+        TrainConfig(displacement_weighting="kappa")
+
+
+def test_mean_maps_uniform_is_the_plain_mean_of_the_kept_texels():
+    from uvatar.avh.train import TrainingData, mean_maps
+
+    d = torch.zeros(3, 3, 1, 2)
+    d[:, :, 0, 0] = torch.tensor([0.001, 0.002, 0.006])[:, None]  # texel 0: three frames, w 1, 1, 0.25
+    d[:, :, 0, 1] = torch.tensor([0.004, 0.07, 0.010])[:, None]   # texel 1: frame 1 an outlier, frame 2 w = 0
+    w = torch.tensor([[1.0, 1.0], [1.0, 1.0], [0.25, 0.0]]).reshape(3, 1, 1, 2)
+    ones = torch.ones(3, 1, 1, 2)
+    data = TrainingData(["a", "b", "c"], torch.zeros(3, 3), {"texture": torch.full((3, 3, 1, 2), 0.5),
+                                                             "displacement": d, "kappa": ones, "w": w, "valid": ones})
+    _, uniform = mean_maps(data, None, 0.05, "uniform")
+    _, weighted = mean_maps(data, None, 0.05)
+    assert uniform[:, 0, 0].tolist() == pytest.approx([0.003] * 3)            # (1 + 2 + 6) / 3 mm
+    assert weighted[:, 0, 0].tolist() == pytest.approx([0.0045 / 2.25] * 3)   # (1 + 2 + 0.25 * 6) / 2.25 mm
+    assert uniform[:, 0, 1].tolist() == pytest.approx([0.004] * 3) == weighted[:, 0, 1].tolist()
+
+
+def test_displacement_gain_about_the_training_mean_keeps_the_mean_and_scales_the_variation():
+    from uvatar.avh.model import AvhGenerator, encode_pose, init_output_bias
+    from uvatar.avh.train import (
+        TrainingData,
+        displacement_residual_mean,
+        fit_displacement_gain,
+        scale_displacement_residual,
+    )
+
+    torch.manual_seed(0)
+    cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=2, output_bias=True)
+    model = AvhGenerator(cfg).eval()
+    init_output_bias(model, torch.full((3, 16, 16), 0.5), (torch.rand(3, 16, 16) - 0.5) * 0.02)
+    with torch.no_grad():
+        # the decoder's last features have a large constant part: the residual's mean over poses is not 0
+        torch.nn.init.normal_(model.displacement_decoder.net[-1].weight, std=20.0)
+        model.displacement_decoder.net[-1].bias.fill_(0.02)
+    angles = torch.randn(6, 6)
+    ones = torch.ones(6, 1, 16, 16)
+    maps = {"texture": torch.full((6, 3, 16, 16), 0.5), "displacement": torch.zeros(6, 3, 16, 16),
+            "kappa": ones, "w": ones, "valid": ones}
+    data = TrainingData([str(i) for i in range(6)], angles, maps)
+
+    def raw(m):  # the displacement decoder's output before the tanh, per frame
+        with torch.no_grad():
+            return m.displacement_decoder(m.cuboid(encode_pose(angles)))
+
+    center = displacement_residual_mean(model, data)
+    before = raw(model)
+    assert torch.allclose(center, (before - model.displacement_decoder.bias).mean(0, keepdim=True), atol=1e-6)
+    assert center.abs().mean() > 0.1 and (before - before.mean(0)).abs().mean() > 1e-3  # a mean and a variation
+    shrunk = AvhGenerator(cfg).eval()
+    shrunk.load_state_dict(model.state_dict())
+    scale_displacement_residual(shrunk, 0.35, center)
+    after = raw(shrunk)
+    assert torch.allclose(after.mean(0), before.mean(0), atol=1e-6)  # the mean over the frames stays
+    assert torch.allclose(after - after.mean(0), 0.35 * (before - before.mean(0)), atol=1e-6)
+    # targets made by the centred shrinkage: the fit finds it, and the plain (about 0) shrinkage does not
+    with torch.no_grad():
+        data.maps["displacement"] = shrunk(encode_pose(angles))[1]
+    gain, losses = fit_displacement_gain(model, data, None, TrainConfig(), steps=20, center=center)
+    assert gain == pytest.approx(0.35) and losses[7] == pytest.approx(0.0, abs=1e-12)
+    gain0, losses0 = fit_displacement_gain(model, data, None, TrainConfig(), steps=20)
+    assert min(losses0) > 1e-9
+    nobias = AvhGenerator(AvhConfig(4, 16, resolution=16, num_pose_joints=2))
+    with pytest.raises(ValueError, match="output bias"):
+        scale_displacement_residual(nobias, 0.5, center)
+
+
+def test_recentre_displacement_moves_the_mean_over_the_frames_to_the_given_map():
+    from uvatar.avh.model import AvhGenerator, encode_pose, init_output_bias
+    from uvatar.avh.train import TrainingData, displacement_residual_mean, recentre_displacement
+
+    torch.manual_seed(1)
+    cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=2, output_bias=True)
+    model = AvhGenerator(cfg).eval()
+    init_output_bias(model, torch.full((3, 16, 16), 0.5), torch.zeros(3, 16, 16))
+    with torch.no_grad():
+        torch.nn.init.normal_(model.displacement_decoder.net[-1].weight, std=20.0)
+    angles = torch.randn(6, 6)
+    ones = torch.ones(6, 1, 16, 16)
+    data = TrainingData([str(i) for i in range(6)], angles, {"texture": torch.full((6, 3, 16, 16), 0.5),
+                                                             "displacement": torch.zeros(6, 3, 16, 16),
+                                                             "kappa": ones, "w": ones, "valid": ones})
+
+    def outputs(m):
+        with torch.no_grad():
+            return m.displacement_decoder(m.cuboid(encode_pose(angles))), m(encode_pose(angles))[1]
+
+    raw_before, _ = outputs(model)
+    mean_map = (torch.rand(3, 16, 16) - 0.5) * 0.01  # ±5 mm
+    recentre_displacement(model, displacement_residual_mean(model, data), mean_map)
+    raw_after, displacement = outputs(model)
+    assert torch.allclose(displacement.mean(0), mean_map, atol=2e-6)  # metres, through the tanh
+    assert torch.allclose(raw_after - raw_after.mean(0), raw_before - raw_before.mean(0), atol=1e-6)
+    with pytest.raises(ValueError, match="output bias"):
+        recentre_displacement(AvhGenerator(AvhConfig(4, 16, resolution=16, num_pose_joints=2)), raw_before[:1], mean_map)
+
+
+def test_train_recentres_and_fits_the_displacement_gain_into_model_pt(baked, tmp_path):
+    cfg = TrainConfig(epochs=2, batch_size=4, progress=False, tensorboard=False, recentre_displacement=True,
+                      fit_displacement_gain=True, displacement_weighting="uniform")
+    summary = train_avh(baked, tmp_path / "run", AvhConfig(feature_size=4, latent=32, resolution=16, output_bias=True),
+                        cfg)
+    saved = torch.load(tmp_path / "run" / "model.pt", weights_only=False)
+    assert saved["displacement_recentred"] is True and 0.0 <= saved["displacement_gain"] <= 1.0
+    assert summary["displacement_gain"] == saved["displacement_gain"] and len(summary["displacement_gain_val_losses"]) == 21
+    checkpoint = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)  # the trained weights, as trained
+    assert not torch.equal(checkpoint["model"]["displacement_decoder.bias"], saved["model"]["displacement_decoder.bias"])

@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import torch
 
 from uvatar.cli.main import main
 
@@ -29,6 +30,9 @@ def test_quick_demo_runs_every_stage_and_writes_report(tmp_path):
     assert metrics["avh_orientation"] == "studio" and avatar["orientation"] == "studio"
     assert avatar["conditioning_joints"][-1] == 0 and "studio orientation" in report
     assert (out / "animation.mp4").stat().st_size > 1000
+    # both generators' displacement mean is recentred on the plain mean of the kept training texels
+    for run in ("run", "run_global"):
+        assert torch.load(out / run / "model.pt", weights_only=False)["displacement_recentred"] is True
 
     # A second run resumes: every stage is found done and skipped.
     assert main(["demo", "--quick", "--out", str(out)]) == 0

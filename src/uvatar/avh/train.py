@@ -32,7 +32,7 @@ from uvatar.avh.bake.dataset import read_dataset_info
 from uvatar.avh.data import BakedFrames, body_model_info, load_baked_frames, selection
 from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES, DISPLACEMENT_SPACES, displacements_to_frame
 from uvatar.avh.ema import WeightAverage
-from uvatar.avh.loss import avh_loss, displacement_mask, texture_weight
+from uvatar.avh.loss import DISPLACEMENT_WEIGHTINGS, avh_loss, displacement_mask, texture_weight
 from uvatar.avh.model import (
     AvhConfig,
     AvhGenerator,
@@ -65,7 +65,17 @@ class TrainConfig:
     many steps of 16 frames (:func:`uvatar.avh.lights.calibrate_rig`; 0: the rig starts unlit, as before).
     ``fit_displacement_gain``: after the last epoch, the saved weights' pose-dependent displacement is
     scaled by the gain in [0, 1] with the lowest validation displacement loss
-    (:func:`fit_displacement_gain`; needs validation frames; the checkpoint keeps the trained weights)."""
+    (:func:`fit_displacement_gain`; needs validation frames; the checkpoint keeps the trained weights).
+    With an output bias the residual is shrunk about its mean over the training frames (folded into the
+    bias), so the gain changes the pose-dependent part only, not the mean map.
+    ``recentre_displacement``: after the last epoch (before the gain), the saved weights' per-texel
+    displacement output bias is reset so that the generator's mean displacement over the training
+    frames is the plain mean of their kept texels (valid, inlier, w > 0; :func:`recentre_displacement`)
+    instead of the w-weighted mean that training converges to: the eval's R² reference. Needs the
+    output bias (the CPU presets).
+    ``displacement_weighting``: "visibility" (the paper's: each texel's displacement error weighted by
+    the bake's visibility w) or "uniform" (every kept texel, w > 0, once: the loss-optimal constant map is
+    the plain mean of the kept texels, the eval's R² reference; :func:`uvatar.avh.loss.displacement_mask`)."""
 
     epochs: int = 500
     batch_size: int = 8
@@ -82,6 +92,8 @@ class TrainConfig:
     ema_decay: float = 0.0
     calibrate_lights: int = 600
     fit_displacement_gain: bool = False
+    recentre_displacement: bool = False
+    displacement_weighting: str = "visibility"
     tensorboard: bool = True
     progress: bool = True
 
@@ -95,6 +107,9 @@ class TrainConfig:
                   (0 <= self.ema_decay < 1, f"ema decay must be in [0, 1), got {self.ema_decay}"),
                   (self.calibrate_lights >= 0, f"calibrate_lights must be >= 0 steps, got {self.calibrate_lights}"),
                   (self.shading_lr_scale > 0, f"shading learning-rate scale must be > 0, got {self.shading_lr_scale}"),
+                  (self.displacement_weighting in DISPLACEMENT_WEIGHTINGS,
+                   f"displacement weighting must be one of {DISPLACEMENT_WEIGHTINGS}, "
+                   f"got {self.displacement_weighting!r}"),
                   (self.displacement_frame in DISPLACEMENT_FRAMES,
                    f"displacement frame must be one of {DISPLACEMENT_FRAMES}, got {self.displacement_frame!r}")]
         check_values(checks)
@@ -151,13 +166,15 @@ def parameter_groups(model: torch.nn.Module, cfg: TrainConfig) -> list[dict]:
     return groups
 
 
-def mean_maps(data: TrainingData, excluded, outlier_threshold: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Loss-weighted mean texture and displacement (3, R, R) over ``data`` (plain mean where unweighted)."""
+def mean_maps(data: TrainingData, excluded, outlier_threshold: float,
+              displacement_weighting: str = "visibility") -> tuple[torch.Tensor, torch.Tensor]:
+    """Loss-weighted mean texture and displacement (3, R, R) over ``data`` (plain mean where unweighted;
+    ``displacement_weighting``: the loss's, :func:`uvatar.avh.loss.displacement_mask`)."""
     m = data.maps
     wt = texture_weight(m)
     tex = (wt * m["texture"]).sum(0) / wt.sum(0).clamp_min(1e-6)
     tex = torch.where(wt.sum(0) > 1e-6, tex, m["texture"].mean(0))
-    wd = displacement_mask(m["displacement"], m["w"], m["valid"], excluded, outlier_threshold)
+    wd = displacement_mask(m["displacement"], m["w"], m["valid"], excluded, outlier_threshold, displacement_weighting)
     disp = (wd * m["displacement"]).sum(0) / wd.sum(0).clamp_min(1e-6)
     return tex, torch.where(wd.sum(0) > 1e-6, disp, torch.zeros_like(disp))
 
@@ -225,25 +242,66 @@ def evaluate_loss(model: AvhGenerator, data: TrainingData, excluded, cfg: TrainC
             idx = torch.arange(start, min(start + cfg.batch_size, len(data)), device=data.pose_angles.device)
             pose, batch = data.batch(idx)
             tex, disp = model(*pose)
-            losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight)
+            losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight,
+                              displacement_weighting=cfg.displacement_weighting)
             sums += np.array([float(x) for x in losses]) * len(idx)
     return tuple(float(x) for x in sums / max(len(data), 1))
 
 
-def scale_displacement_residual(model: AvhGenerator, gain: float) -> None:
+def displacement_residual_mean(model: AvhGenerator, data: TrainingData, batch_size: int = 8) -> torch.Tensor:
+    """(1, 3, R, R): the displacement decoder's pose-dependent output (before its per-texel output bias
+    and the tanh) averaged over the frames of ``data``, in eval mode."""
+    model.eval()
+    total = None
+    with torch.no_grad():
+        for start in range(0, len(data), batch_size):
+            idx = torch.arange(start, min(start + batch_size, len(data)), device=data.pose_angles.device)
+            (encoded, angles), _ = data.batch(idx)
+            dec = model.displacement_decoder
+            pose_map = model.texel_pose(angles) if model.texel_pose is not None else None
+            out = dec(model.cuboid(encoded), pose_map)
+            if dec.bias is not None:
+                out = out - dec.bias
+            part = out.float().sum(0, keepdim=True)
+            total = part if total is None else total + part
+    return total / max(len(data), 1)
+
+
+def scale_displacement_residual(model: AvhGenerator, gain: float, center: torch.Tensor | None = None) -> None:
     """Multiply the displacement decoder's pose-dependent output (its last layer; the per-texel output
-    bias, the training mean, is kept) by ``gain``, in place."""
-    final = model.displacement_decoder.net[-1]
+    bias is kept) by ``gain``, in place. ``center`` (1, 3, R, R), the output's mean over the training
+    frames (:func:`displacement_residual_mean`; needs the output bias): the output is shrunk about it
+    instead of about 0, ``(1 - gain) · center`` is added to the output bias, so the mean over those
+    frames stays and only its pose-dependent variation is scaled."""
+    dec = model.displacement_decoder
+    final = dec.net[-1]
     with torch.no_grad():
         final.weight.mul_(gain)
         final.bias.mul_(gain)
+        if center is not None:
+            if dec.bias is None:
+                raise ValueError("shrinking about the mean output needs the decoder's output bias")
+            dec.bias.add_((1.0 - gain) * center.to(dec.bias))
+
+
+def recentre_displacement(model: AvhGenerator, center: torch.Tensor, mean_map: torch.Tensor) -> None:
+    """Set the displacement decoder's per-texel output bias so that its output's mean over the training
+    frames, ``center`` + bias (:func:`displacement_residual_mean`), is ``mean_map`` (3, R, R) metres
+    (through the tanh, as :func:`uvatar.avh.model.init_output_bias`), in place; the pose-dependent
+    variation about that mean is unchanged. Needs the output bias."""
+    dec = model.displacement_decoder
+    if dec.bias is None:
+        raise ValueError("recentring the displacement needs the decoder's output bias")
+    target = torch.atanh((mean_map.float() / model.config.displacement_scale).clamp(-0.98, 0.98))[None]
+    with torch.no_grad():
+        dec.bias.copy_(target.to(dec.bias) - center.to(dec.bias))
 
 
 def fit_displacement_gain(model: AvhGenerator, data: TrainingData, excluded, cfg: TrainConfig,
-                          steps: int = 20) -> tuple[float, list[float]]:
+                          steps: int = 20, center: torch.Tensor | None = None) -> tuple[float, list[float]]:
     """(gain, displacement loss per gain): the gain in [0, 1] (``steps`` + 1 values) of the
-    displacement decoder's pose-dependent output (:func:`scale_displacement_residual`) with the lowest
-    displacement loss on ``data`` (the validation frames). Gain 0 is the per-texel mean map alone,
+    displacement decoder's pose-dependent output (:func:`scale_displacement_residual`, about ``center``)
+    with the lowest displacement loss on ``data`` (the validation frames). Gain 0 is the mean map alone,
     1 the generator as trained: where the baked displacements vary with more than the pose (noise,
     the fingers' articulation), the generator's residual fitted to the training frames is only partly
     right on other frames, and the loss-optimal shrinkage keeps the part that is. ``model`` is left
@@ -253,7 +311,7 @@ def fit_displacement_gain(model: AvhGenerator, data: TrainingData, excluded, cfg
     losses = []
     for k in range(steps + 1):
         trial = copy.deepcopy(model)
-        scale_displacement_residual(trial, k / steps)
+        scale_displacement_residual(trial, k / steps, center)
         losses.append(evaluate_loss(trial, data, excluded, cfg)[2])
     return float(np.argmin(losses)) / steps, losses
 
@@ -381,7 +439,7 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
     history: list[dict] = []
     start_epoch = 0
     if state is None:
-        tex_mean, disp_mean = mean_maps(train, excluded, cfg.outlier_threshold)
+        tex_mean, disp_mean = mean_maps(train, excluded, cfg.outlier_threshold, cfg.displacement_weighting)
         if model.lights is not None and cfg.calibrate_lights:
             from uvatar.avh.lights import calibrate_rig
 
@@ -441,7 +499,8 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
                 batch = {k: v.contiguous(memory_format=torch.channels_last) for k, v in batch.items()}
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_cuda):
                 tex, disp = net(*pose)
-            losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight, total)
+            losses = avh_loss(tex, disp, batch, excluded, cfg.outlier_threshold, cfg.displacement_weight, total,
+                              cfg.displacement_weighting)
             opt.zero_grad(set_to_none=True)
             (losses[0] * ctx.world).backward()  # DDP averages over the world: undo it, the terms are shares
             opt.step()
@@ -493,13 +552,25 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
     summary = {"run": str(run_dir), "epochs": len(history), "parameters": n_params, "seconds": seconds,
                "samples_per_second": samples / seconds if seconds > 0 else None, "final": history[-1],
                "processes": ctx.world}
-    if cfg.fit_displacement_gain and val is not None and ctx.is_main:
-        gain, losses = fit_displacement_gain(averaged, val, excluded, cfg)
-        scale_displacement_residual(averaged, gain)  # model.pt only: the checkpoint keeps the trained weights
+    gain_fit = cfg.fit_displacement_gain and val is not None
+    recentre = cfg.recentre_displacement and model_config.output_bias
+    if cfg.recentre_displacement and not model_config.output_bias:
+        log.warning("recentre_displacement needs the generator's output bias (a CPU preset): not applied")
+    if (gain_fit or recentre) and ctx.is_main:  # model.pt only: the checkpoint keeps the trained weights
+        center = displacement_residual_mean(averaged, train, cfg.batch_size) if model_config.output_bias else None
+        extra = {}
+        if recentre:
+            plain = mean_maps(train, excluded, cfg.outlier_threshold, "uniform")[1]
+            recentre_displacement(averaged, center, plain)
+            extra["displacement_recentred"] = True
+        if gain_fit:
+            gain, losses = fit_displacement_gain(averaged, val, excluded, cfg, center=center)
+            scale_displacement_residual(averaged, gain, center)
+            extra["displacement_gain"] = gain
+            summary.update(displacement_gain=gain, displacement_gain_val_losses=losses)
         _save(run_dir / "model.pt", {"model": {k: v.detach().cpu() for k, v in averaged.state_dict().items()},
                                      "model_config": model_config.to_dict(), "epoch": len(history) - 1,
-                                     "ema_decay": cfg.ema_decay, "displacement_gain": gain})
-        summary.update(displacement_gain=gain, displacement_gain_val_losses=losses)
+                                     "ema_decay": cfg.ema_decay, **extra})
     if ctx.is_main:
         write_json(run_dir / "done.json", summary)
     return summary

@@ -30,6 +30,7 @@ def _flags() -> dict[str, ConfigFlags]:
     from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES
     from uvatar.avh.eval import EvalConfig
     from uvatar.avh.export import export_avatar
+    from uvatar.avh.loss import DISPLACEMENT_WEIGHTINGS
     from uvatar.avh.model import CONDITIONINGS, ORIENTATIONS, PRESETS, AvhConfig
     from uvatar.avh.train import TrainConfig
 
@@ -54,9 +55,11 @@ def _flags() -> dict[str, ConfigFlags]:
                                                         "occlusion (needs --shading-shadows)"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
-                                 "pose_noise", "shading_lr_scale", "ema_decay", "calibrate_lights", "device", "seed",
-                                 "tensorboard", "progress"),
-            rename={"lr_gamma": "gamma"}, choices={"displacement_frame": DISPLACEMENT_FRAMES}, help={
+                                 "pose_noise", "shading_lr_scale", "ema_decay", "calibrate_lights",
+                                 "displacement_weighting", "recentre_displacement", "fit_displacement_gain", "device",
+                                 "seed", "tensorboard", "progress"),
+            rename={"lr_gamma": "gamma"}, choices={"displacement_frame": DISPLACEMENT_FRAMES,
+                                                   "displacement_weighting": DISPLACEMENT_WEIGHTINGS}, help={
                 "epochs": "epochs (the paper uses 500)", "batch_size": "frames per batch", "lr": "Adam learning rate",
                 "lr_gamma": "ExponentialLR decay per epoch", "displacement_weight": "weight of the displacement loss",
                 "displacement_frame": "frame the displacement is learned in: rest (unposed by each texel's skinning "
@@ -68,6 +71,14 @@ def _flags() -> dict[str, ConfigFlags]:
                              "step (0: the last step's weights)",
                 "calibrate_lights": "steps fitting the light rig (--shading-lights) and an albedo to all training "
                                     "frames before training (0: the rig starts unlit)",
+                "displacement_weighting": "displacement loss per texel: visibility (weighted by the bake's w, the "
+                                          "paper's) or uniform (every kept texel once; its best constant map is "
+                                          "the plain mean, the eval's R² reference)",
+                "recentre_displacement": "after training, set the displacement's mean over the training frames "
+                                         "to the plain mean of their kept texels (the eval's R² reference; the "
+                                         "demo's default)",
+                "fit_displacement_gain": "after training, shrink the pose-dependent displacement about its "
+                                         "training mean by the gain in [0, 1] with the lowest validation loss",
                 "device": "cpu or cuda (bf16 autocast + channels_last)", "seed": "random seed",
                 "tensorboard": "write TensorBoard logs to OUT/tb", "progress": "progress bars (--no-progress: none)"}),
         "animate": ConfigFlags(
