@@ -1,0 +1,446 @@
+"""The subject as one track through the take: never a silent switch to another person (issue 41).
+
+Per frame, :func:`uvatar.fit.observe.observe_frame` detects the subject in a crop around the
+previous frame's keypoints; with another person close, that crop holds both, and the detector may
+take the other one in most views (on a real two-person take the fit jumped 1.25 m to the other
+person in one frame and stayed there). :class:`SubjectTracker` judges every frame's observation:
+
+- **Motion**: the subject is an :class:`Identity` with a position (the centre of the triangulated
+  torso, :func:`body_centre`) and a velocity; the next position is predicted, and an observation
+  counts as the subject only inside the gate a person can reach: ``max_speed`` (m/s) times the time
+  since the subject was last seen, plus :data:`SLACK_M` (triangulation noise).
+- **Everyone near**: the other people are found (:func:`uvatar.fit.person.find_people`, every
+  :data:`SURVEY_EVERY` frames, and every frame while someone is within :data:`NEAR_M` of the
+  subject or the observation is doubtful) and tracked as identities of their own, with the same gate
+  (a new one only where it is seen beside the subject: while the subject is held, a newcomer may be
+  the subject itself). A person better explained by another identity's track is not the subject.
+- **Build**: a crop that holds two people can give a skeleton made of both (the detector took one
+  person in some views and the other in the rest); its bones are stretched between them, so an
+  observation whose bone lengths lie more than :data:`MIX_BUILD` from the subject's build so far
+  (:func:`~uvatar.fit.person.same_body`) is not the subject.
+- **Appearance**: every identity has a colour model: an RGB histogram (:data:`HIST_BINS`^3 bins) of
+  the pixels inside its torso (shoulders and hips) in every view where nobody else overlaps it
+  (:func:`torso_histograms`, :meth:`Candidate.clean_hists`). Where the positions do not decide, the colours may.
+- **Held, never guessed**: where no person is the subject (hidden, out of view) the frame is
+  ``lost``; where two people could be the subject and neither position nor colours tell them apart,
+  ``ambiguous``. Those frames are left out of the fit (no keypoints, no fit written), the track
+  keeps its prediction and is re-associated afterwards (``reassociated``): a person inside the gate
+  (grown with the time lost) that no other track explains.
+
+A cut to another take (every keypoint jumps and the images change, :mod:`uvatar.fit.tracking`) is
+handled by the caller (the person of the subject's build is found again) and restarts the track.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SLACK_M", "NEAR_M", "SURVEY_EVERY", "HIST_BINS", "body_centre", "torso_histograms", "hist_distance",
+           "Identity", "Candidate", "SubjectTracker", "frame_ranges", "person_observation", "track_frame",
+           "images_changed", "identity_report"]
+
+SLACK_M = 0.15        # metres added to the motion gate (triangulation noise, a torso bending)
+NEAR_M = 1.0          # another person within this of the subject: everyone is found every frame
+SURVEY_EVERY = 5      # frames between looks for other people when nobody is near
+FORGET_FRAMES = 50    # another person unseen this long is forgotten
+DECISIVE = 0.5        # a gate-relative distance this share of the next one decides alone
+HIST_BINS = 8         # colour histogram bins per RGB channel
+MIN_HIST_PIXELS = 30  # fewer torso pixels in a view: no histogram there
+COLOUR_MARGIN = 0.15  # Hellinger distances this far apart tell two people apart by colour
+MIX_BUILD = 0.2       # bone lengths this far (median relative) from the subject's: not the subject (a mix)
+BUILD_FRAMES = 25     # the subject's build: the median over this many last frames
+_TORSO = (11, 12, 24, 23)   # BlazePose shoulders and hips, in polygon order
+
+
+def body_centre(points: np.ndarray, conf: np.ndarray) -> np.ndarray | None:
+    """(3,) metres: the mean of the triangulated shoulders and hips (points (K, 3), conf (K,), BlazePose
+    order), else the median of every triangulated keypoint; None with fewer than 4 keypoints."""
+    ok = np.asarray(conf) > 0
+    if ok.sum() < 4:
+        return None
+    torso = [k for k in _TORSO if k < len(ok) and ok[k]]
+    if len(torso) >= 3:
+        return np.asarray(points, np.float64)[torso].mean(0)
+    return np.median(np.asarray(points, np.float64)[ok], axis=0)
+
+
+def torso_histograms(images, xy: np.ndarray, conf: np.ndarray, min_conf: float = 0.3) -> list:
+    """Per view, the normalised colour histogram ((HIST_BINS^3,) float64) of the pixels inside the
+    person's torso (the quadrilateral of shoulders and hips ``xy`` (C, K, 2) pixels, shrunk by 20 %
+    towards its centre), or None where those keypoints are not all confident or too few pixels fall
+    inside. images: C (H, W, 3) float [0, 1] or uint8."""
+    import cv2
+
+    from uvatar.fit.appearance import colour_index
+
+    out = []
+    for c, image in enumerate(images):
+        if image is None or max(_TORSO) >= conf.shape[1] or (conf[c, list(_TORSO)] < min_conf).any():
+            out.append(None)
+            continue
+        quad = np.asarray(xy[c, list(_TORSO)], np.float64)
+        quad = quad.mean(0) + 0.8 * (quad - quad.mean(0))
+        mask = np.zeros(np.asarray(image).shape[:2], np.uint8)
+        cv2.fillPoly(mask, [np.round(quad).astype(np.int32)], 1)
+        inside = mask > 0
+        if inside.sum() < MIN_HIST_PIXELS:
+            out.append(None)
+            continue
+        hist = np.bincount(colour_index(image, HIST_BINS)[inside], minlength=HIST_BINS ** 3).astype(np.float64)
+        out.append(hist / hist.sum())
+    return out
+
+
+def hist_distance(hists: list, model: np.ndarray | None) -> float:
+    """Median over the views with a histogram of the Hellinger distance (0 same, 1 disjoint) between
+    each view's histogram and ``model`` (normalised); nan without a model or any histogram."""
+    if model is None:
+        return float("nan")
+    d = [np.sqrt(max(0.0, 1.0 - float(np.sum(np.sqrt(h * model))))) for h in hists if h is not None]
+    return float(np.median(d)) if d else float("nan")
+
+
+@dataclass
+class Identity:
+    """One person's track: position (3,) metres and velocity (3,) m/frame at ``frame`` (index into
+    the fitted frames), and colour counts (summed histograms of the views where nobody overlapped it)."""
+
+    position: np.ndarray
+    frame: int
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    colours: np.ndarray | None = None
+    builds: list = field(default_factory=list)   # the last signatures (bone lengths) seen
+
+    @property
+    def build(self) -> np.ndarray | None:
+        """(B,) the median of the signatures seen (nan where a bone never was), or None."""
+        import warnings
+
+        if not self.builds:
+            return None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return np.nanmedian(np.stack(self.builds[-BUILD_FRAMES:]), axis=0)
+
+    def unlike(self, signature) -> bool:
+        """True when ``signature`` is clearly not this person's build (a mix of two people's
+        keypoints stretches bones between them): median relative bone difference over ``MIX_BUILD``."""
+        from uvatar.fit.person import same_body
+
+        build = self.build
+        if build is None or signature is None or len(self.builds) < 3:
+            return False
+        d = same_body(signature, build)
+        return bool(np.isfinite(d) and d > MIX_BUILD)
+
+    def predict(self, t: int) -> np.ndarray:
+        """(3,) where the person is expected at frame ``t`` (the velocity held for at most 5 frames)."""
+        steps = float(np.clip(t - self.frame, -5, 5))
+        return self.position + self.velocity * steps
+
+    def gate(self, t: int, step_m: float) -> float:
+        """Metres a person can have moved from :meth:`predict` at ``t`` (``step_m``: per frame)."""
+        return SLACK_M + step_m * max(abs(t - self.frame), 1)
+
+    def score(self, t: int, centre: np.ndarray, step_m: float) -> float:
+        """Distance from the prediction over the gate (<= 1: inside)."""
+        return float(np.linalg.norm(centre - self.predict(t)) / self.gate(t, step_m))
+
+    def update(self, t: int, centre: np.ndarray, hists: list | None = None) -> None:
+        gap = t - self.frame
+        if gap != 0 and abs(gap) <= 3:
+            self.velocity = 0.5 * self.velocity + 0.5 * (centre - self.position) / gap
+        elif gap != 0:
+            self.velocity = np.zeros(3)
+        self.position, self.frame = np.asarray(centre, np.float64), t
+        for h in hists or ():
+            if h is not None:
+                self.colours = h.copy() if self.colours is None else self.colours + h
+
+    @property
+    def model(self) -> np.ndarray | None:
+        return None if self.colours is None else self.colours / self.colours.sum()
+
+
+@dataclass
+class Candidate:
+    """A person seen in one frame: centre (3,), histograms per view, the Person (or None for the
+    primary observation) it came from."""
+
+    centre: np.ndarray
+    hists: list
+    person: object = None
+    signature: np.ndarray | None = None        # (B,) bone lengths (:func:`~uvatar.fit.person.body_signature`)
+    boxes: list = field(default_factory=list)    # per view: (x0, y0, x1, y1) of the confident keypoints, or None
+    torsos: list = field(default_factory=list)   # per view: the same box of the torso keypoints, or None
+
+    @classmethod
+    def of(cls, images, points, points_conf, xy, conf, person=None, min_conf: float = 0.3) -> Candidate | None:
+        """From triangulated keypoints (K, 3), (K,) and their detections (C, K, 2), (C, K); None
+        with too few keypoints (:func:`body_centre`)."""
+        centre = body_centre(points, points_conf)
+        if centre is None:
+            return None
+        xy, conf = np.asarray(xy), np.asarray(conf)
+
+        def box(c, keys):
+            ok = keys[conf[c, keys] >= min_conf]
+            if len(ok) < 3:
+                return None
+            lo, hi = xy[c, ok].min(0), xy[c, ok].max(0)
+            return (*lo, *hi)
+
+        from uvatar.fit.person import body_signature
+
+        every, torso = np.arange(conf.shape[1]), np.array([k for k in _TORSO if k < conf.shape[1]])
+        signature = body_signature(np.asarray(points, np.float64), np.asarray(points_conf)) \
+            if len(points_conf) > max(_TORSO) else None
+        return cls(centre=centre, hists=torso_histograms(images, xy, conf), person=person, signature=signature,
+                   boxes=[box(c, every) for c in range(len(conf))], torsos=[box(c, torso) for c in range(len(conf))])
+
+    def clean_hists(self, others: list[Candidate]) -> list:
+        """The histograms of the views where no other person's box overlaps this person's torso."""
+        def overlap(a, b):
+            return a is not None and b is not None and a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
+
+        return [None if h is None or any(overlap(self.torsos[c] if c < len(self.torsos) else None,
+                                                 o.boxes[c] if c < len(o.boxes) else None) for o in others) else h
+                for c, h in enumerate(self.hists)]
+
+
+class SubjectTracker:
+    """Judges each frame's subject observation (see the module doc). ``step_m``: metres a person can
+    move per frame (max speed / fps). :meth:`judge` returns (status, the candidate taken or None);
+    statuses: "tracked", "reassociated", "lost", "ambiguous"."""
+
+    def __init__(self, step_m: float) -> None:
+        self.step_m = float(step_m)
+        self.subject: Identity | None = None
+        self.others: list[Identity] = []
+        self.last_survey: int | None = None
+        self.held = False
+        self.surveys = 0
+        self.others_seen = 0
+
+    def start(self, t: int, centre: np.ndarray, hists: list | None = None) -> None:
+        """(Re)start the track at frame ``t`` (the seed frame, a pass's start, a cut)."""
+        colours = self.subject.colours if self.subject is not None else None   # the same clothes ...
+        builds = self.subject.builds if self.subject is not None else []         # ... and the same build
+        self.subject = Identity(position=np.asarray(centre, np.float64), frame=t, colours=colours, builds=builds)
+        if hists:
+            self.subject.update(t, centre, hists)
+        self.others, self.last_survey, self.held = [], None, False
+
+    def accept(self, t: int, cand: Candidate, hists: list | None) -> None:
+        self.subject.update(t, cand.centre, hists)
+        if cand.signature is not None:
+            self.subject.builds.append(cand.signature)
+
+    def needs_survey(self, t: int, primary: Candidate | None) -> bool:
+        """True when the other people must be looked for at frame ``t``."""
+        if self.last_survey is None or abs(t - self.last_survey) >= SURVEY_EVERY or self.held:
+            return True
+        if primary is None or self.subject.score(t, primary.centre, self.step_m) > 1 \
+                or self.subject.unlike(primary.signature):
+            return True
+        if self._claimed(t, primary.centre) <= 1:
+            return True
+        here = self.subject.predict(t)
+        if any(np.linalg.norm(o.predict(t) - here) < NEAR_M + o.gate(t, self.step_m) for o in self.others):
+            return True
+        d = hist_distance(primary.hists, self.subject.model)
+        return bool(np.isfinite(d) and d > COLOUR_MARGIN * 2)
+
+    def _claimed(self, t: int, centre: np.ndarray) -> float:
+        """The smallest gate-relative distance of ``centre`` to another person's track (inf: none)."""
+        scores = [o.score(t, centre, self.step_m) for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
+        return min(scores, default=np.inf)
+
+    def judge(self, t: int, primary: Candidate | None, people: list[Candidate] | None) -> tuple[str, Candidate | None]:
+        """The subject at frame ``t``: ``primary`` the crop observation's candidate (None: too few
+        keypoints), ``people`` everyone found at ``t`` (None: nobody looked). Updates the tracks."""
+        if people is not None:
+            self.last_survey = t
+            self.surveys += 1
+        if people is None:
+            ok = primary is not None and self.subject.score(t, primary.centre, self.step_m) <= 1 \
+                and self._claimed(t, primary.centre) > 1 and not self.subject.unlike(primary.signature)
+            return self._finish(t, "tracked" if ok else "lost", primary if ok else None, [], [])
+        crop = primary
+        cands = list(people)
+        if primary is not None and not cands:
+            cands.append(primary)
+        # else a crop observation that is none of the people found is a mix of two people (the detector
+        # took one person in some views and the other in the rest): the people found decide
+        if not any(c is primary for c in cands) and primary is not None:
+            same = [p for p in cands if np.linalg.norm(p.centre - primary.centre) < SLACK_M]
+            primary = same[0] if same else None
+        s = np.array([self.subject.score(t, c.centre, self.step_m) for c in cands])
+        o = np.array([self._claimed(t, c.centre) for c in cands])
+        # after a hold, the gate has grown: a person another track's gate holds is not taken back
+        inside = [i for i in np.argsort(s) if s[i] <= 1 and not o[i] <= DECISIVE * s[i]
+                  and not self.subject.unlike(cands[i].signature) and not (self.held and o[i] <= 1)]
+        status, chosen = "lost", None
+        if not inside and len(cands) == 1 and not self.others_seen and not self.others:
+            status, chosen = "tracked", cands[0]   # one person in view, nobody else ever seen: a cut or a jump
+        elif len(inside) == 1:
+            i = inside[0]
+            if o[i] > 1 or s[i] <= DECISIVE * o[i] or self._colour_says(cands[i], self._nearest_other(t, cands[i])):
+                status, chosen = "tracked", cands[i]
+            else:
+                status = "ambiguous"
+        elif len(inside) > 1:
+            i, j = inside[0], inside[1]
+            if s[i] <= DECISIVE * s[j] and (o[i] > 1 or s[i] <= DECISIVE * o[i]):
+                status, chosen = "tracked", cands[i]
+            else:
+                by_colour = sorted(inside, key=lambda k: hist_distance(cands[k].hists, self.subject.model))
+                best, second = by_colour[0], by_colour[1]
+                d0 = hist_distance(cands[best].hists, self.subject.model)
+                d1 = hist_distance(cands[second].hists, self.subject.model)
+                if np.isfinite(d0) and np.isfinite(d1) and d1 - d0 > COLOUR_MARGIN:
+                    status, chosen = "tracked", cands[best]
+                else:
+                    status = "ambiguous"
+        log.debug("frame %d: %s; subject scores %s, other-track scores %s", t, status, np.round(s, 2).tolist(),
+                  np.round(o, 2).tolist())
+        if chosen is not None and crop is not None and np.linalg.norm(chosen.centre - crop.centre) < SLACK_M:
+            chosen = crop
+        # the other people (a second grouping of the subject's own detections lies within 2 x SLACK_M)
+        near = [c for c in cands if c is not chosen and (chosen is None or
+                                                         np.linalg.norm(c.centre - chosen.centre) >= 2 * SLACK_M)]
+        return self._finish(t, status, chosen, near, [c for c in cands if c is not chosen])
+
+    def _nearest_other(self, t: int, cand: Candidate) -> Identity | None:
+        live = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
+        return min(live, key=lambda o: o.score(t, cand.centre, self.step_m), default=None)
+
+    def _colour_says(self, cand: Candidate, other: Identity | None) -> bool:
+        """True when the candidate's colours are clearly the subject's rather than ``other``'s."""
+        if other is None:
+            return False
+        d_s, d_o = hist_distance(cand.hists, self.subject.model), hist_distance(cand.hists, other.model)
+        return bool(np.isfinite(d_s) and np.isfinite(d_o) and d_o - d_s > COLOUR_MARGIN)
+
+    def _finish(self, t: int, status: str, chosen: Candidate | None, others: list[Candidate],
+                seen: list[Candidate]):
+        """Update the tracks: ``others`` the people not the subject, ``seen`` everyone in view but the
+        subject (their boxes keep the colour models clean: a view where someone overlaps a person's
+        torso teaches nothing)."""
+        for c in others:   # the other people's tracks: nearest inside its gate, else a new one
+            hists = c.clean_hists([o for o in seen + ([chosen] if chosen is not None else []) if o is not c])
+            live = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES and o.frame != t]
+            best = min(live, key=lambda o: o.score(t, c.centre, self.step_m), default=None)
+            if best is not None and best.score(t, c.centre, self.step_m) <= 1:
+                best.update(t, c.centre, hists)
+            elif chosen is not None:   # someone new, seen beside the subject (while it is held: maybe the subject)
+                self.others.append(Identity(position=np.asarray(c.centre, np.float64), frame=t))
+                self.others[-1].update(t, c.centre, hists)
+                self.others_seen += 1
+        self.others = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
+        if chosen is not None:
+            if self.held:
+                status = "reassociated"
+            self.accept(t, chosen, chosen.clean_hists(seen))
+        self.held = chosen is None
+        return status, chosen
+
+
+def frame_ranges(frames: list[str], held: list[str]) -> list[str]:
+    """Runs of consecutive frames (in ``frames`` order) of ``held``, as "first-last" (or "frame")."""
+    idx = sorted(frames.index(f) for f in held)
+    out, start = [], None
+    for n, i in enumerate(idx):
+        if start is None:
+            start = i
+        if n + 1 == len(idx) or idx[n + 1] != i + 1:
+            out.append(frames[start] if start == i else f"{frames[start]}-{frames[i]}")
+            start = None
+    return out
+
+
+def person_observation(person, images, cameras, detector, triangulate_config, source: str):
+    """A :class:`~uvatar.fit.observe.FrameObservation` from a :class:`~uvatar.fit.person.Person` found
+    by :func:`~uvatar.fit.person.find_people` (its own detections, labels resolved, triangulated)."""
+    from uvatar.fit.observe import FrameObservation, resolve_left_right
+    from uvatar.fit.tracking import image_thumbnail
+    from uvatar.fit.triangulate import triangulate
+
+    K = len(detector.keypoint_names)
+    xy = np.zeros((len(cameras), K, 2), np.float32)
+    conf = np.zeros((len(cameras), K), np.float32)
+    for c, (pxy, pconf) in person.detections.items():
+        xy[c], conf[c] = pxy, pconf
+    xy, conf, _ = resolve_left_right(xy, conf, cameras, triangulate_config, detector.keypoint_names)
+    tri = triangulate(xy, conf, cameras, triangulate_config)
+    thumbs = np.stack([image_thumbnail(im) for im in images]) if source == "images" else None
+    return FrameObservation(source=source, cameras=list(cameras), xy=xy.astype(np.float32),
+                            conf=conf.astype(np.float32), points=tri.points.astype(np.float32),
+                            points_conf=tri.conf.astype(np.float32),
+                            reprojection_px=tri.reprojection_px.astype(np.float32), thumbs=thumbs)
+
+
+def _person_arrays(person, C: int, K: int) -> tuple[np.ndarray, np.ndarray]:
+    xy, conf = np.zeros((C, K, 2)), np.zeros((C, K))
+    for c, (pxy, pconf) in person.detections.items():
+        xy[c], conf[c] = pxy, pconf
+    return xy, conf
+
+
+def track_frame(tracker: SubjectTracker, t: int, obs, images, cameras, detector, triangulate_config,
+                source: str):
+    """(the subject's observation at frame index ``t`` or None where it is held, status): ``obs`` (the
+    crop observation of :func:`~uvatar.fit.observe.observe_frame`) judged by ``tracker``; everyone
+    in view is found (:func:`~uvatar.fit.person.find_people`) when the tracker asks; a person other
+    than ``obs`` taken as the subject is observed again from its own keypoints. Status "nobody"
+    (``obs`` returned as it is): nobody at all in view, a missed detection, not a question of identity."""
+    from uvatar.fit.observe import observe_frame
+    from uvatar.fit.person import find_people
+
+    primary = (Candidate.of(images, obs.points, obs.points_conf, obs.xy, obs.conf)
+               if (obs.points_conf > 0).sum() >= 6 else None)
+    people = None
+    if tracker.needs_survey(t, primary):
+        K = obs.conf.shape[1]
+        people = []
+        for p in find_people(images, cameras, detector, triangulate_config):
+            cand = Candidate.of(images, p.points, p.points_conf, *_person_arrays(p, len(cameras), K), person=p)
+            if cand is not None:
+                people.append(cand)
+    status, chosen = tracker.judge(t, primary, people)
+    if chosen is None and primary is None and people == []:
+        tracker.held = False   # nobody in view: nobody to confuse the subject with (a plain missed detection)
+        return obs, "nobody"
+    if chosen is None or chosen is primary:
+        return (obs if chosen is not None else None), status
+    again = observe_frame(images, cameras, detector, triangulate_config, source, prior=chosen.person)
+    centre = body_centre(again.points, again.points_conf)
+    if centre is not None and np.linalg.norm(centre - chosen.centre) < SLACK_M:
+        return again, status
+    return person_observation(chosen.person, images, cameras, detector, triangulate_config, source), status
+
+
+def images_changed(prior, obs) -> bool:
+    """True where both frames have image thumbnails and the content changed (a cut to another take,
+    :func:`~uvatar.fit.tracking.image_change`); False where either has none."""
+    from uvatar.fit.tracking import image_change
+
+    a, b = getattr(prior, "thumbs", None), getattr(obs, "thumbs", None)
+    if a is None or b is None or np.shape(a) != np.shape(b):
+        return False
+    return bool(image_change(np.stack([a, b]))[0])
+
+
+def identity_report(frames: list[str], statuses: dict, tracker, max_speed: float) -> dict:
+    """``person["identity"]``: the frames lost, ambiguous and re-associated as frame ranges."""
+    held = sorted(set(statuses["lost"]) | set(statuses["ambiguous"]), key=frames.index)
+    return {"max_speed_m_s": max_speed, "held": frame_ranges(frames, held), "held_frames": len(held),
+            "lost": frame_ranges(frames, statuses["lost"]), "ambiguous": frame_ranges(frames, statuses["ambiguous"]),
+            "reassociated": sorted(statuses["reassociated"], key=frames.index),
+            "people_looked_for": tracker.surveys if tracker is not None else 0,
+            "other_people_seen": tracker.others_seen if tracker is not None else 0}
