@@ -156,7 +156,8 @@ def _report_identity(summary: dict) -> int:
     if identity.get("held_frames"):
         print(f"subject's identity held in {identity['held_frames']} frame(s), left out of the fit (no fit "
               f"written): lost {', '.join(identity['lost']) or 'none'}; ambiguous "
-              f"{', '.join(identity['ambiguous']) or 'none'}", file=sys.stderr)
+              f"{', '.join(identity['ambiguous']) or 'none'}; crowded (another person over it in too many "
+              f"views) {', '.join(identity.get('crowded') or []) or 'none'}", file=sys.stderr)
     if identity.get("reassociated"):
         print(f"subject re-associated after a gap at frame(s) {', '.join(identity['reassociated'])}", file=sys.stderr)
     return int(identity.get("held_frames") or 0)

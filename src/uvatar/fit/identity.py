@@ -23,7 +23,8 @@ person in one frame and stayed there). :class:`SubjectTracker` judges every fram
   (:func:`torso_histograms`, :meth:`Candidate.clean_hists`). Where the positions do not decide, the colours may.
 - **Held, never guessed**: where no person is the subject (hidden, out of view) the frame is
   ``lost``; where two people could be the subject and neither position nor colours tell them apart,
-  ``ambiguous``. Those frames are left out of the fit (no keypoints, no fit written), the track
+  ``ambiguous``; where the subject is known but another person overlaps it in so many views that too
+  few of its keypoints are surely its own (:func:`clear_of_others`), ``crowded``. Those frames are left out of the fit (no keypoints, no fit written), the track
   keeps its prediction and is re-associated afterwards (``reassociated``): a person inside the gate
   (grown with the time lost) that no other track explains.
 
@@ -42,18 +43,28 @@ log = logging.getLogger(__name__)
 
 __all__ = ["SLACK_M", "NEAR_M", "SURVEY_EVERY", "HIST_BINS", "body_centre", "torso_histograms", "hist_distance",
            "Identity", "Candidate", "SubjectTracker", "frame_ranges", "person_observation", "track_frame",
-           "images_changed", "identity_report"]
+           "images_changed", "identity_report", "clear_of_others", "STATUSES"]
+
+STATUSES = ("lost", "ambiguous", "crowded")   # the held statuses (no fit), as reported
 
 SLACK_M = 0.15        # metres added to the motion gate (triangulation noise, a torso bending)
 NEAR_M = 1.0          # another person within this of the subject: everyone is found every frame
-SURVEY_EVERY = 5      # frames between looks for other people when nobody is near
+SURVEY_EVERY = 2      # frames between looks for other people when nobody is near
 FORGET_FRAMES = 50    # another person unseen this long is forgotten
+NEAR_FRAMES = 10      # another person seen this recently still keeps the subject's views it overlaps
 DECISIVE = 0.5        # a gate-relative distance this share of the next one decides alone
 HIST_BINS = 8         # colour histogram bins per RGB channel
 MIN_HIST_PIXELS = 30  # fewer torso pixels in a view: no histogram there
 COLOUR_MARGIN = 0.15  # Hellinger distances this far apart tell two people apart by colour
 MIX_BUILD = 0.2       # bone lengths this far (median relative) from the subject's: not the subject (a mix)
 BUILD_FRAMES = 25     # the subject's build: the median over this many last frames
+CLEAR_MARGIN = 0.1    # another person's keypoint box grown by this share of its height (their body's outline)
+MIN_VIEW_POINTS = 8   # confident keypoints a view keeps clear of the others to count
+MIN_POINTS = 12       # keypoints triangulated from the views clear of the others, else the frame is held
+CLOSE_M = 0.9         # another person's torso this close (on the floor) to the subject's: the frame is held
+APART_FRAMES = 3      # frames in a row the subject is seen apart from the others that end a crowded stretch
+CLOSE_EXPIRE = 25     # surveyed frames alone that end a crowded stretch (the other person left)
+JUMP_CLEAR = 2.0      # a jump (a cut) is re-associated only this far (gate-relative) from every other track
 _TORSO = (11, 12, 24, 23)   # BlazePose shoulders and hips, in polygon order
 
 
@@ -115,6 +126,8 @@ class Identity:
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     colours: np.ndarray | None = None
     builds: list = field(default_factory=list)   # the last signatures (bone lengths) seen
+    points: np.ndarray | None = None             # (K, 3) the last keypoints seen (0 where none), metres
+    points_conf: np.ndarray | None = None        # (K,)
 
     @property
     def build(self) -> np.ndarray | None:
@@ -151,7 +164,15 @@ class Identity:
         """Distance from the prediction over the gate (<= 1: inside)."""
         return float(np.linalg.norm(centre - self.predict(t)) / self.gate(t, step_m))
 
-    def update(self, t: int, centre: np.ndarray, hists: list | None = None) -> None:
+    def predicted_points(self, t: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """((K, 3), (K,)) the last keypoints seen moved to :meth:`predict` at ``t``, or None."""
+        if self.points is None:
+            return None
+        return self.points + (self.predict(t) - self.position), self.points_conf
+
+    def update(self, t: int, centre: np.ndarray, hists: list | None = None, points=None, points_conf=None) -> None:
+        if points is not None:
+            self.points, self.points_conf = np.asarray(points, np.float64), np.asarray(points_conf, np.float64)
         gap = t - self.frame
         if gap != 0 and abs(gap) <= 3:
             self.velocity = 0.5 * self.velocity + 0.5 * (centre - self.position) / gap
@@ -178,6 +199,8 @@ class Candidate:
     signature: np.ndarray | None = None        # (B,) bone lengths (:func:`~uvatar.fit.person.body_signature`)
     boxes: list = field(default_factory=list)    # per view: (x0, y0, x1, y1) of the confident keypoints, or None
     torsos: list = field(default_factory=list)   # per view: the same box of the torso keypoints, or None
+    points: np.ndarray | None = None             # (K, 3) triangulated keypoints, metres
+    points_conf: np.ndarray | None = None        # (K,)
 
     @classmethod
     def of(cls, images, points, points_conf, xy, conf, person=None, min_conf: float = 0.3) -> Candidate | None:
@@ -201,7 +224,8 @@ class Candidate:
         signature = body_signature(np.asarray(points, np.float64), np.asarray(points_conf)) \
             if len(points_conf) > max(_TORSO) else None
         return cls(centre=centre, hists=torso_histograms(images, xy, conf), person=person, signature=signature,
-                   boxes=[box(c, every) for c in range(len(conf))], torsos=[box(c, torso) for c in range(len(conf))])
+                   boxes=[box(c, every) for c in range(len(conf))], torsos=[box(c, torso) for c in range(len(conf))],
+                   points=np.asarray(points, np.float64), points_conf=np.asarray(points_conf, np.float64))
 
     def clean_hists(self, others: list[Candidate]) -> list:
         """The histograms of the views where no other person's box overlaps this person's torso."""
@@ -224,6 +248,9 @@ class SubjectTracker:
         self.others: list[Identity] = []
         self.last_survey: int | None = None
         self.held = False
+        self.unassigned: list[Candidate] = []   # this frame's candidates that could be either person
+        self.close_since: int | None = None      # another person close since this frame (see _crowded)
+        self.alone = self.apart = 0
         self.surveys = 0
         self.others_seen = 0
 
@@ -235,9 +262,10 @@ class SubjectTracker:
         if hists:
             self.subject.update(t, centre, hists)
         self.others, self.last_survey, self.held = [], None, False
+        self.close_since, self.alone, self.apart = None, 0, 0
 
     def accept(self, t: int, cand: Candidate, hists: list | None) -> None:
-        self.subject.update(t, cand.centre, hists)
+        self.subject.update(t, cand.centre, hists, cand.points, cand.points_conf)
         if cand.signature is not None:
             self.subject.builds.append(cand.signature)
 
@@ -263,7 +291,21 @@ class SubjectTracker:
 
     def judge(self, t: int, primary: Candidate | None, people: list[Candidate] | None) -> tuple[str, Candidate | None]:
         """The subject at frame ``t``: ``primary`` the crop observation's candidate (None: too few
-        keypoints), ``people`` everyone found at ``t`` (None: nobody looked). Updates the tracks."""
+        keypoints), ``people`` everyone found at ``t`` (None: nobody looked). Updates the tracks.
+
+        Every candidate is labelled against the tracks (gate-relative distances ``s`` to the subject's,
+        ``o`` to the nearest other one): the subject's (inside its gate, not inside another's unless
+        ``DECISIVE``-ly nearer the subject's; after a hold, whose gate has grown, not inside another's
+        at all), another's (the reverse), either's (inside both, neither decisive: one of the two, or a
+        skeleton made of both) or nobody's. One subject's candidate is taken (two: the nearer when
+        decisive, else the colours, else ambiguous); with none, one either's candidate whose colours
+        are clearly the subject's rather than the other person's is taken, else the frame is
+        ambiguous; with neither, the subject is lost, unless one nobody's candidate has the subject's
+        build and colours clearly the subject's rather than every other track's (a jump: a cut to
+        another take, re-associated), or nobody else was ever seen (one person in view: a cut). Other
+        tracks learn only from candidates that are theirs or nobody's: an either's candidate teaches
+        nobody (a track never drifts onto the subject through a mix)."""
+        self.unassigned = []
         if people is not None:
             self.last_survey = t
             self.surveys += 1
@@ -282,39 +324,132 @@ class SubjectTracker:
             primary = same[0] if same else None
         s = np.array([self.subject.score(t, c.centre, self.step_m) for c in cands])
         o = np.array([self._claimed(t, c.centre) for c in cands])
-        # after a hold, the gate has grown: a person another track's gate holds is not taken back
-        inside = [i for i in np.argsort(s) if s[i] <= 1 and not o[i] <= DECISIVE * s[i]
-                  and not self.subject.unlike(cands[i].signature) and not (self.held and o[i] <= 1)]
-        status, chosen = "lost", None
-        if not inside and len(cands) == 1 and not self.others_seen and not self.others:
-            status, chosen = "tracked", cands[0]   # one person in view, nobody else ever seen: a cut or a jump
-        elif len(inside) == 1:
-            i = inside[0]
-            if o[i] > 1 or s[i] <= DECISIVE * o[i] or self._colour_says(cands[i], self._nearest_other(t, cands[i])):
-                status, chosen = "tracked", cands[i]
+        unlike = np.array([self.subject.unlike(c.signature) for c in cands], bool)
+        label = []
+        for i in range(len(cands)):
+            mine = s[i] <= 1 and not unlike[i]
+            theirs = o[i] <= 1
+            if mine and (not theirs or (not self.held and s[i] <= DECISIVE * o[i])):
+                label.append("subject")
+            elif theirs and (not mine or o[i] <= DECISIVE * s[i]):
+                label.append("other")
+            elif mine:
+                label.append("either")
             else:
-                status = "ambiguous"
-        elif len(inside) > 1:
-            i, j = inside[0], inside[1]
-            if s[i] <= DECISIVE * s[j] and (o[i] > 1 or s[i] <= DECISIVE * o[i]):
-                status, chosen = "tracked", cands[i]
-            else:
-                by_colour = sorted(inside, key=lambda k: hist_distance(cands[k].hists, self.subject.model))
-                best, second = by_colour[0], by_colour[1]
-                d0 = hist_distance(cands[best].hists, self.subject.model)
-                d1 = hist_distance(cands[second].hists, self.subject.model)
+                label.append("nobody")
+        label = np.array(label)
+        if self.held:   # after a hold (the gates have grown, the tracks stood still): re-association
+            i = self._reassociate(t, cands, unlike)
+            status, chosen = ("reassociated", cands[i]) if i is not None else (
+                "ambiguous" if (s <= 1).any() else "lost", None)
+        else:
+            status, chosen = "lost", None
+            subject = sorted(np.flatnonzero(label == "subject"), key=lambda k: s[k])
+            either = np.flatnonzero(label == "either")
+            if len(subject) == 1 or (len(subject) > 1 and s[subject[0]] <= DECISIVE * s[subject[1]]):
+                status, chosen = "tracked", cands[subject[0]]
+            elif len(subject) > 1:
+                by_colour = sorted(subject, key=lambda k: hist_distance(cands[k].hists, self.subject.model))
+                d0 = hist_distance(cands[by_colour[0]].hists, self.subject.model)
+                d1 = hist_distance(cands[by_colour[1]].hists, self.subject.model)
                 if np.isfinite(d0) and np.isfinite(d1) and d1 - d0 > COLOUR_MARGIN:
-                    status, chosen = "tracked", cands[best]
+                    status, chosen = "tracked", cands[by_colour[0]]
                 else:
                     status = "ambiguous"
-        log.debug("frame %d: %s; subject scores %s, other-track scores %s", t, status, np.round(s, 2).tolist(),
-                  np.round(o, 2).tolist())
+            elif len(either):
+                by_colour = [k for k in either if self._colour_says(cands[k], self._nearest_other(t, cands[k]))]
+                if len(by_colour) == 1 and len(either) == 1:
+                    status, chosen = "tracked", cands[by_colour[0]]
+                else:
+                    status = "ambiguous"
+            elif not self.others_seen and not self.others and len(cands) == 1 and not unlike[0]:
+                status, chosen = "tracked", cands[0]   # one person in view, nobody else ever seen: a cut or a jump
+            else:
+                jumped = [k for k in np.flatnonzero(label == "nobody")
+                          if not unlike[k] and o[k] > JUMP_CLEAR and self._colour_says_all(t, cands[k])]
+                if len(jumped) == 1:
+                    status, chosen = "jumped", cands[jumped[0]]
+                log.debug("frame %d: a jump? colour distances to the subject %s, to the others %s", t,
+                          [round(hist_distance(c.hists, self.subject.model), 2) for c in cands],
+                          [[round(hist_distance(c.hists, o.model), 2) for o in self.others] for c in cands])
+        log.debug("frame %d: %s; subject scores %s, other-track scores %s, labels %s", t, status,
+                  np.round(s, 2).tolist(), np.round(o, 2).tolist(), label.tolist())
+        # everyone else in view (a second grouping of the subject's own detections lies within 2 x SLACK_M)
+        keep = [i for i, c in enumerate(cands) if c is not chosen and (
+            chosen is None or np.linalg.norm(c.centre - chosen.centre) >= 2 * SLACK_M)]
+        seen = [cands[i] for i in keep]
+        # after a hold, the subject taken back: everyone else apart from it is someone else (their tracks,
+        # standing still through the hold, start again from here)
+        teach = [cands[i] for i in keep if label[i] in ("other", "nobody") or (
+            self.held and chosen is not None and np.linalg.norm((cands[i].centre - chosen.centre)[[0, 2]]) >= CLOSE_M)]
+        self.unassigned = [cands[i] for i in keep if label[i] == "either"]
+        entering = self.close_since is None
+        if (status != "lost" or not entering) and self._crowded(t, chosen, seen):
+            if entering:   # the people just come close are tracked from where they were last seen apart
+                self._finish(t, "crowded", None, teach, seen, new_people=True)
+            self.held, self.unassigned = True, []
+            return "crowded", None
         if chosen is not None and crop is not None and np.linalg.norm(chosen.centre - crop.centre) < SLACK_M:
             chosen = crop
-        # the other people (a second grouping of the subject's own detections lies within 2 x SLACK_M)
-        near = [c for c in cands if c is not chosen and (chosen is None or
-                                                         np.linalg.norm(c.centre - chosen.centre) >= 2 * SLACK_M)]
-        return self._finish(t, status, chosen, near, [c for c in cands if c is not chosen])
+        return self._finish(t, status, chosen, teach, seen)
+
+    def _crowded(self, t: int, chosen: Candidate | None, seen: list[Candidate]) -> bool:
+        """True when another person is within ``CLOSE_M`` (on the floor) of the subject (``chosen``, or
+        where it is predicted): another candidate of ``t``, or another track seen in the last
+        ``NEAR_FRAMES`` frames (where it is predicted: one not found at ``t`` may be merged with the
+        subject or hidden by it). Once crowded, it stays so, with every track standing still (a
+        skeleton there may be a mix of both people, and it would drag a track onto the other person),
+        until the subject is seen apart from someone else (taken back, with another candidate and all of
+        them farther than ``CLOSE_M``) in ``APART_FRAMES`` frames in a row (a ghost of two people's
+        detections paired across views may lie anywhere for a frame), or alone for ``CLOSE_EXPIRE`` surveyed frames (the other one left)."""
+        ref = chosen.centre if chosen is not None else self.subject.predict(t)
+
+        def floor(a):
+            return float(np.linalg.norm((np.asarray(a) - ref)[[0, 2]]))
+
+        here = [floor(c.centre) for c in seen]
+        if self.close_since is not None:
+            self.apart = self.apart + 1 if chosen is not None and here and min(here) >= CLOSE_M else 0
+            if self.apart >= APART_FRAMES:
+                self.close_since, self.alone, self.apart = None, 0, 0
+                return False
+            self.alone = self.alone + 1 if not here else 0
+            if self.alone >= CLOSE_EXPIRE:
+                self.close_since, self.alone, self.apart = None, 0, 0
+                return False
+            return True
+        tracks = [floor(o.predict(t)) for o in self.others if abs(t - o.frame) <= NEAR_FRAMES]
+        if min(here + tracks, default=np.inf) < CLOSE_M:
+            self.close_since, self.alone = t, 0
+            return True
+        return False
+
+    def _reassociate(self, t: int, cands: list[Candidate], unlike: np.ndarray) -> int | None:
+        """After a hold, the index of the candidate taken back as the subject, or None: the one nearest
+        where the subject was last seen, inside its (grown) gate, of its build, decisively nearer it
+        than any other candidate (``DECISIVE``), nearer it than where any other person was last seen,
+        and whose colours are not clearly another person's."""
+        if not cands:
+            return None
+        here = self.subject.predict(t)
+        d = np.array([np.linalg.norm(c.centre - here) for c in cands])
+        order = np.argsort(d)
+        i = int(order[0])
+        if d[i] > self.subject.gate(t, self.step_m) or unlike[i]:
+            return None
+        if len(order) > 1 and d[i] > DECISIVE * d[order[1]]:
+            return None
+        live = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
+        if any(np.linalg.norm(cands[i].centre - o.position) < d[i] for o in live):
+            return None
+        if any(self._colour_says_other(cands[i], o) for o in live):
+            return None
+        return i
+
+    def _colour_says_other(self, cand: Candidate, other: Identity) -> bool:
+        """True when the candidate's colours are clearly ``other``'s rather than the subject's."""
+        d_s, d_o = hist_distance(cand.hists, self.subject.model), hist_distance(cand.hists, other.model)
+        return bool(np.isfinite(d_s) and np.isfinite(d_o) and d_s - d_o > COLOUR_MARGIN)
 
     def _nearest_other(self, t: int, cand: Candidate) -> Identity | None:
         live = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
@@ -327,24 +462,51 @@ class SubjectTracker:
         d_s, d_o = hist_distance(cand.hists, self.subject.model), hist_distance(cand.hists, other.model)
         return bool(np.isfinite(d_s) and np.isfinite(d_o) and d_o - d_s > COLOUR_MARGIN)
 
+    def _colour_says_all(self, t: int, cand: Candidate) -> bool:
+        """True when the candidate's colours are clearly the subject's rather than those of every other
+        person tracked in the last ``FORGET_FRAMES`` frames (at least one, with a colour model)."""
+        live = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
+        return bool(live) and all(self._colour_says(cand, o) for o in live)
+
+    def others_near(self, t: int, exclude: Candidate | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """[((K, 3), (K,))] the keypoints of everyone else at frame ``t``: the other tracks seen at ``t``
+        (where nobody was looked for at ``t``: in the last ``NEAR_FRAMES`` frames, moved to their
+        prediction) and the candidates of ``t`` that could have been either person (:meth:`judge`), but
+        ``exclude``."""
+        recent = 0 if self.last_survey == t else NEAR_FRAMES
+        out = [p for o in self.others if abs(t - o.frame) <= recent and (p := o.predicted_points(t)) is not None]
+        out += [(c.points, c.points_conf) for c in getattr(self, "unassigned", ()) if c is not exclude
+                and c.points is not None]
+        return out
+
+    def others_close(self, t: int, exclude: Candidate | None = None) -> list[np.ndarray]:
+        """[(3,)] where everyone else may be at frame ``t``: the other tracks seen in the last
+        ``NEAR_FRAMES`` frames (their prediction: one not found at ``t`` may be merged with the subject
+        or hidden by it) and the candidates of ``t`` that could have been either person, but ``exclude``."""
+        out = [o.predict(t) for o in self.others if abs(t - o.frame) <= NEAR_FRAMES]
+        return out + [c.centre for c in self.unassigned if c is not exclude]
+
     def _finish(self, t: int, status: str, chosen: Candidate | None, others: list[Candidate],
-                seen: list[Candidate]):
+                seen: list[Candidate], new_people: bool = False):
         """Update the tracks: ``others`` the people not the subject, ``seen`` everyone in view but the
         subject (their boxes keep the colour models clean: a view where someone overlaps a person's
-        torso teaches nothing)."""
+        torso teaches nothing). A new track is started for someone seen beside the subject, or, with
+        ``new_people``, anyone unexplained (the people just come close to the subject)."""
         for c in others:   # the other people's tracks: nearest inside its gate, else a new one
             hists = c.clean_hists([o for o in seen + ([chosen] if chosen is not None else []) if o is not c])
             live = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES and o.frame != t]
             best = min(live, key=lambda o: o.score(t, c.centre, self.step_m), default=None)
             if best is not None and best.score(t, c.centre, self.step_m) <= 1:
-                best.update(t, c.centre, hists)
-            elif chosen is not None:   # someone new, seen beside the subject (while it is held: maybe the subject)
+                best.update(t, c.centre, hists, c.points, c.points_conf)
+            elif chosen is not None or new_people:   # someone new beside the subject (held: maybe the subject)
                 self.others.append(Identity(position=np.asarray(c.centre, np.float64), frame=t))
-                self.others[-1].update(t, c.centre, hists)
+                self.others[-1].update(t, c.centre, hists, c.points, c.points_conf)
                 self.others_seen += 1
         self.others = [o for o in self.others if abs(t - o.frame) <= FORGET_FRAMES]
+        if new_people:
+            return status, None
         if chosen is not None:
-            if self.held:
+            if self.held or status == "jumped":
                 status = "reassociated"
             self.accept(t, chosen, chosen.clean_hists(seen))
         self.held = chosen is None
@@ -392,13 +554,59 @@ def _person_arrays(person, C: int, K: int) -> tuple[np.ndarray, np.ndarray]:
     return xy, conf
 
 
+def clear_of_others(obs, others: list, config, margin: float = CLEAR_MARGIN):
+    """(``obs`` without the keypoints that could be someone else's, views left): in each view, a
+    detected keypoint inside another person's box (their keypoints ``others`` [((K, 3), (K,))]
+    projected, the box grown by ``margin`` of its height) is dropped (where two people overlap in a
+    view, the detector mixes them: a keypoint there may be either's), and so is the whole view where
+    that takes more than half of its confident keypoints; the rest is triangulated again. Views left:
+    those with at least ``MIN_VIEW_POINTS`` confident keypoints."""
+    from dataclasses import replace
+
+    from uvatar.fit.projection import project_distorted
+    from uvatar.fit.triangulate import triangulate
+
+    conf = np.array(obs.conf, np.float32)
+    xy = np.asarray(obs.xy, np.float64)
+    for c, cam in enumerate(obs.cameras):
+        seen = conf[c] >= config.min_conf
+        if not seen.any():
+            continue
+        inside = np.zeros(len(seen), bool)
+        for points, pconf in others:
+            ok = np.asarray(pconf) > 0
+            if ok.sum() < 4:
+                continue
+            pix, z = project_distorted(cam, np.asarray(points, np.float64)[ok])
+            pix = pix[z > 0]
+            if len(pix) < 4:
+                continue
+            lo, hi = pix.min(0), pix.max(0)
+            pad = margin * (hi[1] - lo[1])
+            inside |= np.all((xy[c] >= lo - pad) & (xy[c] <= hi + pad), axis=1)
+        drop = seen & inside
+        if drop.sum() > 0.5 * seen.sum():
+            drop = np.ones_like(seen)
+        conf[c, drop] = 0.0
+    if np.array_equal(conf, obs.conf):
+        return obs, int(((obs.conf >= config.min_conf).sum(1) >= MIN_VIEW_POINTS).sum())
+    tri = triangulate(xy, conf, obs.cameras, config)
+    views = int(((conf >= config.min_conf).sum(1) >= MIN_VIEW_POINTS).sum())
+    return replace(obs, conf=conf, points=tri.points.astype(np.float32), points_conf=tri.conf.astype(np.float32),
+                   reprojection_px=tri.reprojection_px.astype(np.float32)), views
+
+
 def track_frame(tracker: SubjectTracker, t: int, obs, images, cameras, detector, triangulate_config,
                 source: str):
     """(the subject's observation at frame index ``t`` or None where it is held, status): ``obs`` (the
     crop observation of :func:`~uvatar.fit.observe.observe_frame`) judged by ``tracker``; everyone
     in view is found (:func:`~uvatar.fit.person.find_people`) when the tracker asks; a person other
-    than ``obs`` taken as the subject is observed again from its own keypoints. Status "nobody"
-    (``obs`` returned as it is): nobody at all in view, a missed detection, not a question of identity."""
+    than ``obs`` taken as the subject is observed again from its own keypoints. The keypoints that
+    could be another person's are dropped (:func:`clear_of_others`); where fewer than 2 views or
+    ``MIN_POINTS`` triangulated keypoints (the torso among them) are left, the frame is held: status
+    "crowded" (the subject is known, but its keypoints cannot be told from the other person's).
+    Status "nobody" (``obs`` returned as it is): nobody at all in view, a missed detection, not a
+    question of identity."""
     from uvatar.fit.observe import observe_frame
     from uvatar.fit.person import find_people
 
@@ -416,13 +624,31 @@ def track_frame(tracker: SubjectTracker, t: int, obs, images, cameras, detector,
     if chosen is None and primary is None and people == []:
         tracker.held = False   # nobody in view: nobody to confuse the subject with (a plain missed detection)
         return obs, "nobody"
-    if chosen is None or chosen is primary:
-        return (obs if chosen is not None else None), status
-    again = observe_frame(images, cameras, detector, triangulate_config, source, prior=chosen.person)
-    centre = body_centre(again.points, again.points_conf)
-    if centre is not None and np.linalg.norm(centre - chosen.centre) < SLACK_M:
-        return again, status
-    return person_observation(chosen.person, images, cameras, detector, triangulate_config, source), status
+    if chosen is None:
+        return None, status
+    if chosen is not primary:
+        again = observe_frame(images, cameras, detector, triangulate_config, source, prior=chosen.person)
+        centre = body_centre(again.points, again.points_conf)
+        if centre is not None and np.linalg.norm(centre - chosen.centre) < SLACK_M:
+            obs = again
+        else:
+            obs = person_observation(chosen.person, images, cameras, detector, triangulate_config, source)
+    centre = body_centre(obs.points, obs.points_conf)
+    near = [float(np.linalg.norm((c - centre)[[0, 2]])) for c in tracker.others_close(t, exclude=chosen)
+            if centre is not None]
+    if min(near, default=np.inf) < CLOSE_M:
+        log.debug("frame %d: crowded (another person %.2f m away)", t, min(near))
+        return None, "crowded"
+    others = tracker.others_near(t, exclude=chosen)
+    if not others:
+        return obs, status
+    obs, views = clear_of_others(obs, others, triangulate_config)
+    torso = sum(obs.points_conf[k] > 0 for k in _TORSO if k < len(obs.points_conf))
+    if views < 2 or (obs.points_conf > 0).sum() < MIN_POINTS or torso < 3:
+        log.debug("frame %d: crowded (%d views clear of the others, %d keypoints)", t, views,
+                  int((obs.points_conf > 0).sum()))
+        return None, "crowded"
+    return obs, status
 
 
 def images_changed(prior, obs) -> bool:
@@ -437,10 +663,11 @@ def images_changed(prior, obs) -> bool:
 
 
 def identity_report(frames: list[str], statuses: dict, tracker, max_speed: float) -> dict:
-    """``person["identity"]``: the frames lost, ambiguous and re-associated as frame ranges."""
-    held = sorted(set(statuses["lost"]) | set(statuses["ambiguous"]), key=frames.index)
+    """``person["identity"]``: the frames held (lost, ambiguous, crowded: no fit) and re-associated,
+    as frame ranges."""
+    held = sorted(set().union(*(statuses.get(k, ()) for k in STATUSES)), key=frames.index)
     return {"max_speed_m_s": max_speed, "held": frame_ranges(frames, held), "held_frames": len(held),
-            "lost": frame_ranges(frames, statuses["lost"]), "ambiguous": frame_ranges(frames, statuses["ambiguous"]),
+            **{k: frame_ranges(frames, statuses.get(k, [])) for k in STATUSES},
             "reassociated": sorted(statuses["reassociated"], key=frames.index),
             "people_looked_for": tracker.surveys if tracker is not None else 0,
             "other_people_seen": tracker.others_seen if tracker is not None else 0}

@@ -125,7 +125,8 @@ def existing_fits(capture: Capture) -> list[Path]:
 
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
                 progress: bool, choice=None, cut_distance: float = 0.1, chosen=None,
-                avoid: dict | None = None, hide=None, max_speed: float = 3.0) -> tuple[dict, dict, dict]:
+                avoid: dict | None = None, hide=None, max_speed: float = 3.0,
+                avoid_held=()) -> tuple[dict, dict, dict]:
     """Per-frame observations, from ``fitting/keypoints`` (the person's own) where a previous run left
     them; failures; the person report (images: the subject chosen at the seed frame, or ``chosen``
     (seed frame, :class:`~uvatar.fit.person.Person`, report) when given, is tracked forward from it,
@@ -137,7 +138,9 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     ``hide``: see :func:`frame_views` (the detector never sees the subject there). The subject's
     identity is kept by :class:`~uvatar.fit.identity.SubjectTracker` (``max_speed`` m/s): frames where
     it is lost or ambiguous are failures (``identity lost``/``identity ambiguous``), reported in
-    ``person["identity"]``, and get no fit."""
+    ``person["identity"]``, and get no fit; ``avoid_held``: those frames of the subject, where another
+    person is left out too (who is who is open there, and the subject, unfitted, is not hidden from
+    the detector)."""
     from tqdm import tqdm
 
     from uvatar.fit.observe import (
@@ -157,7 +160,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
         seed, seed_prior, person = chosen or choose_people(capture, frames, choice, detector, stages)[0][1:]
         start = frames.index(seed)
         if person is not None and capture.person is None and seed_prior is not None:
-            person["identity"] = {"lost": [], "ambiguous": [], "reassociated": []}
+            person["identity"] = {"lost": [], "ambiguous": [], "crowded": [], "reassociated": []}
     order = frames[start:] + frames[:start][::-1]   # forward from the seed, then backward from it
     prior = seed_prior
     tracker = (SubjectTracker(max_speed / capture.fps)
@@ -174,6 +177,8 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
         path = observation_path(capture.person_root, frame)
         t = frames.index(frame)
         try:
+            if frame in avoid_held:
+                raise UvatarError("the subject's identity is held at this frame (who is who is open); left out")
             if path.is_file():
                 obs = load_observation(path)
                 if obs.source != source:
@@ -203,10 +208,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                         person["identity"][status].append(frame)
                     if obs is None:
                         held[frame] = status
-                        raise UvatarError(f"identity {status}: " + (
-                            "two people could be the subject (positions and colours alike); left out of the fit"
-                            if status == "ambiguous" else "the subject is not seen where it can be; left out of "
-                                                          "the fit"))
+                        raise UvatarError(f"identity {status}: " + _HELD_WHY[status] + "; left out of the fit")
                 save_observation(path, obs)
         except UvatarError as exc:
             failures[frame] = str(exc)
@@ -233,6 +235,11 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
 def mask_camera_names(config: FitConfig) -> list[str]:
     """The cameras named by ``config.mask_cameras`` (empty: every camera)."""
     return [c.strip() for c in config.mask_cameras.split(",") if c.strip()]
+
+
+_HELD_WHY = {"ambiguous": "two people could be the subject (positions and colours alike)",
+             "lost": "the subject is not seen where it can be",
+             "crowded": "another person overlaps the subject in too many views to tell their keypoints apart"}
 
 
 def _person_masks(capture: Capture, frames, cameras, failures: dict, only: list[str] | None = None) -> list:
@@ -368,7 +375,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     for pid, *_ in chosen:
         if pid is not None:
             _refuse_existing(capture.for_person(pid), config, stages, source)
-    summaries, subject_obs = {}, None
+    summaries, subject_obs, subject_held = {}, None, ()
     for pid, seed, prior, report in chosen:
         picked = (seed, prior, report) if prior is not None else None
         if choice.rule == "id" and pid is None:
@@ -378,8 +385,10 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
             continue
         log.info("fitting %s", "the subject" if pid is None else f"person {pid}")
         summaries[pid], observations = _fit_person(capture.for_person(pid), frames, source, body, detector, stages,
-                                                   config, progress, choice, picked, subject_obs)
-        subject_obs = observations if pid is None else subject_obs
+                                                   config, progress, choice, picked, subject_obs, subject_held)
+        if pid is None:
+            subject_obs = observations
+            subject_held = frozenset(summaries[pid]["provenance"].get("identity_held", ()))
         summaries[pid]["seconds"]["choosing_people"] = t_choose
     if choice.rule == "id":
         return summaries[choice.person_id]
@@ -403,10 +412,11 @@ def _refuse_existing(capture: Capture, config: FitConfig, stages: FitStages, sou
 
 
 def _fit_person(capture: Capture, frames: list[str], source: str, body, detector, stages: FitStages,
-                config: FitConfig, progress: bool, choice, chosen=None, avoid=None) -> tuple[dict, dict]:
+                config: FitConfig, progress: bool, choice, chosen=None, avoid=None,
+                avoid_held=()) -> tuple[dict, dict]:
     """Detect, fit and write one person: the subject (``capture.person`` None, chosen by ``choice``
     unless ``chosen`` is given) or another person (``chosen``: their seed frame, Person, report;
-    ``avoid``: the subject's observations, see :func:`_detect_all`); the scans, when present, are the
+    ``avoid``, ``avoid_held``: the subject's observations and held frames, see :func:`_detect_all`); the scans, when present, are the
     subject's alone (their distance and photometric terms are not used for anyone else). Returns
     (summary, the observations {frame: FrameObservation})."""
     from uvatar.fit.body_fit import fit_body_sequence
@@ -422,14 +432,15 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
         log.info("%s: fitted before with these settings; kept", capture.fitting_dir)
         summary = read_json(capture.fitting_dir / "summary.json")
         return summary, _detect_all(capture, frames, source, detector, stages, False, choice, config.cut_distance,
-                                    chosen, avoid, hide, config.max_speed)[0]
+                                    chosen, avoid, hide, config.max_speed, avoid_held)[0]
     keypoints_dir = capture.person_root / "fitting" / "keypoints"
     if stage_record.begin(keypoints_dir, "keypoints", keypoint_record_config(capture, config, stages, source, detector),
                           fit_inputs(capture, source), total=len(frames), on_change="redo").status == "redo":
         for stale in keypoints_dir.glob("*.npz"):   # detected for another person, detector or images
             stale.unlink()
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
-                                                 config.cut_distance, chosen, avoid, hide, config.max_speed)
+                                                 config.cut_distance, chosen, avoid, hide, config.max_speed,
+                                                 avoid_held)
     stage_record.finish(keypoints_dir)
     held = sorted(f for f, why in failures.items() if why.startswith("identity ")) if subject else []
     t_detect = time.perf_counter() - t0
