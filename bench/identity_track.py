@@ -53,6 +53,7 @@ def measure(root: str, body) -> dict:
         "mpjpe_mean_mm": ev["mpjpe_mm"], "mpjpe_worst_frame_mm": max(per_frame.values()),
         "worst_frame": max(per_frame, key=per_frame.get),
         "frames_over_25mm": sorted(f for f, v in per_frame.items() if v > 25.0),
+        "mpjpe_per_frame_mm": {f: round(float(v), 1) for f, v in sorted(per_frame.items())},
         "frames_fitted_to_a_bystander": to_bystander,
         "bystander_floor_gap_min_m": min(gaps), "frames_bystander_within_0.5m": int(sum(g < 0.5 for g in gaps)),
         "identity": summary.get("identity"),

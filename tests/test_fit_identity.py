@@ -59,7 +59,8 @@ def test_the_track_never_switches_to_a_bystander_crossing_close_in_front():
         assert chosen is None or np.allclose(chosen.centre, subject[t]), (t, statuses[t])
         if gap[t] < CLOSE_M:
             assert statuses[t] == "crowded", t
-    assert all(statuses[t] in ("tracked", "reassociated") for t in range(len(subject)) if gap[t] > CLOSE_M + 0.1)
+    # taken back once seen apart 3 frames in a row (the bystander walks 0.077 m a frame)
+    assert all(statuses[t] in ("tracked", "reassociated") for t in range(len(subject)) if gap[t] > CLOSE_M + 0.3)
     assert list(statuses.values()).count("reassociated") == 1 and tracker.others_seen >= 1
 
 
@@ -196,7 +197,7 @@ def test_track_frame_takes_the_subject_back_from_a_crop_that_saw_the_person_in_f
     obs0 = observe_frame(images, cams, det, tri, "images")
     obs, status = track_frame(tracker, 0, obs0, images, cams, det, tri, "images")
     assert status == "tracked"
-    bystander = _person(np.array([0.0, 1.0, 1.0]), rng)   # 1 m in front: beyond CLOSE_M
+    bystander = _person(np.array([0.0, 1.0, 1.3]), rng)   # 1.3 m in front: beyond CLOSE_M
     det = _TwoPeopleDetector(cams, [subject0 + [0.01, 0, 0], bystander])
     images = [det.image(c) for c in range(len(cams))]
     crop = observe_frame(images, cams, det, tri, "images", prior=obs)
@@ -244,8 +245,8 @@ def test_a_jump_is_reassociated_only_by_build_and_colours_clearly_the_subjects()
     # near another person's track (within JUMP_CLEAR gates): never a jump, whatever the colours
     tracker = SubjectTracker(STEP)
     tracker.start(0, np.array([0.0, 1.0, 0.0]), [RED] * 3)
-    tracker.judge(0, None, [_cand(0.0, colour=RED), _cand(1.0, colour=BLUE)])
-    assert tracker.judge(1, None, [_cand(0.6, colour=RED), _cand(1.0, colour=BLUE)])[0] == "lost"
+    tracker.judge(0, None, [_cand(0.0, colour=RED), _cand(1.1, colour=BLUE)])
+    assert tracker.judge(1, None, [_cand(0.6, colour=RED), _cand(1.1, colour=BLUE)])[0] == "lost"
 
 
 def test_a_skeleton_either_person_could_be_teaches_no_track():
@@ -273,11 +274,38 @@ def test_keypoints_over_another_person_are_left_out_and_a_frame_without_two_clea
     far = _person(np.array([2.5, 1.0, 2.5]), rng)
     kept, views = clear_of_others(obs, [(far, np.ones(33))], tri)
     assert views == 4 and (kept.points_conf > 0).sum() == (obs.points_conf > 0).sum()
-    # another person 1 m in front along z: the views looking along z see them overlap, those along x apart
+    # another person 1 m along +z: the views looking along z see them overlap, those along x apart; the
+    # one on the +z side sees it in front of the subject (left out), the one on the -z side behind (kept)
     kept, views = clear_of_others(obs, [(subject + [0.0, 0.0, 1.0], np.ones(33))], tri)
-    along = np.array([abs(cam.R[2] @ [0.0, 0.0, 1.0]) > 0.9 for cam in cams])
-    assert views == 2 and not (kept.conf[along] > 0).any() and (kept.conf[~along] > 0).all()
+    front = np.array([cam.R[2] @ [0.0, 0.0, 1.0] < -0.9 for cam in cams])   # looking along -z: on the +z side
+    assert front.sum() == 1 and views == 3
+    assert not (kept.conf[front] > 0).any() and (kept.conf[~front] > 0).all()
     ok = kept.points_conf > 0
     assert ok.sum() >= 20 and np.abs(kept.points[ok] - obs.points[ok]).max() < 1e-3
-    kept, views = clear_of_others(obs, [(subject + [0.05, 0.0, 0.0], np.ones(33))], tri)
+    kept, views = clear_of_others(obs, [(subject + [0.05, 0.0, 0.0], np.ones(33))], tri)   # the same place
     assert views == 0 and not (kept.conf > 0).any()
+
+
+def test_held_frames_are_reported_and_strict_exits_1(tmp_path, monkeypatch, capsys):
+    """``uvatar fit``: the frames where the subject's identity is held are named by range, and
+    ``--strict`` fails on them (the fit itself stubbed: its summary as fit_capture returns it)."""
+    import uvatar.fit.pipeline as pipeline
+    from uvatar.cli.main import main
+    from uvatar.fit.identity import identity_report
+
+    frames = [f"{i:06d}" for i in range(10)]
+    identity = identity_report(frames, {"lost": ["000002"], "ambiguous": ["000005", "000006"],
+                                        "crowded": ["000007"], "reassociated": ["000008"]}, None, 3.0)
+    summary = {"frames": 10, "frames_fitted": 6, "source": "images", "frames_without_detection": {},
+               "identity": identity}
+    monkeypatch.setattr(pipeline, "fit_capture", lambda *a, **k: dict(summary))
+    assert identity["held"] == ["000002", "000005-000007"] and identity["held_frames"] == 4
+    assert main(["fit", str(tmp_path), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "held in 4 frame(s)" in err and "ambiguous 000005-000006" in err and "crowded" in err and "000007" in err
+    assert "re-associated after a gap at frame(s) 000008" in err
+    assert main(["fit", str(tmp_path), "--no-progress", "--strict"]) == 1
+    assert "--strict: the subject's identity is held" in capsys.readouterr().err
+    summary["identity"] = identity_report(frames, {"lost": [], "ambiguous": [], "crowded": [], "reassociated": []},
+                                          None, 3.0)
+    assert main(["fit", str(tmp_path), "--no-progress", "--strict"]) == 0

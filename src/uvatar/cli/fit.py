@@ -72,7 +72,7 @@ def register(cli) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--strict", action="store_true",
                    help="exit non-zero when any frame has views that disagree with the subject, or the "
-                        "subject's identity is lost or ambiguous")
+                        "subject's identity is held (lost, ambiguous, or another person too close)")
     p.set_defaults(func=_fit)
 
 
@@ -142,12 +142,10 @@ def _fit(args) -> int:
     if args.strict and disagree:
         print(f"error: {args.capture}: --strict: {len(disagree)} frame(s) have views that disagree with the "
               "subject (listed above)", file=sys.stderr)
-        return 1
     if args.strict and held:
-        print(f"error: {args.capture}: --strict: the subject's identity is lost or ambiguous in {held} frame(s) "
-              "(listed above)", file=sys.stderr)
-        return 1
-    return 0
+        print(f"error: {args.capture}: --strict: the subject's identity is held (lost, ambiguous or crowded) in "
+              f"{held} frame(s) (listed above)", file=sys.stderr)
+    return 1 if args.strict and (disagree or held) else 0
 
 
 def _report_identity(summary: dict) -> int:

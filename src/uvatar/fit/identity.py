@@ -21,15 +21,30 @@ person in one frame and stayed there). :class:`SubjectTracker` judges every fram
 - **Appearance**: every identity has a colour model: an RGB histogram (:data:`HIST_BINS`^3 bins) of
   the pixels inside its torso (shoulders and hips) in every view where nobody else overlaps it
   (:func:`torso_histograms`, :meth:`Candidate.clean_hists`). Where the positions do not decide, the colours may.
+- **Close, held**: a skeleton found while another person is within :data:`CLOSE_M` of the subject
+  may be a mix of both (on the synthetic crossing, mixes lay 0.1-0.3 m from each person: inside
+  the gates, with bones of a plausible length), and a track fed with one drifts onto the other
+  person. So from the first frame where someone is that close (another candidate of the frame, or
+  another track seen in the last :data:`NEAR_FRAMES` frames), the frame is ``crowded``: held, and
+  every track stands still, until the subject is seen apart from everyone (the one nearest its last
+  place, others farther than ``CLOSE_M``) in :data:`APART_FRAMES` frames in a row, or alone for
+  :data:`CLOSE_EXPIRE` frames. Beyond ``CLOSE_M``, the keypoints inside another person's box in a
+  view are still left out (:func:`clear_of_others`); too few left is ``crowded`` too.
 - **Held, never guessed**: where no person is the subject (hidden, out of view) the frame is
   ``lost``; where two people could be the subject and neither position nor colours tell them apart,
-  ``ambiguous``; where the subject is known but another person overlaps it in so many views that too
-  few of its keypoints are surely its own (:func:`clear_of_others`), ``crowded``. Those frames are left out of the fit (no keypoints, no fit written), the track
-  keeps its prediction and is re-associated afterwards (``reassociated``): a person inside the gate
-  (grown with the time lost) that no other track explains.
+  ``ambiguous``. Held frames (``lost``, ``ambiguous``, ``crowded``) are left out of the fit (no
+  keypoints, no fit written); after a hold the subject is taken back (``reassociated``,
+  :meth:`SubjectTracker._reassociate`) only as the person nearest its last place, decisively
+  nearer than anyone else and nearer than any other person's last place, of its build, with
+  colours that are not clearly another's; the other people's tracks start again from the people
+  apart from it.
+- **Jumps**: a cut to another take (the synthetic studio's takes) moves the subject beyond its
+  gate; it is taken back (``reassociated``) where one person is there whom no other track is near
+  (:data:`JUMP_CLEAR` gates), of the subject's build, with colours clearly the subject's rather
+  than every other person's; with nobody else ever seen, the one person in view.
 
-A cut to another take (every keypoint jumps and the images change, :mod:`uvatar.fit.tracking`) is
-handled by the caller (the person of the subject's build is found again) and restarts the track.
+A cut detected by the caller (every keypoint jumps and the images change, :mod:`uvatar.fit.tracking`)
+with nobody else ever seen restarts the track (the person of the subject's build found again).
 """
 
 from __future__ import annotations
@@ -58,10 +73,11 @@ MIN_HIST_PIXELS = 30  # fewer torso pixels in a view: no histogram there
 COLOUR_MARGIN = 0.15  # Hellinger distances this far apart tell two people apart by colour
 MIX_BUILD = 0.2       # bone lengths this far (median relative) from the subject's: not the subject (a mix)
 BUILD_FRAMES = 25     # the subject's build: the median over this many last frames
+BEHIND_M = 0.2       # another person's torso this much farther from a camera than the subject's: behind it
 CLEAR_MARGIN = 0.1    # another person's keypoint box grown by this share of its height (their body's outline)
 MIN_VIEW_POINTS = 8   # confident keypoints a view keeps clear of the others to count
 MIN_POINTS = 12       # keypoints triangulated from the views clear of the others, else the frame is held
-CLOSE_M = 0.9         # another person's torso this close (on the floor) to the subject's: the frame is held
+CLOSE_M = 1.0         # another person's torso this close (on the floor) to the subject's: the frame is held
 APART_FRAMES = 3      # frames in a row the subject is seen apart from the others that end a crowded stretch
 CLOSE_EXPIRE = 25     # surveyed frames alone that end a crowded stretch (the other person left)
 JUMP_CLEAR = 2.0      # a jump (a cut) is re-associated only this far (gate-relative) from every other track
@@ -556,9 +572,11 @@ def _person_arrays(person, C: int, K: int) -> tuple[np.ndarray, np.ndarray]:
 
 def clear_of_others(obs, others: list, config, margin: float = CLEAR_MARGIN):
     """(``obs`` without the keypoints that could be someone else's, views left): in each view, a
-    detected keypoint inside another person's box (their keypoints ``others`` [((K, 3), (K,))]
-    projected, the box grown by ``margin`` of its height) is dropped (where two people overlap in a
-    view, the detector mixes them: a keypoint there may be either's), and so is the whole view where
+    detected keypoint inside the box of another person in front of the subject (their keypoints
+    ``others`` [((K, 3), (K,))] projected, the box grown by ``margin`` of its height; their torso
+    nearer that camera than ``BEHIND_M`` beyond the subject's) is dropped (where a person in front
+    overlaps the subject in a view, the detector mixes them or takes the one in front; one behind is
+    hidden by the subject where they overlap), and so is the whole view where
     that takes more than half of its confident keypoints; the rest is triangulated again. Views left:
     those with at least ``MIN_VIEW_POINTS`` confident keypoints."""
     from dataclasses import replace
@@ -568,15 +586,20 @@ def clear_of_others(obs, others: list, config, margin: float = CLEAR_MARGIN):
 
     conf = np.array(obs.conf, np.float32)
     xy = np.asarray(obs.xy, np.float64)
+    centre = body_centre(obs.points, obs.points_conf)
     for c, cam in enumerate(obs.cameras):
         seen = conf[c] >= config.min_conf
         if not seen.any():
             continue
         inside = np.zeros(len(seen), bool)
+        depth = np.inf if centre is None else float(cam.world_to_camera(centre[None])[0, 2])
         for points, pconf in others:
             ok = np.asarray(pconf) > 0
             if ok.sum() < 4:
                 continue
+            theirs = body_centre(points, pconf)
+            if theirs is not None and float(cam.world_to_camera(theirs[None])[0, 2]) > depth + BEHIND_M:
+                continue   # behind the subject in this view: the subject's pixels there are its own
             pix, z = project_distorted(cam, np.asarray(points, np.float64)[ok])
             pix = pix[z > 0]
             if len(pix) < 4:

@@ -137,7 +137,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     only the subject is found is left to its neighbours (a failure), never fitted to the subject;
     ``hide``: see :func:`frame_views` (the detector never sees the subject there). The subject's
     identity is kept by :class:`~uvatar.fit.identity.SubjectTracker` (``max_speed`` m/s): frames where
-    it is lost or ambiguous are failures (``identity lost``/``identity ambiguous``), reported in
+    it is lost, ambiguous or crowded are failures (``identity lost``/``ambiguous``/``crowded``), reported in
     ``person["identity"]``, and get no fit; ``avoid_held``: those frames of the subject, where another
     person is left out too (who is who is open there, and the subject, unfitted, is not hidden from
     the detector)."""
@@ -239,7 +239,8 @@ def mask_camera_names(config: FitConfig) -> list[str]:
 
 _HELD_WHY = {"ambiguous": "two people could be the subject (positions and colours alike)",
              "lost": "the subject is not seen where it can be",
-             "crowded": "another person overlaps the subject in too many views to tell their keypoints apart"}
+             "crowded": "another person is too close to the subject (their keypoints may be mixed) or over it "
+                        "in too many views"}
 
 
 def _person_masks(capture: Capture, frames, cameras, failures: dict, only: list[str] | None = None) -> list:
