@@ -181,7 +181,10 @@ def test_person_all_fits_the_subject_and_the_bystander_each_near_their_truth(cro
         cap = Capture(root, pid)
         fitted = [f for f in cap.frames if cap.has_fit(f)]
         unseen = (summary if pid is None else summary["people"][pid])["frames_without_detection"]
-        assert fitted == [f for f in cap.frames if pid is None or f not in unseen] and len(fitted) >= 2
+        held = summary["provenance"].get("identity_held", [])   # the subject's identity held: no fit, reported
+        assert pid is not None or all(unseen[f].startswith("identity ") for f in held)
+        assert fitted == [f for f in cap.frames if (f not in held if pid is None else f not in unseen)]
+        assert len(fitted) >= 2
         ev = evaluate_fits(body, cap, {f: cap.load_fit(f) for f in fitted}, cap.body_shapes)
         errors[pid] = ev["mpjpe_mm"]
         if pid is not None:

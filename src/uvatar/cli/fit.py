@@ -19,7 +19,8 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
     from uvatar.fit.views import ScanViewsConfig
 
     fit = ConfigFlags(FitConfig, fields=("source", "model", "model_dir", "detector", "scan_distance", "scan_points",
-                                         "photo_size", "overlay_frames", "refine_cameras", "masks", "mask_cameras", "device", "force", "person"),
+                                         "photo_size", "overlay_frames", "refine_cameras", "masks", "mask_cameras", "device", "force", "person",
+                                         "max_speed"),
                       rename={"source": "from"}, choices={"source": FIT_SOURCES, "model": BODY_MODELS}, help={
                           "source": "images: the capture's cameras; scans: renders of each scan from virtual "
                                     "cameras; auto: images when the capture has cameras and images",
@@ -43,7 +44,10 @@ def _flags() -> tuple[ConfigFlags, ConfigFlags]:
                                     "(seen by the most cameras), largest, centre, nearest-to:X,Y,Z (metres), "
                                     "box:CAM:FRAME:X0,Y0,X1,Y1 or point:CAM:FRAME:X,Y (pixels); all: the subject into "
                                     "fits/ and every other person into people/<ID>/; ID (1, 2, ...): that "
-                                    "other person alone"})
+                                    "other person alone",
+                          "max_speed": "m/s the subject can move between frames: a person found farther from "
+                                       "where the subject was is someone else (frames where the subject is "
+                                       "lost or could be either person are reported and left out of the fit)"})
     views = ConfigFlags(ScanViewsConfig, fields=("count",), rename={"count": "views"},
                         help={"count": "virtual cameras per scan for --from scans"})
     return fit, views
@@ -67,7 +71,8 @@ def register(cli) -> None:
     p.add_argument("--json", default=None, help="write the summary (and --eval metrics) to this JSON file")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--strict", action="store_true",
-                   help="exit non-zero when any frame has views that disagree with the subject")
+                   help="exit non-zero when any frame has views that disagree with the subject, or the "
+                        "subject's identity is held (lost, ambiguous, or another person too close)")
     p.set_defaults(func=_fit)
 
 
@@ -128,6 +133,7 @@ def _fit(args) -> int:
         print(f"person {pid}: fitted into people/{pid}/ ({other['person']['why']}); "
               f"{len(other['views_disagree'])} frame(s) with views that disagree, cuts after "
               f"{', '.join(other['cuts_after']) or 'none'}", file=sys.stderr)
+    held = _report_identity(summary)
     if args.json:
         write_json(args.json, summary)
     else:
@@ -136,8 +142,23 @@ def _fit(args) -> int:
     if args.strict and disagree:
         print(f"error: {args.capture}: --strict: {len(disagree)} frame(s) have views that disagree with the "
               "subject (listed above)", file=sys.stderr)
-        return 1
-    return 0
+    if args.strict and held:
+        print(f"error: {args.capture}: --strict: the subject's identity is held (lost, ambiguous or crowded) in "
+              f"{held} frame(s) (listed above)", file=sys.stderr)
+    return 1 if args.strict and (disagree or held) else 0
+
+
+def _report_identity(summary: dict) -> int:
+    """Print the frames where the subject's track was lost or ambiguous; returns how many."""
+    identity = summary.get("identity") or {}
+    if identity.get("held_frames"):
+        print(f"subject's identity held in {identity['held_frames']} frame(s), left out of the fit (no fit "
+              f"written): lost {', '.join(identity['lost']) or 'none'}; ambiguous "
+              f"{', '.join(identity['ambiguous']) or 'none'}; crowded (another person over it in too many "
+              f"views) {', '.join(identity.get('crowded') or []) or 'none'}", file=sys.stderr)
+    if identity.get("reassociated"):
+        print(f"subject re-associated after a gap at frame(s) {', '.join(identity['reassociated'])}", file=sys.stderr)
+    return int(identity.get("held_frames") or 0)
 
 
 def _has_fits(root, person: str) -> bool:

@@ -60,6 +60,14 @@ def _masks(args) -> int:
         print("colour models (confident pixels): " + ", ".join(
             f"{who if who == 'subject' else 'people/' + who} {n:,}" for who, n in summary["colour_pixels"].items()),
             file=sys.stderr)
+    if summary.get("identity_held"):
+        print(f"empty subject masks in {len(summary['identity_held'])} image(s): `uvatar fit` held the subject's "
+              f"identity there (lost or ambiguous, no fit): {', '.join(summary['identity_held'][:12])}"
+              + (" ..." if len(summary["identity_held"]) > 12 else ""), file=sys.stderr)
+    if summary.get("partial"):
+        print(f"partial subject masks (hidden or cut off, under half of the fitted silhouette) in "
+              f"{sum(map(len, summary['partial'].values()))} image(s): "
+              + "; ".join(f"{f} {','.join(c)}" for f, c in sorted(summary["partial"].items())), file=sys.stderr)
     for image, reason in list(summary["failed"].items())[:10]:
         print(f"  {image}: {reason}", file=sys.stderr)
     return 0

@@ -11,12 +11,13 @@ from uvatar.cli.flags import ConfigFlags
 
 
 def _flags() -> ConfigFlags:
-    from uvatar.capture.synth.config import PRESETS, SynthConfig
+    from uvatar.capture.synth.config import BYSTANDER_LOOKS, BYSTANDER_PATHS, PRESETS, SynthConfig
 
     return ConfigFlags(
         SynthConfig, fields=("frames", "cameras", "image_size", "scan_texture", "gt_texels", "fit_noise_deg",
-                             "fit_tracks", "heldout", "seed", "workers", "preview", "bystanders", "light"),
-        choices={"fit_tracks": ("body", "all"), "light": ("studio", "none")}, presets=PRESETS, help={
+                             "fit_tracks", "heldout", "seed", "workers", "preview", "bystanders", "bystander_path", "bystander_look", "light"),
+        choices={"fit_tracks": ("body", "all"), "light": ("studio", "none"), "bystander_path": BYSTANDER_PATHS,
+                 "bystander_look": BYSTANDER_LOOKS}, presets=PRESETS, help={
             "frames": "total frames (takes + held-out)", "cameras": "multi-view cameras (ring + elevated); 0 for none",
             "image_size": "square image side in pixels", "scan_texture": "scan atlas texture side in texels",
             "gt_texels": "ground-truth map side in body-UV texels",
@@ -27,6 +28,9 @@ def _flags() -> ConfigFlags:
             "preview": "write OUT/preview.png",
             "bystanders": "more people in the images (own shape, clothes and motion); ground truth, "
                           "scans and masks stay the subject's",
+            "bystander_path": "circle: around the subject at 1.1 m; cross: of the subject's height, crossing in "
+                              "front of the subject, staying within 0.5 m, then passing behind (the hard case)",
+            "bystander_look": "own: other clothes; subject: the subject's clothes colours",
             "light": "studio: key/fill/ambient light with cast shadows and ambient occlusion baked into the "
                      "texture; none: unlit (as captures made before the light)"})
 

@@ -54,12 +54,13 @@ CLEAR_PX = 1               # a person's mask keeps this many pixels clear of ano
 BACKGROUND_TOL = 0.1       # a pixel this far (max over RGB, [0, 1]) from the background is foreground
 
 
-def colour_index(image: np.ndarray) -> np.ndarray:
-    """(H, W) int32 histogram bin of every pixel of ``image`` (H, W, 3), float in [0, 1] or uint8."""
+def colour_index(image: np.ndarray, bins: int = BINS) -> np.ndarray:
+    """(H, W) int32 histogram bin (of ``bins`` ** 3, ``bins`` a power of two <= 256) of every pixel of
+    ``image`` (H, W, 3), float in [0, 1] or uint8."""
     img = np.asarray(image)
     q = img if img.dtype == np.uint8 else np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    q = (q[..., :3] // (256 // BINS)).astype(np.int32)
-    return (q[..., 0] * BINS + q[..., 1]) * BINS + q[..., 2]
+    q = (q[..., :3] // (256 // bins)).astype(np.int32)
+    return (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2]
 
 
 class ColourModel:

@@ -40,6 +40,8 @@ from uvatar.fit.depth_order import disc as _disc
 
 log = logging.getLogger(__name__)
 
+PARTIAL_FRACTION = 0.5   # a subject mask covering less of its fitted silhouette is reported as partial
+
 __all__ = ["MaskConfig", "body_silhouette", "body_depth", "nearest_region", "person_mask", "write_capture_masks",
            "other_person_region", "hide_body", "posed_vertices", "FAR"]
 
@@ -212,7 +214,10 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     other fitted person (``people/<id>/``, depth-ordered; see the module doc); returns a summary
     ({"written", "kept", "failed": {image: reason}, "not_seen": images of another person's frames
     without a fit, "people": ids, "colour_pixels": {person: confident pixels of their colour model}
-    with ``appearance``}). Needs fits unless ``config.use_fit`` is off (then the subject's masks
+    with ``appearance``, "identity_held": "cam/frame" of the frames where ``uvatar fit`` held the
+    subject's identity (lost or ambiguous: no fit; an empty mask is written), "partial": {frame:
+    cameras} where the subject's mask covers less than ``PARTIAL_FRACTION`` of its fitted silhouette
+    (hidden behind someone, or cut off)}). Needs fits unless ``config.use_fit`` is off (then the subject's masks
     alone, from the segmenter). With ``appearance`` and other people, the masks are written after
     every image is segmented (the colour models need them all; held in memory, packed)."""
     from tqdm import tqdm
@@ -242,7 +247,10 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         detector = load_detector("mediapipe")
     jobs = [(f, c) for f in frames for c in cameras]
     _begin_record(capture, people, config, len(jobs) * len(people))
-    summary = {"written": 0, "kept": 0, "failed": {}, "not_seen": 0, "people": [p.person for p in people[1:]]}
+    summary = {"written": 0, "kept": 0, "failed": {}, "not_seen": 0, "people": [p.person for p in people[1:]],
+               "identity_held": [], "partial": {}}
+    held = set(((capture.info.get("provenance") or {}).get("fit") or {}).get("identity_held") or ()) \
+        if config.use_fit else set()
     colour = _ColourPass(config, people, cameras) if config.appearance and body is not None \
         and len(people) > 1 else None
     poser = _Poser(body, people)
@@ -252,6 +260,13 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         summary["kept"] += len(people) - len(todo)
         if not todo:
             continue
+        if frame in held and 0 in todo:   # the fit left the subject's identity open: no pixel is surely theirs
+            image_shape = (cameras[cam_name].height, cameras[cam_name].width)
+            _write_mask(capture, cam_name, frame, np.zeros(image_shape, bool), summary)
+            summary["identity_held"].append(f"{cam_name}/{frame}")
+            todo = [k for k in todo if k != 0]
+            if not todo:
+                continue
         posed = poser.frame(frame)
         try:
             image = _load_image(capture, cam_name, frame)
@@ -278,6 +293,9 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
                         allowed, hide = _depth_order(depths, k, dilate_px(config, cam.height))
                 masks[k] = person_mask(image, segmenter, prior, config, None if others else detector, allowed,
                                        hide)
+                if k == 0 and prior is not None and prior.any() and \
+                        (masks[k] & prior).sum() < PARTIAL_FRACTION * prior.sum():
+                    summary["partial"].setdefault(frame, []).append(cam_name)   # hidden or cut off in this view
             except UvatarError as exc:
                 _failed(summary, person, cam_name, frame, exc)
         if colour is not None:

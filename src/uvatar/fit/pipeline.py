@@ -23,6 +23,7 @@ from uvatar import stage_record
 from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.calibration import refine_capture_cameras
+from uvatar.fit.identity import SubjectTracker, body_centre, identity_report, images_changed, track_frame
 from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
 from uvatar.fit.records import check_person_choice, fit_inputs, fit_record_config, keypoint_record_config
 from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
@@ -67,6 +68,8 @@ class FitConfig:
     force: replace existing fits.
     person: which person to fit from images when several are in view (:mod:`uvatar.fit.person`):
         most-views, largest, centre, nearest-to:X,Y,Z, box:CAM:FRAME:X0,Y0,X1,Y1 or point:CAM:FRAME:X,Y.
+    max_speed: m/s; the subject's torso cannot move faster than this between frames: a person found
+        farther from where the subject was is another person (:mod:`uvatar.fit.identity`).
     """
 
     source: str = "auto"
@@ -86,12 +89,14 @@ class FitConfig:
     device: str = "cpu"
     seed: int = 0
     person: str = "most-views"
+    max_speed: float = 3.0
 
     def __post_init__(self) -> None:
         check_values([
             (self.source in FIT_SOURCES, f"source must be one of {', '.join(FIT_SOURCES)}, got {self.source!r}"),
             (self.scan_points >= 100, f"scan_points must be at least 100, got {self.scan_points}"),
             (self.cut_distance > 0, f"cut_distance must be > 0, got {self.cut_distance}"),
+            (self.max_speed > 0, f"max_speed must be > 0, got {self.max_speed}"),
             (self.photo_size == 0 or self.photo_size >= 32, f"photo_size must be 0 or >= 32, got {self.photo_size}"),
             (self.overlay_frames >= 0, f"overlay_frames must be >= 0, got {self.overlay_frames}"),
             (self.overlay_width >= 32, f"overlay_width must be at least 32, got {self.overlay_width}"),
@@ -122,7 +127,8 @@ def existing_fits(capture: Capture) -> list[Path]:
 
 def _detect_all(capture: Capture, frames: list[str], source: str, detector, stages: FitStages,
                 progress: bool, choice=None, cut_distance: float = 0.1, chosen=None,
-                avoid: dict | None = None, hide=None) -> tuple[dict, dict, dict]:
+                avoid: dict | None = None, hide=None, max_speed: float = 3.0,
+                avoid_held=()) -> tuple[dict, dict, dict]:
     """Per-frame observations, from ``fitting/keypoints`` (the person's own) where a previous run left
     them; failures; the person report (images: the subject chosen at the seed frame, or ``chosen``
     (seed frame, :class:`~uvatar.fit.person.Person`, report) when given, is tracked forward from it,
@@ -131,7 +137,12 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     ``avoid`` ({frame: the subject's observation}, when another person is tracked): where the track
     lands on the subject, the person is looked for again away from the subject, and a frame where
     only the subject is found is left to its neighbours (a failure), never fitted to the subject;
-    ``hide``: see :func:`frame_views` (the detector never sees the subject there)."""
+    ``hide``: see :func:`frame_views` (the detector never sees the subject there). The subject's
+    identity is kept by :class:`~uvatar.fit.identity.SubjectTracker` (``max_speed`` m/s): frames where
+    it is lost, ambiguous or crowded are failures (``identity lost``/``ambiguous``/``crowded``), reported in
+    ``person["identity"]``, and get no fit; ``avoid_held``: those frames of the subject, where another
+    person is left out too (who is who is open there, and the subject, unfitted, is not hidden from
+    the detector)."""
     from tqdm import tqdm
 
     from uvatar.fit.observe import (
@@ -150,30 +161,56 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             choice is not None and not all(observation_path(capture.person_root, f).is_file() for f in frames))):
         seed, seed_prior, person = chosen or choose_people(capture, frames, choice, detector, stages)[0][1:]
         start = frames.index(seed)
+        if person is not None and capture.person is None and seed_prior is not None:
+            person["identity"] = {"lost": [], "ambiguous": [], "crowded": [], "reassociated": []}
     order = frames[start:] + frames[:start][::-1]   # forward from the seed, then backward from it
     prior = seed_prior
+    tracker = (SubjectTracker(max_speed / capture.fps)
+               if person is not None and capture.person is None and seed_prior is not None else None)
+    held: dict[str, str] = {}
+    if tracker is not None:
+        tracker.start(start, body_centre(seed_prior.points, seed_prior.points_conf))
     bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
     for n, frame in enumerate(bar):
         if start and n == len(frames) - start:
             prior = observations.get(frames[start], seed_prior)  # the backward pass starts at the seed
+            if tracker is not None:
+                tracker.start(start, body_centre(prior.points, prior.points_conf))
         path = observation_path(capture.person_root, frame)
+        t = frames.index(frame)
         try:
+            if frame in avoid_held:
+                raise UvatarError("the subject's identity is held at this frame (who is who is open); left out")
             if path.is_file():
                 obs = load_observation(path)
                 if obs.source != source:
                     raise InputError(path, f"keypoints come from {obs.source}, not {source}")
+                centre = body_centre(obs.points, obs.points_conf) if tracker is not None else None
+                if centre is not None:
+                    tracker.subject.update(t, centre)
             else:
                 images, cameras = frame_views(capture, frame, source, stages, hide)
                 use_prior = prior if source == "images" else None
                 obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=use_prior)
                 subject = (avoid or {}).get(frame)
-                if person is not None and use_prior is not None and (lost(use_prior, obs, cut_distance)
-                                                                     or is_at(obs, subject)):
+                cut = use_prior is not None and lost(use_prior, obs, cut_distance)
+                if tracker is not None:   # with other people seen, only the tracker re-finds the subject
+                    cut = cut and images_changed(use_prior, obs) and not tracker.others_seen
+                if person is not None and use_prior is not None and (cut or is_at(obs, subject)):
                     again = find_again(capture, frame, detector, stages, build_so_far(observations, seed_prior),
                                       subject, hide)
                     if again is not None:
                         obs = observe_frame(images, cameras, detector, stages.triangulate, source, prior=again)
                         person["chosen_again_after_cuts"].append(frame)
+                        if tracker is not None:
+                            tracker.start(t, body_centre(obs.points, obs.points_conf))
+                if tracker is not None:
+                    obs, status = track_frame(tracker, t, obs, images, cameras, detector, stages.triangulate, source)
+                    if status not in ("tracked", "nobody"):
+                        person["identity"][status].append(frame)
+                    if obs is None:
+                        held[frame] = status
+                        raise UvatarError(f"identity {status}: " + _HELD_WHY[status] + "; left out of the fit")
                 save_observation(path, obs)
         except UvatarError as exc:
             failures[frame] = str(exc)
@@ -192,12 +229,20 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             failures[frame] = f"only {seen} of {views} views of the scan show a person (a broken scan?)"
         else:
             prior = obs
+    if person is not None and "identity" in person:
+        person["identity"] = identity_report(frames, person["identity"], tracker, max_speed)
     return {f: observations[f] for f in frames if f in observations}, failures, person
 
 
 def mask_camera_names(config: FitConfig) -> list[str]:
     """The cameras named by ``config.mask_cameras`` (empty: every camera)."""
     return [c.strip() for c in config.mask_cameras.split(",") if c.strip()]
+
+
+_HELD_WHY = {"ambiguous": "two people could be the subject (positions and colours alike)",
+             "lost": "the subject is not seen where it can be",
+             "crowded": "another person is too close to the subject (their keypoints may be mixed) or over it "
+                        "in too many views"}
 
 
 def _person_masks(capture: Capture, frames, cameras, failures: dict, only: list[str] | None = None) -> list:
@@ -227,11 +272,13 @@ def _person_masks(capture: Capture, frames, cameras, failures: dict, only: list[
 def _write_fits(capture: Capture, frames, result, body, config: FitConfig, provenance: dict) -> None:
     """The fits, shape and provenance. Another person than the subject gets no fit where they were
     not detected (``provenance["frames_without_detection"]``): a person walking out of the views is
-    not there, and a body filled in from their neighbouring frames would claim pixels in the masks."""
+    not there, and a body filled in from their neighbouring frames would claim pixels in the masks.
+    The subject gets none where its identity is held (``provenance["identity_held"]``)."""
     from uvatar.capture.fits import write_fit
     from uvatar.capture.types import BodyFit
 
-    unseen = set(provenance["frames_without_detection"]) if capture.person is not None else set()
+    unseen = set(provenance["frames_without_detection"]) if capture.person is not None \
+        else set(provenance.get("identity_held", ()))
     for t, frame in enumerate(frames):
         if frame in unseen:
             continue
@@ -335,7 +382,7 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
     for pid, *_ in chosen:
         if pid is not None:
             _refuse_existing(capture.for_person(pid), config, stages, source)
-    summaries, subject_obs = {}, None
+    summaries, subject_obs, subject_held = {}, None, ()
     for pid, seed, prior, report in chosen:
         picked = (seed, prior, report) if prior is not None else None
         if choice.rule == "id" and pid is None:
@@ -345,8 +392,10 @@ def fit_capture(root: str | Path, config: FitConfig | None = None, stages: FitSt
             continue
         log.info("fitting %s", "the subject" if pid is None else f"person {pid}")
         summaries[pid], observations = _fit_person(capture.for_person(pid), frames, source, body, detector, stages,
-                                                   config, progress, choice, picked, subject_obs)
-        subject_obs = observations if pid is None else subject_obs
+                                                   config, progress, choice, picked, subject_obs, subject_held)
+        if pid is None:
+            subject_obs = observations
+            subject_held = frozenset(summaries[pid]["provenance"].get("identity_held", ()))
         summaries[pid]["seconds"]["choosing_people"] = t_choose
     if choice.rule == "id":
         return summaries[choice.person_id]
@@ -370,10 +419,11 @@ def _refuse_existing(capture: Capture, config: FitConfig, stages: FitStages, sou
 
 
 def _fit_person(capture: Capture, frames: list[str], source: str, body, detector, stages: FitStages,
-                config: FitConfig, progress: bool, choice, chosen=None, avoid=None) -> tuple[dict, dict]:
+                config: FitConfig, progress: bool, choice, chosen=None, avoid=None,
+                avoid_held=()) -> tuple[dict, dict]:
     """Detect, fit and write one person: the subject (``capture.person`` None, chosen by ``choice``
     unless ``chosen`` is given) or another person (``chosen``: their seed frame, Person, report;
-    ``avoid``: the subject's observations, see :func:`_detect_all`); the scans, when present, are the
+    ``avoid``, ``avoid_held``: the subject's observations and held frames, see :func:`_detect_all`); the scans, when present, are the
     subject's alone (their distance and photometric terms are not used for anyone else). Returns
     (summary, the observations {frame: FrameObservation})."""
     from uvatar.fit.body_fit import fit_body_sequence
@@ -389,15 +439,17 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
         log.info("%s: fitted before with these settings; kept", capture.fitting_dir)
         summary = read_json(capture.fitting_dir / "summary.json")
         return summary, _detect_all(capture, frames, source, detector, stages, False, choice, config.cut_distance,
-                                    chosen, avoid, hide)[0]
+                                    chosen, avoid, hide, config.max_speed, avoid_held)[0]
     keypoints_dir = capture.person_root / "fitting" / "keypoints"
     if stage_record.begin(keypoints_dir, "keypoints", keypoint_record_config(capture, config, stages, source, detector),
                           fit_inputs(capture, source), total=len(frames), on_change="redo").status == "redo":
         for stale in keypoints_dir.glob("*.npz"):   # detected for another person, detector or images
             stale.unlink()
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
-                                                 config.cut_distance, chosen, avoid, hide)
+                                                 config.cut_distance, chosen, avoid, hide, config.max_speed,
+                                                 avoid_held)
     stage_record.finish(keypoints_dir)
+    held = sorted(f for f, why in failures.items() if why.startswith("identity ")) if subject else []
     t_detect = time.perf_counter() - t0
     use_scans = subject and config.scan_distance and capture.scans_dir.is_dir()
     photo = (replace(stages.views, image_size=config.photo_size)
@@ -434,6 +486,8 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
         "body_model": body.name, "losses": _loss_names(obs, stages.body),
         "config": asdict(config), "frames_without_detection": sorted(failures),
     }
+    if held:
+        provenance["identity_held"] = held
     _write_fits(capture, frames, result, body, config, provenance)
 
     import torch
@@ -445,12 +499,12 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
         body_points = BodyKeypoints(body)(posed).cpu().numpy()
     summary = {
         "capture": str(capture.root), "person_id": capture.person, "source": source, "frames": len(frames),
-        "frames_fitted": len(frames) - (len(failures) if capture.person is not None else 0),
+        "frames_fitted": len(frames) - (len(failures) if capture.person is not None else len(held)),
         "frames_without_detection": failures,
         "cuts_after": [frames[t] for t in np.flatnonzero(~obs.continuous)],
         "relabelled_left_right": relabelled,
         "views_disagree": {f: list(o.rejected) for f, o in observations.items() if o.rejected},
-        "person": person, "cameras_refined": cameras_refined,
+        "person": person, "identity": (person or {}).get("identity"), "cameras_refined": cameras_refined,
         "body_model": body.name, "shape": np.asarray(result.shape).tolist(),
         "reprojection": _reprojection_stats(observations, frames, body_points, stages.triangulate.min_conf),
         "frame_loss": {f: float(result.frame_loss[t]) for t, f in enumerate(frames)},

@@ -14,7 +14,10 @@ from uvatar.capture.synth.lighting import LightConfig
 from uvatar.capture.synth.motion import MotionConfig
 from uvatar.errors import check_values
 
-__all__ = ["SynthConfig", "PRESETS", "preset"]
+__all__ = ["SynthConfig", "PRESETS", "preset", "BYSTANDER_PATHS", "BYSTANDER_LOOKS"]
+
+BYSTANDER_PATHS = ("circle", "cross")
+BYSTANDER_LOOKS = ("own", "subject")
 
 
 @dataclass(frozen=True)
@@ -33,7 +36,10 @@ class SynthConfig:
     broken frame per this many (at least one when frames >= 20); broken_fraction: range of the
     surface fraction cut away; scan_noise: scan vertex noise along the normal (m); chart_area:
     max xatlas chart area (m^2); background: image background grey level; preview: write
-    OUT/preview.png; bystanders: more people in the images (:mod:`.bystanders`); light: "studio" (the
+    OUT/preview.png; bystanders: more people in the images (:mod:`.bystanders`); bystander_path:
+    "circle" (a circle of 1.1 m around the subject) or "cross" (the hard case: each bystander, of the
+    subject's height, crosses in front of the subject, stays within 0.5 m of it, then passes behind);
+    bystander_look: "own" (other clothes) or "subject" (the subject's clothes colours); light: "studio" (the
     fixed key/fill/ambient rig with cast shadows and ambient occlusion baked into every frame's
     texture, :mod:`.lighting`, set by ``lighting``) or "none" (unlit: albedo times creases, as
     captures made before the rig)."""
@@ -59,6 +65,8 @@ class SynthConfig:
     body_model: str = "anny"
     preview: bool = True
     bystanders: int = 0
+    bystander_path: str = "circle"
+    bystander_look: str = "own"
     light: str = "studio"
     motion: MotionConfig = field(default_factory=MotionConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
@@ -78,6 +86,10 @@ class SynthConfig:
             (self.light in ("studio", "none"), f"light must be 'studio' or 'none', got {self.light!r}"),
             (self.heldout is None or self.heldout >= 0, f"heldout must not be negative, got {self.heldout}"),
             (self.workers >= 1, f"workers must be at least 1, got {self.workers}"),
+            (self.bystander_path in BYSTANDER_PATHS,
+             f"bystander_path must be one of {', '.join(BYSTANDER_PATHS)}, got {self.bystander_path!r}"),
+            (self.bystander_look in BYSTANDER_LOOKS,
+             f"bystander_look must be one of {', '.join(BYSTANDER_LOOKS)}, got {self.bystander_look!r}"),
             (self.bystanders >= 0, f"bystanders must not be negative, got {self.bystanders}")])
 
     def heldout_count(self) -> int:

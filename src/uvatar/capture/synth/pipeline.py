@@ -71,7 +71,7 @@ def make_plan(body, cfg: SynthConfig) -> dict:
     """The whole capture's plan (picklable): frames, true motion, shape, segments, broken frames,
     cameras, takes and held-out frames."""
     from uvatar.capture.synth.cameras import studio_cameras
-    from uvatar.capture.synth.motion import concat_takes, make_heldout, make_takes
+    from uvatar.capture.synth.motion import concat_takes, ground_translations, make_heldout, make_takes
 
     n = int(cfg.frames)  # >= 1 (SynthConfig checks it)
     heldout = cfg.heldout_count()
@@ -82,9 +82,12 @@ def make_plan(body, cfg: SynthConfig) -> dict:
     names = [f"{i:06d}" for i in range(n)]
     segment_of_frame, segments = _segments(n, cfg)
     cams = studio_cameras(cfg.cameras, cfg.image_size, cfg.studio) if cfg.cameras > 0 else []
-    from uvatar.capture.synth.bystanders import plan_bystanders
+    from uvatar.capture.synth.bystanders import one_take_floor_path, plan_bystanders
 
-    others = plan_bystanders(body, cfg, motion.Th) if cfg.bystanders and cams else []
+    if cfg.bystanders and cams and cfg.bystander_path == "cross":   # one continuous take (see .bystanders)
+        motion.Th = one_take_floor_path(motion.Th, motion.take_of_frame)
+        motion.Th[:, 1] = ground_translations(body, motion.poses, motion.Rh, motion.Th, shape)
+    others = plan_bystanders(body, cfg, motion.Th, shape) if cfg.bystanders and cams else []
     return {"bystanders": others,"frames": names, "poses": motion.poses, "Rh": motion.Rh, "Th": motion.Th, "shape": shape,
             "take_names": list(motion.names), "take_of_frame": motion.take_of_frame,
             "takes": motion.ranges(), "heldout_frames": names[n - heldout:] if heldout else [],
