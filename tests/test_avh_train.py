@@ -151,16 +151,27 @@ def test_train_on_cuda_bf16_channels_last(baked, tmp_path):
     assert next(model.parameters()).device.type == "cpu"
 
 
-def test_fit_displacement_gain_finds_the_shrinkage_of_the_targets():
-    from uvatar.avh.model import AvhGenerator, encode_pose, init_output_bias
-    from uvatar.avh.train import TrainingData, fit_displacement_gain, scale_displacement_residual
+def _toy_generator(weight_std: float, last_bias: float | None = None):
+    """(config, generator) at 16² with its output bias at known mean maps and the displacement
+    decoder's last layer drawn with ``weight_std`` (and its bias filled with ``last_bias``); seed 0."""
+    from uvatar.avh.model import AvhGenerator, init_output_bias
 
     torch.manual_seed(0)
     cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=2, output_bias=True)
     model = AvhGenerator(cfg).eval()
     init_output_bias(model, torch.full((3, 16, 16), 0.5), (torch.rand(3, 16, 16) - 0.5) * 0.02)
     with torch.no_grad():
-        torch.nn.init.normal_(model.displacement_decoder.net[-1].weight, std=0.05)
+        torch.nn.init.normal_(model.displacement_decoder.net[-1].weight, std=weight_std)
+        if last_bias is not None:
+            model.displacement_decoder.net[-1].bias.fill_(last_bias)
+    return cfg, model
+
+
+def test_fit_displacement_gain_finds_the_shrinkage_of_the_targets():
+    from uvatar.avh.model import AvhGenerator, encode_pose
+    from uvatar.avh.train import TrainingData, fit_displacement_gain, scale_displacement_residual
+
+    cfg, model = _toy_generator(weight_std=0.05)
     angles = torch.randn(6, 6)
     half = AvhGenerator(cfg).eval()
     half.load_state_dict(model.state_dict())
@@ -207,7 +218,7 @@ def test_mean_maps_uniform_is_the_plain_mean_of_the_kept_texels():
 
 
 def test_displacement_gain_about_the_training_mean_keeps_the_mean_and_scales_the_variation():
-    from uvatar.avh.model import AvhGenerator, encode_pose, init_output_bias
+    from uvatar.avh.model import AvhGenerator, encode_pose
     from uvatar.avh.train import (
         TrainingData,
         displacement_residual_mean,
@@ -215,14 +226,8 @@ def test_displacement_gain_about_the_training_mean_keeps_the_mean_and_scales_the
         scale_displacement_residual,
     )
 
-    torch.manual_seed(0)
-    cfg = AvhConfig(4, 16, resolution=16, num_pose_joints=2, output_bias=True)
-    model = AvhGenerator(cfg).eval()
-    init_output_bias(model, torch.full((3, 16, 16), 0.5), (torch.rand(3, 16, 16) - 0.5) * 0.02)
-    with torch.no_grad():
-        # the decoder's last features have a large constant part: the residual's mean over poses is not 0
-        torch.nn.init.normal_(model.displacement_decoder.net[-1].weight, std=20.0)
-        model.displacement_decoder.net[-1].bias.fill_(0.02)
+    # the decoder's last features have a large constant part: the residual's mean over poses is not 0
+    cfg, model = _toy_generator(weight_std=20.0, last_bias=0.02)
     angles = torch.randn(6, 6)
     ones = torch.ones(6, 1, 16, 16)
     maps = {"texture": torch.full((6, 3, 16, 16), 0.5), "displacement": torch.zeros(6, 3, 16, 16),
