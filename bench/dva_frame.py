@@ -18,6 +18,10 @@ last camera rescaled to each ``--sizes`` square, every pixel a ray:
   ``+compile`` adds ``torch.compile`` (its compile time is reported), ``+cl`` channels_last, ``+cg``
   compile mode "reduce-overhead" (CUDA graphs).
 
+``--profile`` adds, for the last path of the last size, the split of one driven frame into its stages
+(``stages_ms``: unwrap, inputs, encoders + decoders, placement, marcher; CUDA events, medians) and
+torch.profiler's 20 most expensive operators on the device (stderr), to show where a frame's time goes.
+
 Each time is taken after a device synchronise. Prints one JSON object; progress on stderr. The model is
 the briefly trained one (its frame is not blank); the PSNRs compare paths, not the avatar's quality.
 """
@@ -85,10 +89,95 @@ def train_rows(trainer, precisions, steps: int, device: str) -> dict:
     return rows
 
 
-def frame_rows(trainer, sizes, paths, repeats: int, device: str) -> list[dict]:
-    from uvatar.dva.drive import driving_texture, render_camera
+def stage_split(fast, verts, rots, cams, imgs, masks, camera, repeats: int, device: str, table: bool) -> dict:
+    """Median ms of each stage of :meth:`FrameRenderer.drive` (device-timed), and with ``table`` the
+    profiler's top operators on stderr."""
+    from uvatar.dva.model import DvaOutput
+    from uvatar.dva.raymarch import raymarch
+    from uvatar.dva.unwrap_device import driving_texture_device
+
+    m = fast.model
+    centre = torch.as_tensor(camera.center, dtype=torch.float32, device=device)[None]
+
+    def frame(mark):
+        tex = driving_texture_device(m, verts, cams, imgs, masks)
+        mark("unwrap")
+        pose_maps, f_view, skip = m.inputs(verts[None], rots[None], tex[None], centre)
+        mark("inputs")
+        motion, payload = fast._decode(pose_maps, tex[None], f_view, *(skip or (None, None)))
+        mark("encode_decode")
+        pos, rot, scl = m.place(verts[None], motion, fast.correctives)
+        out = DvaOutput(pos, rot, scl, payload, motion, payload[:, :, :3])
+        mark("place")
+        o, d, pix = fast.rays(camera)
+        raymarch(o, d, out.primitives(0), m.cfg.raymarch, camera=camera, pixels=pix)
+        mark("march")
+
+    cuda = device.startswith("cuda")
+    times: dict[str, list[float]] = {}
+    events: list = []
+
+    def mark(name):
+        if cuda:
+            ev = torch.cuda.Event(enable_timing=True)
+            ev.record()
+            events.append((name, ev))
+        else:
+            events.append((name, time.perf_counter()))
+
+    for i in range(repeats + 1):
+        events.clear()
+        mark("start")
+        frame(mark)
+        sync(device)
+        if i == 0:
+            continue
+        for (_, a), (name, b) in zip(events[:-1], events[1:], strict=True):
+            times.setdefault(name, []).append(a.elapsed_time(b) if cuda else 1000 * (b - a))
+    split = {k: round(statistics.median(v), 2) for k, v in times.items()}
+    if not table:
+        return split
+    try:
+        from torch.profiler import ProfilerActivity, profile
+
+        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+        with profile(activities=acts) as prof:
+            for _ in range(3):
+                frame(lambda name: None)
+            sync(device)
+        key = "self_cuda_time_total" if cuda else "self_cpu_time_total"
+        log(prof.key_averages().table(sort_by=key, row_limit=20))
+    except Exception as exc:  # the split stands without the profiler's table
+        log(f"[dva_frame] profiler unavailable: {exc}")
+    return split
+
+
+def path_row(row, path, model, verts, rots, tex, cam, ref, repeats, device, driving) -> object:
+    """Time one fast path into ``row`` (render, drive + render when ``driving`` = (cameras, images, masks),
+    decode alone, PSNR against ``ref``); returns its :class:`FrameRenderer`."""
     from uvatar.dva.frame import FrameRenderer
     from uvatar.render.metrics import psnr
+
+    t = time.perf_counter()
+    fast = FrameRenderer(model, frame_config(path))
+    rgb, _ = fast.render(verts, rots, tex, cam)
+    sync(device)
+    if "compile" in path or "cg" in path:
+        row[f"{path}_first_s"] = round(time.perf_counter() - t, 1)
+    row[f"{path}_ms"], (rgb, _) = median_ms(lambda: fast.render(verts, rots, tex, cam), repeats, device)
+    row[f"{path}_fps"] = round(1000 / row[f"{path}_ms"], 1)
+    db = psnr(rgb.float().cpu().numpy(), ref)
+    row[f"{path}_psnr_vs_ref"] = round(db, 2) if np.isfinite(db) else "identical"
+    if driving is not None:  # the whole frame: views unwrapped on the device too
+        row[f"{path}_drive_render_ms"], _ = median_ms(lambda: fast.drive(verts, rots, *driving, cam), repeats, device)
+    centre = torch.as_tensor(cam.center, dtype=torch.float32, device=device)[None]
+    row[f"{path}_decode_ms"], _ = median_ms(lambda: fast.decode(verts[None], rots[None], tex[None], centre),
+                                            repeats, device)
+    return fast
+
+
+def frame_rows(trainer, sizes, paths, repeats: int, device: str, profile: bool = False) -> list[dict]:
+    from uvatar.dva.drive import driving_texture, render_camera
 
     bank, model = trainer.bank, trainer.model.eval()
     verts, rots = bank.vertices[0].to(device), bank.rotvecs[0].to(device)
@@ -114,26 +203,25 @@ def frame_rows(trainer, sizes, paths, repeats: int, device: str) -> list[dict]:
         row = {"resolution": size, "unwrap_ms": unwrap_ms, "unwrap_device_ms": unwrap_device_ms,
                "unwrap_device_texels_agreeing": unwrap_device_agree}
         try:
-            row["ref_ms"], (ref, alpha) = median_ms(lambda: render_camera(model, verts, rots, tex, cam), repeats, device)
+            row["ref_ms"], (ref, alpha) = median_ms(lambda c=cam: render_camera(model, verts, rots, tex, c), repeats,
+                                                    device)
             row["coverage"] = round(float((alpha > 0.5).mean()), 3)
-            for path in paths:
-                t = time.perf_counter()
-                fast = FrameRenderer(model, frame_config(path))
-                rgb, _ = fast.render(verts, rots, tex, cam)
-                sync(device)
-                if "compile" in path or "cg" in path:
-                    row[f"{path}_first_s"] = round(time.perf_counter() - t, 1)
-                row[f"{path}_ms"], (rgb, _) = median_ms(lambda f=fast: f.render(verts, rots, tex, cam), repeats, device)
-                row[f"{path}_fps"] = round(1000 / row[f"{path}_ms"], 1)
-                if unwrap_device_agree is not None:  # the whole frame: views unwrapped on the device too
-                    row[f"{path}_drive_render_ms"], _ = median_ms(lambda f=fast: f.drive(
-                        verts, rots, [bank.cams[c] for c in views], imgs, masks, cam), repeats, device)
-                centre = torch.as_tensor(cam.center, dtype=torch.float32, device=device)[None]
-                row[f"{path}_decode_ms"], _ = median_ms(lambda f=fast: f.decode(verts[None], rots[None], tex[None], centre),
-                                                        repeats, device)
-                db = psnr(rgb.float().cpu().numpy(), ref)
-                row[f"{path}_psnr_vs_ref"] = round(db, 2) if np.isfinite(db) else "identical"
+            for i, path in enumerate(paths):
+                try:
+                    fast = path_row(row, path, model, verts, rots, tex, cam, ref, repeats, device,
+                                    (([bank.cams[c] for c in views], imgs, masks) if unwrap_device_agree is not None
+                                     else None))
+                except torch.cuda.OutOfMemoryError:
+                    raise
+                except Exception as exc:  # one path failing (a compile, a graph capture) leaves the others' rows
+                    row[f"{path}_error"] = f"{type(exc).__name__}: {str(exc)[:400]}"
+                    log(f"[dva_frame] {size}² {path} failed: {row[f'{path}_error']}")
+                    continue
                 log(f"[dva_frame] {size}² {path}: {json.dumps({k: v for k, v in row.items() if k.startswith(path)})}")
+                if profile and unwrap_device_agree is not None and size == sizes[-1]:
+                    row[f"{path}_stages_ms"] = stage_split(fast, verts, rots, [bank.cams[c] for c in views], imgs,
+                                                           masks, cam, repeats, device, table=i == len(paths) - 1)
+                    log(f"[dva_frame] {size}² stages of {path}: {json.dumps(row[f'{path}_stages_ms'])}")
         except torch.cuda.OutOfMemoryError:
             row["error"] = "out of GPU memory"
             torch.cuda.empty_cache()
@@ -158,6 +246,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--profile", action="store_true", help="split the last path's frame into its stages")
     ap.add_argument("--capture", default=None, help="an existing capture (default: the toy one, 160 px)")
     args = ap.parse_args(argv)
     cuda = args.device.startswith("cuda")
@@ -187,7 +276,7 @@ def main(argv=None) -> int:
         for _ in range(args.warmup):
             trainer.train_step()
         train = train_rows(trainer, [p for p in args.train.split(",") if p.strip()], args.steps, args.device)
-        rows = frame_rows(trainer, sizes, paths, args.repeats, args.device)
+        rows = frame_rows(trainer, sizes, paths, args.repeats, args.device, args.profile)
     from uvatar.dva.raymarch import resolve_marcher
 
     print(json.dumps({
