@@ -114,7 +114,8 @@ def bench_inference(cfg, device, iters, compile_model: bool, onnx: bool) -> dict
     return out
 
 
-def bench_fast(cfg, device, iters, compile_model: bool, precisions, batch: int) -> dict:
+def bench_fast(cfg, device, iters, compile_model: bool, precisions, batch: int,
+               modes=("reduce-overhead",)) -> dict:
     """The fast generator per precision (and compiled): fps at batch 1, maps/s at ``batch``, and its
     maps against the fp32 eager reference."""
     from uvatar.avh.inference import FastGenerator, InferenceConfig
@@ -129,12 +130,13 @@ def bench_fast(cfg, device, iters, compile_model: bool, precisions, batch: int) 
         ref_tex, ref_disp = AvhFromAngles(gen)(xb)
         out = {f"fp32_batch{batch}_maps_per_s": batch / timed(lambda: AvhFromAngles(gen)(xb), iters, device)}
     for p in precisions:
-        for comp in ([False, True] if compile_model else [False]):
-            key = p + ("_compile" if comp else "")
+        for comp, mode in [(False, "default")] + ([(True, m) for m in (modes if cuda else ["default"])]
+                                                  if compile_model else []):
+            key = p + ("_compile" if comp else "") + ("" if mode in ("default", "reduce-overhead") else f"_{mode}")
             try:
                 t0 = time.perf_counter()
                 fast = FastGenerator(gen, InferenceConfig(precision=p, compile=comp, channels_last=cuda,
-                                                          compile_mode="reduce-overhead" if cuda and comp else "default"))
+                                                          compile_mode=mode))
                 tex, disp = (t.clone() for t in fast(xb))
                 fast(x1)
                 sync(device)
@@ -163,6 +165,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-onnx", action="store_true", help="leave out onnxruntime")
     ap.add_argument("--fast", default="", help="FastGenerator precisions to time, e.g. bf16,fp16")
     ap.add_argument("--batch", type=int, default=8, help="batch of the throughput rows")
+    ap.add_argument("--compile-modes", default="reduce-overhead",
+                    help="torch.compile modes of the fast rows on CUDA (e.g. reduce-overhead,max-autotune)")
     args = ap.parse_args(argv)
     device = torch.device(args.device)
     cuda = device.type == "cuda"
@@ -192,7 +196,8 @@ def main(argv=None) -> int:
                 row["train_samples_per_s"] = bench_train(cfg, device, iters)
             row.update(bench_inference(cfg, device, iters, compile_model, onnx=not args.no_onnx))
             if args.fast:
-                row.update(bench_fast(cfg, device, iters, compile_model, args.fast.split(","), args.batch))
+                row.update(bench_fast(cfg, device, iters, compile_model, args.fast.split(","), args.batch,
+                                      [m for m in args.compile_modes.split(",") if m]))
         except RuntimeError as exc:  # e.g. out of memory: report and go on
             row["error"] = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
             if cuda:

@@ -74,7 +74,23 @@ def frame_config(path: str):
                        compile_mode="reduce-overhead" if "cg" in parts else "default", channels_last="cl" in parts)
 
 
-def train_rows(trainer, precisions, steps: int, device: str) -> dict:
+def profile_table(fn, runs: int, device: str) -> float:
+    """Profile ``runs`` calls of ``fn``: log torch.profiler's 25 most expensive operators (device time on
+    CUDA) and return the device's busy ms per call (the sum of its kernels' times; CPU time on a CPU)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = device.startswith("cuda")
+    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
+        for _ in range(runs):
+            fn()
+        sync(device)
+    events = prof.key_averages()
+    key = "self_device_time_total" if cuda else "self_cpu_time_total"
+    log(events.table(sort_by=key, row_limit=25))
+    return round(sum(getattr(e, key, 0.0) for e in events) / 1000 / runs, 2)
+
+
+def train_rows(trainer, precisions, steps: int, device: str, profile: bool = False) -> dict:
     rows = {}
     for p in precisions:
         trainer.cfg.train.precision = p
@@ -84,6 +100,11 @@ def train_rows(trainer, precisions, steps: int, device: str) -> dict:
         rows[f"train_{p}_step_ms"] = ms
         if device.startswith("cuda"):
             rows[f"train_{p}_peak_gpu_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
+        if profile:  # the device's busy time per step: far below the step's wall time = the host sets the pace
+            try:
+                rows[f"train_{p}_device_busy_ms"] = profile_table(trainer.train_step, 3, device)
+            except Exception as exc:  # the timing stands without the profile
+                log(f"[dva_frame] train profile unavailable: {exc}")
         log(f"[dva_frame] train {p}: {ms} ms")
     trainer.cfg.train.precision = "fp32"
     return rows
@@ -138,15 +159,7 @@ def stage_split(fast, verts, rots, cams, imgs, masks, camera, repeats: int, devi
     if not table:
         return split
     try:
-        from torch.profiler import ProfilerActivity, profile
-
-        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
-        with profile(activities=acts) as prof:
-            for _ in range(3):
-                frame(lambda name: None)
-            sync(device)
-        key = "self_cuda_time_total" if cuda else "self_cpu_time_total"
-        log(prof.key_averages().table(sort_by=key, row_limit=20))
+        split["device_busy"] = profile_table(lambda: frame(lambda name: None), 3, device)
     except Exception as exc:  # the split stands without the profiler's table
         log(f"[dva_frame] profiler unavailable: {exc}")
     return split
@@ -275,7 +288,8 @@ def main(argv=None) -> int:
         trainer = Trainer(open_source(capture), Path(tmp) / "run", cfg, progress=False, device=args.device)
         for _ in range(args.warmup):
             trainer.train_step()
-        train = train_rows(trainer, [p for p in args.train.split(",") if p.strip()], args.steps, args.device)
+        train = train_rows(trainer, [p for p in args.train.split(",") if p.strip()], args.steps, args.device,
+                           args.profile)
         rows = frame_rows(trainer, sizes, paths, args.repeats, args.device, args.profile)
     from uvatar.dva.raymarch import resolve_marcher
 

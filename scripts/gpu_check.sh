@@ -51,8 +51,9 @@ for part in $PARTS; do
         --repeats 10 --profile --paths fp32,bf16,bf16+cl,fp16+cl,bf16+compile+cl,bf16+cg+cl ;;
     avh)  # the AVH generator, paper preset at 1024²: batch 1 fps, batch-8 maps/s, bf16 / fp16, eager and
           # compiled with CUDA graphs (>= 500 fps)
-      run_part avh 110 "$OUT/avh_fast.json" python bench/avh.py --device cuda --presets fc32-l1024 \
-        --resolutions 1024 --no-train --no-onnx --fast bf16,fp16 --iters 30 ;;
+      run_part avh "${AVH_SECONDS:-110}" "$OUT/avh_fast.json" python bench/avh.py --device cuda --presets fc32-l1024 \
+        --resolutions 1024 --no-train --no-onnx --fast "${AVH_FAST:-bf16,fp16}" \
+        --compile-modes "${AVH_MODES:-reduce-overhead}" --iters 30 ;;
     tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher
       run_part tests 80 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -x -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py ;;

@@ -165,3 +165,74 @@ def test_bf16_training_forward_is_close_and_differentiable(body):
     assert 0 < rel < 2e-2
     out.payload.sum().backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.decoder.opacity.parameters())
+
+
+@pytest.mark.parametrize("decoder", [{}, {"depth_colour": True}, {"shadow": False}], ids=["column", "depth", "noshadow"])
+def test_compact_training_forward_is_the_reference_with_its_gradients(body, decoder):
+    """``DvaModel.forward(compact=True)`` (what a training step uses: the payload written in one pass)
+    = the reference forward, values and every parameter's gradient (fp32: to summation order)."""
+    model = _model(body, **decoder).train()
+    verts, rot, tex = _inputs(body)
+    centre = torch.tensor([[0.3, 0.6, 2.4]])
+    weights = None
+    grads = []
+    for compact in (False, True):
+        model.zero_grad(set_to_none=True)
+        out = model(verts[None], rot[None], tex[None], centre, compact=compact)
+        if weights is None:
+            weights = torch.randn(out.payload.shape, generator=torch.Generator().manual_seed(2))
+            ref = out
+        else:
+            torch.testing.assert_close(out.payload, ref.payload, rtol=0, atol=1e-6)
+            torch.testing.assert_close(out.learned_rgb, ref.learned_rgb, rtol=0, atol=1e-6)
+            torch.testing.assert_close(out.positions, ref.positions, rtol=0, atol=0)
+        ((out.payload * weights).sum() + out.positions.sum() + out.learned_rgb.square().sum()).backward()
+        grads.append({n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None})
+    assert grads[0].keys() == grads[1].keys() and len(grads[0]) > 10
+    for name, g in grads[0].items():
+        torch.testing.assert_close(grads[1][name], g, rtol=1e-4, atol=1e-5, msg=name)
+
+
+@pytest.mark.parametrize("depth_colour", [False, True], ids=["column", "depth"])
+def test_decoder_payload_gradients_float64(depth_colour):
+    """The decoder's one-pass payload against its forward + cat, float64: values exact, gradients of
+    every weight to 1e-12 (the copy into the payload broadcasts a column's colour over its S depths,
+    and its backward sums them)."""
+    from uvatar.dva.decoders import DecoderConfig, DvaDecoder
+
+    torch.manual_seed(0)
+    dec = DvaDecoder(DecoderConfig(voxels=4, hidden=8, depth_colour=depth_colour), 4, 4, 4, 1).double()
+    with torch.no_grad():
+        for p in dec.parameters():
+            p.normal_(0, 0.3)
+    f_pose, f_img, f_view = (torch.randn(2, c, 4, 4, dtype=torch.float64) for c in (4, 4, 1))
+    _, rgb, density, _ = dec(f_pose, f_img, f_view)
+    ref = torch.cat([rgb, density], 2)
+    _, payload = dec.payload(f_pose, f_img, f_view, None, torch.float64)
+    torch.testing.assert_close(payload, ref, rtol=0, atol=1e-15)
+    w = torch.randn_like(ref)
+    params = list(dec.parameters())
+    g_ref = torch.autograd.grad((ref * w).sum(), params, allow_unused=True)
+    g_fast = torch.autograd.grad((payload * w).sum(), params, allow_unused=True)
+    used = [(a, b) for a, b in zip(g_ref, g_fast, strict=True) if a is not None]
+    assert len(used) > 10
+    for a, b in used:
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12)
+
+
+def test_compact_forward_keeps_the_reference_path_with_the_colour_skip(body):
+    """With the colour skip the decoder's own colour is not the payload's: ``compact`` falls back to
+    the reference decoder (learned_rgb differs from the payload's RGB)."""
+    cfg = preset("tiny")
+    cfg.features = dataclasses.replace(cfg.features, colour_skip=True)
+    cfg.raymarch.marcher = "torch"
+    torch.manual_seed(0)
+    model = DvaModel(cfg, body.template, [1]).eval()
+    verts, rot, tex = _inputs(body)
+    centre = torch.tensor([[0.3, 0.6, 2.4]])
+    with torch.no_grad():
+        ref = model(verts[None], rot[None], tex[None], centre)
+        out = model(verts[None], rot[None], tex[None], centre, compact=True)
+    torch.testing.assert_close(out.payload, ref.payload, rtol=0, atol=0)
+    torch.testing.assert_close(out.learned_rgb, ref.learned_rgb, rtol=0, atol=0)
+    assert not torch.equal(out.learned_rgb, out.payload[:, :, :3])

@@ -41,7 +41,11 @@ class FastPathConfig:
         return PRECISIONS[self.precision]
 
     def prepare(self, module: torch.nn.Module):
-        """``module`` in channels_last when asked, then compiled when asked (a callable module)."""
+        """``module`` in channels_last when asked, then compiled when asked (a callable module). On CUDA
+        this also turns on cuDNN's autotuner (``torch.backends.cudnn.benchmark``): a fast path runs the
+        same shapes frame after frame, so the fastest convolution algorithm is found once."""
+        if any(p.is_cuda for p in module.parameters()):
+            torch.backends.cudnn.benchmark = True
         if self.channels_last:
             module = module.to(memory_format=torch.channels_last)
         return torch.compile(module, mode=self.compile_mode, dynamic=False) if self.compile else module

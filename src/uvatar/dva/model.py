@@ -207,17 +207,28 @@ class DvaModel(nn.Module):
                 self.grid.raster, template, cfg.decoder.voxels, cfg.primitives.scale_factor)), persistent=False)
 
     def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers,
-                precision: str = "fp32") -> DvaOutput:
+                precision: str = "fp32", compact: bool = False) -> DvaOutput:
         """``precision`` ("fp32", "bf16", "fp16"): the encoders and decoders run under autocast in that
-        type; the geometry stays fp32 and the outputs are fp32."""
+        type; the geometry stays fp32 and the outputs are fp32. ``compact``: the decoders write the
+        payload in one pass (:meth:`~uvatar.dva.decoders.DvaDecoder.payload`, the same values and
+        gradients with S times smaller colour slabs; what training uses) where the colour skip is off;
+        the default is the reference path (:meth:`~uvatar.dva.decoders.DvaDecoder.forward`)."""
         pose_maps, f_view, skip = self.inputs(posed_vertices, joint_rotvecs, image_texture, camera_centers)
         dtype = PRECISIONS[precision]
+        compact = compact and skip is None  # with the colour skip, the decoder's own colour differs from the payload's
         with torch.autocast(posed_vertices.device.type, dtype=dtype, enabled=dtype != torch.float32):
             f_pose, f_img = self.pose_encoder(pose_maps), self.image_encoder(image_texture)
-            decoded = self.decoder(f_pose, f_img, f_view, skip)
-        motion, rgb, density, learned = (t.float() for t in decoded)
+            if compact:
+                motion, payload = self.decoder.payload(f_pose, f_img, f_view, None, torch.float32)
+            else:
+                decoded = self.decoder(f_pose, f_img, f_view, skip)
+        if compact:
+            motion, learned = motion.float(), payload[:, :, :3]
+        else:
+            motion, rgb, density, learned = (t.float() for t in decoded)
+            payload = torch.cat([rgb, density], 2)
         pos, rot, scl = self.place(posed_vertices, motion, bool(self.correctives_on))
-        return DvaOutput(pos, rot, scl, torch.cat([rgb, density], 2), motion, learned)
+        return DvaOutput(pos, rot, scl, payload, motion, learned)
 
     def inputs(self, posed_vertices, joint_rotvecs, image_texture, camera_centers):
         """What the encoders and decoders take besides the image texture, all fp32: the masked pose

@@ -128,6 +128,8 @@ class Trainer:
         self.source, self.out = source, Path(out_dir)
         self.ctx = ctx or DistContext(device=torch.device(device))
         self.device, self.progress = self.ctx.device, progress and self.ctx.is_main
+        if self.device.type == "cuda":  # every step decodes the same shapes: let cuDNN pick its fastest algorithms once
+            torch.backends.cudnn.benchmark = True
         self.rng = random.Random(seed)
         self.seconds = 0.0  # trained so far, over every resumed part of the run
         torch.manual_seed(seed)
@@ -224,7 +226,7 @@ class Trainer:
         fi = torch.tensor(frames)
         centers = torch.as_tensor(np.stack([self.bank.cams[c].center for c in cams]), dtype=torch.float32)
         vertices, rotvecs = self._posed(fi, self.step >= t.warmup_iters)
-        out = self.model(vertices, rotvecs, tex, centers.to(self.device), t.precision)
+        out = self.model(vertices, rotvecs, tex, centers.to(self.device), t.precision, compact=True)
         preds, targets, alphas, masks = [], [], [], []
         for b, (f, c, pix, bg_colour) in enumerate(zip(frames, cams, pixels, backgrounds, strict=True)):
             mask = self.bank.masks[f][c]
