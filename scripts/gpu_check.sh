@@ -48,12 +48,12 @@ for part in $PARTS; do
     dva)  # the DVA frame at 1024², paper preset (K = 4096, S = 16): training steps fp32 / bf16, then per
           # path drive + render with its PSNR against the fp32 reference (<= 16 ms at >= 40 dB; step <= 80 ms)
       run_part dva 330 "$OUT/dva_frame.json" python bench/dva_frame.py --device cuda --warmup 3 --steps 10 \
-        --repeats 10 --profile --paths fp32,bf16,bf16+cl,fp16+cl,bf16+compile+cl,bf16+cg+cl ;;
+        --repeats "${DVA_REPEATS:-10}" --profile --paths "${DVA_PATHS:-fp32,bf16,bf16+cl,fp16+cl,bf16+compile+cl,bf16+cg+cl}" ;;
     avh)  # the AVH generator, paper preset at 1024²: batch 1 fps, batch-8 maps/s, bf16 / fp16, eager and
           # compiled with CUDA graphs (>= 500 fps)
       run_part avh "${AVH_SECONDS:-110}" "$OUT/avh_fast.json" python bench/avh.py --device cuda --presets fc32-l1024 \
         --resolutions 1024 --no-train --no-onnx --fast "${AVH_FAST:-bf16,fp16}" \
-        --compile-modes "${AVH_MODES:-reduce-overhead}" --iters 30 ;;
+        --compile-modes "${AVH_MODES:-reduce-overhead}" --iters "${AVH_ITERS:-30}" ;;
     tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher
       run_part tests 80 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -x -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py ;;
