@@ -1,6 +1,7 @@
 """``uvatar demo --quick``: the whole AVH pipeline end to end on a tiny synthetic capture."""
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -105,3 +106,64 @@ def test_report_rows_for_each_conditioning_and_distance_bin():
     assert rows["AVH, global conditioning"]["displacement R² (UV)"] == "–"
     bins = _bin_rows(metrics)
     assert [r["texture R²"] for r in bins] == [0.6, 0.2, 0.0] and bins[0]["bin"].startswith("near (3.0-3.0 deg")
+
+
+def test_demo_resumes_after_its_last_finished_stage_from_its_stage_record(tmp_path, monkeypatch):
+    """OUT/stage.json (uvatar.stage_record) counts the finished stages and keeps the seconds each took: a
+    demo stopped by a failing stage resumes at that stage, the stages before it are not run again."""
+    from uvatar.demo import pipeline
+    from uvatar.errors import UvatarError
+
+    out, ran, fail = tmp_path / "demo", [], {"b"}
+
+    def stage(name):
+        def go():
+            ran.append(name)
+            if name in fail:
+                raise UvatarError(f"{name} broke")
+            (out / f"{name}.txt").write_text(name)
+        return go
+
+    monkeypatch.setattr(pipeline, "demo_stages", lambda o, cfg: [(n, stage(n)) for n in ("a", "b", "c")])
+    cfg = pipeline.quick_config()
+    first = pipeline.run_demo(out, cfg)
+    assert [s["status"] for s in first["stages"]] == ["ran", "failed: b broke", "not run (an earlier stage failed)"]
+    record = json.loads((out / "stage.json").read_text())
+    assert record["stage"] == "demo" and not record["complete"] and (record["done"], record["total"]) == (1, 3)
+    assert record["config"] == pipeline.demo_record_config(cfg) and "workers" not in record["config"]
+    assert set(record["details"]["seconds"]) == {"a"}
+    assert not (out / "stages").exists()  # no completion records of its own beside the stage record
+
+    fail.clear()
+    ran.clear()
+    again = pipeline.run_demo(out, cfg)
+    assert ran == ["b", "c"] and [s["status"] for s in again["stages"]] == ["skipped (done)", "ran", "ran"]
+    record = json.loads((out / "stage.json").read_text())
+    assert record["complete"] and record["done"] == 3 and set(record["details"]["seconds"]) == {"a", "b", "c"}
+    assert set(again["stage_seconds"]) == {"a", "b", "c"}
+    assert json.loads((out / "metrics.json").read_text())["stage_seconds"] == again["stage_seconds"]
+    ran.clear()
+    assert {s["status"] for s in pipeline.run_demo(out, replace(cfg, workers=1, progress=False))["stages"]} \
+        == {"skipped (done)"} and ran == []  # workers and progress do not shape the outputs
+
+
+@pytest.mark.parametrize(("flags", "change"), [
+    (["--quick", "--seed", "3"], "made with --seed 0 (this run: --seed 3)"),
+    (["--quick", "--epochs", "5"], "made with --epochs 2 (this run: --epochs 5)"),
+    (["--quick", "--fits", "fit"], "made with --fits studio (this run: --fits fit)"),
+    ([], "made with --quick (this run: the default sizes)"),
+    (["--fine"], "made with --quick (this run: --fine)"),
+])
+def test_demo_rerun_with_other_settings_is_refused_in_one_line_naming_the_flag(tmp_path, capsys, flags, change):
+    from uvatar import stage_record
+    from uvatar.demo.pipeline import QUICK, demo_record_config
+
+    out = tmp_path / "demo"
+    stage_record.begin(out, "demo", demo_record_config(QUICK), total=7)  # a --quick demo, stopped in its first stage
+    before = (out / "stage.json").read_text()
+    assert main(["demo", "--out", str(out), "--no-progress", *flags]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert f"uvatar: error: {out}: {change}; rerun with the same settings to resume it, or use --out OTHER to " \
+           "start over" == err, err
+    assert sorted(p.name for p in out.iterdir()) == ["stage.json"] and (out / "stage.json").read_text() == before

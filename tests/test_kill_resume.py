@@ -103,17 +103,22 @@ def demo_runs(tmp_path_factory):
     run([*DEMO, "rel/demo"], root / "a")
     cap = root / "b" / "rel" / "demo" / "capture"
     run_killed([*DEMO, "rel/demo"], root / "b", lambda: count(cap / "gt" / "frames", "*.npz") >= 1)
-    killed = {p.name for p in (root / "b" / "rel" / "demo" / "stages").glob("*.json")}
+    record = json.loads((root / "b" / "rel" / "demo" / "stage.json").read_text())  # the demo's stage record
+    killed = (record["stage"], record["complete"], record["done"], record["total"])
     run([*DEMO, "rel/demo"], root / "b")
     return root / "a" / "rel" / "demo", root / "b" / "rel" / "demo", killed
 
 
 def test_demo_killed_during_synth_resumes_to_identical_arrays(demo_runs):
     whole, resumed, records_after_kill = demo_runs
-    assert records_after_kill == set(), "a stage was recorded done before the kill"
+    assert records_after_kill == ("demo", False, 0, 7), "a stage was counted finished before the kill"
     assert (resumed / "capture" / "capture.json").is_file()  # written when synth started: not a done marker
     metrics = json.loads((resumed / "metrics.json").read_text())
     assert [s["status"] for s in metrics["stages"]] == ["ran"] * 7
+    record = json.loads((resumed / "stage.json").read_text())
+    assert record["complete"] and record["done"] == 7 and set(record["details"]["seconds"]) == \
+        {"synth", "bake", "select", "train", "export", "animate", "eval"}
+    assert not (resumed / "stages").exists()
     assert assert_same_npz(whole / "capture", resumed / "capture") >= 5
     assert assert_same_npz(whole / "baked", resumed / "baked") == 5   # 4 frames and photo_reference.npz
     import torch

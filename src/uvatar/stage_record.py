@@ -7,13 +7,15 @@ its outputs).
     {"stage": "bake", "version": "0.4.0",           the uvatar that wrote it
      "config": {"texels": 128, ...},                every setting that shapes the output, defaults included
      "inputs": {"/cap/fits/000000.json": [size, mtime_ns], ...},   what the stage read
-     "complete": false, "done": 2, "total": 4}
+     "complete": false, "done": 2, "total": 4,
+     "details": {...}}                              optional: what the stage keeps beside its counts
 
 A stage calls :func:`begin` before any work: with no record it starts; with the same record it
 resumes (or, when complete and the caller says so, skips); with a record whose settings or inputs
 differ it refuses in one line naming the first difference (``on_change="refuse"``) or starts over
 (``"redo"``: the caller drops the work the change made stale). :func:`mark_progress` counts work
-done, :func:`finish` marks the output complete. A downstream command calls :func:`require_complete`,
+done (and, with ``details``, anything the stage keeps beside its counts: the demo's seconds per
+finished stage; kept across a resume), :func:`finish` marks the output complete. A downstream command calls :func:`require_complete`,
 which refuses a half-made output ("`bake` incomplete: 2 of 4 frames; run `uvatar bake` again to
 finish") or one whose inputs changed since it was made.
 
@@ -238,17 +240,24 @@ def begin(folder: str | Path, stage: str, config: dict, inputs: Mapping[str, lis
     if dry_run:
         return StageState(status, folder, changed, done, prev_total)
     folder.mkdir(parents=True, exist_ok=True)
-    _write(folder, {"stage": stage, "version": _version(), "config": config, "inputs": inputs,
-                    "complete": False, "done": done if status == "resume" else 0, "total": total})
+    record = {"stage": stage, "version": _version(), "config": config, "inputs": inputs,
+              "complete": False, "done": done if status == "resume" else 0, "total": total}
+    if status == "resume" and isinstance(previous.get("details"), dict):
+        record["details"] = previous["details"]  # what the finished part of the work kept
+    _write(folder, record)
     return StageState(status, folder, changed, done, prev_total)
 
 
-def mark_progress(folder: str | Path, done: int, total: int | None = None) -> None:
-    """Record ``done`` units of work (of ``total``) in the (incomplete) record of ``folder``."""
+def mark_progress(folder: str | Path, done: int, total: int | None = None, details: Mapping | None = None) -> None:
+    """Record ``done`` units of work (of ``total``) in the (incomplete) record of ``folder``; ``details``
+    are merged into the record's ``details`` (kept when the stage resumes)."""
     record = read_record(folder)
     if record is None:
         return
     record.update(done=int(done), complete=False, **({"total": int(total)} if total is not None else {}))
+    if details:
+        record["details"] = {**(record.get("details") if isinstance(record.get("details"), dict) else {}),
+                             **{str(k): _plain(v) for k, v in details.items()}}
     _write(Path(folder), record)
 
 

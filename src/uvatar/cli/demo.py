@@ -11,9 +11,9 @@ from uvatar.cli.flags import ConfigFlags
 
 def _flags() -> ConfigFlags:
     from uvatar.avh.model import ORIENTATIONS
-    from uvatar.demo.pipeline import DEFAULT, FINE, FIT_SOURCES, QUICK, DemoConfig
+    from uvatar.demo.pipeline import DEFAULT, FINE, FIT_SOURCES, FLAG_FIELDS, QUICK, DemoConfig
 
-    return ConfigFlags(DemoConfig, fields=("seed", "epochs", "fits", "orientation", "progress"),
+    return ConfigFlags(DemoConfig, fields=FLAG_FIELDS,
                        choices={"fits": FIT_SOURCES, "orientation": ORIENTATIONS},
                        presets={"default": DEFAULT, "quick": QUICK, "fine": FINE}, help={
                            "seed": "random seed of the synthetic capture", "epochs": "training epochs",
@@ -32,7 +32,8 @@ def register(cli) -> None:
         help="run synth → bake → select → train → export → animate → eval on a synthetic capture",
         description="Run the whole AVH pipeline on a synthetic studio capture made on the fly "
         "(nothing is downloaded) and write OUT/report.html and OUT/metrics.json. "
-        "An interrupted demo resumes: a stage whose completion record (OUT/stages/<stage>.json) exists is skipped.",
+        "An interrupted demo resumes after its last finished stage (its stage record, OUT/stage.json); a rerun "
+        "with other settings (--quick, --fine, --seed, --epochs, ...) is refused: use another --out.",
     )
     p.add_argument("--out", default="demo_out", help="output folder")
     size = p.add_mutually_exclusive_group()

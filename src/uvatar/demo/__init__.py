@@ -1,7 +1,8 @@
 """``uvatar demo``: the whole AVH pipeline on a synthetic studio capture, with nothing to download.
 
-:mod:`uvatar.demo.pipeline` runs the stages (library calls, each stage done when its own completion
-record ``OUT/stages/<stage>.json`` says so); :mod:`uvatar.demo.report` writes ``OUT/report.html``.
+:mod:`uvatar.demo.pipeline` runs the stages (library calls; the demo resumes after the last finished
+stage its stage record ``OUT/stage.json`` counts, :mod:`uvatar.stage_record`);
+:mod:`uvatar.demo.report` writes ``OUT/report.html``.
 """
 
 from uvatar.demo.pipeline import (

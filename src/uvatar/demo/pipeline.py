@@ -2,12 +2,15 @@
 unseen motion → eval on held-out poses → ``OUT/metrics.json`` and ``OUT/report.html``.
 
 Each stage calls the library function behind its command (:func:`~uvatar.capture.synth.pipeline.synthesize`,
-:func:`~uvatar.avh.bake.pipeline.bake_capture`, ...) in process. A stage is done when its own
-completion record ``OUT/stages/<stage>.json`` says so;
-with ``fits="fit"`` the studio's own fits are moved out of the capture (to ``OUT/studio_fits/``) and
-``uvatar fit --from scans`` makes the fits the rest of the pipeline uses, as for a real capture; the record is written last, after every output
-of the stage, so a demo killed at any point resumes: a stage cut short runs again (and itself resumes
-what it finished: frames, epochs), later stages run after it.
+:func:`~uvatar.avh.bake.pipeline.bake_capture`, ...) in process. The demo's own progress is a stage record
+(:mod:`uvatar.stage_record`), ``OUT/stage.json``: the settings that shape its outputs (every
+:class:`DemoConfig` field but ``workers`` and ``progress``), how many stages are finished and the seconds
+each took. A stage counts as finished once every output of it is written, so a demo killed at any point
+resumes after the last finished stage: the stage cut short runs again (and itself resumes what it
+finished: frames, epochs), later stages run after it. A rerun with other settings is refused in one line
+naming the first difference (the outputs on disk were made with the old ones). With ``fits="fit"`` the
+studio's own fits are moved out of the capture (to ``OUT/studio_fits/``) and ``uvatar fit --from scans``
+makes the fits the rest of the pipeline uses, as for a real capture.
 """
 
 from __future__ import annotations
@@ -19,12 +22,17 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from uvatar.errors import UvatarError
+from uvatar import stage_record
+from uvatar.errors import InputError, UvatarError
 from uvatar.io_utils import write_json
 
 log = logging.getLogger(__name__)
 
 FIT_SOURCES = ("studio", "fit")
+# the DemoConfig fields `uvatar demo` has a flag for (cli/demo.py); the others come from its size preset
+FLAG_FIELDS = ("seed", "epochs", "fits", "orientation", "progress")
+# fields that do not shape the demo's outputs (left out of its stage record)
+_VOLATILE = ("workers", "progress")
 
 
 @dataclass(frozen=True)
@@ -104,9 +112,39 @@ class StageResult:
     outputs: dict = field(default_factory=dict)
 
 
-def stage_record(out: Path, name: str) -> Path:
-    """``OUT/stages/<name>.json``: the completion record of a stage (written last)."""
-    return Path(out) / "stages" / f"{name}.json"
+SIZES = {"default": DEFAULT, "quick": QUICK, "fine": FINE}
+# how a message names each size preset (`uvatar demo` spells quick=True as --quick)
+_SIZE_WORDS = {"default": "the default sizes", "quick": "quick=True", "fine": "fine=True"}
+
+
+def demo_record_config(cfg: DemoConfig) -> dict:
+    """The settings of ``OUT/stage.json``: every :class:`DemoConfig` field that shapes the outputs."""
+    return stage_record.config_values(cfg, drop=_VOLATILE)
+
+
+def _sizes_of(values: dict) -> str | None:
+    """The size preset (``SIZES``) whose fields no flag sets ``values`` has, or None (a config of its own)."""
+    for name, preset in SIZES.items():
+        if all(values.get(k) == v for k, v in demo_record_config(preset).items() if k not in FLAG_FIELDS):
+            return name
+    return None
+
+
+def _refuse_other_sizes(out: Path, values: dict, redo_hint: str) -> None:
+    """A demo made with another size preset than this run's is refused naming the presets (--quick,
+    --fine), not the first of the many fields they set (no flag sets those); any other difference is
+    left to :func:`uvatar.stage_record.begin`, which names the setting."""
+    previous = stage_record.read_record(out)
+    if previous is None or previous.get("stage") != "demo":
+        return
+    before = previous["config"]
+    first = next((k for k in [*values, *before] if before.get(k, "(unset)") != values.get(k, "(unset)")), None)
+    if first is None or first in FLAG_FIELDS:
+        return
+    old, new = _sizes_of(before), _sizes_of(values)
+    if old is not None and new is not None and old != new:
+        raise InputError(out, f"made with {_SIZE_WORDS[old]} (this run: {_SIZE_WORDS[new]}); rerun with the same "
+                              f"settings to resume it, or {redo_hint}")
 
 
 def run_dirs(out: Path, cfg: DemoConfig) -> dict[str, tuple[Path, Path]]:
@@ -217,25 +255,30 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
 
 def run_demo(out: str | Path = "demo_out", cfg: DemoConfig = DEFAULT,
              on_stage: Callable[[str], None] | None = None) -> dict:
-    """Run every stage whose completion record is missing; return (and write) ``OUT/metrics.json``.
+    """Run the stages after the last finished one (``OUT/stage.json``); return (and write) ``OUT/metrics.json``.
 
-    A stage that raises :class:`~uvatar.errors.UvatarError` is reported as failed and the later
-    stages are not run; an ``OSError`` (the file system said no) propagates.
+    A rerun with other settings than the demo in ``out`` was made with is refused in one line
+    (:class:`~uvatar.errors.InputError`) before any work. A stage that raises
+    :class:`~uvatar.errors.UvatarError` is reported as failed and the later stages are not run (a rerun
+    starts at it); an ``OSError`` (the file system said no) propagates.
     """
     from uvatar.demo.report import write_demo_report
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    stages = demo_stages(out, cfg)
+    values, redo_hint = demo_record_config(cfg), "use out=OTHER to start over"
+    _refuse_other_sizes(out, values, redo_hint)
+    state = stage_record.begin(out, "demo", values, total=len(stages), skip_complete=True, redo_hint=redo_hint)
+    finished = state.done if state.status in ("resume", "complete") else 0
     results: list[StageResult] = []
     failed = False
-    for name, stage in demo_stages(out, cfg):
+    for index, (name, stage) in enumerate(stages):
         if on_stage:
             on_stage(name)
         if failed:
             results.append(StageResult(name, "not run (an earlier stage failed)"))
             continue
-        record = stage_record(out, name)
-        if record.is_file():
+        if index < finished:
             results.append(StageResult(name, "skipped (done)"))
             continue
         log.info("demo: stage %s", name)
@@ -248,12 +291,22 @@ def run_demo(out: str | Path = "demo_out", cfg: DemoConfig = DEFAULT,
             results.append(StageResult(name, f"failed: {str(exc).splitlines()[0][:300]}", time.perf_counter() - t0))
             continue
         dt = time.perf_counter() - t0
-        write_json(record, {"stage": name, "seconds": dt, "config": asdict(cfg)})  # last: the stage is done
+        # after every output of the stage: it is finished
+        stage_record.mark_progress(out, index + 1, details={"seconds": {**_recorded_seconds(out), name: dt}})
         results.append(StageResult(name, "ran", dt))
+    if not failed:
+        stage_record.finish(out)
     metrics = collect_metrics(out, cfg, results)
     write_json(out / "metrics.json", metrics)
     write_demo_report(out, metrics)
     return metrics
+
+
+def _recorded_seconds(out: Path) -> dict:
+    """{stage: seconds it took} of the finished stages, from ``OUT/stage.json``."""
+    record = stage_record.read_record(out) or {}
+    seconds = (record.get("details") or {}).get("seconds")
+    return dict(seconds) if isinstance(seconds, dict) else {}
 
 
 def _load(path: Path) -> dict | None:
@@ -269,6 +322,8 @@ def collect_metrics(out: Path, cfg: DemoConfig, results: list[StageResult]) -> d
     metrics: dict = {
         "config": asdict(cfg),
         "stages": [asdict(r) for r in results],
+        # the seconds each finished stage took when it ran (in this run or an earlier one)
+        "stage_seconds": _recorded_seconds(out),
         "bake": _load(out / "bake_metrics.json"),
     }
     fit = _load(out / "fit_metrics.json")
