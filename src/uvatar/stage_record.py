@@ -276,10 +276,11 @@ def require_complete(folder: str | Path, stage: str, command_hint: str, unit: st
     """Refuse, in one line, an output of ``stage`` in ``folder`` that is half made ("`bake` incomplete:
     2 of 4 frames; run `uvatar bake` again to finish") or, with ``check_inputs``, one whose recorded
     inputs changed since it was made. Returns the record (None for an output made before records
-    existed, accepted as it is)."""
+    existed, accepted as it is, and for a folder whose record is another stage's: not this stage's
+    output, left to the caller's own checks)."""
     folder = Path(folder)
     record = read_record(folder)
-    if record is None:
+    if record is None or record.get("stage") not in (None, stage):
         return None
     if not record.get("complete"):
         total = record.get("total")

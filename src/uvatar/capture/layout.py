@@ -142,8 +142,8 @@ class Capture:
         self.root = Path(root)
         if not self.root.is_dir():
             raise InputError(self.root, "capture folder does not exist")
+        require_made(self.root)  # first: an import killed before its last frame has no capture.json yet
         self.info = read_capture_info(self.root)
-        require_made(self.root)
         self.person = check_person_id(person)
 
     # people

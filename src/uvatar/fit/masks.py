@@ -254,7 +254,12 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     colour = _ColourPass(config, people, cameras) if config.appearance and body is not None \
         and len(people) > 1 else None
     poser = _Poser(body, people)
-    for frame, cam_name in tqdm(jobs, desc="masks", unit="image", disable=not progress, dynamic_ncols=True):
+    from uvatar import stage_record
+
+    for n, (frame, cam_name) in enumerate(tqdm(jobs, desc="masks", unit="image", disable=not progress,
+                                               dynamic_ncols=True)):
+        if n and colour is None:  # the masks of the images before this one are on disk ("5 of 12 masks")
+            stage_record.mark_progress(capture.masks_dir, n * len(people))
         todo = [k for k, p in enumerate(people)
                 if config.overwrite or not (p.masks_dir / cam_name / f"{frame}.png").is_file()]
         summary["kept"] += len(people) - len(todo)
@@ -309,8 +314,6 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         raise InputError(capture.root, f"{len(jobs)} images, no mask written: "
                                        f"{len(summary['failed'])} failed (first: "
                                        f"{next(iter(summary['failed'].values()), '-')})")
-    from uvatar import stage_record
-
     # every image was looked at: those that failed are reported (a property of the image, not a half-made run)
     stage_record.finish(capture.masks_dir)
     return summary
@@ -322,7 +325,8 @@ def _begin_record(capture, people: list, config: MaskConfig, total: int) -> None
     subject's and every other person's). A rerun with other settings, or after a fit was redone, is
     refused in one line (the masks on disk would be kept) unless ``overwrite``, which writes every mask
     again; until the last image the record says the masks are half made, and ``uvatar fit --masks`` and
-    ``uvatar train dva`` refuse them (:func:`require_masks`)."""
+    ``uvatar train dva`` refuse them (:func:`require_masks`). The temp files of writes a kill cut short
+    are removed."""
     from uvatar import stage_record
 
     fits = [p.fits_dir for p in people] if config.use_fit else []
@@ -330,6 +334,10 @@ def _begin_record(capture, people: list, config: MaskConfig, total: int) -> None
                        stage_record.file_identities(*fits), total=total,
                        on_change="redo" if config.overwrite else "refuse",
                        redo_hint="overwrite=True writes every mask again")
+    from uvatar.io_utils import sweep_partial_writes
+
+    for person in people:  # temp files of mask writes a kill cut short (masks/00/.000003.*.png)
+        sweep_partial_writes(person.masks_dir)
 
 
 def require_masks(root) -> None:

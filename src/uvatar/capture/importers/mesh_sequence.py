@@ -437,6 +437,8 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             if moved:
                 transferred.append(i)
         imported.append(i)
+        if not done:  # what a refusal of the half-made import counts ("3 of 12 frames")
+            stage_record.mark_progress(scans, len(imported))
     bar.close()
     if not imported:
         raise InputError(src, f"no frame could be imported ({len(skipped)} broken; first: {problems[-1]})")
