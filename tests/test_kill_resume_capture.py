@@ -105,7 +105,7 @@ def test_capture_import_killed_mid_run_resumes_to_identical_scans(take, capsys):
 @pytest.fixture(scope="module")
 def masked(tmp_path_factory):
     """A small synthetic capture without its studio masks, and its masks made by an uninterrupted run."""
-    pytest.importorskip("mediapipe")
+    import mediapipe  # noqa: F401 - the masks need it (the fit extra, installed by the test command): fail, not skip
     root = tmp_path_factory.mktemp("masks")
     run(["-m", "uvatar", "synth", "cap", "--preset", "quick", "--frames", str(MASK_FRAMES), "--heldout", "0",
          "--cameras", str(MASK_CAMERAS), "--image-size", "128", "--scan-texture", "64", "--gt-texels", "16",
