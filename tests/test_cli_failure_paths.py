@@ -15,6 +15,7 @@ import subprocess
 import numpy as np
 import pytest
 
+from tests.cli_errors import one_line_error
 from uvatar.cli.main import main
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -41,17 +42,6 @@ def dva_capture(tmp_path_factory):
     from tests.fixtures.dva_capture import write_toy_capture
 
     return write_toy_capture(tmp_path_factory.mktemp("dva") / "cap", frames=2, cameras=4, size=24)
-
-
-def one_line_error(capsys, code, *words) -> str:
-    text = capsys.readouterr().err
-    assert "Traceback" not in text and "Exception ignored" not in text, text[-3000:]
-    err = [line for line in text.splitlines() if line.startswith("uvatar: error: ")]
-    assert code == 1, (code, text[-2000:])
-    assert len(err) == 1, text[-2000:]
-    for word in words:
-        assert word in err[0], (word, err[0])
-    return err[0]
 
 
 @contextlib.contextmanager

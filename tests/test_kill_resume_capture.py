@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from kill_resume import assert_same_bytes, count, run, run_killed
 
+from tests.cli_errors import one_line_error
 from tests.fixtures.volumetric import person_mesh
 from uvatar.io_utils import find_partial_writes
 
@@ -20,14 +21,6 @@ pytestmark = pytest.mark.slow
 
 TAKE_FRAMES = 12
 MASK_FRAMES, MASK_CAMERAS = 4, 4
-
-
-def _error_line(capsys, code: int) -> str:
-    """The one ``uvatar: error:`` line of a command that refused (exit 1, no traceback)."""
-    text = capsys.readouterr().err
-    lines = [line for line in text.splitlines() if line.startswith("uvatar: error: ")]
-    assert code == 1 and len(lines) == 1 and "Traceback" not in text, (code, text[-2000:])
-    return lines[0]
 
 
 def _plant_partial_write(path):
@@ -85,7 +78,7 @@ def test_capture_import_killed_mid_run_resumes_to_identical_scans(take, capsys):
     assert not (cap / "capture.json").exists()  # written last
     # the half-made capture is refused by its readers in one line naming the command that finishes it
     for command in (["fit", str(cap), "--from", "scans", "--no-progress"], ["capture", "check", str(cap)]):
-        line = _error_line(capsys, main(command))
+        line = one_line_error(capsys, main(command))
         assert re.search(rf"`capture import` incomplete: {record['done']} of {TAKE_FRAMES} frames; run `uvatar "
                          rf"capture import SRC {re.escape(str(cap))}` again to finish", line), line
     assert not (cap / "fitting").exists()
@@ -129,7 +122,7 @@ def test_capture_masks_killed_mid_run_resumes_to_identical_masks(masked, capsys)
     assert 1 <= record["done"] <= kept
     for command in (["fit", str(cap), "--masks", "--force", "--no-progress"],
                     ["train", "dva", str(cap), str(masked / "run"), "--preset", "tiny", "--no-progress"]):
-        line = _error_line(capsys, main(command))
+        line = one_line_error(capsys, main(command))
         assert f"`capture masks` incomplete: {record['done']} of {total} masks; run `uvatar capture masks {cap}` " \
                "again to finish" in line, line
     assert not (masked / "run").exists()

@@ -11,18 +11,12 @@ import json
 import pytest
 from kill_resume import count, run, run_killed
 
+from tests.cli_errors import one_line_error
 from tests.fixtures.fake_baked import make_fake_baked_dataset
 from uvatar.errors import InputError
 
 SYNTH = ["synth", "--preset", "quick", "--frames", "2", "--heldout", "0", "--cameras", "1", "--image-size", "32",
          "--scan-texture", "64", "--gt-texels", "16", "--no-preview", "--no-progress"]
-
-
-def _one_line(capsys, code: int) -> str:
-    text = capsys.readouterr().err
-    lines = [line for line in text.splitlines() if line.startswith("uvatar: error: ")]
-    assert code == 1 and len(lines) == 1 and "Traceback" not in text, (code, text[-2000:])
-    return lines[0]
 
 
 def _mtimes(folder):
@@ -42,7 +36,7 @@ def test_synth_rerun_with_another_flag_is_refused_before_any_work(tmp_path, caps
     made = _mtimes(cap)
     for flag, old, new in (("--seed", "0", "7"), ("--image-size", "32", "40"), ("--frames", "2", "3")):
         argv = [SYNTH[0], str(cap), *SYNTH[1:], flag, new]
-        line = _one_line(capsys, main(argv))
+        line = one_line_error(capsys, main(argv))
         assert f"made with {flag} {old} (this run: {flag} {new})" in line, line
         assert "another output folder starts over" in line and f"{flag[2:].replace('-', '_')}=" not in line
     assert _mtimes(cap) == made  # nothing was rewritten, nothing of the other settings mixed in
@@ -64,9 +58,9 @@ def test_synth_half_made_is_refused_downstream_until_finished(tmp_path, capsys):
     capsys.readouterr()
     (cap / "gt" / "frames" / "000001.npz").unlink()  # the frame a kill never made
     stage_record.mark_progress(cap, 1)
-    line = _one_line(capsys, main(["select", str(cap), "--from-capture"]))
+    line = one_line_error(capsys, main(["select", str(cap), "--from-capture"]))
     assert "`synth` incomplete: 1 of 2 frames; run `uvatar synth " in line and "again to finish" in line, line
-    line = _one_line(capsys, main(["capture", "check", str(cap)]))
+    line = one_line_error(capsys, main(["capture", "check", str(cap)]))
     assert "`synth` incomplete: 1 of 2 frames" in line
     assert main([SYNTH[0], str(cap), *SYNTH[1:]]) == 0
     summary = json.loads(capsys.readouterr().out)
@@ -91,7 +85,7 @@ def test_train_avh_killed_is_refused_by_export_until_resumed(baked, tmp_path, ca
     argv = ["-m", "uvatar", "train", "avh", str(baked), str(run_dir), *TRAIN]
     run_killed([*argv, "--epochs", "400"], tmp_path, lambda: count(run_dir, "model.pt") == 1)
     assert not json.loads((run_dir / "stage.json").read_text())["complete"]
-    line = _one_line(capsys, main(["export", str(run_dir), str(tmp_path / "avatar")]))
+    line = one_line_error(capsys, main(["export", str(run_dir), str(tmp_path / "avatar")]))
     assert f"`train avh` incomplete; run `uvatar train avh BAKED {run_dir} --resume` again to finish" in line, line
     assert not (tmp_path / "avatar" / "avatar.json").exists()
     run([*argv, "--epochs", "1", "--resume"], tmp_path)  # a budget already reached: the run is finished as it is
@@ -121,7 +115,7 @@ def test_export_redoes_on_a_changed_flag_and_a_half_made_export_is_refused(baked
     with pytest.raises(InputError, match=r"`export` incomplete; run `uvatar export RUN .*avatar` again to finish"):
         read_avatar(avatar)
     # the folder of another stage is never written over by an export
-    line = _one_line(capsys, main(["export", str(run_dir), str(run_dir)]))
+    line = one_line_error(capsys, main(["export", str(run_dir), str(run_dir)]))
     assert "holds the output of `train avh`, not of `export`: use another folder" in line
 
 
@@ -147,7 +141,7 @@ def test_capture_masks_refuses_another_flag_redoes_with_overwrite_and_half_made_
     made = _mtimes(cap / "masks")
     assert len(made) == 4
     capsys.readouterr()
-    line = _one_line(capsys, main(["capture", "masks", str(cap), "--dilate", "0.1", "--no-progress"]))
+    line = one_line_error(capsys, main(["capture", "masks", str(cap), "--dilate", "0.1", "--no-progress"]))
     assert "made with --dilate 0.04 (this run: --dilate 0.1)" in line and "--overwrite writes every mask again" in line
     assert _mtimes(cap / "masks") == made
     assert main(["capture", "masks", str(cap), "--dilate", "0.1", "--overwrite", "--no-progress"]) == 0
@@ -167,7 +161,7 @@ def test_capture_masks_refuses_another_flag_redoes_with_overwrite_and_half_made_
     capsys.readouterr()
     for argv in (["fit", str(cap), "--masks", "--force", "--no-progress"],
                  ["train", "dva", str(cap), str(tmp_path / "run"), "--preset", "tiny", "--no-progress"]):
-        line = _one_line(capsys, main(argv))
+        line = one_line_error(capsys, main(argv))
         assert f"`capture masks` incomplete: 0 of 4 masks; run `uvatar capture masks {cap}` again to finish" in line
     assert not (tmp_path / "run").exists()
     assert main(["capture", "masks", str(cap), "--overwrite", "--no-progress"]) == 0
