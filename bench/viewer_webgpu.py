@@ -88,7 +88,7 @@ def main(argv=None) -> int:
                     row[name] = got
                     maps[name] = (tex, disp)
                     log(f"[viewer_webgpu] {size}² {name}: {json.dumps(got)}")
-                    page.evaluate("window.uvatar.stats.inferenceMs = %f" % got["median_ms"])
+                    page.evaluate(f"window.uvatar.stats.inferenceMs = {got['median_ms']:f}")
                     page.wait_for_timeout(500)  # the counter shows the benchmark's median
                     where = f"{got['backend']} {got['precision']}" + (f" ({got['adapter']})" if got["adapter"] else "")
                     shots.append(caption(page.screenshot(), f"{size}x{size} texels  {where}: {got['median_ms']:.1f} ms median"))
