@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.fixtures.box_people import BoxPeopleDetector
 from uvatar.fit.identity import (
     CLOSE_M,
     HIST_BINS,
@@ -17,9 +18,8 @@ from uvatar.fit.identity import (
     torso_histograms,
     track_frame,
 )
-from uvatar.fit.keypoints import BLAZEPOSE_NAMES, Keypoints2D
+from uvatar.fit.keypoints import BLAZEPOSE_NAMES
 from uvatar.fit.observe import observe_frame
-from uvatar.fit.projection import project_distorted
 from uvatar.fit.triangulate import TriangulateConfig
 from uvatar.render.cameras import ring_cameras
 
@@ -136,42 +136,6 @@ def test_torso_colours_and_centre():
     assert body_centre(pts, np.zeros(K)) is None
 
 
-class _TwoPeopleDetector:
-    """People as boxes of keypoints; in a crop it returns the person nearest the camera (the one in
-    front), on a whole image the largest not painted over (like BlazePose taking one person)."""
-
-    keypoint_names = BLAZEPOSE_NAMES
-
-    def __init__(self, cams, people):
-        self.cams, self.people = cams, people
-
-    def image(self, c):
-        cam = self.cams[c]
-        img = np.zeros((cam.height, cam.width, 3), np.float32)
-        for p in self.people:
-            xy, _ = project_distorted(cam, p)
-            (x0, y0), (x1, y1) = np.clip(xy.min(0), 0, None).astype(int), xy.max(0).astype(int)
-            img[y0:y1, x0:x1] = 1.0
-        img[0, 0, 0] = c / 10
-        return img
-
-    def detect(self, image, roi=None):
-        c = int(round(image[0, 0, 0] * 10))
-        cam = self.cams[c]
-        found = []
-        for p in self.people:
-            xy, z = project_distorted(cam, p)
-            centre = xy.mean(0).astype(int)
-            if not (0 <= centre[0] < cam.width and 0 <= centre[1] < cam.height) or image[centre[1], centre[0], 1] < 1:
-                continue
-            if roi is not None and not (roi[0] <= centre[0] <= roi[2] and roi[1] <= centre[1] <= roi[3]):
-                continue
-            found.append((z.mean() if roi is not None else -np.ptp(xy, axis=0).prod(), xy))
-        if not found:
-            return Keypoints2D.empty(33)
-        return Keypoints2D(min(found, key=lambda f: f[0])[1].astype(np.float32), np.ones(33, np.float32))
-
-
 def _person(centre, rng):
     pts = rng.normal(size=(33, 3)) * [0.08, 0.4, 0.08] + centre
     for k, name in enumerate(BLAZEPOSE_NAMES):   # left points on +x, so the labels are unambiguous
@@ -192,13 +156,13 @@ def test_track_frame_takes_the_subject_back_from_a_crop_that_saw_the_person_in_f
     tri = TriangulateConfig()
     tracker = SubjectTracker(STEP)
     tracker.start(0, body_centre(subject0, np.ones(33)))
-    det = _TwoPeopleDetector(cams, [subject0])
+    det = BoxPeopleDetector(cams, [subject0], front_in_crop=True, clip=True)
     images = [det.image(c) for c in range(len(cams))]
     obs0 = observe_frame(images, cams, det, tri, "images")
     obs, status = track_frame(tracker, 0, obs0, images, cams, det, tri, "images")
     assert status == "tracked"
     bystander = _person(np.array([0.0, 1.0, 1.3]), rng)   # 1.3 m in front: beyond CLOSE_M
-    det = _TwoPeopleDetector(cams, [subject0 + [0.01, 0, 0], bystander])
+    det = BoxPeopleDetector(cams, [subject0 + [0.01, 0, 0], bystander], front_in_crop=True, clip=True)
     images = [det.image(c) for c in range(len(cams))]
     crop = observe_frame(images, cams, det, tri, "images", prior=obs)
     obs1, status = track_frame(tracker, 1, crop, images, cams, det, tri, "images")
@@ -267,7 +231,7 @@ def test_keypoints_over_another_person_are_left_out_and_a_frame_without_two_clea
     rng = np.random.default_rng(1)
     cams = ring_cameras((0.0, 1.0, 0.0), 4.0, 4, elevations_deg=(0.0,), width=640, height=480)
     subject = _person(np.array([0.0, 1.0, 0.0]), rng)
-    det = _TwoPeopleDetector(cams, [subject])
+    det = BoxPeopleDetector(cams, [subject], front_in_crop=True, clip=True)
     images = [det.image(c) for c in range(len(cams))]
     tri = TriangulateConfig()
     obs = observe_frame(images, cams, det, tri, "images")

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from tests.fixtures.box_people import BoxPeopleDetector
 from uvatar.errors import InputError
-from uvatar.fit.keypoints import BLAZEPOSE_NAMES, Keypoints2D
+from uvatar.fit.keypoints import BLAZEPOSE_NAMES
 from uvatar.fit.observe import FrameObservation, disagreeing_views, left_right_swap, reject_views
 from uvatar.fit.person import (
     Person,
@@ -131,51 +132,13 @@ def test_parse_person_bad_specs_are_one_line(spec):
     assert "\n" not in str(err.value)
 
 
-class _FakeDetector:
-    """Finds the people drawn as white boxes (their projected keypoints' boxes); the largest one not
-    painted over comes first; inside a roi only those whose centre lies in it."""
-
-    keypoint_names = BLAZEPOSE_NAMES
-
-    def __init__(self, cams, people):
-        self.cams, self.people = cams, people
-
-    def image(self, c):
-        cam = self.cams[c]
-        img = np.zeros((cam.height, cam.width, 3), np.float32)
-        for p in self.people:
-            xy, z = project_distorted(cam, p)
-            if (z > 0).all() and (xy >= 0).all() and (xy[:, 0] < cam.width).all() and (xy[:, 1] < cam.height).all():
-                (x0, y0), (x1, y1) = xy.min(0).astype(int), xy.max(0).astype(int)
-                img[y0:y1, x0:x1] = 1.0
-        img[0, 0, 0] = c / 10  # which view this is
-        return img
-
-    def detect(self, image, roi=None):
-        c = int(round(image[0, 0, 0] * 10))
-        cam = self.cams[c]
-        found = []
-        for p in self.people:
-            xy, z = project_distorted(cam, p)
-            centre = xy.mean(0).astype(int)
-            if not (0 <= centre[0] < cam.width and 0 <= centre[1] < cam.height) or image[centre[1], centre[0], 1] < 1:
-                continue
-            if roi is not None and not (roi[0] <= centre[0] <= roi[2] and roi[1] <= centre[1] <= roi[3]):
-                continue
-            found.append((np.ptp(xy, axis=0).prod(), xy))
-        if not found:
-            return Keypoints2D.empty(33)
-        xy = max(found, key=lambda f: f[0])[1]
-        return Keypoints2D(xy.astype(np.float32), np.ones(33, np.float32))
-
-
 def test_find_and_choose_people_with_a_fake_detector():
     rng = np.random.default_rng(3)
     cams = _cams(4, (1280, 960))
     subject = _body(rng, centre=(0.0, 1.0, 0.0))
     near = _body(rng, centre=(0.8, 1.0, 1.3))
     near = (near - near.mean(0)) * 1.5 + near.mean(0)   # a bigger person, nearer the cameras: the largest
-    det = _FakeDetector(cams, [subject, near])
+    det = BoxPeopleDetector(cams, [subject, near])
     images = [det.image(c) for c in range(len(cams))]
     people = find_people(images, cams, det, TriangulateConfig())
     assert len(people) == 2
