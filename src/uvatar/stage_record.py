@@ -38,7 +38,7 @@ from uvatar.io_utils import write_json
 log = logging.getLogger(__name__)
 
 __all__ = ["RECORD_NAME", "StageState", "begin", "begin_run", "config_values", "file_identities", "finish",
-           "mark_progress", "read_record", "require_complete", "require_inputs_unchanged"]
+           "first_config_difference", "mark_progress", "read_record", "require_complete", "require_inputs_unchanged"]
 
 RECORD_NAME = "stage.json"
 
@@ -136,13 +136,21 @@ def _show(value) -> str:
     return str(value)
 
 
+def first_config_difference(before: Mapping, now: Mapping) -> str | None:
+    """The name of the first setting whose value differs between a record's ``config`` and this run's
+    (one missing on either side counts as "(unset)"), or None."""
+    for name in list(now) + [n for n in before if n not in now]:
+        if before.get(name, "(unset)") != now.get(name, "(unset)"):
+            return name
+    return None
+
+
 def _config_change(before: dict, now: dict) -> str | None:
     """``"texels=64 (this run: texels=128)"`` for the first setting that differs, or None."""
-    for name in list(now) + [n for n in before if n not in now]:
-        old, new = before.get(name, "(unset)"), now.get(name, "(unset)")
-        if old != new:
-            return f"{name}={_show(old)} (this run: {name}={_show(new)})"
-    return None
+    name = first_config_difference(before, now)
+    if name is None:
+        return None
+    return f"{name}={_show(before.get(name, '(unset)'))} (this run: {name}={_show(now.get(name, '(unset)'))})"
 
 
 def _input_change(before: Mapping[str, list], now: Mapping[str, list] | None) -> str | None:

@@ -138,7 +138,7 @@ def _refuse_other_sizes(out: Path, values: dict, redo_hint: str) -> None:
     if previous is None or previous.get("stage") != "demo":
         return
     before = previous["config"]
-    first = next((k for k in [*values, *before] if before.get(k, "(unset)") != values.get(k, "(unset)")), None)
+    first = stage_record.first_config_difference(before, values)
     if first is None or first in FLAG_FIELDS:
         return
     old, new = _sizes_of(before), _sizes_of(values)
