@@ -119,26 +119,8 @@ def train_rows(trainer, precisions, steps: int, device: str, profile: bool = Fal
 def stage_split(fast, verts, rots, cams, imgs, masks, camera, repeats: int, device: str, table: bool) -> dict:
     """Median ms of each stage of :meth:`FrameRenderer.drive` (device-timed), and with ``table`` the
     profiler's top operators on stderr."""
-    from uvatar.dva.model import DvaOutput
-    from uvatar.dva.raymarch import raymarch
-    from uvatar.dva.unwrap_device import driving_texture_device
-
-    m = fast.model
-    centre = torch.as_tensor(camera.center, dtype=torch.float32, device=device)[None]
-
     def frame(mark):
-        tex = driving_texture_device(m, verts, cams, imgs, masks)
-        mark("unwrap")
-        pose_maps, f_view, skip = m.inputs(verts[None], rots[None], tex[None], centre)
-        mark("inputs")
-        motion, payload = fast._decode(pose_maps, tex[None], f_view, *(skip or (None, None)))
-        mark("encode_decode")
-        pos, rot, scl = m.place(verts[None], motion, fast.correctives)
-        out = DvaOutput(pos, rot, scl, payload, motion, payload[:, :, :3])
-        mark("place")
-        o, d, pix = fast.rays(camera)
-        raymarch(o, d, out.primitives(0), m.cfg.raymarch, camera=camera, pixels=pix)
-        mark("march")
+        fast.drive(verts, rots, cams, imgs, masks, camera, mark=mark)
 
     cuda = device.startswith("cuda")
     times: dict[str, list[float]] = {}

@@ -102,6 +102,20 @@ def test_fp32_frame_is_the_reference_image(body, channels_last):
     assert 0.05 < (alpha > 0.5).mean() < 0.95  # the tube covers part of the frame
 
 
+def test_stage_hook_sees_each_stage_once_in_order_and_changes_nothing(body):
+    """``render(..., mark=)`` (what bench/dva_frame.py --profile times) calls the hook as each stage
+    ends, in the frame's order, and renders the same image as without it."""
+    model = _model(body)
+    verts, rot, tex = _inputs(body)
+    cam = toy_cameras(4, 40)["cam01"]
+    fast = FrameRenderer(model, FrameConfig())
+    plain, _ = fast.render(verts, rot, tex, cam)
+    seen = []
+    marked, _ = fast.render(verts, rot, tex, cam, mark=seen.append)
+    assert seen == ["inputs", "encode_decode", "place", "march"]
+    assert torch.equal(marked, plain)
+
+
 @pytest.mark.parametrize(("precision", "floor"), [("bf16", BF16_MIN_PSNR), ("fp16", FP16_MIN_PSNR)])
 def test_reduced_precision_frame_is_close_to_the_reference(body, precision, floor):
     ref, rgb, _ = _frames(body, precision)

@@ -28,6 +28,10 @@ from uvatar.dva.raymarch import raymarch
 from uvatar.precision import FastPathConfig
 
 
+def _no_mark(stage: str) -> None:
+    """The default stage hook of :class:`FrameRenderer`: nothing."""
+
+
 class FrameConfig(FastPathConfig):
     """The fast frame's path (:class:`~uvatar.precision.FastPathConfig`): precision of the encoders
     and decoders, compile, compile_mode, channels_last."""
@@ -62,7 +66,9 @@ class FrameRenderer:
     ``render(posed_vertices (V, 3), joint_rotvecs (J, 3), image_texture (4, R, R), camera, background)
     -> rgb (H, W, 3) in [0, 1], alpha (H, W)``, torch tensors on the model's device (nothing is copied
     back to the host). The model is used in place (eval mode; ``channels_last`` changes its parameters'
-    memory layout, not their values)."""
+    memory layout, not their values). ``mark(stage)``, when given, is called as each stage of a frame
+    ends ("unwrap", "inputs", "encode_decode", "place", "march"): what ``bench/dva_frame.py --profile``
+    times."""
 
     def __init__(self, model, cfg: FrameConfig | None = None):
         self.model, self.cfg = model.eval(), cfg or FrameConfig()
@@ -71,11 +77,14 @@ class FrameRenderer:
         self._camera, self._rays = None, None
 
     @torch.no_grad()
-    def decode(self, posed_vertices, joint_rotvecs, image_texture, camera_centers) -> DvaOutput:
+    def decode(self, posed_vertices, joint_rotvecs, image_texture, camera_centers, mark=_no_mark) -> DvaOutput:
         m = self.model
         pose_maps, f_view, skip = m.inputs(posed_vertices, joint_rotvecs, image_texture, camera_centers)
+        mark("inputs")
         motion, payload = self._decode(pose_maps, image_texture, f_view, *(skip or (None, None)))
+        mark("encode_decode")
         pos, rot, scl = m.place(posed_vertices, motion, self.correctives)
+        mark("place")
         return DvaOutput(pos, rot, scl, payload, motion, payload[:, :, :3])
 
     def rays(self, camera):
@@ -90,22 +99,26 @@ class FrameRenderer:
         return self._rays
 
     @torch.no_grad()
-    def drive(self, posed_vertices, joint_rotvecs, cameras, images, masks, camera, background=(0.0, 0.0, 0.0)):
+    def drive(self, posed_vertices, joint_rotvecs, cameras, images, masks, camera, background=(0.0, 0.0, 0.0),
+              mark=_no_mark):
         """A telepresence frame: driving views (cameras, images (H, W, 3) and masks (H, W), torch on the
         device) + the frame's pose -> ``camera``'s rgb (H, W, 3), alpha (H, W). The views are unwrapped on
         the device (:func:`uvatar.dva.unwrap_device.driving_texture_device`, Warp), then :meth:`render`."""
         from uvatar.dva.unwrap_device import driving_texture_device
 
         tex = driving_texture_device(self.model, posed_vertices, cameras, images, masks)
-        return self.render(posed_vertices, joint_rotvecs, tex, camera, background)
+        mark("unwrap")
+        return self.render(posed_vertices, joint_rotvecs, tex, camera, background, mark)
 
     @torch.no_grad()
-    def render(self, posed_vertices, joint_rotvecs, image_texture, camera, background=(0.0, 0.0, 0.0)):
+    def render(self, posed_vertices, joint_rotvecs, image_texture, camera, background=(0.0, 0.0, 0.0),
+               mark=_no_mark):
         dev = posed_vertices.device
         center = torch.as_tensor(camera.center, dtype=torch.float32, device=dev)[None]
-        out = self.decode(posed_vertices[None], joint_rotvecs[None], image_texture[None].to(dev), center)
+        out = self.decode(posed_vertices[None], joint_rotvecs[None], image_texture[None].to(dev), center, mark)
         o, d, pix = self.rays(camera)
         rgb, alpha = raymarch(o, d, out.primitives(0), self.model.cfg.raymarch, camera=camera, pixels=pix)
+        mark("march")
         bg = torch.as_tensor(np.asarray(background, np.float32), device=dev)
         rgb = rgb + (1.0 - alpha)[:, None] * bg
         H, W = camera.height, camera.width
