@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar import stage_record
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.depth_order import FAR, body_depth, body_silhouette, nearest_region
 from uvatar.fit.depth_order import disc as _disc
@@ -254,8 +255,6 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     colour = _ColourPass(config, people, cameras) if config.appearance and body is not None \
         and len(people) > 1 else None
     poser = _Poser(body, people)
-    from uvatar import stage_record
-
     for n, (frame, cam_name) in enumerate(tqdm(jobs, desc="masks", unit="image", disable=not progress,
                                                dynamic_ncols=True)):
         if n and colour is None:  # the masks of the images before this one are on disk ("5 of 12 masks")
@@ -327,15 +326,13 @@ def _begin_record(capture, people: list, config: MaskConfig, total: int) -> None
     again; until the last image the record says the masks are half made, and ``uvatar fit --masks`` and
     ``uvatar train dva`` refuse them (:func:`require_masks`). The temp files of writes a kill cut short
     are removed."""
-    from uvatar import stage_record
+    from uvatar.io_utils import sweep_partial_writes
 
     fits = [p.fits_dir for p in people] if config.use_fit else []
     stage_record.begin(capture.masks_dir, "capture masks", stage_record.config_values(config, drop=("overwrite",)),
                        stage_record.file_identities(*fits), total=total,
                        on_change="redo" if config.overwrite else "refuse",
                        redo_hint="overwrite=True writes every mask again")
-    from uvatar.io_utils import sweep_partial_writes
-
     for person in people:  # temp files of mask writes a kill cut short (masks/00/.000003.*.png)
         sweep_partial_writes(person.masks_dir)
 
@@ -343,10 +340,8 @@ def _begin_record(capture, people: list, config: MaskConfig, total: int) -> None
 def require_masks(root) -> None:
     """Refuse, in one line, masks that ``uvatar capture masks`` left half made (killed before its last
     image); masks without a record (a synthetic capture's, or made before records) are taken as they are."""
-    from uvatar.stage_record import require_complete
-
-    require_complete(Path(root) / "masks", "capture masks", f"uvatar capture masks {root}", unit="masks",
-                     check_inputs=False)
+    stage_record.require_complete(Path(root) / "masks", "capture masks", f"uvatar capture masks {root}",
+                                  unit="masks", check_inputs=False)
 
 
 def _load_image(capture, cam_name: str, frame: str) -> np.ndarray:
