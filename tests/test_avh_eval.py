@@ -284,6 +284,15 @@ def test_evaluate_a_scan_only_take_by_region_both_ways_and_against_its_own_bake(
     # the frame's own bake, rendered like the avatar: on the training frame it is the nearest pose itself
     assert entry["own_bake_psnr_db"] == pytest.approx(entry["nearest_pose_psnr_db"])
     assert "own_bake" in m["upper_bound"] and "own_bake_texture_r2_own_bake" not in entry
+    # the time neighbour (a real take only): on a training frame it is that frame; on 000004 the training
+    # frame nearest in frame number (the earlier on a tie)
+    assert "nearest_time" in m["baselines"] and "nearest_time" in m["protocol"]
+    assert entry["nearest_time_training_frame"] == train[0]
+    assert entry["nearest_time_psnr_db"] == pytest.approx(entry["own_bake_psnr_db"])
+    [held] = [e for e in m["per_frame"] if e["frame"] == "000004"]
+    numbers = np.array([int(f) for f in train])
+    best = numbers[np.abs(numbers - 4) == np.abs(numbers - 4).min()].min()
+    assert held["nearest_time_training_frame"] == f"{best:06d}"
     json.dumps(m)
 
 

@@ -313,3 +313,70 @@ def test_the_shading_head_learns_at_its_own_rate(body):
     assert len(parameter_groups(paper, TrainConfig())) == 1
     with pytest.raises(ValueError, match="shading learning-rate scale"):
         TrainConfig(shading_lr_scale=0)
+
+
+# --- pose normalization (AvhConfig.pose_normalization): inputs standardized by the training frames ---
+
+def _normalized_pair(body, conditioning="texel", R=16):
+    """The same weights with and without pose normalization (identity statistics until set)."""
+    J = len(body.conditioning_joints)
+    plain = _texel_generator(body, R) if conditioning == "texel" else AvhGenerator(
+        AvhConfig(4, 16, resolution=R, num_pose_joints=J)).eval()
+    cfg = AvhConfig(**{**plain.config.to_dict(), "pose_normalization": True})
+    norm = AvhGenerator(cfg)
+    missing, unexpected = norm.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and all("pose_code" in k or "r6_" in k for k in missing)
+    return plain, norm.eval()
+
+
+@pytest.mark.parametrize("conditioning", ["global", "texel"])
+def test_pose_normalization_is_the_identity_until_statistics_are_set(body, conditioning):
+    plain, norm = _normalized_pair(body, conditioning)
+    a = 0.3 * torch.randn(3, 3 * len(body.conditioning_joints))
+    with torch.no_grad():
+        for x, y in zip(AvhFromAngles(plain)(a), AvhFromAngles(norm)(a), strict=True):
+            assert torch.equal(x, y)
+
+
+def test_pose_statistics_standardize_the_training_poses_with_a_floor_and_a_clip(body):
+    _, gen = _normalized_pair(body)
+    J = len(body.conditioning_joints)
+    torch.manual_seed(0)
+    angles = 0.05 * torch.randn(64, 3 * J)
+    angles[:, :3] = 0.1                       # joint 0 never moves in training: its std is floored
+    gen.set_pose_statistics(angles)
+    from uvatar.avh.model import encode_pose
+    from uvatar.avh.texel_pose import rotvec_to_rot6d
+
+    code = encode_pose(angles)
+    z = (code - gen.pose_code_mean) / gen.pose_code_scale
+    moving = code.std(0, unbiased=False) > 0.02
+    assert moving.sum() > 0 and torch.allclose(z.mean(0), torch.zeros(6 * J), atol=1e-4)
+    assert torch.allclose(z[:, moving].std(0, unbiased=False), torch.ones(int(moving.sum())), atol=1e-4)
+    assert torch.all(gen.pose_code_scale[:6] == 0.02)           # the still joint: the floor, not 0
+    r6 = rotvec_to_rot6d(angles.reshape(64, J, 3))
+    assert torch.allclose(gen.texel_pose.r6_mean, r6.mean(0), atol=1e-6)
+    # a pose far outside the training range saturates at pose_clip standard deviations
+    far = angles[:1].clone()
+    far[:, 3:6] += 1.5
+    farther = far.clone()
+    farther[:, 3:6] += 0.5
+    with torch.no_grad():
+        m1, m2 = gen.texel_pose(far), gen.texel_pose(farther)
+        assert torch.allclose(m1, m2)
+        assert (gen.texel_pose(angles[:1]) - m1).abs().max() > 1e-3
+
+
+def test_pose_normalization_trains_saves_its_statistics_and_exports(body, tmp_path):
+    from uvatar.avh.export import export_avatar
+    from uvatar.avh.train import TrainConfig, load_trained_generator, train_avh
+
+    _, baked = make_toy_capture(tmp_path, body, num_frames=6, heldout=1, resolution=16)
+    cfg = AvhConfig(4, 16, resolution=16, conditioning="texel", pose_normalization=True)
+    train_avh(baked, tmp_path / "run", cfg, TrainConfig(epochs=1, batch_size=2, progress=False, tensorboard=False),
+              body=body)
+    gen, _ = load_trained_generator(tmp_path / "run")
+    assert gen.config.pose_normalization
+    assert not torch.all(gen.pose_code_scale == 1) and not torch.all(gen.texel_pose.r6_scale == 1)
+    meta = export_avatar(tmp_path / "run", tmp_path / "avatar", body=body)
+    assert meta["onnx_max_abs_diff"] <= 1e-4

@@ -12,7 +12,12 @@ over ``mask``. The same numbers for two baselines:
 - ``mean_texture``: the body with the κ-weighted mean training texture and no displacement;
 - ``nearest_pose``: the baked maps of the training frame whose encoded pose (sin, cos of the
   conditioning angles) is nearest (displacement outliers > 5 cm zeroed, as in training), its
-  displacement in the avatar's frame (rest or body), re-posed exactly like the avatar's.
+  displacement in the avatar's frame (rest or body), re-posed exactly like the avatar's;
+- ``nearest_time`` (a real take only: scans, no ``gt/``, frames named by take numbers): the baked maps
+  of the training frame nearest in the take's time. Not a pose-driven method: a diagnostic of how
+  much of the unseen frames' appearance is drift over time (the cloth settling, the light of a
+  texture that lags its mesh) rather than a function of the pose, which no pose-driven generator
+  can carry.
 
 All three go through the same runtime (subdivision, gutter fill of texels outside the UV charts).
 More avatars (``others``, e.g. the other generator conditioning) are evaluated in the same loop.
@@ -55,7 +60,11 @@ from uvatar.errors import InputError, check_values
 log = logging.getLogger(__name__)
 
 METHODS = ("avh", "mean_texture", "nearest_pose")
-SHORT_NAMES = {"avh": "AVH", "mean_texture": "mean tex", "nearest_pose": "nearest", "own_bake": "own bake"}
+SHORT_NAMES = {"avh": "AVH", "mean_texture": "mean tex", "nearest_pose": "nearest", "nearest_time": "nearest in time",
+               "own_bake": "own bake"}
+TIME_PROTOCOL = ("; nearest_time (a real take: no gt/, frames named by the take's frame numbers): the baked maps of "
+                 "the training frame nearest in frame number (ties: the earlier), re-posed like nearest_pose; not "
+                 "pose-driven, it measures how much of the unseen frames is drift over time rather than pose")
 PROTOCOL = ("held-out frames (gt/info.json heldout_frames), not trained on; avatar and ground-truth scan "
             "rendered with the same ray-cast renderer from each capture camera (white background, no shading); "
             "PSNR (dB) and SSIM (Gaussian window sigma 1.5) over the union of the two foreground masks "
@@ -178,6 +187,15 @@ class Baselines:
         """
         code = encoded_conditioning(pose[None], self.conditioning)
         i = int(np.argmin(((self.codes - code) ** 2).sum(1)))
+        return i, self.frames.texture[i], self.displacement[i]
+
+    def nearest_in_time(self, frame: str) -> tuple[int, np.ndarray, np.ndarray] | None:
+        """(index, texture, displacement) of the training frame nearest to ``frame`` in frame number
+        (ties: the earlier); None unless every name is a frame number."""
+        names = self.frames.names
+        if not (frame.isdigit() and names and all(n.isdigit() for n in names)):
+            return None
+        i = int(np.argmin([abs(int(n) - int(frame)) + 1e-3 * (int(n) > int(frame)) for n in names]))
         return i, self.frames.texture[i], self.displacement[i]
 
 
@@ -307,6 +325,9 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
             log.warning("no held-out frames listed; evaluating on every capture frame")
     if config.frames:
         frames, split = select_names(config.frames, capture.frames, capture.root, "frame"), "frames given"
+    real_take = not (capture.gt_dir / "frames").is_dir()
+    if real_take and frames and baselines.nearest_in_time(frames[0]) is not None:
+        methods.append("nearest_time")
     frames = frames[: config.max_frames] if config.max_frames else frames
     cams = capture.cameras()
     if config.cameras:
@@ -351,6 +372,9 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
             tex, disp = rt.generate(pose[None], Rh=Rh[None])
             maps[m] = (tex[0], disp[0])
         maps.update({"mean_texture": (baselines.mean_texture, None), "nearest_pose": (nn_tex, nn_disp)})
+        near_time = baselines.nearest_in_time(frame) if "nearest_time" in methods else None
+        if near_time is not None:
+            maps["nearest_time"] = near_time[1:]
         own = own_bakes.get(frame) if frame in own_frames else None
         if own is not None:
             entry_r2 = own_r2.add(frame, dict(maps), own.texture, own.displacement, own.kappa, own.valid)
@@ -367,6 +391,8 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         entry = {"frame": frame, "nearest_training_frame": baselines.frames.names[nn_index],
                  "nearest_training_distance_deg": float(distances.min()),
                  "nearest_pose_baseline_distance_deg": float(distances[nn_index])}
+        if near_time is not None:
+            entry["nearest_time_training_frame"] = baselines.frames.names[near_time[0]]
         for ci, cam in enumerate(cameras):
             gt = render_mesh(scan.vertices, scan.faces, cam, scan.uvs, scan.uv_faces, scan.texture, raycaster=gt_caster)
             row, masks, labels = [gt.rgb], [gt.mask], ["ground truth"]
@@ -436,12 +462,14 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         protocol += SCAN_PROTOCOL
     if own_r2 is not None and own_r2.frames:
         protocol += OWN_BAKE_PROTOCOL
+    if "nearest_time" in methods:
+        protocol += TIME_PROTOCOL
     out = {"protocol": protocol, "pose_source": config.pose_source, "own_bake_frames": own_r2.frames if own_r2 else [],
            "split": split, "frames": [e["frame"] for e in per_frame],
            "cameras": len(cameras), "camera_names": camera_names, "avatar": str(avatar_dir), "capture": str(capture_root),
            "avh": summary["avh"], "others": {m: summary[m] for m in runtimes if m != "avh"},
            "avatars": {m: {"path": str(rt.avatar_dir), "conditioning": conditioning[m]} for m, rt in runtimes.items()},
-           "baselines": {"mean_texture": summary["mean_texture"], "nearest_pose": summary["nearest_pose"]},
+           "baselines": {m: summary[m] for m in ("mean_texture", "nearest_pose", "nearest_time") if m in summary},
            "upper_bound": {"own_bake": summary["own_bake"]} if own_frames else {},
            "nearest_training_distance_deg": {e["frame"]: e["nearest_training_distance_deg"] for e in per_frame},
            "distance_bins": distance_bins(per_frame, methods),

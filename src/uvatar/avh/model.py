@@ -108,6 +108,17 @@ class AvhConfig:
         shadows of spheres along the skeleton, :mod:`uvatar.avh.shadows`).
     shading_occlusion: with the shadows, the rig's ambient is also dimmed by the limbs' occlusion (each
         sphere's cosine-weighted solid angle seen from the texel).
+    pose_normalization: standardize the pose inputs by the training frames' statistics (beyond the
+        paper): the encoded pose of the MLP and, with texel conditioning, each joint's rot6d before it is
+        blended into the texel map, as (x - mean) / max(std, pose_scale_floor), clipped to ±pose_clip.
+        A take whose person stands and talks moves its joints by about 1° (sin/cos inputs vary by
+        ~0.005), so without it the pose-dependent part of the maps starts ~100x weaker than the mean
+        and short trainings never leave the mean maps. The clip bounds what a pose far outside the
+        training range can do (the generator's response saturates at ±pose_clip standard deviations).
+        Statistics: :meth:`AvhGenerator.set_pose_statistics` (buffers saved with the weights and
+        exported in the ONNX graph).
+    pose_scale_floor: smallest std (sin/cos units, ~radians) a pose input is divided by.
+    pose_clip: standardized pose inputs are clipped to ±this.
     """
 
     feature_size: int = 32
@@ -125,6 +136,9 @@ class AvhConfig:
     shading_lights: int = 0
     shading_shadows: bool = False
     shading_occlusion: bool = False
+    pose_normalization: bool = False
+    pose_scale_floor: float = 0.02
+    pose_clip: float = 4.0
 
     def __post_init__(self):
         ratio = self.resolution / self.feature_size
@@ -140,6 +154,9 @@ class AvhConfig:
         if not 0.0 <= self.displacement_residual_scale <= self.displacement_scale:
             raise ValueError(f"displacement_residual_scale must be in [0, displacement_scale "
                              f"{self.displacement_scale}], got {self.displacement_residual_scale}")
+        if self.pose_scale_floor <= 0 or self.pose_clip <= 0:
+            raise ValueError(f"pose_scale_floor and pose_clip must be positive, got {self.pose_scale_floor}, "
+                             f"{self.pose_clip}")
         if self.latent < 1 or self.num_pose_joints < 1 or self.hidden < 1:
             raise ValueError("latent, num_pose_joints and hidden must be positive")
         if self.conditioning not in CONDITIONINGS:
@@ -332,16 +349,38 @@ class AvhGenerator(nn.Module):
         residual = config.displacement_residual_scale
         self.displacement_decoder = MapDecoder(config, residual / config.displacement_scale if residual else 1.0)
         self.texel_pose = (TexelPoseMap(config.num_pose_joints, config.resolution,
-                                        world_normals=config.orientation == "studio")
+                                        world_normals=config.orientation == "studio",
+                                        normalization=(config.pose_scale_floor, config.pose_clip)
+                                        if config.pose_normalization else None)
                            if config.conditioning == "texel" else None)
+        if config.pose_normalization:  # identity until set_pose_statistics
+            self.register_buffer("pose_code_mean", torch.zeros(config.pose_input_size))
+            self.register_buffer("pose_code_scale", torch.ones(config.pose_input_size))
         self.shading = shading_head(config) if config.shading else None
         self.lights = (LightRig(config.shading_lights, config.resolution)
                        if config.shading and config.shading_lights else None)
         self.shadows = (BodyShadows(config.num_pose_joints, config.resolution)
                         if self.lights is not None and config.shading_shadows else None)
 
+    def set_pose_statistics(self, pose_angles: torch.Tensor) -> None:
+        """Standardize the pose inputs by these training frames' (N, 3·J_c) conditioning angles
+        (radians): mean and std (floored at ``pose_scale_floor``) of the encoded pose and, with texel
+        conditioning, of each joint's rot6d. Needs ``pose_normalization``."""
+        if not self.config.pose_normalization:
+            raise ValueError("set_pose_statistics needs AvhConfig.pose_normalization")
+        a = torch.as_tensor(pose_angles, dtype=torch.float32).to(self.pose_code_mean.device)
+        code = encode_pose(a)
+        with torch.no_grad():
+            self.pose_code_mean.copy_(code.mean(0))
+            self.pose_code_scale.copy_(code.std(0, unbiased=False).clamp_min(self.config.pose_scale_floor))
+        if self.texel_pose is not None:
+            self.texel_pose.set_statistics(a)
+
     def cuboid(self, pose_encoded: torch.Tensor) -> torch.Tensor:
         """(B, 6·J_c) -> feature cuboid (B, latent, f_c, f_c)."""
+        if self.config.pose_normalization:
+            clip = self.config.pose_clip
+            pose_encoded = torch.clamp((pose_encoded - self.pose_code_mean) / self.pose_code_scale, -clip, clip)
         z = self.pose_mlp(pose_encoded)
         return self.feature_maps.unsqueeze(0) * z[:, :, None, None]
 

@@ -173,9 +173,16 @@ class TexelPoseMap(nn.Module):
     turned the posed normals 19° off the posed mesh's (median; 55° p90) on the demo's frames (0.6°
     with the axes)."""
 
-    def __init__(self, num_joints: int, resolution: int, world_normals: bool = False):
+    def __init__(self, num_joints: int, resolution: int, world_normals: bool = False,
+                 normalization: tuple[float, float] | None = None):
         super().__init__()
         self.register_buffer("weights", torch.zeros(num_joints, resolution * resolution))
+        # (scale floor, clip): each joint's rot6d standardized by the training frames' statistics
+        # (AvhConfig.pose_normalization; identity until set_statistics) before it is blended
+        self.normalization = normalization
+        if normalization is not None:
+            self.register_buffer("r6_mean", torch.zeros(num_joints, 6))
+            self.register_buffer("r6_scale", torch.ones(num_joints, 6))
         self.resolution = resolution
         self.world_normals = bool(world_normals)
         self.channels = 9 if self.world_normals else 6
@@ -219,6 +226,15 @@ class TexelPoseMap(nn.Module):
             self.rest_normals.copy_(n.reshape(3, -1))
             self.axes.copy_(a)
 
+    def set_statistics(self, pose_angles: torch.Tensor) -> None:
+        """Mean and std (floored) of each joint's rot6d over (N, 3·J_c) training angles (radians)."""
+        if self.normalization is None:
+            raise ValueError("set_statistics needs a TexelPoseMap made with normalization")
+        r6 = rotvec_to_rot6d(torch.as_tensor(pose_angles, dtype=torch.float32).reshape(len(pose_angles), -1, 3))
+        with torch.no_grad():
+            self.r6_mean.copy_(r6.mean(0))
+            self.r6_scale.copy_(r6.std(0, unbiased=False).clamp_min(self.normalization[0]))
+
     def world_rotations(self, rotvecs: torch.Tensor) -> torch.Tensor:
         """(B, J_c, 3) local axis-angles -> (B, J_c, 3, 3) world rotations (forward kinematics over
         ``parents``; a joint without a conditioning parent is turned by its own rotation alone), each
@@ -235,6 +251,9 @@ class TexelPoseMap(nn.Module):
         B, R = pose_angles.shape[0], self.resolution
         rotvecs = pose_angles.reshape(B, -1, 3)
         r6 = rotvec_to_rot6d(rotvecs)                                                 # (B, J_c, 6)
+        if self.normalization is not None:
+            clip = self.normalization[1]
+            r6 = torch.clamp((r6 - self.r6_mean) / self.r6_scale, -clip, clip)
         m = torch.matmul(r6.transpose(1, 2), self.weights)                            # (B, 6, R²)
         if self.world_normals:
             g = self.world_rotations(rotvecs).reshape(B, -1, 9)                       # (B, J_c, 9)

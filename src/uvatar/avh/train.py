@@ -439,6 +439,8 @@ def _train_avh(ctx: DistContext, baked_dir: Path, run_dir: Path, model_config: A
     history: list[dict] = []
     start_epoch = 0
     if state is None:
+        if model_config.pose_normalization:
+            model.set_pose_statistics(train.pose_angles)
         tex_mean, disp_mean = mean_maps(train, excluded, cfg.outlier_threshold, cfg.displacement_weighting)
         if model.lights is not None and cfg.calibrate_lights:
             from uvatar.avh.lights import calibrate_rig

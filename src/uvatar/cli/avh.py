@@ -36,7 +36,7 @@ def _flags() -> dict[str, ConfigFlags]:
 
     return {
         "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning", "orientation", "shading_lights",
-                                                         "shading_shadows", "shading_occlusion"),
+                                                         "shading_shadows", "shading_occlusion", "pose_normalization"),
                              rename={"resolution": "texels"}, presets=PRESETS,
                              choices={"conditioning": CONDITIONINGS, "orientation": ORIENTATIONS},
                              help={"resolution": "output resolution",
@@ -52,7 +52,10 @@ def _flags() -> dict[str, ConfigFlags]:
                                    "shading_shadows": "the light rig's lights are also blocked by the posed limbs "
                                                       "(soft cast shadows; needs --shading-lights)",
                                    "shading_occlusion": "the light rig's ambient is also dimmed by the posed limbs' "
-                                                        "occlusion (needs --shading-shadows)"}),
+                                                        "occlusion (needs --shading-shadows)",
+                                   "pose_normalization": "standardize the pose inputs by the training frames' "
+                                                         "statistics (clipped at 4 std): a take that moves little "
+                                                         "still conditions the maps"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
                                  "pose_noise", "shading_lr_scale", "ema_decay", "calibrate_lights",
