@@ -212,12 +212,14 @@ class DvaModel(nn.Module):
                 self.grid.raster, template, cfg.decoder.voxels, cfg.primitives.scale_factor)), persistent=False)
 
     def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers,
-                precision: str = "fp32", compact: bool = False) -> DvaOutput:
+                precision: str = "fp32", compact: bool = False, correctives: bool | None = None) -> DvaOutput:
         """``precision`` ("fp32", "bf16", "fp16"): the encoders and decoders run under autocast in that
         type; the geometry stays fp32 and the outputs are fp32. ``compact``: the decoders write the
         payload in one pass (:meth:`~uvatar.dva.decoders.DvaDecoder.payload`, the same values and
         gradients with S times smaller colour slabs; what training uses) where the colour skip is off;
-        the default is the reference path (:meth:`~uvatar.dva.decoders.DvaDecoder.forward`)."""
+        the default is the reference path (:meth:`~uvatar.dva.decoders.DvaDecoder.forward`).
+        ``correctives``: whether the motion correctives apply, when the caller knows it on the host (a
+        trainer's step count); None reads the ``correctives_on`` buffer (a read-back on a GPU)."""
         pose_maps, f_view, skip = self.inputs(posed_vertices, joint_rotvecs, image_texture, camera_centers)
         dtype = PRECISIONS[precision]
         compact = compact and skip is None  # with the colour skip, the decoder's own colour differs from the payload's
@@ -232,7 +234,8 @@ class DvaModel(nn.Module):
         else:
             motion, rgb, density, learned = (t.float() for t in decoded)
             payload = torch.cat([rgb, density], 2)
-        pos, rot, scl = self.place(posed_vertices, motion, bool(self.correctives_on))
+        on = bool(self.correctives_on) if correctives is None else bool(correctives)
+        pos, rot, scl = self.place(posed_vertices, motion, on)
         return DvaOutput(pos, rot, scl, payload, motion, learned)
 
     def inputs(self, posed_vertices, joint_rotvecs, image_texture, camera_centers):

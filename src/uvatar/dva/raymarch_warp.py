@@ -393,6 +393,7 @@ class PairBudget:
     def __init__(self, capacity: int, device="cpu"):
         self.capacity = max(1, int(capacity))
         self.needed = torch.zeros((), dtype=torch.int64, device=device)
+        self.peak = 0  # the most pairs any call needed, of those read back so far
         self._host, self._event = None, None
 
     def record(self, total: torch.Tensor) -> None:
@@ -404,6 +405,7 @@ class PairBudget:
         :class:`PairOverflow` when that is above the capacity (``raise_error`` False: returns it)."""
         needed = int(self.needed)
         self.needed.zero_()
+        self.peak = max(self.peak, needed)
         if needed > self.capacity and raise_error:
             raise PairOverflow(f"the marcher's pair buffer holds {self.capacity} pairs, a call needed {needed}: "
                                "its image lost samples (raise pairs_per_ray)")
@@ -420,6 +422,7 @@ class PairBudget:
             if not self._event.query():
                 return None
             got = int(self._host)
+            self.peak = max(self.peak, got)
         if self._host is None:
             self._host = torch.zeros((), dtype=torch.int64).pin_memory()
         self._host.copy_(self.needed, non_blocking=True)

@@ -280,7 +280,8 @@ class Trainer:
         fi = torch.tensor(frames)
         centers = np.stack([self.bank.cams[c].center for c in cams]).astype(np.float32)
         vertices, rotvecs = self._posed(fi, correctives)
-        out = self.model(vertices, rotvecs, tex, to_device_async(centers, self.device), t.precision, compact=True)
+        out = self.model(vertices, rotvecs, tex, to_device_async(centers, self.device), t.precision, compact=True,
+                         correctives=correctives)
         preds, alphas, host_targets, host_masks = [], [], [], []
         for b, (f, c, pix, bg_colour) in enumerate(zip(frames, cams, pixels, backgrounds, strict=True)):
             mask = self.bank.masks[f][c]
