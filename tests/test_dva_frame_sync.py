@@ -263,6 +263,6 @@ def test_cuda_graph_replays_the_eager_frame(rig):
             got, got_alpha = graphed.drive(*frame[:2], cams, *frame[2:], target)
             torch.testing.assert_close(got, want, rtol=0, atol=1e-5)
             torch.testing.assert_close(got_alpha, want_alpha, rtol=0, atol=1e-5)
-        assert graphed._graph is not None and graphed.overflows == 0
+        assert graphed.graph_error is None and graphed._graph is not None and graphed.overflows == 0
     finally:
         model.to("cpu")

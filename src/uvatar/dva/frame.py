@@ -71,16 +71,18 @@ class _Decode(nn.Module):
     """(pose maps, image texture, view features, skip) -> motion (B, 9, W, W), payload (B, K, 4, S, S, S)
     fp32: the model's encoders and decoders, under autocast when ``dtype`` is not fp32."""
 
-    def __init__(self, model, dtype: torch.dtype, channels_last: bool):
+    def __init__(self, model, dtype: torch.dtype, channels_last: bool, cache: bool = True):
         super().__init__()
         self.pose_encoder, self.image_encoder, self.decoder = model.pose_encoder, model.image_encoder, model.decoder
-        self.dtype, self.channels_last = dtype, channels_last
+        self.dtype, self.channels_last, self.cache = dtype, channels_last, cache
 
     def forward(self, pose_maps, image_texture, f_view, skip_colour=None, skip_weight=None):
         if self.channels_last:
             pose_maps, image_texture, f_view = (t.contiguous(memory_format=torch.channels_last)
                                                 for t in (pose_maps, image_texture, f_view))
-        with torch.autocast(pose_maps.device.type, dtype=self.dtype, enabled=self.dtype != torch.float32):
+        # no autocast weight cache under a CUDA graph capture (torch.cuda.graph's documented requirement)
+        with torch.autocast(pose_maps.device.type, dtype=self.dtype, enabled=self.dtype != torch.float32,
+                            cache_enabled=self.cache):
             f_pose = self.pose_encoder(pose_maps)
             f_img = self.image_encoder(image_texture)
             skip = None if skip_colour is None else (skip_colour, skip_weight)
@@ -117,7 +119,7 @@ class FrameRenderer:
 
         self.model, self.cfg = model.eval(), cfg or FrameConfig()
         self.correctives = bool(model.correctives_on)
-        self._decode = self.cfg.prepare(_Decode(model, self.cfg.dtype, self.cfg.channels_last))
+        self._decode = self.cfg.prepare(_Decode(model, self.cfg.dtype, self.cfg.channels_last, not self.cfg.graph))
         self.device = model.texel_weights.device
         self._view: _View | None = None
         self._unwrap, self._backgrounds = {}, {}
@@ -125,6 +127,7 @@ class FrameRenderer:
         self._checked: set = set()  # camera sizes whose first frame checked the pair buffer
         self.overflows = 0  # frames found (a frame late) to have needed more pairs than the buffer held
         self._graph = None
+        self.graph_error: str | None = None  # why a capture failed (frames then run eagerly)
 
     # ------------------------------------------------------------------------------------------ pieces
     @torch.no_grad()
@@ -212,7 +215,8 @@ class FrameRenderer:
         device) + the frame's pose -> ``camera``'s rgb (H, W, 3), alpha (H, W). The views are unwrapped on
         the device (:class:`uvatar.dva.unwrap_device.DeviceUnwrap`, Warp), then :meth:`render`. With
         ``graph`` on CUDA the frame is a replay of a captured CUDA graph (captured on the first frame of a
-        camera and rig, after two eager warm-up frames)."""
+        camera and rig, after two eager warm-up frames; a failed capture is logged, kept in ``graph_error``
+        and the frames run eagerly)."""
         if self._graphable():
             return self._replay(posed_vertices, joint_rotvecs, cameras, images, masks, camera, background)
         return self._drive(posed_vertices, joint_rotvecs, cameras, images, masks, camera, background, mark)
@@ -254,7 +258,7 @@ class FrameRenderer:
 
     # -------------------------------------------------------------------------------------- graphs
     def _graphable(self) -> bool:
-        if not self.cfg.graph:
+        if not self.cfg.graph or self.graph_error is not None:
             return False
         if self.device.type != "cuda" or resolve_marcher(self.model.cfg.raymarch.marcher) != "warp":
             if not getattr(self, "_graph_note", False):
@@ -269,8 +273,13 @@ class FrameRenderer:
                tuple(joint_rotvecs.shape), tuple(np.asarray(background, np.float32).reshape(-1).tolist()))
         if self._graph is None or self._graph[0] != key:
             self._graph = None
-            self._graph = (key, *self._capture(posed_vertices, joint_rotvecs, cameras, images, masks, camera,
-                                               background))
+            try:
+                self._graph = (key, *self._capture(posed_vertices, joint_rotvecs, cameras, images, masks, camera,
+                                                   background))
+            except Exception as exc:  # noqa: BLE001 - any capture failure: the eager frame, said once
+                self.graph_error = f"{type(exc).__name__}: {exc}"
+                log.warning("capturing the frame in a CUDA graph failed (%s): frames run eagerly", self.graph_error)
+                return self._drive(posed_vertices, joint_rotvecs, cameras, images, masks, camera, background)
         _, graph, static_in, static_out = self._graph
         for dst, src in zip(static_in, [posed_vertices, joint_rotvecs, *images, *(masks or [])], strict=True):
             dst.copy_(src, non_blocking=True)
