@@ -394,7 +394,9 @@ class PairBudget:
         self.capacity = max(1, int(capacity))
         self.needed = torch.zeros((), dtype=torch.int64, device=device)
         self.peak = 0  # the most pairs any call needed, of those read back so far
-        self._host, self._event = None, None
+        # poll's pinned landing place, allocated here, not inside a frame
+        self._host = torch.zeros((), dtype=torch.int64).pin_memory() if self.needed.is_cuda else None
+        self._event = None
 
     def record(self, total: torch.Tensor) -> None:
         """Fold a call's pair count (a device scalar) into ``needed``, on the device (graph-safe)."""
@@ -423,12 +425,10 @@ class PairBudget:
                 return None
             got = int(self._host)
             self.peak = max(self.peak, got)
-        if self._host is None:
-            self._host = torch.zeros((), dtype=torch.int64).pin_memory()
         self._host.copy_(self.needed, non_blocking=True)
         self.needed.zero_()
         self._event = torch.cuda.Event()
-        self._event.record()
+        self._event.record(torch.cuda.current_stream(self.needed.device))
         return got
 
     def overflowed(self, needed: int | None) -> bool:
