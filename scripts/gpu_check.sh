@@ -73,7 +73,7 @@ for part in $PARTS; do
             # driven frame under sync debug mode "error" and replayed from its CUDA graph
       run_part tests 100 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -x -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
-        tests/test_dva_frame_sync.py ;;
+        tests/test_dva_frame_sync.py tests/test_devices.py ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
       run_part train 150 "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper --grids 64 \
         --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} ;;
