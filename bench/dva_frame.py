@@ -16,11 +16,23 @@ last camera rescaled to each ``--sizes`` square, every pixel a ray:
   ``<path>_drive_render_ms`` the whole telepresence frame: the driving views unwrapped on the device,
   decoded and rendered (:meth:`uvatar.dva.frame.FrameRenderer.drive`).
   ``+compile`` adds ``torch.compile`` (its compile time is reported), ``+cl`` channels_last, ``+cg``
-  compile mode "reduce-overhead" (CUDA graphs).
+  compile mode "reduce-overhead" (CUDA graphs of the decoders alone), ``+graph`` the whole driven frame
+  captured in one CUDA graph and replayed (``FrameConfig.graph``; CUDA + Warp, eager elsewhere),
+  ``+exact`` the marcher's exact pair buffer (a read-back of the pair count per frame, the path before
+  issue 39's fixed buffer; ``--pairs-per-ray`` sizes the fixed one).
+  ``<path>_drive_render_pipelined_ms``: the same frames back to back with one synchronise at the end
+  (per frame): what a frame costs when the host may run ahead of the GPU (no read-back inside a frame);
+  ``<path>_drive_psnr_vs_ref``: the driven frame against the reference renderer fed the device unwrap's
+  texture; ``<path>_pairs_per_ray_peak`` / ``<path>_pair_overflows``: what the marcher's pair buffer
+  needed (per ray of the frame) and how many frames found it too small.
 
 ``--profile`` adds, for the last path of the last size, the split of one driven frame into its stages
 (``stages_ms``: unwrap, inputs, encoders + decoders, placement, marcher; CUDA events, medians) and
 torch.profiler's 20 most expensive operators on the device (stderr), to show where a frame's time goes.
+
+The training rows: ``train_<p>_step_ms`` (a synchronise after every step) and
+``train_<p>_pipelined_step_ms`` (steps back to back, their terms read every 10th step as ``Trainer.run``
+logs them, one synchronise at the end; per step).
 
 Each time is taken after a device synchronise. Prints one JSON object; progress on stderr. The model is
 the briefly trained one (its frame is not blank); the PSNRs compare paths, not the avatar's quality.
@@ -65,13 +77,32 @@ def median_ms(fn, repeats: int, device: str) -> tuple[float, object]:
     return round(1000 * statistics.median(times), 2), out
 
 
+PAIRS_PER_RAY = None  # --pairs-per-ray (None: FrameConfig's default)
+
+
 def frame_config(path: str):
-    """"bf16+compile+cl" -> FrameConfig(precision="bf16", compile=True, channels_last=True)."""
+    """"bf16+compile+cl+graph" -> FrameConfig(precision="bf16", compile=True, channels_last=True,
+    graph=True); "+exact": pairs_per_ray 0 (the exact pair buffer, read back per frame)."""
     from uvatar.dva.frame import FrameConfig
 
     parts = path.split("+")
+    extra = {} if PAIRS_PER_RAY is None else {"pairs_per_ray": PAIRS_PER_RAY}
+    if "exact" in parts:
+        extra["pairs_per_ray"] = 0.0
     return FrameConfig(precision=parts[0], compile="compile" in parts or "cg" in parts,
-                       compile_mode="reduce-overhead" if "cg" in parts else "default", channels_last="cl" in parts)
+                       compile_mode="reduce-overhead" if "cg" in parts else "default", channels_last="cl" in parts,
+                       graph="graph" in parts, **extra)
+
+
+def pipelined_ms(fn, repeats: int, device: str) -> float:
+    """ms per call of ``repeats`` calls back to back after one warm-up, one synchronise at the end."""
+    fn()
+    sync(device)
+    t = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    sync(device)
+    return round(1000 * (time.perf_counter() - t) / max(repeats, 1), 2)
 
 
 def profile_table(fn, runs: int, device: str) -> float:
@@ -104,6 +135,17 @@ def train_rows(trainer, precisions, steps: int, device: str, profile: bool = Fal
             torch.cuda.reset_peak_memory_stats()
         ms, _ = median_ms(trainer.train_step, steps, device)
         rows[f"train_{p}_step_ms"] = ms
+
+        def logged_step():  # as Trainer.run: the terms read (one sync) every 10th step
+            terms = trainer.train_step()
+            if trainer.step % 10 == 0:
+                terms["total"]
+
+        rows[f"train_{p}_pipelined_step_ms"] = pipelined_ms(logged_step, max(steps, 10), device)
+        if trainer.budget is not None:
+            rows[f"train_{p}_pairs_per_ray_peak"] = round(trainer.budget.peak / trainer.budget.capacity
+                                                          * trainer.cfg.train.pairs_per_ray, 2)
+            rows[f"train_{p}_pair_overflows"] = trainer.pair_overflows
         if device.startswith("cuda"):
             rows[f"train_{p}_peak_gpu_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
         if profile:  # the device's busy time per step: far below the step's wall time = the host sets the pace
@@ -153,9 +195,10 @@ def stage_split(fast, verts, rots, cams, imgs, masks, camera, repeats: int, devi
     return split
 
 
-def path_row(row, path, model, verts, rots, tex, cam, ref, repeats, device, driving) -> object:
+def path_row(row, path, model, verts, rots, tex, cam, ref, repeats, device, driving, ref_drive=None) -> object:
     """Time one fast path into ``row`` (render, drive + render when ``driving`` = (cameras, images, masks),
-    decode alone, PSNR against ``ref``); returns its :class:`FrameRenderer`."""
+    decode alone, PSNR against ``ref``, the driven frame's against ``ref_drive``); returns its
+    :class:`FrameRenderer`."""
     from uvatar.dva.frame import FrameRenderer
     from uvatar.render.metrics import psnr
 
@@ -170,7 +213,25 @@ def path_row(row, path, model, verts, rots, tex, cam, ref, repeats, device, driv
     db = psnr(rgb.float().cpu().numpy(), ref)
     row[f"{path}_psnr_vs_ref"] = round(db, 2) if np.isfinite(db) else "identical"
     if driving is not None:  # the whole frame: views unwrapped on the device too
-        row[f"{path}_drive_render_ms"], _ = median_ms(lambda: fast.drive(verts, rots, *driving, cam), repeats, device)
+        t = time.perf_counter()
+        fast.drive(verts, rots, *driving, cam)
+        sync(device)
+        if "graph" in path:
+            row[f"{path}_first_drive_s"] = round(time.perf_counter() - t, 2)  # warm-up frames + capture
+        row[f"{path}_drive_render_ms"], (drgb, _) = median_ms(lambda: fast.drive(verts, rots, *driving, cam), repeats,
+                                                              device)
+        row[f"{path}_drive_render_fps"] = round(1000 / row[f"{path}_drive_render_ms"], 1)
+        row[f"{path}_drive_render_pipelined_ms"] = pipelined_ms(lambda: fast.drive(verts, rots, *driving, cam),
+                                                                repeats, device)
+        if ref_drive is not None:
+            db = psnr(drgb.float().cpu().numpy(), ref_drive)
+            row[f"{path}_drive_psnr_vs_ref"] = round(db, 2) if np.isfinite(db) else "identical"
+    if fast.graph_error is not None:  # the capture failed: the drive rows are the eager frame's
+        row[f"{path}_graph_error"] = fast.graph_error[:400]
+    if fast.budget is not None:
+        fast.check()
+        row[f"{path}_pairs_per_ray_peak"] = round(fast.budget.peak / (cam.width * cam.height), 2)
+        row[f"{path}_pair_overflows"] = fast.overflows
     centre = torch.as_tensor(cam.center, dtype=torch.float32, device=device)[None]
     row[f"{path}_decode_ms"], _ = median_ms(lambda: fast.decode(verts[None], rots[None], tex[None], centre),
                                             repeats, device)
@@ -207,11 +268,14 @@ def frame_rows(trainer, sizes, paths, repeats: int, device: str, profile: bool =
             row["ref_ms"], (ref, alpha) = median_ms(lambda c=cam: render_camera(model, verts, rots, tex, c), repeats,
                                                     device)
             row["coverage"] = round(float((alpha > 0.5).mean()), 3)
+            ref_drive = None
+            if unwrap_device_agree is not None:  # the reference renderer fed the device unwrap's texture
+                ref_drive, _ = render_camera(model, verts, rots, tex_device, cam)
             for i, path in enumerate(paths):
                 try:
                     fast = path_row(row, path, model, verts, rots, tex, cam, ref, repeats, device,
                                     (([bank.cams[c] for c in views], imgs, masks) if unwrap_device_agree is not None
-                                     else None))
+                                     else None), ref_drive)
                 except torch.cuda.OutOfMemoryError:
                     raise
                 except Exception as exc:  # one path failing (a compile, a graph capture) leaves the others' rows
@@ -241,7 +305,8 @@ def main(argv=None) -> int:
     ap.add_argument("--marcher", default="auto")
     ap.add_argument("--sizes", default=None, help="render sides (default 256 on a CPU, 1024 on CUDA)")
     ap.add_argument("--paths", default=None,
-                    help="fast paths (default fp32,bf16,fp16 on a CPU; fp32,bf16,bf16+cl,bf16+compile+cl,bf16+cg+cl on CUDA)")
+                    help="fast paths (default fp32,bf16,fp16 on a CPU; fp32+exact,fp32,bf16+cl,fp16+cl,fp16+cl+graph,"
+                         "bf16+cl+graph,bf16+compile+cl+graph on CUDA)")
     ap.add_argument("--train", default="fp32,bf16", help="training step precisions to time ('' for none)")
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--steps", type=int, default=5)
@@ -249,7 +314,11 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     ap.add_argument("--profile", action="store_true", help="split the last path's frame into its stages")
     ap.add_argument("--capture", default=None, help="an existing capture (default: the toy one, 160 px)")
+    ap.add_argument("--pairs-per-ray", type=float, default=None,
+                    help="the marcher's fixed pair buffer per ray, frames and training (default: their configs')")
     args = ap.parse_args(argv)
+    global PAIRS_PER_RAY
+    PAIRS_PER_RAY = args.pairs_per_ray
     cuda = args.device.startswith("cuda")
     if cuda and not torch.cuda.is_available():
         print(json.dumps({"error": "CUDA requested but not available"}))
@@ -267,9 +336,11 @@ def main(argv=None) -> int:
     cfg.decoder.voxels = args.voxels or cfg.decoder.voxels
     cfg.raymarch.marcher = args.marcher
     cfg.train.warmup_iters = 0  # correctives on, as after a real run's warm-up
+    if args.pairs_per_ray is not None:
+        cfg.train.pairs_per_ray = args.pairs_per_ray
     sizes = [int(v) for v in (args.sizes or ("1024" if cuda else "256")).split(",") if v.strip()]
-    paths = [p for p in (args.paths or ("fp32,bf16,bf16+cl,bf16+compile+cl,bf16+cg+cl" if cuda
-                                        else "fp32,bf16,fp16")).split(",") if p.strip()]
+    paths = [p for p in (args.paths or ("fp32+exact,fp32,bf16+cl,fp16+cl,fp16+cl+graph,bf16+cl+graph,"
+                                        "bf16+compile+cl+graph" if cuda else "fp32,bf16,fp16")).split(",") if p.strip()]
     with tempfile.TemporaryDirectory() as tmp:
         capture = Path(args.capture) if args.capture else \
             write_toy_capture(Path(tmp) / "cap", frames=4, cameras=4, size=160)

@@ -57,9 +57,14 @@ def render_fps(trainer, size: int, device: str, repeats: int = 5) -> float:
 
 
 def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int, steps: int,
-            preset: str, device: str = "cpu", render_sizes=()) -> dict:
-    """{"step_ms": median ms per training step, "fps_<size>": whole-frame renders per second, and on a
-    GPU "peak_gpu_gib": the most GPU memory the steps held}."""
+            preset: str, device: str = "cpu", render_sizes=(), pairs_per_ray: float | None = None) -> dict:
+    """{"step_ms": median ms per training step (a synchronise after each), "pipelined_step_ms": ms per
+    step of ``steps`` steps back to back, their terms read every 10th step as ``Trainer.run`` logs them,
+    one synchronise at the end (what a run pays when the host may run ahead of the GPU),
+    "pairs_per_ray_peak": the most pairs per rendered ray the marcher's fixed buffer held,
+    "fps_<size>": whole-frame renders per second, and on a GPU "peak_gpu_gib": the most GPU memory the
+    steps held}. ``pairs_per_ray``: ``TrainConfig.pairs_per_ray`` (0: the exact buffer, a read-back
+    per sample)."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -69,6 +74,8 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     cfg.decoder.voxels = S
     cfg.raymarch.marcher = marcher
     cfg.train.warmup_iters = 0
+    if pairs_per_ray is not None:
+        cfg.train.pairs_per_ray = pairs_per_ray
     trainer = Trainer(open_source(capture), out, cfg, progress=False, device=device)
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
@@ -82,6 +89,18 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
         _sync(device)
         times.append(time.perf_counter() - t)
     row = {"step_ms": round(1000 * statistics.median(times), 1)}
+    _sync(device)
+    t = time.perf_counter()
+    for _ in range(steps):
+        terms = trainer.train_step()
+        if trainer.step % 10 == 0:
+            terms["total"]  # read: the one sync of a logged step
+    _sync(device)
+    row["pipelined_step_ms"] = round(1000 * (time.perf_counter() - t) / max(steps, 1), 1)
+    if trainer.budget is not None:
+        trainer.budget.check(raise_error=False)
+        row["pairs_per_ray_peak"] = round(trainer.budget.peak / trainer.budget.capacity * cfg.train.pairs_per_ray, 2)
+        row["pair_overflows"] = trainer.pair_overflows
     if device.startswith("cuda"):
         row["peak_gpu_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
     for size in render_sizes:
@@ -104,6 +123,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     ap.add_argument("--render", default="", help="whole-frame render sizes to time, comma separated (e.g. 512,1024)")
     ap.add_argument("--capture", default=None, help="an existing capture (default: the toy one, 160 px)")
+    ap.add_argument("--pairs-per-ray", type=float, default=None,
+                    help="TrainConfig.pairs_per_ray (the marcher's fixed pair buffer; 0: exact, read back)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
@@ -119,7 +140,7 @@ def main(argv=None) -> int:
                 row = {"K": W * W, "W": W, "S": S}
                 for m in args.marchers.split(","):
                     got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}", W, S, m, args.warmup, args.steps,
-                                  args.preset, args.device, sizes)
+                                  args.preset, args.device, sizes, args.pairs_per_ray)
                     row.update({f"{m}_{k}": v for k, v in got.items()})
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr)

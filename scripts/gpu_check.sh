@@ -1,9 +1,16 @@
 #!/usr/bin/env bash
 # The GPU figures of issue 39 in one call on a lent GPU (the device tool), most important first:
 #   run(command="bash scripts/gpu_check.sh", timeout_s=600)          # dva avh tests, within $BUDGET s (560)
-#   run(command="bash scripts/gpu_check.sh avh tests", timeout_s=300) # some parts: dva avh tests compile bake
+#   run(command="bash scripts/gpu_check.sh avh tests", timeout_s=300) # some parts: dva avh tests compile bake train
 # (compile: compiled against eager on the machine's CPU, which CI's machine can do too; bake: the CUDA bake,
-# which needs anny carried as well)
+# which needs anny carried as well; train: bench/dva_train.py's paper-scale step, synchronised and pipelined)
+# Env overrides: BUDGET (s), DVA_PATHS / DVA_REPEATS / DVA_PAIRS (bench/dva_frame.py's --paths, --repeats,
+# --pairs-per-ray: the marcher's fixed pair buffer per ray), AVH_SECONDS / AVH_FAST / AVH_MODES / AVH_ITERS,
+# TRAIN_STEPS. Issue 39's sync-free frame: the dva part's paths "+exact" (the old read-back per frame),
+# plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
+# <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
+# <path>_drive_psnr_vs_ref, <path>_pairs_per_ray_peak and <path>_pair_overflows; the training rows
+# train_<p>_step_ms and train_<p>_pipelined_step_ms.
 # Writes into $OUT (the device tool's output folder; ./gpu_out elsewhere): env.txt (card, versions,
 # which packages import), <part>.json (a bench's stdout) with <part>.log (its stderr, one line per
 # finished row, so a cut run still tells), pytest_*.txt, and status.txt (each part's exit code; 124 =
@@ -55,15 +62,21 @@ for part in $PARTS; do
     dva)  # the DVA frame at 1024², paper preset (K = 4096, S = 16): training steps fp32 / bf16, then per
           # path drive + render with its PSNR against the fp32 reference (<= 16 ms at >= 40 dB; step <= 80 ms)
       run_part dva 330 "$OUT/dva_frame.json" python bench/dva_frame.py --device cuda --warmup 3 --steps 10 \
-        --repeats "${DVA_REPEATS:-10}" --profile --paths "${DVA_PATHS:-fp32,bf16,bf16+cl,fp16+cl,bf16+compile+cl,bf16+cg+cl}" ;;
+        --repeats "${DVA_REPEATS:-10}" --profile ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} \
+        --paths "${DVA_PATHS:-fp32+exact,fp32,fp16+cl,fp16+cl+graph,bf16+cl+graph,bf16+compile+cl+graph}" ;;
     avh)  # the AVH generator, paper preset at 1024²: batch 1 fps, batch-8 maps/s, bf16 / fp16, eager and
           # compiled with CUDA graphs (>= 500 fps)
       run_part avh "${AVH_SECONDS:-110}" "$OUT/avh_fast.json" python bench/avh.py --device cuda --presets fc32-l1024 \
         --resolutions 1024 --no-train --no-onnx --fast "${AVH_FAST:-bf16,fp16}" \
         --compile-modes "${AVH_MODES:-reduce-overhead}" --iters "${AVH_ITERS:-30}" ;;
-    tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher
-      run_part tests 80 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -x -p no:cacheprovider \
-        tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py ;;
+    tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher, and a
+            # driven frame under sync debug mode "error" and replayed from its CUDA graph
+      run_part tests 100 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -x -p no:cacheprovider \
+        tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
+        tests/test_dva_frame_sync.py tests/test_devices.py ;;
+    train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
+      run_part train 150 "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper --grids 64 \
+        --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} ;;
     compile)  # compiled against eager (torch.compile on the machine's CPU cores; ~130 s on 2 cores)
       run_part compile 90 "$OUT/pytest_compile.txt" python -m pytest -q -x -p no:cacheprovider -k compiled \
         tests/test_dva_frame.py tests/test_avh_inference.py ;;
@@ -73,7 +86,7 @@ for part in $PARTS; do
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    *) echo "unknown part $part (dva avh tests compile bake)" | tee -a "$OUT/status.txt" ;;
+    *) echo "unknown part $part (dva avh tests compile bake train)" | tee -a "$OUT/status.txt" ;;
   esac
 done
 tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null

@@ -144,8 +144,8 @@ def test_unknown_precision_is_refused():
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_bf16_frame_matches_and_its_decoders_never_sync(body):
-    """The encoders and decoders (all of the decoding but the texel geometry, whose constant index arrays
-    still travel to the device per call) run with torch's sync debug mode set to "error"."""
+    """The encoders and decoders, and (after a first call has put the texel geometry's constant index
+    arrays on the device) the whole decoding, run with torch's sync debug mode set to "error"."""
     model = _model(body, "cuda")
     verts, rot, tex = _inputs(body, "cuda")
     cam = toy_cameras(4, 40)["cam01"]
@@ -159,9 +159,10 @@ def test_cuda_bf16_frame_matches_and_its_decoders_never_sync(body):
     torch.cuda.set_sync_debug_mode("error")
     try:
         motion, payload = fast._decode(pose_maps, tex[None], f_view)
+        out = fast.decode(verts[None], rot[None], tex[None], centre)
     finally:
         torch.cuda.set_sync_debug_mode(0)
-    assert payload.dtype == torch.float32 and motion.shape[1] == 9
+    assert payload.dtype == torch.float32 and motion.shape[1] == 9 and out.positions.shape[-1] == 3
 
 
 def test_bf16_training_forward_is_close_and_differentiable(body):

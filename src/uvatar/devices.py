@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from uvatar.errors import InputError
 
-__all__ = ["check_device"]
+__all__ = ["check_device", "on_device", "to_device_async"]
 
 
 def check_device(name: str, flag: str = "--device") -> str:
@@ -42,3 +42,61 @@ def check_device(name: str, flag: str = "--device") -> str:
     if device.type == "cpu":
         return text
     raise InputError(flag, f"{text}: uvatar runs on cpu or cuda[:N], not on {device.type}")
+
+
+def on_device(array, device, dtype=None):
+    """A torch copy of a constant host array (numpy, or anything ``np.asarray`` takes) on ``device``,
+    made once and kept while ``array`` lives (keyed by its identity; treat the array as immutable).
+
+    Every blocking host-to-device copy makes the host wait for the device's queue to drain (torch
+    synchronises the stream after it), so a hot path that copied a mesh's faces or a camera's matrices
+    every frame could never run ahead of the GPU. The copies are made on first use; later calls return
+    the same tensor without touching the device (so a CUDA graph can capture a path that uses them)."""
+    import weakref
+
+    import numpy as np
+    import torch
+
+    dev = torch.device(device)
+    key = (id(array), str(dev), dtype)
+    hit = _ON_DEVICE.get(key)
+    if hit is not None and hit[0]() is array:
+        return hit[1]
+    value = torch.as_tensor(np.asarray(array), device=dev)
+    value = value.to(dtype) if dtype is not None else value
+    try:
+        ref = weakref.ref(array)
+    except TypeError:  # not weakly referenceable (a list, a tuple): keep the source alive with its copy
+        ref = _Strong(array)
+    if len(_ON_DEVICE) > 4096:
+        _ON_DEVICE.clear()
+    _ON_DEVICE[key] = (ref, value)
+    return value
+
+
+class _Strong:
+    """A strong reference with the call interface of ``weakref.ref``."""
+
+    def __init__(self, obj):
+        self.obj = obj
+
+    def __call__(self):
+        return self.obj
+
+
+_ON_DEVICE: dict = {}
+
+
+def to_device_async(array, device, dtype=None):
+    """``array`` (numpy or a CPU tensor) as a tensor on ``device`` without making the host wait: on CUDA
+    through pinned memory with ``non_blocking=True`` (the caching host allocator keeps the staging
+    buffer until the copy has run); elsewhere a plain ``torch.as_tensor``."""
+    import numpy as np
+    import torch
+
+    dev = torch.device(device)
+    t = array if isinstance(array, torch.Tensor) else torch.as_tensor(np.ascontiguousarray(array))
+    t = t.to(dtype) if dtype is not None else t
+    if dev.type != "cuda" or t.device.type != "cpu":
+        return t.to(dev)
+    return t.pin_memory().to(dev, non_blocking=True)

@@ -209,6 +209,17 @@ def texture_at_voxels(image_texture: torch.Tensor, uv: torch.Tensor):
 
 
 # ----------------------------------------------------------------------------------------------- view
+def _texel_faces(raster, device) -> torch.Tensor:
+    """(R*R,) long: the face of every texel of ``raster`` (0 where uncovered), on ``device``; made once per
+    raster (no host-to-device copy per frame)."""
+    from uvatar.devices import on_device
+
+    host = raster.__dict__.get("_texel_faces")
+    if host is None:
+        host = raster.__dict__.setdefault("_texel_faces", np.clip(raster.face_index.reshape(-1), 0, None))
+    return on_device(host, device, torch.long)
+
+
 def view_feature_map(raster, template, posed_vertices: torch.Tensor, camera_centers: torch.Tensor):
     """posed_vertices (B, V, 3), camera_centers (B, 3) -> (B, 1, W, W): texel-to-camera direction
     dotted with the texel's triangle normal (1 faces the camera, -1 faces away)."""
@@ -217,7 +228,7 @@ def view_feature_map(raster, template, posed_vertices: torch.Tensor, camera_cent
     R = raster.resolution
     B = posed_vertices.shape[0]
     fn = face_normals(posed_vertices, template.faces)  # (B, F, 3)
-    face = torch.as_tensor(np.clip(raster.face_index.reshape(-1), 0, None), device=posed_vertices.device)
+    face = _texel_faces(raster, posed_vertices.device)
     n = fn[:, face]  # (B, K, 3)
     p = texel_positions(raster, template.faces, posed_vertices).reshape(B, R * R, 3)
     d = camera_centers[:, None, :] - p

@@ -166,6 +166,12 @@ class DvaLoss(nn.Module):
                  else "off (no vgg_weights); using 1 - SSIM instead")
 
     def forward(self, pred, target, alpha, mask, scales, rest_scales, motion=None, colour=None, density=None):
+        total, terms = self.terms(pred, target, alpha, mask, scales, rest_scales, motion, colour, density)
+        return total, {k: float(v.detach()) for k, v in terms.items()}
+
+    def terms(self, pred, target, alpha, mask, scales, rest_scales, motion=None, colour=None, density=None):
+        """:meth:`forward` with the terms as detached 0-dim tensors on the device (no read-back: what a
+        training step keeps until its terms are logged)."""
         c = self.cfg
         terms = {"rgb": F.mse_loss(pred, target)}
         if self.vgg is not None and c.perceptual > 0:
@@ -188,4 +194,4 @@ class DvaLoss(nn.Module):
                    "volume": c.volume, "beta": c.beta, "motion": c.motion, "colour_tv": c.colour_tv,
                    "shell": c.shell}
         total = sum(weights[k] * v for k, v in terms.items())
-        return total, {k: float(v.detach()) for k, v in terms.items()}
+        return total, {k: v.detach() for k, v in terms.items()}

@@ -54,7 +54,11 @@ class TrainConfig:
     geometry, the marcher and the loss stay fp32): "bf16" on a GPU halves the decoders' slabs.
     hide_target_view: the image input of a sample leaves out the camera it is scored in, as at test
     time, where the held-out camera never drives (with 3 training cameras and ``driving_views`` 3 the
-    target's own photo is otherwise always in its input, and the colour skip learns to copy it)."""
+    target's own photo is otherwise always in its input, and the colour skip learns to copy it).
+    pairs_per_ray: the Warp marcher's (ray, primitive) pair buffer per rendered ray
+    (:class:`~uvatar.dva.raymarch_warp.PairBudget`), so that a step reads no pair count back; a step that
+    needed more is reported (a warning, at most a step late) and the buffer grows; 0: the exact buffer
+    (a read-back per sample)."""
 
     lr: float = 2e-3
     lr_decay_start: float = 0.6
@@ -70,6 +74,7 @@ class TrainConfig:
     background: str = "mask"
     hide_target_view: bool = False
     precision: str = "fp32"
+    pairs_per_ray: float = 64.0
 
     def __post_init__(self) -> None:
         check_values([(self.background in BACKGROUNDS,
@@ -207,12 +212,14 @@ class DvaModel(nn.Module):
                 self.grid.raster, template, cfg.decoder.voxels, cfg.primitives.scale_factor)), persistent=False)
 
     def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers,
-                precision: str = "fp32", compact: bool = False) -> DvaOutput:
+                precision: str = "fp32", compact: bool = False, correctives: bool | None = None) -> DvaOutput:
         """``precision`` ("fp32", "bf16", "fp16"): the encoders and decoders run under autocast in that
         type; the geometry stays fp32 and the outputs are fp32. ``compact``: the decoders write the
         payload in one pass (:meth:`~uvatar.dva.decoders.DvaDecoder.payload`, the same values and
         gradients with S times smaller colour slabs; what training uses) where the colour skip is off;
-        the default is the reference path (:meth:`~uvatar.dva.decoders.DvaDecoder.forward`)."""
+        the default is the reference path (:meth:`~uvatar.dva.decoders.DvaDecoder.forward`).
+        ``correctives``: whether the motion correctives apply, when the caller knows it on the host (a
+        trainer's step count); None reads the ``correctives_on`` buffer (a read-back on a GPU)."""
         pose_maps, f_view, skip = self.inputs(posed_vertices, joint_rotvecs, image_texture, camera_centers)
         dtype = PRECISIONS[precision]
         compact = compact and skip is None  # with the colour skip, the decoder's own colour differs from the payload's
@@ -227,7 +234,8 @@ class DvaModel(nn.Module):
         else:
             motion, rgb, density, learned = (t.float() for t in decoded)
             payload = torch.cat([rgb, density], 2)
-        pos, rot, scl = self.place(posed_vertices, motion, bool(self.correctives_on))
+        on = bool(self.correctives_on) if correctives is None else bool(correctives)
+        pos, rot, scl = self.place(posed_vertices, motion, on)
         return DvaOutput(pos, rot, scl, payload, motion, learned)
 
     def inputs(self, posed_vertices, joint_rotvecs, image_texture, camera_centers):
@@ -250,12 +258,13 @@ class DvaModel(nn.Module):
         return apply_correctives(pos, rot, self.rest_scales, motion, self.cfg.primitives, correctives)
 
     def render_rays(self, out: DvaOutput, b: int, origins, directions, background=None, camera=None,
-                    pixels=None):
+                    pixels=None, budget=None):
         """Render rays (N, 3) through sample ``b``: rgb (N, 3) (composited over ``background`` (3,) if
         given), alpha (N,). With ``camera`` and integer ``pixels`` (N, 2) (the rays' pixels in that
-        camera) culling uses projected rectangles (faster, same result)."""
+        camera) culling uses projected rectangles (faster, same result); ``budget``: the Warp marcher's
+        fixed pair buffer (:class:`~uvatar.dva.raymarch_warp.PairBudget`: no read-back)."""
         rgb, alpha = raymarch(origins, directions, out.primitives(b), self.cfg.raymarch, camera=camera,
-                              pixels=pixels)
+                              pixels=pixels, budget=budget)
         if background is not None:
             rgb = rgb + (1.0 - alpha)[:, None] * background
         return rgb, alpha
@@ -264,8 +273,8 @@ class DvaModel(nn.Module):
 def pixel_rays(camera, pixels: np.ndarray, device="cpu", dtype=torch.float32):
     """World rays through pixel centres. pixels (N, 2) integer (x, y) -> origins, directions (N, 3)
     as tensors; lens distortion removed as everywhere else (:func:`uvatar.render.cameras.camera_rays`)."""
+    from uvatar.devices import to_device_async
     from uvatar.render.cameras import camera_rays
 
     o, d = camera_rays(camera, np.asarray(pixels, np.float64).reshape(-1, 2))
-    return (torch.as_tensor(np.ascontiguousarray(o), dtype=dtype, device=device),
-            torch.as_tensor(d, dtype=dtype, device=device))
+    return to_device_async(o, device, dtype), to_device_async(d, device, dtype)  # no stream sync on a GPU

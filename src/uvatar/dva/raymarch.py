@@ -162,7 +162,7 @@ def _march_chunk(origins, directions, t_near, t_far, T, prims: Primitives, sampl
 
 
 def raymarch(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,
-             cfg: RaymarchConfig | None = None, near_far=None, camera=None, pixels=None):
+             cfg: RaymarchConfig | None = None, near_far=None, camera=None, pixels=None, budget=None):
     """Render rays through the primitives. origins/directions (N, 3) world, directions unit.
 
     near_far: optional (t_near (N,), t_far (N,)) sample interval; default: the union AABB of the boxes
@@ -173,12 +173,16 @@ def raymarch(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,
     Returns rgb (N, 3) premultiplied by alpha and alpha (N,) in [0, 1]; same model as
     :func:`uvatar.dva.raymarch_ref.raymarch_reference`. ``cfg.marcher`` "warp" (or "auto" with warp-lang
     installed) runs the fused kernels of :mod:`uvatar.dva.raymarch_warp` instead of the torch code below.
+    ``pixels`` may be a :class:`~uvatar.dva.raymarch_cull.PixelGrid` (built once per camera: no read-back).
+    ``budget``: the Warp marcher's fixed pair buffer (:class:`~uvatar.dva.raymarch_warp.PairBudget`), so
+    that its culling reads nothing back; the torch marcher sizes its buffers from the data (read-backs)
+    and ignores it.
     """
     cfg = cfg or RaymarchConfig()
     if resolve_marcher(cfg.marcher) == "warp":
         from uvatar.dva.raymarch_warp import raymarch_warp
 
-        return raymarch_warp(origins, directions, prims, cfg, near_far, camera, pixels)
+        return raymarch_warp(origins, directions, prims, cfg, near_far, camera, pixels, budget)
     N, K = origins.shape[0], prims.num
     if N == 0 or K == 0:
         return origins.new_zeros(N, 3), origins.new_zeros(N)
@@ -201,7 +205,7 @@ def raymarch(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,
 
     pinhole = None
     if camera is not None and pixels is not None:
-        pinhole = pinhole_candidates(camera, torch.as_tensor(pixels), prims)
+        pinhole = pinhole_candidates(camera, pixels, prims)
         bounds = torch.searchsorted(pinhole[0], torch.arange(0, N + cfg.chunk_rays, cfg.chunk_rays,
                                                              device=origins.device))
     rgbs, alphas = [], []

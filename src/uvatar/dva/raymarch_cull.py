@@ -4,12 +4,14 @@ Python loop. Shared by the torch marcher (:mod:`uvatar.dva.raymarch`) and the Wa
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
 from uvatar.dva.raymarch_ref import Primitives, box_corners
 
-__all__ = ["sphere_candidates", "pinhole_rects", "pinhole_candidates"]
+__all__ = ["sphere_candidates", "pinhole_rects", "pinhole_candidates", "PixelGrid", "camera_matrices"]
 
 
 @torch.no_grad()
@@ -24,23 +26,68 @@ def sphere_candidates(origins, directions, prims: Primitives):
     return near.nonzero(as_tuple=True)
 
 
+@dataclass(frozen=True)
+class PixelGrid:
+    """Rays through integer pixels laid out for culling: ``lookup`` (h*w,) long, the ray index of each
+    pixel of the pixels' bounding box (left x0, top y0, width w, height h; host ints), -1 where no ray.
+
+    Built once per set of pixels (:meth:`build`) and reused: the box comes from the host copy of the
+    pixels, so nothing is read back from the device, and a frame renderer keeps one per camera."""
+
+    lookup: torch.Tensor
+    x0: int
+    y0: int
+    w: int
+    h: int
+
+    @property
+    def x1(self) -> int:
+        return self.x0 + self.w - 1
+
+    @property
+    def y1(self) -> int:
+        return self.y0 + self.h - 1
+
+    @classmethod
+    def build(cls, pixels, device) -> PixelGrid:
+        """pixels (N, 2) integer (x, y): numpy or a tensor (a device tensor's box is read back once)."""
+        from uvatar.devices import to_device_async
+
+        host = pixels.detach().cpu().numpy() if isinstance(pixels, torch.Tensor) else np.asarray(pixels)
+        host = host.reshape(-1, 2).astype(np.int64)
+        x0, y0 = (int(v) for v in host.min(0)) if len(host) else (0, 0)
+        x1, y1 = (int(v) for v in host.max(0)) if len(host) else (-1, -1)
+        w, h = x1 - x0 + 1, y1 - y0 + 1
+        lookup = np.full(max(h * w, 0), -1, np.int64)
+        lookup[(host[:, 1] - y0) * w + (host[:, 0] - x0)] = np.arange(len(host))
+        return cls(to_device_async(lookup, device), x0, y0, w, h)
+
+
+def camera_matrices(camera, device, dtype):
+    """(K (3, 3), R (3, 3), T (3,)) of ``camera`` as tensors on ``device``, copied once per camera and
+    kept (:func:`uvatar.devices.on_device`): no host-to-device copy per call."""
+    from uvatar.devices import on_device
+
+    return (on_device(camera.K, device, dtype), on_device(camera.R, device, dtype),
+            on_device(camera.T, device, dtype).reshape(3))
+
+
 @torch.no_grad()
-def pinhole_rects(camera, pixels: torch.Tensor, prims: Primitives, margin: float = 1.0):
+def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matrices=None):
     """The pixel rectangles of :func:`pinhole_candidates`: (lookup (h*w,) ray index of each pixel of the
     requested pixels' bounding box (x0, y0, width w), -1 where no ray; x0; y0; w; rects (K, 4) inclusive
-    [x_lo, y_lo, x_hi, y_hi] per primitive, clipped to the box (empty where hi < lo))."""
+    [x_lo, y_lo, x_hi, y_hi] per primitive, clipped to the box (empty where hi < lo)).
+
+    ``pixels``: (N, 2) integer (x, y), or a :class:`PixelGrid` of them (built once, reused: no read-back);
+    ``matrices``: the camera's (K, R, T) as device tensors (default: :func:`camera_matrices`); the lens
+    distortion comes from ``camera.dist`` (host numbers)."""
     from uvatar.geometry.camera import distort
 
     dev, dt = prims.positions.device, prims.positions.dtype
-    Kc = torch.as_tensor(camera.K, dtype=dt, device=dev)
-    Rc = torch.as_tensor(camera.R, dtype=dt, device=dev)
-    Tc = torch.as_tensor(camera.T, dtype=dt, device=dev).reshape(3)
-    px = pixels.to(dev).long()
-    x0, y0 = px.min(0).values.tolist()
-    x1, y1 = px.max(0).values.tolist()
-    w, h = x1 - x0 + 1, y1 - y0 + 1
-    lookup = torch.full((h * w,), -1, dtype=torch.long, device=dev)
-    lookup[(px[:, 1] - y0) * w + (px[:, 0] - x0)] = torch.arange(px.shape[0], device=dev)
+    Kc, Rc, Tc = matrices if matrices is not None else camera_matrices(camera, dev, dt)
+    Kc, Rc, Tc = Kc.to(dt), Rc.to(dt), Tc.to(dt).reshape(3)
+    grid = pixels if isinstance(pixels, PixelGrid) else PixelGrid.build(pixels, dev)
+    lookup, x0, y0, w, x1, y1 = grid.lookup, grid.x0, grid.y0, grid.w, grid.x1, grid.y1
     cam = box_corners(Primitives(prims.positions.detach(), prims.rotations.detach(), prims.scales.detach(),
                                  prims.payload)) @ Rc.T + Tc  # (K, 8, 3)
     z = cam[..., 2]
@@ -62,7 +109,7 @@ def pinhole_rects(camera, pixels: torch.Tensor, prims: Primitives, margin: float
 
 
 @torch.no_grad()
-def pinhole_candidates(camera, pixels: torch.Tensor, prims: Primitives, margin: float = 1.0):
+def pinhole_candidates(camera, pixels, prims: Primitives, margin: float = 1.0):
     """(ray, primitive) pairs for rays through integer ``pixels`` (N, 2) (x, y) of a pinhole ``camera``
     (K, R, T; OpenCV): every primitive lists the requested pixels inside its projected box's bounding
     rectangle (grown by ``margin`` px). Cost ~ sum of those rectangles, not N * K. Primitives reaching

@@ -106,8 +106,8 @@ def border_fade(local: torch.Tensor, width: float) -> torch.Tensor:
 
 def box_corners(prims: Primitives) -> torch.Tensor:
     """(K, 8, 3) world corners of every primitive box."""
-    signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
-                         dtype=prims.positions.dtype, device=prims.positions.device)
+    i = torch.arange(8, device=prims.positions.device)  # made on the device: no host copy, no stream sync
+    signs = (torch.stack([i // 4, i // 2 % 2, i % 2], 1) * 2 - 1).to(prims.positions.dtype)  # (±1, ±1, ±1), z fastest
     local = signs[None] * prims.scales[:, None, :]  # (K, 8, 3)
     return prims.positions[:, None, :] + local @ prims.rotations.transpose(1, 2)
 

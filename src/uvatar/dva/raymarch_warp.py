@@ -33,10 +33,10 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from uvatar.dva.raymarch_cull import pinhole_rects, sphere_candidates
-from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, num_steps, ray_range
+from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, ray_range
 from uvatar.errors import require
 
-__all__ = ["raymarch_warp", "warp_plan"]
+__all__ = ["raymarch_warp", "warp_plan", "PairBudget", "PairOverflow"]
 
 EPS = 1e-6  # increments below this count whole while opacity remains (raymarch_ref.accumulate)
 _KERNELS: dict = {}
@@ -239,9 +239,10 @@ def _build(wp, F):
                         slot = wp.atomic_add(count, r, 1)
                         if write == 1:
                             p = offsets[r] + slot
-                            pair_prim[p] = k
-                            pair_i0[p] = i0
-                            pair_i1[p] = i1
+                            if p < offsets[r + 1]:  # always, unless a fixed pair buffer overflowed
+                                pair_prim[p] = k
+                                pair_i0[p] = i0
+                                pair_i1[p] = i1
 
     @wp.kernel(module="unique")
     def forward(origins: wp.array(dtype=V3), directions: wp.array(dtype=V3), t_near: wp.array(dtype=F),
@@ -374,20 +375,86 @@ def _kernels(dtype: torch.dtype):
     return wp, _KERNELS[dtype]
 
 
+class PairOverflow(RuntimeError):
+    """A fixed pair buffer (:class:`PairBudget`) was too small for a frame: its image lost samples."""
+
+
+class PairBudget:
+    """A fixed-size pair buffer for the pinhole culling of :func:`warp_plan`, so that a call reads
+    nothing back from the device (the exact buffer needs the pair count on the host: one sync per call).
+
+    ``capacity``: the pairs the buffer holds (a frame renderer sizes it from the rays:
+    ``FrameConfig.pairs_per_ray`` x H x W). Every call records on the device the most pairs any call
+    needed (``needed``, an int64 scalar, reset by :meth:`check`); where a call needs more than the
+    capacity its rays beyond the buffer lose their last pairs (the image is wrong), and :meth:`check`
+    (a read-back: call it when convenient, or :meth:`poll` for a non-blocking look a frame later)
+    reports it. Where the capacity suffices, the image and gradients are those of the exact buffer."""
+
+    def __init__(self, capacity: int, device="cpu"):
+        self.capacity = max(1, int(capacity))
+        self.needed = torch.zeros((), dtype=torch.int64, device=device)
+        self.peak = 0  # the most pairs any call needed, of those read back so far
+        # poll's pinned landing place, allocated here, not inside a frame
+        self._host = torch.zeros((), dtype=torch.int64).pin_memory() if self.needed.is_cuda else None
+        self._event = None
+
+    def record(self, total: torch.Tensor) -> None:
+        """Fold a call's pair count (a device scalar) into ``needed``, on the device (graph-safe)."""
+        torch.maximum(self.needed, total.to(torch.int64), out=self.needed)
+
+    def check(self, raise_error: bool = True) -> int:
+        """The most pairs a call needed since the last check (a host sync), reset to 0; raises
+        :class:`PairOverflow` when that is above the capacity (``raise_error`` False: returns it)."""
+        needed = int(self.needed)
+        self.needed.zero_()
+        self.peak = max(self.peak, needed)
+        if needed > self.capacity and raise_error:
+            raise PairOverflow(f"the marcher's pair buffer holds {self.capacity} pairs, a call needed {needed}: "
+                               "its image lost samples (raise pairs_per_ray)")
+        return needed
+
+    def poll(self) -> int | None:
+        """Non-blocking: the ``needed`` of the previous poll's moment when the device has written it (a
+        copy to pinned memory queued then), else None; queues the next copy. On the CPU it is
+        :meth:`check` without the raise. Resets ``needed`` as it reads it."""
+        if self.needed.device.type != "cuda":
+            return self.check(raise_error=False)
+        got = None
+        if self._event is not None:
+            if not self._event.query():
+                return None
+            got = int(self._host)
+            self.peak = max(self.peak, got)
+        self._host.copy_(self.needed, non_blocking=True)
+        self.needed.zero_()
+        self._event = torch.cuda.Event()
+        self._event.record(torch.cuda.current_stream(self.needed.device))
+        return got
+
+    def overflowed(self, needed: int | None) -> bool:
+        return needed is not None and needed > self.capacity
+
+
 @torch.no_grad()
 def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_far=None, camera=None,
-              pixels=None):
+              pixels=None, budget: PairBudget | None = None):
     """Culling for the kernels: (t_near (N,), offsets (N+1,), prim, first step, last step (P,)), the
     candidate pairs grouped by ray (int32; a pair that misses its box has last < first), or None when no
-    ray has a sample."""
+    ray has a sample (known on the host only without a ``budget``).
+
+    No step count is read back: the kernels clamp a pair's last step to ``cfg.max_steps - 1`` where the
+    reference clamps to ``min(max_steps, floor(max_r (t_far - t_near) / step) + 1) - 1``; the second bound
+    never binds, since a pair's last step is at most ``floor((t_far - t_near) / step)`` of its own ray (the
+    same float arithmetic), so both give the same steps. With pinhole culling and a ``budget``
+    (:class:`PairBudget`) the pairs go into its fixed buffer and nothing at all is read back; without
+    one the pair count is read back to size the buffer exactly (one sync). The bounding-sphere culling
+    of other rays reads back its candidates (``nonzero``)."""
     N = origins.shape[0]
     if N == 0 or prims.num == 0:
         return None
     t_near, t_far = near_far if near_far is not None else ray_range(origins, directions, prims)
     t_near, t_far = t_near.detach().to(origins.dtype).contiguous(), t_far.detach().to(origins.dtype).contiguous()
-    T = num_steps(t_near, t_far, cfg)
-    if T == 0:
-        return None
+    T = int(cfg.max_steps)
     o, d = origins.detach().contiguous(), directions.detach().contiguous()
     wp, (pair_steps, rect_pairs, _, _) = _kernels(origins.dtype)
     dt, dev = origins.dtype, origins.device
@@ -399,16 +466,21 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     i32 = torch.int32
     offsets = torch.zeros(N + 1, dtype=i32, device=dev)
     if camera is not None and pixels is not None:  # per primitive: the pixels of its rectangle
-        lookup, x0, y0, w, rects = pinhole_rects(camera, torch.as_tensor(pixels), prims)
+        lookup, x0, y0, w, rects = pinhole_rects(camera, pixels, prims)
         count = torch.zeros(N, dtype=i32, device=dev)
         pairs = [torch.zeros(0, dtype=i32, device=dev)] * 3
         args = rays + [_wp(wp, lookup.to(i32)), x0, y0, w, _wp(wp, rects.to(i32).contiguous(), wp.vec4i)] + box
         wp.launch(rect_pairs, dim=prims.num, inputs=args + [0, _wp(wp, count), _wp(wp, offsets)]
                   + [_wp(wp, t) for t in pairs], **launch)
         offsets[1:] = torch.cumsum(count, 0)
-        P = int(offsets[-1])
-        if P == 0:
-            return None
+        if budget is not None:  # a fixed buffer: nothing read back; rays past its end lose pairs (flagged)
+            budget.record(offsets[-1])
+            P = budget.capacity
+            offsets.clamp_(max=P)
+        else:
+            P = int(offsets[-1])
+            if P == 0:
+                return None
         count.zero_()
         pairs = [torch.empty(P, dtype=i32, device=dev) for _ in range(3)]
         wp.launch(rect_pairs, dim=prims.num, inputs=args + [1, _wp(wp, count), _wp(wp, offsets)]
@@ -499,15 +571,17 @@ def _stream(wp, device):
 
 
 def raymarch_warp(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,
-                  cfg: RaymarchConfig | None = None, near_far=None, camera=None, pixels=None):
+                  cfg: RaymarchConfig | None = None, near_far=None, camera=None, pixels=None,
+                  budget: PairBudget | None = None):
     """Render rays through the primitives with the fused Warp kernels; arguments and result as
     :func:`uvatar.dva.raymarch.raymarch` (rgb (N, 3) premultiplied, alpha (N,)), gradients w.r.t. the
     primitives' positions, rotations, scales and payload, and the rays' origins and directions (through
-    the sample positions; the sample placement carries none, as in the reference)."""
+    the sample positions; the sample placement carries none, as in the reference). ``budget``: a fixed
+    pair buffer (:class:`PairBudget`) for pinhole culling: no read-back at all (:func:`warp_plan`)."""
     cfg = cfg or RaymarchConfig()
     N = origins.shape[0]
     dt = origins.dtype
-    plan = warp_plan(origins, directions, prims, cfg, near_far, camera, pixels)
+    plan = warp_plan(origins, directions, prims, cfg, near_far, camera, pixels, budget)
     if plan is None:
         zero = (prims.payload.sum() + prims.positions.sum() + prims.rotations.sum() + prims.scales.sum()) * 0
         return origins.new_zeros(N, 3) + zero, origins.new_zeros(N) + zero

@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import random
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -119,6 +121,40 @@ def load_run(run_dir, device="cpu", body_model=None, model_dir=None, marcher: st
     return model, body, meta, state["step"]
 
 
+class StepTerms(Mapping):
+    """A training step's loss terms ({name: float}, with "total" and "psnr"), kept as device tensors until
+    one is read; then all are read at once (one sync) and "psnr" is made from the batch's MSE. Reading
+    also calls ``on_read`` once (the trainer's deferred warnings)."""
+
+    def __init__(self, terms: dict, on_read=None):
+        self._terms, self._on_read, self._floats = terms, on_read, None
+
+    def _values(self) -> dict:
+        if self._floats is None:
+            keys = list(self._terms)
+            tensors = [v for v in self._terms.values() if isinstance(v, torch.Tensor)]
+            read = iter(torch.stack([v.detach().reshape(()).double() for v in tensors]).tolist() if tensors else [])
+            floats = {k: next(read) if isinstance(self._terms[k], torch.Tensor) else float(self._terms[k])
+                      for k in keys}
+            floats["psnr"] = float(-10 * np.log10(max(floats.pop("mse"), 1e-10)))
+            self._floats = floats
+            if self._on_read is not None:
+                self._on_read()
+        return self._floats
+
+    def __getitem__(self, key):
+        return self._values()[key]
+
+    def __iter__(self):
+        return iter(self._values())
+
+    def __len__(self) -> int:
+        return len(self._values())
+
+    def __repr__(self) -> str:
+        return f"StepTerms({self._values()!r})"
+
+
 class Trainer:
     """Holds the model, the data bank and the optimizer; ``run()`` trains until iters or minutes."""
 
@@ -169,7 +205,9 @@ class Trainer:
         if self.corrections is not None:
             groups.append({"params": list(self.corrections.parameters()), "lr": c.lr})
         self.params = [p for g in groups for p in g["params"]]
-        self.opt = torch.optim.Adam(groups)
+        # on CUDA the fused kernel: one launch per step, and it skips a non-finite step on the device
+        self.opt = torch.optim.Adam(groups, fused=True) if self.device.type == "cuda" else torch.optim.Adam(groups)
+        self.budget, self.pair_overflows, self.skipped_updates = None, 0, 0
         self.step = 0
         self.meta = {"body_model": body_name, "model_dir": None if model_dir is None else str(model_dir),
                      "conditioning_joints": list(joints),
@@ -217,41 +255,83 @@ class Trainer:
         frames, cams, views, pixels, backgrounds = (frames[mine], cams[mine], views[mine], pixels[mine],
                                                     backgrounds[mine])
         tex = torch.stack([self.bank.image_texture(f, v) for f, v in zip(frames, views, strict=False)])
-        return frames, cams, tex.to(self.device), pixels, backgrounds
+        from uvatar.devices import to_device_async
 
-    def train_step(self) -> dict:
+        return frames, cams, to_device_async(tex, self.device), pixels, backgrounds
+
+    def train_step(self) -> StepTerms:
+        """One optimisation step. Returns its loss terms (and "total", "psnr") as a :class:`StepTerms`:
+        they stay on the device until read (reading one reads them all: one sync), so a step run without
+        reading them never waits for the device, except where noted below.
+
+        On CUDA in one process nothing in the step reads the device back: the correctives switch is
+        the host's step count, the marcher's pair buffer is fixed (``TrainConfig.pairs_per_ray``; its
+        overflow is looked at a step late, without blocking), the host's data go to the device through
+        pinned memory, and a non-finite loss or gradient skips the update on the device (Adam's fused
+        kernel with ``found_inf``, as a ``GradScaler`` does; the skipped steps are counted in
+        ``skipped_updates`` and warned about when the terms are next read). On the CPU and under
+        torchrun the checks are made on the host as before (free on a CPU; the processes must agree)."""
+        from uvatar.devices import to_device_async
+
         t = self.cfg.train
-        self.model.correctives_on.fill_(self.step >= t.warmup_iters)
+        correctives = self.step >= t.warmup_iters
+        self.model.correctives_on.fill_(correctives)
         frames, cams, tex, pixels, backgrounds = self.sample()
         fi = torch.tensor(frames)
-        centers = torch.as_tensor(np.stack([self.bank.cams[c].center for c in cams]), dtype=torch.float32)
-        vertices, rotvecs = self._posed(fi, self.step >= t.warmup_iters)
-        out = self.model(vertices, rotvecs, tex, centers.to(self.device), t.precision, compact=True)
-        preds, targets, alphas, masks = [], [], [], []
+        centers = np.stack([self.bank.cams[c].center for c in cams]).astype(np.float32)
+        vertices, rotvecs = self._posed(fi, correctives)
+        out = self.model(vertices, rotvecs, tex, to_device_async(centers, self.device), t.precision, compact=True,
+                         correctives=correctives)
+        preds, alphas, host_targets, host_masks = [], [], [], []
         for b, (f, c, pix, bg_colour) in enumerate(zip(frames, cams, pixels, backgrounds, strict=True)):
             mask = self.bank.masks[f][c]
             o, d = pixel_rays(self.bank.cams[c], pix, self.device)
-            bg = torch.as_tensor(bg_colour, device=self.device)
-            rgb, alpha = self.model.render_rays(out, b, o, d, None, camera=self.bank.cams[c], pixels=pix)
+            bg = to_device_async(np.asarray(bg_colour, np.float32), self.device)
+            rgb, alpha = self.model.render_rays(out, b, o, d, None, camera=self.bank.cams[c], pixels=pix,
+                                                budget=self._budget(pix.shape[0]))
             if self.corrections is not None:
                 rgb = self.corrections.colour(rgb, alpha, c)
             rgb = rgb + (1.0 - alpha)[:, None] * bg
             P = int(round(np.sqrt(pix.shape[0])))
-            img = target_pixels(self.bank.images[f][c], mask, pix, bg_colour, t.background)
+            host_targets.append(target_pixels(self.bank.images[f][c], mask, pix, bg_colour, t.background)
+                                .T.reshape(3, P, P))
             preds.append(rgb.T.reshape(3, P, P))
-            targets.append(torch.as_tensor(img, device=self.device).T.reshape(3, P, P))
             alphas.append(alpha.reshape(P, P))
-            masks.append(torch.as_tensor(mask[pix[:, 1], pix[:, 0]], dtype=torch.float32,
-                                         device=self.device).reshape(P, P))
-        total, terms = self.loss(torch.stack(preds), torch.stack(targets), torch.stack(alphas),
-                                 torch.stack(masks), out.scales, self.model.rest_scales,
-                                 out.motion if bool(self.model.correctives_on) else None, out.learned_rgb,
-                                 out.payload[:, :, 3])
+            host_masks.append(mask[pix[:, 1], pix[:, 0]].astype(np.float32).reshape(P, P))
+        targets = to_device_async(np.stack(host_targets), self.device)  # one copy for the batch
+        masks = to_device_async(np.stack(host_masks), self.device)
+        pred = torch.stack(preds)
+        total, terms = self.loss.terms(pred, targets, torch.stack(alphas), masks, out.scales, self.model.rest_scales,
+                                       out.motion if correctives else None, out.learned_rgb, out.payload[:, :, 3])
         if self.corrections is not None:
-            for k, v in self.corrections.prior(fi.to(self.device), torch.tensor(cams, device=self.device)).items():
+            prior = self.corrections.prior(to_device_async(fi, self.device),
+                                           to_device_async(torch.tensor(cams), self.device))
+            for k, v in prior.items():
                 total = total + v
-                terms[k] = float(v.detach())
+                terms[k] = v.detach()
         self.opt.zero_grad(set_to_none=True)
+        if self._device_skips:
+            self._update_on_device(total)
+        else:
+            self._update_on_host(total)
+        self.step += 1
+        terms["total"] = total.detach()
+        terms["mse"] = ((pred - targets) ** 2).mean().detach()
+        if self.ctx.active:  # the global batch's terms: the mean of the processes' equal shares
+            keys = sorted(terms)
+            mean = all_sum(torch.tensor([float(terms[k]) for k in keys], dtype=torch.float64)) / self.ctx.world
+            terms = dict(zip(keys, mean.tolist(), strict=True))
+        self._look_at_budget()
+        return StepTerms(terms, self._report_skips)
+
+    @property
+    def _device_skips(self) -> bool:
+        """Whether a non-finite step is skipped on the device (CUDA, one process, fused Adam)."""
+        return (self.device.type == "cuda" and not self.ctx.active
+                and all(g.get("fused") for g in self.opt.param_groups))
+
+    def _update_on_host(self, total) -> None:
+        """Backward, clip and step, with the finiteness checks read on the host (a sync each on a GPU)."""
         learn = bool(total.requires_grad) and bool(torch.isfinite(total))
         if learn:
             total.backward()
@@ -267,27 +347,72 @@ class Trainer:
                 log.warning("step %d: non-finite gradient, update skipped", self.step)
         else:
             log.warning("step %d: non-finite loss, update skipped", self.step)
-        self.step += 1
-        terms["total"] = float(total.detach())
-        terms["mse"] = float(((torch.stack(preds) - torch.stack(targets)) ** 2).mean().detach())
-        if self.ctx.active:  # the global batch's terms: the mean of the processes' equal shares
-            keys = sorted(terms)
-            mean = all_sum(torch.tensor([float(terms[k]) for k in keys], dtype=torch.float64)) / self.ctx.world
-            terms = dict(zip(keys, mean.tolist(), strict=True))
-        terms["psnr"] = float(-10 * np.log10(max(terms.pop("mse"), 1e-10)))
-        return terms
+
+    def _update_on_device(self, total) -> None:
+        """Backward, clip and step with no read-back: a non-finite loss gives non-finite gradients, hence
+        a non-finite norm, and fused Adam skips the update wherever ``found_inf`` is 1 (moments and step
+        count untouched), as the host path's skip does."""
+        if not total.requires_grad:  # no ray met a primitive (and correctives are off)
+            return
+        total.backward()
+        norm = torch.nn.utils.clip_grad_norm_(self.params, 1.0)
+        found_inf = (~torch.isfinite(norm)).to(torch.float32)
+        self.skipped_updates = self.skipped_updates + found_inf
+        self.opt.found_inf = found_inf
+        try:
+            self.opt.step()
+        finally:
+            self.opt.found_inf = None
+
+    def _report_skips(self) -> None:
+        """Warn about the updates skipped on the device since the last report (called as terms are read)."""
+        if not isinstance(self.skipped_updates, torch.Tensor):
+            return
+        n = int(self.skipped_updates)
+        if n:
+            log.warning("%d update(s) skipped before step %d: non-finite loss or gradient", n, self.step)
+        self.skipped_updates = 0
+
+    def _budget(self, rays: int):
+        """The marcher's pair buffer for ``rays`` rays (``TrainConfig.pairs_per_ray``), or None (exact)."""
+        per_ray = self.cfg.train.pairs_per_ray
+        if per_ray <= 0:
+            return None
+        if self.budget is None:
+            from uvatar.dva.raymarch_warp import PairBudget
+
+            self.budget = PairBudget(1, self.device)
+        self.budget.capacity = max(self.budget.capacity, math.ceil(per_ray * rays))
+        return self.budget
+
+    def _look_at_budget(self) -> None:
+        """Report a step whose pairs overflowed the buffer (a step late on a GPU) and grow the buffer."""
+        if self.budget is None:
+            return
+        needed = self.budget.poll()
+        if self.budget.overflowed(needed):
+            self.pair_overflows += 1
+            new = math.ceil(needed * 1.25)
+            log.warning("before step %d: the marcher's pair buffer held %d pairs, a sample needed %d: that "
+                        "step's render and gradients lost samples; the buffer now holds %d", self.step,
+                        self.budget.capacity, needed, new)
+            self.budget.capacity = new
 
     def _posed(self, frames: torch.Tensor, corrected: bool):
         """(posed vertices (B, V, 3), joint rotvecs (B, J, 3)) of bank frames (B,) on the device: the
         fits as they are, or re-posed with the learned pose offsets once ``corrected`` (after warm-up;
         the body model poses on the CPU, as it was loaded)."""
+        from uvatar.devices import to_device_async
+
         if self.corrections is None or not (corrected and self.cfg.corrections.pose):
-            return self.bank.vertices[frames].to(self.device), self.bank.rotvecs[frames].to(self.device)
+            return (to_device_async(self.bank.vertices[frames], self.device),
+                    to_device_async(self.bank.rotvecs[frames], self.device))
         fits = self.bank.fits
         rot, Rh, Th = self.corrections.pose_inputs(fits, frames, True)
         shape = None if fits.shape is None else fits.shape[frames]
+        # the body model poses on the CPU: reading the offsets back is this step's one sync on a GPU
         verts = pose_vertices(self.body, rot.cpu(), Rh.cpu(), Th.cpu(), fits.scale[frames], shape)
-        return verts.to(self.device), rot.to(self.device)
+        return verts.to(self.device), rot.to(self.device)  # differentiable: the offsets learn through it
 
     def _average_gradients(self, learned: bool) -> bool:
         """Average the gradients over the processes (one all-reduce of every gradient, zeros where
@@ -347,11 +472,12 @@ class Trainer:
                 progress = max(self.step / max(iters, 1), seconds / max(minutes * 60, 1e-9))
                 self.set_lr(progress)
                 last = self.train_step()
-                if writer is not None and (self.step % 10 == 0 or self.step == 1):
-                    for k, v in last.items():
-                        writer.add_scalar(f"loss/{k}", v, self.step)
                 bar.update(1)
-                bar.set_postfix(loss=f"{last['total']:.4f}", psnr=f"{last['psnr']:.1f}")
+                if self.step % 10 == 0 or self.step == 1:  # the terms are read (one sync) only when logged
+                    if writer is not None:
+                        for k, v in last.items():
+                            writer.add_scalar(f"loss/{k}", v, self.step)
+                    bar.set_postfix(loss=f"{last['total']:.4f}", psnr=f"{last['psnr']:.1f}")
                 if self.step % t.checkpoint_every == 0:
                     self.save(elapsed())
         finally:
@@ -360,7 +486,7 @@ class Trainer:
                 writer.close()
         self.save(elapsed())
         self.ctx.barrier()
-        summary = {"steps": self.step, "seconds": round(time.time() - start, 1), "last": last,
+        summary = {"steps": self.step, "seconds": round(time.time() - start, 1), "last": dict(last),
                    "frames": len(self.bank), "skipped_frames": self.bank.skipped,
                    "corrections": self.corrections.summary() if self.corrections is not None else None, **{
                        k: self.meta[k] for k in ("train_cameras", "perceptual", "body_model", "seed")}}

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["face_normals", "vertex_normals", "vertex_face_adjacency", "normalize", "is_torch", "frames_from_normals"]
+__all__ = ["face_normals", "vertex_normals", "vertex_face_adjacency", "normalize", "is_torch", "frames_from_normals",
+           "face_index_tensor"]
 
 _EPS = 1e-12
 
@@ -18,6 +19,19 @@ _EPS = 1e-12
 def is_torch(x) -> bool:
     """True when ``x`` is a torch tensor (without importing torch when it is not loaded)."""
     return type(x).__module__.startswith("torch")
+
+
+def face_index_tensor(faces, device):
+    """``faces`` (F, 3) (numpy, a list or a tensor) as a long tensor on ``device``; a host array is copied
+    once and kept (:func:`uvatar.devices.on_device`): no host-to-device copy, hence no stream sync, per
+    call."""
+    import torch
+
+    if is_torch(faces):
+        return faces.to(device=device, dtype=torch.long)
+    from uvatar.devices import on_device
+
+    return on_device(faces, device, torch.long)
 
 
 def normalize(x, eps: float = _EPS):
@@ -33,11 +47,8 @@ def normalize(x, eps: float = _EPS):
 def _face_corners(vertices, faces):
     """(..., F, 3, 3) corner positions; faces (F, 3) int (numpy or torch)."""
     if is_torch(vertices):
-        import torch
 
-        f = torch.as_tensor(np.asarray(faces) if not is_torch(faces) else faces,
-                            dtype=torch.long, device=vertices.device)
-        return vertices[..., f, :]
+        return vertices[..., face_index_tensor(faces, vertices.device), :]
     return np.asarray(vertices)[..., np.asarray(faces, dtype=np.int64), :]
 
 
@@ -99,8 +110,7 @@ def vertex_normals(vertices, faces, adjacency=None):
     if is_torch(vertices):
         import torch
 
-        f = torch.as_tensor(np.asarray(faces) if not is_torch(faces) else faces,
-                            dtype=torch.long, device=vertices.device)
+        f = face_index_tensor(faces, vertices.device)
         out = torch.zeros_like(vertices)
         for k in range(3):  # three corners, not a per-vertex loop
             out = out.index_add(-2, f[:, k], cross)

@@ -15,6 +15,7 @@ they are mapped to Embree's (u_e, v_e) = (v, 1 - u - v), so ``RayHits.bary = (u,
 
 from __future__ import annotations
 
+import contextlib
 from functools import lru_cache
 
 import numpy as np
@@ -22,7 +23,7 @@ import numpy as np
 from uvatar.errors import require
 from uvatar.geometry.raycast import RayCaster, RayCasterConfig
 
-__all__ = ["WarpRayCaster", "warp_device", "any_hit_torch"]
+__all__ = ["WarpRayCaster", "warp_device", "any_hit_torch", "MeshOccluder"]
 
 
 def _warp():
@@ -142,3 +143,54 @@ def any_hit_torch(vertices, faces, origins, directions, max_distance):
     wp.launch(any_hit_kernel, dim=n, inputs=[mesh.id, o, d, far, wp.from_torch(out)],
               device=wp.device_from_torch(dev))
     return out >= 0
+
+
+class MeshOccluder:
+    """:func:`any_hit_torch` for a mesh whose topology stays and whose vertices move every call (a posed
+    body, frame after frame): the BVH is built once over a vertex buffer the occluder owns and refitted
+    to each call's vertices (``wp.Mesh.refit``), and the faces travel to the device once. Nothing is
+    allocated or read back per call, and every launch goes on torch's current stream, so a CUDA graph
+    can capture a call (after one call has built the mesh). The hits are :func:`any_hit_torch`'s: a
+    refitted BVH bounds the same triangles (only its traversal may be slower after large motions).
+
+    ``__call__(vertices (V, 3), origins (N, 3), directions (N, 3), max_distance (N,)) -> (N,) bool``."""
+
+    def __init__(self, faces, device):
+        import torch
+
+        from uvatar.devices import on_device
+
+        self.device = torch.device(device)
+        self.faces = faces if isinstance(faces, torch.Tensor) else on_device(np.asarray(faces).reshape(-1), self.device)
+        self._indices = self.faces.to(device=self.device, dtype=torch.int32).reshape(-1).contiguous()
+        self._points, self._mesh = None, None
+
+    def _stream(self, wp):
+        return (wp.ScopedStream(wp.stream_from_torch(self.device), sync_enter=False) if self.device.type == "cuda"
+                else contextlib.nullcontext())
+
+    def __call__(self, vertices, origins, directions, max_distance):
+        import torch
+
+        wp = _warp()
+        _, any_hit_kernel = _kernels()
+        n = origins.shape[0]
+        out = torch.empty(n, dtype=torch.int32, device=self.device)
+        if n == 0:
+            return out.bool()
+        f32 = torch.float32
+        with self._stream(wp):
+            if self._points is None or self._points.shape != vertices.shape:
+                self._points = vertices.detach().to(f32).contiguous().clone()
+                self._mesh = wp.Mesh(points=wp.from_torch(self._points, dtype=wp.vec3),
+                                     indices=wp.from_torch(self._indices, dtype=wp.int32))
+            else:
+                self._points.copy_(vertices.detach())
+                self._mesh.refit()
+            o = wp.from_torch(origins.detach().to(f32).contiguous(), dtype=wp.vec3)
+            d = wp.from_torch(directions.detach().to(f32).contiguous(), dtype=wp.vec3)
+            far = wp.from_torch(max_distance.detach().to(f32).contiguous())
+            wp.launch(any_hit_kernel, dim=n, inputs=[self._mesh.id, o, d, far, wp.from_torch(out)],
+                      device=wp.device_from_torch(self.device),
+                      stream=wp.stream_from_torch(self.device) if self.device.type == "cuda" else None)
+        return out >= 0
