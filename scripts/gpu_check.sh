@@ -71,7 +71,7 @@ for part in $PARTS; do
         --compile-modes "${AVH_MODES:-reduce-overhead}" --iters "${AVH_ITERS:-30}" ;;
     tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher, and a
             # driven frame under sync debug mode "error" and replayed from its CUDA graph
-      run_part tests 100 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -x -p no:cacheprovider \
+      run_part tests 100 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
         tests/test_dva_frame_sync.py tests/test_devices.py ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
