@@ -305,12 +305,14 @@ class FrameRenderer:
             if self.budget is not None:
                 self._look(blocking=True)
         torch.cuda.current_stream(dev).wait_stream(stream)
+        from uvatar.geometry.raycast_warp import warp_stream
+
         graph = torch.cuda.CUDAGraph()
-        wdev = wp.device_from_torch(dev)
-        with wp.ScopedStream(wp.stream_from_torch(stream)), torch.cuda.graph(graph, stream=stream):
-            wp.capture_begin(device=wdev, force_module_load=False, external=True)
+        wstream = warp_stream(stream)   # the one wrapper of the capture stream (see warp_stream)
+        with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=stream):
+            wp.capture_begin(stream=wstream, force_module_load=False, external=True)
             try:
                 static_out = self._drive(sv, sr, cameras, simgs, smasks, camera, background, look=False)
             finally:
-                wp.capture_end(device=wdev)
+                wp.capture_end(stream=wstream)
         return graph, static_in, static_out

@@ -567,7 +567,9 @@ def _wp(wp, t: torch.Tensor, dtype=None):
 
 
 def _stream(wp, device):
-    return wp.stream_from_torch(device) if device.type == "cuda" else None
+    from uvatar.geometry.raycast_warp import warp_stream
+
+    return warp_stream(device) if device.type == "cuda" else None
 
 
 def raymarch_warp(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,

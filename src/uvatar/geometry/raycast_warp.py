@@ -35,6 +35,26 @@ def _warp():
     return wp
 
 
+_STREAMS: dict = {}   # (device index, CUstream) -> the one warp.Stream wrapping it, kept for the process
+
+
+def warp_stream(stream_or_device):
+    """The Warp stream of a torch CUDA stream (or of a CUDA device's current torch stream), one object per
+    stream for the life of the process. ``wp.stream_from_torch`` makes a new wrapper each call, and a
+    wrapper of a stream Warp does not own *unregisters* that stream when it is garbage-collected: a
+    temporary one dropped while the stream captures a CUDA graph erases the capture's record
+    ("Warp error: unknown capture stream" at ``capture_end``)."""
+    import torch
+
+    wp = _warp()
+    stream = (stream_or_device if isinstance(stream_or_device, torch.cuda.Stream)
+              else torch.cuda.current_stream(stream_or_device))
+    key = (stream.device.index, int(stream.cuda_stream))
+    if key not in _STREAMS:
+        _STREAMS[key] = wp.stream_from_torch(stream)
+    return _STREAMS[key]
+
+
 def warp_device(device: str) -> str:
     """A torch-style device name ("cpu", "cuda", "cuda:1") as Warp's; raises InputError when Warp has
     no such device."""
@@ -166,7 +186,7 @@ class MeshOccluder:
         self._points, self._mesh = None, None
 
     def _stream(self, wp):
-        return (wp.ScopedStream(wp.stream_from_torch(self.device), sync_enter=False) if self.device.type == "cuda"
+        return (wp.ScopedStream(warp_stream(self.device), sync_enter=False) if self.device.type == "cuda"
                 else contextlib.nullcontext())
 
     def __call__(self, vertices, origins, directions, max_distance):
@@ -192,5 +212,5 @@ class MeshOccluder:
             far = wp.from_torch(max_distance.detach().to(f32).contiguous())
             wp.launch(any_hit_kernel, dim=n, inputs=[self._mesh.id, o, d, far, wp.from_torch(out)],
                       device=wp.device_from_torch(self.device),
-                      stream=wp.stream_from_torch(self.device) if self.device.type == "cuda" else None)
+                      stream=warp_stream(self.device) if self.device.type == "cuda" else None)
         return out >= 0
