@@ -75,16 +75,8 @@ def test_device_update_step_reads_nothing_back(capture, tmp_path, device_path, m
     trainer = _trainer(capture, tmp_path / "quiet", fused=True, pose=False)
     trainer.train_step()
     traffic = HostTraffic(monkeypatch, count_host_data=False)
-    poll = PairBudget.poll
-
-    def quiet_poll(budget):  # the CPU's look at the pair count is an immediate read (a pinned copy on CUDA)
-        traffic.active = False
-        try:
-            return poll(budget)
-        finally:
-            traffic.active = True
-
-    monkeypatch.setattr(PairBudget, "poll", quiet_poll)
+    # the CPU's look at the pair count is an immediate read (a pinned copy on CUDA)
+    traffic.ignore(monkeypatch, PairBudget, "poll")
     with traffic:
         terms = [trainer.train_step() for _ in range(2)]
     assert traffic.seen == []
