@@ -97,5 +97,6 @@ def test_cli_eval_of_existing_fits_prints_the_measures(tiny_capture, tmp_path, c
     err = capsys.readouterr().err
     n = len(body.conditioning_joints)
     assert f"MPJPE 10.0 mm over {n} body joints, angle 0.0 deg, shape 0.0 mm; scan-to-body median" in err, err
+    assert "fits/ already holds fits: evaluated them as they are, nothing fitted (--force fits again)" in err
     ev = json.loads((tmp_path / "e.json").read_text())["eval"]
     assert ev["mpjpe_mm"] == pytest.approx(10.0, abs=1e-3) and not (root / "fitting").exists()

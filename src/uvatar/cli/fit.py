@@ -87,6 +87,8 @@ def _fit(args) -> int:
         stages = FitStages(views=views.config(args))
     if args.eval and args.force is False and _has_fits(args.capture, config.person):
         summary = {"capture": args.capture, "note": "existing fits evaluated, nothing fitted"}
+        print(f"{args.capture}: fits/ already holds fits: evaluated them as they are, nothing fitted "
+              "(--force fits again)", file=sys.stderr)
     else:
         summary = fit_capture(args.capture, config, stages, progress=not args.no_progress)
     if args.eval:
