@@ -292,7 +292,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         if config.register:
             smoothing = layout.normal_smoothing_matrix(config.registration.normal_smoothing)
             registered, reg_stats = register_to_scan(shadow, layout.faces, surface, config.registration,
-                                                     bbox_diagonal=diag, epsilon=eps, smoothing=smoothing)
+                                                     bbox_diagonal=diag, epsilon=eps, smoothing=smoothing,
+                                                     device=config.torch_device)
         else:
             registered = shadow
     with _timed(sec, "correspond", rays, cpu):
@@ -327,12 +328,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
     with _timed(sec, "inpaint", rays, cpu):
         matched_map = layout.to_map(hit, fill=False, dtype=bool)
-        unknown = ~matched_map
-        # one call for both maps: the nearest-texel fill (distance transform) is computed once
-        both = inpaint_telea(np.concatenate([layout.to_map(colors), layout.to_map(disp)], axis=-1),
-                             unknown, config.inpaint_radius, config.inpaint_band,
-                             layout.island_gutter(config.inpaint_gutter))
-        texture, displacement = both[..., :3], both[..., 3:]
+        texture, displacement = _inpaint_maps(layout, colors, disp, matched_map, config)
     valid = layout.raster.mask.copy()
     kappa_map = layout.to_map(kappa)
     surface_texels = layout.surface_texels(config.interior_visibility, config.visibility_rays,
@@ -362,6 +358,32 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         points=layout.to_map(matches.points, dtype=np.float64),
         stats=stats,
     )
+
+
+def _inpaint_maps(layout: BodyLayout, colors, disp, matched_map, config: BakeConfig):
+    """(texture (R, R, 3), displacement (R, R, 3)) float32 numpy: the texels' colours (M, 3) and
+    displacements (M, 3) as maps, the unmatched texels inpainted; on ``config.torch_device`` through
+    :func:`.inpaint_torch.inpaint_telea_torch` (the maps are laid out there too), else OpenCV's Telea.
+    One call for both maps: the nearest-texel fill is computed once."""
+    device = config.torch_device
+    if device is None:
+        both = inpaint_telea(np.concatenate([layout.to_map(colors), layout.to_map(disp)], axis=-1),
+                             ~matched_map, config.inpaint_radius, config.inpaint_band,
+                             layout.island_gutter(config.inpaint_gutter))
+        return both[..., :3], both[..., 3:]
+    import torch
+
+    from uvatar.avh.bake.inpaint_torch import inpaint_telea_torch
+
+    r = layout.resolution
+    values = torch.from_numpy(np.concatenate([np.asarray(colors, np.float32), np.asarray(disp, np.float32)], axis=1))
+    maps = torch.zeros((r * r, 6), dtype=torch.float32, device=device)
+    maps[torch.from_numpy(layout.texel_flat).to(device)] = values.to(device)
+    gutter = layout.island_gutter(config.inpaint_gutter)
+    both = inpaint_telea_torch(maps.reshape(r, r, 6), torch.from_numpy(~matched_map).to(device),
+                               config.inpaint_radius, config.inpaint_band,
+                               None if gutter is None else torch.from_numpy(gutter).to(device)).cpu().numpy()
+    return both[..., :3], both[..., 3:]
 
 
 def _colormap(x: np.ndarray) -> np.ndarray:

@@ -189,8 +189,110 @@ def match_vertices(points, normals, scan: ScanSurface, max_distance: float, cos_
     return target, np.isfinite(best)
 
 
+class _NumpyOps:
+    """The registration's linear algebra on numpy / SciPy (the reference): vertex normals, their
+    smoothing and the sparse SPD solves (SuperLU)."""
+
+    def __init__(self, faces, num_vertices: int, smoothing, ltl):
+        self.faces, self.smoothing, self.ltl = faces, smoothing, ltl
+
+    def array(self, a):
+        return np.asarray(a, dtype=np.float64)
+
+    def numpy(self, a) -> np.ndarray:
+        return a
+
+    def normals(self, x):
+        return np.asarray(vertex_normals(x, self.faces), dtype=np.float64)
+
+    def smooth(self, n):
+        return smoothed_normals(self.smoothing, n)
+
+    def ltl_times(self, x):
+        return self.ltl @ x
+
+    def solve(self, diagonal, k: float, rhs):
+        """``(diag(diagonal) + k L^T L) X = rhs``."""
+        return _factor_spd(sp.diags(diagonal) + k * self.ltl).solve(rhs)
+
+
+class _TorchOps:
+    """The same on torch tensors (float64) on ``device``: the smoothing and L^T L as sparse CSR
+    products, the solves by a dense Cholesky factorization (cuSOLVER on CUDA; the body's V x V
+    system: 1.5 GB for anny's 13.7k vertices, and slow on a CPU: the CPU path is SuperLU's)."""
+
+    def __init__(self, faces, num_vertices: int, smoothing, ltl, device: str):
+        import torch
+
+        from uvatar.geometry.frames import vertex_face_adjacency
+
+        self.torch, self.device = torch, torch.device(device)
+        self.faces = torch.as_tensor(faces, dtype=torch.int64, device=self.device)
+        self.adjacency = vertex_face_adjacency(self.faces, num_vertices).to(torch.float64)
+        self.smoothing = None if smoothing is None else _torch_csr(smoothing, self.device)
+        self.ltl = _torch_csr(ltl, self.device)
+        self.ltl_dense = self.ltl.to_dense()
+
+    def array(self, a):
+        return self.torch.as_tensor(np.asarray(a, dtype=np.float64), device=self.device)
+
+    def numpy(self, a) -> np.ndarray:
+        return a.detach().cpu().numpy()
+
+    def normals(self, x):
+        return vertex_normals(x, self.faces, self.adjacency)
+
+    def smooth(self, n):
+        if self.smoothing is None:
+            return n.clone()
+        out = self.smoothing @ n
+        return out / self.torch.linalg.norm(out, dim=1, keepdim=True).clamp_min(1e-12)
+
+    def ltl_times(self, x):
+        return self.ltl @ x
+
+    def solve(self, diagonal, k: float, rhs):
+        torch = self.torch
+        system = k * self.ltl_dense
+        system.diagonal().add_(diagonal)
+        factor = torch.linalg.cholesky(system)
+        b = rhs[:, None] if rhs.ndim == 1 else rhs
+        out = torch.cholesky_solve(b, factor)
+        return out[:, 0] if rhs.ndim == 1 else out
+
+
+def _torch_csr(matrix, device):
+    """A SciPy sparse matrix as a float64 torch sparse CSR tensor on ``device``."""
+    import warnings
+
+    import torch
+
+    m = sp.csr_matrix(matrix)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # sparse CSR is "beta"
+        return torch.sparse_csr_tensor(torch.as_tensor(m.indptr, dtype=torch.int64),
+                                       torch.as_tensor(m.indices, dtype=torch.int64),
+                                       torch.as_tensor(m.data, dtype=torch.float64), m.shape).to(device)
+
+
+_TORCH_OPS: list = []   # [(faces, smoothing, device, _TorchOps)]: the last few, a bake's per-body arrays
+
+
+def _torch_ops(faces, num_vertices: int, smoothing, ltl, device: str) -> _TorchOps:
+    """:class:`_TorchOps` of these faces and smoothing matrix (the same objects for every frame of a
+    bake: they are kept, so their ids stay theirs) on ``device``, built once."""
+    for f, sm, dev, ops in _TORCH_OPS:
+        if f is faces and sm is smoothing and dev == device:
+            return ops
+    ops = _TorchOps(faces, num_vertices, smoothing, ltl, device)
+    _TORCH_OPS.insert(0, (faces, smoothing, device, ops))
+    del _TORCH_OPS[2:]
+    return ops
+
+
 def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: RegistrationConfig | None = None,
-                     bbox_diagonal: float | None = None, epsilon: float = 1e-4, smoothing=None):
+                     bbox_diagonal: float | None = None, epsilon: float = 1e-4, smoothing=None,
+                     device: str | None = None):
     """Move the shadow mesh onto the scan. Returns (registered vertices (V, 3) float64, stats dict).
 
     shadow_vertices (V, 3) metres; faces (F, 3) of the body (the registered mesh keeps them and
@@ -198,7 +300,9 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
     stats: ``matched_fraction`` per iteration and ``mean_match_distance_mm`` of the last one.
     ``smoothing``: the (V, V) normal-averaging matrix of "normal" stages (e.g. over the rest body,
     :meth:`BodyLayout.normal_smoothing_matrix`); None builds it on the shadow mesh when
-    ``config.normal_smoothing > 0``.
+    ``config.normal_smoothing > 0``. device: a torch device for the normals, their smoothing and the
+    solves (:class:`_TorchOps`; ``BakeConfig.torch_device``), None for numpy and SciPy; the matches
+    (rays, k-d tree) are the same either way.
     """
     config = config or RegistrationConfig()
     x0 = np.asarray(shadow_vertices, dtype=np.float64)
@@ -207,33 +311,35 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
         bbox_diagonal = float(np.linalg.norm(x0.max(0) - x0.min(0)))
     lap = uniform_laplacian_matrix(f, len(x0))
     ltl = (lap.T @ lap).tocsr()
-    ltl_x0 = ltl @ x0
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
-    x = x0.copy()
     if smoothing is None and config.normal_smoothing > 0 and "normal" in config.modes:
         smoothing = gaussian_surface_matrix(x0, vertex_normals(x0, f), config.normal_smoothing)
+    ops = _NumpyOps(f, len(x0), smoothing, ltl) if device is None else \
+        _torch_ops(faces, len(x0), smoothing, ltl, device)
+    x = ops.array(x0)
+    ltl_x0 = ops.ltl_times(x)
     matched_fraction = []
     last_distance = float("nan")
     for k, iters, dmax, mode in zip(config.stiffness, config.iterations, config.max_distance,
                                     config.modes, strict=True):
         for _ in range(int(iters)):
-            n = np.asarray(vertex_normals(x, f), dtype=np.float64)
+            n = ops.normals(x)
             if mode == "normal" and smoothing is not None:
-                n = smoothed_normals(smoothing, n)
-            target, ok = match_vertices(x, n, scan, dmax * bbox_diagonal, cos_max, mode == "closest", epsilon)
-            w = ok.astype(np.float64)
-            matched_fraction.append(float(w.mean()))
+                n = ops.smooth(n)
+            target, ok = match_vertices(ops.numpy(x), ops.numpy(n), scan, dmax * bbox_diagonal, cos_max,
+                                        mode == "closest", epsilon)
+            matched_fraction.append(float(ok.mean()))
+            target, w = ops.array(target), ops.array(ok)
             a = config.anchor_weight
             if mode == "normal":
                 # scalar offsets h along the current normals, smooth in the Laplacian sense:
                 # (W + a I + k L^T L) h = W t, t = signed distance of the match along n
                 t = ((target - x) * n).sum(1)
-                h = _factor_spd(sp.diags(w + a) + k * ltl).solve(w * t)
+                h = ops.solve(w + a, k, w * t)
                 x = x + h[:, None] * n
             else:
-                system = (sp.diags(w + a) + k * ltl).tocsc()
-                rhs = w[:, None] * target + a * x + k * ltl_x0
-                x = _factor_spd(system).solve(rhs)
+                x = ops.solve(w + a, k, w[:, None] * target + a * x + k * ltl_x0)
             if ok.any():
-                last_distance = float(np.linalg.norm(target[ok] - x[ok], axis=1).mean() * 1000)
-    return x, {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}
+                gap = ops.numpy(target - x)[ok]
+                last_distance = float(np.linalg.norm(gap, axis=1).mean() * 1000)
+    return ops.numpy(x), {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}

@@ -1,0 +1,172 @@
+"""The bake's torch stages (``BakeConfig.torch_stages``) against their numpy / OpenCV / SciPy twins:
+on CPU tensors here (CI), on CUDA in the ``gpu`` tests. Tolerances are stated per test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_avh_bake_core import icosphere
+
+from uvatar.avh.bake.config import BakeConfig, RegistrationConfig
+from uvatar.avh.bake.inpaint import _nearest_known, grow_mask, inpaint_telea
+from uvatar.avh.bake.register import ScanSurface, register_to_scan
+
+torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]
+
+
+def _maps(size: int = 96, seed: int = 0):
+    """(image (size, size, 6): a smooth texture and a displacement-like field, fill mask (random holes,
+    a rectangle, a strip), within mask (everything but the strip's far half))."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size] / size
+    image = np.stack([0.5 + 0.4 * np.sin(6 * xx), 0.5 + 0.4 * np.cos(5 * yy), xx * yy,
+                      0.01 * np.sin(4 * xx + 1), 0.01 * yy, -0.005 + 0.002 * xx], -1).astype(np.float32)
+    fill = rng.random((size, size)) > 0.6
+    fill[20:40, 30:60] = True
+    fill[:, size - 20:] = True
+    within = np.ones((size, size), bool)
+    within[:, size - 8:] = False
+    return image, fill, within
+
+
+def test_config_chooses_the_torch_stages():
+    assert BakeConfig().torch_device is None
+    assert BakeConfig(device="cuda").torch_device == "cuda"
+    assert BakeConfig(device="cuda:1", torch_stages="off").torch_device is None
+    assert BakeConfig(torch_stages="on").torch_device == "cpu"
+    with pytest.raises(ValueError):
+        BakeConfig(torch_stages="maybe")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_jump_flood_distances_equal_the_exact_transform(device):
+    from uvatar.avh.bake.inpaint_torch import nearest_seed
+
+    _, fill, _ = _maps()
+    index, dist = _nearest_known(fill)
+    t_index, t_dist = nearest_seed(torch.from_numpy(~fill).to(device))
+    np.testing.assert_allclose(t_dist.cpu().numpy(), dist, atol=1e-4)       # ties may pick another texel
+    h, w = fill.shape
+    chosen = t_index.cpu().numpy()
+    again = np.hypot(chosen // w - np.arange(h)[:, None], chosen % w - np.arange(w)[None])
+    np.testing.assert_allclose(again, dist, atol=1e-4)                       # ... at the same distance
+    assert (~fill).ravel()[chosen.ravel()].all()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_grow_mask_twin(device):
+    from uvatar.avh.bake.inpaint_torch import grow_mask_torch
+
+    _, fill, _ = _maps()
+    np.testing.assert_array_equal(grow_mask_torch(torch.from_numpy(fill).to(device), 3).cpu().numpy(),
+                                  grow_mask(fill, 3))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("band,use_within", [(None, False), (4, False), (4, True)])
+def test_torch_inpainting_matches_opencv_telea(device, band, use_within):
+    """Known texels bit-exact; marched texels (within the band and inside ``within``) on average within
+    1.2 % of a channel's range of OpenCV's Telea, at most 6 % within 4 texels of a known texel and 16 %
+    deeper (the layer order and the Euclidean T: module doc of :mod:`uvatar.avh.bake.inpaint_torch`),
+    and on average no farther from the true smooth field than OpenCV's (5 %); texels filled by their
+    nearest known one hold a known value at that same distance."""
+    from uvatar.avh.bake.inpaint_torch import inpaint_telea_torch
+
+    image, fill, within = _maps()
+    within = within if use_within else None
+    holed = np.where(fill[..., None], 0.0, image).astype(np.float32)
+    ref = inpaint_telea(holed, fill, 3, band, within)
+    out = inpaint_telea_torch(torch.from_numpy(holed).to(device), torch.from_numpy(fill).to(device), 3, band,
+                              None if within is None else torch.from_numpy(within).to(device)).cpu().numpy()
+    assert out.dtype == np.float32 and out.shape == image.shape
+    np.testing.assert_array_equal(out[~fill], holed[~fill])
+    _, dist = _nearest_known(fill)
+    far = fill & (dist > band) if band is not None else np.zeros_like(fill)
+    if within is not None:
+        far |= fill & ~within
+    march = fill & ~far
+    scale = np.ptp(image.reshape(-1, 6), axis=0)                              # per channel
+    diff = np.abs(out - ref) / scale
+    assert diff[march].mean() < 0.012
+    assert diff[march & (dist <= 4)].max() < 0.06 and diff[march].max() < 0.16
+    hole = march.copy()
+    hole[:, 60:] = False                                                      # the interior holes
+    assert (np.abs(out - image) / scale)[hole].mean() <= 1.05 * (np.abs(ref - image) / scale)[hole].mean()
+    # a far texel holds the value of a known texel at its nearest distance (ties may differ)
+    flat_known = np.flatnonzero(~fill)
+    kv = holed.reshape(-1, 6)[flat_known]
+    ky, kx = flat_known // fill.shape[1], flat_known % fill.shape[1]
+    for y, x in zip(*np.nonzero(far), strict=True):
+        at = np.flatnonzero(np.hypot(ky - y, kx - x) <= dist[y, x] + 1e-6)
+        assert np.isclose(kv[at], out[y, x], atol=0).all(1).any()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_torch_inpainting_edge_cases(device):
+    from uvatar.avh.bake.inpaint_torch import inpaint_telea_torch
+
+    img = torch.ones((8, 8), device=device)
+    none, every = torch.zeros((8, 8), dtype=torch.bool, device=device), torch.ones((8, 8), dtype=torch.bool, device=device)
+    assert torch.equal(inpaint_telea_torch(img, none), img)
+    assert torch.equal(inpaint_telea_torch(img, every), 0 * img)
+    constant = torch.full((16, 16, 2), 0.3, device=device)
+    hole = torch.zeros((16, 16), dtype=torch.bool, device=device)
+    hole[4:12, 4:12] = True
+    out = inpaint_telea_torch(torch.where(hole[..., None], 0.0, constant), hole, 3)
+    torch.testing.assert_close(out, constant, atol=1e-6, rtol=0)           # a constant stays constant
+    with pytest.raises(ValueError):
+        inpaint_telea_torch(img, torch.zeros((4, 4), dtype=torch.bool, device=device))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("config", [RegistrationConfig(),
+                                    RegistrationConfig(modes=("closest", "rays"), normal_smoothing=0.0),
+                                    RegistrationConfig(normal_smoothing=0.3)], ids=["normal", "vector", "smoothed"])
+def test_torch_registration_matches_scipy(device, config):
+    """The normals, their smoothing and the solves in float64 torch: vertices within 1e-9 m of SuperLU's."""
+    v, f = icosphere(3)
+    scan_v = v * (1.1 + 0.02 * np.sin(5 * v[:, :1]))
+    surface = ScanSurface.build(scan_v, f)
+    ref, ref_stats = register_to_scan(v, f, surface, config)
+    out, stats = register_to_scan(v, f, surface, config, device=device)
+    assert out.dtype == np.float64 and out.shape == ref.shape
+    np.testing.assert_allclose(out, ref, atol=1e-9, rtol=0)
+    assert stats["matched_fraction"] == ref_stats["matched_fraction"]
+    assert abs(stats["mean_match_distance_mm"] - ref_stats["mean_match_distance_mm"]) < 1e-6
+    assert np.abs(ref - v).max() > 0.05                                       # it did move
+
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_frame_baked_with_torch_stages_matches_the_reference(device):
+    """A whole frame on the toy tube body (272 vertices: the dense solve is cheap on a CPU): the torch
+    stages leave the registration and so every matched texel's maps identical within float round-off
+    (1e-6), kappa and w equal; only the inpainted texels differ (the layered march, within 0.03)."""
+    from test_avh_bake_helpers import pattern_texture
+
+    from uvatar.avh.bake.frame import BodyLayout, bake_frame, shadow_vertices
+    from uvatar.body.toy import ToyTubeBody
+    from uvatar.capture import BodyFit, TexturedMesh
+    from uvatar.geometry import vertex_normals
+
+    model = ToyTubeBody()
+    tpl = model.template
+    shadow = shadow_vertices(model, BodyFit(poses=np.zeros(3 * model.num_joints, np.float32), Rh=[0, 0.3, 0]))
+    offset = 0.01 + 0.003 * np.sin(30 * shadow[:, 1:2])                       # a clothing layer with folds
+    scan = TexturedMesh(shadow + offset * vertex_normals(shadow, tpl.faces), tpl.faces, tpl.uvs, tpl.uv_faces,
+                        pattern_texture())
+    layout = BodyLayout.from_template(tpl, 64)
+    config = BakeConfig(texels=64, refine_pose=False, torch_stages="off")
+    ref = bake_frame(shadow, layout, scan, config)
+    out = bake_frame(shadow, layout, scan, BakeConfig(texels=64, refine_pose=False, device=device, torch_stages="on"))
+    np.testing.assert_array_equal(out.matched, ref.matched)
+    assert ref.matched.mean() > 0.9
+    for name, atol in (("texture", 1e-6), ("displacement", 1e-6), ("kappa", 1e-6), ("w", 1e-6), ("points", 1e-6)):
+        np.testing.assert_allclose(getattr(out, name)[ref.matched], getattr(ref, name)[ref.matched], atol=atol,
+                                   err_msg=name)
+    for name in ("texture", "displacement"):
+        assert np.abs(getattr(out, name) - getattr(ref, name)).max() < 0.03, name
+    assert out.texture.dtype == ref.texture.dtype and out.displacement.dtype == ref.displacement.dtype
