@@ -101,7 +101,7 @@ def _colour_rounds(model, fit, targets, scan, surface, config) -> tuple[Clock, i
             sample = sample_colours(model, fit, surface, scan, pr, radii[0])
             for i, target in enumerate(targets):
                 fit, _ = refine_fit(model, fit, surface, pr, photo=target, scan_mesh=scan, start_sample=sample,
-                                    final_colour_residual=False)
+                                    final_colour_residual=False, device=config.torch_device)
                 if i + 1 < len(radii):
                     sample = sample_colours(model, fit, surface, scan, pr, radii[i + 1])
         return clock, rays_cast() - r0

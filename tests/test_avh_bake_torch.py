@@ -170,3 +170,63 @@ def test_frame_baked_with_torch_stages_matches_the_reference(device):
     for name in ("texture", "displacement"):
         assert np.abs(getattr(out, name) - getattr(ref, name)).max() < 0.03, name
     assert out.texture.dtype == ref.texture.dtype and out.displacement.dtype == ref.displacement.dtype
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_nearest_sample_on_torch_matches_the_kd_tree(device):
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(3000, 3)) * [0.2, 0.6, 0.1]
+    surface = ScanSurface.build(v, rng.integers(0, len(v), (4000, 3)))
+    q = rng.normal(size=(700, 3)) * [0.2, 0.6, 0.1]
+    near, idx = surface.nearest_sample(q, 0.04)
+    t_near, t_idx = surface.nearest_sample(torch.as_tensor(q, device=device), 0.04)
+    t_near, t_idx = t_near.cpu().numpy(), t_idx.cpu().numpy()
+    found = np.isfinite(near)
+    assert 0.2 < found.mean() < 1.0                                           # some have none in range
+    np.testing.assert_array_equal(np.isfinite(t_near), found)
+    np.testing.assert_array_equal(t_idx, idx)
+    np.testing.assert_allclose(t_near[found], near[found], atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_normal_equations_on_torch_match_the_grouped_products(device):
+    from uvatar.avh.bake.refine import _joint_groups, _normal_equations, _normal_equations_torch
+
+    rng = np.random.default_rng(0)
+    n, k = 300, 5
+    points = rng.normal(size=(n, 3))
+    subtree = (rng.random((n, k)) > 0.5) * rng.random((n, k))
+    centres, centre0 = rng.normal(size=(k, 3)), points.mean(0)
+    blocks = [(np.arange(0, n, 2), rng.normal(size=(n // 2, 3)), rng.random(n // 2), rng.normal(size=n // 2),
+               rng.random((n // 2, k))),
+              (np.repeat(np.arange(0, n, 3), 3), rng.normal(size=(n, 3)), rng.random(n), rng.normal(size=n), None)]
+    a, g = _normal_equations(points, subtree, _joint_groups(subtree, 16), centres, centre0, blocks)
+    ta, tg = _normal_equations_torch(points, subtree, centres, centre0, blocks, device)
+    np.testing.assert_allclose(ta, a, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(tg, g, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_pose_refinement_with_torch_stages_matches(device):
+    """The refinement with its nearest samples and normal equations on torch: the same refined pose
+    (float32 poses within 1e-6 rad) and residuals."""
+    from test_avh_bake_helpers import body, frame_pose, offset_scan
+
+    from uvatar.avh.bake.config import PoseRefineConfig
+    from uvatar.avh.bake.refine import refine_fit
+    from uvatar.capture import BodyFit
+
+    model = body()
+    truth = BodyFit(poses=frame_pose(model, 0), Rh=[0.0, 0.4, 0.0], Th=[0.1, 0.0, -0.2])
+    scan = offset_scan(model, truth)
+    surface = ScanSurface.build(scan.vertices, scan.faces)
+    noise = np.random.default_rng(1).normal(0, 0.03, 3 * model.num_joints).astype(np.float32)
+    noisy = BodyFit(poses=frame_pose(model, 0) + noise, Rh=truth.Rh, Th=truth.Th)
+    config = PoseRefineConfig(iterations=3, max_vertices=1500)
+    ref, ref_stats = refine_fit(model, noisy, surface, config)
+    out, stats = refine_fit(model, noisy, surface, config, device=device)
+    np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(out.Rh, ref.Rh, atol=1e-9, rtol=0)
+    np.testing.assert_allclose(out.Th, ref.Th, atol=1e-9, rtol=0)
+    np.testing.assert_allclose(stats["residual_mm"], ref_stats["residual_mm"], rtol=1e-9)
+    assert ref_stats["residual_mm"][-1] < 0.5 * ref_stats["residual_mm"][0]  # it did refine

@@ -254,7 +254,7 @@ def _bake_fit(body, fit, layout, scan, config, shape, scan_path, surface):
     refine_stats = None
     with _timed(sec, "refine_pose", rays, cpu):
         if config.refine_pose:
-            fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape)
+            fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape, device=config.torch_device)
         shadow = shadow_vertices(body, fit, shape)
     baked = bake_frame(shadow, layout, scan, config, scan_path, surface=surface)
     baked.stats["seconds"] = {**sec, **baked.stats["seconds"]}

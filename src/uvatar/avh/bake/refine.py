@@ -156,6 +156,16 @@ def fit_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius:
     return sample_colours(body, fit, surface, scan_mesh, config, radius, shape).colours
 
 
+def _nearest(scan, points, max_distance: float, device: str | None):
+    """(distance (N,), index (N,)) numpy of :meth:`ScanSurface.nearest_sample`, on ``device`` if not None."""
+    if device is None:
+        return scan.nearest_sample(points, max_distance)
+    import torch
+
+    near, idx = scan.nearest_sample(torch.as_tensor(points, device=device), max_distance)
+    return near.cpu().numpy(), idx.cpu().numpy()
+
+
 def _huber_weights(residuals, scale: float) -> np.ndarray:
     """IRLS weights of a Huber loss with ``scale``: 1 inside it, ``scale / |r|`` beyond."""
     return np.minimum(1.0, scale / np.maximum(np.abs(residuals), 1e-12))
@@ -174,13 +184,24 @@ def _clothing_offsets(residuals, skin, huber: float, steps: int = 3) -> np.ndarr
     return offsets
 
 
+def _cross_cat(x):
+    """(cross product over the last axis, concatenate along an axis) for numpy arrays or torch tensors."""
+    if type(x).__module__.startswith("torch"):
+        import torch
+
+        return (lambda a, b: torch.linalg.cross(*torch.broadcast_tensors(a, b), dim=-1)), \
+            (lambda xs, axis: torch.cat(xs, dim=axis))
+    return np.cross, (lambda xs, axis: np.concatenate(xs, axis=axis))
+
+
 def _motion_rows(points, directions, subtree, centres, centre0):
     """Jacobian rows of ``directions . dv`` (N rows) for the refinement's unknowns: per joint a
     world rotation d_k (vertex moves ``s_ik d_k x (v - c_k)``), the root rotation about ``centre0``
-    and the translation. -> (N, 3K + 6)."""
-    arm = np.cross(points[:, None, :] - centres[None], directions[:, None, :])       # (N, K, 3)
-    return np.concatenate([(subtree[..., None] * arm).reshape(len(points), -1),
-                           np.cross(points - centre0, directions), directions], axis=1)
+    and the translation. -> (N, 3K + 6). numpy arrays or torch tensors (all of one kind)."""
+    cross, cat = _cross_cat(points)
+    arm = cross(points[:, None, :] - centres[None], directions[:, None, :])          # (N, K, 3)
+    return cat([(subtree[..., None] * arm).reshape(len(points), -1),
+                cross(points - centre0, directions), directions], 1)
 
 
 def _joint_groups(subtree, min_vertices: int = 128):
@@ -256,22 +277,42 @@ def _normal_equations(points, subtree, groups, centres, centre0, blocks):
 
 
 def _normal_equations_reference(points, subtree, centres, centre0, blocks):
-    """Plain twin of :func:`_normal_equations`: every row over every unknown, one dense product."""
+    """Plain twin of :func:`_normal_equations`: every row over every unknown, one dense product.
+    numpy arrays, or torch tensors on one device (:func:`_normal_equations_torch`)."""
     k = subtree.shape[1]
+    _, cat = _cross_cat(points)
     jacs, weights, residuals = [], [], []
     for vertex, direction, weight, residual, clothing in blocks:
         rows = _motion_rows(points[vertex], direction, subtree[vertex], centres, centre0)
-        extra = np.zeros((len(vertex), k)) if clothing is None else clothing
-        jacs.append(np.concatenate([rows, extra], axis=1))
+        extra = 0 * rows[:, :k] if clothing is None else clothing
+        jacs.append(cat([rows, extra], 1))
         weights.append(weight)
         residuals.append(residual)
-    jac, w, r = np.concatenate(jacs), np.concatenate(weights), np.concatenate(residuals)
-    jac_w = jac * np.sqrt(w)[:, None]
+    jac, w, r = cat(jacs, 0), cat(weights, 0), cat(residuals, 0)
+    jac_w = jac * (w ** 0.5)[:, None]
     return jac_w.T @ jac_w, jac.T @ (w * r)
 
 
+def _normal_equations_torch(points, subtree, centres, centre0, blocks, device):
+    """:func:`_normal_equations` on a torch ``device`` (float64): the arrays go there, the dense
+    product of :func:`_normal_equations_reference` runs there (one product of every row over every
+    unknown suits a GPU better than the CPU path's vertex groups), (A, g) come back as numpy."""
+    import torch
+
+    def put(a):
+        return None if a is None else torch.as_tensor(np.asarray(a), device=device)
+
+    moved = [tuple(put(a) for a in block) for block in blocks if len(block[0])]
+    if not moved:
+        size = 4 * subtree.shape[1] + 6
+        return np.zeros((size, size)), np.zeros(size)
+    a, g = _normal_equations_reference(put(points), put(subtree), put(centres), put(centre0), moved)
+    return a.cpu().numpy(), g.cpu().numpy()
+
+
 def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None,
-               start_sample: PhotoSample | None = None, final_colour_residual: bool = True):
+               start_sample: PhotoSample | None = None, final_colour_residual: bool = True,
+               device: str | None = None):
     """Refine ``fit`` (BodyFit) toward ``scan`` (:class:`~uvatar.avh.bake.register.ScanSurface`).
 
     photo: a :class:`~uvatar.avh.bake.photometric.PhotoTarget` (reference colours of the refinement
@@ -285,6 +326,9 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     of the previous colour round): the first iteration uses it instead of sampling the scan again
     (the same colours). final_colour_residual: False skips sampling the colours after the last step,
     which only the stats' last ``colour_residual`` would use (the bake's colour rounds).
+    device: a torch device (``BakeConfig.torch_device``) for the nearest scan samples
+    (:meth:`~uvatar.avh.bake.register.ScanSurface.nearest_sample`) and the normal equations
+    (:func:`_normal_equations_torch`); None: the k-d tree and the grouped numpy products.
     """
     from scipy.spatial.transform import Rotation
 
@@ -322,9 +366,8 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         v, n = v[use], n[use]
         if diag is None:
             diag = float(np.linalg.norm(v.max(0) - v.min(0)))
-        near, idx = scan.tree.query(v, distance_upper_bound=config.max_distance * diag)
+        near, idx = _nearest(scan, v, config.max_distance * diag, device)
         found = np.isfinite(near)
-        idx = np.where(found, idx, 0)
         m = np.take(scan.sample_normals, idx, axis=0)
         ok = found & ((m * n).sum(1) >= cos_max)
         r = ((v - np.take(scan.sample_points, idx, axis=0)) * m).sum(1)
@@ -356,7 +399,10 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
             rc = rc.reshape(-1)
             wc = config.photometric_weight * _huber_weights(rc, config.photometric_huber)
             blocks.append((np.repeat(np.flatnonzero(seen), 3), grad[seen].reshape(-1, 3), wc, rc, None))
-        a, g = _normal_equations(v, sub, groups, centres, centre0, blocks)
+        if device is None:
+            a, g = _normal_equations(v, sub, groups, centres, centre0, blocks)
+        else:
+            a, g = _normal_equations_torch(v, sub, centres, centre0, blocks, device)
         # the prior also holds every other unknown where nothing observes it (a round limb's turn
         # with the colour term off, a tube's slide along its axis): no singular steps
         a += np.diag(config.damping * np.diag(a) + config.prior * int(ok.sum()) + 1e-12)

@@ -32,7 +32,7 @@ a Taubin-low-passed scan and closest-point stages (tangential sliding on folds).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -48,6 +48,7 @@ from uvatar.geometry import (
     smoothed_normals,
     vertex_normals,
 )
+from uvatar.geometry.frames import is_torch
 
 __all__ = ["STAGE_MODES", "ScanSurface", "register_to_scan", "uniform_laplacian_matrix", "match_vertices"]
 
@@ -80,6 +81,7 @@ class ScanSurface:
     caster: RayCaster
     tree: object
     corner_normals: np.ndarray | None = None
+    on_device: dict = field(default_factory=dict, repr=False)   # torch device -> its sample arrays there
 
     @classmethod
     def build(cls, vertices, faces, device: str = "cpu", backend: str = "auto") -> ScanSurface:
@@ -96,6 +98,30 @@ class ScanSurface:
         # sliding-midpoint tree: ~3x faster to build than the balanced one, same (exact) answers
         tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
         return cls(v, f, vn, fn, points, normals, fast_caster(v, f, device, backend), tree, vn[f])
+
+    def nearest_sample(self, points, max_distance: float):
+        """(distance (N,), index (N,)) of each point's nearest surface sample within ``max_distance``
+        (inf and 0 where there is none). points (N, 3): numpy (the k-d tree) or a float64 torch
+        tensor, answered on its device by :func:`nearest_points_torch` (the same samples: exact
+        distances, ties aside), as tensors."""
+        if not is_torch(points):
+            near, idx = self.tree.query(points, distance_upper_bound=max_distance)
+            found = np.isfinite(near)
+            return near, np.where(found, idx, 0)
+        key = str(points.device)
+        if key not in self.on_device:
+            self.on_device[key] = sorted_points_torch(self.sample_points, points.device)
+        return nearest_points_torch(points, self.on_device[key], max_distance)
+
+    def samples_on(self, device):
+        """(sample_points, sample_normals) as float64 torch tensors on ``device`` (cached)."""
+        import torch
+
+        key = ("samples", str(device))
+        if key not in self.on_device:
+            self.on_device[key] = (torch.as_tensor(self.sample_points, device=device),
+                                   torch.as_tensor(self.sample_normals, device=device))
+        return self.on_device[key]
 
     def normals_at(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0."""
@@ -123,6 +149,56 @@ class ScanSurface:
             return self.normals_at(hits.face, hits.bary)
         out[idx] = self.normals_at(hits.face[idx], hits.bary[idx])
         return out
+
+
+def sorted_points_torch(points, device):
+    """(points sorted by y (S, 3), their original indices (S,)) as torch tensors on ``device``: the
+    layout :func:`nearest_points_torch` searches."""
+    import torch
+
+    p = torch.as_tensor(np.asarray(points, np.float64), device=device)
+    order = torch.argsort(p[:, 1])
+    return p[order], order
+
+
+def nearest_points_torch(queries, sorted_points, max_distance: float, chunk: int = 256):
+    """Each query's nearest point within ``max_distance`` by brute force on the queries' device (the
+    twin of a k-d tree query): (distance (N,) float64, inf where none; index (N,) int64 into the
+    unsorted points, 0 where none). queries (N, 3) float64; sorted_points: :func:`sorted_points_torch`.
+
+    The queries go in chunks of ``chunk`` sorted by height; each chunk compares against the slab of
+    points within ``max_distance`` of its heights only (float64 |p|^2 + |q|^2 - 2 p.q, then the
+    winner's exact distance)."""
+    import torch
+
+    points, order = sorted_points
+    n = len(queries)
+    dist = torch.full((n,), float("inf"), dtype=torch.float64, device=queries.device)
+    index = torch.zeros(n, dtype=torch.int64, device=queries.device)
+    if n == 0 or len(points) == 0:
+        return dist, index
+    by_height = torch.argsort(queries[:, 1])
+    q_sorted = queries[by_height]
+    heights = q_sorted[:, 1]
+    starts = torch.arange(0, n, chunk, device=queries.device)
+    lo = torch.searchsorted(points[:, 1].contiguous(), heights[starts] - max_distance)
+    hi = torch.searchsorted(points[:, 1].contiguous(),
+                            heights[torch.clamp(starts + chunk - 1, max=n - 1)] + max_distance, right=True)
+    bounds = torch.stack([lo, hi], 1).tolist()                           # one host read for all chunks
+    p_norm = (points * points).sum(1)
+    for c, (a, b) in enumerate(bounds):
+        rows = slice(c * chunk, min(n, (c + 1) * chunk))
+        if b <= a:
+            continue
+        q = q_sorted[rows]
+        d2 = (q * q).sum(1)[:, None] + p_norm[None, a:b] - 2.0 * q @ points[a:b].T
+        best = d2.argmin(1) + a
+        exact = torch.linalg.norm(q - points[best], dim=1)
+        ok = exact < max_distance                                       # as the k-d tree's bound
+        target = by_height[rows]
+        dist[target] = torch.where(ok, exact, torch.full_like(exact, float("inf")))
+        index[target] = torch.where(ok, order[best], torch.zeros_like(best))
+    return dist, index
 
 
 def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:
