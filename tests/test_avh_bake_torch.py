@@ -230,3 +230,23 @@ def test_pose_refinement_with_torch_stages_matches(device):
     np.testing.assert_allclose(out.Th, ref.Th, atol=1e-9, rtol=0)
     np.testing.assert_allclose(stats["residual_mm"], ref_stats["residual_mm"], rtol=1e-9)
     assert ref_stats["residual_mm"][-1] < 0.5 * ref_stats["residual_mm"][0]  # it did refine
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_scan_colours_on_torch_equal_numpy(device):
+    from test_avh_bake_helpers import pattern_texture
+
+    from uvatar.avh.bake.register import scan_colours
+    from uvatar.capture import TexturedMesh
+
+    v, f = icosphere(2)
+    rng = np.random.default_rng(0)
+    uvs = rng.random((len(v), 2)).astype(np.float32)
+    scan = TexturedMesh(v, f, uvs, f, pattern_texture(64))
+    surface = ScanSurface.build(v, f)
+    face = rng.integers(0, len(f), 500)
+    bary = rng.dirichlet(np.ones(3), 500).astype(np.float32)
+    ref = scan_colours(surface, scan, face, bary)
+    out = scan_colours(surface, scan, face, bary, device)
+    assert out.dtype == ref.dtype == np.float32
+    np.testing.assert_allclose(out, ref, atol=1e-6, rtol=0)

@@ -18,14 +18,13 @@ from uvatar.avh.bake.confidence import confidence, distance_score, normal_match_
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.correspond import match_texels
 from uvatar.avh.bake.inpaint import grow_mask, inpaint_telea
-from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
+from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan, scan_colours
 from uvatar.errors import InputError
 from uvatar.geometry import (
     UVRaster,
     gaussian_surface_matrix,
     rasterize_uv,
     rays_cast,
-    sample_mesh_texture,
     vertex_normals,
 )
 from uvatar.threads import single_threaded
@@ -305,7 +304,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         hit = matches.hit
     with _timed(sec, "texture", rays, cpu):
         colors = np.zeros((len(r), 3), np.float32)
-        colors[hit] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, matches.face[hit], matches.bary[hit])
+        colors[hit] = scan_colours(surface, scan, matches.face[hit], matches.bary[hit], config.torch_device)
         s = layout.at_texels(shadow)
         disp = np.where(hit[:, None], matches.points - s, 0.0)
     with _timed(sec, "visibility_registered", rays, cpu):

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uvatar.avh.bake.register import ScanSurface
-from uvatar.geometry import sample_mesh_texture, tangent_basis
+from uvatar.avh.bake.register import ScanSurface, scan_colours
+from uvatar.geometry import tangent_basis
 
 __all__ = ["PhotoTarget", "RING_POINTS", "stencil_offsets", "surface_colours", "ray_colours", "reference_colours",
            "chromaticity"]
@@ -50,10 +50,11 @@ def stencil_offsets(normals, radius: float) -> np.ndarray:
 
 
 def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float, min_normal_cos: float,
-                epsilon: float = 1e-3):
+                epsilon: float = 1e-3, device: str | None = None):
     """Scan colour where the +/-normal rays from ``points`` (N, 3) first meet a compatible scan surface
     (scan normal within the angle of ``min_normal_cos``; the nearer of the two) within ``max_distance``
-    metres. Returns (colours (N, 3) float64, ok (N,) bool). ``scan``: the TexturedMesh."""
+    metres. Returns (colours (N, 3) float64, ok (N,) bool). ``scan``: the TexturedMesh; ``device``: where
+    the texture is sampled (:func:`.register.scan_colours`)."""
     p = np.asarray(points, np.float64)
     n = np.asarray(normals, np.float64)
     best = np.full(len(p), np.inf)
@@ -71,12 +72,12 @@ def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float
         bary = np.where(better[:, None], hits.bary, bary)
     ok = face >= 0
     colours = np.zeros((len(p), 3))
-    colours[ok] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, face[ok], bary[ok])
+    colours[ok] = scan_colours(surface, scan, face[ok], bary[ok], device)
     return colours, ok
 
 
 def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, max_distance: float,
-                    min_normal_cos: float, space: str = "rgb"):
+                    min_normal_cos: float, space: str = "rgb", device: str | None = None):
     """Blurred colour and its tangent-plane gradient at each point (module doc).
 
     space: "rgb", or "chromaticity" (:func:`chromaticity`: the colour divided by the sum of its
@@ -87,7 +88,7 @@ def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, 
     # the centres and the ring in one cast: (1 + RING_POINTS, N) points
     stencil = np.concatenate([p[None], p[None] + offsets]).reshape(-1, 3)
     colours, found = ray_colours(surface, scan, stencil, np.tile(np.asarray(normals, np.float64), (RING_POINTS + 1, 1)),
-                                 max_distance, min_normal_cos)
+                                 max_distance, min_normal_cos, device=device)
     colours = colours.reshape(RING_POINTS + 1, len(p), 3)
     centre, ring = colours[0], colours[1:]
     ok = found.reshape(RING_POINTS + 1, len(p)).all(0)

@@ -137,15 +137,17 @@ class PhotoSample:
         return np.where(self.ok[:, None], self.colour, np.nan)
 
 
-def sample_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None) -> PhotoSample:
-    """:class:`PhotoSample` of the body posed by ``fit`` at stencil ``radius``."""
+def sample_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None,
+                   device: str | None = None) -> PhotoSample:
+    """:class:`PhotoSample` of the body posed by ``fit`` at stencil ``radius`` (the texture sampled on
+    ``device`` if not None)."""
     from uvatar.avh.bake.photometric import surface_colours
 
     use = refine_vertices(body, config)
     v, n, _ = _posed(body, body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale, _shape_tensor(fit, shape))
     colour, grad, ok = surface_colours(surface, scan_mesh, v[use], n[use], radius, config.photometric_max_distance,
                                        float(np.cos(np.radians(config.max_normal_angle_deg))),
-                                       config.photometric_space)
+                                       config.photometric_space, device)
     return PhotoSample(colour, grad, ok, float(radius))
 
 
@@ -328,7 +330,8 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     which only the stats' last ``colour_residual`` would use (the bake's colour rounds).
     device: a torch device (``BakeConfig.torch_device``) for the nearest scan samples
     (:meth:`~uvatar.avh.bake.register.ScanSurface.nearest_sample`) and the normal equations
-    (:func:`_normal_equations_torch`); None: the k-d tree and the grouped numpy products.
+    (:func:`_normal_equations_torch`) and the scan's texture (:func:`.register.scan_colours`); None: the
+    k-d tree, the grouped numpy products and numpy's texture lookup.
     """
     from scipy.spatial.transform import Rotation
 
@@ -384,7 +387,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
             else:
                 colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
                                                      config.photometric_max_distance, cos_max,
-                                                     config.photometric_space)
+                                                     config.photometric_space, device)
             seen &= photo.known
             rc = (colour - photo.reference)[seen]                                   # (Nc, 3)
             colour_residuals.append(float(np.abs(rc).mean()) if seen.any() else float("nan"))

@@ -158,7 +158,7 @@ def _refine_task(shared: dict, item):
                         final_colour_residual=False, device=config.torch_device)
     if radius is None:
         return fit, None
-    sample = sample_colours(body, fit, surface, scan, config.pose_refine, radius, shape)
+    sample = sample_colours(body, fit, surface, scan, config.pose_refine, radius, shape, config.torch_device)
     keep_sample(capture, frame, config, fit, sample)
     return fit, sample.colours
 

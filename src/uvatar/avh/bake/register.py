@@ -45,6 +45,7 @@ from uvatar.geometry import (
     face_normals,
     gaussian_surface_matrix,
     make_caster,
+    sample_mesh_texture,
     smoothed_normals,
     vertex_normals,
 )
@@ -199,6 +200,24 @@ def nearest_points_torch(queries, sorted_points, max_distance: float, chunk: int
         dist[target] = torch.where(ok, exact, torch.full_like(exact, float("inf")))
         index[target] = torch.where(ok, order[best], torch.zeros_like(best))
     return dist, index
+
+
+def scan_colours(surface: ScanSurface, scan, face, bary, device: str | None = None) -> np.ndarray:
+    """(K, C) the scan's texture at hits (face (K,), bary (K, 3)) by
+    :func:`uvatar.geometry.sample_mesh_texture`; on a torch ``device`` when given (the scan's UVs and
+    texture kept there with ``surface``, its scan's), the same values."""
+    if device is None or not len(face):
+        return sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, face, bary)
+    import torch
+
+    key = ("texture", str(device))
+    if key not in surface.on_device:
+        surface.on_device[key] = tuple(torch.as_tensor(np.asarray(a), device=device)
+                                       for a in (scan.uvs, scan.uv_faces, scan.texture))
+    uvs, uv_faces, texture = surface.on_device[key]
+    face_t = torch.as_tensor(np.asarray(face), dtype=torch.int64, device=device)
+    return sample_mesh_texture(uvs, uv_faces, texture, face_t, torch.as_tensor(np.asarray(bary), device=device)
+                               ).cpu().numpy()
 
 
 def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:
