@@ -250,3 +250,32 @@ def test_scan_colours_on_torch_equal_numpy(device):
     out = scan_colours(surface, scan, face, bary, device)
     assert out.dtype == ref.dtype == np.float32
     np.testing.assert_allclose(out, ref, atol=1e-6, rtol=0)
+
+
+def test_registration_sparse_system_assembly(monkeypatch):
+    """The sparse system handed to ``torch.sparse.spsolve`` (cuDSS, CUDA only) is the reference's:
+    checked on the CPU with a dense solve standing in for spsolve."""
+    from uvatar.avh.bake import register
+
+    calls = []
+
+    def dense_spsolve(system, rhs):
+        calls.append(system.layout)
+        return torch.linalg.solve(system.to_dense(), rhs)
+
+    monkeypatch.setattr(torch.sparse, "spsolve", dense_spsolve)
+    real = register._TorchOps.__init__
+
+    def init(self, *args, **kwargs):
+        real(self, *args, **kwargs)
+        self.solver = "spsolve"
+
+    monkeypatch.setattr(register._TorchOps, "__init__", init)
+    monkeypatch.setattr(register, "_TORCH_OPS", [])
+    v, f = icosphere(3)
+    surface = ScanSurface.build(v * (1.1 + 0.02 * np.sin(5 * v[:, :1])), f)
+    for config in (RegistrationConfig(), RegistrationConfig(modes=("closest", "rays"), normal_smoothing=0.0)):
+        ref, _ = register_to_scan(v, f, surface, config)
+        out, stats = register_to_scan(v, f, surface, config, device="cpu")
+        assert stats["solver"] == "spsolve" and calls and set(calls) == {torch.sparse_csr}
+        np.testing.assert_allclose(out, ref, atol=1e-9, rtol=0)

@@ -313,8 +313,9 @@ class _NumpyOps:
 
 class _TorchOps:
     """The same on torch tensors (float64) on ``device``: the smoothing and L^T L as sparse CSR
-    products, the solves by a dense Cholesky factorization (cuSOLVER on CUDA; the body's V x V
-    system: 1.5 GB for anny's 13.7k vertices, and slow on a CPU: the CPU path is SuperLU's)."""
+    products; the solves by ``torch.sparse.spsolve`` on CUDA (cuDSS, where this torch has it), else
+    by a dense Cholesky factorization (cuSOLVER on CUDA; the body's V x V system: 1.5 GB for anny's
+    13.7k vertices, and slow on a CPU, where the reference is SuperLU). ``solver`` says which ran."""
 
     def __init__(self, faces, num_vertices: int, smoothing, ltl, device: str):
         import torch
@@ -326,7 +327,20 @@ class _TorchOps:
         self.adjacency = vertex_face_adjacency(self.faces, num_vertices).to(torch.float64)
         self.smoothing = None if smoothing is None else _torch_csr(smoothing, self.device)
         self.ltl = _torch_csr(ltl, self.device)
-        self.ltl_dense = self.ltl.to_dense()
+        self._dense = None
+        # L^T L with every diagonal entry stored (explicit zeros kept: x + 0 is exact), for the sparse solve
+        coo = sp.coo_matrix(ltl)
+        diag = np.arange(num_vertices)
+        pattern = sp.coo_matrix((np.concatenate([coo.data, np.zeros(num_vertices)]),
+                                 (np.concatenate([coo.row, diag]), np.concatenate([coo.col, diag]))),
+                                shape=(num_vertices, num_vertices)).tocsr()
+        pattern.sum_duplicates()
+        pattern.sort_indices()
+        self._pattern = _torch_csr(pattern, self.device)
+        self._ltl_values = torch.as_tensor(pattern.data, device=self.device)
+        rows = np.repeat(diag, np.diff(pattern.indptr))
+        self._diagonal_at = torch.as_tensor(np.flatnonzero(pattern.indices == rows), device=self.device)
+        self.solver = "spsolve" if self.device.type == "cuda" else "cholesky"
 
     def array(self, a):
         return self.torch.as_tensor(np.asarray(a, dtype=np.float64), device=self.device)
@@ -348,7 +362,21 @@ class _TorchOps:
 
     def solve(self, diagonal, k: float, rhs):
         torch = self.torch
-        system = k * self.ltl_dense
+        if self.solver == "spsolve":
+            values = k * self._ltl_values
+            values[self._diagonal_at] += diagonal
+            system = torch.sparse_csr_tensor(self._pattern.crow_indices(), self._pattern.col_indices(), values,
+                                             self._pattern.shape)
+            try:
+                if rhs.ndim == 1:
+                    return torch.sparse.spsolve(system, rhs)
+                return torch.stack([torch.sparse.spsolve(system, rhs[:, j].contiguous())
+                                    for j in range(rhs.shape[1])], 1)
+            except (RuntimeError, NotImplementedError):   # this torch has no cuDSS: the dense factorization
+                self.solver = "cholesky"
+        if self._dense is None:
+            self._dense = self.ltl.to_dense()
+        system = k * self._dense
         system.diagonal().add_(diagonal)
         factor = torch.linalg.cholesky(system)
         b = rhs[:, None] if rhs.ndim == 1 else rhs
@@ -437,4 +465,7 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
             if ok.any():
                 gap = ops.numpy(target - x)[ok]
                 last_distance = float(np.linalg.norm(gap, axis=1).mean() * 1000)
-    return ops.numpy(x), {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}
+    stats = {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}
+    if device is not None:
+        stats["solver"] = ops.solver
+    return ops.numpy(x), stats
