@@ -279,3 +279,52 @@ def test_registration_sparse_system_assembly(monkeypatch):
         out, stats = register_to_scan(v, f, surface, config, device="cpu")
         assert stats["solver"] == "spsolve" and calls and set(calls) == {torch.sparse_csr}
         np.testing.assert_allclose(out, ref, atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("backend", ["embree", "warp"])
+@pytest.mark.parametrize("stratified", [False, True])
+def test_visibility_rays_built_on_torch_match_numpy(device, backend, stratified):
+    """The hemisphere rays built and cast on torch (zero-copy into Warp on its device, through numpy
+    into Embree): the same visibility (the normals are numpy's, so no tangent frame flips; the rays
+    agree to float32 round-off) and the same ray count."""
+    from test_avh_bake_fastpaths import sphere_and_plane
+
+    from uvatar.avh.bake.confidence import face_visibility, vertex_visibility
+    from uvatar.avh.bake.register import fast_caster
+    from uvatar.geometry import rays_cast
+
+    if backend == "warp":
+        pytest.importorskip("warp")
+    elif device != "cpu":
+        pytest.skip("Embree runs on the CPU")
+    v, f = sphere_and_plane()
+    caster = fast_caster(v, f, device, backend)
+    r0 = rays_cast()
+    ref = face_visibility(v, f, caster, 16, stratified=stratified)
+    r1 = rays_cast()
+    out = face_visibility(v, f, caster, 16, stratified=stratified, device=device)
+    assert rays_cast() - r1 == r1 - r0 == 16 * len(f)
+    assert np.abs(out - ref).max() <= 1 / 16 and (out != ref).mean() < 0.01
+    needed = np.arange(0, len(v), 3)
+    ref_v = vertex_visibility(v, f, caster, 16, needed=needed, stratified=stratified)
+    out_v = vertex_visibility(v, f, caster, 16, needed=needed, stratified=stratified, device=device)
+    np.testing.assert_array_equal(np.isnan(out_v), np.isnan(ref_v))
+    assert np.nanmax(np.abs(out_v - ref_v)) <= 1 / 16
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_lattice_and_frames_on_torch_equal_numpy(device):
+    from uvatar.avh.bake.confidence import face_lattice_params, frames_from_normals, hemisphere_directions
+
+    index = np.arange(0, 5000, 7)
+    shift, turn = face_lattice_params(index)
+    t_shift, t_turn = face_lattice_params(torch.as_tensor(index, device=device))
+    np.testing.assert_array_equal(t_shift.cpu().numpy(), shift)
+    np.testing.assert_array_equal(t_turn.cpu().numpy(), turn)
+    np.testing.assert_allclose(hemisphere_directions(16, t_shift, t_turn).cpu().numpy(),
+                               hemisphere_directions(16, shift, turn), atol=1e-15, rtol=0)
+    n = np.random.default_rng(0).normal(size=(500, 3))
+    n = np.concatenate([n / np.linalg.norm(n, axis=1, keepdims=True), [[0, 1, 0], [0, 0, -1], [1, 0, 0]]])
+    np.testing.assert_allclose(frames_from_normals(torch.as_tensor(n, device=device)).cpu().numpy(),
+                               frames_from_normals(n), atol=1e-15, rtol=0)

@@ -244,6 +244,15 @@ class RayCaster:
         tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
         return self._cast(start, directions, tfar, query="OCCLUDED") != -1
 
+    def any_hit_torch(self, origins, directions):
+        """:meth:`any_hit` (unlimited distance) of torch tensors origins, directions (N, 3) float32 ->
+        (N,) bool tensor on their device. Here through numpy (Embree); :class:`WarpRayCaster` on its
+        own device casts them where they are, without a copy."""
+        import torch
+
+        hit = self.any_hit(origins.detach().cpu().numpy(), directions.detach().cpu().numpy())
+        return torch.as_tensor(hit, device=origins.device)
+
     def count_hits(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
         """(N,) int64: number of surface crossings within (min_distance, max_distance].
 

@@ -21,7 +21,7 @@ from functools import lru_cache
 import numpy as np
 
 from uvatar.errors import require
-from uvatar.geometry.raycast import RayCaster, RayCasterConfig
+from uvatar.geometry.raycast import _RAYS, RayCaster, RayCasterConfig
 
 __all__ = ["WarpRayCaster", "warp_device", "any_hit_torch", "MeshOccluder"]
 
@@ -136,6 +136,33 @@ class WarpRayCaster(RayCaster):
         if n:
             wp.launch(first_hit_kernel, dim=n, inputs=[self._mesh.id, o, d, f, prim, u, v, t], device=dev)
         return prim.numpy(), u.numpy(), v.numpy(), t.numpy()
+
+
+    def any_hit_torch(self, origins, directions):
+        """:meth:`RayCaster.any_hit_torch` on this BVH: tensors on the caster's device are cast there
+        (zero-copy; directions normalized as :meth:`any_hit` does, unlimited distance); others go
+        through numpy."""
+        import torch
+
+        wp = _warp()
+        if wp.device_from_torch(origins.device) != wp.get_device(self.device):
+            return super().any_hit_torch(origins, directions)
+        _, any_hit_kernel = _kernels()
+        n = origins.shape[0]
+        out = torch.empty(n, dtype=torch.int32, device=origins.device)
+        if n == 0:
+            return out.bool()
+        d = directions.detach().to(torch.float32)
+        sq = (d * d).sum(1)
+        if not bool(((sq - 1).abs() <= 1e-6).all()):     # _prepare_rays' float32 fast path: unit already
+            d = d / sq.sqrt()[:, None]
+        _RAYS["OCCLUDED"] += n
+        far = torch.full((n,), 3e38, dtype=torch.float32, device=origins.device)
+        wp.launch(any_hit_kernel, dim=n,
+                  inputs=[self._mesh.id, wp.from_torch(origins.detach().to(torch.float32).contiguous(), dtype=wp.vec3),
+                          wp.from_torch(d.contiguous(), dtype=wp.vec3), wp.from_torch(far), wp.from_torch(out)],
+                  device=wp.device_from_torch(origins.device))
+        return out >= 0
 
 
 def any_hit_torch(vertices, faces, origins, directions, max_distance):

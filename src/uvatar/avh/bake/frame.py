@@ -310,7 +310,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     with _timed(sec, "visibility_registered", rays, cpu):
         w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
         w_vertex = vertex_visibility(registered, layout.faces, w_caster, config.visibility_rays, eps,
-                                     needed=layout.texel_vertices.ravel(), stratified=config.visibility_stratified)
+                                     needed=layout.texel_vertices.ravel(), stratified=config.visibility_stratified,
+                                     device=config.torch_device)
         w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
     with _timed(sec, "confidence", rays, cpu):
         delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
@@ -321,7 +322,8 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         # scan faces around those texels' matches are ray cast (the same values there)
         hit_vertices = surface.faces[matches.face[use]]                           # (K, 3)
         v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster, config.visibility_rays, eps,
-                                     needed=hit_vertices.ravel(), stratified=config.visibility_stratified)
+                                     needed=hit_vertices.ravel(), stratified=config.visibility_stratified,
+                                     device=config.torch_device)
         v = np.zeros(len(r))
         v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
         kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
