@@ -328,3 +328,61 @@ def test_lattice_and_frames_on_torch_equal_numpy(device):
     n = np.concatenate([n / np.linalg.norm(n, axis=1, keepdims=True), [[0, 1, 0], [0, 0, -1], [1, 0, 0]]])
     np.testing.assert_allclose(frames_from_normals(torch.as_tensor(n, device=device)).cpu().numpy(),
                                frames_from_normals(n), atol=1e-15, rtol=0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("backend", ["embree", "warp"])
+def test_first_hit_on_torch_equals_numpy(device, backend):
+    """Tensors cast in place (Warp on its device) or through numpy (Embree): the same RayHits."""
+    from test_avh_bake_fastpaths import random_rays, sphere_and_plane
+
+    from uvatar.avh.bake.register import fast_caster
+
+    if backend == "warp":
+        pytest.importorskip("warp")
+    elif device != "cpu":
+        pytest.skip("Embree runs on the CPU")
+    v, f = sphere_and_plane()
+    o, d = random_rays(3000)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    caster = fast_caster(v, f, device, backend)
+    far = np.full(len(o), 2.5)
+    ref = caster.first_hit(o, d, far)
+    out = caster.first_hit_torch(torch.as_tensor(o, dtype=torch.float32, device=device),
+                                 torch.as_tensor(d, dtype=torch.float32, device=device),
+                                 torch.as_tensor(far, device=device))
+    for name in ("hit", "face", "distance", "bary", "points"):
+        got = getattr(out, name).cpu().numpy()
+        assert got.dtype == getattr(ref, name).dtype, name
+        np.testing.assert_allclose(got, getattr(ref, name), atol=2e-6, rtol=0, err_msg=name)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("max_distance", [None, 0.04])
+def test_texel_matches_on_torch_equal_numpy(device, max_distance):
+    """The texel rays cast and chosen on the device: the same matches (scan normals within 1e-12)."""
+    from uvatar.avh.bake.correspond import match_texels
+    from uvatar.avh.bake.register import fast_caster
+
+    v, f = icosphere(3)
+    surface = ScanSurface.build(v * (1.05 + 0.03 * np.sin(7 * v[:, :1])), f)
+    if device != "cpu":
+        pytest.importorskip("warp")
+        surface.caster = fast_caster(surface.vertices, surface.faces, device)
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(4000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    n = p + rng.normal(0, 0.3, p.shape)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    ref = match_texels(p, n, surface, max_distance=max_distance)
+    out = match_texels(torch.as_tensor(p, device=device), torch.as_tensor(n, device=device), surface,
+                       max_distance=max_distance)
+    assert 0.3 < ref.hit.mean() and (ref.mixed.any() or max_distance is not None)
+    for name, value in vars(ref).items():
+        got = getattr(out, name)
+        assert isinstance(got, np.ndarray) and got.dtype == value.dtype, name
+        if name in ("scan_normal", "points", "distance", "bary"):
+            np.testing.assert_allclose(got, value, atol=1e-12 if name == "scan_normal" else 2e-6, rtol=0,
+                                       err_msg=name)
+        else:
+            np.testing.assert_array_equal(got, value, err_msg=name)

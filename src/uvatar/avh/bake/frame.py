@@ -104,6 +104,21 @@ class BodyLayout:
         flat = vals.reshape(len(vals), -1)
         return np.asarray(self.interpolation_matrix(len(vals)) @ flat).reshape(len(self.texel_flat), *vals.shape[1:])
 
+    def at_texels_torch(self, vertex_values, device):
+        """:meth:`at_texels` on a torch ``device``: (M[, C]) float64 tensor there, one sparse product
+        with the interpolation matrix kept there (per V and device)."""
+        import torch
+
+        vals = torch.as_tensor(np.asarray(vertex_values, dtype=np.float64), device=device)
+        key = ("interpolation_torch", len(vals), str(device))
+        if key not in self._cache:
+            m = self.interpolation_matrix(len(vals))
+            self._cache[key] = torch.sparse_csr_tensor(
+                torch.as_tensor(m.indptr, dtype=torch.int64), torch.as_tensor(m.indices, dtype=torch.int64),
+                torch.as_tensor(m.data), m.shape).to(device)
+        flat = vals.reshape(len(vals), -1)
+        return (self._cache[key] @ flat).reshape(len(self.texel_flat), *vals.shape[1:])
+
     def at_texels_reference(self, vertex_values) -> np.ndarray:
         """Plain twin of :meth:`at_texels`: gather each texel's three corners and weight them."""
         vals = np.asarray(vertex_values, dtype=np.float64)
@@ -296,11 +311,19 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         else:
             registered = shadow
     with _timed(sec, "correspond", rays, cpu):
-        r = layout.at_texels(registered)
-        n = layout.at_texels(vertex_normals(registered, layout.faces))
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        device = config.torch_device
+        if device is None:
+            r = layout.at_texels(registered)
+            n = layout.at_texels(vertex_normals(registered, layout.faces))
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        else:   # the texels' points and normals made, and their rays cast, on the device
+            r = layout.at_texels_torch(registered, device)
+            n = layout.at_texels_torch(vertex_normals(registered, layout.faces), device)
+            n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
         matches = match_texels(r, n, surface, config.polarity_rule, config.polarity_ratio,
                                config.max_match_distance, eps)
+        if device is not None:
+            r, n = r.cpu().numpy(), n.cpu().numpy()
         hit = matches.hit
     with _timed(sec, "texture", rays, cpu):
         colors = np.zeros((len(r), 3), np.float32)

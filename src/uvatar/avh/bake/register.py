@@ -124,26 +124,45 @@ class ScanSurface:
                                    torch.as_tensor(self.sample_normals, device=device))
         return self.on_device[key]
 
-    def normals_at(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0."""
+    def normals_at(self, face, bary):
+        """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0.
+        numpy, or torch tensors (float64 normals on their device: the corner and face normals kept there)."""
         if self.corner_normals is None:
             self.corner_normals = self.vertex_normals[self.faces]
         ok = face >= 0
-        fo = np.where(ok, face, 0)
-        corners = np.take(self.corner_normals.reshape(-1, 9), fo, axis=0).reshape(-1, 3, 3)   # take: ~5x a fancy index
-        n = np.einsum("kjc,kj->kc", corners, np.asarray(bary, np.float64))
-        length = np.sqrt(np.einsum("kc,kc->k", n, n))
+        if is_torch(face):
+            import torch
+
+            key = ("normals", str(face.device))
+            if key not in self.on_device:
+                self.on_device[key] = (torch.as_tensor(self.corner_normals.reshape(-1, 9), device=face.device),
+                                       torch.as_tensor(self.face_normals, device=face.device))
+            corner_normals, face_normals = self.on_device[key]
+            fo = torch.where(ok, face, torch.zeros_like(face))
+            corners = corner_normals[fo].reshape(-1, 3, 3)
+            n = torch.einsum("kjc,kj->kc", corners, bary.to(torch.float64))
+            length = torch.einsum("kc,kc->k", n, n).sqrt()
+            where = torch.where
+        else:
+            where = np.where
+            face_normals = self.face_normals
+            fo = np.where(ok, face, 0)
+            corners = np.take(self.corner_normals.reshape(-1, 9), fo, axis=0).reshape(-1, 3, 3)   # take: ~5x a fancy index
+            n = np.einsum("kjc,kj->kc", corners, np.asarray(bary, np.float64))
+            length = np.sqrt(np.einsum("kc,kc->k", n, n))
         bad = ok & (length < 1e-12)  # opposite normals cancelled: use the (unit) face normal
         if bad.any():
-            n[bad] = self.face_normals[fo[bad]]
+            n[bad] = face_normals[fo[bad]]
             length[bad] = 1.0
-        out = n / np.where(ok, length, 1.0)[:, None]
+        out = n / where(ok, length, 1.0)[:, None]
         out[~ok] = 0.0
         return out
 
     def normals_at_hits(self, hits) -> np.ndarray:
         """:meth:`normals_at` of a :class:`~uvatar.geometry.RayHits`, computed only for the rays that
         hit (the same values; zeros elsewhere)."""
+        if is_torch(hits.hit):                 # a GPU computes every ray's: the misses' are zeros anyway
+            return self.normals_at(hits.face, hits.bary)
         idx = np.flatnonzero(hits.hit)
         out = np.zeros((len(hits.hit), 3))
         if len(idx) == len(out):
