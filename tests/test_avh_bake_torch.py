@@ -386,3 +386,39 @@ def test_texel_matches_on_torch_equal_numpy(device, max_distance):
                                        err_msg=name)
         else:
             np.testing.assert_array_equal(got, value, err_msg=name)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_colour_round_with_torch_stages_matches(device):
+    """A colour round (refinement with the cross-frame colour term): its stencil rays cast and chosen,
+    the texture sampled, the nearest samples and the normal equations on torch; the same colours and
+    the same refined pose (float32 poses within 1e-6 rad)."""
+    from test_avh_bake_helpers import body, frame_pose, offset_scan
+
+    from uvatar.avh.bake.config import PoseRefineConfig
+    from uvatar.avh.bake.photometric import PhotoTarget
+    from uvatar.avh.bake.refine import refine_fit, sample_colours
+    from uvatar.avh.bake.register import fast_caster
+    from uvatar.capture import BodyFit
+
+    model = body()
+    truth = BodyFit(poses=frame_pose(model, 0), Rh=[0.0, 0.4, 0.0], Th=[0.1, 0.0, -0.2])
+    scan = offset_scan(model, truth)
+    surface = ScanSurface.build(scan.vertices, scan.faces)
+    if device != "cpu":
+        pytest.importorskip("warp")
+        surface.caster = fast_caster(surface.vertices, surface.faces, device)
+    config = PoseRefineConfig(iterations=2, photometric_iterations=2, max_vertices=800)
+    radius = config.photometric_radii[0]
+    ref_sample = sample_colours(model, truth, surface, scan, config, radius)
+    sample = sample_colours(model, truth, surface, scan, config, radius, device=device)
+    np.testing.assert_array_equal(sample.ok, ref_sample.ok)
+    np.testing.assert_allclose(sample.colour, ref_sample.colour, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(sample.gradient, ref_sample.gradient, atol=1e-3, rtol=0)
+    target = PhotoTarget(np.nan_to_num(ref_sample.colours), ref_sample.ok, radius)
+    noisy = BodyFit(poses=frame_pose(model, 0) + np.random.default_rng(1).normal(0, 0.02, 3 * model.num_joints)
+                    .astype(np.float32), Rh=truth.Rh, Th=truth.Th)
+    ref, ref_stats = refine_fit(model, noisy, surface, config, photo=target, scan_mesh=scan)
+    out, stats = refine_fit(model, noisy, surface, config, photo=target, scan_mesh=scan, device=device)
+    np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(stats["colour_residual"], ref_stats["colour_residual"], rtol=1e-6)

@@ -53,27 +53,50 @@ def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float
                 epsilon: float = 1e-3, device: str | None = None):
     """Scan colour where the +/-normal rays from ``points`` (N, 3) first meet a compatible scan surface
     (scan normal within the angle of ``min_normal_cos``; the nearer of the two) within ``max_distance``
-    metres. Returns (colours (N, 3) float64, ok (N,) bool). ``scan``: the TexturedMesh; ``device``: where
-    the texture is sampled (:func:`.register.scan_colours`)."""
+    metres. Returns (colours (N, 3) float64, ok (N,) bool). ``scan``: the TexturedMesh; ``device``: a
+    torch device where the rays are cast (:meth:`RayCaster.first_hit_torch`), chosen and the texture
+    sampled (:func:`.register.scan_colours`), the same steps; the results come back as numpy."""
     p = np.asarray(points, np.float64)
     n = np.asarray(normals, np.float64)
-    best = np.full(len(p), np.inf)
-    face = np.full(len(p), -1, np.int64)
-    bary = np.zeros((len(p), 3))
+    if device is None:
+        where, limit = np.where, (lambda best: np.minimum(max_distance + epsilon, best))
+
+        def cast(o, d, far):
+            return surface.caster.first_hit(o, d, max_distance=far)
+
+        best = np.full(len(p), np.inf)
+        face = np.full(len(p), -1, np.int64)
+        bary = np.zeros((len(p), 3))
+    else:
+        import torch
+
+        where, limit = torch.where, (lambda best: best.clamp(max=max_distance + epsilon))
+
+        def cast(o, d, far):
+            return surface.caster.first_hit_torch(o, d, far)
+
+        p, n = torch.as_tensor(p, device=device), torch.as_tensor(n, device=device)
+        best = torch.full((len(p),), float("inf"), dtype=torch.float64, device=device)
+        face = torch.full((len(p),), -1, dtype=torch.int64, device=device)
+        bary = torch.zeros((len(p), 3), dtype=torch.float64, device=device)
     for sign in (1.0, -1.0):
         d = sign * n
         # the -n ray only wins below the +n ray's compatible distance: it need not look farther
         # (the same hits win; Embree's traversal ends sooner)
-        hits = surface.caster.first_hit(p - epsilon * d, d, max_distance=np.minimum(max_distance + epsilon, best))
+        hits = cast(p - epsilon * d, d, limit(best))
         m = surface.normals_at_hits(hits)
         better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
-        best = np.where(better, hits.distance, best)
-        face = np.where(better, hits.face, face)
-        bary = np.where(better[:, None], hits.bary, bary)
+        best = where(better, hits.distance, best)
+        face = where(better, hits.face, face)
+        bary = where(better[:, None], hits.bary, bary)
     ok = face >= 0
-    colours = np.zeros((len(p), 3))
-    colours[ok] = scan_colours(surface, scan, face[ok], bary[ok], device)
-    return colours, ok
+    if device is None:
+        colours = np.zeros((len(p), 3))
+        colours[ok] = scan_colours(surface, scan, face[ok], bary[ok])
+        return colours, ok
+    colours = torch.zeros((len(p), 3), dtype=torch.float64, device=device)
+    colours[ok] = scan_colours(surface, scan, face[ok], bary[ok]).to(torch.float64)
+    return colours.cpu().numpy(), ok.cpu().numpy()
 
 
 def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, max_distance: float,

@@ -224,19 +224,22 @@ def nearest_points_torch(queries, sorted_points, max_distance: float, chunk: int
 def scan_colours(surface: ScanSurface, scan, face, bary, device: str | None = None) -> np.ndarray:
     """(K, C) the scan's texture at hits (face (K,), bary (K, 3)) by
     :func:`uvatar.geometry.sample_mesh_texture`; on a torch ``device`` when given (the scan's UVs and
-    texture kept there with ``surface``, its scan's), the same values."""
-    if device is None or not len(face):
+    texture kept there with ``surface``, its scan's), the same values: numpy for numpy face and bary,
+    a tensor on their device for tensors."""
+    tensors = is_torch(face)
+    if device is None and not tensors:
         return sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, face, bary)
     import torch
 
+    device = face.device if tensors else device
     key = ("texture", str(device))
     if key not in surface.on_device:
         surface.on_device[key] = tuple(torch.as_tensor(np.asarray(a), device=device)
                                        for a in (scan.uvs, scan.uv_faces, scan.texture))
     uvs, uv_faces, texture = surface.on_device[key]
-    face_t = torch.as_tensor(np.asarray(face), dtype=torch.int64, device=device)
-    return sample_mesh_texture(uvs, uv_faces, texture, face_t, torch.as_tensor(np.asarray(bary), device=device)
-                               ).cpu().numpy()
+    face_t = torch.as_tensor(face, dtype=torch.int64, device=device)
+    out = sample_mesh_texture(uvs, uv_faces, texture, face_t, torch.as_tensor(bary, device=device))
+    return out if tensors else out.cpu().numpy()
 
 
 def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:
