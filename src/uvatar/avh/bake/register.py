@@ -69,7 +69,7 @@ class ScanSurface:
     vertices (V, 3) float64 metres; faces (F, 3) int64; vertex_normals (V, 3) unit (area weighted);
     face_normals (F, 3) unit; sample_points (V + F, 3) vertices then face centroids, with
     sample_normals (V + F, 3); caster: :class:`uvatar.geometry.RayCaster`; tree: scipy cKDTree over
-    sample_points; corner_normals (F, 3, 3) the vertex normals at each face's corners (one gather per
+    sample_points (None until :meth:`kd_tree` builds it); corner_normals (F, 3, 3) the vertex normals at each face's corners (one gather per
     hit in :meth:`normals_at`).
     """
 
@@ -82,13 +82,11 @@ class ScanSurface:
     caster: RayCaster
     tree: object
     corner_normals: np.ndarray | None = None
-    on_device: dict = field(default_factory=dict, repr=False)   # torch device -> its sample arrays there
+    on_device: dict = field(default_factory=dict, repr=False)   # arrays kept on torch devices, by (what, device)
 
     @classmethod
     def build(cls, vertices, faces, device: str = "cpu", backend: str = "auto") -> ScanSurface:
         """Prepare a scan; its rays run on ``device`` through ``backend`` (:func:`fast_caster`)."""
-        from scipy.spatial import cKDTree
-
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
         vn = np.asarray(vertex_normals(v, f), dtype=np.float64)
@@ -96,9 +94,17 @@ class ScanSurface:
         centroids = v[f].mean(axis=1)
         points = np.concatenate([v, centroids])
         normals = np.concatenate([vn, fn])
-        # sliding-midpoint tree: ~3x faster to build than the balanced one, same (exact) answers
-        tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
-        return cls(v, f, vn, fn, points, normals, fast_caster(v, f, device, backend), tree, vn[f])
+        return cls(v, f, vn, fn, points, normals, fast_caster(v, f, device, backend), None, vn[f])
+
+    def kd_tree(self):
+        """The k-d tree over the samples (``tree``), built on first use: a bake whose queries run on
+        torch (:meth:`nearest_sample` of tensors) never needs it."""
+        if self.tree is None:
+            from scipy.spatial import cKDTree
+
+            # sliding-midpoint tree: ~3x faster to build than the balanced one, same (exact) answers
+            self.tree = cKDTree(self.sample_points, balanced_tree=False, compact_nodes=False)
+        return self.tree
 
     def nearest_sample(self, points, max_distance: float):
         """(distance (N,), index (N,)) of each point's nearest surface sample within ``max_distance``
@@ -106,23 +112,13 @@ class ScanSurface:
         tensor, answered on its device by :func:`nearest_points_torch` (the same samples: exact
         distances, ties aside), as tensors."""
         if not is_torch(points):
-            near, idx = self.tree.query(points, distance_upper_bound=max_distance)
+            near, idx = self.kd_tree().query(points, distance_upper_bound=max_distance)
             found = np.isfinite(near)
             return near, np.where(found, idx, 0)
-        key = str(points.device)
+        key = ("sorted_samples", str(points.device))
         if key not in self.on_device:
             self.on_device[key] = sorted_points_torch(self.sample_points, points.device)
         return nearest_points_torch(points, self.on_device[key], max_distance)
-
-    def samples_on(self, device):
-        """(sample_points, sample_normals) as float64 torch tensors on ``device`` (cached)."""
-        import torch
-
-        key = ("samples", str(device))
-        if key not in self.on_device:
-            self.on_device[key] = (torch.as_tensor(self.sample_points, device=device),
-                                   torch.as_tensor(self.sample_normals, device=device))
-        return self.on_device[key]
 
     def normals_at(self, face, bary):
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0.
@@ -292,7 +288,7 @@ def match_vertices(points, normals, scan: ScanSurface, max_distance: float, cos_
         # nearest scan sample q with normal m, projected onto its tangent plane: the foot point
         # p - ((p - q) . m) m approximates the closest surface point without pulling vertices
         # toward the discrete samples (point-to-plane)
-        near, idx = scan.tree.query(p, distance_upper_bound=max_distance)
+        near, idx = scan.kd_tree().query(p, distance_upper_bound=max_distance)
         found = np.isfinite(near)
         idx = np.where(found, idx, 0)
         m = scan.sample_normals[idx]
