@@ -34,7 +34,8 @@ class TexelMatches:
     side: (N,) int8, +1 the +n ray, -1 the -n ray, 0 no match; positive: (N,) bool, n . m > 0;
     mixed: (N,) bool, both rays hit and their polarities differ (where the polarity rule acts);
     rule_changed: (N,) bool, the polarity rule chose the farther candidate (the choice differs from
-    plain nearest); both None when not computed.
+    plain nearest); both None when not computed. on_device: the same fields as torch tensors where
+    they were computed on a device (:func:`match_texels` of tensors), else None.
     """
 
     hit: np.ndarray
@@ -47,6 +48,7 @@ class TexelMatches:
     positive: np.ndarray
     mixed: np.ndarray | None = None
     rule_changed: np.ndarray | None = None
+    on_device: dict | None = None
 
 
 def choose_candidates(hit_plus, dist_plus, pos_plus, hit_minus, dist_minus, pos_minus,
@@ -175,6 +177,9 @@ def match_texels(points, normals, scan: ScanSurface, polarity_rule: bool = True,
         rule_changed=side != nearest,
     )
     if on_torch:
-        for name, value in vars(matches).items():
-            setattr(matches, name, value.cpu().numpy())
+        kept = dict(vars(matches))
+        for name, value in kept.items():
+            if value is not None:
+                setattr(matches, name, value.cpu().numpy())
+        matches.on_device = kept
     return matches

@@ -326,10 +326,13 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
             r, n = r.cpu().numpy(), n.cpu().numpy()
         hit = matches.hit
     with _timed(sec, "texture", rays, cpu):
-        colors = np.zeros((len(r), 3), np.float32)
-        colors[hit] = scan_colours(surface, scan, matches.face[hit], matches.bary[hit], config.torch_device)
-        s = layout.at_texels(shadow)
-        disp = np.where(hit[:, None], matches.points - s, 0.0)
+        if device is None:
+            colors = np.zeros((len(r), 3), np.float32)
+            colors[hit] = scan_colours(surface, scan, matches.face[hit], matches.bary[hit])
+            s = layout.at_texels(shadow)
+            disp = np.where(hit[:, None], matches.points - s, 0.0)
+        else:   # from the matches still on the device; colours and displacements stay there for the inpainting
+            colors, disp = _texel_colours_and_displacements(layout, shadow, surface, scan, matches, device)
     with _timed(sec, "visibility_registered", rays, cpu):
         w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
         w_vertex = vertex_visibility(registered, layout.faces, w_caster, config.visibility_rays, eps,
@@ -384,9 +387,25 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     )
 
 
+def _texel_colours_and_displacements(layout: BodyLayout, shadow, surface, scan, matches, device):
+    """The texture stage on a torch ``device``: (colours (M, 3) float32, displacements d = x - s (M, 3)
+    float64) tensors there, zeros where unmatched, from the matches' tensors kept there
+    (``TexelMatches.on_device``); the numpy path's steps."""
+    import torch
+
+    kept = matches.on_device
+    hit = kept["hit"]
+    colors = torch.zeros((len(hit), 3), dtype=torch.float32, device=device)
+    colors[hit] = scan_colours(surface, scan, kept["face"][hit], kept["bary"][hit]).to(torch.float32)
+    s = layout.at_texels_torch(shadow, device)
+    disp = torch.where(hit[:, None], kept["points"] - s, torch.zeros_like(s))
+    return colors, disp
+
+
 def _inpaint_maps(layout: BodyLayout, colors, disp, matched_map, config: BakeConfig):
     """(texture (R, R, 3), displacement (R, R, 3)) float32 numpy: the texels' colours (M, 3) and
-    displacements (M, 3) as maps, the unmatched texels inpainted; on ``config.torch_device`` through
+    displacements (M, 3) (numpy, or tensors on the device) as maps, the unmatched texels inpainted; on
+    ``config.torch_device`` through
     :func:`.inpaint_torch.inpaint_telea_torch` (the maps are laid out there too), else OpenCV's Telea.
     One call for both maps: the nearest-texel fill is computed once."""
     device = config.torch_device
@@ -400,9 +419,9 @@ def _inpaint_maps(layout: BodyLayout, colors, disp, matched_map, config: BakeCon
     from uvatar.avh.bake.inpaint_torch import inpaint_telea_torch
 
     r = layout.resolution
-    values = torch.from_numpy(np.concatenate([np.asarray(colors, np.float32), np.asarray(disp, np.float32)], axis=1))
+    values = torch.cat([torch.as_tensor(a, device=device).to(torch.float32) for a in (colors, disp)], dim=1)
     maps = torch.zeros((r * r, 6), dtype=torch.float32, device=device)
-    maps[torch.from_numpy(layout.texel_flat).to(device)] = values.to(device)
+    maps[torch.from_numpy(layout.texel_flat).to(device)] = values
     gutter = layout.island_gutter(config.inpaint_gutter)
     both = inpaint_telea_torch(maps.reshape(r, r, 6), torch.from_numpy(~matched_map).to(device),
                                config.inpaint_radius, config.inpaint_band,
