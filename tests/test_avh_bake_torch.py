@@ -378,8 +378,12 @@ def test_texel_matches_on_torch_equal_numpy(device, max_distance):
     out = match_texels(torch.as_tensor(p, device=device), torch.as_tensor(n, device=device), surface,
                        max_distance=max_distance)
     assert 0.3 < ref.hit.mean() and (ref.mixed.any() or max_distance is not None)
+    assert ref.on_device is None and set(out.on_device) == set(vars(ref)) - {"on_device"}
     for name, value in vars(ref).items():
+        if name == "on_device":
+            continue
         got = getattr(out, name)
+        np.testing.assert_array_equal(out.on_device[name].cpu().numpy(), got, err_msg=name)
         assert isinstance(got, np.ndarray) and got.dtype == value.dtype, name
         if name in ("scan_normal", "points", "distance", "bary"):
             np.testing.assert_allclose(got, value, atol=1e-12 if name == "scan_normal" else 2e-6, rtol=0,

@@ -177,9 +177,8 @@ def match_texels(points, normals, scan: ScanSurface, polarity_rule: bool = True,
         rule_changed=side != nearest,
     )
     if on_torch:
-        kept = dict(vars(matches))
+        kept = {name: value for name, value in vars(matches).items() if value is not None}
         for name, value in kept.items():
-            if value is not None:
-                setattr(matches, name, value.cpu().numpy())
+            setattr(matches, name, value.cpu().numpy())
         matches.on_device = kept
     return matches
