@@ -175,10 +175,14 @@ class BakeConfig:
     device: where the ray stages run (registration and texel rays, visibility, colour sampling):
         "cpu" or "cuda" / "cuda:N" (a GPU through NVIDIA Warp's mesh BVH, ``uvatar[kernels]``); the
         other stages follow ``torch_stages``. Same maps within float32 round-off.
-    torch_stages: where the stages that cast no rays run (inpainting, the registration's normal
-        smoothing and solves): "auto" (their torch twins on ``device`` when it is CUDA, the numpy /
-        OpenCV / SciPy reference on the CPU), "on" (the torch twins on ``device``, CPU tensors on the
-        CPU: what CI checks them with) or "off" (the reference everywhere). :meth:`torch_device`.
+    torch_stages: where the rest of a frame runs: the inpainting (a layered Telea march), the
+        registration's normals, smoothing and solves, the pose refinement's and colour rounds' nearest
+        samples, normal equations and stencil rays, the texel rays' set-up and choice, the visibility
+        rays' set-up and the texture lookups. "auto" (their torch twins on ``device`` when it is CUDA,
+        the numpy / OpenCV / SciPy reference on the CPU), "on" (the torch twins on ``device``, CPU
+        tensors on the CPU: what CI checks them with; slow there: a dense Cholesky of the body's
+        system) or "off" (the reference everywhere). Same maps on the matched texels within float
+        round-off; inpainted texels (kappa 0) within a few percent. :meth:`torch_device`.
     ray_backend: "auto" (Embree on the CPU, Warp on CUDA), "embree" or "warp" (Warp also runs on
         the CPU, single-threaded and ~3x slower than Embree: for parity checks); checked by
         :func:`uvatar.geometry.ray_backends.make_caster`.
