@@ -20,13 +20,15 @@ reports those stages' seconds and rays (``reference``) and how far kappa moved
 frame at a time as ``uvatar bake --workers N`` does (the frame plus its colour rounds), and reports
 the machine's throughput in wall time (``throughput``: seconds per frame and frames per hour with N
 workers; the machine may be shared, ``load_average_1min`` says how much). ``--device cuda`` runs the
-ray stages through Warp on the GPU, and the stages that cast no rays (inpainting, the registration's
-solves, the pose refinement's nearest samples and normal equations, in the colour rounds too) through
-their torch twins there (``--torch-stages auto``, ``BakeConfig.torch_stages``; ``off`` keeps them on
-the CPU, ``on`` runs the twins on CPU tensors with ``--device cpu``). ``--parity`` also bakes each frame,
-and runs its colour rounds, with ``torch_stages="off"`` (untimed) and reports how far the torch stages
-moved the results (``parity``: over the texels with kappa > 0.5 of the reference, the median and max
-|delta x| in mm and the texture PSNR against the scan's true texture of both; kappa_mean; the largest
+ray stages through Warp on the GPU, and the rest of a frame (inpainting, the registration's solves, the
+pose refinement's and colour rounds' nearest samples, normal equations and stencil rays, the set-up of
+the texel and visibility rays, the texture lookups) through their torch twins there (``--torch-stages
+auto``, ``BakeConfig.torch_stages``; ``off`` keeps them on the CPU, ``on`` runs the twins on CPU tensors
+with ``--device cpu``: slow, a check). ``--parity`` also bakes each frame, and runs its colour rounds,
+with ``torch_stages="off"`` (untimed) and reports how far the torch stages moved the results
+(``parity``: over the texels with kappa > 0.5 of the reference, the median and max |delta x| in mm, and
+the texture PSNR of both bakes against the scan's texture read at each texel's own UV (the scan carries
+the body's UV layout; the difference of the two PSNRs is the figure); kappa_mean; the largest
 difference of an inpainted texel; the refined poses after the bake and after its colour rounds).
 ``--warmup 1`` (default) first bakes the first frame once, untimed,
 in each process: the one-off imports and first allocations of a worker (~0.4 s) are paid once per
