@@ -209,7 +209,8 @@ def test_normal_equations_on_torch_match_the_grouped_products(device):
 @pytest.mark.parametrize("device", DEVICES)
 def test_pose_refinement_with_torch_stages_matches(device):
     """The refinement with its nearest samples and normal equations on torch: the same refined pose
-    (float32 poses within 1e-6 rad) and residuals."""
+    (float32 poses within 1e-6 rad) and residuals; on CUDA the body is posed there too (float32 on
+    another device: within 1e-4 rad, residuals within 0.1 %)."""
     from test_avh_bake_helpers import body, frame_pose, offset_scan
 
     from uvatar.avh.bake.config import PoseRefineConfig
@@ -225,10 +226,11 @@ def test_pose_refinement_with_torch_stages_matches(device):
     config = PoseRefineConfig(iterations=3, max_vertices=1500)
     ref, ref_stats = refine_fit(model, noisy, surface, config)
     out, stats = refine_fit(model, noisy, surface, config, device=device)
-    np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6, rtol=0)
-    np.testing.assert_allclose(out.Rh, ref.Rh, atol=1e-9, rtol=0)
-    np.testing.assert_allclose(out.Th, ref.Th, atol=1e-9, rtol=0)
-    np.testing.assert_allclose(stats["residual_mm"], ref_stats["residual_mm"], rtol=1e-9)
+    cpu = device == "cpu"
+    np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6 if cpu else 1e-4, rtol=0)
+    np.testing.assert_allclose(out.Rh, ref.Rh, atol=1e-9 if cpu else 1e-4, rtol=0)
+    np.testing.assert_allclose(out.Th, ref.Th, atol=1e-9 if cpu else 1e-5, rtol=0)
+    np.testing.assert_allclose(stats["residual_mm"], ref_stats["residual_mm"], rtol=1e-9 if cpu else 1e-3)
     assert ref_stats["residual_mm"][-1] < 0.5 * ref_stats["residual_mm"][0]  # it did refine
 
 
@@ -396,7 +398,7 @@ def test_texel_matches_on_torch_equal_numpy(device, max_distance):
 def test_colour_round_with_torch_stages_matches(device):
     """A colour round (refinement with the cross-frame colour term): its stencil rays cast and chosen,
     the texture sampled, the nearest samples and the normal equations on torch; the same colours and
-    the same refined pose (float32 poses within 1e-6 rad)."""
+    the same refined pose (float32 poses within 1e-6 rad; on CUDA, posed there: 1e-4 rad)."""
     from test_avh_bake_helpers import body, frame_pose, offset_scan
 
     from uvatar.avh.bake.config import PoseRefineConfig
@@ -416,13 +418,18 @@ def test_colour_round_with_torch_stages_matches(device):
     radius = config.photometric_radii[0]
     ref_sample = sample_colours(model, truth, surface, scan, config, radius)
     sample = sample_colours(model, truth, surface, scan, config, radius, device=device)
-    np.testing.assert_array_equal(sample.ok, ref_sample.ok)
-    np.testing.assert_allclose(sample.colour, ref_sample.colour, atol=1e-6, rtol=0)
-    np.testing.assert_allclose(sample.gradient, ref_sample.gradient, atol=1e-3, rtol=0)
+    cpu = device == "cpu"
+    if cpu:
+        np.testing.assert_array_equal(sample.ok, ref_sample.ok)
+    else:                                           # a stencil ray grazing an edge may go either way
+        assert (sample.ok != ref_sample.ok).mean() < 0.002
+    both = sample.ok & ref_sample.ok
+    assert (np.abs(sample.colour - ref_sample.colour)[both].max(1) < 1e-6).mean() >= (1.0 if cpu else 0.99)
+    np.testing.assert_allclose(np.median(np.abs(sample.gradient - ref_sample.gradient)[both]), 0.0, atol=1e-6)
     target = PhotoTarget(np.nan_to_num(ref_sample.colours), ref_sample.ok, radius)
     noisy = BodyFit(poses=frame_pose(model, 0) + np.random.default_rng(1).normal(0, 0.02, 3 * model.num_joints)
                     .astype(np.float32), Rh=truth.Rh, Th=truth.Th)
     ref, ref_stats = refine_fit(model, noisy, surface, config, photo=target, scan_mesh=scan)
     out, stats = refine_fit(model, noisy, surface, config, photo=target, scan_mesh=scan, device=device)
-    np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6, rtol=0)
-    np.testing.assert_allclose(stats["colour_residual"], ref_stats["colour_residual"], rtol=1e-6)
+    np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6 if cpu else 1e-4, rtol=0)
+    np.testing.assert_allclose(stats["colour_residual"], ref_stats["colour_residual"], rtol=1e-6 if cpu else 1e-2)

@@ -98,16 +98,34 @@ def _refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
 
 
 def _posed(body, rot, rh, th, scale, shape_t):
-    """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 of one posed frame."""
+    """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 numpy of one posed frame
+    (posed on the body model's device)."""
     import torch
 
+    dev = body.device
     with torch.no_grad():
-        out = body.pose(torch.as_tensor(rot, dtype=torch.float32)[None],
-                        Rh=torch.as_tensor(rh, dtype=torch.float32)[None],
-                        Th=torch.as_tensor(th, dtype=torch.float32)[None],
-                        scale=torch.tensor([float(scale)]), shape=shape_t)
-    return (out.vertices[0].numpy().astype(np.float64), out.normals[0].numpy().astype(np.float64),
-            out.joint_transforms[0].numpy().astype(np.float64))
+        out = body.pose(torch.as_tensor(rot, dtype=torch.float32, device=dev)[None],
+                        Rh=torch.as_tensor(rh, dtype=torch.float32, device=dev)[None],
+                        Th=torch.as_tensor(th, dtype=torch.float32, device=dev)[None],
+                        scale=torch.tensor([float(scale)], device=dev),
+                        shape=None if shape_t is None else shape_t.to(dev))
+    return (out.vertices[0].cpu().numpy().astype(np.float64), out.normals[0].cpu().numpy().astype(np.float64),
+            out.joint_transforms[0].cpu().numpy().astype(np.float64))
+
+
+def _posing_body(body, device: str | None):
+    """The body model the refinement poses on ``device``: for a CUDA device, anny's own instance there
+    (built once per body; float32 posing on the GPU, within round-off of the CPU's); else ``body``
+    (the CPU, and models without a device twin here)."""
+    import torch
+
+    if device is None or torch.device(device).type == "cpu" or getattr(body, "name", None) != "anny":
+        return body
+    from dataclasses import replace
+
+    from uvatar.body.anny_backend import AnnyBody
+
+    return _memo(body, ("posing", str(device)), lambda: AnnyBody(replace(body.config, device=str(device))))
 
 
 def _shape_tensor(fit, shape):
@@ -144,7 +162,8 @@ def sample_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radi
     from uvatar.avh.bake.photometric import surface_colours
 
     use = refine_vertices(body, config)
-    v, n, _ = _posed(body, body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale, _shape_tensor(fit, shape))
+    v, n, _ = _posed(_posing_body(body, device), body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale,
+                     _shape_tensor(fit, shape))
     colour, grad, ok = surface_colours(surface, scan_mesh, v[use], n[use], radius, config.photometric_max_distance,
                                        float(np.cos(np.radians(config.max_normal_angle_deg))),
                                        config.photometric_space, device)
@@ -328,10 +347,11 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     of the previous colour round): the first iteration uses it instead of sampling the scan again
     (the same colours). final_colour_residual: False skips sampling the colours after the last step,
     which only the stats' last ``colour_residual`` would use (the bake's colour rounds).
-    device: a torch device (``BakeConfig.torch_device``) for the nearest scan samples
-    (:meth:`~uvatar.avh.bake.register.ScanSurface.nearest_sample`) and the normal equations
-    (:func:`_normal_equations_torch`) and the scan's texture (:func:`.register.scan_colours`); None: the
-    k-d tree, the grouped numpy products and numpy's texture lookup.
+    device: a torch device (``BakeConfig.torch_device``) for the posing (:func:`_posing_body`), the
+    nearest scan samples (:meth:`~uvatar.avh.bake.register.ScanSurface.nearest_sample`), the normal
+    equations (:func:`_normal_equations_torch`), the stencil rays and the scan's texture
+    (:func:`.photometric.ray_colours`); None: the CPU body, the k-d tree, the grouped numpy products and
+    the numpy stencils.
     """
     from scipy.spatial.transform import Rotation
 
@@ -351,6 +371,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     rh = np.asarray(fit.Rh, np.float64).copy()
     th = np.asarray(fit.Th, np.float64).copy()
     shape_t = _shape_tensor(fit, shape)
+    posing = _posing_body(body, device)
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
     max_angle = np.radians(config.max_step_deg)
     k = len(joints)
@@ -365,7 +386,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
 
     diag = None
     for it in range(iterations + 1):
-        v, n, tr = _posed(body, rot, rh, th, fit.scale, shape_t)
+        v, n, tr = _posed(posing, rot, rh, th, fit.scale, shape_t)
         v, n = v[use], n[use]
         if diag is None:
             diag = float(np.linalg.norm(v.max(0) - v.min(0)))
