@@ -433,3 +433,20 @@ def test_colour_round_with_torch_stages_matches(device):
     out, stats = refine_fit(model, noisy, surface, config, photo=target, scan_mesh=scan, device=device)
     np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6 if cpu else 1e-4, rtol=0)
     np.testing.assert_allclose(stats["colour_residual"], ref_stats["colour_residual"], rtol=1e-6 if cpu else 1e-2)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_anny_twin_on_a_device_poses_like_the_body(device):
+    """The refinement's posing body on a device (:func:`uvatar.avh.bake.refine._anny_on`; the CPU twin
+    here stands in for CUDA's in CI): the same vertices, normals and joints (float32 round-off)."""
+    from test_avh_bake_helpers import body, frame_pose
+
+    from uvatar.avh.bake.refine import _anny_on, _posed, _posing_body
+
+    model = body()
+    assert _posing_body(model, "cpu") is model and _posing_body(model, None) is model
+    twin = _anny_on(model, device)
+    assert twin is not model and str(twin.device).startswith(device)
+    args = (frame_pose(model, 2).reshape(-1, 3), np.array([0.0, 0.4, 0.0]), np.array([0.1, 0.0, -0.2]), 1.0, None)
+    for got, want in zip(_posed(twin, *args), _posed(model, *args), strict=True):
+        np.testing.assert_allclose(got, want, atol=1e-5 if device == "cpu" else 1e-4, rtol=0)

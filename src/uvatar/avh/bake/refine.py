@@ -121,11 +121,16 @@ def _posing_body(body, device: str | None):
 
     if device is None or torch.device(device).type == "cpu" or getattr(body, "name", None) != "anny":
         return body
+    return _memo(body, ("posing", str(device)), lambda: _anny_on(body, device))
+
+
+def _anny_on(body, device):
+    """A twin of the AnnyBody ``body`` (its config) on ``device``."""
     from dataclasses import replace
 
     from uvatar.body.anny_backend import AnnyBody
 
-    return _memo(body, ("posing", str(device)), lambda: AnnyBody(replace(body.config, device=str(device))))
+    return AnnyBody(replace(body.config, device=str(device)))
 
 
 def _shape_tensor(fit, shape):

@@ -390,8 +390,8 @@ class _TorchOps:
                     return torch.sparse.spsolve(system, rhs)
                 return torch.stack([torch.sparse.spsolve(system, rhs[:, j].contiguous())
                                     for j in range(rhs.shape[1])], 1)
-            except (RuntimeError, NotImplementedError):   # this torch has no cuDSS: the dense factorization
-                self.solver = "cholesky"
+            except (RuntimeError, NotImplementedError, TypeError, ValueError):
+                self.solver = "cholesky"          # no cuDSS in this torch (or not for this system): dense
         if self._dense is None:
             self._dense = self.ltl.to_dense()
         system = k * self._dense
