@@ -140,8 +140,8 @@ class WarpRayCaster(RayCaster):
 
     def any_hit_torch(self, origins, directions):
         """:meth:`RayCaster.any_hit_torch` on this BVH: tensors on the caster's device are cast there
-        (zero-copy; directions normalized as :meth:`any_hit` does, unlimited distance); others go
-        through numpy."""
+        (zero-copy, on torch's current stream; directions normalized as :meth:`any_hit` does, unlimited
+        distance); others go through numpy."""
         import torch
 
         if not self._here(origins):
@@ -157,7 +157,7 @@ class WarpRayCaster(RayCaster):
         far = torch.full((n,), 3e38, dtype=torch.float32, device=origins.device)
         wp.launch(any_hit_kernel, dim=n, inputs=[self._mesh.id, wp.from_torch(o, dtype=wp.vec3),
                                                  wp.from_torch(d, dtype=wp.vec3), wp.from_torch(far), wp.from_torch(out)],
-                  device=wp.device_from_torch(origins.device))
+                  device=wp.device_from_torch(origins.device), stream=_torch_stream(origins.device))
         return out >= 0
 
     def first_hit_torch(self, origins, directions, max_distance=None):
@@ -185,7 +185,7 @@ class WarpRayCaster(RayCaster):
                       inputs=[self._mesh.id, wp.from_torch(o, dtype=wp.vec3), wp.from_torch(d, dtype=wp.vec3),
                               wp.from_torch(far), wp.from_torch(prim), wp.from_torch(u), wp.from_torch(v),
                               wp.from_torch(t)],
-                      device=wp.device_from_torch(dev))
+                      device=wp.device_from_torch(dev), stream=_torch_stream(dev))
         hit, face, distance, bary = _raw_hits(prim, u, v, t)
         return _finish_hits(o, d, hit, face, distance, bary)
 
@@ -193,6 +193,12 @@ class WarpRayCaster(RayCaster):
         """Is ``tensor`` on this caster's Warp device?"""
         wp = _warp()
         return wp.device_from_torch(tensor.device) == wp.get_device(self.device)
+
+
+def _torch_stream(device):
+    """torch's current stream on a CUDA ``device`` as Warp's (:func:`warp_stream`: the launch is ordered
+    with the torch work around it); None on the CPU."""
+    return warp_stream(device) if device.type == "cuda" else None
 
 
 def _rays_torch(origins, directions):
