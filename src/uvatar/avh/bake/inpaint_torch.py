@@ -4,9 +4,10 @@ OpenCV's Telea (the CPU path, :mod:`.inpaint`) marches the unknown texels one at
 their distance T to the known ones, each taking a weighted mean of the known (or already filled)
 texels within ``radius``: weight ``|dir * dst * lev|`` with ``r = p - q``, ``dir = r . grad T(p)``
 (at least 1e-6), ``dst = 1 / |r|^3``, ``lev = 1 / (1 + |T(q) - T(p)|)``. A sequential march does not
-fit a GPU, so here the texels are filled a *layer* at a time: every texel with ``ceil(T) = l`` at once,
-from the known texels and the layers before it (within ``radius`` there is always such a texel: the
-step toward the nearest known texel). T is the Euclidean distance to the nearest known texel (signed:
+fit a GPU, so here the texels are filled a *layer* at a time: every texel with ``ceil(T / LAYER_STEP)
+= l`` at once (half a texel of T per layer), from the known texels and the layers before it (within
+``radius`` there is always such a texel: the step toward the nearest known texel); grad T is OpenCV's
+one-sided difference where a neighbour is not filled yet. T is the Euclidean distance to the nearest known texel (signed:
 negative outside the hole, as OpenCV's outward march makes it), from a jump flood
 (:func:`nearest_seed`), not OpenCV's eikonal march; the nearest-texel fill beyond ``band`` and outside
 ``within`` uses the same flood instead of scipy's exact distance transform.
