@@ -137,7 +137,6 @@ class WarpRayCaster(RayCaster):
             wp.launch(first_hit_kernel, dim=n, inputs=[self._mesh.id, o, d, f, prim, u, v, t], device=dev)
         return prim.numpy(), u.numpy(), v.numpy(), t.numpy()
 
-
     def any_hit_torch(self, origins, directions):
         """:meth:`RayCaster.any_hit_torch` on this BVH: tensors on the caster's device are cast there
         (zero-copy, on torch's current stream; directions normalized as :meth:`any_hit` does, unlimited
