@@ -191,16 +191,26 @@ def vertex_visibility(vertices, faces, caster: RayCaster | None = None, n_rays: 
 
 
 def distance_score(distance, clip: float) -> np.ndarray:
-    """delta = 1 - min(d, clip) / clip in [0, 1]; d (..., ) metres (inf -> 0)."""
-    d = np.minimum(np.asarray(distance, dtype=np.float64), clip)
+    """delta = 1 - min(d, clip) / clip in [0, 1]; d (..., ) metres (inf -> 0). numpy, or a torch
+    tensor (float64 out)."""
+    if is_torch(distance):
+        import torch
+
+        d = distance.to(torch.float64).clamp(max=clip)
+    else:
+        d = np.minimum(np.asarray(distance, dtype=np.float64), clip)
     return 1.0 - d / clip
 
 
 def normal_match_score(n, m) -> np.ndarray:
-    """nms = (n . m + 1) / 2 for unit normals n, m (..., 3): 1 aligned, 0 opposite."""
+    """nms = (n . m + 1) / 2 for unit normals n, m (..., 3): 1 aligned, 0 opposite (numpy or torch)."""
+    if is_torch(n):
+        return (((n * m).sum(-1) + 1.0) / 2.0).clamp(0.0, 1.0)
     return np.clip(((np.asarray(n) * np.asarray(m)).sum(-1) + 1.0) / 2.0, 0.0, 1.0)
 
 
 def confidence(v, w, delta, nms) -> np.ndarray:
-    """kappa = v * w * delta * nms (all in [0, 1], same shape)."""
+    """kappa = v * w * delta * nms (all in [0, 1], same shape; numpy or torch)."""
+    if is_torch(v):
+        return v * w * delta * nms
     return np.asarray(v) * np.asarray(w) * np.asarray(delta) * np.asarray(nms)

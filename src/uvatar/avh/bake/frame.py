@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -158,6 +159,19 @@ class BodyLayout:
             cached = self.faces[self.texel_face]
             self.__dict__["_texel_vertices"] = cached
         return cached
+
+    def to_map_torch(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
+        """:meth:`to_map` of a tensor (M[, C]) on its device: the map laid out there and read back (numpy)."""
+        import torch
+
+        v = texel_values
+        r = self.resolution
+        key = ("texel_flat", str(v.device))
+        if key not in self._cache:
+            self._cache[key] = torch.as_tensor(self.texel_flat, device=v.device)
+        out = torch.full((r * r, *v.shape[1:]), fill, dtype=getattr(torch, np.dtype(dtype).name), device=v.device)
+        out[self._cache[key]] = v.to(out.dtype)
+        return out.reshape(r, r, *v.shape[1:]).cpu().numpy()
 
     def to_map(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
         """(M[, C]) values at the valid texels -> (R, R[, C]) map, ``fill`` elsewhere."""
@@ -322,8 +336,6 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
             n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
         matches = match_texels(r, n, surface, config.polarity_rule, config.polarity_ratio,
                                config.max_match_distance, eps)
-        if device is not None:
-            r, n = r.cpu().numpy(), n.cpu().numpy()
         hit = matches.hit
     with _timed(sec, "texture", rays, cpu):
         if device is None:
@@ -338,26 +350,46 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         w_vertex = vertex_visibility(registered, layout.faces, w_caster, config.visibility_rays, eps,
                                      needed=layout.texel_vertices.ravel(), stratified=config.visibility_stratified,
                                      device=config.torch_device)
-        w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
+        w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0) if device is None else \
+            layout.at_texels_torch(w_vertex, device).clamp(0.0, 1.0)
+    # on a device: the matches' tensors kept there (hit, distance, face, bary, scan normals), n there too
+    m = matches if device is None else SimpleNamespace(**matches.on_device)
     with _timed(sec, "confidence", rays, cpu):
-        delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
-        nms = normal_match_score(n, matches.scan_normal)
-        use = hit & (w * delta * nms > 0)
+        delta = distance_score(_where(m.hit, m.distance, np.inf), config.distance_clip * diag)
+        nms = normal_match_score(n, m.scan_normal)
+        use = m.hit & (w * delta * nms > 0)
     with _timed(sec, "visibility_scan", rays, cpu):
         # the scan's visibility v only matters where the other factors of kappa are not zero: only the
         # scan faces around those texels' matches are ray cast (the same values there)
-        hit_vertices = surface.faces[matches.face[use]]                           # (K, 3)
+        if device is None:
+            hit_vertices = surface.faces[matches.face[use]]                       # (K, 3)
+            needed = hit_vertices.ravel()
+        else:
+            hit_vertices, needed = _needed_scan_vertices(surface, m.face[use])
         v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster, config.visibility_rays, eps,
-                                     needed=hit_vertices.ravel(), stratified=config.visibility_stratified,
+                                     needed=needed, stratified=config.visibility_stratified,
                                      device=config.torch_device)
-        v = np.zeros(len(r))
-        v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
-        kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
+        if device is None:
+            v = np.zeros(len(r))
+            v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
+        else:
+            import torch
+
+            v = torch.zeros(len(r), dtype=torch.float64, device=device)
+            v[use] = torch.einsum("kj,kj->k", torch.as_tensor(v_vertex, device=device)[hit_vertices],
+                                  m.bary[use].to(torch.float64))
+        kappa = _where(m.hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
     with _timed(sec, "inpaint", rays, cpu):
         matched_map = layout.to_map(hit, fill=False, dtype=bool)
         texture, displacement = _inpaint_maps(layout, colors, disp, matched_map, config)
+    if device is not None:   # the maps laid out on the device, the per-texel values read back for the stats
+        kappa_map, w_map, points_map = (layout.to_map_torch(a, dtype=dt)
+                                        for a, dt in ((kappa, np.float32), (w, np.float32), (m.points, np.float64)))
+        kappa, w = kappa.cpu().numpy(), w.cpu().numpy()
+    else:
+        kappa_map, w_map = layout.to_map(kappa), layout.to_map(w)
+        points_map = layout.to_map(matches.points, dtype=np.float64)
     valid = layout.raster.mask.copy()
-    kappa_map = layout.to_map(kappa)
     surface_texels = layout.surface_texels(config.interior_visibility, config.visibility_rays,
                                            config.visibility_stratified)
     on_surface = kappa if surface_texels is None else kappa[surface_texels]
@@ -379,12 +411,36 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         texture=np.clip(texture, 0.0, 1.0).astype(np.float32),
         displacement=displacement.astype(np.float32),
         kappa=kappa_map,
-        w=layout.to_map(w),
+        w=w_map,
         valid=valid,
         matched=matched_map,
-        points=layout.to_map(matches.points, dtype=np.float64),
+        points=points_map,
         stats=stats,
     )
+
+
+def _where(condition, a, b):
+    """``np.where``, or ``torch.where`` for a tensor condition."""
+    if type(condition).__module__.startswith("torch"):
+        import torch
+
+        return torch.where(condition, a, b)
+    return np.where(condition, a, b)
+
+
+def _needed_scan_vertices(surface: ScanSurface, faces_of_hits):
+    """(the scan vertices of those faces (K, 3) tensor, the distinct ones (numpy indices)): the
+    visibility_scan stage's vertex set from hit faces (K,) on a torch device (the scan's faces kept
+    there with ``surface``)."""
+    import torch
+
+    key = ("faces", str(faces_of_hits.device))
+    if key not in surface.on_device:
+        surface.on_device[key] = torch.as_tensor(surface.faces, device=faces_of_hits.device)
+    hit_vertices = surface.on_device[key][faces_of_hits]
+    mask = torch.zeros(len(surface.vertices), dtype=torch.bool, device=faces_of_hits.device)
+    mask[hit_vertices.reshape(-1)] = True
+    return hit_vertices, np.flatnonzero(mask.cpu().numpy())
 
 
 def _texel_colours_and_displacements(layout: BodyLayout, shadow, surface, scan, matches, device):
