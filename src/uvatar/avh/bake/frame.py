@@ -160,6 +160,15 @@ class BodyLayout:
             self.__dict__["_texel_vertices"] = cached
         return cached
 
+    @property
+    def texel_vertex_set(self) -> np.ndarray:
+        """(K,) int64 the distinct body vertices of the valid texels' triangles (cached): the vertices
+        whose visibility the texels read."""
+        cached = self.__dict__.get("_texel_vertex_set")
+        if cached is None:
+            cached = self.__dict__["_texel_vertex_set"] = np.unique(self.texel_vertices)
+        return cached
+
     def to_map_torch(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
         """:meth:`to_map` of a tensor (M[, C]) on its device: the map laid out there and read back (numpy)."""
         import torch
@@ -348,7 +357,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     with _timed(sec, "visibility_registered", rays, cpu):
         w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
         w_vertex = vertex_visibility(registered, layout.faces, w_caster, config.visibility_rays, eps,
-                                     needed=layout.texel_vertices.ravel(), stratified=config.visibility_stratified,
+                                     needed=layout.texel_vertex_set, stratified=config.visibility_stratified,
                                      device=config.torch_device)
         w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0) if device is None else \
             layout.at_texels_torch(w_vertex, device).clamp(0.0, 1.0)
