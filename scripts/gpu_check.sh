@@ -2,13 +2,13 @@
 # The GPU figures of issue 39 in one call on a lent GPU (the device tool), most important first:
 #   run(command="bash scripts/gpu_check.sh", timeout_s=600)          # dva avh tests bake, within $BUDGET s (560)
 #   run(command="bash scripts/gpu_check.sh avh tests", timeout_s=300) # some parts: dva avh tests compile bake train
-#   run(command="bash scripts/gpu_check.sh bake tests", timeout_s=420) # the GPU bake (issue 39 item 3) and its tests
+#   run(command="bash scripts/gpu_check.sh bake tests", timeout_s=420) # the GPU bake (issue 39 item 3) and the tests
 # (compile: compiled against eager on the machine's CPU, which CI's machine can do too; bake: the CUDA bake,
 # which needs anny carried as well; train: bench/dva_train.py's paper-scale step, synchronised and pipelined)
 # Env overrides: BUDGET (s), DVA_PATHS / DVA_REPEATS / DVA_PAIRS (bench/dva_frame.py's --paths, --repeats,
 # --pairs-per-ray: the marcher's fixed pair buffer per ray), AVH_SECONDS / AVH_FAST / AVH_MODES / AVH_ITERS,
-# TRAIN_STEPS. Issue 39's sync-free frame: the dva part's paths "+exact" (the old read-back per frame),
-# plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
+# TRAIN_STEPS, BAKE_SECONDS / BAKE_FRAMES / BAKE_WORKERS, TESTS_SECONDS. Issue 39's sync-free frame: the dva
+# part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
 # <path>_drive_psnr_vs_ref, <path>_pairs_per_ray_peak and <path>_pair_overflows; the training rows
 # train_<p>_step_ms and train_<p>_pipelined_step_ms.
@@ -72,9 +72,10 @@ for part in $PARTS; do
         --compile-modes "${AVH_MODES:-reduce-overhead}" --iters "${AVH_ITERS:-30}" ;;
     tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher, a
             # driven frame under sync debug mode "error" and replayed from its CUDA graph, the bake's torch stages
-      run_part tests 120 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -p no:cacheprovider \
+      run_part tests "${TESTS_SECONDS:-180}" "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
-        tests/test_dva_frame_sync.py tests/test_devices.py tests/test_avh_bake_torch.py ;;
+        tests/test_dva_frame_sync.py tests/test_devices.py tests/test_avh_bake_torch.py \
+        tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
       run_part train 150 "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper --grids 64 \
         --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} ;;
@@ -88,7 +89,7 @@ for part in $PARTS; do
       if python -c "import anny, warp" 2>/dev/null; then
         # --workers: the frames again on that many processes sharing the GPU (one frame's CPU work overlaps
         # another's GPU work): throughput.seconds_per_frame is the machine's wall time per frame
-        run_part bake "${BAKE_SECONDS:-240}" "$OUT/bake.json" python bench/bake.py --device cuda \
+        run_part bake "${BAKE_SECONDS:-200}" "$OUT/bake.json" python bench/bake.py --device cuda \
           --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4}"
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
