@@ -20,11 +20,22 @@ reports those stages' seconds and rays (``reference``) and how far kappa moved
 frame at a time as ``uvatar bake --workers N`` does (the frame plus its colour rounds), and reports
 the machine's throughput in wall time (``throughput``: seconds per frame and frames per hour with N
 workers; the machine may be shared, ``load_average_1min`` says how much). ``--device cuda`` runs the
-ray stages through Warp on the GPU. ``--warmup 1`` (default) first bakes the first frame once, untimed,
+ray stages through Warp on the GPU, and the rest of a frame (inpainting, the registration's solves, the
+pose refinement's and colour rounds' nearest samples, normal equations and stencil rays, the set-up of
+the texel and visibility rays, the texture lookups) through their torch twins there (``--torch-stages
+auto``, ``BakeConfig.torch_stages``; ``off`` keeps them on the CPU, ``on`` runs the twins on CPU tensors
+with ``--device cpu``: slow, a check). ``--parity`` also bakes each frame, and runs its colour rounds,
+with ``torch_stages="off"`` (untimed) and reports how far the torch stages moved the results
+(``parity``: over the texels with kappa > 0.5 of the reference, the median and max |delta x| in mm, and
+the texture PSNR of both bakes against the scan's texture read at each texel's own UV (the scan carries
+the body's UV layout; the difference of the two PSNRs is the figure); kappa_mean; the largest
+difference of an inpainted texel; the refined poses after the bake and after its colour rounds).
+``--warmup 1`` (default) first bakes the first frame once, untimed,
 in each process: the one-off imports and first allocations of a worker (~0.4 s) are paid once per
 process, not per frame (``--warmup 0`` times them into the first frame, as the bench did before).
 
     python bench/bake.py [--quick] [--frames 2] [--texels 1024] [--reference] [--workers N] [--device cpu|cuda]
+                         [--torch-stages auto|on|off] [--parity]
 """
 
 from __future__ import annotations
@@ -83,8 +94,8 @@ def _colour_targets(model, truth, scan, surface, config) -> list:
     return out
 
 
-def _colour_rounds(model, fit, targets, scan, surface, config) -> tuple[Clock, int]:
-    """(Clock, rays) of a frame's colour rounds as the bake runs them
+def _colour_rounds(model, fit, targets, scan, surface, config) -> tuple[Clock, int, object]:
+    """(Clock, rays, the fit they end with) of a frame's colour rounds as the bake runs them
     (:func:`uvatar.avh.bake.refine_together._refine_task`): the colours sampled after the geometric
     refinement, then per radius a refinement of ``fit`` against its target (:func:`_colour_targets`)
     that starts from the sample the previous round ended with, followed by the sample at the next
@@ -98,13 +109,13 @@ def _colour_rounds(model, fit, targets, scan, surface, config) -> tuple[Clock, i
     with single_threaded():
         r0 = rays_cast()
         with Clock() as clock:
-            sample = sample_colours(model, fit, surface, scan, pr, radii[0])
+            sample = sample_colours(model, fit, surface, scan, pr, radii[0], device=config.torch_device)
             for i, target in enumerate(targets):
                 fit, _ = refine_fit(model, fit, surface, pr, photo=target, scan_mesh=scan, start_sample=sample,
-                                    final_colour_residual=False)
+                                    final_colour_residual=False, device=config.torch_device)
                 if i + 1 < len(radii):
-                    sample = sample_colours(model, fit, surface, scan, pr, radii[i + 1])
-        return clock, rays_cast() - r0
+                    sample = sample_colours(model, fit, surface, scan, pr, radii[i + 1], device=config.torch_device)
+        return clock, rays_cast() - r0, fit
 
 
 def _paper_visibility(model, fit, layout, scan, surface, baked, config) -> dict:
@@ -134,6 +145,40 @@ def _paper_visibility(model, fit, layout, scan, surface, baked, config) -> dict:
             "vertex_visibility": (float(dv.mean()), float(np.percentile(dv, 99)), float(dv.max()))}
 
 
+def _parity(model, fit, layout, scan, surface, baked, used, rounds_fit, targets, config) -> dict:
+    """How far the torch stages moved a frame (module doc): the frame baked, and its colour rounds run,
+    again from the same fit with ``torch_stages="off"``."""
+    from dataclasses import replace
+
+    from uvatar.avh.bake.frame import bake_fit
+    from uvatar.geometry import sample_texture, texel_uv
+
+    reference = replace(config, torch_stages="off")
+    ref, ref_used = bake_fit(model, fit, layout, scan, reference, surface=surface)
+    _, _, ref_rounds_fit = _colour_rounds(model, ref_used, targets, scan, surface, reference)
+    good = ref.matched & (ref.kappa > 0.5)
+    dx = np.linalg.norm(baked.points[good] - ref.points[good], axis=-1) * 1000
+    truth = sample_texture(scan.texture, texel_uv(layout.resolution).reshape(-1, 2)).reshape(baked.texture.shape)
+
+    def psnr(texture):
+        mse = float(np.mean((texture[good].astype(np.float64) - truth[good]) ** 2))
+        return 10 * np.log10(1.0 / max(mse, 1e-20))
+
+    inpainted = baked.valid & ~ref.matched
+    poses = lambda a, b: float(np.abs(np.asarray(a.poses) - np.asarray(b.poses)).max())  # noqa: E731
+    return {"delta_x_mm_median": float(np.median(dx)) if len(dx) else 0.0,
+            "delta_x_mm_max": float(dx.max()) if len(dx) else 0.0,
+            "texture_psnr_db": psnr(baked.texture), "texture_psnr_db_reference": psnr(ref.texture),
+            "kappa_mean_abs": abs(baked.kappa_mean - ref.kappa_mean),
+            "same_matched_texels": bool(np.array_equal(baked.matched, ref.matched)),
+            "inpainted_texture_abs_max": float(np.abs(baked.texture - ref.texture)[inpainted].max())
+            if inpainted.any() else 0.0,
+            "inpainted_displacement_mm_abs_max": float(np.abs(baked.displacement - ref.displacement)[inpainted].max()
+                                                       * 1000) if inpainted.any() else 0.0,
+            "refined_pose_rad_abs_max": poses(used, ref_used),
+            "colour_rounds_pose_rad_abs_max": poses(rounds_fit, ref_rounds_fit)}
+
+
 def _frames(model, frames, rng):
     """[(fit to bake, the scan's true fit, scan)] of the bench's frames (drawn from ``rng`` in order)."""
     from uvatar.capture import BodyFit
@@ -151,7 +196,7 @@ def _frames(model, frames, rng):
     return out
 
 
-def _setup(texels: int, device: str):
+def _setup(texels: int, device: str, torch_stages: str = "auto"):
     """(body, layout with its per-body caches built, BakeConfig, seconds of the raster, seconds of the
     per-body caches)."""
     from uvatar.avh.bake.config import BakeConfig
@@ -162,7 +207,7 @@ def _setup(texels: int, device: str):
     t0 = time.perf_counter()
     layout = BodyLayout.from_template(model.template, texels)
     raster = time.perf_counter() - t0
-    config = BakeConfig(texels=texels, device=device)
+    config = BakeConfig(texels=texels, device=device, torch_stages=torch_stages)
     t0 = time.perf_counter()
     layout.normal_smoothing_matrix(config.registration.normal_smoothing)  # once per body, like the raster
     layout.surface_texels(config.interior_visibility, config.visibility_rays, config.visibility_stratified)
@@ -184,14 +229,14 @@ def _bake_with_rounds(model, layout, config, item, targets) -> float:
     return time.process_time() - c0
 
 
-def _worker(rank, texels, device, items, warmup, ready, go, results):
+def _worker(rank, texels, device, torch_stages, items, warmup, ready, go, results):
     """One process of the throughput run: set up (and the colour targets), say ready, wait for the
     start, bake its frames."""
     from uvatar.avh.bake.register import ScanSurface
     from uvatar.threads import limit_process_to_one_thread
 
     limit_process_to_one_thread()
-    model, layout, config, _, _ = _setup(texels, device)
+    model, layout, config, _, _ = _setup(texels, device, torch_stages)
     targets = [_colour_targets(model, truth, scan, ScanSurface.build(scan.vertices, scan.faces, device), config)
                for _, truth, scan in items]
     if items and warmup:
@@ -202,14 +247,15 @@ def _worker(rank, texels, device, items, warmup, ready, go, results):
         results.put((rank, _bake_with_rounds(model, layout, config, item, target), time.perf_counter()))
 
 
-def _throughput(workers: int, texels: int, device: str, items, warmup: int) -> dict:
+def _throughput(workers: int, texels: int, device: str, torch_stages: str, items, warmup: int) -> dict:
     """Wall seconds per frame of ``items`` baked on ``workers`` processes (the frames dealt round-robin),
     from the moment every worker is set up to the last frame done."""
     import multiprocessing as mp
 
     ctx = mp.get_context("spawn")
     ready, results, go = ctx.Queue(), ctx.Queue(), ctx.Event()
-    procs = [ctx.Process(target=_worker, args=(r, texels, device, items[r::workers], warmup, ready, go, results))
+    procs = [ctx.Process(target=_worker, args=(r, texels, device, torch_stages, items[r::workers], warmup, ready, go,
+                                                       results))
              for r in range(workers)]
     for p in procs:
         p.start()
@@ -234,6 +280,11 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=2, help="frames timed (frames_per_hour comes from their mean)")
     ap.add_argument("--texels", type=int, default=1024)
     ap.add_argument("--device", default="cpu", help="cpu (Embree) or cuda[:N] (the ray stages through Warp)")
+    ap.add_argument("--torch-stages", default="auto", choices=("auto", "on", "off"),
+                    help="the stages that cast no rays on torch (BakeConfig.torch_stages): auto = on CUDA")
+    ap.add_argument("--parity", action="store_true",
+                    help="also bake each frame (and its colour rounds) with torch_stages off, untimed, and "
+                         "report how far the torch stages moved the maps and poses")
     ap.add_argument("--reference", action="store_true",
                     help="also bake each frame with the paper's 64-ray visibility (same process): its cost, "
                          "and how far kappa moved")
@@ -249,7 +300,7 @@ def main(argv=None) -> int:
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.avh.bake.register import ScanSurface
 
-    model, layout, config, layout_seconds, per_body_seconds = _setup(texels, args.device)
+    model, layout, config, layout_seconds, per_body_seconds = _setup(texels, args.device, args.torch_stages)
     items = _frames(model, frames, np.random.default_rng(0))
     for _ in range(args.warmup):
         fit, truth, scan = items[0]
@@ -257,6 +308,7 @@ def main(argv=None) -> int:
         surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
         _colour_rounds(model, used, _colour_targets(model, truth, scan, surface, config), scan, surface, config)
     totals, cpu_totals, stages, cpu_stages, rays, kappa, rounds, rounds_r, refs = [], [], {}, {}, {}, [], [], [], []
+    parity = []
     for i, (fit, truth, scan) in enumerate(items):
         with Clock() as clock:
             baked, used = bake_fit(model, fit, layout, scan, config)
@@ -271,9 +323,11 @@ def main(argv=None) -> int:
             rays.setdefault(k, []).append(v)
         surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)  # kept by the worker
         targets = _colour_targets(model, truth, scan, surface, config)
-        round_clock, cast = _colour_rounds(model, used, targets, scan, surface, config)
+        round_clock, cast, rounds_fit = _colour_rounds(model, used, targets, scan, surface, config)
         rounds.append(round_clock)
         rounds_r.append(cast)
+        if args.parity:
+            parity.append(_parity(model, fit, layout, scan, surface, baked, used, rounds_fit, targets, config))
         if args.reference:
             refs.append(_paper_visibility(model, used, layout, scan, surface, baked, config))
         print(f"frame {i}: {totals[-1]:.2f} s ({cpu_totals[-1]:.2f} s CPU) + colour rounds {round_clock.wall:.2f} s "
@@ -296,6 +350,8 @@ def main(argv=None) -> int:
         "cpu_seconds_per_frame_with_colour_rounds": round(cpu_with_rounds, 3),
         "frames_per_hour_per_idle_core": round(3600.0 / cpu_with_rounds, 1),
         "device": args.device,
+        "torch_stages": config.torch_stages,
+        "torch_device": config.torch_device,
         "texels": texels,
         "scan_faces": int(items[0][2].num_faces),
         "frames": frames,
@@ -313,6 +369,15 @@ def main(argv=None) -> int:
         "visibility_stratified": config.visibility_stratified,
         "load_average_1min": round(os.getloadavg()[0], 2),   # the machine is shared: read timings with it
     }
+    if parity:
+        worst = {k: max(p[k] for p in parity) for k in parity[0] if k not in ("same_matched_texels",)
+                 and not k.startswith("texture_psnr")}
+        out["parity"] = {**{k: round(v, 6) for k, v in worst.items()},
+                         "texture_psnr_db_delta_abs_max": round(max(abs(p["texture_psnr_db"] - p["texture_psnr_db_reference"])
+                                                                    for p in parity), 4),
+                         "texture_psnr_db": [round(p["texture_psnr_db"], 3) for p in parity],
+                         "texture_psnr_db_reference": [round(p["texture_psnr_db_reference"], 3) for p in parity],
+                         "same_matched_texels": all(p["same_matched_texels"] for p in parity)}
     if refs:
         stages_ref = ("visibility_registered", "visibility_scan")
         cpu_ref = {k: float(np.mean([r["cpu"][k] for r in refs])) for k in stages_ref}
@@ -327,7 +392,7 @@ def main(argv=None) -> int:
                                        "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
     if args.workers > 1:
         print(f"throughput: {len(items)} frames on {args.workers} processes", file=sys.stderr)
-        out["throughput"] = _throughput(args.workers, texels, args.device, items, args.warmup)
+        out["throughput"] = _throughput(args.workers, texels, args.device, args.torch_stages, items, args.warmup)
     print(json.dumps(out))
     return 0
 

@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # The GPU figures of issue 39 in one call on a lent GPU (the device tool), most important first:
-#   run(command="bash scripts/gpu_check.sh", timeout_s=600)          # dva avh tests, within $BUDGET s (560)
+#   run(command="bash scripts/gpu_check.sh", timeout_s=600)          # dva avh tests bake, within $BUDGET s (560)
 #   run(command="bash scripts/gpu_check.sh avh tests", timeout_s=300) # some parts: dva avh tests compile bake train
+#   run(command="bash scripts/gpu_check.sh bake tests", timeout_s=420) # the GPU bake (issue 39 item 3) and the tests
 # (compile: compiled against eager on the machine's CPU, which CI's machine can do too; bake: the CUDA bake,
 # which needs anny carried as well; train: bench/dva_train.py's paper-scale step, synchronised and pipelined)
 # Env overrides: BUDGET (s), DVA_PATHS / DVA_REPEATS / DVA_PAIRS (bench/dva_frame.py's --paths, --repeats,
 # --pairs-per-ray: the marcher's fixed pair buffer per ray), AVH_SECONDS / AVH_FAST / AVH_MODES / AVH_ITERS,
-# TRAIN_STEPS. Issue 39's sync-free frame: the dva part's paths "+exact" (the old read-back per frame),
-# plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
+# TRAIN_STEPS, BAKE_SECONDS / BAKE_FRAMES / BAKE_WORKERS, TESTS_SECONDS. Issue 39's sync-free frame: the dva
+# part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
 # <path>_drive_psnr_vs_ref, <path>_pairs_per_ray_peak and <path>_pair_overflows; the training rows
 # train_<p>_step_ms and train_<p>_pipelined_step_ms.
@@ -31,7 +32,7 @@ OUT=${OUT:-$PWD/gpu_out}
 mkdir -p "$OUT"
 export PYTHONPATH=$PWD/src:$PWD${PYTHONPATH:+:$PYTHONPATH} UVATAR_COMPILE_TESTS=1 PYTHONUNBUFFERED=1
 DEADLINE=$((SECONDS + ${BUDGET:-560}))
-PARTS=${*:-dva avh tests}
+PARTS=${*:-dva avh tests bake}
 
 limit() {  # limit SECONDS: the smaller of SECONDS and what is left of the budget
   local left=$((DEADLINE - SECONDS))
@@ -69,20 +70,27 @@ for part in $PARTS; do
       run_part avh "${AVH_SECONDS:-110}" "$OUT/avh_fast.json" python bench/avh.py --device cuda --presets fc32-l1024 \
         --resolutions 1024 --no-train --no-onnx --fast "${AVH_FAST:-bf16,fp16}" \
         --compile-modes "${AVH_MODES:-reduce-overhead}" --iters "${AVH_ITERS:-30}" ;;
-    tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher, and a
-            # driven frame under sync debug mode "error" and replayed from its CUDA graph
-      run_part tests 100 "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -p no:cacheprovider \
+    tests)  # the CUDA parity tests: fast paths against their fp32 twins, the device unwrap, the marcher, a
+            # driven frame under sync debug mode "error" and replayed from its CUDA graph, the bake's torch stages
+      run_part tests "${TESTS_SECONDS:-180}" "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
-        tests/test_dva_frame_sync.py tests/test_devices.py ;;
+        tests/test_dva_frame_sync.py tests/test_devices.py tests/test_avh_bake_torch.py \
+        tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
       run_part train 150 "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper --grids 64 \
         --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} ;;
     compile)  # compiled against eager (torch.compile on the machine's CPU cores; ~130 s on 2 cores)
       run_part compile 90 "$OUT/pytest_compile.txt" python -m pytest -q -x -p no:cacheprovider -k compiled \
         tests/test_dva_frame.py tests/test_avh_inference.py ;;
-    bake)  # the bake on CUDA (needs anny and Warp)
+    bake)  # the bake on CUDA (needs anny and Warp): its rays through Warp and the stages that cast no rays
+           # on torch (<= 0.3 s per frame with the colour rounds), with --parity: the same frames again with
+           # those stages on the CPU (torch_stages off), and how far the maps and poses moved (eval unchanged:
+           # |delta x| median < 0.1 mm, texture PSNR within 0.2 dB)
       if python -c "import anny, warp" 2>/dev/null; then
-        run_part bake 120 "$OUT/bake.json" python bench/bake.py --device cuda --frames 2
+        # --workers: the frames again on that many processes sharing the GPU (one frame's CPU work overlaps
+        # another's GPU work): throughput.seconds_per_frame is the machine's wall time per frame
+        run_part bake "${BAKE_SECONDS:-200}" "$OUT/bake.json" python bench/bake.py --device cuda \
+          --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4}"
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;

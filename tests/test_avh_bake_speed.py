@@ -47,8 +47,8 @@ def test_scan_visibility_is_cast_only_where_it_changes_kappa(setup, baked, monke
     culled = baked.stats["rays"]["visibility_scan"]
     every = frame_module.vertex_visibility
 
-    def all_faces(vertices, faces, caster=None, n_rays=64, offset=1e-4, needed=None, stratified=False):
-        return every(vertices, faces, caster, n_rays, offset, stratified=stratified)
+    def all_faces(vertices, faces, caster=None, n_rays=64, offset=1e-4, needed=None, stratified=False, device=None):
+        return every(vertices, faces, caster, n_rays, offset, stratified=stratified, device=device)
 
     monkeypatch.setattr(frame_module, "vertex_visibility", all_faces)
     reference = bake_frame(shadow, layout, scan, FAST)

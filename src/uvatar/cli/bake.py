@@ -15,14 +15,21 @@ from uvatar.cli.flags import ConfigFlags
 
 def _flags():
     """(BakeConfig, RegistrationConfig, PoseRefineConfig, SelectConfig) flags of ``bake`` and ``select``."""
-    from uvatar.avh.bake.config import STAGE_MODES, BakeConfig, PoseRefineConfig, RegistrationConfig
+    from uvatar.avh.bake.config import (
+        STAGE_MODES,
+        TORCH_STAGES,
+        BakeConfig,
+        PoseRefineConfig,
+        RegistrationConfig,
+    )
     from uvatar.avh.bake.select import SelectConfig
 
     bake = ConfigFlags(BakeConfig, fields=(
         "texels", "refine_pose", "register", "polarity_rule", "polarity_ratio", "max_match_distance",
         "visibility_rays", "visibility_stratified", "distance_clip", "inpaint_radius", "inpaint_band", "inpaint_gutter", "reject_kappa",
-        "reject_colour_ratio", "device", "scan_cache_mb"),
-        rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band", "inpaint_gutter"), help={
+        "reject_colour_ratio", "device", "torch_stages", "scan_cache_mb"),
+        rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band", "inpaint_gutter"),
+        choices={"torch_stages": TORCH_STAGES}, help={
             "texels": "UV map resolution R",
             "refine_pose": "refine the fit against the scan (articulated); --no-refine-pose keeps the fit as is",
             "register": "pairwise registration; --no-register skips it (ablation)",
@@ -44,6 +51,8 @@ def _flags():
                                    "not its mesh's, a fit off the scan; 0 = off)",
             "device": "where the ray stages run: cpu (Embree) or cuda[:N] (NVIDIA Warp; pip install "
                       "'uvatar[kernels]')",
+            "torch_stages": "the rest of a frame (inpainting, solves, refinement, ray set-up) on torch on "
+                            "--device: auto (on CUDA), on (also on the CPU: slow, for checks) or off",
             "scan_cache_mb": "MB of scans each worker keeps read and prepared between the colour rounds and the "
                              "bake (0 = read every time; same results)"})
     refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight",

@@ -132,11 +132,17 @@ def frames_from_normals(normals) -> np.ndarray:
     """(N, 3, 3) orthonormal frames with columns (t, b, n) for unit normals n (N, 3).
 
     Branchless construction of Duff et al. 2017 ("Building an orthonormal basis, revisited").
+    numpy (float64), or a torch tensor (float64, on its device).
     """
-    n = np.asarray(normals, dtype=np.float64)
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    if is_torch(normals):
+        import torch as xp
+
+        n = normals.to(xp.float64)
+    else:
+        xp, n = np, np.asarray(normals, dtype=np.float64)
+    sign = xp.where(n[:, 2] >= 0, 1.0, -1.0)
     a = -1.0 / (sign + n[:, 2])
     b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
-    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
-    return np.stack([t, bt, n], axis=2)
+    t = xp.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    bt = xp.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    return xp.stack([t, bt, n], axis=2)

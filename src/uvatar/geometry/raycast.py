@@ -107,6 +107,48 @@ def _all_inf(max_distance) -> bool:
     return bool(np.isinf(max_distance).all())
 
 
+def _raw_hits(prim, u, v, t, min_distance: float = 0.0, dtype=None):
+    """(hit, face int64, distance (inf for misses), bary with columns 1 and 2 set) from a batch call's
+    raw (primID, u, v, tfar): numpy arrays (in ``dtype``) or torch tensors (in the dtype of ``t``)."""
+    if type(prim).__module__.startswith("torch"):
+        import torch
+
+        hit = prim >= 0
+        distance = torch.where(hit, t + min_distance, torch.full_like(t, float("inf")))
+        bary = torch.empty((len(prim), 3), dtype=t.dtype, device=t.device)
+        face = prim.to(torch.int64)
+    else:
+        hit = prim >= 0
+        distance = np.where(hit, t.astype(dtype) + dtype(min_distance), dtype(np.inf))
+        bary = np.empty((len(prim), 3), dtype=dtype)
+        face = prim.astype(np.int64)
+    bary[:, 1], bary[:, 2] = u, v
+    return hit, face, distance, bary
+
+
+def _finish_hits(origins, directions, hit, face, distance, bary) -> RayHits:
+    """The :class:`RayHits` of a batch: bary's first column, clipped and renormalized where round-off
+    at an edge left [0, 1], zeros and points for the rays (numpy arrays or torch tensors)."""
+    torch_mode = type(bary).__module__.startswith("torch")
+    bary[:, 0] = 1 - bary[:, 1] - bary[:, 2]
+    if len(bary) and (bary.min() < 0 or bary.max() > 1):  # round-off at edges
+        if torch_mode:
+            bary.clamp_(0.0, 1.0)
+            bary /= bary.sum(1, keepdim=True).clamp_min(1e-30)
+        else:
+            np.clip(bary, 0.0, 1.0, out=bary)
+            bary /= np.maximum(bary.sum(1, keepdims=True), bary.dtype.type(1e-30))
+    bary *= hit[:, None]
+    if torch_mode:
+        import torch
+
+        points = origins + directions * torch.where(hit, distance, torch.zeros_like(distance))[:, None]
+    else:
+        points = origins + directions * np.where(hit, distance, distance.dtype.type(0))[:, None]
+    points *= hit[:, None]
+    return RayHits(hit=hit, distance=distance, face=face, bary=bary, points=points)
+
+
 def _moller_trumbore(origins, directions, v0, v1, v2):
     """Ray/triangle intersection, float64, broadcasting. Returns t, u, v (u weights v1, v weights v2)."""
     e1 = v1 - v0
@@ -209,15 +251,10 @@ class RayCaster:
         """
         dtype = self._dtype
         origins, directions, max_distance = _prepare_rays(origins, directions, max_distance, dtype)
-        n = len(origins)
         start = origins + directions * dtype(min_distance) if min_distance else origins
         tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
         prim, u, v, t = self._cast(start, directions, tfar)
-        hit = prim >= 0
-        face = prim.astype(np.int64)
-        distance = np.where(hit, t.astype(dtype) + dtype(min_distance), dtype(np.inf))
-        bary = np.empty((n, 3), dtype=dtype)
-        bary[:, 1], bary[:, 2] = u, v
+        hit, face, distance, bary = _raw_hits(prim, u, v, t, min_distance, dtype)
         if self.config.refine and hit.any():
             idx = np.flatnonzero(hit)
             tri = self._triangles[face[idx]]
@@ -227,14 +264,19 @@ class RayCaster:
             distance[idx] = np.where(good, rt, distance[idx])
             bary[idx, 1] = np.where(good, ru, bary[idx, 1])
             bary[idx, 2] = np.where(good, rv, bary[idx, 2])
-        bary[:, 0] = 1 - bary[:, 1] - bary[:, 2]
-        if len(bary) and (bary.min() < 0 or bary.max() > 1):  # round-off at edges
-            np.clip(bary, 0.0, 1.0, out=bary)
-            bary /= np.maximum(bary.sum(1, keepdims=True), dtype(1e-30))
-        bary *= hit[:, None]
-        points = origins + directions * np.where(hit, distance, dtype(0))[:, None]
-        points *= hit[:, None]
-        return RayHits(hit=hit, distance=distance, face=face, bary=bary, points=points)
+        return _finish_hits(origins, directions, hit, face, distance, bary)
+
+    def first_hit_torch(self, origins, directions, max_distance=None) -> RayHits:
+        """:meth:`first_hit` of torch tensors: origins, directions (N, 3) float32, max_distance (N,)
+        tensor or None (unlimited) -> :class:`RayHits` of tensors on their device. Here through numpy
+        (Embree); :class:`~uvatar.geometry.raycast_warp.WarpRayCaster` casts tensors on its own device
+        where they are, with the same post-processing (:func:`_raw_hits`, :func:`_finish_hits`)."""
+        import torch
+
+        far = np.inf if max_distance is None else max_distance.detach().cpu().numpy()
+        hits = self.first_hit(origins.detach().cpu().numpy(), directions.detach().cpu().numpy(), far)
+        return RayHits(*(torch.as_tensor(getattr(hits, k), device=origins.device)
+                         for k in ("hit", "distance", "face", "bary", "points")))
 
     def any_hit(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
         """(N,) bool: does the ray meet any surface within (min_distance, max_distance]? (occlusion)"""
@@ -243,6 +285,15 @@ class RayCaster:
         start = origins + directions * dtype(min_distance) if min_distance else origins
         tfar = None if (not min_distance and _all_inf(max_distance)) else max_distance - min_distance
         return self._cast(start, directions, tfar, query="OCCLUDED") != -1
+
+    def any_hit_torch(self, origins, directions):
+        """:meth:`any_hit` (unlimited distance) of torch tensors origins, directions (N, 3) float32 ->
+        (N,) bool tensor on their device. Here through numpy (Embree); :class:`WarpRayCaster` on its
+        own device casts them where they are, without a copy."""
+        import torch
+
+        hit = self.any_hit(origins.detach().cpu().numpy(), directions.detach().cpu().numpy())
+        return torch.as_tensor(hit, device=origins.device)
 
     def count_hits(self, origins, directions, max_distance=np.inf, min_distance: float = 0.0) -> np.ndarray:
         """(N,) int64: number of surface crossings within (min_distance, max_distance].

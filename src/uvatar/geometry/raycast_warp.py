@@ -21,7 +21,7 @@ from functools import lru_cache
 import numpy as np
 
 from uvatar.errors import require
-from uvatar.geometry.raycast import RayCaster, RayCasterConfig
+from uvatar.geometry.raycast import _RAYS, RayCaster, RayCasterConfig
 
 __all__ = ["WarpRayCaster", "warp_device", "any_hit_torch", "MeshOccluder"]
 
@@ -136,6 +136,80 @@ class WarpRayCaster(RayCaster):
         if n:
             wp.launch(first_hit_kernel, dim=n, inputs=[self._mesh.id, o, d, f, prim, u, v, t], device=dev)
         return prim.numpy(), u.numpy(), v.numpy(), t.numpy()
+
+    def any_hit_torch(self, origins, directions):
+        """:meth:`RayCaster.any_hit_torch` on this BVH: tensors on the caster's device are cast there
+        (zero-copy, on torch's current stream; directions normalized as :meth:`any_hit` does, unlimited
+        distance); others go through numpy."""
+        import torch
+
+        if not self._here(origins):
+            return super().any_hit_torch(origins, directions)
+        wp = _warp()
+        _, any_hit_kernel = _kernels()
+        n = origins.shape[0]
+        out = torch.empty(n, dtype=torch.int32, device=origins.device)
+        if n == 0:
+            return out.bool()
+        o, d = _rays_torch(origins, directions)
+        _RAYS["OCCLUDED"] += n
+        far = torch.full((n,), 3e38, dtype=torch.float32, device=origins.device)
+        wp.launch(any_hit_kernel, dim=n, inputs=[self._mesh.id, wp.from_torch(o, dtype=wp.vec3),
+                                                 wp.from_torch(d, dtype=wp.vec3), wp.from_torch(far), wp.from_torch(out)],
+                  device=wp.device_from_torch(origins.device), stream=_torch_stream(origins.device))
+        return out >= 0
+
+    def first_hit_torch(self, origins, directions, max_distance=None):
+        """:meth:`RayCaster.first_hit_torch` on this BVH: tensors on the caster's device are cast there
+        (zero-copy) and their hits assembled there by the numpy path's own steps (float32 fast path
+        only; a caster that refines hits in float64, or tensors elsewhere, go through numpy)."""
+        import torch
+
+        from uvatar.geometry.raycast import _finish_hits, _raw_hits
+
+        if not self._here(origins) or self.config.refine or self._dtype != np.float32:
+            return super().first_hit_torch(origins, directions, max_distance)
+        wp = _warp()
+        first_hit_kernel, _ = _kernels()
+        n = origins.shape[0]
+        dev = origins.device
+        o, d = _rays_torch(origins, directions)
+        far = (torch.full((n,), 3e38, dtype=torch.float32, device=dev) if max_distance is None
+               else max_distance.detach().to(device=dev, dtype=torch.float32).clamp(max=3e38).contiguous())
+        prim = torch.empty(n, dtype=torch.int32, device=dev)
+        u, v, t = (torch.empty(n, dtype=torch.float32, device=dev) for _ in range(3))
+        _RAYS["INTERSECT"] += n
+        if n:
+            wp.launch(first_hit_kernel, dim=n,
+                      inputs=[self._mesh.id, wp.from_torch(o, dtype=wp.vec3), wp.from_torch(d, dtype=wp.vec3),
+                              wp.from_torch(far), wp.from_torch(prim), wp.from_torch(u), wp.from_torch(v),
+                              wp.from_torch(t)],
+                      device=wp.device_from_torch(dev), stream=_torch_stream(dev))
+        hit, face, distance, bary = _raw_hits(prim, u, v, t)
+        return _finish_hits(o, d, hit, face, distance, bary)
+
+    def _here(self, tensor) -> bool:
+        """Is ``tensor`` on this caster's Warp device?"""
+        wp = _warp()
+        return wp.device_from_torch(tensor.device) == wp.get_device(self.device)
+
+
+def _torch_stream(device):
+    """torch's current stream on a CUDA ``device`` as Warp's (:func:`warp_stream`: the launch is ordered
+    with the torch work around it); None on the CPU."""
+    return warp_stream(device) if device.type == "cuda" else None
+
+
+def _rays_torch(origins, directions):
+    """Contiguous float32 origins and unit directions (normalized unless unit within 1e-6, as
+    :func:`uvatar.geometry.raycast._prepare_rays` does on its float32 path)."""
+    import torch
+
+    d = directions.detach().to(torch.float32)
+    sq = (d * d).sum(1)
+    if len(sq) and not bool(((sq - 1).abs() <= 1e-6).all()):
+        d = d / sq.sqrt()[:, None]
+    return origins.detach().to(torch.float32).contiguous(), d.contiguous()
 
 
 def any_hit_torch(vertices, faces, origins, directions, max_distance):

@@ -289,7 +289,14 @@ def _any_perpendicular(n):
 def sample_mesh_texture(uvs, uv_faces, texture, face, bary) -> np.ndarray:
     """Texture colour at points given by triangle ``face`` (K,) and barycentrics ``bary`` (K, 3) on a
     UV-mapped mesh (``uvs`` (U, 2), ``uv_faces`` (F, 3), ``texture`` (H, W, C)) -> (K, C), bilinear
-    (:func:`sample_texture`)."""
+    (:func:`sample_texture`). numpy, or torch tensors (all of them) on one device."""
+    if is_torch(face):
+        import torch
+
+        tri, b = uvs[uv_faces[face]], bary
+        uv = tri[:, 0] * b[:, 0:1] + tri[:, 1] * b[:, 1:2] + tri[:, 2] * b[:, 2:3]
+        # in float64 and back to the texture's type (at least float32), as the numpy path computes it
+        return sample_texture(texture, uv.to(torch.float64)).to(torch.promote_types(texture.dtype, torch.float32))
     corner_uv = np.take(np.asarray(uv_faces), face, axis=0)               # np.take: the same as a fancy
     tri = np.take(np.asarray(uvs), corner_uv, axis=0)                      # index, several times faster
     b = np.asarray(bary)

@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from uvatar.errors import check_values
 
 STAGE_MODES = ("closest", "rays", "normal")
+TORCH_STAGES = ("auto", "on", "off")
 
 
 @dataclass(frozen=True)
@@ -173,7 +174,15 @@ class BakeConfig:
     texture_float16: store the texture as float16 (half the disk space).
     device: where the ray stages run (registration and texel rays, visibility, colour sampling):
         "cpu" or "cuda" / "cuda:N" (a GPU through NVIDIA Warp's mesh BVH, ``uvatar[kernels]``); the
-        other stages stay on the CPU. Same maps within float32 round-off.
+        other stages follow ``torch_stages``. Same maps within float32 round-off.
+    torch_stages: where the rest of a frame runs: the inpainting (a layered Telea march), the
+        registration's normals, smoothing and solves, the pose refinement's and colour rounds' nearest
+        samples, normal equations and stencil rays, the texel rays' set-up and choice, the visibility
+        rays' set-up and the texture lookups. "auto" (their torch twins on ``device`` when it is CUDA,
+        the numpy / OpenCV / SciPy reference on the CPU), "on" (the torch twins on ``device``, CPU
+        tensors on the CPU: what CI checks them with; slow there: a dense Cholesky of the body's
+        system) or "off" (the reference everywhere). Same maps on the matched texels within float
+        round-off; inpainted texels (kappa 0) within a few percent. :meth:`torch_device`.
     ray_backend: "auto" (Embree on the CPU, Warp on CUDA), "embree" or "warp" (Warp also runs on
         the CPU, single-threaded and ~3x slower than Embree: for parity checks); checked by
         :func:`uvatar.geometry.ray_backends.make_caster`.
@@ -201,6 +210,7 @@ class BakeConfig:
     interior_visibility: float = 0.02
     texture_float16: bool = True
     device: str = "cpu"
+    torch_stages: str = "auto"
     ray_backend: str = "auto"
     scan_cache_mb: int = 2048
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
@@ -220,8 +230,17 @@ class BakeConfig:
                   (self.max_match_distance is None or self.max_match_distance > 0, "max_match_distance must be > 0"),
                   (self.ray_epsilon >= 0, "ray_epsilon must be >= 0"),
                   (self.device == "cpu" or self.device.startswith("cuda"), "device must be cpu or cuda[:N]"),
+                  (self.torch_stages in TORCH_STAGES, f"torch_stages must be one of {TORCH_STAGES}"),
                   (self.scan_cache_mb >= 0, "scan_cache_mb must be >= 0")]
         check_values(checks)
+
+    @property
+    def torch_device(self) -> str | None:
+        """The torch device of the stages that cast no rays (``torch_stages``), or None for their
+        numpy reference."""
+        if self.torch_stages == "off" or (self.torch_stages == "auto" and not self.device.startswith("cuda")):
+            return None
+        return self.device
 
     @property
     def refines_across_frames(self) -> bool:

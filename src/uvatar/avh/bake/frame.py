@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -18,14 +19,13 @@ from uvatar.avh.bake.confidence import confidence, distance_score, normal_match_
 from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.correspond import match_texels
 from uvatar.avh.bake.inpaint import grow_mask, inpaint_telea
-from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan
+from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan, scan_colours
 from uvatar.errors import InputError
 from uvatar.geometry import (
     UVRaster,
     gaussian_surface_matrix,
     rasterize_uv,
     rays_cast,
-    sample_mesh_texture,
     vertex_normals,
 )
 from uvatar.threads import single_threaded
@@ -105,6 +105,21 @@ class BodyLayout:
         flat = vals.reshape(len(vals), -1)
         return np.asarray(self.interpolation_matrix(len(vals)) @ flat).reshape(len(self.texel_flat), *vals.shape[1:])
 
+    def at_texels_torch(self, vertex_values, device):
+        """:meth:`at_texels` on a torch ``device``: (M[, C]) float64 tensor there, one sparse product
+        with the interpolation matrix kept there (per V and device)."""
+        import torch
+
+        vals = torch.as_tensor(np.asarray(vertex_values, dtype=np.float64), device=device)
+        key = ("interpolation_torch", len(vals), str(device))
+        if key not in self._cache:
+            m = self.interpolation_matrix(len(vals))
+            self._cache[key] = torch.sparse_csr_tensor(
+                torch.as_tensor(m.indptr, dtype=torch.int64), torch.as_tensor(m.indices, dtype=torch.int64),
+                torch.as_tensor(m.data), m.shape).to(device)
+        flat = vals.reshape(len(vals), -1)
+        return (self._cache[key] @ flat).reshape(len(self.texel_flat), *vals.shape[1:])
+
     def at_texels_reference(self, vertex_values) -> np.ndarray:
         """Plain twin of :meth:`at_texels`: gather each texel's three corners and weight them."""
         vals = np.asarray(vertex_values, dtype=np.float64)
@@ -144,6 +159,28 @@ class BodyLayout:
             cached = self.faces[self.texel_face]
             self.__dict__["_texel_vertices"] = cached
         return cached
+
+    @property
+    def texel_vertex_set(self) -> np.ndarray:
+        """(K,) int64 the distinct body vertices of the valid texels' triangles (cached): the vertices
+        whose visibility the texels read."""
+        cached = self.__dict__.get("_texel_vertex_set")
+        if cached is None:
+            cached = self.__dict__["_texel_vertex_set"] = np.unique(self.texel_vertices)
+        return cached
+
+    def to_map_torch(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
+        """:meth:`to_map` of a tensor (M[, C]) on its device: the map laid out there and read back (numpy)."""
+        import torch
+
+        v = texel_values
+        r = self.resolution
+        key = ("texel_flat", str(v.device))
+        if key not in self._cache:
+            self._cache[key] = torch.as_tensor(self.texel_flat, device=v.device)
+        out = torch.full((r * r, *v.shape[1:]), fill, dtype=getattr(torch, np.dtype(dtype).name), device=v.device)
+        out[self._cache[key]] = v.to(out.dtype)
+        return out.reshape(r, r, *v.shape[1:]).cpu().numpy()
 
     def to_map(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
         """(M[, C]) values at the valid texels -> (R, R[, C]) map, ``fill`` elsewhere."""
@@ -254,7 +291,7 @@ def _bake_fit(body, fit, layout, scan, config, shape, scan_path, surface):
     refine_stats = None
     with _timed(sec, "refine_pose", rays, cpu):
         if config.refine_pose:
-            fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape)
+            fit, refine_stats = refine_fit(body, fit, surface, config.pose_refine, shape, device=config.torch_device)
         shadow = shadow_vertices(body, fit, shape)
     baked = bake_frame(shadow, layout, scan, config, scan_path, surface=surface)
     baked.stats["seconds"] = {**sec, **baked.stats["seconds"]}
@@ -292,49 +329,76 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         if config.register:
             smoothing = layout.normal_smoothing_matrix(config.registration.normal_smoothing)
             registered, reg_stats = register_to_scan(shadow, layout.faces, surface, config.registration,
-                                                     bbox_diagonal=diag, epsilon=eps, smoothing=smoothing)
+                                                     bbox_diagonal=diag, epsilon=eps, smoothing=smoothing,
+                                                     device=config.torch_device)
         else:
             registered = shadow
     with _timed(sec, "correspond", rays, cpu):
-        r = layout.at_texels(registered)
-        n = layout.at_texels(vertex_normals(registered, layout.faces))
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        device = config.torch_device
+        if device is None:
+            r = layout.at_texels(registered)
+            n = layout.at_texels(vertex_normals(registered, layout.faces))
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        else:   # the texels' points and normals made, and their rays cast, on the device
+            r = layout.at_texels_torch(registered, device)
+            n = layout.at_texels_torch(vertex_normals(registered, layout.faces), device)
+            n = n / n.norm(dim=1, keepdim=True).clamp_min(1e-12)
         matches = match_texels(r, n, surface, config.polarity_rule, config.polarity_ratio,
                                config.max_match_distance, eps)
         hit = matches.hit
     with _timed(sec, "texture", rays, cpu):
-        colors = np.zeros((len(r), 3), np.float32)
-        colors[hit] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, matches.face[hit], matches.bary[hit])
-        s = layout.at_texels(shadow)
-        disp = np.where(hit[:, None], matches.points - s, 0.0)
+        if device is None:
+            colors = np.zeros((len(r), 3), np.float32)
+            colors[hit] = scan_colours(surface, scan, matches.face[hit], matches.bary[hit])
+            s = layout.at_texels(shadow)
+            disp = np.where(hit[:, None], matches.points - s, 0.0)
+        else:   # from the matches still on the device; colours and displacements stay there for the inpainting
+            colors, disp = _texel_colours_and_displacements(layout, shadow, surface, scan, matches, device)
     with _timed(sec, "visibility_registered", rays, cpu):
         w_caster = fast_caster(registered, layout.faces, config.device, config.ray_backend)
         w_vertex = vertex_visibility(registered, layout.faces, w_caster, config.visibility_rays, eps,
-                                     needed=layout.texel_vertices.ravel(), stratified=config.visibility_stratified)
-        w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0)
+                                     needed=layout.texel_vertex_set, stratified=config.visibility_stratified,
+                                     device=config.torch_device)
+        w = np.clip(layout.at_texels(w_vertex), 0.0, 1.0) if device is None else \
+            layout.at_texels_torch(w_vertex, device).clamp(0.0, 1.0)
+    # on a device: the matches' tensors kept there (hit, distance, face, bary, scan normals), n there too
+    m = matches if device is None else SimpleNamespace(**matches.on_device)
     with _timed(sec, "confidence", rays, cpu):
-        delta = distance_score(np.where(hit, matches.distance, np.inf), config.distance_clip * diag)
-        nms = normal_match_score(n, matches.scan_normal)
-        use = hit & (w * delta * nms > 0)
+        delta = distance_score(_where(m.hit, m.distance, np.inf), config.distance_clip * diag)
+        nms = normal_match_score(n, m.scan_normal)
+        use = m.hit & (w * delta * nms > 0)
     with _timed(sec, "visibility_scan", rays, cpu):
         # the scan's visibility v only matters where the other factors of kappa are not zero: only the
         # scan faces around those texels' matches are ray cast (the same values there)
-        hit_vertices = surface.faces[matches.face[use]]                           # (K, 3)
+        if device is None:
+            hit_vertices = surface.faces[matches.face[use]]                       # (K, 3)
+            needed = hit_vertices.ravel()
+        else:
+            hit_vertices, needed = _needed_scan_vertices(surface, m.face[use])
         v_vertex = vertex_visibility(surface.vertices, surface.faces, surface.caster, config.visibility_rays, eps,
-                                     needed=hit_vertices.ravel(), stratified=config.visibility_stratified)
-        v = np.zeros(len(r))
-        v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
-        kappa = np.where(hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
+                                     needed=needed, stratified=config.visibility_stratified,
+                                     device=config.torch_device)
+        if device is None:
+            v = np.zeros(len(r))
+            v[use] = np.einsum("kj,kj->k", v_vertex[hit_vertices], matches.bary[use])
+        else:
+            import torch
+
+            v = torch.zeros(len(r), dtype=torch.float64, device=device)
+            v[use] = torch.einsum("kj,kj->k", torch.as_tensor(v_vertex, device=device)[hit_vertices],
+                                  m.bary[use].to(torch.float64))
+        kappa = _where(m.hit, confidence(v, w, delta, nms), 0.0)   # v = 0 only where another factor is
     with _timed(sec, "inpaint", rays, cpu):
         matched_map = layout.to_map(hit, fill=False, dtype=bool)
-        unknown = ~matched_map
-        # one call for both maps: the nearest-texel fill (distance transform) is computed once
-        both = inpaint_telea(np.concatenate([layout.to_map(colors), layout.to_map(disp)], axis=-1),
-                             unknown, config.inpaint_radius, config.inpaint_band,
-                             layout.island_gutter(config.inpaint_gutter))
-        texture, displacement = both[..., :3], both[..., 3:]
+        texture, displacement = _inpaint_maps(layout, colors, disp, matched_map, config)
+    if device is not None:   # the maps laid out on the device, the per-texel values read back for the stats
+        kappa_map, w_map, points_map = (layout.to_map_torch(a, dtype=dt)
+                                        for a, dt in ((kappa, np.float32), (w, np.float32), (m.points, np.float64)))
+        kappa, w = kappa.cpu().numpy(), w.cpu().numpy()
+    else:
+        kappa_map, w_map = layout.to_map(kappa), layout.to_map(w)
+        points_map = layout.to_map(matches.points, dtype=np.float64)
     valid = layout.raster.mask.copy()
-    kappa_map = layout.to_map(kappa)
     surface_texels = layout.surface_texels(config.interior_visibility, config.visibility_rays,
                                            config.visibility_stratified)
     on_surface = kappa if surface_texels is None else kappa[surface_texels]
@@ -356,12 +420,78 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
         texture=np.clip(texture, 0.0, 1.0).astype(np.float32),
         displacement=displacement.astype(np.float32),
         kappa=kappa_map,
-        w=layout.to_map(w),
+        w=w_map,
         valid=valid,
         matched=matched_map,
-        points=layout.to_map(matches.points, dtype=np.float64),
+        points=points_map,
         stats=stats,
     )
+
+
+def _where(condition, a, b):
+    """``np.where``, or ``torch.where`` for a tensor condition."""
+    if type(condition).__module__.startswith("torch"):
+        import torch
+
+        return torch.where(condition, a, b)
+    return np.where(condition, a, b)
+
+
+def _needed_scan_vertices(surface: ScanSurface, faces_of_hits):
+    """(the scan vertices of those faces (K, 3) tensor, the distinct ones (numpy indices)): the
+    visibility_scan stage's vertex set from hit faces (K,) on a torch device (the scan's faces kept
+    there with ``surface``)."""
+    import torch
+
+    key = ("faces", str(faces_of_hits.device))
+    if key not in surface.on_device:
+        surface.on_device[key] = torch.as_tensor(surface.faces, device=faces_of_hits.device)
+    hit_vertices = surface.on_device[key][faces_of_hits]
+    mask = torch.zeros(len(surface.vertices), dtype=torch.bool, device=faces_of_hits.device)
+    mask[hit_vertices.reshape(-1)] = True
+    return hit_vertices, np.flatnonzero(mask.cpu().numpy())
+
+
+def _texel_colours_and_displacements(layout: BodyLayout, shadow, surface, scan, matches, device):
+    """The texture stage on a torch ``device``: (colours (M, 3) float32, displacements d = x - s (M, 3)
+    float64) tensors there, zeros where unmatched, from the matches' tensors kept there
+    (``TexelMatches.on_device``); the numpy path's steps."""
+    import torch
+
+    kept = matches.on_device
+    hit = kept["hit"]
+    colors = torch.zeros((len(hit), 3), dtype=torch.float32, device=device)
+    colors[hit] = scan_colours(surface, scan, kept["face"][hit], kept["bary"][hit]).to(torch.float32)
+    s = layout.at_texels_torch(shadow, device)
+    disp = torch.where(hit[:, None], kept["points"] - s, torch.zeros_like(s))
+    return colors, disp
+
+
+def _inpaint_maps(layout: BodyLayout, colors, disp, matched_map, config: BakeConfig):
+    """(texture (R, R, 3), displacement (R, R, 3)) float32 numpy: the texels' colours (M, 3) and
+    displacements (M, 3) (numpy, or tensors on the device) as maps, the unmatched texels inpainted; on
+    ``config.torch_device`` through
+    :func:`.inpaint_torch.inpaint_telea_torch` (the maps are laid out there too), else OpenCV's Telea.
+    One call for both maps: the nearest-texel fill is computed once."""
+    device = config.torch_device
+    if device is None:
+        both = inpaint_telea(np.concatenate([layout.to_map(colors), layout.to_map(disp)], axis=-1),
+                             ~matched_map, config.inpaint_radius, config.inpaint_band,
+                             layout.island_gutter(config.inpaint_gutter))
+        return both[..., :3], both[..., 3:]
+    import torch
+
+    from uvatar.avh.bake.inpaint_torch import inpaint_telea_torch
+
+    r = layout.resolution
+    values = torch.cat([torch.as_tensor(a, device=device).to(torch.float32) for a in (colors, disp)], dim=1)
+    maps = torch.zeros((r * r, 6), dtype=torch.float32, device=device)
+    maps[torch.from_numpy(layout.texel_flat).to(device)] = values
+    gutter = layout.island_gutter(config.inpaint_gutter)
+    both = inpaint_telea_torch(maps.reshape(r, r, 6), torch.from_numpy(~matched_map).to(device),
+                               config.inpaint_radius, config.inpaint_band,
+                               None if gutter is None else torch.from_numpy(gutter).to(device)).cpu().numpy()
+    return both[..., :3], both[..., 3:]
 
 
 def _colormap(x: np.ndarray) -> np.ndarray:

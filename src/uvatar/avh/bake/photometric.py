@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uvatar.avh.bake.register import ScanSurface
-from uvatar.geometry import sample_mesh_texture, tangent_basis
+from uvatar.avh.bake.register import ScanSurface, scan_colours
+from uvatar.geometry import tangent_basis
 
 __all__ = ["PhotoTarget", "RING_POINTS", "stencil_offsets", "surface_colours", "ray_colours", "reference_colours",
            "chromaticity"]
@@ -50,33 +50,57 @@ def stencil_offsets(normals, radius: float) -> np.ndarray:
 
 
 def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float, min_normal_cos: float,
-                epsilon: float = 1e-3):
+                epsilon: float = 1e-3, device: str | None = None):
     """Scan colour where the +/-normal rays from ``points`` (N, 3) first meet a compatible scan surface
     (scan normal within the angle of ``min_normal_cos``; the nearer of the two) within ``max_distance``
-    metres. Returns (colours (N, 3) float64, ok (N,) bool). ``scan``: the TexturedMesh."""
+    metres. Returns (colours (N, 3) float64, ok (N,) bool). ``scan``: the TexturedMesh; ``device``: a
+    torch device where the rays are cast (:meth:`RayCaster.first_hit_torch`), chosen and the texture
+    sampled (:func:`.register.scan_colours`), the same steps; the results come back as numpy."""
     p = np.asarray(points, np.float64)
     n = np.asarray(normals, np.float64)
-    best = np.full(len(p), np.inf)
-    face = np.full(len(p), -1, np.int64)
-    bary = np.zeros((len(p), 3))
+    if device is None:
+        where, limit = np.where, (lambda best: np.minimum(max_distance + epsilon, best))
+
+        def cast(o, d, far):
+            return surface.caster.first_hit(o, d, max_distance=far)
+
+        best = np.full(len(p), np.inf)
+        face = np.full(len(p), -1, np.int64)
+        bary = np.zeros((len(p), 3))
+    else:
+        import torch
+
+        where, limit = torch.where, (lambda best: best.clamp(max=max_distance + epsilon))
+
+        def cast(o, d, far):
+            return surface.caster.first_hit_torch(o, d, far)
+
+        p, n = torch.as_tensor(p, device=device), torch.as_tensor(n, device=device)
+        best = torch.full((len(p),), float("inf"), dtype=torch.float64, device=device)
+        face = torch.full((len(p),), -1, dtype=torch.int64, device=device)
+        bary = torch.zeros((len(p), 3), dtype=torch.float64, device=device)
     for sign in (1.0, -1.0):
         d = sign * n
         # the -n ray only wins below the +n ray's compatible distance: it need not look farther
         # (the same hits win; Embree's traversal ends sooner)
-        hits = surface.caster.first_hit(p - epsilon * d, d, max_distance=np.minimum(max_distance + epsilon, best))
+        hits = cast(p - epsilon * d, d, limit(best))
         m = surface.normals_at_hits(hits)
         better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
-        best = np.where(better, hits.distance, best)
-        face = np.where(better, hits.face, face)
-        bary = np.where(better[:, None], hits.bary, bary)
+        best = where(better, hits.distance, best)
+        face = where(better, hits.face, face)
+        bary = where(better[:, None], hits.bary, bary)
     ok = face >= 0
-    colours = np.zeros((len(p), 3))
-    colours[ok] = sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, face[ok], bary[ok])
-    return colours, ok
+    if device is None:
+        colours = np.zeros((len(p), 3))
+        colours[ok] = scan_colours(surface, scan, face[ok], bary[ok])
+        return colours, ok
+    colours = torch.zeros((len(p), 3), dtype=torch.float64, device=device)
+    colours[ok] = scan_colours(surface, scan, face[ok], bary[ok]).to(torch.float64)
+    return colours.cpu().numpy(), ok.cpu().numpy()
 
 
 def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, max_distance: float,
-                    min_normal_cos: float, space: str = "rgb"):
+                    min_normal_cos: float, space: str = "rgb", device: str | None = None):
     """Blurred colour and its tangent-plane gradient at each point (module doc).
 
     space: "rgb", or "chromaticity" (:func:`chromaticity`: the colour divided by the sum of its
@@ -87,7 +111,7 @@ def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, 
     # the centres and the ring in one cast: (1 + RING_POINTS, N) points
     stencil = np.concatenate([p[None], p[None] + offsets]).reshape(-1, 3)
     colours, found = ray_colours(surface, scan, stencil, np.tile(np.asarray(normals, np.float64), (RING_POINTS + 1, 1)),
-                                 max_distance, min_normal_cos)
+                                 max_distance, min_normal_cos, device=device)
     colours = colours.reshape(RING_POINTS + 1, len(p), 3)
     centre, ring = colours[0], colours[1:]
     ok = found.reshape(RING_POINTS + 1, len(p)).all(0)

@@ -98,16 +98,39 @@ def _refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
 
 
 def _posed(body, rot, rh, th, scale, shape_t):
-    """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 of one posed frame."""
+    """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 numpy of one posed frame
+    (posed on the body model's device)."""
     import torch
 
+    dev = body.device
     with torch.no_grad():
-        out = body.pose(torch.as_tensor(rot, dtype=torch.float32)[None],
-                        Rh=torch.as_tensor(rh, dtype=torch.float32)[None],
-                        Th=torch.as_tensor(th, dtype=torch.float32)[None],
-                        scale=torch.tensor([float(scale)]), shape=shape_t)
-    return (out.vertices[0].numpy().astype(np.float64), out.normals[0].numpy().astype(np.float64),
-            out.joint_transforms[0].numpy().astype(np.float64))
+        out = body.pose(torch.as_tensor(rot, dtype=torch.float32, device=dev)[None],
+                        Rh=torch.as_tensor(rh, dtype=torch.float32, device=dev)[None],
+                        Th=torch.as_tensor(th, dtype=torch.float32, device=dev)[None],
+                        scale=torch.tensor([float(scale)], device=dev),
+                        shape=None if shape_t is None else shape_t.to(dev))
+    return (out.vertices[0].cpu().numpy().astype(np.float64), out.normals[0].cpu().numpy().astype(np.float64),
+            out.joint_transforms[0].cpu().numpy().astype(np.float64))
+
+
+def _posing_body(body, device: str | None):
+    """The body model the refinement poses on ``device``: for a CUDA device, anny's own instance there
+    (built once per body; float32 posing on the GPU, within round-off of the CPU's); else ``body``
+    (the CPU, and models without a device twin here)."""
+    import torch
+
+    if device is None or torch.device(device).type == "cpu" or getattr(body, "name", None) != "anny":
+        return body
+    return _memo(body, ("posing", str(device)), lambda: _anny_on(body, device))
+
+
+def _anny_on(body, device):
+    """A twin of the AnnyBody ``body`` (its config) on ``device``."""
+    from dataclasses import replace
+
+    from uvatar.body.anny_backend import AnnyBody
+
+    return AnnyBody(replace(body.config, device=str(device)))
 
 
 def _shape_tensor(fit, shape):
@@ -137,15 +160,18 @@ class PhotoSample:
         return np.where(self.ok[:, None], self.colour, np.nan)
 
 
-def sample_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None) -> PhotoSample:
-    """:class:`PhotoSample` of the body posed by ``fit`` at stencil ``radius``."""
+def sample_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None,
+                   device: str | None = None) -> PhotoSample:
+    """:class:`PhotoSample` of the body posed by ``fit`` at stencil ``radius`` (the texture sampled on
+    ``device`` if not None)."""
     from uvatar.avh.bake.photometric import surface_colours
 
     use = refine_vertices(body, config)
-    v, n, _ = _posed(body, body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale, _shape_tensor(fit, shape))
+    v, n, _ = _posed(_posing_body(body, device), body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale,
+                     _shape_tensor(fit, shape))
     colour, grad, ok = surface_colours(surface, scan_mesh, v[use], n[use], radius, config.photometric_max_distance,
                                        float(np.cos(np.radians(config.max_normal_angle_deg))),
-                                       config.photometric_space)
+                                       config.photometric_space, device)
     return PhotoSample(colour, grad, ok, float(radius))
 
 
@@ -154,6 +180,16 @@ def fit_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius:
     by ``fit``; NaN where the stencil missed the scan. The per-frame input of the cross-frame
     reference (:func:`uvatar.avh.bake.photometric.reference_colours`)."""
     return sample_colours(body, fit, surface, scan_mesh, config, radius, shape).colours
+
+
+def _nearest(scan, points, max_distance: float, device: str | None):
+    """(distance (N,), index (N,)) numpy of :meth:`ScanSurface.nearest_sample`, on ``device`` if not None."""
+    if device is None:
+        return scan.nearest_sample(points, max_distance)
+    import torch
+
+    near, idx = scan.nearest_sample(torch.as_tensor(points, device=device), max_distance)
+    return near.cpu().numpy(), idx.cpu().numpy()
 
 
 def _huber_weights(residuals, scale: float) -> np.ndarray:
@@ -174,13 +210,24 @@ def _clothing_offsets(residuals, skin, huber: float, steps: int = 3) -> np.ndarr
     return offsets
 
 
+def _cross_cat(x):
+    """(cross product over the last axis, concatenate along an axis) for numpy arrays or torch tensors."""
+    if type(x).__module__.startswith("torch"):
+        import torch
+
+        return (lambda a, b: torch.linalg.cross(*torch.broadcast_tensors(a, b), dim=-1)), \
+            (lambda xs, axis: torch.cat(xs, dim=axis))
+    return np.cross, (lambda xs, axis: np.concatenate(xs, axis=axis))
+
+
 def _motion_rows(points, directions, subtree, centres, centre0):
     """Jacobian rows of ``directions . dv`` (N rows) for the refinement's unknowns: per joint a
     world rotation d_k (vertex moves ``s_ik d_k x (v - c_k)``), the root rotation about ``centre0``
-    and the translation. -> (N, 3K + 6)."""
-    arm = np.cross(points[:, None, :] - centres[None], directions[:, None, :])       # (N, K, 3)
-    return np.concatenate([(subtree[..., None] * arm).reshape(len(points), -1),
-                           np.cross(points - centre0, directions), directions], axis=1)
+    and the translation. -> (N, 3K + 6). numpy arrays or torch tensors (all of one kind)."""
+    cross, cat = _cross_cat(points)
+    arm = cross(points[:, None, :] - centres[None], directions[:, None, :])          # (N, K, 3)
+    return cat([(subtree[..., None] * arm).reshape(len(points), -1),
+                cross(points - centre0, directions), directions], 1)
 
 
 def _joint_groups(subtree, min_vertices: int = 128):
@@ -256,22 +303,42 @@ def _normal_equations(points, subtree, groups, centres, centre0, blocks):
 
 
 def _normal_equations_reference(points, subtree, centres, centre0, blocks):
-    """Plain twin of :func:`_normal_equations`: every row over every unknown, one dense product."""
+    """Plain twin of :func:`_normal_equations`: every row over every unknown, one dense product.
+    numpy arrays, or torch tensors on one device (:func:`_normal_equations_torch`)."""
     k = subtree.shape[1]
+    _, cat = _cross_cat(points)
     jacs, weights, residuals = [], [], []
     for vertex, direction, weight, residual, clothing in blocks:
         rows = _motion_rows(points[vertex], direction, subtree[vertex], centres, centre0)
-        extra = np.zeros((len(vertex), k)) if clothing is None else clothing
-        jacs.append(np.concatenate([rows, extra], axis=1))
+        extra = 0 * rows[:, :k] if clothing is None else clothing
+        jacs.append(cat([rows, extra], 1))
         weights.append(weight)
         residuals.append(residual)
-    jac, w, r = np.concatenate(jacs), np.concatenate(weights), np.concatenate(residuals)
-    jac_w = jac * np.sqrt(w)[:, None]
+    jac, w, r = cat(jacs, 0), cat(weights, 0), cat(residuals, 0)
+    jac_w = jac * (w ** 0.5)[:, None]
     return jac_w.T @ jac_w, jac.T @ (w * r)
 
 
+def _normal_equations_torch(points, subtree, centres, centre0, blocks, device):
+    """:func:`_normal_equations` on a torch ``device`` (float64): the arrays go there, the dense
+    product of :func:`_normal_equations_reference` runs there (one product of every row over every
+    unknown suits a GPU better than the CPU path's vertex groups), (A, g) come back as numpy."""
+    import torch
+
+    def put(a):
+        return None if a is None else torch.as_tensor(np.asarray(a), device=device)
+
+    moved = [tuple(put(a) for a in block) for block in blocks if len(block[0])]
+    if not moved:
+        size = 4 * subtree.shape[1] + 6
+        return np.zeros((size, size)), np.zeros(size)
+    a, g = _normal_equations_reference(put(points), put(subtree), put(centres), put(centre0), moved)
+    return a.cpu().numpy(), g.cpu().numpy()
+
+
 def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None,
-               start_sample: PhotoSample | None = None, final_colour_residual: bool = True):
+               start_sample: PhotoSample | None = None, final_colour_residual: bool = True,
+               device: str | None = None):
     """Refine ``fit`` (BodyFit) toward ``scan`` (:class:`~uvatar.avh.bake.register.ScanSurface`).
 
     photo: a :class:`~uvatar.avh.bake.photometric.PhotoTarget` (reference colours of the refinement
@@ -285,6 +352,11 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     of the previous colour round): the first iteration uses it instead of sampling the scan again
     (the same colours). final_colour_residual: False skips sampling the colours after the last step,
     which only the stats' last ``colour_residual`` would use (the bake's colour rounds).
+    device: a torch device (``BakeConfig.torch_device``) for the posing (:func:`_posing_body`), the
+    nearest scan samples (:meth:`~uvatar.avh.bake.register.ScanSurface.nearest_sample`), the normal
+    equations (:func:`_normal_equations_torch`), the stencil rays and the scan's texture
+    (:func:`.photometric.ray_colours`); None: the CPU body, the k-d tree, the grouped numpy products and
+    the numpy stencils.
     """
     from scipy.spatial.transform import Rotation
 
@@ -304,6 +376,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     rh = np.asarray(fit.Rh, np.float64).copy()
     th = np.asarray(fit.Th, np.float64).copy()
     shape_t = _shape_tensor(fit, shape)
+    posing = _posing_body(body, device)
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
     max_angle = np.radians(config.max_step_deg)
     k = len(joints)
@@ -318,13 +391,12 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
 
     diag = None
     for it in range(iterations + 1):
-        v, n, tr = _posed(body, rot, rh, th, fit.scale, shape_t)
+        v, n, tr = _posed(posing, rot, rh, th, fit.scale, shape_t)
         v, n = v[use], n[use]
         if diag is None:
             diag = float(np.linalg.norm(v.max(0) - v.min(0)))
-        near, idx = scan.tree.query(v, distance_upper_bound=config.max_distance * diag)
+        near, idx = _nearest(scan, v, config.max_distance * diag, device)
         found = np.isfinite(near)
-        idx = np.where(found, idx, 0)
         m = np.take(scan.sample_normals, idx, axis=0)
         ok = found & ((m * n).sum(1) >= cos_max)
         r = ((v - np.take(scan.sample_points, idx, axis=0)) * m).sum(1)
@@ -341,7 +413,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
             else:
                 colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
                                                      config.photometric_max_distance, cos_max,
-                                                     config.photometric_space)
+                                                     config.photometric_space, device)
             seen &= photo.known
             rc = (colour - photo.reference)[seen]                                   # (Nc, 3)
             colour_residuals.append(float(np.abs(rc).mean()) if seen.any() else float("nan"))
@@ -356,7 +428,10 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
             rc = rc.reshape(-1)
             wc = config.photometric_weight * _huber_weights(rc, config.photometric_huber)
             blocks.append((np.repeat(np.flatnonzero(seen), 3), grad[seen].reshape(-1, 3), wc, rc, None))
-        a, g = _normal_equations(v, sub, groups, centres, centre0, blocks)
+        if device is None:
+            a, g = _normal_equations(v, sub, groups, centres, centre0, blocks)
+        else:
+            a, g = _normal_equations_torch(v, sub, centres, centre0, blocks, device)
         # the prior also holds every other unknown where nothing observes it (a round limb's turn
         # with the colour term off, a tube's slide along its axis): no singular steps
         a += np.diag(config.damping * np.diag(a) + config.prior * int(ok.sum()) + 1e-12)

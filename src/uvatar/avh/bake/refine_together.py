@@ -155,10 +155,10 @@ def _refine_task(shared: dict, item):
     before = None if target is None else kept_sample(capture, frame, config, fit)
     fit, _ = refine_fit(body, fit, surface, config.pose_refine, shape, photo=target,
                         scan_mesh=scan if target is not None else None, start_sample=before,
-                        final_colour_residual=False)
+                        final_colour_residual=False, device=config.torch_device)
     if radius is None:
         return fit, None
-    sample = sample_colours(body, fit, surface, scan, config.pose_refine, radius, shape)
+    sample = sample_colours(body, fit, surface, scan, config.pose_refine, radius, shape, config.torch_device)
     keep_sample(capture, frame, config, fit, sample)
     return fit, sample.colours
 

@@ -32,7 +32,7 @@ a Taubin-low-passed scan and closest-point stages (tangential sliding on folds).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -45,9 +45,11 @@ from uvatar.geometry import (
     face_normals,
     gaussian_surface_matrix,
     make_caster,
+    sample_mesh_texture,
     smoothed_normals,
     vertex_normals,
 )
+from uvatar.geometry.frames import is_torch
 
 __all__ = ["STAGE_MODES", "ScanSurface", "register_to_scan", "uniform_laplacian_matrix", "match_vertices"]
 
@@ -67,7 +69,7 @@ class ScanSurface:
     vertices (V, 3) float64 metres; faces (F, 3) int64; vertex_normals (V, 3) unit (area weighted);
     face_normals (F, 3) unit; sample_points (V + F, 3) vertices then face centroids, with
     sample_normals (V + F, 3); caster: :class:`uvatar.geometry.RayCaster`; tree: scipy cKDTree over
-    sample_points; corner_normals (F, 3, 3) the vertex normals at each face's corners (one gather per
+    sample_points (None until :meth:`kd_tree` builds it); corner_normals (F, 3, 3) the vertex normals at each face's corners (one gather per
     hit in :meth:`normals_at`).
     """
 
@@ -80,12 +82,11 @@ class ScanSurface:
     caster: RayCaster
     tree: object
     corner_normals: np.ndarray | None = None
+    on_device: dict = field(default_factory=dict, repr=False)   # arrays kept on torch devices, by (what, device)
 
     @classmethod
     def build(cls, vertices, faces, device: str = "cpu", backend: str = "auto") -> ScanSurface:
         """Prepare a scan; its rays run on ``device`` through ``backend`` (:func:`fast_caster`)."""
-        from scipy.spatial import cKDTree
-
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
         vn = np.asarray(vertex_normals(v, f), dtype=np.float64)
@@ -93,36 +94,148 @@ class ScanSurface:
         centroids = v[f].mean(axis=1)
         points = np.concatenate([v, centroids])
         normals = np.concatenate([vn, fn])
-        # sliding-midpoint tree: ~3x faster to build than the balanced one, same (exact) answers
-        tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
-        return cls(v, f, vn, fn, points, normals, fast_caster(v, f, device, backend), tree, vn[f])
+        return cls(v, f, vn, fn, points, normals, fast_caster(v, f, device, backend), None, vn[f])
 
-    def normals_at(self, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0."""
+    def kd_tree(self):
+        """The k-d tree over the samples (``tree``), built on first use: a bake whose queries run on
+        torch (:meth:`nearest_sample` of tensors) never needs it."""
+        if self.tree is None:
+            from scipy.spatial import cKDTree
+
+            # sliding-midpoint tree: ~3x faster to build than the balanced one, same (exact) answers
+            self.tree = cKDTree(self.sample_points, balanced_tree=False, compact_nodes=False)
+        return self.tree
+
+    def nearest_sample(self, points, max_distance: float):
+        """(distance (N,), index (N,)) of each point's nearest surface sample within ``max_distance``
+        (inf and 0 where there is none). points (N, 3): numpy (the k-d tree) or a float64 torch
+        tensor, answered on its device by :func:`nearest_points_torch` (the same samples: exact
+        distances, ties aside), as tensors."""
+        if not is_torch(points):
+            near, idx = self.kd_tree().query(points, distance_upper_bound=max_distance)
+            found = np.isfinite(near)
+            return near, np.where(found, idx, 0)
+        key = ("sorted_samples", str(points.device))
+        if key not in self.on_device:
+            self.on_device[key] = sorted_points_torch(self.sample_points, points.device)
+        return nearest_points_torch(points, self.on_device[key], max_distance)
+
+    def normals_at(self, face, bary):
+        """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0.
+        numpy, or torch tensors (float64 normals on their device: the corner and face normals kept there)."""
         if self.corner_normals is None:
             self.corner_normals = self.vertex_normals[self.faces]
         ok = face >= 0
-        fo = np.where(ok, face, 0)
-        corners = np.take(self.corner_normals.reshape(-1, 9), fo, axis=0).reshape(-1, 3, 3)   # take: ~5x a fancy index
-        n = np.einsum("kjc,kj->kc", corners, np.asarray(bary, np.float64))
-        length = np.sqrt(np.einsum("kc,kc->k", n, n))
+        if is_torch(face):
+            import torch
+
+            key = ("normals", str(face.device))
+            if key not in self.on_device:
+                self.on_device[key] = (torch.as_tensor(self.corner_normals.reshape(-1, 9), device=face.device),
+                                       torch.as_tensor(self.face_normals, device=face.device))
+            corner_normals, face_normals = self.on_device[key]
+            fo = torch.where(ok, face, torch.zeros_like(face))
+            corners = corner_normals[fo].reshape(-1, 3, 3)
+            n = torch.einsum("kjc,kj->kc", corners, bary.to(torch.float64))
+            length = torch.einsum("kc,kc->k", n, n).sqrt()
+            where = torch.where
+        else:
+            where = np.where
+            face_normals = self.face_normals
+            fo = np.where(ok, face, 0)
+            corners = np.take(self.corner_normals.reshape(-1, 9), fo, axis=0).reshape(-1, 3, 3)   # take: ~5x a fancy index
+            n = np.einsum("kjc,kj->kc", corners, np.asarray(bary, np.float64))
+            length = np.sqrt(np.einsum("kc,kc->k", n, n))
         bad = ok & (length < 1e-12)  # opposite normals cancelled: use the (unit) face normal
         if bad.any():
-            n[bad] = self.face_normals[fo[bad]]
+            n[bad] = face_normals[fo[bad]]
             length[bad] = 1.0
-        out = n / np.where(ok, length, 1.0)[:, None]
+        out = n / where(ok, length, 1.0)[:, None]
         out[~ok] = 0.0
         return out
 
     def normals_at_hits(self, hits) -> np.ndarray:
         """:meth:`normals_at` of a :class:`~uvatar.geometry.RayHits`, computed only for the rays that
         hit (the same values; zeros elsewhere)."""
+        if is_torch(hits.hit):                 # a GPU computes every ray's: the misses' are zeros anyway
+            return self.normals_at(hits.face, hits.bary)
         idx = np.flatnonzero(hits.hit)
         out = np.zeros((len(hits.hit), 3))
         if len(idx) == len(out):
             return self.normals_at(hits.face, hits.bary)
         out[idx] = self.normals_at(hits.face[idx], hits.bary[idx])
         return out
+
+
+def sorted_points_torch(points, device):
+    """(points sorted by y (S, 3), their original indices (S,)) as torch tensors on ``device``: the
+    layout :func:`nearest_points_torch` searches."""
+    import torch
+
+    p = torch.as_tensor(np.asarray(points, np.float64), device=device)
+    order = torch.argsort(p[:, 1])
+    return p[order], order
+
+
+def nearest_points_torch(queries, sorted_points, max_distance: float, chunk: int = 256):
+    """Each query's nearest point within ``max_distance`` by brute force on the queries' device (the
+    twin of a k-d tree query): (distance (N,) float64, inf where none; index (N,) int64 into the
+    unsorted points, 0 where none). queries (N, 3) float64; sorted_points: :func:`sorted_points_torch`.
+
+    The queries go in chunks of ``chunk`` sorted by height; each chunk compares against the slab of
+    points within ``max_distance`` of its heights only (float64 |p|^2 + |q|^2 - 2 p.q, then the
+    winner's exact distance)."""
+    import torch
+
+    points, order = sorted_points
+    n = len(queries)
+    dist = torch.full((n,), float("inf"), dtype=torch.float64, device=queries.device)
+    index = torch.zeros(n, dtype=torch.int64, device=queries.device)
+    if n == 0 or len(points) == 0:
+        return dist, index
+    by_height = torch.argsort(queries[:, 1])
+    q_sorted = queries[by_height]
+    heights = q_sorted[:, 1]
+    starts = torch.arange(0, n, chunk, device=queries.device)
+    lo = torch.searchsorted(points[:, 1].contiguous(), heights[starts] - max_distance)
+    hi = torch.searchsorted(points[:, 1].contiguous(),
+                            heights[torch.clamp(starts + chunk - 1, max=n - 1)] + max_distance, right=True)
+    bounds = torch.stack([lo, hi], 1).tolist()                           # one host read for all chunks
+    p_norm = (points * points).sum(1)
+    for c, (a, b) in enumerate(bounds):
+        rows = slice(c * chunk, min(n, (c + 1) * chunk))
+        if b <= a:
+            continue
+        q = q_sorted[rows]
+        d2 = (q * q).sum(1)[:, None] + p_norm[None, a:b] - 2.0 * q @ points[a:b].T
+        best = d2.argmin(1) + a
+        exact = torch.linalg.norm(q - points[best], dim=1)
+        ok = exact < max_distance                                       # as the k-d tree's bound
+        target = by_height[rows]
+        dist[target] = torch.where(ok, exact, torch.full_like(exact, float("inf")))
+        index[target] = torch.where(ok, order[best], torch.zeros_like(best))
+    return dist, index
+
+
+def scan_colours(surface: ScanSurface, scan, face, bary, device: str | None = None) -> np.ndarray:
+    """(K, C) the scan's texture at hits (face (K,), bary (K, 3)) by
+    :func:`uvatar.geometry.sample_mesh_texture`; on a torch ``device`` when given (the scan's UVs and
+    texture kept there with ``surface``, its scan's), the same values: numpy for numpy face and bary,
+    a tensor on their device for tensors."""
+    tensors = is_torch(face)
+    if device is None and not tensors:
+        return sample_mesh_texture(scan.uvs, scan.uv_faces, scan.texture, face, bary)
+    import torch
+
+    device = face.device if tensors else device
+    key = ("texture", str(device))
+    if key not in surface.on_device:
+        surface.on_device[key] = tuple(torch.as_tensor(np.asarray(a), device=device)
+                                       for a in (scan.uvs, scan.uv_faces, scan.texture))
+    uvs, uv_faces, texture = surface.on_device[key]
+    face_t = torch.as_tensor(face, dtype=torch.int64, device=device)
+    out = sample_mesh_texture(uvs, uv_faces, texture, face_t, torch.as_tensor(bary, device=device))
+    return out if tensors else out.cpu().numpy()
 
 
 def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:
@@ -175,7 +288,7 @@ def match_vertices(points, normals, scan: ScanSurface, max_distance: float, cos_
         # nearest scan sample q with normal m, projected onto its tangent plane: the foot point
         # p - ((p - q) . m) m approximates the closest surface point without pulling vertices
         # toward the discrete samples (point-to-plane)
-        near, idx = scan.tree.query(p, distance_upper_bound=max_distance)
+        near, idx = scan.kd_tree().query(p, distance_upper_bound=max_distance)
         found = np.isfinite(near)
         idx = np.where(found, idx, 0)
         m = scan.sample_normals[idx]
@@ -189,8 +302,138 @@ def match_vertices(points, normals, scan: ScanSurface, max_distance: float, cos_
     return target, np.isfinite(best)
 
 
+class _NumpyOps:
+    """The registration's linear algebra on numpy / SciPy (the reference): vertex normals, their
+    smoothing and the sparse SPD solves (SuperLU)."""
+
+    def __init__(self, faces, num_vertices: int, smoothing, ltl):
+        self.faces, self.smoothing, self.ltl = faces, smoothing, ltl
+
+    def array(self, a):
+        return np.asarray(a, dtype=np.float64)
+
+    def numpy(self, a) -> np.ndarray:
+        return a
+
+    def normals(self, x):
+        return np.asarray(vertex_normals(x, self.faces), dtype=np.float64)
+
+    def smooth(self, n):
+        return smoothed_normals(self.smoothing, n)
+
+    def ltl_times(self, x):
+        return self.ltl @ x
+
+    def solve(self, diagonal, k: float, rhs):
+        """``(diag(diagonal) + k L^T L) X = rhs``."""
+        return _factor_spd(sp.diags(diagonal) + k * self.ltl).solve(rhs)
+
+
+class _TorchOps:
+    """The same on torch tensors (float64) on ``device``: the smoothing and L^T L as sparse CSR
+    products; the solves by ``torch.sparse.spsolve`` on CUDA (cuDSS, where this torch has it), else
+    by a dense Cholesky factorization (cuSOLVER on CUDA; the body's V x V system: 1.5 GB for anny's
+    13.7k vertices, and slow on a CPU, where the reference is SuperLU). ``solver`` says which ran."""
+
+    def __init__(self, faces, num_vertices: int, smoothing, ltl, device: str):
+        import torch
+
+        from uvatar.geometry.frames import vertex_face_adjacency
+
+        self.torch, self.device = torch, torch.device(device)
+        self.faces = torch.as_tensor(faces, dtype=torch.int64, device=self.device)
+        self.adjacency = vertex_face_adjacency(self.faces, num_vertices).to(torch.float64)
+        self.smoothing = None if smoothing is None else _torch_csr(smoothing, self.device)
+        self.ltl = _torch_csr(ltl, self.device)
+        self._dense = None
+        # L^T L with every diagonal entry stored (explicit zeros kept: x + 0 is exact), for the sparse solve
+        coo = sp.coo_matrix(ltl)
+        diag = np.arange(num_vertices)
+        pattern = sp.coo_matrix((np.concatenate([coo.data, np.zeros(num_vertices)]),
+                                 (np.concatenate([coo.row, diag]), np.concatenate([coo.col, diag]))),
+                                shape=(num_vertices, num_vertices)).tocsr()
+        pattern.sum_duplicates()
+        pattern.sort_indices()
+        self._pattern = _torch_csr(pattern, self.device)
+        self._ltl_values = torch.as_tensor(pattern.data, device=self.device)
+        rows = np.repeat(diag, np.diff(pattern.indptr))
+        self._diagonal_at = torch.as_tensor(np.flatnonzero(pattern.indices == rows), device=self.device)
+        self.solver = "spsolve" if self.device.type == "cuda" else "cholesky"
+
+    def array(self, a):
+        return self.torch.as_tensor(np.asarray(a, dtype=np.float64), device=self.device)
+
+    def numpy(self, a) -> np.ndarray:
+        return a.detach().cpu().numpy()
+
+    def normals(self, x):
+        return vertex_normals(x, self.faces, self.adjacency)
+
+    def smooth(self, n):
+        if self.smoothing is None:
+            return n.clone()
+        out = self.smoothing @ n
+        return out / self.torch.linalg.norm(out, dim=1, keepdim=True).clamp_min(1e-12)
+
+    def ltl_times(self, x):
+        return self.ltl @ x
+
+    def solve(self, diagonal, k: float, rhs):
+        torch = self.torch
+        if self.solver == "spsolve":
+            values = k * self._ltl_values
+            values[self._diagonal_at] += diagonal
+            system = torch.sparse_csr_tensor(self._pattern.crow_indices(), self._pattern.col_indices(), values,
+                                             self._pattern.shape)
+            try:
+                if rhs.ndim == 1:
+                    return torch.sparse.spsolve(system, rhs)
+                return torch.stack([torch.sparse.spsolve(system, rhs[:, j].contiguous())
+                                    for j in range(rhs.shape[1])], 1)
+            except (RuntimeError, NotImplementedError, TypeError, ValueError):
+                self.solver = "cholesky"          # no cuDSS in this torch (or not for this system): dense
+        if self._dense is None:
+            self._dense = self.ltl.to_dense()
+        system = k * self._dense
+        system.diagonal().add_(diagonal)
+        factor = torch.linalg.cholesky(system)
+        b = rhs[:, None] if rhs.ndim == 1 else rhs
+        out = torch.cholesky_solve(b, factor)
+        return out[:, 0] if rhs.ndim == 1 else out
+
+
+def _torch_csr(matrix, device):
+    """A SciPy sparse matrix as a float64 torch sparse CSR tensor on ``device``."""
+    import warnings
+
+    import torch
+
+    m = sp.csr_matrix(matrix)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # sparse CSR is "beta"
+        return torch.sparse_csr_tensor(torch.as_tensor(m.indptr, dtype=torch.int64),
+                                       torch.as_tensor(m.indices, dtype=torch.int64),
+                                       torch.as_tensor(m.data, dtype=torch.float64), m.shape).to(device)
+
+
+_TORCH_OPS: list = []   # [(faces, smoothing, device, _TorchOps)]: the last few, a bake's per-body arrays
+
+
+def _torch_ops(faces, num_vertices: int, smoothing, ltl, device: str) -> _TorchOps:
+    """:class:`_TorchOps` of these faces and smoothing matrix (the same objects for every frame of a
+    bake: they are kept, so their ids stay theirs) on ``device``, built once."""
+    for f, sm, dev, ops in _TORCH_OPS:
+        if f is faces and sm is smoothing and dev == device:
+            return ops
+    ops = _TorchOps(faces, num_vertices, smoothing, ltl, device)
+    _TORCH_OPS.insert(0, (faces, smoothing, device, ops))
+    del _TORCH_OPS[2:]
+    return ops
+
+
 def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: RegistrationConfig | None = None,
-                     bbox_diagonal: float | None = None, epsilon: float = 1e-4, smoothing=None):
+                     bbox_diagonal: float | None = None, epsilon: float = 1e-4, smoothing=None,
+                     device: str | None = None):
     """Move the shadow mesh onto the scan. Returns (registered vertices (V, 3) float64, stats dict).
 
     shadow_vertices (V, 3) metres; faces (F, 3) of the body (the registered mesh keeps them and
@@ -198,7 +441,9 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
     stats: ``matched_fraction`` per iteration and ``mean_match_distance_mm`` of the last one.
     ``smoothing``: the (V, V) normal-averaging matrix of "normal" stages (e.g. over the rest body,
     :meth:`BodyLayout.normal_smoothing_matrix`); None builds it on the shadow mesh when
-    ``config.normal_smoothing > 0``.
+    ``config.normal_smoothing > 0``. device: a torch device for the normals, their smoothing and the
+    solves (:class:`_TorchOps`; ``BakeConfig.torch_device``), None for numpy and SciPy; the matches
+    (rays, k-d tree) are the same either way.
     """
     config = config or RegistrationConfig()
     x0 = np.asarray(shadow_vertices, dtype=np.float64)
@@ -207,33 +452,38 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
         bbox_diagonal = float(np.linalg.norm(x0.max(0) - x0.min(0)))
     lap = uniform_laplacian_matrix(f, len(x0))
     ltl = (lap.T @ lap).tocsr()
-    ltl_x0 = ltl @ x0
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
-    x = x0.copy()
     if smoothing is None and config.normal_smoothing > 0 and "normal" in config.modes:
         smoothing = gaussian_surface_matrix(x0, vertex_normals(x0, f), config.normal_smoothing)
+    ops = _NumpyOps(f, len(x0), smoothing, ltl) if device is None else \
+        _torch_ops(faces, len(x0), smoothing, ltl, device)
+    x = ops.array(x0)
+    ltl_x0 = ops.ltl_times(x)
     matched_fraction = []
     last_distance = float("nan")
     for k, iters, dmax, mode in zip(config.stiffness, config.iterations, config.max_distance,
                                     config.modes, strict=True):
         for _ in range(int(iters)):
-            n = np.asarray(vertex_normals(x, f), dtype=np.float64)
+            n = ops.normals(x)
             if mode == "normal" and smoothing is not None:
-                n = smoothed_normals(smoothing, n)
-            target, ok = match_vertices(x, n, scan, dmax * bbox_diagonal, cos_max, mode == "closest", epsilon)
-            w = ok.astype(np.float64)
-            matched_fraction.append(float(w.mean()))
+                n = ops.smooth(n)
+            target, ok = match_vertices(ops.numpy(x), ops.numpy(n), scan, dmax * bbox_diagonal, cos_max,
+                                        mode == "closest", epsilon)
+            matched_fraction.append(float(ok.mean()))
+            target, w = ops.array(target), ops.array(ok)
             a = config.anchor_weight
             if mode == "normal":
                 # scalar offsets h along the current normals, smooth in the Laplacian sense:
                 # (W + a I + k L^T L) h = W t, t = signed distance of the match along n
                 t = ((target - x) * n).sum(1)
-                h = _factor_spd(sp.diags(w + a) + k * ltl).solve(w * t)
+                h = ops.solve(w + a, k, w * t)
                 x = x + h[:, None] * n
             else:
-                system = (sp.diags(w + a) + k * ltl).tocsc()
-                rhs = w[:, None] * target + a * x + k * ltl_x0
-                x = _factor_spd(system).solve(rhs)
+                x = ops.solve(w + a, k, w[:, None] * target + a * x + k * ltl_x0)
             if ok.any():
-                last_distance = float(np.linalg.norm(target[ok] - x[ok], axis=1).mean() * 1000)
-    return x, {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}
+                gap = ops.numpy(target - x)[ok]
+                last_distance = float(np.linalg.norm(gap, axis=1).mean() * 1000)
+    stats = {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}
+    if device is not None:
+        stats["solver"] = ops.solver
+    return ops.numpy(x), stats
