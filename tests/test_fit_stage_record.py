@@ -128,3 +128,28 @@ def test_person_all_resumes_per_person(tmp_path):
     assert subject_fit.stat().st_mtime_ns == stamp                      # the subject is kept, not refitted
     assert list(again["people"]) == ["1"] and json.loads(record_path.read_text())["complete"] is True
     assert (root / "people" / "1" / "fits" / "000000.json").is_file()
+
+
+def test_a_held_frame_loses_the_fit_an_earlier_run_left(tmp_path):
+    """A frame whose identity the new fit holds keeps no fit from before (--force over a synthetic
+    capture's own fits, or an earlier run's): nothing downstream may read it as this run's body."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from uvatar.capture import BodyFit, write_fit
+    from uvatar.capture.layout import Capture, write_capture_info
+    from uvatar.fit.pipeline import FitConfig, _write_fits
+
+    frames = ["000000", "000001", "000002"]
+    write_capture_info(tmp_path, frames)
+    cap = Capture(tmp_path)
+    stale = BodyFit(poses=np.full(6, 0.3), Rh=[0.0, 0.0, 0.0], Th=[1.0, 2.0, 3.0])
+    for f in frames:
+        write_fit(cap.fit_path(f), stale)
+    result = SimpleNamespace(poses=np.zeros((3, 6)), Rh=np.zeros((3, 3)), Th=np.zeros((3, 3)),
+                             shape=np.zeros(2), scale=np.ones(3))
+    _write_fits(cap, frames, result, SimpleNamespace(name="anny"), FitConfig(),
+                {"frames_without_detection": {"000001": "identity crowded"}, "identity_held": ["000001"]})
+    assert [cap.has_fit(f) for f in frames] == [True, False, True]
+    assert np.allclose(cap.load_fit("000002").Th, 0)      # rewritten by this run

@@ -273,7 +273,9 @@ def _write_fits(capture: Capture, frames, result, body, config: FitConfig, prove
     """The fits, shape and provenance. Another person than the subject gets no fit where they were
     not detected (``provenance["frames_without_detection"]``): a person walking out of the views is
     not there, and a body filled in from their neighbouring frames would claim pixels in the masks.
-    The subject gets none where its identity is held (``provenance["identity_held"]``)."""
+    The subject gets none where its identity is held (``provenance["identity_held"]``); a fit left
+    there by an earlier run (``force``, or a synthetic capture's own fits) is removed, so that no
+    later stage reads a body of another run, or of another person, as this run's."""
     from uvatar.capture.fits import write_fit
     from uvatar.capture.types import BodyFit
 
@@ -281,6 +283,7 @@ def _write_fits(capture: Capture, frames, result, body, config: FitConfig, prove
         else set(provenance.get("identity_held", ()))
     for t, frame in enumerate(frames):
         if frame in unseen:
+            capture.fit_path(frame).unlink(missing_ok=True)
             continue
         write_fit(capture.fit_path(frame), BodyFit(poses=result.poses[t].reshape(-1), Rh=result.Rh[t],
                                                    Th=result.Th[t], shapes=result.shape,
