@@ -264,7 +264,7 @@ def test_scan_colours_on_torch_equal_numpy(device):
 def test_registration_sparse_system_assembly(monkeypatch):
     """The sparse system handed to ``torch.sparse.spsolve`` (cuDSS, CUDA only) is the reference's:
     checked on the CPU with a dense solve standing in for spsolve."""
-    from uvatar.avh.bake import register
+    from uvatar.avh.bake import register_torch
 
     calls = []
 
@@ -273,14 +273,14 @@ def test_registration_sparse_system_assembly(monkeypatch):
         return torch.linalg.solve(system.to_dense(), rhs)
 
     monkeypatch.setattr(torch.sparse, "spsolve", dense_spsolve)
-    real = register._TorchOps.__init__
+    real = register_torch._TorchOps.__init__
 
     def init(self, *args, **kwargs):
         real(self, *args, **kwargs)
         self.solver = "spsolve"
 
-    monkeypatch.setattr(register._TorchOps, "__init__", init)
-    monkeypatch.setattr(register, "_TORCH_OPS", [])
+    monkeypatch.setattr(register_torch._TorchOps, "__init__", init)
+    monkeypatch.setattr(register_torch, "_TORCH_OPS", [])
     v, f = icosphere(3)
     surface = ScanSurface.build(v * (1.1 + 0.02 * np.sin(5 * v[:, :1])), f)
     for config in (RegistrationConfig(), RegistrationConfig(modes=("closest", "rays"), normal_smoothing=0.0)):
