@@ -329,8 +329,9 @@ def test_lattice_and_frames_on_torch_equal_numpy(device):
     index = np.arange(0, 5000, 7)
     shift, turn = face_lattice_params(index)
     t_shift, t_turn = face_lattice_params(torch.as_tensor(index, device=device))
-    # bit-equal on the CPU; CUDA fuses multiply-adds (measured on an H200: 4.5e-13 at most)
-    exact = 0 if device == "cpu" else 1e-12
+    # bit-equal on the CPU; CUDA fuses multiply-adds (measured on an H200: 4.5e-13 in the shifts, 1.4e-12 in
+    # the turns)
+    exact = 0 if device == "cpu" else 1e-11
     np.testing.assert_allclose(t_shift.cpu().numpy(), shift, atol=exact, rtol=0)
     np.testing.assert_allclose(t_turn.cpu().numpy(), turn, atol=exact, rtol=0)
     np.testing.assert_allclose(hemisphere_directions(16, t_shift, t_turn).cpu().numpy(),
@@ -433,9 +434,9 @@ def test_colour_round_with_torch_stages_matches(device):
     else:                                           # a stencil ray grazing an edge may go either way
         assert (sample.ok != ref_sample.ok).mean() < 0.002
     both = sample.ok & ref_sample.ok
-    # on CUDA the stencil is posed there in float32 (1e-4 rad): 97 % of the colours within 1e-6 on an H200
-    assert (np.abs(sample.colour - ref_sample.colour)[both].max(1) < (1e-6 if cpu else 1e-3)).mean() >= \
-        (1.0 if cpu else 0.99)
+    # on CUDA the stencil is posed there in float32 (1e-4 rad): on an H200 97.2 % of the colours agree within
+    # 1e-6 and the rest by more than 1e-3 (a stencil ray that lands on a neighbouring texel)
+    assert (np.abs(sample.colour - ref_sample.colour)[both].max(1) < 1e-6).mean() >= (1.0 if cpu else 0.95)
     np.testing.assert_allclose(np.median(np.abs(sample.gradient - ref_sample.gradient)[both]), 0.0, atol=1e-6)
     target = PhotoTarget(np.nan_to_num(ref_sample.colours), ref_sample.ok, radius)
     noisy = BodyFit(poses=frame_pose(model, 0) + np.random.default_rng(1).normal(0, 0.02, 3 * model.num_joints)
