@@ -100,3 +100,21 @@ def test_cli_eval_of_existing_fits_prints_the_measures(tiny_capture, tmp_path, c
     assert "fits/ already holds fits: evaluated them as they are, nothing fitted (--force fits again)" in err
     ev = json.loads((tmp_path / "e.json").read_text())["eval"]
     assert ev["mpjpe_mm"] == pytest.approx(10.0, abs=1e-3) and not (root / "fitting").exists()
+
+
+def test_fit_line_counts_held_frames_apart_from_frames_without_a_detection(tmp_path, monkeypatch, capsys):
+    """A held frame gets no fit: the summary line must not call it 'fitted from neighbours'."""
+    import uvatar.fit.pipeline as pipeline
+    from uvatar.cli.main import main
+
+    summary = {"capture": str(tmp_path), "person_id": None, "source": "images", "frames": 10, "frames_fitted": 7,
+               "frames_without_detection": {"000001": "no person", "000005": "identity crowded",
+                                            "000006": "identity crowded"},
+               "provenance": {"identity_held": ["000005", "000006"]},
+               "identity": {"held_frames": 2, "lost": [], "ambiguous": [], "crowded": ["000005-000006"]},
+               "reprojection": {"fitted_body_px": {"mean": 6.0}}}
+    monkeypatch.setattr(pipeline, "fit_capture", lambda *a, **k: summary)
+    assert main(["fit", str(tmp_path), "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "fitted 7 of 10 frames from images (1 without a detection, fitted from neighbours/scans; " \
+           "2 held, no fit written)" in err, err

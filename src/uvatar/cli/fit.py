@@ -101,10 +101,13 @@ def _fit(args) -> int:
     failed = summary.get("frames_without_detection") or {}
     rep = (summary.get("reprojection") or {}).get("fitted_body_px") or {}
     if "frames" in summary:
+        held_frames = set((summary.get("provenance") or {}).get("identity_held") or ())
+        no_detection = len([f for f in failed if f not in held_frames])
         unseen = ("no fit written: not this person's frames" if summary.get("person_id")
                   else "fitted from neighbours/scans")
+        held_note = f"; {len(held_frames)} held, no fit written" if held_frames and not summary.get("person_id") else ""
         print(f"fitted {summary['frames_fitted']} of {summary['frames']} frames from {summary['source']} "
-              f"({len(failed)} without a detection, {unseen}); "
+              f"({no_detection} without a detection, {unseen}{held_note}); "
               f"body keypoints reprojected: {rep.get('mean', float('nan')):.1f} px mean; "
               f"contact sheet: {summary.get('contact_sheet', '-')}", file=sys.stderr)
     if args.eval:
