@@ -145,19 +145,13 @@ class WarpRayCaster(RayCaster):
 
         if not self._here(origins):
             return super().any_hit_torch(origins, directions)
-        wp = _warp()
-        _, any_hit_kernel = _kernels()
         n = origins.shape[0]
-        out = torch.empty(n, dtype=torch.int32, device=origins.device)
         if n == 0:
-            return out.bool()
+            return torch.zeros(0, dtype=torch.bool, device=origins.device)
         o, d = _rays_torch(origins, directions)
         _RAYS["OCCLUDED"] += n
         far = torch.full((n,), 3e38, dtype=torch.float32, device=origins.device)
-        wp.launch(any_hit_kernel, dim=n, inputs=[self._mesh.id, wp.from_torch(o, dtype=wp.vec3),
-                                                 wp.from_torch(d, dtype=wp.vec3), wp.from_torch(far), wp.from_torch(out)],
-                  device=wp.device_from_torch(origins.device), stream=_torch_stream(origins.device))
-        return out >= 0
+        return _any_hit(self._mesh.id, o, d, far)
 
     def first_hit_torch(self, origins, directions, max_distance=None):
         """:meth:`RayCaster.first_hit_torch` on this BVH: tensors on the caster's device are cast there
@@ -192,6 +186,21 @@ class WarpRayCaster(RayCaster):
         """Is ``tensor`` on this caster's Warp device?"""
         wp = _warp()
         return wp.device_from_torch(tensor.device) == wp.get_device(self.device)
+
+
+def _any_hit(mesh_id, origins, directions, far):
+    """(N,) bool on the rays' device: whether each ray (float32 contiguous origins and unit directions
+    (N, 3), far (N,)) hits the Warp mesh ``mesh_id`` before ``far``; launched on torch's current stream."""
+    import torch
+
+    wp = _warp()
+    _, any_hit_kernel = _kernels()
+    out = torch.empty(origins.shape[0], dtype=torch.int32, device=origins.device)
+    wp.launch(any_hit_kernel, dim=origins.shape[0],
+              inputs=[mesh_id, wp.from_torch(origins, dtype=wp.vec3), wp.from_torch(directions, dtype=wp.vec3),
+                      wp.from_torch(far), wp.from_torch(out)],
+              device=wp.device_from_torch(origins.device), stream=_torch_stream(origins.device))
+    return out >= 0
 
 
 def _torch_stream(device):
@@ -267,11 +276,9 @@ class MeshOccluder:
         import torch
 
         wp = _warp()
-        _, any_hit_kernel = _kernels()
         n = origins.shape[0]
-        out = torch.empty(n, dtype=torch.int32, device=self.device)
         if n == 0:
-            return out.bool()
+            return torch.zeros(0, dtype=torch.bool, device=self.device)
         f32 = torch.float32
         with self._stream(wp):
             if self._points is None or self._points.shape != vertices.shape:
@@ -281,10 +288,5 @@ class MeshOccluder:
             else:
                 self._points.copy_(vertices.detach())
                 self._mesh.refit()
-            o = wp.from_torch(origins.detach().to(f32).contiguous(), dtype=wp.vec3)
-            d = wp.from_torch(directions.detach().to(f32).contiguous(), dtype=wp.vec3)
-            far = wp.from_torch(max_distance.detach().to(f32).contiguous())
-            wp.launch(any_hit_kernel, dim=n, inputs=[self._mesh.id, o, d, far, wp.from_torch(out)],
-                      device=wp.device_from_torch(self.device),
-                      stream=warp_stream(self.device) if self.device.type == "cuda" else None)
-        return out >= 0
+            return _any_hit(self._mesh.id, origins.detach().to(f32).contiguous(),
+                            directions.detach().to(f32).contiguous(), max_distance.detach().to(f32).contiguous())
