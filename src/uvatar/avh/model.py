@@ -52,7 +52,7 @@ from torch import nn
 
 from uvatar.avh.lights import LightRig
 from uvatar.avh.shadows import BodyShadows
-from uvatar.avh.texel_pose import TexelPoseMap, pooled
+from uvatar.avh.texel_pose import TexelPoseMap, input_statistics, pooled, standardize
 
 #: Most lights of the light-rig shading head (each is a learned direction and colour; a rig of a few
 #: already spans a studio's lighting, and the head's cost grows with every light).
@@ -369,18 +369,17 @@ class AvhGenerator(nn.Module):
         if not self.config.pose_normalization:
             raise ValueError("set_pose_statistics needs AvhConfig.pose_normalization")
         a = torch.as_tensor(pose_angles, dtype=torch.float32).to(self.pose_code_mean.device)
-        code = encode_pose(a)
+        mean, scale = input_statistics(encode_pose(a), self.config.pose_scale_floor)
         with torch.no_grad():
-            self.pose_code_mean.copy_(code.mean(0))
-            self.pose_code_scale.copy_(code.std(0, unbiased=False).clamp_min(self.config.pose_scale_floor))
+            self.pose_code_mean.copy_(mean)
+            self.pose_code_scale.copy_(scale)
         if self.texel_pose is not None:
             self.texel_pose.set_statistics(a)
 
     def cuboid(self, pose_encoded: torch.Tensor) -> torch.Tensor:
         """(B, 6·J_c) -> feature cuboid (B, latent, f_c, f_c)."""
         if self.config.pose_normalization:
-            clip = self.config.pose_clip
-            pose_encoded = torch.clamp((pose_encoded - self.pose_code_mean) / self.pose_code_scale, -clip, clip)
+            pose_encoded = standardize(pose_encoded, self.pose_code_mean, self.pose_code_scale, self.config.pose_clip)
         z = self.pose_mlp(pose_encoded)
         return self.feature_maps.unsqueeze(0) * z[:, :, None, None]
 

@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["rotation_minus_identity", "rotvec_to_rot6d", "rotvec_to_rotmat", "conditioning_skin_weights", "conditioning_parents",
+__all__ = ["standardize", "input_statistics", "rotation_minus_identity", "rotvec_to_rot6d", "rotvec_to_rotmat", "conditioning_skin_weights", "conditioning_parents",
            "texel_skin_weights", "texel_rest_normals", "texel_vertex_map", "TexelPoseMap"]
 
 
@@ -56,6 +56,17 @@ def rotation_minus_identity(rotvecs: torch.Tensor) -> torch.Tensor:
             torch.stack([a * z + b * x * y, b * (y * y - theta2), -a * x + b * y * z], -1),
             torch.stack([-a * y + b * x * z, a * x + b * y * z, b * (z * z - theta2)], -1)]
     return torch.stack(rows, -2)
+
+
+def input_statistics(x: torch.Tensor, floor: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mean, std floored at ``floor``) over the first axis of training inputs ``x`` (N, ...): what
+    :func:`standardize` divides by (``AvhConfig.pose_normalization``)."""
+    return x.mean(0), x.std(0, unbiased=False).clamp_min(floor)
+
+
+def standardize(x: torch.Tensor, mean: torch.Tensor, scale: torch.Tensor, clip: float) -> torch.Tensor:
+    """(x - mean) / scale, clipped to ±``clip`` (ONNX: Sub, Div, Clip)."""
+    return torch.clamp((x - mean) / scale, -clip, clip)
 
 
 def rotvec_to_rot6d(rotvecs: torch.Tensor) -> torch.Tensor:
@@ -231,9 +242,10 @@ class TexelPoseMap(nn.Module):
         if self.normalization is None:
             raise ValueError("set_statistics needs a TexelPoseMap made with normalization")
         r6 = rotvec_to_rot6d(torch.as_tensor(pose_angles, dtype=torch.float32).reshape(len(pose_angles), -1, 3))
+        mean, scale = input_statistics(r6, self.normalization[0])
         with torch.no_grad():
-            self.r6_mean.copy_(r6.mean(0))
-            self.r6_scale.copy_(r6.std(0, unbiased=False).clamp_min(self.normalization[0]))
+            self.r6_mean.copy_(mean)
+            self.r6_scale.copy_(scale)
 
     def world_rotations(self, rotvecs: torch.Tensor) -> torch.Tensor:
         """(B, J_c, 3) local axis-angles -> (B, J_c, 3, 3) world rotations (forward kinematics over
@@ -252,8 +264,7 @@ class TexelPoseMap(nn.Module):
         rotvecs = pose_angles.reshape(B, -1, 3)
         r6 = rotvec_to_rot6d(rotvecs)                                                 # (B, J_c, 6)
         if self.normalization is not None:
-            clip = self.normalization[1]
-            r6 = torch.clamp((r6 - self.r6_mean) / self.r6_scale, -clip, clip)
+            r6 = standardize(r6, self.r6_mean, self.r6_scale, self.normalization[1])
         m = torch.matmul(r6.transpose(1, 2), self.weights)                            # (B, 6, R²)
         if self.world_normals:
             g = self.world_rotations(rotvecs).reshape(B, -1, 9)                       # (B, J_c, 9)
