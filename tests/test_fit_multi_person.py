@@ -186,3 +186,37 @@ def test_build_tells_people_apart_whatever_the_pose():
     hidden = conf.copy()
     hidden[11:] = 0
     assert same_body(body_signature(body, hidden), sig) == np.inf                             # too few bones
+
+
+
+def test_a_view_mixed_with_a_person_in_front_is_rejected():
+    """The detector took the subject and a bystander in front of it together (nearer camera 02,
+    0.2 m aside): its keypoints lie half-way between both, 0.09 of the subject's height off (the
+    synthetic crossing: 0.10-0.12); views that agree stay below 0.063 there."""
+    rng = np.random.default_rng(3)
+    cams = _cams()
+    subject = _body(rng)
+    views = [project_distorted(c, subject)[0] for c in cams]
+    ahead = subject.mean(0) - cams[2].center
+    ahead /= np.linalg.norm(ahead)
+    aside = np.cross(ahead, [0.0, 1.0, 0.0])
+    other = cams[2].center + 0.55 * (subject - cams[2].center) + 0.2 * aside / np.linalg.norm(aside)
+    views[2] = 0.5 * (views[2] + project_distorted(cams[2], other)[0])
+    obs = _observation(cams, views)
+    assert disagreeing_views(obs) == (cams[2].name,)
+
+
+def test_a_right_view_cut_off_by_the_border_agrees():
+    """A right view whose legs are cut off (its detection half the subject's height there), 5.5 % of
+    the subject's height off (noise), agrees: scaled by its own height it would lie 0.106 off, beyond
+    ``DISAGREE_FRACTION``."""
+    rng = np.random.default_rng(4)
+    cams = _cams()
+    subject = _body(rng)
+    views = [project_distorted(c, subject)[0] for c in cams]
+    height = float(np.ptp(views[1][:, 1]))
+    angle = rng.uniform(0, 2 * np.pi, len(subject))
+    views[1] = views[1] + 0.055 * height * np.stack([np.cos(angle), np.sin(angle)], 1)
+    obs = _observation(cams, views)
+    obs.conf[1, views[1][:, 1] > np.median(views[1][:, 1])] = 0.0     # the lower half: out of the image
+    assert disagreeing_views(obs) == ()

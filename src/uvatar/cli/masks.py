@@ -14,7 +14,7 @@ def _flags() -> ConfigFlags:
     from uvatar.fit.masks import MaskConfig
 
     return ConfigFlags(MaskConfig, fields=("threshold", "dilate", "render_width", "use_fit", "exclude_others",
-                                                   "appearance", "appearance_prior", "overwrite"),
+                                                   "appearance", "appearance_prior", "max_outside", "overwrite"),
                        rename={"use_fit": "fit"}, help={
                            "threshold": "person probability threshold",
                            "dilate": "grow the fitted body's silhouette by this fraction of the image height",
@@ -24,6 +24,9 @@ def _flags() -> ConfigFlags:
                            "appearance": "where other people are fitted, decide the pixels they contest by "
                                          "per-person colour models (learned over the whole capture)",
                            "appearance_prior": "weight (nats) of the depth order against the colours there",
+                           "max_outside": "where `uvatar fit` saw other people near the subject, a subject mask "
+                                          "with more pixels outside its fitted silhouette than this share of "
+                                          "it is someone else's too: written empty, reported as crowded",
                            "use_fit": "restrict to the fitted person (--no-fit: the segmenter alone, "
                                       "bystanders are masked in)",
                            "overwrite": "replace existing masks"})
@@ -64,6 +67,10 @@ def _masks(args) -> int:
         print(f"empty subject masks in {len(summary['identity_held'])} image(s): `uvatar fit` held the subject's "
               f"identity there (lost or ambiguous, no fit): {', '.join(summary['identity_held'][:12])}"
               + (" ..." if len(summary["identity_held"]) > 12 else ""), file=sys.stderr)
+    if summary.get("crowded"):
+        print(f"empty subject masks (another person over the subject, beyond --max-outside of its fitted "
+              f"silhouette) in {sum(map(len, summary['crowded'].values()))} image(s): "
+              + "; ".join(f"{f} {','.join(c)}" for f, c in sorted(summary["crowded"].items())), file=sys.stderr)
     if summary.get("partial"):
         print(f"partial subject masks (hidden or cut off, under half of the fitted silhouette) in "
               f"{sum(map(len, summary['partial'].values()))} image(s): "

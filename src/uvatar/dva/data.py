@@ -54,6 +54,7 @@ class MultiViewSource:
     eval_box_mask: bool = False  # PSNR inside the projected body box (Neural Body)
 
     image_scale: float = 1.0  # the loader resizes images by this factor (ZJU-MoCap's ratio)
+    unusable: frozenset = frozenset()  # {(camera, frame)} whose mask does not show the subject (empty for want of it)
 
     def fit(self, frame: str) -> BodyFit:
         raise NotImplementedError
@@ -94,11 +95,12 @@ class CaptureSource(MultiViewSource):
 
     def __init__(self, root):
         from uvatar.capture import Capture
-        from uvatar.fit.masks import require_masks
+        from uvatar.fit.masks import require_masks, unusable_views
 
         self.cap = Capture(root)
         self.root = self.cap.root
         require_masks(self.root)  # never half-made masks (`uvatar capture masks` killed)
+        self.unusable = frozenset(unusable_views(self.root))
         self.cameras = self.cap.cameras()
         if not self.cameras:
             raise InputError(self.cap.cameras_dir / "intri.yml", "DVA needs a multi-view capture (no cameras)")

@@ -5,7 +5,10 @@ LBS vertices, joint rotations, uint8 images and masks, and the image unwrapped i
 image-feature resolution (with visibility). Frames whose fit, image or mask cannot be read are skipped
 with a warning (``bank.skipped`` says why, ``bank.causes`` counts them by cause); with no frame left
 the error counts the causes ("100 frames: 100 missing masks"). Images whose size differs from their
-camera's intrinsics are warned about once per camera.
+camera's intrinsics are warned about once per camera. Views whose subject mask ``uvatar capture masks``
+wrote empty for want of the subject (another person over it, or its identity held:
+:func:`uvatar.fit.masks.unusable_views`, the source's ``unusable``) are marked in ``bank.usable`` (F, C):
+training never takes them as targets and eval does not score them; a frame with none usable is skipped.
 """
 
 from __future__ import annotations
@@ -66,12 +69,18 @@ class FrameBank:
         self.cameras = list(cameras)
         self.cams = [source.cameras[c] for c in self.cameras]
         self.frames, self.skipped = [], {}
-        rot, verts, images, masks, texs, vis, fits = [], [], [], [], [], [], []
+        rot, verts, images, masks, texs, vis, fits, usable = [], [], [], [], [], [], [], []
+        unusable = getattr(source, "unusable", frozenset())
         causes: dict[str, int] = {}
         size_warned: set[str] = set()
         for frame in tqdm(list(frames), desc="loading frames", disable=not progress, unit="frame"):
             stage = "fits"
             try:
+                row = [(c, frame) not in unusable for c in self.cameras]
+                if not any(row):
+                    stage = "views without the subject alone"
+                    raise InputError(f"masks of frame {frame}", "no view shows the subject alone (another person "
+                                                                "over it in every camera: masks/views.json)")
                 fit = source.fit(frame)
                 stage = "fits for another body model"
                 try:
@@ -105,6 +114,7 @@ class FrameBank:
             verts.append(v[0])
             images.append([(np.clip(i, 0, 1) * 255 + 0.5).astype(np.uint8) for i in imgs])
             masks.append([(m > 0.5) for m in msks])
+            usable.append(row)
             texs.append(torch.as_tensor(t, dtype=torch.float16))
             vis.append(torch.as_tensor(s))
         self.causes = causes
@@ -117,6 +127,7 @@ class FrameBank:
         self.fits = fit_params(body, fits)  # what a pose correction starts from
         self.vertices = torch.stack(verts)
         self.images, self.masks = images, masks
+        self.usable = np.array(usable, bool)  # (F, C): False where the subject's mask is empty for want of it
         self.textures = torch.stack(texs)  # (F, C, R, R, 3)
         self.visibility = torch.stack(vis)  # (F, C, R, R)
         self.backgrounds = np.stack([estimate_background(images[0][c].astype(np.float32) / 255.0,

@@ -167,6 +167,8 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
         photo_tex = projective_texture(model.template, verts_np, drive_cams, photos, masks)
         colour = mean_colour(photos, masks)
         for ci, cam_name in enumerate(test_cams, start=len(driving)):
+            if not bank.usable[fi, ci]:
+                continue   # the subject's mask there is empty for want of it (masks/views.json): nothing to score
             cam = bank.cams[ci]
             gt = bank.images[fi][ci].astype(np.float32) / 255.0
             if (cam.height, cam.width) != gt.shape[:2]:

@@ -240,6 +240,9 @@ class Trainer:
         n_cam = len(self.bank.cameras)
         frames = [self.rng.randrange(len(self.bank)) for _ in range(t.batch)]
         cams = [self.rng.randrange(n_cam) for _ in range(t.batch)]
+        usable = self.bank.usable
+        cams = [c if usable[f, c] else self.rng.choice(np.flatnonzero(usable[f]).tolist())   # never a view
+                for f, c in zip(frames, cams, strict=True)]                                 # without the subject
         if self.step < t.all_views_iters:
             views = [list(range(n_cam))] * t.batch
         else:

@@ -491,6 +491,9 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
     }
     if held:
         provenance["identity_held"] = held
+    seen = ((person or {}).get("identity") or {}).get("other_people_seen")
+    if seen:   # other people were near the subject: its masks look for their pixels (uvatar capture masks)
+        provenance["other_people_seen"] = int(seen)
     _write_fits(capture, frames, result, body, config, provenance)
 
     import torch
