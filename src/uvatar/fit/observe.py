@@ -233,7 +233,9 @@ def disagreeing_views(obs: FrameObservation, config=None, min_used_fraction: flo
     hid the first and flagged the second. Measured: views that agree stay below 0.056 (the real
     4-camera recording at 1088x1920, where left/right labels swapped in a whole back view reached
     0.21-0.26) and 0.063 (the synthetic crossing at 512 px, where a view mixing the subject with the
-    bystander in front lay at 0.10-0.12). A joint triangulation's per-point outlier rejection can keep
+    bystander in front lay at 0.10-0.12; the recording's swapped back views, relabelled, still
+    lay 0.04-0.07 off, where the others lay at 0.005-0.015: partly swapped, so they are rejected, not
+    relabelled). A joint triangulation's per-point outlier rejection can keep
     a wrong pair; a consensus of pairs cannot be outvoted by one wrong view. Nothing is rejected where
     no pair finds a third view to agree. With fewer such views, a view disagrees when fewer than
     ``min_used_fraction`` of its confident keypoints were used by the joint triangulation. Views
