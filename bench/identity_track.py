@@ -8,7 +8,11 @@ consecutive frames (max, and max beside the true step), MPJPE against the subjec
 frame, worst), frames whose fitted root lies nearer a bystander's true root than the subject's (fitted
 to the bystander), and the identity report of ``fitting/summary.json`` (frames held). Prints JSON.
 ``--sheet``: the first capture's fit overlay (fitted body blue) in every camera at ``--frames`` (a
-row per frame; a frame without a fit, held, framed in red).
+row per frame; a frame without a fit, held, framed in red). ``--true-masks NAME``: each capture's
+subject masks (``uvatar capture masks``) against the subject's true masks in ``CAP/NAME/<cam>/`` (a
+copy of the synth's own ``masks/``, made before ``capture masks --overwrite`` replaced them) and the
+bystanders' (``gt/bystander_masks``): per view the IoU and the share of the mask's pixels that are a
+bystander's and not the subject's; how many views are empty, crowded or partial (``masks/views.json``).
 """
 
 from __future__ import annotations
@@ -61,6 +65,43 @@ def measure(root: str, body) -> dict:
     }
 
 
+def measure_masks(root: str, truth: str) -> dict:
+    """The subject's masks against the truth (see the module doc)."""
+    from uvatar.capture.layout import Capture
+    from uvatar.io_utils import read_image, read_json
+
+    capture = Capture(root)
+
+    def load(path):
+        m = read_image(path, "mask", rgb=False)
+        return (m[..., 0] if m.ndim == 3 else m) > 0.5
+
+    rows = []
+    for cam in capture.cameras():
+        for frame in capture.frames:
+            mine = capture.mask_path(cam, frame)
+            if not mine.is_file():
+                continue
+            pred, gt = load(mine), load(capture.root / truth / cam / f"{frame}.png")
+            by_path = capture.gt_dir / "bystander_masks" / cam / f"{frame}.png"
+            other = (load(by_path) if by_path.is_file() else np.zeros_like(gt)) & ~gt
+            n = int(pred.sum())
+            rows.append({"camera": cam, "frame": frame, "pixels": n,
+                         "iou": float((pred & gt).sum() / max((pred | gt).sum(), 1)),
+                         "on_bystander": float((pred & other).sum() / max(n, 1))})
+    on = np.array([r["on_bystander"] for r in rows])
+    filled = np.array([r["pixels"] > 0 for r in rows])
+    views = capture.masks_dir / "views.json"
+    record = read_json(views) if views.is_file() else {}
+    return {"views": len(rows), "empty": int((~filled).sum()),
+            **{k: len(record.get(k, ())) for k in ("identity_held", "crowded", "partial")},
+            "iou_mean_filled": float(np.mean([r["iou"] for r, f in zip(rows, filled, strict=True) if f]))
+            if filled.any() else None,
+            "on_bystander_max": float(on.max()) if len(on) else 0.0,
+            "views_over_5pct_on_bystander": int((on > 0.05).sum()),
+            "worst": sorted(rows, key=lambda r: -r["on_bystander"])[:5]}
+
+
 def sheet(root: str, frames: list[str], body, out: str, width: int = 256) -> None:
     import cv2
     import torch
@@ -107,11 +148,13 @@ def main(argv=None) -> int:
     p.add_argument("--json", default=None)
     p.add_argument("--sheet", default=None, help="overlay picture of the first capture")
     p.add_argument("--frames", default="", help="comma-separated frame numbers for --sheet")
+    p.add_argument("--true-masks", default=None, help="folder (in each capture) of the subject's true masks")
     args = p.parse_args(argv)
     from uvatar.body.registry import load_body_model
 
     body = load_body_model("anny")
-    out = {"captures": [measure(c, body) for c in args.captures]}
+    out = {"captures": [measure(c, body) | ({"masks": measure_masks(c, args.true_masks)} if args.true_masks else {})
+                        for c in args.captures]}
     if args.sheet:
         sheet(args.captures[0], [f"{int(f):06d}" for f in args.frames.split(",") if f], body, args.sheet)
     text = json.dumps(out, indent=2)
