@@ -273,3 +273,45 @@ def test_held_frames_are_reported_and_strict_exits_1(tmp_path, monkeypatch, caps
     summary["identity"] = identity_report(frames, {"lost": [], "ambiguous": [], "crowded": [], "reassociated": []},
                                           None, 3.0)
     assert main(["fit", str(tmp_path), "--no-progress", "--strict"]) == 0
+
+
+def test_a_resumed_fit_holds_the_frames_held_before_and_keeps_their_statuses(tmp_path):
+    """A resumed ``uvatar fit`` (its keypoints kept) never re-tracks a frame the run it resumes held
+    (its tracker would not know the other people yet) and reports the statuses of the frames it reads
+    back; a run under other settings starts over (``identity.json`` is stale with the keypoints)."""
+    from uvatar.capture.layout import Capture, write_capture_info
+    from uvatar.fit.observe import FrameObservation, observation_path, save_observation
+    from uvatar.fit.person import Person
+    from uvatar.fit.pipeline import _detect_all
+    from uvatar.fit.records import read_identity_record, write_identity_record
+    from uvatar.fit.stages import FitStages
+    from uvatar.render.cameras import ring_cameras
+
+    frames = [f"{i:06d}" for i in range(4)]
+    write_capture_info(tmp_path, frames)
+    capture = Capture(tmp_path)
+    cams = ring_cameras([0.0, 1.0, 0.0], 3.0, 3, (0.0,), 50.0, 64, 64)
+    points = np.random.default_rng(0).normal(size=(33, 3)) * [0.1, 0.5, 0.1] + [0.0, 1.0, 0.0]
+    obs = FrameObservation("images", cams, np.zeros((3, 33, 2), np.float32), np.ones((3, 33), np.float32),
+                           points.astype(np.float32), np.ones(33, np.float32), np.zeros((3, 33), np.float32))
+    for frame in ("000000", "000003"):
+        save_observation(observation_path(tmp_path, frame), obs)
+    keypoints = observation_path(tmp_path, "-").parent
+    write_identity_record(keypoints, {"000001": "crowded", "000002": "lost", "000003": "reassociated"}, 2)
+    assert read_identity_record(keypoints)["other_people_seen"] == 2
+    chosen = ("000000", Person(points=points, points_conf=np.ones(33)), {"people_found": 2})
+
+    class NoDetector:   # nothing may be detected: every frame is read back or held
+        keypoint_names = ()
+
+        def detect(self, *a, **k):
+            raise AssertionError("a resumed run detected again")
+
+    observations, failures, person = _detect_all(capture, frames, "images", NoDetector(), FitStages(), False,
+                                                 chosen=chosen)
+    assert sorted(observations) == ["000000", "000003"]
+    assert failures["000001"].startswith("identity crowded") and failures["000002"].startswith("identity lost")
+    identity = person["identity"]
+    assert identity["held"] == ["000001-000002"] and identity["crowded"] == ["000001"]
+    assert identity["reassociated"] == ["000003"] and identity["other_people_seen"] == 2
+    assert read_identity_record(tmp_path / "elsewhere") == {"statuses": {}, "other_people_seen": 0}

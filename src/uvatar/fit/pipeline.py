@@ -25,7 +25,15 @@ from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.calibration import refine_capture_cameras
 from uvatar.fit.identity import SubjectTracker, body_centre, identity_report, images_changed, track_frame
 from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
-from uvatar.fit.records import check_person_choice, fit_inputs, fit_record_config, keypoint_record_config
+from uvatar.fit.records import (
+    IDENTITY_JSON,
+    check_person_choice,
+    fit_inputs,
+    fit_record_config,
+    keypoint_record_config,
+    read_identity_record,
+    write_identity_record,
+)
 from uvatar.fit.sequence import relabel_left_right, scan_inputs, stack_observations
 from uvatar.fit.stages import FitStages
 from uvatar.io_utils import read_json, write_json
@@ -168,6 +176,9 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     tracker = (SubjectTracker(max_speed / capture.fps)
                if person is not None and capture.person is None and seed_prior is not None else None)
     held: dict[str, str] = {}
+    keypoints_dir = observation_path(capture.person_root, "-").parent
+    before = read_identity_record(keypoints_dir) if tracker is not None else {"statuses": {}}
+    statuses = dict(before["statuses"])   # {frame: status other than tracked}, kept for a resumed run
     if tracker is not None:
         tracker.start(start, body_centre(seed_prior.points, seed_prior.points_conf))
     bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
@@ -181,6 +192,11 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
         try:
             if frame in avoid_held:
                 raise UvatarError("the subject's identity is held at this frame (who is who is open); left out")
+            status = before["statuses"].get(frame) if tracker is not None else None
+            if status in _HELD_WHY:   # held by the run this one resumes: held again, never re-tracked
+                person["identity"][status].append(frame)
+                held[frame] = status
+                raise UvatarError(f"identity {status}: " + _HELD_WHY[status] + "; left out of the fit")
             if path.is_file():
                 obs = load_observation(path)
                 if obs.source != source:
@@ -188,6 +204,8 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                 centre = body_centre(obs.points, obs.points_conf) if tracker is not None else None
                 if centre is not None:
                     tracker.subject.update(t, centre)
+                if status is not None:
+                    person["identity"][status].append(frame)
             else:
                 images, cameras = frame_views(capture, frame, source, stages, hide)
                 use_prior = prior if source == "images" else None
@@ -208,6 +226,9 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                     obs, status = track_frame(tracker, t, obs, images, cameras, detector, stages.triangulate, source)
                     if status not in ("tracked", "nobody"):
                         person["identity"][status].append(frame)
+                        statuses[frame] = status
+                        write_identity_record(keypoints_dir, statuses,
+                                              max(tracker.others_seen, before.get("other_people_seen", 0)))
                     if obs is None:
                         held[frame] = status
                         raise UvatarError(f"identity {status}: " + _HELD_WHY[status] + "; left out of the fit")
@@ -231,6 +252,8 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             prior = obs
     if person is not None and "identity" in person:
         person["identity"] = identity_report(frames, person["identity"], tracker, max_speed)
+        person["identity"]["other_people_seen"] = max(person["identity"]["other_people_seen"],
+                                                      before.get("other_people_seen", 0))
     return {f: observations[f] for f in frames if f in observations}, failures, person
 
 
@@ -446,8 +469,8 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
     keypoints_dir = capture.person_root / "fitting" / "keypoints"
     if stage_record.begin(keypoints_dir, "keypoints", keypoint_record_config(capture, config, stages, source, detector),
                           fit_inputs(capture, source), total=len(frames), on_change="redo").status == "redo":
-        for stale in keypoints_dir.glob("*.npz"):   # detected for another person, detector or images
-            stale.unlink()
+        for stale in [*keypoints_dir.glob("*.npz"), keypoints_dir / IDENTITY_JSON]:   # another person, detector,
+            stale.unlink(missing_ok=True)                                              # images or rules
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
                                                  config.cut_distance, chosen, avoid, hide, config.max_speed,
                                                  avoid_held)

@@ -3,23 +3,31 @@ against the capture that runs before any work.
 
 ``fitting/stage.json``: the fit's settings (``uvatar fit``'s flags, the stages' configs) and the files
 its keypoints come from; ``fitting/keypoints/stage.json``: what the keypoints depend on (the detector,
-the triangulation, with images the person followed, with scans the virtual views). A changed
-``--person`` makes the keypoints from images stale (the person is tracked in them), never those from scans.
+the triangulation, the version of the rules that reject views and hold frames (``VIEW_RULES``: keypoints
+saved under older rules are detected again), with images the person followed, with scans the virtual
+views). A changed ``--person`` makes the keypoints from images stale (the person is tracked in them),
+never those from scans. ``fitting/keypoints/identity.json``: the subject tracker's statuses, which a
+resumed run keeps (:func:`read_identity_record`).
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from uvatar import stage_record
 from uvatar.capture.layout import Capture
 from uvatar.errors import InputError
+from uvatar.io_utils import read_json, write_json
 
 if TYPE_CHECKING:  # annotations only
     from uvatar.fit.stages import FitStages
 
-__all__ = ["check_person_choice", "fit_inputs", "fit_record_config", "keypoint_record_config"]
+__all__ = ["check_person_choice", "fit_inputs", "fit_record_config", "keypoint_record_config", "VIEW_RULES",
+           "read_identity_record", "write_identity_record"]
+
+VIEW_RULES = 2   # the version of the rules that reject views and hold frames, whose results the keypoints keep
 
 
 # FitConfig fields that do not change the fits: where the fit runs, replacing, and the contact sheet
@@ -44,12 +52,35 @@ def keypoint_record_config(capture: Capture, config, stages: FitStages, source: 
     triangulation, with images the person followed (``--person``) and their cut distance, with scans
     the virtual views (the person does not change what a scan's views show)."""
     settings = {"source": source, "detector": config.detector, "detector_version": str(detector.version),
+                "view_rules": VIEW_RULES,
                 "stages": {"detector": asdict(stages.detector), "triangulate": asdict(stages.triangulate)}}
     if source == "images":
         settings.update(person=config.person, cut_distance=config.cut_distance, person_id=capture.person)
     else:
         settings.update(count=stages.views.count, views=asdict(stages.views))
     return stage_record.config_values(**settings)
+
+
+IDENTITY_JSON = "identity.json"   # fitting/keypoints/identity.json: the tracker's statuses so far (a resume keeps them)
+
+
+def read_identity_record(keypoints_dir: str | Path) -> dict:
+    """{"statuses": {frame: "lost" | "ambiguous" | "crowded" | "reassociated"}, "other_people_seen": n} of
+    the run that left ``keypoints_dir`` (its keypoints kept: the same settings); empty where there is none.
+    A resumed run holds the frames held before and reports the statuses of the frames it reads back
+    instead of tracking them: the tracker's knowledge of the other people is not saved, and a frame held
+    beside someone must not be fitted because a resumed tracker has not seen them yet."""
+    path = Path(keypoints_dir) / IDENTITY_JSON
+    if not path.is_file():
+        return {"statuses": {}, "other_people_seen": 0}
+    record = read_json(path)
+    return {"statuses": dict(record.get("statuses") or {}), "other_people_seen": int(record.get("other_people_seen") or 0)}
+
+
+def write_identity_record(keypoints_dir: str | Path, statuses: dict, other_people_seen: int) -> None:
+    """Write the tracker's statuses so far (:func:`read_identity_record`), atomically."""
+    write_json(Path(keypoints_dir) / IDENTITY_JSON, {"statuses": dict(sorted(statuses.items())),
+                                                     "other_people_seen": int(other_people_seen)})
 
 
 def check_person_choice(capture: Capture, frames: list[str], choice, spec: str, source: str) -> None:
