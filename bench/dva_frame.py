@@ -32,7 +32,9 @@ torch.profiler's 20 most expensive operators on the device (stderr), to show whe
 
 The training rows: ``train_<p>_step_ms`` (a synchronise after every step) and
 ``train_<p>_pipelined_step_ms`` (steps back to back, their terms read every 10th step as ``Trainer.run``
-logs them, one synchronise at the end; per step).
+logs them, one synchronise at the end; per step). ``--pose`` (as in ``bench/dva_train.py``: auto,
+device, host, off) says how those steps pose the body with the learned pose corrections; the JSON's
+``train.pose`` / ``train.pose_on_device`` say which ran.
 
 Each time is taken after a device synchronise. Prints one JSON object; progress on stderr. The model is
 the briefly trained one (its frame is not blank); the PSNRs compare paths, not the avatar's quality.
@@ -316,6 +318,8 @@ def main(argv=None) -> int:
     ap.add_argument("--capture", default=None, help="an existing capture (default: the toy one, 160 px)")
     ap.add_argument("--pairs-per-ray", type=float, default=None,
                     help="the marcher's fixed pair buffer per ray, frames and training (default: their configs')")
+    ap.add_argument("--pose", default="auto",
+                    help="how the training steps pose the body: auto, device, host, off (see bench/dva_train.py)")
     args = ap.parse_args(argv)
     global PAIRS_PER_RAY
     PAIRS_PER_RAY = args.pairs_per_ray
@@ -325,6 +329,7 @@ def main(argv=None) -> int:
         return 1
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
+    from bench.dva_train import pose_settings
     from tests.fixtures.dva_capture import write_toy_capture
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset
@@ -338,17 +343,20 @@ def main(argv=None) -> int:
     cfg.train.warmup_iters = 0  # correctives on, as after a real run's warm-up
     if args.pairs_per_ray is not None:
         cfg.train.pairs_per_ray = args.pairs_per_ray
+    cfg.corrections.pose, pose_on_device = pose_settings(args.pose)
     sizes = [int(v) for v in (args.sizes or ("1024" if cuda else "256")).split(",") if v.strip()]
     paths = [p for p in (args.paths or ("fp32+exact,fp32,bf16+cl,fp16+cl,fp16+cl+graph,bf16+cl+graph,"
                                         "bf16+compile+cl+graph" if cuda else "fp32,bf16,fp16")).split(",") if p.strip()]
     with tempfile.TemporaryDirectory() as tmp:
         capture = Path(args.capture) if args.capture else \
             write_toy_capture(Path(tmp) / "cap", frames=4, cameras=4, size=160)
-        trainer = Trainer(open_source(capture), Path(tmp) / "run", cfg, progress=False, device=args.device)
+        trainer = Trainer(open_source(capture), Path(tmp) / "run", cfg, progress=False, device=args.device,
+                          pose_on_device=pose_on_device)
         for _ in range(args.warmup):
             trainer.train_step()
         train = train_rows(trainer, [p for p in args.train.split(",") if p.strip()], args.steps, args.device,
                            args.profile)
+        train.update(pose=args.pose, pose_on_device=trainer.posing is not None)
         rows = frame_rows(trainer, sizes, paths, args.repeats, args.device, args.profile)
     from uvatar.dva.raymarch import resolve_marcher
 

@@ -14,6 +14,12 @@ memory; ``--render 512,1024`` also times a whole-frame render (decoders + marche
 of the trained model at those sizes, as frames per second; ``--capture`` uses an existing capture
 instead of writing the toy one (whose ray casting needs Embree). ``--preset paper --grids 64 --voxels
 16`` is the paper's scale.
+
+``--pose`` says how the timed steps pose the body (:func:`pose_settings`): "auto" (the trainer's default:
+pose corrections on, the body re-posed on the training device where that is not the CPU), "device" /
+"host" (the re-posing forced onto the device path or the host path, the reference that reads the offsets
+back every step), "off" (pose corrections off: the fits as they are). Several, comma separated, time each
+(keys ``<marcher>_<pose>_...``); the JSON says which ("pose").
 """
 
 from __future__ import annotations
@@ -56,15 +62,26 @@ def render_fps(trainer, size: int, device: str, repeats: int = 5) -> float:
     return 1.0 / best
 
 
+POSES = ("auto", "device", "host", "off")
+
+
+def pose_settings(pose: str) -> tuple[bool, bool | None]:
+    """``--pose`` value -> (``CorrectionConfig.pose``, ``Trainer(pose_on_device=...)``)."""
+    if pose not in POSES:
+        raise SystemExit(f"--pose {pose!r}: choose from {', '.join(POSES)}")
+    return pose != "off", {"device": True, "host": False}.get(pose)
+
+
 def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int, steps: int,
-            preset: str, device: str = "cpu", render_sizes=(), pairs_per_ray: float | None = None) -> dict:
+            preset: str, device: str = "cpu", render_sizes=(), pairs_per_ray: float | None = None,
+            pose: str = "auto") -> dict:
     """{"step_ms": median ms per training step (a synchronise after each), "pipelined_step_ms": ms per
     step of ``steps`` steps back to back, their terms read every 10th step as ``Trainer.run`` logs them,
     one synchronise at the end (what a run pays when the host may run ahead of the GPU),
     "pairs_per_ray_peak": the most pairs per rendered ray the marcher's fixed buffer held,
     "fps_<size>": whole-frame renders per second, and on a GPU "peak_gpu_gib": the most GPU memory the
     steps held}. ``pairs_per_ray``: ``TrainConfig.pairs_per_ray`` (0: the exact buffer, a read-back
-    per sample)."""
+    per sample); ``pose``: how the steps pose the body (see the module docstring)."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -76,7 +93,8 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     cfg.train.warmup_iters = 0
     if pairs_per_ray is not None:
         cfg.train.pairs_per_ray = pairs_per_ray
-    trainer = Trainer(open_source(capture), out, cfg, progress=False, device=device)
+    cfg.corrections.pose, on_device = pose_settings(pose)
+    trainer = Trainer(open_source(capture), out, cfg, progress=False, device=device, pose_on_device=on_device)
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     for _ in range(warmup):
@@ -88,7 +106,8 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
         trainer.train_step()
         _sync(device)
         times.append(time.perf_counter() - t)
-    row = {"step_ms": round(1000 * statistics.median(times), 1)}
+    row = {"step_ms": round(1000 * statistics.median(times), 1),
+           "pose_on_device": trainer.posing is not None}
     _sync(device)
     t = time.perf_counter()
     for _ in range(steps):
@@ -125,7 +144,12 @@ def main(argv=None) -> int:
     ap.add_argument("--capture", default=None, help="an existing capture (default: the toy one, 160 px)")
     ap.add_argument("--pairs-per-ray", type=float, default=None,
                     help="TrainConfig.pairs_per_ray (the marcher's fixed pair buffer; 0: exact, read back)")
+    ap.add_argument("--pose", default="auto", help=f"how the steps pose the body, comma separated: {', '.join(POSES)} "
+                    "(auto: corrections on, re-posed on the device off the CPU)")
     args = ap.parse_args(argv)
+    poses = [p.strip() for p in args.pose.split(",") if p.strip()]
+    for p in poses:
+        pose_settings(p)
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
     from tests.fixtures.dva_capture import write_toy_capture
@@ -139,14 +163,16 @@ def main(argv=None) -> int:
             for S in (int(v) for v in args.voxels.split(",")):
                 row = {"K": W * W, "W": W, "S": S}
                 for m in args.marchers.split(","):
-                    got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}", W, S, m, args.warmup, args.steps,
-                                  args.preset, args.device, sizes, args.pairs_per_ray)
-                    row.update({f"{m}_{k}": v for k, v in got.items()})
+                    for p in poses:
+                        got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}_{p}", W, S, m, args.warmup, args.steps,
+                                      args.preset, args.device, sizes, args.pairs_per_ray, p)
+                        key = m if len(poses) == 1 else f"{m}_{p}"
+                        row.update({f"{key}_{k}": v for k, v in got.items()})
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr)
     device = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or "cpu"
     print(json.dumps({"bench": "dva_train_step", "preset": args.preset, "device": device, "threads": args.threads,
-                      "steps": args.steps, "results": rows}))
+                      "steps": args.steps, "pose": args.pose, "results": rows}))
     return 0
 
 

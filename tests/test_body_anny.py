@@ -154,6 +154,14 @@ def test_shape_cache_reused(body):
     assert body._bind_state(torch.stack([s, s])) is a
 
 
+def test_shape_cache_from_the_default_and_from_numpy(body):
+    """The default shape (None) and a host array find their cached bind state; the state lives on the body's device."""
+    a = body._bind_state(None)
+    assert body._bind_state(body.default_shape()) is a and a["bind_vertices"].device == body.device
+    s = np.array([0.2, 0.5, 0.5, 0.5, 0.5, 0.5], np.float32)
+    assert body._bind_state(s) is body._bind_state(torch.as_tensor(s))
+
+
 def test_fit_rotvecs_and_bad_input(body):
     class Fit:
         poses = np.zeros(312)
@@ -196,6 +204,24 @@ def test_pose_on_cuda_matches_cpu(body):
     out = gpu.pose(rv.cuda())
     assert out.vertices.is_cuda
     torch.testing.assert_close(out.vertices.cpu(), body.pose(rv).vertices, atol=1e-4, rtol=0)
+
+
+@pytest.mark.gpu
+def test_cuda_pose_with_a_host_shape_reads_nothing_back():
+    """A GPU body posed with a shape on the host (what a DVA trainer passes, issue 39) finds its cached
+    bind state without a read-back: after the first pose, no sync under sync debug mode "error"."""
+    gpu = load_body_model("anny", device="cuda")
+    shape = torch.full((2, len(gpu.shape_names)), 0.4)
+    rv = (0.3 * torch.randn(2, gpu.num_joints, 3)).cuda().requires_grad_()
+    gpu.pose(rv, shape=shape)
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        gpu.pose(rv, shape=shape).vertices.sum().backward()
+        gpu.pose(rv.detach()).vertices.sum()  # the default shape, keyed on the host too
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert rv.grad is not None and rv.grad.is_cuda
 
 
 def test_rest_to_posed_transforms(body):

@@ -69,9 +69,10 @@ def test_lazy_terms_fixed_buffer_and_device_update_take_the_same_steps(capture, 
 
 
 def test_device_update_step_reads_nothing_back(capture, tmp_path, device_path, monkeypatch):
-    """With the body posed as fitted (``corrections.pose`` off: re-posing runs the body model on the
-    CPU, a read-back by nature) a step with the device-side update reads nothing back from the device
-    (its host data go over as asynchronous copies); its terms are read only when asked for."""
+    """With the body posed as fitted (``corrections.pose`` off; re-posed with the pose corrections on
+    the device path: ``test_dva_train_posing.py``) a step with the device-side update reads nothing
+    back from the device (its host data go over as asynchronous copies); its terms are read only when
+    asked for."""
     trainer = _trainer(capture, tmp_path / "quiet", fused=True, pose=False)
     trainer.train_step()
     traffic = HostTraffic(monkeypatch, count_host_data=False)

@@ -78,7 +78,6 @@ class AnnyBody(BodyModel):
         self._data = data
         self.shape_names = data.phenotype_labels
         self._levels = kinematic_levels(data.parents)
-        self._levels_by_device: dict[str, object] = {}
         self._cache: OrderedDict = OrderedDict()
         dt = self.config.dtype
         self.register_buffer("_weights", torch.as_tensor(data.weights, dtype=dt), persistent=False)
@@ -99,10 +98,11 @@ class AnnyBody(BodyModel):
         return torch.full((len(self.shape_names),), 0.5, device=self.device)
 
     def _bind_state(self, shape) -> dict[str, torch.Tensor]:
-        """Bind state for shape (S,) or (B, S): bind vertices, heads, rotations (U R^T), offsets."""
-        if shape is None:
-            shape = self.default_shape()
-        shape = torch.as_tensor(shape, device=self.device)
+        """Bind state for shape (S,) or (B, S) (None: :meth:`default_shape`): bind vertices, heads,
+        rotations (U R^T), offsets. A shape without a gradient and the same in every row is cached
+        (LRU); the cache looks at the shape where it is given, so a shape on the host (and the default)
+        finds its state on a GPU body without a read-back from the device."""
+        shape = torch.full((len(self.shape_names),), 0.5) if shape is None else torch.as_tensor(shape)
         if shape.dim() == 1:
             shape = shape[None]
         if shape.shape[-1] != len(self.shape_names):
@@ -116,7 +116,7 @@ class AnnyBody(BodyModel):
                 self._cache.move_to_end(key)
                 return self._cache[key]
         with torch.set_grad_enabled(torch.is_grad_enabled() and shape.requires_grad):
-            state = self._compute_bind_state(shape)
+            state = self._compute_bind_state(shape.to(self.device))
         if cacheable:
             self._cache[key] = state
             while len(self._cache) > self.config.shape_cache_size:
@@ -137,12 +137,6 @@ class AnnyBody(BodyModel):
                 "bind_rotations": (U[None] @ R.transpose(-1, -2)).to(dt), "offsets": offsets.to(dt)}
 
     # -- posing --------------------------------------------------------------------------------
-    def _levels_on(self, device):
-        key = str(device)
-        if key not in self._levels_by_device:
-            self._levels_by_device[key] = self._levels.to(device)
-        return self._levels_by_device[key]
-
     def _kinematics(self, rotvecs: torch.Tensor, shape):
         """Bind state, joint frames F (B, J, 3, 3) and heads p (B, J, 3) in anny axes."""
         import roma

@@ -219,6 +219,15 @@ class BodyModel(torch.nn.Module):
         dense elsewhere. Subclasses register ``_weights`` (V, J) and ``_weights_csr``."""
         return self._weights_csr if device.type == "cpu" else self._weights
 
+    def _levels_on(self, device: torch.device):
+        """The backend's kinematic levels (``self._levels``, :func:`~uvatar.body.kinematics.kinematic_levels`)
+        on ``device``, copied there once (not a copy per pose)."""
+        cache = self.__dict__.setdefault("_levels_by_device", {})
+        key = str(device)
+        if key not in cache:
+            cache[key] = self._levels.to(device)
+        return cache[key]
+
     def _adjacency(self, num_vertices: int) -> torch.Tensor:
         """(V, F) vertex-face CSR on the model's device (built once per device)."""
         cache = self.__dict__.setdefault("_adjacency_by_device", {})

@@ -32,6 +32,7 @@ from uvatar.body.kinematics import (
     skinning_transforms,
     sparse_weights,
 )
+from uvatar.devices import to_device_async
 from uvatar.errors import InputError, require
 
 __all__ = ["SmplxConfig", "SmplxBody", "find_model_file", "read_obj_uvs", "SMPL_JOINT_NAMES"]
@@ -198,7 +199,6 @@ class SmplxBody(BodyModel):
         self.register_buffer("_weights", m.lbs_weights.detach().to(dt), persistent=False)
         self.register_buffer("_weights_csr", sparse_weights(self._weights), persistent=False)
         self._levels = kinematic_levels(parents)
-        self._levels_by_device: dict[str, object] = {}
         self._parents = torch.as_tensor(parents).clamp_min(0)
         self._set_common_buffers(faces, np.repeat(np.eye(3)[None], J, 0))
         self.shape_names = tuple(f"beta{i}" for i in range(self._shapedirs.shape[-1]))
@@ -226,8 +226,9 @@ class SmplxBody(BodyModel):
 
         dt = self._v_template.dtype
         B, J = rotvecs.shape[:2]
+        # a host shape goes over without making the host wait (a trainer keeps the fits' shapes there)
         betas = torch.zeros(len(self.shape_names), device=self.device, dtype=dt) if shape is None else \
-            torch.as_tensor(shape, device=self.device, dtype=dt)
+            to_device_async(shape, self.device, dt)
         if betas.dim() == 1:
             betas = betas[None]
         if betas.shape[-1] != len(self.shape_names):
@@ -238,10 +239,7 @@ class SmplxBody(BodyModel):
         parents = self._parents.to(R.device)
         offsets = joints - joints[:, parents]
         offsets[:, 0] = joints[:, 0]
-        key = str(R.device)
-        if key not in self._levels_by_device:
-            self._levels_by_device[key] = self._levels.to(R.device)
-        F, p = forward_kinematics(self._levels_by_device[key], R, offsets)
+        F, p = forward_kinematics(self._levels_on(R.device), R, offsets)
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dt, device=R.device).expand(B, J, 1, 4)
         transforms = torch.cat([torch.cat([F, p[..., None]], -1), bottom], -2)
         if not with_vertices:

@@ -165,7 +165,7 @@ class ToyTubeBody(BodyModel):
         scale = 1.0 if shape is None else torch.as_tensor(shape, dtype=rotvecs.dtype).reshape(-1)[0] + 1.0
         joints = self._joints_t.to(rotvecs) * scale
         local = roma.rotvec_to_rotmat(self.local_to_world_rotvecs(rotvecs))   # each rotvec in its joint's axes
-        F, p = forward_kinematics(self._levels.to(rotvecs.device), local, (self._offsets_t.to(rotvecs) * scale)[None])
+        F, p = forward_kinematics(self._levels_on(rotvecs.device), local, (self._offsets_t.to(rotvecs) * scale)[None])
         vertices = skin((self._verts_t.to(rotvecs) * scale)[None], self._weights_t.to(rotvecs),
                         skinning_transforms(F, p, None, joints[None])).contiguous()
         G = torch.eye(4, dtype=rotvecs.dtype, device=rotvecs.device).repeat(B, J, 1, 1)

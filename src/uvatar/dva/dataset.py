@@ -47,6 +47,19 @@ def pose_vertices(body, rotvecs, Rh, Th, scale, shape) -> torch.Tensor:
     return body.pose(rotvecs, Rh=Rh, Th=Th, scale=scale, **kwargs).vertices.float()
 
 
+def pose_corrected(body, corrections, fits: FitParams, frames: torch.Tensor, shape=None):
+    """(posed vertices (B, V, 3) float32, joint rotvecs (B, J, 3) radians) of bank frames ``frames``
+    (B,) int64 re-posed with the learned pose offsets of ``corrections``
+    (:class:`~uvatar.dva.corrections.TrainingCorrections`), differentiable in the offsets.
+
+    Everything on the body model's device, so nothing is read back: ``fits`` (its ``rotvecs``, ``Rh``,
+    ``Th`` (metres), ``scale``; its ``shape`` is not used), ``frames`` and the offsets. ``shape``: (B, S)
+    the frames' shape parameters or None, best on the host (a body's bind-state cache looks at it there).
+    """
+    rot, Rh, Th = corrections.pose_inputs(fits, frames, True)
+    return pose_vertices(body, rot, Rh, Th, fits.scale[frames], shape), rot
+
+
 def body_inputs(body, fits, device="cpu"):
     """fits list[BodyFit] -> joint_rotvecs (B, J, 3), posed vertices (B, V, 3) (torch, no grad)."""
     p = fit_params(body, fits, device)

@@ -18,6 +18,7 @@ alone shows progress and writes the run folder.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import math
@@ -30,8 +31,8 @@ import numpy as np
 import torch
 
 from uvatar.distributed import DistContext, all_sum, distributed_context
-from uvatar.dva.corrections import TrainingCorrections
-from uvatar.dva.dataset import FrameBank, pose_vertices
+from uvatar.dva.corrections import FitParams, TrainingCorrections
+from uvatar.dva.dataset import FrameBank, pose_corrected, pose_vertices
 from uvatar.dva.losses import DvaLoss, Vgg19Features
 from uvatar.dva.model import DvaConfig, DvaModel, pixel_rays
 from uvatar.errors import InputError, UvatarError
@@ -47,7 +48,7 @@ def make_body(name: str, device="cpu", model_dir=None):
     if name == "toy":
         from uvatar.dva.toy import ToyBody
 
-        return ToyBody()
+        return ToyBody().to(device)
     from uvatar.body.registry import BODY_MODELS, load_body_model
 
     if str(name).lower() not in BODY_MODELS:
@@ -160,7 +161,11 @@ class Trainer:
 
     def __init__(self, source, out_dir, cfg: DvaConfig, body=None, device="cpu", vgg_weights=None,
                  resume=False, seed=0, progress=True, body_model=None, model_dir=None,
-                 ctx: DistContext | None = None):
+                 ctx: DistContext | None = None, pose_on_device: bool | None = None):
+        """``pose_on_device``: re-pose the body with the learned pose offsets on the training device
+        (a copy of the body model and of the fits there; default: when the device is not the CPU).
+        False is the host path (the body model as loaded, on the CPU), the reference twin; True on a
+        CPU trainer runs the device path's code there (what the tests compare)."""
         self.source, self.out = source, Path(out_dir)
         self.ctx = ctx or DistContext(device=torch.device(device))
         self.device, self.progress = self.ctx.device, progress and self.ctx.is_main
@@ -205,6 +210,10 @@ class Trainer:
         if self.corrections is not None:
             groups.append({"params": list(self.corrections.parameters()), "lr": c.lr})
         self.params = [p for g in groups for p in g["params"]]
+        self.pose_on_device = self.device.type != "cpu" if pose_on_device is None else bool(pose_on_device)
+        learns_pose = self.corrections is not None and c.pose
+        self.posing = self._posing_on_device(body is not None, body_name, model_dir) \
+            if learns_pose and self.pose_on_device else None
         # on CUDA the fused kernel: one launch per step, and it skips a non-finite step on the device
         self.opt = torch.optim.Adam(groups, fused=True) if self.device.type == "cuda" else torch.optim.Adam(groups)
         self.budget, self.pair_overflows, self.skipped_updates = None, 0, 0
@@ -401,16 +410,43 @@ class Trainer:
                         self.budget.capacity, needed, new)
             self.budget.capacity = new
 
+    def _posing_on_device(self, body_given: bool, body_name: str, model_dir):
+        """(body model, fits) on the training device for :meth:`_posed`'s device path, made once: the
+        body is the trainer's own where it is on that device already, a registry body is asked for on
+        the device (memoized there), a caller's body is copied there (the caller's stays where it is);
+        the fits are the bank's (:class:`~uvatar.dva.corrections.FitParams`) without their shape, which
+        stays on the host (a body's bind-state cache keys on it there, see :meth:`_posed`)."""
+        from uvatar.devices import to_device_async
+
+        dev = self.device
+        here = self.body.device
+        if here.type == dev.type and (here.index is None or dev.index is None or here.index == dev.index):
+            body = self.body
+        elif body_given:
+            body = copy.deepcopy(self.body).to(dev)
+        else:
+            body = make_body(body_name, dev, model_dir)
+        f = self.bank.fits
+        fits = FitParams(*(to_device_async(x, dev) for x in (f.rotvecs, f.Rh, f.Th, f.scale)), shape=None)
+        return body, fits
+
     def _posed(self, frames: torch.Tensor, corrected: bool):
-        """(posed vertices (B, V, 3), joint rotvecs (B, J, 3)) of bank frames (B,) on the device: the
-        fits as they are, or re-posed with the learned pose offsets once ``corrected`` (after warm-up;
-        the body model poses on the CPU, as it was loaded)."""
+        """(posed vertices (B, V, 3), joint rotvecs (B, J, 3)) of bank frames (B,) (host int64) on the
+        device: the fits as they are, or re-posed with the learned pose offsets once ``corrected`` (after
+        warm-up). Re-posing runs where ``pose_on_device`` says: on the device (:attr:`posing`: the body
+        model and the fits there; the frames go over asynchronously, the shapes stay on the host;
+        nothing is read back), or on the host (the body model as loaded, on the CPU: the offsets are
+        read back, a sync each step on a GPU; the reference twin)."""
         from uvatar.devices import to_device_async
 
         if self.corrections is None or not (corrected and self.cfg.corrections.pose):
             return (to_device_async(self.bank.vertices[frames], self.device),
                     to_device_async(self.bank.rotvecs[frames], self.device))
         fits = self.bank.fits
+        if self.posing is not None:
+            body, device_fits = self.posing
+            shape = None if fits.shape is None else fits.shape[frames]
+            return pose_corrected(body, self.corrections, device_fits, to_device_async(frames, self.device), shape)
         rot, Rh, Th = self.corrections.pose_inputs(fits, frames, True)
         shape = None if fits.shape is None else fits.shape[frames]
         # the body model poses on the CPU: reading the offsets back is this step's one sync on a GPU
