@@ -24,6 +24,14 @@ a person detector that sees the one in front would otherwise segment them instea
 each person's colour model is learned from them over the whole capture, and every image's contested
 pixels are decided again by colour and depth together (:mod:`uvatar.fit.appearance`), then written.
 A capture with the subject alone is masked as before (no colour pass).
+
+Where only the subject is fitted but ``uvatar fit`` saw other people near it (their keypoints in
+``fitting/keypoints/others.npz``, :mod:`uvatar.fit.others`), each one's region (their projected
+skeleton) is dropped from the subject's mask: over the subject's fitted silhouette too where they are in
+front of it in that view. A subject mask that still holds more pixels outside the fitted silhouette than
+``max_outside`` of it has someone else's in it (:func:`crowded_mask`): it is written empty, reported as
+crowded, and recorded in ``masks/views.json`` with the identity-held and partial ones
+(:func:`unusable_views`, which DVA reads to leave those views out).
 """
 
 from __future__ import annotations
@@ -45,11 +53,6 @@ PARTIAL_FRACTION = 0.5   # a subject mask covering less of its fitted silhouette
 
 __all__ = ["MaskConfig", "crowded_mask", "unusable_views", "body_silhouette", "body_depth", "nearest_region", "person_mask", "write_capture_masks",
            "other_person_region", "hide_body", "posed_vertices", "FAR"]
-
-# BlazePose skeleton strokes (index pairs) drawn for another person's region
-_BONES = ((11, 12), (11, 13), (13, 15), (12, 14), (14, 16), (11, 23), (12, 24), (23, 24), (23, 25), (25, 27),
-          (24, 26), (26, 28), (27, 31), (28, 32), (15, 19), (16, 20), (0, 11), (0, 12))
-
 
 @dataclass(frozen=True)
 class MaskConfig:
@@ -112,26 +115,15 @@ def painted_over(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
 def other_person_region(image: np.ndarray, subject: np.ndarray, detector, min_conf: float = 0.5) -> np.ndarray | None:
     """(H, W) bool: where another person lies, or None when none is found. ``subject`` (H, W) bool is
     painted over (the image's median colour) before the detector (BlazePose keypoints) runs; the
-    region is the person's skeleton drawn with strokes 1/6 of their height wide, and a head disc."""
-    import cv2
+    region is the person's skeleton (:func:`uvatar.fit.others.skeleton_region`)."""
+    from uvatar.fit.others import skeleton_region
 
     img = painted_over(image, subject)
     det = detector.detect(img)
     ok = det.conf >= min_conf
     if ok.sum() < 6:
         return None
-    xy = det.xy.astype(np.float64)
-    height = float(np.ptp(xy[ok][:, 1])) or 1.0
-    width = max(2, int(round(height / 6)))
-    region = np.zeros(image.shape[:2], np.uint8)
-    for a, b in _BONES:
-        if ok[a] and ok[b]:
-            cv2.line(region, tuple(int(v) for v in xy[a]), tuple(int(v) for v in xy[b]), 1, width)
-    head = [k for k in range(11) if ok[k]]
-    if head:
-        c = xy[head].mean(0)
-        cv2.circle(region, (int(c[0]), int(c[1])), int(round(height / 9)), 1, -1)
-    region = region > 0
+    region = skeleton_region(det.xy.astype(np.float64), ok, image.shape[:2])
     return region if region.any() else None
 
 
@@ -146,7 +138,8 @@ def dilate_px(config: MaskConfig, height: int) -> int:
 
 
 def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: MaskConfig,
-                detector=None, allowed: np.ndarray | None = None, hide: np.ndarray | None = None) -> np.ndarray:
+                detector=None, allowed: np.ndarray | None = None, hide: np.ndarray | None = None,
+                others: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(H, W) bool person mask of ``image`` (H, W, 3) float32 [0,1]; ``prior`` (H, W) bool is the
     fitted body's silhouette (None: the segmenter alone); with ``detector`` (and a prior), another
     person's pixels in the grown band are dropped (:func:`other_person_region`); ``allowed`` (H, W)
@@ -154,7 +147,10 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
     ``hide`` (H, W) bool: pixels painted over (the image's median colour) before the segmenter runs,
     e.g. the other people in front, so that it finds this person and not them (where it then finds
     nobody, e.g. a person mostly hidden, it runs once more on the image as it is, around the whole
-    fitted body)."""
+    fitted body); ``others``: (front, beside) (H, W) bool, the regions of people the fit saw near the
+    subject but did not fit (:func:`uvatar.fit.others.other_regions`): dropped from the mask, those in
+    front of the subject even over its fitted silhouette, the others outside it."""
+
     import cv2
 
     shown = image
@@ -189,6 +185,9 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
             other = other_person_region(image, region, detector)
             if other is not None:
                 mask &= ~other | prior
+        if others is not None:
+            front, beside = others
+            mask &= ~front & (~beside | prior)
     # keep the connected component(s) that overlap the body, drop specks
     count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
     if count > 2:
@@ -243,6 +242,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
 
     from uvatar.body.registry import load_body_model
     from uvatar.capture.layout import Capture
+    from uvatar.fit.others import other_regions, others_at, read_others
     from uvatar.fit.segment import load_segmenter
 
     config = config or MaskConfig()
@@ -271,6 +271,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     fit_record = (capture.info.get("provenance") or {}).get("fit") or {}
     held = set(fit_record.get("identity_held") or ()) if config.use_fit else set()
     others_near = bool(fit_record.get("other_people_seen") or held)   # the fit saw someone beside the subject
+    seen_others = read_others(capture.person_root / "fitting" / "keypoints") if config.use_fit else {}
     colour = _ColourPass(config, people, cameras) if config.appearance and body is not None \
         and len(people) > 1 else None
     poser = _Poser(body, people)
@@ -314,8 +315,12 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
                     prior = depths[k] < FAR
                     if others:
                         allowed, hide = _depth_order(depths, k, dilate_px(config, cam.height))
+                near = None
+                if k == 0 and not others and seen_others:   # people the fit saw but did not fit
+                    near = other_regions(others_at(seen_others, frames, frame), cam,
+                                         posed[0].mean(0), prior.shape)
                 masks[k] = person_mask(image, segmenter, prior, config, None if others else detector, allowed,
-                                       hide)
+                                       hide, near)
                 if k == 0 and not others and others_near and crowded_mask(masks[k], prior, config.max_outside):
                     summary["crowded"].setdefault(frame, []).append(cam_name)   # someone else's pixels too
                     masks[k] = np.zeros_like(masks[k])

@@ -24,6 +24,7 @@ from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.calibration import refine_capture_cameras
 from uvatar.fit.identity import SubjectTracker, body_centre, identity_report, images_changed, track_frame
+from uvatar.fit.others import read_others, write_others
 from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
 from uvatar.fit.records import (
     IDENTITY_JSON,
@@ -179,6 +180,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     keypoints_dir = observation_path(capture.person_root, "-").parent
     before = read_identity_record(keypoints_dir) if tracker is not None else {"statuses": {}}
     statuses = dict(before["statuses"])   # {frame: status other than tracked}, kept for a resumed run
+    seen_others = read_others(keypoints_dir) if tracker is not None else {}   # {frame: [(points, conf)]}
     if tracker is not None:
         tracker.start(start, body_centre(seed_prior.points, seed_prior.points_conf))
     bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
@@ -224,6 +226,8 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
                             tracker.start(t, body_centre(obs.points, obs.points_conf))
                 if tracker is not None:
                     obs, status = track_frame(tracker, t, obs, images, cameras, detector, stages.triangulate, source)
+                    seen_others[frame] = [(o.points, o.points_conf) for o in tracker.others
+                                          if o.frame == t and o.points is not None]
                     if status not in ("tracked", "nobody"):
                         person["identity"][status].append(frame)
                         statuses[frame] = status
@@ -250,6 +254,8 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
             failures[frame] = f"only {seen} of {views} views of the scan show a person (a broken scan?)"
         else:
             prior = obs
+    if tracker is not None:
+        write_others(keypoints_dir, {f: people for f, people in seen_others.items() if people})
     if person is not None and "identity" in person:
         person["identity"] = identity_report(frames, person["identity"], tracker, max_speed)
         person["identity"]["other_people_seen"] = max(person["identity"]["other_people_seen"],
@@ -471,6 +477,7 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
                           fit_inputs(capture, source), total=len(frames), on_change="redo").status == "redo":
         for stale in [*keypoints_dir.glob("*.npz"), keypoints_dir / IDENTITY_JSON]:   # another person, detector,
             stale.unlink(missing_ok=True)                                              # images or rules
+            # (others.npz among the npz: the other people seen with those keypoints)
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
                                                  config.cut_distance, chosen, avoid, hide, config.max_speed,
                                                  avoid_held)
