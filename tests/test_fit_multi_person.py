@@ -220,3 +220,28 @@ def test_a_right_view_cut_off_by_the_border_agrees():
     obs = _observation(cams, views)
     obs.conf[1, views[1][:, 1] > np.median(views[1][:, 1])] = 0.0     # the lower half: out of the image
     assert disagreeing_views(obs) == ()
+
+
+def test_a_view_whose_one_detection_mixes_two_people_does_not_hide_the_second(monkeypatch):
+    """Camera 02 sees the bystander in front of the subject and finds one skeleton between both; it
+    matches both people's 3D keypoints, the subject's hypothesis takes it, and the bystander (seen
+    alone by cameras 00, 01, 03) is still found from their other views. Pairs of one person's view
+    and the other's are no person (they reproject far from both)."""
+    import uvatar.fit.person as person
+
+    rng = np.random.default_rng(5)
+    cams = _cams()
+    subject = _body(rng)
+    ahead = subject.mean(0) - cams[2].center
+    ahead /= np.linalg.norm(ahead)
+    aside = np.cross(ahead, [0.0, 1.0, 0.0])
+    bystander = subject - 0.6 * ahead + 0.2 * aside / np.linalg.norm(aside)   # alike, 0.6 m nearer camera 02
+    ones = np.ones(33)
+    dets = [[(project_distorted(c, subject)[0], ones), (project_distorted(c, bystander)[0], ones)] for c in cams]
+    dets[2] = [(0.5 * (dets[2][0][0] + dets[2][1][0]), ones)]               # one skeleton of both
+    monkeypatch.setattr(person, "_view_detections", lambda image, *a, **k: dets[int(image)])
+    people = find_people(list(range(4)), cams, BoxPeopleDetector(cams, []), TriangulateConfig())
+    centres = [np.median(p.points[p.points_conf > 0], axis=0) for p in people]
+    assert len(people) == 2, [sorted(p.members) for p in people]
+    assert min(np.linalg.norm(c - np.median(bystander, 0)) for c in centres) < 0.1
+    assert min(np.linalg.norm(c - np.median(subject, 0)) for c in centres) < 0.1

@@ -205,7 +205,16 @@ def find_people(images, cameras, detector, triangulate_config, max_people: int =
     people, taken = [], set()
     for _, neg_rep, members, tri in hypotheses:
         if any((c, i) in taken for c, i in members.items()):
-            continue
+            # a detection already taken (one taking two people, as where one stands in front of the
+            # other) is left to that person; the rest of the views may still be someone else
+            members = {c: i for c, i in members.items() if (c, i) not in taken}
+            if len(members) < 2:
+                continue
+            tri, _, _ = solve(members)
+            if (tri.conf > 0).sum() < 6:
+                continue
+            rep = tri.reprojection_px[np.isfinite(tri.reprojection_px)]
+            neg_rep = -(float(rep.mean()) if rep.size else 1e9)
         taken.update(members.items())
         if any(same_place(p.points, p.points_conf, tri.points, tri.conf) for p in people):
             continue  # the same person from other views (detections the matching left apart)

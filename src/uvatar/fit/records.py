@@ -27,7 +27,7 @@ if TYPE_CHECKING:  # annotations only
 __all__ = ["check_person_choice", "fit_inputs", "fit_record_config", "keypoint_record_config", "VIEW_RULES",
            "read_identity_record", "write_identity_record"]
 
-VIEW_RULES = 2   # the version of the rules that reject views and hold frames, whose results the keypoints keep
+VIEW_RULES = 3   # the version of the rules that reject views and hold frames, whose results the keypoints keep
 
 
 # FitConfig fields that do not change the fits: where the fit runs, replacing, and the contact sheet
