@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from tests.fixtures.dva_capture import write_toy_capture
-from uvatar.fit.masks import MaskConfig, _record_views, crowded_mask, unusable_views
+from uvatar.fit.mask_views import crowded_mask, record_views, unusable_views
+from uvatar.fit.masks import MaskConfig
 
 
 def test_a_mask_with_more_than_the_share_outside_the_fitted_silhouette_is_crowded():
@@ -38,16 +39,16 @@ def _summary(crowded=None, held=(), partial=None, written=()):
 
 def test_the_views_record_round_trips_and_a_resumed_run_keeps_the_entries_of_the_masks_it_kept(tmp_path):
     cap = _Capture(tmp_path)
-    _record_views(cap, _summary({"000001": ["c1", "c2"]}, ["c0/000003"], {"000002": ["c0"]},
+    record_views(cap, _summary({"000001": ["c1", "c2"]}, ["c0/000003"], {"000002": ["c0"]},
                                 written=["c1/000001", "c2/000001", "c0/000003", "c0/000002"]), rewritten=False)
     record = json.loads((tmp_path / "masks" / "views.json").read_text())
     assert record == {"crowded": ["c1/000001", "c2/000001"], "identity_held": ["c0/000003"],
                       "partial": ["c0/000002"]}
     assert unusable_views(tmp_path) == {("c1", "000001"), ("c2", "000001"), ("c0", "000003")}   # not partial
     # resumed: c1/000001 written again and no longer crowded; the kept masks keep their entries
-    _record_views(cap, _summary(written=["c1/000001"]), rewritten=False)
+    record_views(cap, _summary(written=["c1/000001"]), rewritten=False)
     assert unusable_views(tmp_path) == {("c2", "000001"), ("c0", "000003")}
-    _record_views(cap, _summary(written=["c2/000001"]), rewritten=True)   # --overwrite: this run's alone
+    record_views(cap, _summary(written=["c2/000001"]), rewritten=True)   # --overwrite: this run's alone
     assert unusable_views(tmp_path) == set()
     assert unusable_views(tmp_path / "elsewhere") == set()              # masks without a record
 

@@ -95,7 +95,8 @@ class CaptureSource(MultiViewSource):
 
     def __init__(self, root):
         from uvatar.capture import Capture
-        from uvatar.fit.masks import require_masks, unusable_views
+        from uvatar.fit.mask_views import unusable_views
+        from uvatar.fit.masks import require_masks
 
         self.cap = Capture(root)
         self.root = self.cap.root

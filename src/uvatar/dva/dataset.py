@@ -7,7 +7,7 @@ with a warning (``bank.skipped`` says why, ``bank.causes`` counts them by cause)
 the error counts the causes ("100 frames: 100 missing masks"). Images whose size differs from their
 camera's intrinsics are warned about once per camera. Views whose subject mask ``uvatar capture masks``
 wrote empty for want of the subject (another person over it, or its identity held:
-:func:`uvatar.fit.masks.unusable_views`, the source's ``unusable``) are marked in ``bank.usable`` (F, C):
+:func:`uvatar.fit.mask_views.unusable_views`, the source's ``unusable``) are marked in ``bank.usable`` (F, C):
 training never takes them as targets and eval does not score them; a frame with none usable is skipped.
 """
 

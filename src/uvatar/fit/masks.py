@@ -28,10 +28,10 @@ A capture with the subject alone is masked as before (no colour pass).
 Where only the subject is fitted but ``uvatar fit`` saw other people near it (their keypoints in
 ``fitting/keypoints/others.npz``, :mod:`uvatar.fit.others`), each one's region (their projected
 skeleton) is dropped from the subject's mask: over the subject's fitted silhouette too where they are in
-front of it in that view. A subject mask that still holds more pixels outside the fitted silhouette than
-``max_outside`` of it has someone else's in it (:func:`crowded_mask`): it is written empty, reported as
-crowded, and recorded in ``masks/views.json`` with the identity-held and partial ones
-(:func:`unusable_views`, which DVA reads to leave those views out).
+front of it in that view. A subject mask that still holds more pixels outside the fitted silhouette
+than ``max_outside`` of it has someone else's in it (:func:`~uvatar.fit.mask_views.crowded_mask`): it
+is written empty, reported as crowded, and recorded in ``masks/views.json`` with the identity-held and
+partial ones (:func:`~uvatar.fit.mask_views.unusable_views`, which DVA reads to leave those views out).
 """
 
 from __future__ import annotations
@@ -46,12 +46,13 @@ from uvatar import stage_record
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.depth_order import FAR, body_depth, body_silhouette, nearest_region
 from uvatar.fit.depth_order import disc as _disc
+from uvatar.fit.mask_views import crowded_mask, record_views
 
 log = logging.getLogger(__name__)
 
 PARTIAL_FRACTION = 0.5   # a subject mask covering less of its fitted silhouette is reported as partial
 
-__all__ = ["MaskConfig", "crowded_mask", "unusable_views", "body_silhouette", "body_depth", "nearest_region", "person_mask", "write_capture_masks",
+__all__ = ["MaskConfig", "body_silhouette", "body_depth", "nearest_region", "person_mask", "write_capture_masks",
            "other_person_region", "hide_body", "posed_vertices", "FAR"]
 
 @dataclass(frozen=True)
@@ -65,7 +66,8 @@ class MaskConfig:
     decide the pixels they contest (:mod:`uvatar.fit.appearance`); appearance_prior: the weight (nats)
     of the depth order against the colours there; max_outside: where ``uvatar fit`` saw other people
     near the subject and only the subject is fitted, a subject mask with more pixels outside its fitted
-    silhouette than this share of the silhouette holds someone else's (:func:`crowded_mask`): written
+    silhouette than this share of the silhouette holds someone else's
+    (:func:`~uvatar.fit.mask_views.crowded_mask`): written
     empty, reported as crowded."""
 
     segmenter: str = "mediapipe"
@@ -201,17 +203,6 @@ def person_mask(image: np.ndarray, segmenter, prior: np.ndarray | None, config: 
     return mask
 
 
-def crowded_mask(mask: np.ndarray, silhouette: np.ndarray, max_outside: float) -> bool:
-    """True where the person mask (H, W) bool holds more pixels outside the fitted body's
-    ``silhouette`` (H, W) bool than ``max_outside`` of the silhouette's area: the segmenter took
-    another person who overlaps the subject there (in front of it: their pixels inside the silhouette
-    look like the subject's too). On the synthetic crossing (512 px, loose clothes) a subject alone
-    stays at 0.20-0.26 of it, masks that took the bystander in front lay at 0.34-0.68 (44-73 % of their
-    pixels the bystander's)."""
-    area = int(silhouette.sum())
-    return area > 0 and int((mask & ~silhouette).sum()) > max_outside * area
-
-
 def posed_vertices(body, capture, frame: str) -> np.ndarray:
     """(V, 3) the body of ``capture``'s person posed by their fit of ``frame``."""
     import torch
@@ -235,7 +226,8 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     cameras} where the subject's mask covers less than ``PARTIAL_FRACTION`` of its fitted silhouette
     (hidden behind someone, or cut off), "crowded": {frame: cameras} where another person overlaps the
     subject and their pixels cannot be told apart (``MaskConfig.max_outside``; an empty mask is
-    written)}; the three are also written to ``masks/views.json``, :func:`_record_views`). Needs fits unless ``config.use_fit`` is off (then the subject's masks
+    written)}; the three are also written to ``masks/views.json``,
+    :func:`~uvatar.fit.mask_views.record_views`). Needs fits unless ``config.use_fit`` is off (then the subject's masks
     alone, from the segmenter). With ``appearance`` and other people, the masks are written after
     every image is segmented (the colour models need them all; held in memory, packed)."""
     from tqdm import tqdm
@@ -341,7 +333,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
         raise InputError(capture.root, f"{len(jobs)} images, no mask written: "
                                        f"{len(summary['failed'])} failed (first: "
                                        f"{next(iter(summary['failed'].values()), '-')})")
-    _record_views(capture, summary, rewritten=config.overwrite)
+    record_views(capture, summary, rewritten=config.overwrite)
     # every image was looked at: those that failed are reported (a property of the image, not a half-made run)
     stage_record.finish(capture.masks_dir)
     return summary
@@ -387,42 +379,6 @@ def _write_mask(person, cam_name: str, frame: str, mask: np.ndarray, summary: di
     summary["written"] += 1
     if person.person is None:
         summary.setdefault("_subject_written", set()).add(f"{cam_name}/{frame}")
-
-
-VIEWS_JSON = "views.json"   # masks/views.json: the subject's images whose mask does not show the subject
-
-
-def _record_views(capture, summary: dict, rewritten: bool) -> None:
-    """Write ``masks/views.json``: {"identity_held": ["cam/frame"], "crowded": [...], "partial": [...]},
-    the subject's images whose mask is empty because the fit held its identity, empty because another
-    person overlaps it (:func:`crowded_mask`), or covers under half of its fitted silhouette. The
-    entries of an earlier run are kept for the masks this run kept (a resumed run); ``rewritten``:
-    every mask was written again, the earlier entries are dropped. Read by :func:`unusable_views`."""
-    from uvatar.io_utils import read_json, write_json
-
-    path = capture.masks_dir / VIEWS_JSON
-    now = set(summary.pop("_subject_written", ()))
-    lists = {"identity_held": set(summary["identity_held"]),
-             "crowded": {f"{c}/{f}" for f, cams in summary["crowded"].items() for c in cams},
-             "partial": {f"{c}/{f}" for f, cams in summary["partial"].items() for c in cams}}
-    if not rewritten and path.is_file():
-        before = read_json(path)
-        for key, views in lists.items():
-            views |= {v for v in before.get(key, ()) if v not in now}
-    write_json(path, {k: sorted(v) for k, v in lists.items()})
-
-
-def unusable_views(root) -> set[tuple[str, str]]:
-    """{(camera, frame)} of the subject's images whose mask ``uvatar capture masks`` wrote empty for
-    want of the subject (its identity held by the fit, or another person over it: ``masks/views.json``);
-    empty where the masks have no such record. A view there shows no trustworthy subject to learn from."""
-    from uvatar.io_utils import read_json
-
-    path = Path(root) / "masks" / VIEWS_JSON
-    if not path.is_file():
-        return set()
-    record = read_json(path)
-    return {tuple(v.split("/", 1)) for key in ("identity_held", "crowded") for v in record.get(key, ())}
 
 
 def _depth_order(depths: dict, k: int, radius: int) -> tuple[np.ndarray, np.ndarray]:
