@@ -35,7 +35,8 @@ def record_views(capture, summary: dict, rewritten: bool) -> None:
     the subject's images whose mask is empty because the fit held its identity, empty because another
     person overlaps it (:func:`crowded_mask`), or covers under half of its fitted silhouette. The
     entries of an earlier run are kept for the masks this run kept (a resumed run); ``rewritten``:
-    every mask was written again, the earlier entries are dropped. Read by :func:`unusable_views`."""
+    every mask was written again, the earlier entries are dropped. No file where every list is empty.
+    Read by :func:`unusable_views`."""
     from uvatar.io_utils import read_json, write_json
 
     path = capture.masks_dir / VIEWS_JSON
@@ -47,7 +48,10 @@ def record_views(capture, summary: dict, rewritten: bool) -> None:
         before = read_json(path)
         for key, views in lists.items():
             views |= {v for v in before.get(key, ()) if v not in now}
-    write_json(path, {k: sorted(v) for k, v in lists.items()})
+    if any(lists.values()):
+        write_json(path, {k: sorted(v) for k, v in lists.items()})
+    else:   # every view shows the subject: no record (one an earlier run left is dropped)
+        path.unlink(missing_ok=True)
 
 
 def unusable_views(root) -> set[tuple[str, str]]:
