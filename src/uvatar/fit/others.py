@@ -26,6 +26,7 @@ __all__ = ["OTHERS_NPZ", "WINDOW_FRAMES", "FRONT_M", "write_others", "read_other
 
 OTHERS_NPZ = "others.npz"   # in fitting/keypoints/
 WINDOW_FRAMES = 10          # a person is interpolated between sightings at most this many frames apart
+STROKE = 1 / 6             # their strokes, as a share of their projected height (1/4 measured: fewer bystander pixels, IoU 0.907 -> 0.881)
 FRONT_M = 0.1               # a person's torso this much nearer a camera than the subject's: in front of it
 
 # BlazePose skeleton strokes (index pairs) and torso polygon (shoulders, hips)
@@ -100,20 +101,20 @@ def others_at(seen: dict[str, list], frames: list[str], frame: str, window: int 
     return out
 
 
-def skeleton_region(xy: np.ndarray, ok: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def skeleton_region(xy: np.ndarray, ok: np.ndarray, shape: tuple[int, int], width: float = 1 / 6) -> np.ndarray:
     """(H, W) bool: a person drawn from their keypoints ``xy`` (K, 2) pixels (BlazePose order; ``ok``
-    (K,) bool the ones to use): strokes along the bones 1/6 of their height wide, the torso filled,
-    and a head disc."""
+    (K,) bool the ones to use): strokes along the bones ``width`` of their height wide, the torso
+    filled, and a head disc."""
     import cv2
 
     height = float(np.ptp(xy[ok][:, 1])) if ok.sum() >= 2 else 0.0
     region = np.zeros(shape, np.uint8)
     if height <= 0:
         return region > 0
-    width = max(2, int(round(height / 6)))
+    stroke = max(2, int(round(height * width)))
     for a, b in BONES:
         if a < len(ok) and b < len(ok) and ok[a] and ok[b]:
-            cv2.line(region, tuple(int(v) for v in xy[a]), tuple(int(v) for v in xy[b]), 1, width)
+            cv2.line(region, tuple(int(v) for v in xy[a]), tuple(int(v) for v in xy[b]), 1, stroke)
     if all(k < len(ok) and ok[k] for k in TORSO):
         cv2.fillPoly(region, [np.round(xy[list(TORSO)]).astype(np.int32)], 1)
     head = [k for k in range(min(11, len(ok))) if ok[k]]
@@ -139,7 +140,7 @@ def other_regions(others: list, camera, subject_centre: np.ndarray, shape: tuple
             continue
         pix, z = project_distorted(camera, np.asarray(points, np.float64))
         ok &= z > 0
-        region = skeleton_region(pix, ok, shape)
+        region = skeleton_region(pix, ok, shape, STROKE)
         if float(camera.world_to_camera(centre[None])[0, 2]) < depth - FRONT_M:
             front |= region
         else:
