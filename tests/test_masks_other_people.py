@@ -104,6 +104,7 @@ def test_the_other_people_round_trip_and_are_interpolated_between_sightings(tmp_
     np.testing.assert_allclose(mid[0][0], 0.5 * (a + b), atol=1e-6)
     assert len(others_at(seen, frames, "000000")) == 1                     # 2 frames before a sighting
     write_others(tmp_path, {})
+    assert not (tmp_path / "others.npz").exists()                        # nobody seen: no file
     assert read_others(tmp_path) == {} and read_others(tmp_path / "none") == {}
     far = {"000000": [(a, conf)]}
     assert others_at(far, frames, "000011") == []                          # too far from any sighting

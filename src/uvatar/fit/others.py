@@ -37,13 +37,16 @@ TORSO = (11, 12, 24, 23)
 
 def write_others(keypoints_dir: str | Path, seen: dict[str, list]) -> None:
     """Write ``seen`` {frame: [(points (K, 3), conf (K,)), ...]} to ``keypoints_dir/others.npz``,
-    atomically; frames without anyone are left out (an empty record where nobody was seen)."""
+    atomically; frames without anyone are left out, and where nobody was seen there is no file (one
+    an earlier run left is removed)."""
     rows = [(frame, np.asarray(p, np.float32), np.asarray(c, np.float32))
             for frame, people in sorted(seen.items()) for p, c in people]
-    K = rows[0][1].shape[0] if rows else 0
-    write_npz(Path(keypoints_dir) / OTHERS_NPZ, frames=np.array([r[0] for r in rows], dtype=str),
-              points=np.stack([r[1] for r in rows]) if rows else np.zeros((0, K, 3), np.float32),
-              conf=np.stack([r[2] for r in rows]) if rows else np.zeros((0, K), np.float32))
+    path = Path(keypoints_dir) / OTHERS_NPZ
+    if not rows:
+        path.unlink(missing_ok=True)
+        return
+    write_npz(path, frames=np.array([r[0] for r in rows], dtype=str), points=np.stack([r[1] for r in rows]),
+              conf=np.stack([r[2] for r in rows]))
 
 
 def read_others(keypoints_dir: str | Path) -> dict[str, list]:
