@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from tests.fixtures.dva_capture import write_toy_capture
-from uvatar.fit.mask_views import crowded_mask, record_views, unusable_views
+from uvatar.fit.mask_views import crowded_mask, hidden_mask, record_views, unusable_views
 from uvatar.fit.masks import MaskConfig
 
 
@@ -23,6 +23,10 @@ def test_a_mask_with_more_than_the_share_outside_the_fitted_silhouette_is_crowde
     mask[10:30, 22:24] = True                             # 80 px: 0.4 (a person beside or in front)
     assert crowded_mask(mask, sil, 0.3) and not crowded_mask(mask, sil, 0.45)
     assert not crowded_mask(mask, np.zeros_like(sil), 0.3)   # no silhouette: nothing to compare with
+    hidden = np.zeros_like(sil)
+    hidden[10:11, 10:20] = True                           # 10 px of 200: 0.05 of the silhouette
+    hidden[10:30, 20:24] = True                           # and someone's hand beside it
+    assert hidden_mask(hidden, sil) and not hidden_mask(mask, sil) and not hidden_mask(hidden, np.zeros_like(sil))
     with pytest.raises(ValueError, match="max_outside must be above 0"):
         MaskConfig(max_outside=0.0)
 

@@ -30,8 +30,10 @@ Where only the subject is fitted but ``uvatar fit`` saw other people near it (th
 skeleton) is dropped from the subject's mask: over the subject's fitted silhouette too where they are in
 front of it in that view. A subject mask that still holds more pixels outside the fitted silhouette
 than ``max_outside`` of it has someone else's in it (:func:`~uvatar.fit.mask_views.crowded_mask`): it
-is written empty, reported as crowded, and recorded in ``masks/views.json`` with the identity-held and
-partial ones (:func:`~uvatar.fit.mask_views.unusable_views`, which DVA reads to leave those views out).
+is written empty, reported as crowded, and so is one covering under a tenth of the silhouette (the
+subject hidden behind someone: :func:`~uvatar.fit.mask_views.hidden_mask`); both are recorded in
+``masks/views.json`` with the identity-held and partial ones
+(:func:`~uvatar.fit.mask_views.unusable_views`, which DVA reads to leave those views out).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from uvatar import stage_record
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.depth_order import FAR, body_depth, body_silhouette, nearest_region
 from uvatar.fit.depth_order import disc as _disc
-from uvatar.fit.mask_views import crowded_mask, record_views
+from uvatar.fit.mask_views import crowded_mask, hidden_mask, record_views
 
 log = logging.getLogger(__name__)
 
@@ -225,8 +227,8 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     subject's identity (lost or ambiguous: no fit; an empty mask is written), "partial": {frame:
     cameras} where the subject's mask covers less than ``PARTIAL_FRACTION`` of its fitted silhouette
     (hidden behind someone, or cut off), "crowded": {frame: cameras} where another person overlaps the
-    subject and their pixels cannot be told apart (``MaskConfig.max_outside``; an empty mask is
-    written)}; the three are also written to ``masks/views.json``,
+    subject and their pixels cannot be told apart (``MaskConfig.max_outside``) or hides it
+    (:func:`~uvatar.fit.mask_views.hidden_mask`); an empty mask is written}; the three are also written to ``masks/views.json``,
     :func:`~uvatar.fit.mask_views.record_views`). Needs fits unless ``config.use_fit`` is off (then the subject's masks
     alone, from the segmenter). With ``appearance`` and other people, the masks are written after
     every image is segmented (the colour models need them all; held in memory, packed)."""
@@ -313,7 +315,8 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
                                          posed[0].mean(0), prior.shape)
                 masks[k] = person_mask(image, segmenter, prior, config, None if others else detector, allowed,
                                        hide, near)
-                if k == 0 and not others and others_near and crowded_mask(masks[k], prior, config.max_outside):
+                if k == 0 and not others and others_near and (crowded_mask(masks[k], prior, config.max_outside)
+                                                              or hidden_mask(masks[k], prior)):
                     summary["crowded"].setdefault(frame, []).append(cam_name)   # someone else's pixels too
                     masks[k] = np.zeros_like(masks[k])
                     continue
