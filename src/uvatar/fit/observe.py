@@ -201,13 +201,14 @@ def subject_heights_px(obs: FrameObservation) -> np.ndarray:
     return out
 
 
-def _view_errors(obs: FrameObservation, conf: np.ndarray, points, points_conf, min_conf: float, min_points: int):
+def _view_errors(obs: FrameObservation, conf: np.ndarray, points, points_conf, min_conf: float, min_points: int,
+                 heights: np.ndarray):
     """(C,) each view's median distance from ``points`` (K, 3) projected, over its confident keypoints,
-    as a share of the subject's height in that view (:func:`subject_heights_px`); inf where fewer than ``min_points`` can be compared."""
+    as a share of ``heights`` (C,), the subject's height in each view (:func:`subject_heights_px`); inf
+    where fewer than ``min_points`` can be compared."""
     from uvatar.fit.projection import project_distorted
 
     out = np.full(len(conf), np.inf)
-    heights = subject_heights_px(obs)
     for c, cam in enumerate(obs.cameras):  # C views, each vectorised over its keypoints
         seen = (conf[c] >= min_conf) & (points_conf > 0)
         if seen.sum() < min_points:
@@ -248,12 +249,13 @@ def disagreeing_views(obs: FrameObservation, config=None, min_used_fraction: flo
     enough = (obs.conf >= config.min_conf).sum(1) >= min_points
     bad = set(obs.rejected)
     if enough.sum() >= 3:
+        heights = subject_heights_px(obs)   # the same for every pair
         best = None
         for a, b in itertools.combinations(np.flatnonzero(enough), 2):
             conf = np.zeros_like(obs.conf)
             conf[[a, b]] = obs.conf[[a, b]]
             tri = triangulate(obs.xy, conf, obs.cameras, config)
-            err = _view_errors(obs, obs.conf, tri.points, tri.conf, config.min_conf, min_points)
+            err = _view_errors(obs, obs.conf, tri.points, tri.conf, config.min_conf, min_points, heights)
             agree = enough & (err <= AGREE_FRACTION)
             key = (int(agree.sum()), -float(err[agree].mean()) if agree.any() else -np.inf)
             if best is None or key > best[0]:
@@ -261,7 +263,7 @@ def disagreeing_views(obs: FrameObservation, config=None, min_used_fraction: flo
         if best is not None and best[0][0] >= 3:
             conf = np.where(best[1][:, None], obs.conf, 0.0)
             tri = triangulate(obs.xy, conf, obs.cameras, config)   # the consensus, from its views together
-            err = _view_errors(obs, obs.conf, tri.points, tri.conf, config.min_conf, min_points)
+            err = _view_errors(obs, obs.conf, tri.points, tri.conf, config.min_conf, min_points, heights)
             bad |= {obs.cameras[c].name for c in np.flatnonzero(enough & ~(err <= DISAGREE_FRACTION))}
     elif (obs.points_conf > 0).sum() >= 4:
         frac = _used_fraction(obs.conf, obs.reprojection_px, config.min_conf)
