@@ -26,7 +26,7 @@ pixels are decided again by colour and depth together (:mod:`uvatar.fit.appearan
 A capture with the subject alone is masked as before (no colour pass).
 
 Where only the subject is fitted but ``uvatar fit`` saw other people near it (their keypoints in
-``fitting/keypoints/others.npz``, :mod:`uvatar.fit.others`), each one's region (their projected
+``fitting/others.npz``, :mod:`uvatar.fit.others`), each one's region (their projected
 skeleton) is dropped from the subject's mask: over the subject's fitted silhouette too where they are in
 front of it in that view. A subject mask that still holds more pixels outside the fitted silhouette
 than ``max_outside`` of it has someone else's in it (:func:`~uvatar.fit.mask_views.crowded_mask`): it
@@ -265,7 +265,7 @@ def write_capture_masks(root: str | Path, config: MaskConfig | None = None, prog
     fit_record = (capture.info.get("provenance") or {}).get("fit") or {}
     held = set(fit_record.get("identity_held") or ()) if config.use_fit else set()
     others_near = bool(fit_record.get("other_people_seen") or held)   # the fit saw someone beside the subject
-    seen_others = read_others(capture.person_root / "fitting" / "keypoints") if config.use_fit else {}
+    seen_others = read_others(capture.person_root / "fitting") if config.use_fit else {}
     colour = _ColourPass(config, people, cameras) if config.appearance and body is not None \
         and len(people) > 1 else None
     poser = _Poser(body, people)

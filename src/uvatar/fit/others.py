@@ -2,7 +2,7 @@
 
 The subject tracker (:mod:`uvatar.fit.identity`) finds the people in view while someone is near the
 subject and keeps their triangulated keypoints. The fit writes the ones it saw, per frame, to
-``fitting/keypoints/others.npz`` (:func:`write_others`; this module owns the format: ``frames`` (M,)
+``fitting/others.npz`` (:func:`write_others`; this module owns the format: ``frames`` (M,)
 the frame of each row, ``points`` (M, K, 3) metres, ``conf`` (M, K), one row per person seen in a
 frame). ``uvatar capture masks`` reads them back (:func:`others_at`: a frame's people, interpolated in
 time between the frames they were seen in, since the detector misses a person now and then) and
@@ -19,12 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.fit.identity import body_centre
 from uvatar.io_utils import read_npz, write_npz
 
 __all__ = ["OTHERS_NPZ", "WINDOW_FRAMES", "FRONT_M", "write_others", "read_others", "others_at", "other_regions",
            "skeleton_region"]
 
-OTHERS_NPZ = "others.npz"   # in fitting/keypoints/
+OTHERS_NPZ = "others.npz"   # in fitting/, beside (not among) the per-frame keypoints
 WINDOW_FRAMES = 10          # a person is interpolated between sightings at most this many frames apart
 STROKE = 1 / 6             # their strokes, as a share of their projected height (1/4 measured: fewer bystander pixels, IoU 0.907 -> 0.881)
 FRONT_M = 0.1               # a person's torso this much nearer a camera than the subject's: in front of it
@@ -35,13 +36,13 @@ BONES = ((11, 12), (11, 13), (13, 15), (12, 14), (14, 16), (11, 23), (12, 24), (
 TORSO = (11, 12, 24, 23)
 
 
-def write_others(keypoints_dir: str | Path, seen: dict[str, list]) -> None:
-    """Write ``seen`` {frame: [(points (K, 3), conf (K,)), ...]} to ``keypoints_dir/others.npz``,
+def write_others(fitting_dir: str | Path, seen: dict[str, list]) -> None:
+    """Write ``seen`` {frame: [(points (K, 3), conf (K,)), ...]} to ``fitting_dir/others.npz``,
     atomically; frames without anyone are left out, and where nobody was seen there is no file (one
     an earlier run left is removed)."""
     rows = [(frame, np.asarray(p, np.float32), np.asarray(c, np.float32))
             for frame, people in sorted(seen.items()) for p, c in people]
-    path = Path(keypoints_dir) / OTHERS_NPZ
+    path = Path(fitting_dir) / OTHERS_NPZ
     if not rows:
         path.unlink(missing_ok=True)
         return
@@ -49,9 +50,9 @@ def write_others(keypoints_dir: str | Path, seen: dict[str, list]) -> None:
               conf=np.stack([r[2] for r in rows]))
 
 
-def read_others(keypoints_dir: str | Path) -> dict[str, list]:
-    """{frame: [(points (K, 3), conf (K,)), ...]} from ``keypoints_dir/others.npz`` ({} without one)."""
-    path = Path(keypoints_dir) / OTHERS_NPZ
+def read_others(fitting_dir: str | Path) -> dict[str, list]:
+    """{frame: [(points (K, 3), conf (K,)), ...]} from ``fitting_dir/others.npz`` ({} without one)."""
+    path = Path(fitting_dir) / OTHERS_NPZ
     if not path.is_file():
         return {}
     data = read_npz(path)
@@ -59,12 +60,6 @@ def read_others(keypoints_dir: str | Path) -> dict[str, list]:
     for frame, points, conf in zip(data["frames"].tolist(), data["points"], data["conf"], strict=True):
         out.setdefault(str(frame), []).append((points.astype(np.float64), conf.astype(np.float64)))
     return out
-
-
-def _centre(points, conf) -> np.ndarray | None:
-    from uvatar.fit.identity import body_centre
-
-    return body_centre(points, conf)
 
 
 def others_at(seen: dict[str, list], frames: list[str], frame: str, window: int = WINDOW_FRAMES) -> list:
@@ -83,10 +78,10 @@ def others_at(seen: dict[str, list], frames: list[str], frame: str, window: int 
     b = seen[frames[after[0]]] if after else []
     out, used = [], set()
     for pa, ca in a:
-        ce = _centre(pa, ca)
+        ce = body_centre(pa, ca)
         best = None
         for j, (pb, cb) in enumerate(b):
-            cb_centre = _centre(pb, cb)
+            cb_centre = body_centre(pb, cb)
             if j in used or ce is None or cb_centre is None:
                 continue
             d = float(np.linalg.norm(ce - cb_centre))
@@ -138,7 +133,7 @@ def other_regions(others: list, camera, subject_centre: np.ndarray, shape: tuple
     front, beside = np.zeros(shape, bool), np.zeros(shape, bool)
     for points, conf in others:
         ok = np.asarray(conf) > 0
-        centre = _centre(points, conf)
+        centre = body_centre(points, conf)
         if ok.sum() < 4 or centre is None:
             continue
         pix, z = project_distorted(camera, np.asarray(points, np.float64))

@@ -24,7 +24,7 @@ from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.calibration import refine_capture_cameras
 from uvatar.fit.identity import SubjectTracker, body_centre, identity_report, images_changed, track_frame
-from uvatar.fit.others import read_others, write_others
+from uvatar.fit.others import OTHERS_NPZ, read_others, write_others
 from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
 from uvatar.fit.records import (
     IDENTITY_JSON,
@@ -180,7 +180,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
     keypoints_dir = observation_path(capture.person_root, "-").parent
     before = read_identity_record(keypoints_dir) if tracker is not None else {"statuses": {}}
     statuses = dict(before["statuses"])   # {frame: status other than tracked}, kept for a resumed run
-    seen_others = read_others(keypoints_dir) if tracker is not None else {}   # {frame: [(points, conf)]}
+    seen_others = read_others(keypoints_dir.parent) if tracker is not None else {}   # {frame: [(points, conf)]}
     if tracker is not None:
         tracker.start(start, body_centre(seed_prior.points, seed_prior.points_conf))
     bar = tqdm(order, desc=f"keypoints ({source})", unit="frame", disable=not progress, dynamic_ncols=True)
@@ -255,7 +255,7 @@ def _detect_all(capture: Capture, frames: list[str], source: str, detector, stag
         else:
             prior = obs
     if tracker is not None:
-        write_others(keypoints_dir, {f: people for f, people in seen_others.items() if people})
+        write_others(keypoints_dir.parent, {f: people for f, people in seen_others.items() if people})
     if person is not None and "identity" in person:
         person["identity"] = identity_report(frames, person["identity"], tracker, max_speed)
         person["identity"]["other_people_seen"] = max(person["identity"]["other_people_seen"],
@@ -475,9 +475,9 @@ def _fit_person(capture: Capture, frames: list[str], source: str, body, detector
     keypoints_dir = capture.person_root / "fitting" / "keypoints"
     if stage_record.begin(keypoints_dir, "keypoints", keypoint_record_config(capture, config, stages, source, detector),
                           fit_inputs(capture, source), total=len(frames), on_change="redo").status == "redo":
-        for stale in [*keypoints_dir.glob("*.npz"), keypoints_dir / IDENTITY_JSON]:   # another person, detector,
-            stale.unlink(missing_ok=True)                                              # images or rules
-            # (others.npz among the npz: the other people seen with those keypoints)
+        # detected for another person, detector, images or rules; with them who else was seen and held
+        for stale in [*keypoints_dir.glob("*.npz"), keypoints_dir / IDENTITY_JSON, keypoints_dir.parent / OTHERS_NPZ]:
+            stale.unlink(missing_ok=True)
     observations, failures, person = _detect_all(capture, frames, source, detector, stages, progress, choice,
                                                  config.cut_distance, chosen, avoid, hide, config.max_speed,
                                                  avoid_held)
