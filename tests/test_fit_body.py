@@ -126,6 +126,41 @@ def test_projection_matches_opencv_and_passes_gradcheck():
     assert torch.autograd.gradcheck(lambda p: project_cameras(p, per)[0], (y,))
 
 
+def _graph_nodes(tensor) -> int:
+    seen, todo = set(), [tensor.grad_fn]
+    while todo:
+        node = todo.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        todo.extend(n for n, _ in node.next_functions)
+    return len(seen)
+
+
+def test_projection_through_many_views_is_one_batched_expression():
+    """A sequence fit projects through F x C views (per-frame virtual cameras of the scans); the lens is
+    applied to all of them in one expression, so the backward graph does not grow with the number of
+    views (one slice per view made the backward quadratic in the frames: each slice's backward fills a
+    zero tensor of the whole batch). Checked with a real lens and with none."""
+    import cv2
+
+    from uvatar.capture.types import Camera
+    from uvatar.fit.projection import camera_tensors, project_cameras
+
+    rng = np.random.default_rng(1)
+    for dist in ([0.1, -0.05, 0.001, 0.002, 0.01], [0.0] * 5):
+        nodes = []
+        for frames in (2, 12):
+            cams = [[Camera(f"c{i}", K=[[500, 0, 120], [0, 510, 130], [0, 0, 1]],
+                            R=cv2.Rodrigues(rng.normal(size=3) * 0.2)[0], T=[0.1, 0.2, 3.0], dist=dist)
+                     for i in range(4)] for _ in range(frames)]
+            x = torch.tensor(rng.normal(size=(frames, 5, 3)) * 0.4, requires_grad=True)
+            px, _ = project_cameras(x, camera_tensors(cams, dtype=torch.float64))
+            assert px.shape == (frames, 4, 5, 2)
+            nodes.append(_graph_nodes(px))
+        assert nodes[0] == nodes[1], nodes
+
+
 def test_scan_term_is_zero_on_the_bodys_own_surface(anny):
     pose, Rh, Th = _pose(anny, 2, 2)
     posed = _posed(anny, pose, Rh, Th, SHAPE)

@@ -76,6 +76,22 @@ def test_torch_distort_matches_numpy():
     np.testing.assert_allclose(out.numpy(), distort(xy, STRONG), atol=1e-12)
 
 
+def test_several_lenses_at_once_equal_one_call_per_lens():
+    """dist (M, 5) with xy (..., M, N, 2): lens m on slice m, numpy and torch, as M separate calls give;
+    a lens of zeros among them leaves its slice as it is, all zeros return the input."""
+    import torch
+
+    lenses = np.array([QUALISYS, STRONG, (0.0,) * 5])
+    xy = np.random.default_rng(4).normal(size=(2, 3, 40, 2)) * 0.4           # (T, M, N, 2)
+    ref = np.stack([distort(xy[:, m], lenses[m]) for m in range(3)], 1)
+    np.testing.assert_allclose(distort(xy, lenses), ref, atol=1e-14)
+    np.testing.assert_array_equal(distort(xy, lenses)[:, 2], xy[:, 2])
+    out = distort(torch.as_tensor(xy), lenses)
+    assert isinstance(out, torch.Tensor)
+    np.testing.assert_allclose(out.numpy(), ref, atol=1e-12)
+    assert distort(xy, np.zeros((3, 5))) is xy
+
+
 def test_dva_pixel_rays_and_unwrap_use_the_distortion():
     """DVA's rays and its view unwrapping agree with the camera: a surface point seen through a
     distorted pixel's ray samples that pixel's colour."""

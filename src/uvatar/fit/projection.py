@@ -75,7 +75,7 @@ def project_cameras(points: torch.Tensor, cams: CameraTensors, min_depth: float 
     xy = cam[..., :2] / z.clamp_min(min_depth)[..., None]
     dist = np.asarray(cams.dist).reshape(-1, 5)                  # one lens per camera (and frame)
     flat = xy.reshape(*xy.shape[: xy.dim() - cams.K.dim()], len(dist), *xy.shape[-2:])   # camera dims flattened
-    xy = torch.stack([distort(flat[..., k, :, :], d) for k, d in enumerate(dist)], dim=-3).reshape(xy.shape)
+    xy = distort(flat, dist).reshape(xy.shape)   # all lenses at once: no per-view slices in the backward
     K = cams.K[..., None, :, :]
     u = K[..., 0, 0] * xy[..., 0] + K[..., 0, 1] * xy[..., 1] + K[..., 0, 2]
     v = K[..., 1, 1] * xy[..., 1] + K[..., 1, 2]

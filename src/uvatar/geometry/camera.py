@@ -22,16 +22,27 @@ def distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
     dist (k1, k2, p1, p2[, k3]): ``x_d = x (1 + k1 r² + k2 r⁴ + k3 r⁶) + 2 p1 x y + p2 (r² + 2 x²)``,
     ``y_d = y (...) + p1 (r² + 2 y²) + 2 p2 x y``. ``xy`` may be a torch tensor (any dtype/device;
     the result is one too) so that the differentiable and culling paths share this function.
+
+    Several lenses at once: ``dist`` (M, 5) with ``xy`` (..., M, N, 2), lens m applied to the points
+    ``xy[..., m, :, :]`` (one batched expression, e.g. a sequence fit's F x C views, instead of one call
+    per view).
     """
-    k1, k2, p1, p2, k3 = (float(v) for v in np.pad(np.asarray(dist, np.float64).reshape(-1), (0, 5))[:5])
+    dist = np.asarray(dist, np.float64)
+    if dist.ndim <= 1:
+        coeffs = tuple(float(v) for v in np.pad(dist.reshape(-1), (0, 5))[:5])
+    else:
+        coeffs = tuple(np.pad(dist.reshape(len(dist), -1), ((0, 0), (0, 5)))[:, i:i + 1] for i in range(5))  # (M, 1)
     if is_torch(xy):
         import torch
 
         stack = torch.stack
+        if dist.ndim > 1:
+            coeffs = tuple(torch.as_tensor(c, dtype=xy.dtype, device=xy.device) for c in coeffs)
     else:
         xy, stack = np.asarray(xy, dtype=np.float64), np.stack
-    if k1 == k2 == p1 == p2 == k3 == 0:
+    if not np.any(dist):
         return xy
+    k1, k2, p1, p2, k3 = coeffs
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
