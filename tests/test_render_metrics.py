@@ -132,3 +132,23 @@ def test_mask_edge_band_known_answers():
     assert mask_edge_band(full, 2)[1].sum() == 6 * 6
     assert mask_edge_band(m)[1].sum() == 4 * 4  # default: SSIM_BORDER + 1 = 6 px
     assert not any(p.any() for p in mask_edge_band(np.zeros((5, 5), bool)))
+
+
+def test_one_error_map_scores_every_mask_as_psnr_does():
+    """The eval scores one pair of images over the union, both masks and each region from one error
+    map: the same values as psnr / mse over each mask, and the same refusals."""
+    from uvatar.render.metrics import error_map, mse, mse_of_error_map, psnr_of_error_map
+
+    rng = np.random.default_rng(0)
+    a, b = rng.random((16, 12, 3)), rng.random((16, 12, 3))
+    err = error_map(a, b)
+    assert err.shape == (16, 12)
+    masks = [None, rng.random((16, 12)) > 0.5, np.eye(16, 12, dtype=bool)]
+    for mask in masks:
+        assert psnr_of_error_map(err, mask) == psnr(a, b, mask)
+        assert mse_of_error_map(err, mask) == mse(a, b, mask)
+    assert np.isclose(psnr_of_error_map(error_map(np.zeros((4, 4)), np.full((4, 4), 0.1))), 20.0)
+    with pytest.raises(InputError, match="is empty"):
+        psnr_of_error_map(err, np.zeros((16, 12), bool))
+    with pytest.raises(InputError, match="does not match"):
+        psnr(a, b, np.ones((3, 3), bool))

@@ -43,6 +43,7 @@ from uvatar.avh.eval_scan import (
     OWN_BAKE_PROTOCOL,
     SCAN_PROTOCOL,
     RegionLabels,
+    ScanSurface,
     baked_frame_names,
     geometry_summary,
     pixel_regions,
@@ -210,25 +211,26 @@ METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_union_mask", "ssim_union_mask", "psnr
                "psnr_db_inside_both", "silhouette_iou")
 
 
-def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask) -> dict:
+def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, smap=None) -> dict:
     """PSNR (dB) / SSIM inside the union of the masks (``psnr_db``, ``ssim`` and the same values as
-    ``*_union_mask``; NaN when the union is empty) and over the full image (``*_full``).
+    ``*_union_mask``; NaN when the union is empty) and over the full image (``*_full``). ``smap``: the
+    images' :func:`~uvatar.render.metrics.ssim_map` when the caller has it (made here otherwise).
 
     Two diagnostics split the union error into its causes: ``psnr_db_inside_both`` (appearance: PSNR
     where both masks cover the pixel) and ``silhouette_iou`` (shape: |A ∩ B| / |A ∪ B| of the masks).
     """
-    from uvatar.render import psnr
-    from uvatar.render.metrics import ssim_map, ssim_of_map
+    from uvatar.render.metrics import error_map, psnr_of_error_map, ssim_map, ssim_of_map
 
-    smap = ssim_map(pred_rgb, gt_rgb)  # one map for both masks
-    full = {"psnr_db_full": psnr(pred_rgb, gt_rgb), "ssim_full": ssim_of_map(smap)}
+    smap = ssim_map(pred_rgb, gt_rgb) if smap is None else smap  # one map for both masks
+    err = error_map(pred_rgb, gt_rgb)                              # one error map for every mask
+    full = {"psnr_db_full": psnr_of_error_map(err), "ssim_full": ssim_of_map(smap)}
     pm, gm = np.asarray(pred_mask, bool), np.asarray(gt_mask, bool)
     union, both = pm | gm, pm & gm
     if not union.any():
         p = s = float("nan")
     else:
-        p, s = psnr(pred_rgb, gt_rgb, union), ssim_of_map(smap, union)
-    inside = psnr(pred_rgb, gt_rgb, both) if both.any() else float("nan")
+        p, s = psnr_of_error_map(err, union), ssim_of_map(smap, union)
+    inside = psnr_of_error_map(err, both) if both.any() else float("nan")
     iou = float(both.sum() / union.sum()) if union.any() else float("nan")
     return {"psnr_db": p, "ssim": s, "psnr_db_union_mask": p, "ssim_union_mask": s, **full,
             "psnr_db_inside_both": inside, "silhouette_iou": iou}
@@ -303,6 +305,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
     from uvatar.capture import Capture
     from uvatar.geometry import RayCaster
     from uvatar.render import orbit_cameras, render_mesh
+    from uvatar.render.metrics import ssim_map
 
     capture = Capture(capture_root)
     runtime = AvatarRuntime(avatar_dir, body=body, levels=config.levels, scheme=config.scheme)
@@ -400,9 +403,10 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
             for m, mesh in meshes.items():
                 r = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture,
                                 raycaster=casters[m])
-                results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask))
+                smap = ssim_map(r.rgb, gt.rgb)   # one SSIM map for the whole image and its regions
+                results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, smap))
                 pix = pixel_regions(casters[m], cam, regions.face_labels(mesh), r.mask | gt.mask)
-                region_views[m].append(region_image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, pix))
+                region_views[m].append(region_image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, pix, smap))
                 row.append(r.rgb)
                 masks.append(r.mask)
                 labels.append(f"{SHORT_NAMES.get(m, m.replace('_', ' '))} {results[m][-1]['psnr_db']:.1f} dB")
@@ -422,8 +426,9 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
                 entry[f"{m}_geometry_mm"] = float(err.mean()) if len(err) else None
             entry.update(_uv_r2(runtime, baselines, maps, base, Rh, rotations, gt_maps, mask, r2))
         else:  # a real take: the scan is the only truth for the geometry
+            surface = ScanSurface(scan.vertices, scan.faces)   # indexed and sampled once for every method
             for m, mesh in meshes.items():
-                part = scan_geometry_mm(mesh.vertices, mesh.faces, regions.face_labels(mesh), scan.vertices, scan.faces)
+                part = scan_geometry_mm(mesh.vertices, mesh.faces, regions.face_labels(mesh), scan=surface)
                 scan_geometry[m].append(part)
                 entry[f"{m}_chamfer_mm"] = float(0.5 * (part["avatar_to_scan"].mean() + part["scan_to_avatar"].mean()))
         if own is not None:

@@ -69,12 +69,13 @@ def pixel_regions(caster, camera, face_labels: np.ndarray, union: np.ndarray) ->
     return np.where(union, labels, -1).astype(np.int8)
 
 
-def region_image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, regions: np.ndarray) -> dict:
-    """{region: {psnr_db (union), ssim (union), psnr_db_inside_both, pixels}} for the regions present."""
-    from uvatar.render import psnr
-    from uvatar.render.metrics import ssim_map, ssim_of_map
+def region_image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, regions: np.ndarray, smap=None) -> dict:
+    """{region: {psnr_db (union), ssim (union), psnr_db_inside_both, pixels}} for the regions present;
+    ``smap``: the images' :func:`~uvatar.render.metrics.ssim_map` when the caller has it."""
+    from uvatar.render.metrics import error_map, psnr_of_error_map, ssim_map, ssim_of_map
 
-    smap = ssim_map(pred_rgb, gt_rgb)
+    smap = ssim_map(pred_rgb, gt_rgb) if smap is None else smap
+    err = error_map(pred_rgb, gt_rgb)
     both = np.asarray(pred_mask, bool) & np.asarray(gt_mask, bool)
     out = {}
     for k, name in enumerate(REGION_NAMES):
@@ -82,26 +83,44 @@ def region_image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, regions: np.ndarr
         if not m.any():
             continue
         inside = m & both
-        out[name] = {"psnr_db": psnr(pred_rgb, gt_rgb, m), "ssim": ssim_of_map(smap, m),
-                     "psnr_db_inside_both": psnr(pred_rgb, gt_rgb, inside) if inside.any() else float("nan"),
+        out[name] = {"psnr_db": psnr_of_error_map(err, m), "ssim": ssim_of_map(smap, m),
+                     "psnr_db_inside_both": psnr_of_error_map(err, inside) if inside.any() else float("nan"),
                      "pixels": int(m.sum())}
     return out
 
 
-def scan_geometry_mm(avatar_vertices, avatar_faces, face_labels, scan_vertices, scan_faces,
-                     points: int = SCAN_POINTS, seed: int = 0) -> dict:
-    """Two-way surface distance (mm) between an avatar mesh and a scan, overall and by region:
+class ScanSurface:
+    """One frame's scan prepared for :func:`scan_geometry_mm` against several avatars: its closest-point
+    index and its ``points`` surface samples (seed + 1), made once instead of once per method."""
+
+    def __init__(self, vertices, faces, points: int = SCAN_POINTS, seed: int = 0):
+        from uvatar.geometry.distance import SurfaceIndex
+        from uvatar.geometry.sampling import sample_surface
+
+        self.vertices, self.faces, self.points, self.seed = vertices, faces, points, seed
+        self.index = SurfaceIndex(vertices, faces)
+        self.samples = sample_surface(vertices, faces, points, seed=seed + 1)[0]
+
+
+def scan_geometry_mm(avatar_vertices, avatar_faces, face_labels, scan_vertices=None, scan_faces=None,
+                     points: int = SCAN_POINTS, seed: int = 0, scan: ScanSurface | None = None) -> dict:
+    """Two-way surface distance (mm) between an avatar mesh and a scan (``scan_vertices``, ``scan_faces``, or
+    a prepared :class:`ScanSurface` with the same ``points`` and ``seed``), overall and by region:
     ``{"avatar_to_scan": (N,), "scan_to_avatar": (N,), "avatar_regions": (N,), "scan_regions": (N,)}``."""
     from scipy.spatial import cKDTree
 
     from uvatar.geometry.distance import point_surface_distance
     from uvatar.geometry.sampling import sample_surface
 
+    if scan is None:
+        scan = ScanSurface(scan_vertices, scan_faces, points, seed)
+    elif (scan.points, scan.seed) != (points, seed):
+        raise ValueError(f"the prepared scan has {scan.points} points (seed {scan.seed}), asked {points} ({seed})")
     a_pts, _, a_face = sample_surface(avatar_vertices, avatar_faces, points, seed=seed, with_faces=True)
-    s_pts, _ = sample_surface(scan_vertices, scan_faces, points, seed=seed + 1)
+    s_pts = scan.samples
     a_regions = np.asarray(face_labels)[a_face]
     _, nearest = cKDTree(a_pts).query(s_pts)
-    return {"avatar_to_scan": 1000.0 * point_surface_distance(a_pts, scan_vertices, scan_faces),
+    return {"avatar_to_scan": 1000.0 * scan.index.closest(a_pts)[2],
             "scan_to_avatar": 1000.0 * point_surface_distance(s_pts, avatar_vertices, avatar_faces),
             "avatar_regions": a_regions, "scan_regions": a_regions[nearest]}
 

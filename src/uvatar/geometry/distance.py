@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["closest_point_on_triangles", "closest_points_on_mesh", "closest_points_on_triangles",
-           "point_surface_distance"]
+           "point_surface_distance", "SurfaceIndex"]
 
 
 def closest_points_on_triangles(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -52,41 +52,59 @@ def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return closest_points_on_triangles(p, tri)[1]
 
 
+class SurfaceIndex:
+    """A triangle mesh (vertices (V, 3), faces (F, 3)) prepared for closest-point queries: ``samples`` x
+    ``samples`` barycentric samples per face and the vertices (a vertex stands for one of its faces) in a
+    k-d tree. Build it once for a mesh that several point sets are measured against (the AVH eval's scan,
+    against every method's avatar); :meth:`closest` gives what :func:`closest_points_on_mesh` gives."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, samples: int = 3):
+        from scipy.spatial import cKDTree
+
+        v = np.asarray(vertices, np.float64)
+        f = np.asarray(faces, np.int64)
+        g = np.linspace(0, 1, samples + 2)[1:-1]
+        bary = np.array([(x, y, 1 - x - y) for x in g for y in g if x + y < 1])
+        if len(bary) == 0:
+            bary = np.array([[1 / 3, 1 / 3, 1 / 3]])
+        pts = np.einsum("sk,fkc->fsc", bary, v[f]).reshape(-1, 3)
+        face_of = np.repeat(np.arange(len(f)), len(bary))
+        pts = np.concatenate([pts, v])
+        face_of = np.concatenate([face_of, np.zeros(len(v), np.int64)])
+        # a vertex sample stands for one of its faces
+        face_of[len(f) * len(bary) + f[:, 0]] = np.arange(len(f))
+        face_of[len(f) * len(bary) + f[:, 1]] = np.arange(len(f))
+        face_of[len(f) * len(bary) + f[:, 2]] = np.arange(len(f))
+        self.vertices, self.faces, self.face_of = v, f, face_of
+        self.tree = cKDTree(pts)
+
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(face (N,) int64, barycentrics (N, 3) in that face, distance (N,)) of the closest surface point
+        to each of ``points`` (N, 3): the exact closest point on the triangles of the 4 nearest samples."""
+        v, f = self.vertices, self.faces
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        _, idx = self.tree.query(p, k=4)
+        best_face = np.zeros(len(p), np.int64)
+        best_bary = np.zeros((len(p), 3))
+        best = np.full(len(p), np.inf)
+        for k in range(idx.shape[1]):   # 4 candidates (a loop over candidates, not points)
+            face = self.face_of[idx[:, k]]
+            b, d = closest_points_on_triangles(p, v[f[face]])
+            better = d < best
+            best = np.where(better, d, best)
+            best_face = np.where(better, face, best_face)
+            best_bary = np.where(better[:, None], b, best_bary)
+        return best_face, best_bary, best
+
+
 def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
                            samples: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest surface point of the triangle mesh (vertices, faces) to each of ``points`` (N, 3):
     (face (N,) int64, barycentrics (N, 3) in that face, distance (N,)). The candidate triangles are
     those of the 4 nearest of ``samples`` x ``samples`` barycentric samples per face and of the
-    vertices (a vertex stands for one of its faces); the point on each candidate is exact."""
-    from scipy.spatial import cKDTree
-
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    g = np.linspace(0, 1, samples + 2)[1:-1]
-    bary = np.array([(x, y, 1 - x - y) for x in g for y in g if x + y < 1])
-    if len(bary) == 0:
-        bary = np.array([[1 / 3, 1 / 3, 1 / 3]])
-    pts = np.einsum("sk,fkc->fsc", bary, v[f]).reshape(-1, 3)
-    face_of = np.repeat(np.arange(len(f)), len(bary))
-    pts = np.concatenate([pts, v])
-    face_of = np.concatenate([face_of, np.zeros(len(v), np.int64)])
-    # a vertex sample stands for one of its faces
-    face_of[len(f) * len(bary) + f[:, 0]] = np.arange(len(f))
-    face_of[len(f) * len(bary) + f[:, 1]] = np.arange(len(f))
-    face_of[len(f) * len(bary) + f[:, 2]] = np.arange(len(f))
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    _, idx = cKDTree(pts).query(p, k=4)
-    best_face = np.zeros(len(p), np.int64)
-    best_bary = np.zeros((len(p), 3))
-    best = np.full(len(p), np.inf)
-    for k in range(idx.shape[1]):   # 4 candidates (a loop over candidates, not points)
-        face = face_of[idx[:, k]]
-        b, d = closest_points_on_triangles(p, v[f[face]])
-        better = d < best
-        best = np.where(better, d, best)
-        best_face = np.where(better, face, best_face)
-        best_bary = np.where(better[:, None], b, best_bary)
-    return best_face, best_bary, best
+    vertices (a vertex stands for one of its faces); the point on each candidate is exact. Measuring
+    several point sets against one mesh: build its :class:`SurfaceIndex` once."""
+    return SurfaceIndex(vertices, faces, samples).closest(points)
 
 
 def point_surface_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,

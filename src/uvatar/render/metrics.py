@@ -12,7 +12,7 @@ import numpy as np
 from uvatar.errors import InputError
 
 __all__ = ["psnr", "ssim", "ssim_map", "ssim_map_torch", "ssim_torch", "mse", "SSIM_BORDER", "mask_edge_band",
-           "ssim_of_map", "ssim_windows_inside"]
+           "ssim_of_map", "ssim_windows_inside", "error_map", "mse_of_error_map", "psnr_of_error_map"]
 
 #: pixels at each edge whose 11-tap SSIM window (sigma 1.5, truncated at 3.5 sigma) leaves the image
 SSIM_BORDER = 5
@@ -40,21 +40,39 @@ def _to_numpy(x):
     return np.asarray(x, dtype=np.float64)
 
 
-def mse(a, b, mask=None) -> float:
-    """Mean squared error over (masked) pixels and channels."""
-    a, b, mask = _prep(a, b, mask)
-    err = ((a - b) ** 2).mean(-1)
+def error_map(a, b) -> np.ndarray:
+    """(H, W) float64 squared error per pixel, the mean over channels: what :func:`mse` averages. Make it
+    once when one pair of images is scored over several masks (:func:`psnr_of_error_map`)."""
+    a, b, _ = _prep(a, b, None)
+    return ((a - b) ** 2).mean(-1)
+
+
+def mse_of_error_map(err: np.ndarray, mask=None) -> float:
+    """Mean of an :func:`error_map` over the (masked) pixels."""
     if mask is None:
         return float(err.mean())
+    mask = _to_numpy(mask)
+    if mask.shape != err.shape:
+        raise InputError("mask", f"shape {mask.shape} does not match image {err.shape}")
     if mask.sum() <= 0:
         raise InputError("mask", "is empty")
     return float((err * mask).sum() / mask.sum())
 
 
+def mse(a, b, mask=None) -> float:
+    """Mean squared error over (masked) pixels and channels."""
+    return mse_of_error_map(error_map(a, b), mask)
+
+
+def psnr_of_error_map(err: np.ndarray, mask=None, data_range: float = 1.0) -> float:
+    """:func:`psnr` from an :func:`error_map` over the (masked) pixels."""
+    m = mse_of_error_map(err, mask)
+    return float("inf") if m == 0 else float(10.0 * np.log10(data_range**2 / m))
+
+
 def psnr(a, b, mask=None, data_range: float = 1.0) -> float:
     """Peak signal-to-noise ratio in dB, ``10 log10(range^2 / MSE)``; inf for identical images."""
-    m = mse(a, b, mask)
-    return float("inf") if m == 0 else float(10.0 * np.log10(data_range**2 / m))
+    return psnr_of_error_map(error_map(a, b), mask, data_range)
 
 
 def _symmetric_index(n: int, r: int):
