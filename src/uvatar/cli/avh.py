@@ -36,7 +36,8 @@ def _flags() -> dict[str, ConfigFlags]:
 
     return {
         "model": ConfigFlags(AvhConfig, fields=("resolution", "conditioning", "orientation", "shading_lights",
-                                                         "shading_shadows", "shading_occlusion", "pose_normalization"),
+                                                         "shading_shadows", "shading_occlusion", "pose_normalization",
+                                                         "displacement_residual_scale"),
                              rename={"resolution": "texels"}, presets=PRESETS,
                              choices={"conditioning": CONDITIONINGS, "orientation": ORIENTATIONS},
                              help={"resolution": "output resolution",
@@ -55,7 +56,10 @@ def _flags() -> dict[str, ConfigFlags]:
                                                         "occlusion (needs --shading-shadows)",
                                    "pose_normalization": "standardize the pose inputs by the training frames' "
                                                          "statistics (clipped at 4 std): a take that moves little "
-                                                         "still conditions the maps"}),
+                                                         "still conditions the maps",
+                                   "displacement_residual_scale": "metres of pose-dependent displacement per unit "
+                                                                  "of the decoder's output (0: the paper's tanh "
+                                                                  "range; e.g. 0.005 for millimetre residuals)"}),
         "train": ConfigFlags(
             TrainConfig, fields=("epochs", "batch_size", "lr", "lr_gamma", "displacement_weight", "displacement_frame",
                                  "pose_noise", "shading_lr_scale", "ema_decay", "calibrate_lights",
