@@ -158,6 +158,9 @@ def test_shape_cache_from_the_default_and_from_numpy(body):
     """The default shape (None) and a host array find their cached bind state; the state lives on the body's device."""
     a = body._bind_state(None)
     assert body._bind_state(body.default_shape()) is a and a["bind_vertices"].device == body.device
+    host = body.default_shape(device="cpu")   # the default asked for on the host: the same values, no copy back
+    assert host.device.type == "cpu" and torch.equal(host, body.default_shape().cpu())
+    assert body._bind_state(host) is a
     s = np.array([0.2, 0.5, 0.5, 0.5, 0.5, 0.5], np.float32)
     assert body._bind_state(s) is body._bind_state(torch.as_tensor(s))
 

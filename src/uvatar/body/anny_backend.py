@@ -94,15 +94,15 @@ class AnnyBody(BodyModel):
         self.to(self.config.device)
 
     # -- shape ---------------------------------------------------------------------------------
-    def default_shape(self) -> torch.Tensor:
-        return torch.full((len(self.shape_names),), 0.5, device=self.device)
+    def default_shape(self, device=None) -> torch.Tensor:
+        return torch.full((len(self.shape_names),), 0.5, device=self.device if device is None else device)
 
     def _bind_state(self, shape) -> dict[str, torch.Tensor]:
         """Bind state for shape (S,) or (B, S) (None: :meth:`default_shape`): bind vertices, heads,
         rotations (U R^T), offsets. A shape without a gradient and the same in every row is cached
         (LRU); the cache looks at the shape where it is given, so a shape on the host (and the default)
         finds its state on a GPU body without a read-back from the device."""
-        shape = torch.full((len(self.shape_names),), 0.5) if shape is None else torch.as_tensor(shape)
+        shape = self.default_shape(device="cpu") if shape is None else torch.as_tensor(shape)
         if shape.dim() == 1:
             shape = shape[None]
         if shape.shape[-1] != len(self.shape_names):

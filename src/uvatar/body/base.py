@@ -144,9 +144,9 @@ class BodyModel(torch.nn.Module):
         """(J, 3, 3) float32: rest-pose world orientation of the axes each joint's rotvec is in."""
         return self._rest_rot_t.detach().cpu().numpy().astype(np.float32)
 
-    def default_shape(self) -> torch.Tensor:
-        """(S,) the backend's neutral shape parameters (float32, on the model's device)."""
-        return torch.zeros(len(self.shape_names), device=self.device)
+    def default_shape(self, device=None) -> torch.Tensor:
+        """(S,) the backend's neutral shape parameters (float32, on ``device``; None: the model's)."""
+        return torch.zeros(len(self.shape_names), device=self.device if device is None else device)
 
     # -- rotations in world axes <-> local -----------------------------------------------------
     def world_to_local_rotvecs(self, world_rotvecs):
