@@ -1,6 +1,7 @@
 """How much pose-dependent displacement a synthetic capture holds, and how much of it a map can (issue 38)
 
     python bench/avh_displacement_signal.py CAP [--texels 64,128,256] [--avatar AVATAR] [--json OUT.json]
+                                            [--picture OUT.png]
 
 CAP: a synthetic capture (``uvatar synth`` / ``uvatar demo``'s capture) with ``gt/frames/*.npz``. Reads
 only the studio's truth, no bake or avatar: per texel the length of the true clothing offset
@@ -23,7 +24,10 @@ capture's config, is printed beside); the ceiling ``uvatar eval`` reports (``bak
 as the demo's does) adds ``own_bake_error``: on the body's cloth texels (hands, head, feet and
 uncovered texels left out) the rms 3D error of the frames' own baked maps and of the training mean map
 against the true surface, split along the true offset's direction and across it, the frames posed by
-their fit refined against the scan as ``uvatar eval`` poses them. Prints JSON.
+their fit refined against the scan as ``uvatar eval`` poses them. ``--picture``: for the first held-out
+frame, in UV space (blue below, green 0, red above, ±2 mm): its true pose-dependent offset (frame - mean map), what a
+perfect map of the middle ``--texels`` resolution keeps of it, and that map's error (the static detail and
+folds it cannot hold). Prints JSON.
 """
 
 from __future__ import annotations
@@ -138,16 +142,50 @@ def own_bake_error(capture_root: str | Path, avatar: str | Path) -> dict:
                for m, s in sums.items()}}
 
 
+def write_picture(capture_root: str | Path, resolution: int, path: str | Path, span_mm: float = 2.0) -> None:
+    """Three UV panels of the first held-out frame (see the module docstring), labelled."""
+    import cv2
+
+    from uvatar.avh.data import resample_map
+    from uvatar.avh.poses import heldout_frames
+
+    maps, mask = offset_lengths(Path(capture_root))
+    frame = [f for f in heldout_frames(capture_root) if f in maps][0]
+    mean = np.mean([m for f, m in maps.items() if f not in set(heldout_frames(capture_root))], axis=0)
+    G = mask.shape[0]
+
+    def stored(x):
+        return resample_map(resample_map(x, resolution), G)
+
+    panels = [("true pose-dependent offset", maps[frame] - mean),
+              (f"a perfect {resolution}^2 map keeps", stored(maps[frame]) - stored(mean)),
+              (f"its error at {resolution}^2", stored(maps[frame]) - maps[frame])]
+    tiles = []
+    for label, x in panels:
+        t = np.clip(0.5 + 0.5 * x * 1000 / span_mm, 0, 1)
+        rgb = np.stack([t, 1 - np.abs(2 * t - 1), 1 - t], -1)                    # blue - white-ish - red
+        rgb = np.where(mask[..., None], rgb, 0.15)
+        tile = cv2.resize((rgb * 255).astype(np.uint8), (384, 384), interpolation=cv2.INTER_NEAREST)
+        tile = np.concatenate([np.full((28, 384, 3), 255, np.uint8), tile])
+        cv2.putText(tile, label, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        tiles.append(tile)
+    cv2.imwrite(str(path), np.concatenate(tiles, 1)[..., ::-1])
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("capture")
     ap.add_argument("--texels", default="64,128,256", help="comma-separated map resolutions")
     ap.add_argument("--avatar", help="an avatar trained on a bake of CAP that baked the held-out frames too")
     ap.add_argument("--json", help="also write the JSON here")
+    ap.add_argument("--picture", help="a PNG of the first held-out frame's offsets in UV space")
     args = ap.parse_args(argv)
     result = measure(args.capture, [int(t) for t in args.texels.split(",")])
     if args.avatar:
         result["own_bake_error"] = own_bake_error(args.capture, args.avatar)
+    if args.picture:
+        sizes = [int(t) for t in args.texels.split(",")]
+        write_picture(args.capture, sizes[len(sizes) // 2], args.picture)
     text = json.dumps(result, indent=1)
     print(text)
     if args.json:
