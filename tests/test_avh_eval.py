@@ -297,6 +297,23 @@ def test_evaluate_a_scan_only_take_by_region_both_ways_and_against_its_own_bake(
 
 
 
+def test_frames_in_worker_processes_give_the_same_figures(setup, tmp_path):
+    """--workers 2: each frame in a worker process (its context built there from the avatar and capture
+    folders), the tallies merged in frame order: the same JSON as one process, on a scan-only take (scan
+    geometry, R² against the own bakes, regions) and on the synthetic capture (R² against gt, the ceiling)."""
+    root, body, cap, baked = setup
+    take = _scans_only(cap, tmp_path / "take")
+    train = json.loads((baked / "dataset.json").read_text())["selection"]["train"]
+    cases = [(take, dict(frames=("000004", train[0]), orbit_views=2, orbit_size=40)),
+             (cap, dict(image_size=32, max_cameras=1))]
+    for capture, kw in cases:
+        runs = [evaluate_avatar(root / "avatar", capture, EvalConfig(progress=False, pose_source="fit", workers=w, **kw),
+                                body=body) for w in (1, 2)]
+        one, two = (json.loads(json.dumps({k: v for k, v in m.items() if k != "config"})) for m in runs)
+        assert len(one["per_frame"]) == 2
+        assert two == one
+
+
 def test_evaluate_reports_the_bake_ceiling_and_r2_against_the_own_bake(setup):
     root, body, cap, baked = setup
     m = evaluate_avatar(root / "avatar", cap, EvalConfig(progress=False, image_size=32, max_cameras=1,

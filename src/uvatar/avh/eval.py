@@ -107,6 +107,7 @@ class EvalConfig:
                                    # training frames; "fit": the capture's fit as is (pose error included)
     orbit_views: int = 4           # virtual cameras around the person when the capture has none (scans only)
     orbit_size: int = 512          # their image size (pixels, square)
+    workers: int = 1               # frames evaluated in this many processes (1: in this one); the same figures
 
     def __post_init__(self) -> None:
         check_values([
@@ -115,7 +116,8 @@ class EvalConfig:
             (self.pose_source in POSE_PROTOCOL, f"pose_source must be one of {', '.join(POSE_PROTOCOL)}, "
                                                 f"got {self.pose_source!r}"),
             (1 <= self.orbit_views <= 64, f"orbit_views must be in 1..64, got {self.orbit_views}"),
-            (16 <= self.orbit_size <= 4096, f"orbit_size must be in 16..4096 pixels, got {self.orbit_size}")])
+            (16 <= self.orbit_size <= 4096, f"orbit_size must be in 16..4096 pixels, got {self.orbit_size}"),
+            (self.workers >= 1, f"workers must be at least 1, got {self.workers}")])
 
 
 ORBIT_DISTANCE_M = 3.0    # virtual cameras' distance to the scan's centre (40° field of view)
@@ -291,21 +293,28 @@ def _geometry_summary(errors: list[np.ndarray]) -> dict:
             "geometry_p90_mm": float(np.percentile(e, 90))}
 
 
-def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: EvalConfig = EvalConfig(),
-                    baked_dir: str | Path | None = None, image_dir: str | Path | None = None, body=None,
-                    others: dict[str, str | Path] | None = None) -> dict:
-    """Metrics dict (``protocol``, ``frames``, ``cameras``, ``avh``, ``others``, ``baselines``,
-    ``distance_bins``, ``per_frame``).
+@dataclass
+class _EvalContext:
+    """What every evaluated frame shares (built once per process: :func:`_eval_context`)."""
 
-    ``others``: {name: avatar folder} evaluated beside ``avatar_dir`` on the same frames, cameras and
-    poses (same body; e.g. another generator conditioning); the baselines come from ``avatar_dir``'s
-    training data."""
-    from tqdm import tqdm
+    capture: object
+    runtime: AvatarRuntime
+    runtimes: dict
+    methods: list
+    baselines: object
+    baked_dir: Path
+    frames: list
+    split: str
+    cams: dict
+    camera_names: list | None
+    own_bakes: object
+    own_frames: set
+    regions: object
+    config: EvalConfig
 
+
+def _eval_context(avatar_dir, capture_root, config: EvalConfig, baked_dir=None, body=None, others=None) -> _EvalContext:
     from uvatar.capture import Capture
-    from uvatar.geometry import RayCaster
-    from uvatar.render import orbit_cameras, render_mesh
-    from uvatar.render.metrics import ssim_map
 
     capture = Capture(capture_root)
     runtime = AvatarRuntime(avatar_dir, body=body, levels=config.levels, scheme=config.scheme)
@@ -338,110 +347,198 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
             raise InputError(capture.root, "cameras were named but the capture has none")
         cams = {c: cams[c] for c in select_names(config.cameras, list(cams), capture.root, "camera")}
     camera_names = list(cams)[: config.max_cameras or None] if cams else None
-    results = {m: [] for m in methods}
-    geometry = {m: [] for m in methods}
-    r2 = {"texture": R2Sums(), "displacement": R2Sums()}
     own_bakes = OwnBakes(baked_dir, runtime.resolution, runtime.displacement_frame, runtime.body, runtime.shape,
                          baselines.outlier_threshold)
-    r2_ceiling = {"texture": R2Sums(), "displacement": R2Sums()}  # frames with an own bake, own bake included
-    r2_vs_bake = {"texture": R2Sums(), "displacement": R2Sums()}
-    per_frame, sheets = [], []
-    regions = RegionLabels(runtime)
-    region_views = {m: [] for m in methods}
-    scan_geometry = {m: [] for m in methods}
     own_frames = set(baked_frame_names(baked_dir)) & set(frames)  # eval frames baked on their own too
-    own_r2 = regions.own_bake_r2(runtime, baselines) if own_frames else None
     if own_frames:  # the frame's own bake re-posed like the avatar: what the maps can reach (an upper bound)
         methods.append("own_bake")
-        for per_method in (results, geometry, region_views, scan_geometry):
-            per_method["own_bake"] = []
-    for frame in tqdm(frames, desc="eval avh", disable=not config.progress):
-        try:
-            fit, scan = capture.load_fit(frame), capture.load_scan(frame)
-        except InputError as exc:
-            log.warning("skipping frame %s: %s", frame, exc)
-            continue
-        if config.pose_source == "refined":
-            fit = refined_fit(runtime.body, fit, scan)
-        pose = np.asarray(fit.poses, np.float32).reshape(-1)
-        Rh = np.asarray(fit.Rh, np.float32).reshape(3)
-        shape = np.asarray(fit.shapes, np.float32) if np.size(fit.shapes) else None
-        base = runtime.posed_vertices(pose[None], Rh[None], np.asarray(fit.Th, np.float32).reshape(1, 3),
-                                      np.array([fit.scale], np.float32), shape)[0]
-        conditioned = runtime.conditioning_poses(pose[None], Rh[None])[0]  # what the avatar and retrieval see
-        nn_index, nn_tex, nn_disp = baselines.nearest(conditioned)
-        maps = {}
-        for m, rt in runtimes.items():
-            tex, disp = rt.generate(pose[None], Rh=Rh[None])
-            maps[m] = (tex[0], disp[0])
-        maps.update({"mean_texture": (baselines.mean_texture, None), "nearest_pose": (nn_tex, nn_disp)})
-        near_time = baselines.nearest_in_time(frame) if "nearest_time" in methods else None
-        if near_time is not None:
-            maps["nearest_time"] = near_time[1:]
-        own = own_bakes.get(frame) if frame in own_frames else None
-        if own is not None:
-            entry_r2 = own_r2.add(frame, dict(maps), own.texture, own.displacement, own.kappa, own.valid)
-            maps["own_bake"] = (own.texture, own.displacement)
-        rotations = runtime.skinning_rotations(pose[None])[0]
-        meshes = {m: runtimes.get(m, runtime).mesh(base, t, d, Rh, rotations=rotations) for m, (t, d) in maps.items()}
-        cameras = list(cams.values()) if cams else orbit_cameras(
-            0.5 * (scan.vertices.min(0) + scan.vertices.max(0)), ORBIT_DISTANCE_M, config.orbit_views,
-            ORBIT_ELEVATION_DEG, width=config.orbit_size, height=config.orbit_size)
-        cameras = [scaled_camera(c, config.image_size) for c in cameras[: config.max_cameras or None]]
-        casters = {m: RayCaster(mesh.vertices, mesh.faces) for m, mesh in meshes.items()}
-        gt_caster = RayCaster(scan.vertices, scan.faces)
-        distances = pose_distance_deg(conditioned[None], baselines.poses, baselines.conditioning)[0]
-        entry = {"frame": frame, "nearest_training_frame": baselines.frames.names[nn_index],
-                 "nearest_training_distance_deg": float(distances.min()),
-                 "nearest_pose_baseline_distance_deg": float(distances[nn_index])}
-        if near_time is not None:
-            entry["nearest_time_training_frame"] = baselines.frames.names[near_time[0]]
-        for ci, cam in enumerate(cameras):
-            gt = render_mesh(scan.vertices, scan.faces, cam, scan.uvs, scan.uv_faces, scan.texture, raycaster=gt_caster)
-            row, masks, labels = [gt.rgb], [gt.mask], ["ground truth"]
-            errors, error_labels = [np.ones_like(gt.rgb)], ["|error| x4 (black = 0)"]
-            for m, mesh in meshes.items():
-                r = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture,
-                                raycaster=casters[m])
-                smap = ssim_map(r.rgb, gt.rgb)   # one SSIM map for the whole image and its regions
-                results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, smap))
-                pix = pixel_regions(casters[m], cam, regions.face_labels(mesh), r.mask | gt.mask)
-                region_views[m].append(region_image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, pix, smap))
-                row.append(r.rgb)
-                masks.append(r.mask)
-                labels.append(f"{SHORT_NAMES.get(m, m.replace('_', ' '))} {results[m][-1]['psnr_db']:.1f} dB")
-                errors.append(error_image(r.rgb, gt.rgb))
-                error_labels.append(f"IoU {results[m][-1]['silhouette_iou']:.3f}")
-            if (config.sheets_per_camera and camera_names) or ci == 0:
-                name = f"{frame}_{camera_names[ci]}" if config.sheets_per_camera and camera_names else frame
-                sheets.append((name, crop_to_masks(row + errors, masks), labels + error_labels, len(row)))
-        gt_npz = capture.gt_dir / "frames" / f"{frame}.npz"
-        if gt_npz.is_file():
-            with np.load(gt_npz) as z:
-                gt_maps = {k: z[k].astype(np.float32) for k in ("surface", "texture") if k in z.files}
-                mask = z["mask"].astype(bool)
-            for m, (_, d) in maps.items():
-                err = surface_error_mm(runtime, base, d, Rh, gt_maps["surface"], mask, rotations)
-                geometry[m].append(err)
-                entry[f"{m}_geometry_mm"] = float(err.mean()) if len(err) else None
-            entry.update(_uv_r2(runtime, baselines, maps, base, Rh, rotations, gt_maps, mask, r2))
-        else:  # a real take: the scan is the only truth for the geometry
-            surface = ScanSurface(scan.vertices, scan.faces)   # indexed and sampled once for every method
-            for m, mesh in meshes.items():
-                part = scan_geometry_mm(mesh.vertices, mesh.faces, regions.face_labels(mesh), scan=surface)
-                scan_geometry[m].append(part)
-                entry[f"{m}_chamfer_mm"] = float(0.5 * (part["avatar_to_scan"].mean() + part["scan_to_avatar"].mean()))
-        if own is not None:
-            entry.update(entry_r2)
-        own_ceiling = (own if own is not None else own_bakes.get(frame)) if gt_npz.is_file() else None
-        if own_ceiling is not None:
-            entry.update(_own_bake_r2(runtime, baselines, {m: v for m, v in maps.items() if m != "own_bake"},
-                                      own_ceiling, base, Rh, rotations, (gt_maps, mask), r2_ceiling, r2_vs_bake))
-        for m in maps:
-            n = len(cameras)
-            for key in ("psnr_db", "psnr_db_inside_both"):
-                entry[f"{m}_{key}"] = float(np.nanmean([x[key] for x in results[m][-n:]]))
-        per_frame.append(entry)
+    return _EvalContext(capture, runtime, runtimes, methods, baselines, baked_dir, frames, split, cams, camera_names,
+                        own_bakes, own_frames, RegionLabels(runtime), config)
+
+
+class _Tally:
+    """The sums and lists the eval adds each frame to (one per frame in a worker, merged in frame order:
+    every sum then adds the same numbers in the same order as one process would)."""
+
+    def __init__(self, ctx: _EvalContext):
+        methods = ctx.methods
+        self.results = {m: [] for m in methods}
+        self.geometry = {m: [] for m in methods}
+        self.region_views = {m: [] for m in methods}
+        self.scan_geometry = {m: [] for m in methods}
+        self.r2 = {"texture": R2Sums(), "displacement": R2Sums()}
+        self.r2_ceiling = {"texture": R2Sums(), "displacement": R2Sums()}  # frames with an own bake, own bake included
+        self.r2_vs_bake = {"texture": R2Sums(), "displacement": R2Sums()}
+        self.own_r2 = ctx.regions.own_bake_r2(ctx.runtime, ctx.baselines) if ctx.own_frames else None
+        self.per_frame, self.sheets = [], []
+        self.cameras = 0   # views per frame (the last frame's)
+
+    def merge(self, other: _Tally) -> None:
+        for mine, theirs in ((self.results, other.results), (self.geometry, other.geometry),
+                             (self.region_views, other.region_views), (self.scan_geometry, other.scan_geometry)):
+            for m, rows in theirs.items():
+                mine[m].extend(rows)
+        for mine, theirs in ((self.r2, other.r2), (self.r2_ceiling, other.r2_ceiling),
+                             (self.r2_vs_bake, other.r2_vs_bake)):
+            for kind, sums in theirs.items():
+                mine[kind].merge(sums)
+        if self.own_r2 is not None and other.own_r2 is not None:
+            self.own_r2.merge(other.own_r2)
+        self.per_frame.extend(other.per_frame)
+        self.sheets.extend(other.sheets)
+        self.cameras = other.cameras or self.cameras
+
+
+def _frame_task(shared: tuple, frame: str) -> _Tally:
+    """One frame in a worker process: its context built once per process (:func:`uvatar.parallel.worker_cache`)."""
+    from uvatar.parallel import worker_cache
+
+    key = ("avh-eval", repr(shared[:4]), repr(shared[5]))   # the body (shared[4]) is the same for one eval
+    ctx = worker_cache(key, lambda: _eval_context(*shared))
+    tally = _Tally(ctx)
+    _evaluate_frame(ctx, frame, tally)
+    return tally
+
+
+def _evaluate_frame(ctx: _EvalContext, frame: str, tally: _Tally) -> None:
+    """Evaluate one frame into ``tally`` (a frame whose fit or scan cannot be read is skipped, said once)."""
+    from uvatar.geometry import RayCaster
+    from uvatar.render import orbit_cameras, render_mesh
+    from uvatar.render.metrics import ssim_map
+
+    capture, runtime, runtimes, baselines, config = ctx.capture, ctx.runtime, ctx.runtimes, ctx.baselines, ctx.config
+    methods, cams, camera_names, regions = ctx.methods, ctx.cams, ctx.camera_names, ctx.regions
+    own_bakes, own_frames = ctx.own_bakes, ctx.own_frames
+    results, geometry, region_views, scan_geometry = tally.results, tally.geometry, tally.region_views, tally.scan_geometry
+    r2, r2_ceiling, r2_vs_bake, own_r2 = tally.r2, tally.r2_ceiling, tally.r2_vs_bake, tally.own_r2
+    per_frame, sheets = tally.per_frame, tally.sheets
+    try:
+        fit, scan = capture.load_fit(frame), capture.load_scan(frame)
+    except InputError as exc:
+        log.warning("skipping frame %s: %s", frame, exc)
+        return
+    if config.pose_source == "refined":
+        fit = refined_fit(runtime.body, fit, scan)
+    pose = np.asarray(fit.poses, np.float32).reshape(-1)
+    Rh = np.asarray(fit.Rh, np.float32).reshape(3)
+    shape = np.asarray(fit.shapes, np.float32) if np.size(fit.shapes) else None
+    base = runtime.posed_vertices(pose[None], Rh[None], np.asarray(fit.Th, np.float32).reshape(1, 3),
+                                  np.array([fit.scale], np.float32), shape)[0]
+    conditioned = runtime.conditioning_poses(pose[None], Rh[None])[0]  # what the avatar and retrieval see
+    nn_index, nn_tex, nn_disp = baselines.nearest(conditioned)
+    maps = {}
+    for m, rt in runtimes.items():
+        tex, disp = rt.generate(pose[None], Rh=Rh[None])
+        maps[m] = (tex[0], disp[0])
+    maps.update({"mean_texture": (baselines.mean_texture, None), "nearest_pose": (nn_tex, nn_disp)})
+    near_time = baselines.nearest_in_time(frame) if "nearest_time" in methods else None
+    if near_time is not None:
+        maps["nearest_time"] = near_time[1:]
+    own = own_bakes.get(frame) if frame in own_frames else None
+    if own is not None:
+        entry_r2 = own_r2.add(frame, dict(maps), own.texture, own.displacement, own.kappa, own.valid)
+        maps["own_bake"] = (own.texture, own.displacement)
+    rotations = runtime.skinning_rotations(pose[None])[0]
+    meshes = {m: runtimes.get(m, runtime).mesh(base, t, d, Rh, rotations=rotations) for m, (t, d) in maps.items()}
+    cameras = list(cams.values()) if cams else orbit_cameras(
+        0.5 * (scan.vertices.min(0) + scan.vertices.max(0)), ORBIT_DISTANCE_M, config.orbit_views,
+        ORBIT_ELEVATION_DEG, width=config.orbit_size, height=config.orbit_size)
+    cameras = [scaled_camera(c, config.image_size) for c in cameras[: config.max_cameras or None]]
+    tally.cameras = len(cameras)
+    casters = {m: RayCaster(mesh.vertices, mesh.faces) for m, mesh in meshes.items()}
+    gt_caster = RayCaster(scan.vertices, scan.faces)
+    distances = pose_distance_deg(conditioned[None], baselines.poses, baselines.conditioning)[0]
+    entry = {"frame": frame, "nearest_training_frame": baselines.frames.names[nn_index],
+             "nearest_training_distance_deg": float(distances.min()),
+             "nearest_pose_baseline_distance_deg": float(distances[nn_index])}
+    if near_time is not None:
+        entry["nearest_time_training_frame"] = baselines.frames.names[near_time[0]]
+    for ci, cam in enumerate(cameras):
+        gt = render_mesh(scan.vertices, scan.faces, cam, scan.uvs, scan.uv_faces, scan.texture, raycaster=gt_caster)
+        row, masks, labels = [gt.rgb], [gt.mask], ["ground truth"]
+        errors, error_labels = [np.ones_like(gt.rgb)], ["|error| x4 (black = 0)"]
+        for m, mesh in meshes.items():
+            r = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture,
+                            raycaster=casters[m])
+            smap = ssim_map(r.rgb, gt.rgb)   # one SSIM map for the whole image and its regions
+            results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, smap))
+            pix = pixel_regions(casters[m], cam, regions.face_labels(mesh), r.mask | gt.mask)
+            region_views[m].append(region_image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, pix, smap))
+            row.append(r.rgb)
+            masks.append(r.mask)
+            labels.append(f"{SHORT_NAMES.get(m, m.replace('_', ' '))} {results[m][-1]['psnr_db']:.1f} dB")
+            errors.append(error_image(r.rgb, gt.rgb))
+            error_labels.append(f"IoU {results[m][-1]['silhouette_iou']:.3f}")
+        if (config.sheets_per_camera and camera_names) or ci == 0:
+            name = f"{frame}_{camera_names[ci]}" if config.sheets_per_camera and camera_names else frame
+            sheets.append((name, crop_to_masks(row + errors, masks), labels + error_labels, len(row)))
+    gt_npz = capture.gt_dir / "frames" / f"{frame}.npz"
+    if gt_npz.is_file():
+        with np.load(gt_npz) as z:
+            gt_maps = {k: z[k].astype(np.float32) for k in ("surface", "texture") if k in z.files}
+            mask = z["mask"].astype(bool)
+        for m, (_, d) in maps.items():
+            err = surface_error_mm(runtime, base, d, Rh, gt_maps["surface"], mask, rotations)
+            geometry[m].append(err)
+            entry[f"{m}_geometry_mm"] = float(err.mean()) if len(err) else None
+        entry.update(_uv_r2(runtime, baselines, maps, base, Rh, rotations, gt_maps, mask, r2))
+    else:  # a real take: the scan is the only truth for the geometry
+        surface = ScanSurface(scan.vertices, scan.faces)   # indexed and sampled once for every method
+        for m, mesh in meshes.items():
+            part = scan_geometry_mm(mesh.vertices, mesh.faces, regions.face_labels(mesh), scan=surface)
+            scan_geometry[m].append(part)
+            entry[f"{m}_chamfer_mm"] = float(0.5 * (part["avatar_to_scan"].mean() + part["scan_to_avatar"].mean()))
+    if own is not None:
+        entry.update(entry_r2)
+    own_ceiling = (own if own is not None else own_bakes.get(frame)) if gt_npz.is_file() else None
+    if own_ceiling is not None:
+        entry.update(_own_bake_r2(runtime, baselines, {m: v for m, v in maps.items() if m != "own_bake"},
+                                  own_ceiling, base, Rh, rotations, (gt_maps, mask), r2_ceiling, r2_vs_bake))
+    for m in maps:
+        n = len(cameras)
+        for key in ("psnr_db", "psnr_db_inside_both"):
+            entry[f"{m}_{key}"] = float(np.nanmean([x[key] for x in results[m][-n:]]))
+    per_frame.append(entry)
+
+
+def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: EvalConfig = EvalConfig(),
+                    baked_dir: str | Path | None = None, image_dir: str | Path | None = None, body=None,
+                    others: dict[str, str | Path] | None = None) -> dict:
+    """Metrics dict (``protocol``, ``frames``, ``cameras``, ``avh``, ``others``, ``baselines``,
+    ``distance_bins``, ``per_frame``).
+
+    ``others``: {name: avatar folder} evaluated beside ``avatar_dir`` on the same frames, cameras and
+    poses (same body; e.g. another generator conditioning); the baselines come from ``avatar_dir``'s
+    training data."""
+    from tqdm import tqdm
+
+    ctx = _eval_context(avatar_dir, capture_root, config, baked_dir, body, others)
+    capture, runtimes, methods = ctx.capture, ctx.runtimes, ctx.methods
+    frames, split, cams, camera_names, own_frames = ctx.frames, ctx.split, ctx.cams, ctx.camera_names, ctx.own_frames
+    tally = _Tally(ctx)
+    if config.workers <= 1 or len(frames) <= 1:
+        for frame in tqdm(frames, desc="eval avh", disable=not config.progress):
+            _evaluate_frame(ctx, frame, tally)
+    else:   # frames in worker processes, their tallies merged in frame order (the same figures)
+        from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
+        from uvatar.threads import limit_process_to_one_thread
+
+        # the body goes to the workers when the caller gave one (else each loads the avatar's by name)
+        shared = (str(avatar_dir), str(capture_root), config, str(ctx.baked_dir), body, others)
+        done = {}
+        for frame, part in run_tasks(_frame_task, frames, shared, ExecutorConfig(workers=config.workers),
+                                     desc="eval avh", progress=config.progress,
+                                     initializer=limit_process_to_one_thread):
+            if isinstance(part, TaskFailure):
+                log.warning("skipping frame %s: %s", frame, part.reason)
+            else:
+                done[frame] = part
+        for frame in frames:
+            if frame in done:
+                tally.merge(done[frame])
+    results, geometry, region_views, scan_geometry = tally.results, tally.geometry, tally.region_views, tally.scan_geometry
+    r2, r2_ceiling, r2_vs_bake, own_r2 = tally.r2, tally.r2_ceiling, tally.r2_vs_bake, tally.own_r2
+    per_frame, sheets = tally.per_frame, tally.sheets
     if not per_frame:
         raise InputError(capture.root, "no frame could be evaluated")
     summary = {m: {**_summary(results[m]), **_geometry_summary(geometry[m])} for m in methods}
@@ -471,7 +568,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         protocol += TIME_PROTOCOL
     out = {"protocol": protocol, "pose_source": config.pose_source, "own_bake_frames": own_r2.frames if own_r2 else [],
            "split": split, "frames": [e["frame"] for e in per_frame],
-           "cameras": len(cameras), "camera_names": camera_names, "avatar": str(avatar_dir), "capture": str(capture_root),
+           "cameras": tally.cameras, "camera_names": camera_names, "avatar": str(avatar_dir), "capture": str(capture_root),
            "avh": summary["avh"], "others": {m: summary[m] for m in runtimes if m != "avh"},
            "avatars": {m: {"path": str(rt.avatar_dir), "conditioning": conditioning[m]} for m, rt in runtimes.items()},
            "baselines": {m: summary[m] for m in ("mean_texture", "nearest_pose", "nearest_time") if m in summary},

@@ -185,6 +185,12 @@ class OwnBakeR2:
                         out.update({f"{m}_{kind}_r2_own_bake": v for m, v in r2.items()})
         return out
 
+    def merge(self, other: OwnBakeR2) -> None:
+        """Add another tally's frames (the same avatar and training frames; e.g. made in another process)."""
+        for key, sums in other.sums.items():
+            self.sums[key].merge(sums)
+        self.frames.extend(other.frames)
+
     def summary(self) -> dict:
         """{method: {"texture_r2_own_bake", "displacement_r2_own_bake", "regions": {region: {...}}}}."""
         out: dict = {}

@@ -58,6 +58,12 @@ class R2Sums:
             out[m] = 1.0 - e / ref if ref > 0 else None
         return out
 
+    def merge(self, other: R2Sums) -> None:
+        """Add another set of sums (e.g. one frame's, made in another process)."""
+        self.reference += other.reference
+        for m, e in other.error.items():
+            self.error[m] = self.error.get(m, 0.0) + e
+
     def r2(self) -> dict[str, float | None]:
         return {m: (1.0 - e / self.reference if self.reference > 0 else None) for m, e in self.error.items()}
 

@@ -104,14 +104,16 @@ def _flags() -> dict[str, ConfigFlags]:
             "mesh_dir": "also write one mesh per frame here", "device": "onnxruntime device (cpu or cuda)"}),
         "eval": ConfigFlags(
             EvalConfig, fields=("pose_source", "sheets_per_camera", "image_size", "orbit_views", "orbit_size",
-                                "progress"),
+                                "workers", "progress"),
             rename={"sheets_per_camera": "sheet_per_camera"}, choices={"pose_source": ("refined", "fit")}, help={
                 "pose_source": "held-out poses: the capture's fit refined against the frame's scan as bake does for "
                                "training frames (measures the avatar), or the fit as is (includes fit noise)",
                 "sheets_per_camera": "one comparison image per frame x camera (default: per frame, first camera)",
                 "image_size": "render width (none: the cameras')",
                 "orbit_views": "virtual cameras around the person for a capture without cameras (scans only)",
-                "orbit_size": "their image size in pixels", "progress": "progress bar (--no-progress: none)"}),
+                "orbit_size": "their image size in pixels",
+                "workers": "frames evaluated in this many processes (1: in this one); the same figures",
+                "progress": "progress bar (--no-progress: none)"}),
     }
 
 
