@@ -90,7 +90,8 @@ def measure(capture_root: str | Path, texels=(64, 128, 256)) -> dict:
 def own_bake_error(capture_root: str | Path, avatar: str | Path) -> dict:
     """rms error (mm) along / across the true offset of the own bakes and the training mean map."""
     from uvatar.avh.data import resample_map
-    from uvatar.avh.eval import Baselines, predicted_surface, refined_fit
+    from uvatar.avh.eval import Baselines, refined_fit
+    from uvatar.avh.eval_metrics import predicted_surface
     from uvatar.avh.own_bake import OwnBakes
     from uvatar.avh.poses import heldout_frames
     from uvatar.avh.runtime import AvatarRuntime

@@ -75,7 +75,8 @@ def figure(avatar, capture_root, dva_metrics: dict, frame: str, camera: str, out
     scan, ``uvatar eval avh``'s default) or "fit" (the capture's fit as it is)."""
     import imageio.v3 as iio
 
-    from uvatar.avh.eval import crop_to_masks, image_metrics, refined_fit
+    from uvatar.avh.eval import refined_fit
+    from uvatar.avh.eval_metrics import crop_to_masks, image_metrics
     from uvatar.avh.runtime import AvatarRuntime
     from uvatar.capture import Capture
     from uvatar.io_utils import write_image

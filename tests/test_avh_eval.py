@@ -9,14 +9,8 @@ import pytest
 
 from tests.fixtures.toy_capture import make_toy_capture
 from uvatar.avh.data import load_frame
-from uvatar.avh.eval import (
-    Baselines,
-    EvalConfig,
-    encoded_conditioning,
-    evaluate_avatar,
-    image_metrics,
-    surface_error_mm,
-)
+from uvatar.avh.eval import Baselines, EvalConfig, encoded_conditioning, evaluate_avatar
+from uvatar.avh.eval_metrics import image_metrics, surface_error_mm
 from uvatar.avh.export import export_avatar
 from uvatar.avh.model import AvhConfig
 from uvatar.avh.runtime import AvatarRuntime

@@ -6,7 +6,7 @@ and the pose-dependent part's R² against the frame's own bake.
   every avatar face takes the region of its UV centroid in :func:`region_label_map`; a pixel seen by
   the avatar takes the region of the face its ray hits, a pixel of the scan's silhouette alone that of
   the nearest avatar pixel (:func:`pixel_regions`). Image metrics per region are those of
-  :func:`uvatar.avh.eval.image_metrics` restricted to the region's pixels.
+  :func:`uvatar.avh.eval_metrics.image_metrics` restricted to the region's pixels.
 - **Geometry both ways** (:func:`scan_geometry_mm`): points spread by area over the avatar's mesh →
   distance to the scan surface (accuracy), and over the scan → distance to the avatar (completeness),
   in mm; a scan point takes the region of its nearest avatar point.
