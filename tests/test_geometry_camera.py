@@ -90,6 +90,25 @@ def test_several_lenses_at_once_equal_one_call_per_lens():
     assert isinstance(out, torch.Tensor)
     np.testing.assert_allclose(out.numpy(), ref, atol=1e-12)
     assert distort(xy, np.zeros((3, 5))) is xy
+    # the lenses as a tensor on the points' device (what a projection keeps per device): the same values
+    np.testing.assert_allclose(distort(torch.as_tensor(xy), torch.as_tensor(lenses)).numpy(), ref, atol=1e-12)
+
+
+def test_camera_tensors_keep_their_lens_per_device():
+    """The projection's lens coefficients are made once per device and dtype (a driven frame then moves
+    nothing between host and device); none without distortion."""
+    import torch
+
+    from uvatar.fit.projection import camera_tensors
+
+    cams = [camera(QUALISYS), camera(STRONG)]
+    ct = camera_tensors(cams, dtype=torch.float64)
+    like = torch.zeros(1, dtype=torch.float64)
+    lens = ct.lens(like)
+    assert lens.shape == (2, 5) and ct.lens(like) is lens
+    np.testing.assert_array_equal(lens.numpy(), np.array([QUALISYS, STRONG]))
+    assert ct.lens(like.float()).dtype == torch.float32
+    assert camera_tensors([camera((0.0,) * 5)]).lens(like) is None
 
 
 def test_dva_pixel_rays_and_unwrap_use_the_distortion():

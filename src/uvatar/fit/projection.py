@@ -42,6 +42,19 @@ class CameraTensors:
 
     def __init__(self, K, R, T, dist):
         self.K, self.R, self.T, self.dist = K, R, T, dist
+        self._lens: dict = {}
+
+    def lens(self, like: torch.Tensor) -> torch.Tensor | None:
+        """(M, 5) lens coefficients, one row per camera (and frame), on ``like``'s device and dtype: made
+        on the first call for a device and dtype and kept, so later projections move nothing between
+        host and device. None when no camera has lens distortion."""
+        dist = np.asarray(self.dist, np.float64).reshape(-1, 5)
+        if not dist.any():
+            return None
+        key = (like.device, like.dtype)
+        if key not in self._lens:
+            self._lens[key] = torch.as_tensor(dist, dtype=like.dtype, device=like.device)
+        return self._lens[key]
 
     def to(self, device=None, dtype=None) -> CameraTensors:
         return CameraTensors(*(x.to(device=device, dtype=dtype) for x in (self.K, self.R, self.T)), self.dist)
@@ -73,9 +86,10 @@ def project_cameras(points: torch.Tensor, cams: CameraTensors, min_depth: float 
     cam = torch.einsum("...cij,...nj->...cni", cams.R, points) + cams.T[..., None, :]
     z = cam[..., 2]
     xy = cam[..., :2] / z.clamp_min(min_depth)[..., None]
-    dist = np.asarray(cams.dist).reshape(-1, 5)                  # one lens per camera (and frame)
-    flat = xy.reshape(*xy.shape[: xy.dim() - cams.K.dim()], len(dist), *xy.shape[-2:])   # camera dims flattened
-    xy = distort(flat, dist).reshape(xy.shape)   # all lenses at once: no per-view slices in the backward
+    lens = cams.lens(xy)                                         # (M, 5): one lens per camera (and frame)
+    if lens is not None:   # all lenses at once: no per-view slices in the backward
+        flat = xy.reshape(*xy.shape[: xy.dim() - cams.K.dim()], len(lens), *xy.shape[-2:])   # camera dims flattened
+        xy = distort(flat, lens).reshape(xy.shape)
     K = cams.K[..., None, :, :]
     u = K[..., 0, 0] * xy[..., 0] + K[..., 0, 1] * xy[..., 1] + K[..., 0, 2]
     v = K[..., 1, 1] * xy[..., 1] + K[..., 1, 2]

@@ -25,24 +25,32 @@ def distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
     Several lenses at once: ``dist`` (M, 5) with ``xy`` (..., M, N, 2), lens m applied to the points
     ``xy[..., m, :, :]`` (one batched expression, e.g. a sequence fit's F x C views, instead of one call
-    per view).
+    per view). A torch ``dist`` (M, 5) on ``xy``'s device is used as it is (no copy, no look at its
+    values: :meth:`uvatar.fit.projection.CameraTensors.lens` keeps one per device, so that a frame on a
+    GPU moves nothing between host and device).
     """
-    dist = np.asarray(dist, np.float64)
-    if dist.ndim <= 1:
-        coeffs = tuple(float(v) for v in np.pad(dist.reshape(-1), (0, 5))[:5])
-    else:
-        coeffs = tuple(np.pad(dist.reshape(len(dist), -1), ((0, 0), (0, 5)))[:, i:i + 1] for i in range(5))  # (M, 1)
-    if is_torch(xy):
+    if is_torch(dist):
         import torch
 
+        k1, k2, p1, p2, k3 = (dist[..., i:i + 1] for i in range(5))
         stack = torch.stack
-        if dist.ndim > 1:
-            coeffs = tuple(torch.as_tensor(c, dtype=xy.dtype, device=xy.device) for c in coeffs)
     else:
-        xy, stack = np.asarray(xy, dtype=np.float64), np.stack
-    if not np.any(dist):
-        return xy
-    k1, k2, p1, p2, k3 = coeffs
+        dist = np.asarray(dist, np.float64)
+        if dist.ndim <= 1:
+            coeffs = tuple(float(v) for v in np.pad(dist.reshape(-1), (0, 5))[:5])
+        else:   # (M, 1) each
+            coeffs = tuple(np.pad(dist.reshape(len(dist), -1), ((0, 0), (0, 5)))[:, i:i + 1] for i in range(5))
+        if is_torch(xy):
+            import torch
+
+            stack = torch.stack
+            if dist.ndim > 1:
+                coeffs = tuple(torch.as_tensor(c, dtype=xy.dtype, device=xy.device) for c in coeffs)
+        else:
+            xy, stack = np.asarray(xy, dtype=np.float64), np.stack
+        if not np.any(dist):
+            return xy
+        k1, k2, p1, p2, k3 = coeffs
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
