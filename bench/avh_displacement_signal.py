@@ -35,60 +35,81 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 
-def offset_lengths(capture_root: Path) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """({frame: (G, G) float32 true offset length (m)}, (G, G) bool texels every frame covers)."""
+@dataclass
+class Offsets:
+    """A synthetic capture's true offset lengths: ``maps`` {frame: (G, G) float32 metres}, ``mask`` (G, G)
+    bool the texels every frame covers, the ``held`` out frames, the other (``rest``) frames and their
+    ``mean`` map (what an avatar's training frames give)."""
+
+    maps: dict
+    mask: np.ndarray
+    held: list
+    rest: list
+    mean: np.ndarray
+
+    @property
+    def texels(self) -> int:
+        return self.mask.shape[0]
+
+    def stored(self, x: np.ndarray, R: int) -> np.ndarray:
+        """A map of R texels compared at the gt's resolution, as ``uvatar eval`` does."""
+        from uvatar.avh.data import resample_map
+
+        return resample_map(resample_map(x, R), self.texels) if R != self.texels else x
+
+
+def load_offsets(capture_root: str | Path) -> Offsets:
+    """Read ``gt/frames/*.npz`` once (SystemExit naming the capture when it is not a synthetic one with
+    held-out frames)."""
+    from uvatar.avh.poses import heldout_frames
     from uvatar.io_utils import read_npz
 
+    root = Path(capture_root)
     maps, mask = {}, None
-    for path in sorted((capture_root / "gt" / "frames").glob("*.npz")):
+    for path in sorted((root / "gt" / "frames").glob("*.npz")):
         z = read_npz(path)
         maps[path.stem] = np.linalg.norm(np.asarray(z["offset"], np.float64), axis=-1).astype(np.float32)
         m = np.asarray(z["mask"], bool)
         mask = m if mask is None else mask & m
     if not maps:
-        raise SystemExit(f"{capture_root}: no gt/frames/*.npz (a synthetic capture is needed)")
-    return maps, mask
-
-
-def measure(capture_root: str | Path, texels=(64, 128, 256)) -> dict:
-    from uvatar.avh.data import resample_map
-    from uvatar.avh.poses import heldout_frames
-    from uvatar.capture.gt import read_gt_info
-
-    root = Path(capture_root)
-    maps, mask = offset_lengths(root)
+        raise SystemExit(f"{root}: no gt/frames/*.npz (a synthetic capture is needed)")
     held = [f for f in heldout_frames(root) if f in maps]
     rest = [f for f in maps if f not in set(held)]
     if not held or not rest:
         raise SystemExit(f"{root}: needs held-out frames and other frames with gt maps")
-    G = next(iter(maps.values())).shape[0]
-    mean = np.mean([maps[f] for f in rest], axis=0)
+    return Offsets(maps, mask, held, rest, np.mean([maps[f] for f in rest], axis=0))
 
-    def stored(x, R):   # a map of R texels compared at the gt's G, as uvatar eval does
-        return resample_map(resample_map(x, R), G) if R != G else x
 
+def measure(capture_root: str | Path, texels=(64, 128, 256), offsets: Offsets | None = None) -> dict:
+    from uvatar.capture.gt import read_gt_info
+
+    root = Path(capture_root)
+    o = offsets or load_offsets(root)
+    maps, mask, held, mean = o.maps, o.mask, o.held, o.mean
     n = mask.sum() * len(held)
     signal = sum(float(((maps[f] - mean)[mask] ** 2).sum()) for f in held)
-    out = {"capture": str(root), "gt_texels": G, "heldout_frames": held, "reference_frames": len(rest),
+    out = {"capture": str(root), "gt_texels": o.texels, "heldout_frames": held, "reference_frames": len(o.rest),
            "texels_scored": int(mask.sum()), "signal_rms_mm": 1000 * np.sqrt(signal / n),
            "scan_noise_mm": 1000 * float((read_gt_info(root).config or {}).get("scan_noise", float("nan"))),
            "resolutions": {}}
     for R in texels:
-        perfect = sum(float(((stored(maps[f], R) - maps[f])[mask] ** 2).sum()) for f in held)
-        mean_err = sum(float(((stored(mean, R) - maps[f])[mask] ** 2).sum()) for f in held)
+        perfect = sum(float(((o.stored(maps[f], R) - maps[f])[mask] ** 2).sum()) for f in held)
+        mean_err = sum(float(((o.stored(mean, R) - maps[f])[mask] ** 2).sum()) for f in held)
         out["resolutions"][str(R)] = {"perfect_map_error_rms_mm": 1000 * np.sqrt(perfect / n),
                                       "mean_map_error_rms_mm": 1000 * np.sqrt(mean_err / n),
                                       "perfect_map_r2": 1 - perfect / mean_err if mean_err > 0 else None}
     return out
 
 
-def own_bake_error(capture_root: str | Path, avatar: str | Path) -> dict:
-    """rms error (mm) along / across the true offset of the own bakes and the training mean map."""
+def own_bake_error(capture_root: str | Path, avatar: str | Path, texels: int) -> dict:
+    """rms error (mm) along / across the true offset of the own bakes and the training mean map, at the
+    gt's ``texels``."""
     from uvatar.avh.data import resample_map
     from uvatar.avh.eval import Baselines, refined_fit
     from uvatar.avh.eval_metrics import predicted_surface
@@ -108,13 +129,15 @@ def own_bake_error(capture_root: str | Path, avatar: str | Path) -> dict:
     capture = Capture(capture_root)
     sums = {m: np.zeros(3) for m in ("own_bake", "mean_map")}
     count, frames = 0, []
+    G = texels
+    part = {k: resample_map(v.astype(np.float32), G) > 0.5 for k, v in part_masks(rt.body, rt.resolution).items()}
+    static = ((resample_map(base_maps.mean_kappa, G) > 0.5) & ~(part["hands"] | part["feet"] | part["head"])
+              & (resample_map((~rt.fingers_toes_mask()).astype(np.float32), G) > 0.5))
     for f in heldout_frames(capture.root):
-        if own.get(f) is None:
+        bake = own.get(f)
+        if bake is None:
             continue
         gt = read_npz(capture.gt_dir / "frames" / f"{f}.npz")
-        G = gt["surface"].shape[0]
-        part = {k: resample_map(v.astype(np.float32), G) > 0.5 for k, v in part_masks(rt.body, rt.resolution).items()}
-        keep = resample_map((~rt.fingers_toes_mask()).astype(np.float32), G) > 0.5
         fit = refined_fit(rt.body, capture.load_fit(f), capture.load_scan(f))
         pose = np.asarray(fit.poses, np.float32).reshape(1, -1)
         Rh = np.asarray(fit.Rh, np.float32).reshape(3)
@@ -126,9 +149,8 @@ def own_bake_error(capture_root: str | Path, avatar: str | Path) -> dict:
         length = np.linalg.norm(offset, axis=-1)
         normal = offset / np.maximum(length, 1e-9)[..., None]
         mean_pos, covered = predicted_surface(rt, base, base_maps.mean_displacement, Rh, G, rot)
-        own_pos = predicted_surface(rt, base, own.get(f).displacement, Rh, G, rot)[0]
-        scored = ((resample_map(base_maps.mean_kappa, G) > 0.5) & covered & np.asarray(gt["mask"], bool) & keep
-                  & ~(part["hands"] | part["feet"] | part["head"]) & (length > 1e-3))
+        own_pos = predicted_surface(rt, base, bake.displacement, Rh, G, rot)[0]
+        scored = static & covered & np.asarray(gt["mask"], bool) & (length > 1e-3)
         for m, pos in (("own_bake", own_pos), ("mean_map", mean_pos)):
             e = (pos - np.asarray(gt["surface"], np.float64))[scored]
             along = (e * normal[scored]).sum(-1)
@@ -143,29 +165,20 @@ def own_bake_error(capture_root: str | Path, avatar: str | Path) -> dict:
                for m, s in sums.items()}}
 
 
-def write_picture(capture_root: str | Path, resolution: int, path: str | Path, span_mm: float = 2.0) -> None:
+def write_picture(offsets: Offsets, resolution: int, path: str | Path, span_mm: float = 2.0) -> None:
     """Three UV panels of the first held-out frame (see the module docstring), labelled."""
     import cv2
 
-    from uvatar.avh.data import resample_map
-    from uvatar.avh.poses import heldout_frames
-
-    maps, mask = offset_lengths(Path(capture_root))
-    frame = [f for f in heldout_frames(capture_root) if f in maps][0]
-    mean = np.mean([m for f, m in maps.items() if f not in set(heldout_frames(capture_root))], axis=0)
-    G = mask.shape[0]
-
-    def stored(x):
-        return resample_map(resample_map(x, resolution), G)
-
-    panels = [("true pose-dependent offset", maps[frame] - mean),
-              (f"a perfect {resolution}^2 map keeps", stored(maps[frame]) - stored(mean)),
-              (f"its error at {resolution}^2", stored(maps[frame]) - maps[frame])]
+    o = offsets
+    frame = o.held[0]
+    panels = [("true pose-dependent offset", o.maps[frame] - o.mean),
+              (f"a perfect {resolution}^2 map keeps", o.stored(o.maps[frame], resolution) - o.stored(o.mean, resolution)),
+              (f"its error at {resolution}^2", o.stored(o.maps[frame], resolution) - o.maps[frame])]
     tiles = []
     for label, x in panels:
         t = np.clip(0.5 + 0.5 * x * 1000 / span_mm, 0, 1)
-        rgb = np.stack([t, 1 - np.abs(2 * t - 1), 1 - t], -1)                    # blue - white-ish - red
-        rgb = np.where(mask[..., None], rgb, 0.15)
+        rgb = np.stack([t, 1 - np.abs(2 * t - 1), 1 - t], -1)                    # blue - green (0) - red
+        rgb = np.where(o.mask[..., None], rgb, 0.15)
         tile = cv2.resize((rgb * 255).astype(np.uint8), (384, 384), interpolation=cv2.INTER_NEAREST)
         tile = np.concatenate([np.full((28, 384, 3), 255, np.uint8), tile])
         cv2.putText(tile, label, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
@@ -181,12 +194,13 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="also write the JSON here")
     ap.add_argument("--picture", help="a PNG of the first held-out frame's offsets in UV space")
     args = ap.parse_args(argv)
-    result = measure(args.capture, [int(t) for t in args.texels.split(",")])
+    sizes = [int(t) for t in args.texels.split(",")]
+    offsets = load_offsets(args.capture)
+    result = measure(args.capture, sizes, offsets)
     if args.avatar:
-        result["own_bake_error"] = own_bake_error(args.capture, args.avatar)
+        result["own_bake_error"] = own_bake_error(args.capture, args.avatar, offsets.texels)
     if args.picture:
-        sizes = [int(t) for t in args.texels.split(",")]
-        write_picture(args.capture, sizes[len(sizes) // 2], args.picture)
+        write_picture(offsets, sizes[len(sizes) // 2], args.picture)
     text = json.dumps(result, indent=1)
     print(text)
     if args.json:
