@@ -341,7 +341,7 @@ def _evaluate_frame(ctx: _EvalContext, frame: str, tally: _Tally) -> None:
     """Evaluate one frame into ``tally`` (a frame whose fit or scan cannot be read is skipped, said once)."""
     from uvatar.geometry import RayCaster
     from uvatar.render import orbit_cameras, render_mesh
-    from uvatar.render.metrics import ssim_map
+    from uvatar.render.metrics import error_map, ssim_map
 
     capture, runtime, runtimes, baselines, config = ctx.capture, ctx.runtime, ctx.runtimes, ctx.baselines, ctx.config
     methods, cams, camera_names, regions = ctx.methods, ctx.cams, ctx.camera_names, ctx.regions
@@ -397,10 +397,11 @@ def _evaluate_frame(ctx: _EvalContext, frame: str, tally: _Tally) -> None:
         for m, mesh in meshes.items():
             r = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture,
                             raycaster=casters[m])
-            smap = ssim_map(r.rgb, gt.rgb)   # one SSIM map for the whole image and its regions
-            results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, smap))
+            # one SSIM map and one error map for the whole image, its masks and its regions
+            smap, err = ssim_map(r.rgb, gt.rgb), error_map(r.rgb, gt.rgb)
+            results[m].append(image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, smap, err))
             pix = pixel_regions(casters[m], cam, regions.face_labels(mesh), r.mask | gt.mask)
-            region_views[m].append(region_image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, pix, smap))
+            region_views[m].append(region_image_metrics(r.rgb, r.mask, gt.rgb, gt.mask, pix, smap, err))
             row.append(r.rgb)
             masks.append(r.mask)
             labels.append(f"{SHORT_NAMES.get(m, m.replace('_', ' '))} {results[m][-1]['psnr_db']:.1f} dB")

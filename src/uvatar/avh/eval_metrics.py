@@ -32,10 +32,11 @@ METRIC_KEYS = ("psnr_db", "ssim", "psnr_db_union_mask", "ssim_union_mask", "psnr
                "psnr_db_inside_both", "silhouette_iou")
 
 
-def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, smap=None) -> dict:
+def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, smap=None, err=None) -> dict:
     """PSNR (dB) / SSIM inside the union of the masks (``psnr_db``, ``ssim`` and the same values as
-    ``*_union_mask``; NaN when the union is empty) and over the full image (``*_full``). ``smap``: the
-    images' :func:`~uvatar.render.metrics.ssim_map` when the caller has it (made here otherwise).
+    ``*_union_mask``; NaN when the union is empty) and over the full image (``*_full``). ``smap``, ``err``:
+    the images' :func:`~uvatar.render.metrics.ssim_map` and :func:`~uvatar.render.metrics.error_map` when
+    the caller has them (made here otherwise).
 
     Two diagnostics split the union error into its causes: ``psnr_db_inside_both`` (appearance: PSNR
     where both masks cover the pixel) and ``silhouette_iou`` (shape: |A ∩ B| / |A ∪ B| of the masks).
@@ -43,7 +44,7 @@ def image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, smap=None) -> dict:
     from uvatar.render.metrics import error_map, psnr_of_error_map, ssim_map, ssim_of_map
 
     smap = ssim_map(pred_rgb, gt_rgb) if smap is None else smap  # one map for both masks
-    err = error_map(pred_rgb, gt_rgb)                              # one error map for every mask
+    err = error_map(pred_rgb, gt_rgb) if err is None else err     # one error map for every mask
     full = {"psnr_db_full": psnr_of_error_map(err), "ssim_full": ssim_of_map(smap)}
     pm, gm = np.asarray(pred_mask, bool), np.asarray(gt_mask, bool)
     union, both = pm | gm, pm & gm

@@ -69,13 +69,14 @@ def pixel_regions(caster, camera, face_labels: np.ndarray, union: np.ndarray) ->
     return np.where(union, labels, -1).astype(np.int8)
 
 
-def region_image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, regions: np.ndarray, smap=None) -> dict:
+def region_image_metrics(pred_rgb, pred_mask, gt_rgb, gt_mask, regions: np.ndarray, smap=None, err=None) -> dict:
     """{region: {psnr_db (union), ssim (union), psnr_db_inside_both, pixels}} for the regions present;
-    ``smap``: the images' :func:`~uvatar.render.metrics.ssim_map` when the caller has it."""
+    ``smap``, ``err``: the images' :func:`~uvatar.render.metrics.ssim_map` and
+    :func:`~uvatar.render.metrics.error_map` when the caller has them."""
     from uvatar.render.metrics import error_map, psnr_of_error_map, ssim_map, ssim_of_map
 
     smap = ssim_map(pred_rgb, gt_rgb) if smap is None else smap
-    err = error_map(pred_rgb, gt_rgb)
+    err = error_map(pred_rgb, gt_rgb) if err is None else err
     both = np.asarray(pred_mask, bool) & np.asarray(gt_mask, bool)
     out = {}
     for k, name in enumerate(REGION_NAMES):

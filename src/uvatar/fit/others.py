@@ -77,11 +77,11 @@ def others_at(seen: dict[str, list], frames: list[str], frame: str, window: int 
     a = seen[frames[before[-1]]] if before else []
     b = seen[frames[after[0]]] if after else []
     out, used = [], set()
+    b_centres = [body_centre(pb, cb) for pb, cb in b]
     for pa, ca in a:
         ce = body_centre(pa, ca)
         best = None
-        for j, (pb, cb) in enumerate(b):
-            cb_centre = body_centre(pb, cb)
+        for j, cb_centre in enumerate(b_centres):
             if j in used or ce is None or cb_centre is None:
                 continue
             d = float(np.linalg.norm(ce - cb_centre))

@@ -48,12 +48,10 @@ class CameraTensors:
         """(M, 5) lens coefficients, one row per camera (and frame), on ``like``'s device and dtype: made
         on the first call for a device and dtype and kept, so later projections move nothing between
         host and device. None when no camera has lens distortion."""
-        dist = np.asarray(self.dist, np.float64).reshape(-1, 5)
-        if not dist.any():
-            return None
         key = (like.device, like.dtype)
         if key not in self._lens:
-            self._lens[key] = torch.as_tensor(dist, dtype=like.dtype, device=like.device)
+            dist = np.asarray(self.dist, np.float64).reshape(-1, 5)
+            self._lens[key] = torch.as_tensor(dist, dtype=like.dtype, device=like.device) if dist.any() else None
         return self._lens[key]
 
     def to(self, device=None, dtype=None) -> CameraTensors:

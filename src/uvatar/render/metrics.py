@@ -27,11 +27,15 @@ def _prep(a, b, mask):
         a, b = a[..., None], b[..., None]
     if a.ndim != 3:
         raise InputError("images", f"expected (H, W) or (H, W, C), got {a.shape}")
-    if mask is not None:
-        mask = _to_numpy(mask).astype(np.float64)
-        if mask.shape != a.shape[:2]:
-            raise InputError("mask", f"shape {mask.shape} does not match image {a.shape[:2]}")
-    return a, b, mask
+    return a, b, None if mask is None else _checked_mask(mask, a.shape[:2])
+
+
+def _checked_mask(mask, shape: tuple) -> np.ndarray:
+    """(H, W) float64 mask, or InputError when it is not the image's ``shape``."""
+    mask = _to_numpy(mask)
+    if mask.shape != shape:
+        raise InputError("mask", f"shape {mask.shape} does not match image {shape}")
+    return mask
 
 
 def _to_numpy(x):
@@ -51,9 +55,7 @@ def mse_of_error_map(err: np.ndarray, mask=None) -> float:
     """Mean of an :func:`error_map` over the (masked) pixels."""
     if mask is None:
         return float(err.mean())
-    mask = _to_numpy(mask)
-    if mask.shape != err.shape:
-        raise InputError("mask", f"shape {mask.shape} does not match image {err.shape}")
+    mask = _checked_mask(mask, err.shape)
     if mask.sum() <= 0:
         raise InputError("mask", "is empty")
     return float((err * mask).sum() / mask.sum())
@@ -95,19 +97,18 @@ def ssim_map_torch(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float 
     x = torch.arange(-r, r + 1, dtype=a.dtype, device=a.device)
     g = torch.exp(-(x**2) / (2 * sigma**2))
     g = g / g.sum()
-    C = a.shape[1]
     if pad:
         rows = torch.as_tensor(_symmetric_index(a.shape[-2], r), device=a.device)
         cols = torch.as_tensor(_symmetric_index(a.shape[-1], r), device=a.device)
         a, b = (t.index_select(-2, rows).index_select(-1, cols) for t in (a, b))
 
-    def blur(t):
+    def blur(t):   # depthwise: each channel on its own
+        C = t.shape[1]
         t = F.conv2d(t, g.view(1, 1, 1, -1).expand(C, 1, 1, 2 * r + 1), groups=C)
         return F.conv2d(t, g.view(1, 1, -1, 1).expand(C, 1, 2 * r + 1, 1), groups=C)
 
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
-    C = 5 * C   # the five local means in one depthwise convolution (each channel blurred on its own, as apart)
-    mu_a, mu_b, aa, bb, ab = blur(torch.cat([a, b, a * a, b * b, a * b], 1)).chunk(5, 1)
+    mu_a, mu_b, aa, bb, ab = blur(torch.cat([a, b, a * a, b * b, a * b], 1)).chunk(5, 1)   # one convolution
     var_a = aa - mu_a**2
     var_b = bb - mu_b**2
     cov = ab - mu_a * mu_b
