@@ -20,6 +20,11 @@ pose corrections on, the body re-posed on the training device where that is not 
 "host" (the re-posing forced onto the device path or the host path, the reference that reads the offsets
 back every step), "off" (pose corrections off: the fits as they are). Several, comma separated, time each
 (keys ``<marcher>_<pose>_...``); the JSON says which ("pose").
+
+``--compile`` times the step with its encoders and decoders compiled (``TrainConfig.compile``): "off" (the
+eager step, the reference), or a ``torch.compile`` mode ("default", "reduce-overhead": CUDA graphs on a
+GPU); several, comma separated, time each (keys ``<marcher>[_<pose>]_<compile>_...``). The compilation
+happens in the warm-up steps, which are not timed.
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ import time
 from pathlib import Path
 
 import torch
+
+from uvatar.precision import COMPILE_MODES
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -74,14 +81,15 @@ def pose_settings(pose: str) -> tuple[bool, bool | None]:
 
 def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int, steps: int,
             preset: str, device: str = "cpu", render_sizes=(), pairs_per_ray: float | None = None,
-            pose: str = "auto") -> dict:
+            pose: str = "auto", compile_mode: str = "off") -> dict:
     """{"step_ms": median ms per training step (a synchronise after each), "pipelined_step_ms": ms per
     step of ``steps`` steps back to back, their terms read every 10th step as ``Trainer.run`` logs them,
     one synchronise at the end (what a run pays when the host may run ahead of the GPU),
     "pairs_per_ray_peak": the most pairs per rendered ray the marcher's fixed buffer held,
     "fps_<size>": whole-frame renders per second, and on a GPU "peak_gpu_gib": the most GPU memory the
     steps held}. ``pairs_per_ray``: ``TrainConfig.pairs_per_ray`` (0: the exact buffer, a read-back
-    per sample); ``pose``: how the steps pose the body (see the module docstring)."""
+    per sample); ``pose``: how the steps pose the body (see the module docstring); ``compile_mode``:
+    "off" or the ``torch.compile`` mode of the step's encoders and decoders."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -94,6 +102,8 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     if pairs_per_ray is not None:
         cfg.train.pairs_per_ray = pairs_per_ray
     cfg.corrections.pose, on_device = pose_settings(pose)
+    if compile_mode != "off":
+        cfg.train.compile, cfg.train.compile_mode = True, compile_mode
     trainer = Trainer(open_source(capture), out, cfg, progress=False, device=device, pose_on_device=on_device)
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
@@ -146,10 +156,16 @@ def main(argv=None) -> int:
                     help="TrainConfig.pairs_per_ray (the marcher's fixed pair buffer; 0: exact, read back)")
     ap.add_argument("--pose", default="auto", help=f"how the steps pose the body, comma separated: {', '.join(POSES)} "
                     "(auto: corrections on, re-posed on the device off the CPU)")
+    ap.add_argument("--compile", default="off", help="the step's encoders and decoders: off (eager) or a "
+                    f"torch.compile mode ({', '.join(COMPILE_MODES)}), comma separated")
     args = ap.parse_args(argv)
     poses = [p.strip() for p in args.pose.split(",") if p.strip()]
     for p in poses:
         pose_settings(p)
+    compiles = [c.strip() for c in args.compile.split(",") if c.strip()]
+    for c in compiles:
+        if c != "off" and c not in COMPILE_MODES:
+            raise SystemExit(f"--compile {c!r}: choose from off, {', '.join(COMPILE_MODES)}")
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
     from tests.fixtures.dva_capture import write_toy_capture
@@ -164,15 +180,16 @@ def main(argv=None) -> int:
                 row = {"K": W * W, "W": W, "S": S}
                 for m in args.marchers.split(","):
                     for p in poses:
-                        got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}_{p}", W, S, m, args.warmup, args.steps,
-                                      args.preset, args.device, sizes, args.pairs_per_ray, p)
-                        key = m if len(poses) == 1 else f"{m}_{p}"
-                        row.update({f"{key}_{k}": v for k, v in got.items()})
+                        for c in compiles:
+                            got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}_{p}_{c}", W, S, m, args.warmup,
+                                          args.steps, args.preset, args.device, sizes, args.pairs_per_ray, p, c)
+                            key = "_".join([m] + [p] * (len(poses) > 1) + [c] * (len(compiles) > 1))
+                            row.update({f"{key}_{k}": v for k, v in got.items()})
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr)
     device = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or "cpu"
     print(json.dumps({"bench": "dva_train_step", "preset": args.preset, "device": device, "threads": args.threads,
-                      "steps": args.steps, "pose": args.pose, "results": rows}))
+                      "steps": args.steps, "pose": args.pose, "compile": args.compile, "results": rows}))
     return 0
 
 

@@ -7,8 +7,9 @@
 # which needs anny carried as well; train: bench/dva_train.py's paper-scale step, synchronised and pipelined)
 # Env overrides: BUDGET (s), DVA_PATHS / DVA_REPEATS / DVA_PAIRS (bench/dva_frame.py's --paths, --repeats,
 # --pairs-per-ray: the marcher's fixed pair buffer per ray), AVH_SECONDS / AVH_FAST / AVH_MODES / AVH_ITERS,
-# TRAIN_STEPS, TRAIN_POSE (bench/dva_train.py's --pose, default "auto,host": the pose-corrected step with the
-# body re-posed on the GPU, then on the CPU as before), BAKE_SECONDS / BAKE_FRAMES / BAKE_WORKERS, TESTS_SECONDS. Issue 39's sync-free frame: the dva
+# TRAIN_STEPS, TRAIN_SECONDS, TRAIN_POSE (bench/dva_train.py's --pose, default "auto": the pose-corrected step
+# with the body re-posed on the GPU; "auto,host" adds the CPU re-posing as before), TRAIN_COMPILE (its --compile,
+# default "off,default": the eager step, then its encoders and decoders through torch.compile), BAKE_SECONDS / BAKE_FRAMES / BAKE_WORKERS, TESTS_SECONDS. Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
 # <path>_drive_psnr_vs_ref, <path>_pairs_per_ray_peak and <path>_pair_overflows; the training rows
@@ -75,16 +76,17 @@ for part in $PARTS; do
             # driven frame under sync debug mode "error" and replayed from its CUDA graph, the bake's torch stages
       run_part tests "${TESTS_SECONDS:-180}" "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
-        tests/test_dva_frame_sync.py tests/test_dva_train_posing.py tests/test_devices.py \
+        tests/test_dva_frame_sync.py tests/test_dva_train_posing.py tests/test_dva_train_compile.py tests/test_devices.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
         tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
-      run_part train 150 "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper --grids 64 \
-        --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} \
-        --pose "${TRAIN_POSE:-auto,host}" ;;
+      # (--compile: the step's encoders and decoders eager, then through torch.compile; compiled in the warm-up)
+      run_part train "${TRAIN_SECONDS:-240}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \
+        --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" \
+        ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,default}" ;;
     compile)  # compiled against eager (torch.compile on the machine's CPU cores; ~130 s on 2 cores)
       run_part compile 90 "$OUT/pytest_compile.txt" python -m pytest -q -x -p no:cacheprovider -k compiled \
-        tests/test_dva_frame.py tests/test_avh_inference.py ;;
+        tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_train_compile.py ;;
     bake)  # the bake on CUDA (needs anny and Warp): its rays through Warp and the stages that cast no rays
            # on torch (<= 0.3 s per frame with the colour rounds), with --parity: the same frames again with
            # those stages on the CPU (torch_stages off), and how far the maps and poses moved (eval unchanged:

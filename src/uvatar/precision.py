@@ -22,6 +22,15 @@ def precision_check(precision: str) -> tuple[bool, str]:
     return precision in PRECISIONS, f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}"
 
 
+#: ``torch.compile``'s modes
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
+def compile_mode_check(mode: str) -> tuple[bool, str]:
+    """An ``(ok, message)`` pair for :func:`uvatar.errors.check_values`."""
+    return mode in COMPILE_MODES, f"compile_mode must be one of {', '.join(COMPILE_MODES)}, got {mode!r}"
+
+
 @dataclass(frozen=True)
 class FastPathConfig:
     """precision: "fp32" (the reference's numbers), "bf16" or "fp16" for the convolutions. compile:
@@ -34,7 +43,7 @@ class FastPathConfig:
     channels_last: bool = False
 
     def __post_init__(self) -> None:
-        check_values([precision_check(self.precision)])
+        check_values([precision_check(self.precision), compile_mode_check(self.compile_mode)])
 
     @property
     def dtype(self) -> torch.dtype:

@@ -27,15 +27,17 @@ def _flags() -> tuple[ConfigFlags, ...]:
     from uvatar.dva.primitives import PrimitiveConfig
     from uvatar.dva.raymarch_ref import MARCHERS, RaymarchConfig
     from uvatar.dva.train import load_run, train_dva
-    from uvatar.precision import PRECISIONS
+    from uvatar.precision import COMPILE_MODES, PRECISIONS
 
     marcher_help = next(f for f in dataclasses.fields(RaymarchConfig) if f.name == "marcher").metadata["help"]
     run_marcher = {"marcher": marcher_help + "; default: the run's"}
 
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
-            ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view", "precision"),
-                        choices={"background": BACKGROUNDS, "precision": tuple(PRECISIONS)},
+            ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view", "precision",
+                                             "compile", "compile_mode"),
+                        choices={"background": BACKGROUNDS, "precision": tuple(PRECISIONS),
+                                 "compile_mode": COMPILE_MODES},
                         presets={k: c.train for k, c in PRESETS.items()},
                         help={"batch": "(frame, camera) samples per step",
                               "patch": "side of the square pixel crop rendered per sample, pixels",
@@ -46,7 +48,11 @@ def _flags() -> tuple[ConfigFlags, ...]:
                               "hide_target_view": "leave the camera a sample is scored in out of its image "
                                                   "input, as at test time",
                               "precision": "type of the encoders and decoders in a step (autocast; bf16 on a "
-                                           "GPU halves their slabs); geometry, marcher and loss stay fp32"}),
+                                           "GPU halves their slabs); geometry, marcher and loss stay fp32",
+                              "compile": "compile the step's encoders and decoders with torch.compile (minutes "
+                                         "of compilation first; a resumed run may turn it on or off)",
+                              "compile_mode": "torch.compile's mode with --compile (reduce-overhead: CUDA "
+                                              "graphs on a GPU)"}),
             ConfigFlags(PrimitiveConfig, fields=("grid", "min_scale_corrective"),
                         presets={k: c.primitives for k, c in PRESETS.items()},
                         help={"grid": "primitives per UV side W (K = W*W)",
@@ -219,7 +225,7 @@ def _train(args) -> int:
     # what the avatar learns from; the budget, the marcher (how to render) and the device can change on a resume
     nested = {name: "" for name in ("train", "primitives", "decoder", "features", "raymarch")}
     settings = stage_record.config_values(cfg, prefixes={**nested, "corrections": "correct", "loss": "loss"},
-                                          drop=("minutes", "iters", "marcher"), seed=args.seed, model=args.model,
+                                          drop=("minutes", "iters", "marcher", "compile", "compile_mode"), seed=args.seed, model=args.model,
                                           vgg_weights=args.vgg_weights)
     source = open_source(args.capture)  # a capture it cannot read (half-made masks...) leaves no run folder
     if is_main_process():

@@ -35,9 +35,8 @@ import math
 
 import numpy as np
 import torch
-from torch import nn
 
-from uvatar.dva.model import DvaOutput, pixel_rays
+from uvatar.dva.model import DvaOutput, EncodeDecode, pixel_rays
 from uvatar.dva.raymarch import raymarch, resolve_marcher
 from uvatar.precision import FastPathConfig
 
@@ -65,29 +64,6 @@ class FrameConfig(FastPathConfig):
                       (not (self.graph and self.compile and self.compile_mode == "reduce-overhead"),
                        "graph=True captures the whole frame: compile_mode 'reduce-overhead' (graphs of its own) "
                        "cannot nest in it; use compile_mode 'default'")])
-
-
-class _Decode(nn.Module):
-    """(pose maps, image texture, view features, skip) -> motion (B, 9, W, W), payload (B, K, 4, S, S, S)
-    fp32: the model's encoders and decoders, under autocast when ``dtype`` is not fp32."""
-
-    def __init__(self, model, dtype: torch.dtype, channels_last: bool, cache: bool = True):
-        super().__init__()
-        self.pose_encoder, self.image_encoder, self.decoder = model.pose_encoder, model.image_encoder, model.decoder
-        self.dtype, self.channels_last, self.cache = dtype, channels_last, cache
-
-    def forward(self, pose_maps, image_texture, f_view, skip_colour=None, skip_weight=None):
-        if self.channels_last:
-            pose_maps, image_texture, f_view = (t.contiguous(memory_format=torch.channels_last)
-                                                for t in (pose_maps, image_texture, f_view))
-        # no autocast weight cache under a CUDA graph capture (torch.cuda.graph's documented requirement)
-        with torch.autocast(pose_maps.device.type, dtype=self.dtype, enabled=self.dtype != torch.float32,
-                            cache_enabled=self.cache):
-            f_pose = self.pose_encoder(pose_maps)
-            f_img = self.image_encoder(image_texture)
-            skip = None if skip_colour is None else (skip_colour, skip_weight)
-            motion, payload = self.decoder.payload(f_pose, f_img, f_view, skip, torch.float32)
-        return motion.float(), payload
 
 
 @dataclasses.dataclass
@@ -119,7 +95,7 @@ class FrameRenderer:
 
         self.model, self.cfg = model.eval(), cfg or FrameConfig()
         self.correctives = bool(model.correctives_on)
-        self._decode = self.cfg.prepare(_Decode(model, self.cfg.dtype, self.cfg.channels_last, not self.cfg.graph))
+        self._decode = self.cfg.prepare(EncodeDecode(model, self.cfg.dtype, self.cfg.channels_last, not self.cfg.graph))
         self.device = model.texel_weights.device
         self._view: _View | None = None
         self._unwrap, self._backgrounds = {}, {}

@@ -31,9 +31,37 @@ from uvatar.dva.primitives import PrimitiveConfig, apply_correctives, articulate
 from uvatar.dva.raymarch import raymarch
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig
 from uvatar.errors import check_values
-from uvatar.precision import PRECISIONS, precision_check
+from uvatar.precision import PRECISIONS, compile_mode_check, precision_check
 
 BACKGROUNDS = ("mask", "photo", "random")
+
+
+class EncodeDecode(nn.Module):
+    """(pose maps (B, 3 Jc, W, W), image texture (B, 4, R, R), view features (B, 1, W, W), colour skip
+    or None) -> motion (B, 9, W, W) fp32, the marcher's payload (B, K, 4, S, S, S) fp32: a
+    :class:`DvaModel`'s encoders and decoders in one module (what the fast paths compile), under
+    autocast in ``dtype`` when that is not fp32. Holds the model's own encoders and decoder (no copies).
+
+    channels_last: NHWC convolution inputs. cache: autocast's weight cache (off under a CUDA graph
+    capture, torch.cuda.graph's documented requirement). Used by :class:`~uvatar.dva.frame.FrameRenderer`
+    and by training's compact step (:meth:`DvaModel.forward` with ``decode``)."""
+
+    def __init__(self, model, dtype: torch.dtype = torch.float32, channels_last: bool = False, cache: bool = True):
+        super().__init__()
+        self.pose_encoder, self.image_encoder, self.decoder = model.pose_encoder, model.image_encoder, model.decoder
+        self.dtype, self.channels_last, self.cache = dtype, channels_last, cache
+
+    def forward(self, pose_maps, image_texture, f_view, skip_colour=None, skip_weight=None):
+        if self.channels_last:
+            pose_maps, image_texture, f_view = (t.contiguous(memory_format=torch.channels_last)
+                                                for t in (pose_maps, image_texture, f_view))
+        with torch.autocast(pose_maps.device.type, dtype=self.dtype, enabled=self.dtype != torch.float32,
+                            cache_enabled=self.cache):
+            f_pose = self.pose_encoder(pose_maps)
+            f_img = self.image_encoder(image_texture)
+            skip = None if skip_colour is None else (skip_colour, skip_weight)
+            motion, payload = self.decoder.payload(f_pose, f_img, f_view, skip, torch.float32)
+        return motion.float(), payload
 
 
 @dataclass
@@ -58,7 +86,10 @@ class TrainConfig:
     pairs_per_ray: the Warp marcher's (ray, primitive) pair buffer per rendered ray
     (:class:`~uvatar.dva.raymarch_warp.PairBudget`), so that a step reads no pair count back; a step that
     needed more is reported (a warning, at most a step late) and the buffer grows; 0: the exact buffer
-    (a read-back per sample)."""
+    (a read-back per sample). compile: the step's encoders and decoders go through ``torch.compile``
+    (:class:`EncodeDecode`; compile_mode "reduce-overhead" adds CUDA graphs on a GPU, "max-autotune"
+    searches kernels); how a run computes, not what it learns: a resumed run takes the caller's. Off by
+    default (minutes of compilation on a small CPU); the colour skip's steps are not compiled."""
 
     lr: float = 2e-3
     lr_decay_start: float = 0.6
@@ -75,11 +106,13 @@ class TrainConfig:
     hide_target_view: bool = False
     precision: str = "fp32"
     pairs_per_ray: float = 64.0
+    compile: bool = False
+    compile_mode: str = "default"
 
     def __post_init__(self) -> None:
         check_values([(self.background in BACKGROUNDS,
                        f"background must be one of {BACKGROUNDS}, got {self.background!r}"),
-                      precision_check(self.precision)])
+                      precision_check(self.precision), compile_mode_check(self.compile_mode)])
 
 
 @dataclass
@@ -212,26 +245,27 @@ class DvaModel(nn.Module):
                 self.grid.raster, template, cfg.decoder.voxels, cfg.primitives.scale_factor)), persistent=False)
 
     def forward(self, posed_vertices, joint_rotvecs, image_texture, camera_centers,
-                precision: str = "fp32", compact: bool = False, correctives: bool | None = None) -> DvaOutput:
+                precision: str = "fp32", compact: bool = False, correctives: bool | None = None,
+                decode=None) -> DvaOutput:
         """``precision`` ("fp32", "bf16", "fp16"): the encoders and decoders run under autocast in that
         type; the geometry stays fp32 and the outputs are fp32. ``compact``: the decoders write the
         payload in one pass (:meth:`~uvatar.dva.decoders.DvaDecoder.payload`, the same values and
         gradients with S times smaller colour slabs; what training uses) where the colour skip is off;
         the default is the reference path (:meth:`~uvatar.dva.decoders.DvaDecoder.forward`).
         ``correctives``: whether the motion correctives apply, when the caller knows it on the host (a
-        trainer's step count); None reads the ``correctives_on`` buffer (a read-back on a GPU)."""
+        trainer's step count); None reads the ``correctives_on`` buffer (a read-back on a GPU).
+        ``decode``: the compact path's encoders and decoders, an :class:`EncodeDecode` of this model
+        (compiled, say) in ``precision``; None makes one per call."""
         pose_maps, f_view, skip = self.inputs(posed_vertices, joint_rotvecs, image_texture, camera_centers)
         dtype = PRECISIONS[precision]
         compact = compact and skip is None  # with the colour skip, the decoder's own colour differs from the payload's
-        with torch.autocast(posed_vertices.device.type, dtype=dtype, enabled=dtype != torch.float32):
-            f_pose, f_img = self.pose_encoder(pose_maps), self.image_encoder(image_texture)
-            if compact:
-                motion, payload = self.decoder.payload(f_pose, f_img, f_view, None, torch.float32)
-            else:
-                decoded = self.decoder(f_pose, f_img, f_view, skip)
         if compact:
-            motion, learned = motion.float(), payload[:, :, :3]
+            decode = EncodeDecode(self, dtype) if decode is None else decode
+            motion, payload = decode(pose_maps, image_texture, f_view)
+            learned = payload[:, :, :3]
         else:
+            with torch.autocast(posed_vertices.device.type, dtype=dtype, enabled=dtype != torch.float32):
+                decoded = self.decoder(self.pose_encoder(pose_maps), self.image_encoder(image_texture), f_view, skip)
             motion, rgb, density, learned = (t.float() for t in decoded)
             payload = torch.cat([rgb, density], 2)
         on = bool(self.correctives_on) if correctives is None else bool(correctives)

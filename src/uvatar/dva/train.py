@@ -34,7 +34,7 @@ from uvatar.distributed import DistContext, all_sum, distributed_context
 from uvatar.dva.corrections import FitParams, TrainingCorrections
 from uvatar.dva.dataset import FrameBank, pose_corrected, pose_vertices
 from uvatar.dva.losses import DvaLoss, Vgg19Features
-from uvatar.dva.model import DvaConfig, DvaModel, pixel_rays
+from uvatar.dva.model import DvaConfig, DvaModel, EncodeDecode, TrainConfig, pixel_rays
 from uvatar.errors import InputError, UvatarError
 from uvatar.io_utils import atomic_path, sweep_partial_writes, write_json
 
@@ -84,6 +84,25 @@ def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
     x0 = int(np.clip(cx - size // 2, 0, W - size))
     yy, xx = np.mgrid[y0:y0 + size, x0:x0 + size]
     return np.stack([xx.ravel(), yy.ravel()], 1)
+
+
+#: ``torch.compile`` modes that capture CUDA graphs (cudagraph trees: a step marks its beginning)
+CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
+
+
+def _step_decode(model, train: TrainConfig):
+    """The encoders and decoders of a training step: the model's :class:`~uvatar.dva.model.EncodeDecode`
+    in ``train.precision``, through ``torch.compile`` in ``train.compile_mode`` when ``train.compile``;
+    None where the model's colour skip makes the step take the reference decoder (with ``compile``: a
+    warning that those steps are not compiled)."""
+    if model.cfg.features.colour_skip:
+        if train.compile:
+            log.warning("compile: the colour skip's training steps use the reference decoders, not compiled")
+        return None
+    from uvatar.precision import FastPathConfig
+
+    path = FastPathConfig(precision=train.precision, compile=train.compile, compile_mode=train.compile_mode)
+    return path.prepare(EncodeDecode(model, path.dtype))
 
 
 def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict, clock: dict | None = None,
@@ -188,9 +207,11 @@ class Trainer:
                 state = torch.load(ckpt, map_location=self.device, weights_only=False)
             except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint is the same user error
                 raise InputError(ckpt, f"unreadable checkpoint ({exc.__class__.__name__}: {exc})") from None
-            marcher = cfg.raymarch.marcher  # how to render, not what was learned: the caller's
+            caller = cfg  # how to render and compile, not what was learned: the caller's
             cfg = DvaConfig.from_dict(state["config"])  # the run's own config wins on resume
-            cfg.raymarch = dataclasses.replace(cfg.raymarch, marcher=marcher)
+            cfg.raymarch = dataclasses.replace(cfg.raymarch, marcher=caller.raymarch.marcher)
+            cfg.train = dataclasses.replace(cfg.train, compile=caller.train.compile,
+                                            compile_mode=caller.train.compile_mode)
             log.info("resuming from %s at step %d", ckpt, state["step"])
         self.cfg = cfg
         if state is not None and body_model and body_model != state["meta"]["body_model"]:
@@ -199,6 +220,7 @@ class Trainer:
         self.body = body if body is not None else make_body(body_name, "cpu", model_dir)
         joints = tuple(getattr(self.body, "conditioning_joints", range(self.body.num_joints)))
         self.model = DvaModel(cfg, self.body.template, joints).to(self.device)
+        self.decode = _step_decode(self.model, cfg.train)
         self.bank = FrameBank(source, self.body, self.model.image_raster, self.body.template,
                               source.train_frames, source.train_cameras, progress)
         vgg = Vgg19Features.from_file(vgg_weights).to(self.device) if vgg_weights else None
@@ -292,8 +314,10 @@ class Trainer:
         fi = torch.tensor(frames)
         centers = np.stack([self.bank.cams[c].center for c in cams]).astype(np.float32)
         vertices, rotvecs = self._posed(fi, correctives)
+        if t.compile and t.compile_mode in CUDA_GRAPH_MODES and self.device.type == "cuda":
+            torch.compiler.cudagraph_mark_step_begin()  # the last step's graphed outputs are no longer read
         out = self.model(vertices, rotvecs, tex, to_device_async(centers, self.device), t.precision, compact=True,
-                         correctives=correctives)
+                         correctives=correctives, decode=self.decode)
         preds, alphas, host_targets, host_masks = [], [], [], []
         for b, (f, c, pix, bg_colour) in enumerate(zip(frames, cams, pixels, backgrounds, strict=True)):
             mask = self.bank.masks[f][c]
