@@ -13,11 +13,10 @@ from uvatar.fit.identity import (
     Candidate,
     SubjectTracker,
     body_centre,
-    frame_ranges,
     hist_distance,
     torso_histograms,
-    track_frame,
 )
+from uvatar.fit.identity_frame import frame_ranges, track_frame
 from uvatar.fit.keypoints import BLAZEPOSE_NAMES
 from uvatar.fit.observe import observe_frame
 from uvatar.fit.triangulate import TriangulateConfig
@@ -226,7 +225,7 @@ def test_a_skeleton_either_person_could_be_teaches_no_track():
 
 
 def test_keypoints_over_another_person_are_left_out_and_a_frame_without_two_clear_views_is_held():
-    from uvatar.fit.identity import clear_of_others
+    from uvatar.fit.identity_frame import clear_of_others
 
     rng = np.random.default_rng(1)
     cams = ring_cameras((0.0, 1.0, 0.0), 4.0, 4, elevations_deg=(0.0,), width=640, height=480)
@@ -255,7 +254,7 @@ def test_held_frames_are_reported_and_strict_exits_1(tmp_path, monkeypatch, caps
     ``--strict`` fails on them (the fit itself stubbed: its summary as fit_capture returns it)."""
     import uvatar.fit.pipeline as pipeline
     from uvatar.cli.main import main
-    from uvatar.fit.identity import identity_report
+    from uvatar.fit.identity_frame import identity_report
 
     frames = [f"{i:06d}" for i in range(10)]
     identity = identity_report(frames, {"lost": ["000002"], "ambiguous": ["000005", "000006"],

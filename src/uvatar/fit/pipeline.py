@@ -23,7 +23,8 @@ from uvatar import stage_record
 from uvatar.capture.layout import CAPTURE_JSON, PERSON_JSON, Capture
 from uvatar.errors import InputError, UvatarError, check_values
 from uvatar.fit.calibration import refine_capture_cameras
-from uvatar.fit.identity import SubjectTracker, body_centre, identity_report, images_changed, track_frame
+from uvatar.fit.identity import SubjectTracker, body_centre
+from uvatar.fit.identity_frame import identity_report, images_changed, track_frame
 from uvatar.fit.others import OTHERS_NPZ, read_others, write_others
 from uvatar.fit.people import build_so_far, choose_people, find_again, frame_views, is_at, lost, subject_hider
 from uvatar.fit.records import (
