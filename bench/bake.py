@@ -19,7 +19,9 @@ reports those stages' seconds and rays (``reference``) and how far kappa moved
 99th percentile and max). ``--workers N`` (N > 1) then bakes the frames again on N processes, each a
 frame at a time as ``uvatar bake --workers N`` does (the frame plus its colour rounds), and reports
 the machine's throughput in wall time (``throughput``: seconds per frame and frames per hour with N
-workers; the machine may be shared, ``load_average_1min`` says how much). ``--device cuda`` runs the
+workers; the machine may be shared, ``load_average_1min`` says how much); ``--throughput-frames`` (default
+4 per worker: the timed frames over and over) is how many it bakes, so that no worker idles while others
+finish (with no more frames than workers the wall time is one contended frame's). ``--device cuda`` runs the
 ray stages through Warp on the GPU, and the rest of a frame (inpainting, the registration's solves, the
 pose refinement's and colour rounds' nearest samples, normal equations and stencil rays, the set-up of
 the texel and visibility rays, the texture lookups) through their torch twins there (``--torch-stages
@@ -293,6 +295,9 @@ def main(argv=None) -> int:
                          "paid once per process, not per frame); 0 times the process's first frame too")
     ap.add_argument("--workers", type=int, default=1,
                     help="N > 1: also bake the frames on N processes and report the throughput (wall time)")
+    ap.add_argument("--throughput-frames", type=int, default=None,
+                    help="frames the --workers run bakes (the timed frames over and over; default 4 per "
+                         "worker, so every worker stays busy to the end)")
     args = ap.parse_args(argv)
     texels = 256 if args.quick else args.texels
     frames = 1 if args.quick else args.frames
@@ -391,8 +396,10 @@ def main(argv=None) -> int:
                                        "kappa_mean_abs": round(max(r["kappa_mean"] for r in refs), 4),
                                        "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
     if args.workers > 1:
-        print(f"throughput: {len(items)} frames on {args.workers} processes", file=sys.stderr)
-        out["throughput"] = _throughput(args.workers, texels, args.device, args.torch_stages, items, args.warmup)
+        n = args.throughput_frames or 4 * args.workers
+        batch = [items[i % len(items)] for i in range(n)]
+        print(f"throughput: {n} frames on {args.workers} processes", file=sys.stderr)
+        out["throughput"] = _throughput(args.workers, texels, args.device, args.torch_stages, batch, args.warmup)
     print(json.dumps(out))
     return 0
 

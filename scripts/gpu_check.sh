@@ -9,7 +9,9 @@
 # --pairs-per-ray: the marcher's fixed pair buffer per ray), AVH_SECONDS / AVH_FAST / AVH_MODES / AVH_ITERS,
 # TRAIN_STEPS, TRAIN_SECONDS, TRAIN_POSE (bench/dva_train.py's --pose, default "auto": the pose-corrected step
 # with the body re-posed on the GPU; "auto,host" adds the CPU re-posing as before), TRAIN_COMPILE (its --compile,
-# default "off,default": the eager step, then its encoders and decoders through torch.compile), BAKE_SECONDS / BAKE_FRAMES / BAKE_WORKERS, TESTS_SECONDS. Issue 39's sync-free frame: the dva
+# default "off,default": the eager step, then its encoders and decoders through torch.compile), BAKE_SECONDS /
+# BAKE_FRAMES / BAKE_WORKERS / BAKE_THROUGHPUT_FRAMES (the frames the workers bake, default 16), TESTS_SECONDS.
+# Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
 # <path>_drive_psnr_vs_ref, <path>_pairs_per_ray_peak and <path>_pair_overflows; the training rows
@@ -95,7 +97,7 @@ for part in $PARTS; do
         # --workers: the frames again on that many processes sharing the GPU (one frame's CPU work overlaps
         # another's GPU work): throughput.seconds_per_frame is the machine's wall time per frame
         run_part bake "${BAKE_SECONDS:-200}" "$OUT/bake.json" python bench/bake.py --device cuda \
-          --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4}"
+          --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-16}"
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
