@@ -53,6 +53,15 @@ def test_rotation_twins_equal_scipy():
                                Rotation.from_rotvec(one).apply(points[0]), atol=1e-12, rtol=0)
 
 
+@pytest.fixture
+def window_search(monkeypatch):
+    """The nearest-sample window search CUDA runs (:data:`~uvatar.avh.bake.refine_device.WINDOW_SEARCH_ON_CPU`),
+    here on the CPU."""
+    from uvatar.avh.bake import refine_device
+
+    monkeypatch.setattr(refine_device, "WINDOW_SEARCH_ON_CPU", True)
+
+
 def _scene(shift=(0.0, 0.0, 0.0)):
     """(body, scan TexturedMesh of the true pose moved by ``shift`` metres, its ScanSurface (rays
     through Warp on the CPU: tensors cast where they are, as on CUDA), true fit, noisy start fit)."""
@@ -87,6 +96,7 @@ def _assert_same_refinement(out, stats, ref, ref_stats):
 
 
 @pytest.mark.parametrize("photometric", [False, True])
+@pytest.mark.usefixtures("window_search")
 def test_device_refinement_stops_where_the_numpy_path_stops(photometric):
     """A scan far from the fit (nothing within the match distance): the numpy path stops after its
     first iteration; the device path runs every iteration with its update masked, leaves the fit
@@ -110,26 +120,31 @@ def test_device_refinement_stops_where_the_numpy_path_stops(photometric):
     np.testing.assert_array_equal(out.Rh, ref.Rh)
 
 
+@pytest.mark.usefixtures("window_search")
 def test_device_refinement_stops_midway_like_the_numpy_path(monkeypatch):
     """A stop after some steps (the scan lost from the third iteration on: every nearest-sample query
     from then on finds nothing): the same fit and stats lists, cut at the same place."""
+    from uvatar.avh.bake import refine_device
     from uvatar.avh.bake.config import PoseRefineConfig
     from uvatar.avh.bake.refine import refine_fit
     from uvatar.avh.bake.register import ScanSurface
 
     model, scan, surface, truth, noisy = _scene()
     config = PoseRefineConfig(iterations=5, max_vertices=600)
-    found = ScanSurface.nearest_sample
     calls = []
 
-    def lost_after_two(self, points, max_distance):
-        near, idx = found(self, points, max_distance)
-        calls.append(1)
-        if len(calls) <= 2:
-            return near, idx
-        return near * np.inf, idx * 0         # numpy or tensors alike: nothing found
+    def lost_after_two(find):
+        def lost(*args):
+            near, idx, *rest = find(*args)
+            calls.append(1)
+            if len(calls) > 2:
+                near, idx = near * np.inf, idx * 0        # numpy or tensors alike: nothing found
+            return (near, idx, *rest)
+        return lost
 
-    monkeypatch.setattr(ScanSurface, "nearest_sample", lost_after_two)
+    # the numpy path asks the scan; the device path its window search (refine_device._nearest)
+    monkeypatch.setattr(ScanSurface, "nearest_sample", lost_after_two(ScanSurface.nearest_sample))
+    monkeypatch.setattr(refine_device, "_nearest", lost_after_two(refine_device._nearest))
     ref, ref_stats = refine_fit(model, noisy, surface, config)
     calls.clear()
     out, stats = refine_fit(model, noisy, surface, config, device="cpu")
@@ -139,6 +154,7 @@ def test_device_refinement_stops_midway_like_the_numpy_path(monkeypatch):
 
 
 @pytest.mark.parametrize("photometric", [False, True])
+@pytest.mark.usefixtures("window_search")
 def test_device_refinement_reads_back_a_fixed_number_of_times(monkeypatch, photometric):
     """After a first call (its per-scan and per-body copies made), a device refinement reads the device
     back and copies host data to it the same number of times for 2 and for 5 iterations: nothing per
@@ -166,3 +182,43 @@ def test_device_refinement_reads_back_a_fixed_number_of_times(monkeypatch, photo
         counts[iterations] = sorted(traffic.seen)
     assert counts[2] == counts[5]
     assert counts[2].count("Tensor.numpy") == 1            # the one read-back of the results
+
+
+def test_nearest_in_a_window_is_the_slab_search():
+    """The window search answers as the slab search (bit for bit) when the window holds every slab,
+    and reports the widest slab (so a caller sees a window too small)."""
+    from test_avh_bake_core import icosphere
+
+    from uvatar.avh.bake.register import ScanSurface
+    from uvatar.avh.bake.register_torch import nearest_points_in_window, nearest_points_torch, widest_slab
+
+    v, f = icosphere(3)
+    surface = ScanSurface.build(v, f)
+    queries = torch.as_tensor(np.random.default_rng(0).normal(size=(700, 3)) * 0.6)
+    samples = surface.sorted_samples_torch("cpu")
+    ref = nearest_points_torch(queries, samples, 0.3, chunk=64)
+    needed = int(widest_slab(queries, samples, 0.3, chunk=64))
+    assert 0 < needed < len(surface.sample_points)
+    near, idx, widest = nearest_points_in_window(queries, samples, 0.3, needed, chunk=64)
+    assert int(widest) == needed and torch.isfinite(ref[0]).sum() > 100
+    assert torch.equal(near, ref[0]) and torch.equal(idx, ref[1])
+    near, idx, widest = nearest_points_in_window(queries, samples, 0.3, needed // 4, chunk=64)
+    assert int(widest) == needed > needed // 4          # too small: reported
+
+
+@pytest.mark.usefixtures("window_search")
+def test_device_refinement_widens_a_window_too_small():
+    """A scan whose kept nearest-sample window is too small for this refinement's slabs: the call
+    notices at its end, widens the window and answers as with a window wide enough."""
+    from uvatar.avh.bake.config import PoseRefineConfig
+    from uvatar.avh.bake.refine import refine_fit
+
+    model, scan, surface, truth, noisy = _scene()
+    config = PoseRefineConfig(iterations=2, max_vertices=600)
+    ref, ref_stats = refine_fit(model, noisy, surface, config, device="cpu")
+    roomy = surface.on_device[("nearest_window", "cpu")]
+    surface.on_device[("nearest_window", "cpu")] = 8
+    out, stats = refine_fit(model, noisy, surface, config, device="cpu")
+    assert surface.on_device[("nearest_window", "cpu")] >= roomy - 256 > 8
+    np.testing.assert_array_equal(out.poses, ref.poses)
+    assert stats == ref_stats

@@ -13,8 +13,11 @@ end and cut where the numpy path would have stopped appending them. Constants pe
 refinement vertices, subtree and region weights) go to the device once (:func:`.refine._memo`), the
 scan's samples once per scan (:meth:`.register.ScanSurface.samples_torch`).
 
-One host read remains per iteration, inside :func:`.register_torch.nearest_points_torch` (its slab
-bounds, one ``tolist`` for all chunks of queries).
+The nearest samples use a fixed window per chunk of queries
+(:func:`.register_torch.nearest_points_in_window`), measured once per scan and device; each call checks
+at its end, in the same read, that no slab outgrew it (else it widens the window and runs again). On
+the CPU, where a read-back costs nothing, the tighter slab search with its one read per query stays
+(:data:`WINDOW_SEARCH_ON_CPU`).
 """
 
 from __future__ import annotations
@@ -104,6 +107,42 @@ def _clothing_offsets(residuals, skin, ok, huber: float, steps: int = 3):
         a = (skin * w[:, None]).T @ skin
         offsets = -torch.linalg.solve(a + 1e-9 * eye, (skin * w[:, None]).T @ r)
     return offsets
+
+
+#: the CPU keeps the slab search (its one read-back per query costs nothing there, and it compares
+#: ~5x fewer points than a window wide enough for every slab); tests set it to run CUDA's choice here
+WINDOW_SEARCH_ON_CPU = False
+
+
+def _roomy(width: int) -> int:
+    """A nearest-sample window with room to spare for slabs ``width`` points wide."""
+    return int(width) * 5 // 4 + 256
+
+
+def _nearest_window(scan, device) -> int:
+    """The window of :func:`.register_torch.nearest_points_in_window` kept with ``scan`` for ``device``
+    (0 until the first query measures its slabs)."""
+    return scan.on_device.get(("nearest_window", str(device)), 0)
+
+
+def _nearest(scan, points, max_distance, device):
+    """(distance (N,), index (N,), widest slab (0-d)) tensors of each of ``points``' nearest scan
+    sample within ``max_distance`` (:meth:`.register.ScanSurface.nearest_sample`'s answers), with no
+    read-back once the scan's window is known: the first query on a scan and device measures its
+    slabs (one read) and keeps a roomy window with the scan. On the CPU (unless
+    :data:`WINDOW_SEARCH_ON_CPU`) the slab search itself (widest slab 0)."""
+    import torch
+
+    from uvatar.avh.bake.register_torch import nearest_points_in_window, widest_slab
+
+    if torch.device(device).type == "cpu" and not WINDOW_SEARCH_ON_CPU:
+        near, idx = scan.nearest_sample(points, max_distance)
+        return near, idx, torch.zeros((), dtype=torch.int64, device=device)
+    samples = scan.sorted_samples_torch(device)
+    key = ("nearest_window", str(device))
+    if key not in scan.on_device:
+        scan.on_device[key] = _roomy(int(widest_slab(points, samples, max_distance)))
+    return nearest_points_in_window(points, samples, max_distance, scan.on_device[key])
 
 
 def _body_on_device(body, config, device):
@@ -201,6 +240,7 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     offsets = torch.zeros(skin.shape[1], **f64)
     running = torch.ones((), dtype=torch.bool, device=device)   # the numpy path has not stopped yet
     reached, residuals, matched, colour_residuals = [], [], [], []
+    widest_slab_seen = torch.zeros((), dtype=torch.int64, device=device)
 
     max_distance = None
     for it in range(iterations + 1):
@@ -208,7 +248,8 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
         v, n = v[use], n[use]
         if max_distance is None:
             max_distance = config.max_distance * torch.linalg.norm(v.max(0).values - v.min(0).values)
-        near, idx = scan.nearest_sample(v, max_distance)
+        near, idx, widest = _nearest(scan, v, max_distance, device)
+        widest_slab_seen = torch.maximum(widest_slab_seen, widest)
         m = sample_normals[idx]
         ok = torch.isfinite(near) & ((m * n).sum(1) >= cos_max)
         r = ((v - sample_points[idx]) * m).sum(1)
@@ -266,10 +307,14 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     offset_mean = (skin @ offsets).mean() * 1000
     parts = [torch.stack(residuals), torch.stack(matched), torch.stack(reached).to(torch.float64),
              torch.stack(colour_residuals) if colour_residuals else torch.zeros(0, **f64),
-             offset_mean[None], rot.reshape(-1), rh, th]
+             offset_mean[None], widest_slab_seen.to(torch.float64)[None], rot.reshape(-1), rh, th]
     host = torch.cat(parts).cpu().numpy()
     cuts = np.cumsum([len(p) for p in parts])[:-1]
-    res, mat, kept, col, off, rot_h, rh_h, th_h = np.split(host, cuts)
+    res, mat, kept, col, off, widest, rot_h, rh_h, th_h = np.split(host, cuts)
+    if widest[0] > _nearest_window(scan, device):   # a slab was cut short: again, with room for it (rare)
+        scan.on_device[("nearest_window", str(device))] = _roomy(int(widest[0]))
+        return refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
+                                    final_colour_residual, device)
     appended = int(kept.sum())         # the numpy path appends stats at each iteration it reaches
     refined = BodyFit(poses=rot_h.astype(np.float32), Rh=rh_h, Th=th_h, shapes=fit.shapes, scale=fit.scale, id=fit.id)
     stats = {"residual_mm": [float(x) for x in res[:appended]], "matched_fraction": [float(x) for x in mat[:appended]],

@@ -116,10 +116,14 @@ class ScanSurface:
             near, idx = self.kd_tree().query(points, distance_upper_bound=max_distance)
             found = np.isfinite(near)
             return near, np.where(found, idx, 0)
-        key = ("sorted_samples", str(points.device))
+        return nearest_points_torch(points, self.sorted_samples_torch(points.device), max_distance)
+
+    def sorted_samples_torch(self, device):
+        """:func:`sorted_points_torch` of the samples on ``device`` (made once per scan and device)."""
+        key = ("sorted_samples", str(device))
         if key not in self.on_device:
-            self.on_device[key] = sorted_points_torch(self.sample_points, points.device)
-        return nearest_points_torch(points, self.on_device[key], max_distance)
+            self.on_device[key] = sorted_points_torch(self.sample_points, device)
+        return self.on_device[key]
 
     def samples_torch(self, device):
         """(sample_points (S, 3), sample_normals (S, 3)) float64 tensors on ``device``, copied there once
