@@ -259,7 +259,7 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
         r = r + skin @ offsets
         reached.append(running)
         residuals.append(torch.where(ok, r.abs(), torch.zeros_like(r)).sum() * 1000 / count)   # NaN: none
-        matched.append(count / n_use)
+        matched.append(count.to(torch.float64) / n_use)
         if photo is not None and it == iterations and not final_colour_residual:
             break
         if photo is not None:
