@@ -197,7 +197,7 @@ def test_nearest_sample_on_torch_matches_the_kd_tree(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_normal_equations_on_torch_match_the_grouped_products(device):
-    from uvatar.avh.bake.refine import _joint_groups, _normal_equations, _normal_equations_torch
+    from uvatar.avh.bake.refine import _joint_groups, _normal_equations, _normal_equations_reference
 
     rng = np.random.default_rng(0)
     n, k = 300, 5
@@ -208,16 +208,21 @@ def test_normal_equations_on_torch_match_the_grouped_products(device):
                rng.random((n // 2, k))),
               (np.repeat(np.arange(0, n, 3), 3), rng.normal(size=(n, 3)), rng.random(n), rng.normal(size=n), None)]
     a, g = _normal_equations(points, subtree, _joint_groups(subtree, 16), centres, centre0, blocks)
-    ta, tg = _normal_equations_torch(points, subtree, centres, centre0, blocks, device)
-    np.testing.assert_allclose(ta, a, rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(tg, g, rtol=1e-10, atol=1e-10)
+    def put(x):
+        return None if x is None else torch.as_tensor(np.asarray(x), device=device)
+
+    ta, tg = _normal_equations_reference(put(points), put(subtree), put(centres), put(centre0),
+                                         [tuple(put(x) for x in block) for block in blocks])
+    np.testing.assert_allclose(ta.cpu().numpy(), a, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(tg.cpu().numpy(), g, rtol=1e-10, atol=1e-10)
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_pose_refinement_with_torch_stages_matches(device):
-    """The refinement with its nearest samples and normal equations on torch: the same refined pose
-    (float32 poses within 1e-6 rad) and residuals; on CUDA the body is posed there too (float32 on
-    another device: within 1e-4 rad, residuals within 0.1 %)."""
+    """The refinement's whole loop on torch (:mod:`uvatar.avh.bake.refine_device`): the same refined
+    pose (float32 poses, Rh, Th within 1e-6 rad / m: the float32 posing turns the loop's float64
+    round-off into float32 steps) and the same residuals at every iteration; on CUDA the body is posed
+    there too (float32 on another device: within 1e-4 rad, residuals within 0.1 %)."""
     from test_avh_bake_helpers import body, frame_pose, offset_scan
 
     from uvatar.avh.bake.config import PoseRefineConfig
@@ -235,9 +240,12 @@ def test_pose_refinement_with_torch_stages_matches(device):
     out, stats = refine_fit(model, noisy, surface, config, device=device)
     cpu = device == "cpu"
     np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6 if cpu else 1e-4, rtol=0)
-    np.testing.assert_allclose(out.Rh, ref.Rh, atol=1e-9 if cpu else 1e-4, rtol=0)
-    np.testing.assert_allclose(out.Th, ref.Th, atol=1e-9 if cpu else 1e-5, rtol=0)
-    np.testing.assert_allclose(stats["residual_mm"], ref_stats["residual_mm"], rtol=1e-9 if cpu else 1e-3)
+    np.testing.assert_allclose(out.Rh, ref.Rh, atol=1e-6 if cpu else 1e-4, rtol=0)
+    np.testing.assert_allclose(out.Th, ref.Th, atol=1e-6 if cpu else 1e-5, rtol=0)
+    assert set(stats) == set(ref_stats) and len(stats["residual_mm"]) == config.iterations + 1
+    for name in ("residual_mm", "matched_fraction"):
+        np.testing.assert_allclose(stats[name], ref_stats[name], rtol=1e-5 if cpu else 1e-3, err_msg=name)
+    assert stats["offset_mm_mean"] == pytest.approx(ref_stats["offset_mm_mean"], rel=1e-5 if cpu else 1e-3)
     assert ref_stats["residual_mm"][-1] < 0.5 * ref_stats["residual_mm"][0]  # it did refine
 
 
@@ -413,7 +421,7 @@ def test_colour_round_with_torch_stages_matches(device):
 
     from uvatar.avh.bake.config import PoseRefineConfig
     from uvatar.avh.bake.photometric import PhotoTarget
-    from uvatar.avh.bake.refine import refine_fit, sample_colours
+    from uvatar.avh.bake.refine import PhotoSample, refine_fit, sample_colours
     from uvatar.avh.bake.register import fast_caster
     from uvatar.capture import BodyFit
 
@@ -427,7 +435,12 @@ def test_colour_round_with_torch_stages_matches(device):
     config = PoseRefineConfig(iterations=2, photometric_iterations=2, max_vertices=800)
     radius = config.photometric_radii[0]
     ref_sample = sample_colours(model, truth, surface, scan, config, radius)
-    sample = sample_colours(model, truth, surface, scan, config, radius, device=device)
+    on_device = sample_colours(model, truth, surface, scan, config, radius, device=device)
+    assert all(isinstance(x, torch.Tensor) and x.device.type == torch.device(device).type
+               for x in (on_device.colour, on_device.gradient, on_device.ok))      # it stays there
+    np.testing.assert_array_equal(on_device.colours, np.where(on_device.ok.cpu().numpy()[:, None],
+                                                              on_device.colour.cpu().numpy(), np.nan))
+    sample = PhotoSample(*(x.cpu().numpy() for x in (on_device.colour, on_device.gradient, on_device.ok)), radius)
     cpu = device == "cpu"
     if cpu:
         np.testing.assert_array_equal(sample.ok, ref_sample.ok)
@@ -444,6 +457,16 @@ def test_colour_round_with_torch_stages_matches(device):
     ref, ref_stats = refine_fit(model, noisy, surface, config, photo=target, scan_mesh=scan)
     out, stats = refine_fit(model, noisy, surface, config, photo=target, scan_mesh=scan, device=device)
     np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6 if cpu else 1e-4, rtol=0)
+    np.testing.assert_allclose(out.Th, ref.Th, atol=1e-6 if cpu else 1e-5, rtol=0)
+    assert len(stats["colour_residual"]) == len(ref_stats["colour_residual"]) == config.photometric_iterations + 1
+    np.testing.assert_allclose(stats["colour_residual"], ref_stats["colour_residual"], rtol=1e-6 if cpu else 1e-2)
+    # a round that starts from the previous round's closing sample (on the device) and skips the last colours
+    kw = dict(photo=target, scan_mesh=scan, final_colour_residual=False)
+    ref, ref_stats = refine_fit(model, truth, surface, config, start_sample=ref_sample, **kw)
+    out, stats = refine_fit(model, truth, surface, config, start_sample=on_device, device=device, **kw)
+    np.testing.assert_allclose(out.poses, ref.poses, atol=1e-6 if cpu else 1e-4, rtol=0)
+    assert len(stats["colour_residual"]) == len(ref_stats["colour_residual"]) == config.photometric_iterations
+    assert len(stats["residual_mm"]) == len(ref_stats["residual_mm"]) == config.photometric_iterations + 1
     np.testing.assert_allclose(stats["colour_residual"], ref_stats["colour_residual"], rtol=1e-6 if cpu else 1e-2)
 
 

@@ -150,7 +150,8 @@ class AnnyBody(BodyModel):
         C = self._to_world
         B, J = F.shape[:2]
         top = torch.cat([C @ F, (C @ p[..., None])], -1)
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=F.dtype, device=F.device).expand(B, J, 1, 4)
+        bottom = F.new_zeros((B, J, 1, 4))     # made on F's device: no host data copied there per pose
+        bottom[..., 3] = 1.0
         return torch.cat([top, bottom], -2)
 
     def _pose_local(self, rotvecs: torch.Tensor, shape):

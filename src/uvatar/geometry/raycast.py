@@ -131,13 +131,15 @@ def _finish_hits(origins, directions, hit, face, distance, bary) -> RayHits:
     at an edge left [0, 1], zeros and points for the rays (numpy arrays or torch tensors)."""
     torch_mode = type(bary).__module__.startswith("torch")
     bary[:, 0] = 1 - bary[:, 1] - bary[:, 2]
-    if len(bary) and (bary.min() < 0 or bary.max() > 1):  # round-off at edges
-        if torch_mode:
-            bary.clamp_(0.0, 1.0)
-            bary /= bary.sum(1, keepdim=True).clamp_min(1e-30)
-        else:
-            np.clip(bary, 0.0, 1.0, out=bary)
-            bary /= np.maximum(bary.sum(1, keepdims=True), bary.dtype.type(1e-30))
+    if torch_mode and len(bary):  # the same choice made on the device (no read-back): round-off at edges
+        import torch
+
+        clipped = bary.clamp(0.0, 1.0)
+        clipped /= clipped.sum(1, keepdim=True).clamp_min(1e-30)
+        bary = torch.where((bary.min() < 0) | (bary.max() > 1), clipped, bary)
+    elif len(bary) and (bary.min() < 0 or bary.max() > 1):  # round-off at edges
+        np.clip(bary, 0.0, 1.0, out=bary)
+        bary /= np.maximum(bary.sum(1, keepdims=True), bary.dtype.type(1e-30))
     bary *= hit[:, None]
     if torch_mode:
         import torch

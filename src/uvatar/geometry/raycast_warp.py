@@ -216,8 +216,8 @@ def _rays_torch(origins, directions):
 
     d = directions.detach().to(torch.float32)
     sq = (d * d).sum(1)
-    if len(sq) and not bool(((sq - 1).abs() <= 1e-6).all()):
-        d = d / sq.sqrt()[:, None]
+    if len(sq):   # the choice made on the device (no read-back)
+        d = torch.where(((sq - 1).abs() <= 1e-6).all(), d, d / sq.sqrt()[:, None])
     return origins.detach().to(torch.float32).contiguous(), d.contiguous()
 
 

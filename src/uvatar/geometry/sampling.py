@@ -262,7 +262,14 @@ def texel_tangent_frames(raster: UVRaster, faces, uv_faces, uvs, vertices, norma
 
 
 def tangent_basis(normals):
-    """(t, b) (N, 3) unit tangents with (t, b, n) right-handed, for unit normals (N, 3) (numpy)."""
+    """(t, b) (N, 3) unit tangents with (t, b, n) right-handed, for unit normals (N, 3): numpy, or a
+    float64 torch tensor (the same steps on its device)."""
+    if is_torch(normals):
+        import torch
+
+        t = torch.linalg.cross(normals, _any_perpendicular(normals), dim=-1)
+        t = t / torch.linalg.norm(t, dim=-1, keepdim=True).clamp(min=1e-12)
+        return t, torch.linalg.cross(normals, t, dim=-1)
     n = np.asarray(normals, dtype=np.float64)
     t = np.cross(n, _any_perpendicular(n))
     t /= np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-12)

@@ -25,6 +25,7 @@ import numpy as np
 
 from uvatar.avh.bake.register import ScanSurface, scan_colours
 from uvatar.geometry import tangent_basis
+from uvatar.geometry.frames import is_torch
 
 __all__ = ["PhotoTarget", "RING_POINTS", "stencil_offsets", "surface_colours", "ray_colours", "reference_colours",
            "chromaticity"]
@@ -42,11 +43,30 @@ class PhotoTarget:
     radius: float
 
 
-def stencil_offsets(normals, radius: float) -> np.ndarray:
-    """(RING_POINTS, N, 3) tangent-plane offsets on a ring of ``radius`` metres around each point."""
-    t, b = tangent_basis(normals)
+_RING_ON_DEVICE: dict = {}   # str(device) -> (cos, sin) of the ring's angles as float64 tensors there
+
+
+def _ring_angles(device=None):
+    """(cos, sin) (RING_POINTS,) of the ring's angles: numpy, or float64 tensors on ``device`` (the
+    numpy values, copied there once per device)."""
     angles = np.arange(RING_POINTS) * (2 * np.pi / RING_POINTS)
-    return radius * (np.cos(angles)[:, None, None] * t[None] + np.sin(angles)[:, None, None] * b[None])
+    if device is None:
+        return np.cos(angles), np.sin(angles)
+    key = str(device)
+    if key not in _RING_ON_DEVICE:
+        import torch
+
+        _RING_ON_DEVICE[key] = (torch.as_tensor(np.cos(angles), device=device),
+                                torch.as_tensor(np.sin(angles), device=device))
+    return _RING_ON_DEVICE[key]
+
+
+def stencil_offsets(normals, radius: float):
+    """(RING_POINTS, N, 3) tangent-plane offsets on a ring of ``radius`` metres around each point:
+    numpy, or a tensor on the device of a float64 tensor ``normals``."""
+    t, b = tangent_basis(normals)
+    cos, sin = _ring_angles(normals.device if is_torch(normals) else None)
+    return radius * (cos[:, None, None] * t[None] + sin[:, None, None] * b[None])
 
 
 def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float, min_normal_cos: float,
@@ -55,48 +75,61 @@ def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float
     (scan normal within the angle of ``min_normal_cos``; the nearer of the two) within ``max_distance``
     metres. Returns (colours (N, 3) float64, ok (N,) bool). ``scan``: the TexturedMesh; ``device``: a
     torch device where the rays are cast (:meth:`RayCaster.first_hit_torch`), chosen and the texture
-    sampled (:func:`.register.scan_colours`), the same steps; the results come back as numpy."""
-    p = np.asarray(points, np.float64)
-    n = np.asarray(normals, np.float64)
-    if device is None:
-        where, limit = np.where, (lambda best: np.minimum(max_distance + epsilon, best))
-
-        def cast(o, d, far):
-            return surface.caster.first_hit(o, d, max_distance=far)
-
-        best = np.full(len(p), np.inf)
-        face = np.full(len(p), -1, np.int64)
-        bary = np.zeros((len(p), 3))
-    else:
+    sampled (:func:`.register.scan_colours`), the same steps; the results come back as numpy, or stay
+    on the device for float64 tensor ``points`` and ``normals`` (no read-back)."""
+    if is_torch(points):
+        return _ray_colours_torch(surface, scan, points, normals, max_distance, min_normal_cos, epsilon)
+    if device is not None:
         import torch
 
-        where, limit = torch.where, (lambda best: best.clamp(max=max_distance + epsilon))
-
-        def cast(o, d, far):
-            return surface.caster.first_hit_torch(o, d, far)
-
-        p, n = torch.as_tensor(p, device=device), torch.as_tensor(n, device=device)
-        best = torch.full((len(p),), float("inf"), dtype=torch.float64, device=device)
-        face = torch.full((len(p),), -1, dtype=torch.int64, device=device)
-        bary = torch.zeros((len(p), 3), dtype=torch.float64, device=device)
+        colours, ok = _ray_colours_torch(surface, scan, torch.as_tensor(np.asarray(points, np.float64), device=device),
+                                         torch.as_tensor(np.asarray(normals, np.float64), device=device),
+                                         max_distance, min_normal_cos, epsilon)
+        return colours.cpu().numpy(), ok.cpu().numpy()
+    p = np.asarray(points, np.float64)
+    n = np.asarray(normals, np.float64)
+    best = np.full(len(p), np.inf)
+    face = np.full(len(p), -1, np.int64)
+    bary = np.zeros((len(p), 3))
     for sign in (1.0, -1.0):
         d = sign * n
         # the -n ray only wins below the +n ray's compatible distance: it need not look farther
         # (the same hits win; Embree's traversal ends sooner)
-        hits = cast(p - epsilon * d, d, limit(best))
+        hits = surface.caster.first_hit(p - epsilon * d, d, max_distance=np.minimum(max_distance + epsilon, best))
         m = surface.normals_at_hits(hits)
         better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
-        best = where(better, hits.distance, best)
-        face = where(better, hits.face, face)
-        bary = where(better[:, None], hits.bary, bary)
+        best = np.where(better, hits.distance, best)
+        face = np.where(better, hits.face, face)
+        bary = np.where(better[:, None], hits.bary, bary)
     ok = face >= 0
-    if device is None:
-        colours = np.zeros((len(p), 3))
-        colours[ok] = scan_colours(surface, scan, face[ok], bary[ok])
-        return colours, ok
-    colours = torch.zeros((len(p), 3), dtype=torch.float64, device=device)
-    colours[ok] = scan_colours(surface, scan, face[ok], bary[ok]).to(torch.float64)
-    return colours.cpu().numpy(), ok.cpu().numpy()
+    colours = np.zeros((len(p), 3))
+    colours[ok] = scan_colours(surface, scan, face[ok], bary[ok])
+    return colours, ok
+
+
+def _ray_colours_torch(surface: ScanSurface, scan, p, n, max_distance: float, min_normal_cos: float,
+                       epsilon: float):
+    """:func:`ray_colours` of float64 tensors p, n (N, 3) on their device: (colours (N, 3) float64,
+    ok (N,) bool) tensors there. Every choice by ``torch.where`` (no read-back): the rays cast by
+    :meth:`RayCaster.first_hit_torch`, the texture sampled at every ray (face 0 for the misses)
+    and kept where one hit."""
+    import torch
+
+    best = torch.full((len(p),), float("inf"), dtype=torch.float64, device=p.device)
+    face = torch.full((len(p),), -1, dtype=torch.int64, device=p.device)
+    bary = torch.zeros((len(p), 3), dtype=torch.float64, device=p.device)
+    for sign in (1.0, -1.0):
+        d = sign * n
+        # the -n ray only wins below the +n ray's compatible distance (as in ray_colours)
+        hits = surface.caster.first_hit_torch(p - epsilon * d, d, best.clamp(max=max_distance + epsilon))
+        m = surface.normals_at_hits(hits)
+        better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
+        best = torch.where(better, hits.distance, best)
+        face = torch.where(better, hits.face, face)
+        bary = torch.where(better[:, None], hits.bary, bary)
+    ok = face >= 0
+    colours = scan_colours(surface, scan, torch.where(ok, face, torch.zeros_like(face)), bary).to(torch.float64)
+    return torch.where(ok[:, None], colours, torch.zeros_like(colours)), ok
 
 
 def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, max_distance: float,
@@ -105,18 +138,25 @@ def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, 
 
     space: "rgb", or "chromaticity" (:func:`chromaticity`: the colour divided by the sum of its
     channels, which a white light's shading does not change). Returns (colour (N, 3), gradient
-    (N, 3, 3) d colour_c / d point, ok (N,) bool: every stencil ray found the scan)."""
-    p = np.asarray(points, np.float64)
-    offsets = stencil_offsets(normals, radius)
+    (N, 3, 3) d colour_c / d point, ok (N,) bool: every stencil ray found the scan). Float64 tensor
+    ``points`` and ``normals`` give tensors on their device, computed there without a read-back."""
+    if is_torch(points):
+        import torch
+
+        p, n, cat, einsum = points, normals, torch.cat, torch.einsum
+        tiled = n.repeat(RING_POINTS + 1, 1)
+    else:
+        p, n, cat, einsum = np.asarray(points, np.float64), normals, np.concatenate, np.einsum
+        tiled = np.tile(np.asarray(normals, np.float64), (RING_POINTS + 1, 1))
+    offsets = stencil_offsets(n, radius)
     # the centres and the ring in one cast: (1 + RING_POINTS, N) points
-    stencil = np.concatenate([p[None], p[None] + offsets]).reshape(-1, 3)
-    colours, found = ray_colours(surface, scan, stencil, np.tile(np.asarray(normals, np.float64), (RING_POINTS + 1, 1)),
-                                 max_distance, min_normal_cos, device=device)
+    stencil = cat([p[None], p[None] + offsets]).reshape(-1, 3)
+    colours, found = ray_colours(surface, scan, stencil, tiled, max_distance, min_normal_cos, device=device)
     colours = colours.reshape(RING_POINTS + 1, len(p), 3)
     centre, ring = colours[0], colours[1:]
     ok = found.reshape(RING_POINTS + 1, len(p)).all(0)
     colour = (centre + ring.sum(0)) / (RING_POINTS + 1)
-    gradient = np.einsum("jnc,jnd->ncd", ring, offsets) * (2.0 / (RING_POINTS * radius ** 2))
+    gradient = einsum("jnc,jnd->ncd", ring, offsets) * (2.0 / (RING_POINTS * radius ** 2))
     if space == "chromaticity":
         colour, gradient = chromaticity(colour, gradient)
     elif space != "rgb":
@@ -127,13 +167,17 @@ def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, 
 def chromaticity(colour, gradient=None, floor: float = 1e-3):
     """Each colour divided by the sum of its channels (N, 3): a shading factor s (a white light, a
     shadow) leaves s c / sum(s c) unchanged. With ``gradient`` (N, 3, D) d colour / d x, also returns
-    the chromaticity's: (d c_k - q_k sum_j d c_j) / S for S = sum_j c_j (at least ``floor``)."""
-    c = np.asarray(colour, np.float64)
-    total = np.maximum(c.sum(-1, keepdims=True), floor)
+    the chromaticity's: (d c_k - q_k sum_j d c_j) / S for S = sum_j c_j (at least ``floor``).
+    numpy, or float64 tensors (on their device)."""
+    if is_torch(colour):
+        c, g = colour, gradient
+        total = c.sum(-1, keepdim=True).clamp(min=floor)
+    else:
+        c, g = np.asarray(colour, np.float64), None if gradient is None else np.asarray(gradient, np.float64)
+        total = np.maximum(c.sum(-1, keepdims=True), floor)
     q = c / total
     if gradient is None:
         return q
-    g = np.asarray(gradient, np.float64)
     return q, (g - q[..., None] * g.sum(-2, keepdims=True)) / total[..., None]
 
 

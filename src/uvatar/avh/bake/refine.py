@@ -147,7 +147,8 @@ class PhotoSample:
     (:func:`uvatar.avh.bake.photometric.surface_colours`): colour (N, 3), gradient (N, 3, 3), ok (N,)
     bool where every stencil ray found the scan, radius (metres). A colour round ends with one; the
     next round starts from that pose, so :func:`refine_fit` takes it as its first iteration's colours
-    instead of casting the same rays again."""
+    instead of casting the same rays again. With a device (:func:`sample_colours`) the three are
+    float64 / bool tensors there, which the next round uses where they are."""
 
     colour: np.ndarray
     gradient: np.ndarray
@@ -156,22 +157,32 @@ class PhotoSample:
 
     @property
     def colours(self) -> np.ndarray:
-        """(N, 3) the colours, NaN where the stencil missed the scan (:func:`fit_colours`)."""
+        """(N, 3) numpy the colours, NaN where the stencil missed the scan (:func:`fit_colours`); read
+        back once from the device for a sample of tensors (:func:`sample_colours` with a device)."""
+        if not isinstance(self.colour, np.ndarray):
+            import torch
+
+            return torch.where(self.ok[:, None], self.colour, float("nan")).cpu().numpy()
         return np.where(self.ok[:, None], self.colour, np.nan)
 
 
 def sample_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius: float, shape=None,
                    device: str | None = None) -> PhotoSample:
-    """:class:`PhotoSample` of the body posed by ``fit`` at stencil ``radius`` (the texture sampled on
-    ``device`` if not None)."""
+    """:class:`PhotoSample` of the body posed by ``fit`` at stencil ``radius``; with ``device`` posed,
+    cast and sampled there and kept there as tensors
+    (:func:`.refine_device.sample_colours_on_device`)."""
     from uvatar.avh.bake.photometric import surface_colours
 
+    if device is not None:
+        from uvatar.avh.bake.refine_device import sample_colours_on_device
+
+        return PhotoSample(*sample_colours_on_device(body, fit, surface, scan_mesh, config, radius, shape, device),
+                           float(radius))
     use = refine_vertices(body, config)
-    v, n, _ = _posed(_posing_body(body, device), body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale,
-                     _shape_tensor(fit, shape))
+    v, n, _ = _posed(body, body.joint_rotvecs_from_fit(fit), fit.Rh, fit.Th, fit.scale, _shape_tensor(fit, shape))
     colour, grad, ok = surface_colours(surface, scan_mesh, v[use], n[use], radius, config.photometric_max_distance,
                                        float(np.cos(np.radians(config.max_normal_angle_deg))),
-                                       config.photometric_space, device)
+                                       config.photometric_space)
     return PhotoSample(colour, grad, ok, float(radius))
 
 
@@ -180,16 +191,6 @@ def fit_colours(body, fit, surface, scan_mesh, config: PoseRefineConfig, radius:
     by ``fit``; NaN where the stencil missed the scan. The per-frame input of the cross-frame
     reference (:func:`uvatar.avh.bake.photometric.reference_colours`)."""
     return sample_colours(body, fit, surface, scan_mesh, config, radius, shape).colours
-
-
-def _nearest(scan, points, max_distance: float, device: str | None):
-    """(distance (N,), index (N,)) numpy of :meth:`ScanSurface.nearest_sample`, on ``device`` if not None."""
-    if device is None:
-        return scan.nearest_sample(points, max_distance)
-    import torch
-
-    near, idx = scan.nearest_sample(torch.as_tensor(points, device=device), max_distance)
-    return near.cpu().numpy(), idx.cpu().numpy()
 
 
 def _huber_weights(residuals, scale: float) -> np.ndarray:
@@ -304,7 +305,8 @@ def _normal_equations(points, subtree, groups, centres, centre0, blocks):
 
 def _normal_equations_reference(points, subtree, centres, centre0, blocks):
     """Plain twin of :func:`_normal_equations`: every row over every unknown, one dense product.
-    numpy arrays, or torch tensors on one device (:func:`_normal_equations_torch`)."""
+    numpy arrays, or torch tensors on one device (:mod:`.refine_device`: one product of every row
+    over every unknown suits a GPU better than the CPU path's vertex groups)."""
     k = subtree.shape[1]
     _, cat = _cross_cat(points)
     jacs, weights, residuals = [], [], []
@@ -317,23 +319,6 @@ def _normal_equations_reference(points, subtree, centres, centre0, blocks):
     jac, w, r = cat(jacs, 0), cat(weights, 0), cat(residuals, 0)
     jac_w = jac * (w ** 0.5)[:, None]
     return jac_w.T @ jac_w, jac.T @ (w * r)
-
-
-def _normal_equations_torch(points, subtree, centres, centre0, blocks, device):
-    """:func:`_normal_equations` on a torch ``device`` (float64): the arrays go there, the dense
-    product of :func:`_normal_equations_reference` runs there (one product of every row over every
-    unknown suits a GPU better than the CPU path's vertex groups), (A, g) come back as numpy."""
-    import torch
-
-    def put(a):
-        return None if a is None else torch.as_tensor(np.asarray(a), device=device)
-
-    moved = [tuple(put(a) for a in block) for block in blocks if len(block[0])]
-    if not moved:
-        size = 4 * subtree.shape[1] + 6
-        return np.zeros((size, size)), np.zeros(size)
-    a, g = _normal_equations_reference(put(points), put(subtree), put(centres), put(centre0), moved)
-    return a.cpu().numpy(), g.cpu().numpy()
 
 
 def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None,
@@ -352,11 +337,13 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     of the previous colour round): the first iteration uses it instead of sampling the scan again
     (the same colours). final_colour_residual: False skips sampling the colours after the last step,
     which only the stats' last ``colour_residual`` would use (the bake's colour rounds).
-    device: a torch device (``BakeConfig.torch_device``) for the posing (:func:`_posing_body`), the
-    nearest scan samples (:meth:`~uvatar.avh.bake.register.ScanSurface.nearest_sample`), the normal
-    equations (:func:`_normal_equations_torch`), the stencil rays and the scan's texture
-    (:func:`.photometric.ray_colours`); None: the CPU body, the k-d tree, the grouped numpy products and
-    the numpy stencils.
+    device: a torch device (``BakeConfig.torch_device``): the whole loop runs there
+    (:func:`.refine_device.refine_fit_on_device`: the posing (:func:`_posing_body`), the nearest scan
+    samples (:meth:`~uvatar.avh.bake.register.ScanSurface.nearest_sample`), the stencil rays and the
+    scan's texture (:func:`.photometric.surface_colours`), the normal equations, the solve and the
+    updates) and reads back once at its end, with the same results (within round-off); a start_sample
+    may hold tensors there. None: the CPU body, the k-d tree, the grouped numpy products and the numpy
+    stencils (the reference).
     """
     from scipy.spatial.transform import Rotation
 
@@ -366,6 +353,11 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     config = config or PoseRefineConfig()
     if photo is not None and scan_mesh is None:
         raise ValueError("refine_fit: a photometric target needs the textured scan (scan_mesh)")
+    if device is not None:
+        from uvatar.avh.bake.refine_device import refine_fit_on_device
+
+        return refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
+                                    final_colour_residual, device)
     joints = list(body.conditioning_joints)
     tpl = body.template
     use = refine_vertices(body, config)
@@ -376,7 +368,6 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     rh = np.asarray(fit.Rh, np.float64).copy()
     th = np.asarray(fit.Th, np.float64).copy()
     shape_t = _shape_tensor(fit, shape)
-    posing = _posing_body(body, device)
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
     max_angle = np.radians(config.max_step_deg)
     k = len(joints)
@@ -391,11 +382,11 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
 
     diag = None
     for it in range(iterations + 1):
-        v, n, tr = _posed(posing, rot, rh, th, fit.scale, shape_t)
+        v, n, tr = _posed(body, rot, rh, th, fit.scale, shape_t)
         v, n = v[use], n[use]
         if diag is None:
             diag = float(np.linalg.norm(v.max(0) - v.min(0)))
-        near, idx = _nearest(scan, v, config.max_distance * diag, device)
+        near, idx = scan.nearest_sample(v, config.max_distance * diag)
         found = np.isfinite(near)
         m = np.take(scan.sample_normals, idx, axis=0)
         ok = found & ((m * n).sum(1) >= cos_max)
@@ -413,7 +404,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
             else:
                 colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
                                                      config.photometric_max_distance, cos_max,
-                                                     config.photometric_space, device)
+                                                     config.photometric_space)
             seen &= photo.known
             rc = (colour - photo.reference)[seen]                                   # (Nc, 3)
             colour_residuals.append(float(np.abs(rc).mean()) if seen.any() else float("nan"))
@@ -428,10 +419,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
             rc = rc.reshape(-1)
             wc = config.photometric_weight * _huber_weights(rc, config.photometric_huber)
             blocks.append((np.repeat(np.flatnonzero(seen), 3), grad[seen].reshape(-1, 3), wc, rc, None))
-        if device is None:
-            a, g = _normal_equations(v, sub, groups, centres, centre0, blocks)
-        else:
-            a, g = _normal_equations_torch(v, sub, centres, centre0, blocks, device)
+        a, g = _normal_equations(v, sub, groups, centres, centre0, blocks)
         # the prior also holds every other unknown where nothing observes it (a round limb's turn
         # with the colour term off, a tube's slide along its axis): no singular steps
         a += np.diag(config.damping * np.diag(a) + config.prior * int(ok.sum()) + 1e-12)

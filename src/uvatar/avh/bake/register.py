@@ -116,10 +116,25 @@ class ScanSurface:
             near, idx = self.kd_tree().query(points, distance_upper_bound=max_distance)
             found = np.isfinite(near)
             return near, np.where(found, idx, 0)
-        key = ("sorted_samples", str(points.device))
+        return nearest_points_torch(points, self.sorted_samples_torch(points.device), max_distance)
+
+    def sorted_samples_torch(self, device):
+        """:func:`sorted_points_torch` of the samples on ``device`` (made once per scan and device)."""
+        key = ("sorted_samples", str(device))
         if key not in self.on_device:
-            self.on_device[key] = sorted_points_torch(self.sample_points, points.device)
-        return nearest_points_torch(points, self.on_device[key], max_distance)
+            self.on_device[key] = sorted_points_torch(self.sample_points, device)
+        return self.on_device[key]
+
+    def samples_torch(self, device):
+        """(sample_points (S, 3), sample_normals (S, 3)) float64 tensors on ``device``, copied there once
+        per scan and device (the refinement's matches are gathered from them every iteration)."""
+        import torch
+
+        key = ("samples", str(device))
+        if key not in self.on_device:
+            self.on_device[key] = (torch.as_tensor(self.sample_points, device=device),
+                                   torch.as_tensor(self.sample_normals, device=device))
+        return self.on_device[key]
 
     def normals_at(self, face, bary):
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0.
@@ -139,19 +154,20 @@ class ScanSurface:
             corners = corner_normals[fo].reshape(-1, 3, 3)
             n = torch.einsum("kjc,kj->kc", corners, bary.to(torch.float64))
             length = torch.einsum("kc,kc->k", n, n).sqrt()
-            where = torch.where
-        else:
-            where = np.where
-            face_normals = self.face_normals
-            fo = np.where(ok, face, 0)
-            corners = np.take(self.corner_normals.reshape(-1, 9), fo, axis=0).reshape(-1, 3, 3)   # take: ~5x a fancy index
-            n = np.einsum("kjc,kj->kc", corners, np.asarray(bary, np.float64))
-            length = np.sqrt(np.einsum("kc,kc->k", n, n))
+            # the numpy path's steps below, chosen by torch.where (no read-back of ``bad``)
+            bad = ok & (length < 1e-12)  # opposite normals cancelled: use the (unit) face normal
+            n = torch.where(bad[:, None], face_normals[fo], n)
+            out = n / torch.where(ok & ~bad, length, torch.ones_like(length))[:, None]
+            return torch.where(ok[:, None], out, torch.zeros_like(out))
+        fo = np.where(ok, face, 0)
+        corners = np.take(self.corner_normals.reshape(-1, 9), fo, axis=0).reshape(-1, 3, 3)   # take: ~5x a fancy index
+        n = np.einsum("kjc,kj->kc", corners, np.asarray(bary, np.float64))
+        length = np.sqrt(np.einsum("kc,kc->k", n, n))
         bad = ok & (length < 1e-12)  # opposite normals cancelled: use the (unit) face normal
         if bad.any():
-            n[bad] = face_normals[fo[bad]]
+            n[bad] = self.face_normals[fo[bad]]
             length[bad] = 1.0
-        out = n / where(ok, length, 1.0)[:, None]
+        out = n / np.where(ok, length, 1.0)[:, None]
         out[~ok] = 0.0
         return out
 

@@ -11,7 +11,7 @@ import scipy.sparse as sp
 
 from uvatar.geometry import vertex_normals
 
-__all__ = ["sorted_points_torch", "nearest_points_torch"]
+__all__ = ["sorted_points_torch", "nearest_points_torch", "nearest_points_in_window", "widest_slab"]
 
 
 def sorted_points_torch(points, device):
@@ -24,6 +24,23 @@ def sorted_points_torch(points, device):
     return p[order], order
 
 
+def _query_slabs(queries, points, max_distance, chunk: int):
+    """The queries sorted by height (order (N,), sorted (N, 3)) and, per chunk of ``chunk`` of them,
+    the slab [lo, hi) of height-sorted ``points`` within ``max_distance`` of the chunk's heights
+    ((C,) int64 each, on the device)."""
+    import torch
+
+    n = len(queries)
+    by_height = torch.argsort(queries[:, 1])
+    q_sorted = queries[by_height]
+    heights = q_sorted[:, 1]
+    starts = torch.arange(0, n, chunk, device=queries.device)
+    lo = torch.searchsorted(points[:, 1].contiguous(), heights[starts] - max_distance)
+    hi = torch.searchsorted(points[:, 1].contiguous(),
+                            heights[torch.clamp(starts + chunk - 1, max=n - 1)] + max_distance, right=True)
+    return by_height, q_sorted, lo, hi
+
+
 def nearest_points_torch(queries, sorted_points, max_distance: float, chunk: int = 256):
     """Each query's nearest point within ``max_distance`` by brute force on the queries' device (the
     twin of a k-d tree query): (distance (N,) float64, inf where none; index (N,) int64 into the
@@ -31,7 +48,8 @@ def nearest_points_torch(queries, sorted_points, max_distance: float, chunk: int
 
     The queries go in chunks of ``chunk`` sorted by height; each chunk compares against the slab of
     points within ``max_distance`` of its heights only (float64 |p|^2 + |q|^2 - 2 p.q, then the
-    winner's exact distance)."""
+    winner's exact distance). The slabs' bounds are read back once per call (one sync);
+    :func:`nearest_points_in_window` needs none."""
     import torch
 
     points, order = sorted_points
@@ -40,13 +58,7 @@ def nearest_points_torch(queries, sorted_points, max_distance: float, chunk: int
     index = torch.zeros(n, dtype=torch.int64, device=queries.device)
     if n == 0 or len(points) == 0:
         return dist, index
-    by_height = torch.argsort(queries[:, 1])
-    q_sorted = queries[by_height]
-    heights = q_sorted[:, 1]
-    starts = torch.arange(0, n, chunk, device=queries.device)
-    lo = torch.searchsorted(points[:, 1].contiguous(), heights[starts] - max_distance)
-    hi = torch.searchsorted(points[:, 1].contiguous(),
-                            heights[torch.clamp(starts + chunk - 1, max=n - 1)] + max_distance, right=True)
+    by_height, q_sorted, lo, hi = _query_slabs(queries, points, max_distance, chunk)
     bounds = torch.stack([lo, hi], 1).tolist()                           # one host read for all chunks
     p_norm = (points * points).sum(1)
     for c, (a, b) in enumerate(bounds):
@@ -62,6 +74,53 @@ def nearest_points_torch(queries, sorted_points, max_distance: float, chunk: int
         dist[target] = torch.where(ok, exact, torch.full_like(exact, float("inf")))
         index[target] = torch.where(ok, order[best], torch.zeros_like(best))
     return dist, index
+
+
+def widest_slab(queries, sorted_points, max_distance, chunk: int = 256):
+    """(0-d int64 tensor) the most points any chunk of ``queries`` compares against in
+    :func:`nearest_points_torch`: the window :func:`nearest_points_in_window` needs."""
+    import torch
+
+    points = sorted_points[0]
+    if len(queries) == 0 or len(points) == 0:
+        return torch.zeros((), dtype=torch.int64, device=queries.device)
+    _, _, lo, hi = _query_slabs(queries, points, max_distance, chunk)
+    return (hi - lo).max()
+
+
+def nearest_points_in_window(queries, sorted_points, max_distance, window: int, chunk: int = 256):
+    """:func:`nearest_points_torch` without reading anything back: each chunk compares against the
+    ``window`` points from the start of its slab (those past the slab's end weigh nothing), so the
+    launches are known on the host. Returns (distance (N,), index (N,), widest slab (0-d int64)): the
+    same answers as :func:`nearest_points_torch` wherever ``widest <= window``; the caller checks
+    that once, later (a slab cut short misses its far end)."""
+    import torch
+
+    points, order = sorted_points
+    n = len(queries)
+    dist = torch.full((n,), float("inf"), dtype=torch.float64, device=queries.device)
+    index = torch.zeros(n, dtype=torch.int64, device=queries.device)
+    if n == 0 or len(points) == 0:
+        return dist, index, torch.zeros((), dtype=torch.int64, device=queries.device)
+    by_height, q_sorted, lo, hi = _query_slabs(queries, points, max_distance, chunk)
+    p_norm = (points * points).sum(1)
+    span = torch.arange(max(1, int(window)), device=queries.device)
+    for c in range(len(lo)):
+        rows = slice(c * chunk, min(n, (c + 1) * chunk))
+        cols = lo[c] + span
+        inside = cols < hi[c]                                           # (W,) within the slab
+        cols = cols.clamp(max=len(points) - 1)
+        q = q_sorted[rows]
+        d2 = torch.addmm(p_norm[cols][None], q, points[cols].T, alpha=-2.0)     # |p|^2 - 2 q.p
+        d2 += (q * q).sum(1)[:, None]
+        pick = d2.masked_fill_(~inside[None], float("inf")).argmin(1)
+        best = cols[pick]
+        exact = torch.linalg.norm(q - points[best], dim=1)
+        ok = inside[pick] & (exact < max_distance)                      # as the k-d tree's bound
+        target = by_height[rows]
+        dist[target] = torch.where(ok, exact, torch.full_like(exact, float("inf")))
+        index[target] = torch.where(ok, order[best], torch.zeros_like(best))
+    return dist, index, (hi - lo).max()
 
 
 class _TorchOps:

@@ -1,0 +1,324 @@
+"""The device twin of :func:`.refine.refine_fit` (``BakeConfig.torch_device``; issue 39): the whole
+Gauss-Newton loop on torch tensors on one device, without a read-back until its end.
+
+The iteration state (joint rotation vectors, Rh, Th, clothing offsets: float64) stays on the device;
+the body is posed there (float32, as the numpy path's posing, then cast to float64); the nearest scan
+samples, the stencil colours, the Huber weights, the normal equations (the dense product of
+:func:`.refine._normal_equations_reference`, one owner of that math), the damped solve and the
+rotation updates (:func:`compose_rotvecs`, :func:`rotate`: the twins of SciPy's ``Rotation``) run
+there too. Rows the numpy path leaves out (no match, no colour) get weight zero instead, and its
+data-dependent stop ("fewer than 3 matches per joint") becomes a masked update: the loop always runs
+its full count, a stopped fit no longer moves, and the per-iteration stats are read back once at the
+end and cut where the numpy path would have stopped appending them. Constants per body (the
+refinement vertices, subtree and region weights) go to the device once (:func:`.refine._memo`), the
+scan's samples once per scan (:meth:`.register.ScanSurface.samples_torch`).
+
+The nearest samples use a fixed window per chunk of queries
+(:func:`.register_torch.nearest_points_in_window`), measured once per scan and device; each call checks
+at its end, in the same read, that no slab outgrew it (else it widens the window and runs again). On
+the CPU, where a read-back costs nothing, the tighter slab search with its one read per query stays
+(:data:`WINDOW_SEARCH_ON_CPU`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "rotvec_quaternions", "quaternion_rotvecs"]
+
+
+def rotvec_quaternions(rotvec):
+    """(..., 4) unit quaternions (x, y, z, w) of rotation vectors (..., 3) (radians), float64 tensors:
+    SciPy's ``Rotation.from_rotvec`` (its Taylor series below 1e-3 rad)."""
+    import torch
+
+    angle = torch.linalg.norm(rotvec, dim=-1, keepdim=True)
+    small = angle <= 1e-3
+    a2 = angle * angle
+    safe = torch.where(small, torch.ones_like(angle), angle)
+    scale = torch.where(small, 0.5 - a2 / 48 + a2 * a2 / 3840, torch.sin(safe / 2) / safe)
+    return torch.cat([scale * rotvec, torch.cos(angle / 2)], -1)
+
+
+def quaternion_rotvecs(quat):
+    """(..., 3) rotation vectors of unit quaternions (x, y, z, w) (..., 4): SciPy's ``as_rotvec``
+    (w made non-negative, angle in [0, pi], its Taylor series below 1e-3 rad)."""
+    import torch
+
+    quat = torch.where(quat[..., 3:] < 0, -quat, quat)
+    xyz, w = quat[..., :3], quat[..., 3:]
+    angle = 2 * torch.atan2(torch.linalg.norm(xyz, dim=-1, keepdim=True), w)
+    small = angle <= 1e-3
+    a2 = angle * angle
+    safe = torch.where(small, torch.ones_like(angle), angle)
+    scale = torch.where(small, 2 + a2 / 12 + 7 * a2 * a2 / 2880, safe / torch.sin(safe / 2))
+    return scale * xyz
+
+
+def _quaternion_product(p, q):
+    """(..., 4) the rotation q then p (SciPy's ``Rotation(p) * Rotation(q)``), quaternions (x, y, z, w)."""
+    import torch
+
+    pv, pw, qv, qw = p[..., :3], p[..., 3:], q[..., :3], q[..., 3:]
+    vector = pw * qv + qw * pv + torch.linalg.cross(pv, qv, dim=-1)
+    return torch.cat([vector, pw * qw - (pv * qv).sum(-1, keepdim=True)], -1)
+
+
+def compose_rotvecs(a, b):
+    """(..., 3) the rotation vector of ``Rotation.from_rotvec(a) * Rotation.from_rotvec(b)`` (b first,
+    then a); a, b (..., 3) float64 tensors (broadcast)."""
+    import torch
+
+    a, b = torch.broadcast_tensors(a, b)
+    return quaternion_rotvecs(_quaternion_product(rotvec_quaternions(a), rotvec_quaternions(b)))
+
+
+def rotate(rotvec, points):
+    """``Rotation.from_rotvec(rotvec).apply(points)``: points (..., 3) turned by rotvec (3,) or (..., 3)."""
+    import torch
+
+    q = rotvec_quaternions(rotvec)
+    u, w = q[..., :3], q[..., 3:]
+    u, points = torch.broadcast_tensors(u, points)
+    uv = torch.linalg.cross(u, points, dim=-1)
+    return points + 2 * w * uv + 2 * torch.linalg.cross(u, uv, dim=-1)
+
+
+def _huber_weights(residuals, scale: float):
+    """:func:`.refine._huber_weights` of a tensor."""
+    return (scale / residuals.abs().clamp(min=1e-12)).clamp(max=1.0)
+
+
+def _rotation_step(step, max_angle: float):
+    """:func:`.refine._rotation_step` of a tensor (rows of rotation vectors capped at ``max_angle``)."""
+    angle = step.norm(dim=-1, keepdim=True)
+    return step * (max_angle / angle.clamp(min=1e-12)).clamp(max=1.0)
+
+
+def _clothing_offsets(residuals, skin, ok, huber: float, steps: int = 3):
+    """:func:`.refine._clothing_offsets` of the rows where ``ok`` (N,) (the others weigh zero): (K,)."""
+    import torch
+
+    r = torch.where(ok, residuals, torch.zeros_like(residuals))
+    offsets = torch.zeros(skin.shape[1], dtype=skin.dtype, device=skin.device)
+    eye = torch.eye(skin.shape[1], dtype=skin.dtype, device=skin.device)
+    for _ in range(steps):
+        w = torch.where(ok, _huber_weights(r + skin @ offsets, huber), torch.zeros_like(r))
+        a = (skin * w[:, None]).T @ skin
+        offsets = -torch.linalg.solve(a + 1e-9 * eye, (skin * w[:, None]).T @ r)
+    return offsets
+
+
+#: the CPU keeps the slab search (its one read-back per query costs nothing there, and it compares
+#: ~5x fewer points than a window wide enough for every slab); tests set it to run CUDA's choice here
+WINDOW_SEARCH_ON_CPU = False
+
+
+def _roomy(width: int) -> int:
+    """A nearest-sample window with room to spare for slabs ``width`` points wide."""
+    return int(width) * 5 // 4 + 256
+
+
+def _nearest_window(scan, device) -> int:
+    """The window of :func:`.register_torch.nearest_points_in_window` kept with ``scan`` for ``device``
+    (0 until the first query measures its slabs)."""
+    return scan.on_device.get(("nearest_window", str(device)), 0)
+
+
+def _nearest(scan, points, max_distance, device):
+    """(distance (N,), index (N,), widest slab (0-d)) tensors of each of ``points``' nearest scan
+    sample within ``max_distance`` (:meth:`.register.ScanSurface.nearest_sample`'s answers), with no
+    read-back once the scan's window is known: the first query on a scan and device measures its
+    slabs (one read) and keeps a roomy window with the scan. On the CPU (unless
+    :data:`WINDOW_SEARCH_ON_CPU`) the slab search itself (widest slab 0)."""
+    import torch
+
+    from uvatar.avh.bake.register_torch import nearest_points_in_window, widest_slab
+
+    if torch.device(device).type == "cpu" and not WINDOW_SEARCH_ON_CPU:
+        near, idx = scan.nearest_sample(points, max_distance)
+        return near, idx, torch.zeros((), dtype=torch.int64, device=device)
+    samples = scan.sorted_samples_torch(device)
+    key = ("nearest_window", str(device))
+    if key not in scan.on_device:
+        scan.on_device[key] = _roomy(int(widest_slab(points, samples, max_distance)))
+    return nearest_points_in_window(points, samples, max_distance, scan.on_device[key])
+
+
+def _body_on_device(body, config, device):
+    """(refinement vertices (N,) int64, subtree (N, K), region weights (N, K) float64, conditioning
+    joints (K,) int64) as tensors on ``device``: once per body, refinement vertex set and device."""
+    import torch
+
+    from uvatar.avh.bake.refine import _memo, refine_vertices, region_weights, subtree_weights
+
+    def make():
+        joints = list(body.conditioning_joints)
+        tpl = body.template
+        use = refine_vertices(body, config)
+        sub = subtree_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]
+        skin = region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]
+        return tuple(torch.as_tensor(np.asarray(a), device=device) for a in (use, sub, skin, np.asarray(joints)))
+
+    return _memo(body, ("on_device", config.max_untracked_weight, config.max_vertices, str(device)), make)
+
+
+def _pose(posing, rot, rh, th, scale, shape):
+    """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 tensors of one posed frame:
+    the body posed on its device in float32 (as :func:`.refine._posed`), no copy to the host."""
+    import torch
+
+    with torch.no_grad():
+        out = posing.pose(rot.to(posing.device, torch.float32)[None],
+                          Rh=rh.to(posing.device, torch.float32)[None], Th=th.to(posing.device, torch.float32)[None],
+                          scale=scale, shape=shape)
+    return (out.vertices[0].to(torch.float64), out.normals[0].to(torch.float64),
+            out.joint_transforms[0].to(torch.float64))
+
+
+def _sample_tensors(sample, device):
+    """(colour (N, 3), gradient (N, 3, 3), ok (N,)) of a :class:`.refine.PhotoSample` as tensors on
+    ``device`` (no copy when they are there already)."""
+    import torch
+
+    return tuple(torch.as_tensor(a, device=device) for a in (sample.colour, sample.gradient, sample.ok))
+
+
+def sample_colours_on_device(body, fit, surface, scan_mesh, config, radius: float, shape, device):
+    """(colour (N, 3), gradient (N, 3, 3), ok (N,)) tensors on ``device``: :func:`.refine.sample_colours`
+    with the body posed, the rays cast and the texture sampled there, nothing read back."""
+    import torch
+
+    from uvatar.avh.bake.photometric import surface_colours
+    from uvatar.avh.bake.refine import _posing_body, _shape_tensor
+
+    use = _body_on_device(body, config, device)[0]
+    posing = _posing_body(body, device)
+    dev = posing.device
+    shape_t = _shape_tensor(fit, shape)
+    v, n, _ = _pose(posing, torch.as_tensor(body.joint_rotvecs_from_fit(fit), dtype=torch.float64, device=dev),
+                    torch.as_tensor(np.asarray(fit.Rh, np.float64), device=dev),
+                    torch.as_tensor(np.asarray(fit.Th, np.float64), device=dev),
+                    torch.tensor([float(fit.scale)], device=dev), shape_t)
+    v, n = v.to(device)[use], n.to(device)[use]
+    return surface_colours(surface, scan_mesh, v, n, radius, config.photometric_max_distance,
+                           float(np.cos(np.radians(config.max_normal_angle_deg))), config.photometric_space, device)
+
+
+def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample, final_colour_residual,
+                         device):
+    """:func:`.refine.refine_fit` with ``device`` (its arguments, checked there): the same refined fit
+    (BodyFit of numpy arrays) and stats (lists of Python floats, cut where the numpy path stops), from
+    one read-back at the end (module doc)."""
+    import torch
+
+    from uvatar.avh.bake.photometric import surface_colours
+    from uvatar.avh.bake.refine import _normal_equations_reference, _posing_body, _shape_tensor
+    from uvatar.capture import BodyFit
+
+    f64 = dict(dtype=torch.float64, device=device)
+    use, sub, skin, joints = _body_on_device(body, config, device)
+    k = len(joints)
+    posing = _posing_body(body, device)
+    shape_t = _shape_tensor(fit, shape)   # on the host: the body finds its bind state without a read-back
+    scale = torch.tensor([float(fit.scale)], device=posing.device)
+    rot = torch.as_tensor(body.joint_rotvecs_from_fit(fit).astype(np.float64), device=device)
+    rh = torch.as_tensor(np.asarray(fit.Rh, np.float64), device=device)
+    th = torch.as_tensor(np.asarray(fit.Th, np.float64), device=device)
+    sample_points, sample_normals = scan.samples_torch(device)
+    cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
+    max_angle = float(np.radians(config.max_step_deg))
+    iterations = config.iterations
+    if photo is not None and config.photometric_iterations is not None:
+        iterations = config.photometric_iterations
+    if photo is not None:
+        reference = torch.as_tensor(np.asarray(photo.reference, np.float64), device=device)
+        known = torch.as_tensor(np.asarray(photo.known, bool), device=device)
+    n_use = len(use)
+    colour_rows = torch.arange(n_use, device=device)[:, None].expand(n_use, 3).reshape(-1)   # (3N,) vertex of each row
+    all_rows = torch.arange(n_use, device=device)
+    offsets = torch.zeros(skin.shape[1], **f64)
+    running = torch.ones((), dtype=torch.bool, device=device)   # the numpy path has not stopped yet
+    reached, residuals, matched, colour_residuals = [], [], [], []
+    widest_slab_seen = torch.zeros((), dtype=torch.int64, device=device)
+
+    max_distance = None
+    for it in range(iterations + 1):
+        v, n, tr = (a.to(device) for a in _pose(posing, rot, rh, th, scale, shape_t))
+        v, n = v[use], n[use]
+        if max_distance is None:
+            max_distance = config.max_distance * torch.linalg.norm(v.max(0).values - v.min(0).values)
+        near, idx, widest = _nearest(scan, v, max_distance, device)
+        widest_slab_seen = torch.maximum(widest_slab_seen, widest)
+        m = sample_normals[idx]
+        ok = torch.isfinite(near) & ((m * n).sum(1) >= cos_max)
+        r = ((v - sample_points[idx]) * m).sum(1)
+        count = ok.sum()
+        if it == 0:
+            offsets = _clothing_offsets(r, skin, ok, config.huber)    # zeros where nothing matched
+        r = r + skin @ offsets
+        reached.append(running)
+        residuals.append(torch.where(ok, r.abs(), torch.zeros_like(r)).sum() * 1000 / count)   # NaN: none
+        matched.append(count.to(torch.float64) / n_use)
+        if photo is not None and it == iterations and not final_colour_residual:
+            break
+        if photo is not None:
+            if it == 0 and start_sample is not None and start_sample.radius == photo.radius:
+                colour, grad, seen = _sample_tensors(start_sample, device)
+            else:
+                colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
+                                                     config.photometric_max_distance, cos_max,
+                                                     config.photometric_space, device)
+            seen = seen & known
+            rc = torch.where(seen[:, None], colour - reference, torch.zeros_like(colour))     # (N, 3)
+            colour_residuals.append(rc.abs().sum() / (3 * seen.sum()))
+        if it == iterations:
+            break
+        running = running & (count >= 3 * k)
+        centre0 = v.mean(0)
+        rows_ok = torch.where(ok, r, torch.zeros_like(r))
+        blocks = [(all_rows, torch.where(ok[:, None], m, torch.zeros_like(m)),
+                   torch.where(ok, _huber_weights(rows_ok, config.huber), torch.zeros_like(r)), rows_ok, skin)]
+        if photo is not None:
+            # one row per (vertex, channel): d colour_c = grad_c . dv; weight zero where unseen
+            seen3 = seen[:, None].expand(n_use, 3).reshape(-1)
+            rc = rc.reshape(-1)
+            wc = torch.where(seen3, config.photometric_weight * _huber_weights(rc, config.photometric_huber),
+                             torch.zeros_like(rc))
+            direction = torch.where(seen[:, None, None], grad, torch.zeros_like(grad)).reshape(-1, 3)
+            blocks.append((colour_rows, direction, wc, rc, None))
+        centres = tr[joints, :3, 3]
+        a, g = _normal_equations_reference(v, sub, centres, centre0, blocks)
+        a = a + torch.diag(config.damping * torch.diagonal(a) + config.prior * count + 1e-12)
+        step = -torch.linalg.solve(a, g)
+        d_joint = _rotation_step(step[: 3 * k].reshape(k, 3), max_angle)
+        d_root = _rotation_step(step[3 * k: 3 * k + 3], max_angle)
+        frames = tr[joints, :3, :3]
+        frames = frames / torch.linalg.norm(frames, dim=1, keepdim=True)               # drop the scale
+        local = torch.einsum("kji,kj->ki", frames, d_joint)                             # R_k^T d_k
+        moved = rot.clone()
+        moved[joints] = compose_rotvecs(rot[joints], local)
+        rot = torch.where(running, moved, rot)
+        rh = torch.where(running, compose_rotvecs(d_root, rh), rh)
+        th = torch.where(running, rotate(d_root, th - centre0) + centre0 + step[3 * k + 3: 3 * k + 6], th)
+        offsets = torch.where(running, offsets + step[3 * k + 6:], offsets)
+
+    # the one read-back: every stat, the stop flags and the refined state at once
+    offset_mean = (skin @ offsets).mean() * 1000
+    parts = [torch.stack(residuals), torch.stack(matched), torch.stack(reached).to(torch.float64),
+             torch.stack(colour_residuals) if colour_residuals else torch.zeros(0, **f64),
+             offset_mean[None], widest_slab_seen.to(torch.float64)[None], rot.reshape(-1), rh, th]
+    host = torch.cat(parts).cpu().numpy()
+    cuts = np.cumsum([len(p) for p in parts])[:-1]
+    res, mat, kept, col, off, widest, rot_h, rh_h, th_h = np.split(host, cuts)
+    if widest[0] > _nearest_window(scan, device):   # a slab was cut short: again, with room for it (rare)
+        scan.on_device[("nearest_window", str(device))] = _roomy(int(widest[0]))
+        return refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
+                                    final_colour_residual, device)
+    appended = int(kept.sum())         # the numpy path appends stats at each iteration it reaches
+    refined = BodyFit(poses=rot_h.astype(np.float32), Rh=rh_h, Th=th_h, shapes=fit.shapes, scale=fit.scale, id=fit.id)
+    stats = {"residual_mm": [float(x) for x in res[:appended]], "matched_fraction": [float(x) for x in mat[:appended]],
+             "offset_mm_mean": float(off[0])}
+    if photo is not None:
+        stats["colour_residual"] = [float(x) for x in col[:appended]]
+    return refined, stats
