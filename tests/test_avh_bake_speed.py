@@ -209,9 +209,8 @@ def test_inpainting_gutter_changes_no_island_texel_beyond_rounding(setup, baked)
 
 
 def test_grouped_normal_equations_match_the_dense_product():
-    from uvatar.avh.bake.refine import (
-        _joint_groups,
-        _normal_equations,
+    from uvatar.avh.bake.refine import _joint_groups, _normal_equations
+    from uvatar.avh.bake.refine_model import (
         _normal_equations_reference,
         refine_vertices,
         region_weights,

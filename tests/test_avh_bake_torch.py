@@ -197,7 +197,8 @@ def test_nearest_sample_on_torch_matches_the_kd_tree(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_normal_equations_on_torch_match_the_grouped_products(device):
-    from uvatar.avh.bake.refine import _joint_groups, _normal_equations, _normal_equations_reference
+    from uvatar.avh.bake.refine import _joint_groups, _normal_equations
+    from uvatar.avh.bake.refine_model import _normal_equations_reference
 
     rng = np.random.default_rng(0)
     n, k = 300, 5
@@ -472,11 +473,11 @@ def test_colour_round_with_torch_stages_matches(device):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_anny_twin_on_a_device_poses_like_the_body(device):
-    """The refinement's posing body on a device (:func:`uvatar.avh.bake.refine._anny_on`; the CPU twin
+    """The refinement's posing body on a device (:func:`uvatar.avh.bake.refine_model._anny_on`; the CPU twin
     here stands in for CUDA's in CI): the same vertices, normals and joints (float32 round-off)."""
     from test_avh_bake_helpers import body, frame_pose
 
-    from uvatar.avh.bake.refine import _anny_on, _posed, _posing_body
+    from uvatar.avh.bake.refine_model import _anny_on, _posed, _posing_body
 
     model = body()
     assert _posing_body(model, "cpu") is model and _posing_body(model, None) is model

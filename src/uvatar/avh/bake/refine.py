@@ -23,122 +23,28 @@ slope chained with the same LBS Jacobian). :mod:`.refine_together` runs those ro
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
 from uvatar.avh.bake.config import PoseRefineConfig
+from uvatar.avh.bake.refine_model import (
+    _memo,
+    _posed,
+    _shape_tensor,
+    refine_vertices,
+    region_weights,
+    subtree_weights,
+    untracked_skin_weight,
+)
 
 __all__ = ["PoseRefineConfig", "PhotoSample", "refine_fit", "refine_vertices", "fit_colours", "sample_colours", "subtree_weights", "region_weights",
            "untracked_skin_weight"]
 
 
-def subtree_weights(skin_weights, parents, joints) -> np.ndarray:
-    """(V, K) sum of each vertex's skinning weights over the subtree rooted at each of ``joints``."""
-    from uvatar.body.kinematics import ancestor_matrix
-
-    anc = ancestor_matrix(parents)
-    return np.asarray(skin_weights, dtype=np.float64) @ anc[:, list(joints)].astype(np.float64)
-
-
-def untracked_skin_weight(skin_weights, joints) -> np.ndarray:
-    """(V,) each vertex's skinning weight on joints that are neither the root (moved by Rh/Th) nor
-    among ``joints`` (the ones the refinement rotates): the parts a body fit cannot articulate."""
-    w = np.asarray(skin_weights, dtype=np.float64)
-    moved = np.zeros(w.shape[1], dtype=bool)
-    moved[0] = True
-    moved[list(joints)] = True
-    return w[:, ~moved].sum(1)
-
-
-def region_weights(skin_weights, parents, joints) -> np.ndarray:
-    """(V, K) skinning weights gathered onto ``joints``: every other joint gives its weight to its
-    nearest ancestor among ``joints`` (or to the first of ``joints`` if it has none)."""
-    from uvatar.body.kinematics import nearest_ancestor
-
-    owner = np.maximum(nearest_ancestor(parents, list(joints)), 0)
-    gather = np.zeros((len(owner), len(joints)))
-    gather[np.arange(len(owner)), owner] = 1.0
-    return np.asarray(skin_weights, dtype=np.float64) @ gather
-
-
 def _rotation_step(step: np.ndarray, max_angle: float) -> np.ndarray:
     angle = np.linalg.norm(step, axis=-1, keepdims=True)
     return step * np.minimum(1.0, max_angle / np.maximum(angle, 1e-12))
-
-
-_BODY_MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()   # body -> {key: arrays}, see _memo
-
-
-def _memo(body, key, make):
-    """``make()`` once per body model and ``key`` (the refinement's per-body arrays are the same for
-    every frame and round of a bake); the entries go with the body."""
-    per_body = _BODY_MEMO.setdefault(body, {})
-    if key not in per_body:
-        per_body[key] = make()
-    return per_body[key]
-
-
-def refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
-    """(N,) int64 the shadow vertices the refinement matches: those the conditioning joints move
-    (:func:`untracked_skin_weight` at most ``max_untracked_weight``), evenly thinned to
-    ``max_vertices``. The same for every frame, so per-vertex colours compare across frames
-    (memoized per body)."""
-    key = ("refine_vertices", config.max_untracked_weight, config.max_vertices)
-    return _memo(body, key, lambda: _refine_vertices(body, config))
-
-
-def _refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
-    tracked = untracked_skin_weight(body.template.skin_weights, list(body.conditioning_joints))
-    candidates = np.flatnonzero(tracked <= config.max_untracked_weight)
-    if config.max_vertices is None or config.max_vertices >= len(candidates):
-        return candidates
-    return candidates[np.linspace(0, len(candidates) - 1, config.max_vertices).round().astype(np.int64)]
-
-
-def _posed(body, rot, rh, th, scale, shape_t):
-    """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 numpy of one posed frame
-    (posed on the body model's device)."""
-    import torch
-
-    dev = body.device
-    with torch.no_grad():
-        out = body.pose(torch.as_tensor(rot, dtype=torch.float32, device=dev)[None],
-                        Rh=torch.as_tensor(rh, dtype=torch.float32, device=dev)[None],
-                        Th=torch.as_tensor(th, dtype=torch.float32, device=dev)[None],
-                        scale=torch.tensor([float(scale)], device=dev),
-                        shape=None if shape_t is None else shape_t.to(dev))
-    return (out.vertices[0].cpu().numpy().astype(np.float64), out.normals[0].cpu().numpy().astype(np.float64),
-            out.joint_transforms[0].cpu().numpy().astype(np.float64))
-
-
-def _posing_body(body, device: str | None):
-    """The body model the refinement poses on ``device``: for a CUDA device, anny's own instance there
-    (built once per body; float32 posing on the GPU, within round-off of the CPU's); else ``body``
-    (the CPU, and models without a device twin here)."""
-    import torch
-
-    if device is None or torch.device(device).type == "cpu" or getattr(body, "name", None) != "anny":
-        return body
-    return _memo(body, ("posing", str(device)), lambda: _anny_on(body, device))
-
-
-def _anny_on(body, device):
-    """A twin of the AnnyBody ``body`` (its config) on ``device``."""
-    from dataclasses import replace
-
-    from uvatar.body.anny_backend import AnnyBody
-
-    return AnnyBody(replace(body.config, device=str(device)))
-
-
-def _shape_tensor(fit, shape):
-    import torch
-
-    if shape is None and np.asarray(fit.shapes).size:
-        shape = fit.shapes
-    return None if shape is None else torch.as_tensor(np.asarray(shape, np.float32))
 
 
 @dataclass
@@ -211,26 +117,6 @@ def _clothing_offsets(residuals, skin, huber: float, steps: int = 3) -> np.ndarr
     return offsets
 
 
-def _cross_cat(x):
-    """(cross product over the last axis, concatenate along an axis) for numpy arrays or torch tensors."""
-    if type(x).__module__.startswith("torch"):
-        import torch
-
-        return (lambda a, b: torch.linalg.cross(*torch.broadcast_tensors(a, b), dim=-1)), \
-            (lambda xs, axis: torch.cat(xs, dim=axis))
-    return np.cross, (lambda xs, axis: np.concatenate(xs, axis=axis))
-
-
-def _motion_rows(points, directions, subtree, centres, centre0):
-    """Jacobian rows of ``directions . dv`` (N rows) for the refinement's unknowns: per joint a
-    world rotation d_k (vertex moves ``s_ik d_k x (v - c_k)``), the root rotation about ``centre0``
-    and the translation. -> (N, 3K + 6). numpy arrays or torch tensors (all of one kind)."""
-    cross, cat = _cross_cat(points)
-    arm = cross(points[:, None, :] - centres[None], directions[:, None, :])          # (N, K, 3)
-    return cat([(subtree[..., None] * arm).reshape(len(points), -1),
-                cross(points - centre0, directions), directions], 1)
-
-
 def _joint_groups(subtree, min_vertices: int = 128):
     """The refinement vertices grouped by the joints that move them (the nonzero columns of
     ``subtree`` (N, K); a torso vertex has a few, a finger tip a chain): (group of each vertex (N,),
@@ -265,7 +151,7 @@ def _normal_equations(points, subtree, groups, centres, centre0, blocks):
     ``subtree``; blocks: [(vertex of each row (R,), direction (R, 3), weight (R,), residual (R,),
     clothing-offset columns (R, K) or None)]. Rows are taken a vertex group at a time with only the
     columns that group's joints move (a quarter of them on anny): the products of
-    :func:`_normal_equations_reference`, without its zeros."""
+    :func:`.refine_model._normal_equations_reference`, without its zeros."""
     group_of, cols = groups
     k = subtree.shape[1]
     motion = 3 * k + 6
@@ -303,24 +189,6 @@ def _normal_equations(points, subtree, groups, centres, centre0, blocks):
     return a, g
 
 
-def _normal_equations_reference(points, subtree, centres, centre0, blocks):
-    """Plain twin of :func:`_normal_equations`: every row over every unknown, one dense product.
-    numpy arrays, or torch tensors on one device (:mod:`.refine_device`: one product of every row
-    over every unknown suits a GPU better than the CPU path's vertex groups)."""
-    k = subtree.shape[1]
-    _, cat = _cross_cat(points)
-    jacs, weights, residuals = [], [], []
-    for vertex, direction, weight, residual, clothing in blocks:
-        rows = _motion_rows(points[vertex], direction, subtree[vertex], centres, centre0)
-        extra = 0 * rows[:, :k] if clothing is None else clothing
-        jacs.append(cat([rows, extra], 1))
-        weights.append(weight)
-        residuals.append(residual)
-    jac, w, r = cat(jacs, 0), cat(weights, 0), cat(residuals, 0)
-    jac_w = jac * (w ** 0.5)[:, None]
-    return jac_w.T @ jac_w, jac.T @ (w * r)
-
-
 def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None,
                start_sample: PhotoSample | None = None, final_colour_residual: bool = True,
                device: str | None = None):
@@ -338,7 +206,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     (the same colours). final_colour_residual: False skips sampling the colours after the last step,
     which only the stats' last ``colour_residual`` would use (the bake's colour rounds).
     device: a torch device (``BakeConfig.torch_device``): the whole loop runs there
-    (:func:`.refine_device.refine_fit_on_device`: the posing (:func:`_posing_body`), the nearest scan
+    (:func:`.refine_device.refine_fit_on_device`: the posing (:func:`.refine_model._posing_body`), the nearest scan
     samples (:meth:`~uvatar.avh.bake.register.ScanSurface.nearest_sample`), the stencil rays and the
     scan's texture (:func:`.photometric.surface_colours`), the normal equations, the solve and the
     updates) and reads back once at its end, with the same results (within round-off); a start_sample

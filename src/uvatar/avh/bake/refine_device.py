@@ -4,13 +4,13 @@ Gauss-Newton loop on torch tensors on one device, without a read-back until its 
 The iteration state (joint rotation vectors, Rh, Th, clothing offsets: float64) stays on the device;
 the body is posed there (float32, as the numpy path's posing, then cast to float64); the nearest scan
 samples, the stencil colours, the Huber weights, the normal equations (the dense product of
-:func:`.refine._normal_equations_reference`, one owner of that math), the damped solve and the
+:func:`.refine_model._normal_equations_reference`, one owner of that math), the damped solve and the
 rotation updates (:func:`compose_rotvecs`, :func:`rotate`: the twins of SciPy's ``Rotation``) run
 there too. Rows the numpy path leaves out (no match, no colour) get weight zero instead, and its
 data-dependent stop ("fewer than 3 matches per joint") becomes a masked update: the loop always runs
 its full count, a stopped fit no longer moves, and the per-iteration stats are read back once at the
 end and cut where the numpy path would have stopped appending them. Constants per body (the
-refinement vertices, subtree and region weights) go to the device once (:func:`.refine._memo`), the
+refinement vertices, subtree and region weights) go to the device once (:func:`.refine_model._memo`), the
 scan's samples once per scan (:meth:`.register.ScanSurface.samples_torch`).
 
 The nearest samples use a fixed window per chunk of queries
@@ -150,7 +150,7 @@ def _body_on_device(body, config, device):
     joints (K,) int64) as tensors on ``device``: once per body, refinement vertex set and device."""
     import torch
 
-    from uvatar.avh.bake.refine import _memo, refine_vertices, region_weights, subtree_weights
+    from uvatar.avh.bake.refine_model import _memo, refine_vertices, region_weights, subtree_weights
 
     def make():
         joints = list(body.conditioning_joints)
@@ -165,7 +165,7 @@ def _body_on_device(body, config, device):
 
 def _pose(posing, rot, rh, th, scale, shape):
     """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 tensors of one posed frame:
-    the body posed on its device in float32 (as :func:`.refine._posed`), no copy to the host."""
+    the body posed on its device in float32 (as :func:`.refine_model._posed`), no copy to the host."""
     import torch
 
     with torch.no_grad():
@@ -190,7 +190,7 @@ def sample_colours_on_device(body, fit, surface, scan_mesh, config, radius: floa
     import torch
 
     from uvatar.avh.bake.photometric import surface_colours
-    from uvatar.avh.bake.refine import _posing_body, _shape_tensor
+    from uvatar.avh.bake.refine_model import _posing_body, _shape_tensor
 
     use = _body_on_device(body, config, device)[0]
     posing = _posing_body(body, device)
@@ -213,7 +213,7 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     import torch
 
     from uvatar.avh.bake.photometric import surface_colours
-    from uvatar.avh.bake.refine import _normal_equations_reference, _posing_body, _shape_tensor
+    from uvatar.avh.bake.refine_model import _normal_equations_reference, _posing_body, _shape_tensor
     from uvatar.capture import BodyFit
 
     f64 = dict(dtype=torch.float64, device=device)
