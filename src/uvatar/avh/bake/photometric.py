@@ -88,23 +88,33 @@ def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float
         return colours.cpu().numpy(), ok.cpu().numpy()
     p = np.asarray(points, np.float64)
     n = np.asarray(normals, np.float64)
-    best = np.full(len(p), np.inf)
-    face = np.full(len(p), -1, np.int64)
-    bary = np.zeros((len(p), 3))
-    for sign in (1.0, -1.0):
-        d = sign * n
-        # the -n ray only wins below the +n ray's compatible distance: it need not look farther
-        # (the same hits win; Embree's traversal ends sooner)
-        hits = surface.caster.first_hit(p - epsilon * d, d, max_distance=np.minimum(max_distance + epsilon, best))
-        m = surface.normals_at_hits(hits)
-        better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
-        best = np.where(better, hits.distance, best)
-        face = np.where(better, hits.face, face)
-        bary = np.where(better[:, None], hits.bary, bary)
+    face, bary = _nearer_compatible_hit(
+        surface, p, n, max_distance, min_normal_cos, epsilon, np.where,
+        lambda o, d, best: surface.caster.first_hit(o, d, max_distance=np.minimum(max_distance + epsilon, best)),
+        np.full(len(p), np.inf), np.full(len(p), -1, np.int64), np.zeros((len(p), 3)))
     ok = face >= 0
     colours = np.zeros((len(p), 3))
     colours[ok] = scan_colours(surface, scan, face[ok], bary[ok])
     return colours, ok
+
+
+def _nearer_compatible_hit(surface: ScanSurface, p, n, max_distance: float, min_normal_cos: float, epsilon: float,
+                           where, cast, best, face, bary):
+    """(face (N,), -1 where none; bary (N, 3)) of the nearer of the +n and -n rays' first hits whose scan
+    normal is within the angle of ``min_normal_cos``: numpy arrays or tensors alike (``where``: np.where
+    or torch.where; ``cast(origins, directions, best)``: the caster's first hits no farther than
+    ``max_distance + epsilon`` nor than ``best``; ``best``, ``face``, ``bary``: the starting values)."""
+    for sign in (1.0, -1.0):
+        d = sign * n
+        # the -n ray only wins below the +n ray's compatible distance: it need not look farther
+        # (the same hits win; Embree's traversal ends sooner)
+        hits = cast(p - epsilon * d, d, best)
+        m = surface.normals_at_hits(hits)
+        better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
+        best = where(better, hits.distance, best)
+        face = where(better, hits.face, face)
+        bary = where(better[:, None], hits.bary, bary)
+    return face, bary
 
 
 def _ray_colours_torch(surface: ScanSurface, scan, p, n, max_distance: float, min_normal_cos: float,
@@ -115,18 +125,12 @@ def _ray_colours_torch(surface: ScanSurface, scan, p, n, max_distance: float, mi
     and kept where one hit."""
     import torch
 
-    best = torch.full((len(p),), float("inf"), dtype=torch.float64, device=p.device)
-    face = torch.full((len(p),), -1, dtype=torch.int64, device=p.device)
-    bary = torch.zeros((len(p), 3), dtype=torch.float64, device=p.device)
-    for sign in (1.0, -1.0):
-        d = sign * n
-        # the -n ray only wins below the +n ray's compatible distance (as in ray_colours)
-        hits = surface.caster.first_hit_torch(p - epsilon * d, d, best.clamp(max=max_distance + epsilon))
-        m = surface.normals_at_hits(hits)
-        better = hits.hit & ((m * n).sum(1) >= min_normal_cos) & (hits.distance < best)
-        best = torch.where(better, hits.distance, best)
-        face = torch.where(better, hits.face, face)
-        bary = torch.where(better[:, None], hits.bary, bary)
+    face, bary = _nearer_compatible_hit(
+        surface, p, n, max_distance, min_normal_cos, epsilon, torch.where,
+        lambda o, d, best: surface.caster.first_hit_torch(o, d, best.clamp(max=max_distance + epsilon)),
+        torch.full((len(p),), float("inf"), dtype=torch.float64, device=p.device),
+        torch.full((len(p),), -1, dtype=torch.int64, device=p.device),
+        torch.zeros((len(p), 3), dtype=torch.float64, device=p.device))
     ok = face >= 0
     colours = scan_colours(surface, scan, torch.where(ok, face, torch.zeros_like(face)), bary).to(torch.float64)
     return torch.where(ok[:, None], colours, torch.zeros_like(colours)), ok
