@@ -23,8 +23,9 @@ back every step), "off" (pose corrections off: the fits as they are). Several, c
 
 ``--compile`` times the step with its encoders and decoders compiled (``TrainConfig.compile``): "off" (the
 eager step, the reference), or a ``torch.compile`` mode ("default", "reduce-overhead": CUDA graphs on a
-GPU); several, comma separated, time each (keys ``<marcher>[_<pose>]_<compile>_...``). The compilation
-happens in the warm-up steps, which are not timed.
+GPU), each with "+cl" for channels_last convolutions (``TrainConfig.channels_last``); several, comma
+separated, time each (keys ``<marcher>[_<pose>]_<compile>_...``). The compilation happens in the warm-up
+steps, which are not timed.
 """
 
 from __future__ import annotations
@@ -89,7 +90,7 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     "fps_<size>": whole-frame renders per second, and on a GPU "peak_gpu_gib": the most GPU memory the
     steps held}. ``pairs_per_ray``: ``TrainConfig.pairs_per_ray`` (0: the exact buffer, a read-back
     per sample); ``pose``: how the steps pose the body (see the module docstring); ``compile_mode``:
-    "off" or the ``torch.compile`` mode of the step's encoders and decoders."""
+    "off" or the ``torch.compile`` mode of the step's encoders and decoders, "+cl": channels_last."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -102,8 +103,10 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     if pairs_per_ray is not None:
         cfg.train.pairs_per_ray = pairs_per_ray
     cfg.corrections.pose, on_device = pose_settings(pose)
-    if compile_mode != "off":
-        cfg.train.compile, cfg.train.compile_mode = True, compile_mode
+    mode, _, layout = compile_mode.partition("+")
+    if mode != "off":
+        cfg.train.compile, cfg.train.compile_mode = True, mode
+    cfg.train.channels_last = layout == "cl"
     trainer = Trainer(open_source(capture), out, cfg, progress=False, device=device, pose_on_device=on_device)
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
@@ -157,15 +160,17 @@ def main(argv=None) -> int:
     ap.add_argument("--pose", default="auto", help=f"how the steps pose the body, comma separated: {', '.join(POSES)} "
                     "(auto: corrections on, re-posed on the device off the CPU)")
     ap.add_argument("--compile", default="off", help="the step's encoders and decoders: off (eager) or a "
-                    f"torch.compile mode ({', '.join(COMPILE_MODES)}), comma separated")
+                    f"torch.compile mode ({', '.join(COMPILE_MODES)}), each with +cl (channels_last), "
+                    "comma separated")
     args = ap.parse_args(argv)
     poses = [p.strip() for p in args.pose.split(",") if p.strip()]
     for p in poses:
         pose_settings(p)
     compiles = [c.strip() for c in args.compile.split(",") if c.strip()]
     for c in compiles:
-        if c != "off" and c not in COMPILE_MODES:
-            raise SystemExit(f"--compile {c!r}: choose from off, {', '.join(COMPILE_MODES)}")
+        mode, plus, layout = c.partition("+")
+        if (mode != "off" and mode not in COMPILE_MODES) or (plus and layout != "cl"):
+            raise SystemExit(f"--compile {c!r}: choose from off, {', '.join(COMPILE_MODES)}, each with +cl or not")
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
     from tests.fixtures.dva_capture import write_toy_capture

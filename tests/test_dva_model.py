@@ -312,3 +312,29 @@ def test_image_encoder_centred_and_old_runs_keep_theirs():
     assert DvaConfig.from_dict(d).features.colour_skip  # an option a run can be trained with (off by default)
     del d["features"]["colour_skip"]  # and a run from before the colour skip has none
     assert not DvaConfig.from_dict(d).features.colour_skip
+
+
+def test_per_sample_primitives_share_one_unbind_backward():
+    """A batch's per-sample primitives are views from one ``unbind`` (one backward node per tensor for
+    every sample, no zero-filled batch-sized gradient per sample) with the gradients of indexing."""
+    from uvatar.dva.model import DvaOutput
+
+    torch.manual_seed(0)
+    B, K, S = 3, 4, 2
+    leaves = [torch.randn(*shape, dtype=torch.float64, requires_grad=True)
+              for shape in ((B, K, 3), (B, K, 3, 3), (B, K, 3), (B, K, 4, S, S, S))]
+    weights = [torch.randn_like(t) for t in leaves]
+
+    def loss(parts_of):
+        return sum((w[b] * p).sum() * (b + 1) for b in range(B)
+                   for w, p in zip(weights, parts_of(b), strict=True))
+
+    out = DvaOutput(*[t * 2 for t in leaves], motion=torch.zeros(B, 9, 2, 2), learned_rgb=torch.zeros(B, K, 3))
+    prims = [out.primitives(b) for b in range(B)]
+    assert {type(p.payload.grad_fn).__name__ for p in prims} == {"UnbindBackward0"}
+    assert len({id(p.payload.grad_fn) for p in prims}) == 1   # one node for every sample
+    got = torch.autograd.grad(loss(lambda b: (prims[b].positions, prims[b].rotations, prims[b].scales,
+                                              prims[b].payload)), leaves)
+    want = torch.autograd.grad(loss(lambda b: tuple(2 * t[b] for t in leaves)), leaves)
+    for g, w in zip(got, want, strict=True):
+        torch.testing.assert_close(g, w, rtol=0, atol=0)

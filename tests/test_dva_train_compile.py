@@ -1,6 +1,6 @@
-"""A DVA training step with its encoders and decoders compiled (``TrainConfig.compile``, issue 39): the
-same steps as the eager step (the reference twin), the caller's choice on a resume, the colour skip's
-steps left eager, and an unknown compile mode refused."""
+"""A DVA training step with its encoders and decoders compiled (``TrainConfig.compile``, issue 39) or in
+channels_last: the same steps as the eager NCHW step (the reference twin), the caller's choice on a
+resume, the colour skip's steps left eager, and an unknown compile mode refused."""
 
 from __future__ import annotations
 
@@ -51,6 +51,21 @@ def test_compiled_step_takes_the_eager_steps(capture, tmp_path):
         torch.testing.assert_close(q, p, rtol=1e-4, atol=1e-5)
 
 
+def test_channels_last_step_takes_the_eager_steps(capture, tmp_path):
+    """The step with NHWC convolutions (the model's weights in channels_last, in place) and the NCHW
+    step from one seed: the same terms and parameters after three steps."""
+    eager = _trainer(capture, tmp_path / "eager")
+    fast = _trainer(capture, tmp_path / "fast", channels_last=True)
+    conv = next(m for m in fast.model.modules() if isinstance(m, torch.nn.Conv2d))
+    assert fast.decode.channels_last and conv.weight.is_contiguous(memory_format=torch.channels_last)
+    for _ in range(3):
+        a, b = eager.train_step(), fast.train_step()
+        for k in a:
+            assert b[k] == pytest.approx(a[k], rel=1e-5, abs=1e-7), k
+    for p, q in zip(eager.params, fast.params, strict=True):  # Adam turns float32 round-off in a
+        torch.testing.assert_close(q, p, rtol=1e-4, atol=1e-5)  # tiny gradient into a step of ~lr
+
+
 def test_step_decode_is_the_models_encoders_and_decoders(capture, tmp_path):
     """Without compilation the step's decode module is an :class:`EncodeDecode` in the step's precision
     that holds the model's own encoders and decoder (no copies: the optimiser's parameters are what it
@@ -68,11 +83,12 @@ def test_resumed_run_takes_the_callers_compile(capture, tmp_path):
     config but the caller's ``compile`` / ``compile_mode`` (turned on, then off again)."""
     out = tmp_path / "run"
     _trainer(capture, out).run(iters=1)
-    on = _trainer(capture, out, resume=True, compile=True, compile_mode="max-autotune")
+    on = _trainer(capture, out, resume=True, compile=True, compile_mode="max-autotune", channels_last=True)
     assert on.step == 1 and on.cfg.train.compile and on.cfg.train.compile_mode == "max-autotune"
+    assert on.cfg.train.channels_last
     assert type(on.decode) is not EncodeDecode  # the compiled wrapper
     off = _trainer(capture, out, resume=True)
-    assert not off.cfg.train.compile and type(off.decode) is EncodeDecode
+    assert not off.cfg.train.compile and not off.cfg.train.channels_last and type(off.decode) is EncodeDecode
 
 
 def test_colour_skip_steps_stay_eager(capture, tmp_path, caplog):

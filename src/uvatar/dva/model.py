@@ -88,8 +88,10 @@ class TrainConfig:
     needed more is reported (a warning, at most a step late) and the buffer grows; 0: the exact buffer
     (a read-back per sample). compile: the step's encoders and decoders go through ``torch.compile``
     (:class:`EncodeDecode`; compile_mode "reduce-overhead" adds CUDA graphs on a GPU, "max-autotune"
-    searches kernels); how a run computes, not what it learns: a resumed run takes the caller's. Off by
-    default (minutes of compilation on a small CPU); the colour skip's steps are not compiled."""
+    searches kernels); channels_last: the step's convolutions in NHWC (what tensor cores take without
+    a layout conversion per convolution on a GPU). Both are how a run computes, not what it learns: a
+    resumed run takes the caller's. Off by default (compile: minutes of compilation on a small CPU);
+    the colour skip's steps use neither."""
 
     lr: float = 2e-3
     lr_decay_start: float = 0.6
@@ -108,6 +110,7 @@ class TrainConfig:
     pairs_per_ray: float = 64.0
     compile: bool = False
     compile_mode: str = "default"
+    channels_last: bool = False
 
     def __post_init__(self) -> None:
         check_values([(self.background in BACKGROUNDS,
@@ -212,9 +215,17 @@ class DvaOutput:
     payload: torch.Tensor
     motion: torch.Tensor
     learned_rgb: torch.Tensor
+    _samples: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def primitives(self, b: int) -> Primitives:
-        return Primitives(self.positions[b], self.rotations[b], self.scales[b], self.payload[b])
+        """Sample ``b``'s primitives: views of the batch made by one ``unbind`` per tensor for every
+        sample (on the first call). Its backward writes each sample's gradient into one batch-sized
+        gradient; indexing each sample (``payload[b]``) would make a zero-filled batch-sized gradient per
+        sample and add them up (a training step at the paper's scale: 1 GB of payload, B times)."""
+        if self._samples is None:
+            self._samples = tuple(zip(*(t.unbind(0) for t in (self.positions, self.rotations, self.scales,
+                                                              self.payload)), strict=True))
+        return Primitives(*self._samples[b])
 
 
 class DvaModel(nn.Module):

@@ -92,17 +92,20 @@ CUDA_GRAPH_MODES = ("reduce-overhead", "max-autotune")
 
 def _step_decode(model, train: TrainConfig):
     """The encoders and decoders of a training step: the model's :class:`~uvatar.dva.model.EncodeDecode`
-    in ``train.precision``, through ``torch.compile`` in ``train.compile_mode`` when ``train.compile``;
-    None where the model's colour skip makes the step take the reference decoder (with ``compile``: a
-    warning that those steps are not compiled)."""
+    in ``train.precision`` (channels_last when ``train.channels_last``: the model's convolution weights
+    too, in place), through ``torch.compile`` in ``train.compile_mode`` when ``train.compile``; None where
+    the model's colour skip makes the step take the reference decoder (with ``compile`` or
+    ``channels_last``: a warning that those steps use neither)."""
     if model.cfg.features.colour_skip:
-        if train.compile:
-            log.warning("compile: the colour skip's training steps use the reference decoders, not compiled")
+        if train.compile or train.channels_last:
+            log.warning("compile / channels_last: the colour skip's training steps use the reference decoders, "
+                        "eager and NCHW")
         return None
     from uvatar.precision import FastPathConfig
 
-    path = FastPathConfig(precision=train.precision, compile=train.compile, compile_mode=train.compile_mode)
-    return path.prepare(EncodeDecode(model, path.dtype))
+    path = FastPathConfig(precision=train.precision, compile=train.compile, compile_mode=train.compile_mode,
+                          channels_last=train.channels_last)
+    return path.prepare(EncodeDecode(model, path.dtype, channels_last=train.channels_last))
 
 
 def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict, clock: dict | None = None,
@@ -211,7 +214,8 @@ class Trainer:
             cfg = DvaConfig.from_dict(state["config"])  # the run's own config wins on resume
             cfg.raymarch = dataclasses.replace(cfg.raymarch, marcher=caller.raymarch.marcher)
             cfg.train = dataclasses.replace(cfg.train, compile=caller.train.compile,
-                                            compile_mode=caller.train.compile_mode)
+                                            compile_mode=caller.train.compile_mode,
+                                            channels_last=caller.train.channels_last)
             log.info("resuming from %s at step %d", ckpt, state["step"])
         self.cfg = cfg
         if state is not None and body_model and body_model != state["meta"]["body_model"]:
