@@ -123,13 +123,14 @@ def beta_prior(alpha: torch.Tensor) -> torch.Tensor:
 
 def slab_total_variation(colour: torch.Tensor) -> torch.Tensor:
     """colour (B, K, 3, S, S, S) payload, K = W^2 primitives on the UV grid -> the mean absolute
-    difference of neighbouring voxels along each axis of the (3, S, W*S, W*S) slab."""
+    difference of neighbouring voxels along each axis of the (3, S, W*S, W*S) slab (an axis of one voxel
+    has none and adds nothing). The plain twin of :func:`uvatar.dva.tv_warp.slab_total_variation_warp`."""
     from uvatar.dva.decoders import payload_to_slab
 
     B, K, C, S = colour.shape[:4]
     W = int(round(K ** 0.5))
     slab = payload_to_slab(colour, W).reshape(B, C, S, W * S, W * S)
-    return sum((slab.diff(dim=d).abs().mean() for d in (2, 3, 4)), colour.new_zeros(()))
+    return sum((slab.diff(dim=d).abs().mean() for d in (2, 3, 4) if slab.shape[d] > 1), colour.new_zeros(()))
 
 
 def column_spread(density: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -156,12 +157,20 @@ class DvaLoss(nn.Module):
     """Weighted sum; forward(pred (B,3,H,W) composited, target (B,3,H,W), alpha (B,H,W), mask (B,H,W),
     scales (B,K,3), rest_scales (K,3), motion (B,9,W,W) raw correctives or None, colour (B,K,3,S,S,S)
     payload colours or None, density (B,K,S,S,S) payload densities or None) -> (total, dict of float
-    terms)."""
+    terms). ``kernels``: "warp" takes the colour's total variation through the Warp kernels
+    (:func:`uvatar.dva.tv_warp.slab_total_variation_warp`), "torch" through its reference twin
+    (:func:`slab_total_variation`); a trainer passes its marcher's choice."""
 
-    def __init__(self, cfg: LossConfig | None = None, vgg: Vgg19Features | None = None):
+    def __init__(self, cfg: LossConfig | None = None, vgg: Vgg19Features | None = None, kernels: str = "torch"):
         super().__init__()
         self.cfg = cfg or LossConfig()
         self.vgg = vgg
+        check_values([(kernels in ("torch", "warp"), f"kernels must be torch or warp, got {kernels!r}")])
+        if kernels == "warp":
+            from uvatar.dva.tv_warp import slab_total_variation_warp as total_variation
+        else:
+            total_variation = slab_total_variation
+        self.total_variation = total_variation
         log.info("DVA perceptual loss: %s", "VGG-19 features" if vgg is not None
                  else "off (no vgg_weights); using 1 - SSIM instead")
 
@@ -187,7 +196,7 @@ class DvaLoss(nn.Module):
         if c.motion > 0 and motion is not None:
             terms["motion"] = motion.square().mean()
         if c.colour_tv > 0 and colour is not None:
-            terms["colour_tv"] = slab_total_variation(colour)
+            terms["colour_tv"] = self.total_variation(colour)
         if c.shell > 0 and density is not None:
             terms["shell"] = column_spread(density, scales)
         weights = {"rgb": c.rgb, "perceptual": c.perceptual, "ssim": c.ssim, "mask": c.mask,

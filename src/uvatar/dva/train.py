@@ -228,7 +228,9 @@ class Trainer:
         self.bank = FrameBank(source, self.body, self.model.image_raster, self.body.template,
                               source.train_frames, source.train_cameras, progress)
         vgg = Vgg19Features.from_file(vgg_weights).to(self.device) if vgg_weights else None
-        self.loss = DvaLoss(cfg.loss, vgg).to(self.device)
+        from uvatar.dva.raymarch import resolve_marcher
+
+        self.loss = DvaLoss(cfg.loss, vgg, kernels=resolve_marcher(cfg.raymarch.marcher)).to(self.device)
         c = cfg.corrections
         self.corrections = TrainingCorrections(c, len(self.bank), len(self.bank.cameras), joints).to(self.device) \
             if (c.pose or c.colour) else None
