@@ -73,3 +73,17 @@ def test_the_loss_takes_the_marchers_kernels():
     assert float(a["colour_tv"]) == pytest.approx(float(b["colour_tv"]), rel=1e-12)
     with pytest.raises(ValueError, match="kernels must be"):
         DvaLoss(kernels="cuda")
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_kernels_are_the_reference():
+    """On CUDA (float32, the payload's RGB view), the kernels against the reference on CUDA: the sums'
+    atomic adds change only the order of the additions."""
+    payload = _colour(B=2, W=8, C=4, S=8, dtype=torch.float32, seed=9).detach().cuda().requires_grad_()
+    got = slab_total_variation_warp(payload[:, :, :3])
+    want = slab_total_variation(payload[:, :, :3])
+    assert float(got.detach()) == pytest.approx(float(want.detach()), rel=1e-5)
+    (a,) = torch.autograd.grad(got, payload)
+    (b,) = torch.autograd.grad(want, payload)
+    torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-9)
