@@ -172,8 +172,9 @@ class DvaDecoder(nn.Module):
 
         The same math with less memory: colour, shadow and the colour skip stay at their L layers per
         voxel column (L = 1 without ``depth_colour``) until the one copy into the payload, which also
-        casts (the slabs may be bf16 / fp16 under autocast; the marcher reads ``dtype``). Neither the
-        S-fold expanded slabs of :meth:`forward` nor its ``torch.cat`` are made, and there is no host sync."""
+        casts (the slabs may be bf16 / fp16 under autocast; the marcher reads ``dtype``; colour is cast
+        at its L layers, before it is expanded). :meth:`forward`'s S-fold expanded slabs are not made, and
+        there is no host sync."""
         S = self.cfg.voxels
         L = S if self.cfg.depth_colour else 1
         f_pi = torch.cat([f_pose, f_image], 1)
@@ -189,11 +190,12 @@ class DvaDecoder(nn.Module):
         if self.shadow is not None:
             rgb = rgb * torch.sigmoid(self.shadow(f_pose) + 3.0).reshape(B, 1, L, H, H)
         W = H // S
-        out = torch.empty(B, W, W, 4, S, S, S, dtype=dtype, device=logits.device)  # b, wy, wx, c, z, y, x
 
-        def voxels(slab, channels, layers):  # (B, C, layers, H, H) -> (B, W, W, C, layers, S, S)
-            return slab.reshape(B, channels, layers, W, S, W, S).permute(0, 3, 5, 1, 2, 4, 6)
+        def voxels(slab, channels, layers):  # (B, C, layers, H, H) -> (B, W, W, C, layers, S, S) in dtype
+            return slab.to(dtype).reshape(B, channels, layers, W, S, W, S).permute(0, 3, 5, 1, 2, 4, 6)
 
-        out[:, :, :, :3].copy_(voxels(rgb, 3, L).expand(B, W, W, 3, S, S, S))
-        out[:, :, :, 3:].copy_(voxels(density.reshape(B, 1, S, H, H), 1, S))
+        # one write of the payload (b, wy, wx, c, z, y, x); its backward takes views of the gradient (an
+        # in-place copy into an empty payload made its backward clone the payload-sized gradient per copy)
+        out = torch.cat([voxels(rgb, 3, L).expand(B, W, W, 3, S, S, S),
+                         voxels(density.reshape(B, 1, S, H, H), 1, S)], 3)
         return motion, out.reshape(B, W * W, 4, S, S, S)
