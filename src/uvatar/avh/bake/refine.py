@@ -33,6 +33,7 @@ from uvatar.avh.bake.refine_model import (
     _posed,
     _shape_tensor,
     refine_vertices,
+    refinement_weights,
     region_weights,
     subtree_weights,
     untracked_skin_weight,
@@ -227,11 +228,9 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         return refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
                                     final_colour_residual, device)
     joints = list(body.conditioning_joints)
-    tpl = body.template
-    use = refine_vertices(body, config)
     key = (config.max_untracked_weight, config.max_vertices)
-    sub = _memo(body, ("subtree",) + key,
-                lambda: subtree_weights(tpl.skin_weights, tpl.joint_parents, joints)[use])    # (N, K)
+    use = refine_vertices(body, config)
+    sub, skin = refinement_weights(body, config)    # (N, K) each
     rot = body.joint_rotvecs_from_fit(fit).astype(np.float64)
     rh = np.asarray(fit.Rh, np.float64).copy()
     th = np.asarray(fit.Th, np.float64).copy()
@@ -239,8 +238,6 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     cos_max = float(np.cos(np.radians(config.max_normal_angle_deg)))
     max_angle = np.radians(config.max_step_deg)
     k = len(joints)
-    skin = _memo(body, ("region",) + key,
-                 lambda: region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use])   # (N, K)
     groups = _memo(body, ("groups",) + key, lambda: _joint_groups(sub))
     offsets = np.zeros(skin.shape[1])   # clothing thickness per joint region (metres), estimated jointly
     residuals, matched, colour_residuals = [], [], []

@@ -150,15 +150,11 @@ def _body_on_device(body, config, device):
     joints (K,) int64) as tensors on ``device``: once per body, refinement vertex set and device."""
     import torch
 
-    from uvatar.avh.bake.refine_model import _memo, refine_vertices, region_weights, subtree_weights
+    from uvatar.avh.bake.refine_model import _memo, refine_vertices, refinement_weights
 
-    def make():
-        joints = list(body.conditioning_joints)
-        tpl = body.template
-        use = refine_vertices(body, config)
-        sub = subtree_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]
-        skin = region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use]
-        return tuple(torch.as_tensor(np.asarray(a), device=device) for a in (use, sub, skin, np.asarray(joints)))
+    def make():   # the numpy loop's arrays (one owner: refinement_weights), copied to the device once
+        arrays = (refine_vertices(body, config), *refinement_weights(body, config), np.asarray(body.conditioning_joints))
+        return tuple(torch.as_tensor(np.asarray(a), device=device) for a in arrays)
 
     return _memo(body, ("on_device", config.max_untracked_weight, config.max_vertices, str(device)), make)
 

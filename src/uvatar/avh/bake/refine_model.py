@@ -13,7 +13,7 @@ import numpy as np
 
 from uvatar.avh.bake.config import PoseRefineConfig
 
-__all__ = ["subtree_weights", "untracked_skin_weight", "region_weights", "refine_vertices"]
+__all__ = ["subtree_weights", "untracked_skin_weight", "region_weights", "refine_vertices", "refinement_weights"]
 
 _BODY_MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()   # body -> {key: arrays}, see _memo
 
@@ -63,6 +63,18 @@ def refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
     (memoized per body)."""
     key = ("refine_vertices", config.max_untracked_weight, config.max_vertices)
     return _memo(body, key, lambda: _refine_vertices(body, config))
+
+
+def refinement_weights(body, config: PoseRefineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(subtree (N, K), region (N, K)) float64 skinning weights of the refinement vertices
+    (:func:`refine_vertices`) on each conditioning joint's subtree and region (memoized per body): what
+    the numpy loop and its device twin both use."""
+    key = (config.max_untracked_weight, config.max_vertices)
+    tpl, joints = body.template, list(body.conditioning_joints)
+    use = refine_vertices(body, config)
+    sub = _memo(body, ("subtree",) + key, lambda: subtree_weights(tpl.skin_weights, tpl.joint_parents, joints)[use])
+    skin = _memo(body, ("region",) + key, lambda: region_weights(tpl.skin_weights, tpl.joint_parents, joints)[use])
+    return sub, skin
 
 
 def _refine_vertices(body, config: PoseRefineConfig) -> np.ndarray:
