@@ -23,9 +23,10 @@ back every step), "off" (pose corrections off: the fits as they are). Several, c
 
 ``--compile`` times the step with its encoders and decoders compiled (``TrainConfig.compile``): "off" (the
 eager step, the reference), or a ``torch.compile`` mode ("default", "reduce-overhead": CUDA graphs on a
-GPU), each with "+cl" for channels_last convolutions (``TrainConfig.channels_last``); several, comma
-separated, time each (keys ``<marcher>[_<pose>]_<compile>_...``). The compilation happens in the warm-up
-steps, which are not timed.
+GPU), each with "+cl" for channels_last convolutions (``TrainConfig.channels_last``) and "+graph" for the
+whole step captured in a CUDA graph and replayed (``TrainConfig.graph``; "off+graph" is the eager modules
+in the graph); several, comma separated, time each (keys ``<marcher>[_<pose>]_<compile>_...``). The
+compilation and the graph's warm-up and capture happen in the warm-up steps, which are not timed.
 """
 
 from __future__ import annotations
@@ -90,7 +91,9 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     "fps_<size>": whole-frame renders per second, and on a GPU "peak_gpu_gib": the most GPU memory the
     steps held}. ``pairs_per_ray``: ``TrainConfig.pairs_per_ray`` (0: the exact buffer, a read-back
     per sample); ``pose``: how the steps pose the body (see the module docstring); ``compile_mode``:
-    "off" or the ``torch.compile`` mode of the step's encoders and decoders, "+cl": channels_last."""
+    "off" or the ``torch.compile`` mode of the step's encoders and decoders, "+cl": channels_last,
+    "+graph": the step captured in a CUDA graph (the row says how many steps were replayed, and why a
+    capture failed)."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -103,13 +106,18 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     if pairs_per_ray is not None:
         cfg.train.pairs_per_ray = pairs_per_ray
     cfg.corrections.pose, on_device = pose_settings(pose)
-    mode, _, layout = compile_mode.partition("+")
+    mode, *extras = compile_mode.split("+")
     if mode != "off":
         cfg.train.compile, cfg.train.compile_mode = True, mode
-    cfg.train.channels_last = layout == "cl"
+    cfg.train.channels_last = "cl" in extras
+    cfg.train.graph = "graph" in extras
     trainer = Trainer(open_source(capture), out, cfg, progress=False, device=device, pose_on_device=on_device)
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
+    if trainer.graph is not None:  # its eager warm-up steps and the capture are not what is timed
+        from uvatar.dva.train_step import WARMUP_STEPS
+
+        warmup = max(warmup, WARMUP_STEPS + 1)
     for _ in range(warmup):
         trainer.train_step()
     times = []
@@ -135,6 +143,10 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
         row["pair_overflows"] = trainer.pair_overflows
     if device.startswith("cuda"):
         row["peak_gpu_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
+    if cfg.train.graph:
+        g = trainer.graph
+        row.update({"graph_replays": 0 if g is None else g.replays, "graph_captures": 0 if g is None else g.captures,
+                    "graph_error": "eager here (needs CUDA and the Warp marcher)" if g is None else g.error})
     for size in render_sizes:
         try:
             row[f"fps_{size}"] = round(render_fps(trainer, size, device), 2)
@@ -160,17 +172,18 @@ def main(argv=None) -> int:
     ap.add_argument("--pose", default="auto", help=f"how the steps pose the body, comma separated: {', '.join(POSES)} "
                     "(auto: corrections on, re-posed on the device off the CPU)")
     ap.add_argument("--compile", default="off", help="the step's encoders and decoders: off (eager) or a "
-                    f"torch.compile mode ({', '.join(COMPILE_MODES)}), each with +cl (channels_last), "
-                    "comma separated")
+                    f"torch.compile mode ({', '.join(COMPILE_MODES)}), each with +cl (channels_last) and/or "
+                    "+graph (the step in a CUDA graph), comma separated")
     args = ap.parse_args(argv)
     poses = [p.strip() for p in args.pose.split(",") if p.strip()]
     for p in poses:
         pose_settings(p)
     compiles = [c.strip() for c in args.compile.split(",") if c.strip()]
     for c in compiles:
-        mode, plus, layout = c.partition("+")
-        if (mode != "off" and mode not in COMPILE_MODES) or (plus and layout != "cl"):
-            raise SystemExit(f"--compile {c!r}: choose from off, {', '.join(COMPILE_MODES)}, each with +cl or not")
+        mode, *extras = c.split("+")
+        if (mode != "off" and mode not in COMPILE_MODES) or not set(extras) <= {"cl", "graph"}:
+            raise SystemExit(f"--compile {c!r}: choose from off, {', '.join(COMPILE_MODES)}, each with +cl and/or "
+                             "+graph or neither")
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
     from tests.fixtures.dva_capture import write_toy_capture

@@ -9,7 +9,8 @@
 # --pairs-per-ray: the marcher's fixed pair buffer per ray), AVH_SECONDS / AVH_FAST / AVH_MODES / AVH_ITERS,
 # TRAIN_STEPS, TRAIN_SECONDS, TRAIN_POSE (bench/dva_train.py's --pose, default "auto": the pose-corrected step
 # with the body re-posed on the GPU; "auto,host" adds the CPU re-posing as before), TRAIN_COMPILE (its --compile,
-# default "off,off+cl,default+cl": the eager step, in channels_last, then compiled too), BAKE_SECONDS /
+# default "off,off+cl+graph,default+cl,default+cl+graph": the eager step, the whole step replayed from a CUDA
+# graph, then compiled, with and without the graph), BAKE_SECONDS /
 # BAKE_FRAMES / BAKE_WORKERS / BAKE_THROUGHPUT_FRAMES (the frames the workers bake, default 16), TESTS_SECONDS.
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
@@ -79,14 +80,15 @@ for part in $PARTS; do
       run_part tests "${TESTS_SECONDS:-180}" "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
         tests/test_dva_frame_sync.py tests/test_dva_train_posing.py tests/test_dva_train_compile.py tests/test_dva_tv_warp.py \
+        tests/test_dva_train_graph.py \
         tests/test_devices.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
         tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
       # (--compile: the step's encoders and decoders eager, then through torch.compile; compiled in the warm-up)
-      run_part train "${TRAIN_SECONDS:-240}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \
+      run_part train "${TRAIN_SECONDS:-300}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \
         --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" \
-        ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,off+cl,default+cl}" ;;
+        ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,off+cl+graph,default+cl,default+cl+graph}" ;;
     compile)  # compiled against eager (torch.compile on the machine's CPU cores; ~130 s on 2 cores)
       run_part compile 90 "$OUT/pytest_compile.txt" python -m pytest -q -x -p no:cacheprovider -k compiled \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_train_compile.py ;;

@@ -11,7 +11,8 @@ import torch
 from tests.fixtures.dva_capture import write_toy_capture
 from uvatar.dva.data import open_source
 from uvatar.dva.model import preset
-from uvatar.dva.train import CHECKPOINT, Trainer, load_run, patch_pixels, target_pixels, train_dva
+from uvatar.dva.train import CHECKPOINT, Trainer, load_run, train_dva
+from uvatar.dva.train_step import patch_pixels, target_pixels
 from uvatar.errors import InputError
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

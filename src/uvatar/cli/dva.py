@@ -35,7 +35,7 @@ def _flags() -> tuple[ConfigFlags, ...]:
     return (ConfigFlags(TrainConfig, fields=("minutes", "iters"), presets={k: c.train for k, c in PRESETS.items()},
                         help={"minutes": "wall-clock budget in minutes", "iters": "stop after this many steps"}),
             ConfigFlags(TrainConfig, fields=("batch", "patch", "background", "hide_target_view", "precision",
-                                             "compile", "compile_mode", "channels_last"),
+                                             "compile", "compile_mode", "channels_last", "graph"),
                         choices={"background": BACKGROUNDS, "precision": tuple(PRECISIONS),
                                  "compile_mode": COMPILE_MODES},
                         presets={k: c.train for k, c in PRESETS.items()},
@@ -54,7 +54,9 @@ def _flags() -> tuple[ConfigFlags, ...]:
                               "compile_mode": "torch.compile's mode with --compile (reduce-overhead: CUDA "
                                               "graphs on a GPU)",
                               "channels_last": "the step's convolutions in NHWC (tensor cores on a GPU take it "
-                                               "without a layout conversion each; a resumed run may change it)"}),
+                                               "without a layout conversion each; a resumed run may change it)",
+                              "graph": "capture the whole step in a CUDA graph and replay it (CUDA, --marcher "
+                                       "warp, one process; a resumed run may change it)"}),
             ConfigFlags(PrimitiveConfig, fields=("grid", "min_scale_corrective"),
                         presets={k: c.primitives for k, c in PRESETS.items()},
                         help={"grid": "primitives per UV side W (K = W*W)",
@@ -227,7 +229,8 @@ def _train(args) -> int:
     # what the avatar learns from; the budget, the marcher (how to render) and the device can change on a resume
     nested = {name: "" for name in ("train", "primitives", "decoder", "features", "raymarch")}
     settings = stage_record.config_values(cfg, prefixes={**nested, "corrections": "correct", "loss": "loss"},
-                                          drop=("minutes", "iters", "marcher", "compile", "compile_mode", "channels_last"),
+                                          drop=("minutes", "iters", "marcher", "compile", "compile_mode", "channels_last",
+                                                "graph"),
                                           seed=args.seed, model=args.model,
                                           vgg_weights=args.vgg_weights)
     source = open_source(args.capture)  # a capture it cannot read (half-made masks...) leaves no run folder

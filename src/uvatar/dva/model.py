@@ -91,7 +91,9 @@ class TrainConfig:
     searches kernels); channels_last: the step's convolutions in NHWC (what tensor cores take without
     a layout conversion per convolution on a GPU). Both are how a run computes, not what it learns: a
     resumed run takes the caller's. Off by default (compile: minutes of compilation on a small CPU);
-    the colour skip's steps use neither."""
+    the colour skip's steps use neither. graph: capture the whole step (forward, loss, backward, update)
+    in a CUDA graph and replay it (:class:`~uvatar.dva.train_step.StepGraph`; CUDA, the Warp marcher and
+    one process; elsewhere the steps run eagerly and say so), also how a run computes."""
 
     lr: float = 2e-3
     lr_decay_start: float = 0.6
@@ -111,11 +113,15 @@ class TrainConfig:
     compile: bool = False
     compile_mode: str = "default"
     channels_last: bool = False
+    graph: bool = False
 
     def __post_init__(self) -> None:
         check_values([(self.background in BACKGROUNDS,
                        f"background must be one of {BACKGROUNDS}, got {self.background!r}"),
-                      precision_check(self.precision), compile_mode_check(self.compile_mode)])
+                      precision_check(self.precision), compile_mode_check(self.compile_mode),
+                      (not (self.graph and self.compile and self.compile_mode in ("reduce-overhead", "max-autotune")),
+                       f"graph=True captures the whole step: compile_mode {self.compile_mode!r} (CUDA graphs of "
+                       "its own) cannot nest in it; use compile_mode 'default'")])
 
 
 @dataclass

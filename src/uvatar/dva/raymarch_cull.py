@@ -11,7 +11,8 @@ import torch
 
 from uvatar.dva.raymarch_ref import Primitives, box_corners
 
-__all__ = ["sphere_candidates", "pinhole_rects", "pinhole_candidates", "PixelGrid", "camera_matrices"]
+__all__ = ["sphere_candidates", "pinhole_rects", "pinhole_candidates", "PixelGrid", "DeviceCamera",
+           "camera_matrices"]
 
 
 @torch.no_grad()
@@ -32,13 +33,18 @@ class PixelGrid:
     pixel of the pixels' bounding box (left x0, top y0, width w, height h; host ints), -1 where no ray.
 
     Built once per set of pixels (:meth:`build`) and reused: the box comes from the host copy of the
-    pixels, so nothing is read back from the device, and a frame renderer keeps one per camera."""
+    pixels, so nothing is read back from the device, and a frame renderer keeps one per camera.
+
+    ``corner``: a crop whose top-left pixel is a device tensor (2,) int64 (:meth:`crop`): the host knows
+    only its size (x0 = y0 = 0) and the culling works in the crop's own pixels, so that where the crop
+    lies can change between calls without the host looking (a captured training step's static input)."""
 
     lookup: torch.Tensor
     x0: int
     y0: int
     w: int
     h: int
+    corner: torch.Tensor | None = None
 
     @property
     def x1(self) -> int:
@@ -62,11 +68,47 @@ class PixelGrid:
         lookup[(host[:, 1] - y0) * w + (host[:, 0] - x0)] = np.arange(len(host))
         return cls(to_device_async(lookup, device), x0, y0, w, h)
 
+    @classmethod
+    def crop(cls, size: int, corner: torch.Tensor) -> PixelGrid:
+        """The rays of a ``size`` x ``size`` crop in row-major order (ray i at crop pixel (i % size,
+        i // size)) whose top-left pixel (x, y) is ``corner`` (2,) int64 on the rays' device."""
+        return cls(_crop_lookup(size, corner.device), 0, 0, size, size, corner)
+
+
+_CROP_LOOKUPS: dict = {}
+
+
+def _crop_lookup(size: int, device) -> torch.Tensor:
+    """arange(size * size) on ``device``, made once per size and device (a constant of every crop)."""
+    key = (int(size), str(device))
+    if key not in _CROP_LOOKUPS:
+        _CROP_LOOKUPS[key] = torch.arange(size * size, device=device)
+    return _CROP_LOOKUPS[key]
+
+
+@dataclass(frozen=True)
+class DeviceCamera:
+    """A pinhole camera whose matrices live on the device: ``K`` (3, 3) pixels, ``R`` (3, 3), ``T`` (3,)
+    metres (world -> camera, OpenCV), ``dist`` (5,) the lens (k1, k2, p1, p2, k3), and ``distorted`` (host
+    bool: whether that lens bends rays; it picks the culling's branch). The culling reads nothing of it
+    on the host, so the tensors may be views into a batch that changes between calls (a training step's
+    samples, a CUDA graph's static inputs)."""
+
+    K: torch.Tensor
+    R: torch.Tensor
+    T: torch.Tensor
+    dist: torch.Tensor
+    distorted: bool
+
 
 def camera_matrices(camera, device, dtype):
     """(K (3, 3), R (3, 3), T (3,)) of ``camera`` as tensors on ``device``, copied once per camera and
-    kept (:func:`uvatar.devices.on_device`): no host-to-device copy per call."""
+    kept (:func:`uvatar.devices.on_device`): no host-to-device copy per call. A :class:`DeviceCamera`'s
+    own tensors."""
     from uvatar.devices import on_device
+
+    if isinstance(camera, DeviceCamera):
+        return camera.K.to(device, dtype), camera.R.to(device, dtype), camera.T.to(device, dtype).reshape(3)
 
     return (on_device(camera.K, device, dtype), on_device(camera.R, device, dtype),
             on_device(camera.T, device, dtype).reshape(3))
@@ -78,9 +120,10 @@ def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matric
     requested pixels' bounding box (x0, y0, width w), -1 where no ray; x0; y0; w; rects (K, 4) inclusive
     [x_lo, y_lo, x_hi, y_hi] per primitive, clipped to the box (empty where hi < lo)).
 
-    ``pixels``: (N, 2) integer (x, y), or a :class:`PixelGrid` of them (built once, reused: no read-back);
+    ``pixels``: (N, 2) integer (x, y), or a :class:`PixelGrid` of them (built once, reused: no read-back;
+    a crop's grid (:meth:`PixelGrid.crop`) gives the rectangles in the crop's pixels, x0 = y0 = 0);
     ``matrices``: the camera's (K, R, T) as device tensors (default: :func:`camera_matrices`); the lens
-    distortion comes from ``camera.dist`` (host numbers)."""
+    distortion comes from ``camera.dist`` (host numbers, or a :class:`DeviceCamera`'s tensor)."""
     from uvatar.geometry.camera import distort
 
     dev, dt = prims.positions.device, prims.positions.dtype
@@ -92,8 +135,12 @@ def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matric
                                  prims.payload)) @ Rc.T + Tc  # (K, 8, 3)
     z = cam[..., 2]
     behind = (z <= 1e-6).any(1)
-    dist = np.asarray(getattr(camera, "dist", np.zeros(5)), np.float64)
-    if np.any(dist != 0):
+    if isinstance(camera, DeviceCamera):
+        dist, distorted = camera.dist.to(dt), camera.distorted
+    else:
+        dist = np.asarray(getattr(camera, "dist", np.zeros(5)), np.float64)
+        distorted = bool(np.any(dist != 0))
+    if distorted:
         xy = distort(cam[..., :2] / z.clamp(min=1e-6)[..., None], dist)
         uv = xy @ Kc[:2, :2].T + Kc[:2, 2]
         margin = margin + 1.0
@@ -101,6 +148,8 @@ def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matric
         uv = (cam @ Kc.T)[..., :2] / z.clamp(min=1e-6)[..., None]
     lo = torch.floor(uv.min(1).values - margin).long()
     hi = torch.ceil(uv.max(1).values + margin).long()
+    if grid.corner is not None:  # in the crop's own pixels: the same integers, less its corner
+        lo, hi = lo - grid.corner, hi - grid.corner
     rects = torch.stack([torch.where(behind, x0, lo[:, 0].clamp(x0, x1 + 1)),
                          torch.where(behind, y0, lo[:, 1].clamp(y0, y1 + 1)),
                          torch.where(behind, x1, hi[:, 0].clamp(x0 - 1, x1)),

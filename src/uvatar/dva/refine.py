@@ -63,7 +63,7 @@ def driving_views(cameras, images, masks, backgrounds, pixels, device) -> list[t
     """Per driving view, what its loss compares at ``pixels`` ((N, 2) integer (x, y) per view): (camera,
     pixels, ray origins (N, 3), directions (N, 3), background (3,), target colour (N, 3): the photo
     inside the person's mask and the background colour outside it, inside (N,): the mask as 0 / 1)."""
-    from uvatar.dva.train import target_pixels
+    from uvatar.dva.train_step import target_pixels
 
     views = []
     for cam, img, mask, bg, pix in zip(cameras, images, masks, backgrounds, pixels, strict=True):
@@ -103,7 +103,7 @@ def refine_frame(model, body, fit: FitParams, image_texture: torch.Tensor, camer
     driving views' loss before and after on one fixed set of pixels (the grid, or one set of crops),
     and ``kept``). The refined fit is returned only where it lowers that loss; otherwise the fit as it was (``kept`` False): on the real
     recording 40 noisy steps raised it more often than not (``docs/real.md``)."""
-    from uvatar.dva.train import patch_pixels
+    from uvatar.dva.train_step import patch_pixels
 
     dev = next(model.parameters()).device
     c = CorrectionConfig(pose=True, colour=False, pose_weight=cfg.pose_weight,

@@ -34,7 +34,8 @@ from uvatar.distributed import DistContext, all_sum, distributed_context
 from uvatar.dva.corrections import FitParams, TrainingCorrections
 from uvatar.dva.dataset import FrameBank, pose_corrected, pose_vertices
 from uvatar.dva.losses import DvaLoss, Vgg19Features
-from uvatar.dva.model import DvaConfig, DvaModel, EncodeDecode, TrainConfig, pixel_rays
+from uvatar.dva.model import DvaConfig, DvaModel, EncodeDecode, TrainConfig
+from uvatar.dva.train_step import patch_pixels, step_inputs, step_loss
 from uvatar.errors import InputError, UvatarError
 from uvatar.io_utils import atomic_path, sweep_partial_writes, write_json
 
@@ -54,36 +55,6 @@ def make_body(name: str, device="cpu", model_dir=None):
     if str(name).lower() not in BODY_MODELS:
         raise InputError("body model", f"unknown body model {name!r}; choose one of {', '.join(BODY_MODELS)}")
     return load_body_model(name, model_dir=model_dir, device=device)
-
-
-def target_pixels(image: np.ndarray, mask: np.ndarray, pixels: np.ndarray, background: np.ndarray,
-                  mode: str = "mask") -> np.ndarray:
-    """(N, 3) float32 in [0, 1]: what the render at ``pixels`` (N, 2) integer (x, y) is compared with.
-    image (H, W, 3) uint8, mask (H, W) bool, background (3,) the colour the render is composited over;
-    mode "mask" or "random" (:class:`~uvatar.dva.model.TrainConfig` ``background``) puts that colour
-    wherever the mask is off, "photo" keeps the photo."""
-    x, y = pixels[:, 0], pixels[:, 1]
-    out = image[y, x].astype(np.float32) / 255.0
-    if mode in ("mask", "random"):
-        out = np.where(mask[y, x][:, None], out, np.asarray(background, np.float32)[None])
-    return out
-
-
-def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
-    """(size*size, 2) integer (x, y) pixels of a square crop whose centre lies in the mask's bounding
-    box (grown by half a patch), clipped to the image."""
-    H, W = mask.shape
-    size = min(size, H, W)
-    ys, xs = np.nonzero(mask)
-    if ys.size:
-        cy = rng.randint(int(ys.min()), int(ys.max()))
-        cx = rng.randint(int(xs.min()), int(xs.max()))
-    else:
-        cy, cx = rng.randrange(H), rng.randrange(W)
-    y0 = int(np.clip(cy - size // 2, 0, H - size))
-    x0 = int(np.clip(cx - size // 2, 0, W - size))
-    yy, xx = np.mgrid[y0:y0 + size, x0:x0 + size]
-    return np.stack([xx.ravel(), yy.ravel()], 1)
 
 
 #: ``torch.compile`` modes that capture CUDA graphs (cudagraph trees: a step marks its beginning)
@@ -215,7 +186,7 @@ class Trainer:
             cfg.raymarch = dataclasses.replace(cfg.raymarch, marcher=caller.raymarch.marcher)
             cfg.train = dataclasses.replace(cfg.train, compile=caller.train.compile,
                                             compile_mode=caller.train.compile_mode,
-                                            channels_last=caller.train.channels_last)
+                                            channels_last=caller.train.channels_last, graph=caller.train.graph)
             log.info("resuming from %s at step %d", ckpt, state["step"])
         self.cfg = cfg
         if state is not None and body_model and body_model != state["meta"]["body_model"]:
@@ -242,10 +213,16 @@ class Trainer:
         learns_pose = self.corrections is not None and c.pose
         self.posing = self._posing_on_device(body is not None, body_name, model_dir) \
             if learns_pose and self.pose_on_device else None
-        # on CUDA the fused kernel: one launch per step, and it skips a non-finite step on the device
-        self.opt = torch.optim.Adam(groups, fused=True) if self.device.type == "cuda" else torch.optim.Adam(groups)
-        self.budget, self.pair_overflows, self.skipped_updates = None, 0, 0
+        self.budget, self.pair_overflows = None, 0
         self.step = 0
+        refusal = self._graph_refusal() if cfg.train.graph else None
+        if refusal:
+            log.info("--graph: the training steps run eagerly here: %s", refusal)
+        graphed = cfg.train.graph and refusal is None
+        # on CUDA the fused kernel: one launch per step, and it skips a non-finite step on the device; a
+        # captured step keeps its step counts and learning rates on the device (set_lr writes into them)
+        self.opt = torch.optim.Adam(groups, fused=True, capturable=graphed) if self.device.type == "cuda" \
+            else torch.optim.Adam(groups)
         self.meta = {"body_model": body_name, "model_dir": None if model_dir is None else str(model_dir),
                      "conditioning_joints": list(joints),
                      "source": str(getattr(source, "root", "")), "train_cameras": list(source.train_cameras),
@@ -267,6 +244,16 @@ class Trainer:
                 self.seconds = float(clock["seconds"])
             else:  # a checkpoint from before the clock was saved: continues, but not step for step
                 log.warning("%s has no sampling RNG state: the resumed steps differ from an uninterrupted run", ckpt)
+        # skipped updates: counted on the device where the update is (see train_step), else on the host
+        self.skipped_updates = torch.zeros((), device=self.device) if self._device_skips else 0
+        self.graph = None
+        if graphed:
+            from uvatar.dva.train_step import StepGraph
+
+            for group in self.opt.param_groups:  # a replayed update reads its learning rate on the device
+                group["capturable"] = True
+                group["lr"] = torch.tensor(float(group["lr"]), device=self.device)
+            self.graph = StepGraph(self)
 
     def sample(self):
         """This process's share of one global batch: (frame indices, camera indices, image textures
@@ -304,67 +291,71 @@ class Trainer:
         they stay on the device until read (reading one reads them all: one sync), so a step run without
         reading them never waits for the device, except where noted below.
 
-        On CUDA in one process nothing in the step reads the device back: the correctives switch is
-        the host's step count, the marcher's pair buffer is fixed (``TrainConfig.pairs_per_ray``; its
-        overflow is looked at a step late, without blocking), the host's data go to the device through
-        pinned memory, and a non-finite loss or gradient skips the update on the device (Adam's fused
-        kernel with ``found_inf``, as a ``GradScaler`` does; the skipped steps are counted in
-        ``skipped_updates`` and warned about when the terms are next read). On the CPU and under
-        torchrun the checks are made on the host as before (free on a CPU; the processes must agree)."""
-        from uvatar.devices import to_device_async
-
+        The host samples the batch and sends it over (:func:`~uvatar.dva.train_step.step_inputs`); the
+        loss is computed from the device tensors alone (:func:`~uvatar.dva.train_step.step_loss`), eagerly
+        or, with ``TrainConfig.graph`` on CUDA, as the replay of a captured CUDA graph
+        (:class:`~uvatar.dva.train_step.StepGraph`). On CUDA in one process nothing in the step reads the
+        device back: the correctives switch is the host's step count, the marcher's pair buffer is fixed
+        (``TrainConfig.pairs_per_ray``; its overflow is looked at a step late, without blocking), the
+        host's data go to the device through pinned memory, and a non-finite loss or gradient skips the
+        update on the device (Adam's fused kernel with ``found_inf``, as a ``GradScaler`` does; the
+        skipped steps are counted in ``skipped_updates`` and warned about when the terms are next read).
+        On the CPU and under torchrun the checks are made on the host as before (free on a CPU; the
+        processes must agree)."""
         t = self.cfg.train
         correctives = self.step >= t.warmup_iters
         self.model.correctives_on.fill_(correctives)
         frames, cams, tex, pixels, backgrounds = self.sample()
-        fi = torch.tensor(frames)
-        centers = np.stack([self.bank.cams[c].center for c in cams]).astype(np.float32)
-        vertices, rotvecs = self._posed(fi, correctives)
-        if t.compile and t.compile_mode in CUDA_GRAPH_MODES and self.device.type == "cuda":
-            torch.compiler.cudagraph_mark_step_begin()  # the last step's graphed outputs are no longer read
-        out = self.model(vertices, rotvecs, tex, to_device_async(centers, self.device), t.precision, compact=True,
-                         correctives=correctives, decode=self.decode)
-        preds, alphas, host_targets, host_masks = [], [], [], []
-        for b, (f, c, pix, bg_colour) in enumerate(zip(frames, cams, pixels, backgrounds, strict=True)):
-            mask = self.bank.masks[f][c]
-            o, d = pixel_rays(self.bank.cams[c], pix, self.device)
-            bg = to_device_async(np.asarray(bg_colour, np.float32), self.device)
-            rgb, alpha = self.model.render_rays(out, b, o, d, None, camera=self.bank.cams[c], pixels=pix,
-                                                budget=self._budget(pix.shape[0]))
-            if self.corrections is not None:
-                rgb = self.corrections.colour(rgb, alpha, c)
-            rgb = rgb + (1.0 - alpha)[:, None] * bg
-            P = int(round(np.sqrt(pix.shape[0])))
-            host_targets.append(target_pixels(self.bank.images[f][c], mask, pix, bg_colour, t.background)
-                                .T.reshape(3, P, P))
-            preds.append(rgb.T.reshape(3, P, P))
-            alphas.append(alpha.reshape(P, P))
-            host_masks.append(mask[pix[:, 1], pix[:, 0]].astype(np.float32).reshape(P, P))
-        targets = to_device_async(np.stack(host_targets), self.device)  # one copy for the batch
-        masks = to_device_async(np.stack(host_masks), self.device)
-        pred = torch.stack(preds)
-        total, terms = self.loss.terms(pred, targets, torch.stack(alphas), masks, out.scales, self.model.rest_scales,
-                                       out.motion if correctives else None, out.learned_rgb, out.payload[:, :, 3])
-        if self.corrections is not None:
-            prior = self.corrections.prior(to_device_async(fi, self.device),
-                                           to_device_async(torch.tensor(cams), self.device))
-            for k, v in prior.items():
-                total = total + v
-                terms[k] = v.detach()
-        self.opt.zero_grad(set_to_none=True)
-        if self._device_skips:
-            self._update_on_device(total)
+        inputs, layout = step_inputs(self, frames, cams, tex, pixels, backgrounds, correctives)
+        host_frames = torch.tensor(frames)
+        if self.graph is not None and self.graph.error is None:
+            terms = self.graph.step(inputs, layout, host_frames)
         else:
-            self._update_on_host(total)
+            terms = self._eager_step(inputs, layout, host_frames)
         self.step += 1
-        terms["total"] = total.detach()
-        terms["mse"] = ((pred - targets) ** 2).mean().detach()
         if self.ctx.active:  # the global batch's terms: the mean of the processes' equal shares
             keys = sorted(terms)
             mean = all_sum(torch.tensor([float(terms[k]) for k in keys], dtype=torch.float64)) / self.ctx.world
             terms = dict(zip(keys, mean.tolist(), strict=True))
         self._look_at_budget()
         return StepTerms(terms, self._report_skips)
+
+    def _eager_step(self, inputs, layout, host_frames) -> dict:
+        """The step run operation by operation: loss, backward, clip, update; its terms."""
+        t = self.cfg.train
+        if t.compile and t.compile_mode in CUDA_GRAPH_MODES and self.device.type == "cuda":
+            torch.compiler.cudagraph_mark_step_begin()  # the last step's graphed outputs are no longer read
+        total, terms = step_loss(self, inputs, layout, host_frames)
+        self.opt.zero_grad(set_to_none=True)
+        if self._device_skips:
+            self._update_on_device(total)
+        else:
+            self._update_on_host(total)
+        return terms
+
+    def reposes(self, correctives: bool) -> bool:
+        """Whether a step re-poses the bodies with the learned pose offsets (after warm-up)."""
+        return self.corrections is not None and correctives and self.cfg.corrections.pose
+
+    def _graph_refusal(self) -> str | None:
+        """Why this trainer's steps cannot be captured (``TrainConfig.graph``), or None."""
+        from uvatar.dva.raymarch import resolve_marcher
+
+        c = self.cfg
+        if self.device.type != "cuda":
+            return "it needs CUDA"
+        if resolve_marcher(c.raymarch.marcher) != "warp":
+            return "it needs the Warp marcher (--marcher warp)"
+        if self.ctx.active:
+            return "not under torchrun (the processes average their gradients between backward and update)"
+        if c.train.pairs_per_ray <= 0:
+            return "it needs the marcher's fixed pair buffer (pairs_per_ray > 0)"
+        if self.corrections is not None and c.corrections.pose and self.posing is None:
+            return "the learned pose offsets re-pose the bodies on the host (pose_on_device=False)"
+        shape = self.bank.fits.shape
+        if shape is not None and len(shape) and bool((shape != shape[:1]).any()):
+            return "the fits' body shapes differ between frames"
+        return None
 
     @property
     def _device_skips(self) -> bool:
@@ -399,7 +390,9 @@ class Trainer:
         total.backward()
         norm = torch.nn.utils.clip_grad_norm_(self.params, 1.0)
         found_inf = (~torch.isfinite(norm)).to(torch.float32)
-        self.skipped_updates = self.skipped_updates + found_inf
+        if not isinstance(self.skipped_updates, torch.Tensor):  # made at start where the update is on the
+            self.skipped_updates = torch.zeros((), device=found_inf.device)  # device (a graph keeps it)
+        self.skipped_updates.add_(found_inf)
         self.opt.found_inf = found_inf
         try:
             self.opt.step()
@@ -413,7 +406,7 @@ class Trainer:
         n = int(self.skipped_updates)
         if n:
             log.warning("%d update(s) skipped before step %d: non-finite loss or gradient", n, self.step)
-        self.skipped_updates = 0
+        self.skipped_updates.zero_()
 
     def _budget(self, rays: int):
         """The marcher's pair buffer for ``rays`` rays (``TrainConfig.pairs_per_ray``), or None (exact)."""
@@ -460,13 +453,14 @@ class Trainer:
         fits = FitParams(*(to_device_async(x, dev) for x in (f.rotvecs, f.Rh, f.Th, f.scale)), shape=None)
         return body, fits
 
-    def _posed(self, frames: torch.Tensor, corrected: bool):
+    def _posed(self, frames: torch.Tensor, corrected: bool, device_frames: torch.Tensor | None = None):
         """(posed vertices (B, V, 3), joint rotvecs (B, J, 3)) of bank frames (B,) (host int64) on the
         device: the fits as they are, or re-posed with the learned pose offsets once ``corrected`` (after
         warm-up). Re-posing runs where ``pose_on_device`` says: on the device (:attr:`posing`: the body
         model and the fits there; the frames go over asynchronously, the shapes stay on the host;
         nothing is read back), or on the host (the body model as loaded, on the CPU: the offsets are
-        read back, a sync each step on a GPU; the reference twin)."""
+        read back, a sync each step on a GPU; the reference twin). ``device_frames``: ``frames`` already
+        on the device (a captured step's input)."""
         from uvatar.devices import to_device_async
 
         if self.corrections is None or not (corrected and self.cfg.corrections.pose):
@@ -476,7 +470,8 @@ class Trainer:
         if self.posing is not None:
             body, device_fits = self.posing
             shape = None if fits.shape is None else fits.shape[frames]
-            return pose_corrected(body, self.corrections, device_fits, to_device_async(frames, self.device), shape)
+            on_device = device_frames if device_frames is not None else to_device_async(frames, self.device)
+            return pose_corrected(body, self.corrections, device_fits, on_device, shape)
         rot, Rh, Th = self.corrections.pose_inputs(fits, frames, True)
         shape = None if fits.shape is None else fits.shape[frames]
         # the body model poses on the CPU: reading the offsets back is this step's one sync on a GPU
@@ -509,7 +504,10 @@ class Trainer:
         lr = t.lr * decay
         bases = [t.lr, self.cfg.corrections.lr]  # the model's group, then the corrections'
         for group, base in zip(self.opt.param_groups, bases, strict=False):
-            group["lr"] = base * decay
+            if isinstance(group["lr"], torch.Tensor):  # a captured step's: written in place, read on the device
+                group["lr"].fill_(base * decay)
+            else:
+                group["lr"] = base * decay
         return lr
 
     def save(self, seconds: float) -> None:

@@ -1,0 +1,274 @@
+"""One DVA training step on the device, and the step captured whole in a CUDA graph
+(``TrainConfig.graph``).
+
+A step is split where the host ends: :func:`step_inputs` draws nothing itself; it turns the sampled
+(frame, camera, crop) of each sample into :class:`StepInputs`, device tensors whose shapes do not change
+between steps (the rays of each crop, its camera's matrices and lens, the crop's corner, the targets).
+:func:`step_loss` then computes the step's loss from those tensors alone: nothing in it looks at the
+host's data, so the same operations run on every step and a CUDA graph can record them once
+(:class:`StepGraph`): forward, loss, backward, gradient clipping and the optimizer's update, replayed
+each step after the step's inputs are copied into the graph's own. What would differ between steps is
+in :class:`StepLayout`, the graph's key: a new layout (the correctives switched on after warm-up, a
+grown pair buffer) is captured again.
+
+The eager step (:meth:`uvatar.dva.train.Trainer.train_step` without ``graph``) runs the same
+:func:`step_loss`, so a replayed step and an eager one compute the same numbers.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+
+from uvatar.dva.model import pixel_rays
+from uvatar.dva.raymarch_cull import DeviceCamera, PixelGrid
+
+log = logging.getLogger(__name__)
+
+#: eager steps of a layout run on the graph's stream before it is captured (the optimizer's state and
+#: cuDNN's algorithms are made there, Warp's kernels loaded); the first capture of a trainer takes two
+WARMUP_STEPS = 2
+
+
+def target_pixels(image: np.ndarray, mask: np.ndarray, pixels: np.ndarray, background: np.ndarray,
+                  mode: str = "mask") -> np.ndarray:
+    """(N, 3) float32 in [0, 1]: what the render at ``pixels`` (N, 2) integer (x, y) is compared with.
+    image (H, W, 3) uint8, mask (H, W) bool, background (3,) the colour the render is composited over;
+    mode "mask" or "random" (:class:`~uvatar.dva.model.TrainConfig` ``background``) puts that colour
+    wherever the mask is off, "photo" keeps the photo."""
+    x, y = pixels[:, 0], pixels[:, 1]
+    out = image[y, x].astype(np.float32) / 255.0
+    if mode in ("mask", "random"):
+        out = np.where(mask[y, x][:, None], out, np.asarray(background, np.float32)[None])
+    return out
+
+
+def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
+    """(size*size, 2) integer (x, y) pixels of a square crop whose centre lies in the mask's bounding
+    box (grown by half a patch), clipped to the image."""
+    H, W = mask.shape
+    size = min(size, H, W)
+    ys, xs = np.nonzero(mask)
+    if ys.size:
+        cy = rng.randint(int(ys.min()), int(ys.max()))
+        cx = rng.randint(int(xs.min()), int(xs.max()))
+    else:
+        cy, cx = rng.randrange(H), rng.randrange(W)
+    y0 = int(np.clip(cy - size // 2, 0, H - size))
+    x0 = int(np.clip(cx - size // 2, 0, W - size))
+    yy, xx = np.mgrid[y0:y0 + size, x0:x0 + size]
+    return np.stack([xx.ravel(), yy.ravel()], 1)
+
+
+@dataclass
+class StepInputs:
+    """One step's B samples on the training device (each a P x P pixel crop; N = P * P rays):
+
+    frames (B,) int64 bank frames; cameras (B,) int64 training cameras; textures (B, 4, R, R) the image
+    features' input; centres (B, 3) metres, the cameras' centres; vertices (B, V, 3) metres and rotvecs
+    (B, J, 3) radians, the fitted bodies (None where the step re-poses them with the learned offsets);
+    origins, directions (B, N, 3) the crops' rays (row-major); K (B, 3, 3) pixels, R (B, 3, 3),
+    T (B, 3) metres, lens (B, 5) the cameras (OpenCV); corners (B, 2) int64 each crop's top-left pixel
+    (x, y); targets (B, 3, P, P) in [0, 1]; masks (B, P, P) in {0, 1}; backgrounds (B, 3) the colour each
+    render is composited over."""
+
+    frames: torch.Tensor
+    cameras: torch.Tensor
+    textures: torch.Tensor
+    centres: torch.Tensor
+    vertices: torch.Tensor | None
+    rotvecs: torch.Tensor | None
+    origins: torch.Tensor
+    directions: torch.Tensor
+    K: torch.Tensor
+    R: torch.Tensor
+    T: torch.Tensor
+    lens: torch.Tensor
+    corners: torch.Tensor
+    targets: torch.Tensor
+    masks: torch.Tensor
+    backgrounds: torch.Tensor
+
+    def tensors(self) -> list[torch.Tensor]:
+        return [t for t in (getattr(self, f.name) for f in fields(self)) if t is not None]
+
+    def clone(self) -> StepInputs:
+        return StepInputs(*(None if t is None else t.clone() for t in (getattr(self, f.name) for f in fields(self))))
+
+    def copy_(self, other: StepInputs) -> None:
+        """Copy ``other``'s values into these tensors (a graph's static inputs), on the device's queue."""
+        for dst, src in zip(self.tensors(), other.tensors(), strict=True):
+            dst.copy_(src, non_blocking=True)
+
+
+@dataclass(frozen=True)
+class StepLayout:
+    """What a step's operations depend on besides its input tensors (a captured step's key): samples
+    ``batch``, crop side ``patch`` (pixels), whether the primitives' ``correctives`` are on, whether the
+    step ``reposes`` the bodies with the learned pose offsets, each sample camera's lens bending rays
+    (``distorted``, the culling's branch), and the marcher's pair buffer ``pairs`` (per sample)."""
+
+    batch: int
+    patch: int
+    correctives: bool
+    reposes: bool
+    distorted: tuple[bool, ...]
+    pairs: int
+
+
+def step_inputs(trainer, frames, cams, textures, pixels, backgrounds, correctives: bool):
+    """(:class:`StepInputs`, :class:`StepLayout`) of a sampled batch (:meth:`Trainer.sample`'s): the host's
+    arrays stacked once per kind and sent to the device without blocking (pinned memory on CUDA)."""
+    from uvatar.devices import to_device_async
+
+    dev, t, bank = trainer.device, trainer.cfg.train, trainer.bank
+    cameras = [bank.cams[c] for c in cams]
+    P = int(round(np.sqrt(pixels[0].shape[0])))
+    rays = [pixel_rays(cam, pix, "cpu") for cam, pix in zip(cameras, pixels, strict=True)]
+    targets = [target_pixels(bank.images[f][c], bank.masks[f][c], pix, bg, t.background).T.reshape(3, P, P)
+               for f, c, pix, bg in zip(frames, cams, pixels, backgrounds, strict=True)]
+    masks = [bank.masks[f][c][pix[:, 1], pix[:, 0]].astype(np.float32).reshape(P, P)
+             for f, c, pix in zip(frames, cams, pixels, strict=True)]
+    lens = np.stack([np.pad(np.asarray(getattr(c, "dist", np.zeros(5)), np.float64).reshape(-1), (0, 5))[:5]
+                     for c in cameras])
+    reposes = trainer.reposes(correctives)
+    host = torch.tensor(frames)
+
+    def up(array, dtype=torch.float32):
+        return to_device_async(array, dev, dtype)
+
+    vertices, rotvecs = (None, None) if reposes else (up(bank.vertices[host]), up(bank.rotvecs[host]))
+    inputs = StepInputs(
+        frames=up(host, torch.int64), cameras=up(torch.tensor(cams), torch.int64), textures=textures,
+        centres=up(np.stack([c.center for c in cameras])), vertices=vertices, rotvecs=rotvecs,
+        origins=up(torch.stack([o for o, _ in rays])), directions=up(torch.stack([d for _, d in rays])),
+        K=up(np.stack([c.K for c in cameras])), R=up(np.stack([c.R for c in cameras])),
+        T=up(np.stack([np.asarray(c.T).reshape(3) for c in cameras])), lens=up(lens),
+        corners=up(np.stack([pix[0] for pix in pixels]), torch.int64), targets=up(np.stack(targets)),
+        masks=up(np.stack(masks)), backgrounds=up(np.stack([np.asarray(b, np.float32) for b in backgrounds])))
+    budget = trainer._budget(P * P)
+    layout = StepLayout(len(frames), P, bool(correctives), reposes, tuple(bool(np.any(x != 0)) for x in lens),
+                        0 if budget is None else budget.capacity)
+    return inputs, layout
+
+
+def step_loss(trainer, inputs: StepInputs, layout: StepLayout, host_frames=None):
+    """(total loss (differentiable 0-dim), terms {name: detached 0-dim}, with "total" and "mse") of one
+    step, from the device tensors alone. ``host_frames`` (B,) int64: the frames on the host, which the
+    host re-posing path (``pose_on_device=False``) and the bodies' shapes need."""
+    model, corrections, t = trainer.model, trainer.corrections, trainer.cfg.train
+    P, B = layout.patch, layout.batch
+    correctives = layout.correctives
+    if layout.reposes:
+        vertices, rotvecs = trainer._posed(host_frames, True, inputs.frames)
+    else:
+        vertices, rotvecs = inputs.vertices, inputs.rotvecs
+    out = model(vertices, rotvecs, inputs.textures, inputs.centres, t.precision, compact=True,
+                correctives=correctives, decode=trainer.decode)
+    budget = trainer._budget(P * P)
+    preds, alphas = [], []
+    for b in range(B):
+        camera = DeviceCamera(inputs.K[b], inputs.R[b], inputs.T[b], inputs.lens[b], layout.distorted[b])
+        rgb, alpha = model.render_rays(out, b, inputs.origins[b], inputs.directions[b], None, camera=camera,
+                                       pixels=PixelGrid.crop(P, inputs.corners[b]), budget=budget)
+        if corrections is not None:
+            rgb = corrections.colour(rgb, alpha, inputs.cameras[b:b + 1])
+        rgb = rgb + (1.0 - alpha)[:, None] * inputs.backgrounds[b]
+        preds.append(rgb.T.reshape(3, P, P))
+        alphas.append(alpha.reshape(P, P))
+    pred = torch.stack(preds)
+    total, terms = trainer.loss.terms(pred, inputs.targets, torch.stack(alphas), inputs.masks, out.scales,
+                                      model.rest_scales, out.motion if correctives else None, out.learned_rgb,
+                                      out.payload[:, :, 3])
+    if corrections is not None:
+        for k, v in corrections.prior(inputs.frames, inputs.cameras).items():
+            total = total + v
+            terms[k] = v.detach()
+    terms["total"] = total.detach()
+    terms["mse"] = ((pred - inputs.targets) ** 2).mean().detach()
+    return total, terms
+
+
+class StepGraph:
+    """A trainer's training step captured in a CUDA graph (``TrainConfig.graph``) and replayed.
+
+    Per :class:`StepLayout`: :data:`WARMUP_STEPS` eager steps on the graph's stream (the optimizer's
+    state, cuDNN's algorithms, Warp's modules; one after the first capture), then the next step is
+    captured (``torch.cuda.graph`` with Warp told of the capture, as
+    :class:`~uvatar.dva.frame.FrameRenderer` does) and every later step of that layout copies its inputs
+    into the graph's and replays it: forward, loss, backward, clipping, the update (fused Adam with a
+    device learning rate and ``found_inf``) with no launch from Python. A failed capture is logged, kept
+    in ``error``, and the steps run eagerly from then on."""
+
+    def __init__(self, trainer):
+        self.trainer = trainer
+        self.key: StepLayout | None = None
+        self.graph = None
+        self.inputs: StepInputs | None = None
+        self.terms: dict | None = None
+        self.error: str | None = None
+        self.warm = 0          # eager steps run on the stream for the current key
+        self.captures = 0
+        self.replays = 0
+        self.stream = torch.cuda.Stream(device=trainer.device)
+
+    def step(self, inputs: StepInputs, layout: StepLayout, host_frames) -> dict:
+        """One training step of ``inputs``: eager warm-up, capture or replay; its terms (device tensors)."""
+        tr = self.trainer
+        if layout != self.key:
+            self.key, self.graph, self.inputs, self.terms, self.warm = layout, None, None, None, 0
+        if self.graph is None and self.warm < (WARMUP_STEPS if self.captures == 0 else 1):
+            self.warm += 1
+            return self._on_stream(lambda: tr._eager_step(inputs, layout, host_frames))
+        if self.graph is None:
+            try:
+                self._capture(inputs, layout, host_frames)
+            except Exception as exc:  # noqa: BLE001 - any capture failure: eager steps, said once
+                self.error = f"{type(exc).__name__}: {exc}"
+                self.graph = None
+                log.warning("capturing the training step in a CUDA graph failed (%s): steps run eagerly",
+                            self.error)
+                tr.opt.zero_grad(set_to_none=True)
+                return tr._eager_step(inputs, layout, host_frames)
+        self.inputs.copy_(inputs)
+        self.graph.replay()
+        self.replays += 1
+        names = list(self.terms)
+        values = self._values.clone()  # one copy: the next replay overwrites the graph's own
+        return {k: values[i] for i, k in enumerate(names)}
+
+    def _on_stream(self, fn):
+        dev = self.trainer.device
+        self.stream.wait_stream(torch.cuda.current_stream(dev))
+        with torch.cuda.stream(self.stream):
+            out = fn()
+        torch.cuda.current_stream(dev).wait_stream(self.stream)
+        return out
+
+    def _capture(self, inputs: StepInputs, layout: StepLayout, host_frames) -> None:
+        import warp as wp
+
+        from uvatar.geometry.raycast_warp import warp_stream
+
+        tr = self.trainer
+        static = inputs.clone()
+        graph = torch.cuda.CUDAGraph()
+        tr.opt.zero_grad(set_to_none=True)  # the gradients are the graph's own, written by each replay
+        self.stream.wait_stream(torch.cuda.current_stream(tr.device))
+        wstream = warp_stream(self.stream)
+        with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=self.stream):
+            wp.capture_begin(stream=wstream, force_module_load=False, external=True)
+            try:
+                total, terms = step_loss(tr, static, layout, host_frames)
+                tr._update_on_device(total)
+                values = torch.stack([v.float() for v in terms.values()])
+            finally:
+                wp.capture_end(stream=wstream)
+        torch.cuda.current_stream(tr.device).wait_stream(self.stream)
+        self.graph, self.inputs, self.terms, self._values = graph, static, terms, values
+        self.captures += 1
+        log.info("the training step is captured in a CUDA graph (%s)", layout)
