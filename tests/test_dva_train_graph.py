@@ -9,6 +9,7 @@ capture), and a replayed step makes no host sync."""
 
 from __future__ import annotations
 
+import copy
 import logging
 
 import numpy as np
@@ -205,3 +206,78 @@ def test_captured_steps_take_the_eager_steps_on_cuda(capture, tmp_path):
     assert graphed.graph.error is None and graphed.graph.captures == 2 and graphed.graph.replays >= 4
     for p, q in zip(eager.params, graphed.params, strict=True):
         torch.testing.assert_close(q, p, rtol=1e-3, atol=1e-4)
+
+
+def test_a_captured_runs_checkpoint_resumes_anywhere(capture, tmp_path):
+    """A checkpoint of a trainer whose updates read device learning rates (a captured step's) holds
+    them as numbers and without ``capturable``: an eager trainer resumes it and steps."""
+    run_dir = tmp_path / "run"
+    trainer = _trainer(capture, run_dir)
+    trainer.train_step()
+    for group in trainer.opt.param_groups:
+        group["lr"], group["capturable"] = torch.tensor(float(group["lr"])), True
+    trainer.save(1.0)
+    cfg = trainer.cfg
+    resumed = Trainer(open_source(capture), run_dir, cfg, progress=False, resume=True)
+    for group, before in zip(resumed.opt.param_groups, trainer.opt.param_groups, strict=True):
+        assert type(group["lr"]) is float and group["lr"] == float(before["lr"]) and not group["capturable"]
+    assert resumed.step == 1 and np.isfinite(resumed.train_step()["total"])
+
+
+class _StandInGraph:
+    """A CPU stand-in for a captured CUDA graph: ``replay`` runs the recorded function again (gradients
+    written afresh, as a replay's backward writes them) and writes its result into the output the
+    capture handed out."""
+
+    def __init__(self, trainer, fn, out):
+        self.trainer, self.fn, self.out = trainer, fn, out
+
+    def replay(self):
+        self.trainer.opt.zero_grad(set_to_none=True)
+        self.out.copy_(self.fn())
+
+
+def _record_stand_in(self, fn):
+    """What :meth:`StepGraph._record` gives, on the CPU: the function's output made by a dry run whose
+    update is then undone (a capture records the step, it does not take it)."""
+    tr = self.trainer
+    params = [p.detach().clone() for p in tr.params]
+    state = copy.deepcopy(tr.opt.state_dict())
+    out = fn()
+    with torch.no_grad():
+        for p, q in zip(tr.params, params, strict=True):
+            p.copy_(q)
+    tr.opt.load_state_dict(state)
+    tr.opt.zero_grad(set_to_none=True)
+    return _StandInGraph(tr, fn, out), out
+
+
+def test_step_graph_warms_up_captures_per_layout_and_replays_the_eager_steps(capture, tmp_path, monkeypatch):
+    """:class:`StepGraph`'s bookkeeping with a CPU stand-in for the CUDA graph: two eager warm-up steps,
+    the capture, replays of the static inputs the steps copy in; the correctives' switch (a new layout)
+    takes one warm-up step and a second capture. Eight steps take the eager trainer's steps, bit for
+    bit, and the terms come back under their names."""
+    from uvatar.dva.train_step import WARMUP_STEPS, StepGraph
+
+    monkeypatch.setattr(Trainer, "_device_skips", property(lambda self: True))
+    monkeypatch.setattr(StepGraph, "_record", _record_stand_in)
+
+    def fused(trainer):
+        trainer.opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in trainer.opt.param_groups],
+                                       fused=True)
+        return trainer
+
+    eager = fused(_trainer(capture, tmp_path / "eager", warmup=4, pose_on_device=True))
+    graphed = fused(_trainer(capture, tmp_path / "graph", warmup=4, pose_on_device=True))
+    graphed.graph = StepGraph(graphed)
+    seen = []
+    for _ in range(9):
+        a, b = eager.train_step(), graphed.train_step()
+        assert dict(a) == dict(b)
+        seen.append((graphed.graph.captures, graphed.graph.replays))
+    assert WARMUP_STEPS == 2
+    # steps 0-1 warm up, 2 is captured and replayed, 3 replays; 4 (correctives on) warms up, 5 captures
+    assert seen == [(0, 0), (0, 0), (1, 1), (1, 2), (1, 2), (2, 3), (2, 4), (2, 5), (2, 6)]
+    for p, q in zip(eager.params, graphed.params, strict=True):
+        assert torch.equal(p, q)
+    assert graphed.graph.error is None and graphed.graph.key.correctives

@@ -84,7 +84,10 @@ def save_checkpoint(path: Path, model, optimizer, step: int, meta: dict, clock: 
     """Write a run's checkpoint atomically. clock: what a resume needs to take the same steps
     (``rng``: the sampling RNG state, ``torch_rng``, ``seconds`` trained so far); corrections: the
     :class:`~uvatar.dva.corrections.TrainingCorrections` learned beside the model."""
-    state = {"model": model.state_dict(), "optimizer": optimizer.state_dict() if optimizer else None,
+    opt = optimizer.state_dict() if optimizer else None
+    if opt is not None:  # a captured step's device learning rates saved as numbers: any trainer resumes it
+        opt["param_groups"] = [{**g, "lr": float(g["lr"]), "capturable": False} for g in opt["param_groups"]]
+    state = {"model": model.state_dict(), "optimizer": opt,
              "step": step, "config": model.cfg.to_dict(), "meta": meta, "clock": clock,
              "corrections": corrections.state_dict() if corrections is not None else None}
     with atomic_path(path, suffix=".pt") as tmp:

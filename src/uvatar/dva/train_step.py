@@ -214,7 +214,8 @@ class StepGraph:
         self.warm = 0          # eager steps run on the stream for the current key
         self.captures = 0
         self.replays = 0
-        self.stream = torch.cuda.Stream(device=trainer.device)
+        self._values: torch.Tensor | None = None  # the terms, written by each replay
+        self.stream = torch.cuda.Stream(device=trainer.device) if trainer.device.type == "cuda" else None
 
     def step(self, inputs: StepInputs, layout: StepLayout, host_frames) -> dict:
         """One training step of ``inputs``: eager warm-up, capture or replay; its terms (device tensors)."""
@@ -242,6 +243,10 @@ class StepGraph:
         return {k: values[i] for i, k in enumerate(names)}
 
     def _on_stream(self, fn):
+        """Run ``fn`` on the graph's stream (where its warm-up must run), ordered after the work queued
+        before it and before the work queued after it."""
+        if self.stream is None:
+            return fn()
         dev = self.trainer.device
         self.stream.wait_stream(torch.cuda.current_stream(dev))
         with torch.cuda.stream(self.stream):
@@ -250,25 +255,39 @@ class StepGraph:
         return out
 
     def _capture(self, inputs: StepInputs, layout: StepLayout, host_frames) -> None:
+        """Record the step of ``layout`` on a copy of ``inputs`` (the graph's static inputs)."""
+        tr = self.trainer
+        static = inputs.clone()
+        terms: dict = {}
+
+        def one_step():
+            total, got = step_loss(tr, static, layout, host_frames)
+            tr._update_on_device(total)
+            terms.update(got)
+            return torch.stack([v.float() for v in got.values()])
+
+        tr.opt.zero_grad(set_to_none=True)  # the gradients are the graph's own, written by each replay
+        self.graph, self._values = self._record(one_step)
+        self.inputs, self.terms = static, terms
+        self.captures += 1
+        log.info("the training step is captured in a CUDA graph (%s)", layout)
+
+    def _record(self, fn):
+        """(a CUDA graph of ``fn``, its output: tensors the graph's replays write) captured on the graph's
+        stream with Warp told of the capture (its kernels launch on that stream)."""
         import warp as wp
 
         from uvatar.geometry.raycast_warp import warp_stream
 
-        tr = self.trainer
-        static = inputs.clone()
+        dev = self.trainer.device
         graph = torch.cuda.CUDAGraph()
-        tr.opt.zero_grad(set_to_none=True)  # the gradients are the graph's own, written by each replay
-        self.stream.wait_stream(torch.cuda.current_stream(tr.device))
+        self.stream.wait_stream(torch.cuda.current_stream(dev))
         wstream = warp_stream(self.stream)
         with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=self.stream):
             wp.capture_begin(stream=wstream, force_module_load=False, external=True)
             try:
-                total, terms = step_loss(tr, static, layout, host_frames)
-                tr._update_on_device(total)
-                values = torch.stack([v.float() for v in terms.values()])
+                out = fn()
             finally:
                 wp.capture_end(stream=wstream)
-        torch.cuda.current_stream(tr.device).wait_stream(self.stream)
-        self.graph, self.inputs, self.terms, self._values = graph, static, terms, values
-        self.captures += 1
-        log.info("the training step is captured in a CUDA graph (%s)", layout)
+        torch.cuda.current_stream(dev).wait_stream(self.stream)
+        return graph, out
