@@ -34,21 +34,12 @@ from torch.autograd.function import once_differentiable
 
 from uvatar.dva.raymarch_cull import pinhole_rects, sphere_candidates
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, ray_range
-from uvatar.errors import require
+from uvatar.dva.warp_torch import launch_stream, load_warp, warp_scalar, warp_types, warp_view
 
 __all__ = ["raymarch_warp", "warp_plan", "PairBudget", "PairOverflow"]
 
 EPS = 1e-6  # increments below this count whole while opacity remains (raymarch_ref.accumulate)
 _KERNELS: dict = {}
-
-
-def _warp():
-    wp = require("warp", "kernels", "the fused ray-marching kernel (--marcher warp)")
-    wp.config.quiet = True  # warp < 1.14
-    if hasattr(wp, "LOG_WARNING"):
-        wp.config.log_level = max(getattr(wp.config, "log_level", 0), wp.LOG_WARNING)
-    wp.init()  # once; later calls return at once
-    return wp
 
 
 def _build(wp, F):
@@ -367,7 +358,7 @@ def _build(wp, F):
 
 
 def _kernels(dtype: torch.dtype):
-    wp = _warp()
+    wp = load_warp()
     if dtype not in _KERNELS:
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"the warp marcher runs float32 or float64, not {dtype}")
@@ -458,20 +449,20 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     o, d = origins.detach().contiguous(), directions.detach().contiguous()
     wp, (pair_steps, rect_pairs, _, _) = _kernels(origins.dtype)
     dt, dev = origins.dtype, origins.device
-    V3, _, M33 = _types(wp, dt)
-    box = [_wp(wp, prims.positions.to(dt).contiguous(), V3), _wp(wp, prims.rotations.to(dt).contiguous(), M33),
-           _wp(wp, prims.scales.to(dt).contiguous(), V3), T, _scalar(wp, dt)(cfg.step)]
-    rays = [_wp(wp, o, V3), _wp(wp, d, V3), _wp(wp, t_near), _wp(wp, t_far)]
-    launch = {"device": wp.device_from_torch(dev), "stream": _stream(wp, dev)}
+    V3, _, M33 = warp_types(wp, dt)
+    box = [warp_view(wp, prims.positions.to(dt).contiguous(), V3), warp_view(wp, prims.rotations.to(dt).contiguous(), M33),
+           warp_view(wp, prims.scales.to(dt).contiguous(), V3), T, warp_scalar(wp, dt)(cfg.step)]
+    rays = [warp_view(wp, o, V3), warp_view(wp, d, V3), warp_view(wp, t_near), warp_view(wp, t_far)]
+    launch = {"device": wp.device_from_torch(dev), "stream": launch_stream(wp, dev)}
     i32 = torch.int32
     offsets = torch.zeros(N + 1, dtype=i32, device=dev)
     if camera is not None and pixels is not None:  # per primitive: the pixels of its rectangle
         lookup, x0, y0, w, rects = pinhole_rects(camera, pixels, prims)
         count = torch.zeros(N, dtype=i32, device=dev)
         pairs = [torch.zeros(0, dtype=i32, device=dev)] * 3
-        args = rays + [_wp(wp, lookup.to(i32)), x0, y0, w, _wp(wp, rects.to(i32).contiguous(), wp.vec4i)] + box
-        wp.launch(rect_pairs, dim=prims.num, inputs=args + [0, _wp(wp, count), _wp(wp, offsets)]
-                  + [_wp(wp, t) for t in pairs], **launch)
+        args = rays + [warp_view(wp, lookup.to(i32)), x0, y0, w, warp_view(wp, rects.to(i32).contiguous(), wp.vec4i)] + box
+        wp.launch(rect_pairs, dim=prims.num, inputs=args + [0, warp_view(wp, count), warp_view(wp, offsets)]
+                  + [warp_view(wp, t) for t in pairs], **launch)
         offsets[1:] = torch.cumsum(count, 0)
         if budget is not None:  # a fixed buffer: nothing read back; rays past its end lose pairs (flagged)
             budget.record(offsets[-1])
@@ -483,8 +474,8 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
                 return None
         count.zero_()
         pairs = [torch.empty(P, dtype=i32, device=dev) for _ in range(3)]
-        wp.launch(rect_pairs, dim=prims.num, inputs=args + [1, _wp(wp, count), _wp(wp, offsets)]
-                  + [_wp(wp, t) for t in pairs], **launch)
+        wp.launch(rect_pairs, dim=prims.num, inputs=args + [1, warp_view(wp, count), warp_view(wp, offsets)]
+                  + [warp_view(wp, t) for t in pairs], **launch)
         return (t_near, offsets, *pairs)
     parts = [sphere_candidates(o[lo:lo + cfg.chunk_rays], d[lo:lo + cfg.chunk_rays], prims)
              for lo in range(0, N, cfg.chunk_rays)]  # each sorted by ray
@@ -494,8 +485,8 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     offsets[1:] = torch.cumsum(torch.bincount(ray, minlength=N), 0)
     ray, prim = ray.to(i32).contiguous(), torch.cat([p[1] for p in parts]).to(i32).contiguous()
     i0, i1 = torch.empty_like(ray), torch.empty_like(ray)
-    wp.launch(pair_steps, dim=ray.numel(), inputs=rays + [_wp(wp, ray), _wp(wp, prim)] + box
-              + [_wp(wp, i0), _wp(wp, i1)], **launch)
+    wp.launch(pair_steps, dim=ray.numel(), inputs=rays + [warp_view(wp, ray), warp_view(wp, prim)] + box
+              + [warp_view(wp, i0), warp_view(wp, i1)], **launch)
     return t_near, offsets, prim, i0, i1
 
 
@@ -509,14 +500,14 @@ class _March(torch.autograd.Function):
         plan, (S, step, fw) = plan_consts[:5], plan_consts[5:]
         wp, (_, _, fwd, _) = _kernels(origins.dtype)
         N, dev, dt = origins.shape[0], origins.device, origins.dtype
-        V3, V4, M33 = _types(wp, dt)
+        V3, V4, M33 = warp_types(wp, dt)
         inputs = _march_args(wp, origins, directions, plan, positions, rotations, scales, payload, S, step, fw)
         rgb, alpha, total = origins.new_zeros(N, 3), origins.new_zeros(N), origins.new_zeros(N)
         last = torch.full((N,), -1, dtype=torch.int32, device=dev)
         sat, rem = origins.new_zeros(N, 4), origins.new_zeros(N)
-        outputs = [_wp(wp, rgb, V3), _wp(wp, alpha), _wp(wp, total), _wp(wp, last), _wp(wp, sat, V4),
-                   _wp(wp, rem)]
-        wp.launch(fwd, dim=N, inputs=inputs + outputs, device=wp.device_from_torch(dev), stream=_stream(wp, dev))
+        outputs = [warp_view(wp, rgb, V3), warp_view(wp, alpha), warp_view(wp, total), warp_view(wp, last), warp_view(wp, sat, V4),
+                   warp_view(wp, rem)]
+        wp.launch(fwd, dim=N, inputs=inputs + outputs, device=wp.device_from_torch(dev), stream=launch_stream(wp, dev))
         ctx.save_for_backward(origins, directions, positions, rotations, scales, payload, *plan, total, last,
                               sat, rem)
         ctx.consts = (S, step, fw)
@@ -530,46 +521,25 @@ class _March(torch.autograd.Function):
         S, step, fw = ctx.consts
         wp, (_, _, _, bwd) = _kernels(origins.dtype)
         dev, dt = origins.device, origins.dtype
-        V3, V4, M33 = _types(wp, dt)
+        V3, V4, M33 = warp_types(wp, dt)
         grads = [torch.zeros_like(t) for t in (positions, rotations, scales, payload, origins, directions)]
         inputs = _march_args(wp, origins, directions, plan, positions, rotations, scales, payload, S, step, fw) + \
-                 [_wp(wp, total), _wp(wp, last), _wp(wp, sat, V4), _wp(wp, rem),
-                  _wp(wp, grad_rgb.contiguous(), V3), _wp(wp, grad_alpha.contiguous())]
-        outputs = [_wp(wp, grads[0], V3), _wp(wp, grads[1], M33), _wp(wp, grads[2], V3), _wp(wp, grads[3]),
-                   _wp(wp, grads[4], V3), _wp(wp, grads[5], V3)]
+                 [warp_view(wp, total), warp_view(wp, last), warp_view(wp, sat, V4), warp_view(wp, rem),
+                  warp_view(wp, grad_rgb.contiguous(), V3), warp_view(wp, grad_alpha.contiguous())]
+        outputs = [warp_view(wp, grads[0], V3), warp_view(wp, grads[1], M33), warp_view(wp, grads[2], V3), warp_view(wp, grads[3]),
+                   warp_view(wp, grads[4], V3), warp_view(wp, grads[5], V3)]
         wp.launch(bwd, dim=origins.shape[0], inputs=inputs + outputs, device=wp.device_from_torch(dev),
-                  stream=_stream(wp, dev))
+                  stream=launch_stream(wp, dev))
         g_pos, g_rot, g_scl, g_pay, g_o, g_d = grads
         return (g_o, g_d, g_pos, g_rot, g_scl, g_pay) + (None,) * 8
 
 
 def _march_args(wp, origins, directions, plan, positions, rotations, scales, payload, S, step, fw) -> list:
     """The arguments the forward and backward kernels share: rays, culling plan, primitives, constants."""
-    V3, _, M33 = _types(wp, origins.dtype)
-    F = _scalar(wp, origins.dtype)
-    return [_wp(wp, origins, V3), _wp(wp, directions, V3)] + [_wp(wp, t) for t in plan] + \
-        [_wp(wp, positions, V3), _wp(wp, rotations, M33), _wp(wp, scales, V3), _wp(wp, payload), S, F(step), F(fw)]
-
-
-def _types(wp, dtype):
-    """(vec3, vec4, mat33) Warp types of a torch float dtype."""
-    F = _scalar(wp, dtype)
-    return wp.types.vector(3, F), wp.types.vector(4, F), wp.types.matrix((3, 3), F)
-
-
-def _scalar(wp, dtype):
-    return wp.float32 if dtype == torch.float32 else wp.float64
-
-
-def _wp(wp, t: torch.Tensor, dtype=None):
-    t = t.detach()  # zero-copy view; autograd is handled by _March
-    return wp.from_torch(t, dtype=dtype) if dtype is not None else wp.from_torch(t)
-
-
-def _stream(wp, device):
-    from uvatar.geometry.raycast_warp import warp_stream
-
-    return warp_stream(device) if device.type == "cuda" else None
+    V3, _, M33 = warp_types(wp, origins.dtype)
+    F = warp_scalar(wp, origins.dtype)
+    return [warp_view(wp, origins, V3), warp_view(wp, directions, V3)] + [warp_view(wp, t) for t in plan] + \
+        [warp_view(wp, positions, V3), warp_view(wp, rotations, M33), warp_view(wp, scales, V3), warp_view(wp, payload), S, F(step), F(fw)]
 
 
 def raymarch_warp(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,

@@ -121,11 +121,11 @@ def _build(wp, F):
 
 
 def _kernels(dtype: torch.dtype):
-    from uvatar.dva.raymarch_warp import _scalar, _warp
+    from uvatar.dva.warp_torch import load_warp, warp_scalar
 
-    wp = _warp()
+    wp = load_warp()
     if dtype not in _KERNELS:
-        _KERNELS[dtype] = _build(wp, _scalar(wp, dtype))
+        _KERNELS[dtype] = _build(wp, warp_scalar(wp, dtype))
     return wp, _KERNELS[dtype]
 
 
@@ -142,15 +142,15 @@ class _SlabTV(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, colour, W: int):
-        from uvatar.dva.raymarch_warp import _stream, _wp
+        from uvatar.dva.warp_torch import launch_stream, warp_view
 
         B, K, C, S = colour.shape[:4]
         wp, (fwd, _) = _kernels(colour.dtype)
         view = colour.reshape(B * K, C, S, S * S)   # a view where colour is the payload's RGB slice
         partial = colour.new_zeros(PARTIALS, 3)
         dev = colour.device
-        wp.launch(fwd, dim=B * K * C * S * S, inputs=[_wp(wp, view), W, S, C, _wp(wp, partial)],
-                  device=wp.device_from_torch(dev), stream=_stream(wp, dev))
+        wp.launch(fwd, dim=B * K * C * S * S, inputs=[warp_view(wp, view), W, S, C, warp_view(wp, partial)],
+                  device=wp.device_from_torch(dev), stream=launch_stream(wp, dev))
         counts = _pair_counts(B, C, W, S)   # host numbers: no host data copied to the device
         ctx.save_for_backward(colour)
         ctx.W, ctx.counts = W, counts
@@ -160,7 +160,7 @@ class _SlabTV(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out):
-        from uvatar.dva.raymarch_warp import _stream, _wp
+        from uvatar.dva.warp_torch import launch_stream, warp_view
 
         (colour,) = ctx.saved_tensors
         B, K, C, S = colour.shape[:4]
@@ -169,9 +169,9 @@ class _SlabTV(torch.autograd.Function):
         weights = torch.stack([grad_out / max(n, 1) for n in ctx.counts]).to(colour.dtype)   # no pairs: no term
         grad = torch.empty((B, K, C, S, S, S), dtype=colour.dtype, device=colour.device)
         dev = colour.device
-        wp.launch(bwd, dim=grad.numel(), inputs=[_wp(wp, view), ctx.W, S, C, _wp(wp, weights),
-                                                 _wp(wp, grad.view(B * K, C, S, S * S))],
-                  device=wp.device_from_torch(dev), stream=_stream(wp, dev))
+        wp.launch(bwd, dim=grad.numel(), inputs=[warp_view(wp, view), ctx.W, S, C, warp_view(wp, weights),
+                                                 warp_view(wp, grad.view(B * K, C, S, S * S))],
+                  device=wp.device_from_torch(dev), stream=launch_stream(wp, dev))
         return grad, None
 
 
