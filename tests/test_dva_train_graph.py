@@ -172,7 +172,7 @@ def test_step_layout_names_what_a_capture_depends_on(capture, tmp_path):
     P = min(t.patch, 24)
     assert (layout.batch, layout.patch, layout.correctives, layout.reposes) == (t.batch, P, False, False)
     assert layout.distorted == (False,) * t.batch and layout.pairs == trainer.budget.capacity
-    assert inputs.origins.shape == (t.batch, P * P, 3) and inputs.targets.shape == (t.batch, 3, P, P)
+    assert inputs.corners.shape == (t.batch, 2) and inputs.targets.shape == (t.batch, 3, P, P)
     assert inputs.vertices is not None and inputs.corners.dtype == torch.int64
     _, later = step_inputs(trainer, *batch, correctives=True)
     assert later.reposes and later != layout
@@ -281,3 +281,38 @@ def test_step_graph_warms_up_captures_per_layout_and_replays_the_eager_steps(cap
     for p, q in zip(eager.params, graphed.params, strict=True):
         assert torch.equal(p, q)
     assert graphed.graph.error is None and graphed.graph.key.correctives
+
+
+@pytest.mark.parametrize("dist", LENSES, ids=["pinhole", "lens"])
+def test_camera_table_gathers_the_rays_and_cameras_the_host_makes(dist):
+    """Crops' rays gathered on the device from the camera table are :func:`pixel_rays` of the crops'
+    pixels (two cameras of different sizes, crops at the images' edges), and its device cameras are
+    the cameras' own matrices and lens."""
+    from uvatar.dva.train_step import CameraTable
+
+    cam_a, *_ = pinhole_scene(n=12, dtype=torch.float64, dist=dist)
+    cam_b, *_ = pinhole_scene(n=16, dtype=torch.float64)
+    table = CameraTable([cam_a, cam_b], [(12, 12), (16, 16)], "cpu")
+    cameras, corners, P = torch.tensor([0, 1, 1]), torch.tensor([[6, 0], [0, 10], [10, 3]]), 6
+    origins, directions = table.crop_rays(cameras, corners, P)
+    for b, (c, (x, y)) in enumerate(zip(cameras.tolist(), corners.tolist(), strict=True)):
+        yy, xx = np.mgrid[y:y + P, x:x + P]
+        o, d = pixel_rays([cam_a, cam_b][c], np.stack([xx.ravel(), yy.ravel()], 1))
+        torch.testing.assert_close(directions[b], d, rtol=0, atol=1e-7)
+        assert torch.equal(origins[b], o)
+    devs = table.device_cameras(cameras, [table.distorted[c] for c in cameras.tolist()])
+    assert devs[0].distorted == any(dist) and not devs[1].distorted
+    assert torch.equal(devs[0].K, torch.as_tensor(cam_a.K, dtype=torch.float32))
+    assert torch.equal(devs[2].T, torch.as_tensor(cam_b.T, dtype=torch.float32).reshape(3))
+
+
+@pytest.mark.parametrize("mode", ["mask", "photo"])
+def test_crop_targets_are_the_crops_pixels_targets(mode):
+    from uvatar.dva.train_step import crop_targets, target_pixels
+
+    rng = np.random.default_rng(0)
+    image, mask = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8), rng.random((20, 30)) > 0.4
+    yy, xx = np.mgrid[12:20, 22:30]
+    pixels = np.stack([xx.ravel(), yy.ravel()], 1)
+    want = target_pixels(image, mask, pixels, np.array([0.2, 0.3, 0.4]), mode).T.reshape(3, 8, 8)
+    assert np.array_equal(crop_targets(image, mask, (22, 12), 8, np.array([0.2, 0.3, 0.4]), mode), want)

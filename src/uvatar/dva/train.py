@@ -35,7 +35,7 @@ from uvatar.dva.corrections import FitParams, TrainingCorrections
 from uvatar.dva.dataset import FrameBank, pose_corrected, pose_vertices
 from uvatar.dva.losses import DvaLoss, Vgg19Features
 from uvatar.dva.model import DvaConfig, DvaModel, EncodeDecode, TrainConfig
-from uvatar.dva.train_step import patch_pixels, step_inputs, step_loss
+from uvatar.dva.train_step import CameraTable, patch_pixels, step_inputs, step_loss
 from uvatar.errors import InputError, UvatarError
 from uvatar.io_utils import atomic_path, sweep_partial_writes, write_json
 
@@ -201,6 +201,7 @@ class Trainer:
         self.decode = _step_decode(self.model, cfg.train)
         self.bank = FrameBank(source, self.body, self.model.image_raster, self.body.template,
                               source.train_frames, source.train_cameras, progress)
+        self.cameras = CameraTable(self.bank.cams, [m.shape[:2] for m in self.bank.masks[0]], self.device)
         vgg = Vgg19Features.from_file(vgg_weights).to(self.device) if vgg_weights else None
         from uvatar.dva.raymarch import resolve_marcher
 

@@ -3,8 +3,9 @@
 
 A step is split where the host ends: :func:`step_inputs` draws nothing itself; it turns the sampled
 (frame, camera, crop) of each sample into :class:`StepInputs`, device tensors whose shapes do not change
-between steps (the rays of each crop, its camera's matrices and lens, the crop's corner, the targets).
-:func:`step_loss` then computes the step's loss from those tensors alone: nothing in it looks at the
+between steps (the frame and camera indices, the crop's corner, the targets). :func:`step_loss` then
+computes the step's loss from those tensors and the trainer's :class:`CameraTable` (every training
+camera's matrices, lens and per-pixel rays on the device, made once) alone: nothing in it looks at the
 host's data, so the same operations run on every step and a CUDA graph can record them once
 (:class:`StepGraph`): forward, loss, backward, gradient clipping and the optimizer's update, replayed
 each step after the step's inputs are copied into the graph's own. What would differ between steps is
@@ -47,6 +48,17 @@ def target_pixels(image: np.ndarray, mask: np.ndarray, pixels: np.ndarray, backg
     return out
 
 
+def crop_targets(image: np.ndarray, mask: np.ndarray, corner, size: int, background: np.ndarray,
+                 mode: str = "mask") -> np.ndarray:
+    """(3, size, size) float32: :func:`target_pixels` of the square crop whose top-left pixel is
+    ``corner`` (x, y), by slicing (the same values as the crop's pixels listed row-major)."""
+    x, y = (int(v) for v in corner)
+    out = image[y:y + size, x:x + size].astype(np.float32) / 255.0
+    if mode in ("mask", "random"):
+        out = np.where(mask[y:y + size, x:x + size][..., None], out, np.asarray(background, np.float32))
+    return np.ascontiguousarray(out.transpose(2, 0, 1))
+
+
 def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
     """(size*size, 2) integer (x, y) pixels of a square crop whose centre lies in the mask's bounding
     box (grown by half a patch), clipped to the image."""
@@ -64,30 +76,69 @@ def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], 1)
 
 
+class CameraTable:
+    """The training cameras on the device, made once per trainer, so that a step finds its samples'
+    cameras and rays by index (device tensors) instead of the host making them: K (C, 3, 3) pixels,
+    R (C, 3, 3), T (C, 3) metres, lens (C, 5) (OpenCV k1, k2, p1, p2, k3), centres (C, 3) metres,
+    ``distorted`` (host bools: whether each lens bends rays), and every pixel's unit ray direction
+    (float32, each camera's H x W pixels row-major, one after the other: ``directions`` (sum H*W, 3),
+    camera c's from ``offsets[c]``, ``widths[c]`` pixels a row), computed as :func:`pixel_rays` does
+    (lens distortion removed). ``sizes``: each camera's (H, W), its images' size."""
+
+    def __init__(self, cameras, sizes, device):
+        from uvatar.devices import to_device_async
+
+        directions, offsets, total = [], [], 0
+        for cam, (H, W) in zip(cameras, sizes, strict=True):
+            ys, xs = np.mgrid[0:H, 0:W]
+            directions.append(pixel_rays(cam, np.stack([xs.ravel(), ys.ravel()], 1), "cpu")[1])
+            offsets.append(total)
+            total += H * W
+        lens = np.stack([np.pad(np.asarray(getattr(c, "dist", np.zeros(5)), np.float64).reshape(-1), (0, 5))[:5]
+                         for c in cameras])
+
+        def up(array, dtype=torch.float32):
+            return to_device_async(array, device, dtype)
+
+        self.K, self.R = up(np.stack([c.K for c in cameras])), up(np.stack([c.R for c in cameras]))
+        self.T = up(np.stack([np.asarray(c.T, np.float64).reshape(3) for c in cameras]))
+        self.lens, self.centres = up(lens), up(np.stack([c.center for c in cameras]))
+        self.distorted = tuple(bool(np.any(x != 0)) for x in lens)
+        self.directions = up(torch.cat(directions))
+        self.offsets = up(np.asarray(offsets), torch.int64)
+        self.widths = up(np.asarray([W for _, W in sizes]), torch.int64)
+
+    def device_cameras(self, cameras: torch.Tensor, distorted) -> list[DeviceCamera]:
+        """Cameras ``cameras`` (B,) int64 (on the device) as :class:`DeviceCamera` s; ``distorted``: the
+        host's bool for each (:class:`StepLayout`)."""
+        K, R, T, lens = (x[cameras] for x in (self.K, self.R, self.T, self.lens))
+        return [DeviceCamera(K[b], R[b], T[b], lens[b], d) for b, d in enumerate(distorted)]
+
+    def crop_rays(self, cameras: torch.Tensor, corners: torch.Tensor, size: int):
+        """(origins, directions) (B, size * size, 3) of square crops, row-major from each crop's top-left
+        pixel ``corners`` (B, 2) int64 (x, y), in cameras ``cameras`` (B,) int64: a gather, no host."""
+        r = torch.arange(size, device=corners.device)
+        rows = (corners[:, 1:2] + r)[:, :, None] * self.widths[cameras][:, None, None]
+        index = self.offsets[cameras][:, None, None] + rows + (corners[:, 0:1] + r)[:, None, :]
+        directions = self.directions[index.reshape(len(cameras), -1)]
+        return self.centres[cameras][:, None, :].expand_as(directions), directions
+
+
 @dataclass
 class StepInputs:
     """One step's B samples on the training device (each a P x P pixel crop; N = P * P rays):
 
-    frames (B,) int64 bank frames; cameras (B,) int64 training cameras; textures (B, 4, R, R) the image
-    features' input; centres (B, 3) metres, the cameras' centres; vertices (B, V, 3) metres and rotvecs
-    (B, J, 3) radians, the fitted bodies (None where the step re-poses them with the learned offsets);
-    origins, directions (B, N, 3) the crops' rays (row-major); K (B, 3, 3) pixels, R (B, 3, 3),
-    T (B, 3) metres, lens (B, 5) the cameras (OpenCV); corners (B, 2) int64 each crop's top-left pixel
-    (x, y); targets (B, 3, P, P) in [0, 1]; masks (B, P, P) in {0, 1}; backgrounds (B, 3) the colour each
-    render is composited over."""
+    frames (B,) int64 bank frames; cameras (B,) int64 training cameras (their matrices and rays: the
+    trainer's :class:`CameraTable`); textures (B, 4, R, R) the image features' input; vertices (B, V, 3)
+    metres and rotvecs (B, J, 3) radians, the fitted bodies (None where the step re-poses them with the
+    learned offsets); corners (B, 2) int64 each crop's top-left pixel (x, y); targets (B, 3, P, P) in
+    [0, 1]; masks (B, P, P) in {0, 1}; backgrounds (B, 3) the colour each render is composited over."""
 
     frames: torch.Tensor
     cameras: torch.Tensor
     textures: torch.Tensor
-    centres: torch.Tensor
     vertices: torch.Tensor | None
     rotvecs: torch.Tensor | None
-    origins: torch.Tensor
-    directions: torch.Tensor
-    K: torch.Tensor
-    R: torch.Tensor
-    T: torch.Tensor
-    lens: torch.Tensor
     corners: torch.Tensor
     targets: torch.Tensor
     masks: torch.Tensor
@@ -126,15 +177,12 @@ def step_inputs(trainer, frames, cams, textures, pixels, backgrounds, corrective
     from uvatar.devices import to_device_async
 
     dev, t, bank = trainer.device, trainer.cfg.train, trainer.bank
-    cameras = [bank.cams[c] for c in cams]
     P = int(round(np.sqrt(pixels[0].shape[0])))
-    rays = [pixel_rays(cam, pix, "cpu") for cam, pix in zip(cameras, pixels, strict=True)]
-    targets = [target_pixels(bank.images[f][c], bank.masks[f][c], pix, bg, t.background).T.reshape(3, P, P)
-               for f, c, pix, bg in zip(frames, cams, pixels, backgrounds, strict=True)]
-    masks = [bank.masks[f][c][pix[:, 1], pix[:, 0]].astype(np.float32).reshape(P, P)
-             for f, c, pix in zip(frames, cams, pixels, strict=True)]
-    lens = np.stack([np.pad(np.asarray(getattr(c, "dist", np.zeros(5)), np.float64).reshape(-1), (0, 5))[:5]
-                     for c in cameras])
+    corners = np.stack([pix[0] for pix in pixels])  # the crops are row-major squares (patch_pixels)
+    targets = [crop_targets(bank.images[f][c], bank.masks[f][c], corner, P, bg, t.background)
+               for f, c, corner, bg in zip(frames, cams, corners, backgrounds, strict=True)]
+    masks = [bank.masks[f][c][y:y + P, x:x + P].astype(np.float32) for f, c, (x, y) in zip(frames, cams, corners,
+                                                                                               strict=True)]
     reposes = trainer.reposes(correctives)
     host = torch.tensor(frames)
 
@@ -144,15 +192,11 @@ def step_inputs(trainer, frames, cams, textures, pixels, backgrounds, corrective
     vertices, rotvecs = (None, None) if reposes else (up(bank.vertices[host]), up(bank.rotvecs[host]))
     inputs = StepInputs(
         frames=up(host, torch.int64), cameras=up(torch.tensor(cams), torch.int64), textures=textures,
-        centres=up(np.stack([c.center for c in cameras])), vertices=vertices, rotvecs=rotvecs,
-        origins=up(torch.stack([o for o, _ in rays])), directions=up(torch.stack([d for _, d in rays])),
-        K=up(np.stack([c.K for c in cameras])), R=up(np.stack([c.R for c in cameras])),
-        T=up(np.stack([np.asarray(c.T).reshape(3) for c in cameras])), lens=up(lens),
-        corners=up(np.stack([pix[0] for pix in pixels]), torch.int64), targets=up(np.stack(targets)),
+        vertices=vertices, rotvecs=rotvecs, corners=up(corners, torch.int64), targets=up(np.stack(targets)),
         masks=up(np.stack(masks)), backgrounds=up(np.stack([np.asarray(b, np.float32) for b in backgrounds])))
     budget = trainer._budget(P * P)
-    layout = StepLayout(len(frames), P, bool(correctives), reposes, tuple(bool(np.any(x != 0)) for x in lens),
-                        0 if budget is None else budget.capacity)
+    layout = StepLayout(len(frames), P, bool(correctives), reposes,
+                        tuple(trainer.cameras.distorted[c] for c in cams), 0 if budget is None else budget.capacity)
     return inputs, layout
 
 
@@ -161,19 +205,20 @@ def step_loss(trainer, inputs: StepInputs, layout: StepLayout, host_frames=None)
     step, from the device tensors alone. ``host_frames`` (B,) int64: the frames on the host, which the
     host re-posing path (``pose_on_device=False``) and the bodies' shapes need."""
     model, corrections, t = trainer.model, trainer.corrections, trainer.cfg.train
-    P, B = layout.patch, layout.batch
+    P = layout.patch
     correctives = layout.correctives
     if layout.reposes:
         vertices, rotvecs = trainer._posed(host_frames, True, inputs.frames)
     else:
         vertices, rotvecs = inputs.vertices, inputs.rotvecs
-    out = model(vertices, rotvecs, inputs.textures, inputs.centres, t.precision, compact=True,
+    table = trainer.cameras
+    out = model(vertices, rotvecs, inputs.textures, table.centres[inputs.cameras], t.precision, compact=True,
                 correctives=correctives, decode=trainer.decode)
     budget = trainer._budget(P * P)
+    origins, directions = table.crop_rays(inputs.cameras, inputs.corners, P)
     preds, alphas = [], []
-    for b in range(B):
-        camera = DeviceCamera(inputs.K[b], inputs.R[b], inputs.T[b], inputs.lens[b], layout.distorted[b])
-        rgb, alpha = model.render_rays(out, b, inputs.origins[b], inputs.directions[b], None, camera=camera,
+    for b, camera in enumerate(table.device_cameras(inputs.cameras, layout.distorted)):
+        rgb, alpha = model.render_rays(out, b, origins[b], directions[b], None, camera=camera,
                                        pixels=PixelGrid.crop(P, inputs.corners[b]), budget=budget)
         if corrections is not None:
             rgb = corrections.colour(rgb, alpha, inputs.cameras[b:b + 1])
