@@ -111,7 +111,8 @@ def _clothing_offsets(residuals, skin, ok, huber: float, steps: int = 3):
 def _nearest(scan, points, max_distance, device):
     """(distance (N,), index (N,), widest slab (0-d)) tensors of each of ``points``' nearest scan
     sample within ``max_distance``: :func:`.register_torch.nearest_samples` (no read-back once the
-    scan's window is known; on the CPU, unless ``register_torch.WINDOW_SEARCH_ON_CPU``, the slab search)."""
+    scan's window is known; on the CPU, unless ``register_torch.WINDOW_SEARCH_ON_CPU``, the slab search).
+    ``device`` is the points' own (the tests wrap this function by that signature)."""
     from uvatar.avh.bake.register_torch import nearest_samples
 
     return nearest_samples(scan, points, max_distance)

