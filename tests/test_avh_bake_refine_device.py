@@ -55,11 +55,11 @@ def test_rotation_twins_equal_scipy():
 
 @pytest.fixture
 def window_search(monkeypatch):
-    """The nearest-sample window search CUDA runs (:data:`~uvatar.avh.bake.refine_device.WINDOW_SEARCH_ON_CPU`),
+    """The nearest-sample window search CUDA runs (:data:`~uvatar.avh.bake.register_torch.WINDOW_SEARCH_ON_CPU`),
     here on the CPU."""
-    from uvatar.avh.bake import refine_device
+    from uvatar.avh.bake import register_torch
 
-    monkeypatch.setattr(refine_device, "WINDOW_SEARCH_ON_CPU", True)
+    monkeypatch.setattr(register_torch, "WINDOW_SEARCH_ON_CPU", True)
 
 
 def _scene(shift=(0.0, 0.0, 0.0)):

@@ -13,11 +13,10 @@ end and cut where the numpy path would have stopped appending them. Constants pe
 refinement vertices, subtree and region weights) go to the device once (:func:`.refine_model._memo`), the
 scan's samples once per scan (:meth:`.register.ScanSurface.samples_torch`).
 
-The nearest samples use a fixed window per chunk of queries
-(:func:`.register_torch.nearest_points_in_window`), measured once per scan and device; each call checks
-at its end, in the same read, that no slab outgrew it (else it widens the window and runs again). On
-the CPU, where a read-back costs nothing, the tighter slab search with its one read per query stays
-(:data:`WINDOW_SEARCH_ON_CPU`).
+The nearest samples use a fixed window per chunk of queries (:func:`.register_torch.nearest_samples`),
+measured once per scan and device; each call checks at its end, in the same read, that no slab outgrew
+it (else it widens the window and runs again). On the CPU, where a read-back costs nothing, the tighter
+slab search with its one read per query stays (``register_torch.WINDOW_SEARCH_ON_CPU``).
 """
 
 from __future__ import annotations
@@ -109,40 +108,14 @@ def _clothing_offsets(residuals, skin, ok, huber: float, steps: int = 3):
     return offsets
 
 
-#: the CPU keeps the slab search (its one read-back per query costs nothing there, and it compares
-#: ~5x fewer points than a window wide enough for every slab); tests set it to run CUDA's choice here
-WINDOW_SEARCH_ON_CPU = False
-
-
-def _roomy(width: int) -> int:
-    """A nearest-sample window with room to spare for slabs ``width`` points wide."""
-    return int(width) * 5 // 4 + 256
-
-
-def _nearest_window(scan, device) -> int:
-    """The window of :func:`.register_torch.nearest_points_in_window` kept with ``scan`` for ``device``
-    (0 until the first query measures its slabs)."""
-    return scan.on_device.get(("nearest_window", str(device)), 0)
-
-
 def _nearest(scan, points, max_distance, device):
     """(distance (N,), index (N,), widest slab (0-d)) tensors of each of ``points``' nearest scan
-    sample within ``max_distance`` (:meth:`.register.ScanSurface.nearest_sample`'s answers), with no
-    read-back once the scan's window is known: the first query on a scan and device measures its
-    slabs (one read) and keeps a roomy window with the scan. On the CPU (unless
-    :data:`WINDOW_SEARCH_ON_CPU`) the slab search itself (widest slab 0)."""
-    import torch
+    sample within ``max_distance``: :func:`.register_torch.nearest_samples` (no read-back once the
+    scan's window is known; on the CPU, unless ``register_torch.WINDOW_SEARCH_ON_CPU``, the slab search).
+    ``device`` is the points' own (the tests wrap this function by that signature)."""
+    from uvatar.avh.bake.register_torch import nearest_samples
 
-    from uvatar.avh.bake.register_torch import nearest_points_in_window, widest_slab
-
-    if torch.device(device).type == "cpu" and not WINDOW_SEARCH_ON_CPU:
-        near, idx = scan.nearest_sample(points, max_distance)
-        return near, idx, torch.zeros((), dtype=torch.int64, device=device)
-    samples = scan.sorted_samples_torch(device)
-    key = ("nearest_window", str(device))
-    if key not in scan.on_device:
-        scan.on_device[key] = _roomy(int(widest_slab(points, samples, max_distance)))
-    return nearest_points_in_window(points, samples, max_distance, scan.on_device[key])
+    return nearest_samples(scan, points, max_distance)
 
 
 def _body_on_device(body, config, device):
@@ -210,6 +183,7 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
 
     from uvatar.avh.bake.photometric import surface_colours
     from uvatar.avh.bake.refine_model import _normal_equations_reference, _posing_body, _shape_tensor
+    from uvatar.avh.bake.register_torch import window_outgrown
     from uvatar.capture import BodyFit
 
     f64 = dict(dtype=torch.float64, device=device)
@@ -307,8 +281,7 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     host = torch.cat(parts).cpu().numpy()
     cuts = np.cumsum([len(p) for p in parts])[:-1]
     res, mat, kept, col, off, widest, rot_h, rh_h, th_h = np.split(host, cuts)
-    if widest[0] > _nearest_window(scan, device):   # a slab was cut short: again, with room for it (rare)
-        scan.on_device[("nearest_window", str(device))] = _roomy(int(widest[0]))
+    if window_outgrown(scan, device, int(widest[0])):   # a slab was cut short: again, with room for it (rare)
         return refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
                                     final_colour_residual, device)
     appended = int(kept.sum())         # the numpy path appends stats at each iteration it reaches

@@ -39,6 +39,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from uvatar.avh.bake.config import STAGE_MODES, RegistrationConfig
+from uvatar.avh.bake.register_match import match_vertices
 from uvatar.avh.bake.register_torch import _torch_ops, nearest_points_torch, sorted_points_torch
 from uvatar.geometry import (
     RayCaster,
@@ -228,47 +229,6 @@ def uniform_laplacian_matrix(faces, num_vertices: int) -> sp.csr_matrix:
     return lap.tocsr()
 
 
-def match_vertices(points, normals, scan: ScanSurface, max_distance: float, cos_max_angle: float,
-                   closest_point: bool = True, epsilon: float = 1e-4):
-    """Vertex-to-surface matches on the scan.
-
-    points, normals: (N, 3). Candidates: first hits of rays along +normal and -normal (starting
-    ``epsilon`` behind the point) and, if ``closest_point``, the foot point on the tangent plane of the
-    nearest scan sample (within ``max_distance``). A candidate
-    is kept when within ``max_distance`` (metres) and its scan normal m has ``n . m >= cos_max_angle``;
-    the nearest kept candidate wins. Returns targets (N, 3) and matched (N,) bool.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    n = np.asarray(normals, dtype=np.float64)
-    count = len(p)
-    best = np.full(count, np.inf)
-    target = p.copy()
-    for sign in (1.0, -1.0):
-        d = sign * n
-        hits = scan.caster.first_hit(p - epsilon * d, d, max_distance=max_distance + epsilon)
-        m = scan.normals_at_hits(hits)
-        dist = np.abs(hits.distance - epsilon)
-        ok = hits.hit & ((m * n).sum(1) >= cos_max_angle) & (dist < best)
-        best[ok] = dist[ok]
-        target[ok] = hits.points[ok]
-    if closest_point:
-        # nearest scan sample q with normal m, projected onto its tangent plane: the foot point
-        # p - ((p - q) . m) m approximates the closest surface point without pulling vertices
-        # toward the discrete samples (point-to-plane)
-        near, idx = scan.kd_tree().query(p, distance_upper_bound=max_distance)
-        found = np.isfinite(near)
-        idx = np.where(found, idx, 0)
-        m = scan.sample_normals[idx]
-        q = scan.sample_points[idx]
-        along = ((p - q) * m).sum(1)
-        foot = p - along[:, None] * m
-        dist = np.abs(along)
-        ok = found & ((m * n).sum(1) >= cos_max_angle) & (dist < best)
-        best[ok] = dist[ok]
-        target[ok] = foot[ok]
-    return target, np.isfinite(best)
-
-
 class _NumpyOps:
     """The registration's linear algebra on numpy / SciPy (the reference): vertex normals, their
     smoothing and the sparse SPD solves (SuperLU)."""
@@ -281,6 +241,10 @@ class _NumpyOps:
 
     def numpy(self, a) -> np.ndarray:
         return a
+
+    def weights(self, ok):
+        """(V,) float64: 1 where matched."""
+        return np.asarray(ok, dtype=np.float64)
 
     def normals(self, x):
         return np.asarray(vertex_normals(x, self.faces), dtype=np.float64)
@@ -295,6 +259,26 @@ class _NumpyOps:
         """``(diag(diagonal) + k L^T L) X = rhs``."""
         return _factor_spd(sp.diags(diagonal) + k * self.ltl).solve(rhs)
 
+    def begin(self, scan, x, closest_distance: float) -> None:
+        """Nothing to prepare (the torch twin fits the scan's nearest-sample window here)."""
+
+    def match(self, x, n, scan, max_distance: float, cos_max_angle: float, closest_point: bool, epsilon: float):
+        """(targets (V, 3), matched (V,) bool): :func:`match_vertices`."""
+        return match_vertices(x, n, scan, max_distance, cos_max_angle, closest_point, epsilon)
+
+    def fraction(self, ok) -> float:
+        return float(ok.mean())
+
+    def mean_gap_mm(self, gap, ok, last: float) -> float:
+        """The mean length (mm) of the matched rows of ``gap`` (V, 3) metres; ``last`` when none matched."""
+        if ok.any():
+            return float(np.linalg.norm(gap[ok], axis=1).mean() * 1000)
+        return last
+
+    def finish(self, scan, x, fractions, last):
+        """(vertices (V, 3), matched fractions, last distance, run again?): here as they are."""
+        return x, fractions, last, False
+
 
 def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: RegistrationConfig | None = None,
                      bbox_diagonal: float | None = None, epsilon: float = 1e-4, smoothing=None,
@@ -306,9 +290,11 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
     stats: ``matched_fraction`` per iteration and ``mean_match_distance_mm`` of the last one.
     ``smoothing``: the (V, V) normal-averaging matrix of "normal" stages (e.g. over the rest body,
     :meth:`BodyLayout.normal_smoothing_matrix`); None builds it on the shadow mesh when
-    ``config.normal_smoothing > 0``. device: a torch device for the normals, their smoothing and the
-    solves (:class:`_TorchOps`; ``BakeConfig.torch_device``), None for numpy and SciPy; the matches
-    (rays, k-d tree) are the same either way.
+    ``config.normal_smoothing > 0``. device: a torch device for the normals, their smoothing, the
+    matches and the solves (:class:`~uvatar.avh.bake.register_torch._TorchOps`,
+    :func:`~uvatar.avh.bake.register_torch.match_vertices_torch`; ``BakeConfig.torch_device``): the
+    stats stay there and come back with the vertices in one read at the end; None for numpy, SciPy
+    and the k-d tree (the reference).
     """
     config = config or RegistrationConfig()
     x0 = np.asarray(shadow_vertices, dtype=np.float64)
@@ -324,6 +310,8 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
         _torch_ops(faces, len(x0), smoothing, ltl, device)
     x = ops.array(x0)
     ltl_x0 = ops.ltl_times(x)
+    ops.begin(scan, x, max((d * bbox_diagonal for d, mode in zip(config.max_distance, config.modes, strict=True)
+                            if mode == "closest"), default=0.0))
     matched_fraction = []
     last_distance = float("nan")
     for k, iters, dmax, mode in zip(config.stiffness, config.iterations, config.max_distance,
@@ -332,10 +320,9 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
             n = ops.normals(x)
             if mode == "normal" and smoothing is not None:
                 n = ops.smooth(n)
-            target, ok = match_vertices(ops.numpy(x), ops.numpy(n), scan, dmax * bbox_diagonal, cos_max,
-                                        mode == "closest", epsilon)
-            matched_fraction.append(float(ok.mean()))
-            target, w = ops.array(target), ops.array(ok)
+            target, ok = ops.match(x, n, scan, dmax * bbox_diagonal, cos_max, mode == "closest", epsilon)
+            matched_fraction.append(ops.fraction(ok))
+            w = ops.weights(ok)
             a = config.anchor_weight
             if mode == "normal":
                 # scalar offsets h along the current normals, smooth in the Laplacian sense:
@@ -345,10 +332,11 @@ def register_to_scan(shadow_vertices, faces, scan: ScanSurface, config: Registra
                 x = x + h[:, None] * n
             else:
                 x = ops.solve(w + a, k, w[:, None] * target + a * x + k * ltl_x0)
-            if ok.any():
-                gap = ops.numpy(target - x)[ok]
-                last_distance = float(np.linalg.norm(gap, axis=1).mean() * 1000)
+            last_distance = ops.mean_gap_mm(target - x, ok, last_distance)
+    x, matched_fraction, last_distance, again = ops.finish(scan, x, matched_fraction, last_distance)
+    if again:   # a nearest-sample slab outgrew the scan's window, widened now: the same call again (rare)
+        return register_to_scan(shadow_vertices, faces, scan, config, bbox_diagonal, epsilon, smoothing, device)
     stats = {"matched_fraction": matched_fraction, "mean_match_distance_mm": last_distance}
     if device is not None:
         stats["solver"] = ops.solver
-    return ops.numpy(x), stats
+    return x, stats

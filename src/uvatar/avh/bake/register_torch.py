@@ -1,17 +1,26 @@
 """The registration's torch twins (``BakeConfig.torch_device``; :mod:`uvatar.avh.bake.register` is the
 numpy / SciPy reference): the nearest scan samples by brute force on the queries' device (the twin of
-the k-d tree query) and the registration's linear algebra on float64 tensors (vertex normals, their
-smoothing, L^T L and the SPD solves: cuDSS ``torch.sparse.spsolve`` on CUDA where this torch has it,
-else a dense Cholesky)."""
+the k-d tree query) and the window kept with a scan for them (:func:`nearest_samples`), the
+vertex-to-surface matches (:func:`match_vertices_torch`: the rule of
+:func:`.register_match.match_rule`, its rays cast by the scan's caster on the tensors' device) and the
+registration's linear algebra on float64 tensors (vertex normals, their smoothing, L^T L and the SPD
+solves: cuDSS ``torch.sparse.spsolve`` on CUDA where this torch has it, else a dense Cholesky).
+
+A registration on a device reads nothing back per iteration (with a caster that casts tensors where
+they are, :class:`~uvatar.geometry.raycast_warp.WarpRayCaster`; Embree goes through numpy): its
+matched fractions, last match distance, widest nearest-sample slab and the factorizations' status stay
+there and come back with the vertices in one read (:meth:`_TorchOps.finish`)."""
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
 
+from uvatar.avh.bake.register_match import match_rule
 from uvatar.geometry import vertex_normals
 
-__all__ = ["sorted_points_torch", "nearest_points_torch", "nearest_points_in_window", "widest_slab"]
+__all__ = ["sorted_points_torch", "nearest_points_torch", "nearest_points_in_window", "widest_slab",
+           "nearest_samples", "fit_window", "window_outgrown", "match_vertices_torch", "WINDOW_SEARCH_ON_CPU"]
 
 
 def sorted_points_torch(points, device):
@@ -123,11 +132,109 @@ def nearest_points_in_window(queries, sorted_points, max_distance, window: int, 
     return dist, index, (hi - lo).max()
 
 
+#: the CPU keeps the slab search (its one read-back per query costs nothing there, and it compares
+#: ~5x fewer points than a window wide enough for every slab); tests set it to run CUDA's choice here
+WINDOW_SEARCH_ON_CPU = False
+
+
+def _roomy(width: int) -> int:
+    """A nearest-sample window with room to spare for slabs ``width`` points wide."""
+    return int(width) * 5 // 4 + 256
+
+
+def _window_key(device) -> tuple:
+    """The window's key in ``ScanSurface.on_device``: one per device ("cuda" is the current CUDA device)."""
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
+    return ("nearest_window", str(device))
+
+
+def scan_window(scan, device) -> int:
+    """The window of :func:`nearest_points_in_window` kept with ``scan`` (a
+    :class:`~uvatar.avh.bake.register.ScanSurface`) for ``device``: 0 until a query measures it."""
+    return scan.on_device.get(_window_key(device), 0)
+
+
+def fit_window(scan, points, max_distance) -> int:
+    """Measure the slabs of ``points`` (N, 3) (float64 on their device) within ``max_distance`` (metres)
+    in the scan's samples (one read-back) and widen the scan's window to hold them with room to spare;
+    returns the window (points)."""
+    key = _window_key(points.device)
+    widest = int(widest_slab(points, scan.sorted_samples_torch(points.device), max_distance))
+    scan.on_device[key] = max(scan.on_device.get(key, 0), _roomy(widest))
+    return scan.on_device[key]
+
+
+def window_outgrown(scan, device, widest: int) -> bool:
+    """After a caller's read-back: True when a slab ``widest`` points wide outgrew the scan's window
+    (its answers may have missed a slab's far end: the caller runs again), the window widened for it."""
+    if widest <= scan_window(scan, device):
+        return False
+    scan.on_device[_window_key(device)] = _roomy(widest)
+    return True
+
+
+def uses_window(device) -> bool:
+    """Does a nearest-sample query on ``device`` use the scan's window (no read-back) rather than the
+    slab search (one read-back per query)? Everywhere but the CPU, unless :data:`WINDOW_SEARCH_ON_CPU`."""
+    import torch
+
+    return torch.device(device).type != "cpu" or WINDOW_SEARCH_ON_CPU
+
+
+def nearest_samples(scan, points, max_distance):
+    """(distance (N,), index (N,), widest slab (0-d int64)) tensors of each of ``points``' (N, 3) nearest
+    scan sample within ``max_distance`` (:meth:`.register.ScanSurface.nearest_sample`'s answers), with
+    no read-back once the scan's window is known (:func:`fit_window`: the first query on a scan and
+    device measures it). The caller reads the widest slab back with its results and checks it
+    (:func:`window_outgrown`). Where :func:`uses_window` is False, the slab search itself (widest 0)."""
+    import torch
+
+    if not uses_window(points.device):
+        near, idx = scan.nearest_sample(points, max_distance)
+        return near, idx, torch.zeros((), dtype=torch.int64, device=points.device)
+    window = scan_window(scan, points.device) or fit_window(scan, points, max_distance)
+    return nearest_points_in_window(points, scan.sorted_samples_torch(points.device), max_distance, window)
+
+
+def match_vertices_torch(points, normals, scan, max_distance: float, cos_max_angle: float,
+                         closest_point: bool = True, epsilon: float = 1e-4):
+    """:func:`.register_match.match_vertices` of float64 tensors on their device: (targets (N, 3) float64,
+    matched (N,) bool, widest nearest-sample slab (0-d int64, 0 without ``closest_point``)).
+
+    points, normals (N, 3) (metres, unit); max_distance (metres) and epsilon: Python floats. The rays go
+    through ``scan.caster.first_hit_torch`` (in place on the caster's device: Warp; through numpy:
+    Embree), the scan normals at hits through :meth:`.register.ScanSurface.normals_at_hits` and the
+    nearest samples through :func:`nearest_samples`: nothing is read back once the scan's window is
+    known. The caller checks the widest slab (:func:`window_outgrown`) after its own read-back."""
+    import torch
+
+    widest = [torch.zeros((), dtype=torch.int64, device=points.device)]
+
+    def cast(origins, directions, far):
+        limit = torch.full((len(origins),), float(far), dtype=torch.float64, device=origins.device)
+        return scan.caster.first_hit_torch(origins, directions, limit)
+
+    def nearest(p, distance):
+        near, idx, widest[0] = nearest_samples(scan, p, distance)
+        return near, idx
+
+    target, ok = match_rule(torch, points, normals, scan, cast, nearest, scan.samples_torch(points.device),
+                            float(max_distance), cos_max_angle, closest_point, epsilon)
+    return target, ok, widest[0]
+
+
 class _TorchOps:
     """The same on torch tensors (float64) on ``device``: the smoothing and L^T L as sparse CSR
     products; the solves by ``torch.sparse.spsolve`` on CUDA (cuDSS, where this torch has it), else
     by a dense Cholesky factorization (cuSOLVER on CUDA; the body's V x V system: 1.5 GB for anny's
-    13.7k vertices, and slow on a CPU, where the reference is SuperLU). ``solver`` says which ran."""
+    13.7k vertices, and slow on a CPU, where the reference is SuperLU). ``solver`` says which ran.
+
+    Kept per body (:func:`_torch_ops`); a registration's device-side tallies (``widest``, ``failed``) live
+    here from :meth:`begin` to :meth:`finish` (one registration at a time)."""
 
     def __init__(self, faces, num_vertices: int, smoothing, ltl, device: str):
         import torch
@@ -153,12 +260,60 @@ class _TorchOps:
         rows = np.repeat(diag, np.diff(pattern.indptr))
         self._diagonal_at = torch.as_tensor(np.flatnonzero(pattern.indices == rows), device=self.device)
         self.solver = "spsolve" if self.device.type == "cuda" else "cholesky"
+        self.widest = torch.zeros((), dtype=torch.int64, device=self.device)   # per registration (begin)
+        self.failed = torch.zeros((), dtype=torch.bool, device=self.device)
 
     def array(self, a):
         return self.torch.as_tensor(np.asarray(a, dtype=np.float64), device=self.device)
 
     def numpy(self, a) -> np.ndarray:
         return a.detach().cpu().numpy()
+
+    def weights(self, ok):
+        """(V,) float64: 1 where matched."""
+        return ok.to(self.torch.float64)
+
+    def begin(self, scan, x, closest_distance: float) -> None:
+        """A registration starts: its device-side tallies (the widest nearest-sample slab, whether a
+        factorization failed) reset, and the scan's nearest-sample window fitted to ``x`` (V, 3) and the
+        largest ``closest_distance`` (metres; 0: no "closest" stage) where the window search runs (one
+        read-back, so that a window fitted to other queries is not found too small at the end)."""
+        torch = self.torch
+        self.widest = torch.zeros((), dtype=torch.int64, device=self.device)
+        self.failed = torch.zeros((), dtype=torch.bool, device=self.device)
+        if closest_distance > 0 and uses_window(self.device):
+            fit_window(scan, x, closest_distance)
+
+    def match(self, x, n, scan, max_distance: float, cos_max_angle: float, closest_point: bool, epsilon: float):
+        """(targets (V, 3), matched (V,) bool) tensors: :func:`match_vertices_torch`, its widest slab kept."""
+        target, ok, widest = match_vertices_torch(x, n, scan, max_distance, cos_max_angle, closest_point, epsilon)
+        self.widest = self.torch.maximum(self.widest, widest)
+        return target, ok
+
+    def fraction(self, ok):
+        """(0-d float64) the matched fraction, left on the device."""
+        return ok.to(self.torch.float64).mean()
+
+    def mean_gap_mm(self, gap, ok, last):
+        """(0-d float64) the mean length (mm) of the matched rows of ``gap`` (V, 3) metres; ``last`` (a
+        float or 0-d tensor) when none matched: chosen on the device."""
+        torch = self.torch
+        count = ok.sum()
+        mean = torch.where(ok, torch.linalg.norm(gap, dim=1), torch.zeros_like(gap[:, 0])).sum() * 1000 / count
+        return torch.where(count > 0, mean, last if torch.is_tensor(last) else torch.full_like(mean, last))
+
+    def finish(self, scan, x, fractions, last):
+        """(vertices (V, 3) numpy, matched fractions [float], last distance float, run again?) from one
+        read-back of everything; again when a nearest-sample slab outgrew the scan's window (widened now).
+        Raises when a factorization found its system not positive definite (as ``torch.linalg.cholesky``)."""
+        torch = self.torch
+        last = last if torch.is_tensor(last) else torch.full((), last, dtype=torch.float64, device=self.device)
+        tail = torch.stack([last, self.widest.to(torch.float64), self.failed.to(torch.float64)])
+        host = torch.cat([x.reshape(-1), *(f[None] for f in fractions), tail]).cpu().numpy()
+        if host[-1]:
+            raise RuntimeError("registration: a system was not positive definite (anchor_weight > 0 keeps it so)")
+        return (host[: x.numel()].reshape(x.shape), [float(f) for f in host[x.numel(): -3]], float(host[-3]),
+                window_outgrown(scan, self.device, int(host[-2])))
 
     def normals(self, x):
         return vertex_normals(x, self.faces, self.adjacency)
@@ -190,7 +345,8 @@ class _TorchOps:
             self._dense = self.ltl.to_dense()
         system = k * self._dense
         system.diagonal().add_(diagonal)
-        factor = torch.linalg.cholesky(system)
+        factor, info = torch.linalg.cholesky_ex(system)      # no read-back: checked in finish
+        self.failed = self.failed | (info != 0)
         b = rhs[:, None] if rhs.ndim == 1 else rhs
         out = torch.cholesky_solve(b, factor)
         return out[:, 0] if rhs.ndim == 1 else out
