@@ -316,3 +316,20 @@ def test_crop_targets_are_the_crops_pixels_targets(mode):
     pixels = np.stack([xx.ravel(), yy.ravel()], 1)
     want = target_pixels(image, mask, pixels, np.array([0.2, 0.3, 0.4]), mode).T.reshape(3, 8, 8)
     assert np.array_equal(crop_targets(image, mask, (22, 12), 8, np.array([0.2, 0.3, 0.4]), mode), want)
+
+
+def test_a_rig_too_large_for_a_ray_table_takes_the_same_steps(capture, tmp_path):
+    """A camera table over its ``max_ray_bytes`` keeps no rays: the step's inputs carry the crops' rays
+    made on the host, and the steps are the table's, bit for bit."""
+    from uvatar.dva.train_step import CameraTable, step_inputs
+
+    table = _trainer(capture, tmp_path / "table", warmup=1)
+    host = _trainer(capture, tmp_path / "host", warmup=1)
+    host.cameras = CameraTable(host.bank.cams, [m.shape[:2] for m in host.bank.masks[0]], "cpu", max_ray_bytes=0)
+    assert host.cameras.directions is None and table.cameras.directions is not None
+    inputs, _ = step_inputs(host, *host.sample(), correctives=False)
+    assert inputs.directions is not None and inputs.origins.shape == inputs.directions.shape
+    host = _trainer(capture, tmp_path / "host2", warmup=1)
+    host.cameras = CameraTable(host.bank.cams, [m.shape[:2] for m in host.bank.masks[0]], "cpu", max_ray_bytes=0)
+    for _ in range(3):
+        assert dict(table.train_step()) == dict(host.train_step())

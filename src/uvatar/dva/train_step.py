@@ -83,15 +83,21 @@ class CameraTable:
     ``distorted`` (host bools: whether each lens bends rays), and every pixel's unit ray direction
     (float32, each camera's H x W pixels row-major, one after the other: ``directions`` (sum H*W, 3),
     camera c's from ``offsets[c]``, ``widths[c]`` pixels a row), computed as :func:`pixel_rays` does
-    (lens distortion removed). ``sizes``: each camera's (H, W), its images' size."""
+    (lens distortion removed). ``sizes``: each camera's (H, W), its images' size.
 
-    def __init__(self, cameras, sizes, device):
+    A rig whose table would exceed ``max_ray_bytes`` (many cameras of many pixels: 100 cameras of 4096 x
+    2668 take 13 GB) keeps no rays (``directions`` None): its steps make each crop's rays on the host
+    and send them over with the step's inputs (:func:`step_inputs`), as the steps did before."""
+
+    def __init__(self, cameras, sizes, device, max_ray_bytes: int = 2 << 30):
         from uvatar.devices import to_device_async
 
+        pixels = sum(H * W for H, W in sizes)
         directions, offsets, total = [], [], 0
         for cam, (H, W) in zip(cameras, sizes, strict=True):
-            ys, xs = np.mgrid[0:H, 0:W]
-            directions.append(pixel_rays(cam, np.stack([xs.ravel(), ys.ravel()], 1), "cpu")[1])
+            if pixels * 12 <= max_ray_bytes:
+                ys, xs = np.mgrid[0:H, 0:W]
+                directions.append(pixel_rays(cam, np.stack([xs.ravel(), ys.ravel()], 1), "cpu")[1])
             offsets.append(total)
             total += H * W
         lens = np.stack([np.pad(np.asarray(getattr(c, "dist", np.zeros(5)), np.float64).reshape(-1), (0, 5))[:5]
@@ -104,7 +110,7 @@ class CameraTable:
         self.T = up(np.stack([np.asarray(c.T, np.float64).reshape(3) for c in cameras]))
         self.lens, self.centres = up(lens), up(np.stack([c.center for c in cameras]))
         self.distorted = tuple(bool(np.any(x != 0)) for x in lens)
-        self.directions = up(torch.cat(directions))
+        self.directions = up(torch.cat(directions)) if directions else None
         self.offsets = up(np.asarray(offsets), torch.int64)
         self.widths = up(np.asarray([W for _, W in sizes]), torch.int64)
 
@@ -116,7 +122,8 @@ class CameraTable:
 
     def crop_rays(self, cameras: torch.Tensor, corners: torch.Tensor, size: int):
         """(origins, directions) (B, size * size, 3) of square crops, row-major from each crop's top-left
-        pixel ``corners`` (B, 2) int64 (x, y), in cameras ``cameras`` (B,) int64: a gather, no host."""
+        pixel ``corners`` (B, 2) int64 (x, y), in cameras ``cameras`` (B,) int64: a gather, no host (a
+        table that keeps rays: ``directions`` not None)."""
         r = torch.arange(size, device=corners.device)
         rows = (corners[:, 1:2] + r)[:, :, None] * self.widths[cameras][:, None, None]
         index = self.offsets[cameras][:, None, None] + rows + (corners[:, 0:1] + r)[:, None, :]
@@ -132,7 +139,9 @@ class StepInputs:
     trainer's :class:`CameraTable`); textures (B, 4, R, R) the image features' input; vertices (B, V, 3)
     metres and rotvecs (B, J, 3) radians, the fitted bodies (None where the step re-poses them with the
     learned offsets); corners (B, 2) int64 each crop's top-left pixel (x, y); targets (B, 3, P, P) in
-    [0, 1]; masks (B, P, P) in {0, 1}; backgrounds (B, 3) the colour each render is composited over."""
+    [0, 1]; masks (B, P, P) in {0, 1}; backgrounds (B, 3) the colour each render is composited over;
+    origins, directions (B, N, 3) the crops' rays, made on the host where the camera table keeps none
+    (else None: gathered from the table)."""
 
     frames: torch.Tensor
     cameras: torch.Tensor
@@ -143,6 +152,8 @@ class StepInputs:
     targets: torch.Tensor
     masks: torch.Tensor
     backgrounds: torch.Tensor
+    origins: torch.Tensor | None = None
+    directions: torch.Tensor | None = None
 
     def tensors(self) -> list[torch.Tensor]:
         return [t for t in (getattr(self, f.name) for f in fields(self)) if t is not None]
@@ -194,6 +205,9 @@ def step_inputs(trainer, frames, cams, textures, pixels, backgrounds, corrective
         frames=up(host, torch.int64), cameras=up(torch.tensor(cams), torch.int64), textures=textures,
         vertices=vertices, rotvecs=rotvecs, corners=up(corners, torch.int64), targets=up(np.stack(targets)),
         masks=up(np.stack(masks)), backgrounds=up(np.stack([np.asarray(b, np.float32) for b in backgrounds])))
+    if trainer.cameras.directions is None:  # a rig too large for a table of rays: the host makes them
+        rays = [pixel_rays(bank.cams[c], pix, "cpu") for c, pix in zip(cams, pixels, strict=True)]
+        inputs.origins, inputs.directions = (up(torch.stack([r[i] for r in rays])) for i in (0, 1))
     budget = trainer._budget(P * P)
     layout = StepLayout(len(frames), P, bool(correctives), reposes,
                         tuple(trainer.cameras.distorted[c] for c in cams), 0 if budget is None else budget.capacity)
@@ -215,7 +229,8 @@ def step_loss(trainer, inputs: StepInputs, layout: StepLayout, host_frames=None)
     out = model(vertices, rotvecs, inputs.textures, table.centres[inputs.cameras], t.precision, compact=True,
                 correctives=correctives, decode=trainer.decode)
     budget = trainer._budget(P * P)
-    origins, directions = table.crop_rays(inputs.cameras, inputs.corners, P)
+    origins, directions = (inputs.origins, inputs.directions) if inputs.directions is not None \
+        else table.crop_rays(inputs.cameras, inputs.corners, P)
     preds, alphas = [], []
     for b, camera in enumerate(table.device_cameras(inputs.cameras, layout.distorted)):
         rgb, alpha = model.render_rays(out, b, origins[b], directions[b], None, camera=camera,
