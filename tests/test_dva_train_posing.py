@@ -53,7 +53,7 @@ def _posed_and_gradients(trainer, frames, weights):
     c = trainer.corrections
     for p in c.parameters():
         p.grad = None
-    verts, rot = trainer._posed(frames, True)
+    verts, rot = trainer._posed(frames)
     ((verts * weights[0].to(verts)).sum() + (rot * weights[1].to(rot)).sum()).backward()
     grads = [p.grad.detach().clone() for p in (c.joint_rotvecs, c.root_rotvecs, c.translations)]
     return verts.detach().cpu(), rot.detach().cpu(), grads
@@ -62,7 +62,7 @@ def _posed_and_gradients(trainer, frames, weights):
 def _parity(trainer, frames, atol):
     """The device path's vertices, rotvecs and offset gradients against the host path's (same trainer)."""
     assert trainer.posing is not None
-    verts, rot = trainer._posed(frames, True)
+    verts, rot = trainer._posed(frames)
     g = torch.Generator().manual_seed(2)
     weights = torch.randn(verts.shape, generator=g), torch.randn(rot.shape, generator=g)
     device = _posed_and_gradients(trainer, frames, weights)
@@ -168,11 +168,11 @@ def test_cuda_body_poses_on_the_gpu(capture, tmp_path):
     _set_offsets(trainer.corrections)
     frames = torch.tensor([1, 0, 1])
     _parity(trainer, frames, atol=2e-5)
-    trainer._posed(frames, True)  # warm (pinned staging, cached kinematic levels)
+    trainer._posed(frames)  # warm (pinned staging, cached kinematic levels)
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:
-        verts, rot = trainer._posed(frames, True)
+        verts, rot = trainer._posed(frames)
         (verts.sum() + rot.sum()).backward()
     finally:
         torch.cuda.set_sync_debug_mode(0)

@@ -457,27 +457,23 @@ class Trainer:
         fits = FitParams(*(to_device_async(x, dev) for x in (f.rotvecs, f.Rh, f.Th, f.scale)), shape=None)
         return body, fits
 
-    def _posed(self, frames: torch.Tensor, corrected: bool, device_frames: torch.Tensor | None = None):
-        """(posed vertices (B, V, 3), joint rotvecs (B, J, 3)) of bank frames (B,) (host int64) on the
-        device: the fits as they are, or re-posed with the learned pose offsets once ``corrected`` (after
-        warm-up). Re-posing runs where ``pose_on_device`` says: on the device (:attr:`posing`: the body
-        model and the fits there; the frames go over asynchronously, the shapes stay on the host;
-        nothing is read back), or on the host (the body model as loaded, on the CPU: the offsets are
-        read back, a sync each step on a GPU; the reference twin). ``device_frames``: ``frames`` already
-        on the device (a captured step's input)."""
+    def _posed(self, frames: torch.Tensor, device_frames: torch.Tensor | None = None):
+        """(posed vertices (B, V, 3), joint rotvecs (B, J, 3)) of bank frames (B,) (host int64) re-posed
+        with the learned pose offsets (a step after warm-up, :meth:`reposes`; before, the step takes the
+        fits as they are from its inputs). Re-posing runs where ``pose_on_device`` says: on the device
+        (:attr:`posing`: the body model and the fits there; the frames go over asynchronously, the shapes
+        stay on the host; nothing is read back), or on the host (the body model as loaded, on the CPU:
+        the offsets are read back, a sync each step on a GPU; the reference twin). ``device_frames``:
+        ``frames`` already on the device (a captured step's input)."""
         from uvatar.devices import to_device_async
 
-        if self.corrections is None or not (corrected and self.cfg.corrections.pose):
-            return (to_device_async(self.bank.vertices[frames], self.device),
-                    to_device_async(self.bank.rotvecs[frames], self.device))
         fits = self.bank.fits
+        shape = None if fits.shape is None else fits.shape[frames]
         if self.posing is not None:
             body, device_fits = self.posing
-            shape = None if fits.shape is None else fits.shape[frames]
             on_device = device_frames if device_frames is not None else to_device_async(frames, self.device)
             return pose_corrected(body, self.corrections, device_fits, on_device, shape)
         rot, Rh, Th = self.corrections.pose_inputs(fits, frames, True)
-        shape = None if fits.shape is None else fits.shape[frames]
         # the body model poses on the CPU: reading the offsets back is this step's one sync on a GPU
         verts = pose_vertices(self.body, rot.cpu(), Rh.cpu(), Th.cpu(), fits.scale[frames], shape)
         return verts.to(self.device), rot.to(self.device)  # differentiable: the offsets learn through it

@@ -222,7 +222,7 @@ def step_loss(trainer, inputs: StepInputs, layout: StepLayout, host_frames=None)
     P = layout.patch
     correctives = layout.correctives
     if layout.reposes:
-        vertices, rotvecs = trainer._posed(host_frames, True, inputs.frames)
+        vertices, rotvecs = trainer._posed(host_frames, inputs.frames)
     else:
         vertices, rotvecs = inputs.vertices, inputs.rotvecs
     table = trainer.cameras
