@@ -266,7 +266,7 @@ class FrameRenderer:
     def _capture(self, posed_vertices, joint_rotvecs, cameras, images, masks, camera, background):
         """(graph, static inputs, static outputs) of one driven frame; the warm-up frames run first on
         the capture stream (Warp kernels load, cuDNN picks its algorithms, the pair buffer is sized)."""
-        import warp as wp
+        from uvatar.dva.warp_torch import capture_graph
 
         dev = self.device
         static_in = [t.detach().clone() for t in [posed_vertices, joint_rotvecs, *images, *(masks or [])]]
@@ -281,14 +281,6 @@ class FrameRenderer:
             if self.budget is not None:
                 self._look(blocking=True)
         torch.cuda.current_stream(dev).wait_stream(stream)
-        from uvatar.geometry.raycast_warp import warp_stream
-
-        graph = torch.cuda.CUDAGraph()
-        wstream = warp_stream(stream)   # the one wrapper of the capture stream (see warp_stream)
-        with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=stream):
-            wp.capture_begin(stream=wstream, force_module_load=False, external=True)
-            try:
-                static_out = self._drive(sv, sr, cameras, simgs, smasks, camera, background, look=False)
-            finally:
-                wp.capture_end(stream=wstream)
+        graph, static_out = capture_graph(
+            lambda: self._drive(sv, sr, cameras, simgs, smasks, camera, background, look=False), stream)
         return graph, static_in, static_out

@@ -333,21 +333,8 @@ class StepGraph:
         log.info("the training step is captured in a CUDA graph (%s)", layout)
 
     def _record(self, fn):
-        """(a CUDA graph of ``fn``, its output: tensors the graph's replays write) captured on the graph's
-        stream with Warp told of the capture (its kernels launch on that stream)."""
-        import warp as wp
+        """(a CUDA graph of ``fn``, its output) captured on the graph's stream
+        (:func:`~uvatar.dva.warp_torch.capture_graph`)."""
+        from uvatar.dva.warp_torch import capture_graph
 
-        from uvatar.geometry.raycast_warp import warp_stream
-
-        dev = self.trainer.device
-        graph = torch.cuda.CUDAGraph()
-        self.stream.wait_stream(torch.cuda.current_stream(dev))
-        wstream = warp_stream(self.stream)
-        with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=self.stream):
-            wp.capture_begin(stream=wstream, force_module_load=False, external=True)
-            try:
-                out = fn()
-            finally:
-                wp.capture_end(stream=wstream)
-        torch.cuda.current_stream(dev).wait_stream(self.stream)
-        return graph, out
+        return capture_graph(fn, self.stream)
