@@ -32,12 +32,18 @@ with ``torch_stages="off"`` (untimed) and reports how far the torch stages moved
 the texture PSNR of both bakes against the scan's texture read at each texel's own UV (the scan carries
 the body's UV layout; the difference of the two PSNRs is the figure); kappa_mean; the largest
 difference of an inpainted texel; the refined poses after the bake and after its colour rounds).
+``--count-ops`` also bakes the first frame and runs its colour rounds once more, untimed, counting the
+torch operators each stage dispatches (``ops``: computing ones, ``views``: no kernel) and the Warp
+launches, with the torch stages on the bake's device as CUDA runs them (rays cast in place by Warp, the
+nearest samples by the Warp kernel): on a GPU each is a launch the host makes, and the H200 found every
+stage's CPU time equal to its wall time (issue 39), so these counts are what a frame costs the host
+there. On the CPU they need ``--torch-stages on --device cpu``; the time is not what CUDA's would be.
 ``--warmup 1`` (default) first bakes the first frame once, untimed,
 in each process: the one-off imports and first allocations of a worker (~0.4 s) are paid once per
 process, not per frame (``--warmup 0`` times them into the first frame, as the bench did before).
 
     python bench/bake.py [--quick] [--frames 2] [--texels 1024] [--reference] [--workers N] [--device cpu|cuda]
-                         [--torch-stages auto|on|off] [--parity]
+                         [--torch-stages auto|on|off] [--parity] [--count-ops]
 """
 
 from __future__ import annotations
@@ -181,6 +187,70 @@ def _parity(model, fit, layout, scan, surface, baked, used, rounds_fit, targets,
             "colour_rounds_pose_rad_abs_max": poses(rounds_fit, ref_rounds_fit)}
 
 
+#: operators that make no kernel (a view, or a shape's bookkeeping): counted apart from the rest
+VIEW_OPS = {"view", "_unsafe_view", "as_strided", "alias", "t", "transpose", "unsqueeze", "squeeze", "expand",
+            "slice", "select", "permute", "detach", "_reshape_alias", "unbind", "split", "split_with_sizes",
+            "lift_fresh", "unflatten", "view_as_real", "view_as_complex", "diagonal", "narrow"}
+
+
+def _count_ops(model, layout, config, item, targets) -> dict:
+    """{stage: {"ops", "views", "warp_launches"}} of one frame baked and its colour rounds run
+    (``colour_rounds``), the torch stages on the bake's device with CUDA's choices (module doc)."""
+    import collections
+    import contextlib
+
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    import uvatar.avh.bake.frame as frame
+    from uvatar.avh.bake import register_torch
+    from uvatar.avh.bake.register import ScanSurface
+
+    stage = ["other"]
+    counts: dict = collections.defaultdict(collections.Counter)
+
+    class Count(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            counts[stage[0]]["views" if func.overloadpacket.__name__ in VIEW_OPS else "ops"] += 1
+            return func(*args, **(kwargs or {}))
+
+    timed = frame._timed
+
+    @contextlib.contextmanager
+    def labelled(seconds, name, rays=None, cpu=None):
+        before, stage[0] = stage[0], name
+        with timed(seconds, name, rays, cpu):
+            yield
+        stage[0] = before
+
+    import warp as wp
+    launch = wp.launch
+
+    def counted_launch(*args, **kwargs):
+        counts[stage[0]]["warp_launches"] += 1
+        return launch(*args, **kwargs)
+
+    from dataclasses import replace
+
+    config = replace(config, ray_backend="warp")     # CUDA's caster: the rays cast in place (Warp runs on the CPU)
+    fit, _, scan = item
+    saved = (frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU)
+    frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU = labelled, counted_launch, True
+    try:
+        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
+        frame.bake_fit(model, fit, layout, scan, config, surface=surface)        # the per-scan copies made
+        counts.clear()
+        with Count():
+            _, used = frame.bake_fit(model, fit, layout, scan, config, surface=surface)
+            stage[0] = "colour_rounds"
+            _colour_rounds(model, used, targets, scan, surface, config)
+    finally:
+        frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU = saved
+    out = {k: {n: int(c[n]) for n in ("ops", "views", "warp_launches")} for k, c in counts.items()}
+    out["frame_total"] = {n: sum(v[n] for k, v in out.items() if k != "colour_rounds")
+                          for n in ("ops", "views", "warp_launches")}
+    return out
+
+
 def _frames(model, frames, rng):
     """[(fit to bake, the scan's true fit, scan)] of the bench's frames (drawn from ``rng`` in order)."""
     from uvatar.capture import BodyFit
@@ -290,6 +360,9 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", action="store_true",
                     help="also bake each frame with the paper's 64-ray visibility (same process): its cost, "
                          "and how far kappa moved")
+    ap.add_argument("--count-ops", action="store_true",
+                    help="also count the torch operators and Warp launches of a frame and its colour rounds, "
+                         "per stage (the host's launches on a GPU; module doc)")
     ap.add_argument("--warmup", type=int, default=1,
                     help="untimed bakes of the first frame first (a worker's one-off imports and allocations, "
                          "paid once per process, not per frame); 0 times the process's first frame too")
@@ -395,6 +468,11 @@ def main(argv=None) -> int:
         out["visibility_tolerance"] = {"kappa_abs_mean_p99_max": worst("kappa"),
                                        "kappa_mean_abs": round(max(r["kappa_mean"] for r in refs), 4),
                                        "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
+    if args.count_ops:
+        fit, truth, scan = items[0]
+        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
+        out["operators"] = _count_ops(model, layout, config, items[0],
+                                      _colour_targets(model, truth, scan, surface, config))
     if args.workers > 1:
         n = args.throughput_frames or 4 * args.workers
         batch = [items[i % len(items)] for i in range(n)]

@@ -13,7 +13,8 @@ aten = torch.ops.aten
 #: operators whose output size (or value) the host must know: each reads the device back
 READ_BACKS = {aten._local_scalar_dense.default, aten.nonzero.default, aten.masked_select.default,
               aten._unique2.default, aten.unique_consecutive.default, aten.unique_dim.default,
-              aten.repeat_interleave.Tensor}
+              aten.repeat_interleave.Tensor,
+              aten._linalg_check_errors.default}   # linalg.solve / inv / cholesky check their info on the host
 
 
 class HostTraffic(TorchDispatchMode):

@@ -53,13 +53,15 @@ def test_rotation_twins_equal_scipy():
                                Rotation.from_rotvec(one).apply(points[0]), atol=1e-12, rtol=0)
 
 
-@pytest.fixture
-def window_search(monkeypatch):
-    """The nearest-sample window search CUDA runs (:data:`~uvatar.avh.bake.register_torch.WINDOW_SEARCH_ON_CPU`),
-    here on the CPU."""
+@pytest.fixture(params=["window", "kernel"])
+def window_search(request, monkeypatch):
+    """The nearest-sample search CUDA runs (:data:`~uvatar.avh.bake.register_torch.WINDOW_SEARCH_ON_CPU`),
+    here on the CPU: the Warp kernel, and the window search (CUDA's without Warp)."""
     from uvatar.avh.bake import register_torch
 
     monkeypatch.setattr(register_torch, "WINDOW_SEARCH_ON_CPU", True)
+    monkeypatch.setattr(register_torch, "NEAREST_KERNEL", request.param == "kernel")
+    return request.param
 
 
 def _scene(shift=(0.0, 0.0, 0.0)):
@@ -206,12 +208,15 @@ def test_nearest_in_a_window_is_the_slab_search():
     assert int(widest) == needed > needed // 4          # too small: reported
 
 
-@pytest.mark.usefixtures("window_search")
-def test_device_refinement_widens_a_window_too_small():
+def test_device_refinement_widens_a_window_too_small(monkeypatch):
     """A scan whose kept nearest-sample window is too small for this refinement's slabs: the call
     notices at its end, widens the window and answers as with a window wide enough."""
+    from uvatar.avh.bake import register_torch
     from uvatar.avh.bake.config import PoseRefineConfig
     from uvatar.avh.bake.refine import refine_fit
+
+    monkeypatch.setattr(register_torch, "WINDOW_SEARCH_ON_CPU", True)
+    monkeypatch.setattr(register_torch, "NEAREST_KERNEL", False)
 
     model, scan, surface, truth, noisy = _scene()
     config = PoseRefineConfig(iterations=2, max_vertices=600)

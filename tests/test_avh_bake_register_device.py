@@ -24,12 +24,16 @@ CONFIG = RegistrationConfig(stiffness=(30.0, 10.0, 3.0), iterations=(1, 1, 2), m
                             modes=("closest", "rays", "normal"), normal_smoothing=0.3)
 
 
-@pytest.fixture(params=[False, True], ids=["slab", "window"])
+@pytest.fixture(params=["slab", "window", "kernel"])
 def nearest_search(request, monkeypatch):
-    """The nearest samples by the slab search (the CPU's default) and by CUDA's window search."""
+    """The nearest samples by the Warp kernel (the default), and without Warp by the slab search (the
+    CPU's) and by the window search (CUDA's)."""
     from uvatar.avh.bake import register_torch
 
-    monkeypatch.setattr(register_torch, "WINDOW_SEARCH_ON_CPU", request.param)
+    if request.param == "kernel":
+        pytest.importorskip("warp")
+    monkeypatch.setattr(register_torch, "WINDOW_SEARCH_ON_CPU", request.param == "window")
+    monkeypatch.setattr(register_torch, "NEAREST_KERNEL", request.param == "kernel")
     return request.param
 
 
@@ -106,6 +110,7 @@ def test_device_registration_widens_a_window_too_small(monkeypatch):
     from uvatar.avh.bake import register_torch
 
     monkeypatch.setattr(register_torch, "WINDOW_SEARCH_ON_CPU", True)
+    monkeypatch.setattr(register_torch, "NEAREST_KERNEL", False)
     monkeypatch.setattr(register_torch, "fit_window", lambda *args: 0)
     v, f, scan = _scene("cpu", "embree")
     ref, ref_stats = register_to_scan(v, f, scan, CONFIG)
@@ -116,15 +121,18 @@ def test_device_registration_widens_a_window_too_small(monkeypatch):
     assert stats["matched_fraction"] == ref_stats["matched_fraction"]
 
 
-def test_device_registration_reads_back_a_fixed_number_of_times(monkeypatch):
-    """With rays through Warp on the CPU (tensors cast where they are, as on CUDA) and the window search:
-    after a first call (the per-body and per-scan copies made), a device registration copies host data to
-    the device and reads it back the same number of times for 3 and for 9 iterations: the body's
-    vertices go over once, the window is fitted once (one read), the results come back once."""
+@pytest.mark.parametrize("kernel", [False, True], ids=["window", "kernel"])
+def test_device_registration_reads_back_a_fixed_number_of_times(monkeypatch, kernel):
+    """With rays through Warp on the CPU (tensors cast where they are, as on CUDA) and the nearest samples
+    as on CUDA (the window search, or the Warp kernel): after a first call (the per-body and per-scan
+    copies made), a device registration copies host data to the device and reads it back the same number
+    of times for 3 and for 9 iterations: the body's vertices go over once, the window (if any) is fitted
+    once (one read), the results come back once."""
     from uvatar.avh.bake import register_torch
     from uvatar.geometry import gaussian_surface_matrix, vertex_normals
 
     monkeypatch.setattr(register_torch, "WINDOW_SEARCH_ON_CPU", True)
+    monkeypatch.setattr(register_torch, "NEAREST_KERNEL", kernel)
     v, f, scan = _scene("cpu", "warp")
     smoothing = gaussian_surface_matrix(v, vertex_normals(v, f), CONFIG.normal_smoothing)
     counts = {}
@@ -141,5 +149,5 @@ def test_device_registration_reads_back_a_fixed_number_of_times(monkeypatch):
     assert counts[3] == counts[9]
     assert counts[3].count("Tensor.numpy") == 1                  # the one read-back of the results
     assert counts[3].count("torch.as_tensor") == 1               # the body's vertices
-    assert counts[3].count("aten._local_scalar_dense.default") == 1    # the window fitted to them
-    assert len(counts[3]) == 3
+    assert counts[3].count("aten._local_scalar_dense.default") == (0 if kernel else 1)   # the window fitted
+    assert len(counts[3]) == (2 if kernel else 3)

@@ -63,8 +63,11 @@ def test_lazy_terms_fixed_buffer_and_device_update_take_the_same_steps(capture, 
                 assert a[k] == b[k], k
             else:
                 assert b[k] == pytest.approx(a[k], rel=1e-4, abs=1e-6), k
+    # Adam divides each gradient by its own running size: an element whose gradient is near zero (a
+    # primitive's motion bias that hardly sees a ray) turns float32 round-off into up to a whole step of
+    # lr (2e-3) either way. 5e-5 is 2.5 % of one step (measured: 1.5e-5 at most); a wrong step is ~lr.
     for p, q in zip(ref.params, fast.params, strict=True):
-        torch.testing.assert_close(q, p, rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(q, p, rtol=1e-4, atol=5e-5)
     assert fast.pair_overflows == 0 and 0 < fast.budget.peak <= fast.budget.capacity
 
 

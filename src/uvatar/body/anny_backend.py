@@ -32,6 +32,7 @@ from uvatar.body.base import BodyModel, BodyTemplate
 from uvatar.body.kinematics import (
     forward_kinematics,
     kinematic_levels,
+    rotvec_to_rotmat,
     skin,
     skinning_transforms,
     sparse_weights,
@@ -139,10 +140,8 @@ class AnnyBody(BodyModel):
     # -- posing --------------------------------------------------------------------------------
     def _kinematics(self, rotvecs: torch.Tensor, shape):
         """Bind state, joint frames F (B, J, 3, 3) and heads p (B, J, 3) in anny axes."""
-        import roma
-
         state = self._bind_state(shape)
-        D = roma.rotvec_to_rotmat(rotvecs.to(self._weights.dtype))  # anny local-ref deltas, anny axes
+        D = rotvec_to_rotmat(rotvecs.to(self._weights.dtype))  # anny local-ref deltas, anny axes
         F, p = forward_kinematics(self._levels_on(D.device), D, state["offsets"])
         return state, F, p
 

@@ -89,9 +89,9 @@ def apply_global_transform(vertices, joint_transforms, Rh=None, Th=None, scale=N
         vertices = vertices * s
         joint_transforms = torch.cat([joint_transforms[..., :3, :] * s[..., None], joint_transforms[..., 3:, :]], -2)
     if Rh is not None:
-        import roma
+        from uvatar.body.kinematics import rotvec_to_rotmat
 
-        R = roma.rotvec_to_rotmat(Rh.to(vertices))  # (B, 3, 3)
+        R = rotvec_to_rotmat(Rh.to(vertices))  # (B, 3, 3)
         vertices = vertices @ R.transpose(-1, -2)
         top = R[:, None] @ joint_transforms[..., :3, :]
         joint_transforms = torch.cat([top, joint_transforms[..., 3:, :].expand_as(joint_transforms[..., 3:, :])], -2)

@@ -9,8 +9,8 @@ head in the parent's *unposed* frame), and per-joint local rotations. The chain 
 ``F`` (B, J, 3, 3) is each joint frame's world rotation and ``p`` (B, J, 3) its world position.
 SMPL fits this directly (offset = J_c - J_parent); anny too, with its reference-pose head offsets.
 
-:func:`forward_kinematics` evaluates the chain one depth level at a time (one batched product per
-level); :func:`forward_kinematics_reference` is its plain per-joint twin. :func:`skin` is LBS as one
+:func:`forward_kinematics` evaluates the chain by pointer doubling (one batched product per doubling
+round: log2 of the depth); :func:`forward_kinematics_reference` is its plain per-joint twin. :func:`skin` is LBS as one
 (sparse CSR or dense) matrix product; :func:`skin_reference` loops over joints.
 """
 
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["ancestor_matrix", "subtree", "nearest_ancestor", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
+__all__ = ["rotvec_to_rotmat", "ancestor_matrix", "subtree", "nearest_ancestor", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
            "skinning_transforms", "sparse_weights", "skin", "skin_reference"]
 
 
@@ -65,63 +65,86 @@ def nearest_ancestor(parents, joints) -> np.ndarray:
 
 @dataclass(frozen=True)
 class KinematicLevels:
-    """Joints grouped by depth. ``levels[k]`` = (joint ids at depth k, index of each one's parent
-    within ``levels[k-1]``); depth 0 holds the single root."""
+    """A rig's ancestors for :func:`forward_kinematics` by pointer doubling. ``jumps[r]`` (J,) int64 is
+    each joint's ancestor ``2**r`` levels up, or ``J`` (an identity transform past the root) where the
+    chain is shorter; ``depth`` is the deepest joint's depth (the root's is 0). ``len(jumps)`` =
+    ceil(log2(depth + 1)) rounds cover every chain."""
 
-    levels: tuple[tuple[torch.Tensor, torch.Tensor], ...]
-    order: torch.Tensor     # (J,) joint ids in depth order
-    inverse: torch.Tensor   # (J,) position of each joint in ``order``
+    jumps: tuple[torch.Tensor, ...]
+    depth: int
 
     def to(self, device) -> KinematicLevels:
-        return KinematicLevels(tuple((a.to(device), b.to(device)) for a, b in self.levels),
-                               self.order.to(device), self.inverse.to(device))
+        return KinematicLevels(tuple(j.to(device) for j in self.jumps), self.depth)
 
 
 def kinematic_levels(parents) -> KinematicLevels:
-    """Group joints by depth from parents (J,) (-1 for the single root)."""
-    parents = [int(p) for p in np.asarray(parents).reshape(-1)]
-    roots = [j for j, p in enumerate(parents) if p < 0]
+    """The doubling ancestors (:class:`KinematicLevels`) of parents (J,) (-1 for the single root)."""
+    parents = np.asarray(parents, dtype=np.int64).reshape(-1)
+    J = len(parents)
+    roots = np.flatnonzero(parents < 0).tolist()
     if len(roots) != 1:
         raise ValueError(f"expected exactly one root joint, got {roots}")
-    children: list[list[int]] = [[] for _ in parents]
-    for j, p in enumerate(parents):
-        if p >= 0:
-            children[p].append(j)
-    levels, current = [(torch.tensor(roots), torch.zeros(1, dtype=torch.int64))], roots
-    while True:
-        nxt, parent_pos = [], []
-        for pos, j in enumerate(current):
-            for c in children[j]:
-                nxt.append(c)
-                parent_pos.append(pos)
-        if not nxt:
+    up = np.where(parents < 0, J, parents)
+    depth = np.zeros(J, np.int64)
+    reach = up.copy()
+    for _ in range(J):                        # depth = steps to the root (a cycle never gets there)
+        depth += reach < J
+        if (reach == J).all():
             break
-        levels.append((torch.tensor(nxt), torch.tensor(parent_pos)))
-        current = nxt
-    order = torch.cat([ids for ids, _ in levels])
-    if len(order) != len(parents):
+        reach = np.append(up, J)[reach]
+    if (reach < J).any():
         raise ValueError("every joint must descend from the root")
-    return KinematicLevels(tuple(levels), order, torch.argsort(order))
+    jumps, jump = [], np.append(up, J)
+    for _ in range(int(np.ceil(np.log2(int(depth.max()) + 1)))):
+        jumps.append(torch.from_numpy(jump[:J].copy()))
+        jump = np.append(jump[jump[:J]], J)
+    return KinematicLevels(tuple(jumps), int(depth.max()))
 
 
 def forward_kinematics(levels: KinematicLevels, local_rotations: torch.Tensor, offsets: torch.Tensor):
     """Posed joint frames. local_rotations (B, J, 3, 3), offsets (B or 1, J, 3)
-    -> (F (B, J, 3, 3) world rotations, p (B, J, 3) world positions)."""
-    B = local_rotations.shape[0]
+    -> (F (B, J, 3, 3) world rotations, p (B, J, 3) world positions).
+
+    By pointer doubling: each joint's transform [L | offset] is composed with its ancestor's 1, 2, 4, ...
+    levels up (``levels.jumps``), so a chain of depth d takes ceil(log2(d + 1)) batched 4 x 4 products
+    (anny's 17 levels: 5) instead of one product per level: the same frames within round-off (the
+    products associate differently), a few operators instead of ~300 (issue 39: the bake's pose
+    refinement poses the body every iteration, and on a GPU each operator is a launch)."""
+    B, J = local_rotations.shape[:2]
     offsets = offsets.expand(B, -1, -1)
-    ids, _ = levels.levels[0]
-    F_prev = local_rotations[:, ids]
-    p_prev = offsets[:, ids]
-    Fs, ps = [F_prev], [p_prev]
-    for ids, parent_pos in levels.levels[1:]:
-        F_par = F_prev[:, parent_pos]
-        p_prev = p_prev[:, parent_pos] + (F_par @ offsets[:, ids, :, None])[..., 0]
-        F_prev = F_par @ local_rotations[:, ids]
-        Fs.append(F_prev)
-        ps.append(p_prev)
-    F = torch.cat(Fs, 1)[:, levels.inverse]
-    p = torch.cat(ps, 1)[:, levels.inverse]
-    return F, p
+    bottom = local_rotations.new_zeros(B, J, 1, 4)
+    bottom[..., 3] = 1
+    T = torch.cat([torch.cat([local_rotations, offsets[..., None]], -1), bottom], -2)    # (B, J, 4, 4)
+    past_root = torch.eye(4, dtype=T.dtype, device=T.device).expand(B, 1, 4, 4)
+    for jump in levels.jumps:
+        T = torch.cat([T, past_root], 1)[:, jump] @ T
+    return T[..., :3, :3], T[..., :3, 3]
+
+
+_GENERATORS: dict = {}   # (dtype, device) -> (3, 9) the cross-product generators, made on a device once
+
+
+def rotvec_to_rotmat(rotvec: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axis-angle (radians) -> (..., 3, 3) rotation matrices, in a dozen operators: Rodrigues
+    ``R = I + a K + b K^2`` with K the cross-product matrix of the rotation vector, ``a = sin t / t`` and
+    ``b = (1 - cos t) / t^2 = (sin(t/2) / (t/2))^2 / 2`` through ``torch.sinc`` (exact and differentiable
+    at t = 0). The posing's conversion (issue 39: every operator is a launch on a GPU, and the bake
+    poses the body each refinement step); ``roma.rotvec_to_rotmat`` (about 40 operators, first order
+    below 1e-6 rad) is its reference twin."""
+    import math
+
+    key = (rotvec.dtype, rotvec.device)
+    if key not in _GENERATORS:      # K = sum_k v_k G_k: the constant goes to the device once, not per call
+        g = torch.zeros(3, 3, 3, dtype=rotvec.dtype)
+        for k, (i, j) in enumerate(((2, 1), (0, 2), (1, 0))):
+            g[k, i, j], g[k, j, i] = 1.0, -1.0
+        _GENERATORS[key] = g.reshape(3, 9).to(rotvec.device)
+    K = (rotvec @ _GENERATORS[key]).unflatten(-1, (3, 3))
+    angle = torch.linalg.vector_norm(rotvec, dim=-1)[..., None, None]
+    a = torch.sinc(angle / math.pi)
+    half = torch.sinc(angle / (2 * math.pi))
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device)
+    return eye + a * K + (0.5 * half * half) * (K @ K)
 
 
 def forward_kinematics_numpy(parents, local_rotations, local_translations) -> tuple[np.ndarray, np.ndarray]:

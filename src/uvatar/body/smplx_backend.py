@@ -28,6 +28,7 @@ from uvatar.body.base import BodyModel, BodyTemplate
 from uvatar.body.kinematics import (
     forward_kinematics,
     kinematic_levels,
+    rotvec_to_rotmat,
     skin,
     skinning_transforms,
     sparse_weights,
@@ -222,8 +223,6 @@ class SmplxBody(BodyModel):
         return self._forward(rotvecs, shape, with_vertices=False)[1]
 
     def _forward(self, rotvecs: torch.Tensor, shape, with_vertices: bool):
-        import roma
-
         dt = self._v_template.dtype
         B, J = rotvecs.shape[:2]
         # a host shape goes over without making the host wait (a trainer keeps the fits' shapes there)
@@ -235,12 +234,13 @@ class SmplxBody(BodyModel):
             raise ValueError(f"shape must have {len(self.shape_names)} betas, got {tuple(betas.shape)}")
         v_shaped = self._v_template + torch.einsum("bl,vkl->bvk", betas, self._shapedirs)  # (Bs, V, 3)
         joints = self._J_regressor @ v_shaped  # (Bs, J, 3)
-        R = roma.rotvec_to_rotmat(rotvecs.to(dt))
+        R = rotvec_to_rotmat(rotvecs.to(dt))
         parents = self._parents.to(R.device)
         offsets = joints - joints[:, parents]
         offsets[:, 0] = joints[:, 0]
         F, p = forward_kinematics(self._levels_on(R.device), R, offsets)
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dt, device=R.device).expand(B, J, 1, 4)
+        bottom = R.new_zeros(B, J, 1, 4)      # made on the device: no host data copied there per pose
+        bottom[..., 3] = 1.0
         transforms = torch.cat([torch.cat([F, p[..., None]], -1), bottom], -2)
         if not with_vertices:
             return None, transforms

@@ -157,14 +157,12 @@ class ToyTubeBody(BodyModel):
         self.register_buffer("_offsets_t", torch.from_numpy(offsets.astype(np.float32)), persistent=False)
 
     def _pose_local(self, rotvecs: torch.Tensor, shape) -> tuple[torch.Tensor, torch.Tensor]:
-        import roma
-
-        from uvatar.body.kinematics import forward_kinematics, skin, skinning_transforms
+        from uvatar.body.kinematics import forward_kinematics, rotvec_to_rotmat, skin, skinning_transforms
 
         B, J = rotvecs.shape[:2]
         scale = 1.0 if shape is None else torch.as_tensor(shape, dtype=rotvecs.dtype).reshape(-1)[0] + 1.0
         joints = self._joints_t.to(rotvecs) * scale
-        local = roma.rotvec_to_rotmat(self.local_to_world_rotvecs(rotvecs))   # each rotvec in its joint's axes
+        local = rotvec_to_rotmat(self.local_to_world_rotvecs(rotvecs))   # each rotvec in its joint's axes
         F, p = forward_kinematics(self._levels_on(rotvecs.device), local, (self._offsets_t.to(rotvecs) * scale)[None])
         vertices = skin((self._verts_t.to(rotvecs) * scale)[None], self._weights_t.to(rotvecs),
                         skinning_transforms(F, p, None, joints[None])).contiguous()

@@ -13,10 +13,14 @@ end and cut where the numpy path would have stopped appending them. Constants pe
 refinement vertices, subtree and region weights) go to the device once (:func:`.refine_model._memo`), the
 scan's samples once per scan (:meth:`.register.ScanSurface.samples_torch`).
 
-The nearest samples use a fixed window per chunk of queries (:func:`.register_torch.nearest_samples`),
-measured once per scan and device; each call checks at its end, in the same read, that no slab outgrew
-it (else it widens the window and runs again). On the CPU, where a read-back costs nothing, the tighter
-slab search with its one read per query stays (``register_torch.WINDOW_SEARCH_ON_CPU``).
+The nearest samples are one Warp launch per iteration (:func:`.register_torch.nearest_samples`). Without
+Warp they use a fixed window per chunk of queries, measured once per scan and device; each call then
+checks at its end, in the same read, that no slab outgrew it (else it widens the window and runs
+again); on the CPU the slab search with its one read per query.
+
+Its solves are ``torch.linalg.solve_ex``: ``torch.linalg.solve`` checks for a singular matrix on the
+host, a synchronisation per solve on CUDA (the damped systems are positive definite; a failed solve
+makes no step, counted as a stop).
 """
 
 from __future__ import annotations
@@ -104,14 +108,25 @@ def _clothing_offsets(residuals, skin, ok, huber: float, steps: int = 3):
     for _ in range(steps):
         w = torch.where(ok, _huber_weights(r + skin @ offsets, huber), torch.zeros_like(r))
         a = (skin * w[:, None]).T @ skin
-        offsets = -torch.linalg.solve(a + 1e-9 * eye, (skin * w[:, None]).T @ r)
+        solved, failed = _solve(a + 1e-9 * eye, (skin * w[:, None]).T @ r)
+        offsets = torch.where(failed, torch.zeros_like(solved), -solved)
     return offsets
+
+
+def _solve(a, b):
+    """(x with a x = b, failed 0-d bool) without the read-back of ``torch.linalg.solve``, which on CUDA
+    synchronises with the host to check for a singular matrix: the check stays on the device (the
+    refinement's damped systems are positive definite; a failure makes no step, where numpy raises)."""
+    import torch
+
+    x, info = torch.linalg.solve_ex(a, b)
+    return x, info != 0
 
 
 def _nearest(scan, points, max_distance, device):
     """(distance (N,), index (N,), widest slab (0-d)) tensors of each of ``points``' nearest scan
-    sample within ``max_distance``: :func:`.register_torch.nearest_samples` (no read-back once the
-    scan's window is known; on the CPU, unless ``register_torch.WINDOW_SEARCH_ON_CPU``, the slab search).
+    sample within ``max_distance``: :func:`.register_torch.nearest_samples` (no read-back: the Warp
+    kernel, or without Warp the window search once the scan's window is known; on the CPU the slab search).
     ``device`` is the points' own (the tests wrap this function by that signature)."""
     from uvatar.avh.bake.register_torch import nearest_samples
 
@@ -260,16 +275,19 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
         centres = tr[joints, :3, 3]
         a, g = _normal_equations_reference(v, sub, centres, centre0, blocks)
         a = a + torch.diag(config.damping * torch.diagonal(a) + config.prior * count + 1e-12)
-        step = -torch.linalg.solve(a, g)
+        step, failed = _solve(a, g)
+        step = -step
+        running = running & ~failed
         d_joint = _rotation_step(step[: 3 * k].reshape(k, 3), max_angle)
         d_root = _rotation_step(step[3 * k: 3 * k + 3], max_angle)
         frames = tr[joints, :3, :3]
         frames = frames / torch.linalg.norm(frames, dim=1, keepdim=True)               # drop the scale
         local = torch.einsum("kji,kj->ki", frames, d_joint)                             # R_k^T d_k
+        turned = compose_rotvecs(torch.cat([rot[joints], d_root[None]]), torch.cat([local, rh[None]]))   # one call
         moved = rot.clone()
-        moved[joints] = compose_rotvecs(rot[joints], local)
+        moved[joints] = turned[:k]
         rot = torch.where(running, moved, rot)
-        rh = torch.where(running, compose_rotvecs(d_root, rh), rh)
+        rh = torch.where(running, turned[k], rh)
         th = torch.where(running, rotate(d_root, th - centre0) + centre0 + step[3 * k + 3: 3 * k + 6], th)
         offsets = torch.where(running, offsets + step[3 * k + 6:], offsets)
 

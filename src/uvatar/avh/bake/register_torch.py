@@ -20,7 +20,8 @@ from uvatar.avh.bake.register_match import match_rule
 from uvatar.geometry import vertex_normals
 
 __all__ = ["sorted_points_torch", "nearest_points_torch", "nearest_points_in_window", "widest_slab",
-           "nearest_samples", "fit_window", "window_outgrown", "match_vertices_torch", "WINDOW_SEARCH_ON_CPU"]
+           "nearest_samples", "uses_kernel", "searches_window", "fit_window", "window_outgrown", "match_vertices_torch", "WINDOW_SEARCH_ON_CPU",
+           "NEAREST_KERNEL"]
 
 
 def sorted_points_torch(points, device):
@@ -132,9 +133,22 @@ def nearest_points_in_window(queries, sorted_points, max_distance, window: int, 
     return dist, index, (hi - lo).max()
 
 
-#: the CPU keeps the slab search (its one read-back per query costs nothing there, and it compares
-#: ~5x fewer points than a window wide enough for every slab); tests set it to run CUDA's choice here
+#: the nearest samples of tensors are one Warp launch wherever Warp imports
+#: (:func:`uvatar.geometry.nearest_warp.nearest_sorted_points_warp`: no window, no read-back, a few
+#: hundred points per query; on CPU tensors ~20x faster than the slab search too); tests set it False
+#: to check the searches that run without Warp
+NEAREST_KERNEL = True
+
+#: without the kernel, the CPU keeps the slab search (its one read-back per query costs nothing there,
+#: and it compares ~5x fewer points than a window wide enough for every slab); tests set it to run
+#: CUDA's choice without Warp (the window search) here
 WINDOW_SEARCH_ON_CPU = False
+
+
+def _warp_importable() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("warp") is not None
 
 
 def _roomy(width: int) -> int:
@@ -177,22 +191,41 @@ def window_outgrown(scan, device, widest: int) -> bool:
     return True
 
 
+def uses_kernel() -> bool:
+    """Are nearest-sample queries on tensors answered by the Warp kernel (:data:`NEAREST_KERNEL`, Warp
+    importable)?"""
+    return NEAREST_KERNEL and _warp_importable()
+
+
 def uses_window(device) -> bool:
-    """Does a nearest-sample query on ``device`` use the scan's window (no read-back) rather than the
-    slab search (one read-back per query)? Everywhere but the CPU, unless :data:`WINDOW_SEARCH_ON_CPU`."""
+    """Without the kernel, does a nearest-sample query on ``device`` use the scan's window (no
+    read-back) rather than the slab search (one read-back per query)? Everywhere but the CPU, unless
+    :data:`WINDOW_SEARCH_ON_CPU`."""
     import torch
 
     return torch.device(device).type != "cpu" or WINDOW_SEARCH_ON_CPU
 
 
+def searches_window(device) -> bool:
+    """Does a nearest-sample query on ``device`` run the window search (so a caller fits the scan's
+    window first and checks it after)? Without the kernel, off the CPU (:func:`uses_window`)."""
+    return not uses_kernel() and uses_window(device)
+
+
 def nearest_samples(scan, points, max_distance):
     """(distance (N,), index (N,), widest slab (0-d int64)) tensors of each of ``points``' (N, 3) nearest
     scan sample within ``max_distance`` (:meth:`.register.ScanSurface.nearest_sample`'s answers), with
-    no read-back once the scan's window is known (:func:`fit_window`: the first query on a scan and
-    device measures it). The caller reads the widest slab back with its results and checks it
-    (:func:`window_outgrown`). Where :func:`uses_window` is False, the slab search itself (widest 0)."""
+    no read-back: one Warp launch (:func:`uses_kernel`; widest 0). Without Warp: on the CPU the slab
+    search (one read-back; widest 0), elsewhere the window search once the scan's window is known
+    (:func:`fit_window`: the first query on a scan and device measures it; the caller reads the widest
+    slab back with its results and checks it, :func:`window_outgrown`)."""
     import torch
 
+    if uses_kernel():
+        from uvatar.geometry.nearest_warp import nearest_sorted_points_warp
+
+        near, idx = nearest_sorted_points_warp(points, scan.sorted_samples_torch(points.device), max_distance)
+        return near, idx, torch.zeros((), dtype=torch.int64, device=points.device)
     if not uses_window(points.device):
         near, idx = scan.nearest_sample(points, max_distance)
         return near, idx, torch.zeros((), dtype=torch.int64, device=points.device)
@@ -281,7 +314,7 @@ class _TorchOps:
         torch = self.torch
         self.widest = torch.zeros((), dtype=torch.int64, device=self.device)
         self.failed = torch.zeros((), dtype=torch.bool, device=self.device)
-        if closest_distance > 0 and uses_window(self.device):
+        if closest_distance > 0 and searches_window(self.device):
             fit_window(scan, x, closest_distance)
 
     def match(self, x, n, scan, max_distance: float, cos_max_angle: float, closest_point: bool, epsilon: float):

@@ -1,0 +1,104 @@
+"""The nearest point within a distance in one Warp launch (:mod:`uvatar.geometry.nearest_warp`, issue 39)
+against its reference twins: the slab search (:func:`~uvatar.avh.bake.register_torch.nearest_points_torch`)
+and SciPy's k-d tree (the bake's numpy path). On the CPU here; on CUDA with ``-m gpu``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from host_traffic import HostTraffic
+from scipy.spatial import cKDTree
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("warp")
+
+from uvatar.avh.bake.register_torch import nearest_points_torch, sorted_points_torch  # noqa: E402
+from uvatar.geometry.nearest_warp import nearest_sorted_points_warp  # noqa: E402
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]
+
+
+def _cloud(rng, n):
+    """n points like a body's scan samples: tall, thin, a few duplicated (UV seams)."""
+    points = rng.normal(size=(n, 3)) * [0.15, 0.6, 0.08]
+    return np.concatenate([points, points[: n // 50]])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("max_distance", [0.01, 0.05, 1.0])
+def test_equals_the_slab_search_and_the_kd_tree(device, max_distance):
+    """The same distances (float64, within 1e-15 m) and the same found set as the slab search and the
+    k-d tree; the same index wherever the nearest point is not tied."""
+    rng = np.random.default_rng(0)
+    points = _cloud(rng, 4000)
+    queries = torch.as_tensor(rng.normal(size=(1500, 3)) * [0.2, 0.7, 0.1], device=device)
+    sorted_points = sorted_points_torch(points, device)
+    near, idx = nearest_sorted_points_warp(queries, sorted_points, max_distance)
+    ref, ref_idx = nearest_points_torch(queries, sorted_points, max_distance)
+    kd, kd_idx = cKDTree(points).query(queries.cpu().numpy(), distance_upper_bound=max_distance)
+    near, idx, ref, ref_idx = (t.cpu() for t in (near, idx, ref, ref_idx))
+    found = torch.isfinite(near)
+    assert torch.equal(found, torch.isfinite(ref)) and np.array_equal(found.numpy(), np.isfinite(kd))
+    assert 0 < int(found.sum()) <= len(queries)
+    assert torch.all(idx[~found] == 0)
+    np.testing.assert_allclose(near[found].numpy(), ref[found].numpy(), atol=1e-15, rtol=0)
+    np.testing.assert_allclose(near[found].numpy(), kd[found.numpy()], atol=1e-15, rtol=0)
+    # the found point is at that distance, and ties aside it is the reference's
+    gap = np.linalg.norm(points[idx[found].numpy()] - queries.cpu().numpy()[found.numpy()], axis=1)
+    np.testing.assert_allclose(gap, near[found].numpy(), atol=1e-15, rtol=0)
+    tied = _tied(points, queries.cpu().numpy(), near.numpy())
+    untied = found.numpy() & ~tied
+    assert np.array_equal(idx.numpy()[untied], ref_idx.numpy()[untied])
+    assert np.array_equal(idx.numpy()[untied], kd_idx[untied])
+
+
+def _tied(points, queries, near):
+    """(N,) bool: queries with two or more points at their nearest distance."""
+    out = np.zeros(len(queries), bool)
+    for i in np.flatnonzero(np.isfinite(near)):
+        d = np.linalg.norm(points - queries[i], axis=1)
+        out[i] = np.count_nonzero(d == near[i]) > 1
+    return out
+
+
+def test_ties_go_to_the_smaller_index_and_the_limit_is_strict():
+    """Duplicated points: the smaller original index wins, whichever the height order puts first; a
+    point exactly at ``max_distance`` is not within it (the k-d tree's bound), one just inside is."""
+    points = np.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.25, 0.0]])
+    queries = torch.tensor([[0.0, 1.0, 0.1], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    near, idx = nearest_sorted_points_warp(queries, sorted_points_torch(points, "cpu"), 0.25)
+    assert idx[0] == 0 and near[0] == pytest.approx(0.1, abs=1e-15)        # 0 and 2 tie
+    assert torch.isinf(near[1]) and idx[1] == 0                             # [0, .25, 0] is exactly 0.25 away
+    near, idx = nearest_sorted_points_warp(queries, sorted_points_torch(points, "cpu"), 0.25 + 1e-12)
+    assert idx[1] == 3 and near[1] == 0.25
+
+
+def test_a_limit_on_the_device_and_empty_inputs():
+    """The limit as a 0-d tensor (the refinement's, made from the body's size on the device) answers as
+    the same Python float; no queries or no points find nothing."""
+    rng = np.random.default_rng(1)
+    points = _cloud(rng, 500)
+    queries = torch.as_tensor(rng.normal(size=(200, 3)) * 0.3)
+    sorted_points = sorted_points_torch(points, "cpu")
+    a = nearest_sorted_points_warp(queries, sorted_points, 0.04)
+    b = nearest_sorted_points_warp(queries, sorted_points, torch.tensor(0.04, dtype=torch.float64))
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    near, idx = nearest_sorted_points_warp(queries[:0], sorted_points, 0.04)
+    assert near.shape == idx.shape == (0,)
+    near, idx = nearest_sorted_points_warp(queries, sorted_points_torch(np.zeros((0, 3)), "cpu"), 0.04)
+    assert torch.isinf(near).all() and (idx == 0).all()
+
+
+def test_no_read_back(monkeypatch):
+    """One launch: nothing read back, nothing made from host data (on CUDA, no stream synchronisation),
+    with the limit a device scalar."""
+    rng = np.random.default_rng(2)
+    sorted_points = sorted_points_torch(_cloud(rng, 800), "cpu")
+    queries = torch.as_tensor(rng.normal(size=(300, 3)) * 0.3)
+    limit = torch.tensor(0.05, dtype=torch.float64)
+    nearest_sorted_points_warp(queries, sorted_points, limit)       # the kernel built
+    traffic = HostTraffic(monkeypatch)
+    with traffic:
+        near, _ = nearest_sorted_points_warp(queries, sorted_points, limit)
+    assert traffic.seen == []
+    assert torch.isfinite(near).any()
