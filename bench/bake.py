@@ -16,7 +16,8 @@ frames_per_hour (one process) from it. progress goes to stderr.
 issue 27's second pass (the paper's 64 rays per face, one shared lattice) from the same fit, and
 reports those stages' seconds and rays (``reference``) and how far kappa moved
 (``visibility_tolerance``: |delta kappa| over the texels, |delta vertex visibility| of the scan, mean,
-99th percentile and max). ``--workers N`` (N > 1) then bakes the frames again on N processes, each a
+99th percentile and max). ``--workers N`` (N > 1; or several, ``4,8``, one run each, ``throughput`` the
+fastest and ``throughput_runs`` all) then bakes the frames again on N processes, each a
 frame at a time as ``uvatar bake --workers N`` does (the frame plus its colour rounds), and reports
 the machine's throughput in wall time (``throughput``: seconds per frame and frames per hour with N
 workers; the machine may be shared, ``load_average_1min`` says how much); ``--throughput-frames`` (default
@@ -366,10 +367,11 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=1,
                     help="untimed bakes of the first frame first (a worker's one-off imports and allocations, "
                          "paid once per process, not per frame); 0 times the process's first frame too")
-    ap.add_argument("--workers", type=int, default=1,
-                    help="N > 1: also bake the frames on N processes and report the throughput (wall time)")
+    ap.add_argument("--workers", default="1",
+                    help="N > 1: also bake the frames on N processes and report the throughput (wall time); "
+                         "several, comma-separated (4,8): one throughput run each")
     ap.add_argument("--throughput-frames", type=int, default=None,
-                    help="frames the --workers run bakes (the timed frames over and over; default 4 per "
+                    help="frames each --workers run bakes (the timed frames over and over; default 4 per "
                          "worker, so every worker stays busy to the end)")
     args = ap.parse_args(argv)
     texels = 256 if args.quick else args.texels
@@ -473,11 +475,15 @@ def main(argv=None) -> int:
         surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
         out["operators"] = _count_ops(model, layout, config, items[0],
                                       _colour_targets(model, truth, scan, surface, config))
-    if args.workers > 1:
-        n = args.throughput_frames or 4 * args.workers
+    runs = []
+    for workers in (int(w) for w in str(args.workers).split(",") if int(w) > 1):
+        n = args.throughput_frames or 4 * workers
         batch = [items[i % len(items)] for i in range(n)]
-        print(f"throughput: {n} frames on {args.workers} processes", file=sys.stderr)
-        out["throughput"] = _throughput(args.workers, texels, args.device, args.torch_stages, batch, args.warmup)
+        print(f"throughput: {n} frames on {workers} processes", file=sys.stderr)
+        runs.append(_throughput(workers, texels, args.device, args.torch_stages, batch, args.warmup))
+    if runs:
+        out["throughput"] = min(runs, key=lambda r: r["seconds_per_frame"])    # the machine's best
+        out["throughput_runs"] = runs
     print(json.dumps(out))
     return 0
 

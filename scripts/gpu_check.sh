@@ -11,7 +11,7 @@
 # with the body re-posed on the GPU; "auto,host" adds the CPU re-posing as before), TRAIN_COMPILE (its --compile,
 # default "off,off+cl+graph,default+cl,default+cl+graph": the eager step, the whole step replayed from a CUDA
 # graph, then compiled, with and without the graph), BAKE_SECONDS /
-# BAKE_FRAMES / BAKE_WORKERS / BAKE_THROUGHPUT_FRAMES (the frames the workers bake, default 16), TESTS_SECONDS.
+# BAKE_FRAMES / BAKE_WORKERS (default 4,8: a throughput run each) / BAKE_THROUGHPUT_FRAMES (the frames each run bakes, default 32), TESTS_SECONDS.
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
@@ -99,8 +99,10 @@ for part in $PARTS; do
       if python -c "import anny, warp" 2>/dev/null; then
         # --workers: the frames again on that many processes sharing the GPU (one frame's CPU work overlaps
         # another's GPU work): throughput.seconds_per_frame is the machine's wall time per frame
-        run_part bake "${BAKE_SECONDS:-200}" "$OUT/bake.json" python bench/bake.py --device cuda \
-          --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-16}"
+        # (4 and 8 of the machine's 16 cores); --count-ops: the torch operators and Warp launches per stage, the
+        # host's launches (session 9 cut them about in half: the nearest samples in one Warp launch, doubling FK)
+        run_part bake "${BAKE_SECONDS:-240}" "$OUT/bake.json" python bench/bake.py --device cuda --count-ops \
+          --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4,8}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}"
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
