@@ -24,13 +24,11 @@
 # A bare device machine lacks uvatar's compiled dependencies: carry Warp (the fused marcher, the device
 # unwrap), embreex (the toy capture, the reference unwrap) and anny (the bake) as docs/DESIGN notes say;
 # env.txt lists what imports. Without Warp the marcher falls back to its torch twin (JSON "marcher").
-# What worked (2026-11-27, H100): the device image lacks warp-lang, embreex, trimesh and roma. Download their
-# cp312 wheels into .whl/ (device README). Warp's wheel is too large for one call: unpack it, drop
-# warp/examples, warp/tests and warp/bin/warp-clang.so (keep warp/native), `tar | xz`, and `split -b 41M` into
-# .carry/ (~79 MB in two parts). The tracked tree must travel too, and the viewer's 24 MB ort wasm and the
-# docs' pictures take it over 64 MiB: move them aside for the calls (restore with git checkout). Call 1
-# carries part 1 + the small wheels into /tmp. Call 2 (within the 30 s the machine stays warm) carries
-# part 2, unpacks it into /tmp/site, exports PYTHONPATH=/tmp/site, then runs this script.
+# Carrying: `bash scripts/gpu_carry.sh pack` (here) makes .carry/p1, p2 (the cp312 wheels of warp-lang, embreex,
+# trimesh and roma, anny's package and its cache file; ~115 MB in two parts), moves the viewer's 24 MB ort wasm
+# and docs/ aside so the tree travels at ~5 MB, and prints the two device calls: the first stores p1 in /tmp,
+# the second (within the 30 s the machine stays warm) brings p2, unpacks both into /tmp/site and runs this
+# script (`bash scripts/gpu_carry.sh check bake tests train`). `bash scripts/gpu_carry.sh restore` afterwards.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-$PWD/gpu_out}
