@@ -2,7 +2,7 @@
 :func:`uvatar.avh.bake.register_torch.nearest_points_torch` (its reference, and of the bake's k-d tree).
 
 The points are sorted by height (y) once (:func:`~uvatar.avh.bake.register_torch.sorted_points_torch`).
-A query finds its own height in that order (bisection) and walks outwards, up and
+A query finds its own height in that order (bisection) and walks outwards, up then
 down, keeping the nearest point seen, until the height gap alone passes the best distance so far (the
 classic sorted-projection search). On a scan's samples the nearest one is millimetres away, so a walk
 visits a few hundred points instead of a slab of tens of thousands, and nothing is read back or sized
@@ -49,34 +49,22 @@ def _kernel():
                 up = mid + wp.int64(1)
             else:
                 top = mid
-        down = up - wp.int64(1)
-        going_up = up < wp.int64(n)
-        going_down = down >= wp.int64(0)
-        while going_up or going_down:
-            if going_up:
-                p = points[up]
-                if p[1] - q[1] > best:
-                    going_up = False
-                else:
-                    d = wp.length(p - q)
-                    j = order[up]
-                    if closer(d, j, best, best_j):
-                        best = d
-                        best_j = j
-                    up = up + wp.int64(1)
-                    going_up = up < wp.int64(n)
-            if going_down:
-                p = points[down]
-                if q[1] - p[1] > best:
-                    going_down = False
-                else:
-                    d = wp.length(p - q)
-                    j = order[down]
-                    if closer(d, j, best, best_j):
-                        best = d
-                        best_j = j
-                    down = down - wp.int64(1)
-                    going_down = down >= wp.int64(0)
+        for side in range(2):               # walk up from there, then down, while the height gap alone
+            step = wp.int64(1)              # can still beat the best distance
+            sign = wp.float64(1.0)
+            if side == 1:
+                step = wp.int64(-1)
+                sign = wp.float64(-1.0)
+            j = up + (step - wp.int64(1)) // wp.int64(2)      # up, or the one below it
+            while j >= wp.int64(0) and j < wp.int64(n):
+                p = points[j]
+                if (p[1] - q[1]) * sign > best:
+                    break
+                d = wp.length(p - q)
+                if closer(d, order[j], best, best_j):
+                    best = d
+                    best_j = order[j]
+                j = j + step
         if best_j >= wp.int64(0) and best < max_distance:
             distance[i] = best
             index[i] = best_j
