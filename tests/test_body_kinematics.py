@@ -9,6 +9,8 @@ import torch
 
 from uvatar.body.kinematics import (
     forward_kinematics,
+    forward_kinematics_by_level,
+    forward_kinematics_doubling,
     forward_kinematics_reference,
     kinematic_levels,
     skin,
@@ -29,12 +31,26 @@ def _rig(batch=3, dtype=torch.float64, seed=0):
 
 
 @pytest.mark.parametrize("batch", [1, 4])
-def test_forward_kinematics_matches_reference(batch):
+@pytest.mark.parametrize("way", [forward_kinematics, forward_kinematics_by_level, forward_kinematics_doubling])
+def test_forward_kinematics_matches_reference(batch, way):
     rot, offsets = _rig(batch)
-    F, p = forward_kinematics(kinematic_levels(PARENTS), rot, offsets)
+    F, p = way(kinematic_levels(PARENTS), rot, offsets)
     F_ref, p_ref = forward_kinematics_reference(PARENTS, rot, offsets)
     torch.testing.assert_close(F, F_ref)
     torch.testing.assert_close(p, p_ref)
+
+
+def test_forward_kinematics_chooses_by_device_and_batch(monkeypatch):
+    """Small CPU batches (and every batch off the CPU) by doubling, large CPU batches by level."""
+    import uvatar.body.kinematics as kin
+
+    calls = []
+    monkeypatch.setattr(kin, "forward_kinematics_by_level", lambda *a: calls.append("level"))
+    monkeypatch.setattr(kin, "forward_kinematics_doubling", lambda *a: calls.append("doubling"))
+    levels = kinematic_levels(PARENTS)
+    for batch in (1, kin.DOUBLING_MAX_ON_CPU // len(PARENTS), kin.DOUBLING_MAX_ON_CPU // len(PARENTS) + 1):
+        kin.forward_kinematics(levels, *_rig(batch))
+    assert calls == ["doubling", "doubling", "level"]
 
 
 def test_forward_kinematics_known_answer():
@@ -61,8 +77,8 @@ def test_kinematic_levels_rejects_a_cycle():
 @pytest.mark.parametrize("depth", [1, 2, 3, 4, 7, 8, 16, 17, 40])
 def test_doubling_rounds_cover_every_chain(depth):
     """A chain of ``depth`` levels with a branch at every joint (joints listed children first, so no
-    order is assumed): ceil(log2(depth + 1)) rounds, and the frames of the per-joint reference within
-    float64 round-off."""
+    order is assumed): ceil(log2(depth + 1)) doubling rounds, depth + 1 levels, and both ways give the
+    frames of the per-joint reference within float64 round-off."""
     chain = list(range(depth + 1))[::-1]                     # chain[i] is at depth i: the root is the last id
     parents = np.full(2 * depth + 1, -1)
     for i in range(1, depth + 1):
@@ -70,13 +86,15 @@ def test_doubling_rounds_cover_every_chain(depth):
         parents[depth + i] = chain[i - 1]                    # a leaf beside each chain joint
     levels = kinematic_levels(parents)
     assert levels.depth == depth and len(levels.jumps) == math.ceil(math.log2(depth + 1))
+    assert len(levels.levels) == depth + 1
     g = torch.Generator().manual_seed(depth)
     rot = roma.rotvec_to_rotmat(0.5 * torch.randn(2, len(parents), 3, generator=g, dtype=torch.float64))
     offsets = torch.randn(1, len(parents), 3, generator=g, dtype=torch.float64)
-    F, p = forward_kinematics(levels, rot, offsets)
     F_ref, p_ref = forward_kinematics_reference(parents, rot, offsets)
-    torch.testing.assert_close(F, F_ref, atol=1e-12, rtol=0)
-    torch.testing.assert_close(p, p_ref, atol=1e-12, rtol=0)
+    for way in (forward_kinematics_by_level, forward_kinematics_doubling):
+        F, p = way(levels, rot, offsets)
+        torch.testing.assert_close(F, F_ref, atol=1e-12, rtol=0)
+        torch.testing.assert_close(p, p_ref, atol=1e-12, rtol=0)
 
 
 def test_rotvec_to_rotmat_equals_roma_and_gradcheck():

@@ -10,7 +10,8 @@ head in the parent's *unposed* frame), and per-joint local rotations. The chain 
 SMPL fits this directly (offset = J_c - J_parent); anny too, with its reference-pose head offsets.
 
 :func:`forward_kinematics` evaluates the chain by pointer doubling (one batched product per doubling
-round: log2 of the depth); :func:`forward_kinematics_reference` is its plain per-joint twin. :func:`skin` is LBS as one
+round: log2 of the depth; few operators) or one depth level at a time (least arithmetic: large CPU
+batches); :func:`forward_kinematics_reference` is their plain per-joint twin. :func:`skin` is LBS as one
 (sparse CSR or dense) matrix product; :func:`skin_reference` loops over joints.
 """
 
@@ -21,7 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["rotvec_to_rotmat", "ancestor_matrix", "subtree", "nearest_ancestor", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_reference",
+__all__ = ["rotvec_to_rotmat", "ancestor_matrix", "subtree", "nearest_ancestor", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_by_level",
+           "forward_kinematics_doubling", "forward_kinematics_reference", "DOUBLING_MAX_ON_CPU",
            "skinning_transforms", "sparse_weights", "skin", "skin_reference"]
 
 
@@ -65,20 +67,28 @@ def nearest_ancestor(parents, joints) -> np.ndarray:
 
 @dataclass(frozen=True)
 class KinematicLevels:
-    """A rig's ancestors for :func:`forward_kinematics` by pointer doubling. ``jumps[r]`` (J,) int64 is
-    each joint's ancestor ``2**r`` levels up, or ``J`` (an identity transform past the root) where the
-    chain is shorter; ``depth`` is the deepest joint's depth (the root's is 0). ``len(jumps)`` =
-    ceil(log2(depth + 1)) rounds cover every chain."""
+    """A rig's joints for :func:`forward_kinematics`, both ways:
 
+    - by depth: ``levels[k]`` = (joint ids at depth k, index of each one's parent within
+      ``levels[k-1]``); depth 0 holds the single root; ``order`` (J,) the joint ids in depth order and
+      ``inverse`` (J,) each joint's position in it;
+    - by pointer doubling: ``jumps[r]`` (J,) each joint's ancestor ``2**r`` levels up, or ``J`` (an
+      identity transform past the root) where the chain is shorter; ceil(log2(depth + 1)) rounds cover
+      every chain (``depth``: the deepest joint's)."""
+
+    levels: tuple[tuple[torch.Tensor, torch.Tensor], ...]
+    order: torch.Tensor
+    inverse: torch.Tensor
     jumps: tuple[torch.Tensor, ...]
     depth: int
 
     def to(self, device) -> KinematicLevels:
-        return KinematicLevels(tuple(j.to(device) for j in self.jumps), self.depth)
+        return KinematicLevels(tuple((a.to(device), b.to(device)) for a, b in self.levels), self.order.to(device),
+                               self.inverse.to(device), tuple(j.to(device) for j in self.jumps), self.depth)
 
 
 def kinematic_levels(parents) -> KinematicLevels:
-    """The doubling ancestors (:class:`KinematicLevels`) of parents (J,) (-1 for the single root)."""
+    """:class:`KinematicLevels` of parents (J,) (-1 for the single root)."""
     parents = np.asarray(parents, dtype=np.int64).reshape(-1)
     J = len(parents)
     roots = np.flatnonzero(parents < 0).tolist()
@@ -94,22 +104,64 @@ def kinematic_levels(parents) -> KinematicLevels:
         reach = np.append(up, J)[reach]
     if (reach < J).any():
         raise ValueError("every joint must descend from the root")
+    levels, position = [], np.zeros(J, np.int64)
+    for k in range(int(depth.max()) + 1):     # the joints at each depth, ids ascending
+        ids = np.flatnonzero(depth == k)
+        position[ids] = np.arange(len(ids))
+        parent_pos = position[parents[ids]] if k else np.zeros(1, np.int64)
+        levels.append((torch.from_numpy(ids), torch.from_numpy(parent_pos)))
+    order = torch.cat([ids for ids, _ in levels])
     jumps, jump = [], np.append(up, J)
     for _ in range(int(np.ceil(np.log2(int(depth.max()) + 1)))):
         jumps.append(torch.from_numpy(jump[:J].copy()))
         jump = np.append(jump[jump[:J]], J)
-    return KinematicLevels(tuple(jumps), int(depth.max()))
+    return KinematicLevels(tuple(levels), order, torch.argsort(order), tuple(jumps), int(depth.max()))
+
+
+#: on the CPU, batches up to this many joints (B x J) go by doubling: below it the operators' overhead
+#: rules (anny, B = 1: 0.12 ms by doubling, 0.40 ms by levels), above it the arithmetic (B = 32: 2.0
+#: against 0.85 ms; doubling multiplies every joint each round). Elsewhere always by doubling.
+DOUBLING_MAX_ON_CPU = 512
 
 
 def forward_kinematics(levels: KinematicLevels, local_rotations: torch.Tensor, offsets: torch.Tensor):
     """Posed joint frames. local_rotations (B, J, 3, 3), offsets (B or 1, J, 3)
     -> (F (B, J, 3, 3) world rotations, p (B, J, 3) world positions).
 
-    By pointer doubling: each joint's transform [L | offset] is composed with its ancestor's 1, 2, 4, ...
-    levels up (``levels.jumps``), so a chain of depth d takes ceil(log2(d + 1)) batched 4 x 4 products
-    (anny's 17 levels: 5) instead of one product per level: the same frames within round-off (the
-    products associate differently), a few operators instead of ~300 (issue 39: the bake's pose
-    refinement poses the body every iteration, and on a GPU each operator is a launch)."""
+    :func:`forward_kinematics_doubling` off the CPU and for small CPU batches (:data:`DOUBLING_MAX_ON_CPU`),
+    else :func:`forward_kinematics_by_level`: the same frames within round-off."""
+    B, J = local_rotations.shape[:2]
+    if local_rotations.device.type == "cpu" and B * J > DOUBLING_MAX_ON_CPU:
+        return forward_kinematics_by_level(levels, local_rotations, offsets)
+    return forward_kinematics_doubling(levels, local_rotations, offsets)
+
+
+def forward_kinematics_by_level(levels: KinematicLevels, local_rotations: torch.Tensor, offsets: torch.Tensor):
+    """:func:`forward_kinematics` one depth level at a time: one batched product per level (anny: 17),
+    each over that level's joints only (the least arithmetic)."""
+    B = local_rotations.shape[0]
+    offsets = offsets.expand(B, -1, -1)
+    ids, _ = levels.levels[0]
+    F_prev = local_rotations[:, ids]
+    p_prev = offsets[:, ids]
+    Fs, ps = [F_prev], [p_prev]
+    for ids, parent_pos in levels.levels[1:]:
+        F_par = F_prev[:, parent_pos]
+        p_prev = p_prev[:, parent_pos] + (F_par @ offsets[:, ids, :, None])[..., 0]
+        F_prev = F_par @ local_rotations[:, ids]
+        Fs.append(F_prev)
+        ps.append(p_prev)
+    F = torch.cat(Fs, 1)[:, levels.inverse]
+    p = torch.cat(ps, 1)[:, levels.inverse]
+    return F, p
+
+
+def forward_kinematics_doubling(levels: KinematicLevels, local_rotations: torch.Tensor, offsets: torch.Tensor):
+    """:func:`forward_kinematics` by pointer doubling: each joint's transform [L | offset] is composed
+    with its ancestor's 1, 2, 4, ... levels up (``levels.jumps``), so a chain of depth d takes
+    ceil(log2(d + 1)) batched 4 x 4 products over all joints (anny's 17 levels: 5): 20 operators
+    instead of ~120 (issue 39: the bake's pose refinement poses the body every iteration, and on a GPU
+    each operator is a launch), more arithmetic."""
     B, J = local_rotations.shape[:2]
     offsets = offsets.expand(B, -1, -1)
     bottom = local_rotations.new_zeros(B, J, 1, 4)
