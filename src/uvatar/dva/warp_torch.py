@@ -2,7 +2,7 @@
 total variation :mod:`uvatar.dva.tv_warp`): Warp loaded quietly (the ``kernels`` extra), the Warp scalar
 and vector types of a torch float dtype, zero-copy Warp views of tensors, and the stream a launch goes
 on (the device's current torch stream, so that launches follow torch's work and a CUDA graph captures
-them), and a CUDA graph captured with Warp's launches in it."""
+them; the capture itself: :func:`uvatar.geometry.raycast_warp.capture_graph`)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 
 from uvatar.errors import require
 
-__all__ = ["load_warp", "warp_scalar", "warp_types", "warp_view", "launch_stream", "capture_graph"]
+__all__ = ["load_warp", "warp_scalar", "warp_types", "warp_view", "launch_stream"]
 
 
 def load_warp():
@@ -47,26 +47,3 @@ def launch_stream(wp, device: torch.device):
     from uvatar.geometry.raycast_warp import warp_stream
 
     return warp_stream(device) if device.type == "cuda" else None
-
-
-def capture_graph(fn, stream: torch.cuda.Stream):
-    """(a ``torch.cuda.CUDAGraph`` of ``fn()``, its output: tensors every replay writes) captured on
-    ``stream``, after the work queued on the current stream, with Warp told of the capture (its
-    launches go on the same stream: one wrapper of it for the process,
-    :func:`uvatar.geometry.raycast_warp.warp_stream`). ``fn`` records, it does not run: warm it up
-    first (Warp's modules loaded, cuDNN's algorithms chosen, lazily made state made)."""
-    from uvatar.geometry.raycast_warp import warp_stream
-
-    wp = load_warp()
-    current = torch.cuda.current_stream(stream.device)
-    graph = torch.cuda.CUDAGraph()
-    stream.wait_stream(current)
-    wstream = warp_stream(stream)
-    with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=stream):
-        wp.capture_begin(stream=wstream, force_module_load=False, external=True)
-        try:
-            out = fn()
-        finally:
-            wp.capture_end(stream=wstream)
-    current.wait_stream(stream)
-    return graph, out

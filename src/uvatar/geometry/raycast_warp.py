@@ -23,7 +23,7 @@ import numpy as np
 from uvatar.errors import require
 from uvatar.geometry.raycast import _RAYS, RayCaster, RayCasterConfig
 
-__all__ = ["WarpRayCaster", "warp_device", "any_hit_torch", "MeshOccluder"]
+__all__ = ["WarpRayCaster", "warp_device", "any_hit_torch", "MeshOccluder", "warp_stream", "capture_graph"]
 
 
 def _warp():
@@ -53,6 +53,29 @@ def warp_stream(stream_or_device):
     if key not in _STREAMS:
         _STREAMS[key] = wp.stream_from_torch(stream)
     return _STREAMS[key]
+
+
+def capture_graph(fn, stream):
+    """(a ``torch.cuda.CUDAGraph`` of ``fn()``, its output: tensors every replay writes) captured on
+    ``stream``, after the work queued on the current stream, with Warp told of the capture (its
+    launches go on the same stream: one wrapper of it for the process,
+    :func:`uvatar.geometry.raycast_warp.warp_stream`). ``fn`` records, it does not run: warm it up
+    first (Warp's modules loaded, cuDNN's algorithms chosen, lazily made state made)."""
+    import torch
+
+    wp = _warp()
+    current = torch.cuda.current_stream(stream.device)
+    graph = torch.cuda.CUDAGraph()
+    stream.wait_stream(current)
+    wstream = warp_stream(stream)
+    with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=stream):
+        wp.capture_begin(stream=wstream, force_module_load=False, external=True)
+        try:
+            out = fn()
+        finally:
+            wp.capture_end(stream=wstream)
+    current.wait_stream(stream)
+    return graph, out
 
 
 def warp_device(device: str) -> str:
