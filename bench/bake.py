@@ -269,7 +269,7 @@ def _frames(model, frames, rng):
     return out
 
 
-def _setup(texels: int, device: str, torch_stages: str = "auto"):
+def _setup(texels: int, device: str, torch_stages: str = "auto", refine_graph: bool = False):
     """(body, layout with its per-body caches built, BakeConfig, seconds of the raster, seconds of the
     per-body caches)."""
     from uvatar.avh.bake.config import BakeConfig
@@ -281,6 +281,10 @@ def _setup(texels: int, device: str, torch_stages: str = "auto"):
     layout = BodyLayout.from_template(model.template, texels)
     raster = time.perf_counter() - t0
     config = BakeConfig(texels=texels, device=device, torch_stages=torch_stages)
+    if refine_graph:
+        from dataclasses import replace
+
+        config = replace(config, pose_refine=replace(config.pose_refine, cuda_graph=True))
     t0 = time.perf_counter()
     layout.normal_smoothing_matrix(config.registration.normal_smoothing)  # once per body, like the raster
     layout.surface_texels(config.interior_visibility, config.visibility_rays, config.visibility_stratified)
@@ -361,6 +365,9 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", action="store_true",
                     help="also bake each frame with the paper's 64-ray visibility (same process): its cost, "
                          "and how far kappa moved")
+    ap.add_argument("--refine-cuda-graph", action="store_true",
+                    help="replay the pose refinement's iterations from one CUDA graph (PoseRefineConfig.cuda_graph; "
+                         "the JSON's refine_graph_failures says whether a capture failed)")
     ap.add_argument("--count-ops", action="store_true",
                     help="also count the torch operators and Warp launches of a frame and its colour rounds, "
                          "per stage (the host's launches on a GPU; module doc)")
@@ -380,7 +387,8 @@ def main(argv=None) -> int:
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.avh.bake.register import ScanSurface
 
-    model, layout, config, layout_seconds, per_body_seconds = _setup(texels, args.device, args.torch_stages)
+    model, layout, config, layout_seconds, per_body_seconds = _setup(texels, args.device, args.torch_stages,
+                                                                     args.refine_cuda_graph)
     items = _frames(model, frames, np.random.default_rng(0))
     for _ in range(args.warmup):
         fit, truth, scan = items[0]
@@ -448,7 +456,12 @@ def main(argv=None) -> int:
         "visibility_rays": config.visibility_rays,
         "visibility_stratified": config.visibility_stratified,
         "load_average_1min": round(os.getloadavg()[0], 2),   # the machine is shared: read timings with it
+        "refine_cuda_graph": config.pose_refine.cuda_graph,
     }
+    if config.pose_refine.cuda_graph:
+        from uvatar.avh.bake.refine_device import GRAPH_FAILURES
+
+        out["refine_graph_failures"] = list(GRAPH_FAILURES)
     if parity:
         worst = {k: max(p[k] for p in parity) for k in parity[0] if k not in ("same_matched_texels",)
                  and not k.startswith("texture_psnr")}

@@ -79,6 +79,7 @@ for part in $PARTS; do
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
         tests/test_dva_frame_sync.py tests/test_dva_train_posing.py tests/test_dva_train_compile.py tests/test_dva_tv_warp.py \
         tests/test_dva_train_graph.py tests/test_avh_bake_register_device.py tests/test_avh_bake_refine_device.py \
+        tests/test_avh_bake_refine_graph.py \
         tests/test_devices.py tests/test_geometry_nearest_warp.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
         tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;
@@ -101,6 +102,10 @@ for part in $PARTS; do
         # host's launches (session 9 cut them about in half: the nearest samples in one Warp launch, doubling FK)
         run_part bake "${BAKE_SECONDS:-240}" "$OUT/bake.json" python bench/bake.py --device cuda --count-ops \
           --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4,8}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}"
+        # the refinement's iterations replayed from one CUDA graph (PoseRefineConfig.cuda_graph, off by default
+        # until measured): seconds per frame and parity beside the run above; refine_graph_failures if any
+        run_part bake_graph "${BAKE_GRAPH_SECONDS:-90}" "$OUT/bake_graph.json" python bench/bake.py --device cuda \
+          --frames 2 --parity --refine-cuda-graph
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;

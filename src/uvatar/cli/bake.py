@@ -56,7 +56,7 @@ def _flags():
             "scan_cache_mb": "MB of scans each worker keeps read and prepared between the colour rounds and the "
                              "bake (0 = read every time; same results)"})
     refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight",
-                                                    "photometric_space"),
+                                                    "photometric_space", "cuda_graph"),
                          prefix="refine", help={
                              "iterations": "Gauss-Newton steps of the articulated fit refinement (per round)",
                              "photometric_radii": "one colour-consistency round across frames per stencil radius "
@@ -64,7 +64,9 @@ def _flags():
                              "photometric_weight": "weight of the colour term against the surface distance "
                                                    "(0 = geometry only)",
                              "photometric_space": "colours compared as rgb, or as chromaticity (r, g, b over their "
-                                                  "sum: unchanged by white light and shadow; for lit captures)"},
+                                                  "sum: unchanged by white light and shadow; for lit captures)",
+                             "cuda_graph": "with --device cuda, replay the refinement's iterations from one CUDA "
+                                           "graph (fewer host launches; off until measured on a GPU)"},
                          choices={"photometric_space": ("rgb", "chromaticity")})
     registration = ConfigFlags(
         RegistrationConfig, fields=("stiffness", "iterations", "max_distance", "modes", "normal_smoothing"),

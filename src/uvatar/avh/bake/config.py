@@ -86,7 +86,11 @@ class PoseRefineConfig:
     (None: ``iterations``); photometric_min_frames: the term runs only when at least this
     many frames are refined together, and a vertex has a reference only where this many frames saw
     it. photometric_space: "rgb", or "chromaticity" (each colour divided by the sum of its channels,
-    which the shading of white lights does not change: for captures whose light turns with the body)."""
+    which the shading of white lights does not change: for captures whose light turns with the body).
+
+    cuda_graph: with the torch stages on CUDA, replay the refinement's iterations after its first from one
+    CUDA graph (:mod:`.refine_device`; issue 39: the host launched each iteration's hundreds of operators).
+    Off by default until a lent GPU has measured it; a failed capture runs the iterations eagerly."""
 
     iterations: int = 15
     max_distance: float = 1 / 20
@@ -104,6 +108,7 @@ class PoseRefineConfig:
     photometric_iterations: int | None = 8
     photometric_min_frames: int = 3
     photometric_space: str = "rgb"
+    cuda_graph: bool = False
 
     def __post_init__(self) -> None:
         check_values([

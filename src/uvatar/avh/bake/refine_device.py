@@ -25,9 +25,13 @@ makes no step, counted as a stop).
 
 from __future__ import annotations
 
+import logging
+from types import SimpleNamespace
+
 import numpy as np
 
-__all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "rotvec_quaternions", "quaternion_rotvecs"]
+__all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "rotvec_quaternions", "quaternion_rotvecs",
+           "GRAPH_FAILURES", "GRAPHS_ON_CPU"]
 
 
 def rotvec_quaternions(rotvec):
@@ -189,6 +193,71 @@ def sample_colours_on_device(body, fit, surface, scan_mesh, config, radius: floa
                            float(np.cos(np.radians(config.max_normal_angle_deg))), config.photometric_space, device)
 
 
+log = logging.getLogger(__name__)
+
+#: why a capture of the refinement's iterations failed in this process (they then run eagerly); empty: none did
+GRAPH_FAILURES: list[str] = []
+_SIDE_STREAMS: dict = {}   # str(device) -> the torch stream the captures record on
+
+
+#: tests set it to take the graph path on the CPU (with a stand-in capture, or the real one failing there)
+GRAPHS_ON_CPU = False
+
+
+def _graphs(cuda_graph: bool, device) -> bool:
+    """Are the middle iterations replayed from a CUDA graph? ``cuda_graph`` on a CUDA device (or anywhere
+    with :data:`GRAPHS_ON_CPU`), no capture failed in this process."""
+    import torch
+
+    return cuda_graph and (torch.device(device).type == "cuda" or GRAPHS_ON_CPU) and not GRAPH_FAILURES
+
+
+def _capture(fn, device):
+    """A CUDA graph of ``fn()`` (:func:`uvatar.geometry.raycast_warp.capture_graph`, on a side stream
+    of ``device``), or None when the capture fails (logged once; the process's refinements run eagerly)."""
+    import torch
+
+    from uvatar.geometry.raycast_warp import capture_graph
+
+    key = str(torch.device(device))
+    try:
+        if key not in _SIDE_STREAMS:
+            _SIDE_STREAMS[key] = torch.cuda.Stream(device=device)
+        return capture_graph(fn, _SIDE_STREAMS[key])[0]
+    except Exception as exc:  # noqa: BLE001  any failure: the eager iterations are the same steps
+        GRAPH_FAILURES.append(f"{type(exc).__name__}: {exc}")
+        log.warning("the pose refinement's CUDA graph capture failed (%s: %s); its iterations run eagerly",
+                    type(exc).__name__, exc)
+        return None
+
+
+def _run_iterations(iteration, iterations: int, cuda_graph: bool, device) -> None:
+    """``iteration(first, last)`` for the iterations 0 .. ``iterations``. With ``cuda_graph`` on CUDA
+    (:func:`_graphs`), the middle ones, alike (the same operators on the same tensors, the state updated
+    in place, the stats written at a device-side column), replay one CUDA graph captured after the first
+    (eager: also the warm-up of every kernel and library handle they use): one launch each instead of
+    hundreds. The rays they cast are counted as the captured one's."""
+    from uvatar.geometry.raycast import _RAYS
+
+    graph, rays = None, {}
+    for it in range(iterations + 1):
+        first, last = it == 0, it == iterations
+        if first or last or not _graphs(cuda_graph, device):
+            iteration(first, last)
+            continue
+        if graph is None:
+            before = dict(_RAYS)
+            graph = _capture(lambda: iteration(False, False), device)
+            if graph is None:
+                iteration(first, last)
+                continue
+            rays = {q: n - before.get(q, 0) for q, n in _RAYS.items()}   # counted while it recorded: this one
+        else:
+            for q, n in rays.items():
+                _RAYS[q] += n
+        graph.replay()
+
+
 def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample, final_colour_residual,
                          device):
     """:func:`.refine.refine_fit` with ``device`` (its arguments, checked there): the same refined fit
@@ -207,7 +276,7 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     posing = _posing_body(body, device)
     shape_t = _shape_tensor(fit, shape)   # on the host: the body finds its bind state without a read-back
     scale = torch.tensor([float(fit.scale)], device=posing.device)
-    rot = torch.as_tensor(body.joint_rotvecs_from_fit(fit).astype(np.float64), device=device)
+    rot = torch.as_tensor(body.joint_rotvecs_from_fit(fit).astype(np.float64), device=device)   # (J, 3)
     rh = torch.as_tensor(np.asarray(fit.Rh, np.float64), device=device)
     th = torch.as_tensor(np.asarray(fit.Th, np.float64), device=device)
     sample_points, sample_normals = scan.samples_torch(device)
@@ -222,33 +291,34 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     n_use = len(use)
     colour_rows = torch.arange(n_use, device=device)[:, None].expand(n_use, 3).reshape(-1)   # (3N,) vertex of each row
     all_rows = torch.arange(n_use, device=device)
-    offsets = torch.zeros(skin.shape[1], **f64)
-    running = torch.ones((), dtype=torch.bool, device=device)   # the numpy path has not stopped yet
-    reached, residuals, matched, colour_residuals = [], [], [], []
-    widest_slab_seen = torch.zeros((), dtype=torch.int64, device=device)
+    # the iteration state, updated in place (so that a CUDA graph's replays carry it on), and the stats:
+    # per iteration (residual mm, matched fraction, reached, colour residual), column ``slot``
+    state = SimpleNamespace(rot=rot, rh=rh, th=th, offsets=torch.zeros(skin.shape[1], **f64),
+                            running=torch.ones((), dtype=torch.bool, device=device),   # the numpy path goes on
+                            widest=torch.zeros((), dtype=torch.int64, device=device), max_distance=None,
+                            stats=torch.full((4, iterations + 1), float("nan"), **f64),
+                            slot=torch.zeros((), dtype=torch.int64, device=device))
 
-    max_distance = None
-    for it in range(iterations + 1):
-        v, n, tr = (a.to(device) for a in _pose(posing, rot, rh, th, scale, shape_t))
+    def iteration(first: bool, last: bool):
+        """One Gauss-Newton iteration from ``state``; the first finds the match distance and the clothing
+        offsets (and may start from ``start_sample``), the last only measures."""
+        v, n, tr = (a.to(device) for a in _pose(posing, state.rot, state.rh, state.th, scale, shape_t))
         v, n = v[use], n[use]
-        if max_distance is None:
-            max_distance = config.max_distance * torch.linalg.norm(v.max(0).values - v.min(0).values)
-        near, idx, widest = _nearest(scan, v, max_distance, device)
-        widest_slab_seen = torch.maximum(widest_slab_seen, widest)
+        if first:
+            state.max_distance = config.max_distance * torch.linalg.norm(v.max(0).values - v.min(0).values)
+        near, idx, widest = _nearest(scan, v, state.max_distance, device)
+        state.widest.copy_(torch.maximum(state.widest, widest))
         m = sample_normals[idx]
         ok = torch.isfinite(near) & ((m * n).sum(1) >= cos_max)
         r = ((v - sample_points[idx]) * m).sum(1)
         count = ok.sum()
-        if it == 0:
-            offsets = _clothing_offsets(r, skin, ok, config.huber)    # zeros where nothing matched
-        r = r + skin @ offsets
-        reached.append(running)
-        residuals.append(torch.where(ok, r.abs(), torch.zeros_like(r)).sum() * 1000 / count)   # NaN: none
-        matched.append(count.to(torch.float64) / n_use)
-        if photo is not None and it == iterations and not final_colour_residual:
-            break
-        if photo is not None:
-            if it == 0 and start_sample is not None and start_sample.radius == photo.radius:
+        if first:
+            state.offsets.copy_(_clothing_offsets(r, skin, ok, config.huber))    # zeros where nothing matched
+        r = r + skin @ state.offsets
+        row = [torch.where(ok, r.abs(), torch.zeros_like(r)).sum() * 1000 / count,   # NaN: none matched
+               count.to(torch.float64) / n_use, state.running.to(torch.float64)]
+        if photo is not None and not (last and not final_colour_residual):
+            if first and start_sample is not None and start_sample.radius == photo.radius:
                 colour, grad, seen = _sample_tensors(start_sample, device)
             else:
                 colour, grad, seen = surface_colours(scan, scan_mesh, v, n, photo.radius,
@@ -256,10 +326,14 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
                                                      config.photometric_space, device)
             seen = seen & known
             rc = torch.where(seen[:, None], colour - reference, torch.zeros_like(colour))     # (N, 3)
-            colour_residuals.append(rc.abs().sum() / (3 * seen.sum()))
-        if it == iterations:
-            break
-        running = running & (count >= 3 * k)
+            row.append(rc.abs().sum() / (3 * seen.sum()))
+        else:
+            row.append(torch.full_like(row[0], float("nan")))
+        state.stats.index_copy_(1, state.slot[None], torch.stack(row)[:, None])   # column ``slot``: no read-back
+        state.slot.add_(1)
+        if last:
+            return
+        running = state.running & (count >= 3 * k)
         centre0 = v.mean(0)
         rows_ok = torch.where(ok, r, torch.zeros_like(r))
         blocks = [(all_rows, torch.where(ok[:, None], m, torch.zeros_like(m)),
@@ -283,25 +357,31 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
         frames = tr[joints, :3, :3]
         frames = frames / torch.linalg.norm(frames, dim=1, keepdim=True)               # drop the scale
         local = torch.einsum("kji,kj->ki", frames, d_joint)                             # R_k^T d_k
-        turned = compose_rotvecs(torch.cat([rot[joints], d_root[None]]), torch.cat([local, rh[None]]))   # one call
-        moved = rot.clone()
+        turned = compose_rotvecs(torch.cat([state.rot[joints], d_root[None]]), torch.cat([local, state.rh[None]]))
+        moved = state.rot.clone()
         moved[joints] = turned[:k]
-        rot = torch.where(running, moved, rot)
-        rh = torch.where(running, turned[k], rh)
-        th = torch.where(running, rotate(d_root, th - centre0) + centre0 + step[3 * k + 3: 3 * k + 6], th)
-        offsets = torch.where(running, offsets + step[3 * k + 6:], offsets)
+        state.th.copy_(torch.where(running, rotate(d_root, state.th - centre0) + centre0 + step[3 * k + 3: 3 * k + 6],
+                                   state.th))
+        state.rot.copy_(torch.where(running, moved, state.rot))
+        state.rh.copy_(torch.where(running, turned[k], state.rh))
+        state.offsets.copy_(torch.where(running, state.offsets + step[3 * k + 6:], state.offsets))
+        state.running.copy_(running)
+
+    _run_iterations(iteration, iterations, config.cuda_graph, device)
 
     # the one read-back: every stat, the stop flags and the refined state at once
-    offset_mean = (skin @ offsets).mean() * 1000
-    parts = [torch.stack(residuals), torch.stack(matched), torch.stack(reached).to(torch.float64),
-             torch.stack(colour_residuals) if colour_residuals else torch.zeros(0, **f64),
-             offset_mean[None], widest_slab_seen.to(torch.float64)[None], rot.reshape(-1), rh, th]
+    offset_mean = (skin @ state.offsets).mean() * 1000
+    parts = [state.stats.reshape(-1), offset_mean[None], state.widest.to(torch.float64)[None], state.rot.reshape(-1),
+             state.rh, state.th]
     host = torch.cat(parts).cpu().numpy()
     cuts = np.cumsum([len(p) for p in parts])[:-1]
-    res, mat, kept, col, off, widest, rot_h, rh_h, th_h = np.split(host, cuts)
+    stats_h, off, widest, rot_h, rh_h, th_h = np.split(host, cuts)
+    res, mat, kept, col = stats_h.reshape(4, iterations + 1)
     if window_outgrown(scan, device, int(widest[0])):   # a slab was cut short: again, with room for it (rare)
         return refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
                                     final_colour_residual, device)
+    if photo is not None and not final_colour_residual:
+        col = col[:iterations]                           # the last iteration measured no colours
     appended = int(kept.sum())         # the numpy path appends stats at each iteration it reaches
     refined = BodyFit(poses=rot_h.astype(np.float32), Rh=rh_h, Th=th_h, shapes=fit.shapes, scale=fit.scale, id=fit.id)
     stats = {"residual_mm": [float(x) for x in res[:appended]], "matched_fraction": [float(x) for x in mat[:appended]],
