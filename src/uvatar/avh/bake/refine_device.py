@@ -226,8 +226,8 @@ def _capture(fn, device):
         return capture_graph(fn, _SIDE_STREAMS[key])[0]
     except Exception as exc:  # noqa: BLE001  any failure: the eager iterations are the same steps
         GRAPH_FAILURES.append(f"{type(exc).__name__}: {exc}")
-        log.warning("the pose refinement's CUDA graph capture failed (%s: %s); its iterations run eagerly",
-                    type(exc).__name__, exc)
+        log.warning("--refine-cuda-graph: the pose refinement's CUDA graph capture failed (%s: %s); its "
+                    "iterations run eagerly, the same steps", type(exc).__name__, exc)
         return None
 
 
