@@ -28,7 +28,8 @@
 # trimesh and roma, anny's package and its cache file; ~115 MB in two parts), moves the viewer's 24 MB ort wasm
 # and docs/ aside so the tree travels at ~5 MB, and prints the two device calls: the first stores p1 in /tmp,
 # the second (within the 30 s the machine stays warm) brings p2, unpacks both into /tmp/site and runs this
-# script (`bash scripts/gpu_carry.sh check bake tests train`). `bash scripts/gpu_carry.sh restore` afterwards.
+# script (`bash scripts/gpu_carry.sh check train bake tests`, with the parts' times its header gives).
+# `bash scripts/gpu_carry.sh restore` afterwards.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-$PWD/gpu_out}
