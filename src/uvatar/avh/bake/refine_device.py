@@ -30,6 +30,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+log = logging.getLogger(__name__)
+
 __all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "rotvec_quaternions", "quaternion_rotvecs",
            "GRAPH_FAILURES", "GRAPHS_ON_CPU"]
 
@@ -192,8 +194,6 @@ def sample_colours_on_device(body, fit, surface, scan_mesh, config, radius: floa
     return surface_colours(surface, scan_mesh, v, n, radius, config.photometric_max_distance,
                            float(np.cos(np.radians(config.max_normal_angle_deg))), config.photometric_space, device)
 
-
-log = logging.getLogger(__name__)
 
 #: why a capture of the refinement's iterations failed in this process (they then run eagerly); empty: none did
 GRAPH_FAILURES: list[str] = []
