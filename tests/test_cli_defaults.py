@@ -67,6 +67,7 @@ RENAMED = {
     ("bake", "refine_photometric_radii"): "photometric_radii",
     ("bake", "refine_photometric_weight"): "photometric_weight",
     ("bake", "refine_photometric_space"): "photometric_space",
+    ("bake", "refine_cuda_graph"): "cuda_graph",
     ("bake", "registration_stiffness"): "stiffness",
     ("bake", "registration_iterations"): "RegistrationConfig.iterations",
     ("bake", "registration_max_distance"): "RegistrationConfig.max_distance",
