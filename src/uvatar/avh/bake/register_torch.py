@@ -135,7 +135,7 @@ def nearest_points_in_window(queries, sorted_points, max_distance, window: int, 
 
 #: the nearest samples of tensors are one Warp launch wherever Warp imports
 #: (:func:`uvatar.geometry.nearest_warp.nearest_sorted_points_warp`: no window, no read-back, a few
-#: hundred points per query; on CPU tensors ~20x faster than the slab search too); tests set it False
+#: hundred points per query; on CPU tensors 15-25x faster than the slab search too); tests set it False
 #: to check the searches that run without Warp
 NEAREST_KERNEL = True
 
