@@ -54,7 +54,10 @@ pack() {
   mkdir -p .carry-aside
   local wasm=src/uvatar/viewer/static/ort/ort-wasm-simd-threaded.jsep.wasm
   [ -f "$wasm" ] && mv "$wasm" .carry-aside/
-  [ -d docs ] && mv docs .carry-aside/
+  if [ -d docs ]; then
+    [ -e .carry-aside/docs ] && { echo "pack: .carry-aside/docs exists (restore first)"; exit 2; }
+    mv docs .carry-aside/
+  fi
   local parts=(.carry/p*) last
   last=${parts[-1]}
   ls -l .carry/
