@@ -227,3 +227,18 @@ def test_device_refinement_widens_a_window_too_small(monkeypatch):
     assert surface.on_device[("nearest_window", "cpu")] >= roomy - 256 > 8
     np.testing.assert_array_equal(out.poses, ref.poses)
     assert stats == ref_stats
+
+
+def test_device_refinement_leaves_its_input_fit_alone():
+    """The state is written in place: a fit whose Rh and Th are float64 arrays (which torch.as_tensor
+    would share on the CPU) comes out of the refinement unchanged."""
+    from uvatar.avh.bake.config import PoseRefineConfig
+    from uvatar.avh.bake.refine import refine_fit
+
+    model, scan, surface, truth, noisy = _scene()
+    noisy.Rh, noisy.Th = np.asarray(noisy.Rh, np.float64), np.asarray(noisy.Th, np.float64)
+    before = (noisy.poses.copy(), noisy.Rh.copy(), noisy.Th.copy())
+    out, _ = refine_fit(model, noisy, surface, PoseRefineConfig(iterations=2, max_vertices=600), device="cpu")
+    assert not np.array_equal(out.Rh, before[1]) or not np.array_equal(out.Th, before[2])   # it moved
+    for a, b in zip((noisy.poses, noisy.Rh, noisy.Th), before, strict=True):
+        np.testing.assert_array_equal(a, b)

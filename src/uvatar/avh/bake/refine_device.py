@@ -248,7 +248,8 @@ def _run_iterations(iteration, iterations: int, cuda_graph: bool, device) -> Non
         if graph is None:
             before = dict(_RAYS)
             graph = _capture(lambda: iteration(False, False), device)
-            if graph is None:
+            if graph is None:                  # nothing was cast while it recorded: the counts as they were
+                _RAYS.update(before)
                 iteration(first, last)
                 continue
             rays = {q: n - before.get(q, 0) for q, n in _RAYS.items()}   # counted while it recorded: this one
@@ -293,7 +294,8 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     all_rows = torch.arange(n_use, device=device)
     # the iteration state, updated in place (so that a CUDA graph's replays carry it on), and the stats:
     # per iteration (residual mm, matched fraction, reached, colour residual), column ``slot``
-    state = SimpleNamespace(rot=rot, rh=rh, th=th, offsets=torch.zeros(skin.shape[1], **f64),
+    # (own copies: on the CPU torch.as_tensor shares a float64 array's memory, and the state is written to)
+    state = SimpleNamespace(rot=rot.clone(), rh=rh.clone(), th=th.clone(), offsets=torch.zeros(skin.shape[1], **f64),
                             running=torch.ones((), dtype=torch.bool, device=device),   # the numpy path goes on
                             widest=torch.zeros((), dtype=torch.int64, device=device), max_distance=None,
                             stats=torch.full((4, iterations + 1), float("nan"), **f64),
