@@ -31,6 +31,7 @@ from uvatar.body.anny_data import ANNY_TO_WORLD, anny_data, anny_rest_state, loa
 from uvatar.body.base import BodyModel, BodyTemplate
 from uvatar.body.kinematics import (
     forward_kinematics,
+    homogeneous,
     kinematic_levels,
     rotvec_to_rotmat,
     skin,
@@ -147,11 +148,7 @@ class AnnyBody(BodyModel):
 
     def _world_transforms(self, F, p):
         C = self._to_world
-        B, J = F.shape[:2]
-        top = torch.cat([C @ F, (C @ p[..., None])], -1)
-        bottom = F.new_zeros((B, J, 1, 4))     # made on F's device: no host data copied there per pose
-        bottom[..., 3] = 1.0
-        return torch.cat([top, bottom], -2)
+        return homogeneous(C @ F, (C @ p[..., None])[..., 0])
 
     def _pose_local(self, rotvecs: torch.Tensor, shape):
         state, F, p = self._kinematics(rotvecs, shape)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 __all__ = ["rotvec_to_rotmat", "ancestor_matrix", "subtree", "nearest_ancestor", "KinematicLevels", "kinematic_levels", "forward_kinematics", "forward_kinematics_by_level",
-           "forward_kinematics_doubling", "forward_kinematics_reference", "DOUBLING_MAX_ON_CPU",
+           "forward_kinematics_doubling", "forward_kinematics_reference", "DOUBLING_MAX_ON_CPU", "homogeneous",
            "skinning_transforms", "sparse_weights", "skin", "skin_reference"]
 
 
@@ -156,17 +156,22 @@ def forward_kinematics_by_level(levels: KinematicLevels, local_rotations: torch.
     return F, p
 
 
+def homogeneous(rotations: torch.Tensor, translations: torch.Tensor) -> torch.Tensor:
+    """(..., 4, 4) transforms [R | t; 0 0 0 1] of rotations (..., 3, 3) and translations (..., 3), the
+    bottom row made on their device (no host data copied there per call)."""
+    bottom = rotations.new_zeros(*rotations.shape[:-2], 1, 4)
+    bottom[..., 3] = 1
+    return torch.cat([torch.cat([rotations, translations[..., None]], -1), bottom], -2)
+
+
 def forward_kinematics_doubling(levels: KinematicLevels, local_rotations: torch.Tensor, offsets: torch.Tensor):
     """:func:`forward_kinematics` by pointer doubling: each joint's transform [L | offset] is composed
     with its ancestor's 1, 2, 4, ... levels up (``levels.jumps``), so a chain of depth d takes
     ceil(log2(d + 1)) batched 4 x 4 products over all joints (anny's 17 levels: 5): 20 operators
     instead of ~120 (issue 39: the bake's pose refinement poses the body every iteration, and on a GPU
     each operator is a launch), more arithmetic."""
-    B, J = local_rotations.shape[:2]
-    offsets = offsets.expand(B, -1, -1)
-    bottom = local_rotations.new_zeros(B, J, 1, 4)
-    bottom[..., 3] = 1
-    T = torch.cat([torch.cat([local_rotations, offsets[..., None]], -1), bottom], -2)    # (B, J, 4, 4)
+    B = local_rotations.shape[0]
+    T = homogeneous(local_rotations, offsets.expand(B, -1, -1))                          # (B, J, 4, 4)
     past_root = torch.eye(4, dtype=T.dtype, device=T.device).expand(B, 1, 4, 4)
     for jump in levels.jumps:
         T = torch.cat([T, past_root], 1)[:, jump] @ T

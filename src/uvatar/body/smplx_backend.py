@@ -27,6 +27,7 @@ import torch
 from uvatar.body.base import BodyModel, BodyTemplate
 from uvatar.body.kinematics import (
     forward_kinematics,
+    homogeneous,
     kinematic_levels,
     rotvec_to_rotmat,
     skin,
@@ -239,9 +240,7 @@ class SmplxBody(BodyModel):
         offsets = joints - joints[:, parents]
         offsets[:, 0] = joints[:, 0]
         F, p = forward_kinematics(self._levels_on(R.device), R, offsets)
-        bottom = R.new_zeros(B, J, 1, 4)      # made on the device: no host data copied there per pose
-        bottom[..., 3] = 1.0
-        transforms = torch.cat([torch.cat([F, p[..., None]], -1), bottom], -2)
+        transforms = homogeneous(F, p)
         if not with_vertices:
             return None, transforms
         eye = torch.eye(3, dtype=dt, device=R.device)
