@@ -194,9 +194,10 @@ VIEW_OPS = {"view", "_unsafe_view", "as_strided", "alias", "t", "transpose", "un
             "lift_fresh", "unflatten", "view_as_real", "view_as_complex", "diagonal", "narrow"}
 
 
-def _count_ops(model, layout, config, item, targets) -> dict:
+def _count_ops(model, layout, config, item) -> dict:
     """{stage: {"ops", "views", "warp_launches"}} of one frame baked and its colour rounds run
-    (``colour_rounds``), the torch stages on the bake's device with CUDA's choices (module doc)."""
+    (``colour_rounds``, against :func:`_colour_targets`), the torch stages on the bake's device with
+    CUDA's choices (module doc)."""
     import collections
     import contextlib
 
@@ -233,11 +234,12 @@ def _count_ops(model, layout, config, item, targets) -> dict:
     from dataclasses import replace
 
     config = replace(config, ray_backend="warp")     # CUDA's caster: the rays cast in place (Warp runs on the CPU)
-    fit, _, scan = item
+    fit, truth, scan = item
     saved = (frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU)
     frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU = labelled, counted_launch, True
     try:
         surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
+        targets = _colour_targets(model, truth, scan, surface, config)
         frame.bake_fit(model, fit, layout, scan, config, surface=surface)        # the per-scan copies made
         counts.clear()
         with Count():
@@ -306,14 +308,14 @@ def _bake_with_rounds(model, layout, config, item, targets) -> float:
     return time.process_time() - c0
 
 
-def _worker(rank, texels, device, torch_stages, items, warmup, ready, go, results):
+def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, ready, go, results):
     """One process of the throughput run: set up (and the colour targets), say ready, wait for the
     start, bake its frames."""
     from uvatar.avh.bake.register import ScanSurface
     from uvatar.threads import limit_process_to_one_thread
 
     limit_process_to_one_thread()
-    model, layout, config, _, _ = _setup(texels, device, torch_stages)
+    model, layout, config, _, _ = _setup(texels, device, torch_stages, refine_graph)
     targets = [_colour_targets(model, truth, scan, ScanSurface.build(scan.vertices, scan.faces, device), config)
                for _, truth, scan in items]
     if items and warmup:
@@ -324,15 +326,16 @@ def _worker(rank, texels, device, torch_stages, items, warmup, ready, go, result
         results.put((rank, _bake_with_rounds(model, layout, config, item, target), time.perf_counter()))
 
 
-def _throughput(workers: int, texels: int, device: str, torch_stages: str, items, warmup: int) -> dict:
+def _throughput(workers: int, texels: int, device: str, torch_stages: str, refine_graph: bool, items,
+                warmup: int) -> dict:
     """Wall seconds per frame of ``items`` baked on ``workers`` processes (the frames dealt round-robin),
     from the moment every worker is set up to the last frame done."""
     import multiprocessing as mp
 
     ctx = mp.get_context("spawn")
     ready, results, go = ctx.Queue(), ctx.Queue(), ctx.Event()
-    procs = [ctx.Process(target=_worker, args=(r, texels, device, torch_stages, items[r::workers], warmup, ready, go,
-                                                       results))
+    procs = [ctx.Process(target=_worker, args=(r, texels, device, torch_stages, refine_graph, items[r::workers], warmup,
+                                                       ready, go, results))
              for r in range(workers)]
     for p in procs:
         p.start()
@@ -484,16 +487,14 @@ def main(argv=None) -> int:
                                        "kappa_mean_abs": round(max(r["kappa_mean"] for r in refs), 4),
                                        "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
     if args.count_ops:
-        fit, truth, scan = items[0]
-        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
-        out["operators"] = _count_ops(model, layout, config, items[0],
-                                      _colour_targets(model, truth, scan, surface, config))
+        out["operators"] = _count_ops(model, layout, config, items[0])
     runs = []
     for workers in (int(w) for w in str(args.workers).split(",") if int(w) > 1):
         n = args.throughput_frames or 4 * workers
         batch = [items[i % len(items)] for i in range(n)]
         print(f"throughput: {n} frames on {workers} processes", file=sys.stderr)
-        runs.append(_throughput(workers, texels, args.device, args.torch_stages, batch, args.warmup))
+        runs.append(_throughput(workers, texels, args.device, args.torch_stages, args.refine_cuda_graph, batch,
+                                args.warmup))
     if runs:
         out["throughput"] = min(runs, key=lambda r: r["seconds_per_frame"])    # the machine's best
         out["throughput_runs"] = runs
