@@ -39,12 +39,15 @@ launches, with the torch stages on the bake's device as CUDA runs them (rays cas
 nearest samples by the Warp kernel): on a GPU each is a launch the host makes, and the H200 found every
 stage's CPU time equal to its wall time (issue 39), so these counts are what a frame costs the host
 there. On the CPU they need ``--torch-stages on --device cpu``; the time is not what CUDA's would be.
+``--profile`` runs the first frame and its colour rounds once more under torch.profiler and reports where
+the time goes (``profile``: per stage the host's and the device's ms, the device's busy ms, the top kernels
+and the CUDA runtime calls: a device far less busy than the wall time says the host sets the pace).
 ``--warmup 1`` (default) first bakes the first frame once, untimed,
 in each process: the one-off imports and first allocations of a worker (~0.4 s) are paid once per
 process, not per frame (``--warmup 0`` times them into the first frame, as the bench did before).
 
     python bench/bake.py [--quick] [--frames 2] [--texels 1024] [--reference] [--workers N] [--device cpu|cuda]
-                         [--torch-stages auto|on|off] [--parity] [--count-ops]
+                         [--torch-stages auto|on|off] [--parity] [--count-ops] [--profile]
 """
 
 from __future__ import annotations
@@ -254,6 +257,51 @@ def _count_ops(model, layout, config, item) -> dict:
     return out
 
 
+def _profile(model, layout, config, item) -> dict:
+    """One frame and its colour rounds under torch.profiler (untimed elsewhere): per stage (``bake.*``
+    ranges, the rounds as ``bake.colour_rounds``) the host's and the device's milliseconds, the device's
+    busy milliseconds in all, the 12 kernels with the most device time and the 8 runtime calls with the
+    most host time (launches, copies, syncs: where a host-bound frame waits). On the CPU the device
+    columns are 0."""
+    import torch
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    from uvatar.avh.bake.frame import bake_fit
+    from uvatar.avh.bake.register import ScanSurface
+
+    fit, truth, scan = item
+    cuda = str(config.device).startswith("cuda")
+    surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
+    targets = _colour_targets(model, truth, scan, surface, config)
+    t0 = time.perf_counter()
+    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
+        _, used = bake_fit(model, fit, layout, scan, config)
+        with record_function("bake.colour_rounds"):
+            _colour_rounds(model, used, targets, scan, surface, config)
+        if cuda:
+            torch.cuda.synchronize()
+    wall = time.perf_counter() - t0
+    events = prof.key_averages()
+    ms = lambda us: round(us / 1000.0, 2)  # noqa: E731
+    stages = {}
+    for e in events:
+        if e.key.startswith("bake."):
+            row = stages.setdefault(e.key[5:], {"host_ms": 0.0, "device_ms": 0.0})
+            row["host_ms"] = max(row["host_ms"], ms(e.cpu_time_total))
+            row["device_ms"] = max(row["device_ms"], ms(e.device_time_total))
+    kernels = [e for e in events if e.device_type != DeviceType.CPU and e.self_device_time_total > 0
+               and not e.key.startswith("bake.")]   # the stages' ranges repeat their kernels' time on the device
+    runtime = [e for e in events if e.key.startswith(("cuda", "cu")) and e.device_type == DeviceType.CPU]
+    top = lambda rows, attr, n: [[e.key[:90], ms(getattr(e, attr)), e.count]  # noqa: E731
+                                 for e in sorted(rows, key=lambda e: -getattr(e, attr))[:n]]
+    return {"wall_ms": round(1000 * wall, 1),
+            "device_busy_ms": ms(sum(e.self_device_time_total for e in kernels)),
+            "stages": stages,
+            "top_kernels_ms_calls": top(kernels, "self_device_time_total", 12),
+            "top_runtime_calls_host_ms_calls": top(runtime, "self_cpu_time_total", 8)}
+
+
 def _frames(model, frames, rng):
     """[(fit to bake, the scan's true fit, scan)] of the bench's frames (drawn from ``rng`` in order)."""
     from uvatar.capture import BodyFit
@@ -374,6 +422,9 @@ def main(argv=None) -> int:
     ap.add_argument("--count-ops", action="store_true",
                     help="also count the torch operators and Warp launches of a frame and its colour rounds, "
                          "per stage (the host's launches on a GPU; module doc)")
+    ap.add_argument("--profile", action="store_true",
+                    help="also bake the first frame and run its colour rounds once more under torch.profiler: "
+                         "each stage's host and device milliseconds, the top kernels and runtime calls")
     ap.add_argument("--warmup", type=int, default=1,
                     help="untimed bakes of the first frame first (a worker's one-off imports and allocations, "
                          "paid once per process, not per frame); 0 times the process's first frame too")
@@ -488,6 +539,8 @@ def main(argv=None) -> int:
                                        "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
     if args.count_ops:
         out["operators"] = _count_ops(model, layout, config, items[0])
+    if args.profile:
+        out["profile"] = _profile(model, layout, config, items[0])
     runs = []
     for workers in (int(w) for w in str(args.workers).split(",") if int(w) > 1):
         n = args.throughput_frames or 4 * workers

@@ -217,6 +217,7 @@ def test_cuda_pose_with_a_host_shape_reads_nothing_back():
     shape = torch.full((2, len(gpu.shape_names)), 0.4)
     rv = (0.3 * torch.randn(2, gpu.num_joints, 3)).cuda().requires_grad_()
     gpu.pose(rv, shape=shape)
+    gpu.pose(rv.detach())  # the default shape's first pose makes its bind state (an upload, once)
     torch.cuda.synchronize()
     torch.cuda.set_sync_debug_mode("error")
     try:

@@ -118,5 +118,10 @@ def test_cuda_graphed_step_takes_the_eager_steps(capture, tmp_path):
         a, b = eager.train_step(), fast.train_step()
         for k in a:
             assert b[k] == pytest.approx(a[k], rel=1e-3, abs=1e-5), k
+    # Adam's normalised update turns round-off in a near-zero gradient into up to lr a step: an H200 moved
+    # 1 parameter in 576 by 1.5e-4, and in another run 4 in 8192 by up to 4.9e-4, after four steps (lr 2e-3;
+    # test_dva_train_sync says the same). So: 99.9 % within rtol 1e-3 / atol 1e-4, every one within 4 lr
+    lr = eager.cfg.train.lr
     for p, q in zip(eager.params, fast.params, strict=True):
-        torch.testing.assert_close(q, p, rtol=1e-3, atol=1e-4)
+        gap = (q - p).abs()
+        assert float((gap <= 1e-4 + 1e-3 * p.abs()).float().mean()) >= 0.999 and float(gap.max()) <= 4 * lr

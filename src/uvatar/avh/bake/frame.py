@@ -222,9 +222,14 @@ class BakedFrame:
 @contextmanager
 def _timed(seconds: dict, name: str, rays: dict | None = None, cpu: dict | None = None):
     """Add the block's wall seconds to ``seconds[name]``, the rays it cast to ``rays[name]`` and this
-    process's CPU seconds to ``cpu[name]`` (what a frame costs on a machine shared with other jobs)."""
+    process's CPU seconds to ``cpu[name]`` (what a frame costs on a machine shared with other jobs).
+    The block is a torch profiler range ``bake.<name>`` (``bench/bake.py --profile``: each stage's
+    device time)."""
+    from torch.profiler import record_function
+
     t0, r0, c0 = time.perf_counter(), rays_cast(), time.process_time()
-    yield
+    with record_function(f"bake.{name}"):
+        yield
     seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
     if rays is not None:
         rays[name] = rays.get(name, 0) + rays_cast() - r0
