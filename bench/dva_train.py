@@ -146,6 +146,7 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     if cfg.train.graph:
         g = trainer.graph
         row.update({"graph_replays": 0 if g is None else g.replays, "graph_captures": 0 if g is None else g.captures,
+                    "graph_capture_failures": 0 if g is None else g.failures,
                     "graph_error": "eager here (needs CUDA and the Warp marcher)" if g is None else g.error})
     for size in render_sizes:
         try:

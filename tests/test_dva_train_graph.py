@@ -283,6 +283,50 @@ def test_step_graph_warms_up_captures_per_layout_and_replays_the_eager_steps(cap
     assert graphed.graph.error is None and graphed.graph.key.correctives
 
 
+def test_a_failed_capture_is_tried_again_then_given_up(capture, tmp_path, monkeypatch):
+    """A capture that fails (as one did on an H200 from one run to the next) is tried again after one more
+    eager warm-up step; a layout whose captures fail CAPTURE_TRIES times runs eagerly for good, with
+    ``error`` set. Every step, failed captures included, takes the eager trainer's step bit for bit."""
+    from uvatar.dva.train_step import CAPTURE_TRIES, StepGraph
+
+    monkeypatch.setattr(Trainer, "_device_skips", property(lambda self: True))
+    fail = {"left": 1}
+
+    def flaky(self, fn):
+        if fail["left"] > 0:
+            fail["left"] -= 1
+            raise RuntimeError("operation failed due to a previous error during capture")
+        return _record_stand_in(self, fn)
+
+    monkeypatch.setattr(StepGraph, "_record", flaky)
+
+    def fused(trainer):
+        trainer.opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in trainer.opt.param_groups],
+                                       fused=True)
+        return trainer
+
+    eager = fused(_trainer(capture, tmp_path / "eager", warmup=100, pose_on_device=True))
+    graphed = fused(_trainer(capture, tmp_path / "graph", warmup=100, pose_on_device=True))
+    graphed.graph = StepGraph(graphed)
+    seen = []
+    for _ in range(6):
+        a, b = eager.train_step(), graphed.train_step()
+        assert dict(a) == dict(b)
+        seen.append((graphed.graph.failures, graphed.graph.captures, graphed.graph.replays))
+    # steps 0-1 warm up, 2 fails (eager), 3 warms up once more, 4 captures and replays, 5 replays
+    assert seen == [(0, 0, 0), (0, 0, 0), (1, 0, 0), (1, 0, 0), (1, 1, 1), (1, 1, 2)]
+    assert graphed.graph.error is None
+    fail["left"] = 10 ** 6                     # a new layout whose captures always fail
+    graphed.graph = StepGraph(graphed)
+    for _ in range(2 + 2 * CAPTURE_TRIES + 2):
+        a, b = eager.train_step(), graphed.train_step()
+        assert dict(a) == dict(b)
+    g = graphed.graph
+    assert g.failures == CAPTURE_TRIES and g.captures == 0 and "previous error during capture" in g.error
+    for p, q in zip(eager.params, graphed.params, strict=True):
+        assert torch.equal(p, q)
+
+
 @pytest.mark.parametrize("dist", LENSES, ids=["pinhole", "lens"])
 def test_camera_table_gathers_the_rays_and_cameras_the_host_makes(dist):
     """Crops' rays gathered on the device from the camera table are :func:`pixel_rays` of the crops'

@@ -1,6 +1,7 @@
-"""The nearest point within a distance in one Warp launch (:mod:`uvatar.geometry.nearest_warp`, issue 39)
-against its reference twins: the slab search (:func:`~uvatar.avh.bake.register_torch.nearest_points_torch`)
-and SciPy's k-d tree (the bake's numpy path). On the CPU here; on CUDA with ``-m gpu``."""
+"""The nearest point within a distance in one Warp launch over a grid of cells
+(:mod:`uvatar.geometry.nearest_warp`, issue 39) against its reference twins: the slab search
+(:func:`~uvatar.avh.bake.register_torch.nearest_points_torch`) and SciPy's k-d tree (the bake's numpy
+path); the grid's layout itself. On the CPU here; on CUDA with ``-m gpu``."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("warp")
 
 from uvatar.avh.bake.register_torch import nearest_points_torch, sorted_points_torch  # noqa: E402
-from uvatar.geometry.nearest_warp import nearest_sorted_points_warp  # noqa: E402
+from uvatar.geometry.nearest_warp import grid_points_torch, nearest_grid_points_warp  # noqa: E402
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]
 
@@ -32,9 +33,8 @@ def test_equals_the_slab_search_and_the_kd_tree(device, max_distance):
     rng = np.random.default_rng(0)
     points = _cloud(rng, 4000)
     queries = torch.as_tensor(rng.normal(size=(1500, 3)) * [0.2, 0.7, 0.1], device=device)
-    sorted_points = sorted_points_torch(points, device)
-    near, idx = nearest_sorted_points_warp(queries, sorted_points, max_distance)
-    ref, ref_idx = nearest_points_torch(queries, sorted_points, max_distance)
+    near, idx = nearest_grid_points_warp(queries, grid_points_torch(points, device), max_distance)
+    ref, ref_idx = nearest_points_torch(queries, sorted_points_torch(points, device), max_distance)
     kd, kd_idx = cKDTree(points).query(queries.cpu().numpy(), distance_upper_bound=max_distance)
     near, idx, ref, ref_idx = (t.cpu() for t in (near, idx, ref, ref_idx))
     found = torch.isfinite(near)
@@ -68,10 +68,10 @@ def test_ties_go_to_the_smaller_index_and_the_limit_is_strict():
     point exactly at ``max_distance`` is not within it (the k-d tree's bound), one just inside is."""
     points = np.array([[0.0, 1.0, 0.0], [0.5, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.25, 0.0]])
     queries = torch.tensor([[0.0, 1.0, 0.1], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
-    near, idx = nearest_sorted_points_warp(queries, sorted_points_torch(points, "cpu"), 0.25)
+    near, idx = nearest_grid_points_warp(queries, grid_points_torch(points, "cpu"), 0.25)
     assert idx[0] == 0 and near[0] == pytest.approx(0.1, abs=1e-15)        # 0 and 2 tie
     assert torch.isinf(near[1]) and idx[1] == 0                             # [0, .25, 0] is exactly 0.25 away
-    near, idx = nearest_sorted_points_warp(queries, sorted_points_torch(points, "cpu"), 0.25 + 1e-12)
+    near, idx = nearest_grid_points_warp(queries, grid_points_torch(points, "cpu"), 0.25 + 1e-12)
     assert idx[1] == 3 and near[1] == 0.25
 
 
@@ -81,13 +81,13 @@ def test_a_limit_on_the_device_and_empty_inputs():
     rng = np.random.default_rng(1)
     points = _cloud(rng, 500)
     queries = torch.as_tensor(rng.normal(size=(200, 3)) * 0.3)
-    sorted_points = sorted_points_torch(points, "cpu")
-    a = nearest_sorted_points_warp(queries, sorted_points, 0.04)
-    b = nearest_sorted_points_warp(queries, sorted_points, torch.tensor(0.04, dtype=torch.float64))
+    grid = grid_points_torch(points, "cpu")
+    a = nearest_grid_points_warp(queries, grid, 0.04)
+    b = nearest_grid_points_warp(queries, grid, torch.tensor(0.04, dtype=torch.float64))
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
-    near, idx = nearest_sorted_points_warp(queries[:0], sorted_points, 0.04)
+    near, idx = nearest_grid_points_warp(queries[:0], grid, 0.04)
     assert near.shape == idx.shape == (0,)
-    near, idx = nearest_sorted_points_warp(queries, sorted_points_torch(np.zeros((0, 3)), "cpu"), 0.04)
+    near, idx = nearest_grid_points_warp(queries, grid_points_torch(np.zeros((0, 3)), "cpu"), 0.04)
     assert torch.isinf(near).all() and (idx == 0).all()
 
 
@@ -95,12 +95,53 @@ def test_no_read_back(monkeypatch):
     """One launch: nothing read back, nothing made from host data (on CUDA, no stream synchronisation),
     with the limit a device scalar."""
     rng = np.random.default_rng(2)
-    sorted_points = sorted_points_torch(_cloud(rng, 800), "cpu")
+    grid = grid_points_torch(_cloud(rng, 800), "cpu")
     queries = torch.as_tensor(rng.normal(size=(300, 3)) * 0.3)
     limit = torch.tensor(0.05, dtype=torch.float64)
-    nearest_sorted_points_warp(queries, sorted_points, limit)       # the kernel built
+    nearest_grid_points_warp(queries, grid, limit)       # the kernel built
     traffic = HostTraffic(monkeypatch)
     with traffic:
-        near, _ = nearest_sorted_points_warp(queries, sorted_points, limit)
+        near, _ = nearest_grid_points_warp(queries, grid, limit)
     assert traffic.seen == []
     assert torch.isfinite(near).any()
+
+
+def test_the_grid_holds_every_point_in_its_cell():
+    """Each cell's range holds exactly the points inside that cell; the original indices are a
+    permutation; about POINTS_PER_CELL points per occupied cell on a surface-like cloud."""
+    rng = np.random.default_rng(3)
+    theta, y = rng.uniform(0, 2 * np.pi, 20_000), rng.uniform(0, 1.6, 20_000)
+    points = np.stack([0.15 * np.cos(theta), y, 0.1 * np.sin(theta)], 1)     # a tube's surface
+    grid = grid_points_torch(points, "cpu")
+    start, order = grid.start.numpy().astype(np.int64), grid.order.numpy()
+    nx, ny, nz = grid.dims
+    assert start[0] == 0 and start[-1] == len(points) and np.all(np.diff(start) >= 0)
+    assert np.array_equal(np.sort(order), np.arange(len(points)))
+    np.testing.assert_array_equal(grid.points.numpy(), points[order])
+    cell = np.floor((points[order] - np.asarray(grid.origin)) / grid.cell).astype(np.int64)
+    key = (cell[:, 0] * ny + cell[:, 1]) * nz + cell[:, 2]
+    owner = np.searchsorted(start, np.arange(len(points)), side="right") - 1
+    assert np.array_equal(key, owner)
+    counts = np.diff(start)
+    assert 4 <= counts[counts > 0].mean() <= 16
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_flat_sparse_and_far_clouds(device):
+    """A flat cloud (no extent in z), two clusters far apart (the cell floored by the cell budget),
+    queries far outside the grid: the k-d tree's answers."""
+    rng = np.random.default_rng(4)
+    flat = np.concatenate([rng.uniform(-1, 1, (3000, 2)), np.zeros((3000, 1))], 1)
+    apart = np.concatenate([rng.normal(0, 0.01, (500, 3)), rng.normal(0, 0.01, (500, 3)) + 40.0])
+    for points in (flat, apart):
+        queries = np.concatenate([rng.normal(0, 0.6, (400, 3)), rng.normal(0, 0.01, (50, 3)) + 40.0,
+                                  [[1e6, -1e6, 3.0], [20.0, 20.0, 20.0]]])
+        for limit in (0.05, 1e3):
+            near, idx = nearest_grid_points_warp(torch.as_tensor(queries, device=device),
+                                                 grid_points_torch(points, device), limit)
+            kd, kd_idx = cKDTree(points).query(queries, distance_upper_bound=limit)
+            near, idx = near.cpu().numpy(), idx.cpu().numpy()
+            found = np.isfinite(kd)
+            assert np.array_equal(np.isfinite(near), found)
+            np.testing.assert_allclose(near[found], kd[found], atol=1e-12, rtol=0)
+            assert np.array_equal(idx[found], kd_idx[found])

@@ -33,6 +33,9 @@ log = logging.getLogger(__name__)
 #: eager steps of a layout run on the graph's stream before it is captured (the optimizer's state and
 #: cuDNN's algorithms are made there, Warp's kernels loaded); the first capture of a trainer takes two
 WARMUP_STEPS = 2
+#: captures tried per step layout before its steps run eagerly for good (a failed capture is retried after
+#: one more eager step: on an H200 a capture failed or held from one run to the next, issue 39)
+CAPTURE_TRIES = 3
 
 
 def target_pixels(image: np.ndarray, mask: np.ndarray, pixels: np.ndarray, background: np.ndarray,
@@ -261,8 +264,10 @@ class StepGraph:
     captured (``torch.cuda.graph`` with Warp told of the capture, as
     :class:`~uvatar.dva.frame.FrameRenderer` does) and every later step of that layout copies its inputs
     into the graph's and replays it: forward, loss, backward, clipping, the update (fused Adam with a
-    device learning rate and ``found_inf``) with no launch from Python. A failed capture is logged, kept
-    in ``error``, and the steps run eagerly from then on."""
+    device learning rate and ``found_inf``) with no launch from Python. A failed capture is logged and
+    counted in ``failures``; the step runs eagerly and the capture is tried again after one more eager
+    step, up to :data:`CAPTURE_TRIES` times per layout. Then ``error`` keeps the last failure and the
+    steps run eagerly from then on."""
 
     def __init__(self, trainer):
         self.trainer = trainer
@@ -271,6 +276,8 @@ class StepGraph:
         self.inputs: StepInputs | None = None
         self.terms: dict | None = None
         self.error: str | None = None
+        self.failures = 0      # failed captures (all layouts)
+        self.tries = 0         # failed captures of the current layout
         self.warm = 0          # eager steps run on the stream for the current key
         self.captures = 0
         self.replays = 0
@@ -281,18 +288,23 @@ class StepGraph:
         """One training step of ``inputs``: eager warm-up, capture or replay; its terms (device tensors)."""
         tr = self.trainer
         if layout != self.key:
-            self.key, self.graph, self.inputs, self.terms, self.warm = layout, None, None, None, 0
-        if self.graph is None and self.warm < (WARMUP_STEPS if self.captures == 0 else 1):
+            self.key, self.graph, self.inputs, self.terms, self.warm, self.tries = layout, None, None, None, 0, 0
+        if self.graph is None and self.warm < (WARMUP_STEPS if self.captures == 0 else 1) + self.tries:
             self.warm += 1
             return self._on_stream(lambda: tr._eager_step(inputs, layout, host_frames))
         if self.graph is None:
             try:
                 self._capture(inputs, layout, host_frames)
-            except Exception as exc:  # noqa: BLE001 - any capture failure: eager steps, said once
-                self.error = f"{type(exc).__name__}: {exc}"
+            except Exception as exc:  # noqa: BLE001 - any capture failure: eager steps, said
                 self.graph = None
-                log.warning("capturing the training step in a CUDA graph failed (%s): steps run eagerly",
-                            self.error)
+                self.failures += 1
+                self.tries += 1
+                why = f"{type(exc).__name__}: {exc}"
+                log.debug("the failed capture's traceback", exc_info=True)
+                if self.tries >= CAPTURE_TRIES:
+                    self.error = why
+                log.warning("capturing the training step in a CUDA graph failed (%s, try %d of %d): %s", why,
+                            self.tries, CAPTURE_TRIES, "steps run eagerly" if self.error else "tried again")
                 tr.opt.zero_grad(set_to_none=True)
                 return tr._eager_step(inputs, layout, host_frames)
         self.inputs.copy_(inputs)

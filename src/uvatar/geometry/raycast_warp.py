@@ -60,7 +60,11 @@ def capture_graph(fn, stream):
     ``stream``, after the work queued on the current stream, with Warp told of the capture (its
     launches go on the same stream: one wrapper of it for the process,
     :func:`uvatar.geometry.raycast_warp.warp_stream`). ``fn`` records, it does not run: warm it up
-    first (Warp's modules loaded, cuDNN's algorithms chosen, lazily made state made)."""
+    first (Warp's modules loaded, cuDNN's algorithms chosen, lazily made state made). Python's garbage
+    collector is paused while it records (``torch.cuda.graph`` collects just before): no finaliser of an
+    object from outside the graph (a Warp array or stream wrapper) runs inside the capture."""
+    import gc
+
     import torch
 
     wp = _warp()
@@ -68,12 +72,18 @@ def capture_graph(fn, stream):
     graph = torch.cuda.CUDAGraph()
     stream.wait_stream(current)
     wstream = warp_stream(stream)
-    with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=stream):
-        wp.capture_begin(stream=wstream, force_module_load=False, external=True)
-        try:
-            out = fn()
-        finally:
-            wp.capture_end(stream=wstream)
+    collecting = gc.isenabled()
+    try:
+        with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=stream):
+            gc.disable()
+            wp.capture_begin(stream=wstream, force_module_load=False, external=True)
+            try:
+                out = fn()
+            finally:
+                wp.capture_end(stream=wstream)
+    finally:
+        if collecting:
+            gc.enable()
     current.wait_stream(stream)
     return graph, out
 

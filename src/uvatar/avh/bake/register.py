@@ -126,6 +126,16 @@ class ScanSurface:
             self.on_device[key] = sorted_points_torch(self.sample_points, device)
         return self.on_device[key]
 
+    def grid_samples_torch(self, device):
+        """:func:`~uvatar.geometry.nearest_warp.grid_points_torch` of the samples on ``device`` (made once
+        per scan and device): the layout the nearest-sample kernel searches."""
+        from uvatar.geometry.nearest_warp import grid_points_torch
+
+        key = ("grid_samples", str(device))
+        if key not in self.on_device:
+            self.on_device[key] = grid_points_torch(self.sample_points, device)
+        return self.on_device[key]
+
     def samples_torch(self, device):
         """(sample_points (S, 3), sample_normals (S, 3)) float64 tensors on ``device``, copied there once
         per scan and device (the refinement's matches are gathered from them every iteration)."""

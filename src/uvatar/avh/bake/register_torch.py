@@ -134,8 +134,8 @@ def nearest_points_in_window(queries, sorted_points, max_distance, window: int, 
 
 
 #: the nearest samples of tensors are one Warp launch wherever Warp imports
-#: (:func:`uvatar.geometry.nearest_warp.nearest_sorted_points_warp`: no window, no read-back, a few
-#: hundred points per query; on CPU tensors 15-25x faster than the slab search too); tests set it False
+#: (:func:`uvatar.geometry.nearest_warp.nearest_grid_points_warp`: a grid of cells searched in rings, no
+#: window, no read-back; on CPU tensors far faster than the slab search too); tests set it False
 #: to check the searches that run without Warp
 NEAREST_KERNEL = True
 
@@ -222,9 +222,9 @@ def nearest_samples(scan, points, max_distance):
     import torch
 
     if uses_kernel():
-        from uvatar.geometry.nearest_warp import nearest_sorted_points_warp
+        from uvatar.geometry.nearest_warp import nearest_grid_points_warp
 
-        near, idx = nearest_sorted_points_warp(points, scan.sorted_samples_torch(points.device), max_distance)
+        near, idx = nearest_grid_points_warp(points, scan.grid_samples_torch(points.device), max_distance)
         return near, idx, torch.zeros((), dtype=torch.int64, device=points.device)
     if not uses_window(points.device):
         near, idx = scan.nearest_sample(points, max_distance)
