@@ -119,8 +119,8 @@ def _kernel():
         cx = int(wp.floor(rx))
         cy = int(wp.floor(ry))
         cz = int(wp.floor(rz))
-        r = int(0)
-        searching = bool(True)
+        r = int(0)  # noqa: UP018 - Warp: a variable the loop changes, not a constant
+        searching = bool(True)  # noqa: UP018 - as r
         while searching:
             x0 = wp.max(cx - r, 0)
             x1 = wp.min(cx + r, nx - 1)
@@ -148,7 +148,7 @@ def _kernel():
             covers = cx - r <= 0 and cy - r <= 0 and cz - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1 \
                 and cz + r >= nz - 1
             if best < gap or gap >= max_distance or covers:
-                searching = bool(False)
+                searching = bool(False)  # noqa: UP018 - as r
             r = r + 1
         if best_j >= wp.int64(0) and best < max_distance:
             distance[i] = best
