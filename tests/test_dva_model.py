@@ -260,6 +260,30 @@ def test_losses():
     assert terms["volume"] == pytest.approx(1.0) and "perceptual" not in terms
 
 
+def test_beta_prior_stays_out_of_the_persons_mask():
+    """With the mask term on, the beta prior acts only outside the mask: its value is the prior of the
+    outside pixels (as a mean over all pixels) and the person's pixels get no gradient from it, so it no
+    longer pulls an emptied avatar's opacity toward 0 against the mask term. With the mask term off, or
+    the option off (runs saved before it), it acts everywhere."""
+    from uvatar.dva.losses import LossConfig
+    from uvatar.dva.model import DvaConfig
+
+    alpha = torch.full((1, 4, 4), 0.05, requires_grad=True)
+    mask = torch.zeros(1, 4, 4)
+    mask[:, :2] = 1.0                                        # the top half is the person
+    rgb, scales, rest = torch.zeros(1, 3, 4, 4), torch.full((1, 2, 3), 0.1), torch.full((2, 3), 0.1)
+    only_beta = {f: 0.0 for f in ("rgb", "perceptual", "ssim", "volume", "motion", "colour_tv")}
+    _, terms = DvaLoss(LossConfig(**only_beta)).terms(rgb, rgb, alpha, mask, scales, rest)
+    assert float(terms["beta"]) == pytest.approx(float(beta_prior(alpha[:, 2:])) / 2, rel=1e-6)
+    total, _ = DvaLoss(LossConfig(**only_beta, mask=0.0)).terms(rgb, rgb, alpha, mask, scales, rest)
+    grad_everywhere, = torch.autograd.grad(total, alpha)
+    assert (grad_everywhere > 0).all()                       # toward 0 at alpha 0.05, everywhere
+    inside_pull = torch.autograd.grad(beta_prior(alpha, 1.0 - mask), alpha)[0]
+    assert (inside_pull[:, :2] == 0).all() and (inside_pull[:, 2:] > 0).all()
+    legacy = DvaConfig.from_dict({"loss": {"rgb": 1.0}}).loss
+    assert legacy.beta_outside_mask is False and LossConfig().beta_outside_mask is True
+
+
 def test_vgg_weights_load_and_reject(tmp_path):
     vgg = Vgg19Features()
     torch.save({k: v for k, v in vgg.state_dict().items() if k.startswith("features.")}, tmp_path / "v.pth")

@@ -9,6 +9,11 @@
 * ``mask``: mean absolute error between the accumulated opacity and the foreground mask.
 * ``volume``: MVP volume prior, the mean primitive volume relative to its rest volume (keeps boxes small).
 * ``beta``: Neural Volumes opacity prior ``log(0.1 + a) + log(1.1 - a)`` (pushes opacity to 0 or 1).
+  With the mask term on, only outside the person's mask (``beta_outside_mask``): at zero opacity its pull
+  toward 0 (slope 9.1, x 0.01) all but cancels the mask term's pull toward 1 (0.1), so inside the mask an
+  emptied avatar was a resting state, and the softplus of the opacity passes next to no gradient there
+  to leave it. On the real recording (``docs/real.md``, session 10) seed 2 emptied within 60 steps with
+  it and kept its person without it. Runs saved before keep it everywhere.
 * ``motion``: mean square of the raw motion correctives (before their ``tanh`` and clamp). Past its
   bound a corrective passes no gradient, so without this pull nothing brings it back: on the real
   recording (``docs/real.md``, run 9) the motion branch ran away to raw values in the thousands, every
@@ -53,6 +58,7 @@ class LossConfig:
     motion: float = 0.01
     colour_tv: float = 0.1
     shell: float = 0.0
+    beta_outside_mask: bool = True   # the beta prior only where the foreground mask is 0 (module doc)
 
     def __post_init__(self) -> None:
         check_values([(getattr(self, f.name) >= 0, f"{f.name} loss weight must be >= 0, got {getattr(self, f.name)}")
@@ -114,11 +120,14 @@ class Vgg19Features(nn.Module):
         return out
 
 
-def beta_prior(alpha: torch.Tensor) -> torch.Tensor:
+def beta_prior(alpha: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
     """Neural Volumes opacity prior, 0 at alpha in {0, 1}, positive in between (its gradient pushes
-    opacity toward 0 or 1)."""
+    opacity toward 0 or 1); the mean over the pixels, each times ``weight`` (alpha's shape) if given."""
     floor = float(np.log(0.1) + np.log(1.1))  # the value at alpha = 0 and alpha = 1
-    return (torch.log(0.1 + alpha) + torch.log(1.1 - alpha) - floor).mean() if alpha.numel() else alpha.sum()
+    if not alpha.numel():
+        return alpha.sum()
+    prior = torch.log(0.1 + alpha) + torch.log(1.1 - alpha) - floor
+    return (prior if weight is None else prior * weight).mean()
 
 
 def slab_total_variation(colour: torch.Tensor) -> torch.Tensor:
@@ -192,7 +201,7 @@ class DvaLoss(nn.Module):
         if c.volume > 0:
             terms["volume"] = (scales.prod(-1) / rest_scales.prod(-1)[None]).mean()
         if c.beta > 0:
-            terms["beta"] = beta_prior(alpha)
+            terms["beta"] = beta_prior(alpha, 1.0 - mask if c.beta_outside_mask and c.mask > 0 else None)
         if c.motion > 0 and motion is not None:
             terms["motion"] = motion.square().mean()
         if c.colour_tv > 0 and colour is not None:

@@ -162,6 +162,9 @@ class DvaConfig:
             loss = d["loss"]
         if loss is not None and "colour_tv" not in loss:  # before the colour smoothness: trained without it
             d = {**d, "loss": {**loss, "colour_tv": 0.0}}
+            loss = d["loss"]
+        if loss is not None and "beta_outside_mask" not in loss:  # before the option: the prior everywhere
+            d = {**d, "loss": {**loss, "beta_outside_mask": False}}
         dec = d.get("decoder")
         if dec is not None and "depth_colour" not in dec:  # before the option: colour in every voxel
             d = {**d, "decoder": {**dec, "depth_colour": True}}
