@@ -46,14 +46,14 @@ class PointGrid(NamedTuple):
     dims: tuple
 
 
-def _cell_size(p: np.ndarray, extent: np.ndarray, per_cell: int) -> float:
+def _cell_size(p: np.ndarray, lo: np.ndarray, extent: np.ndarray, per_cell: int) -> float:
     """A cell side (metres) giving ``per_cell`` points per occupied cell: measured at a trial side on
-    up to 50,000 of the points, then scaled as a surface's occupancy does (with the side squared)."""
-    rng = np.random.default_rng(0)
-    sub = p if len(p) <= 50_000 else p[rng.choice(len(p), 50_000, replace=False)]
+    about 20,000 of the points (every n-th), then scaled as a surface's occupancy does (with the side
+    squared)."""
+    sub = p[:: max(1, len(p) // 20_000)]
     trial = float(extent.max()) / 64.0
-    keys = np.floor((sub - p.min(0)) / trial).astype(np.int64)
-    occupied = len(np.unique(keys, axis=0))
+    cells = np.floor((sub - lo) / trial).astype(np.int64)
+    occupied = len(np.unique((cells[:, 0] * 65 + cells[:, 1]) * 65 + cells[:, 2]))
     per_occupied = len(sub) / occupied * (len(p) / len(sub))
     side = trial * np.sqrt(per_cell / per_occupied)
     floor = (float(np.prod(extent)) / MAX_CELLS) ** (1.0 / 3.0)      # at most MAX_CELLS cells
@@ -62,7 +62,8 @@ def _cell_size(p: np.ndarray, extent: np.ndarray, per_cell: int) -> float:
 
 def grid_points_torch(points, device, per_cell: int = POINTS_PER_CELL) -> PointGrid:
     """``points`` (S, 3) (array-like, metres) binned into a :class:`PointGrid` on ``device`` (torch
-    tensors). Built on the host with NumPy (once per point set: a scan's samples)."""
+    tensors). The cell size and the grid's box are chosen on the host (a subsample); the binning, the
+    sort by cell and the cells' ranges are torch operations on ``device`` (no read-back)."""
     import torch
 
     p = np.asarray(points, np.float64).reshape(-1, 3)
@@ -70,20 +71,24 @@ def grid_points_torch(points, device, per_cell: int = POINTS_PER_CELL) -> PointG
         empty = torch.zeros((0, 3), dtype=torch.float64, device=device)
         return PointGrid(empty, torch.zeros(0, dtype=torch.int64, device=device),
                          torch.zeros(2, dtype=torch.int32, device=device), (0.0, 0.0, 0.0), 1.0, (1, 1, 1))
-    lo = p.min(0)
-    extent = np.maximum(p.max(0) - lo, 1e-9)
-    side = _cell_size(p, extent, per_cell)
+    # per column: NumPy's axis-0 reduction of an (S, 3) array is ~50x slower (30 ms at 300k points)
+    lo = np.array([p[:, i].min() for i in range(3)])
+    extent = np.maximum(np.array([p[:, i].max() for i in range(3)]) - lo, 1e-9)
+    side = _cell_size(p, lo, extent, per_cell)
     dims = np.floor(extent / side).astype(np.int64) + 1
     while int(np.prod(dims)) > MAX_CELLS:          # round-off at the floor's edge
         side *= 1.01
         dims = np.floor(extent / side).astype(np.int64) + 1
-    cells = np.minimum(np.floor((p - lo) / side).astype(np.int64), dims - 1)
-    key = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
-    order = np.argsort(key, kind="stable")
-    start = np.searchsorted(key[order], np.arange(int(np.prod(dims)) + 1)).astype(np.int32)
-    return PointGrid(torch.as_tensor(p[order], device=device), torch.as_tensor(order, device=device),
-                     torch.as_tensor(start, device=device), tuple(float(v) for v in lo), side,
-                     tuple(int(v) for v in dims))
+    n_cells = int(np.prod(dims))
+    pt = torch.as_tensor(p, device=device)
+    top = torch.as_tensor(dims - 1, device=device)
+    cells = torch.minimum(torch.floor((pt - torch.as_tensor(lo, device=device)) / side).long(), top)
+    key = (cells[:, 0] * int(dims[1]) + cells[:, 1]) * int(dims[2]) + cells[:, 2]
+    key, order = torch.sort(key)
+    counts = torch.zeros(n_cells + 1, dtype=torch.int32, device=device)
+    counts.index_add_(0, key + 1, torch.ones_like(key, dtype=torch.int32))
+    start = torch.cumsum(counts, 0, dtype=torch.int32)
+    return PointGrid(pt[order], order, start, tuple(float(v) for v in lo), side, tuple(int(v) for v in dims))
 
 
 @lru_cache(maxsize=1)
