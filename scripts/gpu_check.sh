@@ -3,7 +3,8 @@
 #   run(command="bash scripts/gpu_check.sh", timeout_s=600)          # dva avh tests bake, within $BUDGET s (560)
 #   run(command="bash scripts/gpu_check.sh avh tests", timeout_s=300) # some parts: dva avh tests compile bake train
 #   run(command="bash scripts/gpu_check.sh bake tests", timeout_s=420) # the GPU bake (issue 39 item 3) and the tests
-# (compile: compiled against eager on the machine's CPU, which CI's machine can do too; bake: the CUDA bake,
+# (nearest: the nearest-sample kernel against the k-d tree; compile: compiled against eager on the machine's
+# CPU, which CI's machine can do too; bake: the CUDA bake (with --profile: each stage's device time),
 # which needs anny carried as well; train: bench/dva_train.py's paper-scale step, synchronised and pipelined)
 # Env overrides: BUDGET (s), DVA_PATHS / DVA_REPEATS / DVA_PAIRS (bench/dva_frame.py's --paths, --repeats,
 # --pairs-per-ray: the marcher's fixed pair buffer per ray), AVH_SECONDS / AVH_FAST / AVH_MODES / AVH_ITERS,
@@ -29,7 +30,9 @@
 # and docs/ aside so the tree travels at ~5 MB, and prints the two device calls: the first stores p1 in /tmp,
 # the second (within the 30 s the machine stays warm) brings p2, unpacks both into /tmp/site and runs this
 # script (`bash scripts/gpu_carry.sh check train bake tests`, with the parts' times its header gives).
-# `bash scripts/gpu_carry.sh restore` afterwards.
+# `bash scripts/gpu_carry.sh restore` afterwards. When the training step's CUDA graph capture fails (the
+# JSON's graph_error), `python scripts/gpu_trace_capture.py` there names the operation after which the
+# capture broke and tries the capture modes.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-$PWD/gpu_out}
@@ -89,6 +92,8 @@ for part in $PARTS; do
       run_part train "${TRAIN_SECONDS:-300}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \
         --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" \
         ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,off+cl+graph,default+cl,default+cl+graph}" ;;
+    nearest)  # the nearest-sample kernel (the grid, session 10) against SciPy's k-d tree, on the GPU
+      run_part nearest 60 "$OUT/nearest.json" python bench/nearest.py --device cuda --no-slab ;;
     compile)  # compiled against eager (torch.compile on the machine's CPU cores; ~130 s on 2 cores)
       run_part compile 90 "$OUT/pytest_compile.txt" python -m pytest -q -x -p no:cacheprovider -k compiled \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_train_compile.py ;;
@@ -101,7 +106,7 @@ for part in $PARTS; do
         # another's GPU work): throughput.seconds_per_frame is the machine's wall time per frame
         # (4 and 8 of the machine's 16 cores); --count-ops: the torch operators and Warp launches per stage, the
         # host's launches (session 9 cut them about in half: the nearest samples in one Warp launch, doubling FK)
-        run_part bake "${BAKE_SECONDS:-240}" "$OUT/bake.json" python bench/bake.py --device cuda --count-ops \
+        run_part bake "${BAKE_SECONDS:-240}" "$OUT/bake.json" python bench/bake.py --device cuda --count-ops --profile \
           --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4,8}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}"
         # the refinement's iterations replayed from one CUDA graph (PoseRefineConfig.cuda_graph, off by default
         # until measured): seconds per frame and parity beside the run above; refine_graph_failures if any
@@ -110,7 +115,7 @@ for part in $PARTS; do
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    *) echo "unknown part $part (dva avh tests compile bake train)" | tee -a "$OUT/status.txt" ;;
+    *) echo "unknown part $part (dva avh tests compile bake train nearest)" | tee -a "$OUT/status.txt" ;;
   esac
 done
 tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null
