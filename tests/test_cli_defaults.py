@@ -63,6 +63,7 @@ RENAMED = {
     ("train dva", "correct_colour"): "CorrectionConfig.colour",
     ("train dva", "loss_ssim"): "LossConfig.ssim",
     ("train dva", "loss_colour_tv"): "LossConfig.colour_tv",
+    ("train dva", "loss_beta_outside_mask"): "LossConfig.beta_outside_mask",
     ("bake", "refine_iterations"): "PoseRefineConfig.iterations",
     ("bake", "refine_photometric_radii"): "photometric_radii",
     ("bake", "refine_photometric_weight"): "photometric_weight",

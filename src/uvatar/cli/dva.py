@@ -98,11 +98,13 @@ def _flags() -> tuple[ConfigFlags, ...]:
             ConfigFlags(FeatureConfig, fields=("colour_skip",), presets={k: c.features for k, c in PRESETS.items()},
                         help={"colour_skip": "add the driving views' colour at every voxel to the appearance "
                                              "decoder's output (detail finer than a primitive)"}),
-            ConfigFlags(LossConfig, fields=("ssim", "colour_tv"), prefix="loss",
+            ConfigFlags(LossConfig, fields=("ssim", "colour_tv", "beta_outside_mask"), prefix="loss",
                         presets={k: c.loss for k, c in PRESETS.items()},
                         help={"ssim": "weight of the 1 - SSIM term of the image loss (when no --vgg-weights)",
                               "colour_tv": "weight of the total variation of the decoded colour across voxels "
-                                           "and neighbouring primitives (hides seams between boxes)"}),
+                                           "and neighbouring primitives (hides seams between boxes)",
+                              "beta_outside_mask": "apply the opacity prior (pushing opacity to 0 or 1) only "
+                                                   "outside the person's mask (inside, it can empty the avatar)"}),
             ConfigFlags(FrameConfig, fields=("precision", "compile"), choices={"precision": tuple(PRECISIONS)},
                         help={"precision": "type of the encoders and decoders when rendering (bf16 / fp16: the "
                                            "fast path, uvatar.dva.frame; fp32 without --compile: the reference)",
