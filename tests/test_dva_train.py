@@ -53,6 +53,21 @@ def test_target_pixels_put_the_background_colour_outside_the_mask():
         TrainConfig(background="room")
 
 
+def test_an_empty_avatar_is_said(caplog):
+    """The run's summary: the mean opacity inside the masks over the last logged steps, and ``empty``
+    with a warning naming the flags when it is below EMPTY_OPACITY; nothing logged: None."""
+    import logging
+
+    from uvatar.dva.train import _emptiness
+
+    assert _emptiness([], 10) == {"opacity_in_mask": None, "empty": None}
+    with caplog.at_level(logging.WARNING):
+        assert _emptiness([0.8, 0.9], 1200) == {"opacity_in_mask": 0.85, "empty": False}
+        assert not caplog.records
+        assert _emptiness([0.0, 0.02, 0.01], 1200) == {"opacity_in_mask": 0.01, "empty": True}
+    assert "empty at step 1200" in caplog.text and "--seed" in caplog.text
+
+
 def test_scale_correctives_never_shrink_a_primitive_below_touching_its_neighbours():
     """Under a push of constant sign (the volume prior alone; on a real capture the image losses did
     the same) Adam drives every scale corrective to its lower bound within tens of steps, where the
@@ -239,6 +254,9 @@ def test_train_resume_and_eval(capture, tmp_path):
     s = train_dva(src, run, preset("tiny"), iters=4, progress=False)
     assert s["steps"] == 4 and (run / CHECKPOINT).is_file() and (run / "run.json").is_file()
     assert s["perceptual"] == "ssim" and np.isfinite(s["last"]["total"])
+    # steps 1 and 4 are logged; the toy's crops show the person: its opacity there is said
+    assert 0.0 <= s["last"]["opacity_in_mask"] <= 1.0 and s["empty"] in (True, False)
+    assert s["opacity_in_mask"] is not None
     s = train_dva(src, run, preset("tiny"), iters=6, resume=True, progress=False)
     assert s["steps"] == 6
     model, body, meta, step = load_run(run)

@@ -120,6 +120,10 @@ class Vgg19Features(nn.Module):
         return out
 
 
+#: a run whose opacity inside the person's masks averages below this at its end rendered no person
+EMPTY_OPACITY = 0.1
+
+
 def beta_prior(alpha: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
     """Neural Volumes opacity prior, 0 at alpha in {0, 1}, positive in between (its gradient pushes
     opacity toward 0 or 1); the mean over the pixels, each times ``weight`` (alpha's shape) if given."""
@@ -212,4 +216,8 @@ class DvaLoss(nn.Module):
                    "volume": c.volume, "beta": c.beta, "motion": c.motion, "colour_tv": c.colour_tv,
                    "shell": c.shell}
         total = sum(weights[k] * v for k, v in terms.items())
-        return total, {k: v.detach() for k, v in terms.items()}
+        out = {k: v.detach() for k, v in terms.items()}
+        with torch.no_grad():  # diagnostics, not in the total: is there a person where the masks say?
+            out["mask_fraction"] = mask.mean()
+            out["opacity_in_mask"] = (alpha * mask).sum() / mask.sum().clamp(min=1.0)
+        return total, out

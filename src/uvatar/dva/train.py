@@ -526,6 +526,7 @@ class Trainer:
         minutes = t.minutes if minutes is None else minutes
         writer = SummaryWriter(str(self.out / "tb")) if self.ctx.is_main else None
         start, last = time.time() - self.seconds, {}  # the time budget counts earlier parts of the run
+        inside: list[float] = []   # the logged steps' opacity inside the masks (crops showing the person)
         bar = tqdm(total=iters, initial=min(self.step, iters), desc="train dva", disable=not self.progress)
 
         def elapsed() -> float:  # rank 0's clock for every rank: all stop at the same step
@@ -545,6 +546,8 @@ class Trainer:
                         for k, v in last.items():
                             writer.add_scalar(f"loss/{k}", v, self.step)
                     bar.set_postfix(loss=f"{last['total']:.4f}", psnr=f"{last['psnr']:.1f}")
+                    if last.get("mask_fraction", 0.0) > 0.05:
+                        inside.append(last["opacity_in_mask"])
                 if self.step % t.checkpoint_every == 0:
                     self.save(elapsed())
         finally:
@@ -557,9 +560,27 @@ class Trainer:
                    "frames": len(self.bank), "skipped_frames": self.bank.skipped,
                    "corrections": self.corrections.summary() if self.corrections is not None else None, **{
                        k: self.meta[k] for k in ("train_cameras", "perceptual", "body_model", "seed")}}
+        summary.update(_emptiness(inside[-20:], self.step))
         if self.ctx.is_main:
             write_json(self.out / "run.json", {"config": self.cfg.to_dict(), "summary": summary})
         return summary
+
+
+def _emptiness(inside: list[float], step: int) -> dict:
+    """The summary's ``opacity_in_mask`` (the mean of the last logged steps' opacity inside the persons'
+    masks, None when none was logged) and ``empty`` (below :data:`~uvatar.dva.losses.EMPTY_OPACITY`: the
+    avatar renders no person, said in a warning)."""
+    from uvatar.dva.losses import EMPTY_OPACITY
+
+    if not inside:
+        return {"opacity_in_mask": None, "empty": None}
+    mean = float(np.mean(inside))
+    empty = mean < EMPTY_OPACITY
+    if empty:
+        log.warning("the avatar is empty at step %d: its opacity inside the person's masks averaged %.3f over "
+                    "its last logged steps (a healthy run: ~0.8); it renders no person. Train it again with "
+                    "another --seed (and --loss-beta-outside-mask, the default, if it was off)", step, mean)
+    return {"opacity_in_mask": round(mean, 4), "empty": empty}
 
 
 def train_dva(source, out_dir, cfg: DvaConfig, iters=None, minutes=None, device="cpu", resume=False,
