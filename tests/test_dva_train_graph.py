@@ -252,24 +252,33 @@ def _record_stand_in(self, fn):
     return _StandInGraph(tr, fn, out), out
 
 
-def test_step_graph_warms_up_captures_per_layout_and_replays_the_eager_steps(capture, tmp_path, monkeypatch):
-    """:class:`StepGraph`'s bookkeeping with a CPU stand-in for the CUDA graph: two eager warm-up steps,
-    the capture, replays of the static inputs the steps copy in; the correctives' switch (a new layout)
-    takes one warm-up step and a second capture. Eight steps take the eager trainer's steps, bit for
-    bit, and the terms come back under their names."""
-    from uvatar.dva.train_step import WARMUP_STEPS, StepGraph
+def _eager_and_stand_in_graphed(capture, tmp_path, monkeypatch, record, warmup: int):
+    """Two trainers from one seed with the fused Adam a CUDA trainer makes and the update skipped on the
+    device: an eager one, and one whose :class:`StepGraph` records with ``record`` (a CPU stand-in)."""
+    from uvatar.dva.train_step import StepGraph
 
     monkeypatch.setattr(Trainer, "_device_skips", property(lambda self: True))
-    monkeypatch.setattr(StepGraph, "_record", _record_stand_in)
+    monkeypatch.setattr(StepGraph, "_record", record)
 
     def fused(trainer):
         trainer.opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in trainer.opt.param_groups],
                                        fused=True)
         return trainer
 
-    eager = fused(_trainer(capture, tmp_path / "eager", warmup=4, pose_on_device=True))
-    graphed = fused(_trainer(capture, tmp_path / "graph", warmup=4, pose_on_device=True))
+    eager = fused(_trainer(capture, tmp_path / "eager", warmup=warmup, pose_on_device=True))
+    graphed = fused(_trainer(capture, tmp_path / "graph", warmup=warmup, pose_on_device=True))
     graphed.graph = StepGraph(graphed)
+    return eager, graphed
+
+
+def test_step_graph_warms_up_captures_per_layout_and_replays_the_eager_steps(capture, tmp_path, monkeypatch):
+    """:class:`StepGraph`'s bookkeeping with a CPU stand-in for the CUDA graph: two eager warm-up steps,
+    the capture, replays of the static inputs the steps copy in; the correctives' switch (a new layout)
+    takes one warm-up step and a second capture. Eight steps take the eager trainer's steps, bit for
+    bit, and the terms come back under their names."""
+    from uvatar.dva.train_step import WARMUP_STEPS
+
+    eager, graphed = _eager_and_stand_in_graphed(capture, tmp_path, monkeypatch, _record_stand_in, warmup=4)
     seen = []
     for _ in range(9):
         a, b = eager.train_step(), graphed.train_step()
@@ -289,7 +298,6 @@ def test_a_failed_capture_is_tried_again_then_given_up(capture, tmp_path, monkey
     ``error`` set. Every step, failed captures included, takes the eager trainer's step bit for bit."""
     from uvatar.dva.train_step import CAPTURE_TRIES, StepGraph
 
-    monkeypatch.setattr(Trainer, "_device_skips", property(lambda self: True))
     fail = {"left": 1}
 
     def flaky(self, fn):
@@ -298,16 +306,7 @@ def test_a_failed_capture_is_tried_again_then_given_up(capture, tmp_path, monkey
             raise RuntimeError("operation failed due to a previous error during capture")
         return _record_stand_in(self, fn)
 
-    monkeypatch.setattr(StepGraph, "_record", flaky)
-
-    def fused(trainer):
-        trainer.opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"]} for g in trainer.opt.param_groups],
-                                       fused=True)
-        return trainer
-
-    eager = fused(_trainer(capture, tmp_path / "eager", warmup=100, pose_on_device=True))
-    graphed = fused(_trainer(capture, tmp_path / "graph", warmup=100, pose_on_device=True))
-    graphed.graph = StepGraph(graphed)
+    eager, graphed = _eager_and_stand_in_graphed(capture, tmp_path, monkeypatch, flaky, warmup=100)
     seen = []
     for _ in range(6):
         a, b = eager.train_step(), graphed.train_step()
