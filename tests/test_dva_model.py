@@ -285,7 +285,7 @@ def test_beta_prior_stays_out_of_the_persons_mask():
     # the diagnostics beside the terms (not in the total): the person's share of the crop, its opacity there
     total, terms = DvaLoss(LossConfig(**only_beta)).terms(rgb, rgb, alpha, mask, scales, rest)
     assert float(terms["mask_fraction"]) == pytest.approx(0.5) and float(terms["opacity_in_mask"]) == pytest.approx(0.05)
-    assert float(total) == pytest.approx(0.01 * float(terms["beta"]) + 0.1 * float(terms["mask"]), rel=1e-6)
+    assert float(total.detach()) == pytest.approx(0.01 * float(terms["beta"]) + 0.1 * float(terms["mask"]), rel=1e-6)
 
 
 def test_vgg_weights_load_and_reject(tmp_path):
