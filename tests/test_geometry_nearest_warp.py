@@ -136,7 +136,7 @@ def test_flat_sparse_and_far_clouds(device):
     for points in (flat, apart):
         queries = np.concatenate([rng.normal(0, 0.6, (400, 3)), rng.normal(0, 0.01, (50, 3)) + 40.0,
                                   [[1e6, -1e6, 3.0], [20.0, 20.0, 20.0]]])
-        for limit in (0.05, 1e3):
+        for limit in (0.05, 1e3, np.inf):
             near, idx = nearest_grid_points_warp(torch.as_tensor(queries, device=device),
                                                  grid_points_torch(points, device), limit)
             kd, kd_idx = cKDTree(points).query(queries, distance_upper_bound=limit)
@@ -145,3 +145,16 @@ def test_flat_sparse_and_far_clouds(device):
             assert np.array_equal(np.isfinite(near), found)
             np.testing.assert_allclose(near[found], kd[found], atol=1e-12, rtol=0)
             assert np.array_equal(idx[found], kd_idx[found])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_query_that_is_not_a_number_finds_nothing(device):
+    """A NaN or infinite query finds no point (inf, index 0) and does not hold up the others."""
+    rng = np.random.default_rng(5)
+    points = _cloud(rng, 300)
+    queries = torch.as_tensor(np.array([[np.nan, 0.0, 0.0], [0.0, np.inf, 0.0], [0.01, 0.02, 0.0]]), device=device)
+    for limit in (0.5, np.inf):
+        near, idx = (x.cpu().numpy() for x in nearest_grid_points_warp(queries, grid_points_torch(points, device), limit))
+        assert np.isinf(near[:2]).all() and (idx[:2] == 0).all()
+        kd, kd_idx = cKDTree(points).query(queries.cpu().numpy()[2], distance_upper_bound=limit)
+        assert near[2] == pytest.approx(kd, abs=1e-15) and idx[2] == kd_idx

@@ -107,6 +107,22 @@ def _kernel():
         cube along one axis."""
         return wp.min(rel - wp.float64(c - r), wp.float64(c + r + 1) - rel)
 
+    @wp.func
+    def outside(c: int, n: int):
+        """How many cells ``c`` lies outside [0, n) (0 inside)."""
+        return wp.max(wp.max(-c, c - (n - 1)), 0)
+
+    @wp.func
+    def scan_cell(c: int, start: wp.array(dtype=wp.int32), points: wp.array(dtype=wp.vec3d),
+                  order: wp.array(dtype=wp.int64), q: wp.vec3d, best: wp.float64, best_j: wp.int64):
+        """(best, best_j) after the points of cell ``c``."""
+        for k in range(int(start[c]), int(start[c + 1])):
+            d = wp.length(points[k] - q)
+            if closer(d, order[k], best, best_j):
+                best = d
+                best_j = order[k]
+        return best, best_j
+
     @wp.kernel
     def nearest_grid(points: wp.array(dtype=wp.vec3d), order: wp.array(dtype=wp.int64),
                      start: wp.array(dtype=wp.int32), queries: wp.array(dtype=wp.vec3d),
@@ -117,50 +133,51 @@ def _kernel():
         max_distance = limit[0]
         best = max_distance
         best_j = wp.int64(-1)
-        bound = wp.float64(1.0e9)            # queries far outside: cell numbers stay within int range
-        rx = wp.clamp((q[0] - origin[0]) / side, -bound, bound)
-        ry = wp.clamp((q[1] - origin[1]) / side, -bound, bound)
-        rz = wp.clamp((q[2] - origin[2]) / side, -bound, bound)
+        distance[i] = wp.float64(wp.inf)
+        index[i] = wp.int64(0)
+        if not (wp.isfinite(q[0]) and wp.isfinite(q[1]) and wp.isfinite(q[2])):
+            return                           # a NaN or infinite query has no nearest point
+        bound = wp.float64(1.0e8)            # cells this far out keep int32 arithmetic exact
+        ux = (q[0] - origin[0]) / side
+        uy = (q[1] - origin[1]) / side
+        uz = (q[2] - origin[2]) / side
+        rx = wp.clamp(ux, -bound, bound)
+        ry = wp.clamp(uy, -bound, bound)
+        rz = wp.clamp(uz, -bound, bound)
+        exact_gap = rx == ux and ry == uy and rz == uz    # a clamped query searches to the end
         cx = int(wp.floor(rx))
         cy = int(wp.floor(ry))
         cz = int(wp.floor(rz))
-        r = int(0)  # noqa: UP018 - Warp: a variable the loop changes, not a constant
-        searching = bool(True)  # noqa: UP018 - as r
-        while searching:
-            x0 = wp.max(cx - r, 0)
-            x1 = wp.min(cx + r, nx - 1)
-            y0 = wp.max(cy - r, 0)
-            y1 = wp.min(cy + r, ny - 1)
-            for x in range(x0, x1 + 1):
+        # the first ring that meets the grid, and the ring whose cube covers it
+        r = wp.max(wp.max(outside(cx, nx), outside(cy, ny)), outside(cz, nz))
+        last = wp.max(wp.max(wp.max(cx, nx - 1 - cx), wp.max(cy, ny - 1 - cy)), wp.max(cz, nz - 1 - cz))
+        if r > 0 and exact_gap:              # every point lies beyond the faces of ring r - 1
+            gap = wp.min(wp.min(face_gap(rx, cx, r - 1), face_gap(ry, cy, r - 1)), face_gap(rz, cz, r - 1))
+            if gap * side * (wp.float64(1.0) - wp.float64(1.0e-9)) >= max_distance:
+                return
+        while r <= last:
+            for x in range(wp.max(cx - r, 0), wp.min(cx + r, nx - 1) + 1):
                 x_face = x == cx - r or x == cx + r
-                for y in range(y0, y1 + 1):
-                    z_step = int(2 * r)          # inside the shell's x and y faces: its two z cells only
-                    if x_face or y == cy - r or y == cy + r or r == 0:
-                        z_step = 1
-                    z = int(cz - r)
-                    while z <= cz + r:
-                        if z >= 0 and z < nz:
-                            c = (x * ny + y) * nz + z
-                            for k in range(int(start[c]), int(start[c + 1])):
-                                d = wp.length(points[k] - q)
-                                if closer(d, order[k], best, best_j):
-                                    best = d
-                                    best_j = order[k]
-                        z = z + z_step
+                for y in range(wp.max(cy - r, 0), wp.min(cy + r, ny - 1) + 1):
+                    if x_face or y == cy - r or y == cy + r:   # a face of the shell: its whole z column
+                        for z in range(wp.max(cz - r, 0), wp.min(cz + r, nz - 1) + 1):
+                            best, best_j = scan_cell((x * ny + y) * nz + z, start, points, order, q, best, best_j)
+                    else:                                     # inside it: the two z faces only
+                        if cz - r >= 0 and cz - r < nz:
+                            best, best_j = scan_cell((x * ny + y) * nz + cz - r, start, points, order, q, best,
+                                                     best_j)
+                        if cz + r >= 0 and cz + r < nz:
+                            best, best_j = scan_cell((x * ny + y) * nz + cz + r, start, points, order, q, best,
+                                                     best_j)
             # no point outside the ring-r cube is nearer than its faces (less a hair for round-off)
             gap = wp.min(wp.min(face_gap(rx, cx, r), face_gap(ry, cy, r)), face_gap(rz, cz, r)) * side
-            gap = gap - side * wp.float64(1.0e-9)
-            covers = cx - r <= 0 and cy - r <= 0 and cz - r <= 0 and cx + r >= nx - 1 and cy + r >= ny - 1 \
-                and cz + r >= nz - 1
-            if best < gap or gap >= max_distance or covers:
-                searching = bool(False)  # noqa: UP018 - as r
+            gap = gap * (wp.float64(1.0) - wp.float64(1.0e-9))
+            if exact_gap and (best < gap or gap >= max_distance):
+                r = last
             r = r + 1
         if best_j >= wp.int64(0) and best < max_distance:
             distance[i] = best
             index[i] = best_j
-        else:
-            distance[i] = wp.float64(wp.inf)
-            index[i] = wp.int64(0)
 
     return nearest_grid
 
