@@ -1,6 +1,7 @@
 """The registration's torch twins (``BakeConfig.torch_device``; :mod:`uvatar.avh.bake.register` is the
 numpy / SciPy reference): the nearest scan samples by brute force on the queries' device (the twin of
-the k-d tree query) and the window kept with a scan for them (:func:`nearest_samples`), the
+the k-d tree query) and the window kept with a scan for them, or where Warp imports one launch over a
+grid of cells (:mod:`uvatar.geometry.nearest_warp`; :func:`nearest_samples` chooses), the
 vertex-to-surface matches (:func:`match_vertices_torch`: the rule of
 :func:`.register_match.match_rule`, its rays cast by the scan's caster on the tensors' device) and the
 registration's linear algebra on float64 tensors (vertex normals, their smoothing, L^T L and the SPD
