@@ -30,6 +30,7 @@ import numpy as np
 from uvatar.dva.baseline import mean_colour, mean_colour_render, projective_texture, textured_body_render
 from uvatar.dva.dataset import FrameBank
 from uvatar.dva.drive import render_camera
+from uvatar.dva.losses import EMPTY_OPACITY
 from uvatar.dva.refine import RefineConfig, frame_fit, refine_frame
 from uvatar.dva.residual import ResidualConfig, fit_residual
 from uvatar.io_utils import write_image, write_json
@@ -200,6 +201,12 @@ def evaluate_dva(run_dir, source, json_path=None, driving_views: int = 3, max_fr
         "refine_residual": {"iters": int(refine_residual), "frames": residuals} if refine_residual > 0 else None,
         "images": str(img_dir) if (images and img_dir is not None) else None,
     }
+    inside = result.get("opacity_person_interior", float("nan"))
+    result["empty"] = bool(inside < EMPTY_OPACITY) if np.isfinite(inside) else None
+    if result["empty"]:
+        log.warning("the avatar renders no person on the test views: its opacity inside the person's mask "
+                    "averages %.3f (a trained avatar: ~1); its run's summary says whether it was empty "
+                    "when training ended (run.json: empty)", inside)
     if json_path:
         write_json(json_path, result)
     return result
