@@ -10,6 +10,7 @@ import torch
 
 from tests.fixtures.dva_capture import write_toy_capture
 from uvatar.dva.data import open_source
+from uvatar.dva.losses import EMPTY_OPACITY
 from uvatar.dva.model import preset
 from uvatar.dva.train import CHECKPOINT, Trainer, load_run, train_dva
 from uvatar.dva.train_step import patch_pixels, target_pixels
@@ -265,9 +266,8 @@ def test_train_resume_and_eval(capture, tmp_path):
     saved = json.loads((tmp_path / "m.json").read_text())
     assert saved["cameras"] == ["cam03"] and saved["frames"] == ["000002"]
     assert "held-out" in r["protocol"] and r["psnr_db"] == r["psnr_db_full"]  # no box on this capture
-    from uvatar.dva.losses import EMPTY_OPACITY     # an avatar that renders no person is said (and flagged)
-
-    inside = r["opacity_person_interior"]   # NaN where the toy's masks have no interior at this size
+    # an avatar that renders no person is said and flagged (NaN: the toy's masks have no interior at this size)
+    inside = r["opacity_person_interior"]
     assert r["empty"] == (None if np.isnan(inside) else inside < EMPTY_OPACITY) and saved["empty"] == r["empty"]
     # the scores are those of the comparison image written beside them
     # (gt | prediction | error | mean-colour baseline | projective-texture baseline)
