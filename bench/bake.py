@@ -106,6 +106,15 @@ def _colour_targets(model, truth, scan, surface, config) -> list:
     return out
 
 
+def _surface_and_targets(model, item, config) -> tuple:
+    """(the scan's surface as the bake builds it, :func:`_colour_targets`) of a bench frame ``item``."""
+    from uvatar.avh.bake.register import ScanSurface
+
+    _, truth, scan = item
+    surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
+    return surface, _colour_targets(model, truth, scan, surface, config)
+
+
 def _colour_rounds(model, fit, targets, scan, surface, config) -> tuple[Clock, int, object]:
     """(Clock, rays, the fit they end with) of a frame's colour rounds as the bake runs them
     (:func:`uvatar.avh.bake.refine_together._refine_task`): the colours sampled after the geometric
@@ -208,7 +217,6 @@ def _count_ops(model, layout, config, item) -> dict:
 
     import uvatar.avh.bake.frame as frame
     from uvatar.avh.bake import register_torch
-    from uvatar.avh.bake.register import ScanSurface
 
     stage = ["other"]
     counts: dict = collections.defaultdict(collections.Counter)
@@ -237,12 +245,11 @@ def _count_ops(model, layout, config, item) -> dict:
     from dataclasses import replace
 
     config = replace(config, ray_backend="warp")     # CUDA's caster: the rays cast in place (Warp runs on the CPU)
-    fit, truth, scan = item
+    fit, _, scan = item
     saved = (frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU)
     frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU = labelled, counted_launch, True
     try:
-        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
-        targets = _colour_targets(model, truth, scan, surface, config)
+        surface, targets = _surface_and_targets(model, item, config)
         frame.bake_fit(model, fit, layout, scan, config, surface=surface)        # the per-scan copies made
         counts.clear()
         with Count():
@@ -268,12 +275,10 @@ def _profile(model, layout, config, item) -> dict:
     from torch.profiler import ProfilerActivity, profile, record_function
 
     from uvatar.avh.bake.frame import bake_fit
-    from uvatar.avh.bake.register import ScanSurface
 
-    fit, truth, scan = item
+    fit, _, scan = item
     cuda = str(config.device).startswith("cuda")
-    surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
-    targets = _colour_targets(model, truth, scan, surface, config)
+    surface, targets = _surface_and_targets(model, item, config)
     t0 = time.perf_counter()
     with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
         _, used = bake_fit(model, fit, layout, scan, config)
@@ -439,16 +444,15 @@ def main(argv=None) -> int:
     frames = 1 if args.quick else args.frames
 
     from uvatar.avh.bake.frame import bake_fit
-    from uvatar.avh.bake.register import ScanSurface
 
     model, layout, config, layout_seconds, per_body_seconds = _setup(texels, args.device, args.torch_stages,
                                                                      args.refine_cuda_graph)
     items = _frames(model, frames, np.random.default_rng(0))
     for _ in range(args.warmup):
-        fit, truth, scan = items[0]
+        fit, _, scan = items[0]
         _, used = bake_fit(model, fit, layout, scan, config)
-        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
-        _colour_rounds(model, used, _colour_targets(model, truth, scan, surface, config), scan, surface, config)
+        surface, targets = _surface_and_targets(model, items[0], config)
+        _colour_rounds(model, used, targets, scan, surface, config)
     totals, cpu_totals, stages, cpu_stages, rays, kappa, rounds, rounds_r, refs = [], [], {}, {}, {}, [], [], [], []
     parity = []
     for i, (fit, truth, scan) in enumerate(items):
@@ -463,8 +467,7 @@ def main(argv=None) -> int:
             cpu_stages.setdefault(k, []).append(v)
         for k, v in baked.stats["rays"].items():
             rays.setdefault(k, []).append(v)
-        surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)  # kept by the worker
-        targets = _colour_targets(model, truth, scan, surface, config)
+        surface, targets = _surface_and_targets(model, (fit, truth, scan), config)  # the surface: kept by the worker
         round_clock, cast, rounds_fit = _colour_rounds(model, used, targets, scan, surface, config)
         rounds.append(round_clock)
         rounds_r.append(cast)

@@ -33,7 +33,7 @@ import torch
 from uvatar.distributed import DistContext, all_sum, distributed_context
 from uvatar.dva.corrections import FitParams, TrainingCorrections
 from uvatar.dva.dataset import FrameBank, pose_corrected, pose_vertices
-from uvatar.dva.losses import DvaLoss, Vgg19Features
+from uvatar.dva.losses import EMPTY_OPACITY, DvaLoss, Vgg19Features
 from uvatar.dva.model import DvaConfig, DvaModel, EncodeDecode, TrainConfig
 from uvatar.dva.train_step import CameraTable, patch_pixels, step_inputs, step_loss
 from uvatar.errors import InputError, UvatarError
@@ -570,8 +570,6 @@ def _emptiness(inside: list[float], step: int) -> dict:
     """The summary's ``opacity_in_mask`` (the mean of the last logged steps' opacity inside the persons'
     masks, None when none was logged) and ``empty`` (below :data:`~uvatar.dva.losses.EMPTY_OPACITY`: the
     avatar renders no person, said in a warning)."""
-    from uvatar.dva.losses import EMPTY_OPACITY
-
     if not inside:
         return {"opacity_in_mask": None, "empty": None}
     mean = float(np.mean(inside))

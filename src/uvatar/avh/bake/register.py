@@ -119,33 +119,31 @@ class ScanSurface:
             return near, np.where(found, idx, 0)
         return nearest_points_torch(points, self.sorted_samples_torch(points.device), max_distance)
 
+    def _kept(self, name: str, device, make):
+        """``make()``, made once per scan and device and kept in ``on_device`` under (name, device)."""
+        key = (name, str(device))
+        if key not in self.on_device:
+            self.on_device[key] = make()
+        return self.on_device[key]
+
     def sorted_samples_torch(self, device):
         """:func:`sorted_points_torch` of the samples on ``device`` (made once per scan and device)."""
-        key = ("sorted_samples", str(device))
-        if key not in self.on_device:
-            self.on_device[key] = sorted_points_torch(self.sample_points, device)
-        return self.on_device[key]
+        return self._kept("sorted_samples", device, lambda: sorted_points_torch(self.sample_points, device))
 
     def grid_samples_torch(self, device):
         """:func:`~uvatar.geometry.nearest_warp.grid_points_torch` of the samples on ``device`` (made once
         per scan and device): the layout the nearest-sample kernel searches."""
         from uvatar.geometry.nearest_warp import grid_points_torch
 
-        key = ("grid_samples", str(device))
-        if key not in self.on_device:
-            self.on_device[key] = grid_points_torch(self.sample_points, device)
-        return self.on_device[key]
+        return self._kept("grid_samples", device, lambda: grid_points_torch(self.sample_points, device))
 
     def samples_torch(self, device):
         """(sample_points (S, 3), sample_normals (S, 3)) float64 tensors on ``device``, copied there once
         per scan and device (the refinement's matches are gathered from them every iteration)."""
         import torch
 
-        key = ("samples", str(device))
-        if key not in self.on_device:
-            self.on_device[key] = (torch.as_tensor(self.sample_points, device=device),
-                                   torch.as_tensor(self.sample_normals, device=device))
-        return self.on_device[key]
+        return self._kept("samples", device, lambda: (torch.as_tensor(self.sample_points, device=device),
+                                                      torch.as_tensor(self.sample_normals, device=device)))
 
     def normals_at(self, face, bary):
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0.
