@@ -89,3 +89,42 @@ def test_missing_cuda_is_one_line_naming_the_device():
     v, f = scene()
     with pytest.raises(InputError, match="no CUDA device"):
         make_caster(v, f, device="cuda")
+
+
+class _RecordingGraph:
+    """A stand-in ``torch.cuda.CUDAGraph`` that notes how it was captured."""
+
+    def __init__(self):
+        self.calls = []
+
+    def capture_begin(self, *pool):
+        self.calls.append(("begin", pool))
+
+    def capture_end(self):
+        self.calls.append(("end",))
+
+
+@pytest.mark.parametrize("pool", [None, "pool-handle"])
+def test_capture_keeping_caches_records_on_the_stream_and_empties_nothing(monkeypatch, pool):
+    """``capture_graph(keep_caches=True)`` (the bake's refinement, four captures a frame): the capture
+    begins on the given stream with the shared pool and ends even when the recording raises; no device
+    synchronise and no cache emptied, where ``torch.cuda.graph`` does both."""
+    import contextlib
+
+    import torch
+
+    from uvatar.geometry import raycast_warp
+
+    entered, emptied = [], []
+    monkeypatch.setattr(torch.cuda, "stream", lambda s: contextlib.nullcontext(entered.append(s)))
+    for name in ("synchronize", "empty_cache"):
+        monkeypatch.setattr(torch.cuda, name, lambda *a, n=name, **k: emptied.append(n))
+    graph = _RecordingGraph()
+    with raycast_warp._recording(graph, "side-stream", pool):
+        graph.calls.append(("recorded",))
+    assert entered == ["side-stream"] and not emptied
+    assert graph.calls == [("begin", () if pool is None else (pool,)), ("recorded",), ("end",)]
+    graph = _RecordingGraph()
+    with pytest.raises(RuntimeError), raycast_warp._recording(graph, "side-stream", pool):
+        raise RuntimeError("a failed recording")
+    assert graph.calls[-1] == ("end",)

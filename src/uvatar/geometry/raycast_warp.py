@@ -55,14 +55,21 @@ def warp_stream(stream_or_device):
     return _STREAMS[key]
 
 
-def capture_graph(fn, stream):
+def capture_graph(fn, stream, keep_caches: bool = False, pool=None):
     """(a ``torch.cuda.CUDAGraph`` of ``fn()``, its output: tensors every replay writes) captured on
     ``stream``, after the work queued on the current stream, with Warp told of the capture (its
     launches go on the same stream: one wrapper of it for the process,
     :func:`uvatar.geometry.raycast_warp.warp_stream`). ``fn`` records, it does not run: warm it up
     first (Warp's modules loaded, cuDNN's algorithms chosen, lazily made state made). Python's garbage
     collector is paused while it records (``torch.cuda.graph`` collects just before): no finaliser of an
-    object from outside the graph (a Warp array or stream wrapper) runs inside the capture."""
+    object from outside the graph (a Warp array or stream wrapper) runs inside the capture.
+
+    ``torch.cuda.graph`` synchronises the device and empties torch's device and pinned-memory caches
+    before every capture (every cached block back to the driver, to be allocated again after it): fine
+    for a graph captured once, a cost per capture for code that captures many (the bake's refinement,
+    four a frame). ``keep_caches`` captures without that (``CUDAGraph.capture_begin`` on ``stream``,
+    the same recording), and ``pool`` (``torch.cuda.graph_pool_handle()``) lets successive graphs
+    share one memory pool: safe when each graph is done with before the next is captured."""
     import gc
 
     import torch
@@ -73,8 +80,10 @@ def capture_graph(fn, stream):
     stream.wait_stream(current)
     wstream = warp_stream(stream)
     collecting = gc.isenabled()
+    recording = (_recording(graph, stream, pool) if keep_caches
+                 else torch.cuda.graph(graph, stream=stream, pool=pool))
     try:
-        with wp.ScopedStream(wstream), torch.cuda.graph(graph, stream=stream):
+        with wp.ScopedStream(wstream), recording:
             gc.disable()
             wp.capture_begin(stream=wstream, force_module_load=False, external=True)
             try:
@@ -86,6 +95,20 @@ def capture_graph(fn, stream):
             gc.enable()
     current.wait_stream(stream)
     return graph, out
+
+
+@contextlib.contextmanager
+def _recording(graph, stream, pool):
+    """``torch.cuda.graph(graph, stream=stream, pool=pool)`` without its device synchronise and cache
+    emptying: ``stream`` made current and the capture begun and ended on it."""
+    import torch
+
+    with torch.cuda.stream(stream):
+        graph.capture_begin(*(() if pool is None else (pool,)))
+        try:
+            yield
+        finally:
+            graph.capture_end()
 
 
 def warp_device(device: str) -> str:
