@@ -43,9 +43,9 @@ def resolve_marcher(name: str) -> str:
     """"auto" -> "warp" when warp-lang is importable, else "torch"; other names as given."""
     if name != "auto":
         return name
-    import importlib.util
+    from uvatar.geometry.raycast_warp import warp_importable
 
-    return "warp" if importlib.util.find_spec("warp") is not None else "torch"
+    return "warp" if warp_importable() else "torch"
 
 
 @torch.no_grad()

@@ -23,7 +23,14 @@ import numpy as np
 from uvatar.errors import require
 from uvatar.geometry.raycast import _RAYS, RayCaster, RayCasterConfig
 
-__all__ = ["WarpRayCaster", "warp_device", "any_hit_torch", "MeshOccluder", "warp_stream", "capture_graph"]
+__all__ = ["WarpRayCaster", "warp_device", "warp_importable", "any_hit_torch", "MeshOccluder", "warp_stream", "capture_graph"]
+
+
+def warp_importable() -> bool:
+    """Is Warp (the ``kernels`` extra) installed? Looked up, not imported."""
+    import importlib.util
+
+    return importlib.util.find_spec("warp") is not None
 
 
 def _warp():

@@ -21,12 +21,14 @@ no evaluation figure (scored over kappa > 0.5) reads them.
 
 from __future__ import annotations
 
-import math
+from uvatar.geometry.jump_flood_warp import FAR as _FAR
+from uvatar.geometry.jump_flood_warp import flood_steps
 
-__all__ = ["inpaint_telea_torch", "nearest_seed", "grow_mask_torch"]
+__all__ = ["inpaint_telea_torch", "nearest_seed", "nearest_seed_torch", "grow_mask_torch"]
 
+#: the jump floods run as Warp kernels wherever Warp imports; tests set it False to run the torch twin
+JUMP_FLOOD_KERNEL = True
 LAYER_STEP = 0.5   # texels of T per layer: finer follows OpenCV's order closer (layers ~ band / step)
-_FAR = 1.0e9   # a coordinate no texel is near (its squared distance stays finite in float32)
 
 
 def _shifted(x, dy: int, dx: int, fill: float):
@@ -43,7 +45,22 @@ def _shifted(x, dy: int, dx: int, fill: float):
 
 
 def nearest_seed(seed):
-    """Jump flood (JFA+2, Rong & Tan 2006): each texel's nearest texel of ``seed`` (H, W) bool tensor.
+    """Each texel's nearest texel of ``seed`` (H, W) bool tensor: (flat index (H, W) int64 of the nearest
+    seed, Euclidean distance in texels (H, W) float32). The jump flood in one Warp launch per step
+    (:func:`uvatar.geometry.jump_flood_warp.nearest_seed_warp`) wherever Warp imports, else its
+    reference twin :func:`nearest_seed_torch`: the same seeds and distances."""
+    from uvatar.geometry.raycast_warp import warp_importable
+
+    if JUMP_FLOOD_KERNEL and warp_importable():
+        from uvatar.geometry.jump_flood_warp import nearest_seed_warp
+
+        return nearest_seed_warp(seed)
+    return nearest_seed_torch(seed)
+
+
+def nearest_seed_torch(seed):
+    """Jump flood (JFA+2, Rong & Tan 2006) in whole-map torch operators: each texel's nearest texel of
+    ``seed`` (H, W) bool tensor (the reference twin of the Warp kernel).
 
     Returns (flat index (H, W) int64 of the nearest seed, Euclidean distance in texels (H, W) float32);
     index 0 and distance ~1e9 everywhere when there is no seed. Exact but for rare texels that take a
@@ -59,8 +76,7 @@ def nearest_seed(seed):
     sy = torch.where(flat, yy, torch.full_like(yy, _FAR))
     sx = torch.where(flat, xx, torch.full_like(xx, _FAR))
     unit = torch.tensor([[dy, dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], device=dev, dtype=torch.float32)
-    steps = [2 ** k for k in range(max(0, math.ceil(math.log2(max(h, w, 2)))) - 1, -1, -1)] + [2, 1]
-    for s in steps:
+    for s in flood_steps(h, w):
         # the 9 texels at (-s, 0, s)^2 in one gather: their seeds are candidates (the centre its own)
         ny, nx = yy[None] + s * unit[:, :1], xx[None] + s * unit[:, 1:]           # (9, H*W)
         inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)

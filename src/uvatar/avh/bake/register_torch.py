@@ -146,12 +146,6 @@ NEAREST_KERNEL = True
 WINDOW_SEARCH_ON_CPU = False
 
 
-def _warp_importable() -> bool:
-    import importlib.util
-
-    return importlib.util.find_spec("warp") is not None
-
-
 def _roomy(width: int) -> int:
     """A nearest-sample window with room to spare for slabs ``width`` points wide."""
     return int(width) * 5 // 4 + 256
@@ -195,7 +189,9 @@ def window_outgrown(scan, device, widest: int) -> bool:
 def uses_kernel() -> bool:
     """Are nearest-sample queries on tensors answered by the Warp kernel (:data:`NEAREST_KERNEL`, Warp
     importable)?"""
-    return NEAREST_KERNEL and _warp_importable()
+    from uvatar.geometry.raycast_warp import warp_importable
+
+    return NEAREST_KERNEL and warp_importable()
 
 
 def uses_window(device) -> bool:
