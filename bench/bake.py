@@ -41,7 +41,8 @@ stage's CPU time equal to its wall time (issue 39), so these counts are what a f
 there. On the CPU they need ``--torch-stages on --device cpu``; the time is not what CUDA's would be.
 ``--profile`` runs the first frame and its colour rounds once more under torch.profiler and reports where
 the time goes (``profile``: per stage the host's and the device's ms, the device's busy ms, the top kernels
-and the CUDA runtime calls: a device far less busy than the wall time says the host sets the pace).
+and the CUDA runtime calls: a device far less busy than the wall time says the host sets the pace; and
+``stage_kernels_ms_calls``: each stage's own top kernels).
 ``--warmup 1`` (default) first bakes the first frame once, untimed,
 in each process: the one-off imports and first allocations of a worker (~0.4 s) are paid once per
 process, not per frame (``--warmup 0`` times them into the first frame, as the bench did before).
@@ -304,7 +305,36 @@ def _profile(model, layout, config, item) -> dict:
             "device_busy_ms": ms(sum(e.self_device_time_total for e in kernels)),
             "stages": stages,
             "top_kernels_ms_calls": top(kernels, "self_device_time_total", 12),
-            "top_runtime_calls_host_ms_calls": top(runtime, "self_cpu_time_total", 8)}
+            "top_runtime_calls_host_ms_calls": top(runtime, "self_cpu_time_total", 8),
+            "stage_kernels_ms_calls": kernels_by_stage(prof.events()) if cuda else {}}
+
+
+def kernels_by_stage(events, n: int = 6) -> dict:
+    """{stage: [[kernel, device ms, launches], ...] its ``n`` kernels with the most device time}: each
+    device event (kernel, copy, memset) goes to the innermost ``bake.*`` range that the profiler marked
+    on the device around its start (a stage's ``record_function``, mirrored on the GPU's timeline);
+    kernels outside every range go to "other". ``events``: the profiler's raw events (``prof.events()``:
+    ``name``, ``device_type``, ``time_range.start`` / ``.end`` in us, ``device_time_total``)."""
+    import collections
+
+    from torch.autograd import DeviceType
+
+    ranges, kernels = [], []
+    for e in events:
+        if e.device_type == DeviceType.CPU:
+            continue
+        (ranges if e.name.startswith("bake.") else kernels).append(e)
+    ranges.sort(key=lambda r: r.time_range.end - r.time_range.start)       # innermost first
+    totals: dict = collections.defaultdict(lambda: collections.defaultdict(lambda: [0.0, 0]))
+    for k in kernels:
+        at = k.time_range.start
+        stage = next((r.name[5:] for r in ranges if r.time_range.start <= at < r.time_range.end), "other")
+        row = totals[stage][k.name[:90]]
+        row[0] += k.time_range.end - k.time_range.start
+        row[1] += 1
+    return {stage: [[name, round(us / 1000.0, 2), count]
+                    for name, (us, count) in sorted(rows.items(), key=lambda kv: -kv[1][0])[:n]]
+            for stage, rows in sorted(totals.items())}
 
 
 def _frames(model, frames, rng):
