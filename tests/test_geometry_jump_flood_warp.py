@@ -1,6 +1,7 @@
 """The jump flood as Warp kernels (:mod:`uvatar.geometry.jump_flood_warp`) against its torch twin
 (:func:`uvatar.avh.bake.inpaint_torch.nearest_seed_torch`): the same seeds and distances, bit for bit,
-on CPU tensors here and on CUDA in the ``gpu`` tests; and the inpainting the bake runs is the twin's."""
+on CPU tensors here and on CUDA in the ``gpu`` tests; and the bake's inpainting with the kernels (the
+floods and :mod:`uvatar.avh.bake.inpaint_warp`'s layers) gives the torch twins' maps."""
 
 from __future__ import annotations
 
@@ -63,20 +64,29 @@ def test_no_seed_and_one_texel():
     assert flood_steps(1, 1) == [1, 2, 1] and flood_steps(1024, 1024)[:2] == [512, 256]
 
 
-def test_the_inpainting_uses_the_kernel_and_gives_the_twins_maps(monkeypatch):
-    """``nearest_seed`` takes the kernel where Warp imports; the bake's inpainting (band and ``within``:
-    three floods) gives the same maps with the kernel as with the torch flood (within float32 round-off)."""
+def test_the_inpainting_uses_the_kernels_and_gives_the_twins_maps(monkeypatch):
+    """``nearest_seed`` and the march's layers take the Warp kernels where Warp imports; the bake's
+    inpainting (band and ``within``: three floods, then a launch per layer) gives the torch twins' maps
+    within float32 round-off (the kernel sums a texel's neighbours in order), known texels unchanged."""
+    from uvatar.avh.bake import inpaint_warp
+
     rng = np.random.default_rng(1)
     image = torch.from_numpy(rng.random((80, 96, 6)).astype(np.float32))
     fill = torch.from_numpy(_seeds(80, 96, 0.5) == 0)
     within = torch.ones_like(fill)
     within[:, 80:] = False
-    calls = []
+    floods, layers = [], []
     monkeypatch.setattr("uvatar.geometry.jump_flood_warp.nearest_seed_warp",
-                        lambda s, f=nearest_seed_warp: calls.append(1) or f(s))
+                        lambda s, f=nearest_seed_warp: floods.append(1) or f(s))
+    monkeypatch.setattr(inpaint_warp, "fill_layer_warp",
+                        lambda *a, f=inpaint_warp.fill_layer_warp: layers.append(a[2]) or f(*a))
     fast = inpaint_telea_torch(image, fill, 3, 4, within)
-    assert len(calls) == 3
-    monkeypatch.setattr(inpaint_torch, "JUMP_FLOOD_KERNEL", False)
-    assert nearest_seed(fill)[1].dtype == torch.float32 and len(calls) == 3
+    marched = fill & within & (nearest_seed_torch(~fill)[1] <= 4)        # the band's texels inside ``within``
+    assert len(floods) == 3 and len(layers) >= 4 and sum(layers) == int(marched.sum())
+    monkeypatch.setattr(inpaint_torch, "WARP_KERNELS", False)
+    assert nearest_seed(fill)[1].dtype == torch.float32 and len(floods) == 3
     slow = inpaint_telea_torch(image, fill, 3, 4, within)
-    torch.testing.assert_close(fast, slow, rtol=0, atol=1e-6)     # T within one ulp of a square root
+    assert len(floods) == 3 and sum(layers) == int(marched.sum())        # the twins ran, no kernel
+    torch.testing.assert_close(fast, slow, rtol=0, atol=1e-6)
+    known = ~fill
+    assert torch.equal(fast[known], image[known])

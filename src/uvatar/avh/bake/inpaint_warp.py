@@ -1,0 +1,87 @@
+"""One Warp launch per layer of the bake's Telea march on tensors (CPU and CUDA): the fast twin of the
+per-layer torch operators of :func:`.inpaint_torch._march` (its reference, on the same padded maps).
+
+Each layer's texels read only known texels and earlier layers (``layer[q] < layer[p]``) and write only
+themselves, so one thread per texel of a layer fills it with no race. The arithmetic is the twin's:
+OpenCV's one-sided dT, ``direction = r . grad T`` (1e-6 where within 0.01 of zero), ``lev = 1 / (1 +
+|T(q) - T(p)|)``, weight ``|dst * lev * direction|``, the weighted mean of the usable neighbours, the
+texel's own value kept where none is usable; sums in neighbour order, so within float32 round-off of the
+twin's reductions. Needs the ``kernels`` extra (Warp).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+__all__ = ["fill_layer_warp"]
+
+
+@lru_cache(maxsize=1)
+def _kernel():
+    from uvatar.geometry.raycast_warp import _warp
+
+    wp = _warp()
+
+    @wp.func
+    def one_sided(layer: wp.array(dtype=wp.int64), t: wp.array(dtype=wp.float32), plus: wp.int64,
+                  minus: wp.int64, lp: wp.int64, tp: wp.float32):
+        a = layer[plus] < lp
+        b = layer[minus] < lp
+        out = wp.float32(0.0)          # (wp named in the body: Warp reads the annotations from the closure)
+        if a and b:
+            out = (t[plus] - t[minus]) * 0.5
+        elif a:
+            out = t[plus] - tp
+        elif b:
+            out = tp - t[minus]
+        return out
+
+    @wp.kernel
+    def layer_kernel(texels: wp.array(dtype=wp.int64), first: int, layer: wp.array(dtype=wp.int64),
+                     t: wp.array(dtype=wp.float32), values: wp.array2d(dtype=wp.float32),
+                     ry: wp.array(dtype=wp.float32), rx: wp.array(dtype=wp.float32),
+                     shift: wp.array(dtype=wp.int64), dst: wp.array(dtype=wp.float32), row: wp.int64):
+        i = wp.tid()
+        p = texels[first + i]
+        lp = layer[p]
+        tp = t[p]
+        gy = one_sided(layer, t, p + row, p - row, lp, tp)
+        gx = one_sided(layer, t, p + wp.int64(1), p - wp.int64(1), lp, tp)
+        total = float(0.0)
+        for o in range(shift.shape[0]):
+            q = p + shift[o]
+            if layer[q] < lp:                       # known, or filled by an earlier layer
+                direction = ry[o] * gy + rx[o] * gx
+                if wp.abs(direction) <= 0.01:
+                    direction = 1.0e-6
+                lev = 1.0 / (1.0 + wp.abs(t[q] - tp))
+                total += wp.abs(dst[o] * lev * direction)
+        if total > 0.0:
+            for c in range(values.shape[1]):
+                acc = float(0.0)
+                for o in range(shift.shape[0]):
+                    q = p + shift[o]
+                    if layer[q] < lp:
+                        direction = ry[o] * gy + rx[o] * gx
+                        if wp.abs(direction) <= 0.01:
+                            direction = 1.0e-6
+                        lev = 1.0 / (1.0 + wp.abs(t[q] - tp))
+                        acc += wp.abs(dst[o] * lev * direction) * values[q, c]
+                values[p, c] = acc / wp.max(total, 1.0e-30)
+
+    return layer_kernel
+
+
+def fill_layer_warp(texels, first: int, size: int, layer, t, values, ry, rx, shift, dst, row: int) -> None:
+    """Fill ``size`` texels of one layer in place: ``texels[first:first + size]`` (flat indices into the
+    padded maps, int64), ``layer`` (P,) int64 and ``t`` (P,) float32 the padded layer numbers and T,
+    ``values`` (P, C) float32 the padded maps (written), ``ry``, ``rx``, ``dst`` (O,) float32 and ``shift``
+    (O,) int64 the neighbour offsets, ``row`` the padded map's width. On torch's current stream."""
+    from uvatar.geometry.raycast_warp import _torch_stream, _warp
+
+    wp = _warp()
+    dev = values.device
+    wp.launch(_kernel(), dim=size, device=wp.device_from_torch(dev), stream=_torch_stream(dev),
+              inputs=[wp.from_torch(texels), int(first), wp.from_torch(layer), wp.from_torch(t),
+                      wp.from_torch(values), wp.from_torch(ry), wp.from_torch(rx), wp.from_torch(shift),
+                      wp.from_torch(dst), int(row)])
