@@ -4,7 +4,7 @@ casting, subdivision carrying UVs, and mesh Laplacians.
 Conventions: metres; UV v up with UV-image row 0 at v = 1; numpy or torch where stated.
 """
 
-from uvatar.geometry.frames import face_normals, normalize, vertex_normals
+from uvatar.geometry.frames import face_normals, mesh_normals, normalize, vertex_normals
 from uvatar.geometry.laplacian import cotangent_laplacian, uniform_laplacian
 from uvatar.geometry.ray_backends import make_caster
 from uvatar.geometry.raycast import RayCaster, RayCasterConfig, RayHits, rays_cast
@@ -27,7 +27,7 @@ __all__ = [
     "UVRaster", "UVRasterConfig", "rasterize_uv", "rasterize_uv_reference", "texel_uv",
     "sample_vertex_attribute", "texel_corners", "texel_positions", "texel_normals",
     "texel_tangent_frames", "face_tangents", "sample_texture", "sample_mesh_texture", "tangent_basis",
-    "face_normals", "vertex_normals", "normalize",
+    "face_normals", "vertex_normals", "mesh_normals", "normalize",
     "RayCaster", "RayCasterConfig", "RayHits", "make_caster", "rays_cast",
     "subdivide_midpoint", "subdivide_loop", "subdivide", "SubdivisionOrigin",
     "cotangent_laplacian", "uniform_laplacian",

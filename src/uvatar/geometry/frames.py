@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["face_normals", "vertex_normals", "vertex_face_adjacency", "normalize", "is_torch", "frames_from_normals",
+__all__ = ["face_normals", "vertex_normals", "mesh_normals", "vertex_face_adjacency", "normalize", "is_torch", "frames_from_normals",
            "face_index_tensor"]
 
 _EPS = 1e-12
@@ -61,7 +61,17 @@ def _face_cross(vertices, faces):
         import torch
 
         return torch.linalg.cross(e1, e2, dim=-1)
-    return np.cross(e1, e2)
+    return _cross_numpy(e1, e2)
+
+
+def _cross_numpy(a, b):
+    """``np.cross(a, b)`` of (..., 3) arrays, written out: the same products and differences, a few
+    times faster (np.cross moves its axes around for the general case)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
 
 
 def face_normals(vertices, faces):
@@ -98,6 +108,13 @@ def _vertex_normals_sparse(vertices, faces, adjacency, eps: float = _EPS):
     return normals.transpose(0, 1).reshape(*lead, V, 3)
 
 
+def mesh_normals(vertices, faces):
+    """(area-weighted unit vertex normals (..., V, 3), unit face normals (..., F, 3)) of one mesh:
+    :func:`vertex_normals` and :func:`face_normals` from one computation of the faces' cross products."""
+    cross = _face_cross(vertices, faces)
+    return _vertex_normals_from_cross(vertices, faces, cross), normalize(cross)
+
+
 def vertex_normals(vertices, faces, adjacency=None):
     """Area-weighted unit vertex normals. vertices (..., V, 3), faces (F, 3) -> (..., V, 3).
 
@@ -106,7 +123,11 @@ def vertex_normals(vertices, faces, adjacency=None):
     """
     if adjacency is not None and is_torch(vertices):
         return _vertex_normals_sparse(vertices, faces, adjacency)
-    cross = _face_cross(vertices, faces)  # (..., F, 3)
+    return _vertex_normals_from_cross(vertices, faces, _face_cross(vertices, faces))
+
+
+def _vertex_normals_from_cross(vertices, faces, cross):
+    """:func:`vertex_normals` from the faces' cross products ``cross`` (..., F, 3)."""
     if is_torch(vertices):
         import torch
 

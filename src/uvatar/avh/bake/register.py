@@ -44,9 +44,9 @@ from uvatar.avh.bake.register_torch import _torch_ops, nearest_points_torch, sor
 from uvatar.geometry import (
     RayCaster,
     RayCasterConfig,
-    face_normals,
     gaussian_surface_matrix,
     make_caster,
+    mesh_normals,
     sample_mesh_texture,
     smoothed_normals,
     vertex_normals,
@@ -91,9 +91,8 @@ class ScanSurface:
         """Prepare a scan; its rays run on ``device`` through ``backend`` (:func:`fast_caster`)."""
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
-        vn = np.asarray(vertex_normals(v, f), dtype=np.float64)
-        fn = np.asarray(face_normals(v, f), dtype=np.float64)
-        centroids = v[f].mean(axis=1)
+        vn, fn = (np.asarray(n, dtype=np.float64) for n in mesh_normals(v, f))
+        centroids = (v[f[:, 0]] + v[f[:, 1]] + v[f[:, 2]]) / 3.0
         points = np.concatenate([v, centroids])
         normals = np.concatenate([vn, fn])
         return cls(v, f, vn, fn, points, normals, fast_caster(v, f, device, backend), None, vn[f])
