@@ -10,7 +10,6 @@ import torch
 def test_mesh_normals_are_vertex_and_face_normals_bit_for_bit():
     """``mesh_normals`` (one cross product per face for both) equals the two functions, numpy and torch;
     the written-out numpy cross equals ``np.cross``."""
-
     from uvatar.geometry.frames import _cross_numpy, face_normals, mesh_normals, vertex_normals
 
     rng = np.random.default_rng(3)
