@@ -83,7 +83,7 @@ def pose_settings(pose: str) -> tuple[bool, bool | None]:
 
 def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int, steps: int,
             preset: str, device: str = "cpu", render_sizes=(), pairs_per_ray: float | None = None,
-            pose: str = "auto", compile_mode: str = "off") -> dict:
+            pose: str = "auto", compile_mode: str = "off", profile: bool = False) -> dict:
     """{"step_ms": median ms per training step (a synchronise after each), "pipelined_step_ms": ms per
     step of ``steps`` steps back to back, their terms read every 10th step as ``Trainer.run`` logs them,
     one synchronise at the end (what a run pays when the host may run ahead of the GPU),
@@ -93,7 +93,8 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     per sample); ``pose``: how the steps pose the body (see the module docstring); ``compile_mode``:
     "off" or the ``torch.compile`` mode of the step's encoders and decoders, "+cl": channels_last,
     "+graph": the step captured in a CUDA graph (the row says how many steps were replayed, and why a
-    capture failed)."""
+    capture failed); ``profile``: also "device_busy_ms", the device's busy time per step over 3 steps
+    under torch.profiler (its top operators on stderr): far below "step_ms", the host sets the pace."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -137,6 +138,10 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
             terms["total"]  # read: the one sync of a logged step
     _sync(device)
     row["pipelined_step_ms"] = round(1000 * (time.perf_counter() - t) / max(steps, 1), 1)
+    if profile:
+        from dva_frame import profile_table   # bench/ is on the path of a bench script
+
+        row["device_busy_ms"] = profile_table(trainer.train_step, 3, device)
     if trainer.budget is not None:
         trainer.budget.check(raise_error=False)
         row["pairs_per_ray_peak"] = round(trainer.budget.peak / trainer.budget.capacity * cfg.train.pairs_per_ray, 2)
@@ -175,6 +180,8 @@ def main(argv=None) -> int:
     ap.add_argument("--compile", default="off", help="the step's encoders and decoders: off (eager) or a "
                     f"torch.compile mode ({', '.join(COMPILE_MODES)}), each with +cl (channels_last) and/or "
                     "+graph (the step in a CUDA graph), comma separated")
+    ap.add_argument("--profile", action="store_true",
+                    help="also the device's busy ms per step (torch.profiler; its top operators on stderr)")
     args = ap.parse_args(argv)
     poses = [p.strip() for p in args.pose.split(",") if p.strip()]
     for p in poses:
@@ -201,7 +208,8 @@ def main(argv=None) -> int:
                     for p in poses:
                         for c in compiles:
                             got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}_{p}_{c}", W, S, m, args.warmup,
-                                          args.steps, args.preset, args.device, sizes, args.pairs_per_ray, p, c)
+                                          args.steps, args.preset, args.device, sizes, args.pairs_per_ray, p, c,
+                                          args.profile)
                             key = "_".join([m] + [p] * (len(poses) > 1) + [c] * (len(compiles) > 1))
                             row.update({f"{key}_{k}": v for k, v in got.items()})
                 rows.append(row)

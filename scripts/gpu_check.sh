@@ -90,7 +90,7 @@ for part in $PARTS; do
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
       # (--compile: the step's encoders and decoders eager, then through torch.compile; compiled in the warm-up)
       run_part train "${TRAIN_SECONDS:-300}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \
-        --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" \
+        --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" --profile \
         ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,off+cl+graph,default+cl,default+cl+graph}" ;;
     nearest)  # the nearest-sample kernel (the grid, session 10) against SciPy's k-d tree, on the GPU
       run_part nearest 60 "$OUT/nearest.json" python bench/nearest.py --device cuda --no-slab ;;
