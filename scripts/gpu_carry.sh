@@ -15,7 +15,8 @@
 #   run(command="bash scripts/gpu_carry.sh store", carry=[".carry/p1"], timeout_s=60)            # p1 .. p(n-1)
 #   run(command="bash scripts/gpu_carry.sh store && $CHECK", carry=[".carry/pN"], timeout_s=560)  # the last part
 #   with CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=110 BAKE_SECONDS=180 BAKE_GRAPH_SECONDS=60
-#   TESTS_SECONDS=130 bash scripts/gpu_carry.sh check nearest bake train tests": the open bars of issue 39
+#   TESTS_SECONDS=110 NEAREST_SECONDS=40 RAYS_SECONDS=40 bash scripts/gpu_carry.sh check nearest rays bake train
+#   tests": the open bars of issue 39
 #   first (the nearest-sample grid against the k-d tree, the bake with its profile, workers and the
 #   refinement's graph, the training step replayed from its graph), then the CUDA tests, within the one
 #   call that a 15-minute lease leaves room for after the machine's start (session 10: ~40 s)
@@ -25,7 +26,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PART_MB=${PART_MB:-56}
-CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=110 BAKE_SECONDS=180 BAKE_GRAPH_SECONDS=60 TESTS_SECONDS=130 bash scripts/gpu_carry.sh check nearest bake train tests"
+CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=110 BAKE_SECONDS=180 BAKE_GRAPH_SECONDS=60 TESTS_SECONDS=110 NEAREST_SECONDS=40 RAYS_SECONDS=40 bash scripts/gpu_carry.sh check nearest rays bake train tests"
 STORE=/tmp/uvatar_carry
 
 pack() {

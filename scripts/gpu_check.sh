@@ -3,7 +3,7 @@
 #   run(command="bash scripts/gpu_check.sh", timeout_s=600)          # dva avh tests bake, within $BUDGET s (560)
 #   run(command="bash scripts/gpu_check.sh avh tests", timeout_s=300) # some parts: dva avh tests compile bake train
 #   run(command="bash scripts/gpu_check.sh bake tests", timeout_s=420) # the GPU bake (issue 39 item 3) and the tests
-# (nearest: the nearest-sample kernel against the k-d tree; compile: compiled against eager on the machine's
+# (nearest: the nearest-sample kernel against the k-d tree; rays: Warp's BVH builds on the bake's rays; compile: compiled against eager on the machine's
 # CPU, which CI's machine can do too; bake: the CUDA bake (with --profile: each stage's device time),
 # which needs anny carried as well; train: bench/dva_train.py's paper-scale step, synchronised and pipelined)
 # Env overrides: BUDGET (s), DVA_PATHS / DVA_REPEATS / DVA_PAIRS (bench/dva_frame.py's --paths, --repeats,
@@ -84,7 +84,7 @@ for part in $PARTS; do
         tests/test_dva_frame_sync.py tests/test_dva_train_posing.py tests/test_dva_train_compile.py tests/test_dva_tv_warp.py \
         tests/test_dva_train_graph.py tests/test_avh_bake_register_device.py tests/test_avh_bake_refine_device.py \
         tests/test_avh_bake_refine_graph.py \
-        tests/test_devices.py tests/test_geometry_nearest_warp.py \
+        tests/test_devices.py tests/test_geometry_nearest_warp.py tests/test_geometry_jump_flood_warp.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
         tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
@@ -93,7 +93,11 @@ for part in $PARTS; do
         --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" --profile \
         ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,off+cl+graph,default+cl,default+cl+graph}" ;;
     nearest)  # the nearest-sample kernel (the grid, session 10) against SciPy's k-d tree, on the GPU
-      run_part nearest 60 "$OUT/nearest.json" python bench/nearest.py --device cuda --no-slab ;;
+      run_part nearest "${NEAREST_SECONDS:-60}" "$OUT/nearest.json" python bench/nearest.py --device cuda --no-slab ;;
+    rays)  # Warp's BVH constructors and leaf sizes on the bake's ray patterns (the default LBVH ran the bake's
+           # first hits at ~65 M rays/s on the H200; on the CPU a leaf of 4 casts 1.7-2x faster than 1)
+      run_part rays "${RAYS_SECONDS:-45}" "$OUT/raycast_bvh.json" python bench/raycast_bvh.py --device cuda \
+        --rays "${RAYS:-1000000}" --leaf-sizes 1,2,4,8 --repeats 3 ;;
     compile)  # compiled against eager (torch.compile on the machine's CPU cores; ~130 s on 2 cores)
       run_part compile 90 "$OUT/pytest_compile.txt" python -m pytest -q -x -p no:cacheprovider -k compiled \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_train_compile.py ;;
@@ -115,7 +119,7 @@ for part in $PARTS; do
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    *) echo "unknown part $part (dva avh tests compile bake train nearest)" | tee -a "$OUT/status.txt" ;;
+    *) echo "unknown part $part (dva avh tests compile bake train nearest rays)" | tee -a "$OUT/status.txt" ;;
   esac
 done
 tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null
