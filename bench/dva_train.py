@@ -139,7 +139,7 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     _sync(device)
     row["pipelined_step_ms"] = round(1000 * (time.perf_counter() - t) / max(steps, 1), 1)
     if profile:
-        from dva_frame import profile_table   # bench/ is on the path of a bench script
+        from dva_frame import profile_table  # bench/ is on the path of a bench script
 
         row["device_busy_ms"] = profile_table(trainer.train_step, 3, device)
     if trainer.budget is not None:
