@@ -52,15 +52,15 @@ def _kernels():
         w = sy.shape[1]
         fy = float(y)
         fx = float(x)
-        top = 3.0e38
-        by = float(FAR)
-        bx = float(FAR)
+        top = wp.float32(3.0e38)     # dynamic variables (Warp): updated in the loops
+        by = wp.float32(FAR)
+        bx = wp.float32(FAR)
         for dy in range(-1, 2):          # the twin's candidate order: (dy, dx) row by row
             for dx in range(-1, 2):
                 ny = y + s * dy
                 nx = x + s * dx
-                cy = float(FAR)
-                cx = float(FAR)
+                cy = wp.float32(FAR)
+                cx = wp.float32(FAR)
                 if ny >= 0 and ny < h and nx >= 0 and nx < w:
                     cy = sy[ny, nx]
                     cx = sx[ny, nx]

@@ -47,7 +47,7 @@ def _kernel():
         tp = t[p]
         gy = one_sided(layer, t, p + row, p - row, lp, tp)
         gx = one_sided(layer, t, p + wp.int64(1), p - wp.int64(1), lp, tp)
-        total = 0.0
+        total = wp.float32(0.0)       # a dynamic variable (Warp): mutated in the loop
         for o in range(shift.shape[0]):
             q = p + shift[o]
             if layer[q] < lp:                       # known, or filled by an earlier layer
@@ -58,7 +58,7 @@ def _kernel():
                 total += wp.abs(dst[o] * lev * direction)
         if total > 0.0:
             for c in range(values.shape[1]):
-                acc = 0.0
+                acc = wp.float32(0.0)
                 for o in range(shift.shape[0]):
                     q = p + shift[o]
                     if layer[q] < lp:
