@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from uvatar.devices import check_device, on_device, to_device_async
+from uvatar.devices import check_device, on_device, to_device_async, to_numpy
 from uvatar.errors import InputError
 
 
@@ -55,3 +55,31 @@ def test_cuda_copies_never_sync():
     finally:
         torch.cuda.set_sync_debug_mode(0)
     assert torch.allclose(y.cpu(), torch.as_tensor(x, dtype=torch.float32)) and z.is_cuda
+
+
+def test_to_numpy_on_the_cpu_is_the_tensors_own_memory():
+    """On the CPU ``to_numpy`` is ``detach().cpu().numpy()``: the values, the dtype, the same memory (no
+    copy), a tensor that requires grad detached."""
+    t = torch.linspace(0, 1, 12, dtype=torch.float64).reshape(3, 4).requires_grad_()
+    a = to_numpy(t)
+    assert isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == (3, 4)
+    np.testing.assert_array_equal(a, t.detach().numpy())
+    m = torch.tensor([True, False, True])
+    b = to_numpy(m)
+    b[1] = True
+    assert bool(m[1]) and b.dtype == bool
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_to_numpy_from_cuda_through_pinned_memory():
+    """From CUDA: the same values as ``.cpu().numpy()``, for a strided view and float16 / bool / int64
+    dtypes; the array owns pinned memory that outlives the tensor it came from."""
+    base = torch.rand(64, 32, device="cuda", dtype=torch.float32)
+    for t in (base, base.T, base[::2, 3:7], base.half(), base > 0.5, (base * 100).long()):
+        a = to_numpy(t)
+        np.testing.assert_array_equal(a, t.cpu().numpy())
+    a = to_numpy(torch.full((1024, 1024), 3.0, device="cuda"))
+    gc.collect()
+    torch.cuda.synchronize()
+    assert a.shape == (1024, 1024) and (a == 3.0).all()

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from uvatar.errors import InputError
 
-__all__ = ["check_device", "on_device", "to_device_async"]
+__all__ = ["check_device", "on_device", "to_device_async", "to_numpy"]
 
 
 def check_device(name: str, flag: str = "--device") -> str:
@@ -100,3 +100,19 @@ def to_device_async(array, device, dtype=None):
     if dev.type != "cuda" or t.device.type != "cpu":
         return t.to(dev)
     return t.pin_memory().to(dev, non_blocking=True)
+
+
+def to_numpy(tensor):
+    """``tensor`` as a numpy array on the host (detached). From CUDA through pinned memory: the copy lands
+    in a block of torch's caching host allocator (no fresh pageable pages for the driver to stage through
+    and fault in), then the stream is synchronised once; the array keeps that block alive. Elsewhere
+    ``tensor.detach().cpu().numpy()`` (on the CPU: the same memory, no copy)."""
+    import torch
+
+    t = tensor.detach()
+    if t.device.type != "cuda":
+        return t.cpu().numpy()
+    host = torch.empty(t.shape, dtype=t.dtype, pin_memory=True)
+    host.copy_(t, non_blocking=True)
+    torch.cuda.current_stream(t.device).synchronize()
+    return host.numpy()

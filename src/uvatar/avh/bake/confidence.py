@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from uvatar.devices import to_numpy
 from uvatar.geometry import RayCaster, RayCasterConfig, face_normals
 from uvatar.geometry.frames import (
     frames_from_normals,  # re-exported: the bake's callers import it here
@@ -135,7 +136,7 @@ def _face_visibility_torch(v, f, caster, n_rays, offset, index, stratified, devi
     d = torch.matmul(local.to(torch.float32), frames.transpose(1, 2)).reshape(-1, 3)  # (B*n, 3)
     o = centroids.repeat_interleave(n_rays, dim=0)
     blocked = caster.any_hit_torch(o, d).reshape(len(sel), n_rays)
-    return (1.0 - blocked.to(torch.float64).mean(dim=1)).cpu().numpy()
+    return to_numpy(1.0 - blocked.to(torch.float64).mean(dim=1))
 
 
 def face_visibility_reference(vertices, faces, caster: RayCaster | None = None, n_rays: int = 64,

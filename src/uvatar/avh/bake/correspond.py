@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uvatar.avh.bake.register import ScanSurface
+from uvatar.devices import to_numpy
 
 __all__ = ["TexelMatches", "choose_candidates", "choose_candidates_reference", "match_texels"]
 
@@ -179,6 +180,6 @@ def match_texels(points, normals, scan: ScanSurface, polarity_rule: bool = True,
     if on_torch:
         kept = {name: value for name, value in vars(matches).items() if value is not None}
         for name, value in kept.items():
-            setattr(matches, name, value.cpu().numpy())
+            setattr(matches, name, to_numpy(value))
         matches.on_device = kept
     return matches

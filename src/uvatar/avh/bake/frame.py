@@ -20,6 +20,7 @@ from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.correspond import match_texels
 from uvatar.avh.bake.inpaint import grow_mask, inpaint_telea
 from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan, scan_colours
+from uvatar.devices import to_numpy
 from uvatar.errors import InputError
 from uvatar.geometry import (
     UVRaster,
@@ -180,7 +181,7 @@ class BodyLayout:
             self._cache[key] = torch.as_tensor(self.texel_flat, device=v.device)
         out = torch.full((r * r, *v.shape[1:]), fill, dtype=getattr(torch, np.dtype(dtype).name), device=v.device)
         out[self._cache[key]] = v.to(out.dtype)
-        return out.reshape(r, r, *v.shape[1:]).cpu().numpy()
+        return to_numpy(out.reshape(r, r, *v.shape[1:]))
 
     def to_map(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
         """(M[, C]) values at the valid texels -> (R, R[, C]) map, ``fill`` elsewhere."""
@@ -399,7 +400,7 @@ def bake_frame(shadow: np.ndarray, layout: BodyLayout, scan, config: BakeConfig 
     if device is not None:   # the maps laid out on the device, the per-texel values read back for the stats
         kappa_map, w_map, points_map = (layout.to_map_torch(a, dtype=dt)
                                         for a, dt in ((kappa, np.float32), (w, np.float32), (m.points, np.float64)))
-        kappa, w = kappa.cpu().numpy(), w.cpu().numpy()
+        kappa, w = to_numpy(kappa), to_numpy(w)
     else:
         kappa_map, w_map = layout.to_map(kappa), layout.to_map(w)
         points_map = layout.to_map(matches.points, dtype=np.float64)
@@ -495,7 +496,8 @@ def _inpaint_maps(layout: BodyLayout, colors, disp, matched_map, config: BakeCon
     gutter = layout.island_gutter(config.inpaint_gutter)
     both = inpaint_telea_torch(maps.reshape(r, r, 6), torch.from_numpy(~matched_map).to(device),
                                config.inpaint_radius, config.inpaint_band,
-                               None if gutter is None else torch.from_numpy(gutter).to(device)).cpu().numpy()
+                               None if gutter is None else torch.from_numpy(gutter).to(device))
+    both = to_numpy(both)
     return both[..., :3], both[..., 3:]
 
 

@@ -41,6 +41,7 @@ import scipy.sparse.linalg as spla
 from uvatar.avh.bake.config import STAGE_MODES, RegistrationConfig
 from uvatar.avh.bake.register_match import match_vertices
 from uvatar.avh.bake.register_torch import _torch_ops, nearest_points_torch, sorted_points_torch
+from uvatar.devices import to_numpy
 from uvatar.geometry import (
     RayCaster,
     RayCasterConfig,
@@ -210,7 +211,7 @@ def scan_colours(surface: ScanSurface, scan, face, bary, device: str | None = No
     uvs, uv_faces, texture = surface.on_device[key]
     face_t = torch.as_tensor(face, dtype=torch.int64, device=device)
     out = sample_mesh_texture(uvs, uv_faces, texture, face_t, torch.as_tensor(bary, device=device))
-    return out if tensors else out.cpu().numpy()
+    return out if tensors else to_numpy(out)
 
 
 def fast_caster(vertices, faces, device: str = "cpu", backend: str = "auto") -> RayCaster:

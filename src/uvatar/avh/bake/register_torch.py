@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from uvatar.avh.bake.register_match import match_rule
+from uvatar.devices import to_numpy
 from uvatar.geometry import vertex_normals
 
 __all__ = ["sorted_points_torch", "nearest_points_torch", "nearest_points_in_window", "widest_slab",
@@ -297,7 +298,7 @@ class _TorchOps:
         return self.torch.as_tensor(np.asarray(a, dtype=np.float64), device=self.device)
 
     def numpy(self, a) -> np.ndarray:
-        return a.detach().cpu().numpy()
+        return to_numpy(a)
 
     def weights(self, ok):
         """(V,) float64: 1 where matched."""
@@ -339,7 +340,7 @@ class _TorchOps:
         torch = self.torch
         last = last if torch.is_tensor(last) else torch.full((), last, dtype=torch.float64, device=self.device)
         tail = torch.stack([last, self.widest.to(torch.float64), self.failed.to(torch.float64)])
-        host = torch.cat([x.reshape(-1), *(f[None] for f in fractions), tail]).cpu().numpy()
+        host = to_numpy(torch.cat([x.reshape(-1), *(f[None] for f in fractions), tail]))
         if host[-1]:
             raise RuntimeError("registration: a system was not positive definite (anchor_weight > 0 keeps it so)")
         return (host[: x.numel()].reshape(x.shape), [float(f) for f in host[x.numel(): -3]], float(host[-3]),
