@@ -20,7 +20,7 @@ from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.correspond import match_texels
 from uvatar.avh.bake.inpaint import grow_mask, inpaint_telea
 from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan, scan_colours
-from uvatar.devices import to_numpy
+from uvatar.devices import on_device, to_numpy
 from uvatar.errors import InputError
 from uvatar.geometry import (
     UVRaster,
@@ -176,11 +176,8 @@ class BodyLayout:
 
         v = texel_values
         r = self.resolution
-        key = ("texel_flat", str(v.device))
-        if key not in self._cache:
-            self._cache[key] = torch.as_tensor(self.texel_flat, device=v.device)
         out = torch.full((r * r, *v.shape[1:]), fill, dtype=getattr(torch, np.dtype(dtype).name), device=v.device)
-        out[self._cache[key]] = v.to(out.dtype)
+        out[on_device(self.texel_flat, v.device)] = v.to(out.dtype)
         return to_numpy(out.reshape(r, r, *v.shape[1:]))
 
     def to_map(self, texel_values, fill=0.0, dtype=np.float32) -> np.ndarray:
@@ -492,11 +489,11 @@ def _inpaint_maps(layout: BodyLayout, colors, disp, matched_map, config: BakeCon
     r = layout.resolution
     values = torch.cat([torch.as_tensor(a, device=device).to(torch.float32) for a in (colors, disp)], dim=1)
     maps = torch.zeros((r * r, 6), dtype=torch.float32, device=device)
-    maps[torch.from_numpy(layout.texel_flat).to(device)] = values
+    maps[on_device(layout.texel_flat, device)] = values          # the layout's constants go over once
     gutter = layout.island_gutter(config.inpaint_gutter)
     both = inpaint_telea_torch(maps.reshape(r, r, 6), torch.from_numpy(~matched_map).to(device),
                                config.inpaint_radius, config.inpaint_band,
-                               None if gutter is None else torch.from_numpy(gutter).to(device))
+                               None if gutter is None else on_device(gutter, device))
     both = to_numpy(both)
     return both[..., :3], both[..., 3:]
 
