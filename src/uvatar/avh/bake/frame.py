@@ -20,7 +20,7 @@ from uvatar.avh.bake.config import BakeConfig
 from uvatar.avh.bake.correspond import match_texels
 from uvatar.avh.bake.inpaint import grow_mask, inpaint_telea
 from uvatar.avh.bake.register import ScanSurface, fast_caster, register_to_scan, scan_colours
-from uvatar.devices import on_device, to_numpy
+from uvatar.devices import on_device, to_device_async, to_numpy
 from uvatar.errors import InputError
 from uvatar.geometry import (
     UVRaster,
@@ -491,7 +491,7 @@ def _inpaint_maps(layout: BodyLayout, colors, disp, matched_map, config: BakeCon
     maps = torch.zeros((r * r, 6), dtype=torch.float32, device=device)
     maps[on_device(layout.texel_flat, device)] = values          # the layout's constants go over once
     gutter = layout.island_gutter(config.inpaint_gutter)
-    both = inpaint_telea_torch(maps.reshape(r, r, 6), torch.from_numpy(~matched_map).to(device),
+    both = inpaint_telea_torch(maps.reshape(r, r, 6), to_device_async(~matched_map, device),
                                config.inpaint_radius, config.inpaint_band,
                                None if gutter is None else on_device(gutter, device))
     both = to_numpy(both)
