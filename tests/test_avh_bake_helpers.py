@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 OFFSET = 0.01  # metres, scan = body + OFFSET * vertex normal
 
@@ -107,3 +108,48 @@ def test_heldout_frames_names_int_entries_and_is_empty_without_ground_truth(tmp_
     assert heldout_frames(tmp_path) == []                      # unreadable: no held-out frames
     write_json(tmp_path / "gt" / "info.json", {"heldout_frames": [7, "000009"]})
     assert heldout_frames(tmp_path) == ["000007", "000009"]
+
+
+def _baked_stub(r: int = 16):
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(0)
+    baked = SimpleNamespace(texture=rng.random((r, r, 3)).astype(np.float32),
+                            displacement=rng.normal(0, 0.01, (r, r, 3)).astype(np.float32),
+                            kappa=rng.random((r, r)).astype(np.float32), w=rng.random((r, r)).astype(np.float32),
+                            valid=np.ones((r, r), bool), matched=rng.random((r, r)) > 0.3,
+                            stats={"kappa_mean": 0.6, "matched_fraction": 0.7})
+    fit = SimpleNamespace(poses=np.zeros(9, np.float32), Rh=np.zeros(3), Th=np.zeros(3), shapes=np.zeros(2),
+                          scale=1.0)
+    return baked, fit
+
+
+def test_a_baked_frame_lands_after_its_preview_and_not_without_it(tmp_path, monkeypatch):
+    """The preview is drawn on a thread while the maps compress, and is on disk before the frame (a frame
+    on disk always has its preview); a preview that fails to write leaves no frame. The frame reads back
+    (float16 texture, float32 displacement)."""
+    from uvatar.avh.bake import dataset
+    from uvatar.avh.bake.dataset import frame_path, load_baked_frame, preview_path, write_baked_frame
+
+    baked, fit = _baked_stub()
+    real = dataset.write_bytes
+    seen = []
+
+    def checked(path, data, suffix=None):
+        seen.append(preview_path(tmp_path, "000003").is_file())
+        real(path, data, suffix)
+
+    monkeypatch.setattr(dataset, "write_bytes", checked)
+    path = write_baked_frame(tmp_path, "000003", baked, fit)
+    assert seen == [True] and path == frame_path(tmp_path, "000003")
+    z = load_baked_frame(path)
+    np.testing.assert_array_equal(z["displacement"], baked.displacement)
+    np.testing.assert_allclose(z["texture"], baked.texture, atol=5e-4)
+
+    def broken(*a, **k):
+        raise OSError(28, "No space left on device", str(preview_path(tmp_path, "000004")))
+
+    monkeypatch.setattr(dataset, "write_image", broken)
+    with pytest.raises(OSError, match="No space"):
+        write_baked_frame(tmp_path, "000004", baked, fit)
+    assert not frame_path(tmp_path, "000004").exists()

@@ -130,3 +130,31 @@ def test_read_image_channels_depths_and_errors(tmp_path):
     (tmp_path / "bad.png").write_bytes(b"\x89PNG not really")
     with pytest.raises(InputError, match="unreadable"):
         read_image(tmp_path / "bad.png")
+
+
+@pytest.mark.parametrize("level", [None, 1, 9])
+def test_npz_at_a_deflate_level_is_numpys_npz(tmp_path, level):
+    """``write_npz(level=...)`` writes numpy's own layout (``np.load`` reads every array back, dtypes and
+    shapes kept); level 1 is the baked frames' (faster, a little larger than level 9)."""
+    rng = np.random.default_rng(0)
+    arrays = dict(a=rng.random((64, 64, 3)).astype(np.float32), b=rng.random((64, 64)) > 0.5,
+                  c=np.float64(0.25), d=np.arange(5, dtype=np.int16))
+    path = tmp_path / f"x{level}.npz"
+    write_npz(path, level=level, **arrays)
+    with np.load(path) as z:
+        assert sorted(z.files) == sorted(arrays)
+        for k, v in arrays.items():
+            assert z[k].dtype == np.asarray(v).dtype and np.array_equal(z[k], v)
+    if level == 9:
+        write_npz(tmp_path / "fast.npz", level=1, **arrays)
+        assert path.stat().st_size <= (tmp_path / "fast.npz").stat().st_size
+
+
+def test_png_level_keeps_the_pixels(tmp_path):
+    """``write_image(png_level=1)`` (the bake's previews): the same pixels as the default level."""
+    from uvatar.io_utils import read_image
+
+    img = np.random.default_rng(1).random((40, 60, 3)).astype(np.float32)
+    write_image(tmp_path / "a.png", img)
+    write_image(tmp_path / "b.png", img, png_level=1)
+    assert np.array_equal(read_image(tmp_path / "a.png"), read_image(tmp_path / "b.png"))

@@ -150,26 +150,50 @@ def write_json(path: str | Path, obj: Any, indent: int = 2) -> None:
         tmp.write_text(json.dumps(obj, indent=indent, default=default) + "\n")
 
 
-def write_npz(path: str | Path, **arrays: np.ndarray) -> None:
-    """Write a compressed ``.npz`` atomically."""
+def write_bytes(path: str | Path, data, suffix: str | None = None) -> None:
+    """Write ``data`` (bytes-like) to ``path`` atomically (:func:`atomic_path`)."""
+    with atomic_path(path, suffix=suffix) as tmp:
+        tmp.write_bytes(data)
+
+
+def npz_bytes(level: int | None = None, **arrays: np.ndarray):
+    """A compressed ``.npz`` of ``arrays`` in memory (``np.load`` reads it). ``level``: the deflate level,
+    1 (fastest) to 9; None: numpy's ``savez_compressed`` (zlib's default, 6). On a baked frame's float
+    maps level 1 compresses ~1.4x faster for ~4 % more bytes."""
     import io
 
-    buffer = io.BytesIO()  # compress in memory, then one plain write (no zip file left open on a full disk)
-    np.savez_compressed(buffer, **arrays)
-    with atomic_path(path, suffix=".npz") as tmp:
-        tmp.write_bytes(buffer.getbuffer())
+    buffer = io.BytesIO()
+    if level is None:
+        np.savez_compressed(buffer, **arrays)
+    else:   # numpy's own layout (one .npy member per array), at the chosen level
+        import zipfile
+
+        from numpy.lib import format as npy_format
+
+        with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=int(level)) as zf:
+            for name, array in arrays.items():
+                with zf.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    npy_format.write_array(member, np.asanyarray(array), allow_pickle=False)
+    return buffer.getbuffer()
 
 
-def write_image(path: str | Path, image: np.ndarray) -> None:
-    """Write an image atomically. ``image``: (H, W[, C]) float in [0, 1] or uint8."""
+def write_npz(path: str | Path, level: int | None = None, **arrays: np.ndarray) -> None:
+    """Write a compressed ``.npz`` atomically (:func:`npz_bytes`: compressed in memory, then one plain
+    write, so no zip file is left open on a full disk)."""
+    write_bytes(path, npz_bytes(level, **arrays), suffix=".npz")
+
+
+def write_image(path: str | Path, image: np.ndarray, png_level: int | None = None) -> None:
+    """Write an image atomically. ``image``: (H, W[, C]) float in [0, 1] or uint8. ``png_level``: a PNG's
+    deflate level (1 fastest .. 9; None: Pillow's default, 6), for pictures written often (previews)."""
     import imageio.v3 as iio
 
     arr = np.asarray(image)
     if arr.dtype != np.uint8:
         arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    data = iio.imwrite("<bytes>", arr, extension=Path(path).suffix or ".png")  # encode, then one plain write
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+    suffix = Path(path).suffix or ".png"
+    extra = {"compress_level": int(png_level)} if png_level is not None and suffix.lower() == ".png" else {}
+    write_bytes(path, iio.imwrite("<bytes>", arr, extension=suffix, **extra))  # encode, then one plain write
 
 
 def read_image(path: str | Path, what: str = "image", rgb: bool = True) -> np.ndarray:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.errors import InputError
-from uvatar.io_utils import read_json, write_image, write_json, write_npz
+from uvatar.io_utils import npz_bytes, read_json, write_bytes, write_image, write_json
 
 __all__ = [
     "DATASET_JSON", "frame_path", "rejected_path", "preview_path", "write_baked_frame", "load_baked_frame",
@@ -48,25 +48,42 @@ def is_baked_dataset(root) -> bool:
     return (Path(root) / DATASET_JSON).is_file() or (Path(root) / "frames").is_dir()
 
 
+#: the baked frames' deflate level (:func:`uvatar.io_utils.npz_bytes`) and their previews' PNG level: a
+#: frame is written for every frame baked (~25 MB of maps at 1024²), on the bake's critical path
+FRAME_NPZ_LEVEL = 1
+PREVIEW_PNG_LEVEL = 1
+
+
 def write_baked_frame(root, frame: str, baked, fit, rejected: bool = False, float16: bool = True,
                       preview: bool = True) -> Path:
-    """Write one :class:`~uvatar.avh.bake.frame.BakedFrame` (+ its fit) atomically; returns the npz path."""
+    """Write one :class:`~uvatar.avh.bake.frame.BakedFrame` (+ its fit) atomically; returns the npz path.
+    The preview is drawn and written on a thread while the maps are compressed (both release the GIL),
+    and is on disk before the frame is: a frame on disk always has its preview, even after a kill."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from uvatar.avh.bake.frame import preview_image
 
     half = np.float16 if float16 else np.float32
     path = rejected_path(root, frame) if rejected else frame_path(root, frame)
-    if preview:  # before the frame: a frame on disk always has its preview, even after a kill
-        write_image(preview_path(root, frame),
-                    preview_image(baked.texture, baked.displacement, baked.kappa, baked.valid))
-    write_npz(
-        path,
-        texture=baked.texture.astype(half), displacement=baked.displacement.astype(np.float32),
-        kappa=baked.kappa.astype(half), w=baked.w.astype(half), valid=baked.valid, matched=baked.matched,
-        pose=np.asarray(fit.poses, np.float32), Rh=np.asarray(fit.Rh, np.float32),
-        Th=np.asarray(fit.Th, np.float32), shapes=np.asarray(fit.shapes, np.float32),
-        scale=np.float32(fit.scale), kappa_mean=np.float64(baked.stats["kappa_mean"]),
-        matched_fraction=np.float64(baked.stats["matched_fraction"]),
-    )
+
+    def draw():
+        write_image(preview_path(root, frame), preview_image(baked.texture, baked.displacement, baked.kappa,
+                                                             baked.valid), png_level=PREVIEW_PNG_LEVEL)
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        drawn = pool.submit(draw) if preview else None
+        data = npz_bytes(
+            FRAME_NPZ_LEVEL,
+            texture=baked.texture.astype(half), displacement=baked.displacement.astype(np.float32),
+            kappa=baked.kappa.astype(half), w=baked.w.astype(half), valid=baked.valid, matched=baked.matched,
+            pose=np.asarray(fit.poses, np.float32), Rh=np.asarray(fit.Rh, np.float32),
+            Th=np.asarray(fit.Th, np.float32), shapes=np.asarray(fit.shapes, np.float32),
+            scale=np.float32(fit.scale), kappa_mean=np.float64(baked.stats["kappa_mean"]),
+            matched_fraction=np.float64(baked.stats["matched_fraction"]),
+        )
+        if drawn is not None:
+            drawn.result()           # the preview first (its error, if any, stops the frame's write)
+    write_bytes(path, data, suffix=".npz")
     return path
 
 
