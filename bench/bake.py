@@ -10,7 +10,9 @@ stages); colour_round_seconds_per_frame: the mean of a frame's rounds of the cro
 refinement as the bake runs them (:func:`_colour_rounds`: one round per ``photometric_radii``, each
 refining against its reference from the colours the previous round ended with, then sampling the
 colours for the next), and seconds_per_frame_with_colour_rounds the frame and its rounds together;
-frames_per_hour (one process) from it. progress goes to stderr.
+frames_per_hour (one process) from it; write_seconds_per_frame, what writing the frame takes (as ``uvatar
+bake`` does after each: host work on its critical path), and seconds_per_frame_with_colour_rounds_and_write
+the three together. progress goes to stderr.
 
 ``--reference`` also bakes each frame again, in the same run, with the visibility as it was before
 issue 27's second pass (the paper's 64 rays per face, one shared lattice) from the same fit, and
@@ -18,7 +20,7 @@ reports those stages' seconds and rays (``reference``) and how far kappa moved
 (``visibility_tolerance``: |delta kappa| over the texels, |delta vertex visibility| of the scan, mean,
 99th percentile and max). ``--workers N`` (N > 1; or several, ``4,8``, one run each, ``throughput`` the
 fastest and ``throughput_runs`` all) then bakes the frames again on N processes, each a
-frame at a time as ``uvatar bake --workers N`` does (the frame plus its colour rounds), and reports
+frame at a time as ``uvatar bake --workers N`` does (the frame plus its colour rounds, then its write), and reports
 the machine's throughput in wall time (``throughput``: seconds per frame and frames per hour with N
 workers; the machine may be shared, ``load_average_1min`` says how much); ``--throughput-frames`` (default
 4 per worker: the timed frames over and over) is how many it bakes, so that no worker idles while others
@@ -377,23 +379,44 @@ def _setup(texels: int, device: str, torch_stages: str = "auto", refine_graph: b
     return model, layout, config, raster, time.perf_counter() - t0
 
 
-def _bake_with_rounds(model, layout, config, item, targets) -> float:
-    """Bake one frame and run its colour rounds, as a worker of ``uvatar bake`` does; CPU seconds."""
+def _write_seconds(baked, fit, repeats: int = 3) -> float:
+    """Median wall seconds of writing a baked frame as ``uvatar bake`` does after each frame
+    (:func:`uvatar.avh.bake.dataset.write_baked_frame`: its maps compressed, its preview drawn), into a
+    temporary folder: host work on the bake's critical path in one process, whatever the device."""
+    import tempfile
+
+    from uvatar.avh.bake.dataset import write_baked_frame
+
+    times = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            write_baked_frame(tmp, "000000", baked, fit)
+            times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def _bake_with_rounds(model, layout, config, item, targets, out_dir=None) -> float:
+    """Bake one frame and run its colour rounds, as a worker of ``uvatar bake`` does, and write the frame
+    into ``out_dir`` when given (as it does too); CPU seconds."""
+    from uvatar.avh.bake.dataset import write_baked_frame
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.avh.bake.register import ScanSurface
 
     fit, _, scan = item
     c0 = time.process_time()
     surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
-    _, used = bake_fit(model, fit, layout, scan, config, surface=surface)
+    baked, used = bake_fit(model, fit, layout, scan, config, surface=surface)
     if targets:
         _colour_rounds(model, used, targets, scan, surface, config)
+    if out_dir is not None:
+        write_baked_frame(out_dir, "000000", baked, used)
     return time.process_time() - c0
 
 
 def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, ready, go, results):
     """One process of the throughput run: set up (and the colour targets), say ready, wait for the
-    start, bake its frames."""
+    start, bake its frames and write each (:func:`_bake_with_rounds`)."""
     from uvatar.avh.bake.register import ScanSurface
     from uvatar.threads import limit_process_to_one_thread
 
@@ -405,8 +428,11 @@ def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, rea
         _bake_with_rounds(model, layout, config, items[0], targets[0])
     ready.put(rank)
     go.wait()
-    for item, target in zip(items, targets, strict=True):
-        results.put((rank, _bake_with_rounds(model, layout, config, item, target), time.perf_counter()))
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as out_dir:    # each frame written, as uvatar bake writes it
+        for item, target in zip(items, targets, strict=True):
+            results.put((rank, _bake_with_rounds(model, layout, config, item, target, out_dir), time.perf_counter()))
 
 
 def _throughput(workers: int, texels: int, device: str, torch_stages: str, refine_graph: bool, items,
@@ -507,6 +533,7 @@ def main(argv=None) -> int:
             refs.append(_paper_visibility(model, used, layout, scan, surface, baked, config))
         print(f"frame {i}: {totals[-1]:.2f} s ({cpu_totals[-1]:.2f} s CPU) + colour rounds {round_clock.wall:.2f} s "
               f"({round_clock.cpu:.2f} s CPU), kappa mean {kappa[-1]:.3f}", file=sys.stderr)
+    write = _write_seconds(baked, used)
     n_rounds = len(config.pose_refine.photometric_radii)
     per_frame, cpu_frame = float(np.mean(totals)), float(np.mean(cpu_totals))
     colour_round = float(np.mean([c.wall for c in rounds])) / n_rounds       # the rounds' mean
@@ -522,6 +549,8 @@ def main(argv=None) -> int:
         "colour_rounds": n_rounds,
         "seconds_per_frame_with_colour_rounds": round(with_rounds, 3),
         "frames_per_hour": round(3600.0 / with_rounds, 1),
+        "write_seconds_per_frame": round(write, 3),
+        "seconds_per_frame_with_colour_rounds_and_write": round(with_rounds + write, 3),
         "cpu_seconds_per_frame_with_colour_rounds": round(cpu_with_rounds, 3),
         "frames_per_hour_per_idle_core": round(3600.0 / cpu_with_rounds, 1),
         "device": args.device,
