@@ -36,6 +36,20 @@ def _kernel():
             out = tp - t[minus]
         return out
 
+    @wp.func
+    def weight(o: int, p: wp.int64, layer: wp.array(dtype=wp.int64), t: wp.array(dtype=wp.float32),
+               ry: wp.array(dtype=wp.float32), rx: wp.array(dtype=wp.float32), shift: wp.array(dtype=wp.int64),
+               dst: wp.array(dtype=wp.float32), lp: wp.int64, tp: wp.float32, gy: wp.float32, gx: wp.float32):
+        """Neighbour ``o``'s Telea weight for texel ``p``: 0 unless it is known or of an earlier layer."""
+        q = p + shift[o]
+        out = wp.float32(0.0)
+        if layer[q] < lp:
+            direction = ry[o] * gy + rx[o] * gx
+            if wp.abs(direction) <= 0.01:
+                direction = 1.0e-6
+            out = wp.abs(dst[o] * (1.0 / (1.0 + wp.abs(t[q] - tp))) * direction)
+        return out
+
     @wp.kernel
     def layer_kernel(texels: wp.array(dtype=wp.int64), first: int, layer: wp.array(dtype=wp.int64),
                      t: wp.array(dtype=wp.float32), values: wp.array2d(dtype=wp.float32),
@@ -49,24 +63,12 @@ def _kernel():
         gx = one_sided(layer, t, p + wp.int64(1), p - wp.int64(1), lp, tp)
         total = wp.float32(0.0)       # a dynamic variable (Warp): mutated in the loop
         for o in range(shift.shape[0]):
-            q = p + shift[o]
-            if layer[q] < lp:                       # known, or filled by an earlier layer
-                direction = ry[o] * gy + rx[o] * gx
-                if wp.abs(direction) <= 0.01:
-                    direction = 1.0e-6
-                lev = 1.0 / (1.0 + wp.abs(t[q] - tp))
-                total += wp.abs(dst[o] * lev * direction)
+            total += weight(o, p, layer, t, ry, rx, shift, dst, lp, tp, gy, gx)
         if total > 0.0:
             for c in range(values.shape[1]):
                 acc = wp.float32(0.0)
                 for o in range(shift.shape[0]):
-                    q = p + shift[o]
-                    if layer[q] < lp:
-                        direction = ry[o] * gy + rx[o] * gx
-                        if wp.abs(direction) <= 0.01:
-                            direction = 1.0e-6
-                        lev = 1.0 / (1.0 + wp.abs(t[q] - tp))
-                        acc += wp.abs(dst[o] * lev * direction) * values[q, c]
+                    acc += weight(o, p, layer, t, ry, rx, shift, dst, lp, tp, gy, gx) * values[p + shift[o], c]
                 values[p, c] = acc / wp.max(total, 1.0e-30)
 
     return layer_kernel
