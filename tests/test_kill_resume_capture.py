@@ -69,8 +69,12 @@ def test_capture_import_killed_mid_run_resumes_to_identical_scans(take, capsys):
 
     cap = take / "cap"
     argv = ["-m", "uvatar", "capture", "import", "src", "cap", "--no-progress"]
-    run_killed(argv, take, lambda: count(cap / "scans", "*.png") >= 2)
-    kept = count(cap / "scans", "*.png")
+    # finished frames: a frame's .ply is renamed into place after its .png (the PLY names its texture), and
+    # "*.png" also matched a half-written texture's temp file (".000001.<random>.png"), so a kill there
+    # left one finished frame where the test counted two
+    finished = "[0-9]*.ply"
+    run_killed(argv, take, lambda: count(cap / "scans", finished) >= 2)
+    kept = count(cap / "scans", finished)
     assert kept < TAKE_FRAMES, "the kill came after the last frame"
     record = json.loads((cap / "scans" / "stage.json").read_text())
     assert record["stage"] == "capture import" and not record["complete"] and record["total"] == TAKE_FRAMES
@@ -114,8 +118,9 @@ def test_capture_masks_killed_mid_run_resumes_to_identical_masks(masked, capsys)
 
     cap, total = masked / "cap", MASK_FRAMES * MASK_CAMERAS
     argv = ["-m", "uvatar", "capture", "masks", "cap", "--no-progress"]
-    run_killed(argv, masked, lambda: count(cap / "masks", "*/*.png") >= 2)
-    kept = count(cap / "masks", "*/*.png")
+    finished = "*/[0-9]*.png"          # not a half-written mask's temp file (".000003.<random>.png")
+    run_killed(argv, masked, lambda: count(cap / "masks", finished) >= 2)
+    kept = count(cap / "masks", finished)
     assert kept < total, "the kill came after the last mask"
     record = json.loads((cap / "masks" / "stage.json").read_text())
     assert record["stage"] == "capture masks" and not record["complete"] and record["total"] == total
