@@ -376,3 +376,27 @@ def test_a_rig_too_large_for_a_ray_table_takes_the_same_steps(capture, tmp_path)
     host.cameras = CameraTable(host.bank.cams, [m.shape[:2] for m in host.bank.masks[0]], "cpu", max_ray_bytes=0)
     for _ in range(3):
         assert dict(table.train_step()) == dict(host.train_step())
+
+
+def test_a_batch_rendered_in_one_call_takes_the_sample_by_sample_steps(capture, tmp_path, monkeypatch):
+    """Batch 3 with pose and colour corrections, across the correctives' switch: steps whose crops render
+    in one marcher call (:func:`~uvatar.dva.train_step.renders_batched`) take the terms and parameters of
+    steps rendering sample after sample (the reference), bit for bit; the pair buffer is sized for the
+    batch's rays, and the one call counts its pairs."""
+    from uvatar.dva import train_step
+
+    def trainer(name):
+        return _trainer(capture, tmp_path / name, warmup=2, batch=3, pose_on_device=True)
+
+    batched, each = trainer("batched"), trainer("each")
+    for _ in range(4):
+        monkeypatch.setattr(train_step, "BATCHED_CROPS", True)
+        a = batched.train_step()
+        monkeypatch.setattr(train_step, "BATCHED_CROPS", False)
+        b = each.train_step()
+        assert dict(a) == dict(b)
+    for p, q in zip(batched.params, each.params, strict=True):
+        assert torch.equal(p, q)
+    P = batched.cfg.train.patch
+    assert batched.budget.capacity == 3 * each.budget.capacity == 3 * int(np.ceil(64 * P * P))
+    assert 0 < batched.budget.peak <= batched.budget.capacity

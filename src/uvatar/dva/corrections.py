@@ -83,11 +83,12 @@ class TrainingCorrections(nn.Module):
         return rot, Rh, Th + self.translations[frames]
 
     def colour(self, rgb: torch.Tensor, alpha: torch.Tensor, camera: int) -> torch.Tensor:
-        """Premultiplied foreground rgb (N, 3) and alpha (N,) of training camera ``camera`` -> (N, 3)
-        with that camera's response (unchanged when ``cfg.colour`` is off)."""
+        """Premultiplied foreground rgb (N, 3) and alpha (N,) of training camera ``camera`` (a (1,) index
+        tensor) -> (N, 3) with that camera's response (unchanged when ``cfg.colour`` is off). A batch:
+        rgb (B, N, 3), alpha (B, N) and ``camera`` (B, 1), sample b through camera ``camera[b]``."""
         if not self.cfg.colour:
             return rgb
-        return rgb * self.gains[camera] + alpha[:, None] * self.biases[camera]
+        return rgb * self.gains[camera] + alpha[..., None] * self.biases[camera]
 
     def prior(self, frames: torch.Tensor, cameras: torch.Tensor) -> dict[str, torch.Tensor]:
         """The quadratic priors of the offsets in use this step (frames (B,), cameras (B,))."""

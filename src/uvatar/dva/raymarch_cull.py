@@ -11,7 +11,7 @@ import torch
 
 from uvatar.dva.raymarch_ref import Primitives, box_corners
 
-__all__ = ["sphere_candidates", "pinhole_rects", "pinhole_candidates", "PixelGrid", "DeviceCamera",
+__all__ = ["sphere_candidates", "corner_bounds", "pinhole_rects", "crop_rects", "pinhole_candidates", "PixelGrid", "DeviceCamera",
            "camera_matrices"]
 
 
@@ -78,11 +78,13 @@ class PixelGrid:
 _CROP_LOOKUPS: dict = {}
 
 
-def _crop_lookup(size: int, device) -> torch.Tensor:
-    """arange(size * size) on ``device``, made once per size and device (a constant of every crop)."""
-    key = (int(size), str(device))
+def _crop_lookup(size: int, device, width: int | None = None) -> torch.Tensor:
+    """arange(size * width) on ``device`` (``width`` default ``size``), made once per size and device (a
+    constant of every crop)."""
+    n = int(size) * int(size if width is None else width)
+    key = (n, str(device))
     if key not in _CROP_LOOKUPS:
-        _CROP_LOOKUPS[key] = torch.arange(size * size, device=device)
+        _CROP_LOOKUPS[key] = torch.arange(n, device=device)
     return _CROP_LOOKUPS[key]
 
 
@@ -115,6 +117,34 @@ def camera_matrices(camera, device, dtype):
 
 
 @torch.no_grad()
+def corner_bounds(cam: torch.Tensor, Kc: torch.Tensor, dist: torch.Tensor | None, margin: float = 1.0):
+    """Pixel bounds of boxes seen by B cameras: (lo, hi) (B, M, 2) int64 inclusive-ish floor / ceil of
+    each box's projected corners grown by ``margin`` px, and behind (B, M) bool (a corner within 1e-6 m
+    of the camera plane or behind it). ``cam`` (B, M * 8, 3) the M boxes' corners in each camera's
+    coordinates (metres, OpenCV), ``Kc`` (B, 3, 3) pixels; ``dist`` (B, 5) the lenses (OpenCV k1, k2, p1,
+    p2, k3), or None where no lens bends rays: a sample whose lens is not zero projects its corners
+    through it (:func:`uvatar.geometry.camera.distort`, as its rays) with one more pixel of margin for
+    the curvature of the box's distorted outline; the others as a pinhole. Nothing is read back."""
+    from uvatar.geometry.camera import distort
+
+    B = cam.shape[0]
+    z = cam[..., 2]
+    behind = (z <= 1e-6).reshape(B, -1, 8).any(-1)
+    zc = z.clamp(min=1e-6)[..., None]
+    uv = (cam @ Kc.transpose(-1, -2))[..., :2] / zc
+    grow = margin
+    if dist is not None:
+        bends = (dist != 0).any(-1)[:, None, None]  # (B, 1, 1): the host's ``distorted``, on the device
+        xy = distort(cam[..., :2] / zc, dist)
+        uv = torch.where(bends, xy @ Kc[:, :2, :2].transpose(-1, -2) + Kc[:, None, :2, 2], uv)
+        grow = margin + bends.to(uv.dtype)
+    uv = uv.reshape(B, -1, 8, 2)
+    lo = torch.floor(uv.min(2).values - grow).long()
+    hi = torch.ceil(uv.max(2).values + grow).long()
+    return lo, hi, behind
+
+
+@torch.no_grad()
 def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matrices=None):
     """The pixel rectangles of :func:`pinhole_candidates`: (lookup (h*w,) ray index of each pixel of the
     requested pixels' bounding box (x0, y0, width w), -1 where no ray; x0; y0; w; rects (K, 4) inclusive
@@ -124,7 +154,7 @@ def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matric
     a crop's grid (:meth:`PixelGrid.crop`) gives the rectangles in the crop's pixels, x0 = y0 = 0);
     ``matrices``: the camera's (K, R, T) as device tensors (default: :func:`camera_matrices`); the lens
     distortion comes from ``camera.dist`` (host numbers, or a :class:`DeviceCamera`'s tensor)."""
-    from uvatar.geometry.camera import distort
+    from uvatar.devices import on_device
 
     dev, dt = prims.positions.device, prims.positions.dtype
     Kc, Rc, Tc = matrices if matrices is not None else camera_matrices(camera, dev, dt)
@@ -133,21 +163,15 @@ def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matric
     lookup, x0, y0, w, x1, y1 = grid.lookup, grid.x0, grid.y0, grid.w, grid.x1, grid.y1
     cam = box_corners(Primitives(prims.positions.detach(), prims.rotations.detach(), prims.scales.detach(),
                                  prims.payload)) @ Rc.T + Tc  # (K, 8, 3)
-    z = cam[..., 2]
-    behind = (z <= 1e-6).any(1)
     if isinstance(camera, DeviceCamera):
         dist, distorted = camera.dist.to(dt), camera.distorted
     else:
-        dist = np.asarray(getattr(camera, "dist", np.zeros(5)), np.float64)
-        distorted = bool(np.any(dist != 0))
-    if distorted:
-        xy = distort(cam[..., :2] / z.clamp(min=1e-6)[..., None], dist)
-        uv = xy @ Kc[:2, :2].T + Kc[:2, 2]
-        margin = margin + 1.0
-    else:
-        uv = (cam @ Kc.T)[..., :2] / z.clamp(min=1e-6)[..., None]
-    lo = torch.floor(uv.min(1).values - margin).long()
-    hi = torch.ceil(uv.max(1).values + margin).long()
+        dist = np.asarray(getattr(camera, "dist", np.zeros(5)), np.float64)  # the camera's own array (kept
+        distorted = bool(np.any(dist != 0))                                  # on the device once) if 5 long
+        dist = on_device(dist if dist.shape == (5,) else np.pad(dist.reshape(-1), (0, 5))[:5], dev, dt) \
+            if distorted else None
+    lo, hi, behind = corner_bounds(cam.reshape(1, -1, 3), Kc[None], dist[None] if distorted else None, margin)
+    lo, hi, behind = lo[0], hi[0], behind[0]
     if grid.corner is not None:  # in the crop's own pixels: the same integers, less its corner
         lo, hi = lo - grid.corner, hi - grid.corner
     rects = torch.stack([torch.where(behind, x0, lo[:, 0].clamp(x0, x1 + 1)),
@@ -155,6 +179,35 @@ def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matric
                          torch.where(behind, x1, hi[:, 0].clamp(x0 - 1, x1)),
                          torch.where(behind, y1, hi[:, 1].clamp(y0 - 1, y1))], 1)
     return lookup, x0, y0, w, rects
+
+
+@torch.no_grad()
+def crop_rects(prims: Primitives, K: torch.Tensor, R: torch.Tensor, T: torch.Tensor, dist: torch.Tensor | None,
+               corners: torch.Tensor, size: int, margin: float = 1.0):
+    """:func:`pinhole_rects` of B square crops at once, each seen through its own camera: a
+    :class:`PixelGrid`-style (lookup (B * size * size,), x0 = 0, y0 = 0, w = size, rects (B * K, 4)).
+
+    The crops are stacked one below the other (sample b's pixel (x, y) is row ``b * size + y`` of a
+    ``size``-wide image) and their rays flattened in that order, so sample b's rays are
+    ``b * size**2 ...`` and its primitives ``b * K ...``: one marcher call renders the batch, and every
+    primitive's rectangle lies inside its own sample's crop. ``prims``: positions (B, K, 3), rotations
+    (B, K, 3, 3), scales (B, K, 3) (no gradient taken); K (B, 3, 3) pixels, R (B, 3, 3), T (B, 3) metres,
+    dist (B, 5) or None (no lens bends rays: :func:`corner_bounds`); corners (B, 2) int64 each crop's
+    top-left pixel (x, y). The same rectangles as B calls of :func:`pinhole_rects` with
+    :meth:`PixelGrid.crop`, moved down to their crop's rows; nothing is read back."""
+    B = prims.positions.shape[0]
+    dt = prims.positions.dtype
+    cam = box_corners(Primitives(prims.positions.detach(), prims.rotations.detach(), prims.scales.detach(),
+                                 prims.payload)).reshape(B, -1, 3) @ R.to(dt).transpose(-1, -2) + T.to(dt)[:, None]
+    lo, hi, behind = corner_bounds(cam, K.to(dt), None if dist is None else dist.to(dt), margin)
+    lo, hi = lo - corners[:, None], hi - corners[:, None]
+    last = size - 1
+    rows = (torch.arange(B, device=lo.device) * size)[:, None]  # each crop's first row in the stack
+    rects = torch.stack([torch.where(behind, 0, lo[..., 0].clamp(0, size)),
+                         torch.where(behind, 0, lo[..., 1].clamp(0, size)) + rows,
+                         torch.where(behind, last, hi[..., 0].clamp(-1, last)),
+                         torch.where(behind, last, hi[..., 1].clamp(-1, last)) + rows], -1)
+    return _crop_lookup(B * size, lo.device, size), 0, 0, size, rects.reshape(-1, 4)
 
 
 @torch.no_grad()

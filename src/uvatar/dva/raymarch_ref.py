@@ -105,22 +105,25 @@ def border_fade(local: torch.Tensor, width: float) -> torch.Tensor:
 
 
 def box_corners(prims: Primitives) -> torch.Tensor:
-    """(K, 8, 3) world corners of every primitive box."""
+    """(K, 8, 3) world corners of every primitive box; primitives with leading batch dimensions
+    (positions (..., K, 3) etc.) give (..., K, 8, 3)."""
     i = torch.arange(8, device=prims.positions.device)  # made on the device: no host copy, no stream sync
     signs = (torch.stack([i // 4, i // 2 % 2, i % 2], 1) * 2 - 1).to(prims.positions.dtype)  # (±1, ±1, ±1), z fastest
-    local = signs[None] * prims.scales[:, None, :]  # (K, 8, 3)
-    return prims.positions[:, None, :] + local @ prims.rotations.transpose(1, 2)
+    local = signs * prims.scales[..., None, :]  # (..., K, 8, 3)
+    return prims.positions[..., None, :] + local @ prims.rotations.transpose(-1, -2)
 
 
 @torch.no_grad()
 def ray_range(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives, pad: float = 1e-3):
     """Interval of each ray through the union AABB of all boxes.
 
-    Returns t_near (N,), t_far (N,) (t_far < t_near where the ray misses), both >= 0.
+    Returns t_near (N,), t_far (N,) (t_far < t_near where the ray misses), both >= 0. Batched: rays
+    (B, N, 3) through primitives with a leading batch dimension (positions (B, K, 3) etc.), each
+    sample's rays through its own primitives' box, give (B, N) each (the same numbers as B calls).
     """
-    corners = box_corners(prims).detach().reshape(-1, 3)
-    lo = corners.min(0).values - pad
-    hi = corners.max(0).values + pad
+    corners = box_corners(prims).detach().flatten(-3, -2)  # (..., K * 8, 3)
+    lo = corners.min(-2, keepdim=True).values - pad
+    hi = corners.max(-2, keepdim=True).values + pad
     d = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
     t0 = (lo - origins) / d
     t1 = (hi - origins) / d

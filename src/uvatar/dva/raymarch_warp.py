@@ -428,7 +428,7 @@ class PairBudget:
 
 @torch.no_grad()
 def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_far=None, camera=None,
-              pixels=None, budget: PairBudget | None = None):
+              pixels=None, budget: PairBudget | None = None, grid=None):
     """Culling for the kernels: (t_near (N,), offsets (N+1,), prim, first step, last step (P,)), the
     candidate pairs grouped by ray (int32; a pair that misses its box has last < first), or None when no
     ray has a sample (known on the host only without a ``budget``).
@@ -439,7 +439,9 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     same float arithmetic), so both give the same steps. With pinhole culling and a ``budget``
     (:class:`PairBudget`) the pairs go into its fixed buffer and nothing at all is read back; without
     one the pair count is read back to size the buffer exactly (one sync). The bounding-sphere culling
-    of other rays reads back its candidates (``nonzero``)."""
+    of other rays reads back its candidates (``nonzero``). ``grid``: the primitives' pixel rectangles
+    made already (lookup, x0, y0, w, rects (K, 4), as :func:`~uvatar.dva.raymarch_cull.pinhole_rects`
+    gives them), in place of ``camera`` and ``pixels`` (:func:`~uvatar.dva.raymarch_crops.render_crops`)."""
     N = origins.shape[0]
     if N == 0 or prims.num == 0:
         return None
@@ -447,7 +449,7 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     t_near, t_far = t_near.detach().to(origins.dtype).contiguous(), t_far.detach().to(origins.dtype).contiguous()
     T = int(cfg.max_steps)
     o, d = origins.detach().contiguous(), directions.detach().contiguous()
-    wp, (pair_steps, rect_pairs, _, _) = _kernels(origins.dtype)
+    wp, (pair_steps, _, _, _) = _kernels(origins.dtype)
     dt, dev = origins.dtype, origins.device
     V3, _, M33 = warp_types(wp, dt)
     box = [warp_view(wp, prims.positions.to(dt).contiguous(), V3), warp_view(wp, prims.rotations.to(dt).contiguous(), M33),
@@ -456,27 +458,10 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     launch = {"device": wp.device_from_torch(dev), "stream": launch_stream(wp, dev)}
     i32 = torch.int32
     offsets = torch.zeros(N + 1, dtype=i32, device=dev)
-    if camera is not None and pixels is not None:  # per primitive: the pixels of its rectangle
-        lookup, x0, y0, w, rects = pinhole_rects(camera, pixels, prims)
-        count = torch.zeros(N, dtype=i32, device=dev)
-        pairs = [torch.zeros(0, dtype=i32, device=dev)] * 3
-        args = rays + [warp_view(wp, lookup.to(i32)), x0, y0, w, warp_view(wp, rects.to(i32).contiguous(), wp.vec4i)] + box
-        wp.launch(rect_pairs, dim=prims.num, inputs=args + [0, warp_view(wp, count), warp_view(wp, offsets)]
-                  + [warp_view(wp, t) for t in pairs], **launch)
-        offsets[1:] = torch.cumsum(count, 0)
-        if budget is not None:  # a fixed buffer: nothing read back; rays past its end lose pairs (flagged)
-            budget.record(offsets[-1])
-            P = budget.capacity
-            offsets.clamp_(max=P)
-        else:
-            P = int(offsets[-1])
-            if P == 0:
-                return None
-        count.zero_()
-        pairs = [torch.empty(P, dtype=i32, device=dev) for _ in range(3)]
-        wp.launch(rect_pairs, dim=prims.num, inputs=args + [1, warp_view(wp, count), warp_view(wp, offsets)]
-                  + [warp_view(wp, t) for t in pairs], **launch)
-        return (t_near, offsets, *pairs)
+    if grid is None and camera is not None and pixels is not None:  # per primitive: its rectangle's pixels
+        grid = pinhole_rects(camera, pixels, prims)
+    if grid is not None:
+        return rect_plan(wp, rays, box, launch, t_near, offsets, prims.num, grid, budget)
     parts = [sphere_candidates(o[lo:lo + cfg.chunk_rays], d[lo:lo + cfg.chunk_rays], prims)
              for lo in range(0, N, cfg.chunk_rays)]  # each sorted by ray
     ray = torch.cat([p[0] + lo for p, lo in zip(parts, range(0, N, cfg.chunk_rays), strict=True)])
@@ -488,6 +473,35 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     wp.launch(pair_steps, dim=ray.numel(), inputs=rays + [warp_view(wp, ray), warp_view(wp, prim)] + box
               + [warp_view(wp, i0), warp_view(wp, i1)], **launch)
     return t_near, offsets, prim, i0, i1
+
+
+def rect_plan(wp, rays: list, box: list, launch: dict, t_near, offsets, num: int, grid, budget):
+    """The pinhole culling's plan (:func:`warp_plan`'s result) from the primitives' pixel rectangles:
+    ``grid`` (lookup, x0, y0, w, rects (num, 4)) as :func:`~uvatar.dva.raymarch_cull.pinhole_rects` gives
+    it; ``rays`` / ``box`` the kernels' ray and primitive arguments, ``offsets`` (N + 1,) int32 zeros."""
+    lookup, x0, y0, w, rects = grid
+    i32, dev = torch.int32, offsets.device
+    _, (_, rect_pairs, _, _) = _kernels(t_near.dtype)
+    N = offsets.shape[0] - 1
+    count = torch.zeros(N, dtype=i32, device=dev)
+    pairs = [torch.zeros(0, dtype=i32, device=dev)] * 3
+    args = rays + [warp_view(wp, lookup.to(i32)), x0, y0, w, warp_view(wp, rects.to(i32).contiguous(), wp.vec4i)] + box
+    wp.launch(rect_pairs, dim=num, inputs=args + [0, warp_view(wp, count), warp_view(wp, offsets)]
+              + [warp_view(wp, t) for t in pairs], **launch)
+    offsets[1:] = torch.cumsum(count, 0)
+    if budget is not None:  # a fixed buffer: nothing read back; rays past its end lose pairs (flagged)
+        budget.record(offsets[-1])
+        P = budget.capacity
+        offsets.clamp_(max=P)
+    else:
+        P = int(offsets[-1])
+        if P == 0:
+            return None
+    count.zero_()
+    pairs = [torch.empty(P, dtype=i32, device=dev) for _ in range(3)]
+    wp.launch(rect_pairs, dim=num, inputs=args + [1, warp_view(wp, count), warp_view(wp, offsets)]
+              + [warp_view(wp, t) for t in pairs], **launch)
+    return (t_near, offsets, *pairs)
 
 
 class _March(torch.autograd.Function):
@@ -544,16 +558,17 @@ def _march_args(wp, origins, directions, plan, positions, rotations, scales, pay
 
 def raymarch_warp(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives,
                   cfg: RaymarchConfig | None = None, near_far=None, camera=None, pixels=None,
-                  budget: PairBudget | None = None):
+                  budget: PairBudget | None = None, grid=None):
     """Render rays through the primitives with the fused Warp kernels; arguments and result as
     :func:`uvatar.dva.raymarch.raymarch` (rgb (N, 3) premultiplied, alpha (N,)), gradients w.r.t. the
     primitives' positions, rotations, scales and payload, and the rays' origins and directions (through
     the sample positions; the sample placement carries none, as in the reference). ``budget``: a fixed
-    pair buffer (:class:`PairBudget`) for pinhole culling: no read-back at all (:func:`warp_plan`)."""
+    pair buffer (:class:`PairBudget`) for pinhole culling: no read-back at all (:func:`warp_plan`, as
+    ``grid``: the pixel rectangles made already)."""
     cfg = cfg or RaymarchConfig()
     N = origins.shape[0]
     dt = origins.dtype
-    plan = warp_plan(origins, directions, prims, cfg, near_far, camera, pixels, budget)
+    plan = warp_plan(origins, directions, prims, cfg, near_far, camera, pixels, budget, grid)
     if plan is None:
         zero = (prims.payload.sum() + prims.positions.sum() + prims.rotations.sum() + prims.scales.sum()) * 0
         return origins.new_zeros(N, 3) + zero, origins.new_zeros(N) + zero

@@ -432,7 +432,7 @@ class Trainer:
         if self.budget.overflowed(needed):
             self.pair_overflows += 1
             new = math.ceil(needed * 1.25)
-            log.warning("before step %d: the marcher's pair buffer held %d pairs, a sample needed %d: that "
+            log.warning("before step %d: the marcher's pair buffer held %d pairs, a step's render needed %d: that "
                         "step's render and gradients lost samples; the buffer now holds %d", self.step,
                         self.budget.capacity, needed, new)
             self.budget.capacity = new

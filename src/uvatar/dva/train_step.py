@@ -123,6 +123,12 @@ class CameraTable:
         K, R, T, lens = (x[cameras] for x in (self.K, self.R, self.T, self.lens))
         return [DeviceCamera(K[b], R[b], T[b], lens[b], d) for b, d in enumerate(distorted)]
 
+    def batch(self, cameras: torch.Tensor, distorted) -> tuple:
+        """(K (B, 3, 3), R (B, 3, 3), T (B, 3), lens (B, 5) or None) of cameras ``cameras`` (B,) int64 (on
+        the device), as :func:`~uvatar.dva.raymarch_crops.render_crops` takes them; ``distorted``: the
+        host's bool for each (:class:`StepLayout`): the lenses are left out where none bends rays."""
+        return (self.K[cameras], self.R[cameras], self.T[cameras], self.lens[cameras] if any(distorted) else None)
+
     def crop_rays(self, cameras: torch.Tensor, corners: torch.Tensor, size: int):
         """(origins, directions) (B, size * size, 3) of square crops, row-major from each crop's top-left
         pixel ``corners`` (B, 2) int64 (x, y), in cameras ``cameras`` (B,) int64: a gather, no host (a
@@ -175,7 +181,8 @@ class StepLayout:
     """What a step's operations depend on besides its input tensors (a captured step's key): samples
     ``batch``, crop side ``patch`` (pixels), whether the primitives' ``correctives`` are on, whether the
     step ``reposes`` the bodies with the learned pose offsets, each sample camera's lens bending rays
-    (``distorted``, the culling's branch), and the marcher's pair buffer ``pairs`` (per sample)."""
+    (``distorted``, the culling's branch), and the marcher's pair buffer ``pairs`` (per marcher call: the batch's crops, or one crop where
+    they render sample after sample, :func:`renders_batched`)."""
 
     batch: int
     patch: int
@@ -183,6 +190,24 @@ class StepLayout:
     reposes: bool
     distorted: tuple[bool, ...]
     pairs: int
+
+
+#: render a step's crops in one marcher call (:mod:`uvatar.dva.raymarch_crops`) where the marcher is Warp;
+#: False: sample after sample, the reference (the torch marcher always is)
+BATCHED_CROPS = True
+
+
+def renders_batched(trainer) -> bool:
+    """Whether ``trainer``'s steps render their crops in one marcher call (:data:`BATCHED_CROPS`)."""
+    from uvatar.dva.raymarch import resolve_marcher
+
+    return BATCHED_CROPS and resolve_marcher(trainer.model.cfg.raymarch.marcher) == "warp"
+
+
+def budget_rays(trainer, batch: int, patch: int) -> int:
+    """The rays one marcher call of a step renders (what its pair buffer is sized for): the batch's
+    crops where they go in one call (:func:`renders_batched`), else one crop."""
+    return patch * patch * (batch if renders_batched(trainer) else 1)
 
 
 def step_inputs(trainer, frames, cams, textures, pixels, backgrounds, correctives: bool):
@@ -211,7 +236,7 @@ def step_inputs(trainer, frames, cams, textures, pixels, backgrounds, corrective
     if trainer.cameras.directions is None:  # a rig too large for a table of rays: the host makes them
         rays = [pixel_rays(bank.cams[c], pix, "cpu") for c, pix in zip(cams, pixels, strict=True)]
         inputs.origins, inputs.directions = (up(torch.stack([r[i] for r in rays])) for i in (0, 1))
-    budget = trainer._budget(P * P)
+    budget = trainer._budget(budget_rays(trainer, len(frames), P))
     layout = StepLayout(len(frames), P, bool(correctives), reposes,
                         tuple(trainer.cameras.distorted[c] for c in cams), 0 if budget is None else budget.capacity)
     return inputs, layout
@@ -231,20 +256,34 @@ def step_loss(trainer, inputs: StepInputs, layout: StepLayout, host_frames=None)
     table = trainer.cameras
     out = model(vertices, rotvecs, inputs.textures, table.centres[inputs.cameras], t.precision, compact=True,
                 correctives=correctives, decode=trainer.decode)
-    budget = trainer._budget(P * P)
+    budget = trainer._budget(budget_rays(trainer, layout.batch, P))
     origins, directions = (inputs.origins, inputs.directions) if inputs.directions is not None \
         else table.crop_rays(inputs.cameras, inputs.corners, P)
-    preds, alphas = [], []
-    for b, camera in enumerate(table.device_cameras(inputs.cameras, layout.distorted)):
-        rgb, alpha = model.render_rays(out, b, origins[b], directions[b], None, camera=camera,
-                                       pixels=PixelGrid.crop(P, inputs.corners[b]), budget=budget)
+    B = layout.batch
+    if renders_batched(trainer):  # one marcher call for the batch (raymarch_crops)
+        from uvatar.dva.raymarch_crops import render_crops
+        from uvatar.dva.raymarch_ref import Primitives
+
+        rgb, alpha = render_crops(Primitives(out.positions, out.rotations, out.scales, out.payload), origins,
+                                  directions, table.batch(inputs.cameras, layout.distorted), inputs.corners, P,
+                                  model.cfg.raymarch, budget)
         if corrections is not None:
-            rgb = corrections.colour(rgb, alpha, inputs.cameras[b:b + 1])
-        rgb = rgb + (1.0 - alpha)[:, None] * inputs.backgrounds[b]
-        preds.append(rgb.T.reshape(3, P, P))
-        alphas.append(alpha.reshape(P, P))
-    pred = torch.stack(preds)
-    total, terms = trainer.loss.terms(pred, inputs.targets, torch.stack(alphas), inputs.masks, out.scales,
+            rgb = corrections.colour(rgb, alpha, inputs.cameras[:, None])
+        rgb = rgb + (1.0 - alpha)[..., None] * inputs.backgrounds[:, None, :]
+        pred, alphas = rgb.transpose(1, 2).reshape(B, 3, P, P).contiguous(), alpha.reshape(B, P, P)  # laid out
+        # as the reference's stack: the loss's sums add in the same order
+    else:  # the reference: sample after sample
+        preds, per_sample = [], []
+        for b, camera in enumerate(table.device_cameras(inputs.cameras, layout.distorted)):
+            rgb, alpha = model.render_rays(out, b, origins[b], directions[b], None, camera=camera,
+                                           pixels=PixelGrid.crop(P, inputs.corners[b]), budget=budget)
+            if corrections is not None:
+                rgb = corrections.colour(rgb, alpha, inputs.cameras[b:b + 1])
+            rgb = rgb + (1.0 - alpha)[:, None] * inputs.backgrounds[b]
+            preds.append(rgb.T.reshape(3, P, P))
+            per_sample.append(alpha.reshape(P, P))
+        pred, alphas = torch.stack(preds), torch.stack(per_sample)
+    total, terms = trainer.loss.terms(pred, inputs.targets, alphas, inputs.masks, out.scales,
                                       model.rest_scales, out.motion if correctives else None, out.learned_rgb,
                                       out.payload[:, :, 3])
     if corrections is not None:
