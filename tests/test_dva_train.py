@@ -34,6 +34,23 @@ def test_patch_pixels_stay_in_the_image():
     assert len({tuple(p) for p in pix}) == 64
 
 
+def test_a_kept_mask_box_draws_the_crops_the_mask_draws():
+    """The bank's :func:`mask_box` is the mask's bounding box (rows, columns of its pixels; None when
+    empty), and crops drawn with it are the crops drawn from the mask itself, for the same random state."""
+    import random
+
+    from uvatar.dva.dataset import mask_box
+
+    rng = np.random.default_rng(3)
+    for mask in (rng.random((40, 50)) > 0.97, np.zeros((40, 50), bool), np.eye(40, 50, 7, bool)):
+        ys, xs = np.nonzero(mask)
+        box = mask_box(mask)
+        assert box == ((int(ys.min()), int(ys.max()), int(xs.min()), int(xs.max())) if ys.size else None)
+        a, b = random.Random(5), random.Random(5)
+        for _ in range(4):
+            assert np.array_equal(patch_pixels(mask, 12, a), patch_pixels(mask, 12, b, box))
+
+
 def test_target_pixels_put_the_background_colour_outside_the_mask():
     """'mask': a cluttered room outside the person's mask becomes the colour the render is composited
     over; inside the mask (and everywhere with 'photo') the photo's own values, scaled to [0, 1]."""

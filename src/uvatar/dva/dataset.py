@@ -67,6 +67,15 @@ def body_inputs(body, fits, device="cpu"):
         return p.rotvecs, pose_vertices(body, p.rotvecs, p.Rh, p.Th, p.scale, p.shape)
 
 
+def mask_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(top, bottom, left, right) inclusive pixel rows and columns of a (H, W) bool mask's bounding box,
+    None where the mask is empty (one pass over its rows and one over its columns)."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if not rows.size:
+        return None
+    return int(rows[0]), int(rows[-1]), int(cols[0]), int(cols[-1])
+
+
 def estimate_background(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(3,) median colour of the pixels outside the mask (0 when the mask covers everything)."""
     out = image[mask < 0.5]
@@ -140,6 +149,7 @@ class FrameBank:
         self.fits = fit_params(body, fits)  # what a pose correction starts from
         self.vertices = torch.stack(verts)
         self.images, self.masks = images, masks
+        self.mask_boxes = [[mask_box(m) for m in row] for row in masks]  # (F, C) each mask's bounding box
         self.usable = np.array(usable, bool)  # (F, C): False where the subject's mask is empty for want of it
         self.textures = torch.stack(texs)  # (F, C, R, R, 3)
         self.visibility = torch.stack(vis)  # (F, C, R, R)

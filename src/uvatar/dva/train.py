@@ -277,7 +277,8 @@ class Trainer:
             views = [self.rng.sample(range(n_cam), min(t.driving_views, n_cam)) for _ in range(t.batch)]
         if t.hide_target_view and n_cam > 1:
             views = [[v for v in vs if v != c] or [(c + 1) % n_cam] for vs, c in zip(views, cams, strict=True)]
-        pixels = [patch_pixels(self.bank.masks[f][c], t.patch, self.rng) for f, c in zip(frames, cams, strict=True)]
+        pixels = [patch_pixels(self.bank.masks[f][c], t.patch, self.rng, self.bank.mask_boxes[f][c])
+                  for f, c in zip(frames, cams, strict=True)]
         if t.background == "random":
             backgrounds = [np.array([self.rng.random() for _ in range(3)], np.float32) for _ in frames]
         else:

@@ -25,6 +25,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 
+from uvatar.dva.dataset import mask_box
 from uvatar.dva.model import pixel_rays
 from uvatar.dva.raymarch_cull import DeviceCamera, PixelGrid
 
@@ -62,15 +63,16 @@ def crop_targets(image: np.ndarray, mask: np.ndarray, corner, size: int, backgro
     return np.ascontiguousarray(out.transpose(2, 0, 1))
 
 
-def patch_pixels(mask: np.ndarray, size: int, rng: random.Random) -> np.ndarray:
+def patch_pixels(mask: np.ndarray, size: int, rng: random.Random, box=()) -> np.ndarray:
     """(size*size, 2) integer (x, y) pixels of a square crop whose centre lies in the mask's bounding
-    box (grown by half a patch), clipped to the image."""
+    box (grown by half a patch), clipped to the image. ``box``: the mask's :func:`mask_box`, where the
+    caller keeps it (a training step draws crops from the same masks step after step)."""
     H, W = mask.shape
     size = min(size, H, W)
-    ys, xs = np.nonzero(mask)
-    if ys.size:
-        cy = rng.randint(int(ys.min()), int(ys.max()))
-        cx = rng.randint(int(xs.min()), int(xs.max()))
+    box = mask_box(mask) if box == () else box
+    if box is not None:
+        cy = rng.randint(box[0], box[1])
+        cx = rng.randint(box[2], box[3])
     else:
         cy, cx = rng.randrange(H), rng.randrange(W)
     y0 = int(np.clip(cy - size // 2, 0, H - size))
