@@ -203,65 +203,43 @@ def _parity(model, fit, layout, scan, surface, baked, used, rounds_fit, targets,
             "colour_rounds_pose_rad_abs_max": poses(rounds_fit, ref_rounds_fit)}
 
 
-#: operators that make no kernel (a view, or a shape's bookkeeping): counted apart from the rest
-VIEW_OPS = {"view", "_unsafe_view", "as_strided", "alias", "t", "transpose", "unsqueeze", "squeeze", "expand",
-            "slice", "select", "permute", "detach", "_reshape_alias", "unbind", "split", "split_with_sizes",
-            "lift_fresh", "unflatten", "view_as_real", "view_as_complex", "diagonal", "narrow"}
-
-
 def _count_ops(model, layout, config, item) -> dict:
     """{stage: {"ops", "views", "warp_launches"}} of one frame baked and its colour rounds run
     (``colour_rounds``, against :func:`_colour_targets`), the torch stages on the bake's device with
     CUDA's choices (module doc)."""
-    import collections
     import contextlib
 
-    from torch.utils._python_dispatch import TorchDispatchMode
+    from _ops import OpCounter
 
     import uvatar.avh.bake.frame as frame
     from uvatar.avh.bake import register_torch
 
-    stage = ["other"]
-    counts: dict = collections.defaultdict(collections.Counter)
-
-    class Count(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            counts[stage[0]]["views" if func.overloadpacket.__name__ in VIEW_OPS else "ops"] += 1
-            return func(*args, **(kwargs or {}))
-
+    counter = OpCounter()
     timed = frame._timed
 
     @contextlib.contextmanager
     def labelled(seconds, name, rays=None, cpu=None):
-        before, stage[0] = stage[0], name
+        before, counter.label = counter.label, name
         with timed(seconds, name, rays, cpu):
             yield
-        stage[0] = before
-
-    import warp as wp
-    launch = wp.launch
-
-    def counted_launch(*args, **kwargs):
-        counts[stage[0]]["warp_launches"] += 1
-        return launch(*args, **kwargs)
+        counter.label = before
 
     from dataclasses import replace
 
     config = replace(config, ray_backend="warp")     # CUDA's caster: the rays cast in place (Warp runs on the CPU)
     fit, _, scan = item
-    saved = (frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU)
-    frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU = labelled, counted_launch, True
+    saved = (frame._timed, register_torch.WINDOW_SEARCH_ON_CPU)
+    frame._timed, register_torch.WINDOW_SEARCH_ON_CPU = labelled, True
     try:
         surface, targets = _surface_and_targets(model, item, config)
         frame.bake_fit(model, fit, layout, scan, config, surface=surface)        # the per-scan copies made
-        counts.clear()
-        with Count():
+        with counter:
             _, used = frame.bake_fit(model, fit, layout, scan, config, surface=surface)
-            stage[0] = "colour_rounds"
+            counter.label = "colour_rounds"
             _colour_rounds(model, used, targets, scan, surface, config)
     finally:
-        frame._timed, wp.launch, register_torch.WINDOW_SEARCH_ON_CPU = saved
-    out = {k: {n: int(c[n]) for n in ("ops", "views", "warp_launches")} for k, c in counts.items()}
+        frame._timed, register_torch.WINDOW_SEARCH_ON_CPU = saved
+    out = counter.table()
     out["frame_total"] = {n: sum(v[n] for k, v in out.items() if k != "colour_rounds")
                           for n in ("ops", "views", "warp_launches")}
     return out

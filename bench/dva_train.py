@@ -21,6 +21,11 @@ pose corrections on, the body re-posed on the training device where that is not 
 back every step), "off" (pose corrections off: the fits as they are). Several, comma separated, time each
 (keys ``<marcher>_<pose>_...``); the JSON says which ("pose").
 
+``--count-ops`` adds what one more step dispatches, by phase (:func:`count_step`: torch operators with a
+kernel, views, Warp launches), counted with the code paths the device takes; on a GPU each is a launch
+the host pays for. ``--per-sample`` renders a step's crops sample after sample (the reference twin of the
+one marcher call for the batch, ``train_step.BATCHED_CROPS``).
+
 ``--compile`` times the step with its encoders and decoders compiled (``TrainConfig.compile``): "off" (the
 eager step, the reference), or a ``torch.compile`` mode ("default", "reduce-overhead": CUDA graphs on a
 GPU), each with "+cl" for channels_last convolutions (``TrainConfig.channels_last``) and "+graph" for the
@@ -71,6 +76,42 @@ def render_fps(trainer, size: int, device: str, repeats: int = 5) -> float:
     return 1.0 / best
 
 
+def count_step(trainer) -> dict:
+    """{phase: {"ops", "views", "warp_launches"}} of one training step (``bench/_ops.py``): "sample" (the
+    host draws the batch: CPU tensors), "forward" (inputs to loss), "backward", "update" (clipping and the
+    optimizer: the device's fused Adam on a GPU, one kernel per parameter and moment on the CPU) and "step"
+    their sum less "sample" (what reaches the device)."""
+    from _ops import KINDS, OpCounter
+
+    counter = OpCounter("forward")
+    sample, backward = trainer.sample, torch.autograd.backward
+
+    def sampled(*args, **kwargs):
+        counter.label = "sample"
+        try:
+            return sample(*args, **kwargs)
+        finally:
+            counter.label = "forward"
+
+    def backward_then_update(*args, **kwargs):
+        counter.label = "backward"
+        try:
+            return backward(*args, **kwargs)
+        finally:
+            counter.label = "update"
+
+    trainer.sample, torch.autograd.backward = sampled, backward_then_update
+    try:
+        with counter:
+            trainer.train_step()
+    finally:
+        del trainer.sample
+        torch.autograd.backward = backward
+    table = counter.table()
+    table["step"] = {n: sum(v[n] for k, v in table.items() if k != "sample") for n in KINDS}
+    return table
+
+
 POSES = ("auto", "device", "host", "off")
 
 
@@ -83,7 +124,7 @@ def pose_settings(pose: str) -> tuple[bool, bool | None]:
 
 def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int, steps: int,
             preset: str, device: str = "cpu", render_sizes=(), pairs_per_ray: float | None = None,
-            pose: str = "auto", compile_mode: str = "off", profile: bool = False) -> dict:
+            pose: str = "auto", compile_mode: str = "off", profile: bool = False, count_ops: bool = False) -> dict:
     """{"step_ms": median ms per training step (a synchronise after each), "pipelined_step_ms": ms per
     step of ``steps`` steps back to back, their terms read every 10th step as ``Trainer.run`` logs them,
     one synchronise at the end (what a run pays when the host may run ahead of the GPU),
@@ -94,7 +135,8 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     "off" or the ``torch.compile`` mode of the step's encoders and decoders, "+cl": channels_last,
     "+graph": the step captured in a CUDA graph (the row says how many steps were replayed, and why a
     capture failed); ``profile``: also "device_busy_ms", the device's busy time per step over 3 steps
-    under torch.profiler (its top operators on stderr): far below "step_ms", the host sets the pace."""
+    under torch.profiler (its top operators on stderr): far below "step_ms", the host sets the pace;
+    ``count_ops``: also "operators", what one more step dispatches (:func:`count_step`)."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -142,6 +184,8 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
         from dva_frame import profile_table  # bench/ is on the path of a bench script
 
         row["device_busy_ms"] = profile_table(trainer.train_step, 3, device)
+    if count_ops:
+        row["operators"] = count_step(trainer)
     if trainer.budget is not None:
         trainer.budget.check(raise_error=False)
         row["pairs_per_ray_peak"] = round(trainer.budget.peak / trainer.budget.capacity * cfg.train.pairs_per_ray, 2)
@@ -180,6 +224,10 @@ def main(argv=None) -> int:
     ap.add_argument("--compile", default="off", help="the step's encoders and decoders: off (eager) or a "
                     f"torch.compile mode ({', '.join(COMPILE_MODES)}), each with +cl (channels_last) and/or "
                     "+graph (the step in a CUDA graph), comma separated")
+    ap.add_argument("--per-sample", action="store_true",
+                    help="render each step's crops sample after sample (the reference), not in one marcher call")
+    ap.add_argument("--count-ops", action="store_true",
+                    help="also what one step dispatches: torch operators and Warp launches by phase")
     ap.add_argument("--profile", action="store_true",
                     help="also the device's busy ms per step (torch.profiler; its top operators on stderr)")
     args = ap.parse_args(argv)
@@ -194,6 +242,10 @@ def main(argv=None) -> int:
                              "+graph or neither")
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
+    if args.per_sample:
+        from uvatar.dva import train_step
+
+        train_step.BATCHED_CROPS = False
     from tests.fixtures.dva_capture import write_toy_capture
 
     rows = []
@@ -209,14 +261,15 @@ def main(argv=None) -> int:
                         for c in compiles:
                             got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}_{p}_{c}", W, S, m, args.warmup,
                                           args.steps, args.preset, args.device, sizes, args.pairs_per_ray, p, c,
-                                          args.profile)
+                                          args.profile, args.count_ops)
                             key = "_".join([m] + [p] * (len(poses) > 1) + [c] * (len(compiles) > 1))
                             row.update({f"{key}_{k}": v for k, v in got.items()})
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr)
     device = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or "cpu"
     print(json.dumps({"bench": "dva_train_step", "preset": args.preset, "device": device, "threads": args.threads,
-                      "steps": args.steps, "pose": args.pose, "compile": args.compile, "results": rows}))
+                      "steps": args.steps, "pose": args.pose, "compile": args.compile,
+                      "crops": "per sample" if args.per_sample else "one marcher call", "results": rows}))
     return 0
 
 
