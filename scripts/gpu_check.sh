@@ -82,7 +82,7 @@ for part in $PARTS; do
       run_part tests "${TESTS_SECONDS:-180}" "$OUT/pytest_gpu.txt" python -m pytest -q -m gpu -p no:cacheprovider \
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
         tests/test_dva_frame_sync.py tests/test_dva_train_posing.py tests/test_dva_train_compile.py tests/test_dva_tv_warp.py \
-        tests/test_dva_train_graph.py tests/test_avh_bake_register_device.py tests/test_avh_bake_refine_device.py \
+        tests/test_dva_train_graph.py tests/test_dva_raymarch_crops.py tests/test_avh_bake_register_device.py tests/test_avh_bake_refine_device.py \
         tests/test_avh_bake_refine_graph.py \
         tests/test_devices.py tests/test_geometry_nearest_warp.py tests/test_geometry_jump_flood_warp.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
@@ -90,7 +90,7 @@ for part in $PARTS; do
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
       # (--compile: the step's encoders and decoders eager, then through torch.compile; compiled in the warm-up)
       run_part train "${TRAIN_SECONDS:-300}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \
-        --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" --profile \
+        --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" --profile --count-ops \
         ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,off+cl+graph,default+cl,default+cl+graph}" ;;
     nearest)  # the nearest-sample kernel (the grid, session 10) against SciPy's k-d tree, on the GPU
       run_part nearest "${NEAREST_SECONDS:-60}" "$OUT/nearest.json" python bench/nearest.py --device cuda --no-slab ;;

@@ -76,21 +76,25 @@ def test_crop_rects_are_each_samples_rects_in_its_rows(lenses):
     assert covered >= B  # the scenes are seen
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("lenses", LENS_SETS.values(), ids=LENS_SETS.keys())
-def test_one_call_renders_the_samples_one_by_one_bit_for_bit(lenses, dtype):
-    """The batch in one call (fixed pair buffer for B crops) against each sample rendered by itself from
-    its device camera and crop grid (a buffer for one crop): the same images and the same gradients of
-    the scene's leaves and the rays, bit for bit."""
+def _both_ways(lenses, dtype, device="cpu"):
+    """(images and gradients of the batch in one call, the same of each sample rendered by itself) on
+    ``device``: the batch in one call (fixed pair buffer for B crops) against each sample rendered from
+    its device camera and crop grid (a buffer for one crop); the gradients of a weighted sum of the images
+    w.r.t. the scene's leaves and the rays."""
     scene, origins, directions, cams, corners, batch_cams = _batch(lenses, dtype)
     B, N = origins.shape[:2]
     w = torch.rand(B, N, 4, generator=torch.Generator().manual_seed(9), dtype=dtype)
+    if device != "cpu":
+        scene, origins, directions, corners, w = ([t.to(device) for t in scene], origins.to(device),
+                                                  directions.to(device), corners.to(device), w.to(device))
+        cams = [DeviceCamera(*(t.to(device) for t in (c.K, c.R, c.T, c.dist)), c.distorted) for c in cams]
+        batch_cams = tuple(None if t is None else t.to(device) for t in batch_cams)
 
     def leaves():
         return [t.clone().requires_grad_(True) for t in (*scene, origins, directions)]
 
     one = leaves()
-    budget = PairBudget(50 * B * N)
+    budget = PairBudget(50 * B * N, device)
     rgb, alpha = render_crops(_batched_prims(*one[:4]), one[4], one[5], batch_cams, corners, SIZE, WARP, budget)
     loss = (rgb * w[..., :3]).sum() + (alpha * w[..., 3]).sum()
     grads = torch.autograd.grad(loss, one)
@@ -101,13 +105,40 @@ def test_one_call_renders_the_samples_one_by_one_bit_for_bit(lenses, dtype):
     for b, cam in enumerate(cams):
         sample = Primitives(prims.positions[b], prims.rotations[b], prims.scales[b], prims.payload[b])
         r, a = raymarch(each[4][b], each[5][b], sample, WARP, camera=cam, pixels=PixelGrid.crop(SIZE, corners[b]),
-                        budget=PairBudget(50 * N))
+                        budget=PairBudget(50 * N, device))
         rgbs.append(r)
         alphas.append(a)
         loss = loss + (r * w[b, :, :3]).sum() + (a * w[b, :, 3]).sum()
     expected = torch.autograd.grad(loss, each)
     assert (alpha > 0.05).sum() > 10
-    assert torch.equal(rgb, torch.stack(rgbs)) and torch.equal(alpha, torch.stack(alphas))
-    for name, a, b in zip(("positions", "rotvecs", "scales", "payload", "origins", "directions"), grads, expected,
-                          strict=True):
+    return (rgb, alpha, grads), (torch.stack(rgbs), torch.stack(alphas), expected)
+
+
+NAMES = ("positions", "rotvecs", "scales", "payload", "origins", "directions")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("lenses", LENS_SETS.values(), ids=LENS_SETS.keys())
+def test_one_call_renders_the_samples_one_by_one_bit_for_bit(lenses, dtype):
+    """One call for the batch and one call per sample give the same images and the same gradients of the
+    scene's leaves and the rays, bit for bit (on the CPU, Warp runs a launch's threads in order: the
+    pairs of a ray and the atomic sums come in the same order both ways)."""
+    (rgb, alpha, grads), (rgb_e, alpha_e, expected) = _both_ways(lenses, dtype)
+    assert torch.equal(rgb, rgb_e) and torch.equal(alpha, alpha_e)
+    for name, a, b in zip(NAMES, grads, expected, strict=True):
         assert torch.equal(a, b), name
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-4), (torch.float64, 1e-10)])
+def test_one_call_renders_the_samples_one_by_one_on_cuda(dtype, tol):
+    """The CUDA twin: the same images and gradients within rounding (on a GPU a ray's pairs and the
+    atomic sums come in the order the threads run, either way)."""
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU")
+    (rgb, alpha, grads), (rgb_e, alpha_e, expected) = _both_ways(LENS_SETS["mixed"], dtype, "cuda")
+    assert rgb.is_cuda
+    assert torch.allclose(rgb, rgb_e, atol=tol) and torch.allclose(alpha, alpha_e, atol=tol)
+    for name, a, b in zip(NAMES, grads, expected, strict=True):
+        assert b.norm() > 0, name
+        assert (a - b).norm() <= tol * b.norm(), (name, float((a - b).norm() / b.norm()))

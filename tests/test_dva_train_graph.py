@@ -183,11 +183,12 @@ def test_step_layout_names_what_a_capture_depends_on(capture, tmp_path):
 def test_captured_steps_take_the_eager_steps_on_cuda(capture, tmp_path):
     """From one seed, eight steps replayed from CUDA graphs and eight eager ones: the same terms and
     parameters (within the reordering of the marcher's atomic sums), across the correctives' switch at
-    step 3, which captures a second graph; the replayed steps make no host sync."""
+    step 3, which captures a second graph; the replayed steps make no host sync. Two samples a step: the
+    batch's crops in one marcher call."""
     if not torch.cuda.is_available():
         pytest.skip("needs CUDA")
-    eager = _trainer(capture, tmp_path / "eager", device="cuda", warmup=3)
-    graphed = _trainer(capture, tmp_path / "graph", device="cuda", warmup=3, graph=True)
+    eager = _trainer(capture, tmp_path / "eager", device="cuda", warmup=3, batch=2)
+    graphed = _trainer(capture, tmp_path / "graph", device="cuda", warmup=3, graph=True, batch=2)
     assert graphed.graph is not None
     for step in range(8):
         a = eager.train_step()
