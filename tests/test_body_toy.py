@@ -124,3 +124,23 @@ def test_dva_and_viewer_presets():
     assert list(cams) == ["cam00", "cam01", "cam02", "cam03"]
     np.testing.assert_allclose(cams["cam00"].center, [0.0, 0.5, 2.5], atol=1e-9)
     np.testing.assert_allclose(cams["cam01"].center, [2.5, 0.5, 0.0], atol=1e-9)
+
+
+def test_a_global_rotation_given_as_matrices_poses_as_its_axis_angles():
+    """``Rh`` as (B, 3, 3) rotation matrices (what the DVA pose offsets compose) poses the body and its
+    joints as the same rotations given as (B, 3) axis-angles; B = 3 axis-angles, shape (3, 3), stay
+    axis-angles."""
+    import roma
+
+    body = ToyTubeBody()
+    g = torch.Generator().manual_seed(2)
+    rot = 0.3 * torch.randn(3, body.num_joints, 3, generator=g)
+    Rh, Th = torch.randn(3, 3, generator=g), torch.randn(3, 3, generator=g)
+    by_vector = body.pose(rot, Rh=Rh, Th=Th, scale=torch.tensor([1.0, 0.9, 1.1]))
+    by_matrix = body.pose(rot, Rh=roma.rotvec_to_rotmat(Rh), Th=Th, scale=torch.tensor([1.0, 0.9, 1.1]))
+    torch.testing.assert_close(by_matrix.vertices, by_vector.vertices, atol=1e-6, rtol=0)
+    torch.testing.assert_close(by_matrix.joint_transforms, by_vector.joint_transforms, atol=1e-6, rtol=0)
+    torch.testing.assert_close(body.pose_joints(rot, Rh=roma.rotvec_to_rotmat(Rh), Th=Th),
+                               body.pose_joints(rot, Rh=Rh, Th=Th), atol=1e-6, rtol=0)
+    one = body.pose(rot[:1], Rh=roma.rotvec_to_rotmat(Rh[:1]))  # B = 1
+    torch.testing.assert_close(one.vertices, body.pose(rot[:1], Rh=Rh[:1]).vertices, atol=1e-6, rtol=0)

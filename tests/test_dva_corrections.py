@@ -30,10 +30,16 @@ def test_zero_offsets_and_inactive_corrections_are_the_identity():
     fits = _fits()
     corr = TrainingCorrections(CorrectionConfig(), 3, 2, joints=[1, 3])
     frames = torch.tensor([2, 0])
+    import roma
+
     for active in (True, False):
         rot, Rh, Th = corr.pose_inputs(fits, frames, active)
         torch.testing.assert_close(rot, fits.rotvecs[frames])
-        torch.testing.assert_close(Rh, fits.Rh[frames], atol=1e-6, rtol=0)
+        if active:  # the offsets applied: the composed rotations as matrices
+            assert Rh.shape == (2, 3, 3)
+            torch.testing.assert_close(Rh, roma.rotvec_to_rotmat(fits.Rh[frames]), atol=1e-6, rtol=0)
+        else:
+            torch.testing.assert_close(Rh, fits.Rh[frames])
         torch.testing.assert_close(Th, fits.Th[frames])
     rgb, alpha = torch.rand(7, 3), torch.rand(7)
     torch.testing.assert_close(corr.colour(rgb, alpha, 1), rgb)
@@ -59,7 +65,7 @@ def test_offsets_act_on_their_own_joints_frames_and_cameras():
     torch.testing.assert_close(rot[0], expected)
     torch.testing.assert_close(rot[1], fits.rotvecs[0])  # frame 0 untouched
     R = roma.rotvec_to_rotmat(torch.tensor([0.0, 0.2, 0.0])) @ roma.rotvec_to_rotmat(fits.Rh[2])
-    torch.testing.assert_close(roma.rotvec_to_rotmat(Rh[0]), R, atol=1e-6, rtol=0)
+    torch.testing.assert_close(Rh[0], R, atol=1e-6, rtol=0)
     torch.testing.assert_close(Th[0], fits.Th[2] + torch.tensor([0.01, 0.0, 0.0]))
     rgb, alpha = torch.full((2, 3), 0.25), torch.tensor([1.0, 0.0])
     torch.testing.assert_close(corr.colour(rgb, alpha, 1), torch.tensor([[0.5, 0.75, 0.25], [0.5, 0.25, 0.25]]))

@@ -81,8 +81,9 @@ class PosedBody:
 def apply_global_transform(vertices, joint_transforms, Rh=None, Th=None, scale=None):
     """EasyMocap global transform about the model origin.
 
-    vertices (B, V, 3), joint_transforms (B, J, 4, 4), Rh (B, 3) axis-angle, Th (B, 3) metres,
-    scale (B,) -> (vertices, joint_transforms) with ``x -> R(Rh) @ (x * scale) + Th``.
+    vertices (B, V, 3), joint_transforms (B, J, 4, 4), Rh (B, 3) axis-angle or (B, 3, 3) the rotations
+    themselves, Th (B, 3) metres, scale (B,) -> (vertices, joint_transforms) with
+    ``x -> R(Rh) @ (x * scale) + Th``.
     """
     if scale is not None:
         s = scale.to(vertices).reshape(-1, 1, 1)
@@ -91,7 +92,7 @@ def apply_global_transform(vertices, joint_transforms, Rh=None, Th=None, scale=N
     if Rh is not None:
         from uvatar.body.kinematics import rotvec_to_rotmat
 
-        R = rotvec_to_rotmat(Rh.to(vertices))  # (B, 3, 3)
+        R = Rh.to(vertices) if Rh.dim() == 3 else rotvec_to_rotmat(Rh.to(vertices))  # (B, 3, 3)
         vertices = vertices @ R.transpose(-1, -2)
         top = R[:, None] @ joint_transforms[..., :3, :]
         joint_transforms = torch.cat([top, joint_transforms[..., 3:, :].expand_as(joint_transforms[..., 3:, :])], -2)
@@ -175,7 +176,8 @@ class BodyModel(torch.nn.Module):
         """Pose the body.
 
         joint_rotvecs: (B, J, 3) local axis-angles (radians); (J, 3) is taken as B = 1
-        Rh: (B, 3) global axis-angle about the model origin; Th: (B, 3) metres; scale: (B,)
+        Rh: (B, 3) global axis-angle about the model origin (or (B, 3, 3): those rotations as matrices);
+        Th: (B, 3) metres; scale: (B,)
         shape: (S,) or (B, S) backend shape parameters (default :meth:`default_shape`)
         -> :class:`PosedBody` with vertices (B, V, 3), joint_transforms (B, J, 4, 4), normals.
         """
@@ -212,7 +214,8 @@ class BodyModel(torch.nn.Module):
             x = torch.as_tensor(x, device=self.device, dtype=rotvecs.dtype)
             return x.reshape(-1, *tail).expand(B, *tail)
 
-        return rotvecs, (batch(Rh, (3,)), batch(Th, (3,)), batch(scale, ()))
+        matrix = Rh is not None and np.ndim(Rh) == 3  # (B, 3, 3) rotation matrices, not B = 3 axis-angles
+        return rotvecs, (batch(Rh, (3, 3) if matrix else (3,)), batch(Th, (3,)), batch(scale, ()))
 
     def _skin_weights_for(self, device: torch.device) -> torch.Tensor:
         """Skinning weights for :func:`~uvatar.body.kinematics.skin`: sparse CSR on CPU (~4x faster),

@@ -69,9 +69,12 @@ class TrainingCorrections(nn.Module):
         self.biases = nn.Parameter(torch.zeros(num_cameras, 3))
 
     def pose_inputs(self, fits: FitParams, frames: torch.Tensor, active: bool):
-        """(rotvecs (B, J, 3), Rh (B, 3), Th (B, 3)) of ``frames`` (B,) with the offsets applied when
-        ``active`` and ``cfg.pose`` (otherwise the fits' own, without a graph to the offsets)."""
-        import roma
+        """(rotvecs (B, J, 3), Rh, Th (B, 3)) of ``frames`` (B,) with the offsets applied when ``active``
+        and ``cfg.pose`` (otherwise the fits' own, without a graph to the offsets). ``Rh``: the fits' (B, 3)
+        axis-angles, or with the offsets applied (B, 3, 3) the composed rotations ``R(offset) R(Rh)`` as
+        matrices (what the body's posing takes either way: two conversions and a product, where composing
+        axis-angles took ~70 operators a step and as many in the backward, issue 39)."""
+        from uvatar.body.kinematics import rotvec_to_rotmat
 
         dev = self.translations.device
         rot, Rh, Th = (x[frames.to(x.device)].to(dev) for x in (fits.rotvecs, fits.Rh, fits.Th))
@@ -79,7 +82,7 @@ class TrainingCorrections(nn.Module):
         if not (active and self.cfg.pose):
             return rot, Rh, Th
         rot = rot.index_add(1, self.joints, self.joint_rotvecs[frames])
-        Rh = roma.rotvec_composition([self.root_rotvecs[frames], Rh])
+        Rh = rotvec_to_rotmat(self.root_rotvecs[frames]) @ rotvec_to_rotmat(Rh)
         return rot, Rh, Th + self.translations[frames]
 
     def colour(self, rgb: torch.Tensor, alpha: torch.Tensor, camera: int) -> torch.Tensor:

@@ -130,7 +130,7 @@ def articulated_frames(grid: UVGrid, template, posed_vertices: torch.Tensor):
 def apply_correctives(positions, rotations, rest_scales, motion, cfg: PrimitiveConfig, enabled: bool):
     """positions (B,K,3), rotations (B,K,3,3), rest_scales (K,3), motion (B,9,W,W) ->
     final positions, rotations, scales (B,K,3). With ``enabled`` False the correctives are ignored."""
-    import roma
+    from uvatar.body.kinematics import rotvec_to_rotmat
 
     B, K = positions.shape[:2]
     scales = rest_scales[None].expand(B, K, 3)
@@ -138,7 +138,7 @@ def apply_correctives(positions, rotations, rest_scales, motion, cfg: PrimitiveC
         return positions, rotations, scales
     m = motion.reshape(B, 9, K).transpose(1, 2)  # (B, K, 9)
     dt = torch.tanh(m[..., 0:3]) * cfg.max_translation
-    drot = roma.rotvec_to_rotmat(torch.tanh(m[..., 3:6]) * cfg.max_rotation)
+    drot = rotvec_to_rotmat(torch.tanh(m[..., 3:6]) * cfg.max_rotation)
     ds = m[..., 6:9].clamp(*cfg.scale_corrective_bounds)
     positions = positions + torch.einsum("bkij,bkj->bki", rotations, dt)
     rotations = rotations @ drot
