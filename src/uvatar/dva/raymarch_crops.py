@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 
 from uvatar.dva.raymarch_cull import crop_rects
-from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, ray_range
+from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, box_corners, ray_range
 
 __all__ = ["render_crops"]
 
@@ -37,8 +37,10 @@ def render_crops(prims: Primitives, origins: torch.Tensor, directions: torch.Ten
     from uvatar.dva.raymarch_warp import raymarch_warp
 
     B, N = origins.shape[:2]
-    t_near, t_far = ray_range(origins, directions, prims)  # (B, N): each sample's own union box
-    grid = crop_rects(prims, *cameras, corners, size)
+    with torch.no_grad():  # the culling's: no gradient
+        boxes = box_corners(prims)  # (B, K, 8, 3)
+    t_near, t_far = ray_range(origins, directions, prims, corners=boxes)  # (B, N): each sample's own union box
+    grid = crop_rects(prims, *cameras, corners, size, boxes=boxes)
     flat = Primitives(prims.positions.reshape(-1, 3), prims.rotations.reshape(-1, 3, 3), prims.scales.reshape(-1, 3),
                       prims.payload.reshape(-1, *prims.payload.shape[2:]))
     rgb, alpha = raymarch_warp(origins.reshape(-1, 3), directions.reshape(-1, 3), flat, cfg,

@@ -183,7 +183,7 @@ def pinhole_rects(camera, pixels, prims: Primitives, margin: float = 1.0, matric
 
 @torch.no_grad()
 def crop_rects(prims: Primitives, K: torch.Tensor, R: torch.Tensor, T: torch.Tensor, dist: torch.Tensor | None,
-               corners: torch.Tensor, size: int, margin: float = 1.0):
+               corners: torch.Tensor, size: int, margin: float = 1.0, boxes: torch.Tensor | None = None):
     """:func:`pinhole_rects` of B square crops at once, each seen through its own camera: a
     :class:`PixelGrid`-style (lookup (B * size * size,), x0 = 0, y0 = 0, w = size, rects (B * K, 4)).
 
@@ -194,11 +194,14 @@ def crop_rects(prims: Primitives, K: torch.Tensor, R: torch.Tensor, T: torch.Ten
     (B, K, 3, 3), scales (B, K, 3) (no gradient taken); K (B, 3, 3) pixels, R (B, 3, 3), T (B, 3) metres,
     dist (B, 5) or None (no lens bends rays: :func:`corner_bounds`); corners (B, 2) int64 each crop's
     top-left pixel (x, y). The same rectangles as B calls of :func:`pinhole_rects` with
-    :meth:`PixelGrid.crop`, moved down to their crop's rows; nothing is read back."""
+    :meth:`PixelGrid.crop`, moved down to their crop's rows; nothing is read back. ``boxes``: the
+    primitives' world corners (B, K, 8, 3) (:func:`~uvatar.dva.raymarch_ref.box_corners`), where the
+    caller has them already."""
     B = prims.positions.shape[0]
     dt = prims.positions.dtype
-    cam = box_corners(Primitives(prims.positions.detach(), prims.rotations.detach(), prims.scales.detach(),
-                                 prims.payload)).reshape(B, -1, 3) @ R.to(dt).transpose(-1, -2) + T.to(dt)[:, None]
+    if boxes is None:
+        boxes = box_corners(prims)
+    cam = boxes.detach().reshape(B, -1, 3) @ R.to(dt).transpose(-1, -2) + T.to(dt)[:, None]
     lo, hi, behind = corner_bounds(cam, K.to(dt), None if dist is None else dist.to(dt), margin)
     lo, hi = lo - corners[:, None], hi - corners[:, None]
     last = size - 1
