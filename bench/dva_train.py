@@ -23,8 +23,12 @@ back every step), "off" (pose corrections off: the fits as they are). Several, c
 
 ``--count-ops`` adds what one more step dispatches, by phase (:func:`count_step`: torch operators with a
 kernel, views, Warp launches), counted with the code paths the device takes; on a GPU each is a launch
-the host pays for. ``--per-sample`` renders a step's crops sample after sample (the reference twin of the
-one marcher call for the batch, ``train_step.BATCHED_CROPS``).
+the host pays for. ``--crops`` says how a step renders its crops: "batch" (one marcher call for the batch,
+the default) or "each" (sample after sample, the reference twin, ``train_step.BATCHED_CROPS``); both,
+comma separated, time each (keys ``<marcher>[_<pose>][_<compile>]_<crops>_...``), one after the other per
+size. ``--hidden`` / ``--patch`` / ``--batch`` override the preset's decoder width, crop side and samples:
+``--preset paper --grids 8 --voxels 2 --hidden 8 --patch 8`` is the paper's step with next to no arithmetic,
+what the host's share of a step costs on any machine.
 
 ``--compile`` times the step with its encoders and decoders compiled (``TrainConfig.compile``): "off" (the
 eager step, the reference), or a ``torch.compile`` mode ("default", "reduce-overhead": CUDA graphs on a
@@ -113,6 +117,7 @@ def count_step(trainer) -> dict:
 
 
 POSES = ("auto", "device", "host", "off")
+CROPS = ("batch", "each")
 
 
 def pose_settings(pose: str) -> tuple[bool, bool | None]:
@@ -124,7 +129,8 @@ def pose_settings(pose: str) -> tuple[bool, bool | None]:
 
 def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int, steps: int,
             preset: str, device: str = "cpu", render_sizes=(), pairs_per_ray: float | None = None,
-            pose: str = "auto", compile_mode: str = "off", profile: bool = False, count_ops: bool = False) -> dict:
+            pose: str = "auto", compile_mode: str = "off", profile: bool = False, count_ops: bool = False,
+            crops: str = "batch", sizes: dict | None = None) -> dict:
     """{"step_ms": median ms per training step (a synchronise after each), "pipelined_step_ms": ms per
     step of ``steps`` steps back to back, their terms read every 10th step as ``Trainer.run`` logs them,
     one synchronise at the end (what a run pays when the host may run ahead of the GPU),
@@ -136,7 +142,8 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     "+graph": the step captured in a CUDA graph (the row says how many steps were replayed, and why a
     capture failed); ``profile``: also "device_busy_ms", the device's busy time per step over 3 steps
     under torch.profiler (its top operators on stderr): far below "step_ms", the host sets the pace;
-    ``count_ops``: also "operators", what one more step dispatches (:func:`count_step`)."""
+    ``count_ops``: also "operators", what one more step dispatches (:func:`count_step`); ``crops``: "batch"
+    or "each" (the module docstring); ``sizes``: {"hidden", "patch", "batch"} overriding the preset's."""
     from uvatar.dva.data import open_source
     from uvatar.dva.model import preset as make_preset
     from uvatar.dva.train import Trainer
@@ -144,6 +151,14 @@ def step_ms(capture: Path, out: Path, W: int, S: int, marcher: str, warmup: int,
     cfg = make_preset(preset)
     cfg.primitives.grid = W
     cfg.decoder.voxels = S
+    for key, value in (sizes or {}).items():
+        if value:
+            setattr(cfg.decoder if key == "hidden" else cfg.train, key, value)
+    from uvatar.dva import train_step
+
+    if crops not in CROPS:
+        raise SystemExit(f"--crops {crops!r}: choose from {', '.join(CROPS)}")
+    train_step.BATCHED_CROPS = crops == "batch"
     cfg.raymarch.marcher = marcher
     cfg.train.warmup_iters = 0
     if pairs_per_ray is not None:
@@ -224,8 +239,11 @@ def main(argv=None) -> int:
     ap.add_argument("--compile", default="off", help="the step's encoders and decoders: off (eager) or a "
                     f"torch.compile mode ({', '.join(COMPILE_MODES)}), each with +cl (channels_last) and/or "
                     "+graph (the step in a CUDA graph), comma separated")
-    ap.add_argument("--per-sample", action="store_true",
-                    help="render each step's crops sample after sample (the reference), not in one marcher call")
+    ap.add_argument("--crops", default="batch", help="how a step renders its crops, comma separated: batch (one "
+                    "marcher call) and/or each (sample after sample, the reference)")
+    ap.add_argument("--hidden", type=int, default=0, help="the decoders' width (default: the preset's)")
+    ap.add_argument("--patch", type=int, default=0, help="the crops' side in pixels (default: the preset's)")
+    ap.add_argument("--batch", type=int, default=0, help="samples a step (default: the preset's)")
     ap.add_argument("--count-ops", action="store_true",
                     help="also what one step dispatches: torch operators and Warp launches by phase")
     ap.add_argument("--profile", action="store_true",
@@ -242,10 +260,11 @@ def main(argv=None) -> int:
                              "+graph or neither")
     torch.set_num_threads(args.threads)
     sys.path.insert(0, str(ROOT))
-    if args.per_sample:
-        from uvatar.dva import train_step
-
-        train_step.BATCHED_CROPS = False
+    crops = [c.strip() for c in args.crops.split(",") if c.strip()]
+    for c in crops:
+        if c not in CROPS:
+            raise SystemExit(f"--crops {c!r}: choose from {', '.join(CROPS)}")
+    overrides = {"hidden": args.hidden, "patch": args.patch, "batch": args.batch}
     from tests.fixtures.dva_capture import write_toy_capture
 
     rows = []
@@ -259,17 +278,22 @@ def main(argv=None) -> int:
                 for m in args.marchers.split(","):
                     for p in poses:
                         for c in compiles:
-                            got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}_{p}_{c}", W, S, m, args.warmup,
-                                          args.steps, args.preset, args.device, sizes, args.pairs_per_ray, p, c,
-                                          args.profile, args.count_ops)
-                            key = "_".join([m] + [p] * (len(poses) > 1) + [c] * (len(compiles) > 1))
-                            row.update({f"{key}_{k}": v for k, v in got.items()})
+                            for way in crops:
+                                got = step_ms(capture, Path(tmp) / f"{m}{W}_{S}_{p}_{c}_{way}", W, S, m, args.warmup,
+                                              args.steps, args.preset, args.device, sizes, args.pairs_per_ray, p, c,
+                                              args.profile, args.count_ops, way, overrides)
+                                key = "_".join([m] + [p] * (len(poses) > 1) + [c] * (len(compiles) > 1)
+                                               + [way] * (len(crops) > 1))
+                                row.update({f"{key}_{k}": v for k, v in got.items()})
+                if len(crops) > 1 and all(f"{m}_{w}_step_ms" in row for m in args.marchers.split(",")[:1] for w in crops):
+                    m = args.marchers.split(",")[0]
+                    row[f"{m}_batch_over_each_step"] = round(row[f"{m}_batch_step_ms"] / row[f"{m}_each_step_ms"], 3)
                 rows.append(row)
                 print(json.dumps(row), file=sys.stderr)
     device = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or "cpu"
     print(json.dumps({"bench": "dva_train_step", "preset": args.preset, "device": device, "threads": args.threads,
                       "steps": args.steps, "pose": args.pose, "compile": args.compile,
-                      "crops": "per sample" if args.per_sample else "one marcher call", "results": rows}))
+                      "crops": args.crops, "sizes": {k: v for k, v in overrides.items() if v}, "results": rows}))
     return 0
 
 
