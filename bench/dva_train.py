@@ -90,21 +90,17 @@ def count_step(trainer) -> dict:
     counter = OpCounter("forward")
     sample, backward = trainer.sample, torch.autograd.backward
 
-    def sampled(*args, **kwargs):
-        counter.label = "sample"
-        try:
-            return sample(*args, **kwargs)
-        finally:
-            counter.label = "forward"
+    def labelled(fn, during: str, after: str):
+        def call(*args, **kwargs):
+            counter.label = during
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                counter.label = after
+        return call
 
-    def backward_then_update(*args, **kwargs):
-        counter.label = "backward"
-        try:
-            return backward(*args, **kwargs)
-        finally:
-            counter.label = "update"
-
-    trainer.sample, torch.autograd.backward = sampled, backward_then_update
+    trainer.sample = labelled(sample, "sample", "forward")
+    torch.autograd.backward = labelled(backward, "backward", "update")
     try:
         with counter:
             trainer.train_step()
