@@ -183,8 +183,8 @@ class StepLayout:
     """What a step's operations depend on besides its input tensors (a captured step's key): samples
     ``batch``, crop side ``patch`` (pixels), whether the primitives' ``correctives`` are on, whether the
     step ``reposes`` the bodies with the learned pose offsets, each sample camera's lens bending rays
-    (``distorted``, the culling's branch), and the marcher's pair buffer ``pairs`` (per marcher call: the batch's crops, or one crop where
-    they render sample after sample, :func:`renders_batched`)."""
+    (``distorted``, the culling's branch), and the marcher's pair buffer ``pairs`` (per marcher call: the
+    batch's crops, or one crop where they render sample after sample, :func:`renders_batched`)."""
 
     batch: int
     patch: int
