@@ -392,13 +392,25 @@ def _bake_with_rounds(model, layout, config, item, targets, out_dir=None) -> flo
     return time.process_time() - c0
 
 
-def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, ready, go, results):
+def set_bvh(spec: str) -> dict:
+    """``--bvh`` "constructor:leaf size" (either may be empty: Warp's default) -> the BVH every Warp mesh of the
+    bake is built with (``geometry.raycast_warp.BVH_CONSTRUCTOR`` / ``BVH_LEAF_SIZE``); what the JSON says."""
+    from uvatar.geometry import raycast_warp
+
+    constructor, _, leaf = (spec or "").partition(":")
+    raycast_warp.BVH_CONSTRUCTOR = constructor or None
+    raycast_warp.BVH_LEAF_SIZE = int(leaf) if leaf else None
+    return {"constructor": raycast_warp.BVH_CONSTRUCTOR or "default", "leaf_size": raycast_warp.BVH_LEAF_SIZE or "default"}
+
+
+def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, ready, go, results, bvh=""):
     """One process of the throughput run: set up (and the colour targets), say ready, wait for the
     start, bake its frames and write each (:func:`_bake_with_rounds`)."""
     from uvatar.avh.bake.register import ScanSurface
     from uvatar.threads import limit_process_to_one_thread
 
     limit_process_to_one_thread()
+    set_bvh(bvh)
     model, layout, config, _, _ = _setup(texels, device, torch_stages, refine_graph)
     targets = [_colour_targets(model, truth, scan, ScanSurface.build(scan.vertices, scan.faces, device), config)
                for _, truth, scan in items]
@@ -414,7 +426,7 @@ def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, rea
 
 
 def _throughput(workers: int, texels: int, device: str, torch_stages: str, refine_graph: bool, items,
-                warmup: int) -> dict:
+                warmup: int, bvh: str = "") -> dict:
     """Wall seconds per frame of ``items`` baked on ``workers`` processes (the frames dealt round-robin),
     from the moment every worker is set up to the last frame done."""
     import multiprocessing as mp
@@ -422,7 +434,7 @@ def _throughput(workers: int, texels: int, device: str, torch_stages: str, refin
     ctx = mp.get_context("spawn")
     ready, results, go = ctx.Queue(), ctx.Queue(), ctx.Event()
     procs = [ctx.Process(target=_worker, args=(r, texels, device, torch_stages, refine_graph, items[r::workers], warmup,
-                                                       ready, go, results))
+                                                       ready, go, results, bvh))
              for r in range(workers)]
     for p in procs:
         p.start()
@@ -458,6 +470,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-cuda-graph", action="store_true",
                     help="replay the pose refinement's iterations from one CUDA graph (PoseRefineConfig.cuda_graph; "
                          "the JSON's refine_graph_failures says whether a capture failed)")
+    ap.add_argument("--bvh", default="", help="constructor:leaf size of every Warp mesh BVH (e.g. lbvh:4, sah:2, "
+                    "cubql:; empty: Warp's defaults; geometry.raycast_warp.BVH_*)")
     ap.add_argument("--count-ops", action="store_true",
                     help="also count the torch operators and Warp launches of a frame and its colour rounds, "
                          "per stage (the host's launches on a GPU; module doc)")
@@ -476,6 +490,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     texels = 256 if args.quick else args.texels
     frames = 1 if args.quick else args.frames
+    bvh = set_bvh(args.bvh)
 
     from uvatar.avh.bake.frame import bake_fit
 
@@ -587,7 +602,8 @@ def main(argv=None) -> int:
         batch = [items[i % len(items)] for i in range(n)]
         print(f"throughput: {n} frames on {workers} processes", file=sys.stderr)
         runs.append(_throughput(workers, texels, args.device, args.torch_stages, args.refine_cuda_graph, batch,
-                                args.warmup))
+                                args.warmup, args.bvh))
+    out["bvh"] = bvh
     if runs:
         out["throughput"] = min(runs, key=lambda r: r["seconds_per_frame"])    # the machine's best
         out["throughput_runs"] = runs

@@ -12,7 +12,8 @@
 # with the body re-posed on the GPU; "auto,host" adds the CPU re-posing as before), TRAIN_COMPILE (its --compile,
 # default "off,off+cl+graph,default+cl,default+cl+graph": the eager step, the whole step replayed from a CUDA
 # graph, then compiled, with and without the graph), BAKE_SECONDS /
-# BAKE_FRAMES / BAKE_WORKERS (default 4,8: a throughput run each) / BAKE_THROUGHPUT_FRAMES (the frames each run bakes, default 32), TESTS_SECONDS.
+# BAKE_FRAMES / BAKE_WORKERS (default 4,8: a throughput run each) / BAKE_THROUGHPUT_FRAMES (the frames each run bakes, default 32),
+# BAKE_BVH (bench/bake.py --bvh, e.g. lbvh:4: the Warp meshes' BVH, after the rays part has compared them), TESTS_SECONDS.
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
@@ -111,11 +112,12 @@ for part in $PARTS; do
         # (4 and 8 of the machine's 16 cores); --count-ops: the torch operators and Warp launches per stage, the
         # host's launches (session 9 cut them about in half: the nearest samples in one Warp launch, doubling FK)
         run_part bake "${BAKE_SECONDS:-240}" "$OUT/bake.json" python bench/bake.py --device cuda --count-ops --profile \
-          --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4,8}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}"
+          --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4,8}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}" \
+          ${BAKE_BVH:+--bvh "$BAKE_BVH"}
         # the refinement's iterations replayed from one CUDA graph (PoseRefineConfig.cuda_graph, off by default
         # until measured): seconds per frame and parity beside the run above; refine_graph_failures if any
         run_part bake_graph "${BAKE_GRAPH_SECONDS:-90}" "$OUT/bake_graph.json" python bench/bake.py --device cuda \
-          --frames 2 --parity --refine-cuda-graph
+          --frames 2 --parity --refine-cuda-graph ${BAKE_BVH:+--bvh "$BAKE_BVH"}
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;

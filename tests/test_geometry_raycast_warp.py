@@ -49,6 +49,49 @@ def test_first_hit_matches_embree(precision):
         assert got.distance.dtype == ref.distance.dtype and got.face.dtype == ref.face.dtype
 
 
+@pytest.mark.parametrize("bvh", [("sah", 4), ("median", 2), (None, 8)])
+def test_the_chosen_bvh_casts_the_same_hits(monkeypatch, bvh):
+    """Every Warp mesh takes ``BVH_CONSTRUCTOR`` / ``BVH_LEAF_SIZE`` (``bench/bake.py --bvh``): a caster and
+    the one-call occlusion test built with other trees find Embree's hits (the tree changes the traversal,
+    not the answers; a ray grazing an edge may report either neighbour)."""
+    import torch
+
+    from uvatar.geometry import raycast_warp
+
+    monkeypatch.setattr(raycast_warp, "BVH_CONSTRUCTOR", bvh[0])
+    monkeypatch.setattr(raycast_warp, "BVH_LEAF_SIZE", bvh[1])
+    built = []
+    monkeypatch.setattr(raycast_warp, "_warp", lambda real=raycast_warp._warp: _Recording(real(), built))
+    v, f = scene()
+    o, d = rays(2000, seed=3)
+    ref = RayCaster(v, f).first_hit(o, d)
+    got = WarpRayCaster(v, f, device="cpu").first_hit(o, d)
+    np.testing.assert_array_equal(got.hit, ref.hit)
+    assert (got.face == ref.face).mean() > 0.999
+    np.testing.assert_allclose(got.distance[got.hit], ref.distance[ref.hit], atol=2e-6)
+    t = torch.as_tensor
+    occluded = raycast_warp.any_hit_torch(t(v, dtype=torch.float32), t(f), t(o, dtype=torch.float32),
+                                          t(d / np.linalg.norm(d, axis=1, keepdims=True), dtype=torch.float32),
+                                          torch.full((len(o),), 0.5))
+    np.testing.assert_array_equal(occluded.numpy(), RayCaster(v, f).any_hit(o, d / np.linalg.norm(d, axis=1,
+                                                                                                   keepdims=True), 0.5))
+    assert built == [bvh, bvh]
+
+
+class _Recording:
+    """Warp with its ``Mesh`` recording the BVH it is asked for."""
+
+    def __init__(self, wp, built):
+        self._wp, self._built = wp, built
+
+    def __getattr__(self, name):
+        return getattr(self._wp, name)
+
+    def Mesh(self, **kwargs):  # noqa: N802 - Warp's name
+        self._built.append((kwargs.get("bvh_constructor"), kwargs.get("bvh_leaf_size")))
+        return self._wp.Mesh(**kwargs)
+
+
 def test_first_hit_agrees_with_the_numpy_twin_and_reconstructs_points():
     v, f = scene()
     o, d = rays(500, seed=1)

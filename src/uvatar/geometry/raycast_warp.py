@@ -42,6 +42,19 @@ def _warp():
     return wp
 
 
+#: the BVH every Warp mesh here is built with (``wp.Mesh``'s ``bvh_constructor`` and ``bvh_leaf_size``; None:
+#: Warp's defaults, LBVH with leaves of one triangle on CUDA). ``bench/raycast_bvh.py`` compares the choices on
+#: the bake's rays, ``bench/bake.py --bvh`` bakes with another.
+BVH_CONSTRUCTOR: str | None = None
+BVH_LEAF_SIZE: int | None = None
+
+
+def warp_mesh(points, indices):
+    """A ``wp.Mesh`` over ``points`` (wp.vec3 array) and ``indices`` (flat wp.int32 array) with the BVH of
+    :data:`BVH_CONSTRUCTOR` and :data:`BVH_LEAF_SIZE` (the one place this module builds one)."""
+    return _warp().Mesh(points=points, indices=indices, bvh_constructor=BVH_CONSTRUCTOR, bvh_leaf_size=BVH_LEAF_SIZE)
+
+
 _STREAMS: dict = {}   # (device index, CUstream) -> the one warp.Stream wrapping it, kept for the process
 
 
@@ -176,7 +189,7 @@ class WarpRayCaster(RayCaster):
         self._points = wp.array(np.ascontiguousarray(self.vertices, np.float32), dtype=wp.vec3, device=self.device)
         self._indices = wp.array(np.ascontiguousarray(self.faces.reshape(-1), np.int32), dtype=wp.int32,
                                  device=self.device)
-        self._mesh = wp.Mesh(points=self._points, indices=self._indices)
+        self._mesh = warp_mesh(self._points, self._indices)
 
     def _run(self, origins, directions, tfar, query="INTERSECT"):
         """The batch call of :meth:`RayCaster._run` on Warp: (primID (N,) int32, u, v, tfar float32),
@@ -302,7 +315,7 @@ def any_hit_torch(vertices, faces, origins, directions, max_distance):
     points = wp.from_torch(vertices.detach().to(f32).contiguous(), dtype=wp.vec3)
     idx = faces if isinstance(faces, torch.Tensor) else torch.as_tensor(np.asarray(faces).reshape(-1))
     indices = wp.from_torch(idx.to(device=dev, dtype=torch.int32).reshape(-1).contiguous(), dtype=wp.int32)
-    mesh = wp.Mesh(points=points, indices=indices)
+    mesh = warp_mesh(points, indices)
     o = wp.from_torch(origins.detach().to(f32).contiguous(), dtype=wp.vec3)
     d = wp.from_torch(directions.detach().to(f32).contiguous(), dtype=wp.vec3)
     far = wp.from_torch(max_distance.detach().to(f32).contiguous())
@@ -346,8 +359,8 @@ class MeshOccluder:
         with self._stream(wp):
             if self._points is None or self._points.shape != vertices.shape:
                 self._points = vertices.detach().to(f32).contiguous().clone()
-                self._mesh = wp.Mesh(points=wp.from_torch(self._points, dtype=wp.vec3),
-                                     indices=wp.from_torch(self._indices, dtype=wp.int32))
+                self._mesh = warp_mesh(wp.from_torch(self._points, dtype=wp.vec3),
+                                       wp.from_torch(self._indices, dtype=wp.int32))
             else:
                 self._points.copy_(vertices.detach())
                 self._mesh.refit()
