@@ -13,6 +13,7 @@
 # default "off,off+cl+graph,default+cl,default+cl+graph": the eager step, the whole step replayed from a CUDA
 # graph, then compiled, with and without the graph), BAKE_SECONDS /
 # BAKE_FRAMES / BAKE_WORKERS (default 4,8: a throughput run each) / BAKE_THROUGHPUT_FRAMES (the frames each run bakes, default 32),
+# TRAIN_CROPS (bench/dva_train.py --crops: batch, the one marcher call, and/or each, the per-sample reference),
 # BAKE_BVH (bench/bake.py --bvh, e.g. lbvh:4: the Warp meshes' BVH, after the rays part has compared them), TESTS_SECONDS.
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
@@ -92,6 +93,7 @@ for part in $PARTS; do
       # (--compile: the step's encoders and decoders eager, then through torch.compile; compiled in the warm-up)
       run_part train "${TRAIN_SECONDS:-300}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \
         --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" --profile --count-ops \
+        --crops "${TRAIN_CROPS:-batch}" \
         ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,off+cl+graph,default+cl,default+cl+graph}" ;;
     nearest)  # the nearest-sample kernel (the grid, session 10) against SciPy's k-d tree, on the GPU
       run_part nearest "${NEAREST_SECONDS:-60}" "$OUT/nearest.json" python bench/nearest.py --device cuda --no-slab ;;
