@@ -84,6 +84,9 @@ def _symmetric_index(n: int, r: int):
     return np.where(i < n, i, 2 * n - 1 - i)
 
 
+_WINDOWS: dict = {}   # (dtype, device, sigma) -> the Gaussian window of ssim_map_torch
+
+
 def ssim_map_torch(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03,
                    pad: bool = False):
     """Local SSIM (Wang et al. 2004) of torch images (B, C, H, W) → (B, H', W') channel mean, Gaussian
@@ -94,9 +97,12 @@ def ssim_map_torch(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float 
     import torch.nn.functional as F
 
     r = int(3.5 * sigma + 0.5)
-    x = torch.arange(-r, r + 1, dtype=a.dtype, device=a.device)
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
+    key = (a.dtype, str(a.device), float(sigma))
+    if key not in _WINDOWS:  # the window made once per dtype and device (a training step's loss: 5 operators)
+        x = torch.arange(-r, r + 1, dtype=torch.float64)
+        g = torch.exp(-(x**2) / (2 * sigma**2))
+        _WINDOWS[key] = (g / g.sum()).to(device=a.device, dtype=a.dtype)
+    g = _WINDOWS[key]
     if pad:
         rows = torch.as_tensor(_symmetric_index(a.shape[-2], r), device=a.device)
         cols = torch.as_tensor(_symmetric_index(a.shape[-1], r), device=a.device)
