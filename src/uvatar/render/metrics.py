@@ -99,9 +99,9 @@ def ssim_map_torch(a, b, data_range: float = 1.0, sigma: float = 1.5, k1: float 
     r = int(3.5 * sigma + 0.5)
     key = (a.dtype, str(a.device), float(sigma))
     if key not in _WINDOWS:  # the window made once per dtype and device (a training step's loss: 5 operators)
-        x = torch.arange(-r, r + 1, dtype=a.dtype)  # in the images' own type: the window every step used before
+        x = torch.arange(-r, r + 1, dtype=a.dtype, device=a.device)  # the window every step made before
         g = torch.exp(-(x**2) / (2 * sigma**2))
-        _WINDOWS[key] = (g / g.sum()).to(a.device)
+        _WINDOWS[key] = g / g.sum()
     g = _WINDOWS[key]
     if pad:
         rows = torch.as_tensor(_symmetric_index(a.shape[-2], r), device=a.device)
