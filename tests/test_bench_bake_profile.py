@@ -4,21 +4,16 @@ real ones need CUDA)."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from bench_modules import load_bench
 
 torch = pytest.importorskip("torch")
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_bake", ROOT / "bench" / "bake.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("bake")
 
 
 def _event(name, start, end, device=True):

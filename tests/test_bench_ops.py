@@ -3,20 +3,9 @@ each under the label set while they run; Warp's launch is put back afterwards.""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _ops():
-    spec = importlib.util.spec_from_file_location("bench_ops", ROOT / "bench" / "_ops.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from bench_modules import load_bench
 
 
 def test_counts_operators_views_and_launches_under_their_labels():
@@ -30,7 +19,7 @@ def test_counts_operators_views_and_launches_under_their_labels():
         i = wp.tid()
         x[i] = 2.0 * x[i]
 
-    ops = _ops()
+    ops = load_bench("_ops")
     launch = wp.launch
     a = torch.ones(4)
     with ops.OpCounter("first") as counter:
