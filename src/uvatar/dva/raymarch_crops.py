@@ -39,7 +39,7 @@ def render_crops(prims: Primitives, origins: torch.Tensor, directions: torch.Ten
     B, N = origins.shape[:2]
     with torch.no_grad():  # the culling's: no gradient
         boxes = box_corners(prims)  # (B, K, 8, 3)
-    t_near, t_far = ray_range(origins, directions, prims, corners=boxes)  # (B, N): each sample's own union box
+    t_near, t_far = ray_range(origins, directions, prims, boxes=boxes)  # (B, N): each sample's own union box
     grid = crop_rects(prims, *cameras, corners, size, boxes=boxes)
     flat = Primitives(prims.positions.reshape(-1, 3), prims.rotations.reshape(-1, 3, 3), prims.scales.reshape(-1, 3),
                       prims.payload.reshape(-1, *prims.payload.shape[2:]))

@@ -72,19 +72,18 @@ class PixelGrid:
     def crop(cls, size: int, corner: torch.Tensor) -> PixelGrid:
         """The rays of a ``size`` x ``size`` crop in row-major order (ray i at crop pixel (i % size,
         i // size)) whose top-left pixel (x, y) is ``corner`` (2,) int64 on the rays' device."""
-        return cls(_crop_lookup(size, corner.device), 0, 0, size, size, corner)
+        return cls(_crop_lookup(size * size, corner.device), 0, 0, size, size, corner)
 
 
 _CROP_LOOKUPS: dict = {}
 
 
-def _crop_lookup(size: int, device, width: int | None = None) -> torch.Tensor:
-    """arange(size * width) on ``device`` (``width`` default ``size``), made once per size and device (a
-    constant of every crop)."""
-    n = int(size) * int(size if width is None else width)
-    key = (n, str(device))
+def _crop_lookup(pixels: int, device) -> torch.Tensor:
+    """arange(pixels) on ``device``, made once per length and device: the lookup of a crop (or of a stack
+    of crops) whose rays are its pixels in row-major order, a constant of every step."""
+    key = (int(pixels), str(device))
     if key not in _CROP_LOOKUPS:
-        _CROP_LOOKUPS[key] = torch.arange(n, device=device)
+        _CROP_LOOKUPS[key] = torch.arange(int(pixels), device=device)
     return _CROP_LOOKUPS[key]
 
 
@@ -210,7 +209,7 @@ def crop_rects(prims: Primitives, K: torch.Tensor, R: torch.Tensor, T: torch.Ten
                          torch.where(behind, 0, lo[..., 1].clamp(0, size)) + rows,
                          torch.where(behind, last, hi[..., 0].clamp(-1, last)),
                          torch.where(behind, last, hi[..., 1].clamp(-1, last)) + rows], -1)
-    return _crop_lookup(B * size, lo.device, size), 0, 0, size, rects.reshape(-1, 4)
+    return _crop_lookup(B * size * size, lo.device), 0, 0, size, rects.reshape(-1, 4)
 
 
 @torch.no_grad()

@@ -115,15 +115,15 @@ def box_corners(prims: Primitives) -> torch.Tensor:
 
 @torch.no_grad()
 def ray_range(origins: torch.Tensor, directions: torch.Tensor, prims: Primitives, pad: float = 1e-3,
-              corners: torch.Tensor | None = None):
+              boxes: torch.Tensor | None = None):
     """Interval of each ray through the union AABB of all boxes.
 
     Returns t_near (N,), t_far (N,) (t_far < t_near where the ray misses), both >= 0. Batched: rays
     (B, N, 3) through primitives with a leading batch dimension (positions (B, K, 3) etc.), each
     sample's rays through its own primitives' box, give (B, N) each (the same numbers as B calls).
-    ``corners``: the boxes' :func:`box_corners`, where the caller has them already.
+    ``boxes``: the boxes' :func:`box_corners`, where the caller has them already.
     """
-    corners = (box_corners(prims) if corners is None else corners).detach().flatten(-3, -2)  # (..., K * 8, 3)
+    corners = (box_corners(prims) if boxes is None else boxes).detach().flatten(-3, -2)  # (..., K * 8, 3)
     lo = corners.min(-2, keepdim=True).values - pad
     hi = corners.max(-2, keepdim=True).values + pad
     d = torch.where(directions.abs() < 1e-12, torch.full_like(directions, 1e-12), directions)
