@@ -8,9 +8,14 @@ cells; its build, once per scan, timed apart as ``grid_build_ms``), ``kd_tree`` 
 bake's CPU path, its build also apart) and ``slab`` (:func:`~uvatar.avh.bake.register_torch.nearest_points_torch`,
 the torch reference the device twins answer against; CPU only, slow). Prints ONE JSON object:
 milliseconds per query batch for each, the ratios against the k-d tree, and whether the answers agree
-(distances within 1e-12 m, the same found set).
+(distances within 1e-12 m, the same found set). ``--lanes 1,4,16``: the grid search again with that many
+threads per query (``grid_lanes_ms``; ``grid_ms`` is the device's default, :func:`~uvatar.geometry.nearest_warp.lanes_for`),
+each checked against the one-thread answers bit for bit (``lanes_agree``). ``--offset-mm 10,50`` places the
+queries that far off the surface (default 5,20); the bake's refinement asks ~4,000 a launch, 10-50 mm off,
+within ~94 mm (``--queries 4000 --offset-mm 10,50 --limit 0.094``).
 
     python bench/nearest.py [--samples 300000] [--queries 14000] [--limit 0.05] [--device cpu|cuda] [--repeats 5]
+                            [--lanes 1,4,16] [--offset-mm 5,20]
 """
 
 from __future__ import annotations
@@ -54,18 +59,27 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--no-slab", action="store_true", help="skip the torch slab search (slow on a CPU)")
+    ap.add_argument("--lanes", default="", help="threads per query to time besides the default, e.g. 1,4,16")
+    ap.add_argument("--offset-mm", default="5,20", help="the queries' distance off the surface: low,high mm")
     args = ap.parse_args(argv)
+    try:
+        low_mm, high_mm = (float(v) for v in args.offset_mm.split(","))
+        lanes = [int(v) for v in args.lanes.split(",") if v.strip()]
+    except ValueError:
+        ap.error(f"--offset-mm takes low,high (mm) and --lanes integers, got {args.offset_mm!r} and {args.lanes!r}")
+    if any(v < 1 for v in lanes):
+        ap.error(f"--lanes: at least 1 thread per query, got {args.lanes!r}")
     import torch
     from scipy.spatial import cKDTree
 
     from uvatar.avh.bake.register_torch import nearest_points_torch, sorted_points_torch
-    from uvatar.geometry.nearest_warp import grid_points_torch, nearest_grid_points_warp
+    from uvatar.geometry.nearest_warp import grid_points_torch, lanes_for, nearest_grid_points_warp
 
     rng = np.random.default_rng(0)
     points = body_surface(args.samples, rng)
     near_surface = points[rng.choice(len(points), args.queries - args.queries // 50)]
     offsets = rng.normal(size=near_surface.shape)
-    offsets *= rng.uniform(0.005, 0.02, (len(offsets), 1)) / np.linalg.norm(offsets, axis=1, keepdims=True)
+    offsets *= rng.uniform(low_mm / 1000, high_mm / 1000, (len(offsets), 1)) / np.linalg.norm(offsets, axis=1, keepdims=True)
     queries = np.concatenate([near_surface + offsets, rng.uniform(-1, 2, (args.queries // 50, 3))])
     cuda = args.device.startswith("cuda")
     sync = torch.cuda.synchronize if cuda else (lambda: None)
@@ -81,7 +95,8 @@ def main(argv=None) -> int:
     tree = cKDTree(points)
     kd_build = 1000 * (time.perf_counter() - t)
     out = {"bench": "nearest", "device": torch.cuda.get_device_name() if cuda else "cpu",
-           "samples": len(points), "queries": len(queries), "limit_m": args.limit,
+           "samples": len(points), "queries": len(queries), "limit_m": args.limit, "offset_mm": [low_mm, high_mm],
+           "lanes_default": lanes_for(args.device),
            "grid_cells": int(np.prod(grid.dims)), "grid_cell_mm": round(1000 * grid.cell, 2),
            "grid_build_ms": round(grid_build, 1), "kd_tree_build_ms": round(kd_build, 1)}
     out["grid_ms"] = _ms(lambda: nearest_grid_points_warp(q, grid, args.limit), args.repeats, sync)
@@ -90,6 +105,15 @@ def main(argv=None) -> int:
     kd, _ = tree.query(queries, distance_upper_bound=args.limit)
     found = np.isfinite(kd)
     agree = bool(np.array_equal(np.isfinite(near), found) and np.allclose(near[found], kd[found], atol=1e-12, rtol=0))
+    if lanes:
+        one = [x.cpu().numpy() for x in nearest_grid_points_warp(q, grid, args.limit, lanes=1)]
+        out["grid_lanes_ms"], out["lanes_agree"] = {}, True
+        for n in lanes:
+            out["grid_lanes_ms"][str(n)] = _ms(lambda n=n: nearest_grid_points_warp(q, grid, args.limit, lanes=n),
+                                               args.repeats, sync)
+            got = [x.cpu().numpy() for x in nearest_grid_points_warp(q, grid, args.limit, lanes=n)]
+            out["lanes_agree"] &= bool(np.array_equal(got[0], one[0]) and np.array_equal(got[1], one[1]))
+        agree = agree and out["lanes_agree"]
     if not args.no_slab:
         sorted_points = sorted_points_torch(points, args.device)
         out["slab_ms"] = _ms(lambda: nearest_points_torch(q, sorted_points, args.limit), 1, sync)

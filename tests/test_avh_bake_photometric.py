@@ -152,3 +152,38 @@ def test_photometric_space_is_checked():
 
     with pytest.raises(Exception, match="photometric_space"):
         PoseRefineConfig(photometric_space="lab")
+
+
+def test_both_rays_in_one_launch_choose_as_the_two_casts():
+    """The device path casts every point's +n and -n rays in one launch, each to the full distance; the
+    reference casts the -n rays only as far as the +n ray's compatible hit. Between two layers (a shirt
+    over skin), with normals tilted either way and some facing away: the same faces and barycentrics,
+    and the -n ray does win for some points."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("warp")
+    from uvatar.avh.bake.photometric import _nearer_compatible_hit
+    from uvatar.avh.bake.register import fast_caster
+
+    plane = _ramp_plane()
+    vertices = np.concatenate([plane.vertices, plane.vertices + [0.0, 0.0, 0.02]])
+    faces = np.concatenate([plane.faces, plane.faces + 4])
+    surface = ScanSurface.build(vertices, faces)
+    surface.caster = fast_caster(surface.vertices, surface.faces, "cpu")
+    rng = np.random.default_rng(3)
+    p = torch.as_tensor(np.concatenate([rng.uniform(-0.8, 0.8, (400, 2)), rng.uniform(-0.03, 0.05, (400, 1))], 1))
+    n = torch.as_tensor(rng.normal(0, 0.3, (400, 3)) + [0.0, 0.0, 1.0]) * torch.as_tensor(rng.choice([-1.0, 1.0], (400, 1)))
+    n = n / n.norm(dim=1, keepdim=True)
+    start = (torch.full((400,), float("inf"), dtype=torch.float64), torch.full((400,), -1, dtype=torch.int64),
+             torch.zeros((400, 3), dtype=torch.float64))
+    far = torch.full((800,), 0.051, dtype=torch.float64)
+    one = _nearer_compatible_hit(surface, p, n, 0.05, 0.5, 1e-3, torch.where,
+                                 lambda o, d, _: surface.caster.first_hit_torch(o, d, far), *start, cat=torch.cat)
+    two = _nearer_compatible_hit(surface, p, n, 0.05, 0.5, 1e-3, torch.where,
+                                 lambda o, d, best: surface.caster.first_hit_torch(o, d, best.clamp(max=0.051)), *start)
+    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+    assert 50 < int((one[0] >= 0).sum()) < 400
+    # the -n ray won somewhere: its hit lies behind the point (against its normal)
+    hit = one[0] >= 0
+    below = ((surface.caster.first_hit_torch(p[hit], -n[hit], far[: int(hit.sum())]).face == one[0][hit])
+             & (surface.caster.first_hit_torch(p[hit], n[hit], far[: int(hit.sum())]).face != one[0][hit]))
+    assert int(below.sum()) > 10

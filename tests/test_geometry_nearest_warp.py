@@ -158,3 +158,35 @@ def test_a_query_that_is_not_a_number_finds_nothing(device):
         assert np.isinf(near[:2]).all() and (idx[:2] == 0).all()
         kd, kd_idx = cKDTree(points).query(queries.cpu().numpy()[2], distance_upper_bound=limit)
         assert near[2] == pytest.approx(kd, abs=1e-15) and idx[2] == kd_idx
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_any_lanes_give_the_same_answers(device):
+    """Several threads per query (each every lanes-th cell of the rings, stopping on the best any of them
+    found) answer as one does, bit for bit: distances, indices (ties to the smaller index: duplicated
+    points), queries far outside, NaN queries, limits small and unbounded; the k-d tree's answers."""
+    rng = np.random.default_rng(6)
+    points = _cloud(rng, 6000)
+    points = np.concatenate([points, points[:300]])                   # exact ties across cells' lanes
+    queries = np.concatenate([rng.normal(size=(900, 3)) * [0.2, 0.7, 0.1], points[:40] + 1e-3,
+                              [[np.nan, 0.0, 0.0], [5.0, -3.0, 2.0]]])
+    q = torch.as_tensor(queries, device=device)
+    grid = grid_points_torch(points, device)
+    for limit in (0.004, 0.05, np.inf):
+        one = [x.cpu().numpy() for x in nearest_grid_points_warp(q, grid, limit, lanes=1)]
+        kd, kd_idx = cKDTree(points).query(np.nan_to_num(queries, nan=1e9), distance_upper_bound=limit)
+        found = np.isfinite(kd) & np.isfinite(queries).all(1)            # the NaN query finds nothing
+        assert np.array_equal(np.isfinite(one[0]), found) and 0 < found.sum() and one[1][-2] == 0
+        np.testing.assert_allclose(one[0][found], kd[found], atol=1e-15, rtol=0)
+        for lanes in (2, 5, 16, 32):
+            near, idx = (x.cpu().numpy() for x in nearest_grid_points_warp(q, grid, limit, lanes=lanes))
+            assert np.array_equal(near, one[0]) and np.array_equal(idx, one[1]), (limit, lanes)
+    with pytest.raises(ValueError, match="lanes"):
+        nearest_grid_points_warp(q, grid, 0.05, lanes=0)
+
+
+def test_lanes_by_device():
+    """One thread per query on the CPU (Warp's CPU backend is one thread), LANES_CUDA on a GPU."""
+    from uvatar.geometry.nearest_warp import LANES_CUDA, lanes_for
+
+    assert lanes_for("cpu") == 1 and lanes_for(torch.device("cuda:0")) == LANES_CUDA > 1
