@@ -163,7 +163,7 @@ def _kernels():
             gap = wp.min(wp.min(face_gap(rx, cx, r - 1), face_gap(ry, cy, r - 1)), face_gap(rz, cz, r - 1))
             if gap * side * (wp.float64(1.0) - wp.float64(1.0e-9)) >= max_distance:
                 return
-        seen = int(0)                        # cells of the rings met so far: this lane scans every lanes-th
+        seen = wp.int32(0)                   # cells of the rings met so far: this lane scans every lanes-th
         while r <= last:
             for x in range(wp.max(cx - r, 0), wp.min(cx + r, nx - 1) + 1):
                 x_face = x == cx - r or x == cx + r
