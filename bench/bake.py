@@ -394,13 +394,19 @@ def _bake_with_rounds(model, layout, config, item, targets, out_dir=None) -> flo
 
 def set_bvh(spec: str) -> dict:
     """``--bvh`` "constructor:leaf size" (either may be empty: Warp's default) -> the BVH every Warp mesh of the
-    bake is built with (``geometry.raycast_warp.BVH_CONSTRUCTOR`` / ``BVH_LEAF_SIZE``); what the JSON says."""
-    from uvatar.geometry import raycast_warp
+    bake is built with (``geometry.raycast_warp.BVH_CONSTRUCTOR`` / ``BVH_LEAF_SIZE``), and after a second
+    colon the nearest-sample search's threads per query on a GPU (``--nearest-lanes``,
+    ``geometry.nearest_warp.LANES_CUDA``); what the JSON says."""
+    from uvatar.geometry import nearest_warp, raycast_warp
 
-    constructor, _, leaf = (spec or "").partition(":")
+    constructor, _, rest = (spec or "").partition(":")
+    leaf, _, lanes = rest.partition(":")
     raycast_warp.BVH_CONSTRUCTOR = constructor or None
     raycast_warp.BVH_LEAF_SIZE = int(leaf) if leaf else None
-    return {"constructor": raycast_warp.BVH_CONSTRUCTOR or "default", "leaf_size": raycast_warp.BVH_LEAF_SIZE or "default"}
+    if lanes:
+        nearest_warp.LANES_CUDA = int(lanes)
+    return {"constructor": raycast_warp.BVH_CONSTRUCTOR or "default", "leaf_size": raycast_warp.BVH_LEAF_SIZE or "default",
+            "nearest_lanes_cuda": nearest_warp.LANES_CUDA}
 
 
 def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, ready, go, results, bvh=""):
@@ -472,6 +478,9 @@ def main(argv=None) -> int:
                          "the JSON's refine_graph_failures says whether a capture failed)")
     ap.add_argument("--bvh", default="", help="constructor:leaf size of every Warp mesh BVH (e.g. lbvh:4, sah:2, "
                     "cubql:; empty: Warp's defaults; geometry.raycast_warp.BVH_*)")
+    ap.add_argument("--nearest-lanes", type=int, default=None,
+                    help="threads per query of the nearest-sample search on a GPU (default "
+                         "geometry.nearest_warp.LANES_CUDA; bench/nearest.py --lanes compares them)")
     ap.add_argument("--count-ops", action="store_true",
                     help="also count the torch operators and Warp launches of a frame and its colour rounds, "
                          "per stage (the host's launches on a GPU; module doc)")
@@ -490,7 +499,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     texels = 256 if args.quick else args.texels
     frames = 1 if args.quick else args.frames
-    bvh = set_bvh(args.bvh)
+    if args.nearest_lanes is not None and args.nearest_lanes < 1:
+        ap.error(f"--nearest-lanes: at least 1 thread per query, got {args.nearest_lanes}")
+    constructor, _, leaf = (args.bvh or "").partition(":")
+    kernels = f"{constructor}:{leaf}:{'' if args.nearest_lanes is None else args.nearest_lanes}"   # set_bvh's
+    bvh = set_bvh(kernels)
 
     from uvatar.avh.bake.frame import bake_fit
 
@@ -602,7 +615,7 @@ def main(argv=None) -> int:
         batch = [items[i % len(items)] for i in range(n)]
         print(f"throughput: {n} frames on {workers} processes", file=sys.stderr)
         runs.append(_throughput(workers, texels, args.device, args.torch_stages, args.refine_cuda_graph, batch,
-                                args.warmup, args.bvh))
+                                args.warmup, kernels))
     out["bvh"] = bvh
     if runs:
         out["throughput"] = min(runs, key=lambda r: r["seconds_per_frame"])    # the machine's best

@@ -14,19 +14,17 @@
 # There, one call per part, each within 30 s of the last (the machine stays warm that long; /tmp survives):
 #   run(command="bash scripts/gpu_carry.sh store", carry=[".carry/p1"], timeout_s=60)            # p1 .. p(n-1)
 #   run(command="bash scripts/gpu_carry.sh store && $CHECK", carry=[".carry/pN"], timeout_s=560)  # the last part
-#   with CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=110 BAKE_SECONDS=180 BAKE_GRAPH_SECONDS=60
-#   TESTS_SECONDS=110 NEAREST_SECONDS=40 RAYS_SECONDS=40 bash scripts/gpu_carry.sh check nearest rays bake train
-#   tests": the open bars of issue 39
-#   first (the nearest-sample grid against the k-d tree, the bake with its profile, workers and the
-#   refinement's graph, the training step replayed from its graph), then the CUDA tests, within the one
-#   call that a 15-minute lease leaves room for after the machine's start (session 10: ~40 s)
+#   with CHECK (below): the open bar of issue 39 first (the nearest-sample search's lanes as the bake asks it,
+#   the bake with its profile, 4 workers and the refinement's graph), then the CUDA tests, the training
+#   step (eager and replayed from its graph) and the capture's trace, within one call (~380 s) that what is
+#   left of a 15-minute lease allows after the machine's start (~40 s). Results: one results.tgz.
 #   `store` keeps the part in /tmp/uvatar_carry; `check PARTS` unpacks all parts into /tmp/site (the anny
 #   cache into ~/.cache/anny/v14), exports PYTHONPATH and runs scripts/gpu_check.sh PARTS (its env.txt says
 #   what imports). While the machine is warm, later calls need only `bash scripts/gpu_carry.sh check ...`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PART_MB=${PART_MB:-56}
-CHECK="TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=110 BAKE_SECONDS=180 BAKE_GRAPH_SECONDS=60 TESTS_SECONDS=110 NEAREST_SECONDS=40 RAYS_SECONDS=40 bash scripts/gpu_carry.sh check nearest rays bake train tests"
+CHECK="BAKE_LANES=auto BAKE_WORKERS=4 BAKE_GRAPH_WORKERS=4 BAKE_THROUGHPUT_FRAMES=24 NEAREST_SECONDS=25 BAKE_SECONDS=120 BAKE_GRAPH_SECONDS=50 TESTS_SECONDS=70 TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=50 TRACE_SECONDS=45 bash scripts/gpu_carry.sh check nearest bake tests train trace"
 STORE=/tmp/uvatar_carry
 
 pack() {

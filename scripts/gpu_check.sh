@@ -20,10 +20,12 @@
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
 # <path>_drive_psnr_vs_ref, <path>_pairs_per_ray_peak and <path>_pair_overflows; the training rows
 # train_<p>_step_ms and train_<p>_pipelined_step_ms.
-# Writes into $OUT (the device tool's output folder; ./gpu_out elsewhere): env.txt (card, versions,
-# which packages import), <part>.json (a bench's stdout) with <part>.log (its stderr, one line per
-# finished row, so a cut run still tells), pytest_*.txt, and status.txt (each part's exit code; 124 =
-# it ran past its time). Each part gets the smaller of its own limit and what is left of $BUDGET.
+# Writes $OUT/results.tgz (the device tool's output folder; ./gpu_out elsewhere), packed after every part:
+# env.txt (card, versions, which packages import), <part>.json (a bench's stdout) with <part>.log (its
+# stderr, one line per finished row, so a cut run still tells), pytest_*.txt, trace.txt, and status.txt
+# (each part's exit code; 124 = it ran past its time; also beside the tarball). BAKE_LANES (a number, or
+# auto: the nearest part's fastest) sets bench/bake.py --nearest-lanes; BAKE_GRAPH_WORKERS the refinement
+# graph's throughput run. Each part gets the smaller of its own limit and what is left of $BUDGET.
 # A bare device machine lacks uvatar's compiled dependencies: carry Warp (the fused marcher, the device
 # unwrap), embreex (the toy capture, the reference unwrap) and anny (the bake) as docs/DESIGN notes say;
 # env.txt lists what imports. Without Warp the marcher falls back to its torch twin (JSON "marcher").
@@ -37,8 +39,13 @@
 # capture broke and tries the capture modes.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-OUT=${OUT:-$PWD/gpu_out}
-mkdir -p "$OUT"
+# the device tool brings back only a few files: every part writes into a work folder, packed after each
+# part into one $OUT/results.tgz (and status.txt beside it), so a cut run still returns what it finished
+FINAL=${OUT:-$PWD/gpu_out}
+OUT=$(mktemp -d /tmp/gpu_check.XXXX)
+mkdir -p "$FINAL"
+pack_results() { tar czf "$FINAL/results.tgz.part" -C "$OUT" . && mv "$FINAL/results.tgz.part" "$FINAL/results.tgz"
+                 cp "$OUT/status.txt" "$FINAL/status.txt" 2>/dev/null || true; }
 export PYTHONPATH=$PWD/src:$PWD${PYTHONPATH:+:$PYTHONPATH} UVATAR_COMPILE_TESTS=1 PYTHONUNBUFFERED=1
 DEADLINE=$((SECONDS + ${BUDGET:-560}))
 PARTS=${*:-dva avh tests bake}
@@ -54,6 +61,7 @@ run_part() {  # run_part NAME SECONDS OUTFILE COMMAND...
   if [ "$s" -le 5 ]; then echo "$name skipped: no time left" | tee -a "$OUT/status.txt"; return; fi
   timeout --kill-after=10 "$s" "$@" > "$out" 2> "$OUT/$name.log"
   echo "$name rc=$? limit=${s}s took=$((SECONDS - t0))s" | tee -a "$OUT/status.txt"
+  pack_results
 }
 
 {
@@ -95,8 +103,15 @@ for part in $PARTS; do
         --grids 64 --voxels 16 --marchers warp --warmup 3 --steps "${TRAIN_STEPS:-20}" --profile --count-ops \
         --crops "${TRAIN_CROPS:-batch}" \
         ${DVA_PAIRS:+--pairs-per-ray "$DVA_PAIRS"} --pose "${TRAIN_POSE:-auto}" --compile "${TRAIN_COMPILE:-off,off+cl+graph,default+cl,default+cl+graph}" ;;
-    nearest)  # the nearest-sample kernel (the grid, session 10) against SciPy's k-d tree, on the GPU
-      run_part nearest "${NEAREST_SECONDS:-60}" "$OUT/nearest.json" python bench/nearest.py --device cuda --no-slab ;;
+    nearest)  # the nearest-sample kernel (the grid, session 10) against SciPy's k-d tree, on the GPU, as the
+              # bake's refinement asks it (4,000 queries 10-50 mm off ~165k samples, within 94 mm), with 1 to 32
+              # threads per query (session 13's lanes; BAKE_LANES=auto takes the fastest for the bake)
+      run_part nearest "${NEAREST_SECONDS:-60}" "$OUT/nearest.json" python bench/nearest.py --device cuda --no-slab \
+        --samples 165000 --queries 4000 --offset-mm 10,50 --limit 0.094 --lanes 1,4,8,16,32 ;;
+    trace)  # why the training step's CUDA graph capture fails (scripts/gpu_trace_capture.py): traced, then
+            # untraced in two modes, then slowed by a pass-through dispatch mode only
+      run_part trace "${TRACE_SECONDS:-90}" "$OUT/trace.txt" python scripts/gpu_trace_capture.py \
+        --modes "${TRACE_MODES:-global,thread_local,relaxed,relaxed+null}" ;;
     rays)  # Warp's BVH constructors and leaf sizes on the bake's ray patterns (the default LBVH ran the bake's
            # first hits at ~65 M rays/s on the H200; on the CPU a leaf of 4 casts 1.7-2x faster than 1)
       run_part rays "${RAYS_SECONDS:-45}" "$OUT/raycast_bvh.json" python bench/raycast_bvh.py --device cuda \
@@ -109,21 +124,28 @@ for part in $PARTS; do
            # those stages on the CPU (torch_stages off), and how far the maps and poses moved (eval unchanged:
            # |delta x| median < 0.1 mm, texture PSNR within 0.2 dB)
       if python -c "import anny, warp" 2>/dev/null; then
+        lanes=${BAKE_LANES:-}
+        if [ "$lanes" = auto ]; then   # the fastest of the nearest part's lanes, if it ran
+          lanes=$(python -c "import json; d=json.load(open('$OUT/nearest.json'))['grid_lanes_ms']; print(min(d, key=d.get))" 2>/dev/null || true)
+          echo "bake: nearest lanes ${lanes:-default}" | tee -a "$OUT/status.txt"
+        fi
         # --workers: the frames again on that many processes sharing the GPU (one frame's CPU work overlaps
         # another's GPU work): throughput.seconds_per_frame is the machine's wall time per frame
         # (4 and 8 of the machine's 16 cores); --count-ops: the torch operators and Warp launches per stage, the
         # host's launches (session 9 cut them about in half: the nearest samples in one Warp launch, doubling FK)
         run_part bake "${BAKE_SECONDS:-240}" "$OUT/bake.json" python bench/bake.py --device cuda --count-ops --profile \
           --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4,8}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}" \
-          ${BAKE_BVH:+--bvh "$BAKE_BVH"}
+          ${BAKE_BVH:+--bvh "$BAKE_BVH"} ${lanes:+--nearest-lanes "$lanes"}
         # the refinement's iterations replayed from one CUDA graph (PoseRefineConfig.cuda_graph, off by default
         # until measured): seconds per frame and parity beside the run above; refine_graph_failures if any
         run_part bake_graph "${BAKE_GRAPH_SECONDS:-90}" "$OUT/bake_graph.json" python bench/bake.py --device cuda \
-          --frames 2 --parity --refine-cuda-graph ${BAKE_BVH:+--bvh "$BAKE_BVH"}
+          --frames 2 --parity --refine-cuda-graph ${BAKE_BVH:+--bvh "$BAKE_BVH"} ${lanes:+--nearest-lanes "$lanes"} \
+          --workers "${BAKE_GRAPH_WORKERS:-1}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}"
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    *) echo "unknown part $part (dva avh tests compile bake train nearest rays)" | tee -a "$OUT/status.txt" ;;
+    *) echo "unknown part $part (dva avh tests compile bake train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
   esac
 done
 tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null
+pack_results

@@ -9,7 +9,11 @@ operator (a dispatch mode, which autograd's backward thread inherits) and every 
 first operator after which the capture is invalidated, with its Python stack, and the capture's own
 exception with its traceback. Then the same steps with the capture in each of ``--modes``
 (``torch.cuda.graph``'s ``capture_error_mode``): whether it captured and replayed, and how far its terms
-are from the eager steps' (lines ``MODE <mode> ok|failed ...``). Without CUDA it says so and exits 2.
+are from the eager steps' (lines ``MODE <mode> ok|failed ...``), each failed capture's traceback (where the
+exception surfaced). A mode named ``<mode>+null`` records under a dispatch mode that only passes every
+operator on (no status asked): whether a capture that fails at full speed holds when the host is slowed by
+Python dispatch alone (a race with the device, not an operator, would then be the cause). Without CUDA it
+says so and exits 2.
 """
 from __future__ import annotations
 
@@ -59,6 +63,13 @@ class CaptureTracer(TorchDispatchMode):
         out = func(*args, **(kwargs or {}))
         self.check(str(func))
         return out
+
+
+class PassThrough(TorchDispatchMode):
+    """Every operator through Python and on, nothing else: the tracer's slowness without its checks."""
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        return func(*args, **(kwargs or {}))
 
 
 def with_capture_mode(mode: str) -> None:
@@ -117,9 +128,18 @@ def main() -> int:
 
     wp.launch = traced_launch
     record = train_step.StepGraph._record
-    trace = {"on": True}
+    trace = {"on": True, "null": False}
+    import logging
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("uvatar.dva.train_step").setLevel(logging.DEBUG)   # each failed capture's traceback
 
     def traced_record(self, fn):
+        if trace["null"]:
+            def passed():
+                with PassThrough():
+                    return fn()
+            return record(self, passed)
         if not trace["on"]:
             return record(self, fn)
         tracer = CaptureTracer(self.stream)
@@ -142,20 +162,21 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         cap = write_toy_capture(Path(tmp) / "cap", frames=3, cameras=4, size=24)
         eager, _ = train(cap, Path(tmp) / "eager", args.preset, args.steps, False, args.device)
-        for i, mode in enumerate(args.modes.split(",")):
-            trace["on"] = i == 0
+        for i, name in enumerate(args.modes.split(",")):
+            mode = name.removesuffix("+null")
+            trace["on"], trace["null"] = i == 0 and mode == name, mode != name
             with_capture_mode(mode)
             try:
                 terms, trainer = train(cap, Path(tmp) / mode, args.preset, args.steps, True, args.device)
             except Exception:
-                print(f"MODE {mode} raised:\n{traceback.format_exc()}")
+                print(f"MODE {name} raised:\n{traceback.format_exc()}")
                 continue
             finally:
                 torch.cuda.graph = _REAL_GRAPH
             worst = max(abs(b[k] - a[k]) / max(abs(a[k]), 1e-6) for a, b in zip(eager, terms, strict=True) for k in a)
             g = trainer.graph
             ok = g is not None and g.error is None and g.replays > 0
-            print(f"MODE {mode} {'ok' if ok else 'failed'} captures={g and g.captures} replays={g and g.replays} "
+            print(f"MODE {name} {'ok' if ok else 'failed'} captures={g and g.captures} replays={g and g.replays} "
                   f"terms_max_rel_diff={worst:.2e} error={((g and g.error) or '').splitlines()[:1]}", flush=True)
     return 0
 

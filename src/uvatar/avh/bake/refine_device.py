@@ -198,7 +198,6 @@ def sample_colours_on_device(body, fit, surface, scan_mesh, config, radius: floa
 #: why a capture of the refinement's iterations failed in this process (they then run eagerly); empty: none did
 GRAPH_FAILURES: list[str] = []
 _SIDE_STREAMS: dict = {}   # str(device) -> the torch stream the captures record on
-_POOLS: dict = {}          # str(device) -> the memory pool the captures share (each graph is done with first)
 
 
 #: tests set it to take the graph path on the CPU (with a stand-in capture, or the real one failing there)
@@ -217,8 +216,9 @@ def _capture(fn, device):
     """A CUDA graph of ``fn()`` (:func:`uvatar.geometry.raycast_warp.capture_graph`, on a side stream
     of ``device``), or None when the capture fails (logged once; the process's refinements run eagerly).
     A bake captures four a frame (the geometric refinement and each colour round), each used up before
-    the next: they keep torch's caches (no device synchronise, no cache emptied per capture) and share
-    one memory pool per device."""
+    the next: they keep torch's caches (no device synchronise, no cache emptied per capture), each in its
+    own memory pool (freed with its graph). Sharing one pool across the captures tripped torch's
+    allocator on an H200 (``use_count > 0`` asserted in CUDACachingAllocator.cpp, session 13)."""
     import torch
 
     from uvatar.geometry.raycast_warp import capture_graph
@@ -227,8 +227,7 @@ def _capture(fn, device):
     try:
         if key not in _SIDE_STREAMS:
             _SIDE_STREAMS[key] = torch.cuda.Stream(device=device)
-            _POOLS[key] = torch.cuda.graph_pool_handle()
-        return capture_graph(fn, _SIDE_STREAMS[key], keep_caches=True, pool=_POOLS[key])[0]
+        return capture_graph(fn, _SIDE_STREAMS[key], keep_caches=True)[0]
     except Exception as exc:  # noqa: BLE001  any failure: the eager iterations are the same steps
         GRAPH_FAILURES.append(f"{type(exc).__name__}: {exc}")
         log.warning("--refine-cuda-graph: the pose refinement's CUDA graph capture failed (%s: %s); its "
