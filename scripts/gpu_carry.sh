@@ -24,7 +24,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PART_MB=${PART_MB:-56}
-CHECK="BUDGET=355 BAKE_LANES=auto BAKE_WORKERS=4,8 BAKE_GRAPH_WORKERS=4 BAKE_THROUGHPUT_FRAMES=24 NEAREST_SECONDS=20 BAKE_SECONDS=140 BAKE_GRAPH_SECONDS=45 TESTS_SECONDS=60 TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=45 TRACE_SECONDS=40 bash scripts/gpu_carry.sh check nearest bake tests train trace"
+CHECK="BUDGET=390 BAKE_LANES=auto BAKE_WORKERS=4,8 BAKE_GRAPH_WORKERS=4 BAKE_MPS_WORKERS=8 BAKE_THROUGHPUT_FRAMES=24 NEAREST_SECONDS=20 BAKE_SECONDS=140 BAKE_GRAPH_SECONDS=45 BAKE_MPS_SECONDS=35 TESTS_SECONDS=60 TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=45 TRACE_SECONDS=40 bash scripts/gpu_carry.sh check nearest bake tests train trace"
 STORE=/tmp/uvatar_carry
 
 pack() {
@@ -70,7 +70,7 @@ pack() {
   echo "device calls, each within 30 s of the last:"
   for p in "${parts[@]}"; do
     if [ "$p" = "$last" ]; then
-      echo "  run(command=\"bash scripts/gpu_carry.sh store && $CHECK\", carry=[\"$p\"], timeout_s=400)"
+      echo "  run(command=\"bash scripts/gpu_carry.sh store && $CHECK\", carry=[\"$p\"], timeout_s=430)"
     else
       echo "  run(command=\"bash scripts/gpu_carry.sh store\", carry=[\"$p\"], timeout_s=60)"
     fi

@@ -25,7 +25,8 @@
 # stderr, one line per finished row, so a cut run still tells), pytest_*.txt, trace.txt, and status.txt
 # (each part's exit code; 124 = it ran past its time; also beside the tarball). BAKE_LANES (a number, or
 # auto: the nearest part's fastest) sets bench/bake.py --nearest-lanes; BAKE_GRAPH_WORKERS the refinement
-# graph's throughput run. Each part gets the smaller of its own limit and what is left of $BUDGET.
+# graph's throughput run; BAKE_MPS_WORKERS (e.g. 4,8) a throughput run under CUDA MPS (BAKE_MPS_GRAPH=1: with
+# the refinement's graph), where the machine has the MPS control daemon. Each part gets the smaller of its own limit and what is left of $BUDGET.
 # A bare device machine lacks uvatar's compiled dependencies: carry Warp (the fused marcher, the device
 # unwrap), embreex (the toy capture, the reference unwrap) and anny (the bake) as docs/DESIGN notes say;
 # env.txt lists what imports. Without Warp the marcher falls back to its torch twin (JSON "marcher").
@@ -93,7 +94,7 @@ for part in $PARTS; do
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
         tests/test_dva_frame_sync.py tests/test_dva_train_posing.py tests/test_dva_train_compile.py tests/test_dva_tv_warp.py \
         tests/test_dva_train_graph.py tests/test_dva_raymarch_crops.py tests/test_avh_bake_register_device.py tests/test_avh_bake_refine_device.py \
-        tests/test_avh_bake_refine_graph.py \
+        tests/test_avh_bake_refine_graph.py tests/test_geometry_raycast_warp.py \
         tests/test_devices.py tests/test_geometry_nearest_warp.py tests/test_geometry_jump_flood_warp.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
         tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;
@@ -141,6 +142,28 @@ for part in $PARTS; do
         run_part bake_graph "${BAKE_GRAPH_SECONDS:-90}" "$OUT/bake_graph.json" python bench/bake.py --device cuda \
           --frames 2 --parity --refine-cuda-graph ${BAKE_BVH:+--bvh "$BAKE_BVH"} ${lanes:+--nearest-lanes "$lanes"} \
           --workers "${BAKE_GRAPH_WORKERS:-1}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}"
+        # the workers' frames under CUDA MPS (BAKE_MPS_WORKERS, e.g. 4,8): without it the processes' kernels
+        # take turns on the GPU, and a refinement's are small (a few thousand queries or rays a launch);
+        # MPS runs them side by side. A user-space daemon, its pipes in /tmp, quit afterwards; the GPU's
+        # settings (compute mode, MIG) are left as they are. Skipped where the machine has no MPS.
+        if [ -n "${BAKE_MPS_WORKERS:-}" ]; then
+          if command -v nvidia-cuda-mps-control >/dev/null; then
+            export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps_pipe CUDA_MPS_LOG_DIRECTORY=/tmp/mps_log
+            mkdir -p "$CUDA_MPS_PIPE_DIRECTORY" "$CUDA_MPS_LOG_DIRECTORY"
+            if nvidia-cuda-mps-control -d; then
+              run_part bake_mps "${BAKE_MPS_SECONDS:-90}" "$OUT/bake_mps.json" python bench/bake.py --device cuda \
+                --frames 1 --workers "$BAKE_MPS_WORKERS" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}" \
+                ${BAKE_MPS_GRAPH:+--refine-cuda-graph} ${BAKE_BVH:+--bvh "$BAKE_BVH"} ${lanes:+--nearest-lanes "$lanes"}
+              echo quit | nvidia-cuda-mps-control
+              cp "$CUDA_MPS_LOG_DIRECTORY"/control.log "$OUT/mps_control.log" 2>/dev/null || true
+            else
+              echo "bake_mps skipped: the MPS daemon did not start" | tee -a "$OUT/status.txt"
+            fi
+            unset CUDA_MPS_PIPE_DIRECTORY CUDA_MPS_LOG_DIRECTORY
+          else
+            echo "bake_mps skipped: no nvidia-cuda-mps-control on this machine" | tee -a "$OUT/status.txt"
+          fi
+        fi
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;

@@ -171,3 +171,29 @@ def test_capture_keeping_caches_records_on_the_stream_and_empties_nothing(monkey
     with pytest.raises(RuntimeError), raycast_warp._recording(graph, "side-stream", pool):
         raise RuntimeError("a failed recording")
     assert graph.calls[-1] == ("end",)
+
+
+@pytest.mark.gpu
+def test_a_failed_capture_leaves_random_draws_working():
+    """A capture that fails (a synchronise inside it) raises, and the device's random draws outside any
+    graph still work after it (the generator is not left "capturing"), continuing its stream."""
+    import torch
+
+    from uvatar.geometry.raycast_warp import capture_graph
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU")
+    pytest.importorskip("warp")
+    torch.cuda.manual_seed(3)
+    expected = torch.rand(4, device="cuda")
+    torch.cuda.manual_seed(3)
+    stream = torch.cuda.Stream()
+
+    def breaks():
+        torch.rand(2, device="cuda")
+        torch.cuda.synchronize()                 # not allowed while capturing
+
+    with pytest.raises(Exception):  # noqa: B017 - whatever CUDA calls it
+        capture_graph(breaks, stream)
+    got = torch.rand(4, device="cuda")
+    assert got.shape == (4,) and torch.isfinite(got).all() and torch.equal(got, expected)

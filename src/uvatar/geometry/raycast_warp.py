@@ -110,11 +110,28 @@ def capture_graph(fn, stream, keep_caches: bool = False, pool=None):
                 out = fn()
             finally:
                 wp.capture_end(stream=wstream)
+    except Exception:
+        _generator_out_of_capture(stream.device)
+        raise
     finally:
         if collecting:
             gc.enable()
     current.wait_stream(stream)
     return graph, out
+
+
+def _generator_out_of_capture(device) -> None:
+    """After a failed capture: the device's default random generator as before it, not capturing.
+
+    A capture that fails ends before torch's generator epilogue, so the generator stays "capturing" and
+    every later random draw on the device outside a graph raises ("Offset increment outside graph capture
+    encountered unexpectedly": an H200 after a failed capture of the training step, session 13). Its state
+    is swapped for a copy (the same seed and offset; a copy is not capturing)."""
+    import torch
+
+    index = torch.device(device).index
+    generator = torch.cuda.default_generators[torch.cuda.current_device() if index is None else index]
+    generator.graphsafe_set_state(generator.clone_state())
 
 
 @contextlib.contextmanager
