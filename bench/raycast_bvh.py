@@ -77,9 +77,10 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args(argv)
 
-    from uvatar.geometry.raycast_warp import _kernels, _warp
+    from uvatar.geometry.raycast_warp import _kernels
+    from uvatar.geometry.warp_torch import load_warp
 
-    wp = _warp()
+    wp = load_warp()
     device = str(wp.get_device(args.device))
     cuda = device.startswith("cuda")
     constructors = [c for c in (args.constructors or ("sah,median,lbvh,cubql" if cuda else "sah,median")).split(",")

@@ -10,7 +10,7 @@ from bench_modules import load_bench
 
 def test_counts_operators_views_and_launches_under_their_labels():
     wp = pytest.importorskip("warp")
-    from uvatar.dva.warp_torch import load_warp
+    from uvatar.geometry.warp_torch import load_warp
 
     load_warp()
 

@@ -61,7 +61,7 @@ def test_the_chosen_bvh_casts_the_same_hits(monkeypatch, bvh):
     monkeypatch.setattr(raycast_warp, "BVH_CONSTRUCTOR", bvh[0])
     monkeypatch.setattr(raycast_warp, "BVH_LEAF_SIZE", bvh[1])
     built = []
-    monkeypatch.setattr(raycast_warp, "_warp", lambda real=raycast_warp._warp: _Recording(real(), built))
+    monkeypatch.setattr(raycast_warp, "load_warp", lambda real=raycast_warp.load_warp: _Recording(real(), built))
     v, f = scene()
     o, d = rays(2000, seed=3)
     ref = RayCaster(v, f).first_hit(o, d)
@@ -150,25 +150,25 @@ class _RecordingGraph:
 @pytest.mark.parametrize("pool", [None, "pool-handle"])
 def test_capture_keeping_caches_records_on_the_stream_and_empties_nothing(monkeypatch, pool):
     """``capture_graph(keep_caches=True)`` (the bake's refinement, four captures a frame): the capture
-    begins on the given stream with the shared pool and ends even when the recording raises; no device
+    begins on the given stream with the given pool and ends even when the recording raises; no device
     synchronise and no cache emptied, where ``torch.cuda.graph`` does both."""
     import contextlib
 
     import torch
 
-    from uvatar.geometry import raycast_warp
+    from uvatar.geometry import warp_torch
 
     entered, emptied = [], []
     monkeypatch.setattr(torch.cuda, "stream", lambda s: contextlib.nullcontext(entered.append(s)))
     for name in ("synchronize", "empty_cache"):
         monkeypatch.setattr(torch.cuda, name, lambda *a, n=name, **k: emptied.append(n))
     graph = _RecordingGraph()
-    with raycast_warp._recording(graph, "side-stream", pool):
+    with warp_torch._recording(graph, "side-stream", pool):
         graph.calls.append(("recorded",))
     assert entered == ["side-stream"] and not emptied
     assert graph.calls == [("begin", () if pool is None else (pool,)), ("recorded",), ("end",)]
     graph = _RecordingGraph()
-    with pytest.raises(RuntimeError), raycast_warp._recording(graph, "side-stream", pool):
+    with pytest.raises(RuntimeError), warp_torch._recording(graph, "side-stream", pool):
         raise RuntimeError("a failed recording")
     assert graph.calls[-1] == ("end",)
 
@@ -179,7 +179,7 @@ def test_a_failed_capture_leaves_random_draws_working():
     graph still work after it (the generator is not left "capturing"), continuing its stream."""
     import torch
 
-    from uvatar.geometry.raycast_warp import capture_graph
+    from uvatar.geometry.warp_torch import capture_graph
 
     if not torch.cuda.is_available():
         pytest.skip("needs a CUDA GPU")

@@ -266,7 +266,7 @@ class FrameRenderer:
     def _capture(self, posed_vertices, joint_rotvecs, cameras, images, masks, camera, background):
         """(graph, static inputs, static outputs) of one driven frame; the warm-up frames run first on
         the capture stream (Warp kernels load, cuDNN picks its algorithms, the pair buffer is sized)."""
-        from uvatar.geometry.raycast_warp import capture_graph
+        from uvatar.geometry.warp_torch import capture_graph
 
         dev = self.device
         static_in = [t.detach().clone() for t in [posed_vertices, joint_rotvecs, *images, *(masks or [])]]

@@ -34,7 +34,7 @@ from torch.autograd.function import once_differentiable
 
 from uvatar.dva.raymarch_cull import pinhole_rects, sphere_candidates
 from uvatar.dva.raymarch_ref import Primitives, RaymarchConfig, ray_range
-from uvatar.dva.warp_torch import launch_stream, load_warp, warp_scalar, warp_types, warp_view
+from uvatar.geometry.warp_torch import launch_stream, load_warp, warp_scalar, warp_types, warp_view
 
 __all__ = ["raymarch_warp", "warp_plan", "PairBudget", "PairOverflow"]
 
@@ -455,7 +455,7 @@ def warp_plan(origins, directions, prims: Primitives, cfg: RaymarchConfig, near_
     box = [warp_view(wp, prims.positions.to(dt).contiguous(), V3), warp_view(wp, prims.rotations.to(dt).contiguous(), M33),
            warp_view(wp, prims.scales.to(dt).contiguous(), V3), T, warp_scalar(wp, dt)(cfg.step)]
     rays = [warp_view(wp, o, V3), warp_view(wp, d, V3), warp_view(wp, t_near), warp_view(wp, t_far)]
-    launch = {"device": wp.device_from_torch(dev), "stream": launch_stream(wp, dev)}
+    launch = {"device": wp.device_from_torch(dev), "stream": launch_stream(dev)}
     i32 = torch.int32
     offsets = torch.zeros(N + 1, dtype=i32, device=dev)
     if grid is None and camera is not None and pixels is not None:  # per primitive: its rectangle's pixels
@@ -521,7 +521,7 @@ class _March(torch.autograd.Function):
         sat, rem = origins.new_zeros(N, 4), origins.new_zeros(N)
         outputs = [warp_view(wp, rgb, V3), warp_view(wp, alpha), warp_view(wp, total), warp_view(wp, last), warp_view(wp, sat, V4),
                    warp_view(wp, rem)]
-        wp.launch(fwd, dim=N, inputs=inputs + outputs, device=wp.device_from_torch(dev), stream=launch_stream(wp, dev))
+        wp.launch(fwd, dim=N, inputs=inputs + outputs, device=wp.device_from_torch(dev), stream=launch_stream(dev))
         ctx.save_for_backward(origins, directions, positions, rotations, scales, payload, *plan, total, last,
                               sat, rem)
         ctx.consts = (S, step, fw)
@@ -543,7 +543,7 @@ class _March(torch.autograd.Function):
         outputs = [warp_view(wp, grads[0], V3), warp_view(wp, grads[1], M33), warp_view(wp, grads[2], V3), warp_view(wp, grads[3]),
                    warp_view(wp, grads[4], V3), warp_view(wp, grads[5], V3)]
         wp.launch(bwd, dim=origins.shape[0], inputs=inputs + outputs, device=wp.device_from_torch(dev),
-                  stream=launch_stream(wp, dev))
+                  stream=launch_stream(dev))
         g_pos, g_rot, g_scl, g_pay, g_o, g_d = grads
         return (g_o, g_d, g_pos, g_rot, g_scl, g_pay) + (None,) * 8
 

@@ -387,7 +387,7 @@ class StepGraph:
 
     def _record(self, fn):
         """(a CUDA graph of ``fn``, its output) captured on the graph's stream
-        (:func:`~uvatar.geometry.raycast_warp.capture_graph`)."""
-        from uvatar.geometry.raycast_warp import capture_graph
+        (:func:`~uvatar.geometry.warp_torch.capture_graph`)."""
+        from uvatar.geometry.warp_torch import capture_graph
 
         return capture_graph(fn, self.stream)

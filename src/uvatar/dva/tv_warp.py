@@ -121,7 +121,7 @@ def _build(wp, F):
 
 
 def _kernels(dtype: torch.dtype):
-    from uvatar.dva.warp_torch import load_warp, warp_scalar
+    from uvatar.geometry.warp_torch import load_warp, warp_scalar
 
     wp = load_warp()
     if dtype not in _KERNELS:
@@ -142,7 +142,7 @@ class _SlabTV(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, colour, W: int):
-        from uvatar.dva.warp_torch import launch_stream, warp_view
+        from uvatar.geometry.warp_torch import launch_stream, warp_view
 
         B, K, C, S = colour.shape[:4]
         wp, (fwd, _) = _kernels(colour.dtype)
@@ -150,7 +150,7 @@ class _SlabTV(torch.autograd.Function):
         partial = colour.new_zeros(PARTIALS, 3)
         dev = colour.device
         wp.launch(fwd, dim=B * K * C * S * S, inputs=[warp_view(wp, view), W, S, C, warp_view(wp, partial)],
-                  device=wp.device_from_torch(dev), stream=launch_stream(wp, dev))
+                  device=wp.device_from_torch(dev), stream=launch_stream(dev))
         counts = _pair_counts(B, C, W, S)   # host numbers: no host data copied to the device
         ctx.save_for_backward(colour)
         ctx.W, ctx.counts = W, counts
@@ -160,7 +160,7 @@ class _SlabTV(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out):
-        from uvatar.dva.warp_torch import launch_stream, warp_view
+        from uvatar.geometry.warp_torch import launch_stream, warp_view
 
         (colour,) = ctx.saved_tensors
         B, K, C, S = colour.shape[:4]
@@ -171,7 +171,7 @@ class _SlabTV(torch.autograd.Function):
         dev = colour.device
         wp.launch(bwd, dim=grad.numel(), inputs=[warp_view(wp, view), ctx.W, S, C, warp_view(wp, weights),
                                                  warp_view(wp, grad.view(B * K, C, S, S * S))],
-                  device=wp.device_from_torch(dev), stream=launch_stream(wp, dev))
+                  device=wp.device_from_torch(dev), stream=launch_stream(dev))
         return grad, None
 
 

@@ -28,9 +28,9 @@ def flood_steps(h: int, w: int) -> list[int]:
 
 @lru_cache(maxsize=1)
 def _kernels():
-    from uvatar.geometry.raycast_warp import _warp
+    from uvatar.geometry.warp_torch import load_warp
 
-    wp = _warp()
+    wp = load_warp()
 
     @wp.kernel
     def seed_kernel(seed: wp.array2d(dtype=wp.bool), sy: wp.array2d(dtype=wp.float32),
@@ -97,22 +97,23 @@ def nearest_seed_warp(seed):
     torch's current stream; nothing read back."""
     import torch
 
-    from uvatar.geometry.raycast_warp import _torch_stream, _warp
+    from uvatar.geometry.warp_torch import launch_stream, load_warp, warp_view
 
-    wp = _warp()
+    wp = load_warp()
     seed_kernel, step_kernel, finish_kernel = _kernels()
     h, w = seed.shape
     dev = seed.device
-    launch = dict(dim=(h, w), device=wp.device_from_torch(dev), stream=_torch_stream(dev))
+    launch = dict(dim=(h, w), device=wp.device_from_torch(dev), stream=launch_stream(dev))
     bufs = [torch.empty((h, w), dtype=torch.float32, device=dev) for _ in range(4)]
     best = torch.empty((h, w), dtype=torch.float32, device=dev)
-    sy, sx, ty, tx = (wp.from_torch(b) for b in bufs)
-    wbest = wp.from_torch(best)
-    wp.launch(seed_kernel, inputs=[wp.from_torch(seed.contiguous()), sy, sx], **launch)
+    sy, sx, ty, tx = (warp_view(wp, b) for b in bufs)
+    wbest = warp_view(wp, best)
+    seed = seed.contiguous()
+    wp.launch(seed_kernel, inputs=[warp_view(wp, seed), sy, sx], **launch)
     for s in flood_steps(h, w):
         wp.launch(step_kernel, inputs=[sy, sx, int(s), ty, tx, wbest], **launch)
         sy, sx, ty, tx = ty, tx, sy, sx
     index = torch.empty((h, w), dtype=torch.int64, device=dev)
     distance = torch.empty((h, w), dtype=torch.float32, device=dev)
-    wp.launch(finish_kernel, inputs=[sy, sx, wbest, wp.from_torch(index), wp.from_torch(distance)], **launch)
+    wp.launch(finish_kernel, inputs=[sy, sx, wbest, warp_view(wp, index), warp_view(wp, distance)], **launch)
     return index, distance

@@ -98,9 +98,9 @@ def grid_points_torch(points, device, per_cell: int = POINTS_PER_CELL) -> PointG
 @lru_cache(maxsize=1)
 def _kernels():
     """(the search kernel, the lanes' pick kernel), defined once per process."""
-    from uvatar.geometry.raycast_warp import _warp
+    from uvatar.geometry.warp_torch import load_warp
 
-    wp = _warp()
+    wp = load_warp()
 
     @wp.func
     def closer(d: wp.float64, j: wp.int64, best: wp.float64, best_j: wp.int64):
@@ -240,9 +240,9 @@ def nearest_grid_points_warp(queries, grid: PointGrid, max_distance, lanes: int 
     read back (module doc)."""
     import torch
 
-    from uvatar.geometry.raycast_warp import _torch_stream, _warp
+    from uvatar.geometry.warp_torch import launch_stream, load_warp, warp_view
 
-    wp = _warp()
+    wp = load_warp()
     n = queries.shape[0]
     dev = queries.device
     lanes = lanes_for(dev) if lanes is None else int(lanes)
@@ -260,7 +260,8 @@ def nearest_grid_points_warp(queries, grid: PointGrid, max_distance, lanes: int 
              else torch.full((1,), float(max_distance), dtype=torch.float64, device=dev))
     nx, ny, nz = grid.dims
     search, pick = _kernels()
-    wdev, stream = wp.device_from_torch(dev), _torch_stream(dev)
+    points = grid.points.contiguous()
+    wdev, stream = wp.device_from_torch(dev), launch_stream(dev)
     if lanes == 1:
         lane_distance, lane_index, shared = distance, index, torch.empty(1, dtype=torch.float64, device=dev)
     else:
@@ -268,14 +269,14 @@ def nearest_grid_points_warp(queries, grid: PointGrid, max_distance, lanes: int 
         lane_index = torch.empty(n * lanes, dtype=torch.int64, device=dev)
         shared = limit.expand(n).clone()
     wp.launch(search, dim=n * lanes,
-              inputs=[wp.from_torch(grid.points.contiguous(), dtype=wp.vec3d), wp.from_torch(grid.order),
-                      wp.from_torch(grid.start), wp.from_torch(queries, dtype=wp.vec3d), wp.from_torch(limit),
-                      wp.vec3d(*grid.origin), wp.float64(grid.cell), nx, ny, nz, lanes, wp.from_torch(shared),
-                      wp.from_torch(lane_distance), wp.from_torch(lane_index)],
+              inputs=[warp_view(wp, points, wp.vec3d), warp_view(wp, grid.order),
+                      warp_view(wp, grid.start), warp_view(wp, queries, wp.vec3d), warp_view(wp, limit),
+                      wp.vec3d(*grid.origin), wp.float64(grid.cell), nx, ny, nz, lanes, warp_view(wp, shared),
+                      warp_view(wp, lane_distance), warp_view(wp, lane_index)],
               device=wdev, stream=stream)
     if lanes == 1:
         index.clamp_(min=0)                  # none found: index 0
         return distance, index
-    wp.launch(pick, dim=n, inputs=[wp.from_torch(lane_distance), wp.from_torch(lane_index), lanes,
-                                   wp.from_torch(distance), wp.from_torch(index)], device=wdev, stream=stream)
+    wp.launch(pick, dim=n, inputs=[warp_view(wp, lane_distance), warp_view(wp, lane_index), lanes,
+                                   warp_view(wp, distance), warp_view(wp, index)], device=wdev, stream=stream)
     return distance, index

@@ -20,10 +20,10 @@ from functools import lru_cache
 
 import numpy as np
 
-from uvatar.errors import require
 from uvatar.geometry.raycast import _RAYS, RayCaster, RayCasterConfig
+from uvatar.geometry.warp_torch import launch_stream, load_warp, warp_stream, warp_view
 
-__all__ = ["WarpRayCaster", "warp_device", "warp_importable", "any_hit_torch", "MeshOccluder", "warp_stream", "capture_graph"]
+__all__ = ["WarpRayCaster", "warp_device", "warp_importable", "any_hit_torch", "MeshOccluder"]
 
 
 def warp_importable() -> bool:
@@ -31,15 +31,6 @@ def warp_importable() -> bool:
     import importlib.util
 
     return importlib.util.find_spec("warp") is not None
-
-
-def _warp():
-    import logging
-
-    wp = require("warp", "kernels", "ray casting with Warp (the GPU bake)")
-    wp.config.log_level = logging.ERROR    # no start-up banner or missing-driver notes: warp_device reports
-    wp.init()
-    return wp
 
 
 #: the BVH every Warp mesh here is built with (``wp.Mesh``'s ``bvh_constructor`` and ``bvh_leaf_size``; None:
@@ -52,100 +43,7 @@ BVH_LEAF_SIZE: int | None = None
 def warp_mesh(points, indices):
     """A ``wp.Mesh`` over ``points`` (wp.vec3 array) and ``indices`` (flat wp.int32 array) with the BVH of
     :data:`BVH_CONSTRUCTOR` and :data:`BVH_LEAF_SIZE` (the one place this module builds one)."""
-    return _warp().Mesh(points=points, indices=indices, bvh_constructor=BVH_CONSTRUCTOR, bvh_leaf_size=BVH_LEAF_SIZE)
-
-
-_STREAMS: dict = {}   # (device index, CUstream) -> the one warp.Stream wrapping it, kept for the process
-
-
-def warp_stream(stream_or_device):
-    """The Warp stream of a torch CUDA stream (or of a CUDA device's current torch stream), one object per
-    stream for the life of the process. ``wp.stream_from_torch`` makes a new wrapper each call, and a
-    wrapper of a stream Warp does not own *unregisters* that stream when it is garbage-collected: a
-    temporary one dropped while the stream captures a CUDA graph erases the capture's record
-    ("Warp error: unknown capture stream" at ``capture_end``)."""
-    import torch
-
-    wp = _warp()
-    stream = (stream_or_device if isinstance(stream_or_device, torch.cuda.Stream)
-              else torch.cuda.current_stream(stream_or_device))
-    key = (stream.device.index, int(stream.cuda_stream))
-    if key not in _STREAMS:
-        _STREAMS[key] = wp.stream_from_torch(stream)
-    return _STREAMS[key]
-
-
-def capture_graph(fn, stream, keep_caches: bool = False, pool=None):
-    """(a ``torch.cuda.CUDAGraph`` of ``fn()``, its output: tensors every replay writes) captured on
-    ``stream``, after the work queued on the current stream, with Warp told of the capture (its
-    launches go on the same stream: one wrapper of it for the process,
-    :func:`uvatar.geometry.raycast_warp.warp_stream`). ``fn`` records, it does not run: warm it up
-    first (Warp's modules loaded, cuDNN's algorithms chosen, lazily made state made). Python's garbage
-    collector is paused while it records (``torch.cuda.graph`` collects just before): no finaliser of an
-    object from outside the graph (a Warp array or stream wrapper) runs inside the capture.
-
-    ``torch.cuda.graph`` synchronises the device and empties torch's device and pinned-memory caches
-    before every capture (every cached block back to the driver, to be allocated again after it): fine
-    for a graph captured once, a cost per capture for code that captures many (the bake's refinement,
-    four a frame). ``keep_caches`` captures without that (``CUDAGraph.capture_begin`` on ``stream``,
-    the same recording), and ``pool`` (``torch.cuda.graph_pool_handle()``) lets successive graphs
-    share one memory pool: safe when each graph is done with before the next is captured."""
-    import gc
-
-    import torch
-
-    wp = _warp()
-    current = torch.cuda.current_stream(stream.device)
-    graph = torch.cuda.CUDAGraph()
-    stream.wait_stream(current)
-    wstream = warp_stream(stream)
-    collecting = gc.isenabled()
-    recording = (_recording(graph, stream, pool) if keep_caches
-                 else torch.cuda.graph(graph, stream=stream, pool=pool))
-    try:
-        with wp.ScopedStream(wstream), recording:
-            gc.disable()
-            wp.capture_begin(stream=wstream, force_module_load=False, external=True)
-            try:
-                out = fn()
-            finally:
-                wp.capture_end(stream=wstream)
-    except Exception:
-        _generator_out_of_capture(stream.device)
-        raise
-    finally:
-        if collecting:
-            gc.enable()
-    current.wait_stream(stream)
-    return graph, out
-
-
-def _generator_out_of_capture(device) -> None:
-    """After a failed capture: the device's default random generator as before it, not capturing.
-
-    A capture that fails ends before torch's generator epilogue, so the generator stays "capturing" and
-    every later random draw on the device outside a graph raises ("Offset increment outside graph capture
-    encountered unexpectedly": an H200 after a failed capture of the training step, session 13). Its state
-    is swapped for a copy (the same seed and offset; a copy is not capturing)."""
-    import torch
-
-    index = torch.device(device).index
-    generator = torch.cuda.default_generators[torch.cuda.current_device() if index is None else index]
-    generator.graphsafe_set_state(generator.clone_state())
-
-
-@contextlib.contextmanager
-def _recording(graph, stream, pool):
-    """``torch.cuda.graph(graph, stream=stream, pool=pool)`` without its device synchronise and cache
-    emptying: ``stream`` made current and the capture begun and ended on it."""
-    import torch
-
-    with torch.cuda.stream(stream):
-        graph.capture_begin(*(() if pool is None else (pool,)))
-        try:
-            yield
-        finally:
-            graph.capture_end()
+    return load_warp().Mesh(points=points, indices=indices, bvh_constructor=BVH_CONSTRUCTOR, bvh_leaf_size=BVH_LEAF_SIZE)
 
 
 def warp_device(device: str) -> str:
@@ -153,7 +51,7 @@ def warp_device(device: str) -> str:
     no such device."""
     from uvatar.errors import InputError
 
-    wp = _warp()
+    wp = load_warp()
     name = str(device)
     if name.startswith("cuda") and not wp.is_cuda_available():
         raise InputError("device", f"{name}: Warp finds no CUDA device (device=cpu runs the bake on the CPU)")
@@ -166,7 +64,7 @@ def warp_device(device: str) -> str:
 @lru_cache(maxsize=1)
 def _kernels():
     """The two ray kernels, defined once per process (Warp compiles them on first launch per device)."""
-    wp = _warp()
+    wp = load_warp()
 
     @wp.kernel
     def first_hit_kernel(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
@@ -201,7 +99,7 @@ class WarpRayCaster(RayCaster):
 
     def __init__(self, vertices, faces, config: RayCasterConfig | None = None, device: str = "cuda"):
         super().__init__(vertices, faces, config, build=False)
-        wp = _warp()
+        wp = load_warp()
         self.device = warp_device(device)
         self._points = wp.array(np.ascontiguousarray(self.vertices, np.float32), dtype=wp.vec3, device=self.device)
         self._indices = wp.array(np.ascontiguousarray(self.faces.reshape(-1), np.int32), dtype=wp.int32,
@@ -211,7 +109,7 @@ class WarpRayCaster(RayCaster):
     def _run(self, origins, directions, tfar, query="INTERSECT"):
         """The batch call of :meth:`RayCaster._run` on Warp: (primID (N,) int32, u, v, tfar float32),
         or for OCCLUDED the primID-like array only (-1 = not occluded)."""
-        wp = _warp()
+        wp = load_warp()
         first_hit_kernel, any_hit_kernel = _kernels()
         n = len(origins)
         dev = self.device
@@ -256,7 +154,7 @@ class WarpRayCaster(RayCaster):
 
         if not self._here(origins) or self.config.refine or self._dtype != np.float32:
             return super().first_hit_torch(origins, directions, max_distance)
-        wp = _warp()
+        wp = load_warp()
         first_hit_kernel, _ = _kernels()
         n = origins.shape[0]
         dev = origins.device
@@ -268,16 +166,16 @@ class WarpRayCaster(RayCaster):
         _RAYS["INTERSECT"] += n
         if n:
             wp.launch(first_hit_kernel, dim=n,
-                      inputs=[self._mesh.id, wp.from_torch(o, dtype=wp.vec3), wp.from_torch(d, dtype=wp.vec3),
-                              wp.from_torch(far), wp.from_torch(prim), wp.from_torch(u), wp.from_torch(v),
-                              wp.from_torch(t)],
-                      device=wp.device_from_torch(dev), stream=_torch_stream(dev))
+                      inputs=[self._mesh.id, warp_view(wp, o, wp.vec3), warp_view(wp, d, wp.vec3),
+                              warp_view(wp, far), warp_view(wp, prim), warp_view(wp, u), warp_view(wp, v),
+                              warp_view(wp, t)],
+                      device=wp.device_from_torch(dev), stream=launch_stream(dev))
         hit, face, distance, bary = _raw_hits(prim, u, v, t)
         return _finish_hits(o, d, hit, face, distance, bary)
 
     def _here(self, tensor) -> bool:
         """Is ``tensor`` on this caster's Warp device?"""
-        wp = _warp()
+        wp = load_warp()
         return wp.device_from_torch(tensor.device) == wp.get_device(self.device)
 
 
@@ -286,20 +184,14 @@ def _any_hit(mesh_id, origins, directions, far):
     (N, 3), far (N,)) hits the Warp mesh ``mesh_id`` before ``far``; launched on torch's current stream."""
     import torch
 
-    wp = _warp()
+    wp = load_warp()
     _, any_hit_kernel = _kernels()
     out = torch.empty(origins.shape[0], dtype=torch.int32, device=origins.device)
     wp.launch(any_hit_kernel, dim=origins.shape[0],
-              inputs=[mesh_id, wp.from_torch(origins, dtype=wp.vec3), wp.from_torch(directions, dtype=wp.vec3),
-                      wp.from_torch(far), wp.from_torch(out)],
-              device=wp.device_from_torch(origins.device), stream=_torch_stream(origins.device))
+              inputs=[mesh_id, warp_view(wp, origins, wp.vec3), warp_view(wp, directions, wp.vec3),
+                      warp_view(wp, far), warp_view(wp, out)],
+              device=wp.device_from_torch(origins.device), stream=launch_stream(origins.device))
     return out >= 0
-
-
-def _torch_stream(device):
-    """torch's current stream on a CUDA ``device`` as Warp's (:func:`warp_stream`: the launch is ordered
-    with the torch work around it); None on the CPU."""
-    return warp_stream(device) if device.type == "cuda" else None
 
 
 def _rays_torch(origins, directions):
@@ -321,7 +213,7 @@ def any_hit_torch(vertices, faces, origins, directions, max_distance):
     ``max_distance``. The torch-in, torch-out twin of :meth:`WarpRayCaster.any_hit` (its kernel)."""
     import torch
 
-    wp = _warp()
+    wp = load_warp()
     _, any_hit_kernel = _kernels()
     dev = vertices.device
     n = origins.shape[0]
@@ -333,10 +225,9 @@ def any_hit_torch(vertices, faces, origins, directions, max_distance):
     idx = faces if isinstance(faces, torch.Tensor) else torch.as_tensor(np.asarray(faces).reshape(-1))
     indices = wp.from_torch(idx.to(device=dev, dtype=torch.int32).reshape(-1).contiguous(), dtype=wp.int32)
     mesh = warp_mesh(points, indices)
-    o = wp.from_torch(origins.detach().to(f32).contiguous(), dtype=wp.vec3)
-    d = wp.from_torch(directions.detach().to(f32).contiguous(), dtype=wp.vec3)
-    far = wp.from_torch(max_distance.detach().to(f32).contiguous())
-    wp.launch(any_hit_kernel, dim=n, inputs=[mesh.id, o, d, far, wp.from_torch(out)],
+    o, d, far = (t.detach().to(f32).contiguous() for t in (origins, directions, max_distance))
+    wp.launch(any_hit_kernel, dim=n, inputs=[mesh.id, warp_view(wp, o, wp.vec3), warp_view(wp, d, wp.vec3),
+                                             warp_view(wp, far), warp_view(wp, out)],
               device=wp.device_from_torch(dev))
     return out >= 0
 
@@ -368,7 +259,7 @@ class MeshOccluder:
     def __call__(self, vertices, origins, directions, max_distance):
         import torch
 
-        wp = _warp()
+        wp = load_warp()
         n = origins.shape[0]
         if n == 0:
             return torch.zeros(0, dtype=torch.bool, device=self.device)

@@ -18,9 +18,9 @@ __all__ = ["fill_layer_warp"]
 
 @lru_cache(maxsize=1)
 def _kernel():
-    from uvatar.geometry.raycast_warp import _warp
+    from uvatar.geometry.warp_torch import load_warp
 
-    wp = _warp()
+    wp = load_warp()
 
     @wp.func
     def one_sided(layer: wp.array(dtype=wp.int64), t: wp.array(dtype=wp.float32), plus: wp.int64,
@@ -79,11 +79,11 @@ def fill_layer_warp(texels, first: int, size: int, layer, t, values, ry, rx, shi
     padded maps, int64), ``layer`` (P,) int64 and ``t`` (P,) float32 the padded layer numbers and T,
     ``values`` (P, C) float32 the padded maps (written), ``ry``, ``rx``, ``dst`` (O,) float32 and ``shift``
     (O,) int64 the neighbour offsets, ``row`` the padded map's width. On torch's current stream."""
-    from uvatar.geometry.raycast_warp import _torch_stream, _warp
+    from uvatar.geometry.warp_torch import launch_stream, load_warp, warp_view
 
-    wp = _warp()
+    wp = load_warp()
     dev = values.device
-    wp.launch(_kernel(), dim=size, device=wp.device_from_torch(dev), stream=_torch_stream(dev),
-              inputs=[wp.from_torch(texels), int(first), wp.from_torch(layer), wp.from_torch(t),
-                      wp.from_torch(values), wp.from_torch(ry), wp.from_torch(rx), wp.from_torch(shift),
-                      wp.from_torch(dst), int(row)])
+    wp.launch(_kernel(), dim=size, device=wp.device_from_torch(dev), stream=launch_stream(dev),
+              inputs=[warp_view(wp, texels), int(first), warp_view(wp, layer), warp_view(wp, t),
+                      warp_view(wp, values), warp_view(wp, ry), warp_view(wp, rx), warp_view(wp, shift),
+                      warp_view(wp, dst), int(row)])

@@ -213,7 +213,7 @@ def _graphs(cuda_graph: bool, device) -> bool:
 
 
 def _capture(fn, device):
-    """A CUDA graph of ``fn()`` (:func:`uvatar.geometry.raycast_warp.capture_graph`, on a side stream
+    """A CUDA graph of ``fn()`` (:func:`uvatar.geometry.warp_torch.capture_graph`, on a side stream
     of ``device``), or None when the capture fails (logged once; the process's refinements run eagerly).
     A bake captures four a frame (the geometric refinement and each colour round), each used up before
     the next: they keep torch's caches (no device synchronise, no cache emptied per capture), each in its
@@ -221,7 +221,7 @@ def _capture(fn, device):
     allocator on an H200 (``use_count > 0`` asserted in CUDACachingAllocator.cpp, session 13)."""
     import torch
 
-    from uvatar.geometry.raycast_warp import capture_graph
+    from uvatar.geometry.warp_torch import capture_graph
 
     key = str(torch.device(device))
     try:
