@@ -270,6 +270,33 @@ def test_scan_colours_on_torch_equal_numpy(device):
     np.testing.assert_allclose(out, ref, atol=1e-6, rtol=0)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_registration_banded_solves_equal_the_dense_cholesky(monkeypatch, device):
+    """The registration's solves by the block-banded factorization (the default off cuDSS) and by the dense
+    Cholesky (its twin, ``solver = "cholesky"``): the same vertices within 1e-10 m, each saying which ran."""
+    from uvatar.avh.bake import register_torch
+
+    if device == "cuda" and not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU")
+    v, f = icosphere(3)
+    surface = ScanSurface.build(v * (1.1 + 0.02 * np.sin(5 * v[:, :1])), f)
+    outs = {}
+    for solver in ("banded", "cholesky"):
+        real = register_torch._TorchOps.__init__
+
+        def init(self, *args, solver=solver, real=real, **kwargs):
+            real(self, *args, **kwargs)
+            self.solver = solver
+
+        monkeypatch.setattr(register_torch._TorchOps, "__init__", init)
+        monkeypatch.setattr(register_torch, "_TORCH_OPS", [])
+        outs[solver], stats = register_to_scan(v, f, surface, RegistrationConfig(), device=device)
+        assert stats["solver"] == solver
+        monkeypatch.undo()
+    np.testing.assert_allclose(outs["banded"], outs["cholesky"], atol=1e-10, rtol=0)
+    assert np.abs(outs["banded"] - v).max() > 0.05                          # it did move
+
+
 def test_registration_sparse_system_assembly(monkeypatch):
     """The sparse system handed to ``torch.sparse.spsolve`` (cuDSS, CUDA only) is the reference's:
     checked on the CPU with a dense solve standing in for spsolve."""
