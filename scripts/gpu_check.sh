@@ -94,7 +94,7 @@ for part in $PARTS; do
         tests/test_dva_frame.py tests/test_avh_inference.py tests/test_dva_unwrap_device.py tests/test_dva_raymarch_warp.py \
         tests/test_dva_frame_sync.py tests/test_dva_train_posing.py tests/test_dva_train_compile.py tests/test_dva_tv_warp.py \
         tests/test_dva_train_graph.py tests/test_dva_raymarch_crops.py tests/test_avh_bake_register_device.py tests/test_avh_bake_refine_device.py \
-        tests/test_avh_bake_refine_graph.py tests/test_geometry_raycast_warp.py tests/test_geometry_banded_solve.py \
+        tests/test_avh_bake_refine_graph.py tests/test_geometry_raycast_warp.py tests/test_geometry_banded_solve.py tests/test_avh_bake_refine_step_warp.py \
         tests/test_devices.py tests/test_geometry_nearest_warp.py tests/test_geometry_jump_flood_warp.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
         tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;

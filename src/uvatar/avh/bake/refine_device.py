@@ -33,6 +33,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 __all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "rotvec_quaternions", "quaternion_rotvecs",
+           "apply_step_torch", "step_in_warp", "STEP_IN_WARP_ON_CPU",
            "GRAPH_FAILURES", "GRAPHS_ON_CPU"]
 
 
@@ -91,6 +92,51 @@ def rotate(rotvec, points):
     u, points = torch.broadcast_tensors(u, points)
     uv = torch.linalg.cross(u, points, dim=-1)
     return points + 2 * w * uv + 2 * torch.linalg.cross(u, uv, dim=-1)
+
+
+def apply_step_torch(state, step, running, tr, joints, centre, max_angle: float, k: int) -> None:
+    """Take a Gauss-Newton ``step`` (3k + 6 + K,) float64 where ``running`` (0-d bool): each of the ``k``
+    refined ``joints`` (k,) turns by its capped step expressed in its posed frame (``tr`` (J, 4, 4), scale
+    dropped), the root's capped step composes with ``state.rh`` and turns ``state.th`` about ``centre``
+    (3,), which then moves; the clothing offsets move. ``state`` (rot, rh, th, offsets, running) is updated
+    in place. The reference twin of :func:`.refine_step_warp.apply_step_warp` (one launch)."""
+    import torch
+
+    d_joint = _rotation_step(step[: 3 * k].reshape(k, 3), max_angle)
+    d_root = _rotation_step(step[3 * k: 3 * k + 3], max_angle)
+    frames = tr[joints, :3, :3]
+    frames = frames / torch.linalg.norm(frames, dim=1, keepdim=True)               # drop the scale
+    local = torch.einsum("kji,kj->ki", frames, d_joint)                             # R_k^T d_k
+    turned = compose_rotvecs(torch.cat([state.rot[joints], d_root[None]]), torch.cat([local, state.rh[None]]))
+    moved = state.rot.clone()
+    moved[joints] = turned[:k]
+    state.th.copy_(torch.where(running, rotate(d_root, state.th - centre) + centre + step[3 * k + 3: 3 * k + 6],
+                               state.th))
+    state.rot.copy_(torch.where(running, moved, state.rot))
+    state.rh.copy_(torch.where(running, turned[k], state.rh))
+    state.offsets.copy_(torch.where(running, state.offsets + step[3 * k + 6:], state.offsets))
+    state.running.copy_(running)
+
+
+#: take the refinement's steps in one Warp launch on the CPU too (tests); on CUDA it does wherever Warp is
+STEP_IN_WARP_ON_CPU = False
+
+
+def step_in_warp(device) -> bool:
+    """Is a refinement step applied by :func:`.refine_step_warp.apply_step_warp` on ``device``? On CUDA
+    where Warp is installed (one launch instead of ~110), on the CPU with :data:`STEP_IN_WARP_ON_CPU`."""
+    import torch
+
+    from uvatar.geometry.raycast_warp import warp_importable
+
+    return (torch.device(device).type == "cuda" or STEP_IN_WARP_ON_CPU) and warp_importable()
+
+
+def apply_step_warp(*args) -> None:
+    """:func:`.refine_step_warp.apply_step_warp` (imported when first used)."""
+    from uvatar.avh.bake.refine_step_warp import apply_step_warp as apply
+
+    apply(*args)
 
 
 def _huber_weights(residuals, scale: float):
@@ -358,20 +404,8 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
         step, failed = _solve(a, g)
         step = -step
         running = running & ~failed
-        d_joint = _rotation_step(step[: 3 * k].reshape(k, 3), max_angle)
-        d_root = _rotation_step(step[3 * k: 3 * k + 3], max_angle)
-        frames = tr[joints, :3, :3]
-        frames = frames / torch.linalg.norm(frames, dim=1, keepdim=True)               # drop the scale
-        local = torch.einsum("kji,kj->ki", frames, d_joint)                             # R_k^T d_k
-        turned = compose_rotvecs(torch.cat([state.rot[joints], d_root[None]]), torch.cat([local, state.rh[None]]))
-        moved = state.rot.clone()
-        moved[joints] = turned[:k]
-        state.th.copy_(torch.where(running, rotate(d_root, state.th - centre0) + centre0 + step[3 * k + 3: 3 * k + 6],
-                                   state.th))
-        state.rot.copy_(torch.where(running, moved, state.rot))
-        state.rh.copy_(torch.where(running, turned[k], state.rh))
-        state.offsets.copy_(torch.where(running, state.offsets + step[3 * k + 6:], state.offsets))
-        state.running.copy_(running)
+        apply = apply_step_warp if step_in_warp(device) else apply_step_torch
+        apply(state, step, running, tr, joints, centre0, max_angle, k)
 
     _run_iterations(iteration, iterations, config.cuda_graph, device)
 
