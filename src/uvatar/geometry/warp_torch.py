@@ -7,8 +7,11 @@ torch's work and a CUDA graph captures them), and the capture of a CUDA graph wi
 from __future__ import annotations
 
 import contextlib
+import logging
 
 from uvatar.errors import require
+
+log = logging.getLogger(__name__)
 
 __all__ = ["load_warp", "warp_scalar", "warp_types", "warp_view", "warp_stream", "launch_stream", "capture_graph"]
 
@@ -131,9 +134,12 @@ def _generator_out_of_capture(device) -> None:
     is swapped for a copy (the same seed and offset; a copy is not capturing)."""
     import torch
 
-    index = torch.device(device).index
-    generator = torch.cuda.default_generators[torch.cuda.current_device() if index is None else index]
-    generator.graphsafe_set_state(generator.clone_state())
+    try:
+        index = torch.device(device).index
+        generator = torch.cuda.default_generators[torch.cuda.current_device() if index is None else index]
+        generator.graphsafe_set_state(generator.clone_state())
+    except Exception as exc:  # noqa: BLE001  the capture's own error is the one to raise
+        log.debug("the random generator was not reset after a failed capture: %s", exc)
 
 
 @contextlib.contextmanager
