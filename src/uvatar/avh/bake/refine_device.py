@@ -5,15 +5,16 @@ The iteration state (joint rotation vectors, Rh, Th, clothing offsets: float64) 
 the body is posed there (float32, as the numpy path's posing, then cast to float64); the nearest scan
 samples, the stencil colours, the Huber weights, the normal equations (the dense product of
 :func:`.refine_model._normal_equations_reference`, one owner of that math), the damped solve and the
-rotation updates (:func:`compose_rotvecs`, :func:`rotate`: the twins of SciPy's ``Rotation``) run
-there too. Rows the numpy path leaves out (no match, no colour) get weight zero instead, and its
+step (:func:`apply_step_torch`: the rotation updates through :func:`compose_rotvecs` and :func:`rotate`,
+the twins of SciPy's ``Rotation``; on CUDA one Warp launch, :mod:`.refine_step_warp`) run there too. Rows the numpy path leaves out (no match, no colour) get weight zero instead, and its
 data-dependent stop ("fewer than 3 matches per joint") becomes a masked update: the loop always runs
 its full count, a stopped fit no longer moves, and the per-iteration stats are read back once at the
 end and cut where the numpy path would have stopped appending them. Constants per body (the
 refinement vertices, subtree and region weights) go to the device once (:func:`.refine_model._memo`), the
 scan's samples once per scan (:meth:`.register.ScanSurface.samples_torch`).
 
-The nearest samples are one Warp launch per iteration (:func:`.register_torch.nearest_samples`). Without
+The nearest samples are one Warp launch per iteration (:func:`.register_torch.nearest_samples`, lanes of
+threads per query on CUDA). Without
 Warp they use a fixed window per chunk of queries, measured once per scan and device; each call then
 checks at its end, in the same read, that no slab outgrew it (else it widens the window and runs
 again); on the CPU the slab search with its one read per query.
