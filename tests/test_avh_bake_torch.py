@@ -508,7 +508,8 @@ def test_colour_round_with_torch_stages_matches(device):
     # on CUDA this round starts from the device's own sample, ~3 % of whose colours differ from the host's
     # (above) while the target is the host's: its first residual is that difference, not the host's 0
     # (an H200, session 13: 1.4e-4 vs 0, then 5.8e-4 vs 4.9e-4). On the CPU 4e-11 vs 0: the +n and -n rays
-    # cast in one launch (each to the full distance) meet a tie on a shared edge on the other face
+    # are cast as one batch, and whether a batch's barycentrics are clipped and renormalized (round-off at an
+    # edge, raycast._finish_hits) is decided over the whole batch: the other half's rays now take part
     np.testing.assert_allclose(stats["colour_residual"], ref_stats["colour_residual"],
                                **(dict(rtol=1e-6, atol=1e-9) if cpu else dict(rtol=0, atol=3e-4)))
 
