@@ -175,8 +175,9 @@ def test_capture_keeping_caches_records_on_the_stream_and_empties_nothing(monkey
 
 @pytest.mark.gpu
 def test_a_failed_capture_leaves_random_draws_working():
-    """A capture that fails (a synchronise inside it) raises, and the device's random draws outside any
-    graph still work after it (the generator is not left "capturing"), continuing its stream."""
+    """A capture that fails (a synchronise inside it) raises; the current stream is the one before it, and
+    the device's random draws outside any graph still work after it (the generator is not left
+    "capturing"), continuing its sequence."""
     import torch
 
     from uvatar.geometry.warp_torch import capture_graph
@@ -193,7 +194,9 @@ def test_a_failed_capture_leaves_random_draws_working():
         torch.rand(2, device="cuda")
         torch.cuda.synchronize()                 # not allowed while capturing
 
+    before = torch.cuda.current_stream()
     with pytest.raises(Exception):  # noqa: B017 - whatever CUDA calls it
         capture_graph(breaks, stream)
+    assert torch.cuda.current_stream() == before           # not left on the capture's stream
     got = torch.rand(4, device="cuda")
     assert got.shape == (4,) and torch.isfinite(got).all() and torch.equal(got, expected)

@@ -116,6 +116,9 @@ def capture_graph(fn, stream, keep_caches: bool = False, pool=None):
             finally:
                 wp.capture_end(stream=wstream)
     except Exception:
+        # a capture that fails ends inside torch.cuda.graph's exit, before it restores the current stream
+        # and the generator's state: both as they were
+        torch.cuda.set_stream(current)
         _generator_out_of_capture(stream.device)
         raise
     finally:
