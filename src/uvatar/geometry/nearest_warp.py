@@ -263,7 +263,7 @@ def nearest_grid_points_warp(queries, grid: PointGrid, max_distance, lanes: int 
     points = grid.points.contiguous()
     wdev, stream = wp.device_from_torch(dev), launch_stream(dev)
     if lanes == 1:
-        lane_distance, lane_index, shared = distance, index, torch.empty(1, dtype=torch.float64, device=dev)
+        lane_distance, lane_index, shared = distance, index, limit     # shared: untouched with one lane
     else:
         lane_distance = torch.empty(n * lanes, dtype=torch.float64, device=dev)
         lane_index = torch.empty(n * lanes, dtype=torch.int64, device=dev)

@@ -133,13 +133,6 @@ def step_in_warp(device) -> bool:
     return (torch.device(device).type == "cuda" or STEP_IN_WARP_ON_CPU) and warp_importable()
 
 
-def apply_step_warp(*args) -> None:
-    """:func:`.refine_step_warp.apply_step_warp` (imported when first used)."""
-    from uvatar.avh.bake.refine_step_warp import apply_step_warp as apply
-
-    apply(*args)
-
-
 def _huber_weights(residuals, scale: float):
     """:func:`.refine._huber_weights` of a tensor."""
     return (scale / residuals.abs().clamp(min=1e-12)).clamp(max=1.0)
@@ -352,6 +345,11 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
                             stats=torch.full((4, iterations + 1), float("nan"), **f64),
                             slot=torch.zeros((), dtype=torch.int64, device=device))
 
+    if step_in_warp(device):   # chosen once, not per iteration
+        from uvatar.avh.bake.refine_step_warp import apply_step_warp as apply_step
+    else:
+        apply_step = apply_step_torch
+
     def iteration(first: bool, last: bool):
         """One Gauss-Newton iteration from ``state``; the first finds the match distance and the clothing
         offsets (and may start from ``start_sample``), the last only measures."""
@@ -405,8 +403,7 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
         step, failed = _solve(a, g)
         step = -step
         running = running & ~failed
-        apply = apply_step_warp if step_in_warp(device) else apply_step_torch
-        apply(state, step, running, tr, joints, centre0, max_angle, k)
+        apply_step(state, step, running, tr, joints, centre0, max_angle, k)
 
     _run_iterations(iteration, iterations, config.cuda_graph, device)
 
