@@ -392,11 +392,11 @@ def _bake_with_rounds(model, layout, config, item, targets, out_dir=None) -> flo
     return time.process_time() - c0
 
 
-def set_bvh(spec: str) -> dict:
-    """``--bvh`` "constructor:leaf size" (either may be empty: Warp's default) -> the BVH every Warp mesh of the
-    bake is built with (``geometry.raycast_warp.BVH_CONSTRUCTOR`` / ``BVH_LEAF_SIZE``), and after a second
-    colon the nearest-sample search's threads per query on a GPU (``--nearest-lanes``,
-    ``geometry.nearest_warp.LANES_CUDA``); what the JSON says."""
+def set_kernels(spec: str) -> dict:
+    """``constructor:leaf size:lanes`` (from ``--bvh`` and ``--nearest-lanes``; each part may be empty:
+    the default) -> the BVH every Warp mesh of the bake is built with (``geometry.raycast_warp.BVH_CONSTRUCTOR``
+    / ``BVH_LEAF_SIZE``) and the nearest-sample search's threads per query on a GPU
+    (``geometry.nearest_warp.LANES_CUDA``); what the JSON says."""
     from uvatar.geometry import nearest_warp, raycast_warp
 
     constructor, _, rest = (spec or "").partition(":")
@@ -409,14 +409,14 @@ def set_bvh(spec: str) -> dict:
             "nearest_lanes_cuda": nearest_warp.LANES_CUDA}
 
 
-def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, ready, go, results, bvh=""):
+def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, ready, go, results, kernels=""):
     """One process of the throughput run: set up (and the colour targets), say ready, wait for the
     start, bake its frames and write each (:func:`_bake_with_rounds`)."""
     from uvatar.avh.bake.register import ScanSurface
     from uvatar.threads import limit_process_to_one_thread
 
     limit_process_to_one_thread()
-    set_bvh(bvh)
+    set_kernels(kernels)
     model, layout, config, _, _ = _setup(texels, device, torch_stages, refine_graph)
     targets = [_colour_targets(model, truth, scan, ScanSurface.build(scan.vertices, scan.faces, device), config)
                for _, truth, scan in items]
@@ -432,7 +432,7 @@ def _worker(rank, texels, device, torch_stages, refine_graph, items, warmup, rea
 
 
 def _throughput(workers: int, texels: int, device: str, torch_stages: str, refine_graph: bool, items,
-                warmup: int, bvh: str = "") -> dict:
+                warmup: int, kernels: str = "") -> dict:
     """Wall seconds per frame of ``items`` baked on ``workers`` processes (the frames dealt round-robin),
     from the moment every worker is set up to the last frame done."""
     import multiprocessing as mp
@@ -440,7 +440,7 @@ def _throughput(workers: int, texels: int, device: str, torch_stages: str, refin
     ctx = mp.get_context("spawn")
     ready, results, go = ctx.Queue(), ctx.Queue(), ctx.Event()
     procs = [ctx.Process(target=_worker, args=(r, texels, device, torch_stages, refine_graph, items[r::workers], warmup,
-                                                       ready, go, results, bvh))
+                                                       ready, go, results, kernels))
              for r in range(workers)]
     for p in procs:
         p.start()
@@ -502,8 +502,8 @@ def main(argv=None) -> int:
     if args.nearest_lanes is not None and args.nearest_lanes < 1:
         ap.error(f"--nearest-lanes: at least 1 thread per query, got {args.nearest_lanes}")
     constructor, _, leaf = (args.bvh or "").partition(":")
-    kernels = f"{constructor}:{leaf}:{'' if args.nearest_lanes is None else args.nearest_lanes}"   # set_bvh's
-    bvh = set_bvh(kernels)
+    kernels = f"{constructor}:{leaf}:{'' if args.nearest_lanes is None else args.nearest_lanes}"
+    bvh = set_kernels(kernels)
 
     from uvatar.avh.bake.frame import bake_fit
 
