@@ -125,3 +125,16 @@ def test_bad_inputs():
         RayCaster(v, f + 100)
     with pytest.raises(InputError):
         RayCaster(v, np.zeros((0, 3), dtype=int))
+
+
+def test_hit_rows_select_every_field():
+    """``RayHits.rows``: the same rows of every field, for a slice and an index array."""
+    from uvatar.geometry.raycast import RayHits
+
+    n = 5
+    hits = RayHits(np.arange(n) % 2 == 0, np.arange(n, dtype=float), np.arange(n) - 1,
+                   np.arange(3 * n, dtype=float).reshape(n, 3), -np.arange(3 * n, dtype=float).reshape(n, 3))
+    for index in (slice(1, 4), np.array([4, 0])):
+        part = hits.rows(index)
+        for name in ("hit", "distance", "face", "bary", "points"):
+            assert np.array_equal(getattr(part, name), getattr(hits, name)[index])

@@ -72,6 +72,10 @@ class RayHits:
     bary: np.ndarray
     points: np.ndarray
 
+    def rows(self, index) -> RayHits:
+        """The hits of the rays ``index`` selects (a slice or index array; numpy or torch fields alike)."""
+        return RayHits(self.hit[index], self.distance[index], self.face[index], self.bary[index], self.points[index])
+
 
 def _prepare_rays(origins, directions, max_distance, dtype=np.float64):
     """Validate rays; return (origins, unit directions, max_distance (N,)) as ``dtype`` arrays."""

@@ -19,7 +19,7 @@ The image-space twin used by ``uvatar fit`` is :mod:`uvatar.fit.photometric`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -98,11 +98,6 @@ def ray_colours(surface: ScanSurface, scan, points, normals, max_distance: float
     return colours, ok
 
 
-def _hit_rows(hits, rows):
-    """The :class:`~uvatar.geometry.RayHits` of ``rows`` (a slice) of ``hits``."""
-    return type(hits)(**{f.name: getattr(hits, f.name)[rows] for f in fields(hits)})
-
-
 def _nearer_compatible_hit(surface: ScanSurface, p, n, max_distance: float, min_normal_cos: float, epsilon: float,
                            where, cast, best, face, bary, cat=None):
     """(face (N,), -1 where none; bary (N, 3)) of the nearer of the +n and -n rays' first hits whose scan
@@ -119,7 +114,7 @@ def _nearer_compatible_hit(surface: ScanSurface, p, n, max_distance: float, min_
         both = cast(cat([p - epsilon * n, p + epsilon * n]), cat([n, -n]), None)
         m_both = surface.normals_at_hits(both)
         k = len(p)
-        halves = [(_hit_rows(both, slice(0, k)), m_both[:k]), (_hit_rows(both, slice(k, None)), m_both[k:])]
+        halves = [(both.rows(slice(0, k)), m_both[:k]), (both.rows(slice(k, None)), m_both[k:])]
     for i, sign in enumerate((1.0, -1.0)):
         if cat is not None:
             hits, m = halves[i]
