@@ -27,7 +27,7 @@ def _flags():
     bake = ConfigFlags(BakeConfig, fields=(
         "texels", "refine_pose", "register", "polarity_rule", "polarity_ratio", "max_match_distance",
         "visibility_rays", "visibility_stratified", "distance_clip", "inpaint_radius", "inpaint_band", "inpaint_gutter", "reject_kappa",
-        "reject_colour_ratio", "device", "torch_stages", "scan_cache_mb"),
+        "reject_colour_ratio", "device", "torch_stages", "scan_cache_mb", "frames_in_flight"),
         rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band", "inpaint_gutter"),
         choices={"torch_stages": TORCH_STAGES}, help={
             "texels": "UV map resolution R",
@@ -54,7 +54,9 @@ def _flags():
             "torch_stages": "the rest of a frame (inpainting, solves, refinement, ray set-up) on torch on "
                             "--device: auto (on CUDA), on (also on the CPU: slow, for checks) or off",
             "scan_cache_mb": "MB of scans each worker keeps read and prepared between the colour rounds and the "
-                             "bake (0 = read every time; same results)"})
+                             "bake (0 = read every time; same results)",
+            "frames_in_flight": "with --device cuda, frames whose pose refinements one process runs at once, "
+                                "each on its own CUDA stream (same fits; 1 = one at a time)"})
     refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight",
                                                     "photometric_space", "cuda_graph"),
                          prefix="refine", help={

@@ -194,6 +194,10 @@ class BakeConfig:
     scan_cache_mb: scans (with their ray and k-d tree structures) kept in memory per worker process
         between the colour rounds and the bake, so a frame's scan is read and prepared once instead
         of once per round (0 = read every time; results are the same either way).
+    frames_in_flight: with the torch stages on CUDA, how many frames' pose refinements and colour
+        rounds one process runs at once, each on its own CUDA stream (:mod:`.refine_in_flight`: one
+        refinement's small launches leave most of a GPU idle); 1 = one at a time. The same fits either
+        way; ignored on the CPU.
     registration: :class:`RegistrationConfig`; pose_refine: :class:`PoseRefineConfig`.
     """
 
@@ -218,6 +222,7 @@ class BakeConfig:
     torch_stages: str = "auto"
     ray_backend: str = "auto"
     scan_cache_mb: int = 2048
+    frames_in_flight: int = 4
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)
 
@@ -236,7 +241,8 @@ class BakeConfig:
                   (self.ray_epsilon >= 0, "ray_epsilon must be >= 0"),
                   (self.device == "cpu" or self.device.startswith("cuda"), "device must be cpu or cuda[:N]"),
                   (self.torch_stages in TORCH_STAGES, f"torch_stages must be one of {TORCH_STAGES}"),
-                  (self.scan_cache_mb >= 0, "scan_cache_mb must be >= 0")]
+                  (self.scan_cache_mb >= 0, "scan_cache_mb must be >= 0"),
+                  (self.frames_in_flight >= 1, "frames_in_flight must be >= 1")]
         check_values(checks)
 
     @property

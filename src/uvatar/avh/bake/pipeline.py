@@ -272,8 +272,9 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
 
 
 # settings that do not change a baked frame: where the rays run (same maps within round-off), the scan
-# cache, and the rejection threshold (frames on disk are re-classified against it on every run)
-_BAKE_VOLATILE = ("device", "ray_backend", "scan_cache_mb", "reject_kappa", "reject_colour_ratio")
+# cache, frames refined at once (same fits), and the rejection threshold (frames on disk are
+# re-classified against it on every run)
+_BAKE_VOLATILE = ("device", "ray_backend", "scan_cache_mb", "frames_in_flight", "reject_kappa", "reject_colour_ratio")
 
 
 def _begin_record(out: Path, capture, config: BakeConfig, frames: list[str], overwrite: bool,

@@ -39,7 +39,7 @@ from uvatar.avh.bake.refine_model import (
     untracked_skin_weight,
 )
 
-__all__ = ["PoseRefineConfig", "PhotoSample", "refine_fit", "refine_vertices", "fit_colours", "sample_colours", "subtree_weights", "region_weights",
+__all__ = ["PoseRefineConfig", "PhotoSample", "check_refine_inputs", "refine_fit", "refine_vertices", "fit_colours", "sample_colours", "subtree_weights", "region_weights",
            "untracked_skin_weight"]
 
 
@@ -190,6 +190,12 @@ def _normal_equations(points, subtree, groups, centres, centre0, blocks):
     return a, g
 
 
+def check_refine_inputs(photo, scan_mesh) -> None:
+    """:func:`refine_fit`'s check of its arguments: a photometric target needs the textured scan."""
+    if photo is not None and scan_mesh is None:
+        raise ValueError("refine_fit: a photometric target needs the textured scan (scan_mesh)")
+
+
 def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=None, photo=None, scan_mesh=None,
                start_sample: PhotoSample | None = None, final_colour_residual: bool = True,
                device: str | None = None):
@@ -220,8 +226,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     from uvatar.capture import BodyFit
 
     config = config or PoseRefineConfig()
-    if photo is not None and scan_mesh is None:
-        raise ValueError("refine_fit: a photometric target needs the textured scan (scan_mesh)")
+    check_refine_inputs(photo, scan_mesh)
     if device is not None:
         from uvatar.avh.bake.refine_device import refine_fit_on_device
 

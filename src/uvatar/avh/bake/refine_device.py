@@ -33,7 +33,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "rotvec_quaternions", "quaternion_rotvecs",
+__all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "refinement_steps", "run_steps",
+           "rotvec_quaternions", "quaternion_rotvecs",
            "apply_step_torch", "step_in_warp", "STEP_IN_WARP_ON_CPU",
            "GRAPH_FAILURES", "GRAPHS_ON_CPU"]
 
@@ -275,12 +276,13 @@ def _capture(fn, device):
         return None
 
 
-def _run_iterations(iteration, iterations: int, cuda_graph: bool, device) -> None:
-    """``iteration(first, last)`` for the iterations 0 .. ``iterations``. With ``cuda_graph`` on CUDA
-    (:func:`_graphs`), the middle ones, alike (the same operators on the same tensors, the state updated
-    in place, the stats written at a device-side column), replay one CUDA graph captured after the first
-    (eager: also the warm-up of every kernel and library handle they use): one launch each instead of
-    hundreds. The rays they cast are counted as the captured one's."""
+def _iterations(iteration, iterations: int, cuda_graph: bool, device):
+    """A generator running ``iteration(first, last)`` for the iterations 0 .. ``iterations``, yielding
+    after each (so that :mod:`.refine_in_flight` can interleave several refinements). With ``cuda_graph``
+    on CUDA (:func:`_graphs`), the middle ones, alike (the same operators on the same tensors, the state
+    updated in place, the stats written at a device-side column), replay one CUDA graph captured after
+    the first (eager: also the warm-up of every kernel and library handle they use): one launch each
+    instead of hundreds. The rays they cast are counted as the captured one's."""
     from uvatar.geometry.raycast import _RAYS
 
     graph, rays = None, {}
@@ -288,6 +290,7 @@ def _run_iterations(iteration, iterations: int, cuda_graph: bool, device) -> Non
         first, last = it == 0, it == iterations
         if first or last or not _graphs(cuda_graph, device):
             iteration(first, last)
+            yield
             continue
         if graph is None:
             before = dict(_RAYS)
@@ -295,12 +298,23 @@ def _run_iterations(iteration, iterations: int, cuda_graph: bool, device) -> Non
             if graph is None:                  # nothing was cast while it recorded: the counts as they were
                 _RAYS.update(before)
                 iteration(first, last)
+                yield
                 continue
             rays = {q: n - before.get(q, 0) for q, n in _RAYS.items()}   # counted while it recorded: this one
         else:
             for q, n in rays.items():
                 _RAYS[q] += n
         graph.replay()
+        yield
+
+
+def run_steps(steps):
+    """Drive the generator ``steps`` (:func:`refinement_steps`) to its end; its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
 
 
 def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample, final_colour_residual,
@@ -308,6 +322,15 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     """:func:`.refine.refine_fit` with ``device`` (its arguments, checked there): the same refined fit
     (BodyFit of numpy arrays) and stats (lists of Python floats, cut where the numpy path stops), from
     one read-back at the end (module doc)."""
+    return run_steps(refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
+                                      final_colour_residual, device))
+
+
+def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sample, final_colour_residual,
+                     device, cuda_graph: bool | None = None):
+    """:func:`refine_fit_on_device` as a generator: it sets up and runs the first iteration at the first
+    ``next()``, one more iteration at each further one (nothing read back in between), and returns the
+    (refined fit, stats) from its one read-back. ``cuda_graph``: None = ``config.cuda_graph``."""
     import torch
 
     from uvatar.avh.bake.photometric import surface_colours
@@ -405,7 +428,7 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
         running = running & ~failed
         apply_step(state, step, running, tr, joints, centre0, max_angle, k)
 
-    _run_iterations(iteration, iterations, config.cuda_graph, device)
+    yield from _iterations(iteration, iterations, config.cuda_graph if cuda_graph is None else cuda_graph, device)
 
     # the one read-back: every stat, the stop flags and the refined state at once
     offset_mean = (skin @ state.offsets).mean() * 1000
@@ -416,8 +439,8 @@ def refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start
     stats_h, off, widest, rot_h, rh_h, th_h = np.split(host, cuts)
     res, mat, kept, col = stats_h.reshape(4, iterations + 1)
     if window_outgrown(scan, device, int(widest[0])):   # a slab was cut short: again, with room for it (rare)
-        return refine_fit_on_device(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
-                                    final_colour_residual, device)
+        return (yield from refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sample,
+                                            final_colour_residual, device, cuda_graph))
     if photo is not None and not final_colour_residual:
         col = col[:iterations]                           # the last iteration measured no colours
     appended = int(kept.sum())         # the numpy path appends stats at each iteration it reaches

@@ -5,7 +5,9 @@ and samples each refinement vertex's blurred scan colour (:func:`.refine.fit_col
 round (one per ``PoseRefineConfig.photometric_radii``, coarse to fine) takes the median colour over
 frames as the reference (:func:`.photometric.reference_colours`) and refines every frame again with
 the colour term. Frames are independent within a round, so each round runs through
-:func:`uvatar.parallel.run_tasks` (local processes or Ray), with progress.
+:func:`uvatar.parallel.run_tasks` (local processes or Ray), with progress; on a CUDA torch device a
+task refines up to ``BakeConfig.frames_in_flight`` frames at once (:mod:`.refine_in_flight`), the
+same fits.
 
 The final reference and every refined fit are saved as ``BAKED/photo_reference.npz`` (atomic write)
 before any frame is baked. A later call on the same output bakes the saved fits as they are (so a
@@ -134,33 +136,70 @@ def _restore(capture_root, saved: dict, frames) -> dict:
     return out
 
 
-def _refine_task(shared: dict, item):
-    """One frame of one round, item = (frame, fit to start from or None, PhotoTarget or None, stencil
-    radius to sample afterwards or None) -> (refined BodyFit, colours (N, 3) at that radius or None).
-    ``shared`` (capture root, config, body and layout) is the same for every round and the bake.
-    The colours a round ends with are sampled where the next round starts (same pose, the next
+def _refine_task(shared: dict, group):
+    """One round of the frames of ``group``, a tuple of items (frame, fit to start from or None,
+    PhotoTarget or None, stencil radius to sample afterwards or None) -> [(refined BodyFit, colours
+    (N, 3) at that radius or None) or a TaskFailure] per item. Their refinements run in flight on the
+    bake's torch device (:func:`.refine_in_flight.refine_fits`; one at a time elsewhere), each frame's
+    failure its own. ``shared`` (capture root, config, body and layout) is the same for every round and
+    the bake. The colours a round ends with are sampled where the next round starts (same pose, the next
     round's target radius): a worker keeping the frame's scan keeps that sample with it, and the next
     round takes it instead of casting the same rays again (:func:`.inputs.kept_sample`). The colours
     after a round's last step, which only its stats would read, are not sampled."""
-    from uvatar.avh.bake.refine import refine_fit, sample_colours
+    from uvatar.avh.bake.refine import sample_colours
+    from uvatar.avh.bake.refine_in_flight import RefineJob, refine_fits
     from uvatar.capture import Capture
+    from uvatar.errors import one_line
 
-    frame, start, target, radius = item
     config = shared["config"]
     body, _ = adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
     capture = Capture(shared["capture_root"])
-    scan, surface = prepared_scan(capture, frame, config, shared.get("run"))   # once for all rounds
-    fit, shape = start_fit(capture, frame)
-    fit = fit if start is None else start
-    before = None if target is None else kept_sample(capture, frame, config, fit)
-    fit, _ = refine_fit(body, fit, surface, config.pose_refine, shape, photo=target,
-                        scan_mesh=scan if target is not None else None, start_sample=before,
-                        final_colour_residual=False, device=config.torch_device)
-    if radius is None:
-        return fit, None
-    sample = sample_colours(body, fit, surface, scan, config.pose_refine, radius, shape, config.torch_device)
-    keep_sample(capture, frame, config, fit, sample)
-    return fit, sample.colours
+    out: list = [None] * len(group)
+    jobs, prepared = [], []
+    for i, (frame, start, target, radius) in enumerate(group):
+        try:
+            scan, surface = prepared_scan(capture, frame, config, shared.get("run"))   # once for all rounds
+            fit, shape = start_fit(capture, frame)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - that frame's failure alone
+            out[i] = TaskFailure(one_line(exc))
+            continue
+        fit = fit if start is None else start
+        before = None if target is None else kept_sample(capture, frame, config, fit)
+        jobs.append(RefineJob(fit, surface, shape, photo=target, scan_mesh=scan if target is not None else None,
+                              start_sample=before, final_colour_residual=False))
+        prepared.append((i, frame, scan, surface, shape, radius))
+    results = refine_fits(body, jobs, config.pose_refine, config.torch_device)
+    for (i, frame, scan, surface, shape, radius), result in zip(prepared, results, strict=True):
+        if isinstance(result, Exception):
+            out[i] = TaskFailure(one_line(result))
+            continue
+        fit, _ = result
+        if radius is None:
+            out[i] = (fit, None)
+            continue
+        try:
+            sample = sample_colours(body, fit, surface, scan, config.pose_refine, radius, shape, config.torch_device)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            out[i] = TaskFailure(one_line(exc))
+            continue
+        keep_sample(capture, frame, config, fit, sample)
+        out[i] = (fit, sample.colours)
+    return out
+
+
+def _groups(items: list, config, executor: ExecutorConfig | None) -> list[tuple]:
+    """``items`` dealt into tasks: on a CUDA torch device up to ``config.frames_in_flight`` frames a
+    task (fewer where that would leave one of the executor's workers without one), else one frame a
+    task (frames in flight gain nothing on a CPU, and a task per frame keeps every worker busy)."""
+    device = config.torch_device
+    size = config.frames_in_flight if device is not None and device.startswith("cuda") else 1
+    workers = max(1, (executor or ExecutorConfig()).workers)
+    size = max(1, min(size, -(-len(items) // workers)))
+    return [tuple(items[k:k + size]) for k in range(0, len(items), size)]
 
 
 def refine_frames_together(capture_root, out_root, frames, config, body_name: str,
@@ -211,15 +250,19 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
             disagreement = {f: colour_disagreement(c, target) for f, c in colours.items()}
         colours = {}
         desc = "refine poses" if i == 0 else f"colour round {i}/{len(rounds) - 1}"
-        items = [(f, fits.get(f), target, radius) for f in frames]
-        for (frame, *_), result in run_tasks(_refine_task, items, shared, executor, desc=desc, progress=progress,
-                                             initializer=limit_process_to_one_thread):
-            if isinstance(result, TaskFailure):
-                log.warning("frame %s: pose refinement across frames skipped it (%s)", frame, result.reason)
-                continue
-            fits[frame], c = result
-            if c is not None:
-                colours[frame] = c
+        groups = _groups([(f, fits.get(f), target, radius) for f in frames], config, executor)
+        for group, results in run_tasks(_refine_task, groups, shared, executor, desc=desc, progress=progress,
+                                        unit="frame" if len(groups) == len(frames) else "group of frames",
+                                        initializer=limit_process_to_one_thread):
+            if isinstance(results, TaskFailure):      # the whole task (a lost worker)
+                results = [results] * len(group)
+            for (frame, *_), result in zip(group, results, strict=True):
+                if isinstance(result, TaskFailure):
+                    log.warning("frame %s: pose refinement across frames skipped it (%s)", frame, result.reason)
+                    continue
+                fits[frame], c = result
+                if c is not None:
+                    colours[frame] = c
         frames = [f for f in frames if f in fits]
         if radius is not None:
             last_radius = radius
