@@ -104,8 +104,9 @@ def _in_flight(jobs: list[RefineJob], running: dict, results: list, device) -> N
     caller's stream, one job after another, the set-up and first iteration of each, and the second too
     of the first job of each kind (with a colour target or without) and of each scan that several jobs
     share (module doc); then the rest in turn, each job on its own stream."""
-    import torch
     from collections import Counter
+
+    import torch
 
     uses = Counter(id(jobs[i].scan) for i in running)
     kinds_warm: set = set()
