@@ -45,12 +45,17 @@ there. On the CPU they need ``--torch-stages on --device cpu``; the time is not 
 the time goes (``profile``: per stage the host's and the device's ms, the device's busy ms, the top kernels
 and the CUDA runtime calls: a device far less busy than the wall time says the host sets the pace; and
 ``stage_kernels_ms_calls``: each stage's own top kernels).
+``--frames-in-flight N`` also runs the timed frames' refinements and colour rounds one at a time and N at
+a time (``bench/bake_in_flight.py``'s rounds: on CUDA each frame on its own stream) and reports ``in_flight``:
+both seconds per frame, the speed-up, whether the fits are identical, and
+``seconds_per_frame_with_colour_rounds`` as ``uvatar bake`` composes a frame (its fit refined beforehand, in
+flight with the other frames': the frame's stages less ``refine_pose``, plus the refinements in flight).
 ``--warmup 1`` (default) first bakes the first frame once, untimed,
 in each process: the one-off imports and first allocations of a worker (~0.4 s) are paid once per
 process, not per frame (``--warmup 0`` times them into the first frame, as the bench did before).
 
     python bench/bake.py [--quick] [--frames 2] [--texels 1024] [--reference] [--workers N] [--device cpu|cuda]
-                         [--torch-stages auto|on|off] [--parity] [--count-ops] [--profile]
+                         [--torch-stages auto|on|off] [--parity] [--count-ops] [--profile] [--frames-in-flight N]
 """
 
 from __future__ import annotations
@@ -392,6 +397,39 @@ def _bake_with_rounds(model, layout, config, item, targets, out_dir=None) -> flo
     return time.process_time() - c0
 
 
+def _in_flight(model, items, config, in_flight: int, frame_without_refine: float) -> dict:
+    """The timed frames' refinements and colour rounds one at a time, then ``in_flight`` at a time
+    (``bench/bake_in_flight.py``'s rounds, as ``uvatar bake --frames-in-flight`` deals them on CUDA),
+    each synchronised, in this process: their seconds per frame, whether the fits are identical, and the
+    frame's seconds with its rounds when they run in flight (``frame_without_refine``: the bake of a frame
+    whose fit was refined beforehand, as the bake's frames are: its stages less ``refine_pose``)."""
+    import torch
+    from bake_in_flight import _rounds, _same
+
+    from uvatar.threads import single_threaded
+
+    prepared = [_surface_and_targets(model, item, config) for item in items]
+    surfaces, targets = [p[0] for p in prepared], [p[1] for p in prepared]
+    cuda = config.torch_device is not None and torch.device(config.torch_device).type == "cuda"
+    seconds, fits = {}, {}
+    with single_threaded():
+        for n in (1, in_flight):
+            if cuda:
+                torch.cuda.synchronize(config.torch_device)
+            t0 = time.perf_counter()
+            fits[n] = _rounds(model, items, surfaces, targets, config, n)
+            if cuda:
+                torch.cuda.synchronize(config.torch_device)
+            seconds[n] = (time.perf_counter() - t0) / len(items)
+    return {"frames_in_flight": in_flight,
+            "refine_and_rounds_seconds_per_frame": {"one_at_a_time": round(seconds[1], 3),
+                                                    "in_flight": round(seconds[in_flight], 3)},
+            "speedup": round(seconds[1] / seconds[in_flight], 3),
+            "fits_identical": _same(fits[1], fits[in_flight]),
+            "frame_without_refine_seconds": round(frame_without_refine, 3),
+            "seconds_per_frame_with_colour_rounds": round(frame_without_refine + seconds[in_flight], 3)}
+
+
 def set_kernels(spec: str) -> dict:
     """``constructor:leaf size:lanes`` (from ``--bvh`` and ``--nearest-lanes``; each part may be empty:
     the default) -> the BVH every Warp mesh of the bake is built with (``geometry.raycast_warp.BVH_CONSTRUCTOR``
@@ -496,6 +534,10 @@ def main(argv=None) -> int:
     ap.add_argument("--throughput-frames", type=int, default=None,
                     help="frames each --workers run bakes (the timed frames over and over; default 4 per "
                          "worker, so every worker stays busy to the end)")
+    ap.add_argument("--frames-in-flight", type=int, default=0,
+                    help="N > 1: also run the timed frames' refinements and colour rounds one at a time and N at a "
+                         "time (as uvatar bake --frames-in-flight N on CUDA) and report in_flight: their seconds, "
+                         "the fits' identity, the frame's seconds with its rounds in flight")
     args = ap.parse_args(argv)
     texels = 256 if args.quick else args.texels
     frames = 1 if args.quick else args.frames
@@ -605,6 +647,12 @@ def main(argv=None) -> int:
         out["visibility_tolerance"] = {"kappa_abs_mean_p99_max": worst("kappa"),
                                        "kappa_mean_abs": round(max(r["kappa_mean"] for r in refs), 4),
                                        "scan_vertex_visibility_abs_mean_p99_max": worst("vertex_visibility")}
+    if args.frames_in_flight > 1:
+        if config.torch_device is None:
+            ap.error("--frames-in-flight: the refinements run in flight on a torch device (--torch-stages on, "
+                     "or --device cuda)")
+        out["in_flight"] = _in_flight(model, items, config, args.frames_in_flight,
+                                      per_frame - stage_mean.get("refine_pose", 0.0))
     if args.count_ops:
         out["operators"] = _count_ops(model, layout, config, items[0])
     if args.profile:

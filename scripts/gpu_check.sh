@@ -14,7 +14,9 @@
 # graph, then compiled, with and without the graph), BAKE_SECONDS /
 # BAKE_FRAMES / BAKE_WORKERS (default 4,8: a throughput run each) / BAKE_THROUGHPUT_FRAMES (the frames each run bakes, default 32),
 # TRAIN_CROPS (bench/dva_train.py --crops: batch, the one marcher call, and/or each, the per-sample reference),
-# BAKE_BVH (bench/bake.py --bvh, e.g. lbvh:4: the Warp meshes' BVH, after the rays part has compared them), TESTS_SECONDS.
+# BAKE_BVH (bench/bake.py --bvh, e.g. lbvh:4: the Warp meshes' BVH, after the rays part has compared them), TESTS_SECONDS,
+# BAKE_IN_FLIGHT (bench/bake.py --frames-in-flight, default 4), FLIGHT_SECONDS / FLIGHT_FRAMES / FLIGHT_COUNTS /
+# FLIGHT_REPEATS (the flight part: bench/bake_in_flight.py).
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
@@ -97,7 +99,7 @@ for part in $PARTS; do
         tests/test_avh_bake_refine_graph.py tests/test_geometry_raycast_warp.py tests/test_geometry_banded_solve.py tests/test_avh_bake_refine_step_warp.py \
         tests/test_devices.py tests/test_geometry_nearest_warp.py tests/test_geometry_jump_flood_warp.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
-        tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake ;;
+        tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake tests/test_avh_bake_refine_in_flight.py ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
       # (--compile: the step's encoders and decoders eager, then through torch.compile; compiled in the warm-up)
       run_part train "${TRAIN_SECONDS:-300}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \
@@ -134,9 +136,11 @@ for part in $PARTS; do
         # another's GPU work): throughput.seconds_per_frame is the machine's wall time per frame
         # (4 and 8 of the machine's 16 cores); --count-ops: the torch operators and Warp launches per stage, the
         # host's launches (session 9 cut them about in half: the nearest samples in one Warp launch, doubling FK)
+        # --frames-in-flight: the frames' refinements and colour rounds one at a time, then that many at a time
+        # on their own CUDA streams (uvatar bake --frames-in-flight, session 14): in_flight.seconds_per_frame_with_colour_rounds
         run_part bake "${BAKE_SECONDS:-240}" "$OUT/bake.json" python bench/bake.py --device cuda --count-ops --profile \
           --frames "${BAKE_FRAMES:-4}" --parity --workers "${BAKE_WORKERS:-4,8}" --throughput-frames "${BAKE_THROUGHPUT_FRAMES:-32}" \
-          ${BAKE_BVH:+--bvh "$BAKE_BVH"} ${lanes:+--nearest-lanes "$lanes"}
+          --frames-in-flight "${BAKE_IN_FLIGHT:-4}" ${BAKE_BVH:+--bvh "$BAKE_BVH"} ${lanes:+--nearest-lanes "$lanes"}
         # the refinement's iterations replayed from one CUDA graph (PoseRefineConfig.cuda_graph, off by default
         # until measured): seconds per frame and parity beside the run above; refine_graph_failures if any
         run_part bake_graph "${BAKE_GRAPH_SECONDS:-90}" "$OUT/bake_graph.json" python bench/bake.py --device cuda \
@@ -167,7 +171,15 @@ for part in $PARTS; do
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    *) echo "unknown part $part (dva avh tests compile bake train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
+    flight)  # the refinements and colour rounds of 8 frames 1, 2, 4 and 8 at a time, each frame on its own CUDA
+             # stream (bench/bake_in_flight.py): seconds per frame, the speed-up in the same run, identical fits
+      if python -c "import anny, warp" 2>/dev/null; then
+        run_part flight "${FLIGHT_SECONDS:-120}" "$OUT/bake_in_flight.json" python bench/bake_in_flight.py --device cuda \
+          --frames "${FLIGHT_FRAMES:-8}" --in-flight "${FLIGHT_COUNTS:-1,2,4,8}" --repeats "${FLIGHT_REPEATS:-2}"
+      else
+        echo "flight skipped: anny or warp missing" | tee -a "$OUT/status.txt"
+      fi ;;
+    *) echo "unknown part $part (dva avh tests compile bake flight train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
   esac
 done
 tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null

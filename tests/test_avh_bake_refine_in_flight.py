@@ -220,3 +220,33 @@ def test_a_colour_round_task_of_several_frames_equals_one_frame_tasks(tmp_path, 
         assert np.isfinite(colours).any()
     assert isinstance(together[2], TaskFailure) and isinstance(alone[2], TaskFailure)
     assert "000002" in together[2].reason
+
+
+def test_bench_rounds_in_flight_equal_one_at_a_time():
+    """bench/bake_in_flight.py's rounds (the geometric refinement, then a colour round per radius from
+    the previous round's closing sample) of two frames, two at a time: the fits of one at a time."""
+    from bench_modules import load_bench
+
+    from uvatar.avh.bake.config import BakeConfig
+    from uvatar.avh.bake.photometric import PhotoTarget
+    from uvatar.avh.bake.refine import fit_colours
+
+    bench = load_bench("bake_in_flight")
+    model, scenes = _scenes(2, "cpu")
+    config = BakeConfig(torch_stages="on").with_updates(pose_refine_iterations=2, pose_refine_photometric_iterations=2,
+                                                        pose_refine_max_vertices=400,
+                                                        pose_refine_photometric_radii=(0.006, 0.003))
+    items = [(fit, None, scan) for scan, _, fit in scenes]
+    surfaces = [surface for _, surface, _ in scenes]
+    targets = []
+    for scan, surface, fit in scenes:
+        per_radius = []
+        for radius in config.pose_refine.photometric_radii:
+            c = fit_colours(model, fit, surface, scan, config.pose_refine, radius)
+            per_radius.append(PhotoTarget(np.nan_to_num(c), np.isfinite(c).all(1), radius))
+        targets.append(per_radius)
+    one = bench._rounds(model, items, surfaces, targets, config, 1)
+    two = bench._rounds(model, items, surfaces, targets, config, 2)
+    assert [len(h) for h in one] == [3, 3]                       # geometric + two colour rounds
+    assert bench._same(one, two)
+    assert not np.array_equal(one[0][0].poses, one[0][2].poses)   # the colour rounds moved the fit
