@@ -217,7 +217,7 @@ def _count_ops(model, layout, config, item) -> dict:
     from _ops import OpCounter
 
     import uvatar.avh.bake.frame as frame
-    from uvatar.avh.bake import refine_device, register_torch
+    from uvatar.avh.bake import refine_device, register_torch, stencil_warp
 
     counter = OpCounter()
     timed = frame._timed
@@ -233,8 +233,10 @@ def _count_ops(model, layout, config, item) -> dict:
 
     config = replace(config, ray_backend="warp")     # CUDA's caster: the rays cast in place (Warp runs on the CPU)
     fit, _, scan = item
-    saved = (frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU)
-    frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU = labelled, True, True
+    saved = (frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU,
+             stencil_warp.STENCIL_IN_WARP_ON_CPU)
+    (frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU,
+     stencil_warp.STENCIL_IN_WARP_ON_CPU) = labelled, True, True, True
     try:
         surface, targets = _surface_and_targets(model, item, config)
         frame.bake_fit(model, fit, layout, scan, config, surface=surface)        # the per-scan copies made
@@ -243,7 +245,8 @@ def _count_ops(model, layout, config, item) -> dict:
             counter.label = "colour_rounds"
             _colour_rounds(model, used, targets, scan, surface, config)
     finally:
-        frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU = saved
+        (frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU,
+         stencil_warp.STENCIL_IN_WARP_ON_CPU) = saved
     out = counter.table()
     out["frame_total"] = {n: sum(v[n] for k, v in out.items() if k != "colour_rounds")
                           for n in ("ops", "views", "warp_launches")}

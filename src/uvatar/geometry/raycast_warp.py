@@ -152,7 +152,7 @@ class WarpRayCaster(RayCaster):
 
         from uvatar.geometry.raycast import _finish_hits, _raw_hits
 
-        if not self._here(origins) or self.config.refine or self._dtype != np.float32:
+        if self.fast_mesh_id(origins) is None:
             return super().first_hit_torch(origins, directions, max_distance)
         wp = load_warp()
         first_hit_kernel, _ = _kernels()
@@ -172,6 +172,13 @@ class WarpRayCaster(RayCaster):
                       device=wp.device_from_torch(dev), stream=launch_stream(dev))
         hit, face, distance, bary = _raw_hits(prim, u, v, t)
         return _finish_hits(o, d, hit, face, distance, bary)
+
+    def fast_mesh_id(self, tensor):
+        """The BVH's Warp mesh id where :meth:`first_hit_torch` casts ``tensor``'s rays on it (a tensor on
+        this caster's device, the float32 fast path: no float64 refinement of hits), else None."""
+        if not self._here(tensor) or self.config.refine or self._dtype != np.float32:
+            return None
+        return self._mesh.id
 
     def _here(self, tensor) -> bool:
         """Is ``tensor`` on this caster's Warp device?"""

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from uvatar.avh.bake.register import ScanSurface, scan_colours
+from uvatar.avh.bake.stencil_warp import stencil_caster, stencil_colours_warp
 from uvatar.geometry import tangent_basis
 from uvatar.geometry.frames import is_torch
 
@@ -163,14 +164,16 @@ def surface_colours(surface: ScanSurface, scan, points, normals, radius: float, 
         import torch
 
         p, n, cat, einsum = points, normals, torch.cat, torch.einsum
-        tiled = n.repeat(RING_POINTS + 1, 1)
     else:
         p, n, cat, einsum = np.asarray(points, np.float64), normals, np.concatenate, np.einsum
-        tiled = np.tile(np.asarray(normals, np.float64), (RING_POINTS + 1, 1))
     offsets = stencil_offsets(n, radius)
-    # the centres and the ring in one cast: (1 + RING_POINTS, N) points
-    stencil = cat([p[None], p[None] + offsets]).reshape(-1, 3)
-    colours, found = ray_colours(surface, scan, stencil, tiled, max_distance, min_normal_cos, device=device)
+    mesh = stencil_caster(surface, scan, p) if is_torch(p) else None
+    if mesh is not None:     # the rays, their choice and the texture in one Warp launch (CUDA)
+        colours, found = stencil_colours_warp(mesh, surface, scan, p, offsets, n, max_distance, min_normal_cos)
+    else:                    # the centres and the ring in one cast: (1 + RING_POINTS, N) points
+        tiled = n.repeat(RING_POINTS + 1, 1) if is_torch(n) else np.tile(np.asarray(n, np.float64), (RING_POINTS + 1, 1))
+        stencil = cat([p[None], p[None] + offsets]).reshape(-1, 3)
+        colours, found = ray_colours(surface, scan, stencil, tiled, max_distance, min_normal_cos, device=device)
     colours = colours.reshape(RING_POINTS + 1, len(p), 3)
     centre, ring = colours[0], colours[1:]
     ok = found.reshape(RING_POINTS + 1, len(p)).all(0)
