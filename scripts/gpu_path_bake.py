@@ -1,0 +1,75 @@
+"""Bake a capture with the CUDA bake's operations on CPU tensors: a check of ``uvatar bake --device cuda``
+on a machine without a GPU (issue 39; CI has none, and a lent GPU is rare).
+
+The torch stages on CPU tensors (``--torch-stages on``), the rays through Warp's BVH on the CPU (the same
+float32 casts as on CUDA), and every choice CUDA makes where the CPU would keep another: the nearest
+samples through the Warp grid kernel, the refinement's step and the colour stencil in their Warp
+kernels, and the frames' refinements ``--in-flight`` at a time (:mod:`uvatar.avh.bake.refine_in_flight`).
+Compare the result with a CPU bake of the same frames: ``python scripts/compare_bakes.py CPU_OUT OUT``.
+
+    python scripts/gpu_path_bake.py CAP OUT --frames 000000,000005,000011 [--in-flight 3] [--texels 1024]
+                                    [--stencil warp|torch]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+import time
+
+
+@contextlib.contextmanager
+def cuda_choices(stencil_kernel: bool = True):
+    """Within: the bake makes CUDA's choices on CPU tensors (module doc); as before afterwards."""
+    from uvatar.avh.bake import refine_device, refine_together, register_torch, stencil_warp
+
+    saved = (register_torch.WINDOW_SEARCH_ON_CPU, register_torch.NEAREST_KERNEL, refine_device.STEP_IN_WARP_ON_CPU,
+             stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together._groups)
+    deal = refine_together._groups
+
+    def in_flight(items, config, executor):             # CUDA's dealing of the frames into tasks
+        return deal(items, config.with_updates(device="cuda"), executor)
+
+    register_torch.WINDOW_SEARCH_ON_CPU = True          # CUDA's nearest-sample choice: the Warp grid kernel
+    register_torch.NEAREST_KERNEL = True
+    refine_device.STEP_IN_WARP_ON_CPU = True           # the refinement's step in its Warp kernel
+    stencil_warp.STENCIL_IN_WARP_ON_CPU = stencil_kernel   # the colour stencil in its Warp kernel
+    refine_together._groups = in_flight
+    try:
+        yield
+    finally:
+        (register_torch.WINDOW_SEARCH_ON_CPU, register_torch.NEAREST_KERNEL, refine_device.STEP_IN_WARP_ON_CPU,
+         stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together._groups) = saved
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("capture")
+    ap.add_argument("out")
+    ap.add_argument("--frames", required=True, help="comma-separated frame names (the bake's --frames)")
+    ap.add_argument("--in-flight", type=int, default=3, help="frames refined at once (BakeConfig.frames_in_flight)")
+    ap.add_argument("--texels", type=int, default=1024)
+    ap.add_argument("--stencil", choices=("warp", "torch"), default="warp",
+                    help="the colour stencil in its Warp kernel (CUDA's choice) or through the torch path (its twin)")
+    args = ap.parse_args(argv)
+    if args.in_flight < 1:
+        ap.error(f"--in-flight: at least 1 frame, got {args.in_flight}")
+
+    from uvatar.avh.bake.config import BakeConfig
+    from uvatar.avh.bake.pipeline import bake_capture
+
+    config = BakeConfig(texels=args.texels, torch_stages="on", ray_backend="warp", frames_in_flight=args.in_flight)
+    frames = [f for f in args.frames.split(",") if f]
+    t0 = time.perf_counter()
+    with cuda_choices(args.stencil == "warp"):
+        results = bake_capture(args.capture, args.out, config, frames=frames)
+    print(json.dumps({"frames": {f: r.status for f, r in results.items()}, "seconds": round(time.perf_counter() - t0, 1),
+                      "config": {"torch_stages": "on", "ray_backend": "warp", "frames_in_flight": args.in_flight,
+                                 "stencil": args.stencil}}))
+    return 0 if any(r.status == "baked" for r in results.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
