@@ -69,13 +69,22 @@ def _alone(model, jobs, config, device):
                        j.final_colour_residual, device) for j in jobs]
 
 
-def _assert_identical(result, reference):
+def _assert_identical(result, reference, exact: bool = True):
+    """The same refined fit and stats: bit for bit (``exact``: the CPU), or on CUDA within the round-off
+    of its atomics (the posed normals' index_add_ sums in no fixed order, run to run: 1e-5 rad, as the
+    CUDA graph test allows)."""
     fit, stats = result
     ref, ref_stats = reference
+    assert set(stats) == set(ref_stats)
+    if not exact:
+        np.testing.assert_allclose(fit.poses, ref.poses, atol=1e-5, rtol=0)
+        np.testing.assert_allclose(fit.Th, ref.Th, atol=1e-6, rtol=0)
+        for name, value in ref_stats.items():
+            np.testing.assert_allclose(stats[name], value, rtol=1e-4, err_msg=name)
+        return
     np.testing.assert_array_equal(fit.poses, ref.poses)
     np.testing.assert_array_equal(fit.Rh, ref.Rh)
     np.testing.assert_array_equal(fit.Th, ref.Th)
-    assert set(stats) == set(ref_stats)
     for name, value in ref_stats.items():
         np.testing.assert_array_equal(np.asarray(stats[name]), np.asarray(value), err_msg=name)   # NaN == NaN
 
@@ -84,7 +93,8 @@ def _assert_identical(result, reference):
 @pytest.mark.parametrize("photometric", [False, True], ids=["geometry", "colours"])
 def test_refinements_in_flight_equal_each_alone(device, photometric):
     """Three frames refined in flight: each the fit and stats of its refinement alone, bit for bit (on
-    CUDA each on its own stream), and the refinement moved (the comparison is not of untouched fits)."""
+    CUDA each on its own stream, within its atomics' round-off), and the refinement moved (the comparison
+    is not of untouched fits)."""
     from uvatar.avh.bake.refine_in_flight import refine_fits
 
     model, scenes = _scenes(3, device)
@@ -94,7 +104,7 @@ def test_refinements_in_flight_equal_each_alone(device, photometric):
     results = refine_fits(model, jobs, config, device)
     assert len(results) == 3
     for job, result, ref in zip(jobs, results, reference, strict=True):
-        _assert_identical(result, ref)
+        _assert_identical(result, ref, exact=device == "cpu")
         assert np.abs(result[0].poses - job.fit.poses).max() > 1e-4
     if photometric:
         assert [len(r[1]["colour_residual"]) for r in results] == [3, 3, 4]
