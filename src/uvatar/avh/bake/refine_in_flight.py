@@ -49,7 +49,7 @@ def refine_fits(body, jobs: list[RefineJob], config=None, device: str | None = N
     """[(refined BodyFit, stats) or the Exception its refinement raised] per job: :func:`.refine.refine_fit`
     of each with ``config`` (PoseRefineConfig) on ``device``. device None (the numpy reference) or one
     job: one after another; a torch device: in flight (module doc), the same results. An OSError (the
-    file system, the device's memory said no) is raised: no other job could do better."""
+    file system said no) is raised, as the bake's tasks raise it: no other job could do better."""
     from uvatar.avh.bake.config import PoseRefineConfig
     from uvatar.avh.bake.refine import check_refine_inputs, refine_fit
 
