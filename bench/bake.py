@@ -400,39 +400,6 @@ def _bake_with_rounds(model, layout, config, item, targets, out_dir=None) -> flo
     return time.process_time() - c0
 
 
-def _in_flight(model, items, config, in_flight: int, frame_without_refine: float) -> dict:
-    """The timed frames' refinements and colour rounds one at a time, then ``in_flight`` at a time
-    (``bench/bake_in_flight.py``'s rounds, as ``uvatar bake --frames-in-flight`` deals them on CUDA),
-    each synchronised, in this process: their seconds per frame, whether the fits are identical, and the
-    frame's seconds with its rounds when they run in flight (``frame_without_refine``: the bake of a frame
-    whose fit was refined beforehand, as the bake's frames are: its stages less ``refine_pose``)."""
-    import torch
-    from bake_in_flight import _rounds, _same
-
-    from uvatar.threads import single_threaded
-
-    prepared = [_surface_and_targets(model, item, config) for item in items]
-    surfaces, targets = [p[0] for p in prepared], [p[1] for p in prepared]
-    cuda = config.torch_device is not None and torch.device(config.torch_device).type == "cuda"
-    seconds, fits = {}, {}
-    with single_threaded():
-        for n in (1, in_flight):
-            if cuda:
-                torch.cuda.synchronize(config.torch_device)
-            t0 = time.perf_counter()
-            fits[n] = _rounds(model, items, surfaces, targets, config, n)
-            if cuda:
-                torch.cuda.synchronize(config.torch_device)
-            seconds[n] = (time.perf_counter() - t0) / len(items)
-    return {"frames_in_flight": in_flight,
-            "refine_and_rounds_seconds_per_frame": {"one_at_a_time": round(seconds[1], 3),
-                                                    "in_flight": round(seconds[in_flight], 3)},
-            "speedup": round(seconds[1] / seconds[in_flight], 3),
-            "fits_identical": _same(fits[1], fits[in_flight]),
-            "frame_without_refine_seconds": round(frame_without_refine, 3),
-            "seconds_per_frame_with_colour_rounds": round(frame_without_refine + seconds[in_flight], 3)}
-
-
 def set_kernels(spec: str) -> dict:
     """``constructor:leaf size:lanes`` (from ``--bvh`` and ``--nearest-lanes``; each part may be empty:
     the default) -> the BVH every Warp mesh of the bake is built with (``geometry.raycast_warp.BVH_CONSTRUCTOR``
@@ -654,8 +621,10 @@ def main(argv=None) -> int:
         if config.torch_device is None:
             ap.error("--frames-in-flight: the refinements run in flight on a torch device (--torch-stages on, "
                      "or --device cuda)")
-        out["in_flight"] = _in_flight(model, items, config, args.frames_in_flight,
-                                      per_frame - stage_mean.get("refine_pose", 0.0))
+        from bake_in_flight import in_flight_row
+
+        out["in_flight"] = in_flight_row(model, items, config, args.frames_in_flight,
+                                         per_frame - stage_mean.get("refine_pose", 0.0))
     if args.count_ops:
         out["operators"] = _count_ops(model, layout, config, items[0])
     if args.profile:

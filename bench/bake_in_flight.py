@@ -64,11 +64,45 @@ def _same(a, b) -> bool:
                for fa, fb in zip(a, b, strict=True) for x, y in zip(fa, fb, strict=True))
 
 
-def _synchronize(device) -> None:
+def in_flight_row(model, items, config, in_flight: int, frame_without_refine: float) -> dict:
+    """``bench/bake.py --frames-in-flight``'s row: the timed frames' refinements and colour rounds one at
+    a time, then ``in_flight`` at a time (:func:`_rounds`, as ``uvatar bake --frames-in-flight`` deals them on CUDA),
+    each synchronised, in this process: their seconds per frame, whether the fits are identical, and the
+    frame's seconds with its rounds when they run in flight (``frame_without_refine``: the bake of a frame
+    whose fit was refined beforehand, as the bake's frames are: its stages less ``refine_pose``)."""
+    from bake import _surface_and_targets
+
+    from uvatar.threads import single_threaded
+
+    prepared = [_surface_and_targets(model, item, config) for item in items]
+    surfaces, targets = [p[0] for p in prepared], [p[1] for p in prepared]
+    seconds, fits = {}, {}
+    with single_threaded():
+        for n in (1, in_flight):
+            seconds[n], fits[n] = _timed_rounds(model, items, surfaces, targets, config, n)
+            seconds[n] /= len(items)
+    return {"frames_in_flight": in_flight,
+            "refine_and_rounds_seconds_per_frame": {"one_at_a_time": round(seconds[1], 3),
+                                                    "in_flight": round(seconds[in_flight], 3)},
+            "speedup": round(seconds[1] / seconds[in_flight], 3),
+            "fits_identical": _same(fits[1], fits[in_flight]),
+            "frame_without_refine_seconds": round(frame_without_refine, 3),
+            "seconds_per_frame_with_colour_rounds": round(frame_without_refine + seconds[in_flight], 3)}
+
+
+def _timed_rounds(model, items, surfaces, targets, config, in_flight: int) -> tuple[float, list]:
+    """(wall seconds, :func:`_rounds`' fits) of the rounds ``in_flight`` frames at a time, the device
+    synchronised before and after."""
     import torch
 
-    if device is not None and torch.device(device).type == "cuda":
-        torch.cuda.synchronize(device)
+    cuda = config.torch_device is not None and torch.device(config.torch_device).type == "cuda"
+    if cuda:
+        torch.cuda.synchronize(config.torch_device)
+    t0 = time.perf_counter()
+    fits = _rounds(model, items, surfaces, targets, config, in_flight)
+    if cuda:
+        torch.cuda.synchronize(config.torch_device)
+    return time.perf_counter() - t0, fits
 
 
 def main(argv=None) -> int:
@@ -101,11 +135,8 @@ def main(argv=None) -> int:
         for n in counts:
             best, fits = np.inf, None
             for _ in range(repeats):
-                _synchronize(config.torch_device)
-                t0 = time.perf_counter()
-                fits = _rounds(model, items, surfaces, targets, config, n)
-                _synchronize(config.torch_device)
-                best = min(best, time.perf_counter() - t0)
+                seconds, fits = _timed_rounds(model, items, surfaces, targets, config, n)
+                best = min(best, seconds)
             reference = fits if n == 1 else reference
             runs.append({"in_flight": n, "seconds_per_frame": round(best / frames, 4),
                          "fits_identical": _same(fits, reference)})
