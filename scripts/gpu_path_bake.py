@@ -59,12 +59,17 @@ def main(argv=None) -> int:
 
     from uvatar.avh.bake.config import BakeConfig
     from uvatar.avh.bake.pipeline import bake_capture
+    from uvatar.errors import UvatarError
 
     config = BakeConfig(texels=args.texels, torch_stages="on", ray_backend="warp", frames_in_flight=args.in_flight)
     frames = [f for f in args.frames.split(",") if f]
     t0 = time.perf_counter()
-    with cuda_choices(args.stencil == "warp"):
-        results = bake_capture(args.capture, args.out, config, frames=frames)
+    try:
+        with cuda_choices(args.stencil == "warp"):
+            results = bake_capture(args.capture, args.out, config, frames=frames)
+    except UvatarError as exc:              # bad input: one line, as uvatar bake says it
+        print(f"gpu_path_bake: {exc}", file=sys.stderr)
+        return 2
     print(json.dumps({"frames": {f: r.status for f, r in results.items()}, "seconds": round(time.perf_counter() - t0, 1),
                       "config": {"torch_stages": "on", "ray_backend": "warp", "frames_in_flight": args.in_flight,
                                  "stencil": args.stencil}}))

@@ -74,6 +74,7 @@ def test_the_cuda_path_bake_on_cpu_tensors_equals_itself_one_frame_at_a_time(tmp
                       "--stencil", "torch"]) == 0
     assert refine_together._groups is deal and not stencil_warp.STENCIL_IN_WARP_ON_CPU   # CUDA's choices undone
     assert (tmp_path / "flight" / "photo_reference.npz").is_file()               # the colour rounds ran
+    assert bake.main([str(tmp_path / "nowhere"), str(tmp_path / "x"), "--frames", frames]) == 2   # one line
     assert _script().main([str(tmp_path / "one"), str(tmp_path / "flight"), "--json", str(tmp_path / "m.json")]) == 0
     report = json.loads((tmp_path / "m.json").read_text())["frames"]
     assert sorted(report) == frames.split(",") and all(f["identical"] for f in report.values())
