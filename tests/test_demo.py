@@ -10,9 +10,11 @@ from uvatar.cli.main import main
 
 
 @pytest.mark.slow
-def test_quick_demo_runs_every_stage_and_writes_report(tmp_path):
+def test_quick_demo_runs_every_stage_and_writes_report(tmp_path, capfd):
     out = tmp_path / "demo"
-    assert main(["demo", "--quick", "--out", str(out)]) == 0
+    assert main(["demo", "--quick", "--out", str(out), "--no-progress"]) == 0
+    err = capfd.readouterr().err
+    assert "it/s" not in err and "frame/s" not in err and "s/it" not in err, err[-2000:]   # --no-progress: no bars
     metrics = json.loads((out / "metrics.json").read_text())
     stages = {s["name"]: s["status"] for s in metrics["stages"]}
     assert stages == {name: "ran" for name in

@@ -203,7 +203,7 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         info = read_dataset_info(baked)
         if not info.get("frames_baked"):
             raise UvatarError(f"{baked}: no frame was baked (rejected: {len(info.get('rejected', {}))})")
-        metrics = evaluate_bake(cap, baked, EvalConfig(), True)
+        metrics = evaluate_bake(cap, baked, EvalConfig(), cfg.progress)
         write_json(out / "bake_metrics.json", {"frames_baked": len(info["frames_baked"]),
                                                "rejected": info.get("rejected", {}), "eval": metrics})
 
@@ -238,14 +238,15 @@ def demo_stages(out: Path, cfg: DemoConfig) -> list[tuple[str, Callable[[], None
         from uvatar.avh.animate import animate as render_motion
 
         render_motion(avatar, f"heldout:{cap}", out / "animation.mp4",
-                      AnimateConfig(size=cfg.animate_size, max_frames=cfg.animate_frames))
+                      AnimateConfig(size=cfg.animate_size, max_frames=cfg.animate_frames, progress=cfg.progress))
 
     def evaluate() -> None:
         from uvatar.avh.eval import EvalConfig, evaluate_avatar
 
         dirs = run_dirs(out, cfg)
         others = {f"avh_{c}": avatar_dir for c, (_, avatar_dir) in list(dirs.items())[1:]}
-        write_json(out / "eval.json", evaluate_avatar(avatar, cap, EvalConfig(), image_dir=out / "eval_images",
+        write_json(out / "eval.json", evaluate_avatar(avatar, cap, EvalConfig(progress=cfg.progress),
+                                                      image_dir=out / "eval_images",
                                                       others=others))
 
     fit_stage = [("fit", fit)] if cfg.fits == "fit" else []
