@@ -149,11 +149,11 @@ def _clothing_offsets(residuals, skin, ok, huber: float, steps: int = 3):
     """:func:`.refine._clothing_offsets` of the rows where ``ok`` (N,) (the others weigh zero): (K,)."""
     import torch
 
-    r = torch.where(ok, residuals, torch.zeros_like(residuals))
+    r = torch.where(ok, residuals, 0.0)
     offsets = torch.zeros(skin.shape[1], dtype=skin.dtype, device=skin.device)
     eye = torch.eye(skin.shape[1], dtype=skin.dtype, device=skin.device)
     for _ in range(steps):
-        w = torch.where(ok, _huber_weights(r + skin @ offsets, huber), torch.zeros_like(r))
+        w = torch.where(ok, _huber_weights(r + skin @ offsets, huber), 0.0)
         a = (skin * w[:, None]).T @ skin
         solved, failed = _solve(a + 1e-9 * eye, (skin * w[:, None]).T @ r)
         offsets = torch.where(failed, torch.zeros_like(solved), -solved)
@@ -389,7 +389,7 @@ def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sam
         if first:
             state.offsets.copy_(_clothing_offsets(r, skin, ok, config.huber))    # zeros where nothing matched
         r = r + skin @ state.offsets
-        row = [torch.where(ok, r.abs(), torch.zeros_like(r)).sum() * 1000 / count,   # NaN: none matched
+        row = [torch.where(ok, r.abs(), 0.0).sum() * 1000 / count,   # NaN: none matched
                count.to(torch.float64) / n_use, state.running.to(torch.float64)]
         if photo is not None and not (last and not final_colour_residual):
             if first and start_sample is not None and start_sample.radius == photo.radius:
@@ -399,7 +399,7 @@ def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sam
                                                      config.photometric_max_distance, cos_max,
                                                      config.photometric_space, device)
             seen = seen & known
-            rc = torch.where(seen[:, None], colour - reference, torch.zeros_like(colour))     # (N, 3)
+            rc = torch.where(seen[:, None], colour - reference, 0.0)     # (N, 3)
             row.append(rc.abs().sum() / (3 * seen.sum()))
         else:
             row.append(torch.full_like(row[0], float("nan")))
@@ -409,16 +409,15 @@ def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sam
             return
         running = state.running & (count >= 3 * k)
         centre0 = v.mean(0)
-        rows_ok = torch.where(ok, r, torch.zeros_like(r))
-        blocks = [(all_rows, torch.where(ok[:, None], m, torch.zeros_like(m)),
-                   torch.where(ok, _huber_weights(rows_ok, config.huber), torch.zeros_like(r)), rows_ok, skin)]
+        rows_ok = torch.where(ok, r, 0.0)
+        blocks = [(all_rows, torch.where(ok[:, None], m, 0.0),
+                   torch.where(ok, _huber_weights(rows_ok, config.huber), 0.0), rows_ok, skin)]
         if photo is not None:
             # one row per (vertex, channel): d colour_c = grad_c . dv; weight zero where unseen
             seen3 = seen[:, None].expand(n_use, 3).reshape(-1)
             rc = rc.reshape(-1)
-            wc = torch.where(seen3, config.photometric_weight * _huber_weights(rc, config.photometric_huber),
-                             torch.zeros_like(rc))
-            direction = torch.where(seen[:, None, None], grad, torch.zeros_like(grad)).reshape(-1, 3)
+            wc = torch.where(seen3, config.photometric_weight * _huber_weights(rc, config.photometric_huber), 0.0)
+            direction = torch.where(seen[:, None, None], grad, 0.0).reshape(-1, 3)
             blocks.append((colour_rows, direction, wc, rc, None))
         centres = tr[joints, :3, 3]
         a, g = _normal_equations_reference(v, sub, centres, centre0, blocks)
