@@ -16,7 +16,8 @@
 # TRAIN_CROPS (bench/dva_train.py --crops: batch, the one marcher call, and/or each, the per-sample reference),
 # BAKE_BVH (bench/bake.py --bvh, e.g. lbvh:4: the Warp meshes' BVH, after the rays part has compared them), TESTS_SECONDS,
 # BAKE_IN_FLIGHT (bench/bake.py --frames-in-flight, default 4), FLIGHT_SECONDS / FLIGHT_FRAMES / FLIGHT_COUNTS /
-# FLIGHT_REPEATS (the flight part: bench/bake_in_flight.py).
+# FLIGHT_REPEATS (the flight part: bench/bake_in_flight.py), BAKE_CPU_SECONDS / BAKE_CPU_WORKERS / BAKE_CPU_FRAMES
+# (the bake_cpu part: the CPU bake on the machine's cores, the GPU bake's baseline).
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
@@ -172,6 +173,10 @@ for part in $PARTS; do
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
+    bake_cpu)  # the same machine's CPUs as the GPU bake's baseline: the CPU bake (Embree, numpy) on
+               # BAKE_CPU_WORKERS processes (default 16), wall seconds per frame with the writes
+      run_part bake_cpu "${BAKE_CPU_SECONDS:-90}" "$OUT/bake_cpu.json" python bench/bake.py --device cpu --frames 1 \
+        --warmup 0 --workers "${BAKE_CPU_WORKERS:-16}" --throughput-frames "${BAKE_CPU_FRAMES:-32}" ;;
     flight)  # the refinements and colour rounds of 8 frames 1, 2, 4 and 8 at a time, each frame on its own CUDA
              # stream (bench/bake_in_flight.py): seconds per frame, the speed-up in the same run, identical fits
       if python -c "import anny, warp" 2>/dev/null; then
@@ -180,7 +185,7 @@ for part in $PARTS; do
       else
         echo "flight skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    *) echo "unknown part $part (dva avh tests compile bake flight train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
+    *) echo "unknown part $part (dva avh tests compile bake bake_cpu flight train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
   esac
 done
 tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null
