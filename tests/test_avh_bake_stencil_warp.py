@@ -4,6 +4,8 @@ texture's bilinear lookup), on the CPU here (Warp's CPU backend) and on CUDA in 
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -86,19 +88,24 @@ def test_stencil_kernel_equals_the_torch_path(device, monkeypatch):
     _assert_close(*_both(monkeypatch, scan, surface, p, n, radius=0.002, space="chromaticity"), agree)
 
 
-def test_stencil_kernel_reads_uint8_textures_and_skips_float64_ones(monkeypatch):
-    """An 8-bit texture is looked up as the torch path does (values exact in float32); a float64 one keeps
-    the torch path (its lookup does not round through float32)."""
+def test_stencil_kernel_shares_the_scans_device_copies_and_keeps_float32_scans(monkeypatch):
+    """The kernel reads the normals and texture the torch path keeps on the device (no second copy of
+    a scan's texture there); a scan-like object whose texture or UVs are not float32 (an 8-bit or a
+    float64 texture, float64 UVs) keeps the torch path."""
     from test_avh_bake_helpers import pattern_texture
 
     from uvatar.avh.bake import stencil_warp
 
-    texture = (pattern_texture(64) * 255).astype(np.uint8)
-    _, scan, surface, p, n = _scene("cpu", texture=texture)
-    _assert_close(*_both(monkeypatch, scan, surface, p, n))
-    scan.texture = scan.texture.astype(np.float64)
-    monkeypatch.setattr(stencil_warp, "STENCIL_IN_WARP_ON_CPU", True)
-    assert stencil_warp.stencil_caster(surface, scan, p) is None
+    _, scan, surface, p, n = _scene("cpu")
+    _both(monkeypatch, scan, surface, p, n)
+    assert {name for name, _ in surface.on_device} >= {"normals", "texture"}
+    assert not any(name == "stencil" for name, _ in surface.on_device)
+    for texture, uvs in (((pattern_texture(64) * 255).astype(np.uint8), scan.uvs),
+                         (scan.texture.astype(np.float64), scan.uvs), (scan.texture, scan.uvs.astype(np.float64))):
+        other = copy.copy(scan)          # TexturedMesh makes its own float32: a scan-like object that did not
+        other.texture, other.uvs = texture, uvs
+        assert stencil_warp.stencil_caster(surface, other, p) is None
+    assert stencil_warp.stencil_caster(surface, scan, p) is not None
 
 
 def test_stencil_kernel_is_only_taken_on_its_terms(monkeypatch):

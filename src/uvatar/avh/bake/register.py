@@ -145,6 +145,25 @@ class ScanSurface:
         return self._kept("samples", device, lambda: (torch.as_tensor(self.sample_points, device=device),
                                                       torch.as_tensor(self.sample_normals, device=device)))
 
+    def normals_torch(self, device):
+        """(corner normals (F, 9): each face's three vertex normals, face normals (F, 3)) float64 tensors
+        on ``device``, copied there once per scan and device (:meth:`normals_at`, the stencil kernel)."""
+        import torch
+
+        if self.corner_normals is None:
+            self.corner_normals = self.vertex_normals[self.faces]
+        return self._kept("normals", device, lambda: (torch.as_tensor(self.corner_normals.reshape(-1, 9), device=device),
+                                                      torch.as_tensor(self.face_normals, device=device)))
+
+    def texture_torch(self, scan, device):
+        """(uvs (U, 2), uv faces (F, 3), texture (H, W, C)) of ``scan`` (this surface's TexturedMesh) as
+        tensors on ``device`` in their own dtypes, copied there once per scan and device
+        (:func:`scan_colours`, the stencil kernel)."""
+        import torch
+
+        return self._kept("texture", device, lambda: tuple(torch.as_tensor(np.asarray(a), device=device)
+                                                           for a in (scan.uvs, scan.uv_faces, scan.texture)))
+
     def normals_at(self, face, bary):
         """Interpolated unit vertex normals at hits (face (N,), bary (N, 3)); zeros where face < 0.
         numpy, or torch tensors (float64 normals on their device: the corner and face normals kept there)."""
@@ -154,11 +173,7 @@ class ScanSurface:
         if is_torch(face):
             import torch
 
-            key = ("normals", str(face.device))
-            if key not in self.on_device:
-                self.on_device[key] = (torch.as_tensor(self.corner_normals.reshape(-1, 9), device=face.device),
-                                       torch.as_tensor(self.face_normals, device=face.device))
-            corner_normals, face_normals = self.on_device[key]
+            corner_normals, face_normals = self.normals_torch(face.device)
             fo = torch.where(ok, face, torch.zeros_like(face))
             corners = corner_normals[fo].reshape(-1, 3, 3)
             n = torch.einsum("kjc,kj->kc", corners, bary.to(torch.float64))
@@ -204,11 +219,7 @@ def scan_colours(surface: ScanSurface, scan, face, bary, device: str | None = No
     import torch
 
     device = face.device if tensors else device
-    key = ("texture", str(device))
-    if key not in surface.on_device:
-        surface.on_device[key] = tuple(torch.as_tensor(np.asarray(a), device=device)
-                                       for a in (scan.uvs, scan.uv_faces, scan.texture))
-    uvs, uv_faces, texture = surface.on_device[key]
+    uvs, uv_faces, texture = surface.texture_torch(scan, device)
     face_t = torch.as_tensor(face, dtype=torch.int64, device=device)
     out = sample_mesh_texture(uvs, uv_faces, texture, face_t, torch.as_tensor(bary, device=device))
     return out if tensors else to_numpy(out)

@@ -78,7 +78,7 @@ def _kernel():
     @wp.kernel
     def stencil(mesh: wp.uint64, points: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
                 offsets: wp.array2d(dtype=wp.vec3d), corner_normals: wp.array2d(dtype=wp.float64),
-                face_normals: wp.array(dtype=wp.vec3d), uvs: wp.array(dtype=wp.vec2d),
+                face_normals: wp.array(dtype=wp.vec3d), uvs: wp.array(dtype=wp.vec2),
                 uv_faces: wp.array2d(dtype=wp.int64), texture: wp.array3d(dtype=wp.float32),
                 far: wp.float32, epsilon: wp.float64, min_cos: wp.float64,
                 colours: wp.array2d(dtype=wp.float64), found: wp.array(dtype=wp.bool)):
@@ -103,8 +103,8 @@ def _kernel():
         found[s] = face >= 0
         if face < 0:
             return
-        uv = (uvs[int(uv_faces[face, 0])] * bary[0] + uvs[int(uv_faces[face, 1])] * bary[1]
-              + uvs[int(uv_faces[face, 2])] * bary[2])
+        uv = (wp.vec2d(uvs[int(uv_faces[face, 0])]) * bary[0] + wp.vec2d(uvs[int(uv_faces[face, 1])]) * bary[1]
+              + wp.vec2d(uvs[int(uv_faces[face, 2])]) * bary[2])
         h = texture.shape[0]
         w = texture.shape[1]
         x = uv[0] * wp.float64(w) - wp.float64(0.5)
@@ -131,7 +131,8 @@ def stencil_caster(surface, scan, points):
     """The Warp mesh id the stencil kernel casts ``points``' rays on, or None where the torch path is
     kept: a float64 tensor on CUDA (or on the CPU with :data:`STENCIL_IN_WARP_ON_CPU`) whose rays
     :meth:`~uvatar.geometry.raycast_warp.WarpRayCaster.first_hit_torch` casts on its device on the float32
-    fast path, and a texture whose lookup rounds through float32 (not a float64 one)."""
+    fast path, and a scan whose UVs and texture are float32 (as scans load: the kernel reads the copies
+    the torch path keeps on the device, :meth:`~.register.ScanSurface.texture_torch`)."""
     import numpy as np
     import torch
 
@@ -140,26 +141,10 @@ def stencil_caster(surface, scan, points):
     caster = surface.caster
     if not (isinstance(points, torch.Tensor) and points.dtype == torch.float64
             and (points.device.type == "cuda" or STENCIL_IN_WARP_ON_CPU)
-            and isinstance(caster, WarpRayCaster) and np.asarray(scan.texture).dtype != np.float64):
+            and isinstance(caster, WarpRayCaster) and np.asarray(scan.texture).dtype == np.float32
+            and np.asarray(scan.uvs).dtype == np.float32):
         return None
     return caster.fast_mesh_id(points)
-
-
-def _scan_on_device(surface, scan, device):
-    """(corner normals (F, 9), face normals (F, 3), uvs (U, 2) float64, uv faces (F, 3) int64, texture
-    (H, W, C) float32) tensors on ``device``, made once per scan and device (kept on ``surface``)."""
-    import numpy as np
-    import torch
-
-    key = ("stencil", str(device))
-    if key not in surface.on_device:
-        if surface.corner_normals is None:
-            surface.corner_normals = surface.vertex_normals[surface.faces]
-        arrays = (np.asarray(surface.corner_normals, np.float64).reshape(-1, 9),
-                  np.asarray(surface.face_normals, np.float64), np.asarray(scan.uvs, np.float64),
-                  np.asarray(scan.uv_faces, np.int64), np.asarray(scan.texture, np.float32))
-        surface.on_device[key] = tuple(torch.as_tensor(np.ascontiguousarray(a), device=device) for a in arrays)
-    return surface.on_device[key]
 
 
 def stencil_colours_warp(mesh_id, surface, scan, points, offsets, normals, max_distance: float,
@@ -176,7 +161,9 @@ def stencil_colours_warp(mesh_id, surface, scan, points, offsets, normals, max_d
 
     wp = load_warp()
     dev = points.device
-    corner_normals, face_normals, uvs, uv_faces, texture = _scan_on_device(surface, scan, dev)
+    corner_normals, face_normals = surface.normals_torch(dev)        # the scan's own device copies, shared
+    uvs, uv_faces, texture = surface.texture_torch(scan, dev)         # with the torch path's
+    uv_faces = uv_faces.to(torch.int64)
     count = (1 + offsets.shape[0]) * points.shape[0]
     colours = torch.empty((count, texture.shape[2]), dtype=torch.float64, device=dev)
     found = torch.empty(count, dtype=torch.bool, device=dev)
@@ -187,7 +174,7 @@ def stencil_colours_warp(mesh_id, surface, scan, points, offsets, normals, max_d
                   inputs=[mesh_id, warp_view(wp, points.contiguous(), wp.vec3d),
                           warp_view(wp, normals.contiguous(), wp.vec3d),
                           warp_view(wp, offsets.contiguous(), wp.vec3d), warp_view(wp, corner_normals),
-                          warp_view(wp, face_normals, wp.vec3d), warp_view(wp, uvs, wp.vec2d),
+                          warp_view(wp, face_normals, wp.vec3d), warp_view(wp, uvs, wp.vec2),
                           warp_view(wp, uv_faces), warp_view(wp, texture), far, float(epsilon),
                           float(min_normal_cos), warp_view(wp, colours), warp_view(wp, found)],
                   device=wp.device_from_torch(dev), stream=launch_stream(dev))
