@@ -26,22 +26,17 @@ def cuda_choices(stencil_kernel: bool = True):
     from uvatar.avh.bake import refine_device, refine_together, register_torch, stencil_warp
 
     saved = (register_torch.WINDOW_SEARCH_ON_CPU, register_torch.NEAREST_KERNEL, refine_device.STEP_IN_WARP_ON_CPU,
-             stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together._groups)
-    deal = refine_together._groups
-
-    def in_flight(items, config, executor):             # CUDA's dealing of the frames into tasks
-        return deal(items, config.with_updates(device="cuda"), executor)
-
+             stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together.IN_FLIGHT_ON_CPU)
     register_torch.WINDOW_SEARCH_ON_CPU = True          # CUDA's nearest-sample choice: the Warp grid kernel
     register_torch.NEAREST_KERNEL = True
     refine_device.STEP_IN_WARP_ON_CPU = True           # the refinement's step in its Warp kernel
     stencil_warp.STENCIL_IN_WARP_ON_CPU = stencil_kernel   # the colour stencil in its Warp kernel
-    refine_together._groups = in_flight
+    refine_together.IN_FLIGHT_ON_CPU = True            # CUDA's dealing of the frames into tasks
     try:
         yield
     finally:
         (register_torch.WINDOW_SEARCH_ON_CPU, register_torch.NEAREST_KERNEL, refine_device.STEP_IN_WARP_ON_CPU,
-         stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together._groups) = saved
+         stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together.IN_FLIGHT_ON_CPU) = saved
 
 
 def main(argv=None) -> int:

@@ -179,9 +179,10 @@ def test_frames_sharing_a_scan_and_a_single_job():
     assert refine_fits(model, [], config, "cpu") == []
 
 
-def test_colour_rounds_deal_frames_in_flight_on_cuda_only():
+def test_colour_rounds_deal_frames_in_flight_on_cuda_only(monkeypatch):
     """Tasks of ``frames_in_flight`` frames with the torch stages on CUDA, fewer where a worker would
     have none, one frame a task elsewhere; every frame once, in order."""
+    from uvatar.avh.bake import refine_together
     from uvatar.avh.bake.config import BakeConfig
     from uvatar.avh.bake.refine_together import _groups
     from uvatar.parallel import ExecutorConfig
@@ -199,6 +200,9 @@ def test_colour_rounds_deal_frames_in_flight_on_cuda_only():
     assert sizes(BakeConfig(device="cuda", frames_in_flight=1)) == [1] * 10
     assert sizes(BakeConfig(device="cuda", torch_stages="off")) == [1] * 10
     assert sizes(BakeConfig(torch_stages="on")) == [1] * 10          # CPU tensors: nothing to overlap
+    monkeypatch.setattr(refine_together, "IN_FLIGHT_ON_CPU", True)    # CUDA's dealing, asked for on the CPU
+    assert sizes(BakeConfig(torch_stages="on")) == [4, 4, 2]
+    assert sizes(BakeConfig(torch_stages="off")) == [1] * 10          # the numpy reference: one at a time
     assert _groups([], BakeConfig(device="cuda"), None) == []
     with pytest.raises(ValueError, match="frames_in_flight"):
         BakeConfig(frames_in_flight=0)

@@ -191,12 +191,19 @@ def _refine_task(shared: dict, group):
     return out
 
 
+#: deal frames into tasks of ``frames_in_flight`` with CPU tensors too (scripts/gpu_path_bake.py: CUDA's
+#: choices on the CPU); on CUDA the bake always does
+IN_FLIGHT_ON_CPU = False
+
+
 def _groups(items: list, config, executor: ExecutorConfig | None) -> list[tuple]:
-    """``items`` dealt into tasks: on a CUDA torch device up to ``config.frames_in_flight`` frames a
-    task (fewer where that would leave one of the executor's workers without one), else one frame a
-    task (frames in flight gain nothing on a CPU, and a task per frame keeps every worker busy)."""
+    """``items`` dealt into tasks: on a CUDA torch device (or any with :data:`IN_FLIGHT_ON_CPU`) up to
+    ``config.frames_in_flight`` frames a task (fewer where that would leave one of the executor's workers
+    without one), else one frame a task (frames in flight gain nothing on a CPU, and a task per frame
+    keeps every worker busy)."""
     device = config.torch_device
-    size = config.frames_in_flight if device is not None and device.startswith("cuda") else 1
+    in_flight = device is not None and (device.startswith("cuda") or IN_FLIGHT_ON_CPU)
+    size = config.frames_in_flight if in_flight else 1
     workers = max(1, (executor or ExecutorConfig()).workers)
     size = max(1, min(size, -(-len(items) // workers)))
     return [tuple(items[k:k + size]) for k in range(0, len(items), size)]

@@ -169,7 +169,7 @@ def stencil_colours_warp(mesh_id, surface, scan, points, offsets, normals, max_d
     found = torch.empty(count, dtype=torch.bool, device=dev)
     _RAYS["INTERSECT"] += 2 * count                     # the +n and -n ray of every stencil point
     if count:
-        far = float(torch.tensor(max_distance + epsilon, dtype=torch.float64).clamp(max=3e38).to(torch.float32))
+        far = min(max_distance + epsilon, 3e38)      # Warp takes it as float32, as first_hit_torch casts it
         wp.launch(_kernel(), dim=count,
                   inputs=[mesh_id, warp_view(wp, points.contiguous(), wp.vec3d),
                           warp_view(wp, normals.contiguous(), wp.vec3d),
