@@ -127,3 +127,40 @@ def test_bad_arguments(baked, tmp_path, capsys):
     assert main(["select", str(out), "-n", "2", "--val", "-1"]) == 1
     assert "must not be negative" in capsys.readouterr().err
     assert not (tmp_path / "o3").exists()
+
+
+def test_write_behind_writes_the_same_files_on_its_thread(baked, tmp_path, monkeypatch):
+    """--workers 1 writes each frame on a thread while the next one bakes (the fixture's bake did);
+    --no-write-behind writes it in the baking thread: the same frames, previews and dataset.json."""
+    import threading
+
+    from uvatar.avh.bake import pipeline
+
+    cap, out, _ = baked
+    writers = []
+    real = pipeline.write_baked_frame
+
+    def recording(*args, **kwargs):
+        writers.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "write_baked_frame", recording)
+    behind, plain = tmp_path / "behind", tmp_path / "plain"
+    assert main(["bake", str(cap), str(behind), *ARGS]) == 0
+    assert len(writers) == 3 and all(name.startswith("bake-write") for name in writers)   # 3 frames read
+    writers.clear()
+    assert main(["bake", str(cap), str(plain), *ARGS, "--no-write-behind"]) == 0
+    assert writers == [threading.current_thread().name] * 3
+    # a changed --write-behind is not a changed bake: the rerun keeps what is on disk
+    assert main(["bake", str(cap), str(plain), *ARGS]) == 0 and len(writers) == 3
+    for root in (behind, plain):
+        assert sorted(p.relative_to(root).as_posix() for p in root.rglob("*.npz")) == \
+            sorted(p.relative_to(out).as_posix() for p in out.rglob("*.npz"))
+        for path in out.rglob("*.npz"):
+            with np.load(path) as ref, np.load(root / path.relative_to(out)) as got:
+                assert ref.files == got.files and all(np.array_equal(ref[k], got[k]) for k in ref.files), path
+        assert sorted(p.name for p in (root / "preview").glob("*.png")) == \
+            sorted(p.name for p in (out / "preview").glob("*.png"))
+        info, ref = (json.loads((r / "dataset.json").read_text()) for r in (root, out))
+        assert info["frames_baked"] == ref["frames_baked"] and info["rejected"] == ref["rejected"]
+        assert not list(root.rglob(".*.npz"))                              # no temp files left behind

@@ -170,14 +170,46 @@ def run_tasks(fn: Callable[[Any, Any], Any], items: Iterable, shared: Any = None
         bar.close()
 
 
+#: tasks run in this process whose last part (a :class:`~concurrent.futures.Future` they returned, e.g.
+#: their write on a thread) may still be running while the next task runs
+FINISHING_BEHIND = 1
+
+
 def _run_inline(fn, items, shared):
+    """Each item in this process, in order. A task may return a :class:`~concurrent.futures.Future` (its
+    last part, such as its write, left running on a thread): the next task then starts at once, and the
+    future's value is yielded when it is done, at most :data:`FINISHING_BEHIND` of them pending (the
+    oldest is waited for first), every one before the runner ends."""
+    from collections import deque
+    from concurrent.futures import Future
+    from functools import partial
+
+    finishing: deque = deque()                  # (item, future), oldest first
     for item in items:
-        try:
-            yield item, fn(shared, item)
-        except OSError:  # the file system said no (full disk, read-only): no later item can succeed
-            raise
-        except Exception as exc:  # noqa: BLE001 - a failed item is reported, never fatal
-            yield item, TaskFailure(one_line(exc))
+        result = _settled(partial(fn, shared, item))
+        while finishing and (finishing[0][1].done() or
+                             (isinstance(result, Future) and len(finishing) >= FINISHING_BEHIND)):
+            done, future = finishing.popleft()
+            yield done, _settled(future.result)
+        if isinstance(result, Future):
+            finishing.append((item, result))
+        else:
+            yield item, result
+    while finishing:
+        done, future = finishing.popleft()
+        yield done, _settled(future.result)
+
+
+def _settled(call):
+    """``call()``, or a :class:`TaskFailure` with its one-line reason: a failed item is reported, never
+    fatal, except an OSError (the file system said no: full disk, read-only), after which no later item
+    can succeed."""
+    try:
+        return call()
+    except OSError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a failed item is reported, never fatal
+        return TaskFailure(one_line(exc))
 
 
 def _make_pool(shared, workers, initializer):

@@ -27,7 +27,7 @@ def _flags():
     bake = ConfigFlags(BakeConfig, fields=(
         "texels", "refine_pose", "register", "polarity_rule", "polarity_ratio", "max_match_distance",
         "visibility_rays", "visibility_stratified", "distance_clip", "inpaint_radius", "inpaint_band", "inpaint_gutter", "reject_kappa",
-        "reject_colour_ratio", "device", "torch_stages", "scan_cache_mb", "frames_in_flight"),
+        "reject_colour_ratio", "device", "torch_stages", "scan_cache_mb", "frames_in_flight", "write_behind"),
         rename={"polarity_rule": "polarity"}, zero_is_none=("max_match_distance", "inpaint_band", "inpaint_gutter"),
         choices={"torch_stages": TORCH_STAGES}, help={
             "texels": "UV map resolution R",
@@ -56,7 +56,9 @@ def _flags():
             "scan_cache_mb": "MB of scans each worker keeps read and prepared between the colour rounds and the "
                              "bake (0 = read every time; same results)",
             "frames_in_flight": "with --device cuda, frames whose pose refinements one process runs at once, "
-                                "each on its own CUDA stream (same fits; 1 = one at a time)"})
+                                "each on its own CUDA stream (same fits; 1 = one at a time)",
+            "write_behind": "with --workers 1, write each frame on a thread while the next one bakes (same "
+                            "files); --no-write-behind writes it before the next begins"})
     refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight",
                                                     "photometric_space", "cuda_graph"),
                          prefix="refine", help={

@@ -15,6 +15,7 @@ import logging
 import os
 import time
 import uuid
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -77,12 +78,14 @@ def heldout_frames(capture_root) -> list[str]:
 
 
 def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, refined=None,
-              run=None, colour_reason: str | None = None) -> FrameResult:
+              run=None, colour_reason: str | None = None, writer=None):
     """Bake one frame in a worker. Every failure becomes a "broken" result with a one-line reason.
     refined: the frame's fit already refined across frames (:mod:`.refine_together`), baked as is;
     run: the bake's token for the scans kept from the colour rounds (:func:`.inputs.prepared_scan`);
     colour_reason: the frame is a colour outlier (:func:`.refine_together.colour_outliers`): baked
-    into ``rejected/`` with this reason, so its preview shows what went wrong."""
+    into ``rejected/`` with this reason, so its preview shows what went wrong. writer: a thread pool
+    that writes the frame (a Future of its result is returned at once, ``BakeConfig.write_behind``),
+    or None: written here, its :class:`FrameResult` returned."""
     from uvatar.avh.bake.frame import bake_fit
     from uvatar.capture import Capture
 
@@ -97,27 +100,55 @@ def _bake_one(capture_root: str, out_root: str, frame: str, config: BakeConfig, 
         scan, surface = prepared_scan(capture, frame, config, run)   # kept from the colour rounds
         baked, fit = bake_fit(body, fit, layout, scan, config, shape, scan_path=str(scan_path), surface=surface)
     except Exception as exc:  # noqa: BLE001 - a broken frame is reported, never fatal
-        return FrameResult(frame, "broken", f"broken input: {one_line(exc)}", seconds=time.perf_counter() - t0)
+        return FrameResult(frame, "broken", f"broken input: {one_line(exc)}", seconds=time.perf_counter() - t0,
+                           stats={"worker_peak_rss_mb": _peak_rss_mb()})
     reason = _reject_reason(baked.kappa_mean, config, colour_reason)
-    write_baked_frame(out_root, frame, baked, fit, rejected=reason is not None, float16=config.texture_float16)
-    stale = frame_path(out_root, frame) if reason else rejected_path(out_root, frame)
-    stale.unlink(missing_ok=True)
-    stats = {k: v for k, v in baked.stats.items() if k != "registration"}
-    return FrameResult(frame, "rejected" if reason else "baked", reason, baked.kappa_mean,
-                       time.perf_counter() - t0, stats)
+    stats = {**{k: v for k, v in baked.stats.items() if k != "registration"}, "worker_peak_rss_mb": _peak_rss_mb()}
+    result = FrameResult(frame, "rejected" if reason else "baked", reason, baked.kappa_mean,
+                         time.perf_counter() - t0, stats)
+
+    def write() -> FrameResult:
+        write_baked_frame(out_root, frame, baked, fit, rejected=reason is not None, float16=config.texture_float16)
+        stale = frame_path(out_root, frame) if reason else rejected_path(out_root, frame)
+        stale.unlink(missing_ok=True)
+        return result
+
+    return writer.submit(write) if writer is not None else write()
 
 
-def _bake_task(shared: dict, item) -> FrameResult:
+# the thread that writes the frames baked in this process while the next one bakes (``write_behind``),
+# set by :func:`_writes_behind` for the bake's in-process tasks; None in pool and Ray workers
+_WRITER = None
+
+
+@contextmanager
+def _writes_behind(on: bool):
+    """Within: :func:`_bake_task` in this process hands each frame's write to one thread
+    (:data:`_WRITER`) when ``on``; every write handed over is on disk when the block ends."""
+    global _WRITER
+    if not on:
+        yield
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="bake-write") as pool:
+        _WRITER = pool
+        try:
+            yield
+        finally:
+            _WRITER = None
+
+
+def _bake_task(shared: dict, item):
     """One frame under :func:`uvatar.parallel.run_tasks`, item = (frame, its fit refined across frames
     or None): ``shared`` holds the capture and output folders, the config and the (body, layout) pair,
-    shipped once per worker process."""
+    shipped once per worker process. Its :class:`FrameResult`, or in this process with
+    :data:`_WRITER` set a Future of it (its write still running)."""
     frame, refined = item
     config = shared["config"]
     adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
-    result = _bake_one(shared["capture_root"], shared["out_root"], frame, config, refined, shared.get("run"),
-                       shared.get("colour_outliers", {}).get(frame))
-    result.stats["worker_peak_rss_mb"] = _peak_rss_mb()
-    return result
+    return _bake_one(shared["capture_root"], shared["out_root"], frame, config, refined, shared.get("run"),
+                     shared.get("colour_outliers", {}).get(frame), _WRITER)
 
 
 def _peak_rss_mb() -> float:
@@ -245,7 +276,9 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
     shared = {"capture_root": str(capture.root), "out_root": str(out), "config": config, "body_name": body_name,
               "body_layout": load_body_and_layout(body_name, config.texels), "run": uuid.uuid4().hex}
     # one pool for the colour rounds and the bake: its workers keep each scan read and prepared
-    with keep_pool(shared):
+    # in this process (one worker), each frame is written on a thread while the next one bakes
+    in_process = executor.kind == "local" and executor.workers <= 1
+    with keep_pool(shared), _writes_behind(config.write_behind and in_process):
         try:
             refined = refine_frames_together(capture.root, out, todo, config, body_name, executor, progress,
                                              rebuild_reference=overwrite, shared=shared)
@@ -272,9 +305,10 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
 
 
 # settings that do not change a baked frame: where the rays run (same maps within round-off), the scan
-# cache, frames refined at once (same fits), and the rejection threshold (frames on disk are
+# cache, frames refined at once (same fits), writes on a thread (same files), and the rejection threshold (frames on disk are
 # re-classified against it on every run)
-_BAKE_VOLATILE = ("device", "ray_backend", "scan_cache_mb", "frames_in_flight", "reject_kappa", "reject_colour_ratio")
+_BAKE_VOLATILE = ("device", "ray_backend", "scan_cache_mb", "frames_in_flight", "write_behind", "reject_kappa",
+                  "reject_colour_ratio")
 
 
 def _begin_record(out: Path, capture, config: BakeConfig, frames: list[str], overwrite: bool,

@@ -1,4 +1,4 @@
-"""The colour stencil's rays, their choice and the scan's texture at their hits in one Warp launch: the
+"""The colour stencil's rays, their choice and the scan's texture at their hits in two Warp launches: the
 fast twin of the torch path of :func:`uvatar.avh.bake.photometric.ray_colours` for a stencil (CPU and
 CUDA; issue 39).
 
@@ -7,8 +7,10 @@ the torch path casts the +n and -n rays in one batch (:meth:`~uvatar.geometry.ra
 assembles the hits, interpolates the scan's vertex normals there (:meth:`.register.ScanSurface.normals_at`),
 keeps the nearer compatible hit (:func:`.photometric._nearer_compatible_hit`) and samples the texture
 (:func:`.register.scan_colours`, bilinear, clamp to edge): ~165 small operators a stencil, ~40 stencils
-a frame with its colour rounds, each a launch on a GPU. Here each thread does all of it for one stencil
-point, in the same precision: the rays in float32 on the same BVH (Warp's first hit, its barycentrics as
+a frame with its colour rounds, each a launch on a GPU. Here one launch casts every ray, a thread each
+(with the normal at its hit and whether it is compatible), and a second makes each stencil point's
+choice and texture lookup: a launch of a few thousand rays is as long as its slowest thread, so no
+thread casts two. The same precision: the rays in float32 on the same BVH (Warp's first hit, its barycentrics as
 Embree's), the normals, the choice and the lookup in float64, the colour rounded through float32 as the
 texture's lookup is. Two differences, both at round-off: a hit's barycentrics that round-off left outside
 [0, 1] are clipped and renormalized per ray (the batch path renormalizes every ray of a batch that has
@@ -75,29 +77,60 @@ def _kernel():
             compatible = wp.dot(m, normal) >= min_cos
         return face, bary, distance, compatible
 
-    @wp.kernel
-    def stencil(mesh: wp.uint64, points: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
-                offsets: wp.array2d(dtype=wp.vec3d), corner_normals: wp.array2d(dtype=wp.float64),
-                face_normals: wp.array(dtype=wp.vec3d), uvs: wp.array(dtype=wp.vec2),
-                uv_faces: wp.array2d(dtype=wp.int64), texture: wp.array3d(dtype=wp.float32),
-                far: wp.float32, epsilon: wp.float64, min_cos: wp.float64,
-                colours: wp.array2d(dtype=wp.float64), found: wp.array(dtype=wp.bool)):
-        s = wp.tid()
+    @wp.func
+    def stencil_point(points: wp.array(dtype=wp.vec3d), offsets: wp.array2d(dtype=wp.vec3d), k: int):
+        """Stencil point ``k``: point k of the vertices (k < N), else of ring k // N - 1."""
         n_points = points.shape[0]
-        j = s // n_points
-        i = s - j * n_points
-        p = points[i]
+        j = k // n_points
+        i = k - j * n_points
+        p = wp.vec3d(points[i])          # wp in the body: Warp reads the annotations through the closure
         if j > 0:
             p = p + offsets[j - 1, i]
+        return p, i
+
+    @wp.kernel
+    def rays(mesh: wp.uint64, points: wp.array(dtype=wp.vec3d), normals: wp.array(dtype=wp.vec3d),
+             offsets: wp.array2d(dtype=wp.vec3d), corner_normals: wp.array2d(dtype=wp.float64),
+             face_normals: wp.array(dtype=wp.vec3d), far: wp.float32, epsilon: wp.float64, min_cos: wp.float64,
+             faces: wp.array(dtype=wp.int32), barys: wp.array(dtype=wp.vec3d),
+             distances: wp.array(dtype=wp.float64), compatible: wp.array(dtype=wp.bool)):
+        """One ray a thread (a launch of few rays waits for its slowest thread): thread s < M casts
+        stencil point s's +n ray, thread M + s its -n ray (M stencil points)."""
+        s = wp.tid()
+        count = faces.shape[0] // 2
+        back = s >= count
+        k = s
+        if back:
+            k = s - count
+        p, i = stencil_point(points, offsets, k)
         n = normals[i]
-        face, bary, best, ok = cast(mesh, p - epsilon * n, n, far, corner_normals, face_normals, n, min_cos)
-        if not ok:
+        origin = p - epsilon * n
+        direction = n
+        if back:
+            origin = p + epsilon * n
+            direction = -n
+        face, bary, distance, ok = cast(mesh, origin, direction, far, corner_normals, face_normals, n, min_cos)
+        faces[s] = face
+        barys[s] = bary
+        distances[s] = distance
+        compatible[s] = ok
+
+    @wp.kernel
+    def stencil(faces: wp.array(dtype=wp.int32), barys: wp.array(dtype=wp.vec3d),
+                distances: wp.array(dtype=wp.float64), compatible: wp.array(dtype=wp.bool),
+                uvs: wp.array(dtype=wp.vec2), uv_faces: wp.array2d(dtype=wp.int64),
+                texture: wp.array3d(dtype=wp.float32),
+                colours: wp.array2d(dtype=wp.float64), found: wp.array(dtype=wp.bool)):
+        """Stencil point s: the nearer compatible of its two hits (:func:`rays`) and the texture there."""
+        s = wp.tid()
+        count = colours.shape[0]
+        face = faces[s]
+        bary = barys[s]
+        if not compatible[s]:
             face = -1
-        back, back_bary, back_distance, back_ok = cast(mesh, p + epsilon * n, -n, far, corner_normals,
-                                                       face_normals, n, min_cos)
-        if back_ok and (face < 0 or back_distance < best):
-            face = back
-            bary = back_bary
+        if compatible[count + s] and (face < 0 or distances[count + s] < distances[s]):
+            face = faces[count + s]
+            bary = barys[count + s]
         for c in range(colours.shape[1]):
             colours[s, c] = wp.float64(0.0)
         found[s] = face >= 0
@@ -124,7 +157,7 @@ def _kernel():
             bottom = (wp.float64(texture[y1, x0, c]) * (wp.float64(1.0) - fx) + wp.float64(texture[y1, x1, c]) * fx)
             colours[s, c] = wp.float64(wp.float32(top * (wp.float64(1.0) - fy) + bottom * fy))
 
-    return stencil
+    return rays, stencil
 
 
 def stencil_caster(surface, scan, points):
@@ -152,8 +185,8 @@ def stencil_colours_warp(mesh_id, surface, scan, points, offsets, normals, max_d
     """(colours ((1 + R) N, C) float64, found ((1 + R) N,) bool) tensors: the scan's colour where the
     +/-normal rays of each stencil point (the points (N, 3), then each ring ``offsets`` (R, N, 3) from
     them, float64; their directions ``normals`` (N, 3)) first meet a compatible scan surface within
-    ``max_distance`` metres (module doc); zeros where none. ``mesh_id``: :func:`stencil_caster`'s. One
-    launch on torch's current stream; nothing read back."""
+    ``max_distance`` metres (module doc); zeros where none. ``mesh_id``: :func:`stencil_caster`'s. Two
+    launches on torch's current stream (the rays, then each point's choice and colour); nothing read back."""
     import torch
 
     from uvatar.geometry.raycast import _RAYS
@@ -169,13 +202,23 @@ def stencil_colours_warp(mesh_id, surface, scan, points, offsets, normals, max_d
     found = torch.empty(count, dtype=torch.bool, device=dev)
     _RAYS["INTERSECT"] += 2 * count                     # the +n and -n ray of every stencil point
     if count:
+        rays, stencil = _kernel()
+        faces = torch.empty(2 * count, dtype=torch.int32, device=dev)          # +n rays, then the -n rays
+        barys = torch.empty((2 * count, 3), dtype=torch.float64, device=dev)
+        distances = torch.empty(2 * count, dtype=torch.float64, device=dev)
+        compatible = torch.empty(2 * count, dtype=torch.bool, device=dev)
+        hits = [warp_view(wp, faces), warp_view(wp, barys, wp.vec3d), warp_view(wp, distances),
+                warp_view(wp, compatible)]
         far = min(max_distance + epsilon, 3e38)      # Warp takes it as float32, as first_hit_torch casts it
-        wp.launch(_kernel(), dim=count,
+        wdev, stream = wp.device_from_torch(dev), launch_stream(dev)
+        wp.launch(rays, dim=2 * count,
                   inputs=[mesh_id, warp_view(wp, points.contiguous(), wp.vec3d),
                           warp_view(wp, normals.contiguous(), wp.vec3d),
                           warp_view(wp, offsets.contiguous(), wp.vec3d), warp_view(wp, corner_normals),
-                          warp_view(wp, face_normals, wp.vec3d), warp_view(wp, uvs, wp.vec2),
-                          warp_view(wp, uv_faces), warp_view(wp, texture), far, float(epsilon),
-                          float(min_normal_cos), warp_view(wp, colours), warp_view(wp, found)],
-                  device=wp.device_from_torch(dev), stream=launch_stream(dev))
+                          warp_view(wp, face_normals, wp.vec3d), far, float(epsilon), float(min_normal_cos), *hits],
+                  device=wdev, stream=stream)
+        wp.launch(stencil, dim=count,
+                  inputs=[*hits, warp_view(wp, uvs, wp.vec2), warp_view(wp, uv_faces), warp_view(wp, texture),
+                          warp_view(wp, colours), warp_view(wp, found)],
+                  device=wdev, stream=stream)
     return colours, found

@@ -1,0 +1,121 @@
+"""Benchmark: a bake in one process with each frame written on a thread while the next one bakes
+(``BakeConfig.write_behind``, ``uvatar bake --workers 1``) against writing each frame before the next.
+
+Bakes the chosen frames of a capture with :func:`uvatar.avh.bake.pipeline.bake_capture` into fresh
+folders, one process, the two ways in turn (``--repeats`` pairs, alternating which goes first; the
+machine may be shared: ``load_average_1min``; one untimed bake of the first frame before them pays the
+process's one-off loads), and prints ONE JSON object: the wall seconds per frame
+of each (the best of its runs), the speed-up of writing behind measured in the same run, the write's
+own seconds per frame (the frames' files written once more, untimed by the bake) and whether the two
+bakes' arrays are identical. The pose refinement is off by default (``--refine-pose`` to keep it):
+its colour rounds run before the frames are baked and are the same either way.
+
+    python bench/bake_write_behind.py CAP --frames 000000,000001,000002,000003 [--texels 1024]
+                                      [--device cpu|cuda] [--repeats 1] [--refine-pose]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _bake(capture: str, out: Path, config, frames: list[str]) -> float:
+    """Wall seconds of one bake of ``frames`` into ``out`` (fresh), one process."""
+    from uvatar.avh.bake.pipeline import bake_capture
+
+    t0 = time.perf_counter()
+    results = bake_capture(capture, out, config, frames=frames, workers=1, progress=False)
+    seconds = time.perf_counter() - t0
+    bad = {f: r.reason for f, r in results.items() if r.status == "broken"}
+    if bad:
+        raise SystemExit(f"bake_write_behind: broken frames {bad}")
+    return seconds
+
+
+def _identical(a: Path, b: Path) -> bool:
+    """Do two bake folders hold the same frames with the same arrays?"""
+    names = sorted(p.relative_to(a) for p in a.rglob("*.npz"))
+    if names != sorted(p.relative_to(b) for p in b.rglob("*.npz")):
+        return False
+    for name in names:
+        with np.load(a / name) as x, np.load(b / name) as y:
+            if x.files != y.files or not all(np.array_equal(x[k], y[k]) for k in x.files):
+                return False
+    return True
+
+
+def _write_seconds(out: Path, frames: list[str]) -> float:
+    """Seconds per frame to write the frames of ``out`` again (maps and preview), as the bake does."""
+    from types import SimpleNamespace
+
+    from uvatar.avh.bake.dataset import load_baked_frame, write_baked_frame
+
+    total = 0.0
+    with tempfile.TemporaryDirectory() as scratch:
+        for frame in frames:
+            path = next(p for p in (out / "frames" / f"{frame}.npz", out / "rejected" / f"{frame}.npz") if p.is_file())
+            z = load_baked_frame(path)
+            baked = SimpleNamespace(texture=z["texture"], displacement=z["displacement"], kappa=z["kappa"],
+                                    w=z["w"], valid=z["valid"], matched=z["matched"],
+                                    stats={"kappa_mean": float(z["kappa_mean"]),
+                                           "matched_fraction": float(z["matched_fraction"])})
+            fit = SimpleNamespace(poses=z["pose"], Rh=z["Rh"], Th=z["Th"], shapes=z["shapes"], scale=z["scale"])
+            t0 = time.perf_counter()
+            write_baked_frame(scratch, frame, baked, fit)
+            total += time.perf_counter() - t0
+    return total / len(frames)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("capture")
+    ap.add_argument("--frames", required=True, help="comma-separated frame names")
+    ap.add_argument("--texels", type=int, default=1024)
+    ap.add_argument("--device", default="cpu", help="cpu (Embree) or cuda[:N] (the bake's --device)")
+    ap.add_argument("--repeats", type=int, default=1, help="pairs of bakes (each way once a pair)")
+    ap.add_argument("--refine-pose", action="store_true", help="keep the pose refinement and its colour rounds")
+    args = ap.parse_args(argv)
+    frames = [f for f in args.frames.split(",") if f]
+    if not frames or args.repeats < 1:
+        ap.error("--frames: at least one frame; --repeats: at least 1")
+
+    from dataclasses import replace
+
+    from uvatar.avh.bake.config import BakeConfig
+
+    config = BakeConfig(texels=args.texels, device=args.device, refine_pose=args.refine_pose)
+    seconds = {True: [], False: []}
+    with tempfile.TemporaryDirectory() as scratch:
+        root = Path(scratch)
+        _bake(args.capture, root / "warmup", config, frames[:1])   # the process's one-off loads, untimed
+        for r in range(args.repeats):
+            for behind in ((True, False) if r % 2 == 0 else (False, True)):
+                out = root / f"{'behind' if behind else 'plain'}_{r}"
+                seconds[behind].append(_bake(args.capture, out, replace(config, write_behind=behind), frames))
+                print(f"write_behind={behind} run {r}: {seconds[behind][-1]:.2f} s", file=sys.stderr)
+        identical = _identical(root / "behind_0", root / "plain_0")
+        write = _write_seconds(root / "plain_0", frames)
+    best = {k: min(v) / len(frames) for k, v in seconds.items()}
+    print(json.dumps({
+        "bench": "bake_write_behind", "device": args.device, "texels": args.texels, "frames": len(frames),
+        "refine_pose": args.refine_pose, "repeats": args.repeats,
+        "seconds_per_frame_write_behind": round(best[True], 3),
+        "seconds_per_frame_written_in_turn": round(best[False], 3),
+        "speedup": round(best[False] / best[True], 3),
+        "write_seconds_per_frame": round(write, 3),
+        "arrays_identical": identical,
+        "load_average_1min": round(os.getloadavg()[0], 2),
+    }))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
