@@ -17,7 +17,8 @@
 # BAKE_BVH (bench/bake.py --bvh, e.g. lbvh:4: the Warp meshes' BVH, after the rays part has compared them), TESTS_SECONDS,
 # BAKE_IN_FLIGHT (bench/bake.py --frames-in-flight, default 4), FLIGHT_SECONDS / FLIGHT_FRAMES / FLIGHT_COUNTS /
 # FLIGHT_REPEATS (the flight part: bench/bake_in_flight.py), BAKE_CPU_SECONDS / BAKE_CPU_WORKERS / BAKE_CPU_FRAMES
-# (the bake_cpu part: the CPU bake on the machine's cores, the GPU bake's baseline).
+# (the bake_cpu part: the CPU bake on the machine's cores, the GPU bake's baseline), WRITE_SECONDS / WRITE_FRAMES /
+# WRITE_REPEATS (the write part: bench/bake_write_behind.py --synthetic, a one-process bake writing behind).
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
@@ -173,6 +174,15 @@ for part in $PARTS; do
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
+    write)  # one process baking 4 frames with each written on a thread while the next bakes (uvatar bake
+            # --workers 1, write_behind), against writing each before the next, in one run: the GPU's idle
+            # time a frame's compression (~0.5 s at 1024²) no longer adds
+      if python -c "import anny, warp" 2>/dev/null; then
+        run_part write "${WRITE_SECONDS:-90}" "$OUT/bake_write_behind.json" python bench/bake_write_behind.py \
+          --synthetic "${WRITE_FRAMES:-4}" --device cuda --texels 1024 --repeats "${WRITE_REPEATS:-1}"
+      else
+        echo "write skipped: anny or warp missing" | tee -a "$OUT/status.txt"
+      fi ;;
     bake_cpu)  # the same machine's CPUs as the GPU bake's baseline: the CPU bake (Embree, numpy) on
                # BAKE_CPU_WORKERS processes (default 16), wall seconds per frame with the writes
       run_part bake_cpu "${BAKE_CPU_SECONDS:-90}" "$OUT/bake_cpu.json" python bench/bake.py --device cpu --frames 1 \
@@ -185,7 +195,7 @@ for part in $PARTS; do
       else
         echo "flight skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    *) echo "unknown part $part (dva avh tests compile bake bake_cpu flight train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
+    *) echo "unknown part $part (dva avh tests compile bake bake_cpu flight write train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
   esac
 done
 tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null

@@ -28,3 +28,17 @@ def test_a_broken_frame_stops_the_bench(tmp_path):
     cap = make_capture(tmp_path / "cap", n_frames=2, broken=(), unreadable=(1,))
     with pytest.raises(SystemExit, match="broken frames.*000001"):
         load_bench("bake_write_behind").main([str(cap), "--frames", "000000,000001", "--texels", "32"])
+
+
+def test_synthetic_frames_are_written_as_a_capture_and_baked(capsys):
+    assert load_bench("bake_write_behind").main(["--synthetic", "1", "--texels", "32"]) == 0
+    row = json.loads(capsys.readouterr().out)
+    assert row["capture"] == "synthetic" and row["frames"] == 1 and row["arrays_identical"] is True
+
+
+@pytest.mark.parametrize("argv", [[], ["CAP"], ["CAP", "--frames", "000000", "--synthetic", "2"],
+                                  ["--synthetic", "2", "--repeats", "0"]])
+def test_bad_arguments_are_one_usage_error(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        load_bench("bake_write_behind").main(argv)
+    assert exc.value.code == 2 and "error:" in capsys.readouterr().err
