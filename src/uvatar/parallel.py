@@ -14,7 +14,9 @@ The stage's own code is the same whichever executor runs it, so the results are 
   reason) is not retried (``retry_exceptions=False``) and is reported once.
 
 Stages write their outputs atomically from inside the task, so a re-run skips what is done whichever
-executor ran the first attempt. Progress is a tqdm bar over completed tasks (rate and ETA from them).
+executor ran the first attempt. In this process (one worker) a task may leave its write running on a
+thread and return its :class:`~concurrent.futures.Future`: the next task starts at once, and the pair
+is yielded when the write is done (:func:`_run_inline`). Progress is a tqdm bar over completed tasks (rate and ETA from them).
 """
 
 from __future__ import annotations
