@@ -1,6 +1,7 @@
-"""The colour stencil in two Warp launches (the rays a thread each, then each point's choice and colour) (:mod:`uvatar.avh.bake.stencil_warp`, issue 39) against the torch
-path it replaces on CUDA (the batch of +n / -n rays, the hits' normals, the nearer compatible hit, the
-texture's bilinear lookup), on the CPU here (Warp's CPU backend) and on CUDA in the gpu test."""
+"""The colour stencil in two Warp launches (the rays a thread each, then each point's choice and colour;
+:mod:`uvatar.avh.bake.stencil_warp`, issue 39) against the torch path it replaces on CUDA (the batch of
++n / -n rays, the hits' normals, the nearer compatible hit, the texture's bilinear lookup), on the CPU
+here (Warp's CPU backend) and on CUDA in the gpu test."""
 
 from __future__ import annotations
 
