@@ -18,7 +18,7 @@
 # BAKE_IN_FLIGHT (bench/bake.py --frames-in-flight, default 4), FLIGHT_SECONDS / FLIGHT_FRAMES / FLIGHT_COUNTS /
 # FLIGHT_REPEATS (the flight part: bench/bake_in_flight.py), BAKE_CPU_SECONDS / BAKE_CPU_WORKERS / BAKE_CPU_FRAMES
 # (the bake_cpu part: the CPU bake on the machine's cores, the GPU bake's baseline), WRITE_SECONDS / WRITE_FRAMES /
-# WRITE_REPEATS (the write part: bench/bake_write_behind.py --synthetic, a one-process bake writing behind).
+# WRITE_REPEATS (the write part: bench/bake_overlap.py --synthetic, a one-process bake writing behind, reading ahead).
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
@@ -174,11 +174,12 @@ for part in $PARTS; do
       else
         echo "bake skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    write)  # one process baking 4 frames with each written on a thread while the next bakes (uvatar bake
-            # --workers 1, write_behind), against writing each before the next, in one run: the GPU's idle
-            # time a frame's compression (~0.5 s at 1024²) no longer adds
+    write)  # one process baking 4 frames (uvatar bake --workers 1) with each frame written on a thread while the
+            # next bakes and the next scans read ahead, against writing behind only and against neither, in one
+            # run (bench/bake_overlap.py): the GPU's idle time a frame's compression (~0.5 s at 1024²) and
+            # scan read no longer add
       if python -c "import anny, warp" 2>/dev/null; then
-        run_part write "${WRITE_SECONDS:-90}" "$OUT/bake_write_behind.json" python bench/bake_write_behind.py \
+        run_part write "${WRITE_SECONDS:-90}" "$OUT/bake_overlap.json" python bench/bake_overlap.py \
           --synthetic "${WRITE_FRAMES:-4}" --device cuda --texels 1024 --repeats "${WRITE_REPEATS:-1}"
       else
         echo "write skipped: anny or warp missing" | tee -a "$OUT/status.txt"

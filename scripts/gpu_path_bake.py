@@ -23,20 +23,21 @@ import time
 @contextlib.contextmanager
 def cuda_choices(stencil_kernel: bool = True):
     """Within: the bake makes CUDA's choices on CPU tensors (module doc); as before afterwards."""
-    from uvatar.avh.bake import refine_device, refine_together, register_torch, stencil_warp
+    from uvatar.avh.bake import inputs, refine_device, refine_together, register_torch, stencil_warp
 
     saved = (register_torch.WINDOW_SEARCH_ON_CPU, register_torch.NEAREST_KERNEL, refine_device.STEP_IN_WARP_ON_CPU,
-             stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together.IN_FLIGHT_ON_CPU)
+             stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together.IN_FLIGHT_ON_CPU, inputs.READ_AHEAD_ON_CPU)
     register_torch.WINDOW_SEARCH_ON_CPU = True          # CUDA's nearest-sample choice: the Warp grid kernel
     register_torch.NEAREST_KERNEL = True
     refine_device.STEP_IN_WARP_ON_CPU = True           # the refinement's step in its Warp kernel
     stencil_warp.STENCIL_IN_WARP_ON_CPU = stencil_kernel   # the colour stencil in its Warp kernel
     refine_together.IN_FLIGHT_ON_CPU = True            # CUDA's dealing of the frames into tasks
+    inputs.READ_AHEAD_ON_CPU = True                     # the next task's scans read ahead
     try:
         yield
     finally:
         (register_torch.WINDOW_SEARCH_ON_CPU, register_torch.NEAREST_KERNEL, refine_device.STEP_IN_WARP_ON_CPU,
-         stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together.IN_FLIGHT_ON_CPU) = saved
+         stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together.IN_FLIGHT_ON_CPU, inputs.READ_AHEAD_ON_CPU) = saved
 
 
 def main(argv=None) -> int:

@@ -85,6 +85,7 @@ def test_cuda_bake_matches_the_cpu_bake(setup, baked):
 
 @pytest.mark.slow
 def test_scans_are_read_once_per_frame_and_bake_the_same_maps(tmp_path, monkeypatch):
+    from uvatar.avh.bake import inputs
     from uvatar.avh.bake.pipeline import bake_capture
     from uvatar.capture import Capture
 
@@ -92,14 +93,34 @@ def test_scans_are_read_once_per_frame_and_bake_the_same_maps(tmp_path, monkeypa
     cfg = BakeConfig().with_updates(texels=32, visibility_rays=8, pose_refine_iterations=2,
                                     pose_refine_photometric_radii=(0.004, 0.003),
                                     pose_refine_photometric_iterations=2)
+    import threading
+
     reads: list[str] = []
+    readers: list[str] = []
     load = Capture.load_scan
-    monkeypatch.setattr(Capture, "load_scan", lambda self, frame: reads.append(frame) or load(self, frame))
+
+    def counted(self, frame):
+        reads.append(frame)
+        readers.append(threading.current_thread().name)
+        return load(self, frame)
+
+    monkeypatch.setattr(Capture, "load_scan", counted)
+    monkeypatch.setattr(inputs, "READ_AHEAD_ON_CPU", True)                # as on CUDA
     bake_capture(cap, tmp_path / "kept", cfg, progress=False)
     assert sorted(reads) == ["000000", "000001", "000002"]                 # once each: 3 rounds + bake
+    # the next frame's scan is read on the reader thread while the frame before it refines
+    by_frame = dict(zip(reads, readers, strict=True))
+    assert by_frame["000000"] == threading.current_thread().name
+    assert by_frame["000001"].startswith("scan-read") and by_frame["000002"].startswith("scan-read")
     reads.clear()
+    readers.clear()
     bake_capture(cap, tmp_path / "reread", replace(cfg, scan_cache_mb=0), progress=False)
     assert len(reads) == 3 * 4                                             # the reference: every time
+    assert sum(r.startswith("scan-read") for r in readers) == 2 * 4       # all but each pass's first ahead
+    monkeypatch.setattr(inputs, "READ_AHEAD_ON_CPU", False)               # the CPU's default: no reader
+    readers.clear()
+    bake_capture(cap, tmp_path / "reread_here", replace(cfg, scan_cache_mb=0), progress=False)
+    assert readers == [threading.current_thread().name] * (3 * 4)
     bake_capture(cap, tmp_path / "pool", cfg, workers=2, progress=False)   # one kept pool of 2 workers
     for frame in ("000000", "000001", "000002"):
         with np.load(tmp_path / "kept" / "frames" / f"{frame}.npz") as a, \

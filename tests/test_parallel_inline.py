@@ -116,3 +116,22 @@ def test_plain_results_are_yielded_at_once_and_every_future_before_the_end():
     assert sorted(got) == [(i, 10 * i) for i in items] and len(got) == 4
     assert shared["finished"] == [1, 3]
     shared["pool"].shutdown()
+
+
+def _recording_task(shared, item):
+    shared["log"].append(("run", item))
+    return item
+
+
+def _recording_prefetch(shared, item):
+    shared["log"].append(("prefetch", item))
+    if item == shared.get("bad"):
+        raise ValueError("cannot read ahead")
+
+
+def test_prefetch_sees_the_next_item_before_each_task_and_its_errors_are_ignored():
+    shared = {"log": [], "bad": 2}
+    got = list(run_tasks(_recording_task, [0, 1, 2], shared, ExecutorConfig(), progress=False,
+                         prefetch=_recording_prefetch))
+    assert got == [(0, 0), (1, 1), (2, 2)]                    # the failed read ahead is the task's to meet
+    assert shared["log"] == [("prefetch", 1), ("run", 0), ("prefetch", 2), ("run", 1), ("run", 2)]

@@ -61,7 +61,7 @@ def test_the_cuda_path_bake_on_cpu_tensors_equals_itself_one_frame_at_a_time(tmp
     (scripts/compare_bakes.py: identical)."""
     from test_avh_bake_helpers import make_capture
 
-    from uvatar.avh.bake import refine_together, stencil_warp
+    from uvatar.avh.bake import inputs, refine_together, stencil_warp
 
     spec = importlib.util.spec_from_file_location("gpu_path_bake", ROOT / "scripts" / "gpu_path_bake.py")
     bake = importlib.util.module_from_spec(spec)
@@ -71,7 +71,8 @@ def test_the_cuda_path_bake_on_cpu_tensors_equals_itself_one_frame_at_a_time(tmp
     assert bake.main([str(cap), str(tmp_path / "flight"), "--frames", frames, "--texels", "32", "--in-flight", "3"]) == 0
     assert bake.main([str(cap), str(tmp_path / "one"), "--frames", frames, "--texels", "32", "--in-flight", "1",
                       "--stencil", "torch"]) == 0
-    assert not refine_together.IN_FLIGHT_ON_CPU and not stencil_warp.STENCIL_IN_WARP_ON_CPU   # CUDA's choices undone
+    assert not (refine_together.IN_FLIGHT_ON_CPU or stencil_warp.STENCIL_IN_WARP_ON_CPU
+                or inputs.READ_AHEAD_ON_CPU)                                     # CUDA's choices undone
     assert (tmp_path / "flight" / "photo_reference.npz").is_file()               # the colour rounds ran
     assert bake.main([str(tmp_path / "nowhere"), str(tmp_path / "x"), "--frames", frames]) == 2   # one line
     assert _script().main([str(tmp_path / "one"), str(tmp_path / "flight"), "--json", str(tmp_path / "m.json")]) == 0

@@ -147,11 +147,15 @@ def _resolve(boxed: list):
 # -- executors ---------------------------------------------------------------------------------------
 def run_tasks(fn: Callable[[Any, Any], Any], items: Iterable, shared: Any = None,
               config: ExecutorConfig | None = None, desc: str = "tasks", unit: str = "frame",
-              progress: bool = True, initializer: Callable[[], None] | None = None) -> Iterator[tuple[Any, Any]]:
+              progress: bool = True, initializer: Callable[[], None] | None = None,
+              prefetch: Callable[[Any, Any], None] | None = None) -> Iterator[tuple[Any, Any]]:
     """Yield ``(item, fn(shared, item))`` (or ``(item, TaskFailure)``) for every item as tasks complete.
 
     fn, initializer: module-level functions (they are pickled to the workers). ``initializer`` runs
     in each worker process before its first task (e.g. :func:`uvatar.threads.limit_process_to_one_thread`).
+    prefetch: in this process (one worker), ``prefetch(shared, next item)`` is called before each task
+    runs, to start reading the next task's inputs on a thread while this one runs; it must not raise
+    (an error is logged and ignored: the task meets it itself). Not called on pools and Ray.
     """
     from tqdm import tqdm
 
@@ -162,7 +166,7 @@ def run_tasks(fn: Callable[[Any, Any], Any], items: Iterable, shared: Any = None
         if config.kind == "ray":
             runner = _run_ray(fn, items, shared, config, initializer)
         elif config.workers <= 1 or len(items) <= 1:
-            runner = _run_inline(fn, items, shared)
+            runner = _run_inline(fn, items, shared, prefetch)
         else:
             runner = _run_pool(fn, items, shared, config.workers, initializer)
         for pair in runner:
@@ -177,17 +181,23 @@ def run_tasks(fn: Callable[[Any, Any], Any], items: Iterable, shared: Any = None
 FINISHING_BEHIND = 1
 
 
-def _run_inline(fn, items, shared):
-    """Each item in this process, in order. A task may return a :class:`~concurrent.futures.Future` (its
-    last part, such as its write, left running on a thread): the next task then starts at once, and the
-    future's value is yielded when it is done, at most :data:`FINISHING_BEHIND` of them pending (the
-    oldest is waited for first), every one before the runner ends."""
+def _run_inline(fn, items, shared, prefetch=None):
+    """Each item in this process, in order, ``prefetch`` (if any) called with the next item first. A task
+    may return a :class:`~concurrent.futures.Future` (its last part, such as its write, left running on
+    a thread): the next task then starts at once, and the future's value is yielded when it is done, at
+    most :data:`FINISHING_BEHIND` of them pending (the oldest is waited for first), every one before the
+    runner ends."""
     from collections import deque
     from concurrent.futures import Future
     from functools import partial
 
     finishing: deque = deque()                  # (item, future), oldest first
-    for item in items:
+    for i, item in enumerate(items):
+        if prefetch is not None and i + 1 < len(items):
+            try:
+                prefetch(shared, items[i + 1])
+            except Exception as exc:  # noqa: BLE001 - a read ahead that fails is the task's to meet
+                log.debug("prefetch of %r failed: %s", items[i + 1], one_line(exc))
         result = _settled(partial(fn, shared, item))
         while finishing and (finishing[0][1].done() or
                              (isinstance(result, Future) and len(finishing) >= FINISHING_BEHIND)):

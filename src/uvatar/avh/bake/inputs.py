@@ -2,13 +2,14 @@
 process, or adopted from the parent so a worker does not raster it again), and a frame's starting
 fit with the shape to pose it by. Shared by the per-frame bake (:mod:`.pipeline`) and the refinement
 across frames (:mod:`.refine_together`). :func:`prepared_scan` keeps a frame's scan, read and prepared
-for ray queries once, for the colour rounds and the bake that follow in the same process;
+for ray queries once, for the colour rounds and the bake that follow in the same process, and takes
+the file read that :func:`prefetch_scan` started on a thread while the task before it ran;
 :func:`keep_sample` keeps a colour round's closing colour sample beside it for the next round."""
 
 from __future__ import annotations
 
-__all__ = ["load_body_and_layout", "adopt_body_and_layout", "start_fit", "prepared_scan", "clear_scan_cache",
-           "keep_sample", "kept_sample"]
+__all__ = ["load_body_and_layout", "adopt_body_and_layout", "start_fit", "prepared_scan", "prefetch_scan",
+           "clear_scan_cache", "keep_sample", "kept_sample"]
 
 # -- per-process state ----------------------------------------------------------------------------
 _STATE: dict = {}
@@ -16,6 +17,14 @@ _SCANS: dict = {}      # (capture root, frame, device, backend, file stamp) -> (
 _SAMPLES: dict = {}    # the same keys -> (fit key, PhotoSample): a colour round's closing sample
 _SCAN_RUN: list = [None]   # the run whose scans _SCANS holds
 _MEMORY_RESERVE = 1 << 30  # a scan is kept only while this much memory stays available beside it
+#: read the next task's scans ahead (:func:`prefetch_scan`) where the bake's device is CUDA; False reads
+#: each where it is used (benches compare the two)
+READ_AHEAD = True
+#: read ahead on the CPU too (tests, scripts/gpu_path_bake.py). Off: a CPU bake's own threads already take
+#: the cores (measured on 2 cores: no faster, results/bench_bake_overlap_cpu_session15.json)
+READ_AHEAD_ON_CPU = False
+_READING: dict = {}    # the same keys -> Future of the scan file read by prefetch_scan, not yet taken
+_READER: list = []     # the one thread that reads them (made on first use)
 
 
 def load_body_and_layout(body_name: str, texels: int):
@@ -66,22 +75,50 @@ def prepared_scan(capture, frame: str, config, run=None):
     from uvatar.avh.bake.register import ScanSurface
     from uvatar.resources import available_memory
 
-    if run != _SCAN_RUN[0]:
-        clear_scan_cache()
-        _SCAN_RUN[0] = run
-
+    _enter_run(run)
     key = _scan_key(capture, frame, config)
     stamp = key[-1]
     hit = _SCANS.get(key)
     if hit is not None:
         return hit[0], hit[1]
-    scan = capture.load_scan(frame)
+    reading = _READING.pop(key, None)
+    scan = reading.result() if reading is not None else capture.load_scan(frame)   # its error, if any
     surface = ScanSurface.build(scan.vertices, scan.faces, config.device, config.ray_backend)
     size = _scan_bytes(scan, surface)
     if (stamp is not None and sum(v[2] for v in _SCANS.values()) + size <= config.scan_cache_mb * 2**20
             and available_memory() > size + _MEMORY_RESERVE):
         _SCANS[key] = (scan, surface, size)
     return scan, surface
+
+
+def prefetch_scan(capture, frame: str, config, run=None) -> None:
+    """Start reading ``frame``'s scan file (``capture.load_scan``: the mesh and its texture decoded) on
+    this process's reader thread, for :func:`prepared_scan` to take when the frame's task comes: the
+    read then overlaps the task before it, whose kernels keep a GPU busy while the host waits
+    (:data:`READ_AHEAD`, where ``config.device`` is CUDA or :data:`READ_AHEAD_ON_CPU`). Nothing is started for a scan kept or
+    already being read, a file that cannot be stat'ed (its task reports it) or with less than twice the
+    memory reserve available. A read that fails raises in :func:`prepared_scan`, as reading it there
+    would."""
+    from uvatar.resources import available_memory
+
+    if not (READ_AHEAD and (str(config.device).startswith("cuda") or READ_AHEAD_ON_CPU)):
+        return
+    _enter_run(run)
+    key = _scan_key(capture, frame, config)
+    if key in _SCANS or key in _READING or key[-1] is None or available_memory() < 2 * _MEMORY_RESERVE:
+        return
+    if not _READER:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _READER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="scan-read"))
+    _READING[key] = _READER[0].submit(capture.load_scan, frame)
+
+
+def _enter_run(run) -> None:
+    """A new bake's token (:func:`prepared_scan`'s ``run``) drops the previous run's scans."""
+    if run != _SCAN_RUN[0]:
+        clear_scan_cache()
+        _SCAN_RUN[0] = run
 
 
 def _scan_key(capture, frame: str, config) -> tuple:
@@ -119,6 +156,9 @@ def kept_sample(capture, frame: str, config, fit):
 
 def clear_scan_cache() -> None:
     """Drop the scans :func:`prepared_scan` keeps in this process, and the colour samples kept with
-    them (a bake run in process calls it at its end)."""
+    them, and the reads :func:`prefetch_scan` started (a bake run in process calls it at its end)."""
     _SCANS.clear()
     _SAMPLES.clear()
+    for reading in _READING.values():
+        reading.cancel()         # one already running finishes on its thread and is dropped
+    _READING.clear()

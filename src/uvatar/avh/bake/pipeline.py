@@ -34,6 +34,7 @@ from uvatar.avh.bake.inputs import (
     adopt_body_and_layout,
     clear_scan_cache,
     load_body_and_layout,
+    prefetch_scan,
     prepared_scan,
     start_fit,
 )
@@ -149,6 +150,13 @@ def _bake_task(shared: dict, item):
     adopt_body_and_layout(shared["body_name"], config.texels, shared["body_layout"])
     return _bake_one(shared["capture_root"], shared["out_root"], frame, config, refined, shared.get("run"),
                      shared.get("colour_outliers", {}).get(frame), _WRITER)
+
+
+def _prefetch_bake(shared: dict, item) -> None:
+    """The next frame's scan file read on a thread while this frame bakes (:func:`.inputs.prefetch_scan`)."""
+    from uvatar.capture import Capture
+
+    prefetch_scan(Capture(shared["capture_root"]), item[0], shared["config"], shared.get("run"))
 
 
 def _peak_rss_mb() -> float:
@@ -294,7 +302,8 @@ def bake_capture(capture_root, out_root, config: BakeConfig | None = None, frame
                         finish(again)
             items = [(f, refined.get(f)) for f in todo]
             for (frame, _), result in run_tasks(_bake_task, items, shared, executor, desc="bake",
-                                                progress=progress, initializer=limit_process_to_one_thread):
+                                                progress=progress, initializer=limit_process_to_one_thread,
+                                                prefetch=_prefetch_bake):
                 finish(FrameResult(frame, "broken", f"worker failed: {result.reason}")
                        if isinstance(result, TaskFailure) else result)
         finally:

@@ -30,6 +30,7 @@ from uvatar.avh.bake.inputs import (
     keep_sample,
     kept_sample,
     load_body_and_layout,
+    prefetch_scan,
     prepared_scan,
     start_fit,
 )
@@ -191,6 +192,16 @@ def _refine_task(shared: dict, group):
     return out
 
 
+def _prefetch_group(shared: dict, group) -> None:
+    """The next task's scan files read on a thread while this task's frames refine
+    (:func:`.inputs.prefetch_scan`; those kept from an earlier round are not read again)."""
+    from uvatar.capture import Capture
+
+    capture = Capture(shared["capture_root"])
+    for frame, *_ in group:
+        prefetch_scan(capture, frame, shared["config"], shared.get("run"))
+
+
 #: deal frames into tasks of ``frames_in_flight`` with CPU tensors too (scripts/gpu_path_bake.py: CUDA's
 #: choices on the CPU); on CUDA the bake always does
 IN_FLIGHT_ON_CPU = False
@@ -260,7 +271,7 @@ def refine_frames_together(capture_root, out_root, frames, config, body_name: st
         groups = _groups([(f, fits.get(f), target, radius) for f in frames], config, executor)
         for group, results in run_tasks(_refine_task, groups, shared, executor, desc=desc, progress=progress,
                                         unit="frame" if len(groups) == len(frames) else "group of frames",
-                                        initializer=limit_process_to_one_thread):
+                                        initializer=limit_process_to_one_thread, prefetch=_prefetch_group):
             if isinstance(results, TaskFailure):      # the whole task (a lost worker)
                 results = [results] * len(group)
             for (frame, *_), result in zip(group, results, strict=True):

@@ -1,22 +1,25 @@
-"""Benchmark: a bake in one process with each frame written on a thread while the next one bakes
-(``BakeConfig.write_behind``, ``uvatar bake --workers 1``) against writing each frame before the next.
+"""Benchmark: a bake in one process (``uvatar bake --workers 1``) with its host work overlapped: each
+frame written on a thread while the next one bakes (``BakeConfig.write_behind``) and the next task's scan
+files read ahead on a thread (:func:`uvatar.avh.bake.inputs.prefetch_scan`), against writing behind only
+and against neither (each frame read where it is used and written before the next begins).
 
 Bakes the chosen frames of a capture with :func:`uvatar.avh.bake.pipeline.bake_capture` into fresh
-folders, one process, the two ways in turn (``--repeats`` pairs, alternating which goes first; the
-machine may be shared: ``load_average_1min``; one untimed bake of the first frame before them pays the
-process's one-off loads), and prints ONE JSON object: the wall seconds per frame
-of each (the best of its runs), the speed-up of writing behind measured in the same run, the write's
-own seconds per frame (the frames' files written once more, untimed by the bake) and whether the two
-bakes' arrays are identical. The pose refinement is off by default (``--refine-pose`` to keep it):
-its colour rounds run before the frames are baked and are the same either way.
+folders, one process, the three ways in turn (``--repeats`` rounds, each in another order; the machine
+may be shared: ``load_average_1min``; one untimed bake of the first frame before them pays the process's
+one-off loads), and prints ONE JSON object: the wall seconds per frame of each way (the best of its
+runs), their speed-ups over neither measured in the same run, the write's own seconds per frame (the
+frames' files written once more) and whether the bakes' arrays are identical. The pose refinement is
+off by default (``--refine-pose`` keeps it and its colour rounds: four passes over the frames, each
+reading the scans ahead); ``--scan-cache-mb 0`` reads every scan at every pass, as a take too long for
+the cache does.
 
 ``--synthetic N`` bakes bench/bake.py's frames instead (anny posed, a ~110k-face clothed scan with a
 1024² texture each, fits 1.5 deg off), written as a capture in a scratch folder: a lent GPU measures
 the overlap without a take carried to it.
 
-    python bench/bake_write_behind.py CAP --frames 000000,000001,000002,000003 [--texels 1024]
-                                      [--device cpu|cuda] [--repeats 1] [--refine-pose]
-    python bench/bake_write_behind.py --synthetic 4 [--device cuda] ...
+    python bench/bake_overlap.py CAP --frames 000000,000001,000002,000003 [--texels 1024]
+                                 [--device cpu|cuda] [--repeats 1] [--refine-pose] [--scan-cache-mb MB]
+    python bench/bake_overlap.py --synthetic 4 [--device cuda] ...
 """
 
 from __future__ import annotations
@@ -31,17 +34,26 @@ from pathlib import Path
 
 import numpy as np
 
+#: the ways compared: (name, write behind, read ahead)
+WAYS = (("overlapped", True, True), ("write_behind_only", True, False), ("in_turn", False, False))
 
-def _bake(capture: str, out: Path, config, frames: list[str]) -> float:
+
+def _bake(capture, out: Path, config, frames: list[str], read_ahead: bool = True) -> float:
     """Wall seconds of one bake of ``frames`` into ``out`` (fresh), one process."""
+    from uvatar.avh.bake import inputs
     from uvatar.avh.bake.pipeline import bake_capture
 
-    t0 = time.perf_counter()
-    results = bake_capture(capture, out, config, frames=frames, workers=1, progress=False)
-    seconds = time.perf_counter() - t0
+    saved = inputs.READ_AHEAD, inputs.READ_AHEAD_ON_CPU
+    inputs.READ_AHEAD, inputs.READ_AHEAD_ON_CPU = read_ahead, read_ahead    # on the CPU too: measured here
+    try:
+        t0 = time.perf_counter()
+        results = bake_capture(capture, out, config, frames=frames, workers=1, progress=False)
+        seconds = time.perf_counter() - t0
+    finally:
+        inputs.READ_AHEAD, inputs.READ_AHEAD_ON_CPU = saved
     bad = {f: r.reason for f, r in results.items() if r.status == "broken"}
     if bad:
-        raise SystemExit(f"bake_write_behind: broken frames {bad}")
+        raise SystemExit(f"bake_overlap: broken frames {bad}")
     return seconds
 
 
@@ -104,8 +116,10 @@ def main(argv=None) -> int:
     ap.add_argument("--synthetic", type=int, default=0, help="bake this many of bench/bake.py's frames instead")
     ap.add_argument("--texels", type=int, default=1024)
     ap.add_argument("--device", default="cpu", help="cpu (Embree) or cuda[:N] (the bake's --device)")
-    ap.add_argument("--repeats", type=int, default=1, help="pairs of bakes (each way once a pair)")
+    ap.add_argument("--repeats", type=int, default=1, help="rounds of bakes (each way once a round, in turning order)")
     ap.add_argument("--refine-pose", action="store_true", help="keep the pose refinement and its colour rounds")
+    ap.add_argument("--scan-cache-mb", type=int, default=2048,
+                    help="the bake's --scan-cache-mb (0: every scan read at every pass)")
     args = ap.parse_args(argv)
     if (args.capture is None) == (args.synthetic <= 0) or (args.capture is not None and not args.frames):
         ap.error("give a CAPTURE with --frames, or --synthetic N (N >= 1)")
@@ -116,8 +130,9 @@ def main(argv=None) -> int:
 
     from uvatar.avh.bake.config import BakeConfig
 
-    config = BakeConfig(texels=args.texels, device=args.device, refine_pose=args.refine_pose)
-    seconds = {True: [], False: []}
+    config = BakeConfig(texels=args.texels, device=args.device, refine_pose=args.refine_pose,
+                        scan_cache_mb=args.scan_cache_mb)
+    seconds: dict[str, list[float]] = {name: [] for name, _, _ in WAYS}
     with tempfile.TemporaryDirectory() as scratch:
         root = Path(scratch)
         capture = args.capture
@@ -128,20 +143,20 @@ def main(argv=None) -> int:
             frames = [f for f in args.frames.split(",") if f]
         _bake(capture, root / "warmup", config, frames[:1])   # the process's one-off loads, untimed
         for r in range(args.repeats):
-            for behind in ((True, False) if r % 2 == 0 else (False, True)):
-                out = root / f"{'behind' if behind else 'plain'}_{r}"
-                seconds[behind].append(_bake(capture, out, replace(config, write_behind=behind), frames))
-                print(f"write_behind={behind} run {r}: {seconds[behind][-1]:.2f} s", file=sys.stderr)
-        identical = _identical(root / "behind_0", root / "plain_0")
-        write = _write_seconds(root / "plain_0", frames)
-    best = {k: min(v) / len(frames) for k, v in seconds.items()}
+            order = WAYS[r % len(WAYS):] + WAYS[:r % len(WAYS)]
+            for name, behind, ahead in order:
+                out = root / f"{name}_{r}"
+                seconds[name].append(_bake(capture, out, replace(config, write_behind=behind), frames, ahead))
+                print(f"{name} run {r}: {seconds[name][-1]:.2f} s", file=sys.stderr)
+        identical = all(_identical(root / f"{name}_0", root / "in_turn_0") for name, _, _ in WAYS[:-1])
+        write = _write_seconds(root / "in_turn_0", frames)
+    best = {name: min(v) / len(frames) for name, v in seconds.items()}
     print(json.dumps({
-        "bench": "bake_write_behind", "capture": "synthetic" if args.synthetic else str(args.capture),
+        "bench": "bake_overlap", "capture": "synthetic" if args.synthetic else str(args.capture),
         "device": args.device, "texels": args.texels, "frames": len(frames),
-        "refine_pose": args.refine_pose, "repeats": args.repeats,
-        "seconds_per_frame_write_behind": round(best[True], 3),
-        "seconds_per_frame_written_in_turn": round(best[False], 3),
-        "speedup": round(best[False] / best[True], 3),
+        "refine_pose": args.refine_pose, "scan_cache_mb": args.scan_cache_mb, "repeats": args.repeats,
+        "seconds_per_frame": {name: round(v, 3) for name, v in best.items()},
+        "speedup_vs_in_turn": {name: round(best["in_turn"] / best[name], 3) for name, _, _ in WAYS[:-1]},
         "write_seconds_per_frame": round(write, 3),
         "arrays_identical": identical,
         "load_average_1min": round(os.getloadavg()[0], 2),
