@@ -36,18 +36,26 @@ def _shared(items, **extra):
             "pool": ThreadPoolExecutor(max_workers=1), **extra}
 
 
+def _first_pair_in_background(runner, shared, started: int) -> threading.Thread:
+    """A thread taking the runner's first pair (into ``shared["first"]``), once ``started`` tasks have
+    begun (and a moment more, for one too many to show)."""
+    waiter = threading.Thread(target=lambda: shared.update(first=next(runner)))
+    waiter.start()
+    for _ in range(200):
+        if len(shared["started"]) >= started:
+            break
+        threading.Event().wait(0.01)
+    threading.Event().wait(0.05)
+    return waiter
+
+
 def test_the_next_task_starts_while_the_last_one_finishes():
     items = [0, 1, 2]
     shared = _shared(items)
     runner = run_tasks(_finishing_task, items, shared, ExecutorConfig(), progress=False)
     # nothing is released yet: item 0 cannot be yielded, but item 1 has already started when the runner
     # waits for it (one pending at most: item 1's future waits for item 0's)
-    done = threading.Thread(target=lambda: shared.update(first=next(runner)))
-    done.start()
-    for _ in range(200):
-        if len(shared["started"]) == 2:
-            break
-        threading.Event().wait(0.01)
+    done = _first_pair_in_background(runner, shared, 2)
     assert shared["started"] == [0, 1] and shared["finished"] == []
     shared["gates"][0].set()
     done.join(10)
@@ -64,13 +72,7 @@ def test_at_most_finishing_behind_pending(monkeypatch):
     items = [0, 1, 2, 3]
     shared = _shared(items)
     runner = run_tasks(_finishing_task, items, shared, ExecutorConfig(), progress=False)
-    waiter = threading.Thread(target=lambda: shared.update(first=next(runner)))
-    waiter.start()
-    for _ in range(200):
-        if len(shared["started"]) == 3:
-            break
-        threading.Event().wait(0.01)
-    threading.Event().wait(0.05)
+    waiter = _first_pair_in_background(runner, shared, 3)
     assert shared["started"] == [0, 1, 2]          # two pending, the third waits for the oldest
     for gate in shared["gates"].values():
         gate.set()
