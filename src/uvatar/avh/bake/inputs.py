@@ -9,7 +9,7 @@ the file read that :func:`prefetch_scan` started on a thread while the task befo
 from __future__ import annotations
 
 __all__ = ["load_body_and_layout", "adopt_body_and_layout", "start_fit", "prepared_scan", "prefetch_scan",
-           "clear_scan_cache", "keep_sample", "kept_sample"]
+           "prefetch_task_scans", "clear_scan_cache", "keep_sample", "kept_sample"]
 
 # -- per-process state ----------------------------------------------------------------------------
 _STATE: dict = {}
@@ -21,7 +21,7 @@ _MEMORY_RESERVE = 1 << 30  # a scan is kept only while this much memory stays av
 #: each where it is used (benches compare the two)
 READ_AHEAD = True
 #: read ahead on the CPU too (tests, scripts/gpu_path_bake.py). Off: a CPU bake's own threads already take
-#: the cores (measured on 2 cores: no faster, results/bench_bake_overlap_cpu_session15.json)
+#: the cores (measured on 2 cores: no faster, results/bench_bake_overlap_refine_nocache_cpu_session15.json)
 READ_AHEAD_ON_CPU = False
 _READING: dict = {}    # the same keys -> Future of the scan file read by prefetch_scan, not yet taken
 _READER: list = []     # the one thread that reads them (made on first use)
@@ -95,10 +95,10 @@ def prefetch_scan(capture, frame: str, config, run=None) -> None:
     """Start reading ``frame``'s scan file (``capture.load_scan``: the mesh and its texture decoded) on
     this process's reader thread, for :func:`prepared_scan` to take when the frame's task comes: the
     read then overlaps the task before it, whose kernels keep a GPU busy while the host waits
-    (:data:`READ_AHEAD`, where ``config.device`` is CUDA or :data:`READ_AHEAD_ON_CPU`). Nothing is started for a scan kept or
-    already being read, a file that cannot be stat'ed (its task reports it) or with less than twice the
-    memory reserve available. A read that fails raises in :func:`prepared_scan`, as reading it there
-    would."""
+    (:data:`READ_AHEAD`, where ``config.device`` is CUDA or :data:`READ_AHEAD_ON_CPU`). Nothing is
+    started for a scan kept or already being read, a file that cannot be stat'ed (its task reports it)
+    or with less than twice the memory reserve available. A read that fails raises in
+    :func:`prepared_scan`, as reading it there would."""
     from uvatar.resources import available_memory
 
     if not (READ_AHEAD and (str(config.device).startswith("cuda") or READ_AHEAD_ON_CPU)):
@@ -112,6 +112,16 @@ def prefetch_scan(capture, frame: str, config, run=None) -> None:
 
         _READER.append(ThreadPoolExecutor(max_workers=1, thread_name_prefix="scan-read"))
     _READING[key] = _READER[0].submit(capture.load_scan, frame)
+
+
+def prefetch_task_scans(shared: dict, frames) -> None:
+    """:func:`prefetch_scan` of each of ``frames`` for a bake's in-process task (``shared``: the bake's
+    task inputs, capture_root, config and run): the prefetch of :func:`uvatar.parallel.run_tasks`."""
+    from uvatar.capture import Capture
+
+    capture = Capture(shared["capture_root"])
+    for frame in frames:
+        prefetch_scan(capture, frame, shared["config"], shared.get("run"))
 
 
 def _enter_run(run) -> None:

@@ -34,7 +34,7 @@ from uvatar.avh.bake.inputs import (
     adopt_body_and_layout,
     clear_scan_cache,
     load_body_and_layout,
-    prefetch_scan,
+    prefetch_task_scans,
     prepared_scan,
     start_fit,
 )
@@ -153,10 +153,8 @@ def _bake_task(shared: dict, item):
 
 
 def _prefetch_bake(shared: dict, item) -> None:
-    """The next frame's scan file read on a thread while this frame bakes (:func:`.inputs.prefetch_scan`)."""
-    from uvatar.capture import Capture
-
-    prefetch_scan(Capture(shared["capture_root"]), item[0], shared["config"], shared.get("run"))
+    """The next frame's scan file read on a thread while this frame bakes (:func:`.inputs.prefetch_task_scans`)."""
+    prefetch_task_scans(shared, [item[0]])
 
 
 def _peak_rss_mb() -> float:

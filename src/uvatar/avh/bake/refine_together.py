@@ -30,7 +30,7 @@ from uvatar.avh.bake.inputs import (
     keep_sample,
     kept_sample,
     load_body_and_layout,
-    prefetch_scan,
+    prefetch_task_scans,
     prepared_scan,
     start_fit,
 )
@@ -194,12 +194,8 @@ def _refine_task(shared: dict, group):
 
 def _prefetch_group(shared: dict, group) -> None:
     """The next task's scan files read on a thread while this task's frames refine
-    (:func:`.inputs.prefetch_scan`; those kept from an earlier round are not read again)."""
-    from uvatar.capture import Capture
-
-    capture = Capture(shared["capture_root"])
-    for frame, *_ in group:
-        prefetch_scan(capture, frame, shared["config"], shared.get("run"))
+    (:func:`.inputs.prefetch_task_scans`; those kept from an earlier round are not read again)."""
+    prefetch_task_scans(shared, [frame for frame, *_ in group])
 
 
 #: deal frames into tasks of ``frames_in_flight`` with CPU tensors too (scripts/gpu_path_bake.py: CUDA's
