@@ -84,3 +84,9 @@ def test_the_cpu_reads_no_scan_ahead_by_default(capture, monkeypatch):
     monkeypatch.setattr(inputs, "READ_AHEAD", False)                # the benches' way without
     inputs.prefetch_scan(cap, "000001", BakeConfig(texels=32), run="e")
     assert not inputs._READING
+
+
+def test_a_task_read_ahead_never_raises(tmp_path):
+    inputs.prefetch_task_scans({"capture_root": str(tmp_path / "nowhere"), "config": BakeConfig(device="cuda")},
+                               ["000000"])
+    inputs.prefetch_task_scans({}, ["000000"])                       # not even without its inputs

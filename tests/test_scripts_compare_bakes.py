@@ -55,13 +55,26 @@ def test_compare_bakes_measures_known_differences(tmp_path, capsys):
     assert "not a baked folder" in capsys.readouterr().err
 
 
-def test_the_cuda_path_bake_on_cpu_tensors_equals_itself_one_frame_at_a_time(tmp_path):
+def test_the_cuda_path_bake_on_cpu_tensors_equals_itself_one_frame_at_a_time(tmp_path, monkeypatch):
     """scripts/gpu_path_bake.py on a tiny capture (three frames: the colour rounds run): its frames in flight
     with the stencil kernel give the arrays of one frame at a time through the torch stencil, bit for bit
-    (scripts/compare_bakes.py: identical)."""
+    (scripts/compare_bakes.py: identical). In flight, a task's later scans are read ahead while its first
+    is prepared."""
+    import threading
+
     from test_avh_bake_helpers import make_capture
 
     from uvatar.avh.bake import inputs, refine_together, stencil_warp
+    from uvatar.capture import Capture
+
+    readers = {}
+    load = Capture.load_scan
+
+    def recorded(self, frame):
+        readers.setdefault(frame, threading.current_thread().name)
+        return load(self, frame)
+
+    monkeypatch.setattr(Capture, "load_scan", recorded)
 
     spec = importlib.util.spec_from_file_location("gpu_path_bake", ROOT / "scripts" / "gpu_path_bake.py")
     bake = importlib.util.module_from_spec(spec)
@@ -69,6 +82,8 @@ def test_the_cuda_path_bake_on_cpu_tensors_equals_itself_one_frame_at_a_time(tmp
     cap = make_capture(tmp_path / "cap", n_frames=3, broken=(), fit_noise_deg=2.0)
     frames = "000000,000001,000002"
     assert bake.main([str(cap), str(tmp_path / "flight"), "--frames", frames, "--texels", "32", "--in-flight", "3"]) == 0
+    assert readers["000000"] == threading.current_thread().name                  # one task of three frames
+    assert readers["000001"].startswith("scan-read") and readers["000002"].startswith("scan-read")
     assert bake.main([str(cap), str(tmp_path / "one"), "--frames", frames, "--texels", "32", "--in-flight", "1",
                       "--stencil", "torch"]) == 0
     assert not (refine_together.IN_FLIGHT_ON_CPU or stencil_warp.STENCIL_IN_WARP_ON_CPU

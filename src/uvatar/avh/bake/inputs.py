@@ -115,13 +115,20 @@ def prefetch_scan(capture, frame: str, config, run=None) -> None:
 
 
 def prefetch_task_scans(shared: dict, frames) -> None:
-    """:func:`prefetch_scan` of each of ``frames`` for a bake's in-process task (``shared``: the bake's
-    task inputs, capture_root, config and run): the prefetch of :func:`uvatar.parallel.run_tasks`."""
-    from uvatar.capture import Capture
+    """:func:`prefetch_scan` of each of ``frames`` for a bake's task (``shared``: the bake's task inputs,
+    capture_root, config and run): the prefetch of :func:`uvatar.parallel.run_tasks`, and a task's own for
+    its later frames. Never raises: a read ahead that cannot start is the frame's task's to meet."""
+    import logging
 
-    capture = Capture(shared["capture_root"])
-    for frame in frames:
-        prefetch_scan(capture, frame, shared["config"], shared.get("run"))
+    from uvatar.capture import Capture
+    from uvatar.errors import one_line
+
+    try:
+        capture = Capture(shared["capture_root"])
+        for frame in frames:
+            prefetch_scan(capture, frame, shared["config"], shared.get("run"))
+    except Exception as exc:  # noqa: BLE001 - the task reads the scan itself and reports what fails
+        logging.getLogger(__name__).debug("no read ahead of %s: %s", list(frames), one_line(exc))
 
 
 def _enter_run(run) -> None:

@@ -157,6 +157,7 @@ def _refine_task(shared: dict, group):
     capture = Capture(shared["capture_root"])
     out: list = [None] * len(group)
     jobs, prepared = [], []
+    prefetch_task_scans(shared, [frame for frame, *_ in group[1:]])   # read while the first is prepared
     for i, (frame, start, target, radius) in enumerate(group):
         try:
             scan, surface = prepared_scan(capture, frame, config, shared.get("run"))   # once for all rounds
