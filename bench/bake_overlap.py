@@ -69,40 +69,45 @@ def _identical(a: Path, b: Path) -> bool:
     return True
 
 
+def _bake_bench():
+    """bench/bake.py as a module (its frames and its timing of a frame's write)."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    if here not in sys.path:
+        sys.path.insert(0, here)
+    import bake
+
+    return bake
+
+
 def _write_seconds(out: Path, frames: list[str]) -> float:
-    """Seconds per frame to write the frames of ``out`` again (maps and preview), as the bake does."""
+    """Seconds per frame to write the frames of ``out`` again (maps and preview), as the bake does
+    (bench/bake.py's ``_write_seconds`` of each frame read back)."""
     from types import SimpleNamespace
 
-    from uvatar.avh.bake.dataset import load_baked_frame, write_baked_frame
+    from uvatar.avh.bake.dataset import frame_path, load_baked_frame, rejected_path
 
     total = 0.0
-    with tempfile.TemporaryDirectory() as scratch:
-        for frame in frames:
-            path = next(p for p in (out / "frames" / f"{frame}.npz", out / "rejected" / f"{frame}.npz") if p.is_file())
-            z = load_baked_frame(path)
-            baked = SimpleNamespace(texture=z["texture"], displacement=z["displacement"], kappa=z["kappa"],
-                                    w=z["w"], valid=z["valid"], matched=z["matched"],
-                                    stats={"kappa_mean": float(z["kappa_mean"]),
-                                           "matched_fraction": float(z["matched_fraction"])})
-            fit = SimpleNamespace(poses=z["pose"], Rh=z["Rh"], Th=z["Th"], shapes=z["shapes"], scale=z["scale"])
-            t0 = time.perf_counter()
-            write_baked_frame(scratch, frame, baked, fit)
-            total += time.perf_counter() - t0
+    for frame in frames:
+        path = frame_path(out, frame) if frame_path(out, frame).is_file() else rejected_path(out, frame)
+        z = load_baked_frame(path)
+        baked = SimpleNamespace(texture=z["texture"], displacement=z["displacement"], kappa=z["kappa"],
+                                w=z["w"], valid=z["valid"], matched=z["matched"],
+                                stats={"kappa_mean": float(z["kappa_mean"]),
+                                       "matched_fraction": float(z["matched_fraction"])})
+        fit = SimpleNamespace(poses=z["pose"], Rh=z["Rh"], Th=z["Th"], shapes=z["shapes"], scale=z["scale"])
+        total += _bake_bench()._write_seconds(baked, fit, repeats=1)
     return total / len(frames)
 
 
 def _synthetic_capture(root: Path, frames: int) -> list[str]:
     """bench/bake.py's first ``frames`` frames written as a capture at ``root`` (scans, fits,
     capture.json); their names."""
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    from bake import _frames
-
     from uvatar.body import load_body_model
     from uvatar.capture import write_capture_info, write_fit, write_mesh
 
     names = [f"{i:06d}" for i in range(frames)]
-    for name, (fit, _, scan) in zip(names, _frames(load_body_model("anny"), frames, np.random.default_rng(0)),
-                                    strict=True):
+    items = _bake_bench()._frames(load_body_model("anny"), frames, np.random.default_rng(0))
+    for name, (fit, _, scan) in zip(names, items, strict=True):
         write_fit(root / "fits" / f"{name}.json", fit)
         write_mesh(root / "scans" / f"{name}.ply", scan)
     write_capture_info(root, names, body_model="anny")

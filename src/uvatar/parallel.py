@@ -154,8 +154,8 @@ def run_tasks(fn: Callable[[Any, Any], Any], items: Iterable, shared: Any = None
     fn, initializer: module-level functions (they are pickled to the workers). ``initializer`` runs
     in each worker process before its first task (e.g. :func:`uvatar.threads.limit_process_to_one_thread`).
     prefetch: in this process (one worker), ``prefetch(shared, next item)`` is called before each task
-    runs, to start reading the next task's inputs on a thread while this one runs; it must not raise
-    (an error is logged and ignored: the task meets it itself). Not called on pools and Ray.
+    runs, to start reading the next task's inputs on a thread while this one runs; an error it raises is
+    logged and ignored (the task meets it itself). Not called on pools and Ray.
     """
     from tqdm import tqdm
 
