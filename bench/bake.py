@@ -37,8 +37,9 @@ the body's UV layout; the difference of the two PSNRs is the figure); kappa_mean
 difference of an inpainted texel; the refined poses after the bake and after its colour rounds).
 ``--count-ops`` also bakes the first frame and runs its colour rounds once more, untimed, counting the
 torch operators each stage dispatches (``ops``: computing ones, ``views``: no kernel) and the Warp
-launches, with the torch stages on the bake's device as CUDA runs them (rays cast in place by Warp, the
-nearest samples by the Warp kernel): on a GPU each is a launch the host makes, and the H200 found every
+launches, with the torch stages on the bake's device as CUDA runs them (rays cast in place by Warp, and
+:func:`uvatar.avh.bake.cuda_choices.cuda_choices_on_cpu`'s kernels: the nearest samples, the refinement's
+posing and step, the colour stencil): on a GPU each is a launch the host makes, and the H200 found every
 stage's CPU time equal to its wall time (issue 39), so these counts are what a frame costs the host
 there. On the CPU they need ``--torch-stages on --device cpu``; the time is not what CUDA's would be.
 ``--profile`` runs the first frame and its colour rounds once more under torch.profiler and reports where
@@ -217,7 +218,7 @@ def _count_ops(model, layout, config, item) -> dict:
     from _ops import OpCounter
 
     import uvatar.avh.bake.frame as frame
-    from uvatar.avh.bake import refine_device, register_torch, stencil_warp
+    from uvatar.avh.bake.cuda_choices import cuda_choices_on_cpu
 
     counter = OpCounter()
     timed = frame._timed
@@ -233,20 +234,17 @@ def _count_ops(model, layout, config, item) -> dict:
 
     config = replace(config, ray_backend="warp")     # CUDA's caster: the rays cast in place (Warp runs on the CPU)
     fit, _, scan = item
-    saved = (frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU,
-             stencil_warp.STENCIL_IN_WARP_ON_CPU)
-    (frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU,
-     stencil_warp.STENCIL_IN_WARP_ON_CPU) = labelled, True, True, True
+    saved, frame._timed = frame._timed, labelled
     try:
-        surface, targets = _surface_and_targets(model, item, config)
-        frame.bake_fit(model, fit, layout, scan, config, surface=surface)        # the per-scan copies made
-        with counter:
-            _, used = frame.bake_fit(model, fit, layout, scan, config, surface=surface)
-            counter.label = "colour_rounds"
-            _colour_rounds(model, used, targets, scan, surface, config)
+        with cuda_choices_on_cpu(in_flight=False, read_ahead=False):
+            surface, targets = _surface_and_targets(model, item, config)
+            frame.bake_fit(model, fit, layout, scan, config, surface=surface)        # the per-scan copies made
+            with counter:
+                _, used = frame.bake_fit(model, fit, layout, scan, config, surface=surface)
+                counter.label = "colour_rounds"
+                _colour_rounds(model, used, targets, scan, surface, config)
     finally:
-        (frame._timed, register_torch.WINDOW_SEARCH_ON_CPU, refine_device.STEP_IN_WARP_ON_CPU,
-         stencil_warp.STENCIL_IN_WARP_ON_CPU) = saved
+        frame._timed = saved
     out = counter.table()
     out["frame_total"] = {n: sum(v[n] for k, v in out.items() if k != "colour_rounds")
                           for n in ("ops", "views", "warp_launches")}

@@ -102,7 +102,7 @@ for part in $PARTS; do
         tests/test_devices.py tests/test_geometry_nearest_warp.py tests/test_geometry_jump_flood_warp.py \
         tests/test_body_anny.py::test_cuda_pose_with_a_host_shape_reads_nothing_back tests/test_avh_bake_torch.py \
         tests/test_avh_bake_speed.py::test_cuda_bake_matches_the_cpu_bake tests/test_avh_bake_refine_in_flight.py \
-        tests/test_avh_bake_stencil_warp.py ;;
+        tests/test_avh_bake_stencil_warp.py tests/test_body_pose_warp.py ;;
     train)  # the paper preset's training step (K = 4096, S = 16): synchronised and pipelined (<= 80 ms)
       # (--compile: the step's encoders and decoders eager, then through torch.compile; compiled in the warm-up)
       run_part train "${TRAIN_SECONDS:-300}" "$OUT/dva_train.json" python bench/dva_train.py --device cuda --preset paper \

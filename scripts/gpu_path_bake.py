@@ -4,7 +4,7 @@ on a machine without a GPU (issue 39; CI has none, and a lent GPU is rare).
 The torch stages on CPU tensors (``--torch-stages on``), the rays through Warp's BVH on the CPU (the same
 float32 casts as on CUDA), and every choice CUDA makes where the CPU would keep another: the nearest
 samples through the Warp grid kernel, the refinement's step and the colour stencil in their Warp
-kernels, and the frames' refinements ``--in-flight`` at a time (:mod:`uvatar.avh.bake.refine_in_flight`).
+kernels, the refinement's body posed in Warp, and the frames' refinements ``--in-flight`` at a time (:mod:`uvatar.avh.bake.refine_in_flight`).
 Compare the result with a CPU bake of the same frames: ``python scripts/compare_bakes.py CPU_OUT OUT``.
 
     python scripts/gpu_path_bake.py CAP OUT --frames 000000,000005,000011 [--in-flight 3] [--texels 1024]
@@ -14,30 +14,9 @@ Compare the result with a CPU bake of the same frames: ``python scripts/compare_
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 import time
-
-
-@contextlib.contextmanager
-def cuda_choices(stencil_kernel: bool = True):
-    """Within: the bake makes CUDA's choices on CPU tensors (module doc); as before afterwards."""
-    from uvatar.avh.bake import inputs, refine_device, refine_together, register_torch, stencil_warp
-
-    saved = (register_torch.WINDOW_SEARCH_ON_CPU, register_torch.NEAREST_KERNEL, refine_device.STEP_IN_WARP_ON_CPU,
-             stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together.IN_FLIGHT_ON_CPU, inputs.READ_AHEAD_ON_CPU)
-    register_torch.WINDOW_SEARCH_ON_CPU = True          # CUDA's nearest-sample choice: the Warp grid kernel
-    register_torch.NEAREST_KERNEL = True
-    refine_device.STEP_IN_WARP_ON_CPU = True           # the refinement's step in its Warp kernel
-    stencil_warp.STENCIL_IN_WARP_ON_CPU = stencil_kernel   # the colour stencil in its Warp kernel
-    refine_together.IN_FLIGHT_ON_CPU = True            # CUDA's dealing of the frames into tasks
-    inputs.READ_AHEAD_ON_CPU = True                     # the next task's scans read ahead
-    try:
-        yield
-    finally:
-        (register_torch.WINDOW_SEARCH_ON_CPU, register_torch.NEAREST_KERNEL, refine_device.STEP_IN_WARP_ON_CPU,
-         stencil_warp.STENCIL_IN_WARP_ON_CPU, refine_together.IN_FLIGHT_ON_CPU, inputs.READ_AHEAD_ON_CPU) = saved
 
 
 def main(argv=None) -> int:
@@ -54,6 +33,7 @@ def main(argv=None) -> int:
         ap.error(f"--in-flight: at least 1 frame, got {args.in_flight}")
 
     from uvatar.avh.bake.config import BakeConfig
+    from uvatar.avh.bake.cuda_choices import cuda_choices_on_cpu
     from uvatar.avh.bake.pipeline import bake_capture
     from uvatar.errors import UvatarError
 
@@ -61,7 +41,7 @@ def main(argv=None) -> int:
     frames = [f for f in args.frames.split(",") if f]
     t0 = time.perf_counter()
     try:
-        with cuda_choices(args.stencil == "warp"):
+        with cuda_choices_on_cpu(args.stencil == "warp"):
             results = bake_capture(args.capture, args.out, config, frames=frames)
     except UvatarError as exc:              # bad input: one line, as uvatar bake says it
         print(f"gpu_path_bake: {exc}", file=sys.stderr)

@@ -49,6 +49,42 @@ def offset_scan(model, fit, offset: float = OFFSET, cut_above: float | None = No
     return TexturedMesh(scan_v, faces, tpl.uvs, uv_faces, pattern_texture() if texture is None else texture)
 
 
+def noisy_refinement(model):
+    """(surface, noisy fit, config) of a small refinement case: a scan of a known pose (Rh, Th), the fit
+    to refine off by 0.03 rad a joint and a few cm, 4 iterations on 800 vertices."""
+    from uvatar.avh.bake.config import PoseRefineConfig
+    from uvatar.avh.bake.register import ScanSurface
+    from uvatar.capture import BodyFit
+
+    truth = BodyFit(poses=frame_pose(model, 0), Rh=[0.0, 0.4, 0.0], Th=[0.1, 0.0, -0.2])
+    scan = offset_scan(model, truth)
+    surface = ScanSurface.build(scan.vertices, scan.faces)
+    noisy = BodyFit(poses=frame_pose(model, 0) + np.random.default_rng(1).normal(0, 0.03, 3 * model.num_joints)
+                    .astype(np.float32), Rh=[0.0, 0.45, 0.02], Th=[0.11, 0.01, -0.2])
+    return surface, noisy, PoseRefineConfig(iterations=4, max_vertices=800)
+
+
+def refinements_either_way(monkeypatch, switch: str, atol_rad: float, atol_mm: float) -> None:
+    """:func:`noisy_refinement` refined on a device (CPU tensors) with ``refine_device.<switch>`` off (the
+    twin) and on: poses, Rh within ``atol_rad``, Th within ``atol_mm`` / 1000 m, the residuals within
+    ``atol_mm``; and the fit did move."""
+    from uvatar.avh.bake import refine_device
+    from uvatar.avh.bake.refine import refine_fit
+
+    model = body()
+    surface, noisy, config = noisy_refinement(model)
+    outs = {}
+    for on in (False, True):
+        monkeypatch.setattr(refine_device, switch, on)
+        outs[on] = refine_fit(model, noisy, surface, config, device="cpu")
+    (ref, ref_stats), (out, stats) = outs[False], outs[True]
+    np.testing.assert_allclose(out.poses, ref.poses, atol=atol_rad, rtol=0)
+    np.testing.assert_allclose(out.Rh, ref.Rh, atol=atol_rad, rtol=0)
+    np.testing.assert_allclose(out.Th, ref.Th, atol=atol_mm / 1000, rtol=0)
+    np.testing.assert_allclose(stats["residual_mm"], ref_stats["residual_mm"], atol=atol_mm, rtol=0)
+    assert np.abs(np.asarray(ref.poses) - np.asarray(noisy.poses)).max() > 1e-3       # it did refine
+
+
 def make_capture(root, n_frames: int = 3, broken=(1,), unreadable=(), heldout=(), gt_texels: int = 64,
                  offset: float = OFFSET, fit_noise_deg: float = 0.0) -> Path:
     """A capture folder with scans/, fits/, capture.json and gt/ (info.json + frames/*.npz).

@@ -62,29 +62,7 @@ def test_the_launch_takes_the_torch_step(device, scale):
 
 def test_a_device_refinement_takes_the_same_steps_either_way(monkeypatch):
     """refine_fit on a device (CPU tensors) with its steps applied in Warp and in torch: the same refined
-    pose within 1e-10 rad and the same stats within 1e-9."""
-    from test_avh_bake_helpers import body, frame_pose, offset_scan
+    pose within 1e-10 rad and the same residuals within 1e-9 mm."""
+    from test_avh_bake_helpers import refinements_either_way
 
-    from uvatar.avh.bake import refine_device
-    from uvatar.avh.bake.config import PoseRefineConfig
-    from uvatar.avh.bake.refine import refine_fit
-    from uvatar.avh.bake.register import ScanSurface
-    from uvatar.capture import BodyFit
-
-    model = body()
-    truth = BodyFit(poses=frame_pose(model, 0), Rh=[0.0, 0.4, 0.0], Th=[0.1, 0.0, -0.2])
-    scan = offset_scan(model, truth)
-    surface = ScanSurface.build(scan.vertices, scan.faces)
-    noisy = BodyFit(poses=frame_pose(model, 0) + np.random.default_rng(1).normal(0, 0.03, 3 * model.num_joints)
-                    .astype(np.float32), Rh=[0.0, 0.45, 0.02], Th=[0.11, 0.01, -0.2])
-    config = PoseRefineConfig(iterations=4, max_vertices=800)
-    outs = {}
-    for in_warp in (False, True):
-        monkeypatch.setattr(refine_device, "STEP_IN_WARP_ON_CPU", in_warp)
-        outs[in_warp] = refine_fit(model, noisy, surface, config, device="cpu")
-    (ref, ref_stats), (out, stats) = outs[False], outs[True]
-    np.testing.assert_allclose(out.poses, ref.poses, atol=1e-10, rtol=0)
-    np.testing.assert_allclose(out.Rh, ref.Rh, atol=1e-10, rtol=0)
-    np.testing.assert_allclose(out.Th, ref.Th, atol=1e-10, rtol=0)
-    np.testing.assert_allclose(stats["residual_mm"], ref_stats["residual_mm"], atol=1e-9, rtol=0)
-    assert np.abs(np.asarray(ref.poses) - np.asarray(noisy.poses)).max() > 1e-3       # it did refine
+    refinements_either_way(monkeypatch, "STEP_IN_WARP_ON_CPU", atol_rad=1e-10, atol_mm=1e-9)

@@ -2,7 +2,8 @@
 Gauss-Newton loop on torch tensors on one device, without a read-back until its end.
 
 The iteration state (joint rotation vectors, Rh, Th, clothing offsets: float64) stays on the device;
-the body is posed there (float32, as the numpy path's posing, then cast to float64); the nearest scan
+the body is posed there (float32, as the numpy path's posing, then cast to float64; on CUDA in three Warp
+launches, :mod:`uvatar.body.pose_warp`, instead of ~90 operators); the nearest scan
 samples, the stencil colours, the Huber weights, the normal equations (the dense product of
 :func:`.refine_model._normal_equations_reference`, one owner of that math), the damped solve and the
 step (:func:`apply_step_torch`: the rotation updates through :func:`compose_rotvecs` and :func:`rotate`,
@@ -35,7 +36,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "refinement_steps", "run_steps",
            "rotvec_quaternions", "quaternion_rotvecs",
-           "apply_step_torch", "step_in_warp", "STEP_IN_WARP_ON_CPU",
+           "apply_step_torch", "step_in_warp", "STEP_IN_WARP_ON_CPU", "pose_in_warp_on", "POSE_IN_WARP_ON_CPU",
            "GRAPH_FAILURES", "GRAPHS_ON_CPU"]
 
 
@@ -134,6 +135,21 @@ def step_in_warp(device) -> bool:
     return (torch.device(device).type == "cuda" or STEP_IN_WARP_ON_CPU) and warp_importable()
 
 
+#: pose the refinement's body in Warp on the CPU too (tests); on CUDA it does wherever Warp is
+POSE_IN_WARP_ON_CPU = False
+
+
+def pose_in_warp_on(posing) -> bool:
+    """Is the body ``posing`` posed by :func:`uvatar.body.pose_warp.pose_in_warp` (three launches instead
+    of ~90 operators an iteration)? On CUDA where Warp is installed and the body is anny
+    (:func:`~uvatar.body.pose_warp.warp_posing_supported`), on the CPU with :data:`POSE_IN_WARP_ON_CPU`."""
+    from uvatar.body.pose_warp import warp_posing_supported
+    from uvatar.geometry.raycast_warp import warp_importable
+
+    return ((posing.device.type == "cuda" or POSE_IN_WARP_ON_CPU) and warp_posing_supported(posing)
+            and warp_importable())
+
+
 def _huber_weights(residuals, scale: float):
     """:func:`.refine._huber_weights` of a tensor."""
     return (scale / residuals.abs().clamp(min=1e-12)).clamp(max=1.0)
@@ -194,16 +210,25 @@ def _body_on_device(body, config, device):
     return _memo(body, ("on_device", config.max_untracked_weight, config.max_vertices, str(device)), make)
 
 
-def _pose(posing, rot, rh, th, scale, shape):
-    """(vertices (V, 3), normals (V, 3), joint transforms (J, 4, 4)) float64 tensors of one posed frame:
-    the body posed on its device in float32 (as :func:`.refine_model._posed`), no copy to the host."""
+def _pose(posing, rot, rh, th, scale, shape, rows):
+    """(vertices (R, 3), normals (R, 3) of the vertices ``rows`` (R,) int64, joint transforms (J, 4, 4))
+    float64 tensors on the posing body's device of one posed frame, in float32 as
+    :func:`.refine_model._posed`, no copy to the host: three Warp launches
+    (:func:`uvatar.body.pose_warp.pose_in_warp`) where :func:`pose_in_warp_on` says so, else its twin
+    :meth:`BodyModel.pose` (~90 operators)."""
     import torch
 
+    if pose_in_warp_on(posing):
+        from uvatar.body.pose_warp import pose_in_warp
+
+        dev = posing.device
+        return tuple(pose_in_warp(posing, rot.to(dev), rh.to(dev), th.to(dev), scale, shape, rows.to(dev)))
     with torch.no_grad():
         out = posing.pose(rot.to(posing.device, torch.float32)[None],
                           Rh=rh.to(posing.device, torch.float32)[None], Th=th.to(posing.device, torch.float32)[None],
                           scale=scale, shape=shape)
-    return (out.vertices[0].to(torch.float64), out.normals[0].to(torch.float64),
+    rows = rows.to(posing.device)
+    return (out.vertices[0][rows].to(torch.float64), out.normals[0][rows].to(torch.float64),
             out.joint_transforms[0].to(torch.float64))
 
 
@@ -230,8 +255,8 @@ def sample_colours_on_device(body, fit, surface, scan_mesh, config, radius: floa
     v, n, _ = _pose(posing, torch.as_tensor(body.joint_rotvecs_from_fit(fit), dtype=torch.float64, device=dev),
                     torch.as_tensor(np.asarray(fit.Rh, np.float64), device=dev),
                     torch.as_tensor(np.asarray(fit.Th, np.float64), device=dev),
-                    torch.tensor([float(fit.scale)], device=dev), shape_t)
-    v, n = v.to(device)[use], n.to(device)[use]
+                    torch.tensor([float(fit.scale)], device=dev), shape_t, use)
+    v, n = v.to(device), n.to(device)
     return surface_colours(surface, scan_mesh, v, n, radius, config.photometric_max_distance,
                            float(np.cos(np.radians(config.max_normal_angle_deg))), config.photometric_space, device)
 
@@ -376,8 +401,7 @@ def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sam
     def iteration(first: bool, last: bool):
         """One Gauss-Newton iteration from ``state``; the first finds the match distance and the clothing
         offsets (and may start from ``start_sample``), the last only measures."""
-        v, n, tr = (a.to(device) for a in _pose(posing, state.rot, state.rh, state.th, scale, shape_t))
-        v, n = v[use], n[use]
+        v, n, tr = (a.to(device) for a in _pose(posing, state.rot, state.rh, state.th, scale, shape_t, use))
         if first:
             state.max_distance = config.max_distance * torch.linalg.norm(v.max(0).values - v.min(0).values)
         near, idx, widest = _nearest(scan, v, state.max_distance, device)

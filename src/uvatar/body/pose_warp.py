@@ -1,0 +1,224 @@
+"""anny posed in three Warp launches: the fast twin of :meth:`uvatar.body.base.BodyModel.pose` for one
+frame of an :class:`~uvatar.body.anny_backend.AnnyBody` (CPU and CUDA, float32 as the twin, no autograd).
+
+The bake's pose refinement poses the body at each of its ~43 Gauss-Newton iterations a frame (with its
+colour rounds), and the torch twin is ~90 small operators a pose (Rodrigues, kinematics by pointer
+doubling, the skinning transforms, the sparse skin, the global transform, the vertex normals), each a
+launch on a GPU (issue 39). Here:
+
+1. ``joints`` (a thread a joint): each joint's local rotation (Rodrigues) composed down its chain from the
+   root (anny's depth is 17), its skinning transform ``[F B | p - F B h]`` and its posed world transform
+   (with ``scale``, ``Rh`` and ``Th``);
+2. ``skin`` (a thread a vertex): the vertex's few weights (CSR) blend those transforms, then the global
+   transform;
+3. ``normals`` (a thread an output row): the area-weighted normal of the row's vertex over its faces
+   (vertex-face CSR, a fixed order: no atomics, the same sums every run), and the row's vertex and
+   normal in float64.
+
+The rows are any subset of the vertices (the refinement's ~4,000 of 13,718), so the caller needs no
+gather. The same frame as the twin to float32 rounding (tested on the CPU: vertices within 1e-6 m).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+__all__ = ["warp_posing_supported", "pose_in_warp", "PosedRows"]
+
+
+def warp_posing_supported(body) -> bool:
+    """Can :func:`pose_in_warp` pose ``body``? anny (plain linear blend skinning of its bind mesh, no
+    pose-dependent shapes); not SMPL/SMPL-X (pose correctives) nor the toy tube."""
+    from uvatar.body.anny_backend import AnnyBody
+
+    return isinstance(body, AnnyBody)
+
+
+class PosedRows(tuple):
+    """(vertices (R, 3) float64, normals (R, 3) float64, joint transforms (J, 4, 4) float64) tensors."""
+
+    __slots__ = ()
+
+
+@lru_cache(maxsize=1)
+def _kernels():
+    from uvatar.geometry.warp_torch import load_warp
+
+    wp = load_warp()
+
+    @wp.func
+    def rodrigues(r: wp.vec3f):
+        """:func:`uvatar.body.kinematics.rotvec_to_rotmat`: I + a K + b K^2, a = sin t / t,
+        b = (1 - cos t) / t^2 (their series below 1e-4 rad)."""
+        t2 = wp.dot(r, r)
+        t = wp.sqrt(t2)
+        a = wp.float32(1.0) - t2 / wp.float32(6.0)
+        b = wp.float32(0.5) - t2 / wp.float32(24.0)
+        if t > wp.float32(1.0e-4):
+            a = wp.sin(t) / t
+            h = wp.sin(t * wp.float32(0.5)) / (t * wp.float32(0.5))
+            b = wp.float32(0.5) * h * h
+        k = wp.mat33f(wp.float32(0.0), -r[2], r[1], r[2], wp.float32(0.0), -r[0], -r[1], r[0], wp.float32(0.0))
+        return wp.identity(n=3, dtype=wp.float32) + a * k + b * (k @ k)
+
+    @wp.kernel
+    def joints(rot: wp.array(dtype=wp.vec3d), chain: wp.array2d(dtype=wp.int32), depth: wp.array(dtype=wp.int32),
+               offsets: wp.array(dtype=wp.vec3f), bind_rot: wp.array(dtype=wp.mat33f),
+               bind_heads: wp.array(dtype=wp.vec3f), to_world: wp.mat33f, rh: wp.array(dtype=wp.vec3d),
+               th: wp.array(dtype=wp.vec3d), scale: wp.array(dtype=wp.float32),
+               skin_rot: wp.array(dtype=wp.mat33f), skin_t: wp.array(dtype=wp.vec3f),
+               world: wp.array3d(dtype=wp.float64)):
+        j = wp.tid()
+        f = wp.identity(n=3, dtype=wp.float32)
+        p = wp.vec3f(wp.float32(0.0), wp.float32(0.0), wp.float32(0.0))
+        for d in range(depth[j]):                     # root first: p_c = p + F o_c, F_c = F L_c
+            c = chain[j, d]
+            p = p + f @ offsets[c]
+            f = f @ rodrigues(wp.vec3f(rot[c]))
+        fb = f @ bind_rot[j]
+        skin_rot[j] = fb
+        skin_t[j] = p - fb @ bind_heads[j]
+        g = rodrigues(wp.vec3f(rh[0]))
+        s = scale[0]
+        top = g @ ((to_world @ f) * s)
+        t = g @ ((to_world @ p) * s) + wp.vec3f(th[0])
+        for a in range(3):
+            for b in range(3):
+                world[j, a, b] = wp.float64(top[a, b])
+            world[j, a, 3] = wp.float64(t[a])
+            world[j, 3, a] = wp.float64(0.0)
+        world[j, 3, 3] = wp.float64(1.0)
+
+    @wp.kernel
+    def skin(bind: wp.array(dtype=wp.vec3f), start: wp.array(dtype=wp.int32), cols: wp.array(dtype=wp.int32),
+             weights: wp.array(dtype=wp.float32), skin_rot: wp.array(dtype=wp.mat33f),
+             skin_t: wp.array(dtype=wp.vec3f), to_world: wp.mat33f, rh: wp.array(dtype=wp.vec3d),
+             th: wp.array(dtype=wp.vec3d), scale: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.vec3f)):
+        v = wp.tid()
+        m = wp.mat33f()
+        t = wp.vec3f(wp.float32(0.0), wp.float32(0.0), wp.float32(0.0))
+        for e in range(start[v], start[v + 1]):
+            w = weights[e]
+            m = m + w * skin_rot[cols[e]]
+            t = t + w * skin_t[cols[e]]
+        x = to_world @ (m @ bind[v] + t)
+        out[v] = rodrigues(wp.vec3f(rh[0])) @ (x * scale[0]) + wp.vec3f(th[0])
+
+    @wp.kernel
+    def normals(vertices: wp.array(dtype=wp.vec3f), faces: wp.array(dtype=wp.vec3i), start: wp.array(dtype=wp.int32),
+                incident: wp.array(dtype=wp.int32), rows: wp.array(dtype=wp.int64),
+                out_v: wp.array(dtype=wp.vec3d), out_n: wp.array(dtype=wp.vec3d)):
+        r = wp.tid()
+        i = int(rows[r])
+        n = wp.vec3f(wp.float32(0.0), wp.float32(0.0), wp.float32(0.0))
+        for e in range(start[i], start[i + 1]):
+            f = faces[incident[e]]
+            a = vertices[f[0]]
+            n = n + wp.cross(vertices[f[1]] - a, vertices[f[2]] - a)
+        n = n / wp.max(wp.length(n), wp.float32(1.0e-12))
+        out_v[r] = wp.vec3d(vertices[i])
+        out_n[r] = wp.vec3d(n)
+
+    return joints, skin, normals
+
+
+def _csr(rows: np.ndarray, cols: np.ndarray, values: np.ndarray | None, n: int):
+    """(start (n + 1,) int32, cols int32, values float32 or None) of (row, col) pairs sorted by row."""
+    order = np.argsort(rows, kind="stable")
+    start = np.zeros(n + 1, np.int32)
+    np.cumsum(np.bincount(rows, minlength=n), out=start[1:])
+    return start, cols[order].astype(np.int32), None if values is None else values[order].astype(np.float32)
+
+
+def _chains(parents) -> tuple[np.ndarray, np.ndarray]:
+    """(chain (J, D) int32: each joint's ancestors from the root down to itself, depth (J,) int32)."""
+    parents = np.asarray(parents).reshape(-1)
+    paths = []
+    for j in range(len(parents)):            # once per body, J joints (anny: 163)
+        path = [j]
+        while parents[path[-1]] >= 0:
+            path.append(int(parents[path[-1]]))
+        paths.append(path[::-1])
+    depth = np.array([len(p) for p in paths], np.int32)
+    chain = np.zeros((len(paths), depth.max()), np.int32)
+    for j, p in enumerate(paths):
+        chain[j, :len(p)] = p
+    return chain, depth
+
+
+class _Rig:
+    """One body's constant arrays on one device, as torch tensors (Warp views of them per launch)."""
+
+    def __init__(self, body, device):
+        import torch
+
+        weights = body._weights.detach().cpu().numpy()
+        v_idx, j_idx = np.nonzero(weights)
+        self.w_start, self.w_cols, self.w_values = _csr(v_idx, j_idx, weights[v_idx, j_idx], weights.shape[0])
+        faces = np.asarray(body.template.faces, np.int64)
+        self.f_start, self.f_incident, _ = _csr(faces.reshape(-1), np.repeat(np.arange(len(faces)), 3), None,
+                                                weights.shape[0])
+        self.chain, self.depth = _chains(body._data.parents)
+        to = dict(device=device)
+        self.tensors = {name: torch.as_tensor(getattr(self, name), **to)
+                        for name in ("w_start", "w_cols", "w_values", "f_start", "f_incident", "chain", "depth")}
+        self.tensors["faces"] = torch.as_tensor(faces.astype(np.int32), **to).contiguous()
+        self.to_world = np.asarray(body._to_world.detach().cpu().numpy(), np.float32)
+        self.num_vertices, self.num_joints = weights.shape
+
+
+def _rig(body, device) -> _Rig:
+    cache = body.__dict__.setdefault("_warp_rig_by_device", {})
+    key = str(device)
+    if key not in cache:
+        cache[key] = _Rig(body, device)
+    return cache[key]
+
+
+def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None) -> PosedRows:
+    """One frame of ``body`` (:func:`warp_posing_supported`) posed on its device: ``rot`` (J, 3) local
+    rotation vectors (radians), ``rh`` (3,) and ``th`` (3,) (metres) float64 tensors, ``scale`` (1,) float32
+    tensor there, ``shape`` as :meth:`BodyModel.pose` takes it (None: the default), ``rows`` (R,) int64
+    vertex indices (None: all) -> :class:`PosedRows`, posed in float32 as :meth:`BodyModel.pose` (its
+    twin) and given in float64. On torch's current stream; nothing read back (the bind state of a shape
+    given on the host is found in the body's cache)."""
+    import torch
+
+    from uvatar.geometry.warp_torch import launch_stream, load_warp, warp_view
+
+    wp = load_warp()
+    joints_k, skin_k, normals_k = _kernels()
+    dev = body.device
+    rig = _rig(body, dev)
+    t = rig.tensors
+    state = body._bind_state(shape)
+    if rows is None:
+        rows = torch.arange(rig.num_vertices, device=dev)
+    n_rows, n_joints = rows.shape[0], rig.num_joints
+    f32 = dict(dtype=torch.float32, device=dev)
+    skin_rot = torch.empty(n_joints, 3, 3, **f32)
+    skin_t = torch.empty(n_joints, 3, **f32)
+    world = torch.empty(n_joints, 4, 4, dtype=torch.float64, device=dev)
+    posed = torch.empty(rig.num_vertices, 3, **f32)
+    out_v = torch.empty(n_rows, 3, dtype=torch.float64, device=dev)
+    out_n = torch.empty(n_rows, 3, dtype=torch.float64, device=dev)
+    to_world = wp.mat33f(*rig.to_world.reshape(-1).tolist())
+    view = lambda x, dtype=None: warp_view(wp, x, dtype)   # noqa: E731
+    rot_v = view(rot.reshape(n_joints, 3), wp.vec3d)
+    rh_v, th_v, scale_v = view(rh.reshape(1, 3), wp.vec3d), view(th.reshape(1, 3), wp.vec3d), view(scale.reshape(1))
+    launch = dict(device=wp.device_from_torch(dev), stream=launch_stream(dev))
+    skin_rot_v, skin_t_v = view(skin_rot, wp.mat33f), view(skin_t, wp.vec3f)
+    wp.launch(joints_k, dim=n_joints,
+              inputs=[rot_v, view(t["chain"]), view(t["depth"]), view(state["offsets"][0], wp.vec3f),
+                      view(state["bind_rotations"][0], wp.mat33f), view(state["bind_heads"][0], wp.vec3f),
+                      to_world, rh_v, th_v, scale_v, skin_rot_v, skin_t_v, view(world)], **launch)
+    posed_v = view(posed, wp.vec3f)
+    wp.launch(skin_k, dim=rig.num_vertices,
+              inputs=[view(state["bind_vertices"][0], wp.vec3f), view(t["w_start"]), view(t["w_cols"]),
+                      view(t["w_values"]), skin_rot_v, skin_t_v, to_world, rh_v, th_v, scale_v, posed_v], **launch)
+    wp.launch(normals_k, dim=n_rows,
+              inputs=[posed_v, view(t["faces"], wp.vec3i), view(t["f_start"]), view(t["f_incident"]),
+                      view(rows.to(torch.int64)), view(out_v, wp.vec3d), view(out_n, wp.vec3d)], **launch)
+    return PosedRows((out_v, out_n, world))

@@ -1,0 +1,146 @@
+"""anny posed in three Warp launches (:mod:`uvatar.body.pose_warp`) against its twin, ``AnnyBody.pose``
+(torch, float32), and both against anny posed in float64: random poses with zero and sub-1e-4 rad
+joints (Rodrigues' series), a non-default shape, scale, Rh and Th, any rows; the CSR and chain helpers'
+known answers; the refinement with its body posed either way. CPU here, CUDA with ``-m gpu``."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("warp")
+
+from uvatar.body.pose_warp import _chains, _csr, pose_in_warp, warp_posing_supported  # noqa: E402
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]
+
+
+@pytest.fixture(scope="module")
+def anny():
+    from uvatar.body import load_body_model
+
+    return load_body_model("anny")
+
+
+def _frame(model, seed, device, amount=0.4):
+    rng = np.random.default_rng(seed)
+    f64 = dict(dtype=torch.float64, device=device)
+    rot = torch.as_tensor(rng.normal(0, amount, (model.num_joints, 3)), **f64)
+    rot[0] = 0.0                                                         # the root at rest
+    rot[5] = torch.as_tensor([3e-5, -2e-5, 1e-5])                        # below the series' 1e-4 rad
+    shape = torch.as_tensor(rng.uniform(0.2, 0.8, len(model.shape_names)).astype(np.float32))   # on the host
+    return (rot, torch.as_tensor(rng.normal(0, 1.0, 3), **f64), torch.as_tensor(rng.normal(0, 0.5, 3), **f64),
+            torch.tensor([1.07], device=device), shape)
+
+
+def _twin(model, rot, rh, th, scale, shape):
+    with torch.no_grad():
+        return model.pose(rot.to(model.device, torch.float32)[None], Rh=rh.float()[None], Th=th.float()[None],
+                          scale=scale.to(model.device), shape=shape)
+
+
+def _angle(a, b):
+    return torch.linalg.norm(a - b, dim=-1)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_launches_pose_the_body_as_its_twin(anny, device):
+    """Vertices and joint transforms within 1e-6 m (float32 rounding of a ~1 m body) of the torch twin;
+    normals within 1e-3 rad of it, and no further from anny posed in float64 than twice the twin's own
+    error there (a normal over mm-sized faces carries its corners' rounding); the rows asked for, in their
+    order (unsorted, repeated), and the same numbers on a second call."""
+    if device == "cuda" and not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU")
+    from uvatar.body.anny_backend import AnnyBody
+
+    model = anny if device == "cpu" else AnnyBody(replace(anny.config, device=device))
+    rot, rh, th, scale, shape = _frame(model, 0, device)
+    n_vertices = model.template.vertices.shape[0]
+    rows = torch.as_tensor(np.r_[np.random.default_rng(1).choice(n_vertices, 3000, replace=False), 7, 7],
+                           device=device)
+    v, n, world = pose_in_warp(model, rot, rh, th, scale, shape, rows)
+    assert v.dtype == n.dtype == world.dtype == torch.float64
+    assert v.shape == n.shape == (len(rows), 3) and world.shape == (model.num_joints, 4, 4)
+    twin = _twin(model, rot, rh, th, scale, shape)
+    torch.testing.assert_close(v, twin.vertices[0][rows].double(), atol=1e-6, rtol=0)
+    torch.testing.assert_close(world, twin.joint_transforms[0].double(), atol=1e-6, rtol=0)
+    assert float(_angle(n, twin.normals[0][rows].double()).max()) < 1e-3
+    torch.testing.assert_close(torch.linalg.norm(n, dim=1), torch.ones(len(rows), dtype=torch.float64, device=device))
+
+    exact = AnnyBody(replace(anny.config, dtype=torch.float64))
+    with torch.no_grad():
+        truth = exact.pose(rot.cpu()[None], Rh=rh.cpu()[None], Th=th.cpu()[None], scale=scale.cpu().double(),
+                           shape=shape.double())
+    rows_h = rows.cpu()
+    err = float(_angle(n.cpu(), truth.normals[0][rows_h]).max())
+    twin_err = float(_angle(twin.normals[0][rows].double().cpu(), truth.normals[0][rows_h]).max())
+    assert err <= 2 * twin_err + 1e-6, (err, twin_err)
+    assert float((v.cpu() - truth.vertices[0][rows_h]).abs().max()) < 1e-6
+
+    again = pose_in_warp(model, rot, rh, th, scale, shape, rows)
+    for a, b in zip(again, (v, n, world), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_every_vertex_and_the_default_shape(anny):
+    """rows None: every vertex in order; shape None: the default shape's bind state (the twin's)."""
+    rot, rh, th, scale, _ = _frame(anny, 2, "cpu", amount=0.2)
+    v, n, world = pose_in_warp(anny, rot, rh, th, scale)
+    twin = _twin(anny, rot, rh, th, scale, None)
+    assert v.shape == twin.vertices[0].shape
+    torch.testing.assert_close(v, twin.vertices[0].double(), atol=1e-6, rtol=0)
+    torch.testing.assert_close(world, twin.joint_transforms[0].double(), atol=1e-6, rtol=0)
+    rest = pose_in_warp(anny, torch.zeros_like(rot), torch.zeros(3, dtype=torch.float64),
+                        torch.zeros(3, dtype=torch.float64), torch.ones(1))[0]
+    torch.testing.assert_close(rest.float(), torch.as_tensor(anny.template.vertices), atol=1e-6, rtol=0)
+
+
+def test_only_anny_is_posed_in_warp(anny, monkeypatch):
+    """The toy tube (and SMPL's pose correctives) stay with their torch posing, even with the CPU flag."""
+    from uvatar.avh.bake import refine_device
+    from uvatar.body.toy import ToyTubeBody
+
+    toy = ToyTubeBody()
+    assert warp_posing_supported(anny) and not warp_posing_supported(toy)
+    monkeypatch.setattr(refine_device, "POSE_IN_WARP_ON_CPU", True)
+    assert refine_device.pose_in_warp_on(anny) and not refine_device.pose_in_warp_on(toy)
+    monkeypatch.setattr(refine_device, "POSE_IN_WARP_ON_CPU", False)
+    assert not refine_device.pose_in_warp_on(anny)          # the CPU's default: the twin
+
+
+def test_csr_and_chains_known_answers():
+    """Pairs grouped by row in their given order (an empty row too); each joint's chain from the root."""
+    start, cols, values = _csr(np.array([2, 0, 2, 0]), np.array([5, 1, 3, 4]), np.array([0.1, 0.2, 0.3, 0.4]), 4)
+    assert start.tolist() == [0, 2, 2, 4, 4]
+    assert cols.tolist() == [1, 4, 5, 3]
+    np.testing.assert_allclose(values, [0.2, 0.4, 0.1, 0.3])
+    chain, depth = _chains([-1, 0, 1, 0, 3])
+    assert depth.tolist() == [1, 2, 3, 2, 3]
+    assert chain[2].tolist() == [0, 1, 2] and chain[4].tolist() == [0, 3, 4] and chain[0, 0] == 0
+
+
+def test_a_pose_is_three_launches(anny):
+    """What a pose dispatches: the three Warp launches, six allocations (its outputs and two scratch
+    buffers) and the bind-state cache's look-up of a host shape (three host operators), not ~90."""
+    from bench_modules import load_bench
+
+    ops = load_bench("_ops")
+    rot, rh, th, scale, shape = _frame(anny, 3, "cpu")
+    rows = torch.arange(100)
+    pose_in_warp(anny, rot, rh, th, scale, shape, rows)          # the rig and the bind state made once
+    with ops.OpCounter("pose") as counter:
+        pose_in_warp(anny, rot, rh, th, scale, shape, rows)
+    counted = counter.table()["pose"]
+    assert counted["warp_launches"] == 3
+    assert counted["ops"] <= 9, counted
+
+
+def test_a_refinement_posed_in_warp_takes_the_twin_steps(monkeypatch):
+    """refine_fit on a device (CPU tensors) with its body posed in Warp and by the twin: the same refined
+    pose within 1e-5 rad, Th within 1e-7 m and residuals within 1e-4 mm (float32 posing rounding, carried through 4 steps)."""
+    from test_avh_bake_helpers import refinements_either_way
+
+    refinements_either_way(monkeypatch, "POSE_IN_WARP_ON_CPU", atol_rad=1e-5, atol_mm=1e-4)
