@@ -144,3 +144,19 @@ def test_a_refinement_posed_in_warp_takes_the_twin_steps(monkeypatch):
     from test_avh_bake_helpers import refinements_either_way
 
     refinements_either_way(monkeypatch, "POSE_IN_WARP_ON_CPU", atol_rad=1e-5, atol_mm=1e-4)
+
+
+def test_the_posing_bench_times_both_ways_in_one_run(anny):
+    """bench/body_pose.py's refinement row: the twin and the launches timed in the same run, their ratio;
+    nothing for a body without Warp posing."""
+    from bench_modules import load_bench
+
+    from uvatar.body.toy import ToyTubeBody
+
+    bench = load_bench("body_pose")
+    row = bench._refine_pose(anny, "cpu", 2, lambda: None)
+    assert row["refine_pose_rows"] == 4000
+    assert row["refine_pose_twin_ms"] > 0 and row["refine_pose_warp_ms"] > 0
+    assert row["refine_pose_warp_speedup"] == pytest.approx(row["refine_pose_twin_ms"] / row["refine_pose_warp_ms"],
+                                                            rel=0.02)
+    assert bench._refine_pose(ToyTubeBody(), "cpu", 2, lambda: None) == {}

@@ -1,8 +1,8 @@
 """Several frames' pose refinements at once on one device (issue 39: the GPU never waits for one small
 refinement).
 
-A refinement's launches are small: 4,000 nearest-sample queries, ~12,000 stencil rays. On an H200 one
-of them occupied 16 of its 132 multiprocessors (session 13's profile), so a frame refined alone leaves
+A refinement's launches are small: 4,000 nearest-sample queries, 72,000 stencil rays (4,000 points and
+their rings of 8, each along +n and -n). On an H200 a nearest-sample launch 16 of its 132 multiprocessors (session 13's profile), so a frame refined alone leaves
 most of the device idle however fast the host issues its work. Here each of several refinements
 (:func:`.refine_device.refinement_steps`: no read-back until its end) runs on its own CUDA stream, and
 one host thread issues their iterations in turn, so that the kernels of different frames run side by
