@@ -13,14 +13,16 @@ Public API::
     bake_capture, bake_selection                        # pipeline.py (folders, workers, resume)
     SelectConfig, select_frames, select_from_baked, select_from_capture   # select.py
     EvalConfig, evaluate_bake                           # evaluate.py
+    cuda_choices_on_cpu                                 # cuda_choices.py (check the GPU bake without a GPU)
 """
 
 from uvatar.avh.bake.config import BakeConfig, RegistrationConfig
+from uvatar.avh.bake.cuda_choices import cuda_choices_on_cpu
 
 __all__ = [
     "BakeConfig", "RegistrationConfig", "BodyLayout", "BakedFrame", "bake_frame", "shadow_vertices",
     "bake_capture", "bake_selection", "SelectConfig", "select_frames", "select_from_baked",
-    "select_from_capture", "EvalConfig", "evaluate_bake",
+    "select_from_capture", "EvalConfig", "evaluate_bake", "cuda_choices_on_cpu",
 ]
 
 _LAZY = {
