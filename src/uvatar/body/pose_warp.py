@@ -179,11 +179,12 @@ def _rig(body, device) -> _Rig:
 
 def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None) -> PosedRows:
     """One frame of ``body`` (:func:`warp_posing_supported`) posed on its device: ``rot`` (J, 3) local
-    rotation vectors (radians), ``rh`` (3,) and ``th`` (3,) (metres) float64 tensors, ``scale`` (1,) float32
-    tensor there, ``shape`` as :meth:`BodyModel.pose` takes it (None: the default), ``rows`` (R,) int64
-    vertex indices (None: all) -> :class:`PosedRows`, posed in float32 as :meth:`BodyModel.pose` (its
-    twin) and given in float64. On torch's current stream; nothing read back (the bind state of a shape
-    given on the host is found in the body's cache)."""
+    rotation vectors (radians), ``rh`` (3,) and ``th`` (3,) (metres) float64 tensors, ``scale`` (1,) a
+    float32 tensor there (other dtypes are converted), ``shape`` as :meth:`BodyModel.pose` takes it (None:
+    the default), ``rows`` (R,) int64 vertex indices (None: all) -> :class:`PosedRows`, posed in float32
+    as :meth:`BodyModel.pose` (its twin) and given in float64. On torch's current stream; nothing read
+    back (the bind state of a shape given on the host is found in the body's cache). No autograd: the
+    inputs are read detached (the refinement's posing needs no gradient)."""
     import torch
 
     from uvatar.geometry.warp_torch import launch_stream, load_warp, warp_view
@@ -206,8 +207,10 @@ def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None) -> PosedRows:
     out_n = torch.empty(n_rows, 3, dtype=torch.float64, device=dev)
     to_world = wp.mat33f(*rig.to_world.reshape(-1).tolist())
     view = lambda x, dtype=None: warp_view(wp, x, dtype)   # noqa: E731
-    rot_v = view(rot.reshape(n_joints, 3), wp.vec3d)
-    rh_v, th_v, scale_v = view(rh.reshape(1, 3), wp.vec3d), view(th.reshape(1, 3), wp.vec3d), view(scale.reshape(1))
+    f64 = dict(dtype=torch.float64, device=dev)      # no copies where they are so already (the refinement's)
+    rot_v = view(rot.to(**f64).reshape(n_joints, 3).contiguous(), wp.vec3d)
+    rh_v, th_v = view(rh.to(**f64).reshape(1, 3), wp.vec3d), view(th.to(**f64).reshape(1, 3), wp.vec3d)
+    scale_v = view(scale.to(**f32).reshape(1))
     launch = dict(device=wp.device_from_torch(dev), stream=launch_stream(dev))
     skin_rot_v, skin_t_v = view(skin_rot, wp.mat33f), view(skin_t, wp.vec3f)
     wp.launch(joints_k, dim=n_joints,
