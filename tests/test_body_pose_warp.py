@@ -160,3 +160,31 @@ def test_the_posing_bench_times_both_ways_in_one_run(anny):
     assert row["refine_pose_warp_speedup"] == pytest.approx(row["refine_pose_twin_ms"] / row["refine_pose_warp_ms"],
                                                             rel=0.02)
     assert bench._refine_pose(ToyTubeBody(), "cpu", 2, lambda: None) == {}
+
+
+def test_a_failed_warp_posing_leaves_the_twin_posing(anny, monkeypatch, caplog):
+    """Where the launches fail (a kernel that will not build on a device), the refinement's posing says so
+    once, records why, and poses through the twin from then on: the twin's numbers, no second try."""
+    import uvatar.body.pose_warp as pose_warp
+    from uvatar.avh.bake import refine_device
+
+    calls = []
+
+    def broken(*args, **kwargs):
+        calls.append(1)
+        raise RuntimeError("Warp: no kernel for this device")
+
+    monkeypatch.setattr(pose_warp, "pose_in_warp", broken)
+    monkeypatch.setattr(refine_device, "POSE_IN_WARP_ON_CPU", True)
+    monkeypatch.setattr(refine_device, "POSE_FAILURES", [])
+    rot, rh, th, scale, shape = _frame(anny, 4, "cpu")
+    rows = torch.arange(0, 500, 5)
+    with caplog.at_level("WARNING"):
+        first = refine_device._pose(anny, rot, rh, th, scale, shape, rows)
+        second = refine_device._pose(anny, rot, rh, th, scale, shape, rows)
+    assert len(calls) == 1 and not refine_device.pose_in_warp_on(anny)
+    assert refine_device.POSE_FAILURES == ["RuntimeError: Warp: no kernel for this device"]
+    assert sum("posing the body in Warp failed" in r.message for r in caplog.records) == 1
+    twin = _twin(anny, rot, rh, th, scale, shape)
+    for out in (first, second):
+        assert torch.equal(out[0], twin.vertices[0][rows].double()) and torch.equal(out[2], twin.joint_transforms[0].double())

@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "refinement_steps", "run_steps",
            "rotvec_quaternions", "quaternion_rotvecs",
-           "apply_step_torch", "step_in_warp", "STEP_IN_WARP_ON_CPU", "pose_in_warp_on", "POSE_IN_WARP_ON_CPU",
+           "apply_step_torch", "step_in_warp", "STEP_IN_WARP_ON_CPU", "pose_in_warp_on", "POSE_IN_WARP_ON_CPU", "POSE_FAILURES",
            "GRAPH_FAILURES", "GRAPHS_ON_CPU"]
 
 
@@ -137,17 +137,21 @@ def step_in_warp(device) -> bool:
 
 #: pose the refinement's body in Warp on the CPU too (tests); on CUDA it does wherever Warp is
 POSE_IN_WARP_ON_CPU = False
+#: why posing in Warp failed in this process (the twin poses from then on, the same frame to float32
+#: rounding); empty: it never did
+POSE_FAILURES: list[str] = []
 
 
 def pose_in_warp_on(posing) -> bool:
     """Is the body ``posing`` posed by :func:`uvatar.body.pose_warp.pose_in_warp` (three launches instead
     of ~90 operators an iteration)? On CUDA where Warp is installed and the body is anny
-    (:func:`~uvatar.body.pose_warp.warp_posing_supported`), on the CPU with :data:`POSE_IN_WARP_ON_CPU`."""
+    (:func:`~uvatar.body.pose_warp.warp_posing_supported`), on the CPU with :data:`POSE_IN_WARP_ON_CPU`;
+    not once it has failed in this process (:data:`POSE_FAILURES`)."""
     from uvatar.body.pose_warp import warp_posing_supported
     from uvatar.geometry.raycast_warp import warp_importable
 
     return ((posing.device.type == "cuda" or POSE_IN_WARP_ON_CPU) and warp_posing_supported(posing)
-            and warp_importable())
+            and not POSE_FAILURES and warp_importable())
 
 
 def _huber_weights(residuals, scale: float):
@@ -222,7 +226,12 @@ def _pose(posing, rot, rh, th, scale, shape, rows):
         from uvatar.body.pose_warp import pose_in_warp
 
         dev = posing.device
-        return tuple(pose_in_warp(posing, rot.to(dev), rh.to(dev), th.to(dev), scale, shape, rows.to(dev)))
+        try:
+            return tuple(pose_in_warp(posing, rot.to(dev), rh.to(dev), th.to(dev), scale, shape, rows.to(dev)))
+        except Exception as exc:  # noqa: BLE001  a kernel that will not build or launch here: the twin poses
+            POSE_FAILURES.append(f"{type(exc).__name__}: {exc}")
+            log.warning("posing the body in Warp failed (%s: %s); the refinement poses it through torch from "
+                        "now on, the same frame to float32 rounding", type(exc).__name__, exc)
     with torch.no_grad():
         out = posing.pose(rot.to(posing.device, torch.float32)[None],
                           Rh=rh.to(posing.device, torch.float32)[None], Th=th.to(posing.device, torch.float32)[None],
