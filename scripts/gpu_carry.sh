@@ -16,7 +16,7 @@
 #   run(command="bash scripts/gpu_carry.sh store && $CHECK", carry=[".carry/pN"], timeout_s=560)  # the last part
 #   with CHECK (below): the open bar of issue 39 first (the nearest-sample search's lanes as the bake asks it,
 #   the frames' refinements in flight, the bake with its profile, 4 workers and the refinement's graph, one process
-#   writing behind), then the CUDA tests, the training
+#   writing behind, the refinement's posing twin against Warp), then the CUDA tests, the training
 #   step (eager and replayed from its graph) and the CPU bake on the machine's cores (the GPU bake's baseline), within one call (BUDGET 520 s) that a
 #   fresh 15-minute lease allows after the machine's start (~40 s; with less left, lower BUDGET and the parts'
 #   seconds: session 13 fitted 355 s). Results: one results.tgz (status.txt beside it).
@@ -26,7 +26,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PART_MB=${PART_MB:-56}
-CHECK="BUDGET=520 BAKE_LANES=auto BAKE_WORKERS=4,8 BAKE_GRAPH_WORKERS=4 BAKE_MPS_WORKERS=4,8 BAKE_MPS_GRAPH=1 BAKE_THROUGHPUT_FRAMES=32 BAKE_IN_FLIGHT=4 NEAREST_SECONDS=20 FLIGHT_SECONDS=70 BAKE_SECONDS=140 BAKE_GRAPH_SECONDS=30 BAKE_MPS_SECONDS=40 WRITE_SECONDS=40 TESTS_SECONDS=80 BAKE_CPU_SECONDS=60 TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=40 bash scripts/gpu_carry.sh check nearest flight bake write tests bake_cpu train"
+CHECK="BUDGET=520 BAKE_LANES=auto BAKE_WORKERS=4,8 BAKE_GRAPH_WORKERS=4 BAKE_MPS_WORKERS=4,8 BAKE_MPS_GRAPH=1 BAKE_THROUGHPUT_FRAMES=32 BAKE_IN_FLIGHT=4 NEAREST_SECONDS=20 FLIGHT_SECONDS=70 BAKE_SECONDS=140 BAKE_GRAPH_SECONDS=30 BAKE_MPS_SECONDS=40 WRITE_SECONDS=40 POSE_SECONDS=15 TESTS_SECONDS=80 BAKE_CPU_SECONDS=45 TRAIN_COMPILE=off,off+cl+graph TRAIN_SECONDS=40 bash scripts/gpu_carry.sh check nearest flight bake write pose tests bake_cpu train"
 STORE=/tmp/uvatar_carry
 
 pack() {

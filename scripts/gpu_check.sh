@@ -18,7 +18,8 @@
 # BAKE_IN_FLIGHT (bench/bake.py --frames-in-flight, default 4), FLIGHT_SECONDS / FLIGHT_FRAMES / FLIGHT_COUNTS /
 # FLIGHT_REPEATS (the flight part: bench/bake_in_flight.py), BAKE_CPU_SECONDS / BAKE_CPU_WORKERS / BAKE_CPU_FRAMES
 # (the bake_cpu part: the CPU bake on the machine's cores, the GPU bake's baseline), WRITE_SECONDS / WRITE_FRAMES /
-# WRITE_REPEATS (the write part: bench/bake_overlap.py --synthetic, a one-process bake writing behind, reading ahead).
+# WRITE_REPEATS (the write part: bench/bake_overlap.py --synthetic, a one-process bake writing behind, reading ahead),
+# POSE_SECONDS (the pose part: bench/body_pose.py --quick, the refinement's posing by the twin and in Warp).
 # Issue 39's sync-free frame: the dva
 # part's paths "+exact" (the old read-back per frame), plain (no read-back), "+graph" (the whole driven frame in one CUDA graph); each row has
 # <path>_drive_render_ms (synchronised per frame), <path>_drive_render_pipelined_ms (back to back),
@@ -184,6 +185,13 @@ for part in $PARTS; do
       else
         echo "write skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
+    pose)  # anny posed as the bake's refinement poses it, by the torch twin and in three Warp launches
+           # (session 16), in the same run (bench/body_pose.py's refine_pose_*), beside the batch posing rows
+      if python -c "import anny, warp" 2>/dev/null; then
+        run_part pose "${POSE_SECONDS:-30}" "$OUT/body_pose.json" python bench/body_pose.py --quick --device cuda
+      else
+        echo "pose skipped: anny or warp missing" | tee -a "$OUT/status.txt"
+      fi ;;
     bake_cpu)  # the same machine's CPUs as the GPU bake's baseline: the CPU bake (Embree, numpy) on
                # BAKE_CPU_WORKERS processes (default 16), wall seconds per frame with the writes
       run_part bake_cpu "${BAKE_CPU_SECONDS:-90}" "$OUT/bake_cpu.json" python bench/bake.py --device cpu --frames 1 \
@@ -196,7 +204,7 @@ for part in $PARTS; do
       else
         echo "flight skipped: anny or warp missing" | tee -a "$OUT/status.txt"
       fi ;;
-    *) echo "unknown part $part (dva avh tests compile bake bake_cpu flight write train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
+    *) echo "unknown part $part (dva avh tests compile bake bake_cpu flight write pose train nearest rays trace)" | tee -a "$OUT/status.txt" ;;
   esac
 done
 tail -n 3 "$OUT"/pytest_*.txt 2>/dev/null
