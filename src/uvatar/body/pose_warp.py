@@ -25,7 +25,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["warp_posing_supported", "pose_in_warp", "PosedRows"]
+__all__ = ["warp_posing_supported", "pose_in_warp"]
 
 
 def warp_posing_supported(body) -> bool:
@@ -34,12 +34,6 @@ def warp_posing_supported(body) -> bool:
     from uvatar.body.anny_backend import AnnyBody
 
     return isinstance(body, AnnyBody)
-
-
-class PosedRows(tuple):
-    """(vertices (R, 3) float64, normals (R, 3) float64, joint transforms (J, 4, 4) float64) tensors."""
-
-    __slots__ = ()
 
 
 @lru_cache(maxsize=1)
@@ -177,11 +171,12 @@ def _rig(body, device) -> _Rig:
     return cache[key]
 
 
-def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None) -> PosedRows:
+def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None):
     """One frame of ``body`` (:func:`warp_posing_supported`) posed on its device: ``rot`` (J, 3) local
     rotation vectors (radians), ``rh`` (3,) and ``th`` (3,) (metres) float64 tensors, ``scale`` (1,) a
     float32 tensor there (other dtypes are converted), ``shape`` as :meth:`BodyModel.pose` takes it (None:
-    the default), ``rows`` (R,) int64 vertex indices (None: all) -> :class:`PosedRows`, posed in float32
+    the default), ``rows`` (R,) int64 vertex indices (None: all) -> (vertices (R, 3), normals (R, 3), joint
+    transforms (J, 4, 4)) float64 tensors, posed in float32
     as :meth:`BodyModel.pose` (its twin) and given in float64. On torch's current stream; nothing read
     back (the bind state of a shape given on the host is found in the body's cache). No autograd: the
     inputs are read detached (the refinement's posing needs no gradient)."""
@@ -224,4 +219,4 @@ def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None) -> PosedRows:
     wp.launch(normals_k, dim=n_rows,
               inputs=[posed_v, view(t["faces"], wp.vec3i), view(t["f_start"]), view(t["f_incident"]),
                       view(rows.to(torch.int64)), view(out_v, wp.vec3d), view(out_n, wp.vec3d)], **launch)
-    return PosedRows((out_v, out_n, world))
+    return out_v, out_n, world

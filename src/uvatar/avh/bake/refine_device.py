@@ -227,7 +227,7 @@ def _pose(posing, rot, rh, th, scale, shape, rows):
 
         dev = posing.device
         try:
-            return tuple(pose_in_warp(posing, rot.to(dev), rh.to(dev), th.to(dev), scale, shape, rows.to(dev)))
+            return pose_in_warp(posing, rot.to(dev), rh.to(dev), th.to(dev), scale, shape, rows.to(dev))
         except Exception as exc:  # noqa: BLE001  a kernel that will not build or launch here: the twin poses
             POSE_FAILURES.append(f"{type(exc).__name__}: {exc}")
             log.warning("posing the body in Warp failed (%s: %s); the refinement poses it through torch from "
