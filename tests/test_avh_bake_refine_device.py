@@ -30,7 +30,7 @@ def test_rotation_twins_equal_scipy():
     compositions are compared as rotations there)."""
     from scipy.spatial.transform import Rotation
 
-    from uvatar.avh.bake.refine_device import compose_rotvecs, quaternion_rotvecs, rotate, rotvec_quaternions
+    from uvatar.avh.bake.refine_step import compose_rotvecs, quaternion_rotvecs, rotate, rotvec_quaternions
 
     a, b = _random_rotvecs(0), _random_rotvecs(1)
     ref = (Rotation.from_rotvec(a) * Rotation.from_rotvec(b)).as_rotvec()

@@ -1,5 +1,5 @@
 """The refinement's step in one Warp launch (:mod:`uvatar.avh.bake.refine_step_warp`) against its torch
-twin (:func:`uvatar.avh.bake.refine_device.apply_step_torch`): random states and steps, angles below and
+twin (:func:`uvatar.avh.bake.refine_step.apply_step_torch`): random states and steps, angles below and
 above the Taylor branches' 1e-3 rad, capped steps, a step not taken; then a whole device refinement with
 the steps taken each way. CPU here, CUDA with ``-m gpu``."""
 
@@ -13,7 +13,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("warp")
 
-from uvatar.avh.bake.refine_device import apply_step_torch  # noqa: E402
+from uvatar.avh.bake.refine_step import apply_step_torch  # noqa: E402
 from uvatar.avh.bake.refine_step_warp import apply_step_warp  # noqa: E402
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]

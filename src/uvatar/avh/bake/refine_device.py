@@ -6,8 +6,9 @@ the body is posed there (float32, as the numpy path's posing, then cast to float
 launches, :mod:`uvatar.body.pose_warp`, instead of ~90 operators); the nearest scan
 samples, the stencil colours, the Huber weights, the normal equations (the dense product of
 :func:`.refine_model._normal_equations_reference`, one owner of that math), the damped solve and the
-step (:func:`apply_step_torch`: the rotation updates through :func:`compose_rotvecs` and :func:`rotate`,
-the twins of SciPy's ``Rotation``; on CUDA one Warp launch, :mod:`.refine_step_warp`) run there too. Rows the numpy path leaves out (no match, no colour) get weight zero instead, and its
+step (:func:`.refine_step.apply_step_torch`: the rotation updates through the twins of SciPy's
+``Rotation``; on CUDA one Warp launch, :mod:`.refine_step_warp`) run there too. Rows the numpy path
+leaves out (no match, no colour) get weight zero instead, and its
 data-dependent stop ("fewer than 3 matches per joint") becomes a masked update: the loop always runs
 its full count, a stopped fit no longer moves, and the per-iteration stats are read back once at the
 end and cut where the numpy path would have stopped appending them. Constants per body (the
@@ -34,91 +35,8 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["compose_rotvecs", "rotate", "refine_fit_on_device", "refinement_steps", "run_steps",
-           "rotvec_quaternions", "quaternion_rotvecs",
-           "apply_step_torch", "step_in_warp", "STEP_IN_WARP_ON_CPU", "pose_in_warp_on", "POSE_IN_WARP_ON_CPU", "POSE_FAILURES",
-           "GRAPH_FAILURES", "GRAPHS_ON_CPU"]
-
-
-def rotvec_quaternions(rotvec):
-    """(..., 4) unit quaternions (x, y, z, w) of rotation vectors (..., 3) (radians), float64 tensors:
-    SciPy's ``Rotation.from_rotvec`` (its Taylor series below 1e-3 rad)."""
-    import torch
-
-    angle = torch.linalg.norm(rotvec, dim=-1, keepdim=True)
-    small = angle <= 1e-3
-    a2 = angle * angle
-    safe = torch.where(small, torch.ones_like(angle), angle)
-    scale = torch.where(small, 0.5 - a2 / 48 + a2 * a2 / 3840, torch.sin(safe / 2) / safe)
-    return torch.cat([scale * rotvec, torch.cos(angle / 2)], -1)
-
-
-def quaternion_rotvecs(quat):
-    """(..., 3) rotation vectors of unit quaternions (x, y, z, w) (..., 4): SciPy's ``as_rotvec``
-    (w made non-negative, angle in [0, pi], its Taylor series below 1e-3 rad)."""
-    import torch
-
-    quat = torch.where(quat[..., 3:] < 0, -quat, quat)
-    xyz, w = quat[..., :3], quat[..., 3:]
-    angle = 2 * torch.atan2(torch.linalg.norm(xyz, dim=-1, keepdim=True), w)
-    small = angle <= 1e-3
-    a2 = angle * angle
-    safe = torch.where(small, torch.ones_like(angle), angle)
-    scale = torch.where(small, 2 + a2 / 12 + 7 * a2 * a2 / 2880, safe / torch.sin(safe / 2))
-    return scale * xyz
-
-
-def _quaternion_product(p, q):
-    """(..., 4) the rotation q then p (SciPy's ``Rotation(p) * Rotation(q)``), quaternions (x, y, z, w)."""
-    import torch
-
-    pv, pw, qv, qw = p[..., :3], p[..., 3:], q[..., :3], q[..., 3:]
-    vector = pw * qv + qw * pv + torch.linalg.cross(pv, qv, dim=-1)
-    return torch.cat([vector, pw * qw - (pv * qv).sum(-1, keepdim=True)], -1)
-
-
-def compose_rotvecs(a, b):
-    """(..., 3) the rotation vector of ``Rotation.from_rotvec(a) * Rotation.from_rotvec(b)`` (b first,
-    then a); a, b (..., 3) float64 tensors (broadcast)."""
-    import torch
-
-    a, b = torch.broadcast_tensors(a, b)
-    return quaternion_rotvecs(_quaternion_product(rotvec_quaternions(a), rotvec_quaternions(b)))
-
-
-def rotate(rotvec, points):
-    """``Rotation.from_rotvec(rotvec).apply(points)``: points (..., 3) turned by rotvec (3,) or (..., 3)."""
-    import torch
-
-    q = rotvec_quaternions(rotvec)
-    u, w = q[..., :3], q[..., 3:]
-    u, points = torch.broadcast_tensors(u, points)
-    uv = torch.linalg.cross(u, points, dim=-1)
-    return points + 2 * w * uv + 2 * torch.linalg.cross(u, uv, dim=-1)
-
-
-def apply_step_torch(state, step, running, tr, joints, centre, max_angle: float, k: int) -> None:
-    """Take a Gauss-Newton ``step`` (3k + 6 + K,) float64 where ``running`` (0-d bool): each of the ``k``
-    refined ``joints`` (k,) turns by its capped step expressed in its posed frame (``tr`` (J, 4, 4), scale
-    dropped), the root's capped step composes with ``state.rh`` and turns ``state.th`` about ``centre``
-    (3,), which then moves; the clothing offsets move. ``state`` (rot, rh, th, offsets, running) is updated
-    in place. The reference twin of :func:`.refine_step_warp.apply_step_warp` (one launch)."""
-    import torch
-
-    d_joint = _rotation_step(step[: 3 * k].reshape(k, 3), max_angle)
-    d_root = _rotation_step(step[3 * k: 3 * k + 3], max_angle)
-    frames = tr[joints, :3, :3]
-    frames = frames / torch.linalg.norm(frames, dim=1, keepdim=True)               # drop the scale
-    local = torch.einsum("kji,kj->ki", frames, d_joint)                             # R_k^T d_k
-    turned = compose_rotvecs(torch.cat([state.rot[joints], d_root[None]]), torch.cat([local, state.rh[None]]))
-    moved = state.rot.clone()
-    moved[joints] = turned[:k]
-    state.th.copy_(torch.where(running, rotate(d_root, state.th - centre) + centre + step[3 * k + 3: 3 * k + 6],
-                               state.th))
-    state.rot.copy_(torch.where(running, moved, state.rot))
-    state.rh.copy_(torch.where(running, turned[k], state.rh))
-    state.offsets.copy_(torch.where(running, state.offsets + step[3 * k + 6:], state.offsets))
-    state.running.copy_(running)
+__all__ = ["refine_fit_on_device", "refinement_steps", "run_steps", "step_in_warp", "STEP_IN_WARP_ON_CPU",
+           "pose_in_warp_on", "POSE_IN_WARP_ON_CPU", "POSE_FAILURES", "GRAPH_FAILURES", "GRAPHS_ON_CPU"]
 
 
 #: take the refinement's steps in one Warp launch on the CPU too (tests); on CUDA it does wherever Warp is
@@ -157,12 +75,6 @@ def pose_in_warp_on(posing) -> bool:
 def _huber_weights(residuals, scale: float):
     """:func:`.refine._huber_weights` of a tensor."""
     return (scale / residuals.abs().clamp(min=1e-12)).clamp(max=1.0)
-
-
-def _rotation_step(step, max_angle: float):
-    """:func:`.refine._rotation_step` of a tensor (rows of rotation vectors capped at ``max_angle``)."""
-    angle = step.norm(dim=-1, keepdim=True)
-    return step * (max_angle / angle.clamp(min=1e-12)).clamp(max=1.0)
 
 
 def _clothing_offsets(residuals, skin, ok, huber: float, steps: int = 3):
@@ -405,7 +317,7 @@ def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sam
     if step_in_warp(device):   # chosen once, not per iteration
         from uvatar.avh.bake.refine_step_warp import apply_step_warp as apply_step
     else:
-        apply_step = apply_step_torch
+        from uvatar.avh.bake.refine_step import apply_step_torch as apply_step
 
     def iteration(first: bool, last: bool):
         """One Gauss-Newton iteration from ``state``; the first finds the match distance and the clothing

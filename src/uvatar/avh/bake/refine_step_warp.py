@@ -1,5 +1,5 @@
 """The pose refinement's update, a Gauss-Newton step applied to the refined state, in one Warp launch: the
-fast twin of :func:`uvatar.avh.bake.refine_device.apply_step_torch` (CPU and CUDA, float64).
+fast twin of :func:`uvatar.avh.bake.refine_step.apply_step_torch` (CPU and CUDA, float64).
 
 Each joint's rotation step is capped, turned into the joint's frame and composed with its rotation; the
 root's step is composed with the fit's ``Rh`` and turns ``Th`` about the body's centre, which then moves by
@@ -24,7 +24,7 @@ def _kernel():
 
     @wp.func
     def rotvec_quat(r: wp.vec3d):
-        """(x, y, z, w) of a rotation vector: :func:`.refine_device.rotvec_quaternions`."""
+        """(x, y, z, w) of a rotation vector: :func:`.refine_step.rotvec_quaternions`."""
         angle = wp.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
         a2 = angle * angle
         scale = wp.sin(angle / wp.float64(2.0)) / wp.max(angle, wp.float64(1.0e-300))
@@ -34,7 +34,7 @@ def _kernel():
 
     @wp.func
     def quat_rotvec(q: wp.vec4d):
-        """The rotation vector of a unit quaternion: :func:`.refine_device.quaternion_rotvecs`."""
+        """The rotation vector of a unit quaternion: :func:`.refine_step.quaternion_rotvecs`."""
         s = wp.float64(1.0)
         if q[3] < wp.float64(0.0):
             s = wp.float64(-1.0)
@@ -51,7 +51,7 @@ def _kernel():
 
     @wp.func
     def compose(a: wp.vec3d, b: wp.vec3d):
-        """R(a) R(b) as a rotation vector (b first): :func:`.refine_device.compose_rotvecs`."""
+        """R(a) R(b) as a rotation vector (b first): :func:`.refine_step.compose_rotvecs`."""
         p = rotvec_quat(a)
         q = rotvec_quat(b)
         pv = wp.vec3d(p[0], p[1], p[2])
@@ -61,7 +61,7 @@ def _kernel():
 
     @wp.func
     def capped(s: wp.vec3d, max_angle: wp.float64):
-        """:func:`.refine_device._rotation_step` of one row."""
+        """:func:`.refine_step.rotation_step` of one row."""
         angle = wp.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
         return s * wp.min(max_angle / wp.max(angle, wp.float64(1.0e-12)), wp.float64(1.0))
 
@@ -100,7 +100,7 @@ def _kernel():
 
 
 def apply_step_warp(state, step, running, tr, joints, centre, max_angle: float, k: int) -> None:
-    """:func:`.refine_device.apply_step_torch` in one launch: ``state`` (rot (J, 3), rh (3,), th (3,),
+    """:func:`.refine_step.apply_step_torch` in one launch: ``state`` (rot (J, 3), rh (3,), th (3,),
     offsets (K,), running (0-d bool): float64 tensors, updated in place), ``step`` (3k + 6 + K,) float64,
     ``running`` (0-d bool: this step is taken), ``tr`` (J, 4, 4) the posed joints' transforms, ``joints``
     (k,) int64 the refined joints, ``centre`` (3,) the posed body's centre (metres), ``max_angle``
