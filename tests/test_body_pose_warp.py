@@ -13,7 +13,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("warp")
 
-from uvatar.body.pose_warp import _chains, _csr, pose_in_warp, warp_posing_supported  # noqa: E402
+from uvatar.body.pose_warp import _chains, _rig, pose_in_warp, warp_posing_supported  # noqa: E402
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]
 
@@ -111,15 +111,29 @@ def test_only_anny_is_posed_in_warp(anny, monkeypatch):
     assert not refine_device.pose_in_warp_on(anny)          # the CPU's default: the twin
 
 
-def test_csr_and_chains_known_answers():
-    """Pairs grouped by row in their given order (an empty row too); each joint's chain from the root."""
-    start, cols, values = _csr(np.array([2, 0, 2, 0]), np.array([5, 1, 3, 4]), np.array([0.1, 0.2, 0.3, 0.4]), 4)
-    assert start.tolist() == [0, 2, 2, 4, 4]
-    assert cols.tolist() == [1, 4, 5, 3]
-    np.testing.assert_allclose(values, [0.2, 0.4, 0.1, 0.3])
+def test_the_rig_and_chains_known_answers(anny):
+    """The rig's CSR gives back the dense skinning weights and each vertex's faces in face order; each
+    joint's chain runs from the root down to it (a small tree's by hand)."""
+    from uvatar.geometry.warp_torch import load_warp
+
+    t = _rig(anny, load_warp()).tensors
+    n_vertices, n_joints = anny._weights.shape
+    counts = torch.diff(t["w_start"].long())
+    dense = torch.zeros(n_vertices, n_joints)
+    dense[torch.arange(n_vertices).repeat_interleave(counts), t["w_cols"].long()] = t["w_values"]
+    assert torch.equal(dense, anny._weights)
+    faces = torch.as_tensor(np.asarray(anny.template.faces, np.int64))
+    for v in (0, 100, n_vertices - 1):
+        own = t["f_incident"][t["f_start"][v]:t["f_start"][v + 1]].long()
+        assert own.tolist() == torch.nonzero((faces == v).any(1)).reshape(-1).tolist()
     chain, depth = _chains([-1, 0, 1, 0, 3])
     assert depth.tolist() == [1, 2, 3, 2, 3]
     assert chain[2].tolist() == [0, 1, 2] and chain[4].tolist() == [0, 3, 4] and chain[0, 0] == 0
+    chain, depth = _chains(anny._data.parents)
+    parents = np.asarray(anny._data.parents)
+    for j in (0, 40, n_joints - 1):                     # root first, each the parent of the next
+        path = chain[j, :depth[j]]
+        assert path[0] == 0 and path[-1] == j and all(parents[b] == a for a, b in zip(path, path[1:], strict=False))
 
 
 def test_a_pose_is_three_launches(anny):

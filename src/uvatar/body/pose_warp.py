@@ -118,56 +118,46 @@ def _kernels():
     return joints, skin, normals
 
 
-def _csr(rows: np.ndarray, cols: np.ndarray, values: np.ndarray | None, n: int):
-    """(start (n + 1,) int32, cols int32, values float32 or None) of (row, col) pairs sorted by row."""
-    order = np.argsort(rows, kind="stable")
-    start = np.zeros(n + 1, np.int32)
-    np.cumsum(np.bincount(rows, minlength=n), out=start[1:])
-    return start, cols[order].astype(np.int32), None if values is None else values[order].astype(np.float32)
-
-
 def _chains(parents) -> tuple[np.ndarray, np.ndarray]:
-    """(chain (J, D) int32: each joint's ancestors from the root down to itself, depth (J,) int32)."""
-    parents = np.asarray(parents).reshape(-1)
-    paths = []
-    for j in range(len(parents)):            # once per body, J joints (anny: 163)
-        path = [j]
-        while parents[path[-1]] >= 0:
-            path.append(int(parents[path[-1]]))
-        paths.append(path[::-1])
-    depth = np.array([len(p) for p in paths], np.int32)
-    chain = np.zeros((len(paths), depth.max()), np.int32)
-    for j, p in enumerate(paths):
-        chain[j, :len(p)] = p
-    return chain, depth
+    """(chain (J, D) int32: each joint's ancestors from the root down to itself, padded with 0; depth (J,)
+    int32: their number), from :func:`uvatar.body.kinematics.ancestor_matrix` (ancestors sorted by their
+    own depth)."""
+    from uvatar.body.kinematics import ancestor_matrix
+
+    anc = ancestor_matrix(parents)                       # (J, J): a is j or one of its ancestors
+    depth = anc.sum(1)
+    order = np.argsort(np.where(anc, depth[None, :], len(depth) + 1), axis=1, kind="stable")[:, :depth.max()]
+    chain = np.where(np.arange(depth.max())[None, :] < depth[:, None], order, 0)
+    return chain.astype(np.int32), depth.astype(np.int32)
 
 
 class _Rig:
-    """One body's constant arrays on one device, as torch tensors (Warp views of them per launch)."""
+    """One body's constants on its device for the launches: the skinning weights as CSR (the body's own
+    ``_weights_csr``), each vertex's faces (:meth:`BodyModel._adjacency`, in face order: the normals' sums
+    in a fixed order), the faces, each joint's chain (:func:`_chains`) and anny's axes as a Warp matrix."""
 
-    def __init__(self, body, device):
+    def __init__(self, body, wp):
         import torch
 
-        weights = body._weights.detach().cpu().numpy()
-        v_idx, j_idx = np.nonzero(weights)
-        self.w_start, self.w_cols, self.w_values = _csr(v_idx, j_idx, weights[v_idx, j_idx], weights.shape[0])
-        faces = np.asarray(body.template.faces, np.int64)
-        self.f_start, self.f_incident, _ = _csr(faces.reshape(-1), np.repeat(np.arange(len(faces)), 3), None,
-                                                weights.shape[0])
-        self.chain, self.depth = _chains(body._data.parents)
-        to = dict(device=device)
-        self.tensors = {name: torch.as_tensor(getattr(self, name), **to)
-                        for name in ("w_start", "w_cols", "w_values", "f_start", "f_incident", "chain", "depth")}
-        self.tensors["faces"] = torch.as_tensor(faces.astype(np.int32), **to).contiguous()
-        self.to_world = np.asarray(body._to_world.detach().cpu().numpy(), np.float32)
+        dev = body.device
+        i32 = lambda x: torch.as_tensor(x).to(device=dev, dtype=torch.int32).contiguous()   # noqa: E731
+        weights = body._weights_csr
+        adjacency = body._adjacency(weights.shape[0])
+        chain, depth = _chains(body._data.parents)
+        self.tensors = {"w_start": i32(weights.crow_indices()), "w_cols": i32(weights.col_indices()),
+                        "w_values": weights.values().to(torch.float32).contiguous(),
+                        "f_start": i32(adjacency.crow_indices()), "f_incident": i32(adjacency.col_indices()),
+                        "faces": i32(body._faces_t), "chain": i32(chain), "depth": i32(depth)}
+        self.to_world = wp.mat33f(*body._to_world.detach().cpu().reshape(-1).tolist())
         self.num_vertices, self.num_joints = weights.shape
 
 
-def _rig(body, device) -> _Rig:
+def _rig(body, wp) -> _Rig:
+    """The body's :class:`_Rig` on its device, made once per device."""
     cache = body.__dict__.setdefault("_warp_rig_by_device", {})
-    key = str(device)
+    key = str(body.device)
     if key not in cache:
-        cache[key] = _Rig(body, device)
+        cache[key] = _Rig(body, wp)
     return cache[key]
 
 
@@ -176,10 +166,10 @@ def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None):
     rotation vectors (radians), ``rh`` (3,) and ``th`` (3,) (metres) float64 tensors, ``scale`` (1,) a
     float32 tensor there (other dtypes are converted), ``shape`` as :meth:`BodyModel.pose` takes it (None:
     the default), ``rows`` (R,) int64 vertex indices (None: all) -> (vertices (R, 3), normals (R, 3), joint
-    transforms (J, 4, 4)) float64 tensors, posed in float32
-    as :meth:`BodyModel.pose` (its twin) and given in float64. On torch's current stream; nothing read
-    back (the bind state of a shape given on the host is found in the body's cache). No autograd: the
-    inputs are read detached (the refinement's posing needs no gradient)."""
+    transforms (J, 4, 4)) float64 tensors, posed in float32 as :meth:`BodyModel.pose` (its twin) and
+    given in float64; the inputs go to the body's device (no copies where they are already there). On
+    torch's current stream; nothing read back (the bind state of a shape given on the host is found in the
+    body's cache). No autograd: the inputs are read detached (the refinement's posing needs no gradient)."""
     import torch
 
     from uvatar.geometry.warp_torch import launch_stream, load_warp, warp_view
@@ -187,7 +177,7 @@ def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None):
     wp = load_warp()
     joints_k, skin_k, normals_k = _kernels()
     dev = body.device
-    rig = _rig(body, dev)
+    rig = _rig(body, wp)
     t = rig.tensors
     state = body._bind_state(shape)
     if rows is None:
@@ -200,9 +190,9 @@ def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None):
     posed = torch.empty(rig.num_vertices, 3, **f32)
     out_v = torch.empty(n_rows, 3, dtype=torch.float64, device=dev)
     out_n = torch.empty(n_rows, 3, dtype=torch.float64, device=dev)
-    to_world = wp.mat33f(*rig.to_world.reshape(-1).tolist())
+    to_world = rig.to_world
     view = lambda x, dtype=None: warp_view(wp, x, dtype)   # noqa: E731
-    f64 = dict(dtype=torch.float64, device=dev)      # no copies where they are so already (the refinement's)
+    f64 = dict(dtype=torch.float64, device=dev)
     rot_v = view(rot.to(**f64).reshape(n_joints, 3).contiguous(), wp.vec3d)
     rh_v, th_v = view(rh.to(**f64).reshape(1, 3), wp.vec3d), view(th.to(**f64).reshape(1, 3), wp.vec3d)
     scale_v = view(scale.to(**f32).reshape(1))
@@ -218,5 +208,5 @@ def pose_in_warp(body, rot, rh, th, scale, shape=None, rows=None):
                       view(t["w_values"]), skin_rot_v, skin_t_v, to_world, rh_v, th_v, scale_v, posed_v], **launch)
     wp.launch(normals_k, dim=n_rows,
               inputs=[posed_v, view(t["faces"], wp.vec3i), view(t["f_start"]), view(t["f_incident"]),
-                      view(rows.to(torch.int64)), view(out_v, wp.vec3d), view(out_n, wp.vec3d)], **launch)
+                      view(rows.to(device=dev, dtype=torch.int64)), view(out_v, wp.vec3d), view(out_n, wp.vec3d)], **launch)
     return out_v, out_n, world

@@ -137,9 +137,8 @@ def _pose(posing, rot, rh, th, scale, shape, rows):
     if pose_in_warp_on(posing):
         from uvatar.body.pose_warp import pose_in_warp
 
-        dev = posing.device
         try:
-            return pose_in_warp(posing, rot.to(dev), rh.to(dev), th.to(dev), scale, shape, rows.to(dev))
+            return pose_in_warp(posing, rot, rh, th, scale, shape, rows)
         except Exception as exc:  # noqa: BLE001  a kernel that will not build or launch here: the twin poses
             POSE_FAILURES.append(f"{type(exc).__name__}: {exc}")
             log.warning("posing the body in Warp failed (%s: %s); the refinement poses it through torch from "

@@ -2,8 +2,9 @@
 refinement).
 
 A refinement's launches are small: 4,000 nearest-sample queries, 72,000 stencil rays (4,000 points and
-their rings of 8, each along +n and -n). On an H200 a nearest-sample launch 16 of its 132 multiprocessors (session 13's profile), so a frame refined alone leaves
-most of the device idle however fast the host issues its work. Here each of several refinements
+their rings of 8, each along +n and -n). On an H200 a nearest-sample launch occupied 16 of its 132
+multiprocessors (session 13's profile), so a frame refined alone leaves most of the device idle however
+fast the host issues its work. Here each of several refinements
 (:func:`.refine_device.refinement_steps`: no read-back until its end) runs on its own CUDA stream, and
 one host thread issues their iterations in turn, so that the kernels of different frames run side by
 side. Each refinement performs exactly the operations it performs alone, on its own tensors: the same
