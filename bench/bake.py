@@ -590,12 +590,10 @@ def main(argv=None) -> int:
         "load_average_1min": round(os.getloadavg()[0], 2),   # the machine is shared: read timings with it
         "refine_cuda_graph": config.pose_refine.cuda_graph,
     }
-    from uvatar.avh.bake.refine_device import POSE_FAILURES
+    from uvatar.avh.bake.refine_device import GRAPH_FAILURES, POSE_FAILURES
 
     out["refine_pose_in_warp_failures"] = list(POSE_FAILURES)
     if config.pose_refine.cuda_graph:
-        from uvatar.avh.bake.refine_device import GRAPH_FAILURES
-
         out["refine_graph_failures"] = list(GRAPH_FAILURES)
     if parity:
         worst = {k: max(p[k] for p in parity) for k in parity[0] if k not in ("same_matched_texels",)

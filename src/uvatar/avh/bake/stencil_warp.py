@@ -6,11 +6,11 @@ For every stencil point (the refinement vertices and their rings, :func:`.photom
 the torch path casts the +n and -n rays in one batch (:meth:`~uvatar.geometry.raycast_warp.WarpRayCaster.first_hit_torch`),
 assembles the hits, interpolates the scan's vertex normals there (:meth:`.register.ScanSurface.normals_at`),
 keeps the nearer compatible hit (:func:`.photometric._nearer_compatible_hit`) and samples the texture
-(:func:`.register.scan_colours`, bilinear, clamp to edge): ~165 small operators a stencil, ~40 stencils
+(:func:`.register.scan_colours`, bilinear, clamp to edge): ~165 small operators a stencil, 24 stencils
 a frame with its colour rounds, each a launch on a GPU. Here one launch casts every ray, a thread each
 (with the normal at its hit and whether it is compatible), and a second makes each stencil point's
-choice and texture lookup: a launch of a few thousand rays is as long as its slowest thread, so no
-thread casts two. The same precision: the rays in float32 on the same BVH (Warp's first hit, its barycentrics as
+choice and texture lookup: a launch is as long as its slowest thread, and a stencil's rays (72,000 on
+the real take) do not fill a GPU, so no thread casts two. The same precision: the rays in float32 on the same BVH (Warp's first hit, its barycentrics as
 Embree's), the normals, the choice and the lookup in float64, the colour rounded through float32 as the
 texture's lookup is. Two differences, both at round-off: a hit's barycentrics that round-off left outside
 [0, 1] are clipped and renormalized per ray (the batch path renormalizes every ray of a batch that has
