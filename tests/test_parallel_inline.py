@@ -31,9 +31,13 @@ def _finishing_task(shared, item):
     return shared["pool"].submit(finish)
 
 
-def _shared(items, **extra):
-    return {"started": [], "finished": [], "gates": {i: threading.Event() for i in items},
-            "pool": ThreadPoolExecutor(max_workers=1), **extra}
+def _shared(items, released: bool = False, **extra):
+    """The tasks' shared state: one gate per item (all released at once with ``released``), one thread."""
+    gates = {i: threading.Event() for i in items}
+    if released:
+        for gate in gates.values():
+            gate.set()
+    return {"started": [], "finished": [], "gates": gates, "pool": ThreadPoolExecutor(max_workers=1), **extra}
 
 
 def _first_pair_in_background(runner, shared, started: int) -> threading.Thread:
@@ -83,9 +87,7 @@ def test_at_most_finishing_behind_pending(monkeypatch):
 
 def test_a_failed_finish_is_that_items_failure_and_the_rest_go_on():
     items = [0, 1, 2]
-    shared = _shared(items, fail={1})
-    for gate in shared["gates"].values():
-        gate.set()
+    shared = _shared(items, released=True, fail={1})
     got = dict(run_tasks(_finishing_task, items, shared, ExecutorConfig(), progress=False))
     assert got[0] == 0 and got[2] == 20
     assert got[1] == TaskFailure("item 1 could not be written")
@@ -94,9 +96,7 @@ def test_a_failed_finish_is_that_items_failure_and_the_rest_go_on():
 
 def test_a_full_disk_in_a_finish_stops_the_run():
     items = [0, 1, 2]
-    shared = _shared(items, disk_full={0})
-    for gate in shared["gates"].values():
-        gate.set()
+    shared = _shared(items, released=True, disk_full={0})
     with pytest.raises(OSError, match="No space left"):
         list(run_tasks(_finishing_task, items, shared, ExecutorConfig(), progress=False))
     shared["pool"].shutdown()
@@ -111,9 +111,7 @@ def _plain_or_finishing(shared, item):
 
 def test_plain_results_are_yielded_at_once_and_every_future_before_the_end():
     items = [0, 1, 2, 3]
-    shared = _shared(items)
-    for gate in shared["gates"].values():
-        gate.set()
+    shared = _shared(items, released=True)
     got = list(run_tasks(_plain_or_finishing, items, shared, ExecutorConfig(), progress=False))
     assert sorted(got) == [(i, 10 * i) for i in items] and len(got) == 4
     assert shared["finished"] == [1, 3]
