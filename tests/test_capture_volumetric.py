@@ -41,7 +41,7 @@ def test_ktx2_round_trip_keeps_rows_and_size(tmp_path):
     back = read_ktx2_layer(tmp_path / "t.ktx2", 0)
     assert back.shape == (TEX, TEX, 3)
     assert back[: TEX // 2].mean() > 250 and back[TEX // 2:].mean() < 5  # row 0 stays the top
-    with pytest.raises(InputError, match=r"t\.ktx2: KTX2 layer 3 cannot be decoded"):
+    with pytest.raises(InputError, match=r"t\.ktx2: KTX2 texture has 1 layer: no layer 3"):
         read_ktx2_layer(tmp_path / "t.ktx2", 3)
 
 
@@ -106,7 +106,7 @@ def test_truncated_ktx2_is_named(tmp_path):
     ktx.write_bytes(ktx.read_bytes()[:40])
     summary = import_mesh_sequence(src, tmp_path / "cap", progress=False)
     assert summary["frames"] == 1
-    assert any(p.startswith(str(ktx)) and "truncated or corrupt" in p for p in summary["problems"])
+    assert any(p.startswith(str(ktx)) and "is truncated" in p for p in summary["problems"])
 
 
 def test_plain_folders_of_obj_glb_and_drc(tmp_path):
@@ -174,8 +174,9 @@ def test_shared_liam_take_lists_150_frames_of_5_layer_animations():
     assert len(seq.frames) == 150 and not seq.problems
     info = ktx2_info(SHARED / "texture_ktx2" / "00001.ktx2")
     assert info["width"] == 1024 and info["layers"] == 5 and info["animation"]
-    # P-frames (layers 1-4) cannot be decoded alone: frames 5-9 take file 1's I-frame, said in a note
-    assert seq.frames[7].texture == (SHARED / "texture_ktx2" / "00001.ktx2", 0)
-    assert "KTXanimData" in seq.notes[0]
-    with pytest.raises(InputError, match="layer 2 is a P-frame of a KTX2 animation"):
-        read_ktx2_layer(SHARED / "texture_ktx2" / "00001.ktx2", 2)
+    # frame 7 is file 1's layer 2, a P-frame: decoded after layers 0 and 1, said in a note
+    assert seq.frames[7].texture == (SHARED / "texture_ktx2" / "00001.ktx2", 2)
+    assert "KTXanimData" in seq.notes[0] and "P-frames decoded" in seq.notes[0]
+    key, p_frame = (read_ktx2_layer(SHARED / "texture_ktx2" / "00001.ktx2", k).astype(np.int16) for k in (0, 2))
+    # the same atlas 80 ms later: close to the I-frame, not the same, and not noise
+    assert 0.2 < np.abs(p_frame - key).mean() < 5.0

@@ -1,20 +1,20 @@
-"""KTX2 textures (Khronos; Basis Universal ETC1S/UASTC payloads) through alktx2, a wheel around the
-Basis Universal transcoder (the ``volumetric`` extra). libktx's ``pyktx`` would need a system libktx.
+"""KTX2 textures (Khronos): the container read here, ETC1S / BasisLZ payloads decoded by
+:mod:`uvatar.capture.texture_basislz` (no extra needed), UASTC through alktx2 (the ``volumetric`` extra).
 
 Volumetric players (UVOL 2) pack several frames into one KTX2 **array texture**: frame ``i`` is file
-``i // n``, layer ``i % n``. :func:`ktx2_info` reads the header (size, layers, and whether the file is
-an ETC1S *animation*: a ``KTXanimData`` key) and :func:`read_ktx2_layer` decodes one layer to RGB.
+``i // n``, layer ``i % n``. :func:`ktx2_info` reads the header (size, layers, the codec, and whether the
+file is an ETC1S *animation*: a ``KTXanimData`` key) and :func:`read_ktx2_layer` decodes one layer to RGB.
 
 In an animation, layer 0 is an I-frame and every later layer a P-frame coded against the layer before
-it: decoding layer k needs the transcoder's state after layers 0..k-1. alktx2 starts a new transcoder
-per call, so only layer 0 of an animation decodes exactly (later layers come out as noise);
-:func:`read_ktx2_layer` refuses them (``animation_layers_exact`` says so) and the importer gives those
-frames the I-frame's texture, which holds for UVOL's groups: the frames of a file share one UV atlas. KTX2's default orientation is ``rd`` (row 0 is
-the top of the image), which is also uvatar's texture layout (row 0 is v = 1), so rows are kept.
+it, so layer k is decoded after layers 0..k-1; the last file's decoded layers are kept (one file), so
+reading a file's layers in order decodes each once. KTX2's default orientation is ``rd`` (row 0 is the
+top of the image), which is also uvatar's texture layout (row 0 is v = 1), so rows are kept.
 """
 
 from __future__ import annotations
 
+import struct
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +22,14 @@ import numpy as np
 from uvatar.errors import InputError, require
 
 KTX2_MAGIC = b"\xabKTX 20\xbb\r\n\x1a\n"
+SUPERCOMPRESSION_BASISLZ = 1
+#: Khronos data format colour models of the two Basis Universal codecs
+_COLOUR_MODELS = {163: "ETC1S", 166: "UASTC"}
+MAX_KTX2_SIDE = 16384
 
 
 def _alktx2():
-    return require("alktx2", "volumetric", "KTX2 textures (.ktx2)")
+    return require("alktx2", "volumetric", "UASTC KTX2 textures (.ktx2)")
 
 
 def _bytes(path: Path) -> bytes:
@@ -38,27 +42,74 @@ def _bytes(path: Path) -> bytes:
     return data
 
 
+@dataclass(frozen=True)
+class Ktx2Header:
+    """The fields of a KTX2 header that decoding needs (byte offsets into the file)."""
+
+    width: int
+    height: int
+    layers: int          # >= 1
+    faces: int
+    levels: int          # >= 1
+    supercompression: int
+    codec: str           # "ETC1S", "UASTC" or "vkFormat N"
+    animation: bool      # a KTXanimData key: the layers are frames of a video
+    level0: tuple[int, int]
+    sgd: tuple[int, int]
+
+
+def _header(path: Path, data: bytes) -> Ktx2Header:
+    if len(data) < 104:
+        raise InputError(path, "KTX2 texture is truncated (shorter than its header)")
+    vk_format, _, width, height, _, layers, faces, levels, scheme = struct.unpack_from("<9I", data, 12)
+    dfd_offset, dfd_length, kvd_offset, kvd_length, sgd_offset, sgd_length = struct.unpack_from("<4I2Q", data, 48)
+    level_offset, level_length, _ = struct.unpack_from("<3Q", data, 80)
+    levels = max(1, levels)
+    if not (0 < width <= MAX_KTX2_SIDE and 0 < height <= MAX_KTX2_SIDE and 0 < faces <= 6 and layers < 4096):
+        raise InputError(path, f"KTX2 texture is corrupt (a {width} x {height} image of {layers} layers and "
+                               f"{faces} faces)")
+    ends = [dfd_offset + dfd_length, kvd_offset + kvd_length, sgd_offset + sgd_length, level_offset + level_length,
+            80 + 24 * levels]
+    if max(ends) > len(data):
+        raise InputError(path, f"KTX2 texture is truncated ({len(data)} bytes; its index needs {max(ends)})")
+    model = data[dfd_offset + 12] if dfd_length >= 16 else -1
+    codec = _COLOUR_MODELS.get(model, f"vkFormat {vk_format}")
+    animation = b"KTXanimData\x00" in data[kvd_offset:kvd_offset + kvd_length]
+    return Ktx2Header(width, height, max(1, layers), faces, levels, scheme, codec, animation,
+                      (level_offset, level_length), (sgd_offset, sgd_length))
+
+
 def ktx2_info(path: str | Path) -> dict:
-    """``{"width", "height", "layers", "codec"}`` of a KTX2 file (layers >= 1); InputError naming the
-    file when it is truncated or not KTX2."""
+    """``{"width", "height", "layers", "codec", "animation"}`` of a KTX2 file (layers >= 1); InputError
+    naming the file when it is truncated or not KTX2."""
     path = Path(path)
-    data = _bytes(path)
-    try:
-        info = _alktx2().inspect_ktx2(data)
-    except Exception as exc:
-        raise InputError(path, f"KTX2 texture is truncated or corrupt ({exc})") from None
-    return {"width": int(info["width"]), "height": int(info["height"]), "layers": max(1, int(info["layers"])),
-            "codec": str(info.get("basis_tex_format_name", "")), "animation": _is_animation(data)}
+    head = _header(path, _bytes(path))
+    return {"width": head.width, "height": head.height, "layers": head.layers, "codec": head.codec,
+            "animation": head.animation}
 
 
-def _is_animation(data: bytes) -> bool:
-    """True when the key/value data holds ``KTXanimData`` (layers are frames of a video: P-frames)."""
-    import struct
+_decoded: dict = {}   # the last BasisLZ file's decoded layers: {(path, size, mtime): {layer: image}}
 
-    if len(data) < 64:
-        return False
-    offset, length = struct.unpack("<II", data[56:64])
-    return b"KTXanimData\x00" in data[offset:offset + length]
+
+def _read_basislz(path: Path, data: bytes, head: Ktx2Header, layer: int) -> np.ndarray:
+    from uvatar.capture.texture_basislz import BasisLZError, decode_basislz, parse_basislz
+
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    layers = _decoded.get(key)
+    if layers is None:
+        _decoded.clear()
+        layers = _decoded[key] = {}
+    if layer not in layers:
+        try:
+            lz = parse_basislz(data, head.width, head.height, head.layers, head.faces, head.levels, head.level0[0],
+                               *head.sgd, head.animation)
+            # a video's layers up to this one (from its I-frame); all of them, as a reader wants them next
+            upto = range(head.layers) if head.animation else [layer]
+            layers.update(zip(upto, decode_basislz(data, lz, upto), strict=True))
+        except BasisLZError as exc:
+            raise InputError(path, f"KTX2 layer {layer} cannot be decoded ({exc})") from None
+    return layers[layer].copy()
 
 
 def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
@@ -69,9 +120,11 @@ def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
 
     path = Path(path)
     data = _bytes(path)
-    if layer > 0 and _is_animation(data):
-        raise InputError(path, f"layer {layer} is a P-frame of a KTX2 animation (KTXanimData), which the transcoder "
-                               "decodes only after the layers before it; alktx2 decodes one layer alone")
+    head = _header(path, data)
+    if not 0 <= layer < head.layers:
+        raise InputError(path, f"KTX2 texture has {head.layers} layer{'s' if head.layers > 1 else ''}: no layer {layer}")
+    if head.supercompression == SUPERCOMPRESSION_BASISLZ:
+        return _read_basislz(path, data, head, int(layer))
     try:  # TGA: the transcoder's uncompressed output (PNG would cost 4x the time in zlib)
         tga, _ = _alktx2().decode_ktx2_to_bytes(data, format="tga", layer=int(layer))
         with PIL.Image.open(io.BytesIO(tga)) as im:  # PIL applies the TGA origin flag

@@ -16,10 +16,10 @@ Every frame becomes ``OUT/scans/<frame>.ply`` + ``<frame>.png`` (texture at its 
 uvatar's world (metres, +Y up); frame names keep the take's numbering (frame 17 → ``000017``).
 Units and up axis: what the file says (glTF/GLB: metres, +Y up), else ``--units``/``--up``, else
 detected: the units that make the first frame's height a person's (0.5-2.5 m), +Y up unless the
-mesh is tallest along another axis (then the import asks for ``--up``). In a KTX2 *animation* only
-each file's I-frame texture decodes; the file's other frames take it, through the surface where the
-encoder gave a frame a UV atlas of its own (:mod:`uvatar.capture.atlas_transfer`). A frame whose mesh or
-texture is broken is reported in one line naming its file and skipped; the others are imported.
+mesh is tallest along another axis (then the import asks for ``--up``). A KTX2 *animation*'s P-frames
+are decoded after the frames before them in their file (:mod:`uvatar.capture.texture_ktx2`), so every
+frame has its own texture in its own UV atlas. A frame whose mesh or texture is broken is reported in
+one line naming its file and skipped; the others are imported.
 Resumable: frames already written are kept (all writes are atomic; ``capture.json`` comes last).
 """
 
@@ -50,13 +50,11 @@ UVOL_DEFAULT_FPS = 30.0       # the UVOL encoder's default frame rate, used when
 @dataclass
 class FrameSource:
     """Where one frame's mesh and texture come from: ``texture`` is an image path, a ``(ktx2 path,
-    layer)`` pair, or None (the mesh's own texture); ``atlas_of``: the mesh whose UV atlas the texture
-    is laid out in, when not the frame's own (:mod:`uvatar.capture.atlas_transfer`)."""
+    layer)`` pair, None (the mesh's own texture) or () (none: the frame cannot be imported)."""
 
     index: int
     mesh: Path
     texture: Path | tuple[Path, int] | None = None
-    atlas_of: Path | None = None  # a KTX2 animation's later frame: the mesh of its file's I-frame (layer 0)
 
 
 @dataclass
@@ -207,9 +205,8 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
             first_info = ktx2_info(first)
             per_file = manifest.get("frames_per_file") or first_info["layers"]
             if first_info["animation"] and per_file > 1:
-                notes.append(f"{texture}: KTX2 animations (KTXanimData): only each file's layer 0 (I-frame) decodes "
-                             f"exactly; its other {per_file - 1} frames take that texture, through the surface where "
-                             "their UV atlas is not the I-frame's")
+                notes.append(f"{texture}: KTX2 animations (KTXanimData): each file's {per_file - 1} P-frames decoded "
+                             "after its I-frame")
             layers: dict[Path, int] = {}
             for i, source in frames.items():
                 path = ktx.get(i // per_file)
@@ -229,10 +226,7 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
                                         f"file: frame {i} (layer {i % per_file}) has no texture")
                     source.texture = ()
                     continue
-                source.texture = (path, 0 if first_info["animation"] else i % per_file)
-                if first_info["animation"] and i % per_file:
-                    key_frame = frames.get(i - i % per_file)
-                    source.atlas_of = key_frame.mesh if key_frame is not None else ()
+                source.texture = (path, i % per_file)
             covered = max(ktx) * per_file + per_file
             if covered < max(frames) + 1 or len(ktx) * per_file < len(frames) - per_file + 1:
                 problems.append(f"{texture}: {len(ktx)} KTX2 files x {per_file} frames for {len(frames)} meshes in "
@@ -289,11 +283,8 @@ def _read_mesh(path: Path) -> TexturedMesh:
     return read_drc(path) if path.suffix.lower() == ".drc" else read_mesh(path)
 
 
-def _read_frame(source: FrameSource, key_frames: dict | None = None) -> tuple[TexturedMesh, bool]:
-    """Decode a frame's mesh and texture (source units and axes) -> (mesh, whether its texture was
-    transferred from its KTX2 file's I-frame through the surface); InputError naming the bad file.
-    ``key_frames``: a cache {I-frame mesh path: mesh} shared by the frames of a file."""
-    from uvatar.capture.atlas_transfer import same_atlas, transfer_texture
+def _read_frame(source: FrameSource) -> TexturedMesh:
+    """Decode a frame's mesh and texture (source units and axes); InputError naming the bad file."""
     from uvatar.capture.texture_ktx2 import read_ktx2_layer
     from uvatar.io_utils import read_image
 
@@ -308,35 +299,7 @@ def _read_frame(source: FrameSource, key_frames: dict | None = None) -> tuple[Te
         raise InputError(source.mesh, "mesh has no texture (no image beside it, none named by the file)")
     if not mesh.has_uvs:
         raise InputError(source.mesh, "mesh has no UVs: its texture cannot be mapped")
-    if source.atlas_of is None:
-        return mesh, False
-    if source.atlas_of == ():
-        raise InputError(source.mesh, f"the I-frame of {source.texture[0].name} has no mesh: this frame's texture "
-                                      "cannot be placed in its UV atlas")
-    key_frames = {} if key_frames is None else key_frames
-    if source.atlas_of not in key_frames:
-        key_frames.clear()   # one file's I-frame at a time
-        try:
-            key_frames[source.atlas_of] = _read_mesh(source.atlas_of)
-        except InputError as exc:
-            raise InputError(source.mesh, f"its KTX2 file's I-frame mesh is unreadable ({exc}): this frame's "
-                                          "texture cannot be placed in its UV atlas") from None
-    key = key_frames[source.atlas_of]
-    key.texture = mesh.texture
-    if same_atlas(mesh, key):
-        return mesh, False
-    mesh.texture = transfer_texture(mesh, key)
-    return mesh, True
-
-
-def _ranges(frames: list[int]) -> str:
-    """[37, 38, 39, 76, 77] -> '37-39, 76-77'."""
-    out, start = [], frames[0]
-    for a, b in zip(frames, frames[1:] + [None], strict=True):
-        if b != a + 1:
-            out.append(f"{start}" if start == a else f"{start}-{a}")
-            start = b
-    return ", ".join(out)
+    return mesh
 
 
 def detect_units(height: float, path: Path) -> str:
@@ -405,8 +368,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             p.unlink(missing_ok=True)
     S = units = up = None
     notes: list[str] = list(seq.notes)
-    imported, skipped, written, transferred = [], [], 0, []
-    key_frames: dict = {}
+    imported, skipped, written = [], [], 0
     bar = tqdm(wanted, desc="import", unit="frame", disable=not progress or None)
     for i in bar:
         target = scans / f"{frame_name(i)}.ply"
@@ -415,7 +377,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             imported.append(i)
             continue
         try:
-            mesh, moved = _read_frame(seq.frames[i], key_frames)
+            mesh = _read_frame(seq.frames[i])
         except InputError as exc:
             skipped.append(i)
             problems.append(str(exc))
@@ -428,23 +390,18 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             # what the scans on disk are made with (recorded once the first frame reads, before any write):
             # a resume with other units / up / source is refused; the frame range may grow
             stage_record.begin(scans, "capture import", {"source": str(src.resolve()), "units": cfg.units,
-                                                         "up": cfg.up, "ktx2_animation_textures": "atlas-checked"},
+                                                         "up": cfg.up, "ktx2_animation_textures": "p-frames-decoded"},
                                total=len(wanted), redo_hint="another output folder starts over")
         if not done:
             mesh.vertices = mesh.vertices @ S[:3, :3].T.astype(np.float32) + S[:3, 3].astype(np.float32)
             write_mesh(target, mesh)
             written += 1
-            if moved:
-                transferred.append(i)
         imported.append(i)
         if not done:  # what a refusal of the half-made import counts ("3 of 12 frames")
             stage_record.mark_progress(scans, len(imported))
     bar.close()
     if not imported:
         raise InputError(src, f"no frame could be imported ({len(skipped)} broken; first: {problems[-1]})")
-    if transferred:
-        notes.append(f"frames {_ranges(transferred)}: a UV atlas of their own inside their KTX2 file: the I-frame's "
-                     "texture transferred through the surface (closest point of the I-frame's mesh)")
     fps = cfg.fps or seq.fps or UVOL_DEFAULT_FPS
     if not (cfg.fps or seq.fps):
         notes.append(f"frame rate not stated (no manifest, no --fps): {UVOL_DEFAULT_FPS:g} fps, the UVOL encoder's "
