@@ -165,3 +165,16 @@ def test_broken_files_are_one_line_naming_the_file(tmp_path, case, edit, message
 def test_a_layer_past_the_last_is_named(tmp_path):
     with pytest.raises(InputError, match="has 3 layers: no layer 3"):
         read_ktx2_layer(FIXTURES / "video_runs.ktx2", 3)
+
+
+def test_bench_quick_row_is_bit_exact_against_alktx2(capsys, monkeypatch):
+    import json
+    import sys
+
+    from bench_modules import load_bench
+
+    monkeypatch.setattr(sys, "argv", ["ktx2.py", "--quick", "--take", str(FIXTURES / "video_runs.ktx2")])
+    load_bench("ktx2").main()
+    row = json.loads(capsys.readouterr().out)
+    assert row["bit_exact"] and row["size"] == 256 and row["uvatar_s"] > 0 and row["alktx2_s"] > 0
+    assert row["take"]["layers"] == 3 and row["take"]["seconds_per_layer"] > 0
