@@ -159,6 +159,22 @@ def test_resume_keeps_written_frames(tmp_path):
         import_mesh_sequence(src, tmp_path / "cap", ImportConfig(units="cm"), progress=False)
 
 
+def test_an_import_by_the_i_frame_version_is_not_resumed(tmp_path, capsys):
+    import json
+
+    src = write_uvol(tmp_path / "take", frames=2)
+    import_mesh_sequence(src, tmp_path / "cap", progress=False)
+    from uvatar.stage_record import RECORD_NAME
+
+    record_path = tmp_path / "cap" / "scans" / RECORD_NAME
+    record = json.loads(record_path.read_text())
+    record["config"]["ktx2_animation_textures"] = "atlas-checked"   # what sessions 1-16 wrote
+    record_path.write_text(json.dumps(record))
+    assert main(["capture", "import", str(src), str(tmp_path / "cap"), "--no-progress"]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("uvatar: error:")]
+    assert len(err) == 1 and "imported by an older uvatar" in err[0] and "another output folder" in err[0]
+
+
 def test_cli_nothing_imported_is_one_line_and_exit_1(tmp_path, capsys):
     src = write_uvol(tmp_path / "take", frames=1)
     (src / "geometry_draco" / "00000.drc").write_bytes(b"DRACO\x02\x02")
