@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -201,7 +203,7 @@ def test_count_or_names():
         _count_or_names(",", "--frames")
 
 
-def test_cli_eval_named(setup, tmp_path, monkeypatch):
+def test_cli_eval_named(setup, tmp_path, monkeypatch, capsys):
     import uvatar.body
     from uvatar.capture import Capture
     from uvatar.cli.main import main
@@ -212,10 +214,20 @@ def test_cli_eval_named(setup, tmp_path, monkeypatch):
     out = tmp_path / "m.json"
     assert main(["eval", "avh", str(root / "avatar"), str(cap), "--json", str(out), "--image-size", "32",
                  "--frames", "000005,000004", "--cameras", ",".join(cams[::-1]), "--images", str(tmp_path / "im"),
-                 "--sheet-per-camera"]) == 0
+                 "--sheet-per-camera", "--report", str(tmp_path / "rep" / "eval.html")]) == 0
     m = json.loads(out.read_text())
     assert m["frames"] == ["000005", "000004"] and m["camera_names"] == cams[::-1]
     assert len(m["images"]) == 4 and np.isfinite(m["avh"]["psnr_db_full"])
+    assert m["protocol"].startswith("the frames given (--frames")
+    # the report: every method's row with the JSON's figures, the regions, the images linked from its folder
+    page = (tmp_path / "rep" / "eval.html").read_text()
+    for name in ("avh", "mean_texture", "nearest_pose"):
+        assert f"<td>{name}</td>" in page
+    assert f"<td>{m['avh']['psnr_db']:.4g}</td>" in page and "By body region" in page
+    for image in m["images"]:
+        rel = Path(os.path.relpath(Path(image).resolve(), tmp_path / "rep")).as_posix()
+        assert f'src="{rel}"' in page and (tmp_path / "rep" / rel).is_file()
+    assert "report at" in capsys.readouterr().out
     assert main(["eval", "avh", str(root / "avatar"), str(cap), "--frames", "000099"]) == 1
     assert main(["eval", "avh", str(root / "avatar"), str(cap), "--image-size", "0"]) == 1
 

@@ -78,7 +78,11 @@ SHORT_NAMES = {"avh": "AVH", "mean_texture": "mean tex", "nearest_pose": "neares
 TIME_PROTOCOL = ("; nearest_time (a real take: no gt/, frames named by the take's frame numbers): the baked maps of "
                  "the training frame nearest in frame number (ties: the earlier), re-posed like nearest_pose; not "
                  "pose-driven, it measures how much of the unseen frames is drift over time rather than pose")
-PROTOCOL = ("held-out frames (gt/info.json heldout_frames), not trained on; avatar and ground-truth scan "
+#: the frames each split names, the protocol's first clause
+SPLIT_PROTOCOL = {"heldout": "held-out frames (gt/info.json heldout_frames), not trained on",
+                  "frames given": "the frames given (--frames; unseen when they lie outside the range the selection "
+                                  "chose training frames from: nearest_training_distance_deg says how far they are)"}
+PROTOCOL = ("; avatar and ground-truth scan "
             "rendered with the same ray-cast renderer from each capture camera (white background, no shading); "
             "PSNR (dB) and SSIM (Gaussian window sigma 1.5) over the union of the two foreground masks "
             "(psnr_db, ssim = psnr_db_union_mask, ssim_union_mask) and over the full image (psnr_db_full, "
@@ -497,7 +501,7 @@ def evaluate_avatar(avatar_dir: str | Path, capture_root: str | Path, config: Ev
         for m, value in sums.r2().items():
             summary[m][f"{kind}_r2_vs_bake"] = value
     conditioning = {m: rt.meta.get("model_config", {}).get("conditioning", "global") for m, rt in runtimes.items()}
-    protocol = PROTOCOL + POSE_PROTOCOL[config.pose_source] + ("" if cams else orbit_protocol(config))
+    protocol = SPLIT_PROTOCOL.get(split, split) + PROTOCOL + POSE_PROTOCOL[config.pose_source] + ("" if cams else orbit_protocol(config))
     if any(scan_geometry.values()):
         protocol += SCAN_PROTOCOL
     if own_r2 is not None and own_r2.frames:

@@ -163,6 +163,9 @@ def register(cli) -> None:
                                    "holds them, score the pose-dependent part)")
     p.add_argument("--json", default=None, help="write the metrics here")
     p.add_argument("--images", default=None, help="write comparison images here")
+    p.add_argument("--report", default=None,
+                   help="write an HTML report here (every method's figures, the body regions, near and far poses; "
+                        "with --images, the comparison images, linked relative to the report)")
     p.add_argument("--baked", dest="baked_dir", default=None,
                    help="baked training data (default: the one avatar.json names)")
     p.add_argument("--also", action="append", default=None, metavar="AVATAR",
@@ -261,8 +264,9 @@ def _eval(args) -> int:
     from uvatar.errors import options_as_input_error
     from uvatar.io_utils import check_output_location, write_json
 
-    if args.json:
-        check_output_location(args.json)  # before minutes of rendering
+    for out in (args.json, args.report):
+        if out:
+            check_output_location(out)  # before minutes of rendering
     from uvatar.capture.layout import Capture, frames_in_range, is_frame_range
 
     if args.frames and is_frame_range(args.frames):
@@ -278,6 +282,10 @@ def _eval(args) -> int:
                               others=others)
     if args.json:
         write_json(args.json, metrics)
+    if args.report:
+        from uvatar.avh.eval_report import eval_report
+
+        print(f"uvatar eval avh: report at {eval_report(metrics, args.report)}")
     rows = [("avh", metrics["avh"]), *metrics["others"].items(), *metrics["baselines"].items(),
             *metrics.get("upper_bound", {}).items()]
     for name, m in rows:
