@@ -4,6 +4,7 @@ with ``uvatar eval avh``."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -64,7 +65,7 @@ def test_evaluate_dva_reports_both_protocols(tmp_path):
         train_dva(open_source(cap), run, preset("tiny"), iters=2, progress=False)
         assert main(["eval", "dva", str(run), str(cap), "--json", str(tmp_path / "m.json")]) == 0
         assert main(["eval", "dva", str(run), str(cap), "--json", str(tmp_path / "m0.json"), "--refine-pose", "0",
-                     "--refine-residual", "0"]) == 0
+                     "--refine-residual", "0", "--report", str(tmp_path / "r" / "eval.html")]) == 0
     finally:
         torch.set_num_threads(n)
     m = json.loads((tmp_path / "m.json").read_text())
@@ -87,6 +88,12 @@ def test_evaluate_dva_reports_both_protocols(tmp_path):
     assert set(m["refine_residual"]["frames"]) == set(m["frames"])
     assert all({"loss_before", "loss_after", "kept"} <= set(v) for v in m["refine_residual"]["frames"].values())
     assert m0["refine_residual"] is None and "residual" not in m0["protocol"]
+    # the report: the avatar beside its baselines with the JSON's figures, one row an image, its images linked
+    page = (tmp_path / "r" / "eval.html").read_text()
+    assert "<td>DVA</td>" in page and "<td>mean-colour body</td>" in page and "<td>projective texture</td>" in page
+    assert f"<td>{round(m0['psnr_db_person_mask'], 4):.4g}</td>" in page
+    assert page.count("<tr><td>0000") == len(m0["per_image"])
+    assert all(f'src="../{Path(m0["images"]).name}/{p.name}"' in page for p in Path(m0["images"]).glob("*.png"))
     assert "baseline_projective_texture" in m and np.isfinite(m["baseline_projective_texture"]["psnr_db_full"])
 
 

@@ -158,6 +158,9 @@ def register(cli) -> None:
     p.add_argument("run", help="DVA run folder")
     p.add_argument("capture", help="capture folder (its protocol picks test frames and cameras)")
     p.add_argument("--json", required=True, help="metrics JSON path (comparison images go beside it)")
+    p.add_argument("--report", default=None,
+                   help="write an HTML report here (the avatar beside its baselines, each image's figures, the "
+                        "comparison images)")
     evaluate.add_to(p)
     p.add_argument("--frames", default=None, help="frame names, comma separated (default: the protocol's test frames)")
     p.add_argument("--cameras", default=None,
@@ -305,6 +308,10 @@ def _eval(args) -> int:
     from uvatar.dva.data import open_source
     from uvatar.dva.eval import evaluate_dva
 
+    if args.report:
+        from uvatar.io_utils import check_output_location
+
+        check_output_location(args.report)  # before minutes of rendering
     r = evaluate_dva(args.run, open_source(args.capture), args.json, frames=_split(args.frames),
                      cameras=_split(args.cameras), body_model=args.model, model_dir=args.model_dir,
                      **_flags()[5].values(args))
@@ -312,4 +319,8 @@ def _eval(args) -> int:
     print(f"in the person's mask: psnr {r['psnr_db_person_mask']:.2f} dB, ssim {r['ssim_person_mask']:.4f} "
           f"(along its outline {r['ssim_person_edge']:.4f}, opacity {r['opacity_person_edge']:.3f}; "
           f"inside {r['ssim_person_interior']:.4f}, opacity {r['opacity_person_interior']:.3f})")
+    if args.report:
+        from uvatar.dva.eval_report import dva_eval_report
+
+        print(f"uvatar eval dva: report at {dva_eval_report(r, args.report)}")
     return 0
