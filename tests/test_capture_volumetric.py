@@ -79,6 +79,27 @@ def test_uvol_manifest_gives_fps_and_frames_per_file(tmp_path):
     assert Capture(tmp_path / "cap").frames == ["000000", "000002"]
 
 
+def test_manifest_listing_an_astc_target_first_reads_the_ktx2_one(tmp_path):
+    manifest = {"version": "v2", "output": {
+        "geometry": {"targets": {"draco": {"frameRate": 25, "frameCount": 2, "format": "draco"}},
+                     "path": "geometry_[target]/[index][ext]"},
+        "texture": {"baseColor": {"targets": {"astc": {"format": "astc/ktx", "frameRate": 25},
+                                              "ktx2": {"format": "ktx2", "frameRate": 25}},
+                                  "path": "texture_[target]/[index][ext]"}}}}
+    src = write_uvol(tmp_path / "take", frames=2, manifest=manifest)
+    (src / "texture_astc").mkdir()
+    for i in range(2):
+        (src / "texture_astc" / f"{i:05d}.ktx").write_bytes(b"\xabKTX 11\xbb\r\n\x1a\n")
+    seq = find_mesh_sequence(src)
+    assert not seq.problems and seq.frames[1].texture == (src / "texture_ktx2" / "00001.ktx2", 0)
+    # with only the ASTC target there, one line says why nothing can be read
+    for p in (src / "texture_ktx2").iterdir():
+        p.unlink()
+    (src / "texture_ktx2").rmdir()
+    with pytest.raises(InputError, match=r"texture_astc: holds KTX 1 textures .*astc/ktx.* ktx2 target"):
+        find_mesh_sequence(src)
+
+
 def test_truncated_draco_is_one_line_and_the_rest_imports(tmp_path):
     src = write_uvol(tmp_path / "take", frames=3)
     drc = src / "geometry_draco" / "00001.drc"

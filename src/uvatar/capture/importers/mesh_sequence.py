@@ -124,9 +124,10 @@ def _read_manifest(path: Path) -> dict:
             continue
         targets = block.get("targets", {})
         if isinstance(targets, dict) and targets:
-            name, target = next(iter(targets.items()))
+            name, target = _readable_target(targets)
             out[f"{key}_target"] = name
-            block = {**block, **target}
+            if isinstance(target, dict):
+                block = {**block, **target}
         if isinstance(block.get("path"), str):
             out[f"{key}_path"] = block["path"]
         if key == "geometry" and isinstance(block.get("frameRate"), int | float) and block["frameRate"] > 0:
@@ -138,6 +139,19 @@ def _read_manifest(path: Path) -> dict:
         if key == "texture" and "fps" not in out and isinstance(block.get("frameRate"), int | float):
             out["texture_fps"] = float(block["frameRate"])
     return out
+
+
+#: UVOL 2 texture formats uvatar cannot decode (the player's ``astc/ktx``: KTX 1 files of ASTC blocks)
+UNREADABLE_TEXTURE_FORMATS = ("astc/ktx",)
+
+
+def _readable_target(targets: dict) -> tuple[str, dict]:
+    """The manifest's first target uvatar can read (UVOL 2 lists e.g. an ``astc/ktx`` texture target
+    before its ``ktx2`` one); the first target when none says its format."""
+    for name, target in targets.items():
+        if not (isinstance(target, dict) and target.get("format") in UNREADABLE_TEXTURE_FORMATS):
+            return name, target
+    return next(iter(targets.items()))
 
 
 def _template_folder(src: Path, template: str | None, target: str | None, kind: str) -> Path | None:
@@ -197,6 +211,12 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
     problems: list[str] = []
     notes: list[str] = []
     frames = {i: FrameSource(i, p) for i, p in meshes.items()}
+    if texture is None or not any(any(texture.glob(f"*{x}")) for x in (".ktx2",) + IMAGE_SUFFIXES):
+        astc = next((d for d in texture_dirs + [texture] if d is not None and any(d.glob("*.ktx"))), None)
+        if astc is not None and all(p.suffix.lower() == ".drc" for p in meshes.values()):
+            raise InputError(astc, "holds KTX 1 textures (.ktx: UVOL 2's astc/ktx target, ASTC blocks), which uvatar "
+                                   "does not decode; give the take with its ktx2 target (texture_ktx2/) or per-frame "
+                                   "images")
     if texture is None:
         problems.append(f"{src}: no texture_*/ folder: frames take their meshes' own textures")
     else:
