@@ -59,10 +59,13 @@ def _flags():
                                 "each on its own CUDA stream (same fits; 1 = one at a time)",
             "write_behind": "with --workers 1, write each frame on a thread while the next one bakes (same "
                             "files); --no-write-behind writes it before the next begins"})
-    refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "photometric_radii", "photometric_weight",
+    refine = ConfigFlags(PoseRefineConfig, fields=("iterations", "pose_prior", "photometric_radii", "photometric_weight",
                                                     "photometric_space", "cuda_graph"),
                          prefix="refine", help={
                              "iterations": "Gauss-Newton steps of the articulated fit refinement (per round)",
+                             "pose_prior": "pull of each joint back toward its pose at the start of a round, per "
+                                           "matched vertex, in m^2 per rad^2 (0 = none: the refinement then never "
+                                           "settles along turns the scan barely sees)",
                              "photometric_radii": "one colour-consistency round across frames per stencil radius "
                                                   "in metres, coarse to fine (comma-separated)",
                              "photometric_weight": "weight of the colour term against the surface distance "

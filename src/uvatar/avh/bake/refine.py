@@ -43,6 +43,22 @@ __all__ = ["PoseRefineConfig", "PhotoSample", "check_refine_inputs", "refine_fit
            "untracked_skin_weight"]
 
 
+def _add_pose_prior(a: np.ndarray, g: np.ndarray, frames: np.ndarray, start: np.ndarray, now: np.ndarray,
+                    weight: float) -> None:
+    """Add ``weight/2 * sum_k |log(L0_k^T L_k)|^2`` (each moved joint's turn away from the start pose, in
+    its parent's frame) to the Gauss-Newton system ``(a, g)`` over the world-frame joint steps ``d_k``,
+    which turn ``L_k`` into ``L_k exp(R_k^T d_k)``: to first order the deviation becomes
+    ``delta_k + R_k^T d_k``, so ``g_k += weight R_k delta_k`` and ``a_kk += weight I``. ``frames`` (K, 3, 3)
+    the joints' world frames (scaled; normalised here), ``start``/``now`` (K, 3) local rotation vectors."""
+    from scipy.spatial.transform import Rotation
+
+    k = len(start)
+    frames = frames / np.linalg.norm(frames, axis=1, keepdims=True)
+    delta = (Rotation.from_rotvec(start).inv() * Rotation.from_rotvec(now)).as_rotvec()     # (K, 3)
+    g[: 3 * k] += weight * np.einsum("kij,kj->ki", frames, delta).reshape(-1)
+    a[np.arange(3 * k), np.arange(3 * k)] += weight
+
+
 def _rotation_step(step: np.ndarray, max_angle: float) -> np.ndarray:
     angle = np.linalg.norm(step, axis=-1, keepdims=True)
     return step * np.minimum(1.0, max_angle / np.maximum(angle, 1e-12))
@@ -237,6 +253,7 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
     use = refine_vertices(body, config)
     sub, skin = refinement_weights(body, config)    # (N, K) each
     rot = body.joint_rotvecs_from_fit(fit).astype(np.float64)
+    rot0 = rot.copy()
     rh = np.asarray(fit.Rh, np.float64).copy()
     th = np.asarray(fit.Th, np.float64).copy()
     shape_t = _shape_tensor(fit, shape)
@@ -293,6 +310,8 @@ def refine_fit(body, fit, scan, config: PoseRefineConfig | None = None, shape=No
         # the prior also holds every other unknown where nothing observes it (a round limb's turn
         # with the colour term off, a tube's slide along its axis): no singular steps
         a += np.diag(config.damping * np.diag(a) + config.prior * int(ok.sum()) + 1e-12)
+        if config.pose_prior > 0:
+            _add_pose_prior(a, g, tr[joints, :3, :3], rot0[joints], rot[joints], config.pose_prior * int(ok.sum()))
         step = -np.linalg.solve(a, g)
         d_joint = _rotation_step(step[: 3 * k].reshape(k, 3), max_angle)
         d_root = _rotation_step(step[3 * k: 3 * k + 3], max_angle)

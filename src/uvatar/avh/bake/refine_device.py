@@ -280,6 +280,7 @@ def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sam
 
     from uvatar.avh.bake.photometric import surface_colours
     from uvatar.avh.bake.refine_model import _normal_equations_reference, _posing_body, _shape_tensor
+    from uvatar.avh.bake.refine_step import pose_prior_torch
     from uvatar.avh.bake.register_torch import window_outgrown
     from uvatar.capture import BodyFit
 
@@ -313,6 +314,7 @@ def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sam
                             stats=torch.full((4, iterations + 1), float("nan"), **f64),
                             slot=torch.zeros((), dtype=torch.int64, device=device))
 
+    start_rot = state.rot[joints].clone()   # what the pose prior pulls toward
     if step_in_warp(device):   # chosen once, not per iteration
         from uvatar.avh.bake.refine_step_warp import apply_step_warp as apply_step
     else:
@@ -366,6 +368,8 @@ def refinement_steps(body, fit, scan, config, shape, photo, scan_mesh, start_sam
         centres = tr[joints, :3, 3]
         a, g = _normal_equations_reference(v, sub, centres, centre0, blocks)
         a = a + torch.diag(config.damping * torch.diagonal(a) + config.prior * count + 1e-12)
+        if config.pose_prior > 0:
+            a, g = pose_prior_torch(a, g, tr[joints, :3, :3], start_rot, state.rot[joints], config.pose_prior * count)
         step, failed = _solve(a, g)
         step = -step
         running = running & ~failed

@@ -8,7 +8,7 @@ which of the two a device takes.
 from __future__ import annotations
 
 __all__ = ["rotvec_quaternions", "quaternion_rotvecs", "compose_rotvecs", "rotate", "rotation_step",
-           "apply_step_torch"]
+           "apply_step_torch", "pose_prior_torch"]
 
 
 def rotvec_quaternions(rotvec):
@@ -96,3 +96,19 @@ def rotation_step(step, max_angle: float):
     """:func:`.refine._rotation_step` of a tensor (rows of rotation vectors capped at ``max_angle``)."""
     angle = step.norm(dim=-1, keepdim=True)
     return step * (max_angle / angle.clamp(min=1e-12)).clamp(max=1.0)
+
+
+def pose_prior_torch(a, g, frames, start, now, weight):
+    """:func:`.refine._add_pose_prior` on tensors (its reference twin is the numpy one there), returning
+    the new ``(a, g)``: ``weight`` (float or 0-d tensor) times each of the k joints' turn away from
+    ``start`` (k, 3) local rotation vectors, ``now`` (k, 3), in the world frames ``frames`` (k, 3, 3)."""
+    import torch
+
+    k = start.shape[0]
+    frames = frames / torch.linalg.norm(frames, dim=1, keepdim=True)
+    delta = compose_rotvecs(-start, now)                                              # log(L0^T L)
+    pull = weight * torch.einsum("kij,kj->ki", frames, delta).reshape(-1)
+    g = torch.cat([g[: 3 * k] + pull, g[3 * k:]])
+    on = torch.zeros(a.shape[0], dtype=a.dtype, device=a.device)
+    on[: 3 * k] = 1.0
+    return a + torch.diag(weight * on), g
