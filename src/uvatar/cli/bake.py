@@ -64,8 +64,9 @@ def _flags():
                          prefix="refine", help={
                              "iterations": "Gauss-Newton steps of the articulated fit refinement (per round)",
                              "pose_prior": "pull of each joint back toward its pose at the start of a round, per "
-                                           "matched vertex, in m^2 per rad^2 (0 = none: the refinement then never "
-                                           "settles along turns the scan barely sees)",
+                                           "matched vertex, in m^2 per rad^2 (0 = none; 1e-4 makes the refinement "
+                                           "settle along turns the scan barely sees, but holds poses short of "
+                                           "the scan: docs/real_avh.md)",
                              "photometric_radii": "one colour-consistency round across frames per stencil radius "
                                                   "in metres, coarse to fine (comma-separated)",
                              "photometric_weight": "weight of the colour term against the surface distance "
