@@ -8,6 +8,7 @@ so a report can also be made later from that JSON (:func:`eval_report`).
 
 from __future__ import annotations
 
+import math
 import statistics
 from pathlib import Path
 
@@ -36,7 +37,7 @@ def _methods(metrics: dict) -> list[tuple[str, dict]]:
 
 def _value(m: dict, keys: tuple[str, ...]):
     for key in keys:
-        if isinstance(m.get(key), int | float):
+        if isinstance(m.get(key), int | float) and math.isfinite(m[key]):
             return round(float(m[key]), 4)
     return ""
 

@@ -6,6 +6,7 @@ images (truth | avatar | error x 4 | mean colour | projective texture), from the
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 __all__ = ["dva_eval_report"]
@@ -19,8 +20,9 @@ _ROWS = [("DVA", None), ("mean-colour body", "baseline_mean_colour"),
 
 
 def _cell(m: dict, key: str):
+    """The figure rounded, or blank where there is none (a NaN: e.g. no interior in a small mask)."""
     value = m.get(key)
-    return round(float(value), 4) if isinstance(value, int | float) else ""
+    return round(float(value), 4) if isinstance(value, int | float) and math.isfinite(value) else ""
 
 
 def dva_eval_report(metrics: dict, path: str | Path) -> Path:
@@ -36,8 +38,9 @@ def dva_eval_report(metrics: dict, path: str | Path) -> Path:
                  "rows": [[r["frame"], r["camera"]] + [_cell(r, k) for _, k in columns]
                           for r in metrics.get("per_image", [])]}
     frames = metrics.get("frames") or []
-    text = (f"{len(metrics.get('per_image', []))} images: {len(frames)} held-out frames x held-out cameras "
-            f"{', '.join(map(str, metrics.get('cameras') or []))}, driven from "
+    n = len(metrics.get("per_image", []))
+    text = (f"{n} image{'s' if n != 1 else ''}: {len(frames)} held-out frame{'s' if len(frames) != 1 else ''} x "
+            f"held-out cameras {', '.join(map(str, metrics.get('cameras') or []))}, driven from "
             f"{', '.join(map(str, metrics.get('driving_cameras') or []))}; the run trained "
             f"{metrics.get('train_steps')} steps. Skipped frames: {len(metrics.get('skipped_frames') or [])}.")
     if metrics.get("empty"):

@@ -22,7 +22,7 @@ h1{border-bottom:2px solid #ddd;padding-bottom:.3em} h2{margin-top:1.8em;color:#
 text-align:right} th{background:#f3f3f3} td:first-child,th:first-child{text-align:left}
 figure{display:inline-block;margin:.4em;vertical-align:top} figcaption{font-size:.85em;color:#555;
 text-align:center} img,video{max-width:100%;border:1px solid #ddd}
-.meta{color:#777;font-size:.85em} pre{background:#f6f6f6;padding:.6em;overflow-x:auto}
+.meta{color:#777;font-size:.85em} pre{background:#f6f6f6;padding:.6em;overflow-x:auto;white-space:pre-wrap}
 """
 
 
