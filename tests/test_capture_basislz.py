@@ -34,9 +34,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def _lz(path: Path) -> tuple[bytes, basislz.BasisLZ]:
     data = path.read_bytes()
-    h = texture_ktx2._header(path, data)
-    return data, basislz.parse_basislz(data, h.width, h.height, h.layers, h.faces, h.levels, h.level0[0], *h.sgd,
-                                       h.animation)
+    return data, texture_ktx2.parse_basislz_of(data, texture_ktx2._header(path, data))
 
 
 @pytest.mark.parametrize("name", sorted(LAYERS))

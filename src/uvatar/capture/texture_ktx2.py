@@ -14,7 +14,7 @@ top of the image), which is also uvatar's texture layout (row 0 is v = 1), so ro
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -88,43 +88,65 @@ def ktx2_info(path: str | Path) -> dict:
             "animation": head.animation}
 
 
-_decoded: dict = {}   # the last BasisLZ file's decoded layers: {(path, size, mtime): {layer: image}}
+@dataclass
+class _BasisLZFile:
+    """A BasisLZ file as read: its bytes, header, global data (parsed at its first decode) and the
+    layers decoded so far."""
+
+    data: bytes
+    head: Ktx2Header
+    lz: object = None
+    layers: dict = field(default_factory=dict)
 
 
-def _read_basislz(path: Path, data: bytes, head: Ktx2Header, layer: int) -> np.ndarray:
-    from uvatar.capture.texture_basislz import BasisLZError, decode_basislz, parse_basislz
+_decoded: dict = {}   # the last BasisLZ file read: {(path, size, mtime): _BasisLZFile}
 
+
+def _file_key(path: Path) -> tuple:
     stat = path.stat()
-    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
-    layers = _decoded.get(key)
-    if layers is None:
-        _decoded.clear()
-        layers = _decoded[key] = {}
-    if layer not in layers:
+    return str(path.resolve()), stat.st_size, stat.st_mtime_ns
+
+
+def parse_basislz_of(data: bytes, head: Ktx2Header):
+    """The :class:`~uvatar.capture.texture_basislz.BasisLZ` global data of a file with this header."""
+    from uvatar.capture.texture_basislz import parse_basislz
+
+    return parse_basislz(data, head.width, head.height, head.layers, head.faces, head.levels, head.level0[0],
+                         *head.sgd, head.animation)
+
+
+def _read_basislz(path: Path, file: _BasisLZFile, layer: int) -> np.ndarray:
+    from uvatar.capture.texture_basislz import BasisLZError, decode_basislz
+
+    if layer not in file.layers:
         try:
-            lz = parse_basislz(data, head.width, head.height, head.layers, head.faces, head.levels, head.level0[0],
-                               *head.sgd, head.animation)
+            file.lz = file.lz or parse_basislz_of(file.data, file.head)
             # a video's layers up to this one (from its I-frame); all of them, as a reader wants them next
-            upto = range(head.layers) if head.animation else [layer]
-            layers.update(zip(upto, decode_basislz(data, lz, upto), strict=True))
+            upto = range(file.head.layers) if file.head.animation else [layer]
+            file.layers.update(zip(upto, decode_basislz(file.data, file.lz, upto), strict=True))
         except BasisLZError as exc:
             raise InputError(path, f"KTX2 layer {layer} cannot be decoded ({exc})") from None
-    return layers[layer].copy()
+    return file.layers[layer].copy()
 
 
 def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
-    """Decode array layer ``layer`` (mip 0) → uint8 (H, W, 3) RGB, row 0 at the top (v = 1)."""
+    """Decode array layer ``layer`` (mip 0) → uint8 (H, W, 3) RGB, row 0 at the top (v = 1). The last
+    BasisLZ file read is kept, so its other layers are neither read nor parsed again."""
     import io
 
     import PIL.Image
 
     path = Path(path)
-    data = _bytes(path)
-    head = _header(path, data)
+    file = _decoded.get(_file_key(path)) if path.is_file() else None
+    data = file.data if file else _bytes(path)
+    head = file.head if file else _header(path, data)
     if not 0 <= layer < head.layers:
         raise InputError(path, f"KTX2 texture has {head.layers} layer{'s' if head.layers > 1 else ''}: no layer {layer}")
     if head.supercompression == SUPERCOMPRESSION_BASISLZ:
-        return _read_basislz(path, data, head, int(layer))
+        if file is None:
+            _decoded.clear()
+            file = _decoded[_file_key(path)] = _BasisLZFile(data, head)
+        return _read_basislz(path, file, int(layer))
     try:  # TGA: the transcoder's uncompressed output (PNG would cost 4x the time in zlib)
         tga, _ = _alktx2().decode_ktx2_to_bytes(data, format="tga", layer=int(layer))
         with PIL.Image.open(io.BytesIO(tga)) as im:  # PIL applies the TGA origin flag
