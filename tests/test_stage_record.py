@@ -56,6 +56,20 @@ def test_begin_new_resume_complete_and_a_changed_setting_refused_or_redone(tmp_p
         sr.begin(out, "fit", changed)
 
 
+def test_a_setting_of_the_code_is_said_in_its_own_words(tmp_path):
+    words = {"method": "made by an older uvatar that did it the old way"}
+    sr.begin(tmp_path, "stage", {"texels": 64, "method": "old"})
+    with pytest.raises(InputError) as err:
+        sr.begin(tmp_path, "stage", {"texels": 64, "method": "new"}, redo_hint="another folder starts over",
+                 made_by=words)
+    assert str(err.value) == f"{tmp_path}: made by an older uvatar that did it the old way: another folder starts over"
+    # the same code with another flag: said as a setting to rerun with, as before
+    sr.begin(tmp_path / "b", "stage", {"texels": 64, "method": "new"})
+    assert sr.begin(tmp_path / "b", "stage", {"texels": 64, "method": "new"}, made_by=words).status == "resume"
+    with pytest.raises(InputError, match=r"made with texels=64 \(this run: texels=128\); rerun with the same"):
+        sr.begin(tmp_path / "b", "stage", {"texels": 128, "method": "new"}, made_by=words)
+
+
 def test_a_changed_input_is_named_and_a_dry_run_writes_nothing(tmp_path):
     src = tmp_path / "cap"
     src.mkdir()

@@ -212,13 +212,17 @@ def _write(folder: Path, record: dict) -> None:
 
 def begin(folder: str | Path, stage: str, config: dict, inputs: Mapping[str, list] | None = None, *,
           total: int | None = None, on_change: Literal["refuse", "redo"] = "refuse", skip_complete: bool = False,
-          redo_hint: str = "overwrite=True starts it over", dry_run: bool = False) -> StageState:
+          redo_hint: str = "overwrite=True starts it over", dry_run: bool = False,
+          made_by: Mapping[str, str] | None = None) -> StageState:
     """Start (or resume) ``stage`` writing into ``folder``: compare its record with ``config`` (flat, see
     :func:`config_values`) and ``inputs`` (:func:`file_identities`), then write a record marked
     incomplete (``total``: the units of work, when known). A differing setting or input raises a
     one-line :class:`InputError` (``on_change="refuse"``; ``redo_hint`` says how to start over) or
     replaces the record (``"redo"``). With ``skip_complete``, a complete record with the same settings
-    is left as it is (status "complete"). ``dry_run``: compare (and refuse) only, write nothing."""
+    is left as it is (status "complete"). ``dry_run``: compare (and refuse) only, write nothing.
+    ``made_by``: {config key: what a record with another value there is, in words}, for settings of
+    the code rather than of any flag (how an older uvatar made the work): such a change is said in
+    those words instead of as a setting to rerun with."""
     folder = Path(folder)
     inputs = dict(inputs or {})
     previous = read_record(folder)
@@ -228,17 +232,22 @@ def begin(folder: str | Path, stage: str, config: dict, inputs: Mapping[str, lis
         if previous.get("stage") not in (None, stage):
             raise InputError(folder, f"holds the output of `{previous['stage']}`, not of `{stage}`: "
                                      "use another folder")
-        changed = _config_change(previous["config"], config)
-        if changed is None:
-            changed = _input_change(previous.get("inputs") or {}, inputs)
-            if changed is not None:
-                changed = f"its input {changed} since"
-        else:
-            changed = f"made with {changed}"
+        older = next((why for key, why in (made_by or {}).items()
+                      if key in previous["config"] and previous["config"][key] != config.get(key)), None)
+        changed = older
+        if older is None:
+            changed = _config_change(previous["config"], config)
+            if changed is None:
+                changed = _input_change(previous.get("inputs") or {}, inputs)
+                if changed is not None:
+                    changed = f"its input {changed} since"
+            else:
+                changed = f"made with {changed}"
         done, prev_total = int(previous.get("done") or 0), previous.get("total")
         if changed is not None:
             if on_change == "refuse":
-                raise InputError(folder, f"{changed}; rerun with the same settings to resume it, or {redo_hint}")
+                raise InputError(folder, f"{changed}: {redo_hint}" if older is not None else
+                                 f"{changed}; rerun with the same settings to resume it, or {redo_hint}")
             log.info("%s: %s; starting %s over", folder, changed, stage)
             status, done = "redo", 0
         elif previous.get("complete") and skip_complete:

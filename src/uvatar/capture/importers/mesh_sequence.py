@@ -46,6 +46,8 @@ MANIFEST_PATTERNS = ("*.uvol.json", "*.manifest", "manifest.json", "*.uvol")
 PERSON_HEIGHT_M = (0.5, 2.5)  # a frame's extent along up, in metres, that the unit detection accepts
 UVOL_DEFAULT_FPS = 30.0       # the UVOL encoder's default frame rate, used when nothing says otherwise
 KTX2_ANIMATION_TEXTURES = "p-frames-decoded"  # how this version gives an animation's frames their textures
+OLDER_KTX2_TEXTURES = ("imported by an older uvatar, which gave a KTX2 animation's P-frames their I-frame's "
+                       "texture; this one decodes them")
 
 
 @dataclass
@@ -357,18 +359,6 @@ def world_from_source(mesh: TexturedMesh, path: Path, units: str, up: str) -> tu
     return S, units, up, notes
 
 
-def _refuse_older_ktx2_textures(scans: Path) -> None:
-    """An import begun by a uvatar that gave a KTX2 animation's P-frames their I-frame's texture
-    (sessions before the BasisLZ decoder) is not resumed: its textures are not the frames' own."""
-    from uvatar import stage_record
-
-    record = stage_record.read_record(scans)
-    made = (record or {}).get("config", {}).get("ktx2_animation_textures", KTX2_ANIMATION_TEXTURES)
-    if made != KTX2_ANIMATION_TEXTURES:
-        raise InputError(scans, "imported by an older uvatar, which gave a KTX2 animation's P-frames their "
-                                "I-frame's texture; this one decodes them: import into another output folder")
-
-
 def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: bool = True) -> dict:
     """Import the volumetric video ``src`` into the capture ``out`` (see the module doc); returns the
     summary. ``cfg``: :class:`uvatar.capture.importers.ImportConfig` (start, end, stride, up, units,
@@ -422,10 +412,10 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             notes += axis_notes
             # what the scans on disk are made with (recorded once the first frame reads, before any write):
             # a resume with other units / up / source is refused; the frame range may grow
-            _refuse_older_ktx2_textures(scans)
             stage_record.begin(scans, "capture import", {"source": str(src.resolve()), "units": cfg.units,
                                                          "up": cfg.up, "ktx2_animation_textures": KTX2_ANIMATION_TEXTURES},
-                               total=len(wanted), redo_hint="another output folder starts over")
+                               total=len(wanted), redo_hint="another output folder starts over",
+                               made_by={"ktx2_animation_textures": OLDER_KTX2_TEXTURES})
         if not done:
             mesh.vertices = mesh.vertices @ S[:3, :3].T.astype(np.float32) + S[:3, 3].astype(np.float32)
             write_mesh(target, mesh)
