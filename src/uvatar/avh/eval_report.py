@@ -8,9 +8,10 @@ so a report can also be made later from that JSON (:func:`eval_report`).
 
 from __future__ import annotations
 
-import math
 import statistics
 from pathlib import Path
+
+from uvatar.render.report import html_report, table_figure
 
 __all__ = ["eval_report"]
 
@@ -35,19 +36,12 @@ def _methods(metrics: dict) -> list[tuple[str, dict]]:
     return rows
 
 
-def _value(m: dict, keys: tuple[str, ...]):
-    for key in keys:
-        if isinstance(m.get(key), int | float) and math.isfinite(m[key]):
-            return round(float(m[key]), 4)
-    return ""
-
-
 def _method_table(metrics: dict) -> dict:
     """One row a method; a column no method has (R² against a truth a real take lacks) is left out."""
     methods = _methods(metrics)
-    columns = [(c, keys) for c, keys in _COLUMNS if any(_value(m, keys) != "" for _, m in methods)]
+    columns = [(c, keys) for c, keys in _COLUMNS if any(table_figure(m, *keys) != "" for _, m in methods)]
     return {"columns": ["method"] + [c for c, _ in columns],
-            "rows": [[name] + [_value(m, keys) for _, keys in columns] for name, m in methods]}
+            "rows": [[name] + [table_figure(m, *keys) for _, keys in columns] for name, m in methods]}
 
 
 def _region_table(metrics: dict) -> dict | None:
@@ -56,7 +50,7 @@ def _region_table(metrics: dict) -> dict | None:
     if not regions:
         return None
     return {"columns": ["method"] + regions,
-            "rows": [[name] + [_value(reg.get(r, {}), ("psnr_db_inside_both", "psnr_db")) for r in regions]
+            "rows": [[name] + [table_figure(reg.get(r, {}), "psnr_db_inside_both", "psnr_db") for r in regions]
                      for name, reg in methods]}
 
 
@@ -68,15 +62,13 @@ def _bin_table(metrics: dict) -> dict | None:
     rows = []
     for b in bins:
         rows.append([b["bin"], len(b["frames"]), f"{b['distance_deg_min']:.2f}-{b['distance_deg_max']:.2f}"]
-                    + [_value(b, (f"{n}_psnr_db_inside_both", f"{n}_psnr_db")) for n in names])
+                    + [table_figure(b, f"{n}_psnr_db_inside_both", f"{n}_psnr_db") for n in names])
     return {"columns": ["frames by pose distance", "frames", "distance to training (deg)"] + names, "rows": rows}
 
 
 def eval_report(metrics: dict, path: str | Path) -> Path:
     """Write the report of one ``uvatar eval avh`` run (its metrics dict) to ``path`` (atomic); the
     comparison images are linked relative to the report, where ``metrics["images"]`` names them."""
-    from uvatar.render.report import html_report
-
     frames = metrics.get("frames") or []
     span = f"{frames[0]}..{frames[-1]}" if frames else "none"
     cameras = metrics.get("camera_names") or metrics.get("cameras")

@@ -6,8 +6,9 @@ images (truth | avatar | error x 4 | mean colour | projective texture), from the
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
+
+from uvatar.render.report import html_report, table_figure
 
 __all__ = ["dva_eval_report"]
 
@@ -19,23 +20,15 @@ _ROWS = [("DVA", None), ("mean-colour body", "baseline_mean_colour"),
          ("projective texture", "baseline_projective_texture")]
 
 
-def _cell(m: dict, key: str):
-    """The figure rounded, or blank where there is none (a NaN: e.g. no interior in a small mask)."""
-    value = m.get(key)
-    return round(float(value), 4) if isinstance(value, int | float) and math.isfinite(value) else ""
-
-
 def dva_eval_report(metrics: dict, path: str | Path) -> Path:
     """Write the report of one ``uvatar eval dva`` run to ``path`` (atomic); the comparison images are
     those in ``metrics["images"]`` (a folder), linked relative to the report."""
-    from uvatar.render.report import html_report
-
     rows = [(name, metrics if key is None else metrics.get(key) or {}) for name, key in _ROWS]
-    columns = [(c, k) for c, k in _COLUMNS if any(_cell(m, k) != "" for _, m in rows)]
+    columns = [(c, k) for c, k in _COLUMNS if any(table_figure(m, k) != "" for _, m in rows)]
     table = {"columns": ["method"] + [c for c, _ in columns],
-             "rows": [[name] + [_cell(m, k) for _, k in columns] for name, m in rows]}
+             "rows": [[name] + [table_figure(m, k) for _, k in columns] for name, m in rows]}
     per_image = {"columns": ["frame", "camera"] + [c for c, _ in columns],
-                 "rows": [[r["frame"], r["camera"]] + [_cell(r, k) for _, k in columns]
+                 "rows": [[r["frame"], r["camera"]] + [table_figure(r, k) for _, k in columns]
                           for r in metrics.get("per_image", [])]}
     frames = metrics.get("frames") or []
     n = len(metrics.get("per_image", []))

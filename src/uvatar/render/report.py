@@ -12,7 +12,7 @@ from pathlib import Path
 
 from uvatar.io_utils import atomic_path
 
-__all__ = ["html_report"]
+__all__ = ["html_report", "table_figure"]
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1100px;
@@ -24,6 +24,18 @@ figure{display:inline-block;margin:.4em;vertical-align:top} figcaption{font-size
 text-align:center} img,video{max-width:100%;border:1px solid #ddd}
 .meta{color:#777;font-size:.85em} pre{background:#f6f6f6;padding:.6em;overflow-x:auto;white-space:pre-wrap}
 """
+
+
+def table_figure(metrics: dict, *keys: str):
+    """A table cell of a metrics dict: the first of ``keys`` that holds a finite number, rounded to 4
+    decimals, or "" where none does (absent, or NaN: e.g. a mask with no interior)."""
+    import math
+
+    for key in keys:
+        value = metrics.get(key)
+        if isinstance(value, int | float) and math.isfinite(value):
+            return round(float(value), 4)
+    return ""
 
 
 def _fmt(v) -> str:
