@@ -213,8 +213,8 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
     problems: list[str] = []
     notes: list[str] = []
     frames = {i: FrameSource(i, p) for i, p in meshes.items()}
-    if texture is None or not any(any(texture.glob(f"*{x}")) for x in (".ktx2",) + IMAGE_SUFFIXES):
-        astc = next((d for d in texture_dirs + [texture] if d is not None and any(d.glob("*.ktx"))), None)
+    if _pick([texture] if texture else [], (".ktx2",) + IMAGE_SUFFIXES) is None:   # nothing readable
+        astc = _pick(texture_dirs + ([texture] if texture else []), (".ktx",))
         if astc is not None and all(p.suffix.lower() == ".drc" for p in meshes.values()):
             raise InputError(astc, "holds KTX 1 textures (.ktx: UVOL 2's astc/ktx target, ASTC blocks), which uvatar "
                                    "does not decode; give the take with its ktx2 target (texture_ktx2/) or per-frame "
