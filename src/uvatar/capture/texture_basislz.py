@@ -24,12 +24,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uvatar.capture.texture_etc import ETC1_INTENSITY, widen
+
 __all__ = ["BasisLZError", "BasisLZ", "parse_basislz", "decode_basislz", "etc1s_pixels"]
 
-#: the ETC1 intensity modifiers, in basisu's linear selector order (darkest first)
-ETC1_INTENSITY = np.array([[-8, -2, 2, 8], [-17, -5, 5, 17], [-29, -9, 9, 29], [-42, -13, 13, 42],
-                           [-60, -18, 18, 60], [-80, -24, 24, 80], [-106, -33, 33, 106], [-183, -47, 47, 183]],
-                          np.int16)
 
 _CODELENGTH_ORDER = (17, 18, 19, 20, 0, 8, 7, 9, 6, 10, 5, 11, 4, 12, 3, 13, 2, 14, 1, 15, 16)
 _ENDPOINT_PRED_REPEAT = 4 * 4 * 4 * 4   # the endpoint-prediction symbol that repeats the last one
@@ -350,8 +348,7 @@ def etc1s_pixels(endpoints: np.ndarray, selectors: np.ndarray, endpoint_index: n
                  selector_index: np.ndarray, width: int, height: int) -> np.ndarray:
     """ETC1S blocks → uint8 (height, width, 3) RGB: each block's base colour (5 bits widened to 8) plus
     its intensity table's modifier at each texel's selector, clamped; cropped to the image's size."""
-    base = endpoints[:, :3].astype(np.int16)
-    base = (base << 3) | (base >> 2)                                               # (E, 3)
+    base = widen(endpoints[:, :3], 5)                                              # (E, 3)
     palette = np.clip(base[:, None, :] + ETC1_INTENSITY[endpoints[:, 3]][:, :, None], 0, 255).astype(np.uint8)
     by, bx = endpoint_index.shape
     texel_selectors = selectors[selector_index]                                    # (by, bx, 4, 4)

@@ -2,12 +2,15 @@
 
 Two layouts are read (:func:`find_mesh_sequence`):
 
-- **UVOL 2** (the Universal Volumetric player's output): ``geometry_<target>/NNNNN.drc`` (Draco, one
+- **UVOL 2** (the Universal Volumetric player's format): ``geometry_<target>/NNNNN.drc`` (Draco, one
   mesh per frame) and ``texture_<target>/NNNNN.ktx2`` (KTX2 array textures, ``n`` frames per file:
-  frame ``i`` is file ``i // n``, layer ``i % n``) or per-frame ``.png``/``.jpg``; a manifest
-  (``*.uvol.json``, ``*.manifest``, ``manifest.json``) when there is one gives the frame rate, the
-  frame count, the frames per KTX2 file and the path templates; without one, the folders are found
-  by name and ``n`` is the layer count of the first KTX2 file.
+  texture frame ``t`` is file ``t // n``, layer ``t % n``), ``NNNNN.etc2`` (headerless RGB_ETC2 blocks,
+  one image per file, its size the manifest's ``resolution``) or per-frame ``.png``/``.jpg``. A manifest
+  (:mod:`~uvatar.capture.importers.uvol_manifest`: the player's ``*.uvol.json`` or its encoder's
+  ``uvol.json``, whose folders are ``DRC/`` and ``KTX2/``) gives the frame rates, the frame count, the
+  frames per file, the path templates and the texture target; where the textures run at another
+  rate than the geometry, each mesh takes the texture frame the player shows with it. Without one,
+  the folders are found by name and ``n`` is the layer count of the first KTX2 file.
 - **Plain folders** of per-frame ``.obj``/``.ply``/``.glb``/``.drc`` (frame number = the last run of
   digits in the file name) with their own textures (OBJ's .mtl, PLY's ``TextureFile`` comment, GLB's
   embedded image) or an image of the same stem beside them or in ``textures/``.
@@ -25,7 +28,6 @@ Resumable: frames already written are kept (all writes are atomic; ``capture.jso
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 import time
@@ -35,14 +37,25 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.capture.importers.calibration import UNIT_SCALE, up_rotation
+from uvatar.capture.importers.uvol_manifest import (
+    TEXTURE_SUFFIX,
+    UvolManifest,
+    find_manifest,
+    read_manifest,
+    template_folder,
+    texture_frame,
+)
 from uvatar.capture.layout import frame_name
 from uvatar.capture.meshio import IMAGE_SUFFIXES, MESH_FORMATS, read_mesh
 from uvatar.capture.types import TexturedMesh
-from uvatar.errors import InputError, one_line
+from uvatar.errors import InputError
 
 log = logging.getLogger(__name__)
 
-MANIFEST_PATTERNS = ("*.uvol.json", "*.manifest", "manifest.json", "*.uvol")
+MESH_SUFFIXES = (".drc", ".glb", ".obj", ".ply")   # a UVOL geometry folder's, in order of preference
+#: a texture folder's files, in order of preference where no manifest names the format (KTX2 says its
+#: size; a headerless .etc2 file needs the manifest's resolution unless it is square)
+TEXTURE_SUFFIXES = (".ktx2",) + IMAGE_SUFFIXES + (".etc2",)
 PERSON_HEIGHT_M = (0.5, 2.5)  # a frame's extent along up, in metres, that the unit detection accepts
 UVOL_DEFAULT_FPS = 30.0       # the UVOL encoder's default frame rate, used when nothing says otherwise
 KTX2_ANIMATION_TEXTURES = "p-frames-decoded"  # how this version gives an animation's frames their textures
@@ -53,7 +66,8 @@ OLDER_KTX2_TEXTURES = ("imported by an older uvatar, which gave a KTX2 animation
 @dataclass
 class FrameSource:
     """Where one frame's mesh and texture come from: ``texture`` is an image path, a ``(ktx2 path,
-    layer)`` pair, None (the mesh's own texture) or () (none: the frame cannot be imported)."""
+    layer)`` pair (or ``(etc2 path, 0)``), None (the mesh's own texture) or () (none: the frame cannot
+    be imported)."""
 
     index: int
     mesh: Path
@@ -63,8 +77,9 @@ class FrameSource:
 @dataclass
 class MeshSequence:
     """A found mesh sequence: frames by take index, the layout's name, the frame rate when known,
-    the units / up axis the files declare ("" when they say nothing) and problems found while
-    listing (one line each: counts that disagree, frames without texture)."""
+    the units / up axis the files declare ("" when they say nothing), problems found while listing
+    (one line each: counts that disagree, frames without texture) and, for headerless ``.etc2``
+    textures, their (width, height)."""
 
     frames: dict[int, FrameSource]
     layout: str
@@ -74,6 +89,7 @@ class MeshSequence:
     manifest: Path | None = None
     problems: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    texture_size: tuple[int, int] | None = None
 
 
 def is_mesh_sequence(src: str | Path) -> bool:
@@ -81,7 +97,7 @@ def is_mesh_sequence(src: str | Path) -> bool:
     src = Path(src)
     if not src.is_dir():
         return False
-    if _uvol_folders(src)[0] or _find_manifest(src):
+    if _uvol_folders(src)[0] or find_manifest(src):
         return True
     return any(p.suffix.lower() in MESH_FORMATS or p.suffix.lower() == ".drc" for p in src.iterdir() if p.is_file())
 
@@ -91,83 +107,10 @@ def _frame_number(path: Path) -> int | None:
     return int(digits[-1]) if digits else None
 
 
-def _find_manifest(src: Path) -> Path | None:
-    for pattern in MANIFEST_PATTERNS:
-        found = sorted(p for p in src.glob(pattern) if p.is_file())
-        if found:
-            return found[0]
-    return None
-
-
 def _uvol_folders(src: Path) -> tuple[list[Path], list[Path]]:
     geometry = sorted(p for p in src.glob("geometry_*") if p.is_dir())
     texture = sorted(p for p in src.glob("texture_*") if p.is_dir())
     return geometry, texture
-
-
-def _read_manifest(path: Path) -> dict:
-    """The fields uvatar uses from a UVOL manifest (v2 ``output`` targets and path templates, or the
-    older flat ``geometry``/``texture`` blocks): fps, frame_count, frames_per_file, geometry/texture
-    path templates and target names; missing fields are absent."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"UVOL manifest is not valid JSON ({one_line(exc)})") from None
-    if not isinstance(data, dict):
-        raise InputError(path, "UVOL manifest must be a JSON object")
-    out: dict = {}
-    blocks = data.get("output", data)
-    geometry = blocks.get("geometry", {}) if isinstance(blocks, dict) else {}
-    texture = blocks.get("texture", {}) if isinstance(blocks, dict) else {}
-    if isinstance(texture, dict) and "baseColor" in texture and isinstance(texture["baseColor"], dict):
-        texture = {**texture, **texture["baseColor"]}
-    for block, key in ((geometry, "geometry"), (texture, "texture")):
-        if not isinstance(block, dict):
-            continue
-        targets = block.get("targets", {})
-        if isinstance(targets, dict) and targets:
-            name, target = _readable_target(targets)
-            out[f"{key}_target"] = name
-            if isinstance(target, dict):
-                block = {**block, **target}
-        if isinstance(block.get("path"), str):
-            out[f"{key}_path"] = block["path"]
-        if key == "geometry" and isinstance(block.get("frameRate"), int | float) and block["frameRate"] > 0:
-            out["fps"] = float(block["frameRate"])
-        if key == "geometry" and isinstance(block.get("frameCount"), int):
-            out["frame_count"] = int(block["frameCount"])
-        if key == "texture" and isinstance(block.get("sequenceSize"), int) and block["sequenceSize"] > 0:
-            out["frames_per_file"] = int(block["sequenceSize"])
-        if key == "texture" and "fps" not in out and isinstance(block.get("frameRate"), int | float):
-            out["texture_fps"] = float(block["frameRate"])
-    return out
-
-
-#: UVOL 2 texture formats uvatar cannot decode (the player's ``astc/ktx``: KTX 1 files of ASTC blocks)
-UNREADABLE_TEXTURE_FORMATS = ("astc/ktx",)
-
-
-def _readable_target(targets: dict) -> tuple[str, dict]:
-    """The manifest's first target uvatar can read (UVOL 2 lists e.g. an ``astc/ktx`` texture target
-    before its ``ktx2`` one); the first target when none says its format."""
-    for name, target in targets.items():
-        if not (isinstance(target, dict) and target.get("format") in UNREADABLE_TEXTURE_FORMATS):
-            return name, target
-    return next(iter(targets.items()))
-
-
-def _template_folder(src: Path, template: str | None, target: str | None, kind: str) -> Path | None:
-    """The folder of a manifest path template such as ``output/geometry_[target]/[index][ext]``."""
-    if not template:
-        return None
-    folder = template.replace("[target]", target or "").replace("[type]", "baseColor").replace("[tag]", "default")
-    folder = folder.rsplit("/", 1)[0]
-    for base in (src, src.parent):
-        for candidate in (base / folder, base / Path(folder).name):
-            if candidate.is_dir():
-                return candidate
-    log.warning("%s folder %s named by the manifest is not there; looking by name", kind, folder)
-    return None
 
 
 def _pick(folders: list[Path], suffixes: tuple[str, ...]) -> Path | None:
@@ -191,89 +134,132 @@ def _files_by_frame(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:
 
 def find_mesh_sequence(src: str | Path) -> MeshSequence:
     """List a mesh sequence's frames (nothing decoded but KTX2 headers); InputError when none."""
-    from uvatar.capture.texture_ktx2 import ktx2_info
-
     src = Path(src)
     if not src.is_dir():
         raise InputError(src, "volumetric video folder does not exist")
-    manifest_path = _find_manifest(src)
-    manifest = _read_manifest(manifest_path) if manifest_path else {}
+    manifest_path = find_manifest(src)
+    manifest = read_manifest(manifest_path) if manifest_path else UvolManifest(src)
     geometry_dirs, texture_dirs = _uvol_folders(src)
-    if not geometry_dirs and not manifest.get("geometry_path"):
+    if not geometry_dirs and not manifest.geometry_path:
         return _plain_folder(src)
-    geometry = _template_folder(src, manifest.get("geometry_path"), manifest.get("geometry_target"), "geometry") \
-        or _pick(geometry_dirs, (".drc", ".glb", ".obj", ".ply"))
+    geometry = template_folder(src, manifest.geometry_path, manifest.geometry_target, "geometry") \
+        or _pick(geometry_dirs, MESH_SUFFIXES)
     if geometry is None:
         raise InputError(src, "no geometry_*/ folder with .drc/.glb/.obj/.ply frames")
-    meshes = _files_by_frame(geometry, (".drc", ".glb", ".obj", ".ply"))
+    meshes = _files_by_frame(geometry, MESH_SUFFIXES)
     if not meshes:
         raise InputError(geometry, "holds no mesh frames (NNNNN.drc)")
-    texture = _template_folder(src, manifest.get("texture_path"), manifest.get("texture_target"), "texture") \
-        or _pick(texture_dirs, (".ktx2",) + IMAGE_SUFFIXES)
-    problems: list[str] = []
-    notes: list[str] = []
-    frames = {i: FrameSource(i, p) for i, p in meshes.items()}
-    if _pick([texture] if texture else [], (".ktx2",) + IMAGE_SUFFIXES) is None:   # nothing readable
-        astc = _pick(texture_dirs + ([texture] if texture else []), (".ktx",))
-        if astc is not None and all(p.suffix.lower() == ".drc" for p in meshes.values()):
-            raise InputError(astc, "holds KTX 1 textures (.ktx: UVOL 2's astc/ktx target, ASTC blocks), which uvatar "
-                                   "does not decode; give the take with its ktx2 target (texture_ktx2/) or per-frame "
-                                   "images")
+    suffixes = ((TEXTURE_SUFFIX[manifest.texture_format],) if manifest.texture_format in TEXTURE_SUFFIX
+                else TEXTURE_SUFFIXES)
+    texture = template_folder(src, manifest.texture_path, manifest.texture_target, "texture") \
+        or _pick(texture_dirs, suffixes)
+    seq = MeshSequence({i: FrameSource(i, p) for i, p in meshes.items()}, "uvol2", fps=manifest.fps or 0.0,
+                       manifest=manifest_path)
+    if manifest.skipped_targets:
+        seq.notes.append(f"{manifest_path}: texture target{'s' if len(manifest.skipped_targets) > 1 else ''} "
+                         f"{', '.join(manifest.skipped_targets)} not read"
+                         + (f" (the {manifest.texture_target} target is)" if manifest.texture_target else ""))
+    found = _pick([texture] if texture else [], suffixes)
+    if found is None:
+        _refuse_unreadable_textures(texture_dirs + ([texture] if texture else []), meshes, manifest)
     if texture is None:
-        problems.append(f"{src}: no texture_*/ folder: frames take their meshes' own textures")
+        seq.problems.append(f"{src}: no texture_*/ folder: frames take their meshes' own textures")
     else:
-        ktx = _files_by_frame(texture, (".ktx2",))
-        if ktx:
-            first = ktx[min(ktx)]
-            first_info = ktx2_info(first)
-            per_file = manifest.get("frames_per_file") or first_info["layers"]
-            if first_info["animation"] and per_file > 1:
-                notes.append(f"{texture}: KTX2 animations (KTXanimData): each file's {per_file - 1} P-frames decoded "
-                             "after its I-frame")
-            layers: dict[Path, int] = {}
-            for i, source in frames.items():
-                path = ktx.get(i // per_file)
-                if path is None:
-                    problems.append(f"{texture / f'{i // per_file:05d}.ktx2'}: missing: frame {i} has no texture")
-                    source.texture = ()
-                    continue
-                if path not in layers:
-                    try:
-                        layers[path] = ktx2_info(path)["layers"]
-                    except InputError as exc:
-                        layers[path] = 0
-                        problems.append(str(exc))
-                if i % per_file >= layers[path]:
-                    if layers[path]:
-                        problems.append(f"{path}: has {layers[path]} layers, fewer than the {per_file} frames per "
-                                        f"file: frame {i} (layer {i % per_file}) has no texture")
-                    source.texture = ()
-                    continue
-                source.texture = (path, i % per_file)
-            covered = max(ktx) * per_file + per_file
-            if covered < max(frames) + 1 or len(ktx) * per_file < len(frames) - per_file + 1:
-                problems.append(f"{texture}: {len(ktx)} KTX2 files x {per_file} frames for {len(frames)} meshes in "
-                                f"{geometry}: the counts disagree")
-            elif max(ktx) * per_file > max(frames):
-                problems.append(f"{texture}: textures for frames past the last mesh ({max(frames)}): the counts "
-                                f"disagree; those textures are not used")
+        suffix = next((s for s in suffixes if any(texture.glob(f"*{s}"))), None)
+        if suffix in (".ktx2", ".etc2"):
+            _layered_textures(seq, texture, geometry, suffix, manifest)
         else:
             images = _files_by_frame(texture, IMAGE_SUFFIXES)
-            for i, source in frames.items():
+            for i, source in seq.frames.items():
                 source.texture = images.get(i, ())
                 if not source.texture:
-                    problems.append(f"{texture}: no image for frame {i} ({meshes[i].name})")
-            if len(images) != len(frames):
-                problems.append(f"{texture}: {len(images)} images for {len(frames)} meshes in {geometry}: the counts "
-                                f"disagree")
-    count = manifest.get("frame_count")
-    if count is not None and count != len(frames):
-        problems.append(f"{manifest_path}: says {count} frames, {geometry} holds {len(frames)}: the counts disagree")
-    fps = manifest.get("fps") or manifest.get("texture_fps") or 0.0
-    glb = all(p.suffix.lower() == ".glb" for p in meshes.values())  # glTF says: metres, +Y up
-    units, up = ("m", "+y") if glb else ("", "")
-    return MeshSequence(frames, "uvol2", fps=fps, units=units, up=up, manifest=manifest_path, problems=problems,
-                        notes=notes)
+                    seq.problems.append(f"{texture}: no image for frame {i} ({meshes[i].name})")
+            if len(images) != len(seq.frames):
+                seq.problems.append(f"{texture}: {len(images)} images for {len(seq.frames)} meshes in {geometry}: "
+                                    "the counts disagree")
+    count = manifest.frame_count
+    if count is not None and count != len(seq.frames):
+        seq.problems.append(f"{manifest_path}: says {count} frames, {geometry} holds {len(seq.frames)}: the counts "
+                            "disagree")
+    if all(p.suffix.lower() == ".glb" for p in meshes.values()):  # glTF says: metres, +Y up
+        seq.units, seq.up = "m", "+y"
+    return seq
+
+
+def _refuse_unreadable_textures(folders: list[Path], meshes: dict[int, Path], manifest: UvolManifest) -> None:
+    """Draco meshes (no texture of their own) whose take holds only textures uvatar cannot decode: one
+    line saying what to give instead."""
+    if not all(p.suffix.lower() == ".drc" for p in meshes.values()):
+        return
+    if manifest.skipped_targets and not manifest.texture_target:
+        raise InputError(manifest.path, f"lists only texture targets uvatar does not decode "
+                                        f"({', '.join(manifest.skipped_targets)}); give the take with its ktx2 or "
+                                        "etc2 target, or per-frame images")
+    astc = _pick(folders, (".ktx",))
+    if astc is not None:
+        raise InputError(astc, "holds KTX 1 textures (.ktx: UVOL 2's astc/ktx target, ASTC blocks), which uvatar "
+                               "does not decode; give the take with its ktx2 target (texture_ktx2/) or per-frame "
+                               "images")
+
+
+def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: str, manifest: UvolManifest) -> None:
+    """Give each frame its texture file and layer: texture frame ``t`` (the player's, at the geometry's
+    and texture's frame rates) is file ``t // n``, layer ``t % n`` of a KTX2 array; an ``.etc2`` file is
+    one image for its ``n`` texture frames."""
+    from uvatar.capture.texture_etc import etc2_image_size
+    from uvatar.capture.texture_ktx2 import ktx2_info
+
+    files = _files_by_frame(texture, (suffix,))
+    kind = "KTX2" if suffix == ".ktx2" else "ETC2"
+    first = files[min(files)]
+    layers: dict[Path, int] = {}
+    if suffix == ".ktx2":
+        info = ktx2_info(first)
+        per_file = manifest.frames_per_file or info["layers"]
+        if info["animation"] and per_file > 1:
+            seq.notes.append(f"{texture}: KTX2 animations (KTXanimData): each file's {per_file - 1} P-frames decoded "
+                             "after its I-frame")
+    else:
+        per_file = manifest.frames_per_file or 1
+        seq.texture_size, note = etc2_image_size(first, manifest.texture_resolution)
+        if note:
+            seq.notes.append(note)
+    rates = (manifest.geometry_fps, manifest.texture_fps)
+    if manifest.geometry_fps and manifest.texture_fps and texture_frame(1000, *rates) != 1000:
+        seq.notes.append(f"{manifest.path}: textures at {manifest.texture_fps:g} fps for geometry at "
+                         f"{manifest.geometry_fps:g} fps: each mesh takes the texture frame the player shows with it")
+    for i, source in seq.frames.items():
+        t = texture_frame(i, *rates)
+        path = files.get(t // per_file)
+        if path is None:
+            seq.problems.append(f"{texture / f'{t // per_file:05d}{suffix}'}: missing: frame {i} "
+                                + (f"(texture frame {t}) " if t != i else "") + "has no texture")
+            source.texture = ()
+            continue
+        if suffix == ".etc2":
+            source.texture = (path, 0)
+            continue
+        if path not in layers:
+            try:
+                layers[path] = ktx2_info(path)["layers"]
+            except InputError as exc:
+                layers[path] = 0
+                seq.problems.append(str(exc))
+        if t % per_file >= layers[path]:
+            if layers[path]:
+                seq.problems.append(f"{path}: has {layers[path]} layers, fewer than the {per_file} frames per file: "
+                                    f"frame {i} (layer {t % per_file}) has no texture")
+            source.texture = ()
+            continue
+        source.texture = (path, t % per_file)
+    needed = {texture_frame(i, *rates) for i in seq.frames}   # the texture frames the meshes show
+    covered = max(files) * per_file + per_file
+    if covered < max(needed) + 1 or len(files) * per_file < len(needed) - per_file + 1:
+        seq.problems.append(f"{texture}: {len(files)} {kind} files x {per_file} frames for {len(seq.frames)} meshes "
+                            f"in {geometry}: the counts disagree")
+    elif max(files) * per_file > max(needed):
+        seq.problems.append(f"{texture}: textures for frames past the last mesh ({max(seq.frames)}): the counts "
+                            "disagree; those textures are not used")
 
 
 def _plain_folder(src: Path) -> MeshSequence:
@@ -306,15 +292,19 @@ def _read_mesh(path: Path) -> TexturedMesh:
     return read_drc(path) if path.suffix.lower() == ".drc" else read_mesh(path)
 
 
-def _read_frame(source: FrameSource) -> TexturedMesh:
-    """Decode a frame's mesh and texture (source units and axes); InputError naming the bad file."""
+def _read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None) -> TexturedMesh:
+    """Decode a frame's mesh and texture (source units and axes; ``texture_size``: a headerless ETC2
+    texture's (width, height)); InputError naming the bad file."""
+    from uvatar.capture.texture_etc import read_etc2
     from uvatar.capture.texture_ktx2 import read_ktx2_layer
     from uvatar.io_utils import read_image
 
     if source.texture == ():
         raise InputError(source.mesh, "frame has no texture")
     mesh = _read_mesh(source.mesh)
-    if isinstance(source.texture, tuple):
+    if isinstance(source.texture, tuple) and source.texture[0].suffix.lower() == ".etc2":
+        mesh.texture = read_etc2(source.texture[0], *texture_size)
+    elif isinstance(source.texture, tuple):
         mesh.texture = read_ktx2_layer(*source.texture)
     elif source.texture is not None:
         mesh.texture = read_image(source.texture, "texture image")
@@ -400,7 +390,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             imported.append(i)
             continue
         try:
-            mesh = _read_frame(seq.frames[i])
+            mesh = _read_frame(seq.frames[i], seq.texture_size)
         except InputError as exc:
             skipped.append(i)
             problems.append(str(exc))
