@@ -120,3 +120,15 @@ def test_read_etc2_and_its_size(tmp_path):
     square.write_bytes(etc2_flat_blocks(np.zeros((4, 4, 3), int)))
     size, note = etc2_image_size(square, None)
     assert size == (16, 16) and "16 x 16" in note
+
+
+def test_bench_quick_row_is_bit_exact(capsys, monkeypatch):
+    import json
+    import sys
+
+    from bench_modules import load_bench
+
+    monkeypatch.setattr(sys, "argv", ["etc2.py", "--quick"])
+    load_bench("etc2").main()
+    row = json.loads(capsys.readouterr().out)
+    assert row["bit_exact"] and row["blocks"] == 4096 and row["uvatar_s"] > 0 and row["texture2ddecoder_s"] > 0

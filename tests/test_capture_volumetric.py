@@ -88,15 +88,30 @@ def test_manifest_listing_an_astc_target_first_reads_the_ktx2_one(tmp_path):
                                   "path": "texture_[target]/[index][ext]"}}}}
     src = write_uvol(tmp_path / "take", frames=2, manifest=manifest)
     (src / "texture_astc").mkdir()
+    astc = Path(__file__).parent / "fixtures" / "texture_formats" / "astc5x4_30x22.ktx"   # astcenc's KTX 1
     for i in range(2):
-        (src / "texture_astc" / f"{i:05d}.ktx").write_bytes(b"\xabKTX 11\xbb\r\n\x1a\n")
+        (src / "texture_astc" / f"{i:05d}.ktx").write_bytes(astc.read_bytes())
     seq = find_mesh_sequence(src)
     assert not seq.problems and seq.frames[1].texture == (src / "texture_ktx2" / "00001.ktx2", 0)
-    # with only the ASTC target there, one line says why nothing can be read
+    assert any("astc (astc/ktx) not read (the ktx2 target is)" in n for n in seq.notes)
+    # with the ktx2 target gone, its KTX 1 ASTC textures are read
     for p in (src / "texture_ktx2").iterdir():
         p.unlink()
     (src / "texture_ktx2").rmdir()
-    with pytest.raises(InputError, match=r"texture_astc: holds KTX 1 textures .*astc/ktx.* ktx2 target"):
+    summary = import_mesh_sequence(src, tmp_path / "cap", progress=False)
+    assert summary["frames"] == 2 and not summary["skipped"]
+    assert Capture(tmp_path / "cap").load_scan("000001").texture.shape == (22, 30, 3)
+
+
+def test_a_texture_video_alone_is_one_line(tmp_path):
+    src = write_uvol(tmp_path / "take", frames=2)
+    for p in (src / "texture_ktx2").iterdir():
+        p.unlink()
+    (src / "texture_ktx2").rmdir()
+    (src / "texture_mp4").mkdir()
+    (src / "texture_mp4" / "texture.mp4").write_bytes(b"\0" * 64)
+    with pytest.raises(InputError, match=r"texture_mp4: holds a texture video \(\.mp4\), which uvatar does not "
+                                         r"decode; give the take with its ktx2 or etc2 target"):
         find_mesh_sequence(src)
 
 

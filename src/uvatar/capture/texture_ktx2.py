@@ -1,5 +1,7 @@
 """KTX2 textures (Khronos): the container read here, ETC1S / BasisLZ payloads decoded by
-:mod:`uvatar.capture.texture_basislz` (no extra needed), UASTC through alktx2 (the ``volumetric`` extra).
+:mod:`uvatar.capture.texture_basislz` (no extra needed), UASTC through alktx2 (the ``volumetric`` extra),
+plain texels (8-bit RGB(A), ETC2 and ASTC blocks: :mod:`uvatar.capture.texture_formats`) stored as is or
+zstd-supercompressed (zstandard, the ``volumetric`` extra).
 
 Volumetric players (UVOL 2) pack several frames into one KTX2 **array texture**: frame ``i`` is file
 ``i // n``, layer ``i % n``. :func:`ktx2_info` reads the header (size, layers, the codec, and whether the
@@ -19,10 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.capture.texture_formats import VK_FORMATS
 from uvatar.errors import InputError, require
 
 KTX2_MAGIC = b"\xabKTX 20\xbb\r\n\x1a\n"
 SUPERCOMPRESSION_BASISLZ = 1
+SUPERCOMPRESSION_ZSTD = 2
 #: Khronos data format colour models of the two Basis Universal codecs
 _COLOUR_MODELS = {163: "ETC1S", 166: "UASTC"}
 MAX_KTX2_SIDE = 16384
@@ -52,10 +56,11 @@ class Ktx2Header:
     faces: int
     levels: int          # >= 1
     supercompression: int
-    codec: str           # "ETC1S", "UASTC" or "vkFormat N"
+    codec: str           # "ETC1S", "UASTC", a texel format's name (ETC2_R8G8B8, ASTC_6x6, ...) or "vkFormat N"
     animation: bool      # a KTXanimData key: the layers are frames of a video
     level0: tuple[int, int]
     sgd: tuple[int, int]
+    vk_format: int = 0
 
 
 def _header(path: Path, data: bytes) -> Ktx2Header:
@@ -73,10 +78,11 @@ def _header(path: Path, data: bytes) -> Ktx2Header:
     if max(ends) > len(data):
         raise InputError(path, f"KTX2 texture is truncated ({len(data)} bytes; its index needs {max(ends)})")
     model = data[dfd_offset + 12] if dfd_length >= 16 else -1
-    codec = _COLOUR_MODELS.get(model, f"vkFormat {vk_format}")
+    fmt = VK_FORMATS.get(vk_format)
+    codec = _COLOUR_MODELS.get(model) or (fmt.name if fmt else f"vkFormat {vk_format}")
     animation = b"KTXanimData\x00" in data[kvd_offset:kvd_offset + kvd_length]
     return Ktx2Header(width, height, max(1, layers), faces, levels, scheme, codec, animation,
-                      (level_offset, level_length), (sgd_offset, sgd_length))
+                      (level_offset, level_length), (sgd_offset, sgd_length), vk_format)
 
 
 def ktx2_info(path: str | Path) -> dict:
@@ -129,6 +135,31 @@ def _read_basislz(path: Path, file: _BasisLZFile, layer: int) -> np.ndarray:
     return file.layers[layer].copy()
 
 
+def _read_texels(path: Path, data: bytes, head: Ktx2Header, layer: int) -> np.ndarray:
+    """A layer of a KTX2 file of plain texels (:data:`~uvatar.capture.texture_formats.VK_FORMATS`: 8-bit
+    rows, ETC2 or ASTC blocks), its level 0 stored as is or zstd-supercompressed; images layer by layer,
+    face by face, rows tightly packed."""
+    from uvatar.capture.texture_formats import decode_texels
+
+    fmt = VK_FORMATS[head.vk_format]
+    level = data[head.level0[0]:head.level0[0] + head.level0[1]]
+    if head.supercompression == SUPERCOMPRESSION_ZSTD:
+        zstandard = require("zstandard", "volumetric", "zstd-supercompressed KTX2 textures")
+        try:
+            level = zstandard.ZstdDecompressor().decompress(level, max_output_size=1 << 31)
+        except zstandard.ZstdError as exc:
+            raise InputError(path, f"KTX2 texture's zstd data cannot be decompressed ({exc})") from None
+    elif head.supercompression != 0:
+        raise InputError(path, f"KTX2 texture of {fmt.name} texels with supercompression scheme "
+                               f"{head.supercompression}, which uvatar does not read (it reads none, BasisLZ and zstd)")
+    image = fmt.image_bytes(head.width, head.height)
+    start = layer * head.faces * image
+    if start + image > len(level):
+        raise InputError(path, f"KTX2 texture is truncated (level 0 holds {len(level)} bytes; layer {layer} of its "
+                               f"{fmt.name} images ends at {start + image})")
+    return decode_texels(fmt, level[start:start + image], head.width, head.height)
+
+
 def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
     """Decode array layer ``layer`` (mip 0) → uint8 (H, W, 3) RGB, row 0 at the top (v = 1). The last
     BasisLZ file read is kept, so its other layers are neither read nor parsed again."""
@@ -147,6 +178,8 @@ def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
             _decoded.clear()
             file = _decoded[_file_key(path)] = _BasisLZFile(data, head)
         return _read_basislz(path, file, int(layer))
+    if head.vk_format in VK_FORMATS:
+        return _read_texels(path, data, head, int(layer))
     try:  # TGA: the transcoder's uncompressed output (PNG would cost 4x the time in zlib)
         tga, _ = _alktx2().decode_ktx2_to_bytes(data, format="tga", layer=int(layer))
         with PIL.Image.open(io.BytesIO(tga)) as im:  # PIL applies the TGA origin flag

@@ -4,8 +4,9 @@ Two layouts are read (:func:`find_mesh_sequence`):
 
 - **UVOL 2** (the Universal Volumetric player's format): ``geometry_<target>/NNNNN.drc`` (Draco, one
   mesh per frame) and ``texture_<target>/NNNNN.ktx2`` (KTX2 array textures, ``n`` frames per file:
-  texture frame ``t`` is file ``t // n``, layer ``t % n``), ``NNNNN.etc2`` (headerless RGB_ETC2 blocks,
-  one image per file, its size the manifest's ``resolution``) or per-frame ``.png``/``.jpg``. A manifest
+  texture frame ``t`` is file ``t // n``, layer ``t % n``; ETC1S, UASTC or plain texels: 8-bit RGB(A),
+  ETC2, ASTC), ``NNNNN.ktx`` (KTX 1, e.g. the ``astc/ktx`` target), ``NNNNN.etc2`` (headerless RGB_ETC2
+  blocks, one image per file, its size the manifest's ``resolution``) or per-frame ``.png``/``.jpg``. A manifest
   (:mod:`~uvatar.capture.importers.uvol_manifest`: the player's ``*.uvol.json`` or its encoder's
   ``uvol.json``, whose folders are ``DRC/`` and ``KTX2/``) gives the frame rates, the frame count, the
   frames per file, the path templates and the texture target; where the textures run at another
@@ -53,9 +54,10 @@ from uvatar.errors import InputError
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".drc", ".glb", ".obj", ".ply")   # a UVOL geometry folder's, in order of preference
-#: a texture folder's files, in order of preference where no manifest names the format (KTX2 says its
-#: size; a headerless .etc2 file needs the manifest's resolution unless it is square)
-TEXTURE_SUFFIXES = (".ktx2",) + IMAGE_SUFFIXES + (".etc2",)
+#: a texture folder's files, in order of preference where no manifest names the format (KTX 2 and 1 say
+#: their size; a headerless .etc2 file needs the manifest's resolution unless it is square)
+TEXTURE_SUFFIXES = (".ktx2",) + IMAGE_SUFFIXES + (".ktx", ".etc2")
+LAYERED_SUFFIXES = (".ktx2", ".ktx", ".etc2")   # files of one image or an array of frames
 PERSON_HEIGHT_M = (0.5, 2.5)  # a frame's extent along up, in metres, that the unit detection accepts
 UVOL_DEFAULT_FPS = 30.0       # the UVOL encoder's default frame rate, used when nothing says otherwise
 KTX2_ANIMATION_TEXTURES = "p-frames-decoded"  # how this version gives an animation's frames their textures
@@ -152,7 +154,8 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
     suffixes = ((TEXTURE_SUFFIX[manifest.texture_format],) if manifest.texture_format in TEXTURE_SUFFIX
                 else TEXTURE_SUFFIXES)
     texture = template_folder(src, manifest.texture_path, manifest.texture_target, "texture") \
-        or _pick(texture_dirs, suffixes)
+        or _pick(texture_dirs, suffixes) or _pick(texture_dirs, TEXTURE_SUFFIXES)   # the named target's, else any
+    suffixes = suffixes + tuple(s for s in TEXTURE_SUFFIXES if s not in suffixes)
     seq = MeshSequence({i: FrameSource(i, p) for i, p in meshes.items()}, "uvol2", fps=manifest.fps or 0.0,
                        manifest=manifest_path)
     if manifest.skipped_targets:
@@ -166,7 +169,7 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
         seq.problems.append(f"{src}: no texture_*/ folder: frames take their meshes' own textures")
     else:
         suffix = next((s for s in suffixes if any(texture.glob(f"*{s}"))), None)
-        if suffix in (".ktx2", ".etc2"):
+        if suffix in LAYERED_SUFFIXES:
             _layered_textures(seq, texture, geometry, suffix, manifest)
         else:
             images = _files_by_frame(texture, IMAGE_SUFFIXES)
@@ -195,26 +198,27 @@ def _refuse_unreadable_textures(folders: list[Path], meshes: dict[int, Path], ma
         raise InputError(manifest.path, f"lists only texture targets uvatar does not decode "
                                         f"({', '.join(manifest.skipped_targets)}); give the take with its ktx2 or "
                                         "etc2 target, or per-frame images")
-    astc = _pick(folders, (".ktx",))
-    if astc is not None:
-        raise InputError(astc, "holds KTX 1 textures (.ktx: UVOL 2's astc/ktx target, ASTC blocks), which uvatar "
-                               "does not decode; give the take with its ktx2 target (texture_ktx2/) or per-frame "
-                               "images")
+    video = _pick(folders, (".mp4",))
+    if video is not None:
+        raise InputError(video, "holds a texture video (.mp4), which uvatar does not decode; give the take with its "
+                                "ktx2 or etc2 target, or per-frame images")
 
 
 def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: str, manifest: UvolManifest) -> None:
     """Give each frame its texture file and layer: texture frame ``t`` (the player's, at the geometry's
-    and texture's frame rates) is file ``t // n``, layer ``t % n`` of a KTX2 array; an ``.etc2`` file is
-    one image for its ``n`` texture frames."""
+    and texture's frame rates) is file ``t // n``, layer ``t % n`` of a KTX 2 (or KTX 1) array; an
+    ``.etc2`` file is one image for its ``n`` texture frames."""
     from uvatar.capture.texture_etc import etc2_image_size
+    from uvatar.capture.texture_ktx1 import ktx1_info
     from uvatar.capture.texture_ktx2 import ktx2_info
 
     files = _files_by_frame(texture, (suffix,))
-    kind = "KTX2" if suffix == ".ktx2" else "ETC2"
+    kind = {".ktx2": "KTX2", ".ktx": "KTX 1", ".etc2": "ETC2"}[suffix]
+    info_of = ktx2_info if suffix == ".ktx2" else ktx1_info
     first = files[min(files)]
     layers: dict[Path, int] = {}
-    if suffix == ".ktx2":
-        info = ktx2_info(first)
+    if suffix != ".etc2":
+        info = info_of(first)
         per_file = manifest.frames_per_file or info["layers"]
         if info["animation"] and per_file > 1:
             seq.notes.append(f"{texture}: KTX2 animations (KTXanimData): each file's {per_file - 1} P-frames decoded "
@@ -241,7 +245,7 @@ def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: 
             continue
         if path not in layers:
             try:
-                layers[path] = ktx2_info(path)["layers"]
+                layers[path] = info_of(path)["layers"]
             except InputError as exc:
                 layers[path] = 0
                 seq.problems.append(str(exc))
@@ -296,6 +300,7 @@ def _read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None
     """Decode a frame's mesh and texture (source units and axes; ``texture_size``: a headerless ETC2
     texture's (width, height)); InputError naming the bad file."""
     from uvatar.capture.texture_etc import read_etc2
+    from uvatar.capture.texture_ktx1 import read_ktx1_layer
     from uvatar.capture.texture_ktx2 import read_ktx2_layer
     from uvatar.io_utils import read_image
 
@@ -304,6 +309,8 @@ def _read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None
     mesh = _read_mesh(source.mesh)
     if isinstance(source.texture, tuple) and source.texture[0].suffix.lower() == ".etc2":
         mesh.texture = read_etc2(source.texture[0], *texture_size)
+    elif isinstance(source.texture, tuple) and source.texture[0].suffix.lower() == ".ktx":
+        mesh.texture = read_ktx1_layer(*source.texture)
     elif isinstance(source.texture, tuple):
         mesh.texture = read_ktx2_layer(*source.texture)
     elif source.texture is not None:

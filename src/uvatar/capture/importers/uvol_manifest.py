@@ -15,8 +15,8 @@ Two writers make them, and both are read:
 Geometry and texture may run at different frame rates; the player shows, at time t, geometry frame
 ``round(t * geometry fps)`` with texture frame ``round(t * texture fps)`` (:func:`texture_frame`).
 Where several texture targets are listed, the one read is the player's choice among those uvatar
-decodes (``etc2`` before ``ktx2``, as its ``TEXTURE_FORMAT_PRIORITY``); ``astc/ktx`` and ``mp4`` are not
-decoded.
+decodes (``etc2`` before ``ktx2``, as its ``TEXTURE_FORMAT_PRIORITY``; the KTX 1 targets ``astc/ktx``,
+``astc.ktx`` after them); ``mp4`` (a texture video) is not decoded.
 """
 
 from __future__ import annotations
@@ -32,12 +32,13 @@ from uvatar.errors import InputError, one_line
 log = logging.getLogger(__name__)
 
 MANIFEST_PATTERNS = ("*.uvol.json", "uvol.json", "*.manifest", "manifest.json", "*.uvol")
-#: texture formats read, by the player's priority (higher first); a target without a format counts as read
-TEXTURE_FORMAT_PRIORITY = {"etc2": 1, "ktx2": 0}
-#: texture formats a manifest may name that uvatar does not decode
-UNREADABLE_TEXTURE_FORMATS = ("astc/ktx", "astc.ktx", "etc1.ktx", "mp4")
+#: texture formats read, by the player's priority (``TEXTURE_FORMAT_PRIORITY``: higher first); the KTX 1
+#: targets the player does not rank come after those it does, and a target without a format last
+TEXTURE_FORMAT_PRIORITY = {"etc1.ktx": 2, "etc2": 1, "ktx2": 0, "astc/ktx": -1, "astc.ktx": -1}
+#: texture formats a manifest may name that uvatar does not decode (a texture video)
+UNREADABLE_TEXTURE_FORMATS = ("mp4",)
 #: the file suffix of each texture format's files
-TEXTURE_SUFFIX = {"ktx2": ".ktx2", "etc2": ".etc2"}
+TEXTURE_SUFFIX = {"ktx2": ".ktx2", "etc2": ".etc2", "astc/ktx": ".ktx", "astc.ktx": ".ktx", "etc1.ktx": ".ktx"}
 
 
 @dataclass
@@ -89,7 +90,7 @@ def _texture_choice(targets: list[tuple[str, dict]]) -> tuple[str, dict] | None:
     readable = [(name, t) for name, t in targets if t.get("format") not in UNREADABLE_TEXTURE_FORMATS]
     if not readable:
         return None
-    return max(readable, key=lambda nt: TEXTURE_FORMAT_PRIORITY.get(nt[1].get("format"), -1))
+    return max(readable, key=lambda nt: TEXTURE_FORMAT_PRIORITY.get(nt[1].get("format"), -2))
 
 
 def read_manifest(path: Path) -> UvolManifest:
