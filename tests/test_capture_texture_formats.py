@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.fixtures.volumetric import ktx1
 from uvatar.capture.texture_formats import GL_FORMATS, VK_FORMATS, decode_texels
-from uvatar.capture.texture_ktx1 import KTX1_MAGIC, ktx1_info, read_ktx1_layer
+from uvatar.capture.texture_ktx1 import ktx1_info, read_ktx1_layer
 from uvatar.capture.texture_ktx2 import ktx2_info, read_ktx2_layer
 from uvatar.errors import InputError
 from uvatar.io_utils import read_image
@@ -50,13 +51,6 @@ def test_etc2_zstd_and_rgba8_arrays_in_ktx2():
     np.testing.assert_array_equal(read_ktx2_layer(FIXTURES / "rgba8_24x18_2layers.ktx2", 1), 255 - source)
     with pytest.raises(InputError, match=r"rgba8_24x18_2layers\.ktx2: KTX2 texture has 2 layers: no layer 2"):
         read_ktx2_layer(FIXTURES / "rgba8_24x18_2layers.ktx2", 2)
-
-
-def ktx1(internal: int, width: int, height: int, elements: int, images: bytes, endian: str = "<") -> bytes:
-    """A KTX 1 file by the specification: header, no key/value data, level 0's imageSize and images."""
-    word = struct.pack(endian + "I", 0x04030201)
-    header = struct.pack(endian + "12I", 0x1401, 1, 0x1907, internal, 0x1907, width, height, 0, elements, 1, 1, 0)
-    return KTX1_MAGIC + word + header + struct.pack(endian + "I", len(images)) + images
 
 
 def test_ktx1_rgb8_rows_are_padded_to_4_bytes_and_array_elements_are_layers(tmp_path):

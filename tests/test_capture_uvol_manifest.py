@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from tests.fixtures.volumetric import TEX, texture_etc2, write_encoder_take, write_uvol
+from tests.fixtures.volumetric import TEX, ktx1, texture_etc2, texture_image, write_encoder_take, write_uvol
 from uvatar.capture.importers.mesh_sequence import find_mesh_sequence, import_mesh_sequence
 from uvatar.capture.importers.uvol_manifest import read_manifest, texture_frame
 from uvatar.capture.layout import Capture
@@ -133,3 +133,30 @@ def test_shared_liam_take_as_the_encoder_and_the_etc2_target_lay_it_out(tmp_path
     assert [(s.texture[0].resolve(), s.texture[1]) for s in seq.frames.values()] == \
         [(direct.frames[i].texture[0].resolve(), direct.frames[i].texture[1]) for i in range(12)]
     assert seq.frames[7].mesh.resolve() == direct.frames[7].mesh.resolve()
+
+
+def test_ktx1_array_textures_import_with_the_orientation_of_ktx2(tmp_path):
+    """KTX 1 arrays of RGB8 frames (rows padded to 4 bytes; 2 frames a file, as the manifest says): every
+    frame its layer, and the top corners sample the white top half (the known answer KTX 2 gives)."""
+    src = write_uvol(tmp_path / "take", frames=4)
+    for p in (src / "texture_ktx2").iterdir():
+        p.unlink()
+    (src / "texture_ktx2").rmdir()
+    (src / "texture_astc").mkdir()
+    image = texture_image()
+    rows = b"".join(row.tobytes() for row in image)            # 96-byte rows: no padding at 32 texels
+    for f in range(2):
+        (src / "texture_astc" / f"{f:05d}.ktx").write_bytes(ktx1(0x8051, TEX, TEX, 2, rows + rows))
+    manifest = {"version": "v2",
+                "geometry": {"targets": {"draco": {"frameRate": 30, "frameCount": 4, "format": "draco"}},
+                             "path": "geometry_[target]/[#####][ext]"},
+                "texture": {"targets": {"astc": {"format": "astc/ktx", "frameRate": 30, "sequenceSize": 2}},
+                            "path": "texture_[target]/[#####][ext]"}}
+    (src / "take.uvol.json").write_text(json.dumps(manifest))
+    seq = find_mesh_sequence(src)
+    assert [seq.frames[i].texture for i in range(4)] == [(src / "texture_astc" / f"{i // 2:05d}.ktx", i % 2)
+                                                         for i in range(4)]
+    import_mesh_sequence(src, tmp_path / "cap", progress=False)
+    scan = Capture(tmp_path / "cap").load_scan("000003")
+    top = scan.uvs[scan.uv_faces[scan.vertices[scan.faces][..., 1] > 1.0]]
+    assert (scan.texture[((1.0 - top[:, 1]) * TEX).astype(int), (top[:, 0] * TEX).astype(int)] > 0.99).all()
