@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
-import time
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # bench/'s own helpers
+from _timing import median_seconds  # noqa: E402
 
 
 def main() -> None:
@@ -31,20 +33,12 @@ def main() -> None:
     size, repeats = (256, 1) if args.quick else (args.size, 5)
     data = np.random.default_rng(0).integers(0, 256, size * size // 2, dtype=np.uint8).tobytes()
 
-    def median(fn) -> float:
-        times = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t)
-        return statistics.median(times)
-
     def theirs() -> np.ndarray:
         return np.frombuffer(texture2ddecoder.decode_etc2(data, size, size), np.uint8).reshape(size, size, 4)[
             ..., [2, 1, 0]]
 
     out = {"size": size, "repeats": repeats, "blocks": size * size // 16,
-           "uvatar_s": median(lambda: etc2_rgb_pixels(data, size, size)), "texture2ddecoder_s": median(theirs)}
+           "uvatar_s": median_seconds(lambda: etc2_rgb_pixels(data, size, size), repeats), "texture2ddecoder_s": median_seconds(theirs, repeats)}
     out["uvatar_over_texture2ddecoder"] = out["uvatar_s"] / out["texture2ddecoder_s"]
     out["bit_exact"] = bool(np.array_equal(etc2_rgb_pixels(data, size, size), theirs()))
     print(f"etc2: uvatar {out['uvatar_s'] * 1000:.0f} ms, texture2ddecoder {out['texture2ddecoder_s'] * 1000:.0f} ms "

@@ -13,13 +13,14 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # bench/'s own helpers
+from _timing import median_seconds  # noqa: E402
 
 
 def _texture(size: int) -> np.ndarray:
@@ -30,15 +31,6 @@ def _texture(size: int) -> np.ndarray:
     image[((x * 8).astype(int) + (y * 8).astype(int)) % 3 == 0] *= 0.4
     image += rng.normal(0, 0.03, image.shape)
     return (np.clip(image, 0, 1) * 255).astype(np.uint8)
-
-
-def _median(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def _alktx2_layer(data: bytes) -> np.ndarray:
@@ -70,8 +62,8 @@ def main() -> None:
             return texture_ktx2.read_ktx2_layer(path, 0)
 
         out["bytes"] = len(data)
-        out["uvatar_s"] = _median(ours, repeats)
-        out["alktx2_s"] = _median(lambda: _alktx2_layer(data), repeats)
+        out["uvatar_s"] = median_seconds(ours, repeats)
+        out["alktx2_s"] = median_seconds(lambda: _alktx2_layer(data), repeats)
         out["uvatar_over_alktx2"] = out["uvatar_s"] / out["alktx2_s"]
         out["bit_exact"] = bool(np.array_equal(ours(), _alktx2_layer(data)))
     if args.take is not None:
@@ -81,7 +73,7 @@ def main() -> None:
             texture_ktx2._decoded.clear()
             return [texture_ktx2.read_ktx2_layer(args.take, k) for k in range(layers)]
 
-        seconds = _median(take, repeats)
+        seconds = median_seconds(take, repeats)
         out["take"] = {"file": str(args.take), "layers": layers, "seconds": seconds, "seconds_per_layer": seconds / layers}
     print(f"ktx2: uvatar {out['uvatar_s'] * 1000:.0f} ms, alktx2 {out['alktx2_s'] * 1000:.0f} ms a {size}² layer",
           file=sys.stderr)
