@@ -1,4 +1,5 @@
-"""Binary glTF (.glb) through trimesh, with the base-colour texture.
+"""Binary glTF (.glb) meshes with their base-colour texture: read by uvatar
+(:mod:`uvatar.capture.glb_container`: Draco, quantized, KTX2 images, the node tree), written by trimesh.
 
 glTF stores one UV per vertex, so exporters split vertices along UV seams. On reading, vertices
 with identical positions are welded back (first-occurrence order) so ``faces`` index the shared
@@ -8,34 +9,20 @@ own vertices in order, so a write → read round trip returns the same vertex or
 
 from __future__ import annotations
 
-import json
-import struct
 from pathlib import Path
 
 import numpy as np
 
 from uvatar.capture.types import TexturedMesh
-from uvatar.errors import InputError
+from uvatar.errors import InputError, one_line
 from uvatar.io_utils import atomic_path
-
-
-def _glb_json(path: Path) -> dict:
-    with open(path, "rb") as fh:
-        head = fh.read(20)
-        if len(head) < 20 or head[:4] != b"glTF":
-            raise InputError(path, "not a binary glTF file (missing 'glTF' magic)")
-        length, kind = struct.unpack("<II", head[12:20])
-        if kind != 0x4E4F534A:  # "JSON"
-            raise InputError(path, "GLB's first chunk is not JSON")
-        try:
-            return json.loads(fh.read(length))
-        except ValueError as exc:
-            raise InputError(path, f"GLB JSON chunk is malformed ({exc})") from None
 
 
 def glb_header(path: Path) -> dict:
     """Counts (split vertices, as stored) and texture presence from the JSON chunk only."""
-    gltf = _glb_json(path)
+    from uvatar.capture.glb_container import read_glb_chunks
+
+    gltf = read_glb_chunks(path).gltf
     accessors = gltf.get("accessors", [])
     nv = nf = 0
     has_uvs, texture = False, None
@@ -82,32 +69,73 @@ def weld_by_position(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarra
 
 
 def read_glb(path: Path, load_texture=None) -> TexturedMesh:
-    import trimesh
+    """A .glb → TexturedMesh: every triangle primitive of the default scene, posed by its node tree,
+    welded by position; UVs v up (``v = 1 - v_gltf``); the base-colour image (PNG, JPEG, WebP or KTX2)
+    as float RGB. InputError naming the file when it cannot be read right (see
+    :mod:`uvatar.capture.glb_container`), or when its primitives use different base-colour images (a
+    frame is one texture atlas)."""
+    from uvatar.capture.glb_container import (
+        base_colour_image,
+        check_required_extensions,
+        image_bytes,
+        mesh_instances,
+        primitive_arrays,
+        read_glb_chunks,
+    )
 
-    _glb_json(path)  # a clear error for non-GLB files
+    glb = read_glb_chunks(path)
+    check_required_extensions(glb)
+    meshes = glb.gltf.get("meshes", [])
+    parts, images = [], set()
     try:
-        scene = trimesh.load(str(path), file_type="glb", process=False, force="scene")
-        meshes = [g for g in scene.dump() if isinstance(g, trimesh.Trimesh)]
-    except Exception as exc:  # trimesh raises many types on bad files
-        raise InputError(path, f"cannot read GLB ({type(exc).__name__}: {exc})") from None
-    if not meshes:
+        for world, index in mesh_instances(glb):
+            for primitive in meshes[index].get("primitives", []):
+                if primitive.get("mode", 4) != 4:          # points and lines are not a surface
+                    continue
+                positions, uvs, faces = primitive_arrays(glb, primitive)
+                parts.append((positions @ world[:3, :3].T + world[:3, 3], uvs, faces))
+                images.add(base_colour_image(glb, primitive))
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise InputError(path, f"GLB is malformed ({type(exc).__name__}: {one_line(exc)})") from None
+    if not parts:
         raise InputError(path, "GLB holds no triangle mesh")
-    mesh = meshes[0] if len(meshes) == 1 else trimesh.util.concatenate(meshes)
-    split_vertices = np.asarray(mesh.vertices, np.float64)
-    split_faces = np.asarray(mesh.faces, np.int64)
-    uv = getattr(mesh.visual, "uv", None)
-    texture = None
-    material = getattr(mesh.visual, "material", None)
-    if material is not None:
-        image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
-        if image is not None:
-            texture = np.asarray(image.convert("RGB"), np.float32) / 255.0
+    if len({uvs is None for _, uvs, _ in parts}) > 1:
+        raise InputError(path, "GLB's primitives have UVs and lack them in turn")
+    images.discard(None)                                # an untextured part takes the frame's texture
+    if len(images) > 1:
+        raise InputError(path, f"GLB's primitives use {len(images)} different base-colour images; uvatar takes "
+                               "one texture atlas per frame")
+    offsets = np.cumsum([0] + [len(p) for p, _, _ in parts])
+    split_vertices = np.concatenate([p for p, _, _ in parts])
+    split_faces = np.concatenate([f + o for (_, _, f), o in zip(parts, offsets, strict=False)])
     vertices, faces = weld_by_position(split_vertices, split_faces)
-    if uv is not None and len(uv) == len(split_vertices):
-        uvs, uv_faces = np.asarray(uv, np.float64), split_faces
+    if parts[0][1] is not None:
+        uvs = np.concatenate([u for _, u, _ in parts])
+        uvs[:, 1] = 1.0 - uvs[:, 1]
+        uv_faces = split_faces
     else:
         uvs, uv_faces = np.zeros((0, 2)), np.zeros((0, 3), np.int64)
+    image = next(iter(images), None)
+    texture = None if image is None else _decode_image(path, *image_bytes(glb, image))
     return TexturedMesh(vertices, faces, uvs, uv_faces, texture)
+
+
+def _decode_image(path: Path, data: bytes, mime: str) -> np.ndarray:
+    """An embedded image's bytes → float32 (H, W, 3) in [0, 1]."""
+    import io
+
+    import PIL.Image
+
+    if mime == "image/ktx2":
+        from uvatar.capture.texture_ktx2 import read_ktx2_bytes
+
+        return read_ktx2_bytes(data, f"{path} (its KTX2 image)").astype(np.float32) / 255.0
+    try:
+        with PIL.Image.open(io.BytesIO(data)) as im:
+            return np.asarray(im.convert("RGB"), np.float32) / 255.0
+    except Exception as exc:
+        raise InputError(path, f"GLB's base-colour image ({mime or 'unknown type'}) cannot be decoded "
+                               f"({type(exc).__name__})") from None
 
 
 def split_for_gltf(mesh: TexturedMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -163,25 +163,40 @@ def _read_texels(path: Path, data: bytes, head: Ktx2Header, layer: int) -> np.nd
 def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
     """Decode array layer ``layer`` (mip 0) → uint8 (H, W, 3) RGB, row 0 at the top (v = 1). The last
     BasisLZ file read is kept, so its other layers are neither read nor parsed again."""
-    import io
-
-    import PIL.Image
-
     path = Path(path)
     file = _decoded.get(_file_key(path)) if path.is_file() else None
     data = file.data if file else _bytes(path)
     head = file.head if file else _header(path, data)
+    if head.supercompression == SUPERCOMPRESSION_BASISLZ and file is None:
+        _decoded.clear()
+        file = _decoded[_file_key(path)] = _BasisLZFile(data, head)
+    return _decode_layer(path, data, head, int(layer), file)
+
+
+def read_ktx2_bytes(data: bytes, where: str | Path, layer: int = 0) -> np.ndarray:
+    """:func:`read_ktx2_layer` of a KTX2 file held in memory (a GLB's ``KHR_texture_basisu`` image);
+    ``where`` names it in messages."""
+    where = Path(where)
+    if not data.startswith(KTX2_MAGIC):
+        raise InputError(where, "not a KTX2 image (missing the KTX 20 identifier)")
+    head = _header(where, data)
+    basislz = _BasisLZFile(data, head) if head.supercompression == SUPERCOMPRESSION_BASISLZ else None
+    return _decode_layer(where, data, head, int(layer), basislz)
+
+
+def _decode_layer(path: Path, data: bytes, head: Ktx2Header, layer: int, basislz: _BasisLZFile | None) -> np.ndarray:
+    import io
+
+    import PIL.Image
+
     if not 0 <= layer < head.layers:
         raise InputError(path, f"KTX2 texture has {head.layers} layer{'s' if head.layers > 1 else ''}: no layer {layer}")
-    if head.supercompression == SUPERCOMPRESSION_BASISLZ:
-        if file is None:
-            _decoded.clear()
-            file = _decoded[_file_key(path)] = _BasisLZFile(data, head)
-        return _read_basislz(path, file, int(layer))
+    if basislz is not None:
+        return _read_basislz(path, basislz, layer)
     if head.vk_format in VK_FORMATS:
-        return _read_texels(path, data, head, int(layer))
+        return _read_texels(path, data, head, layer)
     try:  # TGA: the transcoder's uncompressed output (PNG would cost 4x the time in zlib)
-        tga, _ = _alktx2().decode_ktx2_to_bytes(data, format="tga", layer=int(layer))
+        tga, _ = _alktx2().decode_ktx2_to_bytes(data, format="tga", layer=layer)
         with PIL.Image.open(io.BytesIO(tga)) as im:  # PIL applies the TGA origin flag
             return np.ascontiguousarray(np.asarray(im.convert("RGB")))
     except Exception as exc:

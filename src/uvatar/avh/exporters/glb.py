@@ -183,11 +183,7 @@ def write_glb(path: str | Path, mesh: SkinnedMesh) -> Path:
 
 def read_glb_json(path: str | Path) -> tuple[dict, bytes]:
     """Read a GLB's JSON chunk and binary chunk (for tests and inspection)."""
-    data = Path(path).read_bytes()
-    magic, version, total = struct.unpack_from("<4sII", data, 0)
-    if magic != b"glTF" or version != 2 or total != len(data):
-        raise ValueError(f"{path}: not a glTF 2.0 binary")
-    jlen, jtype = struct.unpack_from("<I4s", data, 12)
-    gltf = json.loads(data[20:20 + jlen])
-    blen, _ = struct.unpack_from("<I4s", data, 20 + jlen)
-    return gltf, data[28 + jlen:28 + jlen + blen]
+    from uvatar.capture.glb_container import read_glb_chunks
+
+    glb = read_glb_chunks(path)
+    return glb.gltf, glb.binary

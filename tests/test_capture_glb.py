@@ -1,0 +1,104 @@
+"""GLB frames as web tools write them (``tests/fixtures/glb/README.md``): Draco-compressed, quantized,
+KTX2-textured and nested files read to the same surface and texture as the plain one, the node tree's
+transforms a known answer, and what cannot be read right refused in one line naming the file."""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uvatar.capture.glb_container import accessor, read_glb_chunks
+from uvatar.capture.mesh_glb import read_glb
+from uvatar.errors import InputError
+
+FIXTURES = Path(__file__).parent / "fixtures" / "glb"
+
+
+def triangles(mesh) -> np.ndarray:
+    """Each triangle's corners (position, UV), corners and triangles in a canonical order: the surface
+    whatever order a tool left its vertices in."""
+    corners = np.concatenate([mesh.vertices[mesh.faces], mesh.uvs[mesh.uv_faces]], -1)          # (F, 3, 5)
+    corners = np.stack([t[np.lexsort(t.T[::-1])] for t in np.round(corners, 4)])
+    return corners[np.lexsort(corners.reshape(len(corners), -1).T[::-1])]
+
+
+def test_draco_quantized_and_ktx2_frames_are_the_plain_frames_surface_and_texture():
+    plain = read_glb(FIXTURES / "plain.glb")
+    assert plain.texture.shape == (32, 32, 3) and plain.num_vertices == 8
+    for name, atol in (("draco.glb", 1e-3), ("quantized.glb", 1e-4), ("ktx2.glb", 0.0)):
+        mesh = read_glb(FIXTURES / name)
+        assert mesh.num_vertices == 8 and mesh.num_faces == 12, name
+        np.testing.assert_allclose(triangles(mesh), triangles(plain), atol=atol, err_msg=name)
+        np.testing.assert_array_equal(mesh.texture, plain.texture, err_msg=name)   # KTX2: flat halves survive ETC1S
+
+
+def test_quantized_accessors_are_normalized_integers():
+    glb = read_glb_chunks(FIXTURES / "quantized.glb")
+    position = glb.gltf["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+    assert glb.gltf["accessors"][position]["componentType"] == 5122 and glb.gltf["accessors"][position]["normalized"]
+    values = accessor(glb, position)
+    assert values.dtype == np.float64 and np.abs(values).max() == pytest.approx(1.0)     # 32767 / 32767
+
+
+def test_the_node_tree_poses_the_mesh():
+    plain, nested = read_glb(FIXTURES / "plain.glb"), read_glb(FIXTURES / "nested.glb")
+    turn = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])           # the parent: 90 degrees about +x
+    np.testing.assert_allclose(nested.vertices, (2 * plain.vertices) @ turn.T + [1, 2, 3], atol=1e-6)
+
+
+def glb(gltf: dict, binary: bytes) -> bytes:
+    """A GLB of this JSON and BIN chunk (both padded to 4 bytes, glTF 2.0 §4.4)."""
+    text = json.dumps(gltf).encode()
+    text += b" " * (-len(text) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(binary), 0x004E4942) + binary
+    return b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body
+
+
+def test_a_strided_view_of_interleaved_positions_and_uvs(tmp_path):
+    rng = np.random.default_rng(0)
+    positions, uvs = rng.random((4, 3)).astype(np.float32), rng.random((4, 2)).astype(np.float32)
+    interleaved = np.concatenate([positions, uvs], 1).tobytes()          # 20-byte vertices
+    indices = np.array([0, 1, 2, 0, 2, 3], np.uint16).tobytes()
+    gltf = {"asset": {"version": "2.0"}, "buffers": [{"byteLength": 80 + 12}],
+            "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 80, "byteStride": 20},
+                            {"buffer": 0, "byteOffset": 80, "byteLength": 12}],
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3"},
+                          {"bufferView": 0, "byteOffset": 12, "componentType": 5126, "count": 4, "type": "VEC2"},
+                          {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2}]}]}
+    path = tmp_path / "strided.glb"
+    path.write_bytes(glb(gltf, interleaved + indices))
+    mesh = read_glb(path)                                                  # no scene: the mesh as it is
+    np.testing.assert_allclose(mesh.vertices, positions)
+    np.testing.assert_allclose(mesh.uvs, np.c_[uvs[:, 0], 1 - uvs[:, 1]], atol=1e-7)   # v up
+    assert mesh.faces.tolist() == [[0, 1, 2], [0, 2, 3]] and mesh.texture is None
+
+
+def test_what_cannot_be_read_right_is_one_line(tmp_path):
+    with pytest.raises(InputError, match=r"meshopt\.glb: GLB requires EXT_meshopt_compression, which uvatar does "
+                                         r"not decode"):
+        read_glb(FIXTURES / "meshopt.glb")
+    data = (FIXTURES / "plain.glb").read_bytes()
+    cases = {"short.glb": (data[:300], r"short\.glb: GLB is truncated"),
+             "magic.glb": (b"gLTF" + data[4:], r"magic\.glb: not a binary glTF file"),
+             "v1.glb": (data[:4] + struct.pack("<I", 1) + data[8:], r"v1\.glb: GLB version 1: uvatar reads glTF 2\.0")}
+    for name, (content, message) in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(InputError, match=message):
+            read_glb(tmp_path / name)
+    # two primitives with two different images: one texture atlas a frame
+    chunks = read_glb_chunks(FIXTURES / "plain.glb")
+    gltf = chunks.gltf
+    gltf["images"].append(dict(gltf["images"][0]))
+    gltf["textures"].append({"source": 1})
+    gltf["materials"].append({"pbrMetallicRoughness": {"baseColorTexture": {"index": 1}}})
+    second = dict(gltf["meshes"][0]["primitives"][0], material=1)
+    gltf["meshes"][0]["primitives"].append(second)
+    (tmp_path / "two.glb").write_bytes(glb(gltf, chunks.binary))
+    with pytest.raises(InputError, match=r"two\.glb: GLB's primitives use 2 different base-colour images"):
+        read_glb(tmp_path / "two.glb")
