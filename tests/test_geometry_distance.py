@@ -45,3 +45,30 @@ def test_closest_points_on_mesh_finds_the_face_and_point():
     closest = np.einsum("nk,nkc->nc", bary, v[f[face]].astype(np.float64))
     assert np.allclose(closest, [[0.3, 0.7, 0.0], [1.0, 0.5, 0.0], [0.0, 0.0, 0.0]], atol=1e-9)
     assert np.allclose(dist, [0.2, 0.4, np.sqrt(1.5)])
+
+
+def test_degenerate_triangles_give_the_nearest_point_on_their_edges():
+    """Two corners that coincide, or three on a line (a real scan has a few: liam_uvol's frame 0 had 15
+    vertices 0.86 mm from their own surface through them), have no face region: the nearest point is
+    on an edge. Known answers, then random degenerate triangles against the edges by brute force."""
+    a, c = np.zeros(3), np.array([1.0, 0.0, 0.0])
+    coincide = np.stack([a, a, c])[None]                              # a == b: the segment a-c
+    bary, dist = closest_points_on_triangles(c[None], coincide)
+    assert dist[0] == 0.0 and np.allclose(bary @ coincide[0], c)
+    _, dist = closest_points_on_triangles(np.array([[0.5, 2.0, 0.0]]), coincide)
+    assert np.isclose(dist[0], 2.0)
+    line = np.array([[[0.0, 0, 0], [2.0, 0, 0], [1.0, 0, 0]]])        # collinear, the middle corner last
+    _, dist = closest_points_on_triangles(np.array([[1.9, 0.0, 0.0], [3.0, 1.0, 0.0]]), np.repeat(line, 2, 0))
+    assert np.allclose(dist, [0.0, np.sqrt(2.0)])
+    rng = np.random.default_rng(1)
+    ends = rng.normal(size=(300, 2, 3))
+    t = rng.random(300)
+    mid = ends[:, 0] + t[:, None] * (ends[:, 1] - ends[:, 0])
+    tri = np.stack([ends[:, 0], ends[:, 1], mid], 1)[:, rng.permuted(np.tile([0, 1, 2], (300, 1)), axis=1)[0]]
+    tri[:100, 1] = tri[:100, 0]                                       # a third with a repeated corner
+    p = rng.normal(size=(300, 3))
+    s = np.linspace(0, 1, 2001)[None, :, None]
+    brute = np.min([np.linalg.norm(tri[:, i, None] + s * (tri[:, j] - tri[:, i])[:, None] - p[:, None], axis=2).min(1)
+                    for i, j in ((0, 1), (1, 2), (2, 0))], axis=0)
+    _, dist = closest_points_on_triangles(p, tri)
+    assert (dist <= brute + 1e-12).all() and np.allclose(dist, brute, atol=5e-3)

@@ -1,7 +1,7 @@
 """Distances from points to triangle meshes (exact per candidate triangle, vectorized).
 
-The one home of this math: the fit's scan-distance metrics, the AVH eval's two-way scan distance and
-the importer's texture transfer between a volumetric video's frames call it.
+The one home of this math: the fit's scan-distance metrics and the AVH eval's two-way scan distance
+call it.
 """
 
 from __future__ import annotations
@@ -43,8 +43,29 @@ def closest_points_on_triangles(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndar
     ]
     for region, value in zip(reversed(regions), reversed(values), strict=True):
         bary = np.where(region[:, None], value, bary)
+    # a degenerate triangle (corners that coincide or lie on a line: a real scan has a few) has no face
+    # region, and the tests above can pick a corner that is not the nearest: its closest point is the
+    # nearest on its three edges
+    flat = (va + vb + vc) <= 1e-9 * dot(ab, ab) * dot(ac, ac) + 1e-300
+    if flat.any():
+        bary[flat] = _closest_on_edges(p[flat], tri[flat])
     closest = np.einsum("nk,nkc->nc", bary, tri)
     return bary, np.linalg.norm(closest - p, axis=1)
+
+
+def _closest_on_edges(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Barycentrics (N, 3) of the nearest point on the three edges of ``tri`` (N, 3, 3) to ``p`` (N, 3)."""
+    best, best_bary = np.full(len(p), np.inf), np.zeros((len(p), 3))
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        a, e = tri[:, i], tri[:, j] - tri[:, i]
+        length2 = (e * e).sum(1)
+        t = np.clip(((p - a) * e).sum(1) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+        d = np.linalg.norm(a + t[:, None] * e - p, axis=1)
+        bary = np.zeros((len(p), 3))
+        bary[:, i], bary[:, j] = 1.0 - t, t
+        better = d < best
+        best, best_bary = np.where(better, d, best), np.where(better[:, None], bary, best_bary)
+    return best_bary
 
 
 def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
