@@ -115,8 +115,8 @@ def buffer_view(glb: Glb, index: int) -> tuple[bytes, int | None]:
     data = _buffer(glb, view.get("buffer", 0))
     start, length = view.get("byteOffset", 0), view["byteLength"]
     if start + length > len(data):
-        raise InputError(glb.path, f"GLB is truncated: bufferView {index} ends at byte {start + length} of a "
-                                   f"{len(data)}-byte buffer")
+        raise InputError(glb.path, f"GLB is truncated: bufferView {index} ends at byte {start + length}; its "
+                                   f"buffer holds {len(data)} bytes")
     return data[start:start + length], view.get("byteStride")
 
 
