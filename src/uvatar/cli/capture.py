@@ -59,9 +59,10 @@ def _register_import(cli) -> None:
                                 "calibration (EasyMocap intri.yml/extri.yml, Qualisys .qca[.txt], Pose2Sim or "
                                 "OpenCV-style .toml/.json). Writes OUT/capture.json, OUT/cameras/ (+Y up, metres) "
                                 "and OUT/images/<cam>/. Or import a volumetric video: a UVOL 2 folder "
-                                "(geometry_*/NNNNN.drc Draco meshes, texture_*/ KTX2 array textures or per-frame "
-                                "images, a manifest when there is one) or a folder of per-frame .obj/.ply/.glb/.drc "
-                                "meshes with their textures; writes OUT/scans/<frame>.ply + .png in metres, +Y up "
+                                "(geometry_*/NNNNN.drc Draco meshes, texture_*/ KTX2 array textures, KTX 1, "
+                                "headerless .etc2 or per-frame images; the player's manifest or its encoder's "
+                                "uvol.json with DRC/ and KTX2/ when there is one) or a folder of per-frame "
+                                ".obj/.ply/.glb/.drc meshes with their textures; writes OUT/scans/<frame>.ply + .png in metres, +Y up "
                                 "(--units/--up where the files do not say; --fps where no manifest does; needs "
                                 "pip install 'uvatar[volumetric]' for Draco/KTX2). Resumes an interrupted import.")
     p.add_argument("src", help="recording folder")
