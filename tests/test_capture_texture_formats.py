@@ -112,3 +112,25 @@ def test_format_tables_and_row_orders():
     from tests.fixtures.volumetric import etc2_flat_blocks
     colour = etc2_flat_blocks(np.full((1, 1, 3), 3))
     np.testing.assert_array_equal(decode_texels(VK_FORMATS[151], b"\xff" * 8 + colour, 4, 4), np.full((4, 4, 3), 53))
+
+
+def test_a_crash_of_the_astc_decoder_is_that_images_one_line(monkeypatch):
+    """texture2ddecoder is not memory-safe on corrupt ASTC blocks (a fuzz of these fixtures crashed it), so
+    it decodes in a child process: a child that dies (here by SIGSEGV) is one line naming the file, and
+    the importer's process lives on to decode the next image."""
+    import os
+    import signal
+
+    from uvatar.capture import texture_formats
+
+    def crash(conn, *args):
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+    monkeypatch.setattr(texture_formats, "_decode_astc", crash)
+    with pytest.raises(InputError, match=r"astc5x4_30x22\.ktx: KTX 1 layer 0 cannot be decoded \(the ASTC decoder "
+                                         r"failed on these blocks \(its process ended with -11\)\)"):
+        read_ktx1_layer(FIXTURES / "astc5x4_30x22.ktx")
+    with pytest.raises(InputError, match=r"astc6x6_24x18\.ktx2: KTX2 layer 0 cannot be decoded"):
+        read_ktx2_layer(FIXTURES / "astc6x6_24x18.ktx2")
+    monkeypatch.undo()
+    assert read_ktx1_layer(FIXTURES / "astc5x4_30x22.ktx").shape == (22, 30, 3)

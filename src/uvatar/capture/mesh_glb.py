@@ -88,25 +88,31 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
     meshes = glb.gltf.get("meshes", [])
     parts, images = [], set()
     try:
-        for world, index in mesh_instances(glb):
+        with np.errstate(over="ignore", invalid="ignore"):   # a corrupt matrix: the finite check below says so
+            instances = mesh_instances(glb)
+        for world, index in instances:
             for primitive in meshes[index].get("primitives", []):
                 if primitive.get("mode", 4) != 4:          # points and lines are not a surface
                     continue
                 positions, uvs, faces = primitive_arrays(glb, primitive)
-                parts.append((positions @ world[:3, :3].T + world[:3, 3], uvs, faces))
+                with np.errstate(over="ignore", invalid="ignore"):
+                    parts.append((positions @ world[:3, :3].T + world[:3, 3], uvs, faces))
                 images.add(base_colour_image(glb, primitive))
-    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        images.discard(None)                            # an untextured part takes the frame's texture
+        image = image_bytes(glb, next(iter(images))) if len(images) == 1 else None
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
         raise InputError(path, f"GLB is malformed ({type(exc).__name__}: {one_line(exc)})") from None
     if not parts:
         raise InputError(path, "GLB holds no triangle mesh")
     if len({uvs is None for _, uvs, _ in parts}) > 1:
         raise InputError(path, "GLB's primitives have UVs and lack them in turn")
-    images.discard(None)                                # an untextured part takes the frame's texture
     if len(images) > 1:
         raise InputError(path, f"GLB's primitives use {len(images)} different base-colour images; uvatar takes "
                                "one texture atlas per frame")
     offsets = np.cumsum([0] + [len(p) for p, _, _ in parts])
     split_vertices = np.concatenate([p for p, _, _ in parts])
+    if not np.isfinite(split_vertices).all() or np.abs(split_vertices).max() > 1e30:
+        raise InputError(path, "GLB's vertex positions are not finite numbers")
     split_faces = np.concatenate([f + o for (_, _, f), o in zip(parts, offsets, strict=False)])
     vertices, faces = weld_by_position(split_vertices, split_faces)
     if parts[0][1] is not None:
@@ -115,8 +121,7 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
         uv_faces = split_faces
     else:
         uvs, uv_faces = np.zeros((0, 2)), np.zeros((0, 3), np.int64)
-    image = next(iter(images), None)
-    texture = None if image is None else _decode_image(path, *image_bytes(glb, image))
+    texture = None if image is None else _decode_image(path, *image)
     return TexturedMesh(vertices, faces, uvs, uv_faces, texture)
 
 

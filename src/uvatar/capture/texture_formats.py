@@ -4,7 +4,8 @@ The one owner of the mapping from a container's format code (KTX 2's ``vkFormat`
 ``glInternalFormat``) to a decoder: 8-bit RGB(A)/BGR(A) rows, ETC1 and ETC2 RGB blocks (and the
 colour half of ETC2 RGBA8 blocks; :mod:`uvatar.capture.texture_etc`), and ASTC LDR blocks of every 2D
 footprint, decoded by texture2ddecoder (the ``volumetric`` extra; within 1 of ARM's astcenc on its
-own encodings: different roundings of the same colour, ``tests/test_capture_texture_formats.py``).
+own encodings: different roundings of the same colour, ``tests/test_capture_texture_formats.py``) in
+a child process (it is not memory-safe on corrupt blocks).
 Alpha is dropped (a scan's texture is RGB). Every decoder returns uint8 (height, width, 3) with row 0
 the first stored row, as the container stores it.
 """
@@ -84,6 +85,37 @@ def decode_texels(fmt: TexelFormat, data: bytes, width: int, height: int, row_al
         if fmt.kind == "etc2_rgba8":       # 8 bytes of EAC alpha, then the 8 of the ETC2 colour block
             blocks = blocks.reshape(-1, 16)[:, 8:].reshape(-1)
         return etc2_rgb_pixels(blocks, width, height)
-    t2d = require("texture2ddecoder", "volumetric", "ASTC textures")
-    bgra = t2d.decode_astc(data, width, height, *fmt.block)
+    require("texture2ddecoder", "volumetric", "ASTC textures")
+    bgra = _astc_in_a_child(data, width, height, fmt.block)
     return np.ascontiguousarray(np.frombuffer(bgra, np.uint8).reshape(height, width, 4)[..., [2, 1, 0]])
+
+
+def _decode_astc(conn, data: bytes, width: int, height: int, block: tuple[int, int]) -> None:
+    import texture2ddecoder
+
+    conn.send_bytes(texture2ddecoder.decode_astc(data, width, height, *block))
+    conn.close()
+
+
+def _astc_in_a_child(data: bytes, width: int, height: int, block: tuple[int, int]) -> bytes:
+    """texture2ddecoder's ASTC decoding of one image, in a child process of its own. Its decoder writes
+    out of bounds on some corrupt blocks (found by fuzzing: the heap is damaged and a later call
+    crashes the process), so it never runs in the importer's process: a crash is that image's
+    ValueError, and no damage carries to the next image. A fork costs milliseconds against the
+    decode's tens."""
+    import multiprocessing
+    import sys
+
+    ctx = multiprocessing.get_context("fork" if sys.platform.startswith("linux") else "spawn")
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_decode_astc, args=(send, data, width, height, block), daemon=True)
+    child.start()
+    send.close()
+    try:
+        out = receive.recv_bytes()
+    except EOFError:
+        out = None
+    child.join()
+    if out is None or child.exitcode != 0 or len(out) != width * height * 4:
+        raise ValueError(f"the ASTC decoder failed on these blocks (its process ended with {child.exitcode})")
+    return out

@@ -104,4 +104,7 @@ def read_ktx1_layer(path: str | Path, layer: int = 0) -> np.ndarray:
     if start + image > min(len(data), head.level0 + max(head.level0_bytes, image)):
         raise InputError(path, f"KTX 1 texture is truncated ({len(data)} bytes; layer {layer} of its {fmt.name} "
                                f"images ends at {start + image})")
-    return decode_texels(fmt, data[start:start + image], head.width, head.height, alignment)
+    try:
+        return decode_texels(fmt, data[start:start + image], head.width, head.height, alignment)
+    except ValueError as exc:
+        raise InputError(path, f"KTX 1 layer {layer} cannot be decoded ({exc})") from None

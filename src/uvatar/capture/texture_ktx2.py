@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.capture.texture_formats import VK_FORMATS
-from uvatar.errors import InputError, require
+from uvatar.errors import InputError, one_line, require
 
 KTX2_MAGIC = b"\xabKTX 20\xbb\r\n\x1a\n"
 SUPERCOMPRESSION_BASISLZ = 1
@@ -145,10 +145,12 @@ def _read_texels(path: Path, data: bytes, head: Ktx2Header, layer: int) -> np.nd
     level = data[head.level0[0]:head.level0[0] + head.level0[1]]
     if head.supercompression == SUPERCOMPRESSION_ZSTD:
         zstandard = require("zstandard", "volumetric", "zstd-supercompressed KTX2 textures")
+        expected = head.layers * head.faces * fmt.image_bytes(head.width, head.height)   # level 0's images
         try:
-            level = zstandard.ZstdDecompressor().decompress(level, max_output_size=1 << 31)
-        except zstandard.ZstdError as exc:
-            raise InputError(path, f"KTX2 texture's zstd data cannot be decompressed ({exc})") from None
+            level = zstandard.ZstdDecompressor().decompress(level, max_output_size=expected)
+        except (zstandard.ZstdError, MemoryError) as exc:
+            raise InputError(path, f"KTX2 texture's zstd data cannot be decompressed ({one_line(exc) or 'too large'})"
+                             ) from None
     elif head.supercompression != 0:
         raise InputError(path, f"KTX2 texture of {fmt.name} texels with supercompression scheme "
                                f"{head.supercompression}, which uvatar does not read (it reads none, BasisLZ and zstd)")
@@ -157,7 +159,10 @@ def _read_texels(path: Path, data: bytes, head: Ktx2Header, layer: int) -> np.nd
     if start + image > len(level):
         raise InputError(path, f"KTX2 texture is truncated (level 0 holds {len(level)} bytes; layer {layer} of its "
                                f"{fmt.name} images ends at {start + image})")
-    return decode_texels(fmt, level[start:start + image], head.width, head.height)
+    try:
+        return decode_texels(fmt, level[start:start + image], head.width, head.height)
+    except ValueError as exc:
+        raise InputError(path, f"KTX2 layer {layer} cannot be decoded ({exc})") from None
 
 
 def read_ktx2_layer(path: str | Path, layer: int = 0) -> np.ndarray:
