@@ -388,7 +388,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             p.unlink(missing_ok=True)
     S = units = up = None
     notes: list[str] = list(seq.notes)
-    imported, skipped, written = [], [], 0
+    imported, skipped, written, first_error = [], [], 0, ""
     bar = tqdm(wanted, desc="import", unit="frame", disable=not progress or None)
     for i in bar:
         target = scans / f"{frame_name(i)}.ply"
@@ -400,6 +400,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             mesh = _read_frame(seq.frames[i], seq.texture_size)
         except InputError as exc:
             skipped.append(i)
+            first_error = first_error or str(exc)
             problems.append(str(exc))
             log.warning("%s", exc)
             continue
@@ -422,7 +423,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
             stage_record.mark_progress(scans, len(imported))
     bar.close()
     if not imported:
-        raise InputError(src, f"no frame could be imported ({len(skipped)} broken; first: {problems[-1]})")
+        raise InputError(src, f"no frame could be imported ({len(skipped)} broken; first: {first_error})")
     fps = cfg.fps or seq.fps or UVOL_DEFAULT_FPS
     if not (cfg.fps or seq.fps):
         notes.append(f"frame rate not stated (no manifest, no --fps): {UVOL_DEFAULT_FPS:g} fps, the UVOL encoder's "
