@@ -58,6 +58,17 @@ MESH_SUFFIXES = (".drc", ".glb", ".obj", ".ply")   # a UVOL geometry folder's, i
 #: their size; a headerless .etc2 file needs the manifest's resolution unless it is square)
 TEXTURE_SUFFIXES = (".ktx2",) + IMAGE_SUFFIXES + (".ktx", ".etc2")
 LAYERED_SUFFIXES = (".ktx2", ".ktx", ".etc2")   # files of one image or an array of frames
+
+
+def _layered_format(suffix: str):
+    """(name, header reader or None, layer reader) of a layered texture file's suffix: KTX 2, KTX 1, or
+    a headerless ETC2 image (its reader takes (path, width, height))."""
+    from uvatar.capture.texture_etc import read_etc2
+    from uvatar.capture.texture_ktx1 import ktx1_info, read_ktx1_layer
+    from uvatar.capture.texture_ktx2 import ktx2_info, read_ktx2_layer
+
+    return {".ktx2": ("KTX2", ktx2_info, read_ktx2_layer), ".ktx": ("KTX 1", ktx1_info, read_ktx1_layer),
+            ".etc2": ("ETC2", None, read_etc2)}[suffix]
 PERSON_HEIGHT_M = (0.5, 2.5)  # a frame's extent along up, in metres, that the unit detection accepts
 UVOL_DEFAULT_FPS = 30.0       # the UVOL encoder's default frame rate, used when nothing says otherwise
 KTX2_ANIMATION_TEXTURES = "p-frames-decoded"  # how this version gives an animation's frames their textures
@@ -162,13 +173,12 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
         seq.notes.append(f"{manifest_path}: texture target{'s' if len(manifest.skipped_targets) > 1 else ''} "
                          f"{', '.join(manifest.skipped_targets)} not read"
                          + (f" (the {manifest.texture_target} target is)" if manifest.texture_target else ""))
-    found = _pick([texture] if texture else [], suffixes)
-    if found is None:
+    suffix = next((s for s in suffixes if any(texture.glob(f"*{s}"))), None) if texture else None
+    if suffix is None:
         _refuse_unreadable_textures(texture_dirs + ([texture] if texture else []), meshes, manifest)
     if texture is None:
         seq.problems.append(f"{src}: no texture_*/ folder: frames take their meshes' own textures")
     else:
-        suffix = next((s for s in suffixes if any(texture.glob(f"*{s}"))), None)
         if suffix in LAYERED_SUFFIXES:
             _layered_textures(seq, texture, geometry, suffix, manifest)
         else:
@@ -209,15 +219,12 @@ def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: 
     and texture's frame rates) is file ``t // n``, layer ``t % n`` of a KTX 2 (or KTX 1) array; an
     ``.etc2`` file is one image for its ``n`` texture frames."""
     from uvatar.capture.texture_etc import etc2_image_size
-    from uvatar.capture.texture_ktx1 import ktx1_info
-    from uvatar.capture.texture_ktx2 import ktx2_info
 
     files = _files_by_frame(texture, (suffix,))
-    kind = {".ktx2": "KTX2", ".ktx": "KTX 1", ".etc2": "ETC2"}[suffix]
-    info_of = ktx2_info if suffix == ".ktx2" else ktx1_info
+    kind, info_of, _ = _layered_format(suffix)
     first = files[min(files)]
     layers: dict[Path, int] = {}
-    if suffix != ".etc2":
+    if info_of is not None:
         info = info_of(first)
         per_file = manifest.frames_per_file or info["layers"]
         if info["animation"] and per_file > 1:
@@ -240,7 +247,7 @@ def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: 
                                 + (f"(texture frame {t}) " if t != i else "") + "has no texture")
             source.texture = ()
             continue
-        if suffix == ".etc2":
+        if info_of is None:                    # one image a file
             source.texture = (path, 0)
             continue
         if path not in layers:
@@ -299,20 +306,15 @@ def _read_mesh(path: Path) -> TexturedMesh:
 def _read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None) -> TexturedMesh:
     """Decode a frame's mesh and texture (source units and axes; ``texture_size``: a headerless ETC2
     texture's (width, height)); InputError naming the bad file."""
-    from uvatar.capture.texture_etc import read_etc2
-    from uvatar.capture.texture_ktx1 import read_ktx1_layer
-    from uvatar.capture.texture_ktx2 import read_ktx2_layer
     from uvatar.io_utils import read_image
 
     if source.texture == ():
         raise InputError(source.mesh, "frame has no texture")
     mesh = _read_mesh(source.mesh)
-    if isinstance(source.texture, tuple) and source.texture[0].suffix.lower() == ".etc2":
-        mesh.texture = read_etc2(source.texture[0], *texture_size)
-    elif isinstance(source.texture, tuple) and source.texture[0].suffix.lower() == ".ktx":
-        mesh.texture = read_ktx1_layer(*source.texture)
-    elif isinstance(source.texture, tuple):
-        mesh.texture = read_ktx2_layer(*source.texture)
+    if isinstance(source.texture, tuple):
+        path, layer = source.texture
+        _, info_of, read = _layered_format(path.suffix.lower())
+        mesh.texture = read(path, layer) if info_of is not None else read(path, *texture_size)
     elif source.texture is not None:
         mesh.texture = read_image(source.texture, "texture image")
     if mesh.texture is None:
