@@ -247,5 +247,7 @@ def image_bytes(glb: Glb, index: int) -> tuple[bytes, str]:
         data = file.read_bytes()
     else:
         raise InputError(glb.path, "GLB base-colour texture has no image data")
-    mime = image.get("mimeType") or ("image/ktx2" if data[:12] == b"\xabKTX 20\xbb\r\n\x1a\n" else "")
+    from uvatar.capture.texture_ktx2 import KTX2_MAGIC
+
+    mime = image.get("mimeType") or ("image/ktx2" if data.startswith(KTX2_MAGIC) else "")
     return data, mime

@@ -88,16 +88,14 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
     meshes = glb.gltf.get("meshes", [])
     parts, images = [], set()
     try:
-        with np.errstate(over="ignore", invalid="ignore"):   # a corrupt matrix: the finite check below says so
-            instances = mesh_instances(glb)
-        for world, index in instances:
-            for primitive in meshes[index].get("primitives", []):
-                if primitive.get("mode", 4) != 4:          # points and lines are not a surface
-                    continue
-                positions, uvs, faces = primitive_arrays(glb, primitive)
-                with np.errstate(over="ignore", invalid="ignore"):
+        with np.errstate(over="ignore", invalid="ignore"):   # corrupt numbers: the finite check below says so
+            for world, index in mesh_instances(glb):
+                for primitive in meshes[index].get("primitives", []):
+                    if primitive.get("mode", 4) != 4:          # points and lines are not a surface
+                        continue
+                    positions, uvs, faces = primitive_arrays(glb, primitive)
                     parts.append((positions @ world[:3, :3].T + world[:3, 3], uvs, faces))
-                images.add(base_colour_image(glb, primitive))
+                    images.add(base_colour_image(glb, primitive))
         images.discard(None)                            # an untextured part takes the frame's texture
         image = image_bytes(glb, next(iter(images))) if len(images) == 1 else None
     except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:

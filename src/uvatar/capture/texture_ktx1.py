@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.capture.texture_formats import GL_FORMATS, TexelFormat, decode_texels
 from uvatar.errors import InputError
 
 KTX1_MAGIC = b"\xabKTX 11\xbb\r\n\x1a\n"
@@ -61,9 +62,7 @@ def _header(path: Path, data: bytes) -> Ktx1Header:
     return Ktx1Header(width, height, max(1, elements), faces, internal, start + 4, size, endian)
 
 
-def _format(path: Path, head: Ktx1Header):
-    from uvatar.capture.texture_formats import GL_FORMATS
-
+def _format(path: Path, head: Ktx1Header) -> TexelFormat:
     fmt = GL_FORMATS.get(head.gl_internal_format)
     if fmt is None:
         raise InputError(path, f"KTX 1 texture of glInternalFormat 0x{head.gl_internal_format:04X}, which uvatar "
@@ -89,8 +88,6 @@ def ktx1_info(path: str | Path) -> dict:
 def read_ktx1_layer(path: str | Path, layer: int = 0) -> np.ndarray:
     """Decode array element ``layer`` of mip level 0 → uint8 (H, W, 3) RGB, rows as stored; InputError
     naming the file on bad input."""
-    from uvatar.capture.texture_formats import decode_texels
-
     path = Path(path)
     data = _bytes(path)
     head = _header(path, data)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.capture.texture_formats import VK_FORMATS
+from uvatar.capture.texture_formats import VK_FORMATS, decode_texels
 from uvatar.errors import InputError, one_line, require
 
 KTX2_MAGIC = b"\xabKTX 20\xbb\r\n\x1a\n"
@@ -139,8 +139,6 @@ def _read_texels(path: Path, data: bytes, head: Ktx2Header, layer: int) -> np.nd
     """A layer of a KTX2 file of plain texels (:data:`~uvatar.capture.texture_formats.VK_FORMATS`: 8-bit
     rows, ETC2 or ASTC blocks), its level 0 stored as is or zstd-supercompressed; images layer by layer,
     face by face, rows tightly packed."""
-    from uvatar.capture.texture_formats import decode_texels
-
     fmt = VK_FORMATS[head.vk_format]
     level = data[head.level0[0]:head.level0[0] + head.level0[1]]
     if head.supercompression == SUPERCOMPRESSION_ZSTD:
