@@ -36,6 +36,14 @@ def test_draco_quantized_and_ktx2_frames_are_the_plain_frames_surface_and_textur
         np.testing.assert_array_equal(mesh.texture, plain.texture, err_msg=name)   # KTX2: flat halves survive ETC1S
 
 
+def test_headers_find_the_texture_read_glb_finds():
+    from uvatar.capture.mesh_glb import glb_header
+
+    for name in ("plain", "draco", "ktx2", "quantized", "nested"):
+        header = glb_header(FIXTURES / f"{name}.glb")
+        assert header == {"num_vertices": 8, "num_faces": 12, "has_uvs": True, "texture": "embedded"}, name
+
+
 def test_quantized_accessors_are_normalized_integers():
     glb = read_glb_chunks(FIXTURES / "quantized.glb")
     position = glb.gltf["meshes"][0]["primitives"][0]["attributes"]["POSITION"]

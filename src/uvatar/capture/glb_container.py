@@ -217,7 +217,8 @@ def primitive_arrays(glb: Glb, primitive: dict) -> tuple[np.ndarray, np.ndarray 
 
 def base_colour_image(glb: Glb, primitive: dict) -> int | None:
     """The image index of a primitive's base-colour texture (through ``KHR_texture_basisu`` /
-    ``EXT_texture_webp`` sources too), or None."""
+    ``EXT_texture_webp`` sources too), or None when it has none; InputError when it names a texture
+    without an image."""
     if "material" not in primitive:
         return None
     material = glb.gltf.get("materials", [])[primitive["material"]]
@@ -230,7 +231,9 @@ def base_colour_image(glb: Glb, primitive: dict) -> int | None:
     for ext in ("KHR_texture_basisu", "EXT_texture_webp"):
         if ext in texture.get("extensions", {}):
             return texture["extensions"][ext]["source"]
-    return texture.get("source")
+    if texture.get("source") is None:
+        raise InputError(glb.path, "GLB base-colour texture has no image data")
+    return texture["source"]
 
 
 def image_bytes(glb: Glb, index: int) -> tuple[bytes, str]:

@@ -19,10 +19,12 @@ from uvatar.io_utils import atomic_path
 
 
 def glb_header(path: Path) -> dict:
-    """Counts (split vertices, as stored) and texture presence from the JSON chunk only."""
-    from uvatar.capture.glb_container import read_glb_chunks
+    """Counts (split vertices, as stored) and texture presence from the JSON chunk only (the base-colour
+    image found as :func:`read_glb` finds it, KTX2 and WebP sources too)."""
+    from uvatar.capture.glb_container import base_colour_image, read_glb_chunks
 
-    gltf = read_glb_chunks(path).gltf
+    glb = read_glb_chunks(path)
+    gltf = glb.gltf
     accessors = gltf.get("accessors", [])
     nv = nf = 0
     has_uvs, texture = False, None
@@ -35,12 +37,9 @@ def glb_header(path: Path) -> dict:
             nv += count
             nf += (accessors[prim["indices"]]["count"] if "indices" in prim else count) // 3
             has_uvs |= "TEXCOORD_0" in attrs
-            mat = gltf.get("materials", [{}] * (prim.get("material", 0) + 1))[prim.get("material", 0)] \
-                if "material" in prim else {}
-            tex = mat.get("pbrMetallicRoughness", {}).get("baseColorTexture")
-            if tex is not None:
-                source = gltf["textures"][tex["index"]].get("source")
-                image = gltf.get("images", [])[source] if source is not None else {}
+            source = base_colour_image(glb, prim)
+            if source is not None:
+                image = gltf.get("images", [])[source]
                 if "uri" in image and not image["uri"].startswith("data:"):
                     uri_path = path.parent / image["uri"]
                     if not uri_path.is_file():
