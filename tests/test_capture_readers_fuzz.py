@@ -18,7 +18,8 @@ FIXTURES = Path(__file__).parent / "fixtures"
 SEEDS = {".ktx": ["texture_formats/astc5x4_30x22.ktx"],
          ".ktx2": ["texture_formats/rgba8_24x18_2layers.ktx2", "texture_formats/etc2_24x18_zstd.ktx2",
                    "texture_formats/astc6x6_24x18.ktx2", "ktx2/video_runs.ktx2"],
-         ".glb": ["glb/plain.glb", "glb/draco.glb", "glb/ktx2.glb", "glb/quantized.glb", "glb/nested.glb"]}
+         ".glb": ["glb/plain.glb", "glb/draco.glb", "glb/ktx2.glb", "glb/quantized.glb", "glb/nested.glb",
+                  "glb/meshopt.glb", "glb/sphere_ext.glb", "glb/sphere_khr.glb"]}
 
 
 def read(path: Path) -> None:

@@ -9,11 +9,15 @@ gltf-pipeline):
   the quantization);
 - the default **scene's node tree** (matrix or translation / rotation / scale), applied to positions;
 - **Draco-compressed primitives** (``KHR_draco_mesh_compression``, DracoPy: the ``volumetric`` extra);
+- the base colour's ``KHR_texture_transform`` (gltfpack's quantized UVs), applied to the UVs;
 - **images** as PNG, JPEG, WebP (``EXT_texture_webp``) or KTX2 (``KHR_texture_basisu``, decoded by
   :mod:`uvatar.capture.texture_ktx2`).
 
-A file that *requires* an extension not listed in :data:`READ_EXTENSIONS` (e.g. meshopt compression,
-``EXT_meshopt_compression``) is refused in one line naming it, rather than read wrong.
+- **meshopt-compressed buffer views** (``EXT_meshopt_compression``, ``KHR_meshopt_compression``: gltfpack's
+  ``-c``, gltf-transform's ``meshopt``), decoded by :mod:`uvatar.capture.meshopt_codec`;
+
+A file that *requires* an extension not listed in :data:`READ_EXTENSIONS` (e.g. ``EXT_mesh_gpu_instancing``)
+is refused in one line naming it, rather than read wrong.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from __future__ import annotations
 import base64
 import json
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +42,9 @@ ELEMENT_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3"
 #: extensions a file may require and still be read right (the rest only change how it looks)
 READ_EXTENSIONS = {"KHR_draco_mesh_compression", "KHR_mesh_quantization", "KHR_texture_basisu", "EXT_texture_webp",
                    "KHR_materials_unlit", "KHR_materials_emissive_strength", "KHR_materials_specular",
-                   "KHR_materials_ior", "KHR_materials_pbrSpecularGlossiness"}
+                   "KHR_materials_ior", "KHR_materials_pbrSpecularGlossiness", "EXT_meshopt_compression",
+                   "KHR_meshopt_compression"}
+MESHOPT_EXTENSIONS = ("KHR_meshopt_compression", "EXT_meshopt_compression")
 
 
 @dataclass
@@ -48,6 +54,7 @@ class Glb:
     path: Path
     gltf: dict
     binary: bytes
+    decoded_views: dict = field(default_factory=dict)   # meshopt-compressed views, decoded once
 
 
 def read_glb_chunks(path: str | Path) -> Glb:
@@ -88,7 +95,7 @@ def check_required_extensions(glb: Glb) -> None:
     missing = [e for e in glb.gltf.get("extensionsRequired", []) if e not in READ_EXTENSIONS]
     if missing:
         raise InputError(glb.path, f"GLB requires {', '.join(missing)}, which uvatar does not decode (it reads "
-                                   "Draco, quantized and plain meshes with PNG, JPEG, WebP or KTX2 images)")
+                                   "Draco, meshopt, quantized and plain meshes with PNG, JPEG, WebP or KTX2 images)")
 
 
 def _buffer(glb: Glb, index: int) -> bytes:
@@ -112,12 +119,41 @@ def buffer_view(glb: Glb, index: int) -> tuple[bytes, int | None]:
     if not 0 <= index < len(views):
         raise InputError(glb.path, f"GLB names bufferView {index}, which it does not have")
     view = views[index]
+    compressed = next((view["extensions"][e] for e in MESHOPT_EXTENSIONS if e in view.get("extensions", {})), None)
+    if compressed is not None:
+        return _meshopt_view(glb, index, compressed), view.get("byteStride")
     data = _buffer(glb, view.get("buffer", 0))
     start, length = view.get("byteOffset", 0), view["byteLength"]
     if start + length > len(data):
         raise InputError(glb.path, f"GLB is truncated: bufferView {index} ends at byte {start + length}; its "
                                    f"buffer holds {len(data)} bytes")
     return data[start:start + length], view.get("byteStride")
+
+
+def _meshopt_view(glb: Glb, index: int, ext: dict) -> bytes:
+    """A meshopt-compressed view's decoded bytes, decoded once per read file."""
+    cache = glb.decoded_views
+    if index in cache:
+        return cache[index]
+    from uvatar.capture.meshopt_codec import MeshoptError, decode_buffer_view
+
+    view = glb.gltf["bufferViews"][index]
+    if ext["count"] * ext["byteStride"] != view["byteLength"]:
+        raise InputError(glb.path, f"GLB's meshopt-compressed bufferView {index} holds {ext['count']} x "
+                                   f"{ext['byteStride']} bytes, not its byteLength {view['byteLength']}")
+    data = _buffer(glb, ext["buffer"])
+    start, length = ext.get("byteOffset", 0), ext["byteLength"]
+    if start + length > len(data):
+        raise InputError(glb.path, f"GLB is truncated: bufferView {index}'s meshopt data ends at byte "
+                                   f"{start + length}; its buffer holds {len(data)} bytes")
+    try:
+        decoded = decode_buffer_view(data[start:start + length], ext["count"], ext["byteStride"], ext["mode"],
+                                     ext.get("filter"))
+    except MeshoptError as exc:
+        raise InputError(glb.path, f"GLB's meshopt-compressed bufferView {index} cannot be decoded "
+                                   f"({one_line(exc)})") from None
+    cache[index] = decoded
+    return decoded
 
 
 def accessor(glb: Glb, index: int) -> np.ndarray:
@@ -215,16 +251,35 @@ def primitive_arrays(glb: Glb, primitive: dict) -> tuple[np.ndarray, np.ndarray 
     return positions, uvs, faces
 
 
-def base_colour_image(glb: Glb, primitive: dict) -> int | None:
-    """The image index of a primitive's base-colour texture (through ``KHR_texture_basisu`` /
-    ``EXT_texture_webp`` sources too), or None when it has none; InputError when it names a texture
-    without an image."""
+def _base_colour_info(glb: Glb, primitive: dict) -> dict | None:
+    """A primitive's base-colour texture info (the PBR or the specular-glossiness one), or None."""
     if "material" not in primitive:
         return None
     material = glb.gltf.get("materials", [])[primitive["material"]]
     pbr = material.get("pbrMetallicRoughness", {})
-    info = pbr.get("baseColorTexture") or material.get("extensions", {}).get(
+    return pbr.get("baseColorTexture") or material.get("extensions", {}).get(
         "KHR_materials_pbrSpecularGlossiness", {}).get("diffuseTexture")
+
+
+def base_colour_uv_transform(glb: Glb, primitive: dict) -> np.ndarray | None:
+    """The (3, 3) matrix ``KHR_texture_transform`` applies to the base colour's glTF UVs (offset @ rotation
+    @ scale, the extension's order; gltfpack undoes its UV quantization so), or None when there is none."""
+    info = _base_colour_info(glb, primitive)
+    transform = (info or {}).get("extensions", {}).get("KHR_texture_transform")
+    if transform is None:
+        return None
+    (ox, oy), (sx, sy) = transform.get("offset", (0.0, 0.0)), transform.get("scale", (1.0, 1.0))
+    c, s = np.cos(transform.get("rotation", 0.0)), np.sin(transform.get("rotation", 0.0))
+    offset = np.array([[1.0, 0.0, ox], [0.0, 1.0, oy], [0.0, 0.0, 1.0]])
+    rotation = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return offset @ rotation @ np.diag([sx, sy, 1.0])
+
+
+def base_colour_image(glb: Glb, primitive: dict) -> int | None:
+    """The image index of a primitive's base-colour texture (through ``KHR_texture_basisu`` /
+    ``EXT_texture_webp`` sources too), or None when it has none; InputError when it names a texture
+    without an image."""
+    info = _base_colour_info(glb, primitive)
     if info is None:
         return None
     texture = glb.gltf.get("textures", [])[info["index"]]

@@ -75,6 +75,7 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
     frame is one texture atlas)."""
     from uvatar.capture.glb_container import (
         base_colour_image,
+        base_colour_uv_transform,
         check_required_extensions,
         image_bytes,
         mesh_instances,
@@ -93,6 +94,9 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
                     if primitive.get("mode", 4) != 4:          # points and lines are not a surface
                         continue
                     positions, uvs, faces = primitive_arrays(glb, primitive)
+                    transform = base_colour_uv_transform(glb, primitive)
+                    if uvs is not None and transform is not None:
+                        uvs = uvs @ transform[:2, :2].T + transform[:2, 2]
                     parts.append((positions @ world[:3, :3].T + world[:3, 3], uvs, faces))
                     images.add(base_colour_image(glb, primitive))
         images.discard(None)                            # an untextured part takes the frame's texture
