@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 import trimesh
 
+from uvatar.capture.glb_container import read_glb_chunks
 from uvatar.capture.mesh_glb import read_glb
-from uvatar.capture.meshopt_codec import MeshoptError, decode_buffer_view
+from uvatar.capture.meshopt_codec import MeshoptError, decode_buffer_view, decode_triangles
+from uvatar.capture.meshopt_warp import decode_triangles_warp
 from uvatar.errors import InputError
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -125,3 +127,23 @@ def test_a_broken_meshopt_view_names_the_file_and_the_view(tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(InputError, match=r"broken\.glb: GLB's meshopt-compressed bufferView \d+ cannot be decoded"):
         read_glb(path)
+
+
+def test_the_warp_triangle_codec_is_its_twin():
+    streams = [(base64.b64decode(CASES[n]["enc"]), CASES[n]["count"]) for n in ("triangles", "triangles16")]
+    for name in ("sphere_ext.glb", "sphere_khr.glb", "meshopt.glb"):
+        glb = read_glb_chunks(FIXTURES / "glb" / name)
+        for view in glb.gltf["bufferViews"]:
+            ext = next(iter(view.get("extensions", {}).values()), None)
+            if ext and ext["mode"] == "TRIANGLES":
+                start = ext.get("byteOffset", 0)
+                streams.append((glb.binary[start:start + ext["byteLength"]], ext["count"]))
+    assert len(streams) == 5
+    for data, count in streams:
+        np.testing.assert_array_equal(decode_triangles_warp(data, count), decode_triangles(data, count))
+    data, count = streams[0]
+    broken = [data[:len(data) // 2] + data[-16:], data[:-16] + b"\x00" + data[-16:], b"\xe0" + data[1:], data[:10]]
+    for content in broken:                    # malformed: None, and the reference says how
+        assert decode_triangles_warp(content, count) is None
+        with pytest.raises(MeshoptError):
+            decode_triangles(content, count)
