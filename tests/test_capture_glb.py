@@ -116,3 +116,13 @@ def test_what_cannot_be_read_right_is_one_line(tmp_path):
     (tmp_path / "two.glb").write_bytes(glb(gltf, chunks.binary))
     with pytest.raises(InputError, match=r"two\.glb: GLB's primitives use 2 different base-colour images"):
         read_glb(tmp_path / "two.glb")
+
+
+def test_an_8_bit_texture_is_written_as_it_is(tmp_path):
+    mesh = read_glb(FIXTURES / "plain.glb")
+    rng = np.random.default_rng(0)
+    mesh.texture = rng.integers(0, 256, (16, 16, 3), dtype=np.uint8)   # as a KTX2 or ETC frame decodes
+    from uvatar.capture.mesh_glb import write_glb
+
+    write_glb(tmp_path / "u8.glb", mesh)
+    np.testing.assert_array_equal(np.round(read_glb(tmp_path / "u8.glb").texture * 255), mesh.texture)

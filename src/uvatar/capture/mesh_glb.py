@@ -180,7 +180,10 @@ def write_glb(path: Path, mesh: TexturedMesh, write_texture=None) -> None:
         positions, uvs, faces = split_for_gltf(mesh)
         material = None
         if mesh.texture is not None:
-            image = PIL.Image.fromarray((np.clip(mesh.texture, 0, 1) * 255 + 0.5).astype(np.uint8))
+            texture = mesh.texture                 # 8-bit as decoded, or float in [0, 1]
+            if texture.dtype != np.uint8:
+                texture = (np.clip(texture, 0, 1) * 255 + 0.5).astype(np.uint8)
+            image = PIL.Image.fromarray(np.ascontiguousarray(texture))
             material = trimesh.visual.material.PBRMaterial(baseColorTexture=image)
         visual = trimesh.visual.TextureVisuals(uv=uvs, material=material)
         out = trimesh.Trimesh(positions, faces, visual=visual, process=False)
