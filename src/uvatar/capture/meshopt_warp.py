@@ -30,6 +30,28 @@ def _kernel():
     def unzig(v: wp.int64):
         return (v >> wp.int64(1)) ^ (wp.int64(0) - (v & wp.int64(1)))
 
+    @wp.func
+    def read_varint(raw: wp.array(dtype=wp.int32), start: int, end: int):
+        """The LEB128 value at ``start`` and where it ends, packed as (end << 40) | value; -1 when the
+        stream ends inside it or it is longer than 5 bytes."""
+        at = start
+        value = wp.int64(0)
+        shift = wp.int64(0)
+        result = wp.int64(-1)
+        more = wp.int32(1)
+        while more == 1:
+            if at >= end or shift > wp.int64(28):
+                more = 0
+            else:
+                byte = raw[at]
+                at += 1
+                value = value | (wp.int64(byte & 127) << shift)
+                shift += wp.int64(7)
+                if byte < 128:
+                    more = 0
+                    result = (wp.int64(at) << wp.int64(40)) | (value & M32)
+        return result
+
     @wp.kernel
     def triangles(raw: wp.array(dtype=wp.int32), triangle_count: int, end: int,
                   edge_a: wp.array(dtype=wp.int64), edge_b: wp.array(dtype=wp.int64),
@@ -67,21 +89,12 @@ def _kernel():
                         last = (last + wp.int64(1)) & M32
                         c = last
                     else:
-                        value = wp.int64(0)
-                        shift = wp.int64(0)
-                        more = wp.int32(1)
-                        while more == 1:
-                            if at >= end or shift > wp.int64(28):
-                                bad = 1
-                                more = 0
-                            else:
-                                byte = raw[at]
-                                at += 1
-                                value = value | (wp.int64(byte & 127) << shift)
-                                shift += wp.int64(7)
-                                if byte < 128:
-                                    more = 0
-                        last = (last + unzig(value & M32)) & M32
+                        packed = read_varint(raw, at, end)
+                        if packed < wp.int64(0):
+                            bad = 1
+                        else:
+                            at = int(packed >> wp.int64(40))
+                            last = (last + unzig(packed & M32)) & M32
                         c = last
                     if push == 1:
                         verts[vert_head] = c
@@ -137,21 +150,12 @@ def _kernel():
                         elif kind == 1:
                             v = verts[(vert_head - fifo_index) & 15]
                         elif bad == 0:
-                            value = wp.int64(0)
-                            shift = wp.int64(0)
-                            more = wp.int32(1)
-                            while more == 1:
-                                if at >= end or shift > wp.int64(28):
-                                    bad = 1
-                                    more = 0
-                                else:
-                                    byte = raw[at]
-                                    at += 1
-                                    value = value | (wp.int64(byte & 127) << shift)
-                                    shift += wp.int64(7)
-                                    if byte < 128:
-                                        more = 0
-                            last = (last + unzig(value & M32)) & M32
+                            packed = read_varint(raw, at, end)
+                            if packed < wp.int64(0):
+                                bad = 1
+                            else:
+                                at = int(packed >> wp.int64(40))
+                                last = (last + unzig(packed & M32)) & M32
                             v = last
                         if kind != 1:
                             if k == 0:
