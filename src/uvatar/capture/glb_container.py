@@ -10,11 +10,10 @@ gltf-pipeline):
 - the default **scene's node tree** (matrix or translation / rotation / scale), applied to positions;
 - **Draco-compressed primitives** (``KHR_draco_mesh_compression``, DracoPy: the ``volumetric`` extra);
 - the base colour's ``KHR_texture_transform`` (gltfpack's quantized UVs), applied to the UVs;
-- **images** as PNG, JPEG, WebP (``EXT_texture_webp``) or KTX2 (``KHR_texture_basisu``, decoded by
-  :mod:`uvatar.capture.texture_ktx2`).
-
 - **meshopt-compressed buffer views** (``EXT_meshopt_compression``, ``KHR_meshopt_compression``: gltfpack's
   ``-c``, gltf-transform's ``meshopt``), decoded by :mod:`uvatar.capture.meshopt_codec`;
+- **images** as PNG, JPEG, WebP (``EXT_texture_webp``) or KTX2 (``KHR_texture_basisu``, decoded by
+  :mod:`uvatar.capture.texture_ktx2`).
 
 A file that *requires* an extension not listed in :data:`READ_EXTENSIONS` (e.g. ``EXT_mesh_gpu_instancing``)
 is refused in one line naming it, rather than read wrong.

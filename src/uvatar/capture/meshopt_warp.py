@@ -31,9 +31,9 @@ def _kernel():
         return (v >> wp.int64(1)) ^ (wp.int64(0) - (v & wp.int64(1)))
 
     @wp.func
-    def read_varint(raw: wp.array(dtype=wp.int32), start: int, end: int):
-        """The LEB128 value at ``start`` and where it ends, packed as (end << 40) | value; -1 when the
-        stream ends inside it or it is longer than 5 bytes."""
+    def read_index(raw: wp.array(dtype=wp.int32), start: int, end: int, last: wp.int64):
+        """The explicit index coded at ``start`` (a LEB128 zigzag delta from ``last``) and where its bytes
+        end, packed as (end << 40) | index; -1 when the stream ends inside it or it is longer than 5 bytes."""
         at = start
         value = wp.int64(0)
         shift = wp.int64(0)
@@ -49,7 +49,7 @@ def _kernel():
                 shift += wp.int64(7)
                 if byte < 128:
                     more = 0
-                    result = (wp.int64(at) << wp.int64(40)) | (value & M32)
+                    result = (wp.int64(at) << wp.int64(40)) | ((last + unzig(value & M32)) & M32)
         return result
 
     @wp.kernel
@@ -89,12 +89,12 @@ def _kernel():
                         last = (last + wp.int64(1)) & M32
                         c = last
                     else:
-                        packed = read_varint(raw, at, end)
+                        packed = read_index(raw, at, end, last)
                         if packed < wp.int64(0):
                             bad = 1
                         else:
                             at = int(packed >> wp.int64(40))
-                            last = (last + unzig(packed & M32)) & M32
+                            last = packed & M32
                         c = last
                     if push == 1:
                         verts[vert_head] = c
@@ -150,12 +150,12 @@ def _kernel():
                         elif kind == 1:
                             v = verts[(vert_head - fifo_index) & 15]
                         elif bad == 0:
-                            packed = read_varint(raw, at, end)
+                            packed = read_index(raw, at, end, last)
                             if packed < wp.int64(0):
                                 bad = 1
                             else:
                                 at = int(packed >> wp.int64(40))
-                                last = (last + unzig(packed & M32)) & M32
+                                last = packed & M32
                             v = last
                         if kind != 1:
                             if k == 0:
