@@ -1,6 +1,11 @@
 """``uvatar capture import`` of a volumetric video: a sequence of textured meshes, one per frame.
 
-Two layouts are read (:func:`find_mesh_sequence`):
+Three layouts are read (:func:`find_mesh_sequence`):
+
+- **UVOL 1** (the player's first format, :mod:`~uvatar.capture.importers.uvol1`): ``NAME.manifest``,
+  ``NAME.drcs`` (Corto meshes end to end, :mod:`uvatar.capture.mesh_corto`) and ``NAME.mp4`` (the
+  textures as a video, :mod:`uvatar.capture.texture_video`; each mesh wears the video frame the player
+  shows with it, and where the video carries UVOL 1's frame counter, the frame whose counter is its own).
 
 - **UVOL 2** (the Universal Volumetric player's format): ``geometry_<target>/NNNNN.drc`` (Draco, one
   mesh per frame) and ``texture_<target>/NNNNN.ktx2`` (KTX2 array textures, ``n`` frames per file:
@@ -12,7 +17,7 @@ Two layouts are read (:func:`find_mesh_sequence`):
   frames per file, the path templates and the texture target; where the textures run at another
   rate than the geometry, each mesh takes the texture frame the player shows with it. Without one,
   the folders are found by name and ``n`` is the layer count of the first KTX2 file.
-- **Plain folders** of per-frame ``.obj``/``.ply``/``.glb``/``.drc`` (frame number = the last run of
+- **Plain folders** of per-frame ``.obj``/``.ply``/``.glb``/``.drc``/``.crt`` (frame number = the last run of
   digits in the file name) with their own textures (OBJ's .mtl, PLY's ``TextureFile`` comment, GLB's
   embedded image) or an image of the same stem beside them or in ``textures/``.
 
@@ -32,12 +37,14 @@ from __future__ import annotations
 import logging
 import re
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from uvatar.capture.importers.calibration import UNIT_SCALE, up_rotation
+from uvatar.capture.importers.sequence import FrameSource, MeshSequence
+from uvatar.capture.importers.uvol1 import VIDEO_SUFFIXES, find_v1_manifest, read_v1_manifest, uvol1_sequence
 from uvatar.capture.importers.uvol_manifest import (
     TEXTURE_SUFFIX,
     UvolManifest,
@@ -48,12 +55,14 @@ from uvatar.capture.importers.uvol_manifest import (
 )
 from uvatar.capture.layout import frame_name
 from uvatar.capture.meshio import IMAGE_SUFFIXES, MESH_FORMATS, read_mesh
+from uvatar.capture.texture_video import close_videos, open_video
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
 
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".drc", ".glb", ".obj", ".ply")   # a UVOL geometry folder's, in order of preference
+TEXTURELESS_MESHES = (".drc", ".crt")               # mesh files that never carry a texture (Draco, Corto)
 #: a texture folder's files, in order of preference where no manifest names the format (KTX 2 and 1 say
 #: their size; a headerless .etc2 file needs the manifest's resolution unless it is square)
 TEXTURE_SUFFIXES = (".ktx2",) + IMAGE_SUFFIXES + (".ktx", ".etc2")
@@ -76,43 +85,17 @@ OLDER_KTX2_TEXTURES = ("imported by an older uvatar, which gave a KTX2 animation
                        "texture; this one decodes them")
 
 
-@dataclass
-class FrameSource:
-    """Where one frame's mesh and texture come from: ``texture`` is an image path, a ``(ktx2 path,
-    layer)`` pair (or ``(etc2 path, 0)``), None (the mesh's own texture) or () (none: the frame cannot
-    be imported)."""
-
-    index: int
-    mesh: Path
-    texture: Path | tuple[Path, int] | None = None
-
-
-@dataclass
-class MeshSequence:
-    """A found mesh sequence: frames by take index, the layout's name, the frame rate when known,
-    the units / up axis the files declare ("" when they say nothing), problems found while listing
-    (one line each: counts that disagree, frames without texture) and, for headerless ``.etc2``
-    textures, their (width, height)."""
-
-    frames: dict[int, FrameSource]
-    layout: str
-    fps: float = 0.0
-    units: str = ""
-    up: str = ""
-    manifest: Path | None = None
-    problems: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    texture_size: tuple[int, int] | None = None
-
-
 def is_mesh_sequence(src: str | Path) -> bool:
     """True if ``src`` looks like a mesh sequence (UVOL 2 folders, a manifest, or per-frame meshes)."""
     src = Path(src)
+    if src.is_file():
+        return src.suffix.lower() in (".manifest", ".drcs")
     if not src.is_dir():
         return False
     if _uvol_folders(src)[0] or find_manifest(src):
         return True
-    return any(p.suffix.lower() in MESH_FORMATS or p.suffix.lower() == ".drc" for p in src.iterdir() if p.is_file())
+    return any(p.suffix.lower() in MESH_FORMATS or p.suffix.lower() in TEXTURELESS_MESHES
+               for p in src.iterdir() if p.is_file())
 
 
 def _frame_number(path: Path) -> int | None:
@@ -148,6 +131,9 @@ def _files_by_frame(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:
 def find_mesh_sequence(src: str | Path) -> MeshSequence:
     """List a mesh sequence's frames (nothing decoded but KTX2 headers); InputError when none."""
     src = Path(src)
+    v1 = find_v1_manifest(src)
+    if v1 is not None:
+        return uvol1_sequence(read_v1_manifest(v1))
     if not src.is_dir():
         raise InputError(src, "volumetric video folder does not exist")
     manifest_path = find_manifest(src)
@@ -274,7 +260,7 @@ def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: 
 
 
 def _plain_folder(src: Path) -> MeshSequence:
-    suffixes = tuple(MESH_FORMATS) + (".drc",)
+    suffixes = tuple(MESH_FORMATS) + TEXTURELESS_MESHES
     meshes = _files_by_frame(src, suffixes)
     if not meshes:
         raise InputError(src, "no volumetric video here: no geometry_*/ folder, no UVOL manifest and no per-frame "
@@ -286,21 +272,26 @@ def _plain_folder(src: Path) -> MeshSequence:
         for folder in (src, src / "textures"):
             image = next((folder / f"{path.stem}{s}" for s in IMAGE_SUFFIXES if (folder / f"{path.stem}{s}").is_file()),
                          None)
-            if image is not None and path.suffix.lower() in (".drc", ".ply"):
+            if image is not None and path.suffix.lower() in TEXTURELESS_MESHES + (".ply",):
                 texture = image
                 break
-        if path.suffix.lower() == ".drc" and texture is None:
-            problems.append(f"{path}: a Draco mesh without an image of the same name: frame {i} has no texture")
+        if path.suffix.lower() in TEXTURELESS_MESHES and texture is None:
+            kind = "Draco" if path.suffix.lower() == ".drc" else "Corto"
+            problems.append(f"{path}: a {kind} mesh without an image of the same name: frame {i} has no texture")
             texture = ()
         frames[i] = FrameSource(i, path, texture)
     glb = all(p.suffix.lower() == ".glb" for p in meshes.values())
     return MeshSequence(frames, "mesh folder", units="m" if glb else "", up="+y" if glb else "", problems=problems)
 
 
-def _read_mesh(path: Path) -> TexturedMesh:
+def _read_mesh(source: FrameSource) -> TexturedMesh:
+    from uvatar.capture.mesh_corto import read_crt
     from uvatar.capture.mesh_draco import read_drc
 
-    return read_drc(path) if path.suffix.lower() == ".drc" else read_mesh(path)
+    suffix = source.mesh.suffix.lower()
+    if suffix in (".crt", ".drcs"):
+        return read_crt(source.mesh, byte_range=source.mesh_bytes)
+    return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh)
 
 
 def _read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None) -> TexturedMesh:
@@ -310,8 +301,11 @@ def _read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None
 
     if source.texture == ():
         raise InputError(source.mesh, "frame has no texture")
-    mesh = _read_mesh(source.mesh)
-    if isinstance(source.texture, tuple):
+    mesh = _read_mesh(source)
+    if isinstance(source.texture, tuple) and source.texture[0].suffix.lower() in VIDEO_SUFFIXES:
+        path, frame = source.texture
+        mesh.texture = open_video(path).frame(frame)
+    elif isinstance(source.texture, tuple):
         path, layer = source.texture
         _, info_of, read = _layered_format(path.suffix.lower())
         mesh.texture = read(path, layer) if info_of is not None else read(path, *texture_size)
@@ -362,18 +356,28 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
     """Import the volumetric video ``src`` into the capture ``out`` (see the module doc); returns the
     summary. ``cfg``: :class:`uvatar.capture.importers.ImportConfig` (start, end, stride, up, units,
     fps, body_model; its image options do not apply: textures are kept as decoded, in PNG)."""
-    from tqdm import tqdm
-
     from uvatar.capture.importers.pipeline import ImportConfig
-    from uvatar.capture.layout import write_capture_info
-    from uvatar.capture.meshio import write_mesh
 
     cfg = cfg or ImportConfig()
     src, out = Path(src), Path(out)
     t0 = time.perf_counter()
     if out.exists() and not out.is_dir():
         raise InputError(out, "output exists and is not a folder")
+    try:
+        return _import_sequence(src, out, cfg, progress, t0)
+    finally:
+        close_videos()
+
+
+def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> dict:
+    from tqdm import tqdm
+
+    from uvatar.capture.layout import write_capture_info
+    from uvatar.capture.meshio import write_mesh
+
     seq = find_mesh_sequence(src)
+    if not seq.frames:
+        raise InputError(src, "no frame listed: " + "; ".join(seq.problems[:2]))
     end = cfg.end or max(seq.frames) + 1
     wanted = [i for i in sorted(seq.frames) if cfg.start <= i < end and (i - cfg.start) % cfg.stride == 0]
     if not wanted:

@@ -1,0 +1,39 @@
+"""What an import of a mesh sequence lists before it decodes anything: each frame's sources
+(:class:`FrameSource`) and the sequence found (:class:`MeshSequence`); made by
+:mod:`~uvatar.capture.importers.mesh_sequence` and :mod:`~uvatar.capture.importers.uvol1`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass
+class FrameSource:
+    """Where one frame's mesh and texture come from: ``texture`` is an image path, a ``(ktx2 path,
+    layer)`` pair (or ``(etc2 path, 0)``, or ``(video path, video frame)``), None (the mesh's own
+    texture) or () (none: the frame cannot be imported); ``mesh_bytes``: (start, length) of the frame in
+    a file of many (a UVOL 1 ``.drcs``)."""
+
+    index: int
+    mesh: Path
+    texture: Path | tuple[Path, int] | None = None
+    mesh_bytes: tuple[int, int] | None = None
+
+
+@dataclass
+class MeshSequence:
+    """A found mesh sequence: frames by take index, the layout's name, the frame rate when known,
+    the units / up axis the files declare ("" when they say nothing), problems found while listing
+    (one line each: counts that disagree, frames without texture) and, for headerless ``.etc2``
+    textures, their (width, height)."""
+
+    frames: dict[int, FrameSource]
+    layout: str
+    fps: float = 0.0
+    units: str = ""
+    up: str = ""
+    manifest: Path | None = None
+    problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    texture_size: tuple[int, int] | None = None
