@@ -103,6 +103,9 @@ def test_the_manifest_may_be_given_itself_and_its_rate_is_a_string(tmp_path):
     assert take.fps == 30.0 and [f.number for f in take.frames] == [0, 1] and take.video.suffix == ".mp4"
     assert find_mesh_sequence(manifest).fps == 30.0
     assert find_mesh_sequence(manifest.with_suffix(".drcs")).layout == "uvol1"
+    manifest.with_suffix(".drcs").rename(manifest.with_suffix(".uvol"))     # the Unity player's name
+    seq = find_mesh_sequence(manifest.with_suffix(".uvol"))
+    assert seq.frames[1].mesh.suffix == ".uvol" and seq.frames[1].mesh_bytes[0] > 0
 
 
 def test_a_broken_frame_is_one_line_and_the_rest_import(tmp_path):
@@ -120,7 +123,7 @@ def test_a_broken_frame_is_one_line_and_the_rest_import(tmp_path):
 
 
 @pytest.mark.parametrize("case, message", [
-    ("no_drcs", r"take\.drcs: missing: the UVOL 1 manifest's meshes"),
+    ("no_drcs", r"take\.drcs: missing \(nor is there a \.uvol\): the UVOL 1 manifest's meshes"),
     ("not_json", r"take\.manifest: UVOL 1 manifest is not JSON"),
     ("no_video", r"take\.manifest: UVOL 1 take without its texture video"),
     ("two_takes", r"holds 2 UVOL 1 takes \(a\.manifest, take\.manifest\); give one's \.manifest"),

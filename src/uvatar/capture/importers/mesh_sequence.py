@@ -44,7 +44,13 @@ import numpy as np
 
 from uvatar.capture.importers.calibration import UNIT_SCALE, up_rotation
 from uvatar.capture.importers.sequence import FrameSource, MeshSequence
-from uvatar.capture.importers.uvol1 import VIDEO_SUFFIXES, find_v1_manifest, read_v1_manifest, uvol1_sequence
+from uvatar.capture.importers.uvol1 import (
+    MESH_FILE_SUFFIXES,
+    VIDEO_SUFFIXES,
+    find_v1_manifest,
+    read_v1_manifest,
+    uvol1_sequence,
+)
 from uvatar.capture.importers.uvol_manifest import (
     TEXTURE_SUFFIX,
     UvolManifest,
@@ -89,7 +95,7 @@ def is_mesh_sequence(src: str | Path) -> bool:
     """True if ``src`` looks like a mesh sequence (UVOL 2 folders, a manifest, or per-frame meshes)."""
     src = Path(src)
     if src.is_file():
-        return src.suffix.lower() in (".manifest", ".drcs")
+        return src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES
     if not src.is_dir():
         return False
     if _uvol_folders(src)[0] or find_manifest(src):
@@ -289,7 +295,7 @@ def _read_mesh(source: FrameSource) -> TexturedMesh:
     from uvatar.capture.mesh_draco import read_drc
 
     suffix = source.mesh.suffix.lower()
-    if suffix in (".crt", ".drcs"):
+    if suffix in (".crt",) + MESH_FILE_SUFFIXES:
         return read_crt(source.mesh, byte_range=source.mesh_bytes)
     return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh)
 

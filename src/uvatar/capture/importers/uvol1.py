@@ -1,7 +1,8 @@
 """UVOL 1 takes: the one reader of the Universal Volumetric player's first format (its ``V1`` player and
 the encoder in ``deprecated/encoder`` of EtherealEngine/Universal-Volumetric).
 
-A take is three files of one name: ``NAME.drcs`` (every frame's Corto mesh, end to end),
+A take is three files of one name: ``NAME.drcs`` (every frame's Corto mesh, end to end; ``NAME.uvol``
+for the player's Unity version),
 ``NAME.manifest`` (JSON, the player's ``V1Schema``: ``frameRate``, ``maxVertices``, ``maxTriangles`` and
 ``frameData``, one entry a frame with ``frameNumber``, ``keyframeNumber``, ``startBytePosition``,
 ``meshLength``, ``vertices``, ``faces`` and ``type``) and ``NAME.mp4`` (the textures, one video frame a
@@ -24,6 +25,7 @@ from uvatar.errors import InputError
 __all__ = ["V1Frame", "V1Take", "find_v1_manifest", "read_v1_manifest", "video_frame", "uvol1_sequence"]
 
 VIDEO_SUFFIXES = (".mp4", ".webm", ".mov", ".mkv")
+MESH_FILE_SUFFIXES = (".drcs", ".uvol")       # the web player's and the Unity player's names for the meshes
 
 
 @dataclass
@@ -58,13 +60,13 @@ def _is_v1(path: Path) -> bool:
 
 
 def find_v1_manifest(src: Path) -> Path | None:
-    """The UVOL 1 manifest of ``src``: the file itself (a ``.manifest``, or a ``.drcs`` beside its
+    """The UVOL 1 manifest of ``src``: the file itself (a ``.manifest``, or a ``.drcs``/``.uvol`` beside its
     manifest), or the one ``*.manifest`` with ``frameData`` in the folder; InputError when a folder holds
     several takes (give one's manifest)."""
     src = Path(src)
     if src.is_file():
-        manifest = src.with_suffix(".manifest") if src.suffix.lower() == ".drcs" else src
-        if src.suffix.lower() in (".manifest", ".drcs"):
+        manifest = src.with_suffix(".manifest") if src.suffix.lower() in MESH_FILE_SUFFIXES else src
+        if src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES:
             if not manifest.is_file():
                 raise InputError(src, f"UVOL 1 mesh file without its manifest ({manifest.name})")
             return manifest
@@ -106,9 +108,9 @@ def read_v1_manifest(path: Path) -> V1Take:
     entries = doc.get("frameData") if isinstance(doc, dict) else None
     if not isinstance(entries, list) or not entries:
         raise InputError(path, "UVOL 1 manifest has no frameData")
-    drcs = path.with_suffix(".drcs")
-    if not drcs.is_file():
-        raise InputError(drcs, "missing: the UVOL 1 manifest's meshes")
+    drcs = next((path.with_suffix(s) for s in MESH_FILE_SUFFIXES if path.with_suffix(s).is_file()), None)
+    if drcs is None:
+        raise InputError(path.with_suffix(".drcs"), "missing (nor is there a .uvol): the UVOL 1 manifest's meshes")
     video = next((path.with_suffix(s) for s in VIDEO_SUFFIXES if path.with_suffix(s).is_file()), None)
     fps = _rate(doc.get("frameRate"))      # the encoder writes its command line's rate: "25", a string
     size = drcs.stat().st_size
