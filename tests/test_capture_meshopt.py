@@ -147,3 +147,42 @@ def test_the_warp_triangle_codec_is_its_twin():
         assert decode_triangles_warp(content, count) is None
         with pytest.raises(MeshoptError):
             decode_triangles(content, count)
+
+
+def _canonical_walk(walked):
+    groups, literals = walked
+    return ({b: sorted(zip(*(c.tolist() for c in arrays), strict=True)) for b, arrays in groups.items()},
+            sorted((int(r), int(b), int(a), int(n)) for r, b, a, n in literals))
+
+
+def test_the_warp_group_walk_is_its_twin():
+    from uvatar.capture import meshopt_codec as mc
+    from uvatar.capture.meshopt_warp import walk_groups_warp
+
+    calls = []
+    real = mc.walk_groups
+
+    def spy(buf, count, stride, version, end, block_elements):
+        calls.append(version)
+        ref = real(buf, count, stride, version, end, block_elements)
+        fast = walk_groups_warp(buf, count, stride, version, end, block_elements)
+        assert _canonical_walk(fast) == _canonical_walk(ref)
+        return ref
+
+    mc.walk_groups, real_fast = spy, mc._walk_fast
+    mc._walk_fast = lambda *args: None             # every stream through the spy: the twin and the kernel
+    try:
+        for name, case in CASES.items():
+            if case["mode"] == "ATTRIBUTES":
+                _, encoded, expected = _case(name)
+                got = decode_buffer_view(encoded, case["count"], case["stride"], "ATTRIBUTES")
+                if not case.get("filter"):
+                    assert got == expected
+    finally:
+        mc.walk_groups, mc._walk_fast = real, real_fast
+    assert {0, 1} <= set(calls)                    # both stream versions walked
+    _, encoded, _ = _case("v1_smooth")
+    buf = np.frombuffer(encoded, np.uint8)
+    for cut in (buf[: len(buf) // 2], np.concatenate([buf[:-40], buf[-24:]])):
+        assert walk_groups_warp(cut, CASES["v1_smooth"]["count"], CASES["v1_smooth"]["stride"], 1,
+                                len(cut) - 24, 256) is None

@@ -69,25 +69,11 @@ def _unpack(packed: np.ndarray, bits: int) -> np.ndarray:
     return values.reshape(len(packed), 2 * bits * per_byte)
 
 
-def decode_vertex_buffer(data: bytes, count: int, stride: int) -> np.ndarray:
-    """An ATTRIBUTES stream → its elements as (count, stride) uint8 (no filter applied)."""
-    buf = np.frombuffer(data, np.uint8)
-    if stride <= 0 or stride % 4 or stride > 256:
-        raise MeshoptError(f"attribute stride {stride} is not a multiple of 4 up to 256")
-    if len(buf) < 1 or buf[0] not in (0xA0, 0xA1):
-        raise MeshoptError("attribute stream does not start with 0xa0 or 0xa1")
-    version = int(buf[0]) & 0x0F
-    tail_size = stride + (stride // 4 if version else 0)
-    padded_tail = max(tail_size, 24 if version else 32)
-    end = len(buf) - padded_tail
-    if end < 1:
-        raise MeshoptError(f"attribute stream of {len(buf)} bytes is shorter than its tail")
-    tail = len(buf) - tail_size
-    baseline = buf[tail:tail + stride]
-    channels = buf[tail + stride:tail + tail_size] if version else np.zeros(stride // 4, np.uint8)
-    if version and (np.any((channels & 15) > 2) or np.any((channels[(channels & 15) < 2] >> 4) != 0)):
-        raise MeshoptError("attribute stream names an unknown channel mode")
-    block_elements = min((_MAX_BLOCK_BYTES // stride) & ~(_GROUP - 1), _MAX_BLOCK_ELEMENTS)
+def walk_groups(buf: np.ndarray, count: int, stride: int, version: int, end: int, block_elements: int):
+    """The reference walk of an attribute stream's blocks: where each group of 16 deltas starts and how
+    wide its deltas are (a chain: a group's length depends on its sentinels) → ({bits: (row, byte, at)
+    int64 arrays}, [(row, byte, at, n) literal runs]). A loop over groups in Python; its compiled twin is
+    :func:`uvatar.capture.meshopt_warp.walk_groups_warp`."""
     sentinel_sums = {b: np.concatenate([[0], np.cumsum(t[buf])]).tolist() for b, t in _SENTINELS.items()}
     raw = buf.tolist()
     groups: dict[int, list[tuple[int, int, int]]] = {1: [], 2: [], 4: [], 8: []}   # bits -> (row, byte, at)
@@ -132,13 +118,56 @@ def decode_vertex_buffer(data: bytes, count: int, stride: int) -> np.ndarray:
                     raise MeshoptError("attribute stream ends inside a group")
     if at != end:
         raise MeshoptError(f"attribute stream has {end - at} bytes left before its tail")
+    return ({bits: tuple(np.asarray(c, np.int64).reshape(-1) for c in (zip(*found, strict=True) if found else ((), (), ())))
+             for bits, found in groups.items()}, literals)
+
+
+_SAID_NO_WARP_WALK: list[bool] = []
+
+
+def _walk_fast(buf, count, stride, version, end, block_elements):
+    """The group walk through its Warp twin (None without the kernels extra, or for a malformed stream:
+    the reference then says what is wrong)."""
+    from uvatar.errors import MissingDependencyError
+
+    try:
+        from uvatar.capture.meshopt_warp import walk_groups_warp
+
+        return walk_groups_warp(buf, count, stride, version, end, block_elements)
+    except MissingDependencyError:
+        if not _SAID_NO_WARP_WALK:
+            log.info("meshopt attribute groups walked in Python; the kernels extra (Warp) walks them faster")
+            _SAID_NO_WARP_WALK.append(True)
+        return None
+
+
+def decode_vertex_buffer(data: bytes, count: int, stride: int) -> np.ndarray:
+    """An ATTRIBUTES stream → its elements as (count, stride) uint8 (no filter applied)."""
+    buf = np.frombuffer(data, np.uint8)
+    if stride <= 0 or stride % 4 or stride > 256:
+        raise MeshoptError(f"attribute stride {stride} is not a multiple of 4 up to 256")
+    if len(buf) < 1 or buf[0] not in (0xA0, 0xA1):
+        raise MeshoptError("attribute stream does not start with 0xa0 or 0xa1")
+    version = int(buf[0]) & 0x0F
+    tail_size = stride + (stride // 4 if version else 0)
+    padded_tail = max(tail_size, 24 if version else 32)
+    end = len(buf) - padded_tail
+    if end < 1:
+        raise MeshoptError(f"attribute stream of {len(buf)} bytes is shorter than its tail")
+    tail = len(buf) - tail_size
+    baseline = buf[tail:tail + stride]
+    channels = buf[tail + stride:tail + tail_size] if version else np.zeros(stride // 4, np.uint8)
+    if version and (np.any((channels & 15) > 2) or np.any((channels[(channels & 15) < 2] >> 4) != 0)):
+        raise MeshoptError("attribute stream names an unknown channel mode")
+    block_elements = min((_MAX_BLOCK_BYTES // stride) & ~(_GROUP - 1), _MAX_BLOCK_ELEMENTS)
+    walked = _walk_fast(buf, count, stride, version, end, block_elements)
+    groups, literals = walked if walked is not None else walk_groups(buf, count, stride, version, end, block_elements)
     rows = -(-count // _GROUP) * _GROUP
     deltas = np.zeros((rows + _GROUP, stride), np.uint8)
     lane = np.arange(_GROUP)
-    for bits, found in groups.items():
-        if not found:
+    for bits, (row, byte, start) in groups.items():
+        if not len(row):
             continue
-        row, byte, start = (np.asarray(c, np.int64) for c in zip(*found, strict=True))
         if bits == 8:
             values = buf[start[:, None] + lane]
         else:

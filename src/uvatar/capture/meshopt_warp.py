@@ -1,5 +1,7 @@
-"""meshopt's triangle codec in one Warp thread: the fast twin of
-:func:`uvatar.capture.meshopt_codec.decode_triangles` (its reference, a loop over triangles in Python).
+"""meshopt's sequential steps in one Warp thread: the fast twins of
+:func:`uvatar.capture.meshopt_codec.decode_triangles` (the triangle codec) and
+:func:`uvatar.capture.meshopt_codec.walk_groups` (the walk of an attribute stream's groups), whose
+references are loops in Python.
 
 The codec is sequential by nature (each triangle reads the edge and vertex FIFOs the ones before it
 left), so the kernel is one thread walking the triangles as the twin does, compiled; every read of the
@@ -13,7 +15,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["decode_triangles_warp"]
+__all__ = ["decode_triangles_warp", "walk_groups_warp"]
 
 #: status codes: 0 decoded; otherwise the stream is malformed (the twin names how)
 _OK, _BAD = 0, 1
@@ -214,3 +216,114 @@ def decode_triangles_warp(data: bytes, count: int) -> np.ndarray | None:
     if int(arrays["status"].numpy()[0]) != _OK:
         return None
     return arrays["out"].numpy()[:count].astype(np.uint32)
+
+
+@lru_cache(maxsize=1)
+def _walk_kernel():
+    from uvatar.geometry.warp_torch import load_warp
+
+    wp = load_warp()
+
+    @wp.kernel
+    def walk(raw: wp.array(dtype=wp.int32), count: int, stride: int, version: int, end: int, block_elements: int,
+             sentinels: wp.array2d(dtype=wp.int32), widths: wp.array2d(dtype=wp.int32),
+             group_bits: wp.array(dtype=wp.int32), group_at: wp.array(dtype=wp.int64),
+             literal_at: wp.array(dtype=wp.int64), status: wp.array(dtype=wp.int32)):
+        at = wp.int32(1)
+        bad = wp.int32(0)
+        block = wp.int32(0)
+        first = wp.int32(0)
+        while first < count and bad == 0:
+            n = wp.min(count - first, block_elements)
+            group_count = (n + 15) // 16
+            header_bytes = (group_count + 3) // 4
+            control = at
+            if version == 1:
+                at += stride // 4
+            if at > end:
+                bad = 1
+            byte = wp.int32(0)
+            while byte < stride and bad == 0:
+                mode = wp.int32(0)
+                if version == 1:
+                    mode = (raw[control + (byte >> 2)] >> ((byte & 3) * 2)) & 3
+                if mode == 3:
+                    literal_at[block * stride + byte] = wp.int64(at)
+                    at += n
+                    if at > end:
+                        bad = 1
+                elif mode != 2:
+                    table = wp.int32(0)
+                    if version == 1:
+                        table = mode + 1
+                    header = at
+                    at += header_bytes
+                    if at > end:
+                        bad = 1
+                    g = wp.int32(0)
+                    while g < group_count and bad == 0:
+                        bits = widths[table, (raw[header + (g >> 2)] >> ((g & 3) * 2)) & 3]
+                        slot = (first // 16 + g) * stride + byte
+                        group_bits[slot] = bits
+                        if bits != 0:
+                            group_at[slot] = wp.int64(at)
+                            if bits == 8:
+                                at += 16
+                            else:
+                                packed = 2 * bits
+                                if at + packed > end:
+                                    bad = 1
+                                else:
+                                    kind = wp.int32(0)
+                                    if bits == 2:
+                                        kind = 1
+                                    elif bits == 4:
+                                        kind = 2
+                                    extra = wp.int32(0)
+                                    for k in range(packed):
+                                        extra += sentinels[kind, raw[at + k]]
+                                    at += packed + extra
+                            if at > end:
+                                bad = 1
+                        g += 1
+                byte += 1
+            first += block_elements
+            block += 1
+        if bad == 0 and at != end:
+            bad = 1
+        status[0] = bad
+
+    return wp, walk
+
+
+def walk_groups_warp(buf: np.ndarray, count: int, stride: int, version: int, end: int, block_elements: int):
+    """:func:`~uvatar.capture.meshopt_codec.walk_groups` compiled: the same ({bits: (row, byte, at)},
+    literal runs); None when the stream is malformed (the caller asks the twin, which says how)."""
+    from uvatar.capture.meshopt_codec import _GROUP_BITS, _SENTINELS
+
+    wp, walk = _walk_kernel()
+    groups_total = -(-count // 16)
+    blocks = -(-count // block_elements) if count else 0
+    device = "cpu"
+    sentinels = np.stack([_SENTINELS[b] for b in (1, 2, 4)]).astype(np.int32)
+    a = dict(raw=wp.array(np.asarray(buf, np.int32), dtype=wp.int32, device=device),
+             sentinels=wp.array(sentinels, dtype=wp.int32, device=device),
+             widths=wp.array(np.asarray(_GROUP_BITS, np.int32), dtype=wp.int32, device=device),
+             bits=wp.zeros(max(groups_total * stride, 1), dtype=wp.int32, device=device),
+             at=wp.zeros(max(groups_total * stride, 1), dtype=wp.int64, device=device),
+             literal=wp.array(np.full(max(blocks * stride, 1), -1, np.int64), dtype=wp.int64, device=device),
+             status=wp.zeros(1, dtype=wp.int32, device=device))
+    wp.launch(walk, dim=1, inputs=[a["raw"], count, stride, version, end, block_elements, a["sentinels"], a["widths"],
+                                   a["bits"], a["at"], a["literal"], a["status"]], device=device)
+    if int(a["status"].numpy()[0]) != _OK:
+        return None
+    bits = a["bits"].numpy()[:groups_total * stride].reshape(groups_total, stride)
+    at = a["at"].numpy()[:groups_total * stride].reshape(groups_total, stride)
+    groups = {}
+    for b in (1, 2, 4, 8):
+        g, byte = np.nonzero(bits == b)            # in (group, byte) order; the consumer needs no order
+        groups[b] = (g.astype(np.int64) * 16, byte.astype(np.int64), at[g, byte])
+    literal = a["literal"].numpy()[:blocks * stride].reshape(blocks, stride)
+    literals = [(blk * block_elements, byte, int(literal[blk, byte]), min(count - blk * block_elements, block_elements))
+                for blk, byte in zip(*np.nonzero(literal >= 0), strict=True)]
+    return groups, literals
