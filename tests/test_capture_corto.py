@@ -134,3 +134,14 @@ def test_bad_streams_say_so_in_one_error(fast):
         except CortoError:
             continue
         assert len(mesh.positions) == 225 and (len(mesh.faces) == 0 or mesh.faces.max() < 225)
+
+
+def test_bench_quick_rows_are_identical(capsys, monkeypatch):
+    import sys
+
+    from bench_modules import load_bench
+
+    monkeypatch.setattr(sys, "argv", ["corto.py", "--quick"])
+    load_bench("corto").main()
+    rows = json.loads(capsys.readouterr().out)["frames"]
+    assert len(rows) == len(CASES) and all(r["identical"] and r["warp_s"] > 0 and r["python_s"] > 0 for r in rows)
