@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -209,3 +211,27 @@ def test_cli_animate(setup, tmp_path, monkeypatch):
                  "--obj-dir", str(tmp_path / "m"), "--mesh-format", "glb"]) == 0
     assert out.is_file() and len(list((tmp_path / "m").glob("*.glb"))) == 2
     assert main(["animate", str(root / "avatar"), "--motion", str(tmp_path / "missing.bvh"), "-o", str(out)]) == 1
+
+
+def test_animate_writes_a_uvol2_take_that_imports_back(setup, tmp_path):
+    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
+    from uvatar.capture.meshio import read_mesh
+
+    root, body, _ = setup
+    seq = _sequence(3)
+    animate(root / "avatar", seq, tmp_path / "a.mp4", AnimateConfig(size=32, progress=False, mesh_format="uvol"),
+            mesh_dir=tmp_path / "take", body=body)
+    animate(root / "avatar", seq, tmp_path / "b.mp4", AnimateConfig(size=32, progress=False),
+            mesh_dir=tmp_path / "objs", body=body)
+    manifest = json.loads((tmp_path / "take" / "avatar.uvol.json").read_text())
+    assert manifest["geometry"]["targets"]["draco"]["frameCount"] == 3
+    summary = import_mesh_sequence(tmp_path / "take", tmp_path / "cap", progress=False)
+    assert summary["layout"] == "uvol2" and summary["frames"] == 3 and summary["fps"] == seq.fps
+    for t, obj in enumerate(sorted((tmp_path / "objs").glob("*.obj"))):
+        back, ref = read_mesh(tmp_path / "cap" / "scans" / f"{t:06d}.ply"), read_mesh(obj)
+        assert back.num_faces == ref.num_faces
+        scale = np.ptp(ref.vertices, axis=0).max()
+        np.testing.assert_allclose(back.vertices[back.faces], ref.vertices[ref.faces], atol=scale * 2e-4)  # 16-bit Draco
+        np.testing.assert_allclose(back.uvs[back.uv_faces], ref.uvs[ref.uv_faces], atol=2e-4)
+        assert np.abs(back.texture.astype(np.float32) / (255 if back.texture.dtype == np.uint8 else 1)
+                      - ref.texture).mean() < 0.03                                      # ETC1S

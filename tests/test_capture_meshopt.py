@@ -165,7 +165,7 @@ def test_the_warp_group_walk_is_its_twin():
     def spy(buf, count, stride, version, end, block_elements):
         calls.append(version)
         ref = real(buf, count, stride, version, end, block_elements)
-        fast = walk_groups_warp(buf, count, stride, version, end, block_elements)
+        fast = walk_groups_warp(buf, count, stride, version, end, block_elements, mc._SENTINELS, mc._GROUP_BITS)
         assert _canonical_walk(fast) == _canonical_walk(ref)
         return ref
 
@@ -185,4 +185,4 @@ def test_the_warp_group_walk_is_its_twin():
     buf = np.frombuffer(encoded, np.uint8)
     for cut in (buf[: len(buf) // 2], np.concatenate([buf[:-40], buf[-24:]])):
         assert walk_groups_warp(cut, CASES["v1_smooth"]["count"], CASES["v1_smooth"]["stride"], 1,
-                                len(cut) - 24, 256) is None
+                                len(cut) - 24, 256, mc._SENTINELS, mc._GROUP_BITS) is None

@@ -29,12 +29,17 @@ VIEW_AZIMUTH = {"front": 0.0, "left": 90.0, "back": 180.0, "right": 270.0}
 RENDER_BYTES_PER_PIXEL = 96  # rasterizer buffers of one frame (depth, barycentrics, face ids, colour), float32
 
 
+MESH_FORMATS = ("obj", "glb", "uvol")   # what --obj-dir writes: a mesh a frame, or a UVOL 2 take
+
+
 @dataclass(frozen=True)
 class AnimateConfig:
     """size: image side in pixels; camera: see module docstring; orbit_degrees: turn over the clip;
     fov_deg: vertical field of view; elevation_deg: camera height angle; max_frames / stride: motion
     subsampling; levels / scheme: subdivision; shading: Lambert headlight on top of the texture;
-    fps: None = the motion's; mesh_format: "obj" or "glb" for per-frame meshes."""
+    fps: None = the motion's; mesh_format: "obj" or "glb" for per-frame meshes, or "uvol" for the frames
+    as a UVOL 2 take (Draco meshes, KTX2 textures, the player's manifest: the Universal Volumetric
+    player streams it)."""
 
     size: int = 512
     camera: str = "orbit"
@@ -59,7 +64,8 @@ class AnimateConfig:
                   (self.levels >= 0, f"subdivision levels must be >= 0, got {self.levels}"),
                   (self.fps is None or self.fps > 0, f"fps must be > 0, got {self.fps}"),
                   (0 < self.fov_deg < 180, f"fov must be in (0, 180) degrees, got {self.fov_deg}"),
-                  (self.mesh_format in ("obj", "glb"), f"mesh format must be obj or glb, got {self.mesh_format!r}")]
+                  (self.mesh_format in MESH_FORMATS, f"mesh format must be one of {', '.join(MESH_FORMATS)}, got "
+                                                     f"{self.mesh_format!r}")]
         check_values(checks)
 
 
@@ -103,10 +109,16 @@ def _load_cameras(config: AnimateConfig) -> dict | None:
     return read_cameras(folder)
 
 
-def write_frame_mesh(path: Path, mesh) -> None:
-    from uvatar.capture import TexturedMesh, write_mesh
+def _textured(mesh):
+    from uvatar.capture import TexturedMesh
 
-    write_mesh(path, TexturedMesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.uv_faces, mesh.texture))
+    return TexturedMesh(mesh.vertices, mesh.faces, mesh.uvs, mesh.uv_faces, mesh.texture)
+
+
+def write_frame_mesh(path: Path, mesh) -> None:
+    from uvatar.capture import write_mesh
+
+    write_mesh(path, _textured(mesh))
 
 
 def render_sequence(runtime: AvatarRuntime, motion: PoseSequence, config: AnimateConfig,
@@ -126,6 +138,11 @@ def render_sequence(runtime: AvatarRuntime, motion: PoseSequence, config: Animat
     frames: list[np.ndarray] = []
     distance = None
     meshes = runtime.meshes(motion.poses[idx], motion.Rh[idx], motion.Th[idx], motion.scale[idx])
+    take = None
+    if mesh_dir is not None and config.mesh_format == "uvol":
+        from uvatar.capture.uvol_take import UvolTakeWriter
+
+        take = UvolTakeWriter(mesh_dir, fps=config.fps or motion.fps)
     for t, mesh in enumerate(tqdm(meshes, total=len(idx), desc="animate", disable=not config.progress)):
         if distance is None:
             distance = framing_distance(mesh.vertices, config.fov_deg)
@@ -133,9 +150,13 @@ def render_sequence(runtime: AvatarRuntime, motion: PoseSequence, config: Animat
         result = render_mesh(mesh.vertices, mesh.faces, cam, mesh.uvs, mesh.uv_faces, mesh.texture,
                              background=config.background, shading=config.shading)
         frames.append(result.rgb)
-        if mesh_dir is not None:
+        if take is not None:
+            take.add(_textured(mesh))
+        elif mesh_dir is not None:
             name = motion.names[idx[t]] if motion.names else f"{t:06d}"
             write_frame_mesh(Path(mesh_dir) / f"{name}.{config.mesh_format}", mesh)
+    if take is not None:
+        take.close()
     return frames
 
 
@@ -150,8 +171,8 @@ def animate(avatar_dir: str | Path, motion: str | Path | PoseSequence, output: s
     from uvatar.render.video import check_video_path
     from uvatar.resources import check_memory
 
-    if config.mesh_format not in ("obj", "glb"):
-        raise InputError(config.mesh_format, "mesh format must be obj or glb")
+    if config.mesh_format not in MESH_FORMATS:
+        raise InputError(config.mesh_format, f"mesh format must be one of {', '.join(MESH_FORMATS)}")
     check_video_path(output)
     check_memory(RENDER_BYTES_PER_PIXEL * config.size ** 2, "size", f"rendering {config.size}² pixels")
     runtime = AvatarRuntime(avatar_dir, body=body, device=device, levels=config.levels, scheme=config.scheme)

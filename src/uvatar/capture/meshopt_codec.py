@@ -133,7 +133,7 @@ def _walk_fast(buf, count, stride, version, end, block_elements):
     try:
         from uvatar.capture.meshopt_warp import walk_groups_warp
 
-        return walk_groups_warp(buf, count, stride, version, end, block_elements)
+        return walk_groups_warp(buf, count, stride, version, end, block_elements, _SENTINELS, _GROUP_BITS)
     except MissingDependencyError:
         if not _SAID_NO_WARP_WALK:
             log.info("meshopt attribute groups walked in Python; the kernels extra (Warp) walks them faster")

@@ -296,19 +296,20 @@ def _walk_kernel():
     return wp, walk
 
 
-def walk_groups_warp(buf: np.ndarray, count: int, stride: int, version: int, end: int, block_elements: int):
+def walk_groups_warp(buf: np.ndarray, count: int, stride: int, version: int, end: int, block_elements: int,
+                     sentinel_counts: dict[int, np.ndarray], group_bits: tuple) -> tuple | None:
     """:func:`~uvatar.capture.meshopt_codec.walk_groups` compiled: the same ({bits: (row, byte, at)},
-    literal runs); None when the stream is malformed (the caller asks the twin, which says how)."""
-    from uvatar.capture.meshopt_codec import _GROUP_BITS, _SENTINELS
-
+    literal runs); None when the stream is malformed (the caller asks the twin, which says how).
+    ``sentinel_counts``: {1, 2, 4: the sentinels in each byte value}; ``group_bits``: the delta widths of
+    each header value (the codec's tables)."""
     wp, walk = _walk_kernel()
     groups_total = -(-count // 16)
     blocks = -(-count // block_elements) if count else 0
     device = "cpu"
-    sentinels = np.stack([_SENTINELS[b] for b in (1, 2, 4)]).astype(np.int32)
+    sentinels = np.stack([sentinel_counts[b] for b in (1, 2, 4)]).astype(np.int32)
     a = dict(raw=wp.array(np.asarray(buf, np.int32), dtype=wp.int32, device=device),
              sentinels=wp.array(sentinels, dtype=wp.int32, device=device),
-             widths=wp.array(np.asarray(_GROUP_BITS, np.int32), dtype=wp.int32, device=device),
+             widths=wp.array(np.asarray(group_bits, np.int32), dtype=wp.int32, device=device),
              bits=wp.zeros(max(groups_total * stride, 1), dtype=wp.int32, device=device),
              at=wp.zeros(max(groups_total * stride, 1), dtype=wp.int64, device=device),
              literal=wp.array(np.full(max(blocks * stride, 1), -1, np.int64), dtype=wp.int64, device=device),

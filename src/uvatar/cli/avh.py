@@ -26,7 +26,7 @@ def _preset_lines() -> str:
 
 def _flags() -> dict[str, ConfigFlags]:
     """The config flags of ``train avh`` (generator size, optimization), ``animate`` and ``eval avh``."""
-    from uvatar.avh.animate import AnimateConfig, animate
+    from uvatar.avh.animate import MESH_FORMATS, AnimateConfig, animate
     from uvatar.avh.displacement_frame import DISPLACEMENT_FRAMES
     from uvatar.avh.eval import EvalConfig
     from uvatar.avh.export import export_avatar
@@ -91,11 +91,13 @@ def _flags() -> dict[str, ConfigFlags]:
         "animate": ConfigFlags(
             AnimateConfig, fields=("camera", "camera_name", "size", "max_frames", "stride", "fps", "mesh_format",
                                    "shading", "levels", "progress"),
-            rename={"max_frames": "frames"}, choices={"mesh_format": ("obj", "glb")}, help={
+            rename={"max_frames": "frames"}, choices={"mesh_format": MESH_FORMATS}, help={
                 "camera": "orbit, front, back, left, right, or a cameras folder",
                 "camera_name": "camera of the cameras folder (none: the first)", "size": "image side (pixels)",
                 "max_frames": "render at most this many frames (none: all)", "stride": "use every n-th motion frame",
-                "fps": "video fps (none: the motion's)", "mesh_format": "format of the --obj-dir meshes",
+                "fps": "video fps (none: the motion's)",
+                "mesh_format": "what --obj-dir holds: a mesh a frame (obj, glb), or a UVOL 2 take (uvol: Draco "
+                               "meshes, KTX2 textures and the manifest the Universal Volumetric player streams)",
                 "shading": "add headlight shading", "levels": "subdivision levels",
                 "progress": "progress bar (--no-progress: none)"}),
         "export": ConfigFlags(export_avatar, fields=("opset", "tolerance"), help={

@@ -61,8 +61,9 @@ def _register_import(cli) -> None:
                                 "and OUT/images/<cam>/. Or import a volumetric video: a UVOL 2 folder "
                                 "(geometry_*/NNNNN.drc Draco meshes, texture_*/ KTX2 array textures, KTX 1, "
                                 "headerless .etc2 or per-frame images; the player's manifest or its encoder's "
-                                "uvol.json with DRC/ and KTX2/ when there is one) or a folder of per-frame "
-                                ".obj/.ply/.glb/.drc meshes with their textures; writes OUT/scans/<frame>.ply + .png in metres, +Y up "
+                                "uvol.json with DRC/ and KTX2/ when there is one), a UVOL 1 take (NAME.manifest + "
+                                "NAME.drcs Corto meshes + NAME.mp4 texture video; SRC may be the .manifest) or a "
+                                "folder of per-frame .obj/.ply/.glb/.drc/.crt meshes with their textures; writes OUT/scans/<frame>.ply + .png in metres, +Y up "
                                 "(--units/--up where the files do not say; --fps where no manifest does; needs "
                                 "pip install 'uvatar[volumetric]' for Draco/KTX2). Resumes an interrupted import.")
     p.add_argument("src", help="recording folder")

@@ -162,3 +162,22 @@ def texture_frame(frame: int, geometry_fps: float | None, texture_fps: float | N
     if not geometry_fps or not texture_fps or math.isclose(geometry_fps, texture_fps):
         return frame
     return math.floor(frame * texture_fps / geometry_fps + 0.5)
+
+
+def write_manifest(path: Path, frame_count: int, fps: float, texture_size: tuple[int, int],
+                   frames_per_file: int = 1) -> None:
+    """Write a UVOL 2 manifest in the player's schema (``V2Schema``), atomically: one Draco geometry
+    target (``geometry_draco/NNNNN.drc``) and one KTX2 texture target (``texture_ktx2/NNNNN.ktx2``,
+    ``frames_per_file`` layers a file), both at ``fps``; ``texture_size``: (width, height)."""
+    from uvatar.io_utils import atomic_path
+
+    files = -(-frame_count // frames_per_file)
+    doc = {"version": "v2",
+           "geometry": {"targets": {"draco": {"format": "draco", "frameRate": fps, "frameCount": frame_count}},
+                        "path": "geometry_[target]/[#####][ext]"},
+           "texture": {"targets": {"ktx2": {"format": "ktx2", "type": "baseColor", "resolution": list(texture_size),
+                                            "frameRate": fps, "sequenceSize": frames_per_file,
+                                            "sequenceCount": files}},
+                       "path": "texture_[target]/[#####][ext]"}}
+    with atomic_path(Path(path)) as tmp:
+        tmp.write_text(json.dumps(doc, indent=1) + "\n")

@@ -1,0 +1,70 @@
+"""Writing a UVOL 2 take, the format the Universal Volumetric player streams (and ``uvatar capture
+import`` reads back): ``geometry_draco/NNNNN.drc`` (one Draco mesh a frame, UVs as glTF's, v from the
+top), ``texture_ktx2/NNNNN.ktx2`` (one Basis ETC1S texture a frame) and ``NAME.uvol.json`` (the player's
+manifest, written last: a take without it is unfinished). Needs the ``volumetric`` extra.
+
+    with UvolTakeWriter(folder, fps=30) as take:
+        for mesh in meshes:          # TexturedMesh in metres, +Y up, texture float [0, 1] or uint8
+            take.add(mesh)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.capture.types import TexturedMesh
+from uvatar.errors import InputError
+
+__all__ = ["UvolTakeWriter"]
+
+
+class UvolTakeWriter:
+    """Frames in, a UVOL 2 take out (see the module doc). Frame numbers count from 0 in the order added;
+    every texture must have the first one's size (the manifest has one resolution)."""
+
+    def __init__(self, folder: str | Path, fps: float, name: str = "avatar"):
+        if not fps or fps <= 0:
+            raise InputError(folder, f"a UVOL take needs a frame rate > 0, not {fps}")
+        self.folder, self.fps, self.name = Path(folder), float(fps), name
+        self.count, self.size = 0, None
+        (self.folder / "geometry_draco").mkdir(parents=True, exist_ok=True)
+        (self.folder / "texture_ktx2").mkdir(parents=True, exist_ok=True)
+
+    def add(self, mesh: TexturedMesh) -> None:
+        """Write the next frame's Draco mesh and KTX2 texture."""
+        from uvatar.capture.mesh_draco import write_drc
+        from uvatar.capture.texture_ktx2 import write_ktx2
+
+        if mesh.texture is None or not mesh.has_uvs:
+            raise InputError(self.folder, f"frame {self.count} has no texture or no UVs: a UVOL take needs both")
+        texture = np.asarray(mesh.texture)
+        if texture.dtype != np.uint8:
+            texture = (np.clip(texture[..., :3], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        size = (texture.shape[1], texture.shape[0])
+        if self.size is None:
+            self.size = size
+        elif size != self.size:
+            raise InputError(self.folder, f"frame {self.count}'s texture is {size[0]} x {size[1]}, the take's "
+                                          f"{self.size[0]} x {self.size[1]}")
+        write_drc(self.folder / "geometry_draco" / f"{self.count:05d}.drc", mesh)
+        write_ktx2(self.folder / "texture_ktx2" / f"{self.count:05d}.ktx2", np.ascontiguousarray(texture[..., :3]))
+        self.count += 1
+
+    def close(self) -> Path | None:
+        """Write the manifest (nothing when no frame was added); returns its path."""
+        from uvatar.capture.importers.uvol_manifest import write_manifest
+
+        if not self.count:
+            return None
+        path = self.folder / f"{self.name}.uvol.json"
+        write_manifest(path, self.count, self.fps, self.size)
+        return path
+
+    def __enter__(self) -> UvolTakeWriter:
+        return self
+
+    def __exit__(self, kind, value, traceback) -> None:
+        if kind is None:
+            self.close()
