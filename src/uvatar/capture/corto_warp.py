@@ -34,6 +34,15 @@ def _kernels():
         value = (window >> (wp.uint64(64) - shift - wp.uint64(n))) & ((wp.uint64(1) << wp.uint64(n)) - wp.uint64(1))
         return wp.int32(value)
 
+    @wp.func
+    def put_edge(front: wp.array(dtype=wp.int32), f: int, v0: int, v1: int, v2: int, prev: int, nxt: int):
+        """Front edge ``f``: its vertices (v0, v1; v2 the opposite one, the prediction's third) and links."""
+        front[f] = v0
+        front[f + 1] = v1
+        front[f + 2] = v2
+        front[f + 3] = prev
+        front[f + 4] = nxt
+
     @wp.kernel
     def walk(clers: wp.array(dtype=wp.int32), words: wp.array(dtype=wp.uint64), bit_count: wp.int64,
              group_ends: wp.array(dtype=wp.int32), nvert: int, front: wp.array(dtype=wp.int32),
@@ -106,21 +115,9 @@ def _kernels():
                     order[order_back + 1] = front_count + 5
                     order[order_back + 2] = front_count + 10
                     order_back += 3
-                    front[e] = v1
-                    front[e + 1] = v2
-                    front[e + 2] = v0
-                    front[e + 3] = e + 10
-                    front[e + 4] = e + 5
-                    front[e + 5] = v2
-                    front[e + 6] = v0
-                    front[e + 7] = v1
-                    front[e + 8] = e
-                    front[e + 9] = e + 10
-                    front[e + 10] = v0
-                    front[e + 11] = v1
-                    front[e + 12] = v2
-                    front[e + 13] = e + 5
-                    front[e + 14] = e
+                    put_edge(front, e, v1, v2, v0, e + 10, e + 5)
+                    put_edge(front, e + 5, v2, v0, v1, e, e + 10)
+                    put_edge(front, e + 10, v0, v1, v2, e + 5, e)
                     front_count += 15
                     continue
                 edge = wp.int32(0)
@@ -176,18 +173,10 @@ def _kernels():
                     front[prev + 4] = new_edge
                     front[nxt + 3] = new_edge + 5
                     f = front_count
-                    front[f] = a0
-                    front[f + 1] = opposite
-                    front[f + 2] = a1
-                    front[f + 3] = prev
-                    front[f + 4] = new_edge + 5
+                    put_edge(front, f, a0, opposite, a1, prev, new_edge + 5)
                     order[order_back] = f + 5
                     order_back += 1
-                    front[f + 5] = opposite
-                    front[f + 6] = a1
-                    front[f + 7] = a0
-                    front[f + 8] = new_edge
-                    front[f + 9] = nxt
+                    put_edge(front, f + 5, opposite, a1, a0, new_edge, nxt)
                     front_count += 10
                 elif c == 1:                                                            # left
                     pp = front[prev + 3]
@@ -198,11 +187,7 @@ def _kernels():
                     front[nxt + 3] = new_edge
                     opposite = front[prev]
                     f = front_count
-                    front[f] = opposite
-                    front[f + 1] = a1
-                    front[f + 2] = a0
-                    front[f + 3] = pp
-                    front[f + 4] = nxt
+                    put_edge(front, f, opposite, a1, a0, pp, nxt)
                     front_count += 5
                     front[prev] = -1
                 elif c == 2:                                                            # right
@@ -214,11 +199,7 @@ def _kernels():
                     front[prev + 4] = new_edge
                     opposite = front[nxt + 1]
                     f = front_count
-                    front[f] = a0
-                    front[f + 1] = opposite
-                    front[f + 2] = a1
-                    front[f + 3] = prev
-                    front[f + 4] = nn
+                    put_edge(front, f, a0, opposite, a1, prev, nn)
                     front_count += 5
                     front[nxt] = -1
                 elif c == 5:                                                            # delay
