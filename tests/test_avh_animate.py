@@ -213,6 +213,11 @@ def test_cli_animate(setup, tmp_path, monkeypatch):
     assert main(["animate", str(root / "avatar"), "--motion", str(tmp_path / "missing.bvh"), "-o", str(out)]) == 1
 
 
+def _corners(m) -> np.ndarray:
+    """Each face corner's position and UV, (3F, 5)."""
+    return np.c_[m.vertices[m.faces].reshape(-1, 3), m.uvs[m.uv_faces].reshape(-1, 2)]
+
+
 def test_animate_writes_a_uvol2_take_that_imports_back(setup, tmp_path):
     from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
     from uvatar.capture.meshio import read_mesh
@@ -228,10 +233,15 @@ def test_animate_writes_a_uvol2_take_that_imports_back(setup, tmp_path):
     summary = import_mesh_sequence(tmp_path / "take", tmp_path / "cap", progress=False)
     assert summary["layout"] == "uvol2" and summary["frames"] == 3 and summary["fps"] == seq.fps
     for t, obj in enumerate(sorted((tmp_path / "objs").glob("*.obj"))):
+        from scipy.spatial import cKDTree
+
         back, ref = read_mesh(tmp_path / "cap" / "scans" / f"{t:06d}.ply"), read_mesh(obj)
-        assert back.num_faces == ref.num_faces
+        assert abs(back.num_faces - ref.num_faces) <= ref.num_faces // 1000   # edgebreaker drops degenerate ones
         scale = np.ptp(ref.vertices, axis=0).max()
-        np.testing.assert_allclose(back.vertices[back.faces], ref.vertices[ref.faces], atol=scale * 2e-4)  # 16-bit Draco
-        np.testing.assert_allclose(back.uvs[back.uv_faces], ref.uvs[ref.uv_faces], atol=2e-4)
+        step = scale / 2**14                                                  # 14-bit Draco positions
+        for a, b in ((back.vertices, ref.vertices), (ref.vertices, back.vertices)):
+            assert cKDTree(b).query(a)[0].max() <= step
+        d, _ = cKDTree(_corners(ref)).query(_corners(back))           # each corner keeps its UV (faces reordered)
+        assert np.median(d) < 2 * step and np.quantile(d, 0.99) < 1e-3
         assert np.abs(back.texture.astype(np.float32) / (255 if back.texture.dtype == np.uint8 else 1)
                       - ref.texture).mean() < 0.03                                      # ETC1S

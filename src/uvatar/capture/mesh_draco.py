@@ -66,15 +66,18 @@ def read_drc(path: Path, load_texture=None) -> TexturedMesh:
     return TexturedMesh(vertices, faces, uvs, uv_faces, None)
 
 
-def write_drc(path: Path, mesh: TexturedMesh, write_texture=None) -> None:
-    """Write a .drc (split per UV seam as glTF does; texture not stored: Draco has none), atomically."""
+def write_drc(path: Path, mesh: TexturedMesh, write_texture=None, *, quantization_bits: int = 16,
+              compression_level: int = 5, preserve_order: bool = True) -> None:
+    """Write a .drc (split per UV seam as glTF does; texture not stored: Draco has none), atomically.
+    ``preserve_order`` keeps the points and faces in their order (Draco's sequential coding); False lets
+    Draco's edgebreaker reorder them, several times smaller (what a streamed take wants)."""
     from uvatar.capture.mesh_glb import split_for_gltf
 
     points, uvs, faces = split_for_gltf(mesh)
     uvs = np.asarray(uvs, np.float64).copy()  # DracoPy asks for float64 texture coordinates
     uvs[:, 1] = 1.0 - uvs[:, 1]
     data = _dracopy().encode(np.asarray(points, np.float32), faces=np.asarray(faces, np.uint32),
-                             tex_coord=uvs, quantization_bits=16, compression_level=5,
-                             preserve_order=True)
+                             tex_coord=uvs, quantization_bits=quantization_bits,
+                             compression_level=compression_level, preserve_order=preserve_order)
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
