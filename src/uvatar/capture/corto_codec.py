@@ -27,15 +27,14 @@ the file and the frame.
 
 from __future__ import annotations
 
-import logging
 import struct
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from uvatar.capture.corto_entropy import BitReader, CortoError, Stream, decode_array, decode_values, tunstall
-
-log = logging.getLogger(__name__)
+from uvatar.capture.corto_warp import decode_faces_warp, predict_values_warp
+from uvatar.geometry.warp_torch import warp_available
 
 __all__ = ["CortoError", "CortoMesh", "decode_corto", "decode_faces", "predict_values", "corto_header"]
 
@@ -215,26 +214,6 @@ def _wrap32(v: np.ndarray) -> np.ndarray:
     return ((v + (1 << 31)) % (1 << 32)) - (1 << 31)
 
 
-_SAID_NO_WARP: list[bool] = []
-
-
-def _fast(name: str):
-    """The Warp twin ``name`` of :mod:`uvatar.capture.corto_warp`, or None without the kernels extra."""
-    from uvatar.errors import MissingDependencyError
-
-    try:
-        from uvatar.capture import corto_warp
-        from uvatar.geometry.warp_torch import load_warp
-
-        load_warp()
-        return getattr(corto_warp, name)
-    except MissingDependencyError:
-        if not _SAID_NO_WARP:
-            log.info("Corto connectivity decoded in Python; the kernels extra (Warp) decodes it ~30x faster")
-            _SAID_NO_WARP.append(True)
-        return None
-
-
 # -- attributes -------------------------------------------------------------------------------------
 
 
@@ -334,7 +313,8 @@ def decode_corto(data: bytes, fast: bool = True) -> CortoMesh:
     groups = _groups(stream, nface)
     faces = np.zeros((0, 3), np.int64)
     prediction = None
-    walk = _fast("decode_faces_warp") if fast else None
+    fast = fast and warp_available("Corto connectivity and predictions")
+    walk = decode_faces_warp if fast else None
     if nface:
         max_front = stream.count("the edge front's size")
         clers = tunstall(stream)
@@ -359,10 +339,10 @@ def decode_corto(data: bytes, fast: bool = True) -> CortoMesh:
                 residuals[a.name] = (decode_values(stream, nvert, a.components), nvert)
     if prediction is not None:
         _check_prediction(prediction)
-    predict = (_fast("predict_values_warp") if fast else None) or predict_values
+    predict = predict_values_warp if fast else predict_values
     values: dict[str, np.ndarray] = {}
     for a in attributes:
-        v, read = residuals[a.name]
+        v, _ = residuals[a.name]
         normal_mode = extra_bytes[a.name][0] if a.codec == NORMAL else None
         if prediction is None:                            # a point cloud: sorted, running sums
             values[a.name] = _wrap32(np.cumsum(v, axis=0)) if normal_mode in (None, DIFF) else v

@@ -21,11 +21,10 @@ names the file and the buffer view.
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 
-log = logging.getLogger(__name__)
+from uvatar.capture.meshopt_warp import decode_triangles_warp, walk_groups_warp
+from uvatar.geometry.warp_torch import warp_available
 
 __all__ = ["MeshoptError", "decode_buffer_view", "decode_vertex_buffer", "decode_triangles",
            "decode_index_sequence", "apply_filter"]
@@ -122,23 +121,12 @@ def walk_groups(buf: np.ndarray, count: int, stride: int, version: int, end: int
              for bits, found in groups.items()}, literals)
 
 
-_SAID_NO_WARP_WALK: list[bool] = []
-
-
 def _walk_fast(buf, count, stride, version, end, block_elements):
     """The group walk through its Warp twin (None without the kernels extra, or for a malformed stream:
     the reference then says what is wrong)."""
-    from uvatar.errors import MissingDependencyError
-
-    try:
-        from uvatar.capture.meshopt_warp import walk_groups_warp
-
-        return walk_groups_warp(buf, count, stride, version, end, block_elements, _SENTINELS, _GROUP_BITS)
-    except MissingDependencyError:
-        if not _SAID_NO_WARP_WALK:
-            log.info("meshopt attribute groups walked in Python; the kernels extra (Warp) walks them faster")
-            _SAID_NO_WARP_WALK.append(True)
+    if not warp_available("meshopt attribute groups"):
         return None
+    return walk_groups_warp(buf, count, stride, version, end, block_elements, _SENTINELS, _GROUP_BITS)
 
 
 def decode_vertex_buffer(data: bytes, count: int, stride: int) -> np.ndarray:
@@ -343,23 +331,10 @@ def decode_triangles(data: bytes, count: int) -> np.ndarray:
     return np.asarray(out, np.uint32)
 
 
-_SAID_NO_WARP = []
-
-
 def _triangles(data: bytes, count: int) -> np.ndarray:
     """The triangle codec through its Warp twin where Warp is installed, else (and for the message of a
     malformed stream) through the reference."""
-    from uvatar.errors import MissingDependencyError
-
-    try:
-        from uvatar.capture.meshopt_warp import decode_triangles_warp
-
-        fast = decode_triangles_warp(data, count)
-    except MissingDependencyError:
-        if not _SAID_NO_WARP:
-            log.info("meshopt triangles decoded in Python; the kernels extra (Warp) decodes them ~30x faster")
-            _SAID_NO_WARP.append(True)
-        fast = None
+    fast = decode_triangles_warp(data, count) if warp_available("meshopt triangles") else None
     return fast if fast is not None else decode_triangles(data, count)
 
 

@@ -9,9 +9,9 @@ three.js's default ``flipY``, as the UVOL 1 player maps it).
 UVOL 1's texture encoder also writes a **frame counter** into each frame: 16 blocks of 8 x 8 pixels
 along the bottom-left edge, block ``i`` (from the left) white for bit ``i`` of the frame's number, black
 otherwise; the player reads it (the mean of each block's bottom 4 rows) where the browser cannot say
-which video frame it shows. :meth:`TextureVideo.counters` reads it from every frame of the video at
-once (ffmpeg crops the strip before it is decoded to RGB), so the import can check that the video's
-frames are the meshes' frames, one for one. The counter overwrites whatever texels lie there (the
+which video frame it shows. :meth:`TextureVideo.open` reads it from every frame of the video in the
+pass that counts them (ffmpeg crops the strip before it is decoded to RGB), so the import can check that
+the video's frames are the meshes' frames, one for one. The counter overwrites whatever texels lie there (the
 encoder warns that it may "bleed into your textures"); where a video carries one, :meth:`TextureVideo.frame`
 fills that corner from the texels around it (:func:`fill_counter`, OpenCV's Telea inpainting) so that a
 chart lying under it keeps its own colours rather than black and white blocks.
@@ -61,21 +61,24 @@ def fill_counter(image: np.ndarray) -> np.ndarray:
 @dataclass
 class TextureVideo:
     """One texture video: its ``size`` (width, height), ``fps`` (the container's), frame ``count``
-    (decoded, not the container's guess); ``has_counter``: its frames carry UVOL 1's counter, filled in
-    by :meth:`frame` (set by whoever read :meth:`counters`)."""
+    (decoded, not the container's guess) and each frame's counter (:meth:`counters`); ``has_counter``:
+    its frames carry UVOL 1's counter, filled in by :meth:`frame` (set by whoever decided so from
+    :meth:`counters`)."""
 
     path: Path
     size: tuple[int, int] = (0, 0)
     fps: float = 0.0
     count: int = 0
     has_counter: bool = False
+    _counters: list = field(default_factory=list, repr=False)
     _reader: object = field(default=None, repr=False)
     _next: int = 0
 
     @classmethod
     def open(cls, path: Path) -> TextureVideo:
-        """Probe a texture video: its size, rate and frame count; InputError naming it when ffmpeg
-        cannot read it or it holds no frame."""
+        """Probe a texture video: its size and rate, then one pass over its frames (only their bottom
+        strip decoded to RGB) for the frame count and each frame's counter; InputError naming it when
+        ffmpeg cannot read it or it holds no frame."""
         import imageio_ffmpeg
 
         from uvatar.capture.importers.sources import ffmpeg_problem
@@ -87,22 +90,28 @@ class TextureVideo:
             reader = imageio_ffmpeg.read_frames(str(path), pix_fmt="rgb24")
             meta = next(reader)
             reader.close()
-            count, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
         except (OSError, RuntimeError, StopIteration) as exc:
             raise InputError(path, f"cannot open the texture video ({ffmpeg_problem(str(exc))})") from None
-        if not count:
+        video = cls(path, tuple(int(v) for v in meta["size"]), float(meta.get("fps") or 0.0))
+        video._counters = video._read_counters()
+        video.count = len(video._counters)
+        if not video.count:
             raise InputError(path, "texture video holds no frame")
-        return cls(path, tuple(int(v) for v in meta["size"]), float(meta.get("fps") or 0.0), int(count))
+        return video
 
     def counters(self) -> list[int | None]:
-        """Every frame's UVOL 1 counter (None where a frame has none), from the bottom strip alone."""
+        """Every frame's UVOL 1 counter (None where a frame has none), read when the video was opened."""
+        return list(self._counters)
+
+    def _read_counters(self) -> list[int | None]:
+        """One decoding pass, each frame cropped to the counter's strip (the whole frame when it is
+        smaller): a counter (or None) a frame."""
         import imageio_ffmpeg
 
         width, height = self.size
-        strip_rows = COUNTER_BLOCK
-        if width < COUNTER_BITS * COUNTER_BLOCK or height < strip_rows:
-            return [None] * self.count
-        crop = f"crop={COUNTER_BITS * COUNTER_BLOCK}:{strip_rows}:0:{height - strip_rows}"
+        strip_rows, strip_columns = COUNTER_BLOCK, COUNTER_BITS * COUNTER_BLOCK
+        fits = width >= strip_columns and height >= strip_rows
+        crop = f"crop={strip_columns}:{strip_rows}:0:{height - strip_rows}" if fits else f"crop={width}:{height}:0:0"
         out: list[int | None] = []
         quiet = logging.getLogger("imageio_ffmpeg")      # it warns that the crop is not the source size
         level = quiet.level
@@ -111,7 +120,10 @@ class TextureVideo:
             reader = imageio_ffmpeg.read_frames(str(self.path), pix_fmt="rgb24", output_params=["-vf", crop])
             next(reader)
             for raw in reader:
-                strip = np.frombuffer(raw, np.uint8).reshape(strip_rows, COUNTER_BITS * COUNTER_BLOCK, 3)
+                if not fits:
+                    out.append(None)
+                    continue
+                strip = np.frombuffer(raw, np.uint8).reshape(strip_rows, strip_columns, 3)
                 out.append(read_counter(strip))
         except (OSError, RuntimeError) as exc:
             raise InputError(self.path, f"cannot decode the texture video ({' '.join(str(exc).split())[:160]})") from None

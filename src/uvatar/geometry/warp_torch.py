@@ -13,7 +13,7 @@ from uvatar.errors import require
 
 log = logging.getLogger(__name__)
 
-__all__ = ["load_warp", "warp_scalar", "warp_types", "warp_view", "warp_stream", "launch_stream", "capture_graph"]
+__all__ = ["load_warp", "warp_available", "warp_scalar", "warp_types", "warp_view", "warp_stream", "launch_stream", "capture_graph"]
 
 
 def load_warp():
@@ -26,6 +26,24 @@ def load_warp():
     wp.config.log_level = logging.ERROR
     wp.init()
     return wp
+
+
+_SAID_NO_WARP: set[str] = set()
+
+
+def warp_available(what: str) -> bool:
+    """Whether Warp loads, for a step with a Warp twin and a Python reference; without the ``kernels``
+    extra, says once per ``what`` (e.g. "meshopt triangles") that the step runs in Python."""
+    from uvatar.errors import MissingDependencyError
+
+    try:
+        load_warp()
+        return True
+    except MissingDependencyError:
+        if what not in _SAID_NO_WARP:
+            log.info("%s run in Python; the kernels extra (Warp) runs them compiled, several times faster", what)
+            _SAID_NO_WARP.add(what)
+        return False
 
 
 def warp_scalar(wp, dtype):
