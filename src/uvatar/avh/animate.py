@@ -29,7 +29,7 @@ VIEW_AZIMUTH = {"front": 0.0, "left": 90.0, "back": 180.0, "right": 270.0}
 RENDER_BYTES_PER_PIXEL = 96  # rasterizer buffers of one frame (depth, barycentrics, face ids, colour), float32
 
 
-MESH_FORMATS = ("obj", "glb", "uvol")   # what --obj-dir writes: a mesh a frame, or a UVOL 2 take
+MESH_FORMATS = ("obj", "glb", "uvol", "vols")   # what --obj-dir writes: a mesh a frame, a UVOL 2 or a Volograms take
 
 
 @dataclass(frozen=True)
@@ -37,9 +37,10 @@ class AnimateConfig:
     """size: image side in pixels; camera: see module docstring; orbit_degrees: turn over the clip;
     fov_deg: vertical field of view; elevation_deg: camera height angle; max_frames / stride: motion
     subsampling; levels / scheme: subdivision; shading: Lambert headlight on top of the texture;
-    fps: None = the motion's; mesh_format: "obj" or "glb" for per-frame meshes, or "uvol" for the frames
+    fps: None = the motion's; mesh_format: "obj" or "glb" for per-frame meshes, "uvol" for the frames
     as a UVOL 2 take (Draco meshes, KTX2 textures, the player's manifest: the Universal Volumetric
-    player streams it)."""
+    player streams it) or "vols" as a Volograms 1.3 take (one ``avatar.vols``: a keyframe, then tracked
+    frames, a Basis ETC1S texture each; Volograms' players read it)."""
 
     size: int = 512
     camera: str = "orbit"
@@ -143,6 +144,10 @@ def render_sequence(runtime: AvatarRuntime, motion: PoseSequence, config: Animat
         from uvatar.capture.uvol_take import UvolTakeWriter
 
         take = UvolTakeWriter(mesh_dir, fps=config.fps or motion.fps)
+    elif mesh_dir is not None and config.mesh_format == "vols":
+        from uvatar.capture.vols_take import VolsTakeWriter
+
+        take = VolsTakeWriter(Path(mesh_dir) / "avatar.vols", fps=config.fps or motion.fps)
     for t, mesh in enumerate(tqdm(meshes, total=len(idx), desc="animate", disable=not config.progress)):
         if distance is None:
             distance = framing_distance(mesh.vertices, config.fov_deg)

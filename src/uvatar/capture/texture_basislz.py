@@ -26,7 +26,7 @@ import numpy as np
 
 from uvatar.capture.texture_etc import ETC1_INTENSITY, widen
 
-__all__ = ["BasisLZError", "BasisLZ", "parse_basislz", "decode_basislz", "etc1s_pixels"]
+__all__ = ["BasisLZError", "BasisLZ", "parse_basislz", "basislz_from_sections", "decode_basislz", "etc1s_pixels"]
 
 
 _CODELENGTH_ORDER = (17, 18, 19, 20, 0, 8, 7, 9, 6, 10, 5, 11, 4, 12, 3, 13, 2, 14, 1, 15, 16)
@@ -218,21 +218,30 @@ def parse_basislz(data: bytes, width: int, height: int, layers: int, faces: int,
     start = 20 + 20 * images
     if len(sgd) < start + e_len + s_len + t_len + x_len:
         raise BasisLZError("the BasisLZ global data is shorter than its sections")
-    if not n_endpoints or not n_selectors:
-        raise BasisLZError("an empty endpoint or selector codebook")
-    endpoints = _endpoints(sgd[start:start + e_len], n_endpoints)
-    selectors = _selectors(sgd[start + e_len:start + e_len + s_len], n_selectors)
-    tables = _Bits(sgd[start + e_len + s_len:start + e_len + s_len + t_len])
-    models = [_read_huffman(tables) for _ in range(4)]
-    history = tables.get(13)
-    if history > 64:
-        raise BasisLZError(f"a selector history of {history} entries (at most 64)")
     slices = []
     for i in range(max(1, layers) * faces):   # level 0's images come first
         flags, rgb_offset, rgb_length, _, _ = struct.unpack_from("<5I", sgd, 20 + 20 * i)
         if level_offset + rgb_offset + rgb_length > len(data):
             raise BasisLZError(f"image {i}'s slice lies past the end of the file")
         slices.append((level_offset + rgb_offset, rgb_length, bool(flags & _IMAGE_IS_P_FRAME)))
+    return basislz_from_sections(sgd[start:start + e_len], n_endpoints, sgd[start + e_len:start + e_len + s_len],
+                                 n_selectors, sgd[start + e_len + s_len:start + e_len + s_len + t_len], slices,
+                                 width, height, is_video)
+
+
+def basislz_from_sections(endpoint_data: bytes, n_endpoints: int, selector_data: bytes, n_selectors: int,
+                          table_data: bytes, slices: list, width: int, height: int, is_video: bool) -> BasisLZ:
+    """:class:`BasisLZ` from its coded sections wherever a container keeps them (a KTX2 file's global
+    data, a ``.basis`` file's header offsets): the endpoint and selector codebooks, the Huffman tables."""
+    if not n_endpoints or not n_selectors:
+        raise BasisLZError("an empty endpoint or selector codebook")
+    endpoints = _endpoints(endpoint_data, n_endpoints)
+    selectors = _selectors(selector_data, n_selectors)
+    tables = _Bits(table_data)
+    models = [_read_huffman(tables) for _ in range(4)]
+    history = tables.get(13)
+    if history > 64:
+        raise BasisLZError(f"a selector history of {history} entries (at most 64)")
     return BasisLZ(endpoints, selectors, *models, history, slices, width, height, is_video)
 
 

@@ -85,6 +85,13 @@ def _header(path: Path, data: bytes) -> Ktx2Header:
                       (level_offset, level_length), (sgd_offset, sgd_length), vk_format)
 
 
+def read_ktx2_header(data: bytes, where: str | Path) -> Ktx2Header:
+    """The header of a KTX2 file held in memory; InputError naming ``where`` when it is not one."""
+    if not data.startswith(KTX2_MAGIC):
+        raise InputError(where, "not a KTX2 image (missing the KTX 20 identifier)")
+    return _header(Path(where), data)
+
+
 def ktx2_info(path: str | Path) -> dict:
     """``{"width", "height", "layers", "codec", "animation"}`` of a KTX2 file (layers >= 1); InputError
     naming the file when it is truncated or not KTX2."""
@@ -206,12 +213,17 @@ def _decode_layer(path: Path, data: bytes, head: Ktx2Header, layer: int, basislz
         raise InputError(path, f"KTX2 layer {layer} cannot be decoded ({exc})") from None
 
 
+def encode_ktx2(image: np.ndarray, codec: str = "etc1s") -> bytes:
+    """One RGB image (uint8 (H, W, 3), row 0 at the top) → the bytes of a single-layer KTX2 file."""
+    rgba = np.concatenate([image, np.full(image.shape[:2] + (1,), 255, np.uint8)], axis=-1)
+    return _alktx2().encode_raw_rgba_to_ktx2(np.ascontiguousarray(rgba).tobytes(), image.shape[1], image.shape[0],
+                                             has_alpha=False, codec=codec)
+
+
 def write_ktx2(path: str | Path, image: np.ndarray, codec: str = "etc1s") -> None:
     """Encode one RGB image (uint8 (H, W, 3), row 0 at the top) as a single-layer KTX2, atomically."""
     from uvatar.io_utils import atomic_path
 
-    rgba = np.concatenate([image, np.full(image.shape[:2] + (1,), 255, np.uint8)], axis=-1)
-    data = _alktx2().encode_raw_rgba_to_ktx2(np.ascontiguousarray(rgba).tobytes(), image.shape[1], image.shape[0],
-                                             has_alpha=False, codec=codec)
+    data = encode_ktx2(image, codec)
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)

@@ -35,6 +35,8 @@ class UvolTakeWriter:
         self.count, self.size = 0, None
         (self.folder / "geometry_draco").mkdir(parents=True, exist_ok=True)
         (self.folder / "texture_ktx2").mkdir(parents=True, exist_ok=True)
+        # a take rewritten in place is unfinished until its new manifest lands: the old one goes first
+        (self.folder / f"{self.name}.uvol.json").unlink(missing_ok=True)
 
     def add(self, mesh: TexturedMesh) -> None:
         """Write the next frame's Draco mesh and KTX2 texture."""
@@ -58,11 +60,16 @@ class UvolTakeWriter:
         self.count += 1
 
     def close(self) -> Path | None:
-        """Write the manifest (nothing when no frame was added); returns its path."""
+        """Write the manifest (nothing when no frame was added); returns its path. Frames beyond this
+        take's count, left by a longer take written to the same folder before, are deleted first."""
         from uvatar.capture.importers.uvol_manifest import write_manifest
 
         if not self.count:
             return None
+        for folder, suffix in (("geometry_draco", ".drc"), ("texture_ktx2", ".ktx2")):
+            for path in (self.folder / folder).glob(f"*{suffix}"):
+                if path.stem.isdigit() and len(path.stem) == 5 and int(path.stem) >= self.count:
+                    path.unlink()
         path = self.folder / f"{self.name}.uvol.json"
         write_manifest(path, self.count, self.fps, self.size)
         return path

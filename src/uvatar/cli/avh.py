@@ -96,8 +96,9 @@ def _flags() -> dict[str, ConfigFlags]:
                 "camera_name": "camera of the cameras folder (none: the first)", "size": "image side (pixels)",
                 "max_frames": "render at most this many frames (none: all)", "stride": "use every n-th motion frame",
                 "fps": "video fps (none: the motion's)",
-                "mesh_format": "what --obj-dir holds: a mesh a frame (obj, glb), or a UVOL 2 take (uvol: Draco "
-                               "meshes, KTX2 textures and the manifest the Universal Volumetric player streams)",
+                "mesh_format": "what --obj-dir holds: a mesh a frame (obj, glb), a UVOL 2 take (uvol: Draco "
+                               "meshes, KTX2 textures and the manifest the Universal Volumetric player streams) or "
+                               "a Volograms take (vols: one avatar.vols, Basis textures, as Volograms' players read)",
                 "shading": "add headlight shading", "levels": "subdivision levels",
                 "progress": "progress bar (--no-progress: none)"}),
         "export": ConfigFlags(export_avatar, fields=("opset", "tolerance"), help={

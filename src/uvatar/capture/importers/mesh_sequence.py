@@ -1,11 +1,15 @@
 """``uvatar capture import`` of a volumetric video: a sequence of textured meshes, one per frame.
 
-Three layouts are read (:func:`find_mesh_sequence`):
+Four layouts are read (:func:`find_mesh_sequence`):
 
 - **UVOL 1** (the player's first format, :mod:`~uvatar.capture.importers.uvol1`): ``NAME.manifest``,
   ``NAME.drcs`` (Corto meshes end to end, :mod:`uvatar.capture.mesh_corto`) and ``NAME.mp4`` (the
   textures as a video, :mod:`uvatar.capture.texture_video`; each mesh wears the video frame the player
   shows with it, and where the video carries UVOL 1's frame counter, the frame whose counter is its own).
+
+- **Volograms** (:mod:`~uvatar.capture.importers.vologram`, versions 1.0-1.3): ``header.vols`` +
+  ``sequence_0.vols`` with a texture video beside them, or one 1.3 ``NAME.vols`` whose frames embed
+  ``.basis``/KTX2 textures; tracked frames wear their keyframe's triangles and UVs.
 
 - **UVOL 2** (the Universal Volumetric player's format): ``geometry_<target>/NNNNN.drc`` (Draco, one
   mesh per frame) and ``texture_<target>/NNNNN.ktx2`` (KTX2 array textures, ``n`` frames per file:
@@ -51,6 +55,13 @@ from uvatar.capture.importers.uvol1 import (
     read_v1_manifest,
     uvol1_sequence,
 )
+from uvatar.capture.importers.vologram import (
+    VOLS_SUFFIXES,
+    close_vols,
+    find_vols_take,
+    vols_sequence,
+    vols_take,
+)
 from uvatar.capture.importers.uvol_manifest import (
     TEXTURE_SUFFIX,
     UvolManifest,
@@ -95,12 +106,12 @@ def is_mesh_sequence(src: str | Path) -> bool:
     """True if ``src`` looks like a mesh sequence (UVOL 2 folders, a manifest, or per-frame meshes)."""
     src = Path(src)
     if src.is_file():
-        return src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES
+        return src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES + VOLS_SUFFIXES
     if not src.is_dir():
         return False
     if _uvol_folders(src)[0] or find_manifest(src):
         return True
-    return any(p.suffix.lower() in MESH_FORMATS or p.suffix.lower() in TEXTURELESS_MESHES
+    return any(p.suffix.lower() in MESH_FORMATS or p.suffix.lower() in TEXTURELESS_MESHES + VOLS_SUFFIXES
                for p in src.iterdir() if p.is_file())
 
 
@@ -140,6 +151,9 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
     v1 = find_v1_manifest(src)
     if v1 is not None:
         return uvol1_sequence(read_v1_manifest(v1))
+    vols = find_vols_take(src)
+    if vols is not None:
+        return vols_sequence(*vols)
     if not src.is_dir():
         raise InputError(src, "volumetric video folder does not exist")
     manifest_path = find_manifest(src)
@@ -295,6 +309,8 @@ def _read_mesh(source: FrameSource) -> TexturedMesh:
     from uvatar.capture.mesh_draco import read_drc
 
     suffix = source.mesh.suffix.lower()
+    if suffix in VOLS_SUFFIXES:
+        return vols_take(source.mesh).mesh(source.index)
     if suffix in (".crt",) + MESH_FILE_SUFFIXES:
         return read_crt(source.mesh, byte_range=source.mesh_bytes)
     return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh)
@@ -373,6 +389,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
         return _import_sequence(src, out, cfg, progress, t0)
     finally:
         close_videos()
+        close_vols()
 
 
 def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> dict:
