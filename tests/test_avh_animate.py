@@ -251,8 +251,8 @@ def test_animate_writes_a_volograms_take_that_imports_back(setup, tmp_path):
     """--mesh-format vols: one avatar.vols, a keyframe then tracked frames (the avatar keeps its
     topology), each frame's vertices and UV corners back exactly (float32), textures through ETC1S."""
     from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
-    from uvatar.capture.meshio import read_mesh
     from uvatar.capture.mesh_vols import open_vols
+    from uvatar.capture.meshio import read_mesh
 
     root, body, _ = setup
     seq = _sequence(3)

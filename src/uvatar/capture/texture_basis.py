@@ -73,7 +73,7 @@ def parse_basis(data: bytes) -> BasisFile:
     n_selectors, s_ofs, s_len = _uint(data, 48, 2), _uint(data, 50, 4), _uint(data, 54, 3)
     t_ofs, t_len, slice_ofs = _uint(data, 57, 4), _uint(data, 61, 4), _uint(data, 65, 4)
     if header_size != HEADER_BYTES:
-        raise BasisLZError(f"a .basis header of {header_size} bytes (this reader knows the {HEADER_BYTES}-byte one)")
+        raise BasisLZError(f"a .basis header of {header_size} bytes (this reader knows those of {HEADER_BYTES} bytes)")
     if not total_slices or slice_ofs + SLICE_BYTES * total_slices > len(data):
         raise BasisLZError(f"{total_slices} slices whose table runs past the file's end")
     for ofs, n, what in ((e_ofs, e_len, "endpoint codebook"), (s_ofs, s_len, "selector codebook"),

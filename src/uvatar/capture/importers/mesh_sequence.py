@@ -55,13 +55,6 @@ from uvatar.capture.importers.uvol1 import (
     read_v1_manifest,
     uvol1_sequence,
 )
-from uvatar.capture.importers.vologram import (
-    VOLS_SUFFIXES,
-    close_vols,
-    find_vols_take,
-    vols_sequence,
-    vols_take,
-)
 from uvatar.capture.importers.uvol_manifest import (
     TEXTURE_SUFFIX,
     UvolManifest,
@@ -69,6 +62,13 @@ from uvatar.capture.importers.uvol_manifest import (
     read_manifest,
     template_folder,
     texture_frame,
+)
+from uvatar.capture.importers.vologram import (
+    VOLS_SUFFIXES,
+    close_vols,
+    find_vols_take,
+    vols_sequence,
+    vols_take,
 )
 from uvatar.capture.layout import frame_name
 from uvatar.capture.meshio import IMAGE_SUFFIXES, MESH_FORMATS, read_mesh
