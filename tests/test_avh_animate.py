@@ -256,9 +256,9 @@ def test_animate_writes_a_volograms_take_that_imports_back(setup, tmp_path):
 
     root, body, _ = setup
     seq = _sequence(3)
-    animate(root / "avatar", seq, tmp_path / "a.mp4", AnimateConfig(size=32, progress=False, mesh_format="vols"),
+    animate(root / "avatar", seq, tmp_path / "a.mp4", AnimateConfig(size=32, progress=False, mesh_format="vols", levels=1),
             mesh_dir=tmp_path / "take", body=body)
-    animate(root / "avatar", seq, tmp_path / "b.mp4", AnimateConfig(size=32, progress=False),
+    animate(root / "avatar", seq, tmp_path / "b.mp4", AnimateConfig(size=32, progress=False, levels=1),
             mesh_dir=tmp_path / "objs", body=body)
     take = open_vols(tmp_path / "take" / "avatar.vols")
     assert take.header.version == 13 and take.header.frame_count == 3 and take.header.fps == seq.fps
@@ -271,3 +271,9 @@ def test_animate_writes_a_volograms_take_that_imports_back(setup, tmp_path):
         np.testing.assert_allclose(np.sort(_corners(back), 0), np.sort(_corners(ref), 0), atol=1e-6)
         assert np.abs(back.texture.astype(np.float32) / (255 if back.texture.dtype == np.uint8 else 1)
                       - ref.texture).mean() < 0.03                                      # ETC1S
+
+
+def test_a_volograms_take_of_the_twice_subdivided_body_is_refused_before_any_work():
+    with pytest.raises(ValueError, match="at most 65,536 vertices"):
+        AnimateConfig(mesh_format="vols", levels=2)
+    assert AnimateConfig(mesh_format="vols", levels=1).levels == 1

@@ -30,6 +30,7 @@ RENDER_BYTES_PER_PIXEL = 96  # rasterizer buffers of one frame (depth, barycentr
 
 
 MESH_FORMATS = ("obj", "glb", "uvol", "vols")   # what --obj-dir writes: a mesh a frame, a UVOL 2 or a Volograms take
+VOLS_MAX_LEVELS = 1   # anny subdivided once: 57,205 vertices once split along its UV seams, under uint16's 65,536
 
 
 @dataclass(frozen=True)
@@ -66,7 +67,11 @@ class AnimateConfig:
                   (self.fps is None or self.fps > 0, f"fps must be > 0, got {self.fps}"),
                   (0 < self.fov_deg < 180, f"fov must be in (0, 180) degrees, got {self.fov_deg}"),
                   (self.mesh_format in MESH_FORMATS, f"mesh format must be one of {', '.join(MESH_FORMATS)}, got "
-                                                     f"{self.mesh_format!r}")]
+                                                     f"{self.mesh_format!r}"),
+                  (self.mesh_format != "vols" or self.levels <= VOLS_MAX_LEVELS,
+                   f"a Volograms take (mesh format vols) holds at most 65,536 vertices a frame (its players draw "
+                   f"uint16 indices): {self.levels} subdivision levels make ~224,000 on anny; levels 1 makes "
+                   f"~57,000, levels 0 ~15,000")]
         check_values(checks)
 
 
