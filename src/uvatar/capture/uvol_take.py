@@ -12,8 +12,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
 
@@ -41,22 +39,13 @@ class UvolTakeWriter:
     def add(self, mesh: TexturedMesh) -> None:
         """Write the next frame's Draco mesh and KTX2 texture."""
         from uvatar.capture.mesh_draco import write_drc
+        from uvatar.capture.take_frames import frame_texture
         from uvatar.capture.texture_ktx2 import write_ktx2
 
-        if mesh.texture is None or not mesh.has_uvs:
-            raise InputError(self.folder, f"frame {self.count} has no texture or no UVs: a UVOL take needs both")
-        texture = np.asarray(mesh.texture)
-        if texture.dtype != np.uint8:
-            texture = (np.clip(texture[..., :3], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-        size = (texture.shape[1], texture.shape[0])
-        if self.size is None:
-            self.size = size
-        elif size != self.size:
-            raise InputError(self.folder, f"frame {self.count}'s texture is {size[0]} x {size[1]}, the take's "
-                                          f"{self.size[0]} x {self.size[1]}")
+        texture, self.size = frame_texture(mesh, self.folder, self.count, self.size, "UVOL")
         write_drc(self.folder / "geometry_draco" / f"{self.count:05d}.drc", mesh, quantization_bits=POSITION_BITS,
                   compression_level=7, preserve_order=False)
-        write_ktx2(self.folder / "texture_ktx2" / f"{self.count:05d}.ktx2", np.ascontiguousarray(texture[..., :3]))
+        write_ktx2(self.folder / "texture_ktx2" / f"{self.count:05d}.ktx2", texture)
         self.count += 1
 
     def close(self) -> Path | None:

@@ -60,20 +60,11 @@ class VolsTakeWriter:
     def add(self, mesh: TexturedMesh) -> None:
         """Write the next frame (a keyframe when its topology differs from the current keyframe's)."""
         from uvatar.capture.mesh_glb import split_for_gltf
+        from uvatar.capture.take_frames import frame_texture
         from uvatar.capture.texture_basis import encode_basis
         from uvatar.geometry.frames import vertex_normals
 
-        if mesh.texture is None or not mesh.has_uvs:
-            raise InputError(self.path, f"frame {self.count} has no texture or no UVs: a Volograms take needs both")
-        texture = np.asarray(mesh.texture)
-        if texture.dtype != np.uint8:
-            texture = (np.clip(texture[..., :3], 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-        size = (texture.shape[1], texture.shape[0])
-        if self.size is None:
-            self.size = size
-        elif size != self.size:
-            raise InputError(self.path, f"frame {self.count}'s texture is {size[0]} x {size[1]}, the take's "
-                                        f"{self.size[0]} x {self.size[1]}")
+        texture, self.size = frame_texture(mesh, self.path, self.count, self.size, "Volograms")
         positions, uvs, indices = split_for_gltf(mesh)
         if len(positions) > UINT16_VERTICES:
             raise InputError(self.path, f"frame {self.count} has {len(positions)} vertices once split along its UV "
@@ -88,7 +79,7 @@ class VolsTakeWriter:
             self._topology = (indices, uvs)
             self.keyframes += 1
         self._body.write(frame_bytes(self._header, self.count, kind, positions, normals, indices, uvs,
-                                     encode_basis(np.ascontiguousarray(texture[..., :3]))))
+                                     encode_basis(texture)))
         self.count += 1
 
     def close(self) -> Path | None:
