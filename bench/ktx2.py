@@ -1,5 +1,5 @@
-"""KTX2 / ETC1S decoding speed: uvatar's BasisLZ decoder (``capture/texture_basislz.py``, the block loop
-in Python) against alktx2 (Basis Universal's C++ transcoder) on the same single-layer file, in the same
+"""KTX2 / ETC1S decoding speed: uvatar's BasisLZ decoder (``capture/texture_basislz.py``; the block loop
+in its one-thread Warp twin, and in its Python reference) against alktx2 (Basis Universal's C++ transcoder) on the same single-layer file, in the same
 run, and a UVOL 2 animation file's layers decoded in order (which only uvatar's decoder does exactly).
 
     python bench/ktx2.py [--quick] [--size 1024] [--take ../shared/data/liam_uvol/texture_ktx2/00000.ktx2]
@@ -61,8 +61,17 @@ def main() -> None:
             texture_ktx2._decoded.clear()
             return texture_ktx2.read_ktx2_layer(path, 0)
 
+        def ours_python():
+            from uvatar.capture.texture_basislz import decode_basislz
+
+            head = texture_ktx2.read_ktx2_header(data, path)
+            return decode_basislz(data, texture_ktx2.parse_basislz_of(data, head), [0], fast=False)[0]
+
         out["bytes"] = len(data)
         out["uvatar_s"] = median_seconds(ours, repeats)
+        out["uvatar_python_slices_s"] = median_seconds(ours_python, repeats)
+        out["warp_twin_speedup"] = out["uvatar_python_slices_s"] / out["uvatar_s"]
+        out["twins_equal"] = bool(np.array_equal(ours(), ours_python()))
         out["alktx2_s"] = median_seconds(lambda: _alktx2_layer(data), repeats)
         out["uvatar_over_alktx2"] = out["uvatar_s"] / out["alktx2_s"]
         out["bit_exact"] = bool(np.array_equal(ours(), _alktx2_layer(data)))

@@ -176,3 +176,71 @@ def test_bench_quick_row_is_bit_exact_against_alktx2(capsys, monkeypatch):
     row = json.loads(capsys.readouterr().out)
     assert row["bit_exact"] and row["size"] == 256 and row["uvatar_s"] > 0 and row["alktx2_s"] > 0
     assert row["take"]["layers"] == 3 and row["take"]["seconds_per_layer"] > 0
+
+
+def _slices(data: bytes, lz: basislz.BasisLZ, fast: bool, mutate=None):
+    """Every slice's (endpoint, selector) indices, in order, by one twin (None where it refuses)."""
+    bx, by = (lz.width + 3) // 4, (lz.height + 3) // 4
+    out, previous = [], None
+    for offset, length, p_frame in lz.slices:
+        piece = data[offset:offset + length] if mutate is None else mutate(data[offset:offset + length])
+        try:
+            e, s = basislz.decode_slice(lz, piece, bx, by, previous if p_frame else None, fast=fast)
+        except basislz.BasisLZError:
+            out.append(None)
+            previous = None
+            continue
+        previous = np.stack([e, s])
+        out.append(previous)
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(LAYERS))
+def test_the_warp_twin_decodes_every_slice_as_the_python_reference(name):
+    from uvatar.capture.basislz_warp import decode_slice_warp, huffman_tables
+
+    data, lz = _lz(FIXTURES / f"{name}.ktx2")
+    fast, slow = _slices(data, lz, True), _slices(data, lz, False)
+    assert len(fast) == len(slow) and all(f is not None for f in slow)
+    for f, s in zip(fast, slow):
+        np.testing.assert_array_equal(f, s)
+    # and the twin itself (not a fallback to Python) gave them
+    offset, length, _ = lz.slices[0]
+    tables = huffman_tables([lz.endpoint_pred, lz.delta_endpoint, lz.selector, lz.selector_rle])
+    out = decode_slice_warp(tables, data[offset:offset + length], (lz.width + 3) // 4, (lz.height + 3) // 4,
+                            len(lz.endpoints), len(lz.selectors), lz.history_size, lz.is_video, None)
+    assert out is not None
+    np.testing.assert_array_equal(np.stack(out), slow[0])
+
+
+def test_the_twins_agree_on_corrupted_slices_too():
+    """Bit flips in a video's slices: the Warp twin either gives the reference's indices or refuses, and
+    a refusal is then the reference's (decode_slice falls back, so the two paths end the same)."""
+    from uvatar.capture.basislz_warp import decode_slice_warp, huffman_tables
+
+    data, lz = _lz(FIXTURES / "video_runs.ktx2")
+    rng = np.random.default_rng(11)
+    tables = huffman_tables([lz.endpoint_pred, lz.delta_endpoint, lz.selector, lz.selector_rle])
+    bx, by = (lz.width + 3) // 4, (lz.height + 3) // 4
+    offset, length, _ = lz.slices[0]
+    refused = 0
+    for trial in range(150):
+        piece = bytearray(data[offset:offset + length])
+        for _ in range(int(rng.integers(1, 3))):
+            piece[int(rng.integers(0, len(piece)))] ^= 1 << int(rng.integers(0, 8))
+        if trial % 3 == 0:
+            piece = piece[:int(rng.integers(1, len(piece) + 1))]
+        piece = bytes(piece)
+        fast = decode_slice_warp(tables, piece, bx, by, len(lz.endpoints), len(lz.selectors), lz.history_size,
+                                 lz.is_video, None)
+        try:
+            slow = basislz._decode_slice(lz, piece, bx, by, None)
+        except basislz.BasisLZError:
+            slow = None
+        if fast is None:
+            refused += 1
+            assert slow is None, trial
+        else:
+            assert slow is not None, trial
+            np.testing.assert_array_equal(np.stack(fast), np.stack(slow))
+    assert 0 < refused < 150

@@ -11,8 +11,9 @@ P-frames are noise; :func:`decode_basislz` decodes a file's layers in order and 
 A slice is a raster of 4x4 blocks, each an index into the endpoint codebook (a 5-bit base colour and
 an intensity table) and one into the selector codebook (16 2-bit selectors). The indices are Huffman
 coded with predictions from the left and upper block (and, in a P-frame, the previous frame's block),
-which makes the block loop serial: it runs in plain Python over a slice's blocks (65,536 for 1024²:
-about 0.1 s), and the pixels are then made from the indices in one numpy gather. The decoded colours
+which makes the block loop serial: it runs over a slice's blocks (65,536 for 1024²) in one Warp thread
+(:mod:`uvatar.capture.basislz_warp`, ~6 ms) or, without the ``kernels`` extra, in its Python twin
+:func:`_decode_slice` (~0.1 s); the pixels are then made from the indices in one numpy gather. The decoded colours
 are Basis Universal's own decoding bit for bit (tested against the ``basisu`` tool's unpacking of
 videos, mips, arrays and the shared take, and against alktx2 on the ETC1S files it writes).
 """
@@ -108,12 +109,19 @@ def _huffman(lengths: list[int]) -> _Huffman:
     if code + int(counts[bits]) > (1 << bits):
         raise BasisLZError("Huffman code lengths that over-subscribe the code space")
     lut = np.full(1 << bits, -1, np.int64)
-    for symbol in np.flatnonzero(lengths):
-        n = int(lengths[symbol])
-        c = next_code[n]
-        next_code[n] += 1
-        reversed_code = int(f"{c:0{n}b}"[::-1], 2)
-        lut[reversed_code::1 << n] = (int(symbol) << 5) | n
+    symbols = np.flatnonzero(lengths)
+    n = lengths[symbols]
+    order = np.lexsort((symbols, n))                   # canonical order: by length, then by symbol
+    symbols, n = symbols[order], n[order]
+    first = np.searchsorted(n, n)                      # each symbol's rank among the codes of its length
+    codes = np.asarray(next_code, np.int64)[n] + np.arange(len(n)) - first
+    reversed_codes = np.zeros_like(codes)              # LSB-first: each code's n bits reversed
+    for k in range(bits):
+        reversed_codes |= ((codes >> k) & 1) << np.maximum(n - 1 - k, 0) * (k < n)
+    for length in np.unique(n):                        # every entry whose low `length` bits are the code
+        at = n == length
+        slots = reversed_codes[at, None] + (np.arange(1 << (bits - int(length))) << int(length))[None, :]
+        lut[slots] = ((symbols[at] << 5) | length)[:, None]
     return _Huffman(lut.tolist(), bits, (1 << bits) - 1)
 
 
@@ -205,6 +213,7 @@ class BasisLZ:
     width: int
     height: int
     is_video: bool
+    warp_tables: object = None     # the Huffman tables as the Warp twin takes them, made at its first slice
 
 
 def parse_basislz(data: bytes, width: int, height: int, layers: int, faces: int, levels: int,
@@ -353,6 +362,25 @@ def _decode_slice(lz: BasisLZ, data: bytes, blocks_x: int, blocks_y: int,
     return np.asarray(out_e, np.int32), np.asarray(out_s, np.int32)
 
 
+def decode_slice(lz: BasisLZ, data: bytes, blocks_x: int, blocks_y: int,
+                 previous: np.ndarray | None, fast: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_decode_slice` in its one-thread Warp twin (:mod:`uvatar.capture.basislz_warp`) when the
+    ``kernels`` extra is there (``fast``), else in Python; the same indices either way. A slice the twin
+    finds malformed is decoded again in Python, which says what is wrong."""
+    from uvatar.geometry.warp_torch import warp_available
+
+    if fast and warp_available("ETC1S texture slices"):
+        from uvatar.capture.basislz_warp import decode_slice_warp, huffman_tables
+
+        if lz.warp_tables is None:
+            lz.warp_tables = huffman_tables([lz.endpoint_pred, lz.delta_endpoint, lz.selector, lz.selector_rle])
+        out = decode_slice_warp(lz.warp_tables, data, blocks_x, blocks_y, len(lz.endpoints), len(lz.selectors),
+                                lz.history_size, lz.is_video, previous)
+        if out is not None:
+            return out
+    return _decode_slice(lz, data, blocks_x, blocks_y, previous)
+
+
 def etc1s_pixels(endpoints: np.ndarray, selectors: np.ndarray, endpoint_index: np.ndarray,
                  selector_index: np.ndarray, width: int, height: int) -> np.ndarray:
     """ETC1S blocks → uint8 (height, width, 3) RGB: each block's base colour (5 bits widened to 8) plus
@@ -366,10 +394,11 @@ def etc1s_pixels(endpoints: np.ndarray, selectors: np.ndarray, endpoint_index: n
     return np.ascontiguousarray(image[:height, :width])
 
 
-def decode_basislz(data: bytes, lz: BasisLZ, layers: range | list | None = None) -> list[np.ndarray]:
+def decode_basislz(data: bytes, lz: BasisLZ, layers: range | list | None = None, fast: bool = True) -> list[np.ndarray]:
     """Decode level 0 of the file's images in order → RGB uint8 (H, W, 3) arrays, one per asked-for image
     (default: all). In a video every image up to the last one asked for is decoded, since a P-frame needs
-    the one before it; an I-frame restarts the chain."""
+    the one before it; an I-frame restarts the chain. ``fast``: the slices in their Warp twin where the
+    ``kernels`` extra is installed (:func:`decode_slice`)."""
     wanted = list(range(len(lz.slices))) if layers is None else sorted(set(layers))
     if not wanted:
         return []
@@ -386,8 +415,8 @@ def decode_basislz(data: bytes, lz: BasisLZ, layers: range | list | None = None)
         offset, length, p_frame = lz.slices[i]
         if p_frame and (not lz.is_video or previous is None):
             raise BasisLZError(f"image {i} is a P-frame with no frame before it")
-        e, s = _decode_slice(lz, data[offset:offset + length], blocks_x, blocks_y,
-                             previous if p_frame else None)
+        e, s = decode_slice(lz, data[offset:offset + length], blocks_x, blocks_y, previous if p_frame else None,
+                            fast)
         previous = np.stack([e, s])
         if i in wanted:
             out[i] = etc1s_pixels(lz.endpoints, lz.selectors, e, s, lz.width, lz.height)
