@@ -41,6 +41,15 @@ def synthetic_take(path: Path) -> Path:
     return path
 
 
+def read_uvol2(seq, frame: int):
+    """One UVOL 2 frame as an import reads it, its KTX2 file's layers decoded afresh."""
+    from uvatar.capture import texture_ktx2
+    from uvatar.capture.importers.mesh_sequence import _read_frame
+
+    texture_ktx2._decoded.clear()
+    return _read_frame(seq.frames[frame])
+
+
 def main() -> None:
     from uvatar.capture.mesh_vols import open_vols
     from uvatar.capture.texture_basis import read_basis_bytes
@@ -58,24 +67,19 @@ def main() -> None:
         out = {"take": str(path), "frames": frames, "take_frames": len(take.frames),
                "list_frames_s": median_seconds(lambda: open_vols(path), args.repeats)}
         sections, meshes, textures, uvol = [], [], [], []
+        seq = None
+        if args.uvol:
+            from uvatar.capture.importers.mesh_sequence import find_mesh_sequence
+
+            seq = find_mesh_sequence(args.uvol)
         for f in frames:
             take = open_vols(path)
-            sections.append(median_seconds(lambda: take.arrays(f), args.repeats))
             data = take.arrays(f).texture
-            textures.append(median_seconds(lambda: read_basis_bytes(data, "t"), args.repeats))
-            meshes.append(median_seconds(lambda: take.mesh(f), args.repeats))
-            if args.uvol:
-                from uvatar.capture.importers.mesh_sequence import _read_frame, find_mesh_sequence
-
-                from uvatar.capture import texture_ktx2
-
-                seq = find_mesh_sequence(args.uvol)
-
-                def read_uvol2():
-                    texture_ktx2._decoded.clear()     # the KTX2 file's layers decoded afresh, as an import does
-                    return _read_frame(seq.frames[f])
-
-                uvol.append(median_seconds(read_uvol2, args.repeats))
+            sections.append(median_seconds(lambda take=take, f=f: take.arrays(f), args.repeats))
+            textures.append(median_seconds(lambda data=data: read_basis_bytes(data, "t"), args.repeats))
+            meshes.append(median_seconds(lambda take=take, f=f: take.mesh(f), args.repeats))
+            if seq is not None:
+                uvol.append(median_seconds(lambda f=f: read_uvol2(seq, f), args.repeats))
         out |= {"vertices": int(len(take.arrays(frames[0]).positions)),
                 "frame_sections_s": float(np.median(sections)), "basis_texture_s": float(np.median(textures)),
                 "frame_mesh_and_texture_s": float(np.median(meshes))}

@@ -236,3 +236,15 @@ def test_the_writer_refuses_what_players_cannot_draw(tmp_path):
     assert not (tmp_path / "big.vols").exists() and not list(tmp_path.glob(".*"))    # nothing half-made
     with pytest.raises(InputError, match="frame rate"):
         VolsTakeWriter(tmp_path / "x.vols", fps=0)
+
+
+def test_bench_reads_a_take_and_times_each_step(capsys, monkeypatch):
+    import sys
+
+    from bench_modules import load_bench
+
+    monkeypatch.setattr(sys, "argv", ["vols.py", str(FIX / "v13_basis.vols"), "--frames", "0,2", "--repeats", "1"])
+    load_bench("vols").main()
+    row = json.loads(capsys.readouterr().out)
+    assert row["take_frames"] == 3 and row["vertices"] == 16
+    assert row["frame_sections_s"] > 0 and row["basis_texture_s"] > 0 and row["frame_mesh_and_texture_s"] > 0
