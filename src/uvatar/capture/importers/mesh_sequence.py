@@ -1,6 +1,6 @@
 """``uvatar capture import`` of a volumetric video: a sequence of textured meshes, one per frame.
 
-Four layouts are read (:func:`find_mesh_sequence`):
+Five layouts are read (:func:`find_mesh_sequence`):
 
 - **UVOL 1** (the player's first format, :mod:`~uvatar.capture.importers.uvol1`): ``NAME.manifest``,
   ``NAME.drcs`` (Corto meshes end to end, :mod:`uvatar.capture.mesh_corto`) and ``NAME.mp4`` (the
@@ -10,6 +10,9 @@ Four layouts are read (:func:`find_mesh_sequence`):
 - **Volograms** (:mod:`~uvatar.capture.importers.vologram`, versions 1.0-1.3): ``header.vols`` +
   ``sequence_0.vols`` with a texture video beside them, or one 1.3 ``NAME.vols`` whose frames embed
   ``.basis``/KTX2 textures; tracked frames wear their keyframe's triangles and UVs.
+
+- **Alembic** (:mod:`~uvatar.capture.importers.alembic`): one ``.abc`` mesh cache (Ogawa; PolyMesh or SubD,
+  tracked or each frame its own topology) with per-frame images, a texture video or one image beside it.
 
 - **UVOL 2** (the Universal Volumetric player's format): ``geometry_<target>/NNNNN.drc`` (Draco, one
   mesh per frame) and ``texture_<target>/NNNNN.ktx2`` (KTX2 array textures, ``n`` frames per file:
@@ -39,15 +42,21 @@ Resumable: frames already written are kept (all writes are atomic; ``capture.jso
 from __future__ import annotations
 
 import logging
-import re
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
+from uvatar.capture.importers.alembic import (
+    ABC_SUFFIXES,
+    alembic_mesh,
+    alembic_sequence,
+    close_alembic,
+    find_alembic,
+)
 from uvatar.capture.importers.calibration import UNIT_SCALE, up_rotation
-from uvatar.capture.importers.sequence import FrameSource, MeshSequence
+from uvatar.capture.importers.sequence import FrameSource, MeshSequence, files_by_frame
 from uvatar.capture.importers.uvol1 import (
     MESH_FILE_SUFFIXES,
     VIDEO_SUFFIXES,
@@ -106,18 +115,13 @@ def is_mesh_sequence(src: str | Path) -> bool:
     """True if ``src`` looks like a mesh sequence (UVOL 2 folders, a manifest, or per-frame meshes)."""
     src = Path(src)
     if src.is_file():
-        return src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES + VOLS_SUFFIXES
+        return src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES + VOLS_SUFFIXES + ABC_SUFFIXES
     if not src.is_dir():
         return False
     if _uvol_folders(src)[0] or find_manifest(src):
         return True
-    return any(p.suffix.lower() in MESH_FORMATS or p.suffix.lower() in TEXTURELESS_MESHES + VOLS_SUFFIXES
+    return any(p.suffix.lower() in MESH_FORMATS or p.suffix.lower() in TEXTURELESS_MESHES + VOLS_SUFFIXES + ABC_SUFFIXES
                for p in src.iterdir() if p.is_file())
-
-
-def _frame_number(path: Path) -> int | None:
-    digits = re.findall(r"\d+", path.stem)
-    return int(digits[-1]) if digits else None
 
 
 def _uvol_folders(src: Path) -> tuple[list[Path], list[Path]]:
@@ -135,16 +139,6 @@ def _pick(folders: list[Path], suffixes: tuple[str, ...]) -> Path | None:
     return None
 
 
-def _files_by_frame(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:
-    files: dict[int, Path] = {}
-    for p in sorted(folder.iterdir()):
-        if p.is_file() and p.suffix.lower() in suffixes and not p.name.startswith("."):
-            n = _frame_number(p)
-            if n is not None and n not in files:
-                files[n] = p
-    return files
-
-
 def find_mesh_sequence(src: str | Path) -> MeshSequence:
     """List a mesh sequence's frames (nothing decoded but KTX2 headers); InputError when none."""
     src = Path(src)
@@ -154,6 +148,9 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
     vols = find_vols_take(src)
     if vols is not None:
         return vols_sequence(*vols)
+    abc = find_alembic(src)
+    if abc is not None:
+        return alembic_sequence(abc)
     if not src.is_dir():
         raise InputError(src, "volumetric video folder does not exist")
     manifest_path = find_manifest(src)
@@ -165,7 +162,7 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
         or _pick(geometry_dirs, MESH_SUFFIXES)
     if geometry is None:
         raise InputError(src, "no geometry_*/ folder with .drc/.glb/.obj/.ply frames")
-    meshes = _files_by_frame(geometry, MESH_SUFFIXES)
+    meshes = files_by_frame(geometry, MESH_SUFFIXES)
     if not meshes:
         raise InputError(geometry, "holds no mesh frames (NNNNN.drc)")
     suffixes = ((TEXTURE_SUFFIX[manifest.texture_format],) if manifest.texture_format in TEXTURE_SUFFIX
@@ -188,7 +185,7 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
         if suffix in LAYERED_SUFFIXES:
             _layered_textures(seq, texture, geometry, suffix, manifest)
         else:
-            images = _files_by_frame(texture, IMAGE_SUFFIXES)
+            images = files_by_frame(texture, IMAGE_SUFFIXES)
             for i, source in seq.frames.items():
                 source.texture = images.get(i, ())
                 if not source.texture:
@@ -226,7 +223,7 @@ def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: 
     ``.etc2`` file is one image for its ``n`` texture frames."""
     from uvatar.capture.texture_etc import etc2_image_size
 
-    files = _files_by_frame(texture, (suffix,))
+    files = files_by_frame(texture, (suffix,))
     kind, info_of, _ = _layered_format(suffix)
     first = files[min(files)]
     layers: dict[Path, int] = {}
@@ -281,7 +278,7 @@ def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: 
 
 def _plain_folder(src: Path) -> MeshSequence:
     suffixes = tuple(MESH_FORMATS) + TEXTURELESS_MESHES
-    meshes = _files_by_frame(src, suffixes)
+    meshes = files_by_frame(src, suffixes)
     if not meshes:
         raise InputError(src, "no volumetric video here: no geometry_*/ folder, no UVOL manifest and no per-frame "
                               f"meshes ({', '.join(suffixes)})")
@@ -311,6 +308,8 @@ def _read_mesh(source: FrameSource) -> TexturedMesh:
     suffix = source.mesh.suffix.lower()
     if suffix in VOLS_SUFFIXES:
         return vols_take(source.mesh).mesh(source.index)
+    if suffix in ABC_SUFFIXES:
+        return alembic_mesh(source.mesh, source.index)
     if suffix in (".crt",) + MESH_FILE_SUFFIXES:
         return read_crt(source.mesh, byte_range=source.mesh_bytes)
     return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh)
@@ -390,6 +389,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
     finally:
         close_videos()
         close_vols()
+        close_alembic()
 
 
 def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> dict:

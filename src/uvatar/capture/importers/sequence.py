@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,3 +38,21 @@ class MeshSequence:
     problems: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     texture_size: tuple[int, int] | None = None
+
+
+def frame_number(path: Path) -> int | None:
+    """A per-frame file's frame number: the last run of digits in its name (``scan_000017.obj`` → 17)."""
+    digits = re.findall(r"\d+", path.stem)
+    return int(digits[-1]) if digits else None
+
+
+def files_by_frame(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:
+    """The files of ``folder`` with one of ``suffixes`` by frame number (the first name wins a tie;
+    hidden files skipped)."""
+    files: dict[int, Path] = {}
+    for p in sorted(folder.iterdir()):
+        if p.is_file() and p.suffix.lower() in suffixes and not p.name.startswith("."):
+            n = frame_number(p)
+            if n is not None and n not in files:
+                files[n] = p
+    return files

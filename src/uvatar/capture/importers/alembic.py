@@ -1,0 +1,173 @@
+"""Alembic takes for ``uvatar capture import``: one ``.abc`` mesh cache and its textures beside it.
+
+Studios export a volumetric take as an Alembic cache of its meshes (tracked: one topology; untracked:
+each frame its own) with the textures as files of their own, since Alembic stores none. Found, in this
+order, in the ``.abc``'s folder, its ``textures/`` (or ``texture*/``, or ``<name>/``) sub-folder:
+
+1. **per-frame images** (``body_000017.png``: the last run of digits is the frame) whose numbers are the
+   take's frame numbers (the samples' times x the frame rate), or those numbers shifted by one offset
+   (images from 0 for a take from frame 1), or as many images as samples (then in order; said so);
+2. **a texture video** (``*.mp4``, ``.mov``, ...; ``texture*`` first): sample ``i`` wears the frame shown
+   at its time;
+3. **one image**: every frame wears it (a tracked take with one atlas).
+
+The mesh is :mod:`uvatar.capture.mesh_abc`'s; the archive has no units (Maya writes centimetres,
+Houdini metres): they come from ``--units`` or the person's height, as for any mesh folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.capture.importers.sequence import FrameSource, MeshSequence, files_by_frame
+from uvatar.capture.importers.uvol1 import VIDEO_SUFFIXES, video_frame
+from uvatar.capture.mesh_abc import AlembicTake
+from uvatar.capture.meshio import IMAGE_SUFFIXES
+from uvatar.capture.texture_video import open_video
+from uvatar.errors import InputError
+
+__all__ = ["ABC_SUFFIXES", "find_alembic", "alembic_sequence", "alembic_mesh", "close_alembic"]
+
+ABC_SUFFIXES = (".abc",)
+DEFAULT_FPS = 30.0      # where neither the sampling nor the archive says
+
+_open: dict[Path, tuple[AlembicTake, dict[int, int]]] = {}   # listed takes: (take, sample of each frame number)
+
+
+def find_alembic(src: Path) -> Path | None:
+    """The ``.abc`` file of ``src`` (the file itself or the only one in a folder); None when there is
+    none; InputError when a folder holds several."""
+    src = Path(src)
+    if src.is_file():
+        return src if src.suffix.lower() in ABC_SUFFIXES else None
+    if not src.is_dir():
+        return None
+    files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix.lower() in ABC_SUFFIXES
+                   and not p.name.startswith("."))
+    if len(files) > 1:
+        raise InputError(src, f"holds {len(files)} Alembic files ({', '.join(p.name for p in files[:4])}); give "
+                              "one's .abc file")
+    return files[0] if files else None
+
+
+def alembic_mesh(path: Path, frame: int):
+    """Frame ``frame`` of the listed take ``path`` (the archive's units and axes, no texture)."""
+    listed = _open.get(Path(path))
+    if listed is None:
+        raise InputError(path, "Alembic take not listed before its frames were read")
+    take, sample_of = listed
+    return take.mesh(sample_of[frame])
+
+
+def close_alembic() -> None:
+    """Close the takes listed by this import."""
+    for take, _ in _open.values():
+        take.close()
+    _open.clear()
+
+
+def _frame_numbers(take: AlembicTake, fps: float, seq: MeshSequence) -> list[int]:
+    """Each sample's frame number: its time x ``fps`` where that names every sample once, else its index."""
+    times = np.array([take.time(i) for i in range(take.count)])
+    numbers = np.rint(times * fps).astype(np.int64)
+    if len(set(numbers.tolist())) == take.count and (numbers >= 0).all():
+        return numbers.tolist()
+    seq.notes.append(f"{take.path}: sample times do not fall on distinct frames at {fps:g} fps (subframes or "
+                     "negative times): frames are numbered by sample, from 0")
+    return list(range(take.count))
+
+
+def _texture_folders(folder: Path, stem: str) -> list[Path]:
+    subs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+    named = [p for p in subs if p.name.lower() in ("textures", "texture", stem.lower())]
+    return [folder] + named + [p for p in subs if p.name.lower().startswith("tex") and p not in named]
+
+
+def _match_images(images: dict[int, Path], numbers: list[int]) -> tuple[dict[int, Path], str] | None:
+    """Each frame number's image: by number, by one shift, or in order where the counts are equal."""
+    if not images:
+        return None
+    if all(n in images for n in numbers):
+        return {n: images[n] for n in numbers}, ""
+    shift = min(images) - min(numbers)
+    if all(n + shift in images for n in numbers):
+        return {n: images[n + shift] for n in numbers}, f"images numbered from {min(images)} for frames from " \
+                                                          f"{min(numbers)}: frame n wears image n{shift:+d}"
+    if len(images) == len(numbers):
+        return dict(zip(numbers, (images[k] for k in sorted(images)), strict=True)), \
+            "image numbers are not the frames': the images in order, one a sample"
+    return None
+
+
+def _attach_textures(seq: MeshSequence, path: Path, numbers: list[int], fps: float) -> None:
+    """Give each frame its texture (see the module doc); frames without one are problems."""
+    folders = _texture_folders(path.parent, path.stem)
+    best: tuple[int, Path, dict[int, Path]] | None = None
+    for folder in folders:
+        images = files_by_frame(folder, IMAGE_SUFFIXES)
+        match = _match_images(images, numbers)
+        if match is not None:
+            textures, how = match
+            for n in numbers:
+                seq.frames[n].texture = textures[n]
+            seq.notes.append(f"{folder}: per-frame texture images" + (f" ({how})" if how else ""))
+            return
+        covered = sum(n in images for n in numbers)
+        if covered and (best is None or covered > best[0]):
+            best = (covered, folder, images)
+    videos = [p for folder in folders for p in sorted(folder.iterdir())
+              if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES]
+    videos.sort(key=lambda p: not p.stem.lower().startswith("tex"))
+    if videos:
+        video = open_video(videos[0])
+        for k, n in enumerate(numbers):
+            f = video_frame(k, fps, video.fps)
+            seq.frames[n].texture = (videos[0], f) if f < video.count else ()
+            if f >= video.count:
+                seq.problems.append(f"{videos[0]}: no video frame for frame {n} ({video.count} frames)")
+        seq.notes.append(f"{videos[0]}: the texture video, a frame per sample")
+        return
+    singles = [p for folder in folders for p in sorted(folder.iterdir())
+               if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")]
+    if len(singles) == 1:
+        for n in numbers:
+            seq.frames[n].texture = singles[0]
+        seq.notes.append(f"{singles[0]}: the only texture image: every frame wears it")
+        return
+    if best is not None:
+        covered, folder, images = best
+        for n in numbers:
+            seq.frames[n].texture = images.get(n, ())
+            if n not in images:
+                seq.problems.append(f"{folder}: no image for frame {n}: it has no texture")
+        return
+    for n in numbers:
+        seq.frames[n].texture = ()
+    seq.problems.append(f"{path}: no texture beside it (per-frame images, a texture video or one image, in its folder "
+                        "or textures/): no frame can be imported")
+
+
+def alembic_sequence(path: Path) -> MeshSequence:
+    """An Alembic take's frames and where each one's texture comes from."""
+    path = Path(path)
+    take = AlembicTake(path)
+    fps = take.fps()
+    seq = MeshSequence({}, "alembic", fps=fps, manifest=path)
+    seq.notes.append(f"{path}: {take.describe()}")
+    if take.other_meshes:
+        seq.notes.append(f"{path}: {len(take.other_meshes)} other mesh{'es' if len(take.other_meshes) > 1 else ''} "
+                         f"not read ({', '.join(take.other_meshes[:3])}): the take is the one with the most points")
+    if take.uv_param is None:
+        take.close()
+        raise InputError(path, f"mesh {take.mesh_object.full_name} has no UVs (no uv parameter): its textures "
+                               "cannot be mapped")
+    if not fps:
+        fps = DEFAULT_FPS
+        seq.notes.append(f"{path}: no frame rate in the archive (acyclic times): {DEFAULT_FPS:g} fps; give --fps")
+    numbers = _frame_numbers(take, fps, seq)
+    _open[path] = (take, {n: i for i, n in enumerate(numbers)})
+    seq.frames = {n: FrameSource(n, path) for n in numbers}
+    _attach_textures(seq, path, numbers, fps)
+    return seq

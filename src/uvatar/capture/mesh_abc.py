@@ -1,0 +1,276 @@
+"""A volumetric take as an Alembic mesh cache: the PolyMesh (or SubD cage) of an ``.abc`` file, frame by
+frame, in the archive's own units, through its parents' transforms (AbcGeom's schemas on top of
+:mod:`uvatar.capture.abc_archive`).
+
+- **Geometry** (``.geom``): ``P`` (points), ``.faceCounts`` and ``.faceIndices`` (polygons; the topology
+  may change from sample to sample, as an untracked take's does), ``uv`` (a geometry parameter: plain or
+  indexed (``.vals`` + ``.indices``), per face corner (``fvr``) or per point (``vtx``/``var``); where
+  ``.geom`` has none, the first two-float parameter of ``.arbGeomParams``).
+- **Winding**: Alembic's polygons wind clockwise seen from outside (Maya's and Houdini's convention,
+  which Blender and USD's Alembic reader turn round); each is reversed and fanned into triangles.
+- **Transforms**: each ``Xform`` parent's ops (scale, translate, rotate about an axis or X/Y/Z in degrees,
+  4x4 matrix), composed as Alembic's ``XformSample::getMatrix`` does, up the hierarchy until a parent
+  that does not inherit; each at the sample nearest the mesh's time.
+- **Time**: sample ``i`` is at :meth:`AlembicTake.time`; frame numbers are times x the take's frame rate
+  (``1 / time per cycle`` of uniform sampling, or the archive's ``_ai_FramesPerTimeUnit``).
+
+Alembic stores no texture; :mod:`uvatar.capture.importers.alembic` finds the images or video beside it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.capture.abc_archive import AbcArchive, AbcObject, AbcProperty
+from uvatar.capture.types import TexturedMesh
+from uvatar.errors import InputError
+
+__all__ = ["MESH_SCHEMAS", "AlembicTake", "open_alembic", "xform_matrix", "triangulate_polygons"]
+
+MESH_SCHEMAS = ("AbcGeom_PolyMesh_v1", "AbcGeom_SubD_v1")
+XFORM_SCHEMA_PREFIX = "AbcGeom_Xform"
+SCALE, TRANSLATE, ROTATE, MATRIX, ROTATE_X, ROTATE_Y, ROTATE_Z = range(7)
+OP_CHANNELS = {SCALE: 3, TRANSLATE: 3, ROTATE: 4, MATRIX: 16, ROTATE_X: 1, ROTATE_Y: 1, ROTATE_Z: 1}
+
+
+def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
+    """(4, 4) rotation by ``degrees`` about ``axis`` (right-handed, column vectors)."""
+    m = np.eye(4)
+    norm = float(np.linalg.norm(axis))
+    if norm == 0.0:
+        return m
+    x, y, z = np.asarray(axis, np.float64) / norm
+    a = np.radians(degrees)
+    c, s, t = np.cos(a), np.sin(a), 1.0 - np.cos(a)
+    m[:3, :3] = [[t * x * x + c, t * x * y - s * z, t * x * z + s * y],
+                 [t * x * y + s * z, t * y * y + c, t * y * z - s * x],
+                 [t * x * z - s * y, t * y * z + s * x, t * z * z + c]]
+    return m
+
+
+def _op_matrix(op: int, ch: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    if op == MATRIX:
+        return ch.reshape(4, 4).T.copy()          # Alembic's rows are Imath's row-vector matrix
+    if op == SCALE:
+        m[0, 0], m[1, 1], m[2, 2] = ch
+    elif op == TRANSLATE:
+        m[:3, 3] = ch
+    elif op == ROTATE:
+        m = _rotation(ch[:3], ch[3])
+    elif op in (ROTATE_X, ROTATE_Y, ROTATE_Z):
+        m = _rotation(np.eye(3)[op - ROTATE_X], ch[0])
+    return m
+
+
+def xform_matrix(obj: AbcObject, t: float) -> tuple[np.ndarray, bool]:
+    """(4, 4) local matrix (column vectors, float64) of the Xform object ``obj`` at the sample nearest
+    ``t`` seconds, and whether it inherits its parent's."""
+    xform = obj.properties.get(".xform")
+    if xform is None or xform.kind != "compound":
+        return np.eye(4), True
+    inherits = True
+    p = xform.get(".inherits")
+    if p is not None and p.count:
+        inherits = bool(p.sample(_near(p, t))[0])
+    ops_prop, vals = xform.get(".ops"), xform.get(".vals")
+    if ops_prop is None or not ops_prop.count or vals is None or not vals.count:
+        return np.eye(4), inherits
+    ops = [int(v) >> 4 for v in np.asarray(ops_prop.sample(0)).reshape(-1)]
+    values = np.asarray(vals.sample(_near(vals, t)), np.float64).reshape(-1)
+    m, pos = np.eye(4), 0
+    for op in ops:
+        n = OP_CHANNELS.get(op)
+        if n is None:
+            raise InputError(obj.archive.path, f"transform {obj.full_name} has an unknown operation {op}")
+        ch = values[pos:pos + n]
+        if len(ch) < n:
+            break                                # Alembic leaves the missing channels at their defaults
+        m = m @ _op_matrix(op, ch)
+        pos += n
+    return m, inherits
+
+
+def world_matrix(obj: AbcObject, t: float) -> np.ndarray:
+    """(4, 4) matrix taking ``obj``'s points to the archive's world at ``t`` seconds."""
+    m = np.eye(4)
+    node = obj.parent
+    while node is not None:
+        if node.schema.startswith(XFORM_SCHEMA_PREFIX):
+            local, inherits = xform_matrix(node, t)
+            m = local @ m
+            if not inherits:
+                break
+        node = node.parent
+    return m
+
+
+def _near(prop: AbcProperty, t: float) -> int:
+    return (prop.time_sampling or prop.archive.time_samplings[0]).near_index(t, prop.count)
+
+
+def triangulate_polygons(counts: np.ndarray, reverse: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3) corner indices of the triangles fanning each polygon of ``counts`` corners (reversed
+    winding when ``reverse``), and (T,) the polygon of each; polygons under 3 corners give none."""
+    counts = np.asarray(counts, np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(counts) else np.zeros(0, np.int64)
+    tris = np.maximum(counts - 2, 0)
+    face = np.repeat(np.arange(len(counts)), tris)
+    k = np.arange(len(face)) - np.repeat(np.cumsum(tris) - tris, tris) + 1    # 1..n-2 within each polygon
+    first = starts[face]
+    if reverse:    # the polygon's corners in reverse order: c0, c_{n-1}, ..., c1; fan from c0
+        n = counts[face]
+        corners = np.stack([first, first + n - k, first + n - k - 1], axis=1)
+    else:
+        corners = np.stack([first, first + k, first + k + 1], axis=1)
+    return corners, face
+
+
+class AlembicTake:
+    """An ``.abc`` file's mesh: ``mesh_object`` (the PolyMesh with the most points, others in
+    ``other_meshes``), ``count`` samples; :meth:`mesh` decodes one."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.archive = AbcArchive(self.path)
+        meshes = [o for o in self.archive.top.walk() if o.schema in MESH_SCHEMAS and self._visible(o)]
+        if not meshes:
+            raise InputError(self.path, "holds no visible mesh (no PolyMesh or SubD object)")
+        sized = [(self._points_prop(o).count and len(self._points_prop(o).sample(0)), o) for o in meshes]
+        best = max(range(len(sized)), key=lambda i: sized[i][0])
+        self.mesh_object = sized[best][1]
+        self.other_meshes = [o.full_name for _, o in sized if o is not self.mesh_object]
+        geom = self.mesh_object.properties.get(".geom")
+        self.points = self._points_prop(self.mesh_object)
+        self.counts_prop, self.indices_prop = geom.get(".faceCounts"), geom.get(".faceIndices")
+        if self.counts_prop is None or self.indices_prop is None or not self.points.count:
+            raise InputError(self.path, f"mesh {self.mesh_object.full_name} has no points or no polygons")
+        self.uv_param = self._uv_param(geom)
+        self.count = self.points.count
+
+    def close(self) -> None:
+        self.archive.close()
+
+    @staticmethod
+    def _visible(obj: AbcObject) -> bool:
+        p = obj.properties.get("visible")
+        return not (p is not None and p.kind == "scalar" and p.count and int(p.sample(0)[0]) == 0)
+
+    def _points_prop(self, obj: AbcObject) -> AbcProperty:
+        geom = obj.properties.get(".geom")
+        p = geom.get("P") if geom is not None and geom.kind == "compound" else None
+        if p is None or p.kind != "array" or p.extent != 3:
+            raise InputError(self.path, f"mesh {obj.full_name} has no points (P)")
+        return p
+
+    @staticmethod
+    def _uv_param(geom: AbcProperty) -> AbcProperty | None:
+        if geom.get("uv") is not None:
+            return geom.get("uv")
+        arb = geom.get(".arbGeomParams")
+        if arb is None or arb.kind != "compound":
+            return None
+        for prop in arb.properties().values():
+            vals = prop.get(".vals") if prop.kind == "compound" else prop
+            if vals is not None and vals.kind == "array" and vals.extent == 2 and vals.pod in (9, 10, 11):
+                return prop
+        return None
+
+    @property
+    def uv_name(self) -> str:
+        return self.uv_param.name if self.uv_param is not None else ""
+
+    def time(self, index: int) -> float:
+        """Seconds of sample ``index``."""
+        return self.points.time(index)
+
+    def fps(self) -> float:
+        """The take's frame rate: uniform sampling's, else the archive's frames per time unit, else 0."""
+        ts = self.points.time_sampling
+        if ts is not None and not ts.acyclic and len(ts.times) == 1 and ts.time_per_cycle > 0:
+            return 1.0 / ts.time_per_cycle
+        try:
+            return float(self.archive.metadata.get("_ai_FramesPerTimeUnit", 0) or 0)
+        except ValueError:
+            return 0.0
+
+    def describe(self) -> str:
+        app = self.archive.application
+        return (f"Alembic mesh {self.mesh_object.full_name}, {self.count} samples"
+                + (f", written by {app}" if app else "")
+                + (f", UVs {self.uv_name!r}" if self.uv_param is not None else ", no UVs"))
+
+    def _uvs(self, t: float, n_points: int, indices: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(U, 2) UVs and (corners,) each polygon corner's UV index; None without UVs."""
+        n_corners = len(indices)
+        param = self.uv_param
+        if param is None:
+            return None
+        if param.kind == "compound":
+            vals, idx = param.get(".vals"), param.get(".indices")
+            if vals is None:
+                return None
+            uvs = np.asarray(vals.sample(_near(vals, t)), np.float32).reshape(-1, 2)
+            corner_uv = np.asarray(idx.sample(_near(idx, t)), np.int64).reshape(-1) if idx is not None else None
+        else:
+            uvs = np.asarray(param.sample(_near(param, t)), np.float32).reshape(-1, 2)
+            corner_uv = None
+        scope = param.metadata.get("geoScope", "")
+        n = len(corner_uv) if corner_uv is not None else len(uvs)
+        if scope in ("vtx", "var") or (not scope and n == n_points and n != n_corners):
+            if n != n_points:
+                raise InputError(self.path, f"sample {index}: {n} per-point UVs for {n_points} points")
+            point_uv = corner_uv if corner_uv is not None else np.arange(n_points)
+            if point_uv.size and (point_uv.min() < 0 or point_uv.max() >= len(uvs)):
+                raise InputError(self.path, f"sample {index}: a UV index past the {len(uvs)} UVs")
+            return uvs, point_uv[indices]
+        if scope not in ("", "fvr"):
+            raise InputError(self.path, f"UVs {param.name!r} given per {scope!r}, neither per corner nor per point")
+        if n != n_corners:
+            raise InputError(self.path, f"sample {index}: {n} UVs for {n_corners} polygon corners")
+        if corner_uv is None:
+            corner_uv = np.arange(n_corners)
+        if corner_uv.size and (corner_uv.min() < 0 or corner_uv.max() >= len(uvs)):
+            raise InputError(self.path, f"sample {index}: a UV index past the {len(uvs)} UVs")
+        return uvs, corner_uv
+
+    def polygons(self, index: int) -> dict:
+        """Sample ``index`` as stored: ``points`` (P, 3) float64 in the mesh's own frame, ``counts``
+        (F,) and ``indices`` (sum counts,) of its polygons (Alembic's clockwise order), ``uvs`` (U, 2)
+        and ``corner_uvs`` (sum counts,) each corner's UV (both None without UVs), ``time`` seconds."""
+        t = self.time(index)
+        points = np.asarray(self.points.sample(index), np.float64).reshape(-1, 3)
+        counts = np.asarray(self.counts_prop.sample(_near(self.counts_prop, t)), np.int64).reshape(-1)
+        indices = np.asarray(self.indices_prop.sample(_near(self.indices_prop, t)), np.int64).reshape(-1)
+        if counts.sum() != len(indices) or (counts < 0).any():
+            raise InputError(self.path, f"sample {index}: polygon sizes add to {counts.sum()}, not the "
+                                        f"{len(indices)} polygon corners")
+        if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
+            raise InputError(self.path, f"sample {index}: a polygon corner past the {len(points)} points")
+        uv = self._uvs(t, len(points), indices, index)
+        return {"time": t, "points": points, "counts": counts, "indices": indices,
+                "uvs": None if uv is None else uv[0], "corner_uvs": None if uv is None else uv[1]}
+
+    def mesh(self, index: int, world: bool = True) -> TexturedMesh:
+        """Sample ``index`` as a triangle mesh in the archive's units and axes (through its parents'
+        transforms when ``world``), no texture."""
+        p = self.polygons(index)
+        corners, _ = triangulate_polygons(p["counts"])
+        faces = p["indices"][corners]
+        if p["uvs"] is not None:
+            uvs, uv_faces = p["uvs"], p["corner_uvs"][corners]
+        else:
+            uvs, uv_faces = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.int64)
+        points = p["points"]
+        if world:
+            m = world_matrix(self.mesh_object, p["time"])
+            points = points @ m[:3, :3].T + m[:3, 3]
+            if np.linalg.det(m[:3, :3]) < 0:          # a mirroring parent turns the surface inside out
+                faces, uv_faces = faces[:, ::-1], uv_faces[:, ::-1]
+        return TexturedMesh(points.astype(np.float32), faces, uvs, uv_faces)
+
+
+def open_alembic(path: str | Path) -> AlembicTake:
+    return AlembicTake(path)
