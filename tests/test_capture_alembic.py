@@ -222,3 +222,64 @@ def test_fuzzed_archives_give_meshes_or_one_line(tmp_path):
             take.close()
         except InputError:
             pass
+
+
+# ---- writing -------------------------------------------------------------------------------------
+
+def _write_tracked_again(path: Path, **kw) -> Path:
+    from uvatar.capture.abc_take import AlembicTakeWriter
+
+    src = AlembicTake(FIX / "tracked.abc")
+    with AlembicTakeWriter(path, fps=25, **kw) as take:
+        for i in range(src.count):
+            mesh = src.mesh(i)
+            mesh.texture = np.full((4, 4, 3), 0.5, np.float32)
+            take.add(mesh)
+    return take.path
+
+
+def test_the_writer_writes_the_file_alembic_read_at_fixture_time(tmp_path):
+    """uvatar_written.abc was read by Alembic's own reader when the fixtures were made
+    (uvatar_written.json); the writer still writes it byte for byte, and it reads as Alembic read it."""
+    date = AbcArchive(FIX / "uvatar_written.abc").metadata["_ai_DateWritten"]      # make_fixtures' fixed date
+    path = _write_tracked_again(tmp_path / "uvatar_written.abc", date=date)
+    assert path.read_bytes() == (FIX / "uvatar_written.abc").read_bytes()
+    take = AlembicTake(FIX / "uvatar_written.abc")
+    ref = _reference("uvatar_written")["meshes"][0]
+    assert ref["name"] == take.mesh_object.full_name == "/uvatar_written/uvatar_writtenShape"
+    for i, s in enumerate(ref["samples"]):
+        p = take.polygons(i)
+        assert p["time"] == pytest.approx(s["time"], abs=1e-12) and s["time"] == pytest.approx(i / 25)
+        np.testing.assert_array_equal(p["points"].astype(np.float32).ravel(), np.float32(s["points"]))
+        np.testing.assert_array_equal(p["indices"], s["indices"])
+        np.testing.assert_array_equal(p["uvs"][p["corner_uvs"]], np.float32(s["uvs"]).reshape(-1, 2))
+        np.testing.assert_array_equal(np.reshape(s["world"], (4, 4)), np.eye(4))
+
+
+def test_a_written_take_reads_back_exactly_with_its_topology_once(tmp_path):
+    path = _write_tracked_again(tmp_path / "t" / "take.abc")
+    src, back = AlembicTake(FIX / "tracked.abc"), AlembicTake(path)
+    assert back.count == src.count and back.fps() == pytest.approx(25.0)
+    for i in range(src.count):
+        a, b = src.mesh(i), back.mesh(i)
+        np.testing.assert_array_equal(a.vertices, b.vertices)
+        np.testing.assert_array_equal(a.faces, b.faces)
+        np.testing.assert_array_equal(a.uvs[a.uv_faces], b.uvs[b.uv_faces])
+    geom = back.mesh_object.properties.get(".geom")
+    assert geom.get(".faceIndices").constant and geom.get("uv").get(".indices").constant
+    assert (geom.get("P").first_changed, geom.get("P").last_changed) == (1, 3)
+    assert sorted(p.name for p in (tmp_path / "t" / "textures").iterdir()) == [f"take_{i:06d}.png" for i in range(4)]
+
+
+def test_the_writer_refuses_bad_frames_and_leaves_nothing_half_made(tmp_path):
+    from uvatar.capture.abc_take import AlembicTakeWriter
+
+    with pytest.raises(InputError, match="frame rate > 0"):
+        AlembicTakeWriter(tmp_path / "a.abc", fps=0)
+    mesh = AlembicTake(FIX / "tracked.abc").mesh(0)
+    with pytest.raises(InputError, match="no texture or no UVs"), AlembicTakeWriter(tmp_path / "b.abc", fps=30) as take:
+        take.add(mesh)
+    assert not (tmp_path / "b.abc").exists() and not list(tmp_path.glob(".*.tmp"))
+    with pytest.raises(InputError, match="no frame was written"), AlembicTakeWriter(tmp_path / "c.abc", fps=30):
+        pass
+    assert not list(tmp_path.glob("*.abc")) and not list(tmp_path.glob(".*.tmp"))

@@ -8,7 +8,7 @@ The layout (Alembic's ``lib/Alembic/Ogawa``, little-endian):
   with the top bit set (``DATA_BIT``); 0 is an empty group, ``DATA_BIT`` alone empty data.
 - a **data block**: uint64 size, then that many bytes.
 
-This module owns the container only; what the groups mean (objects, properties, samples) is
+This module owns the container (reading and :class:`OgawaWriter`); what the groups mean (objects, properties, samples) is
 :mod:`uvatar.capture.abc_archive`'s. Every offset and size is checked against the file, so a truncated
 or corrupt file gives an :class:`~uvatar.errors.InputError` naming it, never a crash.
 """
@@ -22,7 +22,7 @@ import numpy as np
 
 from uvatar.errors import InputError
 
-__all__ = ["MAGIC", "DATA_BIT", "OgawaFile", "OgawaGroup", "is_ogawa"]
+__all__ = ["MAGIC", "DATA_BIT", "OgawaFile", "OgawaGroup", "OgawaWriter", "is_ogawa"]
 
 MAGIC = b"Ogawa"
 DATA_BIT = 1 << 63
@@ -53,7 +53,7 @@ class OgawaFile:
         self.size = len(self._buf)
         if self.size < HEADER_BYTES or self._buf[:5] != MAGIC:
             raise InputError(self.path, "not an Alembic (Ogawa) file: no 'Ogawa' header (HDF5 Alembic files, from "
-                                        "before Alembic 1.5, are not read; convert them with abcconvert -toOgawa)")
+                                        "before Alembic 1.5, are not read; convert them to Ogawa with Alembic's abcconvert)")
         if self._buf[5] != FROZEN:
             raise InputError(self.path, "an Alembic file its writer never closed (Ogawa's frozen flag unset): the "
                                         "export was cut short")
@@ -121,3 +121,47 @@ class OgawaGroup:
         if pos == self.pos:
             raise self.file.fail(f"the group at {pos} holds itself")
         return self.file.group(pos)
+
+
+class OgawaWriter:
+    """An Ogawa file written front to back: data blocks as they come (:meth:`data`), groups once their
+    children are written (:meth:`group`), the root and the frozen flag last (:meth:`close`): a file cut
+    short is never taken for a whole one."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._f = self.path.open("wb")
+        self._f.write(MAGIC + b"\x00" + (1).to_bytes(2, "big") + bytes(8))
+        self.pos = HEADER_BYTES
+
+    def data(self, *parts: bytes) -> int:
+        """Write one data block of ``parts`` end to end; its reference (with ``DATA_BIT``)."""
+        size = sum(len(p) for p in parts)
+        if size == 0:
+            return DATA_BIT
+        start = self.pos
+        self._f.write(size.to_bytes(8, "little"))
+        for p in parts:
+            self._f.write(p)
+        self.pos += 8 + size
+        return start | DATA_BIT
+
+    def group(self, children: list[int]) -> int:
+        """Write a group of ``children`` (references from :meth:`data` and :meth:`group`); 0 when empty."""
+        if not children:
+            return 0
+        start = self.pos
+        self._f.write(len(children).to_bytes(8, "little") + np.asarray(children, "<u8").tobytes())
+        self.pos += 8 + 8 * len(children)
+        return start
+
+    def close(self, root: int) -> None:
+        """Point the header at the ``root`` group and mark the file frozen (complete)."""
+        self._f.seek(8)
+        self._f.write(root.to_bytes(8, "little"))
+        self._f.seek(5)
+        self._f.write(bytes([FROZEN]))
+        self._f.close()
+
+    def abort(self) -> None:
+        self._f.close()

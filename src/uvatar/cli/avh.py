@@ -97,8 +97,9 @@ def _flags() -> dict[str, ConfigFlags]:
                 "max_frames": "render at most this many frames (none: all)", "stride": "use every n-th motion frame",
                 "fps": "video fps (none: the motion's)",
                 "mesh_format": "what --obj-dir holds: a mesh a frame (obj, glb), a UVOL 2 take (uvol: Draco "
-                               "meshes, KTX2 textures and the manifest the Universal Volumetric player streams) or "
-                               "a Volograms take (vols: one avatar.vols, Basis textures, as Volograms' players read)",
+                               "meshes, KTX2 textures and the manifest the Universal Volumetric player streams), "
+                               "a Volograms take (vols: one avatar.vols, Basis textures, as Volograms' players read) "
+                               "or an Alembic cache (abc: avatar.abc + textures/, for Maya, Houdini, Blender, Unreal)",
                 "shading": "add headlight shading", "levels": "subdivision levels",
                 "progress": "progress bar (--no-progress: none)"}),
         "export": ConfigFlags(export_avatar, fields=("opset", "tolerance"), help={
