@@ -283,3 +283,32 @@ def test_the_writer_refuses_bad_frames_and_leaves_nothing_half_made(tmp_path):
     with pytest.raises(InputError, match="no frame was written"), AlembicTakeWriter(tmp_path / "c.abc", fps=30):
         pass
     assert not list(tmp_path.glob("*.abc")) and not list(tmp_path.glob(".*.tmp"))
+
+
+def test_a_folder_of_per_frame_alembic_files_is_a_mesh_folder(tmp_path):
+    import imageio.v3 as iio
+
+    from uvatar.capture.abc_take import AlembicTakeWriter
+    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
+    from uvatar.capture.meshio import read_mesh
+
+    src = AlembicTake(FIX / "tracked.abc")
+    for k in range(3):
+        with AlembicTakeWriter(tmp_path / "frames" / f"take_{k + 1:04d}.abc", fps=25) as take:
+            mesh = src.mesh(k)
+            mesh.texture = np.full((4, 4, 3), 0.25, np.float32)
+            take.add(mesh)
+        iio.imwrite(tmp_path / "frames" / f"take_{k + 1:04d}.png", np.full((8, 8, 3), 60 * (k + 1), np.uint8))
+    with AlembicTakeWriter(tmp_path / "frames" / "take_0004.abc", fps=25) as take:   # two samples: refused
+        for k in range(2):
+            mesh = src.mesh(k)
+            mesh.texture = np.full((4, 4, 3), 0.25, np.float32)
+            take.add(mesh)
+    iio.imwrite(tmp_path / "frames" / "take_0004.png", np.zeros((8, 8, 3), np.uint8))
+    summary = import_mesh_sequence(tmp_path / "frames", tmp_path / "cap", progress=False)
+    assert summary["layout"] == "mesh folder" and summary["frames"] == 3 and summary["skipped"] == 1
+    assert any("holds 2 samples" in p and "take_0004.abc" in p for p in summary["problems"])
+    for k in range(3):
+        scan = read_mesh(tmp_path / "cap" / "scans" / f"{k + 1:06d}.ply")
+        np.testing.assert_allclose(scan.vertices, src.mesh(k).vertices * 0.01, atol=1e-6)
+        assert abs(float(scan.texture.mean()) - 60 * (k + 1) / 255) < 1e-3

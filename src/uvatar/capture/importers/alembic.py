@@ -11,6 +11,9 @@ order, in the ``.abc``'s folder, its ``textures/`` (or ``texture*/``, or ``<name
    at its time;
 3. **one image**: every frame wears it (a tracked take with one atlas).
 
+A folder of numbered one-sample files (``take_0001.abc``, ...) is a mesh folder like one of OBJs: each
+file a frame, its image of the same name beside it or in ``textures/``.
+
 The mesh is :mod:`uvatar.capture.mesh_abc`'s; the archive has no units (Maya writes centimetres,
 Houdini metres): they come from ``--units`` or the person's height, as for any mesh folder.
 """
@@ -21,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.capture.importers.sequence import FrameSource, MeshSequence, files_by_frame
+from uvatar.capture.importers.sequence import FrameSource, MeshSequence, files_by_frame, frame_number
 from uvatar.capture.importers.uvol1 import VIDEO_SUFFIXES, video_frame
 from uvatar.capture.mesh_abc import AlembicTake
 from uvatar.capture.meshio import IMAGE_SUFFIXES
@@ -37,8 +40,9 @@ _open: dict[Path, tuple[AlembicTake, dict[int, int]]] = {}   # listed takes: (ta
 
 
 def find_alembic(src: Path) -> Path | None:
-    """The ``.abc`` file of ``src`` (the file itself or the only one in a folder); None when there is
-    none; InputError when a folder holds several."""
+    """The ``.abc`` take of ``src`` (the file itself or the only one in a folder); None when there is
+    none, or when the folder's several are per-frame files (``take_0001.abc``, ...: a mesh folder's
+    frames); InputError when a folder holds several that are not."""
     src = Path(src)
     if src.is_file():
         return src if src.suffix.lower() in ABC_SUFFIXES else None
@@ -47,18 +51,29 @@ def find_alembic(src: Path) -> Path | None:
     files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix.lower() in ABC_SUFFIXES
                    and not p.name.startswith("."))
     if len(files) > 1:
+        numbers = [frame_number(p) for p in files]
+        if None not in numbers and len(set(numbers)) == len(files):
+            return None
         raise InputError(src, f"holds {len(files)} Alembic files ({', '.join(p.name for p in files[:4])}); give "
                               "one's .abc file")
     return files[0] if files else None
 
 
 def alembic_mesh(path: Path, frame: int):
-    """Frame ``frame`` of the listed take ``path`` (the archive's units and axes, no texture)."""
+    """Frame ``frame`` of the listed take ``path``, or the one sample of a per-frame file (the archive's
+    units and axes, no texture)."""
     listed = _open.get(Path(path))
-    if listed is None:
-        raise InputError(path, "Alembic take not listed before its frames were read")
-    take, sample_of = listed
-    return take.mesh(sample_of[frame])
+    if listed is not None:
+        take, sample_of = listed
+        return take.mesh(sample_of[frame])
+    take = AlembicTake(path)                      # one frame of a folder of per-frame files
+    try:
+        if take.count != 1:
+            raise InputError(path, f"holds {take.count} samples, beside other numbered .abc files: a folder of "
+                                   "per-frame Alembic files needs one sample a file")
+        return take.mesh(0)
+    finally:
+        take.close()
 
 
 def close_alembic() -> None:

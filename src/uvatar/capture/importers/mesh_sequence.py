@@ -24,7 +24,7 @@ Five layouts are read (:func:`find_mesh_sequence`):
   frames per file, the path templates and the texture target; where the textures run at another
   rate than the geometry, each mesh takes the texture frame the player shows with it. Without one,
   the folders are found by name and ``n`` is the layer count of the first KTX2 file.
-- **Plain folders** of per-frame ``.obj``/``.ply``/``.glb``/``.drc``/``.crt`` (frame number = the last run of
+- **Plain folders** of per-frame ``.obj``/``.ply``/``.glb``/``.drc``/``.crt``/``.abc`` (frame number = the last run of
   digits in the file name) with their own textures (OBJ's .mtl, PLY's ``TextureFile`` comment, GLB's
   embedded image) or an image of the same stem beside them or in ``textures/``.
 
@@ -88,7 +88,7 @@ from uvatar.errors import InputError
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".drc", ".glb", ".obj", ".ply")   # a UVOL geometry folder's, in order of preference
-TEXTURELESS_MESHES = (".drc", ".crt")               # mesh files that never carry a texture (Draco, Corto)
+TEXTURELESS_MESHES = (".drc", ".crt", ".abc")       # mesh files that never carry a texture (Draco, Corto, Alembic)
 #: a texture folder's files, in order of preference where no manifest names the format (KTX 2 and 1 say
 #: their size; a headerless .etc2 file needs the manifest's resolution unless it is square)
 TEXTURE_SUFFIXES = (".ktx2",) + IMAGE_SUFFIXES + (".ktx", ".etc2")
@@ -293,7 +293,7 @@ def _plain_folder(src: Path) -> MeshSequence:
                 texture = image
                 break
         if path.suffix.lower() in TEXTURELESS_MESHES and texture is None:
-            kind = "Draco" if path.suffix.lower() == ".drc" else "Corto"
+            kind = {".drc": "Draco", ".crt": "Corto", ".abc": "Alembic"}[path.suffix.lower()]
             problems.append(f"{path}: a {kind} mesh without an image of the same name: frame {i} has no texture")
             texture = ()
         frames[i] = FrameSource(i, path, texture)
