@@ -312,3 +312,30 @@ def test_a_folder_of_per_frame_alembic_files_is_a_mesh_folder(tmp_path):
         scan = read_mesh(tmp_path / "cap" / "scans" / f"{k + 1:06d}.ply")
         np.testing.assert_allclose(scan.vertices, src.mesh(k).vertices * 0.01, atol=1e-6)
         assert abs(float(scan.texture.mean()) - 60 * (k + 1) / 255) < 1e-3
+
+
+def test_bench_times_a_take_beside_its_arrays_floor(capsys, monkeypatch):
+    import sys
+
+    from bench_modules import load_bench
+
+    monkeypatch.setattr(sys, "argv", ["alembic.py", str(FIX / "tracked.abc"), "--frames", "0,3", "--repeats", "1"])
+    load_bench("alembic").main()
+    row = json.loads(capsys.readouterr().out)
+    assert row["samples"] == 4 and row["points"] == 8 and row["frames"] == [0, 3]
+    assert row["frame_polygons_s"] > 0 and row["frame_mesh_s"] > 0 and row["npy_load_frame_s"] > 0
+    assert row["polygons_over_npy_load"] > 0
+
+
+def test_an_acyclic_take_is_numbered_at_the_rate_given(tmp_path):
+    import imageio.v3 as iio
+
+    from uvatar.capture.importers.mesh_sequence import find_mesh_sequence
+
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "scan.abc").write_bytes((FIX / "changing.abc").read_bytes())
+    iio.imwrite(tmp_path / "t" / "atlas.png", np.zeros((8, 8, 3), np.uint8))
+    seq = find_mesh_sequence(tmp_path / "t")                      # times 0, 0.04, 0.1 s
+    assert sorted(seq.frames) == [0, 1, 3] and any("numbered at 30 fps" in n for n in seq.notes)
+    assert sorted(find_mesh_sequence(tmp_path / "t", fps=50).frames) == [0, 2, 5]
+    assert sorted(find_mesh_sequence(tmp_path / "t", fps=10).frames) == [0, 1, 2]   # 0, 0.4, 1: by sample

@@ -164,11 +164,12 @@ def _attach_textures(seq: MeshSequence, path: Path, numbers: list[int], fps: flo
                         "or textures/): no frame can be imported")
 
 
-def alembic_sequence(path: Path) -> MeshSequence:
-    """An Alembic take's frames and where each one's texture comes from."""
+def alembic_sequence(path: Path, fps: float = 0.0) -> MeshSequence:
+    """An Alembic take's frames and where each one's texture comes from; ``fps`` numbers the frames of a
+    take whose sampling states no rate (acyclic times)."""
     path = Path(path)
     take = AlembicTake(path)
-    fps = take.fps()
+    fps = take.fps() or fps
     seq = MeshSequence({}, "alembic", fps=fps, manifest=path)
     seq.notes.append(f"{path}: {take.describe()}")
     if take.other_meshes:
@@ -180,7 +181,8 @@ def alembic_sequence(path: Path) -> MeshSequence:
                                "cannot be mapped")
     if not fps:
         fps = DEFAULT_FPS
-        seq.notes.append(f"{path}: no frame rate in the archive (acyclic times): {DEFAULT_FPS:g} fps; give --fps")
+        seq.notes.append(f"{path}: no frame rate in the archive (acyclic times): frames numbered at "
+                         f"{DEFAULT_FPS:g} fps (the import's fps option sets another)")
     numbers = _frame_numbers(take, fps, seq)
     _open[path] = (take, {n: i for i, n in enumerate(numbers)})
     seq.frames = {n: FrameSource(n, path) for n in numbers}

@@ -139,8 +139,9 @@ def _pick(folders: list[Path], suffixes: tuple[str, ...]) -> Path | None:
     return None
 
 
-def find_mesh_sequence(src: str | Path) -> MeshSequence:
-    """List a mesh sequence's frames (nothing decoded but KTX2 headers); InputError when none."""
+def find_mesh_sequence(src: str | Path, fps: float = 0.0) -> MeshSequence:
+    """List a mesh sequence's frames (nothing decoded but KTX2 headers); InputError when none. ``fps``:
+    the rate the user gave, for a take whose files state none (an acyclic Alembic's frame numbers)."""
     src = Path(src)
     v1 = find_v1_manifest(src)
     if v1 is not None:
@@ -150,7 +151,7 @@ def find_mesh_sequence(src: str | Path) -> MeshSequence:
         return vols_sequence(*vols)
     abc = find_alembic(src)
     if abc is not None:
-        return alembic_sequence(abc)
+        return alembic_sequence(abc, fps)
     if not src.is_dir():
         raise InputError(src, "volumetric video folder does not exist")
     manifest_path = find_manifest(src)
@@ -398,7 +399,7 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
     from uvatar.capture.layout import write_capture_info
     from uvatar.capture.meshio import write_mesh
 
-    seq = find_mesh_sequence(src)
+    seq = find_mesh_sequence(src, cfg.fps or 0.0)
     if not seq.frames:
         raise InputError(src, "no frame listed: " + "; ".join(seq.problems[:2]))
     end = cfg.end or max(seq.frames) + 1
