@@ -37,12 +37,9 @@ class AlembicTakeWriter:
     """Frames in, an Alembic take out (see the module doc); frames count from 0 in the order added."""
 
     def __init__(self, path: str | Path, fps: float, application: str = "uvatar animate", date: str | None = None):
-        path = Path(path)
-        if not fps or fps <= 0:
-            raise InputError(path, f"an Alembic take needs a frame rate > 0, not {fps}")
-        if path.suffix.lower() != ".abc":
-            path = path / "avatar.abc"
-        path.parent.mkdir(parents=True, exist_ok=True)
+        from uvatar.capture.take_frames import take_path
+
+        path = take_path(path, fps, ".abc", "Alembic")
         self.path, self.fps, self.count, self.closed = path, float(fps), 0, False
         self.textures = path.parent / "textures"
         self._tmp = path.with_name(f".{path.name}.tmp")

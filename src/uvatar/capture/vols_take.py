@@ -42,12 +42,9 @@ class VolsTakeWriter:
     order added; every texture must have the first one's size (the header has one)."""
 
     def __init__(self, path: str | Path, fps: float):
-        path = Path(path)
-        if not fps or fps <= 0:
-            raise InputError(path, f"a Volograms take needs a frame rate > 0, not {fps}")
-        if path.suffix.lower() != ".vols":
-            path = path / "avatar.vols"
-        path.parent.mkdir(parents=True, exist_ok=True)
+        from uvatar.capture.take_frames import take_path
+
+        path = take_path(path, fps, ".vols", "Volograms")
         self.path, self.fps = path, float(fps)
         self.count, self.size = 0, None
         self.keyframes = 0
