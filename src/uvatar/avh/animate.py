@@ -29,7 +29,7 @@ VIEW_AZIMUTH = {"front": 0.0, "left": 90.0, "back": 180.0, "right": 270.0}
 RENDER_BYTES_PER_PIXEL = 96  # rasterizer buffers of one frame (depth, barycentrics, face ids, colour), float32
 
 
-MESH_FORMATS = ("obj", "glb", "uvol", "vols", "abc")   # what --obj-dir writes: a mesh a frame, a UVOL 2, Volograms or Alembic take
+MESH_FORMATS = ("obj", "glb", "uvol", "vols", "abc", "usd", "usdz")   # what --obj-dir writes: a mesh a frame, or a take
 VOLS_MAX_LEVELS = 1   # anny subdivided once: 57,205 vertices once split along its UV seams, under uint16's 65,536
 
 
@@ -41,8 +41,10 @@ class AnimateConfig:
     fps: None = the motion's; mesh_format: "obj" or "glb" for per-frame meshes, "uvol" for the frames
     as a UVOL 2 take (Draco meshes, KTX2 textures, the player's manifest: the Universal Volumetric
     player streams it), "vols" as a Volograms 1.3 take (one ``avatar.vols``: a keyframe, then tracked
-    frames, a Basis ETC1S texture each; Volograms' players read it) or "abc" as an Alembic mesh cache
-    (``avatar.abc`` + ``textures/avatar_<frame>.png``: Maya, Houdini, Blender, Unreal read it)."""
+    frames, a Basis ETC1S texture each; Volograms' players read it), "abc" as an Alembic mesh cache
+    (``avatar.abc`` + ``textures/avatar_<frame>.png``: Maya, Houdini, Blender, Unreal read it), "usd" /
+    "usdz" as a USD stage (``avatar.usdc`` + ``textures/``, or one ``avatar.usdz``: the points and the
+    material's texture file time-sampled; usdview, Omniverse, Blender read it)."""
 
     size: int = 512
     camera: str = "orbit"
@@ -158,6 +160,11 @@ def render_sequence(runtime: AvatarRuntime, motion: PoseSequence, config: Animat
         from uvatar.capture.abc_take import AlembicTakeWriter
 
         take = AlembicTakeWriter(Path(mesh_dir) / "avatar.abc", fps=config.fps or motion.fps)
+    elif mesh_dir is not None and config.mesh_format in ("usd", "usdz"):
+        from uvatar.capture.usd_take import UsdTakeWriter
+
+        suffix = ".usdz" if config.mesh_format == "usdz" else ".usdc"
+        take = UsdTakeWriter(Path(mesh_dir) / f"avatar{suffix}", fps=config.fps or motion.fps)
     for t, mesh in enumerate(tqdm(meshes, total=len(idx), desc="animate", disable=not config.progress)):
         if distance is None:
             distance = framing_distance(mesh.vertices, config.fov_deg)

@@ -98,8 +98,9 @@ def _flags() -> dict[str, ConfigFlags]:
                 "fps": "video fps (none: the motion's)",
                 "mesh_format": "what --obj-dir holds: a mesh a frame (obj, glb), a UVOL 2 take (uvol: Draco "
                                "meshes, KTX2 textures and the manifest the Universal Volumetric player streams), "
-                               "a Volograms take (vols: one avatar.vols, Basis textures, as Volograms' players read) "
-                               "or an Alembic cache (abc: avatar.abc + textures/, for Maya, Houdini, Blender, Unreal)",
+                               "a Volograms take (vols: one avatar.vols, Basis textures, as Volograms' players read)"
+                               ", an Alembic cache (abc: avatar.abc + textures/, for Maya, Houdini, Blender, Unreal) "
+                               "or a USD stage (usd: avatar.usdc + textures/; usdz: one package)",
                 "shading": "add headlight shading", "levels": "subdivision levels",
                 "progress": "progress bar (--no-progress: none)"}),
         "export": ConfigFlags(export_avatar, fields=("opset", "tolerance"), help={

@@ -1,6 +1,6 @@
 """``uvatar capture import`` of a volumetric video: a sequence of textured meshes, one per frame.
 
-Five layouts are read (:func:`find_mesh_sequence`):
+Six layouts are read (:func:`find_mesh_sequence`):
 
 - **UVOL 1** (the player's first format, :mod:`~uvatar.capture.importers.uvol1`): ``NAME.manifest``,
   ``NAME.drcs`` (Corto meshes end to end, :mod:`uvatar.capture.mesh_corto`) and ``NAME.mp4`` (the
@@ -13,6 +13,9 @@ Five layouts are read (:func:`find_mesh_sequence`):
 
 - **Alembic** (:mod:`~uvatar.capture.importers.alembic`): one ``.abc`` mesh cache (Ogawa; PolyMesh or SubD,
   tracked or each frame its own topology) with per-frame images, a texture video or one image beside it.
+
+- **USD** (:mod:`~uvatar.capture.importers.usd`): one ``.usd``/``.usda``/``.usdc``/``.usdz`` stage whose mesh
+  moves, each frame wearing its material's texture (or the textures beside it).
 
 - **UVOL 2** (the Universal Volumetric player's format): ``geometry_<target>/NNNNN.drc`` (Draco, one
   mesh per frame) and ``texture_<target>/NNNNN.ktx2`` (KTX2 array textures, ``n`` frames per file:
@@ -57,6 +60,7 @@ from uvatar.capture.importers.alembic import (
 )
 from uvatar.capture.importers.calibration import UNIT_SCALE, up_rotation
 from uvatar.capture.importers.sequence import FrameSource, MeshSequence, files_by_frame
+from uvatar.capture.importers.usd import USD_SUFFIXES, close_usd, find_usd, usd_mesh, usd_sequence
 from uvatar.capture.importers.uvol1 import (
     MESH_FILE_SUFFIXES,
     VIDEO_SUFFIXES,
@@ -115,12 +119,13 @@ def is_mesh_sequence(src: str | Path) -> bool:
     """True if ``src`` looks like a mesh sequence (UVOL 2 folders, a manifest, or per-frame meshes)."""
     src = Path(src)
     if src.is_file():
-        return src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES + VOLS_SUFFIXES + ABC_SUFFIXES
+        return src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES + VOLS_SUFFIXES + ABC_SUFFIXES + USD_SUFFIXES
     if not src.is_dir():
         return False
     if _uvol_folders(src)[0] or find_manifest(src):
         return True
     return any(p.suffix.lower() in MESH_FORMATS or p.suffix.lower() in TEXTURELESS_MESHES + VOLS_SUFFIXES + ABC_SUFFIXES
+               + USD_SUFFIXES
                for p in src.iterdir() if p.is_file())
 
 
@@ -152,6 +157,9 @@ def find_mesh_sequence(src: str | Path, fps: float = 0.0) -> MeshSequence:
     abc = find_alembic(src)
     if abc is not None:
         return alembic_sequence(abc, fps)
+    usd = find_usd(src)
+    if usd is not None:
+        return usd_sequence(usd, fps)
     if not src.is_dir():
         raise InputError(src, "volumetric video folder does not exist")
     manifest_path = find_manifest(src)
@@ -311,6 +319,8 @@ def _read_mesh(source: FrameSource) -> TexturedMesh:
         return vols_take(source.mesh).mesh(source.index)
     if suffix in ABC_SUFFIXES:
         return alembic_mesh(source.mesh, source.index)
+    if suffix in USD_SUFFIXES:
+        return usd_mesh(source.mesh, source.index)
     if suffix in (".crt",) + MESH_FILE_SUFFIXES:
         return read_crt(source.mesh, byte_range=source.mesh_bytes)
     return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh)
@@ -391,6 +401,7 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
         close_videos()
         close_vols()
         close_alembic()
+        close_usd()
 
 
 def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> dict:

@@ -1,0 +1,226 @@
+"""A volumetric take as USD (``.usd``, ``.usda``, ``.usdc``, ``.usdz``; Pixar's OpenUSD through its own
+``usd-core`` library, the ``formats`` extra): the mesh of a stage, frame by frame.
+
+- **The mesh**: the visible, rendered ``Mesh`` prim with the most points (others noted); its points at
+  each of their time samples (one frame when they have none), its polygons (``faceVertexCounts`` /
+  ``faceVertexIndices``, fanned into triangles; ``orientation = "leftHanded"`` turned round), its UVs
+  (the ``st`` primvar, else the first two-float one: face-varying or per vertex, indexed or not), all
+  through the prim's world transform at that time (a mirroring one turning the triangles back).
+- **Its texture**: the file of the ``UsdUVTexture`` feeding the bound ``UsdPreviewSurface``'s
+  ``diffuseColor``, at the frame's time (a texture a frame where the file is time-sampled), read through
+  USD's asset resolver (so inside a ``.usdz`` too); None where the stage has none.
+- **Time, units, up**: frames are the time codes (at ``timeCodesPerSecond``); ``metersPerUnit`` and
+  ``upAxis`` where the stage authors them (applied to the points here: :attr:`UsdTake.units` is then
+  "m"), else "" for the import to detect.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.capture.types import TexturedMesh
+from uvatar.errors import InputError, require
+
+__all__ = ["USD_SUFFIXES", "UsdTake"]
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+UV_TYPES = ("texCoord2f[]", "float2[]", "texCoord2d[]", "double2[]", "texCoord2h[]", "half2[]")
+
+
+def _pxr():
+    require("pxr", "formats", "USD takes")
+    from pxr import Usd, UsdGeom, UsdShade
+
+    return Usd, UsdGeom, UsdShade
+
+
+class UsdTake:
+    """A USD stage's mesh: ``prim``, ``count`` frames at ``times`` (time codes), ``fps``, ``units``
+    ("m" when the stage authors metersPerUnit, else ""), ``up`` ("+y"/"+z" or "")."""
+
+    def __init__(self, path: str | Path):
+        Usd, UsdGeom, _ = _pxr()
+        from pxr import Tf
+
+        self.path = Path(path)
+        try:
+            self.stage = Usd.Stage.Open(str(self.path))
+        except Tf.ErrorException as exc:
+            raise InputError(self.path, f"not a readable USD file ({str(exc).strip().splitlines()[-1][:160]})") from None
+        if self.stage is None:
+            raise InputError(self.path, "not a readable USD file")
+        meshes = [p for p in self.stage.Traverse() if p.IsA(UsdGeom.Mesh) and self._shown(p)]
+        if not meshes:
+            raise InputError(self.path, "holds no visible mesh (no Mesh prim)")
+        sizes = [len(UsdGeom.Mesh(p).GetPointsAttr().Get(self._first_time(p)) or []) for p in meshes]
+        self.prim = meshes[int(np.argmax(sizes))]
+        self.other_meshes = [str(p.GetPath()) for p in meshes if p != self.prim]
+        self.mesh_schema = UsdGeom.Mesh(self.prim)
+        times = self.mesh_schema.GetPointsAttr().GetTimeSamples()
+        self.times = list(times) if times else [Usd.TimeCode.Default()]
+        self.count = len(self.times)
+        self.fps = float(self.stage.GetTimeCodesPerSecond()) if self.stage.HasAuthoredMetadata(
+            "timeCodesPerSecond") or self.stage.HasAuthoredMetadata("framesPerSecond") else 0.0
+        self.meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(self.stage)) \
+            if UsdGeom.StageHasAuthoredMetersPerUnit(self.stage) else None
+        self.units = "m" if self.meters_per_unit else ""
+        self.up = ("+" + str(UsdGeom.GetStageUpAxis(self.stage)).lower()) if self.stage.HasAuthoredMetadata("upAxis") \
+            else ""
+        self.uv_primvar = self._uv_primvar()
+
+    def close(self) -> None:
+        self.stage = None
+
+    @staticmethod
+    def _shown(prim) -> bool:
+        _, UsdGeom, _ = _pxr()
+        img = UsdGeom.Imageable(prim)
+        return img.ComputeVisibility() != UsdGeom.Tokens.invisible and img.ComputePurpose() in (
+            UsdGeom.Tokens.default_, UsdGeom.Tokens.render)
+
+    @staticmethod
+    def _first_time(prim):
+        Usd, UsdGeom, _ = _pxr()
+        times = UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples()
+        return times[0] if times else Usd.TimeCode.Default()
+
+    def _uv_primvar(self):
+        _, UsdGeom, _ = _pxr()
+        api = UsdGeom.PrimvarsAPI(self.prim)
+        pv = api.GetPrimvar("st")
+        if pv and pv.IsDefined():
+            return pv
+        return next((p for p in api.GetPrimvars() if str(p.GetTypeName()) in UV_TYPES), None)
+
+    def frame_numbers(self) -> list[int]:
+        """Each frame's number: its time code where those are whole and distinct, else its index."""
+        codes = [t if isinstance(t, float) else 0.0 for t in self.times]
+        numbers = [int(round(c)) for c in codes]
+        if len(set(numbers)) == len(numbers) and min(numbers) >= 0 and np.allclose(codes, numbers, atol=1e-6):
+            return numbers
+        return list(range(self.count))
+
+    def describe(self) -> str:
+        uv = f", UVs {self.uv_primvar.GetPrimvarName()!r}" if self.uv_primvar else ", no UVs"
+        return f"USD mesh {self.prim.GetPath()}, {self.count} frame{'s' if self.count > 1 else ''}{uv}"
+
+    def polygons(self, index: int) -> dict:
+        """Frame ``index`` as authored: ``points`` (P, 3) float64 in the prim's frame, ``counts``,
+        ``indices`` (its polygons, counter-clockwise), ``uvs`` (U, 2) and ``corner_uvs`` each corner's
+        UV (None without UVs)."""
+        t = self.times[index]
+        m = self.mesh_schema
+        points = np.asarray(m.GetPointsAttr().Get(t) or [], np.float64).reshape(-1, 3)
+        counts = np.asarray(m.GetFaceVertexCountsAttr().Get(t) or [], np.int64)
+        indices = np.asarray(m.GetFaceVertexIndicesAttr().Get(t) or [], np.int64)
+        if counts.sum() != len(indices) or (counts < 0).any():
+            raise InputError(self.path, f"frame {index}: polygon sizes add to {counts.sum()}, not the {len(indices)} "
+                                        "polygon corners")
+        if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
+            raise InputError(self.path, f"frame {index}: a polygon corner past the {len(points)} points")
+        left = m.GetOrientationAttr().Get(t) == "leftHanded"
+        if left:
+            indices = _reverse_polygons(counts, indices)
+        uvs = corner_uvs = None
+        pv = self.uv_primvar
+        if pv is not None:
+            values = np.asarray(pv.Get(t) or [], np.float32).reshape(-1, 2)
+            idx = np.asarray(pv.GetIndices(t), np.int64) if pv.IsIndexed() else np.arange(len(values))
+            if idx.size and (idx.min() < 0 or idx.max() >= len(values)):
+                raise InputError(self.path, f"frame {index}: a UV index past the {len(values)} UVs")
+            interp = pv.GetInterpolation()
+            if interp == "faceVarying":
+                if len(idx) != len(indices):
+                    raise InputError(self.path, f"frame {index}: {len(idx)} face-varying UVs for {len(indices)} corners")
+                corner_uvs = _reverse_polygons(counts, idx) if left else idx
+            elif interp in ("vertex", "varying"):
+                if len(idx) != len(points):
+                    raise InputError(self.path, f"frame {index}: {len(idx)} per-vertex UVs for {len(points)} points")
+                corner_uvs = idx[indices]
+            else:
+                raise InputError(self.path, f"UVs {pv.GetPrimvarName()!r} are {interp}: neither per corner nor per "
+                                            "vertex")
+            uvs = values
+        return {"points": points, "counts": counts, "indices": indices, "uvs": uvs, "corner_uvs": corner_uvs}
+
+    def mesh(self, index: int, world: bool = True) -> TexturedMesh:
+        """Frame ``index`` as a triangle mesh (the stage's axes; metres when the stage authors its units;
+        through the prim's world transform when ``world``) wearing its material's texture, if any."""
+        from uvatar.capture.mesh_abc import triangulate_polygons
+
+        p = self.polygons(index)
+        corners, _ = triangulate_polygons(p["counts"], reverse=False)
+        faces = p["indices"][corners]
+        if p["uvs"] is not None:
+            uvs, uv_faces = p["uvs"], p["corner_uvs"][corners]
+        else:
+            uvs, uv_faces = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.int64)
+        points = p["points"]
+        if world:
+            M = np.array(self.mesh_schema.ComputeLocalToWorldTransform(self.times[index]))   # row vectors
+            points = points @ M[:3, :3] + M[3, :3]
+            if np.linalg.det(M[:3, :3]) < 0:
+                faces, uv_faces = faces[:, ::-1], uv_faces[:, ::-1]
+        if self.meters_per_unit:
+            points = points * self.meters_per_unit
+        return TexturedMesh(points.astype(np.float32), faces, uvs, uv_faces, self.texture(index))
+
+    def texture_asset(self, index: int) -> tuple[str, str] | None:
+        """(the path as authored, the resolved path or "" where it resolves to nothing) of frame
+        ``index``'s diffuse texture; None where the material names none."""
+        _, _, UsdShade = _pxr()
+        material = UsdShade.MaterialBindingAPI(self.prim).ComputeBoundMaterial()[0]
+        if not material:
+            return None
+        surface = material.ComputeSurfaceSource()[0]
+        if not surface:
+            return None
+        diffuse = surface.GetInput("diffuseColor")
+        source = diffuse.GetConnectedSource() if diffuse else None
+        if not source or not source[0]:
+            return None
+        shader = UsdShade.Shader(source[0].GetPrim())
+        file_input = shader.GetInput("file")
+        if not file_input:
+            return None
+        asset = file_input.Get(self.times[index])
+        if asset is None or not asset.path:
+            return None
+        return asset.path, asset.resolvedPath or ""
+
+    def texture(self, index: int) -> np.ndarray | None:
+        """Frame ``index``'s diffuse texture, (H, W, 3) uint8 (None without one); InputError naming the
+        asset when it cannot be read."""
+        import imageio.v3 as iio
+        from pxr import Ar
+
+        named = self.texture_asset(index)
+        if named is None:
+            return None
+        authored, resolved = named
+        asset = Ar.GetResolver().OpenAsset(Ar.ResolvedPath(resolved)) if resolved else None
+        if asset is None:
+            raise InputError(self.path, f"frame {index}'s texture {authored} (its material's) is missing")
+        try:
+            image = iio.imread(bytes(asset.GetBuffer()), extension=Path(resolved.rstrip("]")).suffix or ".png")
+        except Exception as exc:    # noqa: BLE001 - any decoder failure is this asset's problem
+            raise InputError(self.path, f"frame {index}'s texture {resolved} is not a readable image ({exc})") from None
+        image = np.asarray(image)
+        if image.ndim == 2:
+            image = np.repeat(image[..., None], 3, axis=-1)
+        if image.dtype != np.uint8:
+            image = (np.clip(image.astype(np.float32) / np.iinfo(image.dtype).max if image.dtype.kind == "u"
+                             else image, 0, 1) * 255 + 0.5).astype(np.uint8)
+        return np.ascontiguousarray(image[..., :3])
+
+
+def _reverse_polygons(counts: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Each polygon's corners (``values``, concatenated) in reverse order, keeping its first corner first
+    (c0, c_{n-1}, ..., c1)."""
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    face = np.repeat(np.arange(len(counts)), counts)
+    k = np.arange(len(values)) - starts[face]              # 0..n-1 within each polygon
+    src = starts[face] + np.where(k == 0, 0, counts[face] - k)
+    return values[src]
