@@ -66,7 +66,8 @@ def _register_import(cli) -> None:
                                 "Volograms take (header.vols + sequence_0.vols + texture_*.mp4, or one 1.3 .vols "
                                 "with its .basis textures), an Alembic take (one .abc with per-frame images, a "
                                 "texture video or one image beside it or in textures/; units from the person's "
-                                "height or --units) or a folder of per-frame .obj/.ply/.glb/.drc/.crt/.abc "
+                                "height or --units), a USD take (.usd/.usda/.usdc/.usdz: its mesh a time code, "
+                                "its material's texture) or a folder of per-frame .obj/.ply/.glb/.drc/.crt/.abc "
                                 "meshes with their textures; writes OUT/scans/<frame>.ply + .png in metres, +Y up "
                                 "(--units/--up where the files do not say; --fps where no manifest does; needs "
                                 "pip install 'uvatar[volumetric]' for Draco/KTX2). Resumes an interrupted import.")
