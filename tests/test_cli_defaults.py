@@ -51,6 +51,7 @@ TARGETS = {
     "fit": ["uvatar.fit.pipeline:FitConfig", "uvatar.fit.views:ScanViewsConfig"],
     "capture masks": ["uvatar.fit.masks:MaskConfig"],
     "capture import": ["uvatar.capture.importers.pipeline:ImportConfig"],
+    "capture probe": ["uvatar.capture.importers.pipeline:ImportConfig"],
 }
 
 # Commands whose config flags default to the preset picked at run time (argparse default SUPPRESS; the

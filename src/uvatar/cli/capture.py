@@ -77,6 +77,33 @@ def _register_import(cli) -> None:
     _import_flags().add_to(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_import)
+    _register_probe(cli)
+
+
+def _register_probe(cli) -> None:
+    p = cli.command("capture probe", help="say what `uvatar capture import` would make of a volumetric video, "
+                                          "without importing it",
+                    description="List a volumetric video (any layout `uvatar capture import` reads) and decode its "
+                                "first frame: the layout, the frames kept (--start/--end/--stride), the frame rate, "
+                                "where each frame's texture comes from, the units and up axis (stated, given or "
+                                "detected, as the import decides them), the first frame's size and height, and "
+                                "every problem the listing found; one JSON object. Exit 1 with one line when no "
+                                "frame is listed or none of the first frames reads.")
+    p.add_argument("src", help="the take: a folder or its main file")
+    _import_flags().add_to(p)
+    p.set_defaults(func=_probe)
+
+
+def _probe(args) -> int:
+    import json
+
+    from uvatar.capture.importers.probe import probe_mesh_sequence
+    from uvatar.errors import options_as_input_error
+
+    with options_as_input_error("uvatar capture probe options"):
+        cfg = _import_flags().config(args)
+    print(json.dumps(probe_mesh_sequence(args.src, cfg), indent=2))
+    return 0
 
 
 def _import(args) -> int:

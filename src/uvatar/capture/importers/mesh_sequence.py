@@ -326,7 +326,7 @@ def _read_mesh(source: FrameSource) -> TexturedMesh:
     return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh)
 
 
-def _read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None) -> TexturedMesh:
+def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None) -> TexturedMesh:
     """Decode a frame's mesh and texture (source units and axes; ``texture_size``: a headerless ETC2
     texture's (width, height)); InputError naming the bad file."""
     from uvatar.io_utils import read_image
@@ -398,10 +398,29 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
     try:
         return _import_sequence(src, out, cfg, progress, t0)
     finally:
-        close_videos()
-        close_vols()
-        close_alembic()
-        close_usd()
+        close_sources()
+
+
+def close_sources() -> None:
+    """Close what listing and reading a sequence opened (texture videos, Volograms, Alembic, USD takes)."""
+    close_videos()
+    close_vols()
+    close_alembic()
+    close_usd()
+
+
+def wanted_frames(seq: MeshSequence, src: Path, cfg) -> tuple[list[int], list[str]]:
+    """The frames of ``seq`` that ``cfg``'s start, end and stride keep, and the listing's problems that
+    concern them; InputError when none is kept."""
+    if not seq.frames:
+        raise InputError(src, "no frame listed: " + "; ".join(seq.problems[:2]))
+    end = cfg.end or max(seq.frames) + 1
+    wanted = [i for i in sorted(seq.frames) if cfg.start <= i < end and (i - cfg.start) % cfg.stride == 0]
+    if not wanted:
+        raise InputError(src, f"no frame in [{cfg.start}, {end}) with stride {cfg.stride} (the take has frames "
+                              f"{min(seq.frames)}..{max(seq.frames)})")
+    problems = [p for p in seq.problems if not any(f"frame {i} " in p for i in set(seq.frames) - set(wanted))]
+    return wanted, problems
 
 
 def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> dict:
@@ -411,14 +430,7 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
     from uvatar.capture.meshio import write_mesh
 
     seq = find_mesh_sequence(src, cfg.fps or 0.0)
-    if not seq.frames:
-        raise InputError(src, "no frame listed: " + "; ".join(seq.problems[:2]))
-    end = cfg.end or max(seq.frames) + 1
-    wanted = [i for i in sorted(seq.frames) if cfg.start <= i < end and (i - cfg.start) % cfg.stride == 0]
-    if not wanted:
-        raise InputError(src, f"no frame in [{cfg.start}, {end}) with stride {cfg.stride} (the take has frames "
-                              f"{min(seq.frames)}..{max(seq.frames)})")
-    problems = [p for p in seq.problems if not any(f"frame {i} " in p for i in set(seq.frames) - set(wanted))]
+    wanted, problems = wanted_frames(seq, src, cfg)
     for line in problems:
         log.warning(line)
     scans = out / "scans"
@@ -438,7 +450,7 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
             imported.append(i)
             continue
         try:
-            mesh = _read_frame(seq.frames[i], seq.texture_size)
+            mesh = read_frame(seq.frames[i], seq.texture_size)
         except InputError as exc:
             skipped.append(i)
             first_error = first_error or str(exc)
