@@ -10,7 +10,8 @@ from uvatar.capture.synth import appearance as app
 from uvatar.capture.synth import clothing as clo
 from uvatar.capture.synth import surface as srf
 from uvatar.capture.synth.bends import BENDS, smoothstep, value_noise
-from uvatar.capture.synth.scans import build_topology, cut_scan, fill_atlas_index, fine_mesh, pose_scan
+from uvatar.capture.synth.scans import build_topology, cut_scan, fine_mesh, pose_scan
+from uvatar.geometry.uv_raster import fill_atlas_index
 
 
 @pytest.fixture(scope="module")

@@ -146,7 +146,12 @@ def read_obj(path: Path, load_texture) -> TexturedMesh:
     ncols = len(v_rows[0].split())
     if ncols not in (3, 4, 6, 7):
         raise InputError(path, f"vertex lines have {ncols} values, expected 3 (x y z) or 6 (x y z r g b)")
-    vertices = _numbers(path, "v", b" ".join(v_rows), len(v_rows), np.float64, ncols)[:, :3]
+    table = _numbers(path, "v", b" ".join(v_rows), len(v_rows), np.float64, ncols)
+    vertices = table[:, :3]
+    colors = None
+    if ncols in (6, 7):                    # x y z r g b (MeshLab's and most scanners' vertex colours)
+        rgb = table[:, 3:6]
+        colors = np.clip(rgb / 255.0 if rgb.size and rgb.max() > 1.0 else rgb, 0.0, 1.0)
     uvs = np.zeros((0, 2))
     if vt_rows:
         tcols = len(vt_rows[0].split())
@@ -156,7 +161,7 @@ def read_obj(path: Path, load_texture) -> TexturedMesh:
         uvs, uv_faces = np.zeros((0, 2)), np.zeros((0, 3), np.int64)
     tex_path = obj_texture_path(path, data)
     texture = load_texture(tex_path) if tex_path is not None else None
-    return TexturedMesh(vertices, faces, uvs, uv_faces, texture)
+    return TexturedMesh(vertices, faces, uvs, uv_faces, texture, colors)
 
 
 def _fmt_rows(prefix: str, rows: np.ndarray, fmt: str) -> str:

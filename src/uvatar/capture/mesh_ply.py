@@ -197,7 +197,24 @@ def read_ply(path: Path, load_texture) -> TexturedMesh:
     texture = None
     if header["texture"]:
         texture = load_texture(path.parent / header["texture"])
-    return TexturedMesh(vertices, faces, uvs, uv_faces, texture)
+    return TexturedMesh(vertices, faces, uvs, uv_faces, texture, _vertex_colors(vert, header["elements"]))
+
+
+def _vertex_colors(vert: dict, elements: list[dict]) -> np.ndarray | None:
+    """(V, 3) colours in [0, 1] from ``red``/``green``/``blue`` (or ``diffuse_red``...) vertex
+    properties: integers scaled by their type's maximum, floats as they are; None without them."""
+    for prefix in ("", "diffuse_"):
+        names = [prefix + c for c in ("red", "green", "blue")]
+        if all(n in vert for n in names):
+            types = {p[0]: p[2] for e in elements if e["name"] == "vertex" for p in e["props"]}
+            kind = np.dtype(types.get(names[0]) or "f4")
+            rgb = np.stack([np.asarray(vert[n], np.float64) for n in names], -1)
+            if kind.kind in "ui":
+                rgb = rgb / np.iinfo(kind).max
+            elif rgb.size and rgb.max() > 1.0:           # an ASCII file's 0-255 integers read as numbers
+                rgb = rgb / 255.0
+            return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+    return None
 
 
 def write_ply(path: Path, mesh: TexturedMesh, write_texture) -> None:

@@ -21,7 +21,9 @@ class TexturedMesh(MeshCounts):
 
     vertices (V, 3) float32 metres; faces (F, 3) int64 into vertices; uvs (U, 2) float32 in [0, 1]
     with v up; uv_faces (F, 3) int64 into uvs; texture (H, W, 3) float32 in [0, 1] (row 0 is v = 1)
-    or ``None`` for an untextured mesh.
+    or ``None`` for an untextured mesh; vertex_colors (V, 3) float32 in [0, 1] where the file gave
+    colours per vertex (``None`` otherwise; :mod:`uvatar.capture.vertex_colors` turns them into a
+    texture).
     """
 
     vertices: np.ndarray
@@ -29,6 +31,7 @@ class TexturedMesh(MeshCounts):
     uvs: np.ndarray
     uv_faces: np.ndarray
     texture: np.ndarray | None = None
+    vertex_colors: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float32).reshape(-1, 3)
@@ -42,6 +45,8 @@ class TexturedMesh(MeshCounts):
             if tex.ndim == 2:
                 tex = np.repeat(tex[..., None], 3, axis=-1)
             self.texture = np.ascontiguousarray(tex[..., :3], dtype=np.float32)
+        if self.vertex_colors is not None:
+            self.vertex_colors = np.ascontiguousarray(self.vertex_colors, dtype=np.float32).reshape(-1, 3)
 
     @property
     def has_uvs(self) -> bool:

@@ -21,7 +21,7 @@ import numpy as np
 
 from uvatar.errors import InputError
 
-__all__ = ["UVRaster", "UVRasterConfig", "rasterize_uv", "rasterize_uv_reference", "texel_uv"]
+__all__ = ["UVRaster", "UVRasterConfig", "fill_atlas_index", "rasterize_uv", "rasterize_uv_reference", "texel_uv"]
 
 _INSIDE_EPS = 1e-12  # barycentric slack for centres exactly on an edge (after float64 rounding)
 
@@ -292,3 +292,14 @@ def rasterize_uv_reference(uvs, uv_faces, resolution: int) -> UVRaster:
                     best[i, j] = s
                     face_index[i, j] = f
     return _finish(face_index, coef, r)
+
+
+def fill_atlas_index(mask: np.ndarray) -> np.ndarray:
+    """(H*W,) index of the nearest covered texel for every texel of an atlas mask (H, W), so that
+    ``texture.reshape(-1, 3)[index]`` bleeds chart colours outward (no dark seams when sampled)."""
+    from scipy.ndimage import distance_transform_edt
+
+    if not mask.any():
+        return np.arange(mask.size)
+    _, (ri, ci) = distance_transform_edt(~mask, return_indices=True)
+    return (ri * mask.shape[1] + ci).ravel()

@@ -326,9 +326,15 @@ def _read_mesh(source: FrameSource) -> TexturedMesh:
     return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh)
 
 
-def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None) -> TexturedMesh:
+VERTEX_COLOUR_NOTE = ("frames carry colours per vertex and no texture: each is given an atlas of its triangles in "
+                      "pairs and a texture of those colours (capture/vertex_colors.py)")
+
+
+def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None,
+               notes: list[str] | None = None) -> TexturedMesh:
     """Decode a frame's mesh and texture (source units and axes; ``texture_size``: a headerless ETC2
-    texture's (width, height)); InputError naming the bad file."""
+    texture's (width, height)); a mesh with colours per vertex and no texture is given one
+    (:mod:`uvatar.capture.vertex_colors`; said once in ``notes``); InputError naming the bad file."""
     from uvatar.io_utils import read_image
 
     if source.texture == ():
@@ -343,8 +349,15 @@ def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None)
         mesh.texture = read(path, layer) if info_of is not None else read(path, *texture_size)
     elif source.texture is not None:
         mesh.texture = read_image(source.texture, "texture image")
+    if mesh.texture is None and mesh.vertex_colors is not None:    # a scanner's colours per vertex
+        from uvatar.capture.vertex_colors import texture_from_vertex_colors
+
+        mesh = texture_from_vertex_colors(mesh)
+        if notes is not None and VERTEX_COLOUR_NOTE not in notes:
+            notes.append(VERTEX_COLOUR_NOTE)
     if mesh.texture is None:
-        raise InputError(source.mesh, "mesh has no texture (no image beside it, none named by the file)")
+        raise InputError(source.mesh, "mesh has no texture (no image beside it, none named by the file, no "
+                                      "vertex colours)")
     if not mesh.has_uvs:
         raise InputError(source.mesh, "mesh has no UVs: its texture cannot be mapped")
     return mesh
@@ -450,7 +463,7 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
             imported.append(i)
             continue
         try:
-            mesh = read_frame(seq.frames[i], seq.texture_size)
+            mesh = read_frame(seq.frames[i], seq.texture_size, notes)
         except InputError as exc:
             skipped.append(i)
             first_error = first_error or str(exc)

@@ -55,7 +55,7 @@ def probe_mesh_sequence(src: str | Path, cfg=None) -> dict:
         first, failures = None, []
         for i in wanted[:MAX_TRIES]:
             try:
-                first = (i, read_frame(seq.frames[i], seq.texture_size))
+                first = (i, read_frame(seq.frames[i], seq.texture_size, seq.notes))
                 break
             except InputError as exc:
                 failures.append(str(exc))

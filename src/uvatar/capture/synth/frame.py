@@ -30,7 +30,6 @@ from uvatar.capture.synth.scans import (
     ScanTopology,
     atlas_texel_matrix,
     cut_scan,
-    fill_atlas_index,
     fine_mesh,
     pose_scan,
 )
@@ -133,7 +132,7 @@ class Studio:
         if index in self._segments:
             self._segments.move_to_end(index)
             return self._segments[index]
-        from uvatar.geometry.uv_raster import rasterize_uv
+        from uvatar.geometry.uv_raster import fill_atlas_index, rasterize_uv
 
         with np.load(self.root / "gt" / "topologies" / f"{index:03d}.npz") as data:
             topo = ScanTopology.from_npz(data)

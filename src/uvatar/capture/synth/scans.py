@@ -22,7 +22,7 @@ from uvatar.capture.synth.surface import bary_matrix
 from uvatar.errors import require
 
 __all__ = ["FineMesh", "ScanTopology", "fine_mesh", "build_topology", "pose_scan", "cut_scan",
-           "fill_atlas_index", "atlas_texel_matrix", "atlas_texel_points_reference"]
+           "atlas_texel_matrix", "atlas_texel_points_reference"]
 
 
 @dataclass
@@ -86,7 +86,7 @@ def _atlas(positions: np.ndarray, faces: np.ndarray, resolution: int, chart_area
     pack = xatlas.PackOptions()
     pack.resolution = int(resolution)
     pack.padding = 2
-    pack.bilinear = False                     # borders are bled by fill_atlas_index instead
+    pack.bilinear = False                     # borders are bled by uv_raster.fill_atlas_index instead
     pack.rotate_charts = False
     atlas.generate(chart, pack)
     vmapping, indices, uvs = atlas[0]
@@ -145,17 +145,6 @@ def cut_scan(vertices: np.ndarray, faces: np.ndarray, direction: np.ndarray, fra
     keep = np.ones(len(faces), bool)
     keep[order[removed]] = False
     return np.flatnonzero(keep)
-
-
-def fill_atlas_index(mask: np.ndarray) -> np.ndarray:
-    """(H*W,) index of the nearest covered texel for every texel of an atlas mask (H, W), so that
-    ``texture.reshape(-1, 3)[index]`` bleeds chart colours outward (no dark seams when sampled)."""
-    from scipy.ndimage import distance_transform_edt
-
-    if not mask.any():
-        return np.arange(mask.size)
-    _, (ri, ci) = distance_transform_edt(~mask, return_indices=True)
-    return (ri * mask.shape[1] + ci).ravel()
 
 
 def atlas_texel_matrix(topo: ScanTopology, raster, template_faces: np.ndarray,
