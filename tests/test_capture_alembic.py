@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from uvatar.capture.abc_archive import AbcArchive, TimeSampling, stored_index
-from uvatar.capture.mesh_abc import AlembicTake, triangulate_polygons, world_matrix
+from uvatar.capture.mesh_abc import AlembicTake, world_matrix
+from uvatar.capture.polygons import triangulate_polygons
 from uvatar.errors import InputError
 
 FIX = Path(__file__).parent / "fixtures" / "alembic"

@@ -24,10 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.capture.abc_archive import AbcArchive, AbcObject, AbcProperty
+from uvatar.capture.polygons import polygons_to_triangles
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
 
-__all__ = ["MESH_SCHEMAS", "AlembicTake", "open_alembic", "xform_matrix", "triangulate_polygons"]
+__all__ = ["MESH_SCHEMAS", "AlembicTake", "open_alembic", "xform_matrix"]
 
 MESH_SCHEMAS = ("AbcGeom_PolyMesh_v1", "AbcGeom_SubD_v1")
 XFORM_SCHEMA_PREFIX = "AbcGeom_Xform"
@@ -109,23 +110,6 @@ def world_matrix(obj: AbcObject, t: float) -> np.ndarray:
 
 def _near(prop: AbcProperty, t: float) -> int:
     return (prop.time_sampling or prop.archive.time_samplings[0]).near_index(t, prop.count)
-
-
-def triangulate_polygons(counts: np.ndarray, reverse: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 3) corner indices of the triangles fanning each polygon of ``counts`` corners (reversed
-    winding when ``reverse``), and (T,) the polygon of each; polygons under 3 corners give none."""
-    counts = np.asarray(counts, np.int64)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(counts) else np.zeros(0, np.int64)
-    tris = np.maximum(counts - 2, 0)
-    face = np.repeat(np.arange(len(counts)), tris)
-    k = np.arange(len(face)) - np.repeat(np.cumsum(tris) - tris, tris) + 1    # 1..n-2 within each polygon
-    first = starts[face]
-    if reverse:    # the polygon's corners in reverse order: c0, c_{n-1}, ..., c1; fan from c0
-        n = counts[face]
-        corners = np.stack([first, first + n - k, first + n - k - 1], axis=1)
-    else:
-        corners = np.stack([first, first + k, first + k + 1], axis=1)
-    return corners, face
 
 
 class AlembicTake:
@@ -257,19 +241,8 @@ class AlembicTake:
         """Sample ``index`` as a triangle mesh in the archive's units and axes (through its parents'
         transforms when ``world``), no texture."""
         p = self.polygons(index)
-        corners, _ = triangulate_polygons(p["counts"])
-        faces = p["indices"][corners]
-        if p["uvs"] is not None:
-            uvs, uv_faces = p["uvs"], p["corner_uvs"][corners]
-        else:
-            uvs, uv_faces = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.int64)
-        points = p["points"]
-        if world:
-            m = world_matrix(self.mesh_object, p["time"])
-            points = points @ m[:3, :3].T + m[:3, 3]
-            if np.linalg.det(m[:3, :3]) < 0:          # a mirroring parent turns the surface inside out
-                faces, uv_faces = faces[:, ::-1], uv_faces[:, ::-1]
-        return TexturedMesh(points.astype(np.float32), faces, uvs, uv_faces)
+        m = world_matrix(self.mesh_object, p["time"]) if world else None
+        return TexturedMesh(*polygons_to_triangles(p, clockwise=True, world=m))
 
 
 def open_alembic(path: str | Path) -> AlembicTake:

@@ -148,24 +148,14 @@ class UsdTake:
     def mesh(self, index: int, world: bool = True) -> TexturedMesh:
         """Frame ``index`` as a triangle mesh (the stage's axes; metres when the stage authors its units;
         through the prim's world transform when ``world``) wearing its material's texture, if any."""
-        from uvatar.capture.mesh_abc import triangulate_polygons
+        from uvatar.capture.polygons import polygons_to_triangles
 
         p = self.polygons(index)
-        corners, _ = triangulate_polygons(p["counts"], reverse=False)
-        faces = p["indices"][corners]
-        if p["uvs"] is not None:
-            uvs, uv_faces = p["uvs"], p["corner_uvs"][corners]
-        else:
-            uvs, uv_faces = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.int64)
-        points = p["points"]
-        if world:
-            M = np.array(self.mesh_schema.ComputeLocalToWorldTransform(self.times[index]))   # row vectors
-            points = points @ M[:3, :3] + M[3, :3]
-            if np.linalg.det(M[:3, :3]) < 0:
-                faces, uv_faces = faces[:, ::-1], uv_faces[:, ::-1]
+        M = np.array(self.mesh_schema.ComputeLocalToWorldTransform(self.times[index])).T if world else None
         if self.meters_per_unit:
-            points = points * self.meters_per_unit
-        return TexturedMesh(points.astype(np.float32), faces, uvs, uv_faces, self.texture(index))
+            scale = np.diag([self.meters_per_unit] * 3 + [1.0])
+            M = scale @ (M if M is not None else np.eye(4))
+        return TexturedMesh(*polygons_to_triangles(p, clockwise=False, world=M), texture=self.texture(index))
 
     def texture_asset(self, index: int) -> tuple[str, str] | None:
         """(the path as authored, the resolved path or "" where it resolves to nothing) of frame
