@@ -218,24 +218,46 @@ def _corners(m) -> np.ndarray:
     return np.c_[m.vertices[m.faces].reshape(-1, 3), m.uvs[m.uv_faces].reshape(-1, 2)]
 
 
-def test_animate_writes_a_uvol2_take_that_imports_back(setup, tmp_path):
+def _texture_error(back, ref) -> np.ndarray:
+    """|back's texture - ref's| per texel, both in [0, 1]."""
+    return np.abs(back.texture.astype(np.float32) / (255 if back.texture.dtype == np.uint8 else 1) - ref.texture)
+
+
+def _take_imported_back(setup, tmp_path, mesh_format: str, **config):
+    """Animate three frames twice, as a ``mesh_format`` take in ``take/`` and as OBJs in ``objs/``, and
+    import the take into ``cap/``: (the sequence, the import's summary, [(imported scan, its OBJ) a frame])."""
     from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
     from uvatar.capture.meshio import read_mesh
 
     root, body, _ = setup
     seq = _sequence(3)
-    animate(root / "avatar", seq, tmp_path / "a.mp4", AnimateConfig(size=32, progress=False, mesh_format="uvol"),
-            mesh_dir=tmp_path / "take", body=body)
-    animate(root / "avatar", seq, tmp_path / "b.mp4", AnimateConfig(size=32, progress=False),
-            mesh_dir=tmp_path / "objs", body=body)
+    for fmt, out, mesh_dir in ((mesh_format, "a.mp4", "take"), ("obj", "b.mp4", "objs")):
+        animate(root / "avatar", seq, tmp_path / out, AnimateConfig(size=32, progress=False, mesh_format=fmt, **config),
+                mesh_dir=tmp_path / mesh_dir, body=body)
+    summary = import_mesh_sequence(tmp_path / "take", tmp_path / "cap", progress=False)
+    pairs = [(read_mesh(tmp_path / "cap" / "scans" / f"{t:06d}.ply"), read_mesh(obj))
+             for t, obj in enumerate(sorted((tmp_path / "objs").glob("*.obj")))]
+    assert len(pairs) == 3
+    return seq, summary, pairs
+
+
+def _assert_exact(pairs) -> None:
+    """Each frame's vertices, triangles and UV corners back exactly, its texture losslessly."""
+    for back, ref in pairs:
+        np.testing.assert_allclose(back.vertices, ref.vertices, atol=1e-6)
+        np.testing.assert_array_equal(back.faces, ref.faces)
+        np.testing.assert_allclose(back.uvs[back.uv_faces], ref.uvs[ref.uv_faces], atol=1e-6)
+        assert _texture_error(back, ref).max() <= 1 / 255 + 1e-6
+
+
+def test_animate_writes_a_uvol2_take_that_imports_back(setup, tmp_path):
+    from scipy.spatial import cKDTree
+
+    seq, summary, pairs = _take_imported_back(setup, tmp_path, "uvol")
     manifest = json.loads((tmp_path / "take" / "avatar.uvol.json").read_text())
     assert manifest["geometry"]["targets"]["draco"]["frameCount"] == 3
-    summary = import_mesh_sequence(tmp_path / "take", tmp_path / "cap", progress=False)
     assert summary["layout"] == "uvol2" and summary["frames"] == 3 and summary["fps"] == seq.fps
-    for t, obj in enumerate(sorted((tmp_path / "objs").glob("*.obj"))):
-        from scipy.spatial import cKDTree
-
-        back, ref = read_mesh(tmp_path / "cap" / "scans" / f"{t:06d}.ply"), read_mesh(obj)
+    for back, ref in pairs:
         assert abs(back.num_faces - ref.num_faces) <= ref.num_faces // 1000   # edgebreaker drops degenerate ones
         scale = np.ptp(ref.vertices, axis=0).max()
         step = scale / 2**14                                                  # 14-bit Draco positions
@@ -243,34 +265,23 @@ def test_animate_writes_a_uvol2_take_that_imports_back(setup, tmp_path):
             assert cKDTree(b).query(a)[0].max() <= step
         d, _ = cKDTree(_corners(ref)).query(_corners(back))           # each corner keeps its UV (faces reordered)
         assert np.median(d) < 2 * step and np.quantile(d, 0.99) < 1e-3
-        assert np.abs(back.texture.astype(np.float32) / (255 if back.texture.dtype == np.uint8 else 1)
-                      - ref.texture).mean() < 0.03                                      # ETC1S
+        assert _texture_error(back, ref).mean() < 0.03                                  # ETC1S
 
 
 def test_animate_writes_a_volograms_take_that_imports_back(setup, tmp_path):
     """--mesh-format vols: one avatar.vols, a keyframe then tracked frames (the avatar keeps its
     topology), each frame's vertices and UV corners back exactly (float32), textures through ETC1S."""
-    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
     from uvatar.capture.mesh_vols import open_vols
-    from uvatar.capture.meshio import read_mesh
 
-    root, body, _ = setup
-    seq = _sequence(3)
-    animate(root / "avatar", seq, tmp_path / "a.mp4", AnimateConfig(size=32, progress=False, mesh_format="vols", levels=1),
-            mesh_dir=tmp_path / "take", body=body)
-    animate(root / "avatar", seq, tmp_path / "b.mp4", AnimateConfig(size=32, progress=False, levels=1),
-            mesh_dir=tmp_path / "objs", body=body)
+    seq, summary, pairs = _take_imported_back(setup, tmp_path, "vols", levels=1)
     take = open_vols(tmp_path / "take" / "avatar.vols")
     assert take.header.version == 13 and take.header.frame_count == 3 and take.header.fps == seq.fps
     assert [e.kind for e in take.frames] == [1, 0, 0]          # one keyframe, then tracked frames
-    summary = import_mesh_sequence(tmp_path / "take", tmp_path / "cap", progress=False)
     assert summary["layout"] == "volograms" and summary["frames"] == 3 and summary["fps"] == seq.fps
-    for t, obj in enumerate(sorted((tmp_path / "objs").glob("*.obj"))):
-        back, ref = read_mesh(tmp_path / "cap" / "scans" / f"{t:06d}.ply"), read_mesh(obj)
+    for back, ref in pairs:
         assert back.num_faces == ref.num_faces and back.num_vertices == ref.num_vertices
         np.testing.assert_allclose(np.sort(_corners(back), 0), np.sort(_corners(ref), 0), atol=1e-6)
-        assert np.abs(back.texture.astype(np.float32) / (255 if back.texture.dtype == np.uint8 else 1)
-                      - ref.texture).mean() < 0.03                                      # ETC1S
+        assert _texture_error(back, ref).mean() < 0.03                                  # ETC1S
 
 
 def test_a_volograms_take_of_the_twice_subdivided_body_is_refused_before_any_work():
@@ -282,50 +293,21 @@ def test_a_volograms_take_of_the_twice_subdivided_body_is_refused_before_any_wor
 def test_animate_writes_an_alembic_take_that_imports_back(setup, tmp_path):
     """--mesh-format abc: avatar.abc (the topology stored once) + textures/avatar_<frame>.png; each frame's
     vertices, triangles and UV corners back exactly, textures losslessly."""
-    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
     from uvatar.capture.mesh_abc import AlembicTake
-    from uvatar.capture.meshio import read_mesh
 
-    root, body, _ = setup
-    seq = _sequence(3)
-    animate(root / "avatar", seq, tmp_path / "a.mp4", AnimateConfig(size=32, progress=False, mesh_format="abc"),
-            mesh_dir=tmp_path / "take", body=body)
-    animate(root / "avatar", seq, tmp_path / "b.mp4", AnimateConfig(size=32, progress=False),
-            mesh_dir=tmp_path / "objs", body=body)
+    seq, summary, pairs = _take_imported_back(setup, tmp_path, "abc")
     take = AlembicTake(tmp_path / "take" / "avatar.abc")
     assert take.count == 3 and take.fps() == pytest.approx(seq.fps)
     assert take.indices_prop.constant and not take.points.constant       # triangles once, vertices a frame
     assert sorted(p.name for p in (tmp_path / "take" / "textures").iterdir()) == [f"avatar_{t:06d}.png" for t in range(3)]
-    summary = import_mesh_sequence(tmp_path / "take", tmp_path / "cap", progress=False)
     assert summary["layout"] == "alembic" and summary["frames"] == 3 and summary["fps"] == pytest.approx(seq.fps)
-    for t, obj in enumerate(sorted((tmp_path / "objs").glob("*.obj"))):
-        back, ref = read_mesh(tmp_path / "cap" / "scans" / f"{t:06d}.ply"), read_mesh(obj)
-        np.testing.assert_allclose(back.vertices, ref.vertices, atol=1e-6)
-        np.testing.assert_array_equal(back.faces, ref.faces)
-        np.testing.assert_allclose(back.uvs[back.uv_faces], ref.uvs[ref.uv_faces], atol=1e-6)
-        assert np.abs(back.texture.astype(np.float32) / (255 if back.texture.dtype == np.uint8 else 1)
-                      - ref.texture).max() <= 1 / 255 + 1e-6
+    _assert_exact(pairs)
 
 
 def test_animate_writes_a_usdz_take_that_imports_back(setup, tmp_path):
     """--mesh-format usdz: one avatar.usdz (the stage and its per-frame textures packed); each frame's
     vertices, triangles and UV corners back exactly, its own texture losslessly."""
-    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
-    from uvatar.capture.meshio import read_mesh
-
-    root, body, _ = setup
-    seq = _sequence(3)
-    animate(root / "avatar", seq, tmp_path / "a.mp4", AnimateConfig(size=32, progress=False, mesh_format="usdz"),
-            mesh_dir=tmp_path / "take", body=body)
-    animate(root / "avatar", seq, tmp_path / "b.mp4", AnimateConfig(size=32, progress=False),
-            mesh_dir=tmp_path / "objs", body=body)
+    seq, summary, pairs = _take_imported_back(setup, tmp_path, "usdz")
     assert [p.name for p in (tmp_path / "take").iterdir()] == ["avatar.usdz"]
-    summary = import_mesh_sequence(tmp_path / "take", tmp_path / "cap", progress=False)
     assert summary["layout"] == "usd" and summary["frames"] == 3 and summary["units"] == "m"
-    for t, obj in enumerate(sorted((tmp_path / "objs").glob("*.obj"))):
-        back, ref = read_mesh(tmp_path / "cap" / "scans" / f"{t:06d}.ply"), read_mesh(obj)
-        np.testing.assert_allclose(back.vertices, ref.vertices, atol=1e-6)
-        np.testing.assert_array_equal(back.faces, ref.faces)
-        np.testing.assert_allclose(back.uvs[back.uv_faces], ref.uvs[ref.uv_faces], atol=1e-6)
-        assert np.abs(back.texture.astype(np.float32) / (255 if back.texture.dtype == np.uint8 else 1)
-                      - ref.texture).max() <= 1 / 255 + 1e-6
+    _assert_exact(pairs)
