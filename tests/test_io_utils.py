@@ -71,7 +71,8 @@ def test_every_require_names_an_extra_that_exists_or_a_core_dependency():
     dist = {"embreex": "embreex", "warp": "warp-lang", "playwright": "playwright", "mediapipe": "mediapipe",
             "ray": "ray", "smplx": "smplx", "ufbx": "ufbx", "pygltflib": "pygltflib", "anny": "anny",
             "xatlas": "xatlas", "fast_simplification": "fast-simplification", "DracoPy": "dracopy",
-            "alktx2": "alktx2", "texture2ddecoder": "texture2ddecoder", "zstandard": "zstandard", "pxr": "usd-core"}
+            "alktx2": "alktx2", "texture2ddecoder": "texture2ddecoder", "zstandard": "zstandard", "pxr": "usd-core",
+            "skimage": "scikit-image"}
     calls = []
     for path in (root / "src" / "uvatar").rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):

@@ -63,13 +63,17 @@ def read_crt(path: Path, load_texture=None, byte_range: tuple[int, int] | None =
         mesh = decode_corto(_bytes(path, byte_range, what))
     except CortoError as exc:
         raise InputError(path, f"{what}: {exc}") from None
-    if len(mesh.faces) == 0:
-        raise InputError(path, f"{what} holds a point cloud, not a triangle mesh")
     if not np.isfinite(mesh.positions).all():
         raise InputError(path, f"{what} has non-finite vertices: corrupt")
+    colors = None if mesh.colors is None else mesh.colors[:, :3].astype(np.float32) / 255.0
+    if len(mesh.faces) == 0:            # a point cloud: read_mesh refuses it, uvatar capture import surfaces it
+        return TexturedMesh(mesh.positions, np.zeros((0, 3), np.int64), np.zeros((0, 2)),
+                            np.zeros((0, 3), np.int64), None, colors)
     vertices, faces = weld_by_position(mesh.positions, mesh.faces)
+    if colors is not None:              # each welded vertex the colour of its first point
+        colors = colors[np.sort(np.unique(mesh.positions, axis=0, return_index=True)[1])]
     if mesh.uvs is None:
         uvs, uv_faces = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.int64)
     else:
         uvs, uv_faces = mesh.uvs.astype(np.float32), mesh.faces
-    return TexturedMesh(vertices, faces, uvs, uv_faces, None)
+    return TexturedMesh(vertices, faces, uvs, uv_faces, None, colors)

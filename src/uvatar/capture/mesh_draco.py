@@ -37,9 +37,9 @@ def _decode(path: Path):
                                f"on {len(data)} bytes)") from None
     faces = np.asarray(mesh.faces if hasattr(mesh, "faces") else [], dtype=np.int64).reshape(-1, 3)
     points = np.asarray(mesh.points, dtype=np.float32).reshape(-1, 3)
-    if len(faces) == 0 or len(points) == 0:
-        raise InputError(path, "Draco file holds a point cloud, not a triangle mesh")
-    if faces.max() >= len(points) or not np.isfinite(points).all():
+    if len(points) == 0:
+        raise InputError(path, "Draco file holds no points")
+    if len(faces) and faces.max() >= len(points) or not np.isfinite(points).all():
         raise InputError(path, "Draco mesh is corrupt (face indices past the points, or non-finite points)")
     return mesh, points, faces
 
@@ -52,9 +52,16 @@ def drc_header(path: Path) -> dict:
 
 
 def read_drc(path: Path, load_texture=None) -> TexturedMesh:
-    """A .drc → TexturedMesh (vertices in the file's own units, welded; UVs v up; no texture)."""
+    """A .drc → TexturedMesh (vertices in the file's own units, welded; UVs v up; no texture; the
+    points' colours, where stored, as ``vertex_colors``). A point cloud has no faces (``read_mesh``
+    refuses it; ``uvatar capture import`` makes it a surface)."""
     mesh, points, split_faces = _decode(path)
+    colors = _colors(path, mesh, len(points))
+    if len(split_faces) == 0:
+        return TexturedMesh(points, split_faces, np.zeros((0, 2)), np.zeros((0, 3), np.int64), None, colors)
     vertices, faces = weld_by_position(points, split_faces)
+    if colors is not None:                      # each welded vertex the colour of its first point
+        colors = colors[np.sort(np.unique(points, axis=0, return_index=True)[1])]
     if mesh.tex_coord is None:
         uvs, uv_faces = np.zeros((0, 2), np.float32), np.zeros((0, 3), np.int64)
     else:
@@ -63,7 +70,21 @@ def read_drc(path: Path, load_texture=None) -> TexturedMesh:
             raise InputError(path, f"Draco mesh has {len(uvs)} UVs for {len(points)} points")
         uvs[:, 1] = 1.0 - uvs[:, 1]
         uv_faces = split_faces
-    return TexturedMesh(vertices, faces, uvs, uv_faces, None)
+    return TexturedMesh(vertices, faces, uvs, uv_faces, None, colors)
+
+
+def _colors(path: Path, mesh, count: int) -> np.ndarray | None:
+    """(count, 3) the points' colours in [0, 1] (integers scaled by their type's maximum), or None."""
+    raw = getattr(mesh, "colors", None)
+    if raw is None:
+        return None
+    raw = np.asarray(raw)
+    if raw.ndim != 2 or len(raw) != count or raw.shape[1] < 3:
+        raise InputError(path, f"Draco file has colours of shape {raw.shape} for {count} points")
+    rgb = raw[:, :3].astype(np.float64)
+    if raw.dtype.kind in "ui":
+        rgb /= np.iinfo(raw.dtype).max
+    return np.clip(rgb, 0.0, 1.0).astype(np.float32)
 
 
 def write_drc(path: Path, mesh: TexturedMesh, write_texture=None, *, quantization_bits: int = 16,

@@ -159,9 +159,12 @@ def read_ply(path: Path, load_texture) -> TexturedMesh:
         for element in header["elements"]:
             elements[element["name"]], offset = _read_element_binary(path, buf, offset, element, endian)
     vert, face = elements.get("vertex"), elements.get("face")
-    if not vert or face is None or not all(c in vert for c in "xyz"):
-        raise InputError(path, "PLY has no vertex x/y/z or no face element")
+    if not vert or not all(c in vert for c in "xyz"):
+        raise InputError(path, "PLY has no vertex x/y/z")
     vertices = np.stack([vert["x"], vert["y"], vert["z"]], -1)
+    if face is None or not any(len(v) for v in face.values()):     # a point cloud: read_mesh says if it may be
+        return TexturedMesh(vertices, np.zeros((0, 3), np.int64), np.zeros((0, 2)), np.zeros((0, 3), np.int64),
+                            None, _vertex_colors(vert, header["elements"]))
     index_name = next((n for n in ("vertex_indices", "vertex_index") if n in face), None)
     if index_name is None:
         raise InputError(path, "PLY faces have no vertex_indices list")

@@ -82,18 +82,29 @@ def check_texture(path: str | Path, what: str = "texture image") -> tuple[int, i
     return size
 
 
-def read_mesh(path: str | Path) -> TexturedMesh:
-    """Read a textured mesh (.obj with .mtl and image, .ply with UVs, .glb) → TexturedMesh."""
+def read_mesh(path: str | Path, points_ok: bool = False) -> TexturedMesh:
+    """Read a textured mesh (.obj with .mtl and image, .ply with UVs, .glb) → TexturedMesh. A file of
+    points without faces (a PLY point cloud) is refused unless ``points_ok`` (then: no faces, its
+    colours in ``vertex_colors``)."""
     path = Path(path)
     fmt = _format(path)
     if not path.is_file():
         raise InputError(path, "mesh file is missing")
     try:
-        return fmt.reader(path, load_texture)
+        mesh = fmt.reader(path, load_texture)
     except InputError:
         raise
     except Exception as exc:
         raise InputError(path, f"unreadable mesh ({type(exc).__name__}: {exc})") from None
+    return mesh if points_ok else check_not_points(path, mesh)
+
+
+def check_not_points(path: Path, mesh: TexturedMesh) -> TexturedMesh:
+    """``mesh``, or InputError where it has no faces (a point cloud, or nothing)."""
+    if mesh.num_faces == 0:
+        what = "a point cloud (no faces)" if mesh.num_vertices else "no vertices and no faces"
+        raise InputError(path, f"holds {what}, not a triangle mesh")
+    return mesh
 
 
 def read_mesh_header(path: str | Path) -> dict:

@@ -16,7 +16,8 @@ import numpy as np
 
 from uvatar.capture.types import TexturedMesh
 
-__all__ = ["atlas_resolution", "pair_adjacent_faces", "triangle_cell_atlas", "texture_from_vertex_colors"]
+__all__ = ["atlas_resolution", "cell_atlas_texture", "pair_adjacent_faces", "triangle_cell_atlas",
+           "texture_from_vertex_colors"]
 
 INSET = 0.5          # texels between a cell's triangles and its border
 MATCH_ROUNDS = 12    # rounds of the matching that pairs neighbouring triangles
@@ -101,20 +102,31 @@ def triangle_cell_atlas(faces: np.ndarray, min_cell_texels: int = 5,
     return uvs.astype(np.float32), np.arange(3 * n, dtype=np.int64).reshape(-1, 3), res
 
 
-def texture_from_vertex_colors(mesh: TexturedMesh, min_cell_texels: int = 5,
-                               max_resolution: int = 4096) -> TexturedMesh:
-    """``mesh`` with a triangle-cell atlas and a texture holding its ``vertex_colors`` (see the module doc)."""
+def cell_atlas_texture(faces: np.ndarray, colour_texels, min_cell_texels: int = 5,
+                       max_resolution: int = 4096) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(uvs, uv_faces, texture (R, R, 3) float32) of a :func:`triangle_cell_atlas` of ``faces`` whose
+    covered texels (conservatively rasterized) take ``colour_texels(face (N,), bary (N, 3)) -> (N, 3)``,
+    the gutters the nearest covered texel's colour."""
     from uvatar.geometry.uv_raster import UVRasterConfig, fill_atlas_index, rasterize_uv
 
-    if mesh.vertex_colors is None or len(mesh.vertex_colors) != len(mesh.vertices):
-        raise ValueError("texture_from_vertex_colors needs one colour a vertex")
-    uvs, uv_faces, res = triangle_cell_atlas(mesh.faces, min_cell_texels, max_resolution)
+    uvs, uv_faces, res = triangle_cell_atlas(faces, min_cell_texels, max_resolution)
     raster = rasterize_uv(uvs, uv_faces, res, UVRasterConfig(conservative=True))
     face = raster.face_index.reshape(-1)
     covered = face >= 0
-    colors = mesh.vertex_colors[mesh.faces[face[covered]]]                     # (N, 3 corners, 3)
-    bary = raster.bary.reshape(-1, 3)[covered]
     texture = np.zeros((res * res, 3), np.float32)
-    texture[covered] = np.einsum("nc,ncd->nd", bary, colors)
-    texture = texture[fill_atlas_index(covered.reshape(res, res))].reshape(res, res, 3)
+    texture[covered] = colour_texels(face[covered], raster.bary.reshape(-1, 3)[covered])
+    return uvs, uv_faces, texture[fill_atlas_index(covered.reshape(res, res))].reshape(res, res, 3)
+
+
+def texture_from_vertex_colors(mesh: TexturedMesh, min_cell_texels: int = 5,
+                               max_resolution: int = 4096) -> TexturedMesh:
+    """``mesh`` with a triangle-cell atlas and a texture holding its ``vertex_colors`` (see the module doc)."""
+    if mesh.vertex_colors is None or len(mesh.vertex_colors) != len(mesh.vertices):
+        raise ValueError("texture_from_vertex_colors needs one colour a vertex")
+    colors = mesh.vertex_colors
+
+    def interpolate(face: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        return np.einsum("nc,ncd->nd", bary, colors[mesh.faces[face]])
+
+    uvs, uv_faces, texture = cell_atlas_texture(mesh.faces, interpolate, min_cell_texels, max_resolution)
     return TexturedMesh(mesh.vertices, mesh.faces, uvs, uv_faces, texture, mesh.vertex_colors)

@@ -48,7 +48,9 @@ def _import_flags() -> ConfigFlags:
               "image_format": "image files written", "jpeg_quality": "JPEG quality 1..100",
               "fps": "source frame rate (0: from the video)",
               "body_model": "body model named in capture.json for `uvatar fit`",
-              "cameras": "comma-separated camera names to import (empty: all)"})
+              "cameras": "comma-separated camera names to import (empty: all)",
+              "point_voxel": "a point-cloud take's surface: its grid step in point spacings (larger closes "
+                             "wider holes, keeps less detail)"})
 
 
 def _register_import(cli) -> None:
@@ -68,7 +70,8 @@ def _register_import(cli) -> None:
                                 "texture video or one image beside it or in textures/; units from the person's "
                                 "height or --units), a USD take (.usd/.usda/.usdc/.usdz: its mesh a time code, "
                                 "its material's texture) or a folder of per-frame .obj/.ply/.glb/.drc/.crt/.abc "
-                                "meshes with their textures; writes OUT/scans/<frame>.ply + .png in metres, +Y up "
+                                "meshes with their textures (or coloured point clouds: "
+                                ".ply/.drc/.crt without faces, each made a surface and a texture); writes OUT/scans/<frame>.ply + .png in metres, +Y up "
                                 "(--units/--up where the files do not say; --fps where no manifest does; needs "
                                 "pip install 'uvatar[volumetric]' for Draco/KTX2). Resumes an interrupted import.")
     p.add_argument("src", help="recording folder")

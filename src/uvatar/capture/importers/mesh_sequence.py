@@ -92,7 +92,7 @@ from uvatar.errors import InputError
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".drc", ".glb", ".obj", ".ply")   # a UVOL geometry folder's, in order of preference
-TEXTURELESS_MESHES = (".drc", ".crt", ".abc")       # mesh files that never carry a texture (Draco, Corto, Alembic)
+TEXTURELESS_MESHES = (".drc", ".crt", ".abc")       # mesh files that never carry a texture image (Draco, Corto, Alembic)
 #: a texture folder's files, in order of preference where no manifest names the format (KTX 2 and 1 say
 #: their size; a headerless .etc2 file needs the manifest's resolution unless it is square)
 TEXTURE_SUFFIXES = (".ktx2",) + IMAGE_SUFFIXES + (".ktx", ".etc2")
@@ -301,9 +301,8 @@ def _plain_folder(src: Path) -> MeshSequence:
             if image is not None and path.suffix.lower() in TEXTURELESS_MESHES + (".ply",):
                 texture = image
                 break
-        if path.suffix.lower() in TEXTURELESS_MESHES and texture is None:
-            kind = {".drc": "Draco", ".crt": "Corto", ".abc": "Alembic"}[path.suffix.lower()]
-            problems.append(f"{path}: a {kind} mesh without an image of the same name: frame {i} has no texture")
+        if path.suffix.lower() == ".abc" and texture is None:    # Draco and Corto files may hold colours
+            problems.append(f"{path}: an Alembic mesh without an image of the same name: frame {i} has no texture")
             texture = ()
         frames[i] = FrameSource(i, path, texture)
     glb = all(p.suffix.lower() == ".glb" for p in meshes.values())
@@ -323,23 +322,32 @@ def _read_mesh(source: FrameSource) -> TexturedMesh:
         return usd_mesh(source.mesh, source.index)
     if suffix in (".crt",) + MESH_FILE_SUFFIXES:
         return read_crt(source.mesh, byte_range=source.mesh_bytes)
-    return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh)
+    return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh, points_ok=True)
 
 
 VERTEX_COLOUR_NOTE = ("frames carry colours per vertex and no texture: each is given an atlas of its triangles in "
                       "pairs and a texture of those colours (capture/vertex_colors.py)")
+POINT_CLOUD_NOTE = ("frames are coloured point clouds: each is made a surface (its points' closed shell, marching "
+                    "cubes, decimated, snapped to the points) and a texture of the points' colours "
+                    "(capture/point_cloud.py)")
 
 
 def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None,
-               notes: list[str] | None = None) -> TexturedMesh:
+               notes: list[str] | None = None, point_cloud=None) -> TexturedMesh:
     """Decode a frame's mesh and texture (source units and axes; ``texture_size``: a headerless ETC2
     texture's (width, height)); a mesh with colours per vertex and no texture is given one
-    (:mod:`uvatar.capture.vertex_colors`; said once in ``notes``); InputError naming the bad file."""
+    (:mod:`uvatar.capture.vertex_colors`), a coloured point cloud a surface and a texture
+    (:mod:`uvatar.capture.point_cloud`, ``point_cloud``: its PointCloudConfig), each said once in
+    ``notes``; InputError naming the bad file."""
     from uvatar.io_utils import read_image
 
     if source.texture == ():
         raise InputError(source.mesh, "frame has no texture")
     mesh = _read_mesh(source)
+    if mesh.num_faces == 0:
+        mesh = _surface_of_points(source.mesh, mesh, point_cloud)
+        if notes is not None and POINT_CLOUD_NOTE not in notes:
+            notes.append(POINT_CLOUD_NOTE)
     if isinstance(source.texture, tuple) and source.texture[0].suffix.lower() in VIDEO_SUFFIXES:
         path, frame = source.texture
         mesh.texture = open_video(path).frame(frame)
@@ -361,6 +369,21 @@ def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None,
     if not mesh.has_uvs:
         raise InputError(source.mesh, "mesh has no UVs: its texture cannot be mapped")
     return mesh
+
+
+def _surface_of_points(path: Path, cloud: TexturedMesh, config) -> TexturedMesh:
+    """The textured surface of the point cloud read from ``path``; InputError where it makes none."""
+    from uvatar.capture.point_cloud import PointCloudError, mesh_from_point_cloud
+
+    if cloud.num_vertices == 0:
+        raise InputError(path, "holds no vertices and no faces")
+    if cloud.vertex_colors is None:
+        raise InputError(path, f"holds a point cloud ({cloud.num_vertices} points, no faces) without colours: "
+                               "no surface texture can be made of it")
+    try:
+        return mesh_from_point_cloud(cloud.vertices, cloud.vertex_colors, config)[0]
+    except PointCloudError as exc:
+        raise InputError(path, f"point cloud of {cloud.num_vertices} points: {exc}") from None
 
 
 def detect_units(height: float, path: Path) -> str:
@@ -414,6 +437,13 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
         close_sources()
 
 
+def point_cloud_config(cfg):
+    """The PointCloudConfig of an ImportConfig's point-cloud options."""
+    from uvatar.capture.point_cloud import PointCloudConfig
+
+    return PointCloudConfig(voxel=cfg.point_voxel)
+
+
 def close_sources() -> None:
     """Close what listing and reading a sequence opened (texture videos, Volograms, Alembic, USD takes)."""
     close_videos()
@@ -463,7 +493,7 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
             imported.append(i)
             continue
         try:
-            mesh = read_frame(seq.frames[i], seq.texture_size, notes)
+            mesh = read_frame(seq.frames[i], seq.texture_size, notes, point_cloud_config(cfg))
         except InputError as exc:
             skipped.append(i)
             first_error = first_error or str(exc)

@@ -50,7 +50,8 @@ class ImportConfig:
     already lossy H.264, q95 JPEG is ~8x smaller than PNG and adds less error than the video
     codec did) or "png" (lossless, for image-folder sources); jpeg_quality 1..100; fps: 0 = from
     the video; body_model: written to capture.json for ``uvatar fit``; cameras: names to keep
-    (empty: all that have both a source and a calibration).
+    (empty: all that have both a source and a calibration); point_voxel: a point-cloud take's
+    surface grid step in point spacings (:class:`uvatar.capture.point_cloud.PointCloudConfig`).
     """
 
     start: int = 0
@@ -64,6 +65,7 @@ class ImportConfig:
     fps: float = 0.0
     body_model: str = "anny"
     cameras: tuple[str, ...] = ()
+    point_voxel: float = 1.5
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
@@ -78,6 +80,7 @@ class ImportConfig:
             (self.image_format in ("jpg", "png"), f"image_format must be jpg or png, got {self.image_format!r}"),
             (1 <= self.jpeg_quality <= 100, f"jpeg_quality must be in 1..100, got {self.jpeg_quality}"),
             (self.fps >= 0, f"fps must be >= 0, got {self.fps}"),
+            (self.point_voxel > 0, f"point_voxel must be > 0 point spacings, got {self.point_voxel}"),
         ])
 
 

@@ -16,6 +16,7 @@ from uvatar.capture.importers.mesh_sequence import (
     UVOL_DEFAULT_FPS,
     close_sources,
     find_mesh_sequence,
+    point_cloud_config,
     read_frame,
     wanted_frames,
     world_from_source,
@@ -55,7 +56,7 @@ def probe_mesh_sequence(src: str | Path, cfg=None) -> dict:
         first, failures = None, []
         for i in wanted[:MAX_TRIES]:
             try:
-                first = (i, read_frame(seq.frames[i], seq.texture_size, seq.notes))
+                first = (i, read_frame(seq.frames[i], seq.texture_size, seq.notes, point_cloud_config(cfg)))
                 break
             except InputError as exc:
                 failures.append(str(exc))
