@@ -162,7 +162,7 @@ def test_a_folder_of_corto_frames_with_images(tmp_path):
         iio.imwrite(folder / f"frame{i:03d}.png", np.full((32, 32, 3), 50 * (i + 1), np.uint8))
     (folder / "frame002.crt").write_bytes((CORTO / "sphere_delta.crt").read_bytes())   # no image
     summary = import_mesh_sequence(folder, tmp_path / "cap", cfg=UP, progress=False)
-    assert summary["frames"] == 2 and any("a Corto mesh without an image" in p for p in summary["problems"])
+    assert summary["frames"] == 2 and any("frame002.crt: mesh has no texture (no image beside it" in p for p in summary["problems"])
 
 
 def test_cli_imports_a_uvol1_take(tmp_path, capsys):

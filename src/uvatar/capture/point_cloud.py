@@ -57,7 +57,7 @@ class PointCloudConfig:
 
     voxel: float = 1.5
     gap_voxels: int = 2
-    max_faces: int = 100_000
+    max_faces: int = 200_000
     snap_neighbours: int = 8
     colour_neighbours: int = 4
     min_cell_texels: int = 4

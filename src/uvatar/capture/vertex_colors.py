@@ -19,7 +19,7 @@ from uvatar.capture.types import TexturedMesh
 __all__ = ["atlas_resolution", "cell_atlas_texture", "pair_adjacent_faces", "triangle_cell_atlas",
            "texture_from_vertex_colors"]
 
-INSET = 0.5          # texels between a cell's triangles and its border
+INSET = 1.0          # texels between a cell's triangles and its border: a bilinear lookup on an edge stays in its cell
 MATCH_ROUNDS = 12    # rounds of the matching that pairs neighbouring triangles
 
 
