@@ -5,8 +5,9 @@
 Each scan of CAPTURE/scans is sampled densely over its surface (colours from its texture), the samples
 voxelized on one grid of 2^bits cells along the take's tallest side (each occupied voxel one point at its
 centre with its samples' mean colour: 8i's "voxelized full bodies" at 10 bits) and written as a binary
-PLY of float x/y/z and uchar colours, metres. ``uvatar capture import`` turns the folder back into
-scans; each is scored against its source scan: distances from one surface's vertices to dense samples of
+PLY of float x/y/z and uchar colours: as 8i writes them, the voxels' integer indices (imported with
+``--units`` the voxel's size in metres), or with ``--metres`` the voxel centres in metres (the units
+then detected from the height). ``uvatar capture import`` turns the folder back into scans; each is scored against its source scan: distances from one surface's vertices to dense samples of
 the other (mm) and renders from four cameras around it and one close to the head (PSNR inside both masks).
 Prints one JSON object (also OUT/point_cloud.json) and writes OUT/point_cloud_sheet.jpg.
 """
@@ -37,13 +38,14 @@ def sample_surface(mesh, count: int, rng) -> tuple[np.ndarray, np.ndarray]:
 
 
 def voxelize(points: np.ndarray, colors: np.ndarray, origin: np.ndarray, voxel: float):
-    """(voxel centres (M, 3), mean colours (M, 3)) of the occupied voxels."""
+    """(integer indices (M, 3), mean colours (M, 3)) of the occupied voxels (cell ijk spans
+    ``origin + ijk * voxel`` to ``origin + (ijk + 1) * voxel``)."""
     ijk = np.floor((points - origin) / voxel).astype(np.int64)
     cells, inverse = np.unique(ijk, axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
     count = np.bincount(inverse, minlength=len(cells))[:, None]
     mean = np.stack([np.bincount(inverse, colors[:, c], len(cells)) for c in range(3)], -1) / count
-    return origin + (cells + 0.5) * voxel, mean
+    return cells, mean
 
 
 def write_cloud(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
@@ -92,6 +94,7 @@ def cameras_for(mesh):
 
 def main() -> None:
     from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
+    from uvatar.capture.importers.pipeline import ImportConfig
     from uvatar.capture.layout import Capture
     from uvatar.capture.meshio import read_mesh
     from uvatar.io_utils import write_image
@@ -101,6 +104,8 @@ def main() -> None:
     ap.add_argument("out", type=Path)
     ap.add_argument("--frames", default="0:10")
     ap.add_argument("--bits", type=int, default=10)
+    ap.add_argument("--metres", action="store_true", help="write voxel centres in metres, not voxel indices")
+    ap.add_argument("--take-only", action="store_true", help="write OUT/take and stop (import it yourself)")
     args = ap.parse_args()
     start, end = (int(x) for x in args.frames.split(":"))
     names = Capture(args.capture).frames[start:end]
@@ -115,15 +120,22 @@ def main() -> None:
     for n, mesh in scans.items():
         tri = mesh.vertices[mesh.faces].astype(np.float64)
         area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
-        points, colors = voxelize(*sample_surface(mesh, int(SAMPLES_PER_VOXEL * area / voxel**2), rng), lo, voxel)
-        write_cloud(take / f"{n}.ply", points, colors)
-        counts.append(len(points))
+        cells, colors = voxelize(*sample_surface(mesh, int(SAMPLES_PER_VOXEL * area / voxel**2), rng), lo, voxel)
+        write_cloud(take / f"{n}.ply", lo + (cells + 0.5) * voxel if args.metres else cells, colors)
+        counts.append(len(cells))
+    if args.take_only:
+        print(json.dumps({"take": str(take), "frames": len(counts), "voxel_m": f"{voxel:.9g}",
+                          "points_mean": int(np.mean(counts))}))
+        return
     t0 = time.perf_counter()
-    summary = import_mesh_sequence(take, args.out / "cap", progress=False)
+    cfg = ImportConfig(units="" if args.metres else f"{voxel:.9g}")
+    summary = import_mesh_sequence(take, args.out / "cap", cfg, progress=False)
+    offset = np.zeros(3) if args.metres else lo + 0.5 * voxel    # voxel indices x voxel -> the scan's world
     seconds = time.perf_counter() - t0
     rows, sheet = [], []
     for k, (n, source) in enumerate(scans.items()):
         back = read_mesh(args.out / "cap" / "scans" / f"{k:06d}.ply")
+        back.vertices = (back.vertices + offset).astype(np.float32)
         to_scan, from_scan = surface_distances_mm(back, source, rng), surface_distances_mm(source, back, rng)
         body, head = cameras_for(source)
         ref, got = renders(source, body + [head]), renders(back, body + [head])
@@ -138,6 +150,7 @@ def main() -> None:
             sheet.append(np.concatenate([ref[0].rgb, got[0].rgb, err(ref[0], got[0]), ref[4].rgb, got[4].rgb,
                                          err(ref[4], got[4])], axis=1))
     result = {"voxel_mm": round(voxel * 1000, 3), "bits": args.bits, "frames": len(rows),
+              "coordinates": "metres" if args.metres else "voxel indices", "units": cfg.units,
               "import_s_per_frame": round(seconds / len(rows), 2), "notes": summary["notes"],
               "problems": summary["problems"], "per_frame": rows}
     (args.out / "point_cloud.json").write_text(json.dumps(result, indent=1))

@@ -92,6 +92,12 @@ def test_qualisys_known_answer_by_hand(tmp_path):
     np.testing.assert_allclose(p[:3], [0.1, 1.1, 2.0])
     np.testing.assert_allclose(cams["a"].project(p[:3]), [60.0, 90.0])
     np.testing.assert_allclose(cams["a"].center, [0.0, 1.0, 3.0])
+    # units as metres per unit: "0.001" is mm's scale; a bad one is one line naming --units
+    cams_n, S_n = to_uvatar_world(read_qca(qca), None, "0.001")
+    np.testing.assert_allclose(S_n, S)
+    np.testing.assert_allclose(cams_n["a"].T, cams["a"].T)
+    with pytest.raises(InputError, match=r"units.*metres per unit.*got '-1'"):
+        to_uvatar_world(read_qca(qca), None, "-1")
 
 
 def test_pose2sim_toml_reader(tmp_path):

@@ -188,3 +188,40 @@ def test_read_mesh_refuses_a_point_cloud_and_a_draco_cloud_keeps_its_colours(tmp
     d, ref = cKDTree(points).query(drc.vertices)             # Draco reorders and quantizes (14 bits) the points
     assert d.max() < 2 * np.ptp(points, 0).max() / 2**14 and len(np.unique(ref)) == len(points)
     assert np.abs(drc.vertex_colors - colors[ref]).max() <= 0.5 / 255 + 1e-6
+
+
+def test_a_voxelized_cloud_in_voxel_units_imports_at_its_stated_voxel_size(tmp_path):
+    """8i's takes are integer voxel indices: the height detection takes them for millimetres and says
+    so; ``units`` as metres per unit (the voxel's size) puts the scan back at its size."""
+    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
+    from uvatar.capture.importers.pipeline import ImportConfig
+    from uvatar.capture.meshio import read_mesh
+
+    voxel = 0.002
+    points, colors = _ellipsoid_cloud(120_000, seed=3)
+    cells, first = np.unique(np.round(points / voxel), axis=0, return_index=True)
+    src = tmp_path / "take"
+    src.mkdir()
+    _write_ply_points(src / "frame_000.ply", cells, colors[first])
+    guessed = import_mesh_sequence(src, tmp_path / "guessed", progress=False)
+    assert any("grid of whole numbers" in n for n in guessed["notes"])
+    assert any(n.startswith("units not stated by the files: mm (the first frame is 850") for n in guessed["notes"])
+    stated = import_mesh_sequence(src, tmp_path / "stated", ImportConfig(units=str(voxel)), progress=False)
+    assert not any("grid of whole numbers" in n for n in stated["notes"])
+    scan = read_mesh(tmp_path / "stated" / "scans" / "000000.ply")
+    assert np.ptp(scan.vertices[:, 1]) == pytest.approx(2 * AXES[1], abs=0.01)
+    assert np.median(_radial_error_m(scan.vertices)) < voxel
+
+
+@pytest.mark.parametrize("units, ok", [("m", True), ("0.001729", True), ("1e-3", True), ("0", False),
+                                       ("-0.5", False), ("km", False), ("nan", False)])
+def test_units_are_a_named_unit_or_metres_per_unit(units, ok):
+    from uvatar.capture.importers.calibration import unit_scale
+    from uvatar.capture.importers.pipeline import ImportConfig
+
+    assert (unit_scale(units) is not None) == ok
+    if ok:
+        assert ImportConfig(units=units).units == units
+    else:
+        with pytest.raises(ValueError, match="units must be m, cm, mm or metres per unit"):
+            ImportConfig(units=units)

@@ -35,16 +35,17 @@ def _check_flags() -> ConfigFlags:
 
 
 def _import_flags() -> ConfigFlags:
-    from uvatar.capture.importers.calibration import UNIT_SCALE, UP_AXES
+    from uvatar.capture.importers.calibration import UNITS_SPELLED, UP_AXES
     from uvatar.capture.importers.pipeline import ImportConfig
 
     return ConfigFlags(
-        ImportConfig, choices={"up": ("",) + UP_AXES, "units": ("",) + tuple(UNIT_SCALE), "image_format": ("jpg", "png")},
+        ImportConfig, choices={"up": ("",) + UP_AXES, "image_format": ("jpg", "png")},
         help={"start": "first source frame", "end": "stop before this source frame (0: to the end)",
               "stride": "keep every n-th frame", "resize": "image scale factor in (0, 1]",
               "up": "the calibration world's up axis (default: the format's own, +z for Qualisys/Pose2Sim; "
                     "write --up=-z for a negative axis)",
-              "units": "units of the calibration's translations (default: the format's own)",
+              "units": f"units of the calibration's translations or the take's vertices: {UNITS_SPELLED} "
+                       "(default: the format's own, or from the person's height)",
               "image_format": "image files written", "jpeg_quality": "JPEG quality 1..100",
               "fps": "source frame rate (0: from the video)",
               "body_model": "body model named in capture.json for `uvatar fit`",

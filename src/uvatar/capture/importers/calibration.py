@@ -27,6 +27,19 @@ from uvatar.capture.types import Camera
 from uvatar.errors import InputError
 
 UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+UNITS_SPELLED = "m, cm, mm or metres per unit (a number: 0.001729 for a 1.729 mm voxel)"
+
+
+def unit_scale(units: str) -> float | None:
+    """Metres per source unit of ``units`` ("m", "cm", "mm", or a positive number of metres per unit,
+    e.g. "0.001729" for a voxelized take whose unit is a 1.729 mm voxel); None where it is neither."""
+    if units in UNIT_SCALE:
+        return UNIT_SCALE[units]
+    try:
+        scale = float(units)
+    except ValueError:
+        return None
+    return scale if np.isfinite(scale) and scale > 0 else None
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
@@ -219,8 +232,8 @@ def read_camera_mapping(path: str | Path) -> Calibration:
     pose2sim = path.suffix.lower() == ".toml" and "metadata" in data
     units = str(data.get("units", "m"))
     up = str(data.get("up", "+z" if pose2sim else "+y"))
-    if units not in UNIT_SCALE:
-        raise InputError(path, f"units must be one of {', '.join(UNIT_SCALE)}, got {units!r}")
+    if unit_scale(units) is None:
+        raise InputError(path, f"units must be {UNITS_SPELLED}, got {units!r}")
     if up not in UP_AXES:
         raise InputError(path, f"up must be one of {', '.join(UP_AXES)}, got {up!r}")
     return Calibration(cameras, units=units, up=up, source=str(path),
@@ -307,9 +320,10 @@ def to_uvatar_world(calib: Calibration, up: str | None = None, units: str | None
     units = units or calib.units
     if up not in UP_AXES:
         raise InputError("up", f"must be one of {', '.join(UP_AXES)}, got {up!r}")
-    if units not in UNIT_SCALE:
-        raise InputError("units", f"must be one of {', '.join(UNIT_SCALE)}, got {units!r}")
-    W, s = up_rotation(up), UNIT_SCALE[units]
+    s = unit_scale(units)
+    if s is None:
+        raise InputError("units", f"must be {UNITS_SPELLED}, got {units!r}")
+    W = up_rotation(up)
     out = {name: Camera(name=cam.name, K=cam.K, R=cam.R @ W.T, T=cam.T * s, width=cam.width,
                         height=cam.height, dist=cam.dist) for name, cam in calib.cameras.items()}
     S = np.eye(4)

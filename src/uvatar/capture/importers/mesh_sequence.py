@@ -58,7 +58,7 @@ from uvatar.capture.importers.alembic import (
     close_alembic,
     find_alembic,
 )
-from uvatar.capture.importers.calibration import UNIT_SCALE, up_rotation
+from uvatar.capture.importers.calibration import UNIT_SCALE, unit_scale, up_rotation
 from uvatar.capture.importers.sequence import FrameSource, MeshSequence, files_by_frame
 from uvatar.capture.importers.usd import USD_SUFFIXES, close_usd, find_usd, usd_mesh, usd_sequence
 from uvatar.capture.importers.uvol1 import (
@@ -345,9 +345,11 @@ def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None,
         raise InputError(source.mesh, "frame has no texture")
     mesh = _read_mesh(source)
     if mesh.num_faces == 0:
+        on_grid = on_whole_numbers(mesh.vertices)
         mesh = _surface_of_points(source.mesh, mesh, point_cloud)
-        if notes is not None and POINT_CLOUD_NOTE not in notes:
-            notes.append(POINT_CLOUD_NOTE)
+        for note, said in ((POINT_CLOUD_NOTE, True), (VOXEL_GRID_NOTE, on_grid)):
+            if said and notes is not None and note not in notes:
+                notes.append(note)
     if isinstance(source.texture, tuple) and source.texture[0].suffix.lower() in VIDEO_SUFFIXES:
         path, frame = source.texture
         mesh.texture = open_video(path).frame(frame)
@@ -396,6 +398,15 @@ def detect_units(height: float, path: Path) -> str:
                            "give units")
 
 
+VOXEL_GRID_NOTE = ("the points lie on a grid of whole numbers (a voxelized cloud, a unit a voxel?): where the "
+                   "files do not say, give units as the voxel's size in metres, or the person's height decides")
+
+
+def on_whole_numbers(points: np.ndarray) -> bool:
+    """Whether every coordinate of ``points`` (N, 3) is a whole number (a voxel grid's indices)."""
+    return bool(len(points)) and bool(np.all(points == np.round(points)))
+
+
 def world_from_source(mesh: TexturedMesh, path: Path, units: str, up: str) -> tuple[np.ndarray, str, str, list[str]]:
     """The (4, 4) similarity taking the source's points to uvatar's world, and the units and up used.
 
@@ -416,7 +427,7 @@ def world_from_source(mesh: TexturedMesh, path: Path, units: str, up: str) -> tu
         units = detect_units(float(extent[axis]), path)
         notes.append(f"units not stated by the files: {units} (the first frame is {extent[axis]:.4g} {units} tall)")
     S = np.eye(4)
-    S[:3, :3] = UNIT_SCALE[units] * up_rotation(up)
+    S[:3, :3] = unit_scale(units) * up_rotation(up)
     return S, units, up, notes
 
 
@@ -518,6 +529,8 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
         if not done:  # what a refusal of the half-made import counts ("3 of 12 frames")
             stage_record.mark_progress(scans, len(imported))
     bar.close()
+    if cfg.units or seq.units:    # the units were stated: the voxel grid's hint has nothing to add
+        notes = [n for n in notes if n != VOXEL_GRID_NOTE]
     if not imported:
         raise InputError(src, f"no frame could be imported ({len(skipped)} broken; first: {first_error})")
     fps = cfg.fps or seq.fps or UVOL_DEFAULT_FPS

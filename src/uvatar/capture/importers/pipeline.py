@@ -20,12 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.capture.importers.calibration import (
-    UNIT_SCALE,
+    UNITS_SPELLED,
     UP_AXES,
     find_calibration,
     match_names,
     read_calibration,
     to_uvatar_world,
+    unit_scale,
 )
 from uvatar.capture.importers.sources import FrameSource, find_sources
 from uvatar.capture.layout import frame_name
@@ -76,7 +77,8 @@ class ImportConfig:
             (self.stride >= 1, f"stride must be >= 1, got {self.stride}"),
             (0 < self.resize <= 1, f"resize must be in (0, 1], got {self.resize}"),
             (self.up in ("",) + UP_AXES, f"up must be one of {', '.join(UP_AXES)}, got {self.up!r}"),
-            (self.units in ("",) + tuple(UNIT_SCALE), f"units must be one of {', '.join(UNIT_SCALE)}"),
+            (self.units == "" or unit_scale(self.units) is not None,
+             f"units must be {UNITS_SPELLED}, got {self.units!r}"),
             (self.image_format in ("jpg", "png"), f"image_format must be jpg or png, got {self.image_format!r}"),
             (1 <= self.jpeg_quality <= 100, f"jpeg_quality must be in 1..100, got {self.jpeg_quality}"),
             (self.fps >= 0, f"fps must be >= 0, got {self.fps}"),
