@@ -44,7 +44,7 @@ def synthetic_take(path: Path) -> Path:
 def read_uvol2(seq, frame: int):
     """One UVOL 2 frame as an import reads it, its KTX2 file's layers decoded afresh."""
     from uvatar.capture import texture_ktx2
-    from uvatar.capture.importers.mesh_sequence import read_frame
+    from uvatar.capture.importers.frame_reader import read_frame
 
     texture_ktx2._decoded.clear()
     return read_frame(seq.frames[frame])

@@ -149,7 +149,8 @@ def test_a_take_of_point_clouds_imports_as_textured_scans(tmp_path):
     textured scan; a cloud without colours is one line naming its file, the rest import."""
     import DracoPy
 
-    from uvatar.capture.importers.mesh_sequence import POINT_CLOUD_NOTE, import_mesh_sequence
+    from uvatar.capture.importers.frame_reader import POINT_CLOUD_NOTE
+    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
     from uvatar.capture.importers.pipeline import ImportConfig
     from uvatar.capture.meshio import read_mesh
 

@@ -53,17 +53,21 @@ import numpy as np
 
 from uvatar.capture.importers.alembic import (
     ABC_SUFFIXES,
-    alembic_mesh,
     alembic_sequence,
     close_alembic,
     find_alembic,
 )
-from uvatar.capture.importers.calibration import UNIT_SCALE, unit_scale, up_rotation
+from uvatar.capture.importers.frame_reader import (
+    VOXEL_GRID_NOTE,
+    layered_format,
+    point_cloud_config,
+    read_frame,
+)
 from uvatar.capture.importers.sequence import FrameSource, MeshSequence, files_by_frame
-from uvatar.capture.importers.usd import USD_SUFFIXES, close_usd, find_usd, usd_mesh, usd_sequence
+from uvatar.capture.importers.source_world import world_from_source
+from uvatar.capture.importers.usd import USD_SUFFIXES, close_usd, find_usd, usd_sequence
 from uvatar.capture.importers.uvol1 import (
     MESH_FILE_SUFFIXES,
-    VIDEO_SUFFIXES,
     find_v1_manifest,
     read_v1_manifest,
     uvol1_sequence,
@@ -81,12 +85,10 @@ from uvatar.capture.importers.vologram import (
     close_vols,
     find_vols_take,
     vols_sequence,
-    vols_take,
 )
 from uvatar.capture.layout import frame_name
-from uvatar.capture.meshio import IMAGE_SUFFIXES, MESH_FORMATS, read_mesh
-from uvatar.capture.texture_video import close_videos, open_video
-from uvatar.capture.types import TexturedMesh
+from uvatar.capture.meshio import IMAGE_SUFFIXES, MESH_FORMATS
+from uvatar.capture.texture_video import close_videos
 from uvatar.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -99,16 +101,6 @@ TEXTURE_SUFFIXES = (".ktx2",) + IMAGE_SUFFIXES + (".ktx", ".etc2")
 LAYERED_SUFFIXES = (".ktx2", ".ktx", ".etc2")   # files of one image or an array of frames
 
 
-def _layered_format(suffix: str):
-    """(name, header reader or None, layer reader) of a layered texture file's suffix: KTX 2, KTX 1, or
-    a headerless ETC2 image (its reader takes (path, width, height))."""
-    from uvatar.capture.texture_etc import read_etc2
-    from uvatar.capture.texture_ktx1 import ktx1_info, read_ktx1_layer
-    from uvatar.capture.texture_ktx2 import ktx2_info, read_ktx2_layer
-
-    return {".ktx2": ("KTX2", ktx2_info, read_ktx2_layer), ".ktx": ("KTX 1", ktx1_info, read_ktx1_layer),
-            ".etc2": ("ETC2", None, read_etc2)}[suffix]
-PERSON_HEIGHT_M = (0.5, 2.5)  # a frame's extent along up, in metres, that the unit detection accepts
 UVOL_DEFAULT_FPS = 30.0       # the UVOL encoder's default frame rate, used when nothing says otherwise
 KTX2_ANIMATION_TEXTURES = "p-frames-decoded"  # how this version gives an animation's frames their textures
 OLDER_KTX2_TEXTURES = ("imported by an older uvatar, which gave a KTX2 animation's P-frames their I-frame's "
@@ -233,7 +225,7 @@ def _layered_textures(seq: MeshSequence, texture: Path, geometry: Path, suffix: 
     from uvatar.capture.texture_etc import etc2_image_size
 
     files = files_by_frame(texture, (suffix,))
-    kind, info_of, _ = _layered_format(suffix)
+    kind, info_of, _ = layered_format(suffix)
     first = files[min(files)]
     layers: dict[Path, int] = {}
     if info_of is not None:
@@ -309,128 +301,6 @@ def _plain_folder(src: Path) -> MeshSequence:
     return MeshSequence(frames, "mesh folder", units="m" if glb else "", up="+y" if glb else "", problems=problems)
 
 
-def _read_mesh(source: FrameSource) -> TexturedMesh:
-    from uvatar.capture.mesh_corto import read_crt
-    from uvatar.capture.mesh_draco import read_drc
-
-    suffix = source.mesh.suffix.lower()
-    if suffix in VOLS_SUFFIXES:
-        return vols_take(source.mesh).mesh(source.index)
-    if suffix in ABC_SUFFIXES:
-        return alembic_mesh(source.mesh, source.index)
-    if suffix in USD_SUFFIXES:
-        return usd_mesh(source.mesh, source.index)
-    if suffix in (".crt",) + MESH_FILE_SUFFIXES:
-        return read_crt(source.mesh, byte_range=source.mesh_bytes)
-    return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh, points_ok=True)
-
-
-VERTEX_COLOUR_NOTE = ("frames carry colours per vertex and no texture: each is given an atlas of its triangles in "
-                      "pairs and a texture of those colours (capture/vertex_colors.py)")
-POINT_CLOUD_NOTE = ("frames are coloured point clouds: each is made a surface (its points' closed shell, marching "
-                    "cubes, decimated, snapped to the points) and a texture of the points' colours "
-                    "(capture/point_cloud.py)")
-
-
-def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None,
-               notes: list[str] | None = None, point_cloud=None) -> TexturedMesh:
-    """Decode a frame's mesh and texture (source units and axes; ``texture_size``: a headerless ETC2
-    texture's (width, height)); a mesh with colours per vertex and no texture is given one
-    (:mod:`uvatar.capture.vertex_colors`), a coloured point cloud a surface and a texture
-    (:mod:`uvatar.capture.point_cloud`, ``point_cloud``: its PointCloudConfig), each said once in
-    ``notes``; InputError naming the bad file."""
-    from uvatar.io_utils import read_image
-
-    if source.texture == ():
-        raise InputError(source.mesh, "frame has no texture")
-    mesh = _read_mesh(source)
-    if mesh.num_faces == 0:
-        on_grid = on_whole_numbers(mesh.vertices)
-        mesh = _surface_of_points(source.mesh, mesh, point_cloud)
-        for note, said in ((POINT_CLOUD_NOTE, True), (VOXEL_GRID_NOTE, on_grid)):
-            if said and notes is not None and note not in notes:
-                notes.append(note)
-    if isinstance(source.texture, tuple) and source.texture[0].suffix.lower() in VIDEO_SUFFIXES:
-        path, frame = source.texture
-        mesh.texture = open_video(path).frame(frame)
-    elif isinstance(source.texture, tuple):
-        path, layer = source.texture
-        _, info_of, read = _layered_format(path.suffix.lower())
-        mesh.texture = read(path, layer) if info_of is not None else read(path, *texture_size)
-    elif source.texture is not None:
-        mesh.texture = read_image(source.texture, "texture image")
-    if mesh.texture is None and mesh.vertex_colors is not None:    # a scanner's colours per vertex
-        from uvatar.capture.vertex_colors import texture_from_vertex_colors
-
-        mesh = texture_from_vertex_colors(mesh)
-        if notes is not None and VERTEX_COLOUR_NOTE not in notes:
-            notes.append(VERTEX_COLOUR_NOTE)
-    if mesh.texture is None:
-        raise InputError(source.mesh, "mesh has no texture (no image beside it, none named by the file, no "
-                                      "vertex colours)")
-    if not mesh.has_uvs:
-        raise InputError(source.mesh, "mesh has no UVs: its texture cannot be mapped")
-    return mesh
-
-
-def _surface_of_points(path: Path, cloud: TexturedMesh, config) -> TexturedMesh:
-    """The textured surface of the point cloud read from ``path``; InputError where it makes none."""
-    from uvatar.capture.point_cloud import PointCloudError, mesh_from_point_cloud
-
-    if cloud.num_vertices == 0:
-        raise InputError(path, "holds no vertices and no faces")
-    if cloud.vertex_colors is None:
-        raise InputError(path, f"holds a point cloud ({cloud.num_vertices} points, no faces) without colours: "
-                               "no surface texture can be made of it")
-    try:
-        return mesh_from_point_cloud(cloud.vertices, cloud.vertex_colors, config)[0]
-    except PointCloudError as exc:
-        raise InputError(path, f"point cloud of {cloud.num_vertices} points: {exc}") from None
-
-
-def detect_units(height: float, path: Path) -> str:
-    """The units ("m", "cm", "mm") in which a standing person ``height`` source units tall measures
-    PERSON_HEIGHT_M; InputError (asking for ``--units``) when none does."""
-    for units, scale in UNIT_SCALE.items():
-        if PERSON_HEIGHT_M[0] <= height * scale <= PERSON_HEIGHT_M[1]:
-            return units
-    raise InputError(path, f"the mesh is {height:g} units tall, which is no person's height in m, cm or mm; "
-                           "give units")
-
-
-VOXEL_GRID_NOTE = ("the points lie on a grid of whole numbers (a voxelized cloud, a unit a voxel?): where the "
-                   "files do not say, give units as the voxel's size in metres, or the person's height decides")
-
-
-def on_whole_numbers(points: np.ndarray) -> bool:
-    """Whether every coordinate of ``points`` (N, 3) is a whole number (a voxel grid's indices)."""
-    return bool(len(points)) and bool(np.all(points == np.round(points)))
-
-
-def world_from_source(mesh: TexturedMesh, path: Path, units: str, up: str) -> tuple[np.ndarray, str, str, list[str]]:
-    """The (4, 4) similarity taking the source's points to uvatar's world, and the units and up used.
-
-    ``units``/``up`` "" = detect on this (first) frame: up defaults to +y, the convention of glTF,
-    Draco and OBJ exporters; a mesh tallest along another axis asks for ``--up``.
-    """
-    notes = []
-    extent = np.ptp(mesh.vertices, axis=0)
-    if not up:
-        up = "+y"
-        tallest = "xyz"[int(np.argmax(extent))]
-        if tallest != "y":
-            raise InputError(path, f"the mesh is tallest along {tallest}, not y: give up (+{tallest}, or -{tallest} "
-                                   f"if the head points to -{tallest})")
-        notes.append("up axis not stated by the files: +y (the mesh is tallest along y)")
-    axis = {"x": 0, "y": 1, "z": 2}[up[1]]
-    if not units:
-        units = detect_units(float(extent[axis]), path)
-        notes.append(f"units not stated by the files: {units} (the first frame is {extent[axis]:.4g} {units} tall)")
-    S = np.eye(4)
-    S[:3, :3] = unit_scale(units) * up_rotation(up)
-    return S, units, up, notes
-
-
 def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: bool = True) -> dict:
     """Import the volumetric video ``src`` into the capture ``out`` (see the module doc); returns the
     summary. ``cfg``: :class:`uvatar.capture.importers.ImportConfig` (start, end, stride, up, units,
@@ -446,13 +316,6 @@ def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: b
         return _import_sequence(src, out, cfg, progress, t0)
     finally:
         close_sources()
-
-
-def point_cloud_config(cfg):
-    """The PointCloudConfig of an ImportConfig's point-cloud options."""
-    from uvatar.capture.point_cloud import PointCloudConfig
-
-    return PointCloudConfig(voxel=cfg.point_voxel)
 
 
 def close_sources() -> None:

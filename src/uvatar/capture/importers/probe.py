@@ -12,16 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.capture.importers.frame_reader import point_cloud_config, read_frame
 from uvatar.capture.importers.mesh_sequence import (
     UVOL_DEFAULT_FPS,
     close_sources,
     find_mesh_sequence,
-    point_cloud_config,
-    read_frame,
     wanted_frames,
-    world_from_source,
 )
 from uvatar.capture.importers.sequence import FrameSource
+from uvatar.capture.importers.source_world import world_from_source
 from uvatar.errors import InputError
 
 __all__ = ["probe_mesh_sequence", "texture_kind"]
