@@ -41,8 +41,9 @@ def voxelize(points: np.ndarray, colors: np.ndarray, origin: np.ndarray, voxel: 
     """(integer indices (M, 3), mean colours (M, 3)) of the occupied voxels (cell ijk spans
     ``origin + ijk * voxel`` to ``origin + (ijk + 1) * voxel``)."""
     ijk = np.floor((points - origin) / voxel).astype(np.int64)
-    cells, inverse = np.unique(ijk, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    key = (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]         # one int a cell (21 bits an axis)
+    keys, inverse = np.unique(key, return_inverse=True)
+    cells = np.stack([keys >> 42, (keys >> 21) & (2**21 - 1), keys & (2**21 - 1)], -1)
     count = np.bincount(inverse, minlength=len(cells))[:, None]
     mean = np.stack([np.bincount(inverse, colors[:, c], len(cells)) for c in range(3)], -1) / count
     return cells, mean
@@ -117,10 +118,11 @@ def main() -> None:
     take = args.out / "take"
     take.mkdir(parents=True, exist_ok=True)
     counts = []
-    for n, mesh in scans.items():
+    for k, (n, mesh) in enumerate(scans.items()):
+        frame_rng = np.random.default_rng(start + k)                 # each frame its own samples
         tri = mesh.vertices[mesh.faces].astype(np.float64)
         area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
-        cells, colors = voxelize(*sample_surface(mesh, int(SAMPLES_PER_VOXEL * area / voxel**2), rng), lo, voxel)
+        cells, colors = voxelize(*sample_surface(mesh, int(SAMPLES_PER_VOXEL * area / voxel**2), frame_rng), lo, voxel)
         write_cloud(take / f"{n}.ply", lo + (cells + 0.5) * voxel if args.metres else cells, colors)
         counts.append(len(cells))
     if args.take_only:

@@ -141,3 +141,29 @@ def test_a_folder_of_vertex_coloured_scans_imports_as_textured_scans(tmp_path):
     want = np.einsum("fc,fcd->fd", b, (np.round(colors * 255) / 255)[faces])            # what the PLY held
     got = _bilinear(scan.texture, np.einsum("fc,fcd->fd", b, scan.uvs[scan.uv_faces]))
     assert 10 * np.log10(1 / np.mean((got - want) ** 2)) > 38
+
+
+def test_an_import_in_worker_processes_writes_what_one_process_writes(tmp_path):
+    """``workers``: the frames read and written in a process pool; the same scans byte for byte, the
+    same notes and the broken frame's one line; a resume of the pooled import writes nothing more."""
+    from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
+    from uvatar.capture.importers.pipeline import ImportConfig
+
+    verts, faces, colors = grid()
+    (tmp_path / "src").mkdir()
+    for k in range(5):
+        write_colour_ply(tmp_path / "src" / f"scan_{k:03d}.ply", verts + [0, 0, 0.01 * k], faces, colors * (1 - 0.1 * k))
+    (tmp_path / "src" / "scan_003.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n")
+    runs = {w: import_mesh_sequence(tmp_path / "src", tmp_path / f"cap{w}", ImportConfig(workers=w), progress=False)
+            for w in (1, 2)}
+    for key in ("frames", "skipped", "scans_written", "problems", "notes", "units", "up"):
+        assert runs[1][key] == runs[2][key], key
+    assert runs[2]["frames"] == 4 and runs[2]["skipped"] == 1
+    assert len(runs[2]["problems"]) == 1 and "scan_003.ply" in runs[2]["problems"][0]
+    names = sorted(p.name for p in (tmp_path / "cap1" / "scans").glob("[0-9]*"))
+    assert names == sorted(p.name for p in (tmp_path / "cap2" / "scans").glob("[0-9]*"))
+    assert len(names) == 8 and "000003.ply" not in names
+    for name in names:
+        assert (tmp_path / "cap1" / "scans" / name).read_bytes() == (tmp_path / "cap2" / "scans" / name).read_bytes()
+    again = import_mesh_sequence(tmp_path / "src", tmp_path / "cap2", ImportConfig(workers=2), progress=False)
+    assert again["scans_written"] == 0 and again["scans_kept"] == 4 and again["frames"] == 4

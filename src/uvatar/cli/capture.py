@@ -51,7 +51,9 @@ def _import_flags() -> ConfigFlags:
               "body_model": "body model named in capture.json for `uvatar fit`",
               "cameras": "comma-separated camera names to import (empty: all)",
               "point_voxel": "a point-cloud take's surface: its grid step in point spacings (larger closes "
-                             "wider holes, keeps less detail)"})
+                             "wider holes, keeps less detail)",
+              "workers": "a volumetric video's frames read and written in this many processes (point clouds "
+                         "and vertex-coloured meshes gain most; 1: in this process)"})
 
 
 def _register_import(cli) -> None:

@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +89,7 @@ from uvatar.capture.importers.vologram import (
 from uvatar.capture.layout import frame_name
 from uvatar.capture.meshio import IMAGE_SUFFIXES, MESH_FORMATS
 from uvatar.capture.texture_video import close_videos
+from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -340,11 +341,50 @@ def wanted_frames(seq: MeshSequence, src: Path, cfg) -> tuple[list[int], list[st
     return wanted, problems
 
 
-def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> dict:
-    from tqdm import tqdm
+@dataclass(frozen=True)
+class FrameTasks:
+    """What every frame's task needs (sent once to each worker process): the take's frames, a headerless
+    texture's size, the point-cloud options, the (4, 4) world-from-source similarity and the scans folder."""
 
-    from uvatar.capture.layout import write_capture_info
+    frames: dict[int, FrameSource]
+    texture_size: tuple[int, int] | None
+    point_cloud: object
+    world_from_source: np.ndarray
+    scans: Path
+
+
+def _is_written(target: Path) -> bool:
+    return target.is_file() and target.with_suffix(".png").is_file()
+
+
+def _write_in_world(target: Path, mesh: TexturedMesh, S: np.ndarray) -> None:
     from uvatar.capture.meshio import write_mesh
+
+    mesh.vertices = mesh.vertices @ S[:3, :3].T.astype(np.float32) + S[:3, 3].astype(np.float32)
+    write_mesh(target, mesh)
+
+
+def _import_frame(shared: FrameTasks, i: int) -> tuple[list[str], str]:
+    """Frame ``i`` read, taken to uvatar's world and written (atomically): (the notes it gave, "") or
+    ([], its one-line problem)."""
+    notes: list[str] = []
+    try:
+        mesh = read_frame(shared.frames[i], shared.texture_size, notes, shared.point_cloud)
+    except InputError as exc:
+        return [], str(exc)
+    _write_in_world(shared.scans / f"{frame_name(i)}.ply", mesh, shared.world_from_source)
+    return notes, ""
+
+
+def _one_thread() -> None:
+    from uvatar.threads import limit_process_to_one_thread
+
+    limit_process_to_one_thread()
+
+
+def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> dict:
+    from uvatar.capture.layout import write_capture_info
+    from uvatar.parallel import ExecutorConfig, run_tasks
 
     seq = find_mesh_sequence(src, cfg.fps or 0.0)
     wanted, problems = wanted_frames(seq, src, cfg)
@@ -359,39 +399,51 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
     S = units = up = None
     notes: list[str] = list(seq.notes)
     imported, skipped, written, first_error = [], [], 0, ""
-    bar = tqdm(wanted, desc="import", unit="frame", disable=not progress or None)
-    for i in bar:
+
+    def failed(i: int, message: str) -> None:
+        nonlocal first_error
+        skipped.append(i)
+        first_error = first_error or message
+        problems.append(message)
+        log.warning("%s", message)
+
+    # the first frame that reads decides the units and up axis (read even when written before: a resume)
+    rest = list(wanted)
+    while rest and S is None:
+        i = rest.pop(0)
         target = scans / f"{frame_name(i)}.ply"
-        done = target.is_file() and target.with_suffix(".png").is_file()
-        if done and S is not None:
-            imported.append(i)
-            continue
         try:
             mesh = read_frame(seq.frames[i], seq.texture_size, notes, point_cloud_config(cfg))
         except InputError as exc:
-            skipped.append(i)
-            first_error = first_error or str(exc)
-            problems.append(str(exc))
-            log.warning("%s", exc)
+            failed(i, str(exc))
             continue
-        if S is None:  # decided once, on the first frame that reads: not a per-frame problem
-            S, units, up, axis_notes = world_from_source(mesh, seq.frames[i].mesh, cfg.units or seq.units,
-                                                         cfg.up or seq.up)
-            notes += axis_notes
-            # what the scans on disk are made with (recorded once the first frame reads, before any write):
-            # a resume with other units / up / source is refused; the frame range may grow
-            stage_record.begin(scans, "capture import", {"source": str(src.resolve()), "units": cfg.units,
-                                                         "up": cfg.up, "ktx2_animation_textures": KTX2_ANIMATION_TEXTURES},
-                               total=len(wanted), redo_hint="another output folder starts over",
-                               made_by={"ktx2_animation_textures": OLDER_KTX2_TEXTURES})
-        if not done:
-            mesh.vertices = mesh.vertices @ S[:3, :3].T.astype(np.float32) + S[:3, 3].astype(np.float32)
-            write_mesh(target, mesh)
+        S, units, up, axis_notes = world_from_source(mesh, seq.frames[i].mesh, cfg.units or seq.units,
+                                                     cfg.up or seq.up)
+        notes += axis_notes
+        # what the scans on disk are made with (recorded once the first frame reads, before any write):
+        # a resume with other units / up / source is refused; the frame range may grow
+        stage_record.begin(scans, "capture import", {"source": str(src.resolve()), "units": cfg.units,
+                                                     "up": cfg.up, "ktx2_animation_textures": KTX2_ANIMATION_TEXTURES},
+                           total=len(wanted), redo_hint="another output folder starts over",
+                           made_by={"ktx2_animation_textures": OLDER_KTX2_TEXTURES})
+        if not _is_written(target):
+            _write_in_world(target, mesh, S)
             written += 1
+            stage_record.mark_progress(scans, 1)
         imported.append(i)
-        if not done:  # what a refusal of the half-made import counts ("3 of 12 frames")
-            stage_record.mark_progress(scans, len(imported))
-    bar.close()
+    todo = [i for i in rest if not _is_written(scans / f"{frame_name(i)}.ply")]
+    imported += [i for i in rest if i not in set(todo)]
+    shared = FrameTasks(seq.frames, seq.texture_size, point_cloud_config(cfg), S, scans)
+    for i, (frame_notes, error) in run_tasks(_import_frame, todo, shared, ExecutorConfig(workers=cfg.workers),
+                                             desc="import", progress=progress, initializer=_one_thread):
+        if error:
+            failed(i, error)
+            continue
+        notes += [n for n in frame_notes if n not in notes]
+        imported.append(i)
+        written += 1
+        stage_record.mark_progress(scans, len(imported))  # what a refusal of the half-made import counts
+    imported.sort()
     if cfg.units or seq.units:    # the units were stated: the voxel grid's hint has nothing to add
         notes = [n for n in notes if n != VOXEL_GRID_NOTE]
     if not imported:

@@ -52,7 +52,8 @@ class ImportConfig:
     codec did) or "png" (lossless, for image-folder sources); jpeg_quality 1..100; fps: 0 = from
     the video; body_model: written to capture.json for ``uvatar fit``; cameras: names to keep
     (empty: all that have both a source and a calibration); point_voxel: a point-cloud take's
-    surface grid step in point spacings (:class:`uvatar.capture.point_cloud.PointCloudConfig`).
+    surface grid step in point spacings (:class:`uvatar.capture.point_cloud.PointCloudConfig`);
+    workers: processes a volumetric video's frames are read and written in (1: this process).
     """
 
     start: int = 0
@@ -67,6 +68,7 @@ class ImportConfig:
     body_model: str = "anny"
     cameras: tuple[str, ...] = ()
     point_voxel: float = 1.5
+    workers: int = 1
 
     def __post_init__(self) -> None:
         self.cameras = tuple(self.cameras)
@@ -83,6 +85,7 @@ class ImportConfig:
             (1 <= self.jpeg_quality <= 100, f"jpeg_quality must be in 1..100, got {self.jpeg_quality}"),
             (self.fps >= 0, f"fps must be >= 0, got {self.fps}"),
             (self.point_voxel > 0, f"point_voxel must be > 0 point spacings, got {self.point_voxel}"),
+            (self.workers >= 1, f"workers must be >= 1, got {self.workers}"),
         ])
 
 
