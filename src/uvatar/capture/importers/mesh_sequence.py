@@ -384,7 +384,7 @@ def _one_thread() -> None:
 
 def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> dict:
     from uvatar.capture.layout import write_capture_info
-    from uvatar.parallel import ExecutorConfig, run_tasks
+    from uvatar.parallel import ExecutorConfig, TaskFailure, run_tasks
 
     seq = find_mesh_sequence(src, cfg.fps or 0.0)
     wanted, problems = wanted_frames(seq, src, cfg)
@@ -434,8 +434,12 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
     todo = [i for i in rest if not _is_written(scans / f"{frame_name(i)}.ply")]
     imported += [i for i in rest if i not in set(todo)]
     shared = FrameTasks(seq.frames, seq.texture_size, point_cloud_config(cfg), S, scans)
-    for i, (frame_notes, error) in run_tasks(_import_frame, todo, shared, ExecutorConfig(workers=cfg.workers),
-                                             desc="import", progress=progress, initializer=_one_thread):
+    for i, result in run_tasks(_import_frame, todo, shared, ExecutorConfig(workers=cfg.workers),
+                               desc="import", progress=progress, initializer=_one_thread):
+        if isinstance(result, TaskFailure):     # the worker process died (memory, a crash): that frame only
+            failed(i, f"{seq.frames[i].mesh}: {result.reason}")
+            continue
+        frame_notes, error = result
         if error:
             failed(i, error)
             continue
