@@ -40,7 +40,7 @@ def sample_surface(mesh, count: int, rng) -> tuple[np.ndarray, np.ndarray]:
 def voxelize(points: np.ndarray, colors: np.ndarray, origin: np.ndarray, voxel: float):
     """(integer indices (M, 3), mean colours (M, 3)) of the occupied voxels (cell ijk spans
     ``origin + ijk * voxel`` to ``origin + (ijk + 1) * voxel``)."""
-    ijk = np.floor((points - origin) / voxel).astype(np.int64)
+    ijk = np.maximum(np.floor((points - origin) / voxel).astype(np.int64), 0)   # a sample a rounding below origin
     key = (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]         # one int a cell (21 bits an axis)
     keys, inverse = np.unique(key, return_inverse=True)
     cells = np.stack([keys >> 42, (keys >> 21) & (2**21 - 1), keys & (2**21 - 1)], -1)

@@ -226,3 +226,11 @@ def test_units_are_a_named_unit_or_metres_per_unit(units, ok):
     else:
         with pytest.raises(ValueError, match="units must be m, cm, mm or metres per unit"):
             ImportConfig(units=units)
+
+
+def test_a_cloud_with_a_stray_point_far_away_is_refused_before_its_grid_is_made():
+    points, colors = _ellipsoid_cloud(20_000)
+    points = np.vstack([points, [[0.0, 5e3, 5e3]]])
+    colors = np.vstack([colors, [[1.0, 0.0, 0.0]]])
+    with pytest.raises(PointCloudError, match="stray points far from the rest"):
+        mesh_from_point_cloud(points, colors)

@@ -91,6 +91,9 @@ def point_spacing(points: np.ndarray, sample: int = SPACING_SAMPLE, seed: int = 
     return r * float(np.sqrt(np.pi / k))
 
 
+MAX_GRID_CELLS = 2.0**31   # voxels of the solid's grid (2 GB of bools) a cloud may take
+
+
 def solid_from_points(points: np.ndarray, step: float, gap_voxels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(solid (X, Y, Z) bool, occupied (X, Y, Z) bool, origin (3,)): the voxels (centre of voxel ijk at
     ``origin + step * ijk``) inside the closed shell of ``points`` and those holding a point."""
@@ -101,6 +104,9 @@ def solid_from_points(points: np.ndarray, step: float, gap_voxels: int) -> tuple
     origin = points.min(axis=0) - pad * step
     ijk = np.floor((points - origin) / step + 0.5).astype(np.int64)
     shape = tuple(int(n) for n in ijk.max(axis=0) + pad + 1)
+    if np.prod(shape, dtype=np.float64) > MAX_GRID_CELLS:
+        raise PointCloudError(f"the points span {' x '.join(map(str, shape))} voxels of {step:.4g} units, more than "
+                              f"{MAX_GRID_CELLS:.3g}: stray points far from the rest?")
     occupied = np.zeros(shape, bool)
     occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
     structure = ndimage.generate_binary_structure(3, 1)
