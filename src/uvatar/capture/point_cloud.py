@@ -214,10 +214,9 @@ def mesh_from_point_cloud(points: np.ndarray, colors: np.ndarray,
         positions = np.einsum("nc,ncd->nd", bary.astype(np.float64), vertices[faces[face]])
         return colours_at(positions, tree, colors, config.colour_neighbours, 1e-3 * spacing)
 
-    corners = vertices[faces]
-    longest_edge = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-    uvs, uv_faces, texture = cell_atlas_texture(faces, colour_texels, config.min_cell_texels, config.max_resolution,
-                                                texel_need=longest_edge)
+    # every pair of triangles the same cell: cells twice the side for the longest pairs (texel_need, the
+    # longest edge) measured +0.1 dB on the body and -0.6 dB on the head close-up on the real take (session 23)
+    uvs, uv_faces, texture = cell_atlas_texture(faces, colour_texels, config.min_cell_texels, config.max_resolution)
     made = {"points": int(len(points)), "spacing": spacing, "voxel": step, "marched_faces": int(marched),
             "faces": int(len(faces)), "texture": int(texture.shape[0])}
     return TexturedMesh(vertices.astype(np.float32), faces, uvs, uv_faces, texture), made
