@@ -169,33 +169,6 @@ def test_an_import_in_worker_processes_writes_what_one_process_writes(tmp_path):
     assert again["scans_written"] == 0 and again["scans_kept"] == 4 and again["frames"] == 4
 
 
-@pytest.mark.parametrize("num_cells, share", [(1, 0.0), (7, 0.0), (50, 0.2), (101, 0.5), (64, 1.0)])
-def test_cell_layout_packs_big_and_small_cells_without_overlap(num_cells, share):
-    from uvatar.capture.vertex_colors import cell_layout
-
-    big = np.random.default_rng(num_cells).uniform(size=num_cells) < share
-    grid, col, row, side = cell_layout(num_cells, big)
-    taken = np.zeros((grid, grid), int)
-    for c, r, s in zip(col, row, side, strict=True):
-        taken[r:r + s, c:c + s] += 1
-    assert taken.max() == 1 and taken.sum() == (side**2).sum()                 # no overlap, inside the grid
-    np.testing.assert_array_equal(side, np.where(big, 2, 1))
-    assert grid * grid <= 2 * (4 * big.sum() + (~big).sum()) + 8 * grid      # little waste
-
-
-def test_long_triangles_get_cells_twice_the_side():
-    from uvatar.capture.vertex_colors import triangle_cell_atlas
-
-    verts, faces, _ = grid()
-    need = np.ones(len(faces))
-    need[:10] = 5.0                                                            # ten long triangles
-    uvs, uv_faces, res = triangle_cell_atlas(faces, texel_need=need)
-    uniform, _, _ = triangle_cell_atlas(faces)
-    extent = np.ptp(uvs[uv_faces], axis=1).max(axis=1)                       # each triangle's side in UV
-    assert extent[:10].min() > 1.8 * np.median(extent[10:])
-    assert np.allclose(np.ptp(uniform[uv_faces], axis=1).max(axis=1), np.ptp(uniform[uv_faces], axis=1).max())
-
-
 def test_a_worker_that_dies_costs_its_frame_only(tmp_path, monkeypatch):
     """A frame whose worker process died (a TaskFailure, not the frame's own InputError) is one problem
     line naming its file; the other frames import."""

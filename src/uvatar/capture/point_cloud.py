@@ -214,8 +214,8 @@ def mesh_from_point_cloud(points: np.ndarray, colors: np.ndarray,
         positions = np.einsum("nc,ncd->nd", bary.astype(np.float64), vertices[faces[face]])
         return colours_at(positions, tree, colors, config.colour_neighbours, 1e-3 * spacing)
 
-    # every pair of triangles the same cell: cells twice the side for the longest pairs (texel_need, the
-    # longest edge) measured +0.1 dB on the body and -0.6 dB on the head close-up on the real take (session 23)
+    # every pair of triangles the same cell: cells twice the side for the pairs with the longest edges
+    # (tried in commit c3106c3) measured +0.1 dB on the body and -0.6 dB on the head close-up of the real take
     uvs, uv_faces, texture = cell_atlas_texture(faces, colour_texels, config.min_cell_texels, config.max_resolution)
     made = {"points": int(len(points)), "spacing": spacing, "voxel": step, "marched_faces": int(marched),
             "faces": int(len(faces)), "texture": int(texture.shape[0])}

@@ -4,8 +4,7 @@ across it, so the mesh reads as any textured scan.
 
 The atlas (:func:`triangle_cell_atlas`): neighbouring triangles in pairs, each pair one square cell of a
 grid over the texture with their shared edge as its diagonal (so the colours run on across it), inset by
-a texel from the cell's border (a bilinear lookup on an edge stays inside); pairs whose
-triangles are long (``texel_need``) get cells twice the side; the gutters are filled from the nearest covered texel. The
+a texel from the cell's border (a bilinear lookup on an edge stays inside); the gutters are filled from the nearest covered texel. The
 resolution is the smallest power of two giving every cell at least ``min_cell_texels`` texels a side
 (5: ~10 texels a triangle; a 50k-triangle scan gets 1024²) up to ``max_resolution``. A vertex's colour carries no more detail than linear interpolation across its
 triangles, which this keeps; xatlas's charts would keep it in fewer texels but take seconds a frame.
@@ -18,12 +17,10 @@ import numpy as np
 from uvatar.capture.types import TexturedMesh
 
 __all__ = ["atlas_resolution", "cell_atlas_texture", "pair_adjacent_faces", "triangle_cell_atlas",
-           "texture_from_vertex_colors", "cell_layout"]
+           "texture_from_vertex_colors"]
 
 INSET = 1.0          # texels between a cell's triangles and its border: a bilinear lookup on an edge stays in its cell
 MATCH_ROUNDS = 12    # rounds of the matching that pairs neighbouring triangles
-BIG_CELL_NEED = 2.0  # a pair wanting this many times the median pair's texels gets a cell twice the side
-BIG_CELL_SHARE = 0.2  # ... and at most this share of the cells do
 
 
 def atlas_resolution(num_cells: int, min_cell_texels: int = 5, max_resolution: int = 4096) -> int:
@@ -72,33 +69,11 @@ def pair_adjacent_faces(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return partner, edge
 
 
-def cell_layout(num_cells: int, big: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
-    """(grid side in small cells, and a cell's column, row and side in small cells) of ``num_cells``
-    square cells, ``big`` (num_cells,) bool those twice the side: the big ones packed first in rows of
-    2x2 small cells at the top, the small ones in the rows below."""
-    nb = int(big.sum())
-    ns = num_cells - nb
-    grid = max(2, int(np.ceil(np.sqrt(4 * nb + ns))))
-    grid += grid % 2 if nb else 0
-    while 2 * -(-nb // (grid // 2)) + -(-ns // grid) > grid:   # rows the big cells take, then the small
-        grid += 2
-    col, row, side = np.zeros(num_cells, np.int64), np.zeros(num_cells, np.int64), np.where(big, 2, 1)
-    j = np.cumsum(big) - 1
-    col[big], row[big] = 2 * (j[big] % (grid // 2)), 2 * (j[big] // (grid // 2))
-    first_small = grid * 2 * -(-nb // (grid // 2))
-    b = first_small + np.cumsum(~big)[~big] - 1
-    col[~big], row[~big] = b % grid, b // grid
-    return grid, col, row, side
-
-
-def triangle_cell_atlas(faces: np.ndarray, min_cell_texels: int = 5, max_resolution: int = 4096,
-                        texel_need: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+def triangle_cell_atlas(faces: np.ndarray, min_cell_texels: int = 5,
+                        max_resolution: int = 4096) -> tuple[np.ndarray, np.ndarray, int]:
     """(uvs (3F, 2) float32 in [0, 1] with v up, uv_faces (F, 3) = corners 3f..3f+2, resolution): each
     pair of neighbouring triangles (:func:`pair_adjacent_faces`) a square cell, their shared edge its
-    diagonal, so the colours are continuous across it; an unpaired triangle a cell's upper-left half.
-    ``texel_need`` (F,): how many texels a side each triangle wants (e.g. its longest edge); a pair
-    wanting more than BIG_CELL_NEED times the median pair gets a cell twice the side (at most
-    BIG_CELL_SHARE of the cells), so long triangles are not starved. None: every cell the same."""
+    diagonal, so the colours are continuous across it; an unpaired triangle a cell's upper-left half."""
     faces = np.asarray(faces, np.int64)
     n = len(faces)
     partner, edge = pair_adjacent_faces(faces)
@@ -106,18 +81,10 @@ def triangle_cell_atlas(faces: np.ndarray, min_cell_texels: int = 5, max_resolut
     lead = (partner < 0) | (idx < partner)                              # the triangle that names the cell
     cell_of_lead = np.cumsum(lead) - 1
     cell = np.where(lead, cell_of_lead, cell_of_lead[np.maximum(partner, 0)])
-    num_cells = int(lead.sum())
-    big = np.zeros(num_cells, bool)
-    if texel_need is not None and num_cells:
-        need = np.zeros(num_cells)
-        np.maximum.at(need, cell, np.asarray(texel_need, np.float64))
-        cut = max(BIG_CELL_NEED * np.median(need), np.quantile(need, 1 - BIG_CELL_SHARE))
-        big = need > cut
-    grid, col, row, side = cell_layout(num_cells, big)
-    res = atlas_resolution(grid * grid, min_cell_texels, max_resolution)
-    unit = res / grid
-    size = side[cell] * unit
-    x0, y0 = col[cell] * unit, row[cell] * unit                        # texel units, y down from the top
+    res = atlas_resolution(int(lead.sum()), min_cell_texels, max_resolution)
+    grid = int(np.ceil(np.sqrt(max(1, int(lead.sum())))))
+    size = res / grid
+    x0, y0 = (cell % grid) * size, (cell // grid) * size               # texel units, y down from the top
     lo, hi = INSET, size - INSET
     tl, tr = np.stack([x0 + lo, y0 + lo], -1), np.stack([x0 + hi, y0 + lo], -1)
     bl, br = np.stack([x0 + lo, y0 + hi], -1), np.stack([x0 + hi, y0 + hi], -1)
@@ -135,14 +102,14 @@ def triangle_cell_atlas(faces: np.ndarray, min_cell_texels: int = 5, max_resolut
     return uvs.astype(np.float32), np.arange(3 * n, dtype=np.int64).reshape(-1, 3), res
 
 
-def cell_atlas_texture(faces: np.ndarray, colour_texels, min_cell_texels: int = 5, max_resolution: int = 4096,
-                       texel_need: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def cell_atlas_texture(faces: np.ndarray, colour_texels, min_cell_texels: int = 5,
+                       max_resolution: int = 4096) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(uvs, uv_faces, texture (R, R, 3) float32) of a :func:`triangle_cell_atlas` of ``faces`` whose
     covered texels (conservatively rasterized) take ``colour_texels(face (N,), bary (N, 3)) -> (N, 3)``,
     the gutters the nearest covered texel's colour."""
     from uvatar.geometry.uv_raster import UVRasterConfig, fill_atlas_index, rasterize_uv
 
-    uvs, uv_faces, res = triangle_cell_atlas(faces, min_cell_texels, max_resolution, texel_need)
+    uvs, uv_faces, res = triangle_cell_atlas(faces, min_cell_texels, max_resolution)
     raster = rasterize_uv(uvs, uv_faces, res, UVRasterConfig(conservative=True))
     face = raster.face_index.reshape(-1)
     covered = face >= 0

@@ -27,6 +27,7 @@ from uvatar.capture.types import Camera
 from uvatar.errors import InputError
 
 UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 UNITS_SPELLED = "m, cm, mm or metres per unit (a number: 0.001729 for a 1.729 mm voxel)"
 
 
@@ -40,7 +41,6 @@ def unit_scale(units: str) -> float | None:
     except ValueError:
         return None
     return scale if np.isfinite(scale) and scale > 0 else None
-UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
 @dataclass

@@ -55,19 +55,20 @@ POINT_CLOUD_NOTE = ("frames are coloured point clouds: each is made a surface (i
 
 
 def read_frame(source: FrameSource, texture_size: tuple[int, int] | None = None,
-               notes: list[str] | None = None, point_cloud=None) -> TexturedMesh:
+               notes: list[str] | None = None, point_cloud=None, units_stated: bool = False) -> TexturedMesh:
     """Decode a frame's mesh and texture (source units and axes; ``texture_size``: a headerless ETC2
     texture's (width, height)); a mesh with colours per vertex and no texture is given one
     (:mod:`uvatar.capture.vertex_colors`), a coloured point cloud a surface and a texture
     (:mod:`uvatar.capture.point_cloud`, ``point_cloud``: its PointCloudConfig), each said once in
-    ``notes``; InputError naming the bad file."""
+    ``notes`` (and, unless ``units_stated``, a cloud on whole numbers that its units may be a voxel's);
+    InputError naming the bad file."""
     from uvatar.io_utils import read_image
 
     if source.texture == ():
         raise InputError(source.mesh, "frame has no texture")
     mesh = _read_mesh(source)
     if mesh.num_faces == 0:
-        on_grid = on_whole_numbers(mesh.vertices)
+        on_grid = not units_stated and on_whole_numbers(mesh.vertices)
         mesh = _surface_of_points(source.mesh, mesh, point_cloud)
         for note, said in ((POINT_CLOUD_NOTE, True), (VOXEL_GRID_NOTE, on_grid)):
             if said and notes is not None and note not in notes:

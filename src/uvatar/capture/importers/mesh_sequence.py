@@ -58,7 +58,6 @@ from uvatar.capture.importers.alembic import (
     find_alembic,
 )
 from uvatar.capture.importers.frame_reader import (
-    VOXEL_GRID_NOTE,
     layered_format,
     point_cloud_config,
     read_frame,
@@ -344,11 +343,13 @@ def wanted_frames(seq: MeshSequence, src: Path, cfg) -> tuple[list[int], list[st
 @dataclass(frozen=True)
 class FrameTasks:
     """What every frame's task needs (sent once to each worker process): the take's frames, a headerless
-    texture's size, the point-cloud options, the (4, 4) world-from-source similarity and the scans folder."""
+    texture's size, the point-cloud options, whether the units were stated, the (4, 4) world-from-source
+    similarity and the scans folder."""
 
     frames: dict[int, FrameSource]
     texture_size: tuple[int, int] | None
     point_cloud: object
+    units_stated: bool
     world_from_source: np.ndarray
     scans: Path
 
@@ -369,7 +370,7 @@ def _import_frame(shared: FrameTasks, i: int) -> tuple[list[str], str]:
     ([], its one-line problem)."""
     notes: list[str] = []
     try:
-        mesh = read_frame(shared.frames[i], shared.texture_size, notes, shared.point_cloud)
+        mesh = read_frame(shared.frames[i], shared.texture_size, notes, shared.point_cloud, shared.units_stated)
     except InputError as exc:
         return [], str(exc)
     _write_in_world(shared.scans / f"{frame_name(i)}.ply", mesh, shared.world_from_source)
@@ -407,13 +408,14 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
         problems.append(message)
         log.warning("%s", message)
 
+    units_stated = bool(cfg.units or seq.units)   # then the voxel grid's hint has nothing to add
     # the first frame that reads decides the units and up axis (read even when written before: a resume)
     rest = list(wanted)
     while rest and S is None:
         i = rest.pop(0)
         target = scans / f"{frame_name(i)}.ply"
         try:
-            mesh = read_frame(seq.frames[i], seq.texture_size, notes, point_cloud_config(cfg))
+            mesh = read_frame(seq.frames[i], seq.texture_size, notes, point_cloud_config(cfg), units_stated)
         except InputError as exc:
             failed(i, str(exc))
             continue
@@ -431,9 +433,10 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
             written += 1
             stage_record.mark_progress(scans, 1)
         imported.append(i)
-    todo = [i for i in rest if not _is_written(scans / f"{frame_name(i)}.ply")]
-    imported += [i for i in rest if i not in set(todo)]
-    shared = FrameTasks(seq.frames, seq.texture_size, point_cloud_config(cfg), S, scans)
+    written_before = {i for i in rest if _is_written(scans / f"{frame_name(i)}.ply")}
+    imported += sorted(written_before)
+    todo = [i for i in rest if i not in written_before]
+    shared = FrameTasks(seq.frames, seq.texture_size, point_cloud_config(cfg), units_stated, S, scans)
     for i, result in run_tasks(_import_frame, todo, shared, ExecutorConfig(workers=cfg.workers),
                                desc="import", progress=progress, initializer=_one_thread):
         if isinstance(result, TaskFailure):     # the worker process died (memory, a crash): that frame only
@@ -448,8 +451,6 @@ def _import_sequence(src: Path, out: Path, cfg, progress: bool, t0: float) -> di
         written += 1
         stage_record.mark_progress(scans, len(imported))  # what a refusal of the half-made import counts
     imported.sort()
-    if cfg.units or seq.units:    # the units were stated: the voxel grid's hint has nothing to add
-        notes = [n for n in notes if n != VOXEL_GRID_NOTE]
     if not imported:
         raise InputError(src, f"no frame could be imported ({len(skipped)} broken; first: {first_error})")
     fps = cfg.fps or seq.fps or UVOL_DEFAULT_FPS

@@ -55,7 +55,8 @@ def probe_mesh_sequence(src: str | Path, cfg=None) -> dict:
         first, failures = None, []
         for i in wanted[:MAX_TRIES]:
             try:
-                first = (i, read_frame(seq.frames[i], seq.texture_size, seq.notes, point_cloud_config(cfg)))
+                first = (i, read_frame(seq.frames[i], seq.texture_size, seq.notes, point_cloud_config(cfg),
+                                       bool(cfg.units or seq.units)))
                 break
             except InputError as exc:
                 failures.append(str(exc))
