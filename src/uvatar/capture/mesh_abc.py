@@ -14,21 +14,26 @@ frame, in the archive's own units, through its parents' transforms (AbcGeom's sc
 - **Time**: sample ``i`` is at :meth:`AlembicTake.time`; frame numbers are times x the take's frame rate
   (``1 / time per cycle`` of uniform sampling, or the archive's ``_ai_FramesPerTimeUnit``).
 
+- **Several meshes**: the visible meshes with UVs that move are one take, joined frame by frame (a
+  take split into body parts or into chunks under an engine's vertex limit, sharing one texture atlas);
+  a mesh without UVs, or one standing still while the take moves (a floor, a prop), is left out and named.
+
 Alembic stores no texture; :mod:`uvatar.capture.importers.alembic` finds the images or video beside it.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from uvatar.capture.abc_archive import AbcArchive, AbcObject, AbcProperty
-from uvatar.capture.polygons import polygons_to_triangles
+from uvatar.capture.polygons import join_triangle_meshes, polygons_to_triangles
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
 
-__all__ = ["MESH_SCHEMAS", "AlembicTake", "open_alembic", "xform_matrix"]
+__all__ = ["MESH_SCHEMAS", "AbcMeshPart", "AlembicTake", "open_alembic", "xform_matrix"]
 
 MESH_SCHEMAS = ("AbcGeom_PolyMesh_v1", "AbcGeom_SubD_v1")
 XFORM_SCHEMA_PREFIX = "AbcGeom_Xform"
@@ -112,9 +117,37 @@ def _near(prop: AbcProperty, t: float) -> int:
     return (prop.time_sampling or prop.archive.time_samplings[0]).near_index(t, prop.count)
 
 
+@dataclass
+class AbcMeshPart:
+    """One PolyMesh (or SubD) object of a take: its points, polygons and UV parameter (None without)."""
+
+    obj: AbcObject
+    points: AbcProperty
+    counts: AbcProperty
+    indices: AbcProperty
+    uv: AbcProperty | None
+
+    @property
+    def name(self) -> str:
+        return self.obj.full_name
+
+    def moves(self, times: list[float]) -> bool:
+        """Whether its points or its transform change over ``times`` (seconds)."""
+        if self.points.count > 1 and not self.points.constant:
+            return True
+        first = world_matrix(self.obj, times[0])
+        return any(not np.array_equal(world_matrix(self.obj, t), first) for t in times[1:])
+
+
 class AlembicTake:
-    """An ``.abc`` file's mesh: ``mesh_object`` (the PolyMesh with the most points, others in
-    ``other_meshes``), ``count`` samples; :meth:`mesh` decodes one."""
+    """An ``.abc`` file's take: its visible meshes that make the person, ``parts`` (the one with the
+    most points first: ``mesh_object``, whose samples are the frames; the rest at the sample nearest each
+    frame's time), ``count`` frames; :meth:`mesh` decodes one, the parts as one mesh.
+
+    Studios split a take into several meshes (a mesh a body part, or chunks under an engine's vertex
+    limit) that share one texture atlas; a mesh is left out (``left_out``: its name and why) where it has
+    no UVs (the textures cannot be mapped onto it), no polygons, or stands still while the take moves (a
+    floor, a prop)."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -123,16 +156,31 @@ class AlembicTake:
         if not meshes:
             raise InputError(self.path, "holds no visible mesh (no PolyMesh or SubD object)")
         sized = [(self._points_prop(o).count and len(self._points_prop(o).sample(0)), o) for o in meshes]
-        best = max(range(len(sized)), key=lambda i: sized[i][0])
-        self.mesh_object = sized[best][1]
-        self.other_meshes = [o.full_name for _, o in sized if o is not self.mesh_object]
-        geom = self.mesh_object.properties.get(".geom")
-        self.points = self._points_prop(self.mesh_object)
-        self.counts_prop, self.indices_prop = geom.get(".faceCounts"), geom.get(".faceIndices")
-        if self.counts_prop is None or self.indices_prop is None or not self.points.count:
-            raise InputError(self.path, f"mesh {self.mesh_object.full_name} has no points or no polygons")
-        self.uv_param = self._uv_param(geom)
+        order = sorted(range(len(sized)), key=lambda i: -sized[i][0])
+        first = self._part(sized[order[0]][1])
+        if first is None:
+            raise InputError(self.path, f"mesh {sized[order[0]][1].full_name} has no points or no polygons")
+        self.mesh_object, self.points, self.uv_param = first.obj, first.points, first.uv
         self.count = self.points.count
+        times = [self.time(i) for i in range(self.count)]
+        moving = first.moves(times)
+        self.parts, self.left_out = [first], {}
+        for i in order[1:]:
+            part = self._part(sized[i][1])
+            name = sized[i][1].full_name
+            if part is None:
+                self.left_out[name] = "no points or no polygons"
+            elif first.uv is not None and part.uv is None:
+                self.left_out[name] = "no UVs"
+            elif moving and not part.moves(times):
+                self.left_out[name] = "stands still while the take moves (a floor or a prop?)"
+            else:
+                self.parts.append(part)
+
+    @property
+    def other_meshes(self) -> list[str]:
+        """The meshes left out of the take."""
+        return list(self.left_out)
 
     def close(self) -> None:
         self.archive.close()
@@ -148,6 +196,15 @@ class AlembicTake:
         if p is None or p.kind != "array" or p.extent != 3:
             raise InputError(self.path, f"mesh {obj.full_name} has no points (P)")
         return p
+
+    def _part(self, obj: AbcObject) -> AbcMeshPart | None:
+        """``obj`` as a part of the take; None where it has no points or no polygons."""
+        geom = obj.properties.get(".geom")
+        points = self._points_prop(obj)
+        counts, indices = geom.get(".faceCounts"), geom.get(".faceIndices")
+        if counts is None or indices is None or not points.count or not counts.count or not indices.count:
+            return None
+        return AbcMeshPart(obj, points, counts, indices, self._uv_param(geom))
 
     @staticmethod
     def _uv_param(geom: AbcProperty) -> AbcProperty | None:
@@ -186,12 +243,14 @@ class AlembicTake:
                 + (f", written by {app}" if app else "")
                 + (f", UVs {self.uv_name!r}" if self.uv_param is not None else ", no UVs"))
 
-    def _uvs(self, t: float, n_points: int, indices: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray] | None:
+    def _uvs(self, part: AbcMeshPart, t: float, n_points: int, indices: np.ndarray,
+             index: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(U, 2) UVs and (corners,) each polygon corner's UV index; None without UVs."""
         n_corners = len(indices)
-        param = self.uv_param
+        param = part.uv
         if param is None:
             return None
+        where = f"sample {index}" + (f" of mesh {part.name}" if part is not self.parts[0] else "")
         if param.kind == "compound":
             vals, idx = param.get(".vals"), param.get(".indices")
             if vals is None:
@@ -205,44 +264,50 @@ class AlembicTake:
         n = len(corner_uv) if corner_uv is not None else len(uvs)
         if scope in ("vtx", "var") or (not scope and n == n_points and n != n_corners):
             if n != n_points:
-                raise InputError(self.path, f"sample {index}: {n} per-point UVs for {n_points} points")
+                raise InputError(self.path, f"{where}: {n} per-point UVs for {n_points} points")
             point_uv = corner_uv if corner_uv is not None else np.arange(n_points)
             if point_uv.size and (point_uv.min() < 0 or point_uv.max() >= len(uvs)):
-                raise InputError(self.path, f"sample {index}: a UV index past the {len(uvs)} UVs")
+                raise InputError(self.path, f"{where}: a UV index past the {len(uvs)} UVs")
             return uvs, point_uv[indices]
         if scope not in ("", "fvr"):
             raise InputError(self.path, f"UVs {param.name!r} given per {scope!r}, neither per corner nor per point")
         if n != n_corners:
-            raise InputError(self.path, f"sample {index}: {n} UVs for {n_corners} polygon corners")
+            raise InputError(self.path, f"{where}: {n} UVs for {n_corners} polygon corners")
         if corner_uv is None:
             corner_uv = np.arange(n_corners)
         if corner_uv.size and (corner_uv.min() < 0 or corner_uv.max() >= len(uvs)):
-            raise InputError(self.path, f"sample {index}: a UV index past the {len(uvs)} UVs")
+            raise InputError(self.path, f"{where}: a UV index past the {len(uvs)} UVs")
         return uvs, corner_uv
 
-    def polygons(self, index: int) -> dict:
-        """Sample ``index`` as stored: ``points`` (P, 3) float64 in the mesh's own frame, ``counts``
-        (F,) and ``indices`` (sum counts,) of its polygons (Alembic's clockwise order), ``uvs`` (U, 2)
-        and ``corner_uvs`` (sum counts,) each corner's UV (both None without UVs), ``time`` seconds."""
+    def polygons(self, index: int, part: AbcMeshPart | None = None) -> dict:
+        """Sample ``index`` of ``part`` (the first part when None; another at the sample nearest the
+        frame's time) as stored: ``points`` (P, 3) float64 in the mesh's own frame, ``counts`` (F,) and
+        ``indices`` (sum counts,) of its polygons (Alembic's clockwise order), ``uvs`` (U, 2) and
+        ``corner_uvs`` (sum counts,) each corner's UV (both None without UVs), ``time`` seconds."""
+        part = part or self.parts[0]
         t = self.time(index)
-        points = np.asarray(self.points.sample(index), np.float64).reshape(-1, 3)
-        counts = np.asarray(self.counts_prop.sample(_near(self.counts_prop, t)), np.int64).reshape(-1)
-        indices = np.asarray(self.indices_prop.sample(_near(self.indices_prop, t)), np.int64).reshape(-1)
+        where = f"sample {index}" + (f" of mesh {part.name}" if part is not self.parts[0] else "")
+        points = np.asarray(part.points.sample(_near(part.points, t)), np.float64).reshape(-1, 3)
+        counts = np.asarray(part.counts.sample(_near(part.counts, t)), np.int64).reshape(-1)
+        indices = np.asarray(part.indices.sample(_near(part.indices, t)), np.int64).reshape(-1)
         if counts.sum() != len(indices) or (counts < 0).any():
-            raise InputError(self.path, f"sample {index}: polygon sizes add to {counts.sum()}, not the "
+            raise InputError(self.path, f"{where}: polygon sizes add to {counts.sum()}, not the "
                                         f"{len(indices)} polygon corners")
         if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
-            raise InputError(self.path, f"sample {index}: a polygon corner past the {len(points)} points")
-        uv = self._uvs(t, len(points), indices, index)
+            raise InputError(self.path, f"{where}: a polygon corner past the {len(points)} points")
+        uv = self._uvs(part, t, len(points), indices, index)
         return {"time": t, "points": points, "counts": counts, "indices": indices,
                 "uvs": None if uv is None else uv[0], "corner_uvs": None if uv is None else uv[1]}
 
     def mesh(self, index: int, world: bool = True) -> TexturedMesh:
-        """Sample ``index`` as a triangle mesh in the archive's units and axes (through its parents'
-        transforms when ``world``), no texture."""
-        p = self.polygons(index)
-        m = world_matrix(self.mesh_object, p["time"]) if world else None
-        return TexturedMesh(*polygons_to_triangles(p, clockwise=True, world=m))
+        """Sample ``index`` as one triangle mesh of all parts in the archive's units and axes (each
+        through its parents' transforms when ``world``), no texture."""
+        pieces = []
+        for part in self.parts:
+            p = self.polygons(index, part)
+            m = world_matrix(part.obj, p["time"]) if world else None
+            pieces.append(polygons_to_triangles(p, clockwise=True, world=m))
+        return TexturedMesh(*join_triangle_meshes(pieces))
 
 
 def open_alembic(path: str | Path) -> AlembicTake:

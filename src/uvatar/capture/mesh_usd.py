@@ -1,11 +1,14 @@
 """A volumetric take as USD (``.usd``, ``.usda``, ``.usdc``, ``.usdz``; Pixar's OpenUSD through its own
 ``usd-core`` library, the ``formats`` extra): the mesh of a stage, frame by frame.
 
-- **The mesh**: the visible, rendered ``Mesh`` prim with the most points (others noted); its points at
+- **The mesh**: the visible, rendered ``Mesh`` prim with the most points; its points at
   each of their time samples (one frame when they have none), its polygons (``faceVertexCounts`` /
   ``faceVertexIndices``, fanned into triangles; ``orientation = "leftHanded"`` turned round), its UVs
   (the ``st`` primvar, else the first two-float one: face-varying or per vertex, indexed or not), all
   through the prim's world transform at that time (a mirroring one turning the triangles back).
+- **Several meshes**: the other visible meshes with UVs and the same texture that move are joined to it
+  frame by frame (a take split into body parts or chunks sharing one atlas); one without UVs, wearing
+  another texture, or standing still while the take moves (a floor, a prop) is left out and named.
 - **Its texture**: the file of the ``UsdUVTexture`` feeding the bound ``UsdPreviewSurface``'s
   ``diffuseColor``, at the frame's time (a texture a frame where the file is time-sampled), read through
   USD's asset resolver (so inside a ``.usdz`` too); None where the stage has none.
@@ -55,8 +58,8 @@ class UsdTake:
         if not meshes:
             raise InputError(self.path, "holds no visible mesh (no Mesh prim)")
         sizes = [len(UsdGeom.Mesh(p).GetPointsAttr().Get(self._first_time(p)) or []) for p in meshes]
-        self.prim = meshes[int(np.argmax(sizes))]
-        self.other_meshes = [str(p.GetPath()) for p in meshes if p != self.prim]
+        order = sorted(range(len(meshes)), key=lambda i: -sizes[i])
+        self.prim = meshes[order[0]]
         self.mesh_schema = UsdGeom.Mesh(self.prim)
         times = self.mesh_schema.GetPointsAttr().GetTimeSamples()
         self.times = list(times) if times else [Usd.TimeCode.Default()]
@@ -68,7 +71,41 @@ class UsdTake:
         self.units = "m" if self.meters_per_unit else ""
         self.up = ("+" + str(UsdGeom.GetStageUpAxis(self.stage)).lower()) if self.stage.HasAuthoredMetadata("upAxis") \
             else ""
-        self.uv_primvar = self._uv_primvar()
+        self.uv_primvar = self._uv_primvar(self.prim)
+        self.parts, self.left_out = [self.prim], {}
+        self._uv_of = {self.prim: self.uv_primvar}
+        moving = self._moves(self.prim)
+        texture = self._texture_asset(self.prim, 0)
+        for i in order[1:]:
+            prim, name = meshes[i], str(meshes[i].GetPath())
+            uv = self._uv_primvar(prim)
+            if self.uv_primvar is not None and uv is None:
+                self.left_out[name] = "no UVs"
+            elif not len(UsdGeom.Mesh(prim).GetFaceVertexCountsAttr().Get(self._first_time(prim)) or []):
+                self.left_out[name] = "no polygons"
+            elif self._texture_asset(prim, 0) != texture:
+                other = self._texture_asset(prim, 0)
+                self.left_out[name] = (f"wears another texture ({other[0] if other else 'none'}; the take's is "
+                                       f"{texture[0] if texture else 'none'})")
+            elif moving and not self._moves(prim):
+                self.left_out[name] = "stands still while the take moves (a floor or a prop?)"
+            else:
+                self.parts.append(prim)
+                self._uv_of[prim] = uv
+
+    @property
+    def other_meshes(self) -> list[str]:
+        """The meshes left out of the take."""
+        return list(self.left_out)
+
+    def _moves(self, prim) -> bool:
+        """Whether ``prim``'s points or its world transform change over the take's frames."""
+        _, UsdGeom, _ = _pxr()
+        if len(UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples()) > 1:
+            return True
+        xf = UsdGeom.Xformable(prim)
+        first = xf.ComputeLocalToWorldTransform(self.times[0])
+        return any(xf.ComputeLocalToWorldTransform(t) != first for t in self.times[1:])
 
     def close(self) -> None:
         self.stage = None
@@ -86,9 +123,10 @@ class UsdTake:
         times = UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples()
         return times[0] if times else Usd.TimeCode.Default()
 
-    def _uv_primvar(self):
+    @staticmethod
+    def _uv_primvar(prim):
         _, UsdGeom, _ = _pxr()
-        api = UsdGeom.PrimvarsAPI(self.prim)
+        api = UsdGeom.PrimvarsAPI(prim)
         pv = api.GetPrimvar("st")
         if pv and pv.IsDefined():
             return pv
@@ -106,38 +144,41 @@ class UsdTake:
         uv = f", UVs {self.uv_primvar.GetPrimvarName()!r}" if self.uv_primvar else ", no UVs"
         return f"USD mesh {self.prim.GetPath()}, {self.count} frame{'s' if self.count > 1 else ''}{uv}"
 
-    def polygons(self, index: int) -> dict:
-        """Frame ``index`` as authored: ``points`` (P, 3) float64 in the prim's frame, ``counts``,
-        ``indices`` (its polygons, counter-clockwise), ``uvs`` (U, 2) and ``corner_uvs`` each corner's
-        UV (None without UVs)."""
+    def polygons(self, index: int, prim=None) -> dict:
+        """Frame ``index`` of ``prim`` (a part; the take's first when None) as authored: ``points`` (P, 3)
+        float64 in the prim's frame, ``counts``, ``indices`` (its polygons, counter-clockwise), ``uvs``
+        (U, 2) and ``corner_uvs`` each corner's UV (None without UVs)."""
+        _, UsdGeom, _ = _pxr()
+        prim = prim or self.prim
         t = self.times[index]
-        m = self.mesh_schema
+        m = UsdGeom.Mesh(prim)
+        where = f"frame {index}" + (f" of mesh {prim.GetPath()}" if prim != self.prim else "")
         points = np.asarray(m.GetPointsAttr().Get(t) or [], np.float64).reshape(-1, 3)
         counts = np.asarray(m.GetFaceVertexCountsAttr().Get(t) or [], np.int64)
         indices = np.asarray(m.GetFaceVertexIndicesAttr().Get(t) or [], np.int64)
         if counts.sum() != len(indices) or (counts < 0).any():
-            raise InputError(self.path, f"frame {index}: polygon sizes add to {counts.sum()}, not the {len(indices)} "
+            raise InputError(self.path, f"{where}: polygon sizes add to {counts.sum()}, not the {len(indices)} "
                                         "polygon corners")
         if indices.size and (indices.min() < 0 or indices.max() >= len(points)):
-            raise InputError(self.path, f"frame {index}: a polygon corner past the {len(points)} points")
+            raise InputError(self.path, f"{where}: a polygon corner past the {len(points)} points")
         left = m.GetOrientationAttr().Get(t) == "leftHanded"
         if left:
             indices = _reverse_polygons(counts, indices)
         uvs = corner_uvs = None
-        pv = self.uv_primvar
+        pv = self._uv_of.get(prim)
         if pv is not None:
             values = np.asarray(pv.Get(t) or [], np.float32).reshape(-1, 2)
             idx = np.asarray(pv.GetIndices(t), np.int64) if pv.IsIndexed() else np.arange(len(values))
             if idx.size and (idx.min() < 0 or idx.max() >= len(values)):
-                raise InputError(self.path, f"frame {index}: a UV index past the {len(values)} UVs")
+                raise InputError(self.path, f"{where}: a UV index past the {len(values)} UVs")
             interp = pv.GetInterpolation()
             if interp == "faceVarying":
                 if len(idx) != len(indices):
-                    raise InputError(self.path, f"frame {index}: {len(idx)} face-varying UVs for {len(indices)} corners")
+                    raise InputError(self.path, f"{where}: {len(idx)} face-varying UVs for {len(indices)} corners")
                 corner_uvs = _reverse_polygons(counts, idx) if left else idx
             elif interp in ("vertex", "varying"):
                 if len(idx) != len(points):
-                    raise InputError(self.path, f"frame {index}: {len(idx)} per-vertex UVs for {len(points)} points")
+                    raise InputError(self.path, f"{where}: {len(idx)} per-vertex UVs for {len(points)} points")
                 corner_uvs = idx[indices]
             else:
                 raise InputError(self.path, f"UVs {pv.GetPrimvarName()!r} are {interp}: neither per corner nor per "
@@ -146,22 +187,30 @@ class UsdTake:
         return {"points": points, "counts": counts, "indices": indices, "uvs": uvs, "corner_uvs": corner_uvs}
 
     def mesh(self, index: int, world: bool = True) -> TexturedMesh:
-        """Frame ``index`` as a triangle mesh (the stage's axes; metres when the stage authors its units;
-        through the prim's world transform when ``world``) wearing its material's texture, if any."""
-        from uvatar.capture.polygons import polygons_to_triangles
+        """Frame ``index`` as one triangle mesh of all parts (the stage's axes; metres when the stage
+        authors its units; each through its prim's world transform when ``world``) wearing its
+        material's texture, if any."""
+        from uvatar.capture.polygons import join_triangle_meshes, polygons_to_triangles
 
-        p = self.polygons(index)
-        M = np.array(self.mesh_schema.ComputeLocalToWorldTransform(self.times[index])).T if world else None
-        if self.meters_per_unit:
-            scale = np.diag([self.meters_per_unit] * 3 + [1.0])
-            M = scale @ (M if M is not None else np.eye(4))
-        return TexturedMesh(*polygons_to_triangles(p, clockwise=False, world=M), texture=self.texture(index))
+        _, UsdGeom, _ = _pxr()
+        pieces = []
+        for prim in self.parts:
+            p = self.polygons(index, prim)
+            M = np.array(UsdGeom.Mesh(prim).ComputeLocalToWorldTransform(self.times[index])).T if world else None
+            if self.meters_per_unit:
+                scale = np.diag([self.meters_per_unit] * 3 + [1.0])
+                M = scale @ (M if M is not None else np.eye(4))
+            pieces.append(polygons_to_triangles(p, clockwise=False, world=M))
+        return TexturedMesh(*join_triangle_meshes(pieces), texture=self.texture(index))
 
     def texture_asset(self, index: int) -> tuple[str, str] | None:
         """(the path as authored, the resolved path or "" where it resolves to nothing) of frame
         ``index``'s diffuse texture; None where the material names none."""
+        return self._texture_asset(self.prim, index)
+
+    def _texture_asset(self, prim, index: int) -> tuple[str, str] | None:
         _, _, UsdShade = _pxr()
-        material = UsdShade.MaterialBindingAPI(self.prim).ComputeBoundMaterial()[0]
+        material = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
         if not material:
             return None
         surface = material.ComputeSurfaceSource()[0]

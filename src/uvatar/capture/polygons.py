@@ -1,11 +1,12 @@
-"""Polygon meshes as uvatar's triangle meshes: the one fan triangulation and world transform of the
-take readers that store polygons (:mod:`~uvatar.capture.mesh_abc`, :mod:`~uvatar.capture.mesh_usd`)."""
+"""Polygon meshes as uvatar's triangle meshes: the one fan triangulation, world transform and joining
+of a take's several meshes for the take readers that store polygons (:mod:`~uvatar.capture.mesh_abc`,
+:mod:`~uvatar.capture.mesh_usd`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["triangulate_polygons", "polygons_to_triangles"]
+__all__ = ["triangulate_polygons", "polygons_to_triangles", "join_triangle_meshes"]
 
 
 def triangulate_polygons(counts: np.ndarray, reverse: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -42,3 +43,16 @@ def polygons_to_triangles(polygons: dict, clockwise: bool, world: np.ndarray | N
         if np.linalg.det(world[:3, :3]) < 0:            # a mirroring transform turns the surface inside out
             faces, uv_faces = faces[:, ::-1], uv_faces[:, ::-1]
     return points.astype(np.float32), faces, uvs, uv_faces
+
+
+def join_triangle_meshes(pieces: list[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One (vertices, faces, uvs, uv_faces) of several meshes that share one texture atlas (as
+    :func:`polygons_to_triangles` returns them), each one's indices moved past the ones before."""
+    if len(pieces) == 1:
+        return pieces[0]
+    v_off = np.cumsum([0] + [len(p[0]) for p in pieces[:-1]])
+    uv_off = np.cumsum([0] + [len(p[2]) for p in pieces[:-1]])
+    return (np.concatenate([p[0] for p in pieces]).astype(np.float32),
+            np.concatenate([np.asarray(p[1], np.int64).reshape(-1, 3) + o for p, o in zip(pieces, v_off)]),
+            np.concatenate([np.asarray(p[2], np.float32).reshape(-1, 2) for p in pieces]),
+            np.concatenate([np.asarray(p[3], np.int64).reshape(-1, 3) + o for p, o in zip(pieces, uv_off)]))

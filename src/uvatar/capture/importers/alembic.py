@@ -95,9 +95,7 @@ def alembic_sequence(path: Path, fps: float = 0.0) -> MeshSequence:
     fps = take.fps() or fps
     seq = MeshSequence({}, "alembic", fps=fps, manifest=path)
     seq.notes.append(f"{path}: {take.describe()}")
-    if take.other_meshes:
-        seq.notes.append(f"{path}: {len(take.other_meshes)} other mesh{'es' if len(take.other_meshes) > 1 else ''} "
-                         f"not read ({', '.join(take.other_meshes[:3])}): the take is the one with the most points")
+    seq.note_meshes(path, [p.name for p in take.parts], take.left_out)
     if take.uv_param is None:
         take.close()
         raise InputError(path, f"mesh {take.mesh_object.full_name} has no UVs (no uv parameter): its textures "

@@ -39,6 +39,14 @@ class MeshSequence:
     notes: list[str] = field(default_factory=list)
     texture_size: tuple[int, int] | None = None
 
+    def note_meshes(self, path: Path, parts: list[str], left_out: dict[str, str]) -> None:
+        """Note a take file's meshes: those joined into the take's one mesh, and each left out and why."""
+        if len(parts) > 1:
+            self.notes.append(f"{path}: {len(parts)} meshes joined into the take's one mesh each frame "
+                              f"({', '.join(parts[:4])}{', ...' if len(parts) > 4 else ''})")
+        for name, why in left_out.items():
+            self.notes.append(f"{path}: mesh {name} left out: {why}")
+
 
 def frame_number(path: Path) -> int | None:
     """A per-frame file's frame number: the last run of digits in its name (``scan_000017.obj`` → 17)."""

@@ -65,9 +65,7 @@ def usd_sequence(path: Path, fps: float = 0.0) -> MeshSequence:
     seq.notes.append(f"{path}: {take.describe()}")
     if take.meters_per_unit and take.meters_per_unit != 1.0:
         seq.notes.append(f"{path}: metersPerUnit {take.meters_per_unit:g} applied")
-    if take.other_meshes:
-        seq.notes.append(f"{path}: {len(take.other_meshes)} other mesh{'es' if len(take.other_meshes) > 1 else ''} "
-                         f"not read ({', '.join(take.other_meshes[:3])}): the take is the one with the most points")
+    seq.note_meshes(path, [str(p.GetPath()) for p in take.parts], take.left_out)
     _open[path] = (take, {n: i for i, n in enumerate(numbers)})
     if take.texture_asset(0) is None:
         attach_beside_textures(seq, path, numbers, seq.fps or 30.0)
