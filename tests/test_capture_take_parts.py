@@ -15,9 +15,9 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt  # usd-core: the formats ext
 from uvatar.capture.abc_take import PolyMeshWriter
 from uvatar.capture.abc_writer import ArchiveWriter
 from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
-from uvatar.capture.meshio import read_mesh
 from uvatar.capture.mesh_abc import AlembicTake
 from uvatar.capture.mesh_usd import UsdTake
+from uvatar.capture.meshio import read_mesh
 from uvatar.capture.polygons import join_triangle_meshes
 
 FRAMES = 3

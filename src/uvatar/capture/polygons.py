@@ -53,6 +53,6 @@ def join_triangle_meshes(pieces: list[tuple]) -> tuple[np.ndarray, np.ndarray, n
     v_off = np.cumsum([0] + [len(p[0]) for p in pieces[:-1]])
     uv_off = np.cumsum([0] + [len(p[2]) for p in pieces[:-1]])
     return (np.concatenate([p[0] for p in pieces]).astype(np.float32),
-            np.concatenate([np.asarray(p[1], np.int64).reshape(-1, 3) + o for p, o in zip(pieces, v_off)]),
+            np.concatenate([np.asarray(p[1], np.int64).reshape(-1, 3) + o for p, o in zip(pieces, v_off, strict=True)]),
             np.concatenate([np.asarray(p[2], np.float32).reshape(-1, 2) for p in pieces]),
-            np.concatenate([np.asarray(p[3], np.int64).reshape(-1, 3) + o for p, o in zip(pieces, uv_off)]))
+            np.concatenate([np.asarray(p[3], np.int64).reshape(-1, 3) + o for p, o in zip(pieces, uv_off, strict=True)]))
