@@ -140,9 +140,9 @@ class AbcMeshPart:
 
 
 class AlembicTake:
-    """An ``.abc`` file's take: its visible meshes that make the person, ``parts`` (the one with the
-    most points first: ``mesh_object``, whose samples are the frames; the rest at the sample nearest each
-    frame's time), ``count`` frames; :meth:`mesh` decodes one, the parts as one mesh.
+    """An ``.abc`` file's take: its visible meshes that make the person, ``parts`` in the file's order
+    (``first``, the one with the most points, is ``mesh_object``: its samples are the frames; the rest
+    are read at the sample nearest each frame's time), ``count`` frames; :meth:`mesh` decodes one, the parts as one mesh.
 
     Studios split a take into several meshes (a mesh a body part, or chunks under an engine's vertex
     limit) that share one texture atlas; a mesh is left out (``left_out``: its name and why) where it has
@@ -164,7 +164,8 @@ class AlembicTake:
         self.count = self.points.count
         times = [self.time(i) for i in range(self.count)]
         moving = first.moves(times)
-        self.parts, self.left_out = [first], {}
+        self.first, self.left_out = first, {}
+        joined = {order[0]: first}
         for i in order[1:]:
             part = self._part(sized[i][1])
             name = sized[i][1].full_name
@@ -175,7 +176,8 @@ class AlembicTake:
             elif moving and not part.moves(times):
                 self.left_out[name] = "stands still while the take moves (a floor or a prop?)"
             else:
-                self.parts.append(part)
+                joined[i] = part
+        self.parts = [joined[i] for i in sorted(joined)]     # in the file's order
 
     @property
     def other_meshes(self) -> list[str]:
@@ -250,7 +252,7 @@ class AlembicTake:
         param = part.uv
         if param is None:
             return None
-        where = f"sample {index}" + (f" of mesh {part.name}" if part is not self.parts[0] else "")
+        where = f"sample {index}" + (f" of mesh {part.name}" if part is not self.first else "")
         if param.kind == "compound":
             vals, idx = param.get(".vals"), param.get(".indices")
             if vals is None:
@@ -280,13 +282,13 @@ class AlembicTake:
         return uvs, corner_uv
 
     def polygons(self, index: int, part: AbcMeshPart | None = None) -> dict:
-        """Sample ``index`` of ``part`` (the first part when None; another at the sample nearest the
+        """Sample ``index`` of ``part`` (``first`` when None; another at the sample nearest the
         frame's time) as stored: ``points`` (P, 3) float64 in the mesh's own frame, ``counts`` (F,) and
         ``indices`` (sum counts,) of its polygons (Alembic's clockwise order), ``uvs`` (U, 2) and
         ``corner_uvs`` (sum counts,) each corner's UV (both None without UVs), ``time`` seconds."""
-        part = part or self.parts[0]
+        part = part or self.first
         t = self.time(index)
-        where = f"sample {index}" + (f" of mesh {part.name}" if part is not self.parts[0] else "")
+        where = f"sample {index}" + (f" of mesh {part.name}" if part is not self.first else "")
         points = np.asarray(part.points.sample(_near(part.points, t)), np.float64).reshape(-1, 3)
         counts = np.asarray(part.counts.sample(_near(part.counts, t)), np.int64).reshape(-1)
         indices = np.asarray(part.indices.sample(_near(part.indices, t)), np.int64).reshape(-1)

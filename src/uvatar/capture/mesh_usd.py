@@ -9,9 +9,11 @@
 - **Several meshes**: the other visible meshes with UVs and the same texture that move are joined to it
   frame by frame (a take split into body parts or chunks sharing one atlas); one without UVs, wearing
   another texture, or standing still while the take moves (a floor, a prop) is left out and named.
-- **Its texture**: the file of the ``UsdUVTexture`` feeding the bound ``UsdPreviewSurface``'s
-  ``diffuseColor``, at the frame's time (a texture a frame where the file is time-sampled), read through
-  USD's asset resolver (so inside a ``.usdz`` too); None where the stage has none.
+- **Its texture**: the image feeding the bound material's surface colour (:func:`texture_input`: a
+  ``UsdUVTexture`` into ``UsdPreviewSurface``'s ``diffuseColor``, a MaterialX ``image`` into
+  ``standard_surface``'s or OpenPBR's ``base_color``, OmniPBR's ``diffuse_texture``), at the frame's
+  time (a texture a frame where the file is time-sampled), read through USD's asset resolver (so inside
+  a ``.usdz`` too); None where the stage has none.
 - **Time, units, up**: frames are the time codes (at ``timeCodesPerSecond``); ``metersPerUnit`` and
   ``upAxis`` where the stage authors them (applied to the points here: :attr:`UsdTake.units` is then
   "m"), else "" for the import to detect.
@@ -26,9 +28,14 @@ import numpy as np
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError, require
 
-__all__ = ["USD_SUFFIXES", "UsdTake"]
+__all__ = ["USD_SUFFIXES", "UsdTake", "texture_input"]
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+# a surface shader's colour inputs, in the order tried: UsdPreviewSurface, MaterialX standard_surface and
+# OpenPBR, Omniverse's OmniPBR (an asset input), then the names other tools give theirs
+COLOUR_INPUTS = ("diffuseColor", "base_color", "diffuse_texture", "diffuse_color", "baseColor", "albedo",
+                 "diffuse_color_texture")
+MAX_SHADER_HOPS = 4
 UV_TYPES = ("texCoord2f[]", "float2[]", "texCoord2d[]", "double2[]", "texCoord2h[]", "half2[]")
 
 
@@ -72,7 +79,7 @@ class UsdTake:
         self.up = ("+" + str(UsdGeom.GetStageUpAxis(self.stage)).lower()) if self.stage.HasAuthoredMetadata("upAxis") \
             else ""
         self.uv_primvar = self._uv_primvar(self.prim)
-        self.parts, self.left_out = [self.prim], {}
+        self.left_out, joined = {}, [order[0]]
         self._uv_of = {self.prim: self.uv_primvar}
         moving = self._moves(self.prim)
         texture = self._texture_asset(self.prim, 0)
@@ -90,8 +97,9 @@ class UsdTake:
             elif moving and not self._moves(prim):
                 self.left_out[name] = "stands still while the take moves (a floor or a prop?)"
             else:
-                self.parts.append(prim)
+                joined.append(i)
                 self._uv_of[prim] = uv
+        self.parts = [meshes[i] for i in sorted(joined)]    # in the stage's order
 
     @property
     def other_meshes(self) -> list[str]:
@@ -209,22 +217,10 @@ class UsdTake:
         return self._texture_asset(self.prim, index)
 
     def _texture_asset(self, prim, index: int) -> tuple[str, str] | None:
-        _, _, UsdShade = _pxr()
-        material = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
-        if not material:
+        input_ = texture_input(prim)
+        if input_ is None:
             return None
-        surface = material.ComputeSurfaceSource()[0]
-        if not surface:
-            return None
-        diffuse = surface.GetInput("diffuseColor")
-        source = diffuse.GetConnectedSource() if diffuse else None
-        if not source or not source[0]:
-            return None
-        shader = UsdShade.Shader(source[0].GetPrim())
-        file_input = shader.GetInput("file")
-        if not file_input:
-            return None
-        asset = file_input.Get(self.times[index])
+        asset = input_.Get(self.times[index])
         if asset is None or not asset.path:
             return None
         return asset.path, asset.resolvedPath or ""
@@ -253,6 +249,60 @@ class UsdTake:
             image = (np.clip(image.astype(np.float32) / np.iinfo(image.dtype).max if image.dtype.kind == "u"
                              else image, 0, 1) * 255 + 0.5).astype(np.uint8)
         return np.ascontiguousarray(image[..., :3])
+
+
+def texture_input(prim):
+    """The asset input (a ``UsdShade.Input``) holding the colour texture of ``prim``'s bound material;
+    None where it has none. The material's surface for the universal render context (UsdPreviewSurface),
+    else MaterialX's, else MDL's (Omniverse), else any other it has; on that surface the first colour
+    input of :data:`COLOUR_INPUTS` that leads to an image: an asset input itself (OmniPBR's
+    ``diffuse_texture``), or connected, through as many as :data:`MAX_SHADER_HOPS` shaders (a tint, a
+    colour correction), to one whose asset input is ``file`` (``UsdUVTexture``, MaterialX's ``image``)."""
+    _, _, UsdShade = _pxr()
+    material = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
+    if not material:
+        return None
+    contexts = ["", "mtlx", "mdl"]
+    for output in material.GetSurfaceOutputs():
+        context = output.GetBaseName().rpartition(":")[0]
+        if context not in contexts:
+            contexts.append(context)
+    for context in contexts:
+        surface = material.ComputeSurfaceSource(context)[0]
+        if not surface:
+            continue
+        for name in COLOUR_INPUTS:
+            found = _asset_upstream(surface.GetInput(name), MAX_SHADER_HOPS)
+            if found is not None:
+                return found
+    return None
+
+
+def _asset_upstream(input_, hops: int):
+    """The asset input that ``input_`` is or is fed from (depth first, ``file`` before other asset
+    inputs); None where none is within ``hops`` shaders."""
+    from pxr import Sdf
+
+    _, _, UsdShade = _pxr()
+    if not input_:
+        return None
+    if input_.GetTypeName() == Sdf.ValueTypeNames.Asset and not input_.HasConnectedSource():
+        return input_
+    if hops <= 0:
+        return None
+    for source in input_.GetConnectedSources()[0]:
+        shader = UsdShade.Shader(source.source.GetPrim())
+        inputs = shader.GetInputs()
+        assets = [i for i in inputs if i.GetTypeName() == Sdf.ValueTypeNames.Asset]
+        file_first = sorted(assets, key=lambda i: i.GetBaseName() != "file")
+        if file_first:
+            return _asset_upstream(file_first[0], hops - 1) if file_first[0].HasConnectedSource() else file_first[0]
+        for upstream in inputs:
+            if upstream.HasConnectedSource():
+                found = _asset_upstream(upstream, hops - 1)
+                if found is not None:
+                    return found
+    return None
 
 
 def _reverse_polygons(counts: np.ndarray, values: np.ndarray) -> np.ndarray:
