@@ -193,3 +193,36 @@ def test_a_usd_take_of_several_meshes_is_joined_and_the_rest_left_out(tmp_path):
     assert "2 meshes joined" in notes and "mesh /take/hair left out: wears another texture" in notes
     scan = read_mesh(tmp_path / "cap" / "scans" / "000000.ply")
     assert len(scan.faces) == 4 and np.ptp(scan.vertices[:, 1]) == pytest.approx(1.70, abs=1e-5)
+
+
+def test_a_chunk_empty_on_the_first_frame_is_still_part_of_the_take(tmp_path):
+    """An untracked take's last chunk holds triangles on some frames only: it is joined where it has them."""
+    quad, empty = np.array([[0, 1, 2], [0, 2, 3]]), np.zeros((0, 3), np.int64)
+    archive = ArchiveWriter(tmp_path / "take.abc", "uvatar tests")
+    ts = archive.add_time_sampling(1 / 30, (0.0,))
+    _abc_mesh(archive.top, ts, "part0", [_moved(CARD, k) for k in range(FRAMES)], LOWER_UV)
+    late = PolyMeshWriter(archive.top, "part1", ts)
+    late.add(np.zeros((0, 3)), empty, np.zeros((0, 2)), empty)
+    for k in range(1, FRAMES):
+        late.add(_moved(CARD, k) * 0.5, quad, UPPER_UV, quad)
+    archive.close()
+    take = AlembicTake(tmp_path / "take.abc")
+    assert len(take.parts) == 2 and not take.left_out
+    assert [len(take.mesh(k).faces) for k in range(FRAMES)] == [2, 4, 4]
+    take.close()
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "take.usda"))
+    stage.SetTimeCodesPerSecond(30)
+    _usd_mesh(stage, "/take/part0", [_moved(CARD, k) for k in range(FRAMES)], LOWER_UV, None)
+    mesh = UsdGeom.Mesh.Define(stage, "/take/part1")
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex)
+    for k in range(FRAMES):
+        n = 0 if k == 0 else 4
+        mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(_moved(CARD, k)[:n] * 0.5), k)
+        mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray([4] if n else []), k)
+        mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray([0, 1, 2, 3] if n else []), k)
+        st.Set(Vt.Vec2fArray.FromNumpy(UPPER_UV[:n]), k)
+    stage.GetRootLayer().Save()
+    take = UsdTake(tmp_path / "take.usda")
+    assert len(take.parts) == 2 and not take.left_out
+    assert [len(take.mesh(k).faces) for k in range(FRAMES)] == [2, 4, 4]

@@ -88,7 +88,7 @@ class UsdTake:
             uv = self._uv_primvar(prim)
             if self.uv_primvar is not None and uv is None:
                 self.left_out[name] = "no UVs"
-            elif not len(UsdGeom.Mesh(prim).GetFaceVertexCountsAttr().Get(self._first_time(prim)) or []):
+            elif not self._has_polygons(prim):
                 self.left_out[name] = "no polygons"
             elif self._texture_asset(prim, 0) != texture:
                 other = self._texture_asset(prim, 0)
@@ -105,6 +105,13 @@ class UsdTake:
     def other_meshes(self) -> list[str]:
         """The meshes left out of the take."""
         return list(self.left_out)
+
+    @staticmethod
+    def _has_polygons(prim) -> bool:
+        """Whether ``prim`` has polygons at some time (a chunk of a take may be empty on some frames)."""
+        _, UsdGeom, _ = _pxr()
+        counts = UsdGeom.Mesh(prim).GetFaceVertexCountsAttr()
+        return any(len(counts.Get(t) or []) for t in counts.GetTimeSamples()) or bool(len(counts.Get() or []))
 
     def _moves(self, prim) -> bool:
         """Whether ``prim``'s points or its world transform change over the take's frames."""
