@@ -198,19 +198,59 @@ def write_image(path: str | Path, image: np.ndarray, png_level: int | None = Non
 
 def read_image(path: str | Path, what: str = "image", rgb: bool = True) -> np.ndarray:
     """Read an image as float32 in [0, 1] (8- or 16-bit integer, or float such as EXR, clipped): the
-    project's one image reader. ``rgb``: (H, W, 3) RGB (grey repeated, alpha dropped); else the file's
-    own channels, (H, W) or (H, W, C) in RGB(A) order. ``what`` names the image in errors
-    (InputError: missing or undecodable)."""
-    import cv2
-
+    project's one image reader (OpenCV; TGA, which it does not read, through PIL). ``rgb``: (H, W, 3)
+    RGB (grey repeated, alpha dropped); else the file's own channels, (H, W) or (H, W, C) in RGB(A)
+    order. ``what`` names the image in errors (InputError: missing or undecodable)."""
     from uvatar.errors import InputError
 
     path = Path(path)
     if not path.is_file():
         raise InputError(path, f"{what} is missing")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    image = _decode(path.read_bytes()) if path.suffix.lower() == ".tga" else None
+    if image is None:
+        import cv2
+
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None or image.size == 0:
         raise InputError(path, f"{what} is unreadable")
+    return _as_float(image, rgb)
+
+
+def read_image_bytes(data: bytes, where: str | Path, what: str = "image", rgb: bool = True) -> np.ndarray:
+    """:func:`read_image` of an image held in memory (embedded in a mesh file: PNG, JPEG, TGA, ...);
+    InputError naming ``where`` when it cannot be decoded."""
+    from uvatar.errors import InputError
+
+    image = _decode(data)
+    if image is None:
+        raise InputError(where, f"{what} is unreadable")
+    return _as_float(image, rgb)
+
+
+def _decode(data: bytes) -> np.ndarray | None:
+    """OpenCV's decoding of ``data`` (BGR(A) order), else PIL's (TGA and others, turned to BGR(A)); None
+    when neither can."""
+    import io
+
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+    if image is not None:
+        return image
+    try:
+        import PIL.Image
+
+        with PIL.Image.open(io.BytesIO(data)) as im:
+            im = im.convert("RGBA" if "A" in im.getbands() else "RGB") if im.mode not in ("L", "I;16", "RGB", "RGBA") else im
+            image = np.asarray(im)
+    except Exception:    # noqa: BLE001 - any decoder failure means: not an image it reads
+        return None
+    if image.ndim == 3:
+        image = np.concatenate([image[..., 2::-1], image[..., 3:]], axis=-1)    # RGB(A) -> BGR(A), as OpenCV's
+    return image
+
+
+def _as_float(image: np.ndarray, rgb: bool) -> np.ndarray:
     if image.ndim == 3:
         image = np.concatenate([image[..., 2::-1], image[..., 3:]], axis=-1)  # BGR(A) -> RGB(A)
     if rgb:
