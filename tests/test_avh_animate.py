@@ -298,7 +298,7 @@ def test_animate_writes_an_alembic_take_that_imports_back(setup, tmp_path):
     seq, summary, pairs = _take_imported_back(setup, tmp_path, "abc")
     take = AlembicTake(tmp_path / "take" / "avatar.abc")
     assert take.count == 3 and take.fps() == pytest.approx(seq.fps)
-    assert take.indices_prop.constant and not take.points.constant       # triangles once, vertices a frame
+    assert take.first.indices.constant and not take.points.constant       # triangles once, vertices a frame
     assert sorted(p.name for p in (tmp_path / "take" / "textures").iterdir()) == [f"avatar_{t:06d}.png" for t in range(3)]
     assert summary["layout"] == "alembic" and summary["frames"] == 3 and summary["fps"] == pytest.approx(seq.fps)
     _assert_exact(pairs)

@@ -7,7 +7,8 @@ end offset, property count, property bytes, name; its properties (``Y`` int16, `
 int32, ``F`` float32, ``D`` float64, ``L`` int64; ``f d l i b`` arrays, raw or zlib-deflated; ``S``
 string, ``R`` raw bytes); its children, closed by an empty record. ASCII: ``Name: value, value {`` ...
 ``}`` lines, arrays as ``*N { a: v, v, ... }``, ``;`` comments. A binary name's ``name\\0\\1Class`` is
-ASCII's ``Class::name``; both come out as ``Class::name``.
+ASCII's ``Class::name``; both come out as ``Class::name``. :func:`fbx_bytes` writes a tree as binary
+FBX 7.4 (arrays deflated, the footer the FBX SDK writes).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from uvatar.errors import InputError
 
-__all__ = ["FbxNode", "read_fbx", "BINARY_MAGIC"]
+__all__ = ["FbxNode", "read_fbx", "fbx_bytes", "BINARY_MAGIC"]
 
 BINARY_MAGIC = b"Kaydara FBX Binary  \x00"
 SCALARS = {ord("Y"): "<i2", ord("C"): "u1", ord("I"): "<i4", ord("F"): "<f4", ord("D"): "<f8", ord("L"): "<i8"}
@@ -209,6 +210,9 @@ def _ascii(path: Path, data: bytes) -> list[FbxNode]:
                 break
             if c in (b"}", b""):
                 break
+            if c == b",":                                # an empty value (``Content: , "..."``)
+                pos += 1
+                continue
             if c == b'"':
                 m = _STRING.match(data, pos)
                 if m is None:
@@ -268,3 +272,73 @@ def read_fbx(path: str | Path) -> tuple[list[FbxNode], int]:
     if header is not None and isinstance(header.value("FBXVersion"), int):
         version = header.value("FBXVersion")
     return nodes, version
+
+
+# ---- writing (binary 7.4)
+
+FOOTER_ID = bytes.fromhex("fabcab09d0c8d466b176fb831cf7267e")
+FOOTER_MAGIC = bytes.fromhex("f85a8c6adef5d97eece90ce3758f290b")
+WRITE_VERSION = 7400
+DEFLATE_OVER = 128          # arrays of more bytes than this are written deflated
+
+
+def _prop_bytes(value) -> bytes:
+    import struct
+
+    if isinstance(value, (bool, np.bool_)):
+        return b"C" + bytes([bool(value)])
+    if isinstance(value, np.integer):               # the width asked for: ids are int64 ("L")
+        code = {2: b"Y", 4: b"I", 8: b"L"}[value.dtype.itemsize]
+        return code + value.astype(value.dtype.newbyteorder("<")).tobytes()
+    if isinstance(value, int):
+        return (b"I" + struct.pack("<i", value)) if -2**31 <= value < 2**31 else (b"L" + struct.pack("<q", value))
+    if isinstance(value, float):
+        return b"D" + struct.pack("<d", value)
+    if isinstance(value, str):
+        if "::" in value and value.split("::", 1)[0].isalpha():      # "Class::name" is binary "name\0\1Class"
+            cls, name = value.split("::", 1)
+            value = f"{name}\x00\x01{cls}"
+        raw = value.encode("utf-8")
+        return b"S" + struct.pack("<I", len(raw)) + raw
+    if isinstance(value, bytes):
+        return b"R" + struct.pack("<I", len(value)) + value
+    if isinstance(value, np.ndarray):
+        code = {np.dtype("<f4"): b"f", np.dtype("<f8"): b"d", np.dtype("<i4"): b"i", np.dtype("<i8"): b"l",
+                np.dtype("u1"): b"b"}[value.dtype.newbyteorder("<") if value.dtype.byteorder == ">" else value.dtype]
+        raw = np.ascontiguousarray(value).astype(value.dtype.newbyteorder("<"), copy=False).tobytes()
+        encoding = 0
+        if len(raw) > DEFLATE_OVER:
+            raw, encoding = zlib.compress(raw, 6), 1
+        return code + struct.pack("<III", value.size, encoding, len(raw)) + raw
+    raise TypeError(f"an FBX property cannot hold {type(value).__name__}")
+
+
+def _record(node: FbxNode, offset: int) -> bytes:
+    """``node`` as a 32-bit-offset record starting at byte ``offset`` (FBX 7.4)."""
+    import struct
+
+    props = b"".join(_prop_bytes(p) for p in node.props)
+    name = node.name.encode("latin-1")
+    head_len = 13 + len(name)
+    body, pos = b"", offset + head_len + len(props)
+    for child in node.children:
+        rec = _record(child, pos)
+        body += rec
+        pos += len(rec)
+    if node.children or not node.props:
+        body += b"\x00" * 13
+    end = offset + head_len + len(props) + len(body)
+    return struct.pack("<III", end, len(node.props), len(props)) + bytes([len(name)]) + name + props + body
+
+
+def fbx_bytes(nodes: list[FbxNode]) -> bytes:
+    """A binary FBX 7.4 file of the top-level records ``nodes`` (names ``Class::name`` as the reader
+    gives them), with the empty record, footer and magic that close one."""
+    import struct
+
+    out = BINARY_MAGIC + b"\x1a\x00" + struct.pack("<I", WRITE_VERSION)
+    for node in nodes:
+        out += _record(node, len(out))
+    out += b"\x00" * 13 + FOOTER_ID
+    out += b"\x00" * ((16 - len(out) % 16) % 16 or 16)
+    return out + b"\x00" * 4 + struct.pack("<I", WRITE_VERSION) + b"\x00" * 120 + FOOTER_MAGIC

@@ -298,7 +298,14 @@ def _plain_folder(src: Path) -> MeshSequence:
             texture = ()
         frames[i] = FrameSource(i, path, texture)
     glb = all(p.suffix.lower() == ".glb" for p in meshes.values())
-    return MeshSequence(frames, "mesh folder", units="m" if glb else "", up="+y" if glb else "", problems=problems)
+    seq = MeshSequence(frames, "mesh folder", units="m" if glb else "", up="+y" if glb else "", problems=problems)
+    if all(p.suffix.lower() == ".fbx" for p in meshes.values()):     # FBX's GlobalSettings say: read in metres, +Y up
+        from uvatar.capture.mesh_fbx import FbxScene
+
+        first = meshes[min(meshes)]
+        seq.units, seq.up = "m", "+y"
+        seq.notes.append(f"{first}: {FbxScene(first).describe_settings()}")
+    return seq
 
 
 def import_mesh_sequence(src: str | Path, out: str | Path, cfg=None, progress: bool = True) -> dict:
