@@ -311,3 +311,13 @@ def test_animate_writes_a_usdz_take_that_imports_back(setup, tmp_path):
     assert [p.name for p in (tmp_path / "take").iterdir()] == ["avatar.usdz"]
     assert summary["layout"] == "usd" and summary["frames"] == 3 and summary["units"] == "m"
     _assert_exact(pairs)
+
+
+def test_animate_writes_fbx_frames_that_import_back(setup, tmp_path):
+    """--mesh-format fbx: a binary FBX 7.4 a frame, its texture embedded; each frame's vertices,
+    triangles and UV corners back exactly, in metres and +Y up from the files' GlobalSettings."""
+    seq, summary, pairs = _take_imported_back(setup, tmp_path, "fbx")
+    assert sorted(p.suffix for p in (tmp_path / "take").iterdir()) == [".fbx"] * 3     # no image beside them
+    assert summary["layout"] == "mesh folder" and summary["frames"] == 3
+    assert summary["units"] == "m" and summary["up"] == "+y"
+    _assert_exact(pairs)
