@@ -126,3 +126,41 @@ def test_an_8_bit_texture_is_written_as_it_is(tmp_path):
 
     write_glb(tmp_path / "u8.glb", mesh)
     np.testing.assert_array_equal(np.round(read_glb(tmp_path / "u8.glb").texture * 255), mesh.texture)
+
+
+def test_gltf_files_read_as_their_glb(tmp_path):
+    """A ``.gltf`` JSON file, its buffer and image in files beside it (names percent-encoded in their URIs,
+    as exporters write them) or in data URIs, reads as the GLB it was made from; uvatar writes one
+    self-contained ``.gltf`` that reads back the same."""
+    import base64
+
+    from uvatar.capture.meshio import read_mesh, read_mesh_header, write_mesh
+
+    glb = read_glb_chunks(FIXTURES / "plain.glb")
+    gltf = json.loads(json.dumps(glb.gltf))
+    (tmp_path / "frame data.bin").write_bytes(glb.binary)
+    gltf["buffers"][0]["uri"] = "frame%20data.bin"
+    for image in gltf["images"]:                          # the image out of the buffer, into its own file
+        view = gltf["bufferViews"][image.pop("bufferView")]
+        start = view.get("byteOffset", 0)
+        (tmp_path / "skin map.png").write_bytes(glb.binary[start:start + view["byteLength"]])
+        image["uri"] = "skin%20map.png"
+    (tmp_path / "frame.gltf").write_text(json.dumps(gltf))
+    plain = read_glb(FIXTURES / "plain.glb")
+    for mesh in (read_mesh(tmp_path / "frame.gltf"),):
+        np.testing.assert_array_equal(triangles(mesh), triangles(plain))
+        np.testing.assert_array_equal(mesh.texture, plain.texture)
+    assert read_mesh_header(tmp_path / "frame.gltf")["texture"] == tmp_path / "skin map.png"
+    write_mesh(tmp_path / "out" / "self.gltf", plain)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["self.gltf"]
+    back = read_mesh(tmp_path / "out" / "self.gltf")
+    np.testing.assert_array_equal(triangles(back), triangles(plain))
+    np.testing.assert_array_equal(back.texture, plain.texture)
+    uri = json.loads((tmp_path / "out" / "self.gltf").read_text())["buffers"][0]["uri"]
+    assert uri.startswith("data:application/octet-stream;base64,") and base64.b64decode(uri.split(",", 1)[1])
+    (tmp_path / "old.gltf").write_text(json.dumps({"asset": {"version": "1.0"}}))
+    with pytest.raises(InputError, match="glTF version 1.0: uvatar reads glTF 2.0"):
+        read_mesh(tmp_path / "old.gltf")
+    (tmp_path / "bad.gltf").write_text("{ not json")
+    with pytest.raises(InputError, match="glTF JSON is malformed"):
+        read_mesh(tmp_path / "bad.gltf")

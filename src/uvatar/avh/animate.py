@@ -29,7 +29,7 @@ VIEW_AZIMUTH = {"front": 0.0, "left": 90.0, "back": 180.0, "right": 270.0}
 RENDER_BYTES_PER_PIXEL = 96  # rasterizer buffers of one frame (depth, barycentrics, face ids, colour), float32
 
 
-MESH_FORMATS = ("obj", "glb", "fbx", "uvol", "vols", "abc", "usd", "usdz")   # what --obj-dir writes: a mesh a frame, or a take
+MESH_FORMATS = ("obj", "glb", "gltf", "fbx", "uvol", "vols", "abc", "usd", "usdz")   # what --obj-dir writes: a mesh a frame, or a take
 VOLS_MAX_LEVELS = 1   # anny subdivided once: 57,205 vertices once split along its UV seams, under uint16's 65,536
 
 
@@ -38,10 +38,11 @@ class AnimateConfig:
     """size: image side in pixels; camera: see module docstring; orbit_degrees: turn over the clip;
     fov_deg: vertical field of view; elevation_deg: camera height angle; max_frames / stride: motion
     subsampling; levels / scheme: subdivision; shading: Lambert headlight on top of the texture;
-    fps: None = the motion's; mesh_format: "obj", "glb" or "fbx" (binary 7.4, texture embedded) for
-    per-frame meshes, "uvol" for the frames as a UVOL 2 take (Draco meshes, KTX2 textures, the player's
-    manifest: the Universal Volumetric player streams it), "vols" as a Volograms 1.3 take (one ``avatar.vols``: a keyframe, then tracked
-    frames, a Basis ETC1S texture each; Volograms' players read it), "abc" as an Alembic mesh cache
+    fps: None = the motion's; mesh_format: "obj", "glb", "gltf" (one JSON file) or "fbx" (binary
+    7.4, texture embedded) for per-frame meshes, "uvol" for the frames as a UVOL 2 take (Draco meshes,
+    KTX2 textures, the player's manifest: the Universal Volumetric player streams it), "vols" as a
+    Volograms 1.3 take (one ``avatar.vols``: a keyframe, then tracked frames, a Basis ETC1S texture
+    each; Volograms' players read it), "abc" as an Alembic mesh cache
     (``avatar.abc`` + ``textures/avatar_<frame>.png``: Maya, Houdini, Blender, Unreal read it), "usd" /
     "usdz" as a USD stage (``avatar.usdc`` + ``textures/``, or one ``avatar.usdz``: the points and the
     material's texture file time-sampled; usdview, Omniverse, Blender read it)."""

@@ -57,11 +57,14 @@ class Glb:
 
 
 def read_glb_chunks(path: str | Path) -> Glb:
-    """The JSON and BIN chunks of a GLB; InputError naming the file when it is not GLB 2.0 or truncated."""
+    """The JSON and BIN chunks of a GLB (or a ``.gltf`` JSON file, its buffers and images in files beside
+    it or in data URIs: no BIN chunk); InputError naming the file when it is not glTF 2.0 or truncated."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "GLB file is missing")
     data = path.read_bytes()
+    if path.suffix.lower() == ".gltf" or data.lstrip()[:1] == b"{":
+        return Glb(path, _gltf_json(path, data), b"")
     if len(data) < 20 or data[:4] != GLB_MAGIC:
         raise InputError(path, "not a binary glTF file (missing 'glTF' magic)")
     _, version, total = struct.unpack_from("<4sII", data, 0)
@@ -89,6 +92,27 @@ def read_glb_chunks(path: str | Path) -> Glb:
     return Glb(path, gltf, binary)
 
 
+def _gltf_json(path: Path, data: bytes) -> dict:
+    """A ``.gltf`` file's JSON, checked to be glTF 2.0."""
+    try:
+        gltf = json.loads(data.decode("utf-8-sig"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"glTF JSON is malformed ({one_line(exc)})") from None
+    if not isinstance(gltf, dict):
+        raise InputError(path, "glTF JSON is not an object")
+    version = str(gltf.get("asset", {}).get("version", "")) if isinstance(gltf.get("asset"), dict) else ""
+    if not version.startswith("2"):
+        raise InputError(path, f"glTF version {version or 'not stated'}: uvatar reads glTF 2.0")
+    return gltf
+
+
+def uri_file(glb: Glb, uri: str) -> Path:
+    """The file a relative URI of ``glb`` names (percent-encoded, as glTF writes them)."""
+    from urllib.parse import unquote
+
+    return glb.path.parent / unquote(uri)
+
+
 def check_required_extensions(glb: Glb) -> None:
     """InputError naming the extensions the file requires that uvatar cannot read right."""
     missing = [e for e in glb.gltf.get("extensionsRequired", []) if e not in READ_EXTENSIONS]
@@ -106,7 +130,7 @@ def _buffer(glb: Glb, index: int) -> bytes:
         return glb.binary
     if uri.startswith("data:"):
         return base64.b64decode(uri.split(",", 1)[1])
-    file = glb.path.parent / uri
+    file = uri_file(glb, uri)
     if not file.is_file():
         raise InputError(file, "buffer named by the GLB is missing")
     return file.read_bytes()
@@ -298,7 +322,7 @@ def image_bytes(glb: Glb, index: int) -> tuple[bytes, str]:
     elif image.get("uri", "").startswith("data:"):
         data = base64.b64decode(image["uri"].split(",", 1)[1])
     elif "uri" in image:
-        file = glb.path.parent / image["uri"]
+        file = uri_file(glb, image["uri"])
         if not file.is_file():
             raise InputError(file, "texture image named by the GLB is missing")
         data = file.read_bytes()

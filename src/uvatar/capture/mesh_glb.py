@@ -21,7 +21,7 @@ from uvatar.io_utils import atomic_path
 def glb_header(path: Path) -> dict:
     """Counts (split vertices, as stored) and texture presence from the JSON chunk only (the base-colour
     image found as :func:`read_glb` finds it, KTX2 and WebP sources too)."""
-    from uvatar.capture.glb_container import base_colour_image, read_glb_chunks
+    from uvatar.capture.glb_container import base_colour_image, read_glb_chunks, uri_file
 
     glb = read_glb_chunks(path)
     gltf = glb.gltf
@@ -41,7 +41,7 @@ def glb_header(path: Path) -> dict:
             if source is not None:
                 image = gltf.get("images", [])[source]
                 if "uri" in image and not image["uri"].startswith("data:"):
-                    uri_path = path.parent / image["uri"]
+                    uri_path = uri_file(glb, image["uri"])
                     if not uri_path.is_file():
                         raise InputError(uri_path, "texture image named by the GLB is missing")
                     texture = uri_path
@@ -192,3 +192,24 @@ def write_glb(path: Path, mesh: TexturedMesh, write_texture=None) -> None:
     data = out.export(file_type="glb")
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+
+
+def write_gltf(path: Path, mesh: TexturedMesh, write_texture=None) -> None:
+    """A ``.gltf``: the GLB :func:`write_glb` makes, as one JSON file with its buffer in a data URI (no
+    files beside it), atomically."""
+    import base64
+    import json
+    import tempfile
+
+    from uvatar.capture.glb_container import read_glb_chunks
+
+    with tempfile.TemporaryDirectory() as folder:
+        glb_path = Path(folder) / "frame.glb"
+        write_glb(glb_path, mesh)
+        glb = read_glb_chunks(glb_path)
+    gltf = glb.gltf
+    for buffer in gltf.get("buffers", []):
+        if "uri" not in buffer:
+            buffer["uri"] = "data:application/octet-stream;base64," + base64.b64encode(glb.binary).decode()
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(gltf, separators=(",", ":")))

@@ -1,6 +1,6 @@
 """Textured-mesh reading and writing behind a small registry keyed by file suffix.
 
-    mesh = read_mesh("scans/000000.obj")        # TexturedMesh (OBJ+MTL+image, PLY, GLB, FBX)
+    mesh = read_mesh("scans/000000.obj")        # TexturedMesh (OBJ+MTL+image, PLY, GLB/glTF, FBX)
     write_mesh("out/000000.ply", mesh)          # atomic; texture written beside it as <stem>.png
     header = read_mesh_header(path)             # counts + texture path without parsing numbers
 
@@ -38,6 +38,7 @@ MESH_FORMATS: dict[str, MeshFormat] = {
     ".obj": MeshFormat(mesh_obj.read_obj, mesh_obj.write_obj, mesh_obj.obj_header),
     ".ply": MeshFormat(mesh_ply.read_ply, mesh_ply.write_ply, mesh_ply.ply_header),
     ".glb": MeshFormat(mesh_glb.read_glb, mesh_glb.write_glb, mesh_glb.glb_header),
+    ".gltf": MeshFormat(mesh_glb.read_glb, mesh_glb.write_gltf, mesh_glb.glb_header),
     ".fbx": MeshFormat(mesh_fbx.read_fbx_mesh, mesh_fbx.write_fbx_mesh, mesh_fbx.fbx_header),
 }
 

@@ -96,7 +96,7 @@ def _flags() -> dict[str, ConfigFlags]:
                 "camera_name": "camera of the cameras folder (none: the first)", "size": "image side (pixels)",
                 "max_frames": "render at most this many frames (none: all)", "stride": "use every n-th motion frame",
                 "fps": "video fps (none: the motion's)",
-                "mesh_format": "what --obj-dir holds: a mesh a frame (obj, glb, fbx), a UVOL 2 take (uvol: Draco "
+                "mesh_format": "what --obj-dir holds: a mesh a frame (obj, glb, gltf, fbx), a UVOL 2 take (uvol: Draco "
                                "meshes, KTX2 textures and the manifest the Universal Volumetric player streams), "
                                "a Volograms take (vols: one avatar.vols, Basis textures, as Volograms' players read)"
                                ", an Alembic cache (abc: avatar.abc + textures/, for Maya, Houdini, Blender, Unreal) "

@@ -27,8 +27,8 @@ Six layouts are read (:func:`find_mesh_sequence`):
   frames per file, the path templates and the texture target; where the textures run at another
   rate than the geometry, each mesh takes the texture frame the player shows with it. Without one,
   the folders are found by name and ``n`` is the layer count of the first KTX2 file.
-- **Plain folders** of per-frame ``.obj``/``.ply``/``.glb``/``.drc``/``.crt``/``.abc`` (frame number = the last run of
-  digits in the file name) with their own textures (OBJ's .mtl, PLY's ``TextureFile`` comment, GLB's
+- **Plain folders** of per-frame ``.obj``/``.ply``/``.glb``/``.gltf``/``.fbx``/``.drc``/``.crt``/``.abc``
+  (frame number = the last run of digits in the file name) with their own textures (OBJ's .mtl, PLY's ``TextureFile`` comment, GLB's
   embedded image) or an image of the same stem beside them or in ``textures/``.
 
 Every frame becomes ``OUT/scans/<frame>.ply`` + ``<frame>.png`` (texture at its own resolution) in
@@ -198,7 +198,7 @@ def find_mesh_sequence(src: str | Path, fps: float = 0.0) -> MeshSequence:
     if count is not None and count != len(seq.frames):
         seq.problems.append(f"{manifest_path}: says {count} frames, {geometry} holds {len(seq.frames)}: the counts "
                             "disagree")
-    if all(p.suffix.lower() == ".glb" for p in meshes.values()):  # glTF says: metres, +Y up
+    if all(p.suffix.lower() in (".glb", ".gltf") for p in meshes.values()):  # glTF says: metres, +Y up
         seq.units, seq.up = "m", "+y"
     return seq
 
@@ -297,7 +297,7 @@ def _plain_folder(src: Path) -> MeshSequence:
             problems.append(f"{path}: an Alembic mesh without an image of the same name: frame {i} has no texture")
             texture = ()
         frames[i] = FrameSource(i, path, texture)
-    glb = all(p.suffix.lower() == ".glb" for p in meshes.values())
+    glb = all(p.suffix.lower() in (".glb", ".gltf") for p in meshes.values())     # glTF says: metres, +Y up
     seq = MeshSequence(frames, "mesh folder", units="m" if glb else "", up="+y" if glb else "", problems=problems)
     if all(p.suffix.lower() == ".fbx" for p in meshes.values()):     # FBX's GlobalSettings say: read in metres, +Y up
         from uvatar.capture.mesh_fbx import FbxScene
