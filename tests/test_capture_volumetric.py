@@ -220,6 +220,15 @@ def test_cli_nothing_imported_is_one_line_and_exit_1(tmp_path, capsys):
     assert not (tmp_path / "cap" / "capture.json").exists()
 
 
+
+def test_one_mesh_file_given_as_the_take_is_told_what_to_give(tmp_path, capsys):
+    (tmp_path / "frame_0001.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    for command in ("import", "probe"):
+        args = ["capture", command, str(tmp_path / "frame_0001.obj")] + ([str(tmp_path / "cap")] if command == "import" else [])
+        assert main(args + ["--no-progress"] if command == "import" else args) == 1
+        err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("uvatar: error:")]
+        assert len(err) == 1 and "frame_0001.obj: is one file, not a take: give the folder of its per-frame" in err[0]
+
 @pytest.mark.skipif(not SHARED.is_dir(), reason="the shared volumetric video is not on this machine")
 def test_shared_liam_take_lists_150_frames_of_5_layer_animations():
     seq = find_mesh_sequence(SHARED)

@@ -110,8 +110,9 @@ OLDER_KTX2_TEXTURES = ("imported by an older uvatar, which gave a KTX2 animation
 def is_mesh_sequence(src: str | Path) -> bool:
     """True if ``src`` looks like a mesh sequence (UVOL 2 folders, a manifest, or per-frame meshes)."""
     src = Path(src)
-    if src.is_file():
-        return src.suffix.lower() in (".manifest",) + MESH_FILE_SUFFIXES + VOLS_SUFFIXES + ABC_SUFFIXES + USD_SUFFIXES
+    if src.is_file():            # a take file, or one frame's mesh (told to give its folder)
+        return src.suffix.lower() in ((".manifest",) + MESH_FILE_SUFFIXES + VOLS_SUFFIXES + ABC_SUFFIXES + USD_SUFFIXES
+                                      + tuple(MESH_FORMATS) + TEXTURELESS_MESHES)
     if not src.is_dir():
         return False
     if _uvol_folders(src)[0] or find_manifest(src):
@@ -152,6 +153,9 @@ def find_mesh_sequence(src: str | Path, fps: float = 0.0) -> MeshSequence:
     usd = find_usd(src)
     if usd is not None:
         return usd_sequence(usd, fps)
+    if src.is_file():
+        raise InputError(src, "is one file, not a take: give the folder of its per-frame meshes, or a take "
+                              "file (.abc, .usd/.usda/.usdc/.usdz, .vols, a UVOL .manifest)")
     if not src.is_dir():
         raise InputError(src, "volumetric video folder does not exist")
     manifest_path = find_manifest(src)
