@@ -7,8 +7,8 @@ and measured).
 Each frame's triangles, in order, are cut into chunks of ``--chunk-faces`` (as engines with 16-bit index
 buffers, or exports a mesh a part, deliver a take), each chunk a mesh of its own with its own vertices
 and UVs, all on the frame's one texture atlas; a chunk past a frame's last triangle is empty that frame.
-Beside them, meshes that are not the person: a 3 m floor that stands still (with UVs), a marker that
-moves with no UVs, and (USD) a prop that moves wearing another texture.
+Beside them, meshes that are not the person: a 3 m floor that stands still (with UVs) and a marker that
+moves with no UVs.
 
 - ``OUT/abc/liam.abc`` (:class:`uvatar.capture.abc_take.PolyMeshWriter`, textures in ``OUT/abc/textures``);
 - ``OUT/usd/liam.usdc`` (usd-core: each chunk a ``Mesh`` with time-sampled points, polygons and
@@ -113,7 +113,6 @@ def write_usd(meshes, path: Path, fps: float, chunk_faces: int) -> int:
         return mat
 
     atlas = material("atlas", [f"textures/{path.stem}_{k:06d}.png" for k in range(len(meshes))])
-    prop_material = material("prop", ["textures/prop.png"])
 
     def mesh_prim(name: str, bind=None, uvs: bool = True):
         mesh = UsdGeom.Mesh.Define(stage, f"/take/{name}")
@@ -135,20 +134,16 @@ def write_usd(meshes, path: Path, fps: float, chunk_faces: int) -> int:
     parts = [mesh_prim(f"part{k:02d}", atlas) for k in range(count)]
     floor_prim, floor_st = mesh_prim("floor", atlas)
     marker_prim, _ = mesh_prim("marker", uvs=False)
-    prop_prim, prop_st = mesh_prim("prop", prop_material)
     floor, marker = floor_and_marker(meshes[0])
     set_frame(floor_prim, None, Usd.TimeCode.Default(), floor, QUAD)
     floor_st.Set(Vt.Vec2fArray.FromNumpy(np.zeros((4, 2), np.float32)))
     floor_st.SetIndices(Vt.IntArray.FromNumpy(QUAD.reshape(-1).astype(np.int32)))
     (path.parent / "textures").mkdir()
-    write_image(path.parent / "textures" / "prop.png", np.full((8, 8, 3), 128, np.uint8))
     for k, (mesh, split_k) in enumerate(zip(meshes, split, strict=True)):
         for (prim, st), part in zip(parts, split_k + [EMPTY] * (count - len(split_k)), strict=True):
             set_frame(prim, st, k, *part)
         moved = marker + np.float32([0, 0, 0.001 * k])
         set_frame(marker_prim, None, k, moved, np.array([[0, 1, 2]]))
-        set_frame(prop_prim, prop_st, k, moved - np.float32([0, 0.1, 0]), np.array([[0, 1, 2]]),
-                  np.array([[0, 0], [1, 0], [0, 1]], np.float32), np.array([[0, 1, 2]]))
         write_image(path.parent / "textures" / f"{path.stem}_{k:06d}.png", mesh.texture)
     stage.GetRootLayer().Save()
     return count

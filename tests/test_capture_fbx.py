@@ -286,9 +286,11 @@ def test_every_cut_of_a_file_reads_or_says_one_line(tmp_path):
             assert "\n" not in str(exc)
 
 
-def test_meshes_wearing_different_images_are_refused(tmp_path):
-    """A frame is one texture atlas: two meshes with two images is one line, not a guess."""
+def test_meshes_wearing_different_images_get_one_atlas(tmp_path):
+    """Two meshes, two images: each mesh samples its own image from the frame's one atlas."""
     import cv2
+
+    from uvatar.geometry.sampling import sample_texture
 
     def scene(offset: int, grey: int) -> list[FbxNode]:
         mesh = read_fbx_mesh(FIX / "uvatar_written.fbx")
@@ -305,5 +307,7 @@ def test_meshes_wearing_different_images_are_refused(tmp_path):
     objects.children += next(n for n in b if n.name == "Objects").children
     next(n for n in a if n.name == "Connections").children += next(n for n in b if n.name == "Connections").children
     (tmp_path / "two.fbx").write_bytes(fbx_bytes(a))
-    with pytest.raises(InputError, match="2 different textures; uvatar takes one texture atlas per frame"):
-        read_mesh(tmp_path / "two.fbx")
+    mesh = read_mesh(tmp_path / "two.fbx")
+    half = len(mesh.faces) // 2
+    colours = sample_texture(mesh.texture, mesh.uvs[mesh.uv_faces].mean(1))[:, 0] * 255
+    np.testing.assert_allclose(colours, [40] * half + [200] * half, atol=1e-3)

@@ -105,7 +105,7 @@ def test_what_cannot_be_read_right_is_one_line(tmp_path):
         (tmp_path / name).write_bytes(content)
         with pytest.raises(InputError, match=message):
             read_glb(tmp_path / name)
-    # two primitives with two different images: one texture atlas a frame
+    # two primitives with two different images: one atlas of both (tests/test_capture_texture_tiles.py)
     chunks = read_glb_chunks(FIXTURES / "plain.glb")
     gltf = chunks.gltf
     gltf["images"].append(dict(gltf["images"][0]))
@@ -114,8 +114,15 @@ def test_what_cannot_be_read_right_is_one_line(tmp_path):
     second = dict(gltf["meshes"][0]["primitives"][0], material=1)
     gltf["meshes"][0]["primitives"].append(second)
     (tmp_path / "two.glb").write_bytes(glb(gltf, chunks.binary))
-    with pytest.raises(InputError, match=r"two\.glb: GLB's primitives use 2 different base-colour images"):
-        read_glb(tmp_path / "two.glb")
+    from uvatar.geometry.sampling import sample_texture
+
+    plain, two = read_glb(FIXTURES / "plain.glb"), read_glb(tmp_path / "two.glb")
+    assert two.num_faces == 2 * plain.num_faces and two.texture.shape[1] > 2 * plain.texture.shape[1]
+    rng = np.random.default_rng(0)
+    w = rng.dirichlet(np.ones(3), len(plain.faces))[:, :, None]          # a point inside each triangle
+    got = sample_texture(two.texture, (two.uvs[two.uv_faces] * np.concatenate([w, w])).sum(1))
+    want = sample_texture(plain.texture, (plain.uvs[plain.uv_faces] * w).sum(1))
+    np.testing.assert_allclose(got, np.concatenate([want, want]), atol=1e-6)   # each primitive its own tile
 
 
 def test_an_8_bit_texture_is_written_as_it_is(tmp_path):

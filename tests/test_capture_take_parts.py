@@ -176,23 +176,27 @@ def _split_usd(root: Path) -> Path:
 
 
 def test_a_usd_take_of_several_meshes_is_joined_and_the_rest_left_out(tmp_path):
+    """The person's two cards and the hair wearing its own image are joined (one atlas of both images);
+    the floor that stands still is left out."""
+    from uvatar.geometry.sampling import sample_texture
+
     path = _split_usd(tmp_path / "src")
     take = UsdTake(path)
-    assert [str(p.GetPath()) for p in take.parts] == ["/take/lower", "/take/up/upper"]
-    assert take.left_out == {"/take/hair": "wears another texture (hair.png; the take's is atlas.png)",
-                             "/set/floor": "stands still while the take moves (a floor or a prop?)"}
+    assert [str(p.GetPath()) for p in take.parts] == ["/take/lower", "/take/up/upper", "/take/hair"]
+    assert take.left_out == {"/set/floor": "stands still while the take moves (a floor or a prop?)"}
     for k in range(FRAMES):
         mesh = take.mesh(k)
-        assert len(mesh.vertices) == 8 and len(mesh.faces) == 4
+        assert len(mesh.vertices) == 12 and len(mesh.faces) == 6
         np.testing.assert_allclose(mesh.vertices[:4], _moved(CARD, k), atol=1e-6)
-        np.testing.assert_allclose(mesh.vertices[4:], _moved(CARD, k) + UPPER_LIFT, atol=1e-6)
-        np.testing.assert_allclose(mesh.uvs[mesh.uv_faces[2:]].reshape(-1, 2)[:, 0].min(), 0.5)
+        np.testing.assert_allclose(mesh.vertices[4:8], _moved(CARD, k) + UPPER_LIFT, atol=1e-6)
+        colours = sample_texture(mesh.texture, mesh.uvs[mesh.uv_faces].mean(1))[:, 0]
+        np.testing.assert_allclose(colours, np.array([40, 40, 200, 200, 90, 90]) / 255, atol=1e-3)  # lower, upper, hair
     summary = import_mesh_sequence(tmp_path / "src", tmp_path / "cap", progress=False)
     assert summary["frames"] == FRAMES and not summary["problems"]
     notes = "\n".join(summary["notes"])
-    assert "2 meshes joined" in notes and "mesh /take/hair left out: wears another texture" in notes
+    assert "3 meshes joined" in notes and "mesh /set/floor left out: stands still" in notes
     scan = read_mesh(tmp_path / "cap" / "scans" / "000000.ply")
-    assert len(scan.faces) == 4 and np.ptp(scan.vertices[:, 1]) == pytest.approx(1.70, abs=1e-5)
+    assert len(scan.faces) == 6 and np.ptp(scan.vertices[:, 1]) == pytest.approx(1.70, abs=1e-5)
 
 
 def test_a_chunk_empty_on_the_first_frame_is_still_part_of_the_take(tmp_path):

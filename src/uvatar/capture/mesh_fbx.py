@@ -17,7 +17,7 @@ capture studios' tools write them).
   (``DiffuseColor``, ``Maya|baseColor``, ``base_color``, ...; else any texture of the material or Model):
   its ``Video``'s embedded ``Content`` where there is one, else its ``RelativeFilename`` beside the file,
   its ``FileName``, or that name in the folder or in ``<name>.fbm/``. Meshes wearing different images
-  are refused (a frame is one texture atlas).
+  get one atlas of them (:mod:`uvatar.capture.texture_tiles`).
 """
 
 from __future__ import annotations
@@ -307,32 +307,35 @@ def _read(path: Path) -> tuple[FbxScene, list, list]:
 
 def read_fbx_mesh(path: Path, load_texture=None) -> TexturedMesh:
     """A ``.fbx`` frame → TexturedMesh in metres, +Y up (module doc); its texture float32 (H, W, 3) in
-    [0, 1]; InputError naming the file when it cannot be read right."""
+    [0, 1] (meshes wearing different images: one atlas of them, :mod:`uvatar.capture.texture_tiles`);
+    InputError naming the file when it cannot be read right."""
     from uvatar.io_utils import read_image, read_image_bytes
 
     path = Path(path)
     scene, instances, textures = _read(path)
-    sources = {scene.texture_source(t) for t in {id(t): t for t in textures if t is not None}.values()}
-    if len(sources) > 1:
-        raise InputError(path, f"FBX meshes wear {len(sources)} different textures; uvatar takes one texture "
-                               "atlas per frame")
-    pieces, has_uvs = [], set()
+    sources = [scene.texture_source(t) if t is not None else None for t in textures]
+    distinct = list(dict.fromkeys(s for s in sources if s is not None))
+    pieces, has_uvs, piece_image = [], set(), []
     to_uvatar = scene.to_uvatar()
-    for geometry, model, model_id in instances:
+    for (geometry, model, model_id), source in zip(instances, sources, strict=True):
         polygons = scene.polygons(geometry)
         has_uvs.add(polygons["uvs"] is not None)
         world = to_uvatar @ scene.world_matrix(model_id) @ scene.geometric_matrix(model)
         pieces.append(polygons_to_triangles(polygons, clockwise=False, world=world))
+        piece_image.append(distinct.index(source) if source is not None else -1)
     if len(has_uvs) > 1:
         raise InputError(path, "FBX meshes have UVs and lack them in turn")
     vertices, faces, uvs, uv_faces = join_triangle_meshes(pieces)
     if not np.isfinite(vertices).all():
         raise InputError(path, "FBX vertex positions are not finite numbers")
-    texture = None
-    if sources:
-        source = sources.pop()
-        texture = read_image(source, "FBX texture image") if isinstance(source, Path) else \
-            read_image_bytes(source, path, "FBX embedded texture image")
+    images = [read_image(s, "FBX texture image") if isinstance(s, Path) else
+              read_image_bytes(s, path, "FBX embedded texture image") for s in distinct]
+    texture = images[0] if images else None
+    if len(images) > 1 and len(uv_faces):
+        from uvatar.capture.texture_tiles import pack_textures
+
+        face_image = np.concatenate([np.full(len(p[1]), k) for p, k in zip(pieces, piece_image, strict=True)])
+        texture, uvs, uv_faces = pack_textures(images, uvs, uv_faces, face_image, path)
     return TexturedMesh(vertices, faces, uvs, uv_faces, texture)
 
 

@@ -70,9 +70,8 @@ def weld_by_position(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarra
 def read_glb(path: Path, load_texture=None) -> TexturedMesh:
     """A .glb → TexturedMesh: every triangle primitive of the default scene, posed by its node tree,
     welded by position; UVs v up (``v = 1 - v_gltf``); the base-colour image (PNG, JPEG, WebP or KTX2)
-    as float RGB. InputError naming the file when it cannot be read right (see
-    :mod:`uvatar.capture.glb_container`), or when its primitives use different base-colour images (a
-    frame is one texture atlas)."""
+    as float RGB (primitives with different images: one atlas of them, :mod:`uvatar.capture.texture_tiles`).
+    InputError naming the file when it cannot be read right (see :mod:`uvatar.capture.glb_container`)."""
     from uvatar.capture.glb_container import (
         base_colour_image,
         base_colour_uv_transform,
@@ -86,7 +85,7 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
     glb = read_glb_chunks(path)
     check_required_extensions(glb)
     meshes = glb.gltf.get("meshes", [])
-    parts, images = [], set()
+    parts, images, part_image = [], set(), []
     try:
         with np.errstate(over="ignore", invalid="ignore"):   # corrupt numbers: the finite check below says so
             for world, index in mesh_instances(glb):
@@ -98,18 +97,17 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
                     if uvs is not None and transform is not None:
                         uvs = uvs @ transform[:2, :2].T + transform[:2, 2]
                     parts.append((positions @ world[:3, :3].T + world[:3, 3], uvs, faces))
-                    images.add(base_colour_image(glb, primitive))
+                    part_image.append(base_colour_image(glb, primitive))
+                    images.add(part_image[-1])
         images.discard(None)                            # an untextured part takes the frame's texture
-        image = image_bytes(glb, next(iter(images))) if len(images) == 1 else None
+        order = sorted(images)
+        encoded = [image_bytes(glb, i) for i in order]
     except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
         raise InputError(path, f"GLB is malformed ({type(exc).__name__}: {one_line(exc)})") from None
     if not parts:
         raise InputError(path, "GLB holds no triangle mesh")
     if len({uvs is None for _, uvs, _ in parts}) > 1:
         raise InputError(path, "GLB's primitives have UVs and lack them in turn")
-    if len(images) > 1:
-        raise InputError(path, f"GLB's primitives use {len(images)} different base-colour images; uvatar takes "
-                               "one texture atlas per frame")
     offsets = np.cumsum([0] + [len(p) for p, _, _ in parts])
     split_vertices = np.concatenate([p for p, _, _ in parts])
     if not np.isfinite(split_vertices).all() or np.abs(split_vertices).max() > 1e30:
@@ -122,7 +120,15 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
         uv_faces = split_faces
     else:
         uvs, uv_faces = np.zeros((0, 2)), np.zeros((0, 3), np.int64)
-    texture = None if image is None else _decode_image(path, *image)
+    textures = [_decode_image(path, *e) for e in encoded]
+    texture = textures[0] if textures else None
+    if len(textures) > 1 and len(uv_faces):       # several images: one atlas of them (capture/texture_tiles.py)
+        from uvatar.capture.texture_tiles import pack_textures
+
+        tile = {image: k for k, image in enumerate(order)}
+        face_image = np.concatenate([np.full(len(f), tile.get(im, -1)) for (_, _, f), im
+                                     in zip(parts, part_image, strict=True)])
+        texture, uvs, uv_faces = pack_textures(textures, uvs, uv_faces, face_image, path)
     return TexturedMesh(vertices, faces, uvs, uv_faces, texture)
 
 

@@ -104,8 +104,9 @@ def _statement_args(data: bytes, keyword: bytes) -> list[str]:
     return out
 
 
-def obj_texture_path(path: Path, data: bytes | None = None) -> Path | None:
-    """The texture image named by the OBJ's materials (``mtllib`` → ``map_Kd``), or None."""
+def obj_textures(path: Path, data: bytes | None = None) -> tuple[list[Path], dict[str, int]]:
+    """The texture images named by the OBJ's materials (``mtllib`` → ``map_Kd``), each once, in the order
+    the faces first use them, and the image of each textured material."""
     if data is None:
         data = path.read_bytes()
     libs, used = _statement_args(data, b"mtllib"), _statement_args(data, b"usemtl")
@@ -117,9 +118,25 @@ def obj_texture_path(path: Path, data: bytes | None = None) -> Path | None:
         textures.update(_parse_mtl(mtl))
     names = [u for u in dict.fromkeys(used) if u in textures] or list(textures)
     distinct = list(dict.fromkeys(textures[n] for n in names))
-    if len(distinct) > 1:
-        raise InputError(path, f"uses {len(distinct)} texture images; only one per scan is supported")
+    return distinct, {n: distinct.index(t) for n, t in textures.items() if t in distinct}
+
+
+def obj_texture_path(path: Path, data: bytes | None = None) -> Path | None:
+    """The OBJ's texture image (the first where its materials name several, which :func:`read_obj` packs
+    into one atlas), or None."""
+    distinct, _ = obj_textures(path, data)
     return distinct[0] if distinct else None
+
+
+def _face_materials(lines: list[bytes]) -> list[str | None]:
+    """The material (``usemtl``) in force at each ``f`` line."""
+    current, out = None, []
+    for line in lines:               # one pass over the lines, as read_obj's own
+        if line[:2] in (b"f ", b"f\t"):
+            out.append(current)
+        elif line[:7] in (b"usemtl ", b"usemtl\t"):
+            current = line[7:].decode(errors="replace").strip()
+    return out
 
 
 def obj_header(path: Path) -> dict:
@@ -159,8 +176,16 @@ def read_obj(path: Path, load_texture) -> TexturedMesh:
     faces, uv_faces = _parse_faces(path, f_rows, len(vertices), len(uvs))
     if uv_faces is None:
         uvs, uv_faces = np.zeros((0, 2)), np.zeros((0, 3), np.int64)
-    tex_path = obj_texture_path(path, data)
-    texture = load_texture(tex_path) if tex_path is not None else None
+    paths, image_of = obj_textures(path, data)
+    texture = load_texture(paths[0]) if paths else None
+    if len(paths) > 1 and len(uv_faces):          # several images: one atlas of them (capture/texture_tiles.py)
+        from uvatar.capture.texture_tiles import pack_textures
+
+        counts = np.fromiter((len(line.split()) - 1 for line in f_rows), dtype=np.int64, count=len(f_rows))
+        polygon_image = np.array([image_of.get(m, -1) for m in _face_materials(lines)], np.int64)
+        face_image = np.repeat(polygon_image, counts - 2)
+        texture, uvs, uv_faces = pack_textures([texture] + [load_texture(p) for p in paths[1:]], uvs, uv_faces,
+                                               face_image, path)
     return TexturedMesh(vertices, faces, uvs, uv_faces, texture, colors)
 
 

@@ -6,9 +6,10 @@
   ``faceVertexIndices``, fanned into triangles; ``orientation = "leftHanded"`` turned round), its UVs
   (the ``st`` primvar, else the first two-float one: face-varying or per vertex, indexed or not), all
   through the prim's world transform at that time (a mirroring one turning the triangles back).
-- **Several meshes**: the other visible meshes with UVs and the same texture that move are joined to it
-  frame by frame (a take split into body parts or chunks sharing one atlas); one without UVs, wearing
-  another texture, or standing still while the take moves (a floor, a prop) is left out and named.
+- **Several meshes**: the other visible meshes with UVs that move are joined to it frame by frame (a take
+  split into body parts or chunks); parts wearing different images get one atlas of them
+  (:mod:`uvatar.capture.texture_tiles`). One without UVs, standing still while the take moves (a floor,
+  a prop), or wearing a texture where the take's mesh wears none, is left out and named.
 - **Its texture**: the image feeding the bound material's surface colour (:func:`texture_input`: a
   ``UsdUVTexture`` into ``UsdPreviewSurface``'s ``diffuseColor``, a MaterialX ``image`` into
   ``standard_surface``'s or OpenPBR's ``base_color``, OmniPBR's ``diffuse_texture``), at the frame's
@@ -90,10 +91,9 @@ class UsdTake:
                 self.left_out[name] = "no UVs"
             elif not self._has_polygons(prim):
                 self.left_out[name] = "no polygons"
-            elif self._texture_asset(prim, 0) != texture:
-                other = self._texture_asset(prim, 0)
-                self.left_out[name] = (f"wears another texture ({other[0] if other else 'none'}; the take's is "
-                                       f"{texture[0] if texture else 'none'})")
+            elif texture is None and self._texture_asset(prim, 0) is not None:
+                self.left_out[name] = (f"wears a texture ({self._texture_asset(prim, 0)[0]}) where the take's "
+                                       "mesh wears none (its texture comes from the images beside the file)")
             elif moving and not self._moves(prim):
                 self.left_out[name] = "stands still while the take moves (a floor or a prop?)"
             else:
@@ -208,7 +208,7 @@ class UsdTake:
         from uvatar.capture.polygons import join_triangle_meshes, polygons_to_triangles
 
         _, UsdGeom, _ = _pxr()
-        pieces = []
+        pieces, assets = [], []
         for prim in self.parts:
             p = self.polygons(index, prim)
             M = np.array(UsdGeom.Mesh(prim).ComputeLocalToWorldTransform(self.times[index])).T if world else None
@@ -216,7 +216,19 @@ class UsdTake:
                 scale = np.diag([self.meters_per_unit] * 3 + [1.0])
                 M = scale @ (M if M is not None else np.eye(4))
             pieces.append(polygons_to_triangles(p, clockwise=False, world=M))
-        return TexturedMesh(*join_triangle_meshes(pieces), texture=self.texture(index))
+            assets.append(self._texture_asset(prim, index))
+        vertices, faces, uvs, uv_faces = join_triangle_meshes(pieces)
+        distinct = list(dict.fromkeys(a for a in assets if a is not None))
+        if len(distinct) <= 1:
+            return TexturedMesh(vertices, faces, uvs, uv_faces, texture=self.texture(index))
+        from uvatar.capture.texture_tiles import pack_textures  # parts wearing different images: one atlas
+
+        first_with = {a: prim for prim, a in zip(self.parts[::-1], assets[::-1], strict=True) if a is not None}
+        images = [self.texture(index, first_with[a]) for a in distinct]
+        face_image = np.concatenate([np.full(len(piece[1]), distinct.index(a) if a is not None else -1)
+                                     for piece, a in zip(pieces, assets, strict=True)])
+        texture, uvs, uv_faces = pack_textures(images, uvs, uv_faces, face_image, self.path)
+        return TexturedMesh(vertices, faces, uvs, uv_faces, texture=texture)
 
     def texture_asset(self, index: int) -> tuple[str, str] | None:
         """(the path as authored, the resolved path or "" where it resolves to nothing) of frame
@@ -232,13 +244,13 @@ class UsdTake:
             return None
         return asset.path, asset.resolvedPath or ""
 
-    def texture(self, index: int) -> np.ndarray | None:
-        """Frame ``index``'s diffuse texture, (H, W, 3) uint8 (None without one); InputError naming the
-        asset when it cannot be read."""
+    def texture(self, index: int, prim=None) -> np.ndarray | None:
+        """Frame ``index``'s diffuse texture of ``prim`` (the take's first mesh when None), (H, W, 3)
+        uint8 (None without one); InputError naming the asset when it cannot be read."""
         import imageio.v3 as iio
         from pxr import Ar
 
-        named = self.texture_asset(index)
+        named = self._texture_asset(prim or self.prim, index)
         if named is None:
             return None
         authored, resolved = named
