@@ -179,3 +179,24 @@ def test_ply_ascii_per_face_texcoords_and_big_endian(tmp_path):
         np.testing.assert_array_equal(mesh.faces, faces)
         np.testing.assert_allclose(mesh.uvs[mesh.uv_faces].reshape(2, 6), tc, atol=1e-6)
         assert len(mesh.uvs) == 6  # corner 0 and 2 are not shared across the seam: 6 distinct UVs
+
+
+def test_obj_material_images_as_tools_name_them(tmp_path):
+    """map_Kd with options before the name, a name with spaces (Blender), a Windows path from the machine
+    that wrote the file (the image beside the .mtl is found by its base name); a missing one is named."""
+    import imageio.v3 as iio
+
+    from uvatar.capture.mesh_obj import map_file_name
+
+    assert map_file_name("-clamp on -o 0.5 0.5 -s 1 1 1 my skin map.png") == "my skin map.png"
+    assert map_file_name("-bm 0.5 -s 2 bump.png") == "bump.png" and map_file_name("skin.png") == "skin.png"
+    obj = "mtllib scan.mtl\nusemtl skin\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n"
+    iio.imwrite(tmp_path / "tex 01.png", np.full((4, 4, 3), 99, np.uint8))
+    for line in ("map_Kd -s 1 1 1 tex 01.png", 'map_Kd "C:\\Users\\studio\\take\\tex 01.png"'):
+        (tmp_path / "scan.mtl").write_text(f"newmtl skin\n{line}\n")
+        (tmp_path / "scan.obj").write_text(obj)
+        mesh = read_mesh(tmp_path / "scan.obj")
+        assert abs(float(mesh.texture.mean()) - 99 / 255) < 1e-6, line
+    (tmp_path / "scan.mtl").write_text("newmtl skin\nmap_Kd maps/gone.png\n")
+    with pytest.raises(InputError, match=r"maps/gone\.png"):
+        read_mesh(tmp_path / "scan.obj")

@@ -75,6 +75,45 @@ def _parse_faces(path: Path, lines: list[bytes], nv: int, nt: int) -> tuple[np.n
     return tri, uv_tri
 
 
+# map_Kd's options and how many values each takes (-o, -s, -t: one to three numbers)
+MTL_MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1,
+                   "-mm": 2, "-o": 3, "-s": 3, "-t": 3, "-texres": 1, "-type": 1}
+
+
+def map_file_name(arguments: str) -> str:
+    """The file name of a ``map_Kd`` statement's arguments: its options (``-s 1 1 1``, ``-clamp on``...)
+    dropped, the rest kept whole (a name may hold spaces, as Blender writes them)."""
+    words = arguments.split()
+    k = 0
+    while k < len(words) and words[k] in MTL_MAP_OPTIONS:
+        most = MTL_MAP_OPTIONS[words[k]]
+        k += 1
+        taken = 0
+        while taken < most and k < len(words) - 1 and (taken == 0 or _is_number(words[k])):
+            k, taken = k + 1, taken + 1
+    return " ".join(words[k:]).strip('"')
+
+
+def _is_number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
+def _texture_file(mtl_path: Path, name: str) -> Path:
+    """Where a material's image is: the name beside the ``.mtl`` (Windows separators read as ``/``), or
+    an absolute one; else the file of that base name beside the ``.mtl`` (a path from the machine that
+    wrote it); else the name as given (reported missing when read)."""
+    name = name.replace("\\", "/")
+    given = Path(name) if Path(name).is_absolute() else mtl_path.parent / name
+    if given.is_file():
+        return given
+    beside = mtl_path.parent / Path(name).name
+    return beside if beside.is_file() else given
+
+
 def _parse_mtl(mtl_path: Path) -> dict[str, Path]:
     """material name → texture path (``map_Kd``) for every textured material."""
     textures: dict[str, Path] = {}
@@ -86,8 +125,9 @@ def _parse_mtl(mtl_path: Path) -> dict[str, Path]:
         if parts[0] == "newmtl" and len(parts) > 1:
             current = parts[1].strip()
         elif parts[0] == "map_Kd" and len(parts) > 1 and current is not None:
-            # options such as "-s 1 1 1" may precede the file name; the name is the last token
-            textures[current] = mtl_path.parent / parts[1].split()[-1]
+            name = map_file_name(parts[1])
+            if name:
+                textures[current] = _texture_file(mtl_path, name)
     return textures
 
 
