@@ -200,3 +200,14 @@ def test_obj_material_images_as_tools_name_them(tmp_path):
     (tmp_path / "scan.mtl").write_text("newmtl skin\nmap_Kd maps/gone.png\n")
     with pytest.raises(InputError, match=r"maps/gone\.png"):
         read_mesh(tmp_path / "scan.obj")
+
+
+def test_a_ply_naming_its_texture_by_a_path_from_another_machine_finds_it_beside(tmp_path):
+    mesh = TexturedMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32), np.array([[0, 1, 2]]),
+                        np.array([[0, 0], [1, 0], [0, 1]], np.float32), np.array([[0, 1, 2]]),
+                        np.full((4, 4, 3), 0.5, np.float32))
+    write_mesh(tmp_path / "a.ply", mesh)
+    data = (tmp_path / "a.ply").read_bytes().replace(b"comment TextureFile a.png", b"comment TextureFile D:\\scans\\a.png")
+    (tmp_path / "a.ply").write_bytes(data)
+    assert read_mesh_header(tmp_path / "a.ply")["texture"] == tmp_path / "a.png"
+    assert abs(float(read_mesh(tmp_path / "a.ply").texture.mean()) - 0.5) < 3e-3

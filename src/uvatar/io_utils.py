@@ -260,3 +260,20 @@ def _as_float(image: np.ndarray, rgb: bool) -> np.ndarray:
     if image.dtype == np.uint16:
         return np.ascontiguousarray(image, dtype=np.float32) / 65535.0
     return np.ascontiguousarray(np.clip(image, 0.0, 1.0), dtype=np.float32)
+
+
+def referenced_file(folder: str | Path, name: str, also: tuple[str | Path, ...] = ()) -> Path:
+    """The file a mesh file names (a texture, a buffer): ``name`` relative to ``folder`` (Windows
+    separators read as ``/``) or absolute; else the file of its base name in ``folder`` or in each of
+    ``also`` (a path from the machine that wrote it); else the name as given (for the caller to report
+    missing)."""
+    name = name.replace("\\", "/")
+    folder = Path(folder)
+    given = Path(name) if Path(name).is_absolute() else folder / name
+    if given.is_file():
+        return given
+    for place in (folder, *map(Path, also)):
+        candidate = place / Path(name).name
+        if candidate.is_file():
+            return candidate
+    return given

@@ -32,6 +32,7 @@ from uvatar.capture.fbx_file import FbxNode, read_fbx
 from uvatar.capture.polygons import join_triangle_meshes, polygons_to_triangles
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
+from uvatar.io_utils import referenced_file
 
 __all__ = ["FbxScene", "read_fbx_mesh", "fbx_header", "euler_matrix", "axis_matrix"]
 
@@ -284,12 +285,9 @@ class FbxScene:
                     if isinstance(value, str) and value:
                         names.append(value)
         for name in names:
-            path = Path(name.replace("\\", "/"))
-            candidates = [path] if path.is_absolute() else [self.path.parent / path]
-            candidates += [self.path.parent / path.name, self.path.parent / f"{self.path.stem}.fbm" / path.name]
-            for candidate in candidates:
-                if candidate.is_file():
-                    return candidate
+            found = referenced_file(self.path.parent, name, also=(self.path.parent / f"{self.path.stem}.fbm",))
+            if found.is_file():
+                return found
         if not names:
             raise InputError(self.path, "FBX texture names no image file and embeds none")
         raise InputError(self.path, f"FBX texture image {names[0]} is missing (looked beside the file and in "

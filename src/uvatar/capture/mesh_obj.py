@@ -14,7 +14,7 @@ import numpy as np
 
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
-from uvatar.io_utils import atomic_path
+from uvatar.io_utils import atomic_path, referenced_file
 
 
 def _numbers(path: Path, what: str, text: bytes, rows: int, dtype, per_row: int) -> np.ndarray:
@@ -102,18 +102,6 @@ def _is_number(word: str) -> bool:
     return True
 
 
-def _texture_file(mtl_path: Path, name: str) -> Path:
-    """Where a material's image is: the name beside the ``.mtl`` (Windows separators read as ``/``), or
-    an absolute one; else the file of that base name beside the ``.mtl`` (a path from the machine that
-    wrote it); else the name as given (reported missing when read)."""
-    name = name.replace("\\", "/")
-    given = Path(name) if Path(name).is_absolute() else mtl_path.parent / name
-    if given.is_file():
-        return given
-    beside = mtl_path.parent / Path(name).name
-    return beside if beside.is_file() else given
-
-
 def _parse_mtl(mtl_path: Path) -> dict[str, Path]:
     """material name → texture path (``map_Kd``) for every textured material."""
     textures: dict[str, Path] = {}
@@ -127,7 +115,7 @@ def _parse_mtl(mtl_path: Path) -> dict[str, Path]:
         elif parts[0] == "map_Kd" and len(parts) > 1 and current is not None:
             name = map_file_name(parts[1])
             if name:
-                textures[current] = _texture_file(mtl_path, name)
+                textures[current] = referenced_file(mtl_path.parent, name)
     return textures
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
-from uvatar.io_utils import atomic_path
+from uvatar.io_utils import atomic_path, referenced_file
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
           "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
@@ -133,7 +133,7 @@ def ply_header(path: Path) -> dict:
                or any(p in names.get("face", []) for p in ("texcoord", "texcoords")))
     if not counts.get("vertex") or not counts.get("face"):
         raise InputError(path, "not a mesh: no vertices or faces")
-    texture = path.parent / header["texture"] if header["texture"] else None
+    texture = referenced_file(path.parent, header["texture"]) if header["texture"] else None
     return {"num_vertices": counts["vertex"], "num_faces": counts["face"], "has_uvs": has_uvs,
             "texture": texture}
 
@@ -199,7 +199,7 @@ def read_ply(path: Path, load_texture) -> TexturedMesh:
         uvs, uv_faces = np.zeros((0, 2)), np.zeros((0, 3), np.int64)
     texture = None
     if header["texture"]:
-        texture = load_texture(path.parent / header["texture"])
+        texture = load_texture(referenced_file(path.parent, header["texture"]))
     return TexturedMesh(vertices, faces, uvs, uv_faces, texture, _vertex_colors(vert, header["elements"]))
 
 
