@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fbx_ascii import ascii_fbx
 
+from tests.fixtures.fbx_ascii import ascii_fbx
 from uvatar.capture.fbx_file import FbxNode, fbx_bytes, read_fbx
 from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
 from uvatar.capture.mesh_fbx import (
