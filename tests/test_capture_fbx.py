@@ -311,3 +311,24 @@ def test_meshes_wearing_different_images_get_one_atlas(tmp_path):
     half = len(mesh.faces) // 2
     colours = sample_texture(mesh.texture, mesh.uvs[mesh.uv_faces].mean(1))[:, 0] * 255
     np.testing.assert_allclose(colours, [40] * half + [200] * half, atol=1e-3)
+
+
+def test_one_mesh_with_a_material_a_polygon_samples_each_polygons_image():
+    """Blender's strip of four quads wearing skin.png and cloth.png in turn (LayerElementMaterial by
+    polygon): one atlas, each polygon sampling the image Blender's importer gives it."""
+    from uvatar.geometry.sampling import sample_texture
+
+    mesh = read_fbx_mesh(FIX / "materials.fbx")
+    ref = json.loads((FIX / "materials.json").read_text())["meshes"][0]
+    _, triangles, _ = _blender("materials")
+    assert len(mesh.faces) == triangles == 8 and len(mesh.texture) > 16    # one atlas of both 16 x 16 images
+    images = {"skin.png": read_image(FIX / "skin.png"), "cloth": read_image(FIX / "cloth.png")}
+    rng = np.random.default_rng(0)
+    for face in range(len(mesh.faces)):
+        w = rng.dirichlet(np.ones(3))[:, None]
+        point = (mesh.vertices[mesh.faces[face]] * w).sum(0)               # metres, the strip in x-y
+        polygon = min(int(point[0] / 0.25), 3)                             # quads 0.25 m wide along x
+        image = images[ref["polygon_images"][polygon]]
+        got = sample_texture(mesh.texture, (mesh.uvs[mesh.uv_faces[face]] * w).sum(0)[None])[0]
+        want = sample_texture(image, np.array([[0.1 + 0.8 * point[0], 0.1 + 0.8 * point[1]]]))[0]   # the strip's UVs
+        np.testing.assert_allclose(got, want, atol=1e-3)      # float32 positions and UVs through cm x 100

@@ -233,9 +233,20 @@ class FbxScene:
 
     # ---- textures
     def texture_node(self, model_id, geometry_id) -> FbxNode | None:
-        """The Texture giving a mesh its colour (module doc), or None."""
-        holders = [oid for oid, _ in self.children_of.get(model_id, []) if
-                   getattr(self.objects.get(oid), "name", "") == "Material"] + [model_id, geometry_id]
+        """The Texture giving a mesh its colour (module doc), or None: its first material's."""
+        textures = self.material_textures(model_id, geometry_id)
+        return next((t for t in textures if t is not None), None)
+
+    def material_textures(self, model_id, geometry_id) -> list[FbxNode | None]:
+        """The colour Texture of each of a Model's materials, in the order its polygons' material indices
+        count them (the Model's connections); one entry (the Model's or geometry's own texture) where
+        it has no material."""
+        materials = [oid for oid, _ in self.children_of.get(model_id, [])
+                     if getattr(self.objects.get(oid), "name", "") == "Material"]
+        holders = [[m] for m in materials] or [[model_id, geometry_id]]
+        return [self._colour_texture(h) for h in holders]
+
+    def _colour_texture(self, holders: list) -> FbxNode | None:
         fallback = None
         for holder in holders:
             for child, prop in self.children_of.get(holder, []):
@@ -249,6 +260,23 @@ class FbxScene:
                                                                             "transparen", "emissi", "displace")):
                     fallback = node
         return fallback
+
+    def polygon_materials(self, geometry: FbxNode, n_polygons: int) -> np.ndarray:
+        """(n_polygons,) each polygon's material index (``LayerElementMaterial``: all the same, or one a
+        polygon); zeros where the geometry says nothing."""
+        layer = geometry.find("LayerElementMaterial")
+        if layer is None:
+            return np.zeros(n_polygons, np.int64)
+        indices = layer.array("Materials", np.int64)
+        mapping = str(layer.value("MappingInformationType", "AllSame"))
+        if indices is None or not len(indices):
+            return np.zeros(n_polygons, np.int64)
+        if mapping == "ByPolygon":
+            if len(indices) != n_polygons:
+                raise InputError(self.path, f"FBX {geometry.props[1] if len(geometry.props) > 1 else 'mesh'}: "
+                                            f"{len(indices)} polygon materials for {n_polygons} polygons")
+            return indices
+        return np.full(n_polygons, int(indices[0]), np.int64)
 
     def _texture_video(self, texture: FbxNode) -> FbxNode | None:
         for child, _ in self.children_of.get(self._id_of(texture), []):
@@ -305,34 +333,39 @@ def _read(path: Path) -> tuple[FbxScene, list, list]:
 
 def read_fbx_mesh(path: Path, load_texture=None) -> TexturedMesh:
     """A ``.fbx`` frame → TexturedMesh in metres, +Y up (module doc); its texture float32 (H, W, 3) in
-    [0, 1] (meshes wearing different images: one atlas of them, :mod:`uvatar.capture.texture_tiles`);
-    InputError naming the file when it cannot be read right."""
+    [0, 1] (meshes or materials wearing different images: one atlas of them,
+    :mod:`uvatar.capture.texture_tiles`); InputError naming the file when it cannot be read right."""
     from uvatar.io_utils import read_image, read_image_bytes
 
     path = Path(path)
-    scene, instances, textures = _read(path)
-    sources = [scene.texture_source(t) if t is not None else None for t in textures]
-    distinct = list(dict.fromkeys(s for s in sources if s is not None))
-    pieces, has_uvs, piece_image = [], set(), []
+    scene, instances, _ = _read(path)
+    pieces, has_uvs, face_sources = [], set(), []
     to_uvatar = scene.to_uvatar()
-    for (geometry, model, model_id), source in zip(instances, sources, strict=True):
+    for geometry, model, model_id in instances:
         polygons = scene.polygons(geometry)
         has_uvs.add(polygons["uvs"] is not None)
         world = to_uvatar @ scene.world_matrix(model_id) @ scene.geometric_matrix(model)
         pieces.append(polygons_to_triangles(polygons, clockwise=False, world=world))
-        piece_image.append(distinct.index(source) if source is not None else -1)
+        sources = [scene.texture_source(t) if t is not None else None
+                   for t in scene.material_textures(model_id, scene._id_of(geometry))]
+        material = scene.polygon_materials(geometry, len(polygons["counts"]))
+        per_polygon = [sources[m] if 0 <= m < len(sources) else None for m in material.tolist()] \
+            if len(set(sources)) > 1 else [sources[0]] * len(material)
+        face_sources += np.repeat(np.array(per_polygon, object), np.maximum(polygons["counts"] - 2, 0)).tolist()
     if len(has_uvs) > 1:
         raise InputError(path, "FBX meshes have UVs and lack them in turn")
     vertices, faces, uvs, uv_faces = join_triangle_meshes(pieces)
     if not np.isfinite(vertices).all():
         raise InputError(path, "FBX vertex positions are not finite numbers")
+    distinct = list(dict.fromkeys(s for s in face_sources if s is not None))
     images = [read_image(s, "FBX texture image") if isinstance(s, Path) else
               read_image_bytes(s, path, "FBX embedded texture image") for s in distinct]
     texture = images[0] if images else None
     if len(images) > 1 and len(uv_faces):
         from uvatar.capture.texture_tiles import pack_textures
 
-        face_image = np.concatenate([np.full(len(p[1]), k) for p, k in zip(pieces, piece_image, strict=True)])
+        tile = {src: k for k, src in enumerate(distinct)}
+        face_image = np.array([tile.get(s, -1) if s is not None else -1 for s in face_sources], np.int64)
         texture, uvs, uv_faces = pack_textures(images, uvs, uv_faces, face_image, path)
     return TexturedMesh(vertices, faces, uvs, uv_faces, texture)
 
