@@ -332,3 +332,27 @@ def test_one_mesh_with_a_material_a_polygon_samples_each_polygons_image():
         got = sample_texture(mesh.texture, (mesh.uvs[mesh.uv_faces[face]] * w).sum(0)[None])[0]
         want = sample_texture(image, np.array([[0.1 + 0.8 * point[0], 0.1 + 0.8 * point[1]]]))[0]   # the strip's UVs
         np.testing.assert_allclose(got, want, atol=1e-3)      # float32 positions and UVs through cm x 100
+
+
+@pytest.mark.parametrize("name", NAMES + ("materials", "uvatar_written"))
+def test_uvatars_fbx_reader_agrees_with_ufbx(name):
+    """The same world positions as ufbx (the library the FBX motion reader uses) on every fixture."""
+    from tests.fixtures.ufbx_reference import ufbx_world_corners
+
+    ours = np.unique(np.round(read_fbx_mesh(FIX / f"{name}.fbx").vertices.astype(np.float64), 5), axis=0)
+    theirs = np.unique(np.round(ufbx_world_corners(FIX / f"{name}.fbx"), 5), axis=0)
+    assert ours.shape == theirs.shape
+    np.testing.assert_allclose(ours, theirs, atol=2e-5)
+
+
+def test_an_fbx_6_file_agrees_with_ufbx(tmp_path):
+    import imageio.v3 as iio
+
+    from tests.fixtures.ufbx_reference import ufbx_world_corners
+
+    (tmp_path / "card.fbx").write_text(FBX6)
+    iio.imwrite(tmp_path / "card.png", np.full((4, 4, 3), 77, np.uint8))
+    mesh = read_fbx_mesh(tmp_path / "card.fbx")
+    corners = ufbx_world_corners(tmp_path / "card.fbx")
+    used = mesh.vertices[np.unique(mesh.faces)]
+    np.testing.assert_allclose(np.unique(np.round(used, 6), axis=0), np.unique(np.round(corners, 6), axis=0), atol=1e-6)

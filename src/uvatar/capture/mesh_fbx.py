@@ -18,6 +18,12 @@ capture studios' tools write them).
   its ``Video``'s embedded ``Content`` where there is one, else its ``RelativeFilename`` beside the file,
   its ``FileName``, or that name in the folder or in ``<name>.fbm/``. Meshes wearing different images
   get one atlas of them (:mod:`uvatar.capture.texture_tiles`).
+
+FBX *motions* are read through ufbx (:mod:`uvatar.motion.fbx`), whose animation evaluation they need;
+a frame's static mesh is read here, in numpy, because ufbx's Python binding frees what its temporaries
+point to (a chained lookup such as ``mesh.materials[0].fbx.diffuse_color.texture`` crashes the process),
+and one user's file must cost one line, not the import. The tests check this reader against ufbx's
+positions and against Blender's importer on Blender's own files.
 """
 
 from __future__ import annotations
