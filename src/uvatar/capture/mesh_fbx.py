@@ -21,8 +21,8 @@ capture studios' tools write them).
 
 FBX *motions* are read through ufbx (:mod:`uvatar.motion.fbx`), whose animation evaluation they need;
 a frame's static mesh is read here, in numpy, because ufbx's Python binding frees what its temporaries
-point to (a chained lookup such as ``mesh.materials[0].fbx.diffuse_color.texture`` crashes the process),
-and one user's file must cost one line, not the import. The tests check this reader against ufbx's
+point to (here, listing ``scene.textures`` after a chained lookup of a mesh's material texture crashed
+the process with a segmentation fault), and one user's file must cost one line, not the import. The tests check this reader against ufbx's
 positions and against Blender's importer on Blender's own files.
 """
 
