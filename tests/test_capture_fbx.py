@@ -12,15 +12,9 @@ import pytest
 
 from tests.fixtures.fbx_ascii import ascii_fbx
 from uvatar.capture.fbx_file import FbxNode, fbx_bytes, read_fbx
+from uvatar.capture.fbx_mesh_writer import fbx_scene_nodes, write_fbx_mesh
 from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
-from uvatar.capture.mesh_fbx import (
-    FbxScene,
-    axis_matrix,
-    euler_matrix,
-    fbx_scene_nodes,
-    read_fbx_mesh,
-    write_fbx_mesh,
-)
+from uvatar.capture.mesh_fbx import FbxScene, axis_matrix, euler_matrix, read_fbx_mesh
 from uvatar.capture.meshio import read_mesh, read_mesh_header, write_mesh
 from uvatar.errors import InputError
 from uvatar.io_utils import read_image

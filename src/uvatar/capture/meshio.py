@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from uvatar.capture import mesh_fbx, mesh_glb, mesh_obj, mesh_ply
+from uvatar.capture import fbx_mesh_writer, mesh_fbx, mesh_glb, mesh_obj, mesh_ply
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
 from uvatar.io_utils import read_image, write_image
@@ -39,7 +39,7 @@ MESH_FORMATS: dict[str, MeshFormat] = {
     ".ply": MeshFormat(mesh_ply.read_ply, mesh_ply.write_ply, mesh_ply.ply_header),
     ".glb": MeshFormat(mesh_glb.read_glb, mesh_glb.write_glb, mesh_glb.glb_header),
     ".gltf": MeshFormat(mesh_glb.read_glb, mesh_glb.write_gltf, mesh_glb.glb_header),
-    ".fbx": MeshFormat(mesh_fbx.read_fbx_mesh, mesh_fbx.write_fbx_mesh, mesh_fbx.fbx_header),
+    ".fbx": MeshFormat(mesh_fbx.read_fbx_mesh, fbx_mesh_writer.write_fbx_mesh, mesh_fbx.fbx_header),
 }
 
 
