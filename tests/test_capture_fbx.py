@@ -350,3 +350,18 @@ def test_an_fbx_6_file_agrees_with_ufbx(tmp_path):
     corners = ufbx_world_corners(tmp_path / "card.fbx")
     used = mesh.vertices[np.unique(mesh.faces)]
     np.testing.assert_allclose(np.unique(np.round(used, 6), axis=0), np.unique(np.round(corners, 6), axis=0), atol=1e-6)
+
+
+def test_every_corrupted_ascii_file_reads_or_says_one_line(tmp_path):
+    nodes, _ = read_fbx(FIX / "rig.fbx")
+    text = ascii_fbx(nodes).encode()
+    rng = np.random.default_rng(0)
+    for k in range(150):
+        data = bytearray(text)
+        for i in rng.integers(0, len(data), 5):
+            data[i] = rng.choice(list(b'{}:,"0123456789.-eE \n;abcXYZ*'))
+        path = _corrupt(tmp_path, f"ascii{k}.fbx", bytes(data))
+        try:
+            read_fbx_mesh(path)
+        except InputError as exc:
+            assert "\n" not in str(exc) and path.name in str(exc)

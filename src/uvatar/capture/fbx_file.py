@@ -171,10 +171,13 @@ _WORD = re.compile(rb"[^\s{},;:\"]+")
 ARRAY_RUN = 16          # a run of more numbers than this is one array (FBX 6's Vertices: 1,2,3,...)
 
 
-def _numbers(text: bytes) -> list:
-    """A run of comma-separated numbers: one array when long, else each a value."""
+def _numbers(path: Path, text: bytes, pos: int) -> list:
+    """A run of comma-separated numbers (at byte ``pos``): one array when long, else each a value."""
     is_float = any(c in text for c in b".eE")
-    values = np.array(text.replace(b"\n", b" ").split(b","), np.float64 if is_float else np.int64)
+    try:
+        values = np.array(text.replace(b"\n", b" ").split(b","), np.float64 if is_float else np.int64)
+    except ValueError:
+        raise InputError(path, f"ASCII FBX has a number it cannot read at byte {pos}") from None
     if len(values) > ARRAY_RUN:
         return [values]
     return values.tolist()
@@ -220,7 +223,9 @@ def _ascii(path: Path, data: bytes) -> list[FbxNode]:
                 node.props.append(m.group(1).decode("utf-8", "replace"))
             elif c in b"-+.0123456789":
                 m = _NUMBERS.match(data, pos)
-                node.props.extend(_numbers(m.group(0)))
+                if m is None:
+                    raise InputError(path, f"ASCII FBX has a number it cannot read at byte {pos}")
+                node.props.extend(_numbers(path, m.group(0), pos))
             elif _NAME.match(data, pos):
                 break                                    # the next record
             else:

@@ -37,7 +37,7 @@ import numpy as np
 from uvatar.capture.fbx_file import FbxNode, read_fbx
 from uvatar.capture.polygons import join_triangle_meshes, polygons_to_triangles
 from uvatar.capture.types import TexturedMesh
-from uvatar.errors import InputError
+from uvatar.errors import InputError, one_line
 from uvatar.io_utils import referenced_file
 
 __all__ = ["FbxScene", "read_fbx_mesh", "fbx_header", "euler_matrix", "axis_matrix"]
@@ -337,10 +337,25 @@ def _read(path: Path) -> tuple[FbxScene, list, list]:
     return scene, instances, textures
 
 
+MALFORMED = (ValueError, TypeError, IndexError, KeyError, AttributeError, OverflowError)
+
+
+def _malformed(path: Path, exc: Exception) -> InputError:
+    return InputError(path, f"FBX file is malformed ({type(exc).__name__}: {one_line(exc)})")
+
+
 def read_fbx_mesh(path: Path, load_texture=None) -> TexturedMesh:
     """A ``.fbx`` frame → TexturedMesh in metres, +Y up (module doc); its texture float32 (H, W, 3) in
     [0, 1] (meshes or materials wearing different images: one atlas of them,
-    :mod:`uvatar.capture.texture_tiles`); InputError naming the file when it cannot be read right."""
+    :mod:`uvatar.capture.texture_tiles`); InputError naming the file when it cannot be read right (a
+    record of the wrong kind or shape too)."""
+    try:
+        return _read_fbx_mesh(Path(path))
+    except MALFORMED as exc:
+        raise _malformed(Path(path), exc) from None
+
+
+def _read_fbx_mesh(path: Path) -> TexturedMesh:
     from uvatar.io_utils import read_image, read_image_bytes
 
     path = Path(path)
@@ -378,7 +393,13 @@ def read_fbx_mesh(path: Path, load_texture=None) -> TexturedMesh:
 
 def fbx_header(path: Path) -> dict:
     """Counts (vertices and triangles as stored), UVs, and the texture (a Path, "embedded" or None)."""
-    path = Path(path)
+    try:
+        return _fbx_header(Path(path))
+    except MALFORMED as exc:
+        raise _malformed(Path(path), exc) from None
+
+
+def _fbx_header(path: Path) -> dict:
     scene, instances, textures = _read(path)
     nv = nf = 0
     has_uvs = False
