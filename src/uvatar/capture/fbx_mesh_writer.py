@@ -15,11 +15,22 @@ from uvatar.capture.fbx_file import FbxNode
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
 
-__all__ = ["fbx_scene_nodes", "write_fbx_mesh"]
+__all__ = ["fbx_scene_nodes", "settings_nodes", "write_fbx_mesh"]
 
 
 def _p(name: str, kind: str, label: str, flags: str, *values) -> FbxNode:
     return FbxNode("P", [name, kind, label, flags, *values])
+
+
+def settings_nodes() -> list[FbxNode]:
+    """uvatar's ``GlobalSettings``: Y up, -Z forward (front +Z, parity sign 1), X right, metres
+    (``UnitScaleFactor`` 100 centimetres a unit)."""
+    settings = [_p("UpAxis", "int", "Integer", "", 1), _p("UpAxisSign", "int", "Integer", "", 1),
+                _p("FrontAxis", "int", "Integer", "", 2), _p("FrontAxisSign", "int", "Integer", "", 1),
+                _p("CoordAxis", "int", "Integer", "", 0), _p("CoordAxisSign", "int", "Integer", "", 1),
+                _p("UnitScaleFactor", "double", "Number", "", 100.0),
+                _p("OriginalUnitScaleFactor", "double", "Number", "", 100.0)]
+    return [FbxNode("GlobalSettings", [], [FbxNode("Version", [1000]), FbxNode("Properties70", [], settings)])]
 
 
 def fbx_scene_nodes(mesh: TexturedMesh, name: str, png: bytes | None, creator: str = "uvatar") -> list[FbxNode]:
@@ -69,15 +80,10 @@ def fbx_scene_nodes(mesh: TexturedMesh, name: str, png: bytes | None, creator: s
             FbxNode("Content", [png])]))
         links += [("OP", ids["texture"], ids["material"], "DiffuseColor"), ("OO", ids["video"], ids["texture"])]
     counts = {"Model": 1, "Geometry": 1, "Material": 1, "Texture": int(png is not None), "Video": int(png is not None)}
-    settings = [_p("UpAxis", "int", "Integer", "", 1), _p("UpAxisSign", "int", "Integer", "", 1),
-                _p("FrontAxis", "int", "Integer", "", 2), _p("FrontAxisSign", "int", "Integer", "", 1),
-                _p("CoordAxis", "int", "Integer", "", 0), _p("CoordAxisSign", "int", "Integer", "", 1),
-                _p("UnitScaleFactor", "double", "Number", "", 100.0),
-                _p("OriginalUnitScaleFactor", "double", "Number", "", 100.0)]
     return [
         FbxNode("FBXHeaderExtension", [], [FbxNode("FBXHeaderVersion", [1003]), FbxNode("FBXVersion", [7400]),
                                            FbxNode("Creator", [creator])]),
-        FbxNode("GlobalSettings", [], [FbxNode("Version", [1000]), FbxNode("Properties70", [], settings)]),
+        *settings_nodes(),
         FbxNode("Definitions", [], [FbxNode("Version", [100]), FbxNode("Count", [sum(counts.values())])] + [
             FbxNode("ObjectType", [k], [FbxNode("Count", [v])]) for k, v in counts.items() if v]),
         FbxNode("Objects", [], objects),

@@ -11,6 +11,10 @@ calls :func:`write_engine_bundle`, which adds:
     surface never cracks along a seam); joints (node hierarchy with the rest orientation of each joint
     frame), inverse bind matrices, skin weights (at most 4 influences, renormalized); a material whose
     base colour is the mean texture (the generator at the rest pose).
+``avatar.fbx``
+    the same skinned body as binary FBX (joints as LimbNodes with the same frames, a skin cluster a
+    joint, the mean texture embedded, the displacement UVs as a second UV set ``displacement``), for
+    engines and tools that take rigs as FBX (:mod:`uvatar.avh.exporters.fbx`).
 ``manifest.json``
     what a runtime needs to drive the generator: joint order, pose encoding, ONNX input/output names,
     texel resolution, displacement scale and space, the finger/toe mask PNG.
@@ -47,11 +51,13 @@ APPLIED = {"rest": "before skinning: p = skinned(p_rest + scale * mask * D(TEXCO
 @dataclass(frozen=True)
 class EngineExportConfig:
     """subdivisions: midpoint subdivision levels of the template (each ×4 triangles; 1 keeps the GLB
-    ~4 MB for anny); max_influences: skin influences kept per vertex (glTF JOINTS_0 holds 4)."""
+    ~4 MB for anny); max_influences: skin influences kept per vertex (glTF JOINTS_0 holds 4);
+    fbx_name: the same skinned body as FBX beside the GLB (:mod:`uvatar.avh.exporters.fbx`; None: none)."""
 
     subdivisions: int = 1
     max_influences: int = 4
     glb_name: str = "avatar.glb"
+    fbx_name: str | None = "avatar.fbx"
     manifest_name: str = "manifest.json"
     mask_name: str = "finger_toe_mask.png"
 
@@ -317,6 +323,10 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
     mean_texture = texture[0].transpose(1, 2, 0)  # (R, R, 3), row 0 is v = 1
     mesh = engine_mesh(body, config, texture_png=_png_bytes(mean_texture))
     write_glb(avatar_dir / config.glb_name, mesh)
+    if config.fbx_name:
+        from uvatar.avh.exporters.fbx import write_skinned_fbx
+
+        write_skinned_fbx(avatar_dir / config.fbx_name, mesh)
 
     if fingers_toes_mask is None and (avatar_dir / "body.npz").is_file():
         fingers_toes_mask = read_npz(avatar_dir / "body.npz").get("fingers_toes")  # errors name the file
@@ -337,6 +347,7 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
     manifest = {
         "format": MANIFEST_FORMAT,
         "glb": config.glb_name,
+        **({"fbx": config.fbx_name} if config.fbx_name else {}),
         "generator": {"file": onnx_name, "input": io_names["input"], "input_size": encoding["size"],
                       "texture_output": io_names["texture"], "displacement_output": io_names["displacement"],
                       "layout": "NCHW float32, image row 0 is v = 1; texture in [0, 1] (sRGB)",
