@@ -15,22 +15,68 @@ from uvatar.capture.fbx_file import FbxNode
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError
 
-__all__ = ["fbx_scene_nodes", "settings_nodes", "write_fbx_mesh"]
+__all__ = ["fbx_document", "fbx_scene_nodes", "layer_node", "material_layer", "material_nodes", "mesh_model", "prop",
+           "settings_nodes", "write_fbx_mesh"]
 
 
-def _p(name: str, kind: str, label: str, flags: str, *values) -> FbxNode:
+def prop(name: str, kind: str, label: str, flags: str, *values) -> FbxNode:
+    """A ``Properties70`` entry: ``P: name, kind, label, flags, values...``."""
     return FbxNode("P", [name, kind, label, flags, *values])
 
 
 def settings_nodes() -> list[FbxNode]:
     """uvatar's ``GlobalSettings``: Y up, -Z forward (front +Z, parity sign 1), X right, metres
     (``UnitScaleFactor`` 100 centimetres a unit)."""
-    settings = [_p("UpAxis", "int", "Integer", "", 1), _p("UpAxisSign", "int", "Integer", "", 1),
-                _p("FrontAxis", "int", "Integer", "", 2), _p("FrontAxisSign", "int", "Integer", "", 1),
-                _p("CoordAxis", "int", "Integer", "", 0), _p("CoordAxisSign", "int", "Integer", "", 1),
-                _p("UnitScaleFactor", "double", "Number", "", 100.0),
-                _p("OriginalUnitScaleFactor", "double", "Number", "", 100.0)]
+    settings = [prop("UpAxis", "int", "Integer", "", 1), prop("UpAxisSign", "int", "Integer", "", 1),
+                prop("FrontAxis", "int", "Integer", "", 2), prop("FrontAxisSign", "int", "Integer", "", 1),
+                prop("CoordAxis", "int", "Integer", "", 0), prop("CoordAxisSign", "int", "Integer", "", 1),
+                prop("UnitScaleFactor", "double", "Number", "", 100.0),
+                prop("OriginalUnitScaleFactor", "double", "Number", "", 100.0)]
     return [FbxNode("GlobalSettings", [], [FbxNode("Version", [1000]), FbxNode("Properties70", [], settings)])]
+
+
+def mesh_model(model_id, name: str, kind: str = "Mesh") -> FbxNode:
+    """A ``Model`` record (``kind``: "Mesh", "LimbNode", ...) with identity transform unless given."""
+    return FbxNode("Model", [model_id, f"Model::{name}", kind], [
+        FbxNode("Version", [232]), FbxNode("Properties70", [], [prop("DefaultAttributeIndex", "int", "Integer", "", 0),
+                                                                prop("InheritType", "enum", "", "", 1)]),
+        FbxNode("Shading", [True]), FbxNode("Culling", ["CullingOff"])])
+
+
+def material_nodes(ids: tuple, name: str, png: bytes | None) -> tuple[list[FbxNode], list[tuple]]:
+    """(records, connections) of a Phong material ``name`` whose DiffuseColor is the PNG ``png`` (a
+    Texture and its Video, the image embedded as ``<name>.png``; none without ``png``). ``ids``: the
+    material's, the texture's and the video's object ids."""
+    material, texture, video = ids
+    objects = [FbxNode("Material", [material, f"Material::{name}", ""], [
+        FbxNode("Version", [102]), FbxNode("ShadingModel", ["Phong"]), FbxNode("MultiLayer", [0]),
+        FbxNode("Properties70", [], [prop("DiffuseColor", "Color", "", "A", 1.0, 1.0, 1.0)])])]
+    if png is None:
+        return objects, []
+    image = f"{name}.png"
+    objects.append(FbxNode("Texture", [texture, f"Texture::{name}", ""], [
+        FbxNode("Type", ["TextureVideoClip"]), FbxNode("Version", [202]), FbxNode("TextureName", [f"Texture::{name}"]),
+        FbxNode("Media", [f"Video::{name}"]), FbxNode("FileName", [image]), FbxNode("RelativeFilename", [image])]))
+    objects.append(FbxNode("Video", [video, f"Video::{name}", "Clip"], [
+        FbxNode("Type", ["Clip"]), FbxNode("Filename", [image]), FbxNode("RelativeFilename", [image]),
+        FbxNode("Content", [png])]))
+    return objects, [("OP", texture, material, "DiffuseColor"), ("OO", video, texture)]
+
+
+def fbx_document(objects: list[FbxNode], links: list[tuple], creator: str) -> list[FbxNode]:
+    """The top-level records of a file: header, :func:`settings_nodes`, the definitions (each object
+    kind counted), ``objects`` and their connections ``links`` ((kind, child id, parent id[, property]))."""
+    counts: dict[str, int] = {}
+    for node in objects:
+        counts[node.name] = counts.get(node.name, 0) + 1
+    return [
+        FbxNode("FBXHeaderExtension", [], [FbxNode("FBXHeaderVersion", [1003]), FbxNode("FBXVersion", [7400]),
+                                           FbxNode("Creator", [creator])]),
+        *settings_nodes(),
+        FbxNode("Definitions", [], [FbxNode("Version", [100]), FbxNode("Count", [len(objects)])] + [
+            FbxNode("ObjectType", [k], [FbxNode("Count", [v])]) for k, v in counts.items()]),
+        FbxNode("Objects", [], objects),
+        FbxNode("Connections", [], [FbxNode("C", list(link)) for link in links])]
 
 
 def fbx_scene_nodes(mesh: TexturedMesh, name: str, png: bytes | None, creator: str = "uvatar") -> list[FbxNode]:
@@ -54,40 +100,24 @@ def fbx_scene_nodes(mesh: TexturedMesh, name: str, png: bytes | None, creator: s
             FbxNode("UV", [np.asarray(mesh.uvs, np.float64).reshape(-1)]),
             FbxNode("UVIndex", [np.asarray(mesh.uv_faces, np.int32).reshape(-1)])]))
         layers.append("LayerElementUV")
-    geometry.children.append(FbxNode("LayerElementMaterial", [0], [
-        FbxNode("Version", [101]), FbxNode("Name", [""]), FbxNode("MappingInformationType", ["AllSame"]),
-        FbxNode("ReferenceInformationType", ["IndexToDirect"]), FbxNode("Materials", [np.zeros(1, np.int32)])]))
-    layers.append("LayerElementMaterial")
-    geometry.children.append(FbxNode("Layer", [0], [FbxNode("Version", [100])] + [
-        FbxNode("LayerElement", [], [FbxNode("Type", [t]), FbxNode("TypedIndex", [0])]) for t in layers]))
-    model = FbxNode("Model", [ids["model"], f"Model::{name}", "Mesh"], [
-        FbxNode("Version", [232]), FbxNode("Properties70", [], [_p("DefaultAttributeIndex", "int", "Integer", "", 0),
-                                                                _p("InheritType", "enum", "", "", 1)]),
-        FbxNode("Shading", [True]), FbxNode("Culling", ["CullingOff"])])
-    material = FbxNode("Material", [ids["material"], "Material::skin", ""], [
-        FbxNode("Version", [102]), FbxNode("ShadingModel", ["Phong"]), FbxNode("MultiLayer", [0]),
-        FbxNode("Properties70", [], [_p("DiffuseColor", "Color", "", "A", 1.0, 1.0, 1.0)])])
-    objects = [geometry, model, material]
+    geometry.children += [material_layer(), layer_node(0, layers + ["LayerElementMaterial"])]
+    materials, material_links = material_nodes((ids["material"], ids["texture"], ids["video"]), "skin", png)
     links = [("OO", ids["model"], np.int64(0)), ("OO", ids["geometry"], ids["model"]),
-             ("OO", ids["material"], ids["model"])]
-    if png is not None:
-        image = f"{name}.png"
-        objects.append(FbxNode("Texture", [ids["texture"], "Texture::skin", ""], [
-            FbxNode("Type", ["TextureVideoClip"]), FbxNode("Version", [202]), FbxNode("TextureName", ["Texture::skin"]),
-            FbxNode("Media", ["Video::skin"]), FbxNode("FileName", [image]), FbxNode("RelativeFilename", [image])]))
-        objects.append(FbxNode("Video", [ids["video"], "Video::skin", "Clip"], [
-            FbxNode("Type", ["Clip"]), FbxNode("Filename", [image]), FbxNode("RelativeFilename", [image]),
-            FbxNode("Content", [png])]))
-        links += [("OP", ids["texture"], ids["material"], "DiffuseColor"), ("OO", ids["video"], ids["texture"])]
-    counts = {"Model": 1, "Geometry": 1, "Material": 1, "Texture": int(png is not None), "Video": int(png is not None)}
-    return [
-        FbxNode("FBXHeaderExtension", [], [FbxNode("FBXHeaderVersion", [1003]), FbxNode("FBXVersion", [7400]),
-                                           FbxNode("Creator", [creator])]),
-        *settings_nodes(),
-        FbxNode("Definitions", [], [FbxNode("Version", [100]), FbxNode("Count", [sum(counts.values())])] + [
-            FbxNode("ObjectType", [k], [FbxNode("Count", [v])]) for k, v in counts.items() if v]),
-        FbxNode("Objects", [], objects),
-        FbxNode("Connections", [], [FbxNode("C", list(link)) for link in links])]
+             ("OO", ids["material"], ids["model"])] + material_links
+    return fbx_document([geometry, mesh_model(ids["model"], name)] + materials, links, creator)
+
+
+def material_layer() -> FbxNode:
+    """A ``LayerElementMaterial``: every polygon the mesh's one material."""
+    return FbxNode("LayerElementMaterial", [0], [
+        FbxNode("Version", [101]), FbxNode("Name", [""]), FbxNode("MappingInformationType", ["AllSame"]),
+        FbxNode("ReferenceInformationType", ["IndexToDirect"]), FbxNode("Materials", [np.zeros(1, np.int32)])])
+
+
+def layer_node(index: int, elements: list[str]) -> FbxNode:
+    """A ``Layer`` gathering the layer elements ``elements`` (their index ``index``)."""
+    return FbxNode("Layer", [index], [FbxNode("Version", [100])] + [
+        FbxNode("LayerElement", [], [FbxNode("Type", [t]), FbxNode("TypedIndex", [index])]) for t in elements])
 
 
 def write_fbx_mesh(path: Path, mesh: TexturedMesh, write_texture=None) -> None:

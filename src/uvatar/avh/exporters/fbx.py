@@ -22,7 +22,14 @@ import numpy as np
 
 from uvatar.avh.exporters.glb import SkinnedMesh, local_joint_transforms
 from uvatar.capture.fbx_file import FbxNode, fbx_bytes
-from uvatar.capture.fbx_mesh_writer import settings_nodes
+from uvatar.capture.fbx_mesh_writer import (
+    fbx_document,
+    layer_node,
+    material_layer,
+    material_nodes,
+    mesh_model,
+    prop,
+)
 from uvatar.io_utils import write_bytes
 
 __all__ = ["fbx_matrix", "euler_xyz_degrees", "skinned_fbx_nodes", "write_skinned_fbx"]
@@ -42,16 +49,12 @@ def fbx_matrix(M: np.ndarray) -> np.ndarray:
     return np.asarray(M, np.float64).T.reshape(-1)
 
 
-def _p(name: str, kind: str, label: str, flags: str, *values) -> FbxNode:
-    return FbxNode("P", [name, kind, label, flags, *values])
-
-
 def skinned_fbx_nodes(mesh: SkinnedMesh, png: bytes | None, creator: str = "uvatar export") -> list[FbxNode]:
     """The records of ``mesh`` as a skinned FBX scene (module doc)."""
     J = len(mesh.joint_names)
     next_id = iter(range(2_000_000, 10_000_000))
     new_id = lambda: np.int64(next(next_id))  # noqa: E731
-    mesh_model, geometry, skin, material = new_id(), new_id(), new_id(), new_id()
+    body_model, geometry, skin, material = new_id(), new_id(), new_id(), new_id()
     joint_model = [new_id() for _ in range(J)]
     joint_attr = [new_id() for _ in range(J)]
     cluster = [new_id() for _ in range(J)]
@@ -75,36 +78,28 @@ def skinned_fbx_nodes(mesh: SkinnedMesh, png: bytes | None, creator: str = "uvat
         layers.append(FbxNode("LayerElementUV", [k], [
             FbxNode("Version", [101]), FbxNode("Name", [name]), FbxNode("MappingInformationType", ["ByVertice"]),
             FbxNode("ReferenceInformationType", ["Direct"]), FbxNode("UV", [uv.reshape(-1)])]))
-    layers.append(FbxNode("LayerElementMaterial", [0], [
-        FbxNode("Version", [101]), FbxNode("Name", [""]), FbxNode("MappingInformationType", ["AllSame"]),
-        FbxNode("ReferenceInformationType", ["IndexToDirect"]), FbxNode("Materials", [np.zeros(1, np.int32)])]))
-    layer_list = [FbxNode("Layer", [0], [FbxNode("Version", [100])] + [
-        FbxNode("LayerElement", [], [FbxNode("Type", [t]), FbxNode("TypedIndex", [0])])
-        for t in ("LayerElementNormal", "LayerElementUV", "LayerElementMaterial")])]
+    layers.append(material_layer())
+    layer_list = [layer_node(0, ["LayerElementNormal", "LayerElementUV", "LayerElementMaterial"])]
     if mesh.uv1 is not None:
-        layer_list.append(FbxNode("Layer", [1], [FbxNode("Version", [100]), FbxNode("LayerElement", [], [
-            FbxNode("Type", ["LayerElementUV"]), FbxNode("TypedIndex", [1])])]))
+        layer_list.append(layer_node(1, ["LayerElementUV"]))
     objects = [FbxNode("Geometry", [geometry, "Geometry::body", "Mesh"], [
         FbxNode("Properties70"), FbxNode("GeometryVersion", [124]),
         FbxNode("Vertices", [positions.reshape(-1)]),
         FbxNode("PolygonVertexIndex", [corners.reshape(-1).astype(np.int32)])] + layers + layer_list)]
-    objects.append(FbxNode("Model", [mesh_model, f"Model::{mesh.name}", "Mesh"], [
-        FbxNode("Version", [232]), FbxNode("Properties70", [], [_p("DefaultAttributeIndex", "int", "Integer", "", 0),
-                                                                _p("InheritType", "enum", "", "", 1)]),
-        FbxNode("Shading", [True]), FbxNode("Culling", ["CullingOff"])]))
+    objects.append(mesh_model(body_model, mesh.name))
 
     world = np.asarray(mesh.joint_world_rest, np.float64)
     local = local_joint_transforms(world, np.asarray(mesh.joint_parents))
     angles = euler_xyz_degrees(local[:, :3, :3])
     for j, name in enumerate(mesh.joint_names):
         objects.append(FbxNode("NodeAttribute", [joint_attr[j], f"NodeAttribute::{name}", "LimbNode"], [
-            FbxNode("Properties70", [], [_p("Size", "double", "Number", "", 10.0)]), FbxNode("TypeFlags", ["Skeleton"])]))
+            FbxNode("Properties70", [], [prop("Size", "double", "Number", "", 10.0)]), FbxNode("TypeFlags", ["Skeleton"])]))
         objects.append(FbxNode("Model", [joint_model[j], f"Model::{name}", "LimbNode"], [
             FbxNode("Version", [232]), FbxNode("Properties70", [], [
-                _p("Lcl Translation", "Lcl Translation", "", "A", *map(float, local[j, :3, 3])),
-                _p("Lcl Rotation", "Lcl Rotation", "", "A", *map(float, angles[j])),
-                _p("Lcl Scaling", "Lcl Scaling", "", "A", 1.0, 1.0, 1.0),
-                _p("InheritType", "enum", "", "", 1)]),
+                prop("Lcl Translation", "Lcl Translation", "", "A", *map(float, local[j, :3, 3])),
+                prop("Lcl Rotation", "Lcl Rotation", "", "A", *map(float, angles[j])),
+                prop("Lcl Scaling", "Lcl Scaling", "", "A", 1.0, 1.0, 1.0),
+                prop("InheritType", "enum", "", "", 1)]),
             FbxNode("Shading", [True]), FbxNode("Culling", ["CullingOff"])]))
 
     objects.append(FbxNode("Deformer", [skin, "Deformer::body", "Skin"], [
@@ -126,36 +121,17 @@ def skinned_fbx_nodes(mesh: SkinnedMesh, png: bytes | None, creator: str = "uvat
     objects.append(FbxNode("Pose", [pose, "Pose::BIND_POSES", "BindPose"], [
         FbxNode("Type", ["BindPose"]), FbxNode("Version", [100]), FbxNode("NbPoseNodes", [J + 1])] + [
         FbxNode("PoseNode", [], [FbxNode("Node", [node]), FbxNode("Matrix", [fbx_matrix(M)])])
-        for node, M in [(mesh_model, np.eye(4))] + list(zip(joint_model, world, strict=True))]))
+        for node, M in [(body_model, np.eye(4))] + list(zip(joint_model, world, strict=True))]))
 
-    objects.append(FbxNode("Material", [material, "Material::avatar", ""], [
-        FbxNode("Version", [102]), FbxNode("ShadingModel", ["Phong"]), FbxNode("MultiLayer", [0]),
-        FbxNode("Properties70", [], [_p("DiffuseColor", "Color", "", "A", 1.0, 1.0, 1.0)])]))
-    links = [("OO", mesh_model, np.int64(0)), ("OO", geometry, mesh_model), ("OO", material, mesh_model),
-             ("OO", skin, geometry)]
+    materials, material_links = material_nodes((material, texture, video), "mean_texture", png)
+    objects += materials
+    links = [("OO", body_model, np.int64(0)), ("OO", geometry, body_model), ("OO", material, body_model),
+             ("OO", skin, geometry)] + material_links
     for j in range(J):
         parent = int(mesh.joint_parents[j])
         links += [("OO", joint_model[j], joint_model[parent] if parent >= 0 else np.int64(0)),
                   ("OO", joint_attr[j], joint_model[j]), ("OO", cluster[j], skin), ("OO", joint_model[j], cluster[j])]
-    if png is not None:
-        objects.append(FbxNode("Texture", [texture, "Texture::mean_texture", ""], [
-            FbxNode("Type", ["TextureVideoClip"]), FbxNode("Version", [202]),
-            FbxNode("TextureName", ["Texture::mean_texture"]), FbxNode("Media", ["Video::mean_texture"]),
-            FbxNode("FileName", ["mean_texture.png"]), FbxNode("RelativeFilename", ["mean_texture.png"])]))
-        objects.append(FbxNode("Video", [video, "Video::mean_texture", "Clip"], [
-            FbxNode("Type", ["Clip"]), FbxNode("Filename", ["mean_texture.png"]),
-            FbxNode("RelativeFilename", ["mean_texture.png"]), FbxNode("Content", [png])]))
-        links += [("OP", texture, material, "DiffuseColor"), ("OO", video, texture)]
-    counts = {"Model": J + 1, "Geometry": 1, "NodeAttribute": J, "Deformer": J + 1, "Pose": 1, "Material": 1,
-              "Texture": int(png is not None), "Video": int(png is not None)}
-    return [
-        FbxNode("FBXHeaderExtension", [], [FbxNode("FBXHeaderVersion", [1003]), FbxNode("FBXVersion", [7400]),
-                                           FbxNode("Creator", [creator])]),
-        *settings_nodes(),
-        FbxNode("Definitions", [], [FbxNode("Version", [100]), FbxNode("Count", [sum(counts.values())])] + [
-            FbxNode("ObjectType", [k], [FbxNode("Count", [v])]) for k, v in counts.items() if v]),
-        FbxNode("Objects", [], objects),
-        FbxNode("Connections", [], [FbxNode("C", list(link)) for link in links])]
+    return fbx_document(objects, links, creator)
 
 
 def write_skinned_fbx(path: str | Path, mesh: SkinnedMesh) -> Path:
