@@ -106,3 +106,64 @@ def test_the_mesh_its_uvs_and_texture_read_back(tmp_path):
                                                                                    ["indices"]]["count"] // 3
     assert back.texture is not None and back.texture.shape[:2] == (32, 32)
     assert back.uvs.min() >= 0 and back.uvs.max() <= 1
+
+
+def _ufbx_joint_worlds(path, names, times) -> np.ndarray:
+    """(T, J, 4, 4) each named joint's world matrix as ufbx evaluates the file's animation at ``times``."""
+    import ufbx
+
+    scene = ufbx.load_file(str(path))
+    keep = [scene]
+    stacks = scene.anim_stacks
+    stack = stacks[0]
+    anim = stack.anim
+    keep += [stacks, stack, anim]
+    out = np.zeros((len(times), len(names), 4, 4))
+    for t, seconds in enumerate(times):
+        evaluated = ufbx.evaluate_scene(scene, anim, float(seconds))
+        nodes = evaluated.nodes
+        keep += [evaluated, nodes]
+        for i in range(len(nodes)):
+            node = nodes[i]
+            keep.append(node)
+            if node.name in names:
+                out[t, names.index(node.name)] = _matrix(node.node_to_world, keep)
+    keep.clear()
+    return out
+
+
+def test_a_motion_plays_on_the_rig_as_the_reference_poses_it(tmp_path):
+    """ufbx evaluates the animated FBX at each key: every joint's world matrix is the reference's (the
+    GLB's joint chain at that frame's local rotations, under the global rotation and translation)."""
+    from uvatar.avh.exporters.fbx_motion import write_motion_fbx
+
+    mesh = engine_mesh(toy_rest_body(), EngineExportConfig(subdivisions=0), texture_png=None)
+    T, J, fps = 6, len(mesh.joint_names), 30.0
+    rng = np.random.default_rng(3)
+    local = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.6, (T * J, 3)).reshape(T, J, 3), 0).reshape(-1, 3))
+    local = local.as_matrix().reshape(T, J, 3, 3)
+    Rh = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.8, (T, 3)), 0)).as_matrix()
+    Th = np.cumsum(rng.normal(0, 0.2, (T, 3)), 0)
+    path = write_motion_fbx(tmp_path / "motion.fbx", mesh, local, Rh, Th, fps)
+    got = _ufbx_joint_worlds(path, list(mesh.joint_names), np.arange(T) / fps)
+    for t in range(T):
+        world = posed_joint_transforms(mesh.joint_world_rest, mesh.joint_parents, local[t])
+        glob = np.eye(4)
+        glob[:3, :3], glob[:3, 3] = Rh[t], Th[t]
+        np.testing.assert_allclose(got[t], glob @ world, atol=1e-5)
+
+
+def test_continuous_euler_keeps_the_rotations_and_never_jumps():
+    from uvatar.avh.exporters.fbx_motion import continuous_euler
+
+    rng = np.random.default_rng(0)
+    rotvecs = np.cumsum(rng.normal(0, 0.25, (200, 5, 3)), 0)                 # long turns: many wraps
+    R = Rotation.from_rotvec(rotvecs.reshape(-1, 3)).as_matrix().reshape(200, 5, 3, 3)
+    raw = euler_xyz_degrees(R)
+    smooth = continuous_euler(raw)
+    back = np.stack([[euler_matrix(a, "XYZ") for a in frame] for frame in smooth])
+    np.testing.assert_allclose(back, R, atol=1e-9)                            # the same rotations
+    assert np.abs(np.diff(raw, axis=0)).max() > 300                           # the raw angles wrap...
+    # ...the keys do not (near gimbal lock x and z may still swing, never by a half turn)
+    assert np.abs(np.diff(smooth, axis=0)).max() < 180
+    assert np.abs(np.diff(smooth, axis=0)).sum() < np.abs(np.diff(raw, axis=0)).sum()

@@ -145,3 +145,31 @@ def test_bad_files_give_one_line(anny, clip, tmp_path, capsys, name, words):
         err = [line for line in err if not line.startswith("loading ")]
         assert len(err) == 1 and name in err[0] and words in err[0], err
         assert "Traceback" not in err and not (tmp_path / "x.npz").exists()
+
+
+def test_a_motion_converts_to_an_fbx_animation_of_an_avatars_rig(anny, clip, tmp_path, capsys):
+    """`uvatar motion convert CLIP OUT.fbx --avatar A`: the avatar's rig playing the retargeted clip; ufbx
+    reads one key a frame on every joint; without --avatar, one line."""
+    import ufbx
+
+    from tests.fixtures.toy_avatar import write_random_body_avatar
+    from uvatar.cli.main import main
+
+    write_random_body_avatar(tmp_path / "avatar", anny, resolution=32, subdivisions=1)
+    path = tmp_path / "walk.glb"
+    write_gltf_motion(path, **bvh_arrays(subsample(clip, 40), CMU_UNIT_METRES))
+    assert main(["motion", "convert", str(path), str(tmp_path / "walk.fbx"), "--avatar", str(tmp_path / "avatar")]) == 0
+    scene = ufbx.load_file(str(tmp_path / "walk.fbx"))
+    keep = [scene]
+    stacks = scene.anim_stacks
+    stack = stacks[0]
+    keep += [stacks, stack]
+    frames = int(round((stack.time_end - stack.time_begin) * scene.settings.frames_per_second)) + 1
+    skins = scene.skin_deformers
+    keep.append(skins)
+    assert frames == subsample(clip, 40).num_frames and len(skins) == 1
+    keep.clear()
+    del scene
+    assert main(["motion", "convert", str(path), str(tmp_path / "walk2.fbx")]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("uvatar: error:")]
+    assert len(err) == 1 and "give --avatar DIR" in err[0]

@@ -30,8 +30,12 @@ def register(cli) -> None:
     p = cli.command("motion convert", help="convert (and retarget) a motion to a uvatar motion .npz for a body model")
     p.add_argument("input", help=".bvh, .fbx, .gltf/.glb, AMASS .npz, uvatar .npz, EasyMocap fits folder or capture "
                                   "folder")
-    p.add_argument("output", help="output .npz")
+    p.add_argument("output", help="output .npz, or .fbx with --avatar: the motion as an FBX animation of the avatar's "
+                                  "rig (its avatar.fbx)")
     p.add_argument("--body", default="anny", choices=("anny", "smpl", "smplx"), help="target body model")
+    p.add_argument("--avatar", default=None, metavar="DIR",
+                   help="an exported avatar (uvatar export): with an .fbx output, retarget to its body model and "
+                        "shape and write the motion playing on its rig")
     p.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (none: $UVATAR_SMPL_DIR)")
     p.add_argument("--fps", type=float, default=None, help="resample to this frame rate")
     p.add_argument("--fits", default=None, metavar="DIR", help="also write EasyMocap fits (one JSON per frame) here")
@@ -137,16 +141,25 @@ def _convert(args) -> int:
     from uvatar.errors import InputError, options_as_input_error
     from uvatar.motion.sequences import load_motion, save_motion
 
-    if Path(args.output).suffix.lower() != ".npz":
-        raise InputError(args.output, "output must be a .npz file")
+    as_fbx = Path(args.output).suffix.lower() == ".fbx"
+    if not as_fbx and Path(args.output).suffix.lower() != ".npz":
+        raise InputError(args.output, "output must be a .npz file, or an .fbx file with --avatar")
+    if as_fbx and args.avatar is None:
+        raise InputError(args.output, "an .fbx output is the motion on an avatar's rig: give --avatar DIR (an "
+                                      "exported avatar)")
     if args.fps is not None and not args.fps > 0:
         raise InputError("--fps", f"must be > 0, got {args.fps}")
     with options_as_input_error("uvatar motion convert options"):
         config = _retarget_flags().config(args, name_map=_user_map(args.name_map))
-    print(f"loading {args.input} for body model '{args.body}' ...", file=sys.stderr)
     from uvatar.body.registry import load_body_model
 
-    body = load_body_model(args.body, model_dir=args.model_dir)
+    body_name = args.body
+    if as_fbx:
+        from uvatar.avh.exporters.engine import avatar_body_spec, read_avatar_json
+
+        body_name = avatar_body_spec(read_avatar_json(Path(args.avatar)))[0]
+    print(f"loading {args.input} for body model '{body_name}' ...", file=sys.stderr)
+    body = load_body_model(body_name, model_dir=args.model_dir)
     motion = load_motion(args.input, body=body, config=config)
     if args.report:
         _write_report(args, motion, config, body)
@@ -154,7 +167,12 @@ def _convert(args) -> int:
         from uvatar.motion.sequences import resample_motion
 
         motion = resample_motion(motion, args.fps)
-    save_motion(args.output, motion)
+    if as_fbx:
+        from uvatar.avh.exporters.fbx_motion import write_avatar_motion_fbx
+
+        write_avatar_motion_fbx(args.output, args.avatar, motion, body_model=body)
+    else:
+        save_motion(args.output, motion)
     if args.fits:
         from tqdm import tqdm
 

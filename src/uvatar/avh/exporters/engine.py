@@ -274,6 +274,13 @@ def rest_body_from_model(body_model, shape=None) -> BodyTemplate:
                         world[:, :3, 3].astype(np.float32), world)
 
 
+def avatar_body_spec(meta: dict) -> tuple[str, object]:
+    """(body model name, shape parameters or None) of an avatar's ``avatar.json``."""
+    body_meta = meta.get("body_model", {})
+    name = body_meta.get("name", body_meta) if isinstance(body_meta, dict) else body_meta
+    return str(name), meta.get("shape", body_meta.get("shapes") if isinstance(body_meta, dict) else None)
+
+
 def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = EngineExportConfig(), *,
                         body: BodyTemplate | None = None, body_model=None, fingers_toes_mask: np.ndarray | None = None,
                         semantic_joints: dict | None = None) -> dict:
@@ -297,9 +304,7 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
                 # "studio": the last joint is the root, whose slot carries the global orientation Rh (a
                 # root-zero pose, as the viewer's, is the body facing the studio's +Z)
                 "orientation": (meta.get("model_config") or {}).get("orientation", "body")}
-    body_meta = meta.get("body_model", {})
-    body_name = body_meta.get("name", body_meta) if isinstance(body_meta, dict) else body_meta
-    shape = meta.get("shape", body_meta.get("shapes") if isinstance(body_meta, dict) else None)
+    body_name, shape = avatar_body_spec(meta)
 
     if body is None:
         if body_model is None and str(body_name).lower() in ("none", "", "null"):

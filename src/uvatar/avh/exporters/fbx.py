@@ -16,6 +16,7 @@ skeleton, for the engines and tools that take rigs as FBX (Unity, Unreal, Maya, 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,16 +33,15 @@ from uvatar.capture.fbx_mesh_writer import (
 )
 from uvatar.io_utils import write_bytes
 
-__all__ = ["fbx_matrix", "euler_xyz_degrees", "skinned_fbx_nodes", "write_skinned_fbx"]
+__all__ = ["SkinnedRig", "fbx_matrix", "fresh_ids", "euler_xyz_degrees", "skinned_fbx_nodes", "skinned_rig", "write_skinned_fbx"]
 
 
 def euler_xyz_degrees(R: np.ndarray) -> np.ndarray:
-    """(..., 3) FBX ``eEulerXYZ`` angles in degrees of rotations (..., 3, 3): R = Rz Ry Rx (x applied
-    first; scipy's extrinsic ``xyz``)."""
-    from scipy.spatial.transform import Rotation
+    """(..., 3) FBX ``eEulerXYZ`` angles (x, y, z) in degrees of rotations (..., 3, 3): R = Rz Ry Rx (x
+    applied first), i.e. :func:`uvatar.motion.rotations.matrix_to_euler`'s intrinsic "ZYX" reversed."""
+    from uvatar.motion.rotations import matrix_to_euler
 
-    R = np.asarray(R, np.float64)
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("xyz", degrees=True).reshape(R.shape[:-2] + (3,))
+    return matrix_to_euler(np.asarray(R, np.float64), "ZYX", degrees=True)[..., ::-1].copy()
 
 
 def fbx_matrix(M: np.ndarray) -> np.ndarray:
@@ -51,9 +51,31 @@ def fbx_matrix(M: np.ndarray) -> np.ndarray:
 
 def skinned_fbx_nodes(mesh: SkinnedMesh, png: bytes | None, creator: str = "uvatar export") -> list[FbxNode]:
     """The records of ``mesh`` as a skinned FBX scene (module doc)."""
+    rig = skinned_rig(mesh, png, fresh_ids())
+    return fbx_document(rig.objects, rig.links, creator)
+
+
+def fresh_ids():
+    """A source of fresh object ids (int64, as FBX stores them)."""
+    counter = iter(range(2_000_000, 100_000_000))
+    return lambda: np.int64(next(counter))
+
+
+@dataclass
+class SkinnedRig:
+    """A skinned scene's records: ``objects``, ``links`` (connections), the body's Model id, each joint's
+    Model id (in the mesh's joint order) and the rest local transforms (J, 4, 4) of the joints."""
+
+    objects: list
+    links: list
+    body_model: np.int64
+    joint_models: list
+    rest_local: np.ndarray
+
+
+def skinned_rig(mesh: SkinnedMesh, png: bytes | None, new_id) -> SkinnedRig:
+    """The records of ``mesh`` as a skinned scene (module doc), ids from ``new_id()``."""
     J = len(mesh.joint_names)
-    next_id = iter(range(2_000_000, 10_000_000))
-    new_id = lambda: np.int64(next(next_id))  # noqa: E731
     body_model, geometry, skin, material = new_id(), new_id(), new_id(), new_id()
     joint_model = [new_id() for _ in range(J)]
     joint_attr = [new_id() for _ in range(J)]
@@ -131,7 +153,7 @@ def skinned_fbx_nodes(mesh: SkinnedMesh, png: bytes | None, creator: str = "uvat
         parent = int(mesh.joint_parents[j])
         links += [("OO", joint_model[j], joint_model[parent] if parent >= 0 else np.int64(0)),
                   ("OO", joint_attr[j], joint_model[j]), ("OO", cluster[j], skin), ("OO", joint_model[j], cluster[j])]
-    return fbx_document(objects, links, creator)
+    return SkinnedRig(objects, links, body_model, joint_model, local)
 
 
 def write_skinned_fbx(path: str | Path, mesh: SkinnedMesh) -> Path:
