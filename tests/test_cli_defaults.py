@@ -98,7 +98,7 @@ NOT_CONFIG = {
     ("render dva", "output"), ("motion info", "json"), ("motion convert", "fits"), ("synth", "preset"),
     ("synth", "no_progress"),
     ("train dva", "model"), ("eval dva", "model"), ("render dva", "model"), ("render dva", "model_dir"),
-    ("motion convert", "name_map"), ("motion convert", "model_dir"), ("motion convert", "report"), ("motion info", "name_map"), ("motion compare", "json"),
+    ("motion convert", "name_map"), ("motion convert", "model_dir"), ("motion convert", "report"), ("motion convert", "avatar"), ("motion info", "name_map"), ("motion compare", "json"),
     ("fit", "eval"), ("fit", "json"), ("fit", "no_progress"), ("fit", "strict"),
     ("capture masks", "model_dir"), ("capture masks", "no_progress"),
     ("capture import", "calibration"), ("capture import", "no_progress"),
