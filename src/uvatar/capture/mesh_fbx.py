@@ -328,13 +328,12 @@ class FbxScene:
                                     f"{self.path.stem}.fbm/)")
 
 
-def _read(path: Path) -> tuple[FbxScene, list, list]:
+def _read(path: Path) -> tuple[FbxScene, list]:
     scene = FbxScene(path)
     instances = scene.mesh_instances()
     if not instances:
         raise InputError(path, "FBX file holds no mesh")
-    textures = [scene.texture_node(mid, scene._id_of(g)) for g, _, mid in instances]
-    return scene, instances, textures
+    return scene, instances
 
 
 MALFORMED = (ValueError, TypeError, IndexError, KeyError, AttributeError, OverflowError)
@@ -358,9 +357,9 @@ def read_fbx_mesh(path: Path, load_texture=None) -> TexturedMesh:
 def _read_fbx_mesh(path: Path) -> TexturedMesh:
     from uvatar.io_utils import read_image, read_image_bytes
 
-    path = Path(path)
-    scene, instances, _ = _read(path)
-    pieces, has_uvs, face_sources = [], set(), []
+    scene, instances = _read(path)
+    pieces, has_uvs, face_tiles = [], set(), []
+    distinct: dict = {}                                # each image (bytes or Path) -> its tile, in order of use
     to_uvatar = scene.to_uvatar()
     for geometry, model, model_id in instances:
         polygons = scene.polygons(geometry)
@@ -369,25 +368,35 @@ def _read_fbx_mesh(path: Path) -> TexturedMesh:
         pieces.append(polygons_to_triangles(polygons, clockwise=False, world=world))
         sources = [scene.texture_source(t) if t is not None else None
                    for t in scene.material_textures(model_id, scene._id_of(geometry))]
-        material = scene.polygon_materials(geometry, len(polygons["counts"]))
-        per_polygon = [sources[m] if 0 <= m < len(sources) else None for m in material.tolist()] \
-            if len(set(sources)) > 1 else [sources[0]] * len(material)
-        face_sources += np.repeat(np.array(per_polygon, object), np.maximum(polygons["counts"] - 2, 0)).tolist()
+        counts = polygons["counts"]
+        drawn = counts >= 3                            # polygons that make triangles
+        if len(set(sources)) > 1:                      # a material a polygon: each polygon its material's image
+            material = scene.polygon_materials(geometry, len(counts))
+            valid = (material >= 0) & (material < len(sources))
+            used = material[valid & drawn]
+            _, first = np.unique(used, return_index=True)
+            for m in used[np.sort(first)]:             # the images in the order the triangles use them
+                if sources[m] is not None:
+                    distinct.setdefault(sources[m], len(distinct))
+            tile_of_material = np.array([distinct.get(src, -1) if src is not None else -1 for src in sources])
+            polygon_tile = np.where(valid, tile_of_material[np.where(valid, material, 0)], -1)
+        else:
+            if sources[0] is not None and drawn.any():
+                distinct.setdefault(sources[0], len(distinct))
+            polygon_tile = np.full(len(counts), distinct.get(sources[0], -1) if sources[0] is not None else -1)
+        face_tiles.append(np.repeat(polygon_tile, np.maximum(counts - 2, 0)))
     if len(has_uvs) > 1:
         raise InputError(path, "FBX meshes have UVs and lack them in turn")
     vertices, faces, uvs, uv_faces = join_triangle_meshes(pieces)
     if not np.isfinite(vertices).all():
         raise InputError(path, "FBX vertex positions are not finite numbers")
-    distinct = list(dict.fromkeys(s for s in face_sources if s is not None))
     images = [read_image(s, "FBX texture image") if isinstance(s, Path) else
               read_image_bytes(s, path, "FBX embedded texture image") for s in distinct]
     texture = images[0] if images else None
     if len(images) > 1 and len(uv_faces):
         from uvatar.capture.texture_tiles import pack_textures
 
-        tile = {src: k for k, src in enumerate(distinct)}
-        face_image = np.array([tile.get(s, -1) if s is not None else -1 for s in face_sources], np.int64)
-        texture, uvs, uv_faces = pack_textures(images, uvs, uv_faces, face_image, path)
+        texture, uvs, uv_faces = pack_textures(images, uvs, uv_faces, np.concatenate(face_tiles), path)
     return TexturedMesh(vertices, faces, uvs, uv_faces, texture)
 
 
@@ -400,7 +409,8 @@ def fbx_header(path: Path) -> dict:
 
 
 def _fbx_header(path: Path) -> dict:
-    scene, instances, textures = _read(path)
+    scene, instances = _read(path)
+    textures = [scene.texture_node(model_id, scene._id_of(g)) for g, _, model_id in instances]
     nv = nf = 0
     has_uvs = False
     for geometry, _, _ in instances:

@@ -80,6 +80,7 @@ class UsdTake:
         self.up = ("+" + str(UsdGeom.GetStageUpAxis(self.stage)).lower()) if self.stage.HasAuthoredMetadata("upAxis") \
             else ""
         self.uv_primvar = self._uv_primvar(self.prim)
+        self._colour_inputs: dict = {}                  # prim -> its material's colour texture input (or None)
         self.left_out, joined = {}, [order[0]]
         self._uv_of = {self.prim: self.uv_primvar}
         moving = self._moves(self.prim)
@@ -91,9 +92,9 @@ class UsdTake:
                 self.left_out[name] = "no UVs"
             elif not self._has_polygons(prim):
                 self.left_out[name] = "no polygons"
-            elif texture is None and self._texture_asset(prim, 0) is not None:
-                self.left_out[name] = (f"wears a texture ({self._texture_asset(prim, 0)[0]}) where the take's "
-                                       "mesh wears none (its texture comes from the images beside the file)")
+            elif texture is None and (own := self._texture_asset(prim, 0)) is not None:
+                self.left_out[name] = (f"wears a texture ({own[0]}) where the take's mesh wears none (its "
+                                       "texture comes from the images beside the file)")
             elif moving and not self._moves(prim):
                 self.left_out[name] = "stands still while the take moves (a floor or a prop?)"
             else:
@@ -220,11 +221,11 @@ class UsdTake:
         vertices, faces, uvs, uv_faces = join_triangle_meshes(pieces)
         distinct = list(dict.fromkeys(a for a in assets if a is not None))
         if len(distinct) <= 1:
-            return TexturedMesh(vertices, faces, uvs, uv_faces, texture=self.texture(index))
+            own = assets[self.parts.index(self.prim)]
+            return TexturedMesh(vertices, faces, uvs, uv_faces, texture=self._read_texture(own, index))
         from uvatar.capture.texture_tiles import pack_textures  # parts wearing different images: one atlas
 
-        first_with = {a: prim for prim, a in zip(self.parts[::-1], assets[::-1], strict=True) if a is not None}
-        images = [self.texture(index, first_with[a]) for a in distinct]
+        images = [self._read_texture(a, index) for a in distinct]
         face_image = np.concatenate([np.full(len(piece[1]), distinct.index(a) if a is not None else -1)
                                      for piece, a in zip(pieces, assets, strict=True)])
         texture, uvs, uv_faces = pack_textures(images, uvs, uv_faces, face_image, self.path)
@@ -236,7 +237,9 @@ class UsdTake:
         return self._texture_asset(self.prim, index)
 
     def _texture_asset(self, prim, index: int) -> tuple[str, str] | None:
-        input_ = texture_input(prim)
+        if prim not in self._colour_inputs:             # the material network is not time-sampled: walk it once
+            self._colour_inputs[prim] = texture_input(prim)
+        input_ = self._colour_inputs[prim]
         if input_ is None:
             return None
         asset = input_.Get(self.times[index])
@@ -247,10 +250,13 @@ class UsdTake:
     def texture(self, index: int, prim=None) -> np.ndarray | None:
         """Frame ``index``'s diffuse texture of ``prim`` (the take's first mesh when None), (H, W, 3)
         uint8 (None without one); InputError naming the asset when it cannot be read."""
+        return self._read_texture(self._texture_asset(prim or self.prim, index), index)
+
+    def _read_texture(self, named: tuple[str, str] | None, index: int) -> np.ndarray | None:
+        """The image of the asset ``named`` (:meth:`_texture_asset`'s) of frame ``index``, as :meth:`texture`."""
         import imageio.v3 as iio
         from pxr import Ar
 
-        named = self._texture_asset(prim or self.prim, index)
         if named is None:
             return None
         authored, resolved = named
