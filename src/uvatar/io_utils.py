@@ -186,14 +186,20 @@ def write_npz(path: str | Path, level: int | None = None, **arrays: np.ndarray) 
 def write_image(path: str | Path, image: np.ndarray, png_level: int | None = None) -> None:
     """Write an image atomically. ``image``: (H, W[, C]) float in [0, 1] or uint8. ``png_level``: a PNG's
     deflate level (1 fastest .. 9; None: Pillow's default, 6), for pictures written often (previews)."""
+    write_bytes(path, encode_image(image, Path(path).suffix or ".png", png_level))  # encode, then one plain write
+
+
+def encode_image(image: np.ndarray, suffix: str = ".png", png_level: int | None = None) -> bytes:
+    """The bytes of ``image`` ((H, W[, C]) float in [0, 1] or uint8) as a ``suffix`` file (PNG by
+    default; ``png_level`` as :func:`write_image`'s): what :func:`write_image` writes, for images
+    embedded in other files."""
     import imageio.v3 as iio
 
     arr = np.asarray(image)
     if arr.dtype != np.uint8:
         arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-    suffix = Path(path).suffix or ".png"
     extra = {"compress_level": int(png_level)} if png_level is not None and suffix.lower() == ".png" else {}
-    write_bytes(path, iio.imwrite("<bytes>", arr, extension=suffix, **extra))  # encode, then one plain write
+    return iio.imwrite("<bytes>", arr, extension=suffix, **extra)
 
 
 def read_image(path: str | Path, what: str = "image", rgb: bool = True) -> np.ndarray:

@@ -13,7 +13,6 @@ import numpy as np
 
 from uvatar.capture.fbx_file import FbxNode
 from uvatar.capture.types import TexturedMesh
-from uvatar.errors import InputError
 
 __all__ = ["fbx_document", "fbx_scene_nodes", "layer_node", "material_layer", "material_nodes", "mesh_model", "prop",
            "settings_nodes", "write_fbx_mesh"]
@@ -122,17 +121,9 @@ def layer_node(index: int, elements: list[str]) -> FbxNode:
 
 def write_fbx_mesh(path: Path, mesh: TexturedMesh, write_texture=None) -> None:
     """A TexturedMesh (metres, +Y up) as a binary FBX 7.4 file, its texture embedded as PNG (atomic)."""
-    import cv2
-
     from uvatar.capture.fbx_file import fbx_bytes
-    from uvatar.io_utils import write_bytes
+    from uvatar.io_utils import encode_image, write_bytes
 
     path = Path(path)
-    png = None
-    if mesh.texture is not None:
-        tex = mesh.texture if mesh.texture.dtype == np.uint8 else np.round(np.clip(mesh.texture, 0, 1) * 255).astype(np.uint8)
-        ok, encoded = cv2.imencode(".png", np.ascontiguousarray(tex[..., 2::-1]))
-        if not ok:
-            raise InputError(path, "its texture could not be encoded as PNG")
-        png = encoded.tobytes()
+    png = encode_image(mesh.texture[..., :3]) if mesh.texture is not None else None
     write_bytes(path, fbx_bytes(fbx_scene_nodes(mesh, path.stem, png)))

@@ -28,7 +28,6 @@ skinning in the skinned mesh's model space; ``manifest.json`` ``displacement.fra
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -39,7 +38,7 @@ from uvatar.avh.exporters.glb import SkinnedMesh, local_joint_transforms, write_
 from uvatar.body.base import BodyTemplate
 from uvatar.errors import InputError
 from uvatar.geometry.frames import vertex_normals
-from uvatar.io_utils import read_json, read_npz, write_image, write_json
+from uvatar.io_utils import encode_image, read_json, read_npz, write_image, write_json
 
 MANIFEST_FORMAT = "uvatar-engine/1"
 DEFAULT_SPACE = "body frame: world axes of the posed body with the global rotation Rh removed"
@@ -170,17 +169,6 @@ def skin_reference(mesh: SkinnedMesh, local_rotmats: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------- bundle
-def _png_bytes(image: np.ndarray) -> bytes:
-    import imageio.v3 as iio
-
-    arr = np.asarray(image)
-    if arr.dtype != np.uint8:
-        arr = (np.clip(arr, 0, 1) * 255 + 0.5).astype(np.uint8)
-    buf = io.BytesIO()
-    iio.imwrite(buf, arr, extension=".png")
-    return buf.getvalue()
-
-
 def read_avatar_json(avatar_dir: Path) -> dict:
     return read_json(Path(avatar_dir) / "avatar.json", "missing; run `uvatar export RUN OUT` first")
 
@@ -326,7 +314,7 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
     texture, displacement = run_generator(avatar_dir / onnx_name, io_names, model_input)
     R = int(texture.shape[-1])
     mean_texture = texture[0].transpose(1, 2, 0)  # (R, R, 3), row 0 is v = 1
-    mesh = engine_mesh(body, config, texture_png=_png_bytes(mean_texture))
+    mesh = engine_mesh(body, config, texture_png=encode_image(mean_texture))
     write_glb(avatar_dir / config.glb_name, mesh)
     if config.fbx_name:
         from uvatar.avh.exporters.fbx import write_skinned_fbx

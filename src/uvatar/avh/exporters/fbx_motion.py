@@ -21,7 +21,7 @@ from uvatar.avh.exporters.fbx import euler_xyz_degrees, fresh_ids, skinned_rig
 from uvatar.avh.exporters.glb import SkinnedMesh
 from uvatar.capture.fbx_file import FbxNode, fbx_bytes
 from uvatar.capture.fbx_mesh_writer import fbx_document, prop
-from uvatar.io_utils import write_bytes
+from uvatar.io_utils import encode_image, write_bytes
 
 __all__ = ["KTIME_PER_SECOND", "avatar_rig", "continuous_euler", "motion_fbx_nodes", "write_avatar_motion_fbx",
            "write_motion_fbx"]
@@ -140,10 +140,7 @@ def avatar_rig(avatar_dir: str | Path, body_model=None) -> tuple[SkinnedMesh, ob
     if not glb.is_file():
         raise InputError(glb, "the avatar's GLB is missing (run `uvatar export` again)")
     texture = read_mesh(glb).texture
-    if texture is not None:
-        import cv2
-
-        mesh.texture_png = cv2.imencode(".png", np.round(np.clip(texture, 0, 1) * 255).astype(np.uint8)[..., ::-1])[1].tobytes()
+    mesh.texture_png = encode_image(texture) if texture is not None else None
     return mesh, body_model
 
 
