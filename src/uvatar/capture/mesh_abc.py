@@ -160,11 +160,10 @@ class AlembicTake:
         first = self._part(sized[order[0]][1])
         if first is None:
             raise InputError(self.path, f"mesh {sized[order[0]][1].full_name} has no points or no polygons")
-        self.mesh_object, self.points, self.uv_param = first.obj, first.points, first.uv
-        self.count = self.points.count
+        self.first, self.left_out = first, {}
+        self.count = first.points.count
         times = [self.time(i) for i in range(self.count)]
         moving = first.moves(times)
-        self.first, self.left_out = first, {}
         joined = {order[0]: first}
         for i in order[1:]:
             part = self._part(sized[i][1])
@@ -183,6 +182,19 @@ class AlembicTake:
     def other_meshes(self) -> list[str]:
         """The meshes left out of the take."""
         return list(self.left_out)
+
+    @property
+    def mesh_object(self) -> AbcObject:
+        """The take's first mesh (the one with the most points), whose samples are the frames."""
+        return self.first.obj
+
+    @property
+    def points(self) -> AbcProperty:
+        return self.first.points
+
+    @property
+    def uv_param(self) -> AbcProperty | None:
+        return self.first.uv
 
     def close(self) -> None:
         self.archive.close()
