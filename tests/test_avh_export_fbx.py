@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tests.fixtures.toy_avatar import toy_rest_body, write_toy_avatar
+from tests.fixtures.ufbx_reference import ufbx_joint_worlds, ufbx_matrix
 from uvatar.avh.exporters.engine import (
     EngineExportConfig,
     engine_mesh,
@@ -19,15 +20,6 @@ from uvatar.avh.exporters.engine import (
 )
 from uvatar.avh.exporters.fbx import euler_xyz_degrees, write_skinned_fbx
 from uvatar.capture.mesh_fbx import euler_matrix, read_fbx_mesh
-
-
-def _matrix(m, keep: list) -> np.ndarray:
-    columns = (m.c0, m.c1, m.c2, m.c3)
-    keep += [m, *columns]
-    out = np.eye(4)
-    for k, c in enumerate(columns):
-        out[:3, k] = (c.x, c.y, c.z)
-    return out
 
 
 def _ufbx_rig(path) -> dict:
@@ -49,8 +41,8 @@ def _ufbx_rig(path) -> dict:
         bone = cluster.bone_node
         vertices, weights = cluster.vertices, cluster.weights
         keep += [cluster, bone, vertices, weights]
-        out[str(bone.name)] = (_matrix(bone.node_to_world, keep), np.array(vertices, np.int64),
-                               np.array(weights, np.float64), _matrix(cluster.geometry_to_bone, keep))
+        out[str(bone.name)] = (ufbx_matrix(bone.node_to_world, keep), np.array(vertices, np.int64),
+                               np.array(weights, np.float64), ufbx_matrix(cluster.geometry_to_bone, keep))
     keep.clear()
     return out
 
@@ -108,30 +100,6 @@ def test_the_mesh_its_uvs_and_texture_read_back(tmp_path):
     assert back.uvs.min() >= 0 and back.uvs.max() <= 1
 
 
-def _ufbx_joint_worlds(path, names, times) -> np.ndarray:
-    """(T, J, 4, 4) each named joint's world matrix as ufbx evaluates the file's animation at ``times``."""
-    import ufbx
-
-    scene = ufbx.load_file(str(path))
-    keep = [scene]
-    stacks = scene.anim_stacks
-    stack = stacks[0]
-    anim = stack.anim
-    keep += [stacks, stack, anim]
-    out = np.zeros((len(times), len(names), 4, 4))
-    for t, seconds in enumerate(times):
-        evaluated = ufbx.evaluate_scene(scene, anim, float(seconds))
-        nodes = evaluated.nodes
-        keep += [evaluated, nodes]
-        for i in range(len(nodes)):
-            node = nodes[i]
-            keep.append(node)
-            if node.name in names:
-                out[t, names.index(node.name)] = _matrix(node.node_to_world, keep)
-    keep.clear()
-    return out
-
-
 def test_a_motion_plays_on_the_rig_as_the_reference_poses_it(tmp_path):
     """ufbx evaluates the animated FBX at each key: every joint's world matrix is the reference's (the
     GLB's joint chain at that frame's local rotations, under the global rotation and translation)."""
@@ -145,7 +113,7 @@ def test_a_motion_plays_on_the_rig_as_the_reference_poses_it(tmp_path):
     Rh = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.8, (T, 3)), 0)).as_matrix()
     Th = np.cumsum(rng.normal(0, 0.2, (T, 3)), 0)
     path = write_motion_fbx(tmp_path / "motion.fbx", mesh, local, Rh, Th, fps)
-    got = _ufbx_joint_worlds(path, list(mesh.joint_names), np.arange(T) / fps)
+    got = ufbx_joint_worlds(path, list(mesh.joint_names), np.arange(T) / fps)
     for t in range(T):
         world = posed_joint_transforms(mesh.joint_world_rest, mesh.joint_parents, local[t])
         glob = np.eye(4)

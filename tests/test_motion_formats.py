@@ -147,6 +147,77 @@ def test_bad_files_give_one_line(anny, clip, tmp_path, capsys, name, words):
         assert "Traceback" not in err and not (tmp_path / "x.npz").exists()
 
 
+def test_motion_convert_for_an_avatar_retargets_onto_its_shape(anny, clip, tmp_path):
+    """`motion convert --avatar A`: the clip is retargeted onto the avatar's body shape (a tall one
+    here), so at that shape its soles touch the floor where the source stands (at the default shape's
+    retarget they sink); the FBX's pelvis follows the same motion, as ufbx evaluates it."""
+    import torch
+
+    from tests.fixtures.toy_avatar import write_random_body_avatar
+    from tests.fixtures.ufbx_reference import ufbx_joint_worlds
+    from uvatar.cli.main import main
+    from uvatar.motion.retarget import motion_world
+    from uvatar.motion.sequences import load_motion
+
+    tall = np.array([0.5, 0.5, 0.5, 0.5, 0.95, 0.5], np.float32)
+    write_random_body_avatar(tmp_path / "avatar", anny, resolution=32, subdivisions=0, shapes=tall)
+    short = subsample(clip, 2)
+    path = tmp_path / "walk.glb"
+    write_gltf_motion(path, **bvh_arrays(short, CMU_UNIT_METRES))
+    source = skeleton_motion_from_bvh(short, "cmu")
+    avatar = ["--avatar", str(tmp_path / "avatar")]
+    assert main(["motion", "convert", str(path), str(tmp_path / "walk.npz"), *avatar]) == 0
+    assert main(["motion", "convert", str(path), str(tmp_path / "default.npz")]) == 0
+    assert main(["motion", "convert", str(path), str(tmp_path / "walk.fbx"), *avatar]) == 0
+    motion, default = load_motion(tmp_path / "walk.npz", anny), load_motion(tmp_path / "default.npz", anny)
+    np.testing.assert_allclose(motion.shape, tall)
+    assert default.shape is None
+    ankles = source.positions[:, [source.index("LeftFoot"), source.index("RightFoot")], 1].min(1)
+    standing = ankles < np.percentile(ankles, 50)
+    shape = torch.as_tensor(tall)[None].expand(motion.num_frames, -1)
+    lowest = {}
+    for name, m in (("avatar", motion), ("default", default)):
+        with torch.no_grad():
+            posed = anny.pose(m.joint_rotvecs, Rh=m.Rh, Th=m.Th, shape=shape)
+        lowest[name] = posed.vertices[..., 1].min(-1).values.numpy()[standing]
+    assert np.percentile(np.abs(lowest["avatar"]), 90) < 0.02, lowest
+    assert np.median(lowest["default"]) < -0.05, lowest
+    pelvis = anny.semantic_joints["pelvis"]
+    name = anny.joint_names[pelvis]
+    worlds = ufbx_joint_worlds(tmp_path / "walk.fbx", [name], np.arange(motion.num_frames) / motion.fps)
+    np.testing.assert_allclose(worlds[:, 0, :3, 3], motion_world(motion, anny)[1][:, pelvis], atol=1e-4)
+
+
+def test_animate_and_the_viewer_retarget_a_clip_onto_the_avatars_shape(anny, clip, tmp_path):
+    """`uvatar animate AVATAR CLIP.bvh`: the frames it writes (the avatar's body at its shape, with its
+    displacements) stand on the floor where the source stands. Retargeted at the default shape, the tall
+    avatar sank ~7 cm. The viewer's motion JSON is the same retarget."""
+    import trimesh
+
+    from tests.fixtures.toy_avatar import write_random_body_avatar
+    from uvatar.avh.animate import AnimateConfig, animate
+    from uvatar.motion.bvh import write_bvh
+    from uvatar.motion.sequences import load_motion
+    from uvatar.viewer.server import load_motion_file, motion_to_json
+
+    tall = np.array([0.5, 0.5, 0.5, 0.5, 0.95, 0.5], np.float32)
+    write_random_body_avatar(tmp_path / "avatar", anny, resolution=32, subdivisions=0, shapes=tall)
+    short = subsample(clip, 4)
+    write_bvh(tmp_path / "walk.bvh", short)
+    animate(tmp_path / "avatar", tmp_path / "walk.bvh", tmp_path / "walk.mp4",
+            AnimateConfig(size=32, levels=0, progress=False), mesh_dir=tmp_path / "meshes", body=anny)
+    frames = sorted((tmp_path / "meshes").glob("*.obj"))
+    source = skeleton_motion_from_bvh(short, "cmu")
+    assert len(frames) == source.num_frames
+    ankles = source.positions[:, [source.index("LeftFoot"), source.index("RightFoot")], 1].min(1)
+    standing = np.flatnonzero(ankles < np.percentile(ankles, 50))
+    lowest = np.array([trimesh.load(frames[t], process=False).vertices[:, 1].min() for t in standing])
+    assert np.percentile(np.abs(lowest), 90) < 0.025, lowest  # the toy generator's displacements: <= 2 cm
+    page = load_motion_file(tmp_path / "avatar", tmp_path / "walk.bvh")
+    expected = motion_to_json(load_motion(tmp_path / "walk.bvh", anny, shape=tall), "walk")
+    assert page["poses"] == expected["poses"] and page["Rh"] == expected["Rh"]
+
+
 def test_a_motion_converts_to_an_fbx_animation_of_an_avatars_rig(anny, clip, tmp_path, capsys):
     """`uvatar motion convert CLIP OUT.fbx --avatar A`: the avatar's rig playing the retargeted clip; ufbx
     reads one key a frame on every joint; without --avatar, one line."""

@@ -27,8 +27,10 @@ def cmu(shared_data):
 
 
 def posed_joints_and_lowest_point(body, motion, frames):
+    """(joints (T, J, 3), lowest vertex height (T,)) of ``motion`` posed at its own shape."""
+    shape = None if motion.shape is None else torch.as_tensor(motion.shape)[None].expand(len(frames), -1)
     with torch.no_grad():
-        posed = body.pose(motion.joint_rotvecs[frames], Rh=motion.Rh[frames], Th=motion.Th[frames])
+        posed = body.pose(motion.joint_rotvecs[frames], Rh=motion.Rh[frames], Th=motion.Th[frames], shape=shape)
     return posed.joints.numpy(), posed.vertices[..., 1].min(-1).values.numpy()
 
 
@@ -194,6 +196,45 @@ def test_cmu_clip_on_anny(anny, cmu):
     assert abs(np.median(pelvis) - rest_pelvis) < 0.05 and pelvis.max() < rest_pelvis + 0.03
     # no frame sinks into the floor by more than a few centimetres
     assert lowest.min() > -0.08
+
+
+def test_rest_template_is_the_rest_pose_at_a_shape(anny):
+    t, default = anny.template, anny.rest_template()
+    np.testing.assert_allclose(default.vertices, t.vertices, atol=1e-5)
+    np.testing.assert_allclose(default.rest_joints, t.rest_joints, atol=1e-5)
+    tall = np.array([0.5, 0.5, 0.5, 0.5, 0.95, 0.5], np.float32)  # anny's height is its 5th parameter
+    rest = anny.rest_template(tall)
+    with torch.no_grad():
+        posed = anny.pose(torch.zeros(1, anny.num_joints, 3), shape=torch.as_tensor(tall)[None])
+    np.testing.assert_allclose(rest.vertices, posed.vertices[0].numpy(), atol=1e-6)
+    np.testing.assert_allclose(rest.joint_world_rest, posed.joint_transforms[0].numpy(), atol=1e-6)
+    assert np.ptp(rest.vertices[:, 1]) > np.ptp(t.vertices[:, 1]) + 0.1  # taller by more than 10 cm
+    assert np.array_equal(rest.faces, t.faces) and np.array_equal(rest.skin_weights, t.skin_weights)
+
+
+@pytest.mark.parametrize("height", [0.1, 0.95])
+def test_a_clip_retargeted_onto_a_shape_stands_on_the_floor_at_that_shape(anny, cmu, height):
+    """Retargeted at the shape it is played at, the body's soles touch the floor where the source
+    stands; retargeted at the default shape and played at this one, they sink or float by the
+    difference in leg length (what ``uvatar animate`` did before the avatar's shape was passed)."""
+    shape = np.array([0.5, 0.5, 0.5, 0.5, height, 0.5], np.float32)
+    frames = np.arange(0, cmu.num_frames, 20)
+    src_ankle = cmu.positions[frames][:, [cmu.index("LeftFoot"), cmu.index("RightFoot")], 1].min(1)
+    standing = src_ankle < np.percentile(src_ankle, 50)
+    shaped = retarget(cmu, anny, shape=shape)
+    np.testing.assert_array_equal(shaped.shape, shape)
+    _, lowest = posed_joints_and_lowest_point(anny, shaped, frames)
+    assert np.percentile(np.abs(lowest[standing]), 90) < 0.02, lowest[standing]
+    default = retarget(cmu, anny)
+    assert default.shape is None
+    default.shape = shape  # the default shape's retarget played at this shape
+    _, off = posed_joints_and_lowest_point(anny, default, frames)
+    assert np.median(np.abs(off[standing])) > 0.05, off[standing]
+    assert np.sign(np.median(off[standing])) == (-1 if height > 0.5 else 1)  # a taller body sinks
+    # the root path is scaled by this shape's legs: the taller body walks further
+    walked = np.linalg.norm(shaped.Th[-1, [0, 2]] - shaped.Th[0, [0, 2]])
+    walked_default = np.linalg.norm(default.Th[-1, [0, 2]] - default.Th[0, [0, 2]])
+    assert (walked > walked_default * 1.05) if height > 0.5 else (walked < walked_default * 0.95)
 
 
 def test_amass_tpose_becomes_anny_tpose(anny, tmp_path):

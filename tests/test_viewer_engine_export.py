@@ -170,9 +170,7 @@ def test_anny_glb_skinning_matches_body_model():
     from uvatar.body import load_body_model
 
     body = load_body_model("anny")  # a hard dependency: a failure fails the test
-    from uvatar.avh.exporters.engine import rest_body_from_model
-
-    rb = rest_body_from_model(body)
+    rb = body.rest_template()
     rng = np.random.default_rng(0)
     pose = np.zeros((body.num_joints, 3), np.float32)
     pose[list(body.conditioning_joints)] = rng.normal(0, 0.3, (len(body.conditioning_joints), 3))

@@ -199,7 +199,7 @@ def animate(avatar_dir: str | Path, motion: str | Path | PoseSequence, output: s
     check_video_path(output)
     check_memory(RENDER_BYTES_PER_PIXEL * config.size ** 2, "size", f"rendering {config.size}² pixels")
     runtime = AvatarRuntime(avatar_dir, body=body, device=device, levels=config.levels, scheme=config.scheme)
-    seq = motion if isinstance(motion, PoseSequence) else load_pose_sequence(motion, runtime.body)
+    seq = motion if isinstance(motion, PoseSequence) else load_pose_sequence(motion, runtime.body, runtime.shape)
     seq = seq.subsample(config.max_frames, config.stride)
     check_memory((RENDER_BYTES_PER_PIXEL + 3 * len(seq)) * config.size ** 2, "size",
                  f"{len(seq)} frames of {config.size}² pixels")

@@ -5,8 +5,8 @@
 - ``heldout:CAPTURE``  the held-out frames of a synthetic capture (``gt/info.json`` ``heldout_frames``)
 - ``take:NAME:CAPTURE``  the frames of one take of a synthetic capture (``gt/info.json`` ``takes``)
 - ``fits:CAPTURE`` or a capture folder  every fit of the capture, in frame order
-- anything else  ``uvatar.motion.load_motion(spec, body)`` (BVH retargeted by joint names, AMASS,
-  EasyMocap sequences, synthetic takes)
+- anything else  ``uvatar.motion.load_motion(spec, body, shape=...)`` (BVH retargeted by joint names
+  onto the avatar's body shape, AMASS, EasyMocap sequences, synthetic takes)
 
 Poses are the body model's local axis-angles (T, J·3), root zero; the global motion is Rh/Th
 (EasyMocap convention).
@@ -124,8 +124,9 @@ def as_pose_sequence(motion, num_joints: int, source: str = "motion") -> PoseSeq
                         None if shape is None or np.size(shape) == 0 else np.asarray(shape, np.float32))
 
 
-def load_pose_sequence(spec: str | Path, body) -> PoseSequence:
-    """See the module docstring for ``spec``. ``body``: the avatar's BodyModel (joint order)."""
+def load_pose_sequence(spec: str | Path, body, shape=None) -> PoseSequence:
+    """See the module docstring for ``spec``. ``body``: the avatar's BodyModel (joint order);
+    ``shape``: the avatar's shape parameters, the body a motion file is retargeted onto."""
     spec = str(spec)
     if spec.startswith("heldout:"):
         root = spec[len("heldout:"):]
@@ -143,4 +144,4 @@ def load_pose_sequence(spec: str | Path, body) -> PoseSequence:
         from uvatar.motion import load_motion
     except ImportError as exc:
         raise InputError(spec, f"cannot read this motion: uvatar.motion.load_motion unavailable ({exc})") from exc
-    return as_pose_sequence(load_motion(spec, body), body.num_joints, spec)
+    return as_pose_sequence(load_motion(spec, body, shape=shape), body.num_joints, spec)

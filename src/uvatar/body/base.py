@@ -261,6 +261,29 @@ class BodyModel(torch.nn.Module):
         """The body with all joint rotations zero and the default shape."""
         return self.pose(torch.zeros(batch_size, self.num_joints, 3, device=self.device))
 
+    def rest_template(self, shape=None) -> BodyTemplate:
+        """The rest pose (zero rotations) at ``shape`` ((S,) shape parameters; None: the model's
+        default) as a :class:`BodyTemplate`: its vertices, the joints where that shape puts them and
+        each joint frame's rest transform (``joint_world_rest``). ``template`` is this at the default
+        shape; retargeting (:mod:`uvatar.motion.retarget`) and the engine export use it at an avatar's."""
+        t = self.template
+        J = len(t.joint_names)
+        with torch.no_grad():
+            shape_t = None if shape is None else torch.as_tensor(np.asarray(shape, np.float32), device=self.device)
+            posed = self.pose(torch.zeros(1, J, 3, device=self.device), shape=shape_t)
+        vertices = posed.vertices[0].detach().cpu().numpy().astype(np.float32)
+        transforms = posed.joint_transforms[0].detach().cpu().numpy().astype(np.float64)
+        world = np.tile(np.eye(4), (J, 1, 1))
+        world[:, :3, :3] = self.rest_joint_rotations
+        if np.abs(transforms[:, :3, 3]).max() > 1e-6:  # world joint frames at rest (orientation and position)
+            world = transforms
+        else:  # skinning transforms (identity at rest): joints from the template
+            world[:, :3, 3] = t.rest_joints
+        return BodyTemplate(vertices, np.asarray(t.faces, np.int64), np.asarray(t.uvs, np.float32),
+                            np.asarray(t.uv_faces, np.int64), np.asarray(t.skin_weights, np.float32),
+                            tuple(t.joint_names), np.asarray(t.joint_parents, np.int64),
+                            world[:, :3, 3].astype(np.float32), world)
+
     def joint_rotvecs_from_fit(self, fit) -> np.ndarray:
         """(J, 3) float32 local axis-angles from a ``BodyFit`` (``poses`` holds J*3 values)."""
         poses = np.asarray(fit.poses, dtype=np.float32).reshape(-1)

@@ -34,8 +34,8 @@ def register(cli) -> None:
                                   "rig (its avatar.fbx)")
     p.add_argument("--body", default="anny", choices=("anny", "smpl", "smplx"), help="target body model")
     p.add_argument("--avatar", default=None, metavar="DIR",
-                   help="an exported avatar (uvatar export): with an .fbx output, retarget to its body model and "
-                        "shape and write the motion playing on its rig")
+                   help="an exported avatar (uvatar export): retarget to its body model and shape (over --body); "
+                        "an .fbx output is the motion playing on its rig")
     p.add_argument("--model-dir", default=None, help="SMPL/SMPL-X model folder (none: $UVATAR_SMPL_DIR)")
     p.add_argument("--fps", type=float, default=None, help="resample to this frame rate")
     p.add_argument("--fits", default=None, metavar="DIR", help="also write EasyMocap fits (one JSON per frame) here")
@@ -153,16 +153,17 @@ def _convert(args) -> int:
         config = _retarget_flags().config(args, name_map=_user_map(args.name_map))
     from uvatar.body.registry import load_body_model
 
-    body_name = args.body
-    if as_fbx:
+    body_name, shape = args.body, None
+    if args.avatar is not None:
         from uvatar.avh.exporters.engine import avatar_body_spec, read_avatar_json
 
-        body_name = avatar_body_spec(read_avatar_json(Path(args.avatar)))[0]
-    print(f"loading {args.input} for body model '{body_name}' ...", file=sys.stderr)
+        body_name, shape = avatar_body_spec(read_avatar_json(Path(args.avatar)))
+    print(f"loading {args.input} for body model '{body_name}'" + (" at the avatar's shape" if shape is not None else "")
+          + " ...", file=sys.stderr)
     body = load_body_model(body_name, model_dir=args.model_dir)
-    motion = load_motion(args.input, body=body, config=config)
+    motion = load_motion(args.input, body=body, config=config, shape=shape)
     if args.report:
-        _write_report(args, motion, config, body)
+        _write_report(args, motion, config, body, shape)
     if args.fps:
         from uvatar.motion.sequences import resample_motion
 
@@ -185,7 +186,7 @@ def _convert(args) -> int:
     return 0
 
 
-def _write_report(args, motion, config, body) -> None:
+def _write_report(args, motion, config, body, shape=None) -> None:
     from dataclasses import replace
     from pathlib import Path
 
@@ -199,7 +200,7 @@ def _write_report(args, motion, config, body) -> None:
     if path.suffix.lower() not in SKELETON_READERS:
         raise InputError(path, f"--report measures a skeleton retarget: give a {', '.join(SKELETON_READERS)} input")
     source = read_skeleton_motion(path)
-    plan = plan_retarget(source, body, config)
+    plan = plan_retarget(source, body, config, shape)
     before = retarget(source, body, replace(config, feet="floor"), plan) if config.feet == "clean" else None
     report = retarget_report(source, motion, body, plan, contacts_config=config.contacts, before=before)
     write_json(args.report, report)

@@ -80,15 +80,16 @@ def smpl_skeleton_motion(motion: Motion, rest_joints: np.ndarray | None = None) 
                                           fps=motion.fps, units_to_metres=1.0, source=motion.source)
 
 
-def convert_body_motion(motion: Motion, body, config: RetargetConfig | None = None) -> Motion:
-    """An SMPL-family motion → a motion of ``body`` (see the module docstring)."""
+def convert_body_motion(motion: Motion, body, config: RetargetConfig | None = None, shape=None) -> Motion:
+    """An SMPL-family motion → a motion of ``body`` at ``shape`` ((S,) or None: its default; see the
+    module docstring)."""
     if motion.body not in SMPL_FAMILY:
         raise UvatarError(f"{motion.source}: fits of body model '{motion.body}' cannot be converted to "
                           f"'{body.name}' (SMPL, SMPL-H and SMPL-X fits can)")
     rest, rest_from = smpl_rest_joints(motion.body, motion.shape)
     config = config or RetargetConfig()
     config = replace(config, twist="rest" if config.twist == "auto" else config.twist, root="pelvis")
-    out = retarget(smpl_skeleton_motion(motion, rest), body, config)
+    out = retarget(smpl_skeleton_motion(motion, rest), body, config, shape=shape)
     out.info.update({"converted_from": motion.body, "source_rest_joints": rest_from,
                      "source_shape": None if motion.shape is None else np.asarray(motion.shape).tolist()})
     return out

@@ -59,12 +59,13 @@ def below(parents, roots) -> np.ndarray:
     return ancestor_matrix(parents)[:, list(roots)].any(1)
 
 
-def foot_landmarks(body, tgt_index: dict[str, int], band: float = 0.02, per_foot: int = 128):
-    """Sole points of the target's rest mesh: (joint index (K,), rest position (K, 3), side (K,)
-    0 left / 1 right) — the vertices within ``band`` metres of each foot's lowest point, each
-    riding its main bone (128 per foot put the lowest within ~3 mm of the skinned mesh's lowest
-    vertex on the CMU clip; 24 left it up to 17 mm above)."""
-    t = body.template
+def foot_landmarks(body, tgt_index: dict[str, int], band: float = 0.02, per_foot: int = 128, rest=None):
+    """Sole points of the target's rest mesh (``rest``, a BodyTemplate of ``body`` at some shape;
+    None: ``body.template``): (joint index (K,), rest position (K, 3), side (K,) 0 left / 1 right) —
+    the vertices within ``band`` metres of each foot's lowest point, each riding its main bone (128 per
+    foot put the lowest within ~3 mm of the skinned mesh's lowest vertex on the CMU clip; 24 left it
+    up to 17 mm above)."""
+    t = body.template if rest is None else rest
     parents = np.asarray(t.joint_parents)
     main = np.asarray(t.skin_weights).argmax(1)
     joints, points, sides = [], [], []

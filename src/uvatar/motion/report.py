@@ -110,11 +110,12 @@ def feet_in_contact(motion, body, plan, contacts: np.ndarray) -> dict:
     """Foot sliding (m/s, :func:`uvatar.motion.feet.sliding_speeds`) and each standing foot's lowest
     sole point height (metres) of ``motion`` over the source's contact frames ``contacts`` (T, F)."""
     from uvatar.motion.feet import foot_landmarks, lowest_point_tracks, sliding_speeds, sole_points
-    from uvatar.motion.retarget import motion_world
+    from uvatar.motion.retarget import body_rest, motion_world
 
     G, pos = motion_world(motion, body)
-    landmarks = foot_landmarks(body, plan.tgt_index)
-    sole = sole_points(G, pos, np.asarray(body.template.rest_joints, np.float64), landmarks)
+    rest = body_rest(body, motion.shape)
+    landmarks = foot_landmarks(body, plan.tgt_index, rest=rest)
+    sole = sole_points(G, pos, np.asarray(rest.rest_joints, np.float64), landmarks)
     speed = sliding_speeds(sole, landmarks[2], contacts, motion.fps)
     heights = [point[contacts[:, f], 1] for f, point, _ in lowest_point_tracks(sole, landmarks[2])]
     height = np.concatenate(heights) if heights else np.zeros(0)

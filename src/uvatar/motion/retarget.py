@@ -22,6 +22,10 @@ above their own contact heights (each foot joint's 5th percentile over the clip)
 Feet: ``feet="clean"`` then finds the source's foot contacts (:func:`uvatar.motion.feet.source_contacts`)
 and pins each standing foot's sole to the floor by a two-bone IK of its leg
 (:mod:`uvatar.motion.footlock`), lowering the body only where a leg cannot reach.
+
+Shape: the target is the body model at ``shape`` (its shape parameters; None: the model's default),
+so a retarget for an avatar (``uvatar animate``, ``uvatar motion convert --avatar``, the viewer) puts
+*that* body's soles on the floor and scales the path by *its* legs; the motion records the shape.
 """
 
 from __future__ import annotations
@@ -195,6 +199,14 @@ class RetargetPlan:
     target_frames: dict[str, np.ndarray] = field(default_factory=dict)
     twist_from: dict[str, str] = field(default_factory=dict)
     scale: float = 1.0
+    rest: object = None  # the target's BodyTemplate at the plan's shape (body_rest)
+    shape: np.ndarray | None = None  # (S,) the target's shape parameters, None: the model's default
+
+
+def body_rest(body, shape=None):
+    """The rest :class:`~uvatar.body.base.BodyTemplate` of ``body`` at ``shape`` ((S,) or None: its
+    default, ``body.template``)."""
+    return body.template if shape is None else body.rest_template(shape)
 
 
 def _leg_length(index: dict[str, int], rest: np.ndarray) -> float | None:
@@ -206,9 +218,11 @@ def _leg_length(index: dict[str, int], rest: np.ndarray) -> float | None:
     return float(np.mean(lengths)) if lengths and np.mean(lengths) > 0 else None
 
 
-def plan_retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None) -> RetargetPlan:
-    """Match the joints and align the rest frames (see the module docstring)."""
+def plan_retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None,
+                  shape=None) -> RetargetPlan:
+    """Match the joints and align the rest frames of ``body`` at ``shape`` (see the module docstring)."""
     config = config or RetargetConfig()
+    shape = None if shape is None else np.asarray(shape, np.float32).reshape(-1)
     target_names = {body.joint_names[i]: s for s, i in body.semantic_joints.items()}
     try:
         match = match_rig(source.names, source.parents, config.name_map, target_names)
@@ -222,11 +236,12 @@ def plan_retarget(source: SkeletonMotion, body, config: RetargetConfig | None = 
     src_index = {s: source.index(n) for n, s in match.mapping.items()}
     tgt_index = dict(body.semantic_joints)
     shared = [s for s in src_index if s in tgt_index]
-    t_rest = np.asarray(body.template.rest_joints, np.float64)
+    rest = body_rest(body, shape)
+    t_rest = np.asarray(rest.rest_joints, np.float64)
     P_t = {s: t_rest[i] for s, i in tgt_index.items()}
     P_rest = {s: source.rest_positions[i] for s, i in src_index.items()}
     P_src = {s: source.positions[:, i] for s, i in src_index.items()}
-    plan = RetargetPlan(match, src_index, tgt_index, shared, {})
+    plan = RetargetPlan(match, src_index, tgt_index, shared, {}, rest=rest, shape=shape)
     for sem in shared:
         A_t = rest_frame(sem, {k: P_t[k] for k in P_t if k in src_index}, config.min_evidence)
         A_s, how = None, "rest"
@@ -289,12 +304,12 @@ def posed_joint_positions(G: np.ndarray, rest: np.ndarray, parents) -> np.ndarra
 
 
 def motion_world(motion: Motion, body) -> tuple[np.ndarray, np.ndarray]:
-    """A motion of ``body`` in world space by the same kinematics as :func:`posed_joint_positions`:
-    (G (T, J, 3, 3) world rotations relative to the rest pose, Rh included; joint positions (T, J, 3)
-    metres, ``V = R(Rh) X + Th`` applied)."""
+    """A motion of ``body`` (at the motion's shape) in world space by the same kinematics as
+    :func:`posed_joint_positions`: (G (T, J, 3, 3) world rotations relative to the rest pose, Rh
+    included; joint positions (T, J, 3) metres, ``V = R(Rh) X + Th`` applied)."""
     from uvatar.body.kinematics import forward_kinematics_numpy
 
-    rest = np.asarray(body.template.rest_joints, np.float64)
+    rest = np.asarray(body_rest(body, motion.shape).rest_joints, np.float64)
     parents = np.asarray(body.template.joint_parents)
     local = rotvec_to_matrix(body.local_to_world_rotvecs(np.asarray(motion.joint_rotvecs, np.float64)))
     R = rotvec_to_matrix(motion.Rh)
@@ -307,10 +322,11 @@ def motion_world(motion: Motion, body) -> tuple[np.ndarray, np.ndarray]:
     return G, p + ((R @ root) + motion.Th.astype(np.float64) - root)[:, None]
 
 
-def _motion(G: np.ndarray, P: np.ndarray, body, pelvis: int, fps: float, source: str, info: dict) -> Motion:
+def _motion(G: np.ndarray, P: np.ndarray, body, plan: RetargetPlan, fps: float, source: str, info: dict) -> Motion:
     """World rotations G (T, J, 3, 3) relative to the rest pose and the pelvis path P (T, 3) →
-    Motion (the pelvis's rotation becomes Rh)."""
-    t_rest = np.asarray(body.template.rest_joints, np.float64)
+    Motion (the pelvis's rotation becomes Rh) of ``body`` at the plan's shape."""
+    pelvis = plan.tgt_index["pelvis"]
+    t_rest = np.asarray(plan.rest.rest_joints, np.float64)
     parents = np.asarray(body.template.joint_parents)
     Rh_mat = G[:, pelvis].copy()
     Gp = np.swapaxes(Rh_mat, -1, -2)[:, None] @ G  # without the global rotation
@@ -321,16 +337,18 @@ def _motion(G: np.ndarray, P: np.ndarray, body, pelvis: int, fps: float, source:
     Th = P - (Rh_mat @ t_rest[pelvis])  # V = R(Rh) X + Th puts the pelvis at P
     return Motion(joint_rotvecs=joint_rotvecs, Rh=matrix_to_rotvec(Rh_mat).astype(np.float32),
                   Th=Th.astype(np.float32), fps=fps, body=body.name, source=source,
-                  joint_names=tuple(body.joint_names), info=info)
+                  joint_names=tuple(body.joint_names), shape=plan.shape, info=info)
 
 
-def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None, plan: RetargetPlan | None = None):
-    """Retarget ``source`` onto ``body`` → :class:`~uvatar.motion.record.Motion` for that body:
-    joint_rotvecs (T, J, 3) local axis-angles, Rh (T, 3), Th (T, 3) metres. ``config.feet ==
+def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None, plan: RetargetPlan | None = None,
+             shape=None):
+    """Retarget ``source`` onto ``body`` at ``shape`` ((S,) shape parameters, None: the model's default;
+    a given ``plan`` brings its own) → :class:`~uvatar.motion.record.Motion` for that body:
+    joint_rotvecs (T, J, 3) local axis-angles, Rh (T, 3), Th (T, 3) metres, shape. ``config.feet ==
     "clean"`` then pins the feet in the source's contacts (:mod:`uvatar.motion.footlock`)."""
     config = config or RetargetConfig()
-    plan = plan or plan_retarget(source, body, config)
-    t_rest = np.asarray(body.template.rest_joints, np.float64)
+    plan = plan or plan_retarget(source, body, config, shape)
+    t_rest = np.asarray(plan.rest.rest_joints, np.float64)
     parents = np.asarray(body.template.joint_parents)
     G = target_world_rotations(source, body, plan)
     pelvis = plan.tgt_index["pelvis"]
@@ -341,7 +359,7 @@ def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None,
     if config.root == "floor" or config.feet == "clean":
         pos = posed_joint_positions(G, t_rest, parents)
         rel = pos - pos[:, pelvis: pelvis + 1]
-        landmarks = foot_landmarks(body, plan.tgt_index)
+        landmarks = foot_landmarks(body, plan.tgt_index, rest=plan.rest)
         sole = sole_points(G, rel, t_rest, landmarks)  # (T, K, 3) relative to the pelvis
     if config.root == "floor":
         clearance = source_clearance(source, plan, config.source_floor)
@@ -357,7 +375,7 @@ def retarget(source: SkeletonMotion, body, config: RetargetConfig | None = None,
                                  "segments": [len(segments(c)) for c in contacts.T],
                                  "max_drop_m": round(float(out["drop"].max()), 4),
                                  "max_miss_m": round(float(out["miss"].max()), 4)}
-    return _motion(G, P, body, pelvis, source.fps, source.source, info)
+    return _motion(G, P, body, plan, source.fps, source.source, info)
 
 
 def semantic_map(names, parents=None) -> dict[str, str]:
@@ -368,6 +386,6 @@ def semantic_map(names, parents=None) -> dict[str, str]:
     return match_rig(names, parents).mapping
 
 
-__all__ = ["LIMB", "RetargetConfig", "RetargetPlan", "plan_retarget", "retarget", "semantic_map", "rest_frame",
+__all__ = ["LIMB", "RetargetConfig", "RetargetPlan", "body_rest", "plan_retarget", "retarget", "semantic_map", "rest_frame",
            "motion_frame", "target_world_rotations", "posed_joint_positions", "motion_world", "foot_landmarks",
            "source_clearance"]

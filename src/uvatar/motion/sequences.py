@@ -86,14 +86,17 @@ def _body_model(body):
 
 
 def load_motion(path: str | Path, body=None, fps: float | None = None, default_fps: float = 25.0,
-                config: RetargetConfig | None = None) -> Motion:
+                config: RetargetConfig | None = None, shape=None) -> Motion:
     """Load a motion for ``body`` (a BodyModel or a name; default "anny") from any supported source;
     resample to ``fps`` when given. ``default_fps`` applies to fits folders/NPZ without a rate;
-    ``config`` steers retargeting (joint map, twist, root)."""
+    ``config`` steers retargeting (joint map, twist, root); ``shape`` ((S,) the body's shape
+    parameters, e.g. an avatar's; None: the model's default) is the body a skeleton or another body
+    model's fits are retargeted onto (feet on the floor, path scaled by its legs). Fits of ``body``
+    itself keep their own shape."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "motion file or folder is missing")
-    motion = _load(path, body, default_fps, config or RetargetConfig())
+    motion = _load(path, body, default_fps, config or RetargetConfig(), shape)
     want = _body_name(body)
     if want is not None and motion.body != want:
         raise InputError(path, f"motion is for body model '{motion.body}', not '{want}'")
@@ -106,18 +109,18 @@ def load_motion(path: str | Path, body=None, fps: float | None = None, default_f
     return resample_motion(motion, fps) if fps else motion
 
 
-def _for_body(motion: Motion, body, config: RetargetConfig, path: Path) -> Motion:
+def _for_body(motion: Motion, body, config: RetargetConfig, path: Path, shape=None) -> Motion:
     """Body-model fits of another model (SMPL, SMPL-X) → ``body`` by a real conversion."""
     want = _body_name(body)
     if want is None or motion.body == want:
         return motion
     try:
-        return convert_body_motion(motion, _body_model(body), config)
+        return convert_body_motion(motion, _body_model(body), config, shape)
     except UvatarError as exc:
         raise InputError(path, str(exc)) from None
 
 
-def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motion:
+def _load(path: Path, body, default_fps: float, config: RetargetConfig, shape=None) -> Motion:
     suffix = path.suffix.lower()
     rest_config = replace(config, twist="rest") if config.twist == "auto" else config
     if path.is_dir():
@@ -126,14 +129,16 @@ def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motio
 
             cap = Capture(path)
             fits = {f: cap.load_fit(f) for f in cap.frames}
-            shape = cap.body_shapes if cap.body_shapes.size else None
-            return _for_body(motion_from_fits(fits, cap.fps, cap.body_model, str(path), shape), body, config, path)
+            fit_shape = cap.body_shapes if cap.body_shapes.size else None
+            return _for_body(motion_from_fits(fits, cap.fps, cap.body_model, str(path), fit_shape), body, config, path,
+                             shape)
         from uvatar.capture.fits import read_fits_dir
 
-        return _for_body(motion_from_fits(read_fits_dir(path), default_fps, None, str(path), body=body), body, config, path)
+        return _for_body(motion_from_fits(read_fits_dir(path), default_fps, None, str(path), body=body), body, config, path,
+                         shape)
     if suffix in SKELETON_READERS:
         try:
-            return retarget(read_skeleton_motion(path), _body_model(body), config)
+            return retarget(read_skeleton_motion(path), _body_model(body), config, shape=shape)
         except InputError:
             raise
         except UvatarError as exc:  # a retarget problem: name the whole path
@@ -147,11 +152,12 @@ def _load(path: Path, body, default_fps: float, config: RetargetConfig) -> Motio
             amass, model = read_amass(path), _body_model(body)
             if can_copy_amass(model):  # SMPL family: copy by joint name, no retargeting
                 return motion_from_amass(amass, model, source=path.name)
-            return retarget(skeleton_motion_from_amass(amass, source=path.name), model, rest_config)
+            return retarget(skeleton_motion_from_amass(amass, source=path.name), model, rest_config, shape=shape)
         if {"frames", "poses", "Rh", "Th"} <= keys:
             from uvatar.capture.fits import read_fits_npz
 
-            return _for_body(motion_from_fits(read_fits_npz(path), default_fps, None, path.name, body=body), body, config, path)
+            return _for_body(motion_from_fits(read_fits_npz(path), default_fps, None, path.name, body=body), body, config,
+                             path, shape)
         raise InputError(path, "NPZ is neither a uvatar motion, an AMASS motion nor a fits sequence")
     raise InputError(path, f"unsupported motion format {suffix!r} (.bvh, .fbx, .gltf, .glb, .npz, a fits or "
                            "capture folder)")

@@ -232,6 +232,15 @@ def _body_model(name: str):
         return _BODY_CACHE[name]
 
 
+def _avatar_shape(avatar_dir: Path):
+    """The avatar's body shape parameters (``avatar.json``), or None (the model's default)."""
+    if not (avatar_dir / "avatar.json").is_file():
+        return None
+    from uvatar.avh.exporters.engine import avatar_body_spec, read_avatar_json
+
+    return avatar_body_spec(read_avatar_json(avatar_dir))[1]
+
+
 def motion_to_json(motion, name: str) -> dict:
     """A :class:`uvatar.motion.Motion` -> ``{"name", "fps", "poses": [[J*3]], "Rh": [[3]]}`` for the page."""
     import numpy as np
@@ -247,7 +256,7 @@ def load_motion_file(avatar_dir: Path, path: Path) -> dict:
     from uvatar.motion import load_motion, resample_motion
 
     manifest = read_json(avatar_dir / "manifest.json")
-    motion = load_motion(path, _body_model(manifest["body_model"]))
+    motion = load_motion(path, _body_model(manifest["body_model"]), shape=_avatar_shape(avatar_dir))
     if motion.fps > PLAYBACK_FPS:  # the page interpolates; fewer frames keep the JSON small
         motion = resample_motion(motion, PLAYBACK_FPS)
     return motion_to_json(motion, path.stem)

@@ -236,32 +236,6 @@ def pose_to_model_input(pose: np.ndarray, encoding: dict) -> np.ndarray:
     return angles
 
 
-def rest_body_from_model(body_model, shape=None) -> BodyTemplate:
-    """The avatar's rest pose from a :class:`uvatar.body.BodyModel` (zero pose, its shape)."""
-    import torch
-
-    t = body_model.template
-    J = len(t.joint_names)
-    with torch.no_grad():
-        shape_t = None if shape is None else torch.as_tensor(np.asarray(shape, np.float32))
-        posed = body_model.pose(torch.zeros(1, J, 3), shape=shape_t)
-    vertices = posed.vertices[0].detach().cpu().numpy().astype(np.float32)
-    transforms = posed.joint_transforms[0].detach().cpu().numpy().astype(np.float64)
-    world = np.tile(np.eye(4), (J, 1, 1))
-    rest_rot = getattr(body_model, "rest_joint_rotations", None)
-    if rest_rot is not None:
-        rest_rot = rest_rot.detach().cpu().numpy() if hasattr(rest_rot, "detach") else np.asarray(rest_rot)
-        world[:, :3, :3] = rest_rot
-    if np.abs(transforms[:, :3, 3]).max() > 1e-6:  # world joint frames at rest (orientation and position)
-        world = transforms
-    else:  # skinning transforms (identity at rest): joints from the template
-        world[:, :3, 3] = t.rest_joints
-    return BodyTemplate(vertices, np.asarray(t.faces, np.int64), np.asarray(t.uvs, np.float32),
-                        np.asarray(t.uv_faces, np.int64), np.asarray(t.skin_weights, np.float32),
-                        tuple(t.joint_names), np.asarray(t.joint_parents, np.int64),
-                        world[:, :3, 3].astype(np.float32), world)
-
-
 def avatar_body_spec(meta: dict) -> tuple[str, object]:
     """(body model name, shape parameters or None) of an avatar's ``avatar.json``."""
     body_meta = meta.get("body_model", {})
@@ -301,7 +275,7 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
             from uvatar.body import load_body_model
 
             body_model = load_body_model(str(body_name))
-        body = rest_body_from_model(body_model, shape)
+        body = body_model.rest_template(shape)
         semantic_joints = semantic_joints or dict(getattr(body_model, "semantic_joints", {}) or {})
     joint_names = list(meta.get("joint_names") or body.joint_names)
     if max(cond, default=0) >= len(joint_names) or min(cond, default=0) < 0:

@@ -121,7 +121,6 @@ def avatar_rig(avatar_dir: str | Path, body_model=None) -> tuple[SkinnedMesh, ob
         avatar_body_spec,
         engine_mesh,
         read_avatar_json,
-        rest_body_from_model,
     )
     from uvatar.capture.meshio import read_mesh
     from uvatar.errors import InputError
@@ -134,7 +133,7 @@ def avatar_rig(avatar_dir: str | Path, body_model=None) -> tuple[SkinnedMesh, ob
         from uvatar.body import load_body_model
 
         body_model = load_body_model(name)
-    mesh = engine_mesh(rest_body_from_model(body_model, shape),
+    mesh = engine_mesh(body_model.rest_template(shape),
                        EngineExportConfig(subdivisions=int(manifest.get("mesh", {}).get("subdivisions", 1))))
     glb = avatar_dir / manifest.get("glb", "avatar.glb")
     if not glb.is_file():
