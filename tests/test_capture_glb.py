@@ -171,3 +171,40 @@ def test_gltf_files_read_as_their_glb(tmp_path):
     (tmp_path / "bad.gltf").write_text("{ not json")
     with pytest.raises(InputError, match="glTF JSON is malformed"):
         read_mesh(tmp_path / "bad.gltf")
+
+
+def _with_image(tmp_path, name: str, image_bytes: bytes, mime: str = "image/png") -> Path:
+    """plain.glb with its base-colour image replaced by ``image_bytes``."""
+    chunks = read_glb_chunks(FIXTURES / "plain.glb")
+    gltf, binary = json.loads(json.dumps(chunks.gltf)), bytes(chunks.binary)
+    binary += b"\0" * (-len(binary) % 4)
+    gltf["bufferViews"].append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(image_bytes)})
+    gltf["buffers"][0]["byteLength"] = len(binary) + len(image_bytes)
+    gltf["images"][0] = {"bufferView": len(gltf["bufferViews"]) - 1, "mimeType": mime}
+    (tmp_path / name).write_bytes(glb(gltf, binary + image_bytes))
+    return tmp_path / name
+
+
+def test_embedded_images_decode_as_image_files_do(tmp_path):
+    """The GLB's image is read by the one image decoder (``io_utils.read_image_bytes``): a 16-bit PNG keeps
+    its 16 bits, grey and grey+alpha become RGB, and bytes that are no image are one line naming the file."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    deep = rng.integers(0, 65536, (8, 8, 3), dtype=np.uint16)
+    mesh = read_glb(_with_image(tmp_path, "deep.glb", cv2.imencode(".png", deep[..., ::-1])[1].tobytes()))
+    np.testing.assert_allclose(mesh.texture, deep / 65535.0, atol=1e-6)         # not rounded to 8 bits
+    grey = rng.integers(0, 256, (8, 8), dtype=np.uint8)
+    mesh = read_glb(_with_image(tmp_path, "grey.glb", cv2.imencode(".png", grey)[1].tobytes()))
+    np.testing.assert_allclose(mesh.texture, np.repeat(grey[..., None], 3, -1) / 255.0, atol=1e-6)
+    grey_alpha = np.stack([grey, np.full_like(grey, 7)], -1)
+    import io
+
+    import PIL.Image
+
+    buffer = io.BytesIO()
+    PIL.Image.fromarray(grey_alpha, "LA").save(buffer, "PNG")
+    mesh = read_glb(_with_image(tmp_path, "la.glb", buffer.getvalue()))
+    np.testing.assert_allclose(mesh.texture, np.repeat(grey[..., None], 3, -1) / 255.0, atol=1e-6)
+    with pytest.raises(InputError, match=r"junk\.glb: GLB's base-colour image \(image/png\) is unreadable"):
+        read_glb(_with_image(tmp_path, "junk.glb", b"\x89PNG not really"))

@@ -133,21 +133,14 @@ def read_glb(path: Path, load_texture=None) -> TexturedMesh:
 
 
 def _decode_image(path: Path, data: bytes, mime: str) -> np.ndarray:
-    """An embedded image's bytes → float32 (H, W, 3) in [0, 1]."""
-    import io
-
-    import PIL.Image
-
+    """An embedded image's bytes → float32 (H, W, 3) in [0, 1] (16-bit images keep their precision)."""
     if mime == "image/ktx2":
         from uvatar.capture.texture_ktx2 import read_ktx2_bytes
 
         return read_ktx2_bytes(data, f"{path} (its KTX2 image)").astype(np.float32) / 255.0
-    try:
-        with PIL.Image.open(io.BytesIO(data)) as im:
-            return np.asarray(im.convert("RGB"), np.float32) / 255.0
-    except Exception as exc:
-        raise InputError(path, f"GLB's base-colour image ({mime or 'unknown type'}) cannot be decoded "
-                               f"({type(exc).__name__})") from None
+    from uvatar.io_utils import read_image_bytes
+
+    return read_image_bytes(data, path, f"GLB's base-colour image ({mime or 'unknown type'})")
 
 
 def split_for_gltf(mesh: TexturedMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
