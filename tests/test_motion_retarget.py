@@ -345,3 +345,45 @@ def test_reexpressed_clip_matches_the_cmu_retarget(anny, shared_data, tmp_path, 
     wrong = retarget(skeleton_motion_from_bvh(read_bvh(path), "studio"), anny, RetargetConfig(twist="rest"))
     bad = compare_motions(anny, reference, wrong, max_frames=60)["bones"]
     assert max(r["twist_deg"]["median"] for r in bad.values()) > 20, bad
+
+
+def test_fits_of_another_shape_are_re_rooted_for_the_avatars(anny, cmu):
+    """Another person's fits (here: the CMU clip made for a short anny) played at a tall avatar's shape:
+    the rotations are kept, each frame's lowest sole point is as high as at the fits' own shape, and the
+    pelvis's horizontal path is scaled by the legs' ratio. The same shape: unchanged."""
+    from uvatar.avh.poses import PoseSequence, at_shape
+    from uvatar.motion.feet import foot_landmarks, sole_points
+    from uvatar.motion.retarget import _leg_length, body_rest, motion_at_shape, motion_world
+
+    short = np.array([0.5, 0.5, 0.5, 0.5, 0.15, 0.5], np.float32)
+    tall = np.array([0.5, 0.5, 0.5, 0.5, 0.9, 0.5], np.float32)
+    fits = retarget(cmu, anny, shape=short)
+    fits = type(fits)(joint_rotvecs=fits.joint_rotvecs[::10], Rh=fits.Rh[::10], Th=fits.Th[::10], fps=12.0,
+                      body="anny", source="fits", shape=short)
+    assert motion_at_shape(fits, anny, short.copy()) is fits
+    moved = motion_at_shape(fits, anny, tall)
+    np.testing.assert_array_equal(moved.joint_rotvecs, fits.joint_rotvecs)
+    np.testing.assert_array_equal(moved.Rh, fits.Rh)
+    np.testing.assert_array_equal(moved.shape, tall)
+
+    def lowest_and_pelvis(m):
+        rest = body_rest(anny, m.shape)
+        G, pos = motion_world(m, anny)
+        sole = sole_points(G, pos, np.asarray(rest.rest_joints, np.float64),
+                           foot_landmarks(anny, anny.semantic_joints, rest=rest))
+        return sole[..., 1].min(1), pos[:, anny.semantic_joints["pelvis"]]
+
+    (low_fits, pelvis_fits), (low_moved, pelvis_moved) = lowest_and_pelvis(fits), lowest_and_pelvis(moved)
+    np.testing.assert_allclose(low_moved, low_fits, atol=1e-4)
+    naive = type(fits)(**{**fits.__dict__, "shape": tall})            # the fits' root at the tall shape
+    assert np.abs(lowest_and_pelvis(naive)[0] - low_fits).min() > 0.05  # would sink by > 5 cm each frame
+    idx = anny.semantic_joints
+    ratio = (_leg_length(idx, np.asarray(body_rest(anny, tall).rest_joints, np.float64))
+             / _leg_length(idx, np.asarray(body_rest(anny, short).rest_joints, np.float64)))
+    assert ratio > 1.1
+    np.testing.assert_allclose(pelvis_moved[:, [0, 2]] - pelvis_moved[0, [0, 2]],
+                               ratio * (pelvis_fits[:, [0, 2]] - pelvis_fits[0, [0, 2]]), atol=1e-4)
+    T = fits.num_frames
+    seq = PoseSequence(fits.joint_rotvecs.reshape(T, -1), fits.Rh, fits.Th, np.ones(T, np.float32), 12.0, [], short)
+    np.testing.assert_allclose(at_shape(seq, anny, tall).Th, moved.Th, atol=1e-6)
+    assert at_shape(seq, anny, None) is seq and at_shape(seq, anny, short) is seq

@@ -88,6 +88,24 @@ def sequence_from_capture(capture_root: str | Path, frames: list[str] | None = N
                         np.array([float(f.scale) for f in fits], np.float32), cap.fps, list(frames), shapes)
 
 
+def at_shape(seq: PoseSequence, body, shape) -> PoseSequence:
+    """``seq`` (fits at ``seq.shapes``) for ``body`` at ``shape``: the same poses, the root re-placed for
+    that shape's legs (:func:`uvatar.motion.retarget.motion_at_shape`); unchanged when either shape is
+    unknown or they are the same."""
+    from dataclasses import replace
+
+    if shape is None or seq.shapes is None or np.shape(seq.shapes) != np.shape(shape):
+        return seq
+    from uvatar.motion.record import Motion
+    from uvatar.motion.retarget import motion_at_shape
+
+    T = len(seq.poses)
+    motion = Motion(joint_rotvecs=seq.poses.reshape(T, -1, 3), Rh=seq.Rh, Th=seq.Th, fps=seq.fps, body=body.name,
+                    source="fits", shape=seq.shapes)
+    moved = motion_at_shape(motion, body, shape)
+    return seq if moved is motion else replace(seq, Th=moved.Th, shapes=moved.shape)
+
+
 def _field(obj, *names):
     for n in names:
         if isinstance(obj, dict) and n in obj:
@@ -130,14 +148,14 @@ def load_pose_sequence(spec: str | Path, body, shape=None) -> PoseSequence:
     spec = str(spec)
     if spec.startswith("heldout:"):
         root = spec[len("heldout:"):]
-        return sequence_from_capture(root, heldout_frames(root), body)
+        return at_shape(sequence_from_capture(root, heldout_frames(root), body), body, shape)
     if spec.startswith("take:"):
         name, _, root = spec[len("take:"):].partition(":")
-        return sequence_from_capture(root, take_frames(root, name), body)
+        return at_shape(sequence_from_capture(root, take_frames(root, name), body), body, shape)
     if spec.startswith("fits:"):
-        return sequence_from_capture(spec[len("fits:"):], None, body)
+        return at_shape(sequence_from_capture(spec[len("fits:"):], None, body), body, shape)
     if Path(spec).is_dir() and (Path(spec) / "capture.json").is_file():
-        return sequence_from_capture(spec, None, body)
+        return at_shape(sequence_from_capture(spec, None, body), body, shape)
     if not Path(spec).exists():
         raise InputError(spec, "motion file not found")
     try:

@@ -322,6 +322,46 @@ def motion_world(motion: Motion, body) -> tuple[np.ndarray, np.ndarray]:
     return G, p + ((R @ root) + motion.Th.astype(np.float64) - root)[:, None]
 
 
+def _same_shape(a, b) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and np.shape(a) == np.shape(b)
+                                         and np.allclose(a, b, atol=1e-6))
+
+
+def motion_at_shape(motion: Motion, body, shape) -> Motion:
+    """``motion`` (of ``body`` at ``motion.shape``) played by ``body`` at ``shape`` ((S,) or None: the
+    model's default): the joint rotations and Rh kept, the root moved so that each frame's lowest sole
+    point is as high as at the motion's own shape (feet stay on the floor, a jump stays a jump) and the
+    pelvis's horizontal path from the first frame scaled by the ratio of leg lengths (strides fit the
+    legs). The same shape: the motion unchanged. This is how another person's fits drive an avatar."""
+    from dataclasses import replace
+
+    shape = None if shape is None else np.asarray(shape, np.float32).reshape(-1)
+    if _same_shape(motion.shape, shape):
+        return motion
+    index = dict(body.semantic_joints)
+    rest_from, rest_to = body_rest(body, motion.shape), body_rest(body, shape)
+    moved = replace(motion, shape=shape, info=dict(motion.info, reshaped_from=None if motion.shape is None
+                                                   else np.asarray(motion.shape).tolist()))
+    lowest = []
+    for m, rest in ((motion, rest_from), (moved, rest_to)):
+        G, positions = motion_world(m, body)
+        landmarks = foot_landmarks(body, index, rest=rest)
+        lowest.append(sole_points(G, positions, np.asarray(rest.rest_joints, np.float64), landmarks)[..., 1].min(1))
+        if m is motion:
+            pelvis_from = positions[:, index["pelvis"]]
+        else:
+            pelvis_to = positions[:, index["pelvis"]]
+    legs_from = _leg_length(index, np.asarray(rest_from.rest_joints, np.float64))
+    legs_to = _leg_length(index, np.asarray(rest_to.rest_joints, np.float64))
+    ratio = legs_to / legs_from if legs_from and legs_to else 1.0
+    delta = np.zeros_like(pelvis_to)
+    delta[:, 1] = lowest[0] - lowest[1]
+    wanted = pelvis_from[0, [0, 2]] + ratio * (pelvis_from[:, [0, 2]] - pelvis_from[0, [0, 2]])
+    delta[:, [0, 2]] = wanted - pelvis_to[:, [0, 2]]
+    moved.Th = (np.asarray(motion.Th, np.float64) + delta).astype(np.float32)
+    return moved
+
+
 def _motion(G: np.ndarray, P: np.ndarray, body, plan: RetargetPlan, fps: float, source: str, info: dict) -> Motion:
     """World rotations G (T, J, 3, 3) relative to the rest pose and the pelvis path P (T, 3) →
     Motion (the pelvis's rotation becomes Rh) of ``body`` at the plan's shape."""
@@ -386,6 +426,6 @@ def semantic_map(names, parents=None) -> dict[str, str]:
     return match_rig(names, parents).mapping
 
 
-__all__ = ["LIMB", "RetargetConfig", "RetargetPlan", "body_rest", "plan_retarget", "retarget", "semantic_map", "rest_frame",
+__all__ = ["LIMB", "RetargetConfig", "RetargetPlan", "body_rest", "motion_at_shape", "plan_retarget", "retarget", "semantic_map", "rest_frame",
            "motion_frame", "target_world_rotations", "posed_joint_positions", "motion_world", "foot_landmarks",
            "source_clearance"]

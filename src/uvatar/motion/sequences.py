@@ -91,12 +91,16 @@ def load_motion(path: str | Path, body=None, fps: float | None = None, default_f
     resample to ``fps`` when given. ``default_fps`` applies to fits folders/NPZ without a rate;
     ``config`` steers retargeting (joint map, twist, root); ``shape`` ((S,) the body's shape
     parameters, e.g. an avatar's; None: the model's default) is the body a skeleton or another body
-    model's fits are retargeted onto (feet on the floor, path scaled by its legs). Fits of ``body``
-    itself keep their own shape."""
+    model's fits are retargeted onto (feet on the floor, path scaled by its legs); fits of ``body`` at
+    another shape are re-rooted for it (:func:`uvatar.motion.retarget.motion_at_shape`)."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "motion file or folder is missing")
     motion = _load(path, body, default_fps, config or RetargetConfig(), shape)
+    if shape is not None and motion.body == (_body_name(body) or "anny"):  # a retarget made it at shape already
+        from uvatar.motion.retarget import motion_at_shape
+
+        motion = motion_at_shape(motion, _body_model(body), shape)  # fits of another shape (another person): re-rooted
     want = _body_name(body)
     if want is not None and motion.body != want:
         raise InputError(path, f"motion is for body model '{motion.body}', not '{want}'")
