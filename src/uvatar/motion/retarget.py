@@ -327,6 +327,13 @@ def _same_shape(a, b) -> bool:
                                          and np.allclose(a, b, atol=1e-6))
 
 
+def _lowest_sole_and_pelvis(motion: Motion, body, rest, index: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(each frame's lowest sole point height (T,), the pelvis (T, 3)) of ``motion`` posed at ``rest``."""
+    G, positions = motion_world(motion, body)
+    sole = sole_points(G, positions, np.asarray(rest.rest_joints, np.float64), foot_landmarks(body, index, rest=rest))
+    return sole[..., 1].min(1), positions[:, index["pelvis"]]
+
+
 def motion_at_shape(motion: Motion, body, shape) -> Motion:
     """``motion`` (of ``body`` at ``motion.shape``) played by ``body`` at ``shape`` ((S,) or None: the
     model's default): the joint rotations and Rh kept, the root moved so that each frame's lowest sole
@@ -342,20 +349,13 @@ def motion_at_shape(motion: Motion, body, shape) -> Motion:
     rest_from, rest_to = body_rest(body, motion.shape), body_rest(body, shape)
     moved = replace(motion, shape=shape, info=dict(motion.info, reshaped_from=None if motion.shape is None
                                                    else np.asarray(motion.shape).tolist()))
-    lowest = []
-    for m, rest in ((motion, rest_from), (moved, rest_to)):
-        G, positions = motion_world(m, body)
-        landmarks = foot_landmarks(body, index, rest=rest)
-        lowest.append(sole_points(G, positions, np.asarray(rest.rest_joints, np.float64), landmarks)[..., 1].min(1))
-        if m is motion:
-            pelvis_from = positions[:, index["pelvis"]]
-        else:
-            pelvis_to = positions[:, index["pelvis"]]
+    lowest_from, pelvis_from = _lowest_sole_and_pelvis(motion, body, rest_from, index)
+    lowest_to, pelvis_to = _lowest_sole_and_pelvis(moved, body, rest_to, index)
     legs_from = _leg_length(index, np.asarray(rest_from.rest_joints, np.float64))
     legs_to = _leg_length(index, np.asarray(rest_to.rest_joints, np.float64))
     ratio = legs_to / legs_from if legs_from and legs_to else 1.0
     delta = np.zeros_like(pelvis_to)
-    delta[:, 1] = lowest[0] - lowest[1]
+    delta[:, 1] = lowest_from - lowest_to
     wanted = pelvis_from[0, [0, 2]] + ratio * (pelvis_from[:, [0, 2]] - pelvis_from[0, [0, 2]])
     delta[:, [0, 2]] = wanted - pelvis_to[:, [0, 2]]
     moved.Th = (np.asarray(motion.Th, np.float64) + delta).astype(np.float32)
