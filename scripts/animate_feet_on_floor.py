@@ -1,6 +1,7 @@
 """Where a retargeted clip puts an avatar's soles: the clip retargeted at the body model's default shape
-(what ``uvatar animate`` and ``motion convert --avatar`` did before session 25) against it retargeted at
-the avatar's own shape, both played on the avatar (its shape, its displacements). Writes a JSON of the
+(what ``uvatar animate`` and ``motion convert --avatar`` did before session 25), at the avatar's own
+shape, and at it with the avatar's surface (its shoes' displacements) put on the floor (what ``uvatar
+animate`` does now), all played on the avatar (its shape, its displacements). Writes a JSON of the
 lowest vertex a frame where the source stands, and a side-view sheet with the floor line.
 
     python scripts/animate_feet_on_floor.py AVATAR CLIP.bvh OUT_DIR [--every 40]
@@ -41,8 +42,12 @@ def main() -> None:
     standing = ankles < np.percentile(ankles, 50)
     report, rows = {"avatar": str(args.avatar), "clip": str(args.clip), "frames": frames.tolist(),
                     "standing": standing.tolist(), "avatar_shape": runtime.shape.tolist()}, []
-    for label, shape in (("default_shape_retarget", None), ("avatar_shape_retarget", runtime.shape)):
+    offset = runtime.sole_offset()
+    report["sole_offset_mm"] = round(offset * 1000, 2)
+    for label, shape, lift in (("default_shape_retarget", None, 0.0), ("avatar_shape_retarget", runtime.shape, 0.0),
+                               ("avatar_shape_retarget_surface_on_floor", runtime.shape, -offset)):
         seq = as_pose_sequence(load_motion(args.clip, body, shape=shape), body.num_joints, args.clip)
+        seq.Th = seq.Th + np.array([0.0, lift, 0.0], np.float32)  # the third: what `uvatar animate` does
         meshes = list(runtime.meshes(seq.poses[frames], seq.Rh[frames], seq.Th[frames], seq.scale[frames]))
         lowest = np.array([m.vertices[:, 1].min() for m in meshes])
         report[label] = {"lowest_vertex_mm_standing": np.round(lowest[standing] * 1000, 1).tolist(),

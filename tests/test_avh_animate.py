@@ -331,3 +331,15 @@ def test_animate_writes_gltf_frames_that_import_back(setup, tmp_path):
     for back, ref in pairs:                      # glTF splits vertices on UV seams; the reader welds them back
         np.testing.assert_allclose(np.sort(_corners(back), 0), np.sort(_corners(ref), 0), atol=1e-6)
         assert _texture_error(back, ref).max() <= 1 / 255 + 1e-6
+
+
+def test_sole_offset_is_the_surface_below_the_body_at_rest(setup, monkeypatch):
+    """A constant displacement 3 cm down (the tube's bottom is not masked) puts the surface 3 cm below
+    the body; none, level with it."""
+    root, body, _ = setup
+    rt = AvatarRuntime(root / "avatar", body=body)
+    R = rt.resolution
+    for down in (0.03, 0.0):
+        disp = np.broadcast_to(np.array([0.0, -down, 0.0], np.float32), (1, R, R, 3))
+        monkeypatch.setattr(rt, "generate", lambda poses, Rh=None, d=disp: (np.full((1, R, R, 3), 0.5, np.float32), d))
+        assert abs(rt.sole_offset() + down) < 1e-5

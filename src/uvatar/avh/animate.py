@@ -201,6 +201,8 @@ def animate(avatar_dir: str | Path, motion: str | Path | PoseSequence, output: s
     runtime = AvatarRuntime(avatar_dir, body=body, device=device, levels=config.levels, scheme=config.scheme)
     seq = motion if isinstance(motion, PoseSequence) else load_pose_sequence(motion, runtime.body, runtime.shape)
     seq = seq.subsample(config.max_frames, config.stride)
+    if seq.on_floor:  # a retarget put the body's soles on the floor: put the avatar's surface there
+        seq.Th = seq.Th - np.array([0.0, runtime.sole_offset(), 0.0], np.float32)
     check_memory((RENDER_BYTES_PER_PIXEL + 3 * len(seq)) * config.size ** 2, "size",
                  f"{len(seq)} frames of {config.size}² pixels")
     frames = render_sequence(runtime, seq, config, mesh_dir)

@@ -33,6 +33,7 @@ class PoseSequence:
     fps: float = 25.0
     names: list[str] = field(default_factory=list)
     shapes: np.ndarray | None = None   # (S,) body shape of the source, when it has one
+    on_floor: bool = False             # a retarget put the body's soles on the floor (y = 0)
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -44,7 +45,7 @@ class PoseSequence:
             idx = idx[:max_frames]
         return PoseSequence(self.poses[idx], self.Rh[idx], self.Th[idx], self.scale[idx],
                             self.fps / max(int(stride), 1), [self.names[i] for i in idx] if self.names else [],
-                            self.shapes)
+                            self.shapes, self.on_floor)
 
 
 def heldout_frames(capture_root: str | Path) -> list[str]:
@@ -139,7 +140,8 @@ def as_pose_sequence(motion, num_joints: int, source: str = "motion") -> PoseSeq
     names = [str(f) for f in info.get("frames", [])] if isinstance(info, dict) else []
     return PoseSequence(poses, arr(("Rh", "global_orient"), (3,), 0.0), arr(("Th", "transl", "trans"), (3,), 0.0),
                         arr(("scale",), (), 1.0), float(fps) if fps else 25.0, names if len(names) == T else [],
-                        None if shape is None or np.size(shape) == 0 else np.asarray(shape, np.float32))
+                        None if shape is None or np.size(shape) == 0 else np.asarray(shape, np.float32),
+                        isinstance(info, dict) and "rig" in info and info.get("root") == "floor")
 
 
 def load_pose_sequence(spec: str | Path, body, shape=None) -> PoseSequence:

@@ -185,6 +185,14 @@ class AvatarRuntime:
         return AvatarMesh(self.displaced_vertices(base_vertices, displacement, Rh, rotations), self.faces,
                           self.uvs, self.uv_faces, self.pad(np.asarray(texture, np.float32)))
 
+    def sole_offset(self) -> float:
+        """Metres from the body's lowest point to the avatar's surface's (its displacements included) at
+        the rest pose: the shoes' learned thickness under the body's soles (negative: below them)."""
+        zero = np.zeros((1, 3 * self.body.num_joints), np.float32)
+        base = self.posed_vertices(zero)[0]
+        surface = next(self.meshes(zero)).vertices
+        return float(surface[:, 1].min() - (self.vertex_matrix @ base)[:, 1].min())
+
     def meshes(self, poses, Rh=None, Th=None, scale=None, shape=None):
         """Yield an :class:`AvatarMesh` per pose (generator and body posed in batches)."""
         T = len(poses)
