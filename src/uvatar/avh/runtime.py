@@ -189,9 +189,10 @@ class AvatarRuntime:
         """Metres from the body's lowest point to the avatar's surface's (its displacements included) at
         the rest pose: the shoes' learned thickness under the body's soles (negative: below them)."""
         zero = np.zeros((1, 3 * self.body.num_joints), np.float32)
+        texture, displacement = self.generate(zero)
         base = self.posed_vertices(zero)[0]
-        surface = next(self.meshes(zero)).vertices
-        return float(surface[:, 1].min() - (self.vertex_matrix @ base)[:, 1].min())
+        surface = self.mesh(base, texture[0], displacement[0], pose=zero[0]).vertices
+        return float(surface[:, 1].min() - self.displaced_vertices(base, None)[:, 1].min())
 
     def meshes(self, poses, Rh=None, Th=None, scale=None, shape=None):
         """Yield an :class:`AvatarMesh` per pose (generator and body posed in batches)."""

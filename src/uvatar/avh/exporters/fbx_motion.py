@@ -146,14 +146,13 @@ def avatar_rig(avatar_dir: str | Path, body_model=None) -> tuple[SkinnedMesh, ob
 def write_avatar_motion_fbx(path: str | Path, avatar_dir: str | Path, motion, body_model=None) -> Path:
     """``motion`` (a :class:`uvatar.motion.record.Motion` of the avatar's body model) as an FBX animation of
     the avatar's rig (module doc)."""
-    from scipy.spatial.transform import Rotation
+    from uvatar.motion.rotations import rotvec_to_matrix
 
     mesh, _ = avatar_rig(avatar_dir, body_model)
-    T, J = motion.joint_rotvecs.shape[:2]
+    J = motion.joint_rotvecs.shape[1]
     if J != len(mesh.joint_names):
         from uvatar.errors import InputError
 
         raise InputError(motion.source or "motion", f"has {J} joints, the avatar's rig {len(mesh.joint_names)}")
-    local = Rotation.from_rotvec(motion.joint_rotvecs.reshape(-1, 3).astype(np.float64)).as_matrix().reshape(T, J, 3, 3)
-    Rh = Rotation.from_rotvec(motion.Rh.astype(np.float64)).as_matrix()
+    local, Rh = rotvec_to_matrix(motion.joint_rotvecs), rotvec_to_matrix(motion.Rh)
     return write_motion_fbx(path, mesh, local, Rh, motion.Th.astype(np.float64), motion.fps)
