@@ -86,3 +86,33 @@ def test_export_writes_an_fp16_graph_that_matches_pytorch(avatar):
     diff = onnx_differences(wrapper, avatar / "avatar" / FP16_NAME, 12, batch=3, seed=5)
     assert all(0 < diff[k] <= FP16_TOLERANCE[k] for k in diff), diff  # > 0: it really ran in half
     assert meta["verification_fp16"]["max_abs_diff"]["texture"] <= FP16_TOLERANCE["texture"]
+
+
+def test_avatar_body_reads_name_and_shape_and_names_the_file_on_bad_entries(tmp_path):
+    from uvatar.avh.export import avatar_body
+
+    name, shape = avatar_body({"body_model": {"name": "anny", "shapes": [0.5, -1.25]}})
+    assert name == "anny" and shape.dtype == np.float32 and shape.tolist() == [0.5, -1.25]
+    assert avatar_body({"body_model": {"name": "toy", "shapes": []}}) == ("toy", None)  # no parameters: default
+    assert avatar_body({"body_model": {"name": "smpl", "shapes": None}}) == ("smpl", None)
+    assert avatar_body({"body_model": "smplx"}) == ("smplx", None)  # the name alone
+    assert avatar_body({}) == ("none", None)
+    path = tmp_path / "avatar.json"
+    for bad in ({"body_model": {"name": "anny", "shapes": ["tall"]}}, {"body_model": {"name": "anny", "shapes": [[1.0]]}},
+                {"body_model": {"name": "anny", "shapes": [float("nan")]}}, {"body_model": {"name": 3}},
+                {"body_model": [1, 2]}):
+        with pytest.raises(InputError, match="avatar.json") as err:
+            avatar_body(bad, path)
+        assert "body_model" in str(err.value)
+
+
+def test_read_avatar_refuses_a_malformed_body_shape(avatar, tmp_path):
+    import shutil
+
+    copy = shutil.copytree(avatar / "avatar", tmp_path / "avatar")
+    meta_path = copy / "avatar.json"
+    meta = json.loads(meta_path.read_text())
+    meta["body_model"] = {"name": "anny", "shapes": "tall"}
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="body_model.shapes"):
+        read_avatar(copy)

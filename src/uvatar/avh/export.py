@@ -223,6 +223,31 @@ def read_fingers_toes_mask(avatar_dir: str | Path) -> np.ndarray | None:
     return mask.astype(bool)
 
 
+def avatar_body(meta: dict, path: str | Path = "avatar.json") -> tuple[str, np.ndarray | None]:
+    """(body model name, (S,) float32 shape parameters or None: the model's default) of an avatar's
+    ``avatar.json`` ``body_model`` ({"name", "shapes"}); the one reader of the avatar's body, for the
+    runtime, the engine bundle, ``motion convert --avatar`` and the viewer. ``path`` names the file in
+    the one-line error a malformed entry gives."""
+    body_meta = meta.get("body_model") or {}
+    if isinstance(body_meta, str):  # an old avatar.json: the name alone
+        body_meta = {"name": body_meta}
+    if not isinstance(body_meta, dict):
+        raise InputError(path, "'body_model' must be {\"name\": ..., \"shapes\": [...]}")
+    name = body_meta.get("name", "none")
+    if not isinstance(name, str):
+        raise InputError(path, f"'body_model.name' must be a body model's name, got {str(name)[:40]!r}")
+    shapes = body_meta.get("shapes")
+    if shapes is None:
+        return name, None
+    try:
+        shape = np.asarray(shapes, np.float32)
+    except (TypeError, ValueError):
+        shape = None
+    if shape is None or shape.ndim != 1 or not np.isfinite(shape).all():
+        raise InputError(path, f"'body_model.shapes' must be a list of numbers (or null), got {str(shapes)[:40]!r}")
+    return name, (shape if shape.size else None)
+
+
 def read_avatar(avatar_dir: str | Path) -> dict:
     """Read and check ``AVATAR/avatar.json`` (written by :func:`export_avatar`); an export its stage
     record marks half made (killed or failed before its last file) is refused."""
@@ -248,6 +273,7 @@ def read_avatar(avatar_dir: str | Path) -> dict:
     for key in ("body_model",):
         if meta.get(key) is not None and not isinstance(meta[key], dict):
             raise InputError(path, f"{key!r} must be an object")
+    avatar_body(meta, path)
     if not (Path(avatar_dir) / meta["model"]).is_file():
         raise InputError(Path(avatar_dir) / meta["model"], "ONNX model missing")
     return meta

@@ -19,7 +19,7 @@ import torch
 
 from uvatar.avh.data import rotvec_to_rotmat
 from uvatar.avh.displacement_frame import SkinningRotations, frame_of_space
-from uvatar.avh.export import onnx_session, read_avatar
+from uvatar.avh.export import avatar_body, onnx_session, read_avatar
 from uvatar.errors import InputError
 
 
@@ -61,7 +61,7 @@ class AvatarRuntime:
         self.avatar_dir = Path(avatar_dir)
         self.meta = read_avatar(self.avatar_dir)
         self.session = onnx_session(self.avatar_dir / self.meta["model"], device)
-        name = (self.meta.get("body_model") or {}).get("name", "none")
+        name, self.shape = avatar_body(self.meta, self.avatar_dir / "avatar.json")
         if body is None:
             if name == "none":
                 raise InputError(self.avatar_dir / "avatar.json", "avatar has no body model")
@@ -73,8 +73,6 @@ class AvatarRuntime:
         # "studio": the last conditioning joint is the root and its slot carries the body's Rh
         self.orientation = (self.meta.get("model_config") or {}).get("orientation", "body")
         self.resolution = int(self.meta["resolution"])
-        shapes = (self.meta.get("body_model") or {}).get("shapes")
-        self.shape = None if shapes is None else np.asarray(shapes, np.float32)
         t = body.template
         v, f, uv, uvf, origin = subdivide(t.vertices, t.faces, t.uvs, t.uv_faces, levels, scheme)
         self.faces, self.uvs, self.uv_faces = f, uv.astype(np.float32), uvf

@@ -155,9 +155,10 @@ def _convert(args) -> int:
 
     body_name, shape = args.body, None
     if args.avatar is not None:
-        from uvatar.avh.exporters.engine import avatar_body_spec, read_avatar_json
+        from uvatar.avh.export import avatar_body
+        from uvatar.avh.exporters.engine import read_avatar_json
 
-        body_name, shape = avatar_body_spec(read_avatar_json(Path(args.avatar)))
+        body_name, shape = avatar_body(read_avatar_json(Path(args.avatar)), Path(args.avatar) / "avatar.json")
     print(f"loading {args.input} for body model '{body_name}'" + (" at the avatar's shape" if shape is not None else "")
           + " ...", file=sys.stderr)
     body = load_body_model(body_name, model_dir=args.model_dir)

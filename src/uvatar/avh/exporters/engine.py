@@ -236,13 +236,6 @@ def pose_to_model_input(pose: np.ndarray, encoding: dict) -> np.ndarray:
     return angles
 
 
-def avatar_body_spec(meta: dict) -> tuple[str, object]:
-    """(body model name, shape parameters or None) of an avatar's ``avatar.json``."""
-    body_meta = meta.get("body_model", {})
-    name = body_meta.get("name", body_meta) if isinstance(body_meta, dict) else body_meta
-    return str(name), meta.get("shape", body_meta.get("shapes") if isinstance(body_meta, dict) else None)
-
-
 def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = EngineExportConfig(), *,
                         body: BodyTemplate | None = None, body_model=None, fingers_toes_mask: np.ndarray | None = None,
                         semantic_joints: dict | None = None) -> dict:
@@ -266,7 +259,9 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
                 # "studio": the last joint is the root, whose slot carries the global orientation Rh (a
                 # root-zero pose, as the viewer's, is the body facing the studio's +Z)
                 "orientation": (meta.get("model_config") or {}).get("orientation", "body")}
-    body_name, shape = avatar_body_spec(meta)
+    from uvatar.avh.export import avatar_body
+
+    body_name, shape = avatar_body(meta, meta_path)
 
     if body is None:
         if body_model is None and str(body_name).lower() in ("none", "", "null"):
@@ -320,7 +315,7 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
                       "layout": "NCHW float32, image row 0 is v = 1; texture in [0, 1] (sRGB)",
                       **({"file_fp16": meta["model_fp16"]} if isinstance(meta.get("model_fp16"), str)
                          and (avatar_dir / meta["model_fp16"]).is_file() else {})},
-        "body_model": str(body_name), "shape": shape,
+        "body_model": str(body_name), "shape": None if shape is None else [float(v) for v in shape],
         "joint_names": joint_names, "joint_parents": [int(p) for p in body.joint_parents],
         "semantic_joints": {k: int(v) for k, v in (semantic_joints or {}).items()},
         "pose_encoding": encoding,

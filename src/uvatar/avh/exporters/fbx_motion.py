@@ -118,16 +118,16 @@ def avatar_rig(avatar_dir: str | Path, body_model=None) -> tuple[SkinnedMesh, ob
     GLB's mean texture; the body model) from ``avatar.json`` and ``manifest.json``."""
     from uvatar.avh.exporters.engine import (
         EngineExportConfig,
-        avatar_body_spec,
         engine_mesh,
         read_avatar_json,
     )
+    from uvatar.avh.export import avatar_body
     from uvatar.capture.meshio import read_mesh
     from uvatar.errors import InputError
     from uvatar.io_utils import read_json
 
     avatar_dir = Path(avatar_dir)
-    name, shape = avatar_body_spec(read_avatar_json(avatar_dir))
+    name, shape = avatar_body(read_avatar_json(avatar_dir), avatar_dir / "avatar.json")
     manifest = read_json(avatar_dir / "manifest.json", "engine manifest is missing (run `uvatar export` again)")
     if body_model is None:
         from uvatar.body import load_body_model
