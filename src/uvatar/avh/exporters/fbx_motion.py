@@ -116,12 +116,12 @@ def write_motion_fbx(path: str | Path, mesh: SkinnedMesh, local_rotmats: np.ndar
 def avatar_rig(avatar_dir: str | Path, body_model=None) -> tuple[SkinnedMesh, object]:
     """(the skinned body of an exported avatar, as its ``avatar.glb`` / ``avatar.fbx`` hold it, with the
     GLB's mean texture; the body model) from ``avatar.json`` and ``manifest.json``."""
+    from uvatar.avh.export import avatar_body
     from uvatar.avh.exporters.engine import (
         EngineExportConfig,
         engine_mesh,
         read_avatar_json,
     )
-    from uvatar.avh.export import avatar_body
     from uvatar.capture.meshio import read_mesh
     from uvatar.errors import InputError
     from uvatar.io_utils import read_json
