@@ -215,7 +215,11 @@ def test_animate_and_the_viewer_retarget_a_clip_onto_the_avatars_shape(anny, cli
     assert np.percentile(np.abs(lowest), 90) < 0.008, lowest  # the surface, displacements and all, on the floor
     page = load_motion_file(tmp_path / "avatar", tmp_path / "walk.bvh")
     expected = motion_to_json(load_motion(tmp_path / "walk.bvh", anny, shape=tall), "walk")
-    assert page["poses"] == expected["poses"] and page["Rh"] == expected["Rh"]
+    assert page["poses"] == expected["poses"] and page["Rh"] == expected["Rh"] and page["Th"] == expected["Th"]
+    path = np.asarray(page["Th"])  # the root's path, which the page walks the avatar along
+    assert path.shape == (source.num_frames, 3)
+    assert np.abs(path - load_motion(tmp_path / "walk.bvh", anny, shape=tall).Th).max() <= 5e-5
+    assert np.linalg.norm(path[-1, [0, 2]] - path[0, [0, 2]]) > 0.1  # the walk goes somewhere
 
 
 def test_a_motion_converts_to_an_fbx_animation_of_an_avatars_rig(anny, clip, tmp_path, capsys):

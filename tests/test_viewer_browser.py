@@ -131,6 +131,47 @@ def test_motion_plays_and_drives_the_generator(page):
     wait_idle(page)  # the last playback inference lands; the next test starts from a quiet page
 
 
+def _root_state(page):
+    return page.evaluate("""() => ({ offset: window.uvatar.avatarOffset(), target: window.uvatar.cameraTarget(),
+                                     root: window.uvatar.jointWorldPositions()[0] })""")
+
+
+def test_a_motions_root_path_walks_the_avatar_and_the_camera_follows(page):
+    """Th moves the avatar from the first frame's place (V = R(Rh) X + Th), the orbit camera following;
+    "in place" keeps only the height; stop puts both back."""
+    frames = 90
+    Th = [[0.8 * i / 30, 1.0 + 0.1 * i / frames, 5.0] for i in range(frames)]  # 0.8 m/s along x, rising 10 cm
+    body = {"name": "walk-x", "fps": 30, "poses": [[0.0] * 12] * frames, "Rh": [[0.0, 0.0, 0.0]] * frames, "Th": Th}
+    wait_idle(page)
+    rest = _root_state(page)
+    assert rest["offset"] == [0, 0, 0]
+    try:
+        page.evaluate("(body) => window.uvatar.playMotionJson(body)", body)
+        wait_for_page(page, "window.uvatar.avatarOffset()[0] > 0.2", what="the avatar walking along +x")
+        moved = _root_state(page)
+    finally:
+        page.click("#stop")
+    x, y, z = moved["offset"]
+    assert 0.2 < x < 2.4 and abs(z) < 1e-5  # from the first frame's place: Th[0]'s 5 m along z is not a jump
+    assert y == pytest.approx(x / 0.8 * 30 / frames * 0.1, abs=2e-3)  # the height follows Th too
+    assert np.allclose(np.subtract(moved["root"], rest["root"]), moved["offset"], atol=1e-5)
+    shift = np.subtract(moved["target"], rest["target"])
+    assert np.allclose(shift, [x, 0, 0], atol=1e-5)  # the camera follows horizontally
+    stopped = _root_state(page)
+    assert stopped["offset"] == [0, 0, 0] and np.allclose(stopped["target"], rest["target"], atol=1e-6)
+
+    page.check("#in-place")
+    try:
+        page.evaluate("(body) => window.uvatar.playMotionJson(body)", body)
+        wait_for_page(page, "window.uvatar.avatarOffset()[1] > 0.02", what="the avatar rising in place")
+        held = _root_state(page)
+    finally:
+        page.click("#stop")
+        page.uncheck("#in-place")
+    assert held["offset"][0] == 0 and held["offset"][2] == 0 and np.allclose(held["target"], rest["target"], atol=1e-6)
+    wait_idle(page)
+
+
 def test_stalled_page_call_fails_with_a_clear_message(page):
     with pytest.raises(UvatarError, match=r"viewer call 'never' failed: .*no answer within 300 ms.*console"):
         call_page(page, "() => new Promise(() => {})", timeout_s=0.3, what="never")

@@ -6,7 +6,7 @@ import { OrbitControls } from 'three/examples/jsm/controls/OrbitControls.js';
 import { Generator, loadOrt } from './generator.js';
 import { makeAvatarMaterial, makeColorTexture, makeDisplacementTexture, uploadMaps } from './material.js';
 import { lerpPose, poseToModelInput, rotvecToQuaternion, swayMotion } from './pose.js';
-import { buildUi } from './ui.js';
+import { buildUi, motionFromJson } from './ui.js';
 
 const params = new URLSearchParams(location.search);
 const AVATAR = params.get('avatar') || 'avatar/';
@@ -113,6 +113,10 @@ async function main() {
   camera.position.set(center.x + 0.25 * dist, center.y + 0.1 * size.y, center.z + dist);
   controls.target.copy(center);
   controls.update();
+  // the floor under the rest pose's soles, for a motion's root path to be seen against
+  const floor = new THREE.GridHelper(20, 40, 0x9aa3ad, 0xc3c9d0);
+  floor.position.set(center.x, box.min.y, center.z);
+  scene.add(floor);
 
   const pose = new Float32Array(J * 3);
   const q = new THREE.Quaternion();
@@ -183,6 +187,25 @@ async function main() {
   let playStart = 0;
   let playTimer = null;
   const scratch = new Float32Array(J * 3);
+  let inPlace = false;
+  const followed = new THREE.Vector3(); // the camera's shift so far, following the root's path
+  /** The avatar's offset at motion frame i + a (metres): the root's path from the first frame (Th[i] - Th[0],
+   *  linear between frames; the body poses as V = R(Rh) X + Th), its horizontal part dropped in place. */
+  function rootOffset(m, i, a, out) {
+    out.set(0, 0, 0);
+    if (!m.Th) return out;
+    const t0 = m.Th[0], t1 = m.Th[i], t2 = m.Th[(i + 1) % m.Th.length];
+    out.set(t1[0] + a * (t2[0] - t1[0]) - t0[0], t1[1] + a * (t2[1] - t1[1]) - t0[1], t1[2] + a * (t2[2] - t1[2]) - t0[2]);
+    if (inPlace) { out.x = 0; out.z = 0; }
+    return out;
+  }
+  /** Move the camera and its target with the avatar's horizontal position (the view orbits the walker). */
+  function follow() {
+    const dx = avatar.position.x - followed.x, dz = avatar.position.z - followed.z;
+    camera.position.x += dx; camera.position.z += dz;
+    controls.target.x += dx; controls.target.z += dz;
+    followed.set(avatar.position.x, 0, avatar.position.z);
+  }
   function advanceMotion(now) {
     if (!playing) return;
     const t = ((now - playStart) / 1000) * playing.fps;
@@ -194,6 +217,8 @@ async function main() {
       const r = playing.Rh[i];
       rotvecToQuaternion(r[0], r[1], r[2], avatar.quaternion);
     }
+    rootOffset(playing, i, t - Math.floor(t), avatar.position);
+    follow();
     ui.refreshSliders();
     poseChanged();
   }
@@ -202,6 +227,8 @@ async function main() {
     clearInterval(playTimer);
     playTimer = null;
     avatar.quaternion.identity();
+    avatar.position.set(0, 0, 0);
+    follow();
   }
   function playMotion(m) {
     stopMotion();
@@ -214,7 +241,8 @@ async function main() {
   }
 
   const ui = buildUi({ manifest, pose, motions, onPose: poseChanged, onPlay: playMotion,
-    onStop: stopMotion, onMotionLoaded: (m) => { motions.push(m); playMotion(m); } });
+    onStop: stopMotion, onMotionLoaded: (m) => { motions.push(m); playMotion(m); },
+    onInPlace: (on) => { inPlace = on; } });
   try {
     const list = await (await fetch('api/motions')).json();
     for (const entry of list) ui.addMotionEntry(entry);
@@ -260,6 +288,12 @@ async function main() {
     setPose(values) { pose.set(values); ui.refreshSliders(); poseChanged(); },
     setJointAngle(joint, axis, value) { pose[3 * joint + axis] = value; ui.refreshSliders(); poseChanged(); },
     playMotion: (index) => playMotion(motions[index ?? 0]),
+    /** Add a motion ({name, fps, poses: [[J*3]], Rh?: [[3]], Th?: [[3]] metres}, as api/motions serves) and play it. */
+    playMotionJson(body) { const m = motionFromJson(body, body.name || 'motion'); motions.push(m); playMotion(m); },
+    /** The avatar group's offset (metres): the playing motion's root path from its first frame. */
+    avatarOffset: () => avatar.position.toArray(),
+    /** The orbit camera's target (metres): it follows the avatar's horizontal path while a motion plays. */
+    cameraTarget: () => controls.target.toArray(),
     /** Multiply the displacement (1 = as exported, 0 = bare skinned body); for inspection and tests. */
     setDisplacementScale(s) { mesh.material.userData.uniforms.uDisplacementScale.value = s; },
     stop: stopMotion,

@@ -8,7 +8,7 @@ function el(tag, attrs = {}, ...children) {
   return e;
 }
 
-export function buildUi({ manifest, pose, motions, onPose, onPlay, onStop, onMotionLoaded }) {
+export function buildUi({ manifest, pose, motions, onPose, onPlay, onStop, onMotionLoaded, onInPlace }) {
   const panel = document.getElementById('panel');
   const stats = el('div', { id: 'stats', textContent: 'loading…' });
   const jointSelect = el('select', { id: 'joint-select' });
@@ -59,11 +59,15 @@ export function buildUi({ manifest, pose, motions, onPose, onPlay, onStop, onMot
     onPlay(motions[Number(motionSelect.value)]);
   };
   stop.onclick = onStop;
+  // a motion's root path (Th): walked over the floor, the camera following; "in place" keeps only its height
+  const inPlace = el('input', { id: 'in-place', type: 'checkbox' });
+  inPlace.addEventListener('change', () => onInPlace(inPlace.checked));
   reset.onclick = () => { onStop(); pose.fill(0); refreshSliders(); onPose(); };
 
   const drop = el('div', { id: 'drop', textContent: 'drop a .bvh file anywhere to retarget and play it' });
   panel.append(stats, el('div', { className: 'row' }, 'joint ', jointSelect), ...sliders.map((s) => s.row),
-    el('div', { className: 'row' }, motionSelect, play, stop, reset), drop);
+    el('div', { className: 'row' }, motionSelect, play, stop, reset),
+    el('label', { className: 'row', title: 'play the motion without its horizontal root path' }, inPlace, ' in place'), drop);
 
   window.addEventListener('dragover', (e) => { e.preventDefault(); drop.classList.add('hover'); });
   window.addEventListener('dragleave', () => drop.classList.remove('hover'));
@@ -109,6 +113,7 @@ export function motionFromJson(body, name) {
   return {
     name: body.name || name, fps: body.fps || 30, poses: body.poses.map((p) => Float32Array.from(p.slice(0, J3))),
     Rh: body.Rh ? body.Rh.map((r) => Float32Array.from(r)) : null,
+    Th: body.Th ? body.Th.map((t) => Float32Array.from(t)) : null, // metres, the root's path
   };
 }
 

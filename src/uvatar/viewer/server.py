@@ -243,13 +243,15 @@ def _avatar_shape(avatar_dir: Path):
 
 
 def motion_to_json(motion, name: str) -> dict:
-    """A :class:`uvatar.motion.Motion` -> ``{"name", "fps", "poses": [[J*3]], "Rh": [[3]]}`` for the page."""
+    """A :class:`uvatar.motion.Motion` -> ``{"name", "fps", "poses": [[J*3]], "Rh": [[3]], "Th": [[3]]}``
+    for the page (``Th`` in metres to 0.1 mm: the page walks the avatar along it from its first frame)."""
     import numpy as np
 
     T = motion.num_frames
     return {"name": name, "fps": float(motion.fps),
             "poses": np.round(motion.joint_rotvecs.reshape(T, -1), 5).tolist(),
-            "Rh": np.round(np.asarray(motion.Rh).reshape(T, 3), 5).tolist()}
+            "Rh": np.round(np.asarray(motion.Rh).reshape(T, 3), 5).tolist(),
+            "Th": np.round(np.asarray(motion.Th, np.float64).reshape(T, 3), 4).tolist()}
 
 
 def load_motion_file(avatar_dir: Path, path: Path) -> dict:
