@@ -28,13 +28,11 @@ import numpy as np
 def main() -> None:
     from scipy.spatial.transform import Rotation
 
+    from uvatar.avh.avatar_file import avatar_body, read_avatar_json
     from uvatar.avh.exporters.engine import (
         EngineExportConfig,
-        avatar_body_spec,
         engine_mesh,
         posed_joint_transforms,
-        read_avatar_json,
-        rest_body_from_model,
         skin_reference,
     )
     from uvatar.body import load_body_model
@@ -50,8 +48,8 @@ def main() -> None:
     args = ap.parse_args()
     meta = read_avatar_json(args.avatar)
     manifest = json.loads((args.avatar / "manifest.json").read_text())
-    name, shape = avatar_body_spec(meta)
-    body = rest_body_from_model(load_body_model(name), shape)
+    name, shape = avatar_body(meta, args.avatar / "avatar.json")
+    body = load_body_model(name).rest_template(shape)
     mesh = engine_mesh(body, EngineExportConfig(subdivisions=manifest["mesh"]["subdivisions"]))
     written = read_fbx_mesh(args.avatar / manifest["fbx"])
     out = {"avatar": str(args.avatar), "vertices": len(mesh.positions), "joints": len(mesh.joint_names),

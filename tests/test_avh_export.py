@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from tests.fixtures.fake_baked import make_fake_baked_dataset
-from uvatar.avh.export import export_avatar, onnx_session, read_avatar, verify_onnx
+from uvatar.avh.avatar_file import read_avatar
+from uvatar.avh.export import export_avatar, onnx_session, verify_onnx
 from uvatar.avh.model import AvhConfig, AvhFromAngles
 from uvatar.avh.train import TrainConfig, load_trained_generator, train_avh
 from uvatar.errors import InputError
@@ -89,7 +90,7 @@ def test_export_writes_an_fp16_graph_that_matches_pytorch(avatar):
 
 
 def test_avatar_body_reads_name_and_shape_and_names_the_file_on_bad_entries(tmp_path):
-    from uvatar.avh.export import avatar_body
+    from uvatar.avh.avatar_file import avatar_body
 
     name, shape = avatar_body({"body_model": {"name": "anny", "shapes": [0.5, -1.25]}})
     assert name == "anny" and shape.dtype == np.float32 and shape.tolist() == [0.5, -1.25]

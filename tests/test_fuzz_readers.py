@@ -398,7 +398,7 @@ def _fuzz_json_file(avatar, tmp_path, name: str, read, check=None) -> None:
 
 
 def test_avatar_json(toy_avatar, tmp_path):
-    from uvatar.avh.export import read_avatar
+    from uvatar.avh.avatar_file import read_avatar
 
     def check(meta):
         assert isinstance(meta["model"], str) and isinstance(meta["resolution"], int)
@@ -409,7 +409,7 @@ def test_avatar_json(toy_avatar, tmp_path):
 def test_avatar_body_npz(toy_avatar, tmp_path):
     import io
 
-    from uvatar.avh.export import read_fingers_toes_mask
+    from uvatar.avh.avatar_file import read_fingers_toes_mask
 
     seed = dict(np.load(toy_avatar / "body.npz"))
     buffer = io.BytesIO()

@@ -95,7 +95,7 @@ def test_train_avh_killed_is_refused_by_export_until_resumed(baked, tmp_path, ca
 
 def test_export_redoes_on_a_changed_flag_and_a_half_made_export_is_refused(baked, tmp_path, capsys):
     from uvatar import stage_record
-    from uvatar.avh.export import read_avatar
+    from uvatar.avh.avatar_file import read_avatar
     from uvatar.cli.main import main
 
     run_dir, avatar = tmp_path / "run", tmp_path / "avatar"

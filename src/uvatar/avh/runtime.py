@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from uvatar.avh.avatar_file import avatar_body, read_avatar
 from uvatar.avh.data import rotvec_to_rotmat
 from uvatar.avh.displacement_frame import SkinningRotations, frame_of_space
-from uvatar.avh.export import avatar_body, onnx_session, read_avatar
+from uvatar.avh.export import onnx_session
 from uvatar.errors import InputError
 
 
@@ -96,7 +97,7 @@ class AvatarRuntime:
 
     def fingers_toes_mask(self) -> np.ndarray:
         """(R, R) bool texels where displacement is not applied (body.npz, else part_masks)."""
-        from uvatar.avh.export import read_fingers_toes_mask
+        from uvatar.avh.avatar_file import read_fingers_toes_mask
 
         mask = read_fingers_toes_mask(self.avatar_dir)  # a truncated file is an InputError naming it
         if mask is not None and mask.shape == (self.resolution,) * 2:

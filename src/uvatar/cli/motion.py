@@ -155,8 +155,7 @@ def _convert(args) -> int:
 
     body_name, shape = args.body, None
     if args.avatar is not None:
-        from uvatar.avh.export import avatar_body
-        from uvatar.avh.exporters.engine import read_avatar_json
+        from uvatar.avh.avatar_file import avatar_body, read_avatar_json
 
         body_name, shape = avatar_body(read_avatar_json(Path(args.avatar)), Path(args.avatar) / "avatar.json")
     print(f"loading {args.input} for body model '{body_name}'" + (" at the avatar's shape" if shape is not None else "")

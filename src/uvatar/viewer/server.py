@@ -236,8 +236,7 @@ def _avatar_shape(avatar_dir: Path):
     """The avatar's body shape parameters (``avatar.json``), or None (the model's default)."""
     if not (avatar_dir / "avatar.json").is_file():
         return None
-    from uvatar.avh.export import avatar_body
-    from uvatar.avh.exporters.engine import read_avatar_json
+    from uvatar.avh.avatar_file import avatar_body, read_avatar_json
 
     return avatar_body(read_avatar_json(avatar_dir), avatar_dir / "avatar.json")[1]
 

@@ -33,12 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
+from uvatar.avh.avatar_file import avatar_body, read_avatar_json
 from uvatar.avh.displacement_frame import frame_of_space
 from uvatar.avh.exporters.glb import SkinnedMesh, local_joint_transforms, write_glb
 from uvatar.body.base import BodyTemplate
 from uvatar.errors import InputError
 from uvatar.geometry.frames import vertex_normals
-from uvatar.io_utils import encode_image, read_json, read_npz, write_image, write_json
+from uvatar.io_utils import encode_image, read_npz, write_image, write_json
 
 MANIFEST_FORMAT = "uvatar-engine/1"
 DEFAULT_SPACE = "body frame: world axes of the posed body with the global rotation Rh removed"
@@ -169,10 +170,6 @@ def skin_reference(mesh: SkinnedMesh, local_rotmats: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------- bundle
-def read_avatar_json(avatar_dir: Path) -> dict:
-    return read_json(Path(avatar_dir) / "avatar.json", "missing; run `uvatar export RUN OUT` first")
-
-
 def _meta(meta: dict, path: Path, *keys, default=None, required=True):
     for key in keys:
         node, ok = meta, True
@@ -259,8 +256,6 @@ def write_engine_bundle(avatar_dir: str | Path, config: EngineExportConfig = Eng
                 # "studio": the last joint is the root, whose slot carries the global orientation Rh (a
                 # root-zero pose, as the viewer's, is the body facing the studio's +Z)
                 "orientation": (meta.get("model_config") or {}).get("orientation", "body")}
-    from uvatar.avh.export import avatar_body
-
     body_name, shape = avatar_body(meta, meta_path)
 
     if body is None:
