@@ -14,7 +14,7 @@ import numpy as np
 from uvatar.capture.fbx_file import FbxNode
 from uvatar.capture.types import TexturedMesh
 
-__all__ = ["fbx_document", "fbx_scene_nodes", "layer_node", "material_layer", "material_nodes", "mesh_model", "prop",
+__all__ = ["fbx_document", "fbx_scene_nodes", "layer_node", "material_layer", "material_nodes", "mesh_model", "mesh_records", "prop",
            "settings_nodes", "write_fbx_mesh"]
 
 
@@ -82,11 +82,21 @@ def fbx_scene_nodes(mesh: TexturedMesh, name: str, png: bytes | None, creator: s
     """The records of a one-mesh FBX scene: ``mesh`` (metres, +Y up) as the Model ``name``, its UVs per
     corner, and (``png``: the texture's PNG bytes) a material whose DiffuseColor is that image,
     embedded; Y up, -Z forward, metres (UnitScaleFactor 100)."""
-    ids = {k: np.int64(1_000_000 + i) for i, k in enumerate(("model", "geometry", "material", "texture", "video"))}
+    ids = tuple(np.int64(1_000_000 + i) for i in range(5))
+    objects, links = mesh_records(mesh, name, png, ids)
+    return fbx_document(objects, [("OO", ids[0], np.int64(0))] + links, creator)
+
+
+def mesh_records(mesh: TexturedMesh, name: str, png: bytes | None, ids: tuple,
+                 material: str = "skin") -> tuple[list[FbxNode], list[tuple]]:
+    """(records, connections) of ``mesh`` (metres, +Y up) as the Model ``name`` (not yet linked to a
+    parent), its Mesh geometry with UVs per corner, and its material ``material`` wearing ``png``
+    (embedded; none without it). ``ids``: the Model's, geometry's, material's, texture's and video's."""
+    model, geometry_id, material_id, texture, video = ids
     faces = np.asarray(mesh.faces, np.int32).reshape(-1, 3)
     corners = faces.copy()
     corners[:, 2] = -1 - corners[:, 2]                       # a polygon ends at a negative index
-    geometry = FbxNode("Geometry", [ids["geometry"], f"Geometry::{name}", "Mesh"], [
+    geometry = FbxNode("Geometry", [geometry_id, f"Geometry::{name}", "Mesh"], [
         FbxNode("Properties70"), FbxNode("GeometryVersion", [124]),
         FbxNode("Vertices", [np.asarray(mesh.vertices, np.float64).reshape(-1)]),
         FbxNode("PolygonVertexIndex", [corners.reshape(-1)])])
@@ -100,10 +110,9 @@ def fbx_scene_nodes(mesh: TexturedMesh, name: str, png: bytes | None, creator: s
             FbxNode("UVIndex", [np.asarray(mesh.uv_faces, np.int32).reshape(-1)])]))
         layers.append("LayerElementUV")
     geometry.children += [material_layer(), layer_node(0, layers + ["LayerElementMaterial"])]
-    materials, material_links = material_nodes((ids["material"], ids["texture"], ids["video"]), "skin", png)
-    links = [("OO", ids["model"], np.int64(0)), ("OO", ids["geometry"], ids["model"]),
-             ("OO", ids["material"], ids["model"])] + material_links
-    return fbx_document([geometry, mesh_model(ids["model"], name)] + materials, links, creator)
+    materials, material_links = material_nodes((material_id, texture, video), material, png)
+    links = [("OO", geometry_id, model), ("OO", material_id, model)] + material_links
+    return [geometry, mesh_model(model, name)] + materials, links
 
 
 def material_layer() -> FbxNode:

@@ -40,7 +40,7 @@ from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError, one_line
 from uvatar.io_utils import referenced_file
 
-__all__ = ["FbxScene", "read_fbx_mesh", "fbx_header", "euler_matrix", "axis_matrix"]
+__all__ = ["FbxScene", "read_fbx_mesh", "scene_mesh", "fbx_header", "euler_matrix", "axis_matrix", "MALFORMED"]
 
 ROTATION_ORDERS = ("XYZ", "XZY", "YZX", "YXZ", "ZXY", "ZYX", "XYZ")   # eEulerXYZ ... eSphericXYZ
 COLOUR_SLOTS = ("DiffuseColor", "Maya|baseColor", "Maya|TEX_color_map", "base_color", "BaseColor", "baseColor",
@@ -97,6 +97,7 @@ class FbxScene:
                 self.objects[node.props[0]] = node
         self.parent_of: dict = {}                          # object -> parents it hangs from (OO)
         self.children_of: dict = {}                        # parent -> [(child, property or "")]
+        self._property_of: dict = {}                       # object -> [(parent, the parent's property)] (OP)
         for c in top.get("Connections", FbxNode("")).children:
             if c.name not in ("C", "Connect") or len(c.props) < 3:
                 continue
@@ -105,8 +106,11 @@ class FbxScene:
             self.children_of.setdefault(parent, []).append((child, prop))
             if kind == "OO":
                 self.parent_of.setdefault(child, []).append(parent)
+            elif kind == "OP" and isinstance(prop, str):
+                self._property_of.setdefault(child, []).append((parent, prop))
         settings = top.get("GlobalSettings")
         props = settings.properties70() if settings is not None else {}
+        self.settings: dict[str, list] = props             # GlobalSettings' Properties70
         get = lambda name, default: int(props[name][0]) if props.get(name) else default  # noqa: E731
         self.stated = settings is not None
         try:
@@ -129,6 +133,11 @@ class FbxScene:
         return (f"FBX GlobalSettings: {sign}{up} up, {self.cm_per_unit:g} cm a unit: read in metres, +Y up")
 
     # ---- the scene graph
+    def property_targets(self, object_id) -> list[tuple]:
+        """(object id, property name) of each property ``object_id`` drives (its ``OP`` links: a curve
+        node's animated property, a texture's material slot)."""
+        return list(self._property_of.get(object_id, []))
+
     def _class(self, node: FbxNode) -> str:
         name = node.props[1] if len(node.props) > 1 and isinstance(node.props[1], str) else ""
         return node.props[2] if len(node.props) > 2 and isinstance(node.props[2], str) else name.split("::")[0]
@@ -355,9 +364,16 @@ def read_fbx_mesh(path: Path, load_texture=None) -> TexturedMesh:
 
 
 def _read_fbx_mesh(path: Path) -> TexturedMesh:
+    return scene_mesh(*_read(path))
+
+
+def scene_mesh(scene: FbxScene, instances: list) -> TexturedMesh:
+    """The mesh instances ``instances`` (of :meth:`FbxScene.mesh_instances`) joined into one TexturedMesh
+    in metres, +Y up, wearing their materials' images (several: one atlas); a frame of a file, or the
+    meshes of a take's frame (:mod:`uvatar.capture.fbx_take`). Raises the reader's errors unwrapped."""
     from uvatar.io_utils import read_image, read_image_bytes
 
-    scene, instances = _read(path)
+    path = scene.path
     pieces, has_uvs, face_tiles = [], set(), []
     distinct: dict = {}                                # each image (bytes or Path) -> its tile, in order of use
     to_uvatar = scene.to_uvatar()

@@ -19,16 +19,14 @@ import numpy as np
 
 from uvatar.avh.exporters.fbx import euler_xyz_degrees, fresh_ids, skinned_rig
 from uvatar.avh.exporters.glb import SkinnedMesh
+from uvatar.capture.fbx_anim import CUSTOM_TIME_MODE, KTIME_PER_SECOND, LINEAR_KEY
 from uvatar.capture.fbx_file import FbxNode, fbx_bytes
 from uvatar.capture.fbx_mesh_writer import fbx_document, prop
 from uvatar.io_utils import encode_image, write_bytes
 
-__all__ = ["KTIME_PER_SECOND", "avatar_rig", "continuous_euler", "motion_fbx_nodes", "write_avatar_motion_fbx",
+__all__ = ["avatar_rig", "continuous_euler", "motion_fbx_nodes", "write_avatar_motion_fbx",
            "write_motion_fbx"]
 
-KTIME_PER_SECOND = 46186158000       # FBX 7's time unit
-LINEAR_KEY = 1 << 2                  # KeyAttrFlags: eInterpolationLinear
-CUSTOM_TIME_MODE = 14                # GlobalSettings TimeMode: the rate in CustomFrameRate
 
 
 def continuous_euler(angles: np.ndarray) -> np.ndarray:
@@ -116,11 +114,10 @@ def write_motion_fbx(path: str | Path, mesh: SkinnedMesh, local_rotmats: np.ndar
 def avatar_rig(avatar_dir: str | Path, body_model=None) -> tuple[SkinnedMesh, object]:
     """(the skinned body of an exported avatar, as its ``avatar.glb`` / ``avatar.fbx`` hold it, with the
     GLB's mean texture; the body model) from ``avatar.json`` and ``manifest.json``."""
-    from uvatar.avh.export import avatar_body
+    from uvatar.avh.avatar_file import avatar_body, read_avatar_json
     from uvatar.avh.exporters.engine import (
         EngineExportConfig,
         engine_mesh,
-        read_avatar_json,
     )
     from uvatar.capture.meshio import read_mesh
     from uvatar.errors import InputError

@@ -1,6 +1,6 @@
 """``uvatar capture import`` of a volumetric video: a sequence of textured meshes, one per frame.
 
-Six layouts are read (:func:`find_mesh_sequence`):
+Seven layouts are read (:func:`find_mesh_sequence`):
 
 - **UVOL 1** (the player's first format, :mod:`~uvatar.capture.importers.uvol1`): ``NAME.manifest``,
   ``NAME.drcs`` (Corto meshes end to end, :mod:`uvatar.capture.mesh_corto`) and ``NAME.mp4`` (the
@@ -13,6 +13,9 @@ Six layouts are read (:func:`find_mesh_sequence`):
 
 - **Alembic** (:mod:`~uvatar.capture.importers.alembic`): one ``.abc`` mesh cache (Ogawa; PolyMesh or SubD,
   tracked or each frame its own topology) with per-frame images, a texture video or one image beside it.
+
+- **FBX** (:mod:`~uvatar.capture.importers.fbx`): one ``.fbx`` scene holding a mesh a frame, each shown at its
+  frame by its visibility keys, each wearing its own material's image (or the textures beside the file).
 
 - **USD** (:mod:`~uvatar.capture.importers.usd`): one ``.usd``/``.usda``/``.usdc``/``.usdz`` stage whose mesh
   moves, each frame wearing its material's texture (or the textures beside it).
@@ -57,6 +60,7 @@ from uvatar.capture.importers.alembic import (
     close_alembic,
     find_alembic,
 )
+from uvatar.capture.importers.fbx import close_fbx, fbx_sequence, find_fbx_take
 from uvatar.capture.importers.frame_reader import (
     layered_format,
     point_cloud_config,
@@ -153,9 +157,12 @@ def find_mesh_sequence(src: str | Path, fps: float = 0.0) -> MeshSequence:
     usd = find_usd(src)
     if usd is not None:
         return usd_sequence(usd, fps)
+    fbx = find_fbx_take(src, fps)
+    if fbx is not None:
+        return fbx_sequence(fbx)
     if src.is_file():
         raise InputError(src, "is one file, not a take: give the folder of its per-frame meshes, or a take "
-                              "file (.abc, .usd/.usda/.usdc/.usdz, .vols, a UVOL .manifest)")
+                              "file (.abc, .fbx, .usd/.usda/.usdc/.usdz, .vols, a UVOL .manifest)")
     if not src.is_dir():
         raise InputError(src, "volumetric video folder does not exist")
     manifest_path = find_manifest(src)
@@ -334,6 +341,7 @@ def close_sources() -> None:
     close_videos()
     close_vols()
     close_alembic()
+    close_fbx()
     close_usd()
 
 

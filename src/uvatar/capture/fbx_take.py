@@ -1,0 +1,179 @@
+"""A volumetric take in one FBX file: a mesh a frame, each shown by its visibility.
+
+This is how Maya, 3ds Max and Blender export a sequence of scans into one scene, and how studios hand
+such a take to a game engine: every frame's mesh is its own ``Model``, with its own material and image,
+and a ``Visibility`` curve keyed (stepped) to show it at its frame and hide it at the others. Frame ``n``
+of the scene's rate (:mod:`uvatar.capture.fbx_anim`) is the meshes visible then, joined
+(:func:`uvatar.capture.mesh_fbx.scene_mesh`: metres, +Y up, their materials' images).
+
+A Model is visible when its ``Visibility`` (animated, else its property, default 1) is above 0.5 and
+its ``Show`` is not off, and, where its ``Visibility Inheritance`` is on (the default), its parent Model
+is visible too. Frames run over the first stack's time span (else the settings', else the visibility
+keys'), at the scene's rate (else the given one, else 30 fps), each evaluated a hundredth of a frame
+after its time so that keys rounded to other ticks fall where their frame is.
+
+Refused in one line, naming the file: a mesh (or a Model above it) whose transform is animated, blend
+shapes animated (a tracked take's vertex animation), point caches, and a file without visibility keys
+(one frame's mesh: a folder of such files is a take; a skinned, animated rig is a motion).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from uvatar.capture.fbx_anim import (
+    KTIME_PER_SECOND,
+    FbxCurve,
+    animated_properties,
+    scene_frame_rate,
+    scene_time_span,
+)
+from uvatar.capture.mesh_fbx import MALFORMED, FbxScene, scene_mesh
+from uvatar.capture.types import TexturedMesh
+from uvatar.errors import InputError, one_line
+
+__all__ = ["FbxTake", "DEFAULT_FPS"]
+
+DEFAULT_FPS = 30.0
+TRANSFORMS = ("Lcl Translation", "Lcl Rotation", "Lcl Scaling")
+MAX_FRAMES = 1_000_000
+
+
+def _name(node) -> str:
+    name = node.props[1] if len(node.props) > 1 and isinstance(node.props[1], str) else "?"
+    return name.split("::", 1)[-1] if "::" in name else name.split("\x00")[0]
+
+
+class FbxTake:
+    """The frames of a one-file FBX take (module doc): ``frames`` {frame number: indices into
+    ``instances``}, ``fps``, ``fps_stated``, ``notes``; :meth:`mesh` joins a frame's meshes."""
+
+    def __init__(self, path: str | Path, fps: float = 0.0):
+        self.path = Path(path)
+        try:
+            self._list(fps)
+        except MALFORMED as exc:
+            raise InputError(self.path, f"FBX file is malformed ({type(exc).__name__}: {one_line(exc)})") from None
+
+    def _list(self, fps: float) -> None:
+        self.scene = scene = FbxScene(self.path)
+        self.instances = scene.mesh_instances()
+        if not self.instances:
+            raise InputError(self.path, "FBX file holds no mesh")
+        self.notes: list[str] = []
+        self._anim = animated_properties(scene)
+        self._refuse_what_is_not_read()
+        self._visibility_cache: dict = {}
+        keyed = [k for k, (_, _, model) in enumerate(self.instances) if self._keyed(model)]
+        if not keyed:
+            raise InputError(self.path, "is one frame's mesh (no mesh has visibility keys): give the folder of a "
+                                        "take's per-frame .fbx files, or one FBX whose frames' meshes are shown by "
+                                        f"their visibility{self._rig_hint()}")
+        stated = scene_frame_rate(scene)
+        self.fps_stated = bool(stated)
+        self.fps = stated or float(fps) or DEFAULT_FPS
+        if not stated:
+            self.notes.append(f"{self.path}: no frame rate in the FBX GlobalSettings (TimeMode): frames at "
+                              f"{self.fps:g} fps" + ("" if fps else " (the import's fps option sets another)"))
+        span = scene_time_span(scene) or self._key_span()
+        per_frame = KTIME_PER_SECOND / self.fps
+        first, last = (int(np.rint(t / per_frame)) for t in span)
+        if last < first or last - first >= MAX_FRAMES:
+            raise InputError(self.path, f"FBX time span holds {last - first + 1} frames at {self.fps:g} fps")
+        numbers = np.arange(first, last + 1)
+        ktimes = np.rint((numbers + 0.01) * per_frame).astype(np.int64)
+        shown = np.stack([self._visible(model, ktimes) for _, _, model in self.instances], 1)    # (F, I)
+        empty = ~shown.any(1)
+        if empty.any():
+            self.notes.append(f"{self.path}: {int(empty.sum())} of {len(numbers)} frames show no mesh: left out")
+        self.frames = {int(n): np.flatnonzero(row).tolist() for n, row in zip(numbers, shown, strict=True) if row.any()}
+        if len({tuple(v) for v in self.frames.values()}) < 2:
+            raise InputError(self.path, "shows the same meshes at every frame: one frame's mesh, not a take")
+        repeats = int((shown[1:] == shown[:-1]).all(1)[~empty[1:]].sum())
+        if repeats:
+            self.notes.append(f"{self.path}: {repeats} frames show the same meshes as the frame before (meshes held "
+                              f"longer than a frame at {self.fps:g} fps)")
+
+    # ---- what the reader refuses
+    def _chain(self, model_id) -> list:
+        out, node_id = [], model_id
+        while node_id is not None and node_id not in out:
+            out.append(node_id)
+            node_id = self.scene._model_parent(node_id)
+        return out
+
+    def _refuse_what_is_not_read(self) -> None:
+        for _, _, model_id in self.instances:
+            for node_id in self._chain(model_id):
+                for prop in TRANSFORMS:
+                    if any(c.varies for c in self._anim.get((node_id, prop), {}).values()):
+                        what = "mesh" if node_id == model_id else "Model above mesh"
+                        raise InputError(self.path, f"animates the {prop} of {what} "
+                                                    f"{_name(self.scene.objects[node_id])}: only meshes shown by their "
+                                                    "visibility in a still scene are read")
+        for oid, node in self.scene.objects.items():
+            kind = self.scene._class(node)
+            if node.name == "Deformer" and kind == "BlendShapeChannel" and \
+                    any(c.varies for c in self._anim.get((oid, "DeformPercent"), {}).values()):
+                raise InputError(self.path, f"animates blend shape {_name(node)} (a tracked take's vertex "
+                                            "animation), which is not read: export the frames as meshes")
+            if node.name in ("Deformer", "Cache") and kind in ("VertexCacheDeformer", "Cache"):
+                raise InputError(self.path, f"holds a point cache ({_name(node)}), which is not read: export the "
+                                            "frames as meshes")
+
+    def _rig_hint(self) -> str:
+        if any(n.name == "Deformer" and self.scene._class(n) == "Skin" for n in self.scene.objects.values()):
+            return "; a skinned, animated rig is a motion (`uvatar motion convert`)"
+        return ""
+
+    # ---- visibility
+    def _own(self, model_id) -> FbxCurve:
+        channels = self._anim.get((model_id, "Visibility"), {})
+        if "Visibility" in channels:
+            return channels["Visibility"]
+        p = self.scene.objects[model_id].properties70()
+        return FbxCurve.constant(float(p["Visibility"][0]) if p.get("Visibility") else 1.0)
+
+    def _keyed(self, model_id) -> bool:
+        return any(self._own(m).varies for m in self._chain(model_id))
+
+    def _key_span(self) -> tuple[int, int]:
+        times = np.concatenate([self._own(m).times for _, _, model in self.instances for m in self._chain(model)])
+        return int(times.min()), int(times.max())
+
+    def _visible(self, model_id, ktimes: np.ndarray) -> np.ndarray:
+        cached = self._visibility_cache.get(model_id)
+        if cached is not None:
+            return cached
+        p = self.scene.objects[model_id].properties70()
+        shown = self._own(model_id).at(ktimes) > 0.5
+        if p.get("Show") and not p["Show"][0]:
+            shown[:] = False
+        parent = self.scene._model_parent(model_id)
+        inherits = not p.get("Visibility Inheritance") or bool(p["Visibility Inheritance"][0])
+        self._visibility_cache[model_id] = shown        # before the parent's: a cycle ends here
+        if parent is not None and inherits:
+            shown &= self._visible(parent, ktimes)
+        return shown
+
+    # ---- frames
+    def has_textures(self) -> bool:
+        """Whether any of the take's meshes wears an image of its material."""
+        return any(t is not None for geometry, _, model_id in self.instances
+                   for t in self.scene.material_textures(model_id, self.scene._id_of(geometry)))
+
+    def mesh(self, number: int) -> TexturedMesh:
+        """Frame ``number``'s visible meshes joined (metres, +Y up, their images)."""
+        try:
+            return scene_mesh(self.scene, [self.instances[k] for k in self.frames[number]])
+        except MALFORMED as exc:
+            raise InputError(self.path, f"frame {number}: FBX mesh is malformed ({type(exc).__name__}: "
+                                        f"{one_line(exc)})") from None
+
+    def describe(self) -> str:
+        counts = [len(v) for v in self.frames.values()]
+        each = f"{counts[0]} mesh" if min(counts) == max(counts) == 1 else f"{min(counts)}-{max(counts)} meshes"
+        return (f"FBX take: {len(self.frames)} frames at {self.fps:g} fps, {len(self.instances)} meshes shown by "
+                f"their visibility ({each} a frame); {self.scene.describe_settings()}")

@@ -1,0 +1,143 @@
+"""One-file FBX takes (a mesh a frame shown by its visibility keys): frames as ufbx evaluates them, each
+frame's mesh and image read back, imported end to end by `uvatar capture import`, the curves'
+evaluation against known answers, and what is not read refused in one line."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.fixtures.fbx_take import curve_records, fbx_take_nodes, write_fbx_take
+from tests.fixtures.ufbx_reference import ufbx_visible_nodes
+from uvatar.capture.fbx_anim import CONSTANT_KEY, CONSTANT_NEXT, KTIME_PER_SECOND, LINEAR_KEY, FbxCurve
+from uvatar.capture.fbx_file import fbx_bytes
+from uvatar.capture.fbx_mesh_writer import write_fbx_mesh
+from uvatar.capture.fbx_take import FbxTake
+from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
+from uvatar.capture.mesh_fbx import read_fbx_mesh
+from uvatar.capture.meshio import read_mesh
+from uvatar.cli.main import main
+from uvatar.errors import InputError
+from uvatar.io_utils import read_image, write_image
+
+FIX = Path(__file__).parent / "fixtures" / "fbx"
+
+
+def _meshes(count: int = 4) -> list:
+    """``count`` frames of Blender's Z-up fixture, each moved 10 cm along x and wearing a flat grey of its own."""
+    base = read_fbx_mesh(FIX / "zup.fbx")
+    return [type(base)(base.vertices + np.float32([0.1 * k, 0, 0]), base.faces, base.uvs, base.uv_faces,
+                       np.full((8, 8, 3), 0.2 * k + 0.1, np.float32)) for k in range(count)]
+
+
+def test_frames_are_the_meshes_ufbx_shows_and_read_back_exactly(tmp_path):
+    meshes = _meshes()
+    path = write_fbx_take(tmp_path / "take.fbx", meshes, fps=24, time_mode=11, hold=2)   # 24 fps, each held 2
+    take = FbxTake(path)
+    assert take.fps == 24 and take.fps_stated and sorted(take.frames) == list(range(1, 9))
+    shown = ufbx_visible_nodes(path, [n / 24 for n in sorted(take.frames)])
+    names = [[f"frame_{k:04d}" for k in take.frames[n]] for n in sorted(take.frames)]
+    assert names == shown == [[f"frame_{(n - 1) // 2:04d}"] for n in range(1, 9)]
+    assert any("4 frames show the same meshes as the frame before" in n for n in take.notes)
+    for n, ks in take.frames.items():
+        mesh, source = take.mesh(n), meshes[ks[0]]
+        np.testing.assert_allclose(mesh.vertices, source.vertices, atol=1e-6)
+        np.testing.assert_array_equal(mesh.faces, source.faces)
+        assert np.abs(mesh.texture - source.texture).max() < 1 / 255
+    assert "8 frames at 24 fps, 4 meshes shown by their visibility (1 mesh a frame)" in take.describe()
+
+
+def test_a_take_imports_end_to_end_from_the_file_or_its_folder(tmp_path):
+    meshes = _meshes(3)
+    path = write_fbx_take(tmp_path / "src" / "take.fbx", meshes, fps=30, first=10)
+    assert main(["capture", "import", str(path), str(tmp_path / "cap"), "--no-progress"]) == 0
+    summary = import_mesh_sequence(tmp_path / "src", tmp_path / "cap2", progress=False)    # the folder of one take
+    assert summary["frames"] == 3 and summary["fps"] == 30 and summary["units"] == "m" and not summary["problems"]
+    assert any("FBX take: 3 frames at 30 fps" in n for n in summary["notes"])
+    for cap in ("cap", "cap2"):
+        for k, mesh in enumerate(meshes):
+            scan = read_mesh(tmp_path / cap / "scans" / f"{10 + k:06d}.ply")
+            np.testing.assert_allclose(scan.vertices.min(0), mesh.vertices.min(0), atol=1e-6)
+            assert len(scan.faces) == len(mesh.faces)
+            image = read_image(tmp_path / cap / "scans" / f"{10 + k:06d}.png")
+            assert np.abs(image - mesh.texture[0, 0]).max() < 1 / 255
+
+
+def test_a_take_without_images_wears_the_images_beside_it(tmp_path):
+    meshes = _meshes(3)
+    path = write_fbx_take(tmp_path / "src" / "take.fbx", meshes, textures=False)
+    for k in range(3):
+        write_image(tmp_path / "src" / "textures" / f"take_{k + 1:04d}.png", np.full((4, 4, 3), 0.3 * k, np.float32))
+    summary = import_mesh_sequence(path, tmp_path / "cap", progress=False)
+    assert summary["frames"] == 3 and not summary["problems"]
+    for k in range(3):
+        assert np.abs(read_image(tmp_path / "cap" / "scans" / f"{k + 1:06d}.png") - 0.3 * k).max() < 1 / 255
+
+
+def test_a_hidden_group_hides_its_meshes_and_a_frame_rate_can_be_given(tmp_path):
+    def hide_the_group_at_frame_2(new_id, layer, models, group):
+        tick = KTIME_PER_SECOND / 30
+        objects, links = curve_records((new_id(), new_id()), group, "Visibility", "Visibility",
+                                       np.rint(np.array([1, 2, 3]) * tick), [1.0, 0.0, 1.0])
+        return objects, links + [("OO", objects[0].props[0], layer)]
+
+    nodes = fbx_take_nodes(_meshes(3), fps=30, time_mode=0, animate=hide_the_group_at_frame_2)
+    (tmp_path / "take.fbx").write_bytes(fbx_bytes(nodes))
+    take = FbxTake(tmp_path / "take.fbx", fps=30)                  # TimeMode 0: no rate stated, 30 given
+    assert not take.fps_stated and take.fps == 30 and take.frames == {1: [0], 3: [2]}
+    assert any("1 of 3 frames show no mesh: left out" in n for n in take.notes)
+    default = FbxTake(tmp_path / "take.fbx")
+    assert default.fps == 30 and any("no frame rate in the FBX GlobalSettings" in n for n in default.notes)
+
+
+def test_curves_evaluate_as_the_fbx_sdk_defines_them():
+    tick = KTIME_PER_SECOND // 30
+    times = np.array([0, 10, 20], np.int64) * tick
+    stepped = FbxCurve(times, np.array([0.0, 1.0, 0.0]), np.full(3, CONSTANT_KEY))
+    at = np.array([-5, 0, 5, 10, 15, 19, 20, 40]) * tick
+    np.testing.assert_array_equal(stepped.at(at), [0, 0, 0, 1, 1, 1, 0, 0])
+    following = FbxCurve(times, np.array([0.0, 1.0, 0.0]), np.full(3, CONSTANT_KEY | CONSTANT_NEXT))
+    np.testing.assert_array_equal(following.at(at), [0, 0, 1, 1, 0, 0, 0, 0])
+    linear = FbxCurve(times, np.array([0.0, 2.0, 0.0]), np.full(3, LINEAR_KEY))
+    np.testing.assert_allclose(linear.at(at), [0, 0, 1, 2, 1, 0.2, 0, 0])
+    assert not linear.cubic and linear.varies and not FbxCurve.constant(3.0).varies
+    np.testing.assert_array_equal(FbxCurve.constant(3.0).at(at), np.full(8, 3.0))
+
+
+def _moving_transform(new_id, layer, models, group):
+    tick = KTIME_PER_SECOND / 30
+    objects, links = curve_records((new_id(), new_id()), models[1], "Lcl Translation", "X",
+                                   np.rint(np.array([1, 3]) * tick), [0.0, 50.0], flags=LINEAR_KEY)
+    return objects, links + [("OO", objects[0].props[0], layer)]
+
+
+def test_what_is_not_read_is_refused_in_one_line(tmp_path):
+    cases = {}
+    write_fbx_mesh(tmp_path / "one.fbx", _meshes(1)[0])
+    cases["one.fbx"] = "is one frame's mesh (no mesh has visibility keys)"
+    write_fbx_take(tmp_path / "moving.fbx", _meshes(3), animate=_moving_transform)
+    cases["moving.fbx"] = "animates the Lcl Translation of mesh frame_0001"
+    data = (tmp_path / "moving.fbx").read_bytes()
+    (tmp_path / "cut.fbx").write_bytes(data[: len(data) // 2])
+    cases["cut.fbx"] = "FBX file is cut or corrupt"
+    for name, message in cases.items():
+        with pytest.raises(InputError, match=re.escape(message)) as err:
+            import_mesh_sequence(tmp_path / name, tmp_path / f"cap_{name}", progress=False)
+        assert "\n" not in str(err.value) and name in str(err.value)
+        assert not (tmp_path / f"cap_{name}").exists()
+    assert main(["capture", "import", str(tmp_path / "moving.fbx"), str(tmp_path / "cap"), "--no-progress"]) == 1
+
+
+def test_a_broken_frame_is_one_line_and_the_others_import(tmp_path):
+    nodes = fbx_take_nodes(_meshes(3))
+    objects = next(n for n in nodes if n.name == "Objects").children
+    broken = next(n for n in objects if n.name == "Geometry" and n.props[1] == "Geometry::frame_0001")
+    broken.find("PolygonVertexIndex").props = [np.array([0, 1, -10**6], np.int32)]
+    (tmp_path / "take.fbx").write_bytes(fbx_bytes(nodes))
+    summary = import_mesh_sequence(tmp_path / "take.fbx", tmp_path / "cap", progress=False)
+    assert summary["frames"] == 2 and len(summary["problems"]) == 1
+    assert "take.fbx" in summary["problems"][0] and "past the" in summary["problems"][0]
+    assert sorted(p.name for p in (tmp_path / "cap" / "scans").glob("*.ply")) == ["000001.ply", "000003.ply"]
