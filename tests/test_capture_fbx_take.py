@@ -38,7 +38,7 @@ def test_frames_are_the_meshes_ufbx_shows_and_read_back_exactly(tmp_path):
     path = write_fbx_take(tmp_path / "take.fbx", meshes, fps=24, time_mode=11, hold=2)   # 24 fps, each held 2
     take = FbxTake(path)
     assert take.fps == 24 and take.fps_stated and sorted(take.frames) == list(range(1, 9))
-    shown = ufbx_visible_nodes(path, [n / 24 for n in sorted(take.frames)])
+    shown = ufbx_visible_nodes(path, [n / 24 for n in sorted(take.frames)], "frame_")
     names = [[f"frame_{k:04d}" for k in take.frames[n]] for n in sorted(take.frames)]
     assert names == shown == [[f"frame_{(n - 1) // 2:04d}"] for n in range(1, 9)]
     assert any("4 frames show the same meshes as the frame before" in n for n in take.notes)
