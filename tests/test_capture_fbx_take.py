@@ -1,5 +1,5 @@
-"""One-file FBX takes (a mesh a frame shown by its visibility keys): frames as ufbx evaluates them, each
-frame's mesh and image read back, imported end to end by `uvatar capture import`, the curves'
+"""One-file FBX takes (a mesh a frame shown by its visibility keys; a tracked mesh moved by blend shapes):
+frames and offsets as ufbx evaluates them, each frame's mesh and image read back, imported end to end by `uvatar capture import`, the curves'
 evaluation against known answers, and what is not read refused in one line."""
 
 from __future__ import annotations
@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.fixtures.fbx_take import curve_records, fbx_take_nodes, write_fbx_take
-from tests.fixtures.ufbx_reference import ufbx_visible_nodes
+from tests.fixtures.fbx_take import curve_records, fbx_blend_take_nodes, fbx_take_nodes, write_fbx_take
+from tests.fixtures.ufbx_reference import ufbx_blend_offsets, ufbx_visible_nodes
 from uvatar.capture.fbx_anim import CONSTANT_KEY, CONSTANT_NEXT, KTIME_PER_SECOND, LINEAR_KEY, FbxCurve
+from uvatar.capture.fbx_blend import BlendChannel, blend_offsets
 from uvatar.capture.fbx_file import fbx_bytes
 from uvatar.capture.fbx_mesh_writer import write_fbx_mesh
 from uvatar.capture.fbx_take import FbxTake
@@ -47,7 +48,7 @@ def test_frames_are_the_meshes_ufbx_shows_and_read_back_exactly(tmp_path):
         np.testing.assert_allclose(mesh.vertices, source.vertices, atol=1e-6)
         np.testing.assert_array_equal(mesh.faces, source.faces)
         assert np.abs(mesh.texture - source.texture).max() < 1 / 255
-    assert "8 frames at 24 fps, 4 meshes shown by their visibility (1 mesh a frame)" in take.describe()
+    assert "8 frames at 24 fps, 4 meshes (1 mesh a frame)" in take.describe()
 
 
 def test_a_take_imports_end_to_end_from_the_file_or_its_folder(tmp_path):
@@ -117,7 +118,7 @@ def _moving_transform(new_id, layer, models, group):
 def test_what_is_not_read_is_refused_in_one_line(tmp_path):
     cases = {}
     write_fbx_mesh(tmp_path / "one.fbx", _meshes(1)[0])
-    cases["one.fbx"] = "is one frame's mesh (no mesh has visibility keys)"
+    cases["one.fbx"] = "is one frame's mesh (no mesh has visibility keys or animated blend shapes)"
     write_fbx_take(tmp_path / "moving.fbx", _meshes(3), animate=_moving_transform)
     cases["moving.fbx"] = "animates the Lcl Translation of mesh frame_0001"
     data = (tmp_path / "moving.fbx").read_bytes()
@@ -141,3 +142,53 @@ def test_a_broken_frame_is_one_line_and_the_others_import(tmp_path):
     assert summary["frames"] == 2 and len(summary["problems"]) == 1
     assert "take.fbx" in summary["problems"][0] and "past the" in summary["problems"][0]
     assert sorted(p.name for p in (tmp_path / "cap" / "scans").glob("*.ply")) == ["000001.ply", "000003.ply"]
+
+
+def _tracked(count: int = 5):
+    """A tracked take: the fixture's mesh and ``count`` frames of its vertices moved (frame 0 the rest)."""
+    base = _meshes(1)[0]
+    rng = np.random.default_rng(0)
+    moved = rng.random(len(base.vertices)) < 0.7                 # some points stay: sparse shapes
+    frames = np.stack([base.vertices + (0 if k == 0 else moved[:, None] * rng.normal(0, 0.01, base.vertices.shape))
+                       for k in range(count)])
+    return base, frames
+
+
+@pytest.mark.parametrize("in_between", [False, True], ids=["a-channel-a-frame", "in-between-shapes"])
+def test_a_tracked_take_of_blend_shapes_reads_each_frame_as_ufbx_evaluates_it(tmp_path, in_between):
+    base, frames = _tracked()
+    (tmp_path / "tracked.fbx").write_bytes(fbx_bytes(fbx_blend_take_nodes(base, frames, in_between=in_between)))
+    take = FbxTake(tmp_path / "tracked.fbx")
+    assert take.frames == {k: [0] for k in range(5)}
+    assert "moved by 4 blend shapes in " + ("1 channels" if in_between else "4 channels") in take.describe()
+    for k in range(5):
+        mesh = take.mesh(k)
+        np.testing.assert_allclose(mesh.vertices, frames[k], atol=1e-6)
+        np.testing.assert_array_equal(mesh.faces, base.faces)
+        theirs = ufbx_blend_offsets(tmp_path / "tracked.fbx", k / 30, len(base.vertices))
+        np.testing.assert_allclose(mesh.vertices - base.vertices, theirs, atol=1e-6)
+    summary = import_mesh_sequence(tmp_path / "tracked.fbx", tmp_path / "cap", progress=False)
+    assert summary["frames"] == 5 and not summary["problems"]
+    scan = read_mesh(tmp_path / "cap" / "scans" / "000003.ply")
+    np.testing.assert_allclose(scan.vertices, frames[3], atol=1e-6)
+
+
+def test_blend_weights_between_and_past_in_between_shapes():
+    a, b = np.array([[1.0, 0, 0]]), np.array([[0, 2.0, 0]])
+    channel = BlendChannel("c", np.array([50.0, 100.0]), [(np.array([0]), a), (np.array([1]), b)], FbxCurve.constant(0))
+    np.testing.assert_allclose(channel.offsets(25, 2), [[0.5, 0, 0], [0, 0, 0]])           # half the first shape
+    np.testing.assert_allclose(channel.offsets(75, 2), [[0.5, 0, 0], [0, 1.0, 0]])         # halfway between them
+    np.testing.assert_allclose(channel.offsets(120, 2), [[-0.4, 0, 0], [0, 2.8, 0]])       # the last two's line
+    one = BlendChannel("one", np.array([100.0]), [(np.array([1]), b)], FbxCurve.constant(0))
+    np.testing.assert_allclose(one.offsets(150, 2), [[0, 0, 0], [0, 3.0, 0]])
+    np.testing.assert_allclose(blend_offsets([channel, one], np.array([75.0, 50.0]), 2), [[0.5, 0, 0], [0, 2.0, 0]])
+
+
+def test_a_blend_shape_that_does_not_fit_its_mesh_is_one_line(tmp_path):
+    base, frames = _tracked(3)
+    nodes = fbx_blend_take_nodes(base, frames, sparse=False)
+    shape = next(n for n in next(n for n in nodes if n.name == "Objects").children if n.props[2:3] == ["Shape"])
+    shape.find("Indexes").props[0][-1] = len(base.vertices) + 5
+    (tmp_path / "bad.fbx").write_bytes(fbx_bytes(nodes))
+    with pytest.raises(InputError, match=r"bad.fbx: FBX blend shape frame_0001 moves a point past the mesh's"):
+        FbxTake(tmp_path / "bad.fbx")

@@ -63,12 +63,14 @@ class FbxCurve:
     def varies(self) -> bool:
         return bool(np.ptp(self.values) > 0) if len(self.values) else False
 
-    def at(self, ktimes) -> np.ndarray:
-        """(N,) the channel's values at ``ktimes`` (N,) KTime (module doc)."""
+    def at(self, ktimes, tolerance: int = 0) -> np.ndarray:
+        """(N,) the channel's values at ``ktimes`` (N,) KTime (module doc); a key up to ``tolerance`` ticks
+        after a time counts as reached (keys other tools rounded to other ticks than a frame's)."""
         t = np.asarray(ktimes, np.int64).reshape(-1)
         if len(self.times) == 1:
             return np.full(len(t), self.values[0])
-        k = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)   # the key before
+        k = np.clip(np.searchsorted(self.times, t + int(tolerance), side="right") - 1, 0, len(self.times) - 2)
+        t = np.maximum(t, np.minimum(self.times[k], t + int(tolerance)))       # the key before, when within reach
         t0, t1 = self.times[k], self.times[k + 1]
         v0, v1 = self.values[k], self.values[k + 1]
         a = np.clip((t - t0) / np.maximum(t1 - t0, 1).astype(np.float64), 0.0, 1.0)

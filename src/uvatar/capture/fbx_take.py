@@ -1,20 +1,25 @@
-"""A volumetric take in one FBX file: a mesh a frame, each shown by its visibility.
+"""A volumetric take in one FBX file: a mesh a frame, each shown by its visibility, or a tracked mesh
+moved by blend shapes.
 
 This is how Maya, 3ds Max and Blender export a sequence of scans into one scene, and how studios hand
 such a take to a game engine: every frame's mesh is its own ``Model``, with its own material and image,
 and a ``Visibility`` curve keyed (stepped) to show it at its frame and hide it at the others. Frame ``n``
 of the scene's rate (:mod:`uvatar.capture.fbx_anim`) is the meshes visible then, joined
-(:func:`uvatar.capture.mesh_fbx.scene_mesh`: metres, +Y up, their materials' images).
+(:func:`uvatar.capture.mesh_fbx.scene_mesh`: metres, +Y up, their materials' images). A tracked take
+(one topology, its points moving) is stored as blend shapes that engines import as morph targets: a
+channel a frame keyed 100 at its frame, or one channel of in-between shapes; each frame's points are the
+mesh's plus the channels' offsets at their weights then (:mod:`uvatar.capture.fbx_blend`). Both can
+meet in one file.
 
 A Model is visible when its ``Visibility`` (animated, else its property, default 1) is above 0.5 and
 its ``Show`` is not off, and, where its ``Visibility Inheritance`` is on (the default), its parent Model
 is visible too. Frames run over the first stack's time span (else the settings', else the visibility
-keys'), at the scene's rate (else the given one, else 30 fps), each evaluated a hundredth of a frame
-after its time so that keys rounded to other ticks fall where their frame is.
+keys'), at the scene's rate (else the given one, else 30 fps), each evaluated at its time, a key up to a
+hundredth of a frame later counting as reached (keys other tools rounded to other ticks).
 
-Refused in one line, naming the file: a mesh (or a Model above it) whose transform is animated, blend
-shapes animated (a tracked take's vertex animation), point caches, and a file without visibility keys
-(one frame's mesh: a folder of such files is a take; a skinned, animated rig is a motion).
+Refused in one line, naming the file: a mesh (or a Model above it) whose transform is animated, point
+caches (their .mc / .pc2 files are not read), and a file with neither visibility keys nor animated blend
+shapes (one frame's mesh: a folder of such files is a take; a skinned, animated rig is a motion).
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from uvatar.capture.fbx_anim import (
     scene_frame_rate,
     scene_time_span,
 )
+from uvatar.capture.fbx_blend import blend_channels, blend_offsets
 from uvatar.capture.mesh_fbx import MALFORMED, FbxScene, scene_mesh
 from uvatar.capture.types import TexturedMesh
 from uvatar.errors import InputError, one_line
@@ -39,6 +45,13 @@ __all__ = ["FbxTake", "DEFAULT_FPS"]
 DEFAULT_FPS = 30.0
 TRANSFORMS = ("Lcl Translation", "Lcl Rotation", "Lcl Scaling")
 MAX_FRAMES = 1_000_000
+
+
+def _points(geometry) -> np.ndarray:
+    """(P, 3) a mesh geometry's control points (the file's units); InputError-free: the frame reader
+    reports a geometry without them."""
+    points = geometry.array("Vertices", np.float64)
+    return np.zeros((0, 3)) if points is None or len(points) % 3 else points.reshape(-1, 3)
 
 
 def _name(node) -> str:
@@ -66,11 +79,19 @@ class FbxTake:
         self._anim = animated_properties(scene)
         self._refuse_what_is_not_read()
         self._visibility_cache: dict = {}
+        self._blend = {}                                   # geometry id -> its blend channels
+        for geometry, _, _ in self.instances:
+            gid = scene._id_of(geometry)
+            if gid not in self._blend:
+                channels = blend_channels(scene, gid, len(_points(geometry)), self._anim)
+                if channels:
+                    self._blend[gid] = channels
         keyed = [k for k, (_, _, model) in enumerate(self.instances) if self._keyed(model)]
-        if not keyed:
-            raise InputError(self.path, "is one frame's mesh (no mesh has visibility keys): give the folder of a "
-                                        "take's per-frame .fbx files, or one FBX whose frames' meshes are shown by "
-                                        f"their visibility{self._rig_hint()}")
+        deformed = any(c.weight.varies for channels in self._blend.values() for c in channels)
+        if not keyed and not deformed:
+            raise InputError(self.path, "is one frame's mesh (no mesh has visibility keys or animated blend shapes): "
+                                        "give the folder of a take's per-frame .fbx files, or one FBX whose frames' "
+                                        f"meshes are shown by their visibility or moved by blend shapes{self._rig_hint()}")
         stated = scene_frame_rate(scene)
         self.fps_stated = bool(stated)
         self.fps = stated or float(fps) or DEFAULT_FPS
@@ -83,17 +104,24 @@ class FbxTake:
         if last < first or last - first >= MAX_FRAMES:
             raise InputError(self.path, f"FBX time span holds {last - first + 1} frames at {self.fps:g} fps")
         numbers = np.arange(first, last + 1)
-        ktimes = np.rint((numbers + 0.01) * per_frame).astype(np.int64)
+        ktimes = np.rint(numbers * per_frame).astype(np.int64)
+        self._tolerance = int(per_frame // 100)        # a key a hundredth of a frame late is the frame's
         shown = np.stack([self._visible(model, ktimes) for _, _, model in self.instances], 1)    # (F, I)
+        self._weights = {gid: np.stack([c.weight.at(ktimes, self._tolerance) for c in channels], 1)             # (F, C) percent
+                         for gid, channels in self._blend.items()}
         empty = ~shown.any(1)
         if empty.any():
             self.notes.append(f"{self.path}: {int(empty.sum())} of {len(numbers)} frames show no mesh: left out")
         self.frames = {int(n): np.flatnonzero(row).tolist() for n, row in zip(numbers, shown, strict=True) if row.any()}
-        if len({tuple(v) for v in self.frames.values()}) < 2:
+        self._row = {int(n): i for i, n in enumerate(numbers)}
+        same = (shown[1:] == shown[:-1]).all(1)
+        for w in self._weights.values():
+            same &= (w[1:] == w[:-1]).all(1)
+        if not deformed and len({tuple(v) for v in self.frames.values()}) < 2:
             raise InputError(self.path, "shows the same meshes at every frame: one frame's mesh, not a take")
-        repeats = int((shown[1:] == shown[:-1]).all(1)[~empty[1:]].sum())
+        repeats = int(same[~empty[1:]].sum())
         if repeats:
-            self.notes.append(f"{self.path}: {repeats} frames show the same meshes as the frame before (meshes held "
+            self.notes.append(f"{self.path}: {repeats} frames show the same meshes as the frame before (held "
                               f"longer than a frame at {self.fps:g} fps)")
 
     # ---- what the reader refuses
@@ -113,12 +141,8 @@ class FbxTake:
                         raise InputError(self.path, f"animates the {prop} of {what} "
                                                     f"{_name(self.scene.objects[node_id])}: only meshes shown by their "
                                                     "visibility in a still scene are read")
-        for oid, node in self.scene.objects.items():
+        for node in self.scene.objects.values():
             kind = self.scene._class(node)
-            if node.name == "Deformer" and kind == "BlendShapeChannel" and \
-                    any(c.varies for c in self._anim.get((oid, "DeformPercent"), {}).values()):
-                raise InputError(self.path, f"animates blend shape {_name(node)} (a tracked take's vertex "
-                                            "animation), which is not read: export the frames as meshes")
             if node.name in ("Deformer", "Cache") and kind in ("VertexCacheDeformer", "Cache"):
                 raise InputError(self.path, f"holds a point cache ({_name(node)}), which is not read: export the "
                                             "frames as meshes")
@@ -140,7 +164,8 @@ class FbxTake:
         return any(self._own(m).varies for m in self._chain(model_id))
 
     def _key_span(self) -> tuple[int, int]:
-        times = np.concatenate([self._own(m).times for _, _, model in self.instances for m in self._chain(model)])
+        times = np.concatenate([self._own(m).times for _, _, model in self.instances for m in self._chain(model)]
+                               + [c.weight.times for channels in self._blend.values() for c in channels])
         return int(times.min()), int(times.max())
 
     def _visible(self, model_id, ktimes: np.ndarray) -> np.ndarray:
@@ -148,7 +173,7 @@ class FbxTake:
         if cached is not None:
             return cached
         p = self.scene.objects[model_id].properties70()
-        shown = self._own(model_id).at(ktimes) > 0.5
+        shown = self._own(model_id).at(ktimes, self._tolerance) > 0.5
         if p.get("Show") and not p["Show"][0]:
             shown[:] = False
         parent = self.scene._model_parent(model_id)
@@ -166,14 +191,25 @@ class FbxTake:
 
     def mesh(self, number: int) -> TexturedMesh:
         """Frame ``number``'s visible meshes joined (metres, +Y up, their images)."""
+        instances = [self.instances[k] for k in self.frames[number]]
         try:
-            return scene_mesh(self.scene, [self.instances[k] for k in self.frames[number]])
+            points = {}
+            for geometry, _, _ in instances:
+                gid = self.scene._id_of(geometry)
+                if gid in self._blend and gid not in points:
+                    base = _points(geometry)
+                    weights = self._weights[gid][self._row[number]]
+                    points[gid] = base + blend_offsets(self._blend[gid], weights, len(base))
+            return scene_mesh(self.scene, instances, points)
         except MALFORMED as exc:
             raise InputError(self.path, f"frame {number}: FBX mesh is malformed ({type(exc).__name__}: "
                                         f"{one_line(exc)})") from None
 
     def describe(self) -> str:
         counts = [len(v) for v in self.frames.values()]
-        each = f"{counts[0]} mesh" if min(counts) == max(counts) == 1 else f"{min(counts)}-{max(counts)} meshes"
-        return (f"FBX take: {len(self.frames)} frames at {self.fps:g} fps, {len(self.instances)} meshes shown by "
-                f"their visibility ({each} a frame); {self.scene.describe_settings()}")
+        each = f"{counts[0]} mesh" if min(counts) == max(counts) else f"{min(counts)}-{max(counts)} meshes"
+        shapes = sum(len(c.shapes) for channels in self._blend.values() for c in channels)
+        moved = (f", moved by {shapes} blend shape{'s' if shapes > 1 else ''} in "
+                 f"{sum(len(c) for c in self._blend.values())} channels") if self._blend else ""
+        return (f"FBX take: {len(self.frames)} frames at {self.fps:g} fps, {len(self.instances)} mesh"
+                f"{'es' if len(self.instances) > 1 else ''} ({each} a frame){moved}; {self.scene.describe_settings()}")

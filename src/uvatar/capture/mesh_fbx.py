@@ -367,10 +367,11 @@ def _read_fbx_mesh(path: Path) -> TexturedMesh:
     return scene_mesh(*_read(path))
 
 
-def scene_mesh(scene: FbxScene, instances: list) -> TexturedMesh:
+def scene_mesh(scene: FbxScene, instances: list, points: dict | None = None) -> TexturedMesh:
     """The mesh instances ``instances`` (of :meth:`FbxScene.mesh_instances`) joined into one TexturedMesh
     in metres, +Y up, wearing their materials' images (several: one atlas); a frame of a file, or the
-    meshes of a take's frame (:mod:`uvatar.capture.fbx_take`). Raises the reader's errors unwrapped."""
+    meshes of a take's frame (:mod:`uvatar.capture.fbx_take`), ``points`` {geometry id: (P, 3) control
+    points in the file's units} replacing a deformed geometry's own. Raises the reader's errors unwrapped."""
     from uvatar.io_utils import read_image, read_image_bytes
 
     path = scene.path
@@ -379,6 +380,9 @@ def scene_mesh(scene: FbxScene, instances: list) -> TexturedMesh:
     to_uvatar = scene.to_uvatar()
     for geometry, model, model_id in instances:
         polygons = scene.polygons(geometry)
+        moved = (points or {}).get(scene._id_of(geometry))
+        if moved is not None:
+            polygons["points"] = np.asarray(moved, np.float64).reshape(polygons["points"].shape)
         has_uvs.add(polygons["uvs"] is not None)
         world = to_uvatar @ scene.world_matrix(model_id) @ scene.geometric_matrix(model)
         pieces.append(polygons_to_triangles(polygons, clockwise=False, world=world))
