@@ -61,7 +61,8 @@ def _name(node) -> str:
 
 class FbxTake:
     """The frames of a one-file FBX take (module doc): ``frames`` {frame number: indices into
-    ``instances``}, ``fps``, ``fps_stated``, ``notes``; :meth:`mesh` joins a frame's meshes."""
+    ``instances``}, ``time_of`` {frame number: its KTime}, ``fps``, ``fps_stated``, ``notes``;
+    :meth:`mesh` joins a frame's meshes, :meth:`mesh_at` the meshes shown at a time."""
 
     def __init__(self, path: str | Path, fps: float = 0.0):
         self.path = Path(path)
@@ -78,7 +79,6 @@ class FbxTake:
         self.notes: list[str] = []
         self._anim = animated_properties(scene)
         self._refuse_what_is_not_read()
-        self._visibility_cache: dict = {}
         self._blend = {}                                   # geometry id -> its blend channels
         for geometry, _, _ in self.instances:
             gid = scene._id_of(geometry)
@@ -106,16 +106,15 @@ class FbxTake:
         numbers = np.arange(first, last + 1)
         ktimes = np.rint(numbers * per_frame).astype(np.int64)
         self._tolerance = int(per_frame // 100)        # a key a hundredth of a frame late is the frame's
-        shown = np.stack([self._visible(model, ktimes) for _, _, model in self.instances], 1)    # (F, I)
-        self._weights = {gid: np.stack([c.weight.at(ktimes, self._tolerance) for c in channels], 1)             # (F, C) percent
-                         for gid, channels in self._blend.items()}
+        shown = self._shown(ktimes)                                                           # (F, I)
+        weights = self._blend_weights(ktimes)
         empty = ~shown.any(1)
         if empty.any():
             self.notes.append(f"{self.path}: {int(empty.sum())} of {len(numbers)} frames show no mesh: left out")
         self.frames = {int(n): np.flatnonzero(row).tolist() for n, row in zip(numbers, shown, strict=True) if row.any()}
-        self._row = {int(n): i for i, n in enumerate(numbers)}
+        self.time_of = {int(n): int(t) for n, t in zip(numbers, ktimes, strict=True) if int(n) in self.frames}
         same = (shown[1:] == shown[:-1]).all(1)
-        for w in self._weights.values():
+        for w in weights.values():
             same &= (w[1:] == w[:-1]).all(1)
         if not deformed and len({tuple(v) for v in self.frames.values()}) < 2:
             raise InputError(self.path, "shows the same meshes at every frame: one frame's mesh, not a take")
@@ -168,8 +167,18 @@ class FbxTake:
                                + [c.weight.times for channels in self._blend.values() for c in channels])
         return int(times.min()), int(times.max())
 
-    def _visible(self, model_id, ktimes: np.ndarray) -> np.ndarray:
-        cached = self._visibility_cache.get(model_id)
+    def _shown(self, ktimes: np.ndarray) -> np.ndarray:
+        """(T, I) whether each mesh instance is visible at each of ``ktimes``."""
+        cache: dict = {}
+        return np.stack([self._visible(model, ktimes, cache) for _, _, model in self.instances], 1)
+
+    def _blend_weights(self, ktimes: np.ndarray) -> dict:
+        """{geometry id: (T, C) its blend channels' weights (percent) at ``ktimes``}."""
+        return {gid: np.stack([c.weight.at(ktimes, self._tolerance) for c in channels], 1)
+                for gid, channels in self._blend.items()}
+
+    def _visible(self, model_id, ktimes: np.ndarray, cache: dict) -> np.ndarray:
+        cached = cache.get(model_id)
         if cached is not None:
             return cached
         p = self.scene.objects[model_id].properties70()
@@ -178,9 +187,9 @@ class FbxTake:
             shown[:] = False
         parent = self.scene._model_parent(model_id)
         inherits = not p.get("Visibility Inheritance") or bool(p["Visibility Inheritance"][0])
-        self._visibility_cache[model_id] = shown        # before the parent's: a cycle ends here
+        cache[model_id] = shown                          # before the parent's: a cycle ends here
         if parent is not None and inherits:
-            shown &= self._visible(parent, ktimes)
+            shown &= self._visible(parent, ktimes, cache)
         return shown
 
     # ---- frames
@@ -191,19 +200,27 @@ class FbxTake:
 
     def mesh(self, number: int) -> TexturedMesh:
         """Frame ``number``'s visible meshes joined (metres, +Y up, their images)."""
-        instances = [self.instances[k] for k in self.frames[number]]
+        return self.mesh_at(self.time_of[number])
+
+    def mesh_at(self, ktime: int) -> TexturedMesh:
+        """The meshes visible at ``ktime`` (KTime), moved by their blend shapes then, joined (metres, +Y
+        up, their images); InputError naming the file where none is."""
+        t = np.array([int(ktime)], np.int64)
+        instances = [self.instances[k] for k in np.flatnonzero(self._shown(t)[0])]
+        if not instances:
+            raise InputError(self.path, f"shows no mesh at {ktime / KTIME_PER_SECOND:g} s")
+        weights = self._blend_weights(t)
         try:
             points = {}
             for geometry, _, _ in instances:
                 gid = self.scene._id_of(geometry)
                 if gid in self._blend and gid not in points:
                     base = _points(geometry)
-                    weights = self._weights[gid][self._row[number]]
-                    points[gid] = base + blend_offsets(self._blend[gid], weights, len(base))
+                    points[gid] = base + blend_offsets(self._blend[gid], weights[gid][0], len(base))
             return scene_mesh(self.scene, instances, points)
         except MALFORMED as exc:
-            raise InputError(self.path, f"frame {number}: FBX mesh is malformed ({type(exc).__name__}: "
-                                        f"{one_line(exc)})") from None
+            raise InputError(self.path, f"at {ktime / KTIME_PER_SECOND:g} s: FBX mesh is malformed "
+                                        f"({type(exc).__name__}: {one_line(exc)})") from None
 
     def describe(self) -> str:
         counts = [len(v) for v in self.frames.values()]

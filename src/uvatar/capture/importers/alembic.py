@@ -30,6 +30,7 @@ ABC_SUFFIXES = (".abc",)
 DEFAULT_FPS = 30.0      # where neither the sampling nor the archive says
 
 _open: dict[Path, tuple[AlembicTake, dict[int, int]]] = {}   # listed takes: (take, sample of each frame number)
+_opened_here: dict[Path, AlembicTake] = {}                   # takes a worker process opened to read samples
 
 
 def find_alembic(src: Path) -> Path | None:
@@ -52,13 +53,17 @@ def find_alembic(src: Path) -> Path | None:
     return files[0] if files else None
 
 
-def alembic_mesh(path: Path, frame: int):
-    """Frame ``frame`` of the listed take ``path``, or the one sample of a per-frame file (the archive's
-    units and axes, no texture)."""
+def alembic_mesh(path: Path, frame: int, sample: int | None = None):
+    """Frame ``frame`` of the listed take ``path`` (or, in a worker process that did not list it, its
+    sample ``sample``), or the one sample of a per-frame file (the archive's units and axes, no texture)."""
     listed = _open.get(Path(path))
     if listed is not None:
         take, sample_of = listed
         return take.mesh(sample_of[frame])
+    if sample is not None:                        # a worker: the take opened once in this process
+        if Path(path) not in _opened_here:
+            _opened_here[Path(path)] = AlembicTake(path)
+        return _opened_here[Path(path)].mesh(sample)
     take = AlembicTake(path)                      # one frame of a folder of per-frame files
     try:
         if take.count != 1:
@@ -71,9 +76,10 @@ def alembic_mesh(path: Path, frame: int):
 
 def close_alembic() -> None:
     """Close the takes listed by this import."""
-    for take, _ in _open.values():
+    for take in [t for t, _ in _open.values()] + list(_opened_here.values()):
         take.close()
     _open.clear()
+    _opened_here.clear()
 
 
 def _frame_numbers(take: AlembicTake, fps: float, seq: MeshSequence) -> list[int]:
@@ -106,6 +112,6 @@ def alembic_sequence(path: Path, fps: float = 0.0) -> MeshSequence:
                          f"{DEFAULT_FPS:g} fps (the import's fps option sets another)")
     numbers = _frame_numbers(take, fps, seq)
     _open[path] = (take, {n: i for i, n in enumerate(numbers)})
-    seq.frames = {n: FrameSource(n, path) for n in numbers}
+    seq.frames = {n: FrameSource(n, path, sample=i) for i, n in enumerate(numbers)}
     attach_beside_textures(seq, path, numbers, fps)
     return seq

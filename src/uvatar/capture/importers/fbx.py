@@ -16,7 +16,7 @@ from uvatar.capture.importers.beside_textures import attach_beside_textures
 from uvatar.capture.importers.sequence import FrameSource, MeshSequence
 from uvatar.errors import InputError
 
-__all__ = ["FBX_SUFFIXES", "find_fbx_take", "fbx_sequence", "fbx_take_mesh", "close_fbx", "is_listed_fbx_take"]
+__all__ = ["FBX_SUFFIXES", "find_fbx_take", "fbx_sequence", "fbx_take_mesh", "close_fbx"]
 
 FBX_SUFFIXES = (".fbx",)
 
@@ -40,16 +40,15 @@ def find_fbx_take(src: Path, fps: float = 0.0) -> FbxTake | None:
         return None
 
 
-def is_listed_fbx_take(path: Path) -> bool:
-    return Path(path) in _open
-
-
-def fbx_take_mesh(path: Path, frame: int):
-    """Frame ``frame`` of the listed take ``path`` (metres, +Y up, its meshes' images)."""
+def fbx_take_mesh(path: Path, frame: int, ktime: int | None = None):
+    """Frame ``frame`` of the listed take ``path`` (or, in a worker process that did not list it, the take
+    at ``ktime``, opened once in this process): metres, +Y up, its meshes' images."""
     take = _open.get(Path(path))
     if take is None:
-        raise InputError(path, "FBX take not listed before its frames were read")
-    return take.mesh(frame)
+        if ktime is None:
+            raise InputError(path, "FBX take not listed before its frames were read")
+        _open[Path(path)] = take = FbxTake(path)      # its frame numbers may differ here (the rate): times do not
+    return take.mesh(frame) if ktime is None else take.mesh_at(ktime)
 
 
 def close_fbx() -> None:
@@ -59,7 +58,7 @@ def close_fbx() -> None:
 def fbx_sequence(take: FbxTake) -> MeshSequence:
     """A listed FBX take's frames and where each one's texture comes from."""
     numbers = sorted(take.frames)
-    seq = MeshSequence({n: FrameSource(n, take.path) for n in numbers}, "fbx take", fps=take.fps if take.fps_stated
+    seq = MeshSequence({n: FrameSource(n, take.path, sample=take.time_of[n]) for n in numbers}, "fbx take", fps=take.fps if take.fps_stated
                        else 0.0, units="m", up="+y", manifest=take.path)
     seq.notes.append(f"{take.path}: {take.describe()}")
     seq.notes += take.notes

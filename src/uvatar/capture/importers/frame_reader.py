@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from uvatar.capture.importers.alembic import ABC_SUFFIXES, alembic_mesh
-from uvatar.capture.importers.fbx import FBX_SUFFIXES, fbx_take_mesh, is_listed_fbx_take
+from uvatar.capture.importers.fbx import FBX_SUFFIXES, fbx_take_mesh
 from uvatar.capture.importers.sequence import FrameSource
 from uvatar.capture.importers.usd import USD_SUFFIXES, usd_mesh
 from uvatar.capture.importers.uvol1 import MESH_FILE_SUFFIXES, VIDEO_SUFFIXES
@@ -40,11 +40,11 @@ def _read_mesh(source: FrameSource) -> TexturedMesh:
     if suffix in VOLS_SUFFIXES:
         return vols_take(source.mesh).mesh(source.index)
     if suffix in ABC_SUFFIXES:
-        return alembic_mesh(source.mesh, source.index)
+        return alembic_mesh(source.mesh, source.index, source.sample)
     if suffix in USD_SUFFIXES:
-        return usd_mesh(source.mesh, source.index)
-    if suffix in FBX_SUFFIXES and is_listed_fbx_take(source.mesh):
-        return fbx_take_mesh(source.mesh, source.index)
+        return usd_mesh(source.mesh, source.index, source.sample)
+    if suffix in FBX_SUFFIXES and source.sample is not None:       # a frame of a one-file take
+        return fbx_take_mesh(source.mesh, source.index, source.sample)
     if suffix in (".crt",) + MESH_FILE_SUFFIXES:
         return read_crt(source.mesh, byte_range=source.mesh_bytes)
     return read_drc(source.mesh) if suffix == ".drc" else read_mesh(source.mesh, points_ok=True)

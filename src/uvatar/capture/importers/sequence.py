@@ -14,12 +14,15 @@ class FrameSource:
     """Where one frame's mesh and texture come from: ``texture`` is an image path, a ``(ktx2 path,
     layer)`` pair (or ``(etc2 path, 0)``, or ``(video path, video frame)``), None (the mesh's own
     texture) or () (none: the frame cannot be imported); ``mesh_bytes``: (start, length) of the frame in
-    a file of many (a UVOL 1 ``.drcs``)."""
+    a file of many (a UVOL 1 ``.drcs``); ``sample``: the frame's place in a take file, for a worker
+    process that did not list the take (an Alembic sample index, a USD frame index, an FBX take's time in
+    KTime): it opens the file itself and reads that sample."""
 
     index: int
     mesh: Path
     texture: Path | tuple[Path, int] | None = None
     mesh_bytes: tuple[int, int] | None = None
+    sample: int | None = None
 
 
 @dataclass

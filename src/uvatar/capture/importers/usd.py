@@ -37,13 +37,17 @@ def find_usd(src: Path) -> Path | None:
     return files[0] if files else None
 
 
-def usd_mesh(path: Path, frame: int):
-    """Frame ``frame`` of the listed take ``path``, wearing its material's texture where it has one."""
+def usd_mesh(path: Path, frame: int, sample: int | None = None):
+    """Frame ``frame`` of the listed take ``path`` (or, in a worker process that did not list it, its
+    frame index ``sample``), wearing its material's texture where it has one."""
     listed = _open.get(Path(path))
     if listed is None:
-        raise InputError(path, "USD take not listed before its frames were read")
+        if sample is None:
+            raise InputError(path, "USD take not listed before its frames were read")
+        _open[Path(path)] = listed = (UsdTake(path), {})          # a worker: opened once in this process
+        return listed[0].mesh(sample)
     take, index_of = listed
-    return take.mesh(index_of[frame])
+    return take.mesh(index_of[frame] if frame in index_of else sample)
 
 
 def close_usd() -> None:
@@ -60,7 +64,7 @@ def usd_sequence(path: Path, fps: float = 0.0) -> MeshSequence:
         raise InputError(path, f"mesh {take.prim.GetPath()} has no UVs (no st primvar): its textures cannot be "
                                "mapped")
     numbers = take.frame_numbers()
-    seq = MeshSequence({n: FrameSource(n, path) for n in numbers}, "usd", fps=take.fps or fps, units=take.units,
+    seq = MeshSequence({n: FrameSource(n, path, sample=i) for i, n in enumerate(numbers)}, "usd", fps=take.fps or fps, units=take.units,
                        up=take.up, manifest=path)
     seq.notes.append(f"{path}: {take.describe()}")
     if take.meters_per_unit and take.meters_per_unit != 1.0:

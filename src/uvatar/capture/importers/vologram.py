@@ -113,10 +113,14 @@ def _pair(header: Path, sequences: list[Path]) -> Path | None:
 
 
 def vols_take(sequence: Path) -> VolsTake:
-    """The listed take whose sequence file is ``sequence`` (opened by :func:`vols_sequence`)."""
+    """The listed take whose sequence file is ``sequence`` (opened by :func:`vols_sequence`; in a worker
+    process that did not list it, found from that file and opened once here)."""
     take = _open.get(Path(sequence))
     if take is None:
-        raise InputError(sequence, "Volograms take not listed before its frames were read")
+        found = find_vols_take(Path(sequence))
+        if found is None:
+            raise InputError(sequence, "Volograms take not listed before its frames were read")
+        _open[Path(sequence)] = take = open_vols(*found)
     return take
 
 
