@@ -10,7 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.fixtures.fbx_take import curve_records, fbx_blend_take_nodes, fbx_take_nodes, write_fbx_take
+from tests.fixtures.fbx_take import (
+    curve_records,
+    fbx_blend_take_nodes,
+    fbx_cache_take_nodes,
+    fbx_take_nodes,
+    write_fbx_take,
+)
+from tests.fixtures.point_cache import write_maya_cache, write_pc2
 from tests.fixtures.ufbx_reference import ufbx_blend_offsets, ufbx_visible_nodes
 from uvatar.capture.fbx_anim import CONSTANT_KEY, CONSTANT_NEXT, KTIME_PER_SECOND, LINEAR_KEY, FbxCurve
 from uvatar.capture.fbx_blend import BlendChannel, blend_offsets
@@ -20,6 +27,7 @@ from uvatar.capture.fbx_take import FbxTake
 from uvatar.capture.importers.mesh_sequence import import_mesh_sequence
 from uvatar.capture.mesh_fbx import read_fbx_mesh
 from uvatar.capture.meshio import read_mesh
+from uvatar.capture.point_cache import read_point_cache
 from uvatar.cli.main import main
 from uvatar.errors import InputError
 from uvatar.io_utils import read_image, write_image
@@ -118,7 +126,7 @@ def _moving_transform(new_id, layer, models, group):
 def test_what_is_not_read_is_refused_in_one_line(tmp_path):
     cases = {}
     write_fbx_mesh(tmp_path / "one.fbx", _meshes(1)[0])
-    cases["one.fbx"] = "is one frame's mesh (no mesh has visibility keys or animated blend shapes)"
+    cases["one.fbx"] = "is one frame's mesh (no mesh has visibility keys, animated blend shapes or a point cache)"
     write_fbx_take(tmp_path / "moving.fbx", _meshes(3), animate=_moving_transform)
     cases["moving.fbx"] = "animates the Lcl Translation of mesh frame_0001"
     data = (tmp_path / "moving.fbx").read_bytes()
@@ -192,3 +200,82 @@ def test_a_blend_shape_that_does_not_fit_its_mesh_is_one_line(tmp_path):
     (tmp_path / "bad.fbx").write_bytes(fbx_bytes(nodes))
     with pytest.raises(InputError, match=r"bad.fbx: FBX blend shape frame_0001 moves a point past the mesh's"):
         FbxTake(tmp_path / "bad.fbx")
+
+
+def _ufbx_cache_frames(path) -> list[tuple]:
+    """(seconds, byte offset, points, file name) of each frame ufbx finds in a point cache file."""
+    import ufbx
+
+    cache = ufbx.load_geometry_cache(str(path))
+    keep, out = [cache], []
+    channels = cache.channels
+    keep.append(channels)
+    for i in range(len(channels)):
+        channel = channels[i]
+        frames = channel.frames
+        keep += [channel, frames]
+        for j in range(len(frames)):
+            frame = frames[j]
+            keep.append(frame)
+            out.append((round(frame.time, 9), frame.data_offset, frame.data_count, Path(frame.filename).name))
+    frame = frames = channel = channels = cache = None
+    while keep:
+        keep.pop()
+    return out
+
+
+@pytest.mark.parametrize("kind", ["pc2", "maya-one-file", "maya-a-file-a-frame", "maya-doubles"])
+def test_point_caches_read_as_ufbx_finds_their_frames(tmp_path, kind):
+    samples = np.random.default_rng(1).random((4, 6, 3))
+    if kind == "pc2":
+        path = write_pc2(tmp_path / "a.pc2", samples, start=2, rate=1)
+    else:
+        path = write_maya_cache(tmp_path / "b.xml", "bodyShape", samples, [1, 2, 3, 4], fps=24,
+                                one_file=kind == "maya-one-file", double=kind == "maya-doubles")
+    ours = read_point_cache(path, 30.0, "bodyShape")                   # PC2's frames at 30 fps (ufbx's default)
+    ufbx_frames = _ufbx_cache_frames(path)
+    assert [(round(float(t), 9), s[1], ours.num_points, s[0].name) for t, s in zip(ours.times, ours.samples,
+                                                                                   strict=True)] == ufbx_frames
+    for k in range(4):
+        np.testing.assert_allclose(ours.points(k), samples[k], atol=0 if kind == "maya-doubles" else 1e-7)
+    t0, t1 = ours.times[1], ours.times[2]
+    np.testing.assert_allclose(ours.at(0.25 * t0 + 0.75 * t1), 0.25 * ours.points(1) + 0.75 * ours.points(2))
+    np.testing.assert_allclose(ours.at(-1.0), ours.points(0))
+
+
+@pytest.mark.parametrize("cache_type", [1, 2], ids=["pc2", "maya"])
+def test_a_tracked_take_moved_by_a_point_cache_imports_frame_by_frame(tmp_path, cache_type):
+    base, frames = _tracked(4)
+    if cache_type == 1:
+        write_pc2(tmp_path / "src" / "caches" / "tracked.pc2", frames)
+        name = "caches/tracked.pc2"
+    else:
+        write_maya_cache(tmp_path / "src" / "caches" / "tracked.xml", "trackedShape", frames, range(4), fps=24)
+        name = "caches/tracked.xml"
+    nodes = fbx_cache_take_nodes(base, name, cache_type, "trackedShape", 4, fps=24, absolute="/elsewhere/" + name)
+    (tmp_path / "src" / "take.fbx").write_bytes(fbx_bytes(nodes))
+    take = FbxTake(tmp_path / "src" / "take.fbx")
+    assert sorted(take.frames) == [0, 1, 2, 3] and "moved by 1 point cache" in take.describe()
+    summary = import_mesh_sequence(tmp_path / "src" / "take.fbx", tmp_path / "cap", progress=False)
+    assert summary["frames"] == 4 and not summary["problems"]
+    for k in range(4):
+        scan = read_mesh(tmp_path / "cap" / "scans" / f"{k:06d}.ply")
+        np.testing.assert_allclose(scan.vertices, frames[k], atol=1e-6)
+    (tmp_path / "src" / name).unlink()
+    with pytest.raises(InputError, match=r"take.fbx: mesh tracked's point cache caches/tracked\.(pc2|xml) is missing"):
+        FbxTake(tmp_path / "src" / "take.fbx")
+
+
+def test_bad_point_caches_are_one_line(tmp_path):
+    write_pc2(tmp_path / "a.pc2", np.zeros((3, 4, 3)))
+    data = (tmp_path / "a.pc2").read_bytes()
+    (tmp_path / "cut.pc2").write_bytes(data[:-10])
+    (tmp_path / "junk.pc2").write_bytes(b"not a cache at all, no")
+    xml = write_maya_cache(tmp_path / "m.xml", "s", np.zeros((2, 4, 3)), [1, 2])
+    (tmp_path / "m.mc").write_bytes((tmp_path / "m.mc").read_bytes()[:60])
+    (tmp_path / "x.xml").write_text("<Autodesk_Cache_File><cacheType Type='OneFile' Format='mcx'/></Autodesk_Cache_File>")
+    for path, message in ((tmp_path / "cut.pc2", "PC2 point cache is cut"), (tmp_path / "junk.pc2", "not a PC2"),
+                          (xml, "Maya cache is cut or corrupt"), (tmp_path / "x.xml", "64-bit Maya cache")):
+        with pytest.raises(InputError, match=message) as err:
+            read_point_cache(path, 30.0, "s")
+        assert "\n" not in str(err.value) and path.name.split(".")[0] in str(err.value)

@@ -17,9 +17,14 @@ is visible too. Frames run over the first stack's time span (else the settings',
 keys'), at the scene's rate (else the given one, else 30 fps), each evaluated at its time, a key up to a
 hundredth of a frame later counting as reached (keys other tools rounded to other ticks).
 
-Refused in one line, naming the file: a mesh (or a Model above it) whose transform is animated, point
-caches (their .mc / .pc2 files are not read), and a file with neither visibility keys nor animated blend
-shapes (one frame's mesh: a folder of such files is a take; a skinned, animated rig is a motion).
+A point cache (a ``VertexCacheDeformer`` whose ``Cache`` names a 3ds Max ``.pc2`` or a Maya ``.xml`` +
+``.mc`` beside the file: :mod:`uvatar.capture.point_cache`) gives a mesh's points at each frame (linear
+between its samples); PC2's frames are the scene's.
+
+Refused in one line, naming the file: a mesh (or a Model above it) whose transform is animated, a mesh
+moved by blend shapes and a point cache both, a missing cache file, and a file with neither visibility
+keys, animated blend shapes nor a point cache (one frame's mesh: a folder of such files is a take; a
+skinned, animated rig is a motion).
 """
 
 from __future__ import annotations
@@ -79,22 +84,30 @@ class FbxTake:
         self.notes: list[str] = []
         self._anim = animated_properties(scene)
         self._refuse_what_is_not_read()
-        self._blend = {}                                   # geometry id -> its blend channels
-        for geometry, _, _ in self.instances:
-            gid = scene._id_of(geometry)
-            if gid not in self._blend:
-                channels = blend_channels(scene, gid, len(_points(geometry)), self._anim)
-                if channels:
-                    self._blend[gid] = channels
-        keyed = [k for k, (_, _, model) in enumerate(self.instances) if self._keyed(model)]
-        deformed = any(c.weight.varies for channels in self._blend.values() for c in channels)
-        if not keyed and not deformed:
-            raise InputError(self.path, "is one frame's mesh (no mesh has visibility keys or animated blend shapes): "
-                                        "give the folder of a take's per-frame .fbx files, or one FBX whose frames' "
-                                        f"meshes are shown by their visibility or moved by blend shapes{self._rig_hint()}")
         stated = scene_frame_rate(scene)
         self.fps_stated = bool(stated)
         self.fps = stated or float(fps) or DEFAULT_FPS
+        self._blend, self._caches = {}, {}                 # geometry id -> its blend channels, its point cache
+        for geometry, _, _ in self.instances:
+            gid, n_points = scene._id_of(geometry), len(_points(geometry))
+            if gid not in self._blend and gid not in self._caches:
+                channels = blend_channels(scene, gid, n_points, self._anim)
+                cache = self._point_cache(gid, geometry, n_points)
+                if channels and cache is not None:
+                    raise InputError(self.path, f"mesh {_name(geometry)} is moved by blend shapes and a point cache "
+                                                "both, which is not read")
+                if channels:
+                    self._blend[gid] = channels
+                if cache is not None:
+                    self._caches[gid] = cache
+        keyed = [k for k, (_, _, model) in enumerate(self.instances) if self._keyed(model)]
+        deformed = any(c.weight.varies for channels in self._blend.values() for c in channels) or \
+            any(len(cache.times) > 1 for cache in self._caches.values())
+        if not keyed and not deformed:
+            raise InputError(self.path, "is one frame's mesh (no mesh has visibility keys, animated blend shapes or a "
+                                        "point cache): give the folder of a take's per-frame .fbx files, or one FBX "
+                                        "whose frames' meshes are shown by their visibility or moved by blend shapes "
+                                        f"or a point cache{self._rig_hint()}")
         if not stated:
             self.notes.append(f"{self.path}: no frame rate in the FBX GlobalSettings (TimeMode): frames at "
                               f"{self.fps:g} fps" + ("" if fps else " (the import's fps option sets another)"))
@@ -116,6 +129,8 @@ class FbxTake:
         same = (shown[1:] == shown[:-1]).all(1)
         for w in weights.values():
             same &= (w[1:] == w[:-1]).all(1)
+        if self._caches:                                   # each frame takes the cache's points at its time
+            same[:] = False
         if not deformed and len({tuple(v) for v in self.frames.values()}) < 2:
             raise InputError(self.path, "shows the same meshes at every frame: one frame's mesh, not a take")
         repeats = int(same[~empty[1:]].sum())
@@ -140,11 +155,41 @@ class FbxTake:
                         raise InputError(self.path, f"animates the {prop} of {what} "
                                                     f"{_name(self.scene.objects[node_id])}: only meshes shown by their "
                                                     "visibility in a still scene are read")
-        for node in self.scene.objects.values():
-            kind = self.scene._class(node)
-            if node.name in ("Deformer", "Cache") and kind in ("VertexCacheDeformer", "Cache"):
-                raise InputError(self.path, f"holds a point cache ({_name(node)}), which is not read: export the "
-                                            "frames as meshes")
+
+    def _point_cache(self, geometry_id, geometry, n_points: int):
+        """The :class:`~uvatar.capture.point_cache.PointCache` moving a mesh geometry (an active
+        VertexCacheDeformer's Cache: its file beside the FBX, or where it says), or None."""
+        from uvatar.capture.point_cache import read_point_cache
+
+        for deformer_id, _ in self.scene.children_of.get(geometry_id, []):
+            deformer = self.scene.objects.get(deformer_id)
+            if deformer is None or deformer.name != "Deformer" or self.scene._class(deformer) != "VertexCacheDeformer":
+                continue
+            p = deformer.properties70()
+            if p.get("Active") and not p["Active"][0]:
+                continue
+            cache = next((self.scene.objects[c] for c, _ in self.scene.children_of.get(deformer_id, [])
+                          if getattr(self.scene.objects.get(c), "name", "") == "Cache"), None)
+            if cache is None:
+                raise InputError(self.path, f"mesh {_name(geometry)}'s vertex cache deformer has no Cache")
+            c = cache.properties70()
+            names = [str(c[k][0]) for k in ("CacheFileName", "CacheAbsoluteFileName") if c.get(k) and c[k][0]]
+            if not names:
+                raise InputError(self.path, f"mesh {_name(geometry)}'s point cache names no file")
+            tried = [self.path.parent / names[0], Path(names[-1]), self.path.parent / Path(names[0].replace("\\", "/")).name]
+            found = next((t for t in tried if t.is_file()), None)
+            if found is None:
+                raise InputError(self.path, f"mesh {_name(geometry)}'s point cache {names[0]} is missing (looked beside "
+                                            "the file and where it says)")
+            channel = str(p["ChannelName"][0]) if p.get("ChannelName") else ""
+            points = read_point_cache(found, self.fps, channel)
+            if points.num_points != n_points:
+                raise InputError(found, f"point cache holds {points.num_points} points, its mesh {_name(geometry)} in "
+                                        f"{self.path.name} {n_points}")
+            self.notes.append(f"{self.path}: mesh {_name(geometry)} moved by the point cache {found.name} "
+                              f"({len(points.times)} samples)")
+            return points
+        return None
 
     def _rig_hint(self) -> str:
         if any(n.name == "Deformer" and self.scene._class(n) == "Skin" for n in self.scene.objects.values()):
@@ -164,7 +209,8 @@ class FbxTake:
 
     def _key_span(self) -> tuple[int, int]:
         times = np.concatenate([self._own(m).times for _, _, model in self.instances for m in self._chain(model)]
-                               + [c.weight.times for channels in self._blend.values() for c in channels])
+                               + [c.weight.times for channels in self._blend.values() for c in channels]
+                               + [np.rint(c.times * KTIME_PER_SECOND).astype(np.int64) for c in self._caches.values()])
         return int(times.min()), int(times.max())
 
     def _shown(self, ktimes: np.ndarray) -> np.ndarray:
@@ -217,6 +263,8 @@ class FbxTake:
                 if gid in self._blend and gid not in points:
                     base = _points(geometry)
                     points[gid] = base + blend_offsets(self._blend[gid], weights[gid][0], len(base))
+                elif gid in self._caches and gid not in points:
+                    points[gid] = self._caches[gid].at(int(ktime) / KTIME_PER_SECOND)
             return scene_mesh(self.scene, instances, points)
         except MALFORMED as exc:
             raise InputError(self.path, f"at {ktime / KTIME_PER_SECOND:g} s: FBX mesh is malformed "
@@ -228,5 +276,6 @@ class FbxTake:
         shapes = sum(len(c.shapes) for channels in self._blend.values() for c in channels)
         moved = (f", moved by {shapes} blend shape{'s' if shapes > 1 else ''} in "
                  f"{sum(len(c) for c in self._blend.values())} channels") if self._blend else ""
+        moved += f", moved by {len(self._caches)} point cache{'s' if len(self._caches) > 1 else ''}" if self._caches else ""
         return (f"FBX take: {len(self.frames)} frames at {self.fps:g} fps, {len(self.instances)} mesh"
                 f"{'es' if len(self.instances) > 1 else ''} ({each} a frame){moved}; {self.scene.describe_settings()}")

@@ -1,5 +1,5 @@
 """One-file FBX takes for ``uvatar capture import``: a mesh a frame shown by its visibility, or a tracked
-mesh moved by blend shapes (:mod:`uvatar.capture.fbx_take`), each frame wearing its meshes' own images; a take whose meshes wear
+mesh moved by blend shapes or a point cache (:mod:`uvatar.capture.fbx_take`), each frame wearing its meshes' own images; a take whose meshes wear
 none wears the textures beside the file (:mod:`~uvatar.capture.importers.beside_textures`). FBX's
 GlobalSettings give the axes and units (read in metres, +Y up) and the frame rate.
 

@@ -15,7 +15,8 @@ Seven layouts are read (:func:`find_mesh_sequence`):
   tracked or each frame its own topology) with per-frame images, a texture video or one image beside it.
 
 - **FBX** (:mod:`~uvatar.capture.importers.fbx`): one ``.fbx`` scene holding a mesh a frame, each shown at its
-  frame by its visibility keys, or a tracked mesh moved by blend shapes; each wearing its own material's
+  frame by its visibility keys, or a tracked mesh moved by blend shapes or a point cache (``.pc2``, Maya
+  ``.xml`` + ``.mc``); each wearing its own material's
   image (or the textures beside the file).
 
 - **USD** (:mod:`~uvatar.capture.importers.usd`): one ``.usd``/``.usda``/``.usdc``/``.usdz`` stage whose mesh
