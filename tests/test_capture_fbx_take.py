@@ -279,3 +279,38 @@ def test_bad_point_caches_are_one_line(tmp_path):
         with pytest.raises(InputError, match=message) as err:
             read_point_cache(path, 30.0, "s")
         assert "\n" not in str(err.value) and path.name.split(".")[0] in str(err.value)
+
+
+@pytest.mark.parametrize("name", ["vis.fbx", "blend.fbx", "c.pc2", "c.mc"])
+def test_fuzzed_takes_and_caches_give_frames_or_one_line(tmp_path, name):
+    """Mutated FBX takes (visibility, blend shapes) and point caches: a take whose frames read, or one line."""
+    from hypothesis import given
+
+    from tests.test_fuzz_readers import FUZZ, expect_valid_or_own_error, mutated
+
+    base, frames = _tracked(3)
+    if name == "vis.fbx":
+        seed = fbx_bytes(fbx_take_nodes(_meshes(3)))
+    elif name == "blend.fbx":
+        seed = fbx_bytes(fbx_blend_take_nodes(base, frames))
+    elif name == "c.pc2":
+        seed = write_pc2(tmp_path / "seed.pc2", frames).read_bytes()
+    else:
+        write_maya_cache(tmp_path / "c.xml", "s", frames, [0, 1, 2])
+        seed = (tmp_path / "c.mc").read_bytes()
+    path = tmp_path / name
+
+    def read():
+        if name.endswith((".mc", ".pc2")):
+            cache = read_point_cache(path.with_suffix(".xml") if name.endswith(".mc") else path, 30.0, "s")
+            return [cache.points(k) for k in range(len(cache.times))]
+        take = FbxTake(path)
+        return [take.mesh(n) for n in take.frames]
+
+    @FUZZ
+    @given(data=mutated(seed))
+    def run(data):
+        path.write_bytes(data)
+        expect_valid_or_own_error(read)
+
+    run()

@@ -52,7 +52,8 @@ class PointCache:
             data = f.read(size)
         if len(data) != size:
             raise InputError(path, f"point cache is cut: sample {k} needs {size} bytes at {offset}, found {len(data)}")
-        points = np.frombuffer(data, dtype).astype(np.float64).reshape(-1, 3)
+        with np.errstate(invalid="ignore", over="ignore"):
+            points = np.frombuffer(data, dtype).astype(np.float64).reshape(-1, 3)
         if not np.isfinite(points).all():
             raise InputError(path, f"point cache sample {k} holds points that are not finite numbers")
         return points
@@ -174,7 +175,11 @@ def read_maya_cache(xml_path: str | Path, channel: str = "") -> PointCache:
     times, samples, points = [], [], None
     start = float(channels[name].get("StartTime") or 0)
     for file_time, path in files:
-        for group_time, group in _mc_groups(path):
+        try:
+            groups = _mc_groups(path)
+        except (struct.error, ValueError) as exc:
+            raise InputError(path, f"Maya cache is cut or corrupt ({type(exc).__name__})") from None
+        for group_time, group in groups:
             if name not in group:
                 continue
             count, offset, dtype = group[name]
