@@ -314,3 +314,16 @@ def test_fuzzed_takes_and_caches_give_frames_or_one_line(tmp_path, name):
         expect_valid_or_own_error(read)
 
     run()
+
+
+def test_blenders_full_weights_a_vertex_scale_its_shapes_offsets(tmp_path):
+    base, frames = _tracked(3)
+    nodes = fbx_blend_take_nodes(base, frames, sparse=False)
+    objects = next(n for n in nodes if n.name == "Objects").children
+    channel = next(n for n in objects if n.props[2:3] == ["BlendShapeChannel"])     # frame 1's, all points
+    per_vertex = np.linspace(0, 100, len(base.vertices))
+    channel.find("FullWeights").props = [per_vertex]
+    (tmp_path / "blender.fbx").write_bytes(fbx_bytes(nodes))
+    take = FbxTake(tmp_path / "blender.fbx")
+    want = base.vertices + (frames[1] - base.vertices) * (per_vertex[:, None] / 100)
+    np.testing.assert_allclose(take.mesh(1).vertices, want, atol=1e-6)

@@ -8,7 +8,9 @@ moves; ``Vertices``: their offsets, in the mesh's units). A channel's weight is 
 (0-100, animated by an ``AnimationCurveNode::DeformPercent``); its shapes apply fully at their
 ``FullWeights`` (percent; one shape: 100). At weight w a channel adds ``w / F0 · S0`` below its first
 full weight, the linear blend of the two shapes around w between them, and the last two's line
-extended above the last (one shape: ``w / 100 · S``) -- the FBX SDK's in-between blending.
+extended above the last (one shape: ``w / 100 · S``) -- the FBX SDK's in-between blending. Blender
+writes ``FullWeights`` as a weight an offset of a channel's one shape (its vertex group); those scale
+the offsets.
 """
 
 from __future__ import annotations
@@ -90,6 +92,10 @@ def blend_channels(scene, geometry_id, n_points: int, anim: dict) -> list[BlendC
             if not shapes:
                 continue
             full = channel.array("FullWeights", np.float64)
+            if full is not None and len(shapes) == 1 and len(full) == len(shapes[0][0]) != 1:
+                # Blender writes a weight an offset here (its vertex group), not a full weight a shape
+                shapes = [(shapes[0][0], shapes[0][1] * (full[:, None] / 100.0))]
+                full = None
             if full is None or len(full) != len(shapes):
                 full = 100.0 * np.arange(1, len(shapes) + 1) / len(shapes)
             order = np.argsort(full, kind="stable")
